@@ -1,0 +1,98 @@
+// `kestrel`: one command line, git-style subcommands.
+#include <cstdio>
+#include <exception>
+#include <iostream>
+#include <vector>
+
+#include "kestrel/commands.hpp"
+
+namespace {
+
+constexpr int kExitUsage = 2;
+
+void print_subcommands(const CLI::App& app) {
+  std::printf("usage: kestrel <command> [options]\n\ncommands:\n");
+  std::printf("  %-8s %s\n", "help", "show this list, or `kestrel help <command>` for its options");
+  std::printf("  %-8s %s\n", "version", "print the version and the optional drivers built in");
+  for (const CLI::App* sub : app.get_subcommands([](const CLI::App*) { return true; })) {
+    if (sub->get_name() == "help" || sub->get_name() == "version") continue;
+    std::printf("  %-8s %s\n", sub->get_name().c_str(), sub->get_description().c_str());
+  }
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  using namespace kestrel::cli;
+  CLI::App app{"Kestrel: onboard RGB-D + IMU visual-inertial estimator", "kestrel"};
+  app.require_subcommand(1, 1);
+  app.fallthrough(false);
+
+  std::vector<Subcommand> commands;
+  auto* help = app.add_subcommand("help", "show the commands, or one command's options");
+  std::string help_topic;
+  help->add_option("command", help_topic, "a subcommand");
+  auto* version = app.add_subcommand("version", "print the version and the optional drivers built in");
+
+  commands.push_back(add_sim_command(app));
+  commands.push_back(add_replay_command(app));
+  commands.push_back(add_eval_command(app));
+  commands.push_back(add_bench_command(app));
+
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::CallForHelp& e) {
+    return app.exit(e);
+  } catch (const CLI::CallForAllHelp& e) {
+    return app.exit(e);
+  } catch (const CLI::ParseError& e) {
+    if (argc < 2) {
+      print_subcommands(app);
+      return kExitUsage;
+    }
+    std::fprintf(stderr, "kestrel: %s\n\n", e.what());
+    const CLI::App* failing = nullptr;
+    for (const auto& c : commands)
+      if (c.app->parsed()) failing = c.app;
+    if (failing != nullptr)
+      std::cerr << failing->help();
+    else
+      print_subcommands(app);
+    return kExitUsage;
+  }
+
+  if (help->parsed()) {
+    if (help_topic.empty()) {
+      print_subcommands(app);
+      return 0;
+    }
+    for (const auto& c : commands) {
+      if (c.app->get_name() == help_topic) {
+        std::cout << c.app->help();
+        return 0;
+      }
+    }
+    std::fprintf(stderr, "kestrel: no command '%s'\n\n", help_topic.c_str());
+    print_subcommands(app);
+    return kExitUsage;
+  }
+  if (version->parsed()) {
+    std::printf("kestrel %s (%s)\n", KESTREL_VERSION, KESTREL_GIT_REV);
+    return 0;
+  }
+  for (const auto& c : commands) {
+    if (!c.app->parsed()) continue;
+    try {
+      return c.run();
+    } catch (const UsageError& e) {
+      std::fprintf(stderr, "kestrel %s: %s\n\n", c.app->get_name().c_str(), e.what());
+      std::cerr << c.app->help();
+      return kExitUsage;
+    } catch (const std::exception& e) {
+      std::fprintf(stderr, "kestrel %s: error: %s\n", c.app->get_name().c_str(), e.what());
+      return 1;
+    }
+  }
+  print_subcommands(app);
+  return kExitUsage;
+}
