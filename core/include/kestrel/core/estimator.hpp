@@ -1,0 +1,76 @@
+// The estimator as the pipeline sees it: fed IMU samples and RGB-D frames in
+// time order, it keeps a newest state. Backends (IMU dead reckoning now; the
+// keyframe window and the EKF later) implement this, and the pipeline's
+// threads, the replay harness and embedders call nothing else.
+#pragma once
+
+#include <cstdint>
+
+#include "kestrel/core/imu_propagator.hpp"
+#include "kestrel/msgs.hpp"
+
+namespace kestrel::core {
+
+// A frame as handed to the estimator: views onto pixels the caller owns for
+// the duration of the call.
+struct RgbdFrame {
+  int64_t t_ns = 0;
+  uint32_t seq = 0;
+  ImageView rgb;     // data == nullptr when absent
+  ImageView depth;   // registered to rgb; data == nullptr when absent
+};
+
+enum class TrackingQuality : uint8_t {
+  kUninitialized = 0,
+  kImuOnly = 1,     // coasting on the IMU: the covariance grows without bound
+  kTracking = 2,
+  kLost = 3,
+};
+
+struct EstimatorOutput {
+  NavState state;
+  TrackingQuality quality = TrackingQuality::kUninitialized;
+  uint32_t reset_counter = 0;
+};
+
+struct EstimatorCounters {
+  uint64_t imu_in = 0;
+  uint64_t imu_used = 0;
+  uint64_t frames_in = 0;
+  uint64_t frames_used = 0;
+  uint64_t resets = 0;
+  ImuRejectCounts imu_rejects;
+};
+
+class Estimator {
+ public:
+  virtual ~Estimator() = default;
+  virtual const char* name() const = 0;
+  // Both return true when the newest output changed.
+  virtual bool add_imu(const ImuSample& s) = 0;
+  virtual bool add_frame(const RgbdFrame& f) = 0;
+  virtual const EstimatorOutput& output() const = 0;
+  virtual const EstimatorCounters& counters() const = 0;
+};
+
+// IMU-only dead reckoning after a static initialisation. Named as what it is:
+// it ignores the camera, and its error grows quadratically with time.
+class DeadReckoningEstimator final : public Estimator {
+ public:
+  DeadReckoningEstimator(const Rig& rig);
+  const char* name() const override { return "imu-dead-reckoning"; }
+  bool add_imu(const ImuSample& s) override;
+  bool add_frame(const RgbdFrame& f) override;
+  const EstimatorOutput& output() const override { return out_; }
+  const EstimatorCounters& counters() const override;
+
+ private:
+  StaticInitializer init_;
+  ImuPropagator prop_;
+  EstimatorOutput out_;
+  mutable EstimatorCounters counters_;
+  int64_t first_t_ns_ = -1;
+  static constexpr int64_t kForceInitAfterNs = 2'000'000'000;
+};
+
+}  // namespace kestrel::core

@@ -1,0 +1,92 @@
+// IMU-only strapdown propagation and static initialisation.
+//
+// This is the estimator of last resort: what the tracker coasts on when vision
+// fails, and, until the visual front end exists, the honest "IMU dead
+// reckoning" baseline that replay runs and bench scores. It never looks at
+// ground truth: the initial attitude comes from gravity, yaw and position are
+// zero, the gyro bias comes from a stationary period.
+#pragma once
+
+#include <Eigen/Core>
+#include <Eigen/Geometry>
+#include <cstdint>
+
+#include "kestrel/msgs.hpp"
+
+namespace kestrel::core {
+
+struct NavState {
+  int64_t t_ns = 0;
+  Eigen::Vector3d p_WB = Eigen::Vector3d::Zero();
+  Eigen::Quaterniond q_WB = Eigen::Quaterniond::Identity();
+  Eigen::Vector3d v_WB = Eigen::Vector3d::Zero();
+  Eigen::Vector3d bg_rps = Eigen::Vector3d::Zero();   // gyro bias
+  Eigen::Vector3d ba_mps2 = Eigen::Vector3d::Zero();  // accelerometer bias
+};
+
+// Why an IMU sample was not used. Counted, never thrown.
+struct ImuRejectCounts {
+  uint64_t non_finite = 0;
+  uint64_t saturated = 0;
+  uint64_t out_of_order = 0;   // time not after the previous sample (duplicates included)
+  uint64_t gaps = 0;           // spacing larger than max_gap_ns: integrated across, but counted
+};
+
+struct ImuPropagatorOptions {
+  double gravity_mps2 = 9.81;
+  int64_t max_gap_ns = 50'000'000;        // above this a gap is reported
+  int64_t max_integration_step_ns = 200'000'000;  // beyond this, hold the state instead of integrating garbage
+};
+
+// Midpoint (trapezoidal) strapdown integration in W (z up, gravity -z).
+class ImuPropagator {
+ public:
+  explicit ImuPropagator(const ImuPropagatorOptions& opt = {}) : opt_(opt) {}
+
+  void reset(const NavState& s);
+  bool initialized() const { return initialized_; }
+  // Returns false when the sample was rejected (see counts()).
+  bool propagate(const ImuSample& s);
+  const NavState& state() const { return state_; }
+  const ImuRejectCounts& counts() const { return counts_; }
+
+ private:
+  ImuPropagatorOptions opt_;
+  NavState state_;
+  bool initialized_ = false;
+  bool have_prev_ = false;
+  Eigen::Vector3d prev_gyro_ = Eigen::Vector3d::Zero();
+  Eigen::Vector3d prev_acc_ = Eigen::Vector3d::Zero();
+  ImuRejectCounts counts_;
+};
+
+// True when a sample carries numbers the estimator may use.
+bool imu_sample_usable(const ImuSample& s);
+
+struct StaticInitOptions {
+  int64_t window_ns = 500'000'000;          // stationary span needed
+  double max_gyro_std_rps = 0.02;           // stationarity thresholds on the window
+  double max_acc_std_mps2 = 0.15;
+  double gravity_mps2 = 9.81;
+};
+
+// Collects samples until a stationary window is seen, then yields the initial
+// state: roll and pitch from the mean specific force, gyro bias from the mean
+// rate, yaw and position zero (unobservable), velocity zero.
+// Fixed memory: running sums over a sliding window of block statistics.
+class StaticInitializer {
+ public:
+  explicit StaticInitializer(const StaticInitOptions& opt = {}) : opt_(opt) {}
+  // Returns true once initialisation succeeded; `out` then holds the state at s.t_ns.
+  bool add(const ImuSample& s, NavState& out);
+  void reset();
+
+ private:
+  StaticInitOptions opt_;
+  int64_t t_start_ns_ = -1;
+  uint64_t n_ = 0;
+  Eigen::Vector3d sum_g_ = Eigen::Vector3d::Zero(), sum_gg_ = Eigen::Vector3d::Zero();
+  Eigen::Vector3d sum_a_ = Eigen::Vector3d::Zero(), sum_aa_ = Eigen::Vector3d::Zero();
+};
+
+}  // namespace kestrel::core

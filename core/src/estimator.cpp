@@ -1,0 +1,63 @@
+#include "kestrel/core/estimator.hpp"
+
+#include <cmath>
+
+namespace kestrel::core {
+
+namespace {
+StaticInitOptions init_options(const Rig& rig) {
+  StaticInitOptions o;
+  o.gravity_mps2 = rig.gravity_mps2;
+  return o;
+}
+ImuPropagatorOptions prop_options(const Rig& rig) {
+  ImuPropagatorOptions o;
+  o.gravity_mps2 = rig.gravity_mps2;
+  if (rig.imu_rate_hz > 0) o.max_gap_ns = static_cast<int64_t>(5e9 / rig.imu_rate_hz);
+  return o;
+}
+}  // namespace
+
+DeadReckoningEstimator::DeadReckoningEstimator(const Rig& rig)
+    : init_(init_options(rig)), prop_(prop_options(rig)) {}
+
+bool DeadReckoningEstimator::add_imu(const ImuSample& s) {
+  ++counters_.imu_in;
+  if (!prop_.initialized()) {
+    if (first_t_ns_ < 0) first_t_ns_ = s.t_ns;
+    NavState s0;
+    if (init_.add(s, s0)) {
+      prop_.reset(s0);
+    } else if (imu_sample_usable(s) && s.t_ns - first_t_ns_ > kForceInitAfterNs) {
+      // Never saw a still window (a moving start): take gravity from this
+      // sample's specific force. Crude, and the dynamic initialiser of the
+      // optimizer replaces it; dead reckoning has nothing better.
+      const Eigen::Vector3d a(s.acc_mps2[0], s.acc_mps2[1], s.acc_mps2[2]);
+      s0 = NavState{};
+      s0.t_ns = s.t_ns;
+      s0.q_WB = Eigen::Quaterniond::FromTwoVectors(a.normalized(), Eigen::Vector3d::UnitZ());
+      prop_.reset(s0);
+    } else {
+      return false;
+    }
+    ++counters_.resets;
+    out_.reset_counter = static_cast<uint32_t>(counters_.resets);
+  }
+  if (!prop_.propagate(s)) return false;
+  ++counters_.imu_used;
+  out_.state = prop_.state();
+  out_.quality = TrackingQuality::kImuOnly;
+  return true;
+}
+
+bool DeadReckoningEstimator::add_frame(const RgbdFrame&) {
+  ++counters_.frames_in;
+  return false;
+}
+
+const EstimatorCounters& DeadReckoningEstimator::counters() const {
+  counters_.imu_rejects = prop_.counts();
+  return counters_;
+}
+
+}  // namespace kestrel::core
