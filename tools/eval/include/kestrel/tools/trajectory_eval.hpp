@@ -1,0 +1,145 @@
+// Trajectory evaluation: loading, time association, alignment, ATE / RPE
+// metrics, and their text / JSON / SVG output. Used by `kestrel eval` and by
+// the replay and bench tools. Definitions and formulas: docs/evaluation.md.
+//
+// Frames: every pose is T_WB (body B in world W, W with gravity along -z);
+// positions in metres, times in int64 nanoseconds.
+#pragma once
+
+#include <Eigen/Core>
+#include <Eigen/Geometry>
+
+#include <cstdint>
+#include <optional>
+#include <string>
+#include <vector>
+
+namespace kestrel::tools {
+
+struct TimedPose {
+  int64_t t_ns = 0;
+  Eigen::Vector3d p = Eigen::Vector3d::Zero();                // p_WB [m]
+  Eigen::Quaterniond q = Eigen::Quaterniond::Identity();      // q_WB, unit norm
+};
+using Trajectory = std::vector<TimedPose>;
+
+// Reads a trajectory, whatever it is stored in (detected by content/extension):
+//   - TUM text: `t[s] x y z qx qy qz qw`, whitespace separated, '#' comments;
+//   - EuRoC CSV: `t[ns],px,py,pz,qw,qx,qy,qz[,more columns ignored]` (gt_body_20hz.csv,
+//     state_groundtruth_estimate0/data.csv);
+//   - anything kestrel::drivers::open_log reads (.klog file, EuRoC or TUM RGB-D folder):
+//     its kGroundTruth records.
+// The result is sorted by time with exact duplicates dropped. Every line that is
+// skipped (malformed, non-finite, zero quaternion, conflicting duplicate time) and
+// every repair (unsorted input, duplicates) is reported in `warnings` as
+// "file:line: ..." naming the field. With `warnings == nullptr` the first such
+// problem throws std::runtime_error instead, so nothing is ever dropped silently.
+// Throws std::runtime_error naming the path when it cannot be read or holds no pose.
+Trajectory load_trajectory(const std::string& path, std::vector<std::string>* warnings);
+
+// Writes TUM text (`t[s] x y z qx qy qz qw`, times printed exactly from t_ns).
+// Throws std::runtime_error naming the path when it cannot be written.
+void write_tum(const std::string& path, const Trajectory& trajectory);
+
+enum class Alignment {
+  kNone,    // compare as given
+  kSe3,     // rotation + translation (Umeyama without scale)
+  kSim3,    // rotation + translation + scale (monocular)
+  kPosYaw,  // translation + rotation about world z: the 4 unobservable DoF of VIO
+};
+// "none" | "se3" | "sim3" | "posyaw"; std::nullopt for anything else.
+std::optional<Alignment> parse_alignment(const std::string& name);
+const char* alignment_name(Alignment alignment);
+
+// x_W = scale * R * x_E + t: maps estimate-world coordinates into ground-truth world.
+struct Sim3 {
+  double scale = 1.0;
+  Eigen::Matrix3d R = Eigen::Matrix3d::Identity();
+  Eigen::Vector3d t = Eigen::Vector3d::Zero();
+};
+
+// Least-squares alignment of corresponding positions (est[i] <-> gt[i]).
+// Needs >= 3 pairs for se3/sim3, >= 2 for posyaw; throws std::invalid_argument otherwise.
+Sim3 align_positions(const std::vector<Eigen::Vector3d>& est, const std::vector<Eigen::Vector3d>& gt,
+                     Alignment alignment);
+
+// The pose of `trajectory` (sorted) at t_ns: linear position / slerp rotation
+// between the two neighbours when both lie within max_gap_ns of t_ns, else the
+// nearest neighbour within max_gap_ns, else nullopt. `interpolated` (optional)
+// tells which happened.
+std::optional<TimedPose> pose_at(const Trajectory& trajectory, int64_t t_ns, int64_t max_gap_ns,
+                                 bool* interpolated = nullptr);
+
+struct EvalOptions {
+  Alignment align = Alignment::kPosYaw;
+  double max_gap_ms = 20.0;      // association tolerance
+  double rpe_delta_s = 1.0;      // RPE time step
+  std::vector<double> segment_lengths_m{1.0, 2.0, 5.0};  // KITTI-style RPE over distance
+  // Estimate gaps longer than this do not count towards coverage.
+  double coverage_gap_s = 0.5;
+};
+
+struct SegmentError {
+  double length_m = 0;
+  int count = 0;                 // segments evaluated (0: trajectory too short)
+  double trans_pct = 0;          // mean |translation error| / length * 100
+  double rot_deg_per_m = 0;      // mean rotation error angle / length
+};
+
+struct Stats {
+  double rmse = 0, mean = 0, median = 0, std = 0, min = 0, max = 0;
+  int count = 0;
+};
+
+struct EvalResult {
+  // Inputs, as evaluated.
+  Alignment align = Alignment::kPosYaw;
+  std::string gt_file, est_file;   // informative only; set by the caller
+  int gt_poses = 0;
+  int est_poses = 0;
+  int matched = 0;
+  int interpolated = 0;            // matched through interpolation (the rest: nearest)
+  int unmatched = 0;
+  double gt_duration_s = 0;
+  double gt_length_m = 0;          // path length of the matched ground truth
+  double coverage = 0;             // [0, 1] share of the GT time span covered by matched estimates
+
+  Sim3 T_align;                    // est world -> gt world
+
+  Stats ate_m;                     // position error after alignment [m]
+  Stats ate_rot_deg;               // angle of R_gt^T * R_est_aligned [deg]
+
+  double rpe_delta_s = 0;
+  int rpe_pairs = 0;
+  double rpe_trans_rmse_m = 0, rpe_trans_mean_m = 0;
+  double rpe_trans_m_per_s = 0;    // RMSE of |translation error| / pair duration
+  double rpe_rot_rmse_deg = 0, rpe_rot_mean_deg = 0;
+
+  std::vector<SegmentError> segments;
+
+  // Per associated pose, in time order (for plots and further analysis).
+  std::vector<TimedPose> gt_matched;    // ground truth at the estimate times
+  std::vector<TimedPose> est_aligned;   // T_align * estimate
+  std::vector<double> pos_err_m;
+  std::vector<double> rot_err_deg;
+
+  std::vector<std::string> warnings;    // unmatched poses, degenerate inputs...
+};
+
+// Associates, aligns and computes all metrics. Throws std::runtime_error when too
+// few poses associate for the requested alignment (the message says how many did),
+// std::invalid_argument for nonsensical options.
+EvalResult evaluate(const Trajectory& gt, const Trajectory& est, const EvalOptions& options);
+
+// `key: value` lines; the first line is always `ate_rmse_m: <value>`.
+std::string to_text(const EvalResult& result);
+// One JSON object with the same keys as to_text (non-finite numbers as null).
+std::string to_json(const EvalResult& result);
+
+// Self-contained SVG: left, top view (x-y) of the ground truth and the aligned
+// estimate; right, position error over time. Throws std::runtime_error naming
+// the path when it cannot be written.
+void write_svg_plot(const std::string& path, const Trajectory& gt, const EvalResult& result,
+                    const std::string& title = "");
+
+}  // namespace kestrel::tools
