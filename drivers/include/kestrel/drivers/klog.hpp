@@ -4,7 +4,9 @@
 
 #include <cstdint>
 #include <cstdio>
+#include <memory>
 #include <string>
+#include <vector>
 
 #include "kestrel/drivers/log_source.hpp"
 #include "kestrel/msgs.hpp"
@@ -44,12 +46,91 @@ class KlogWriter {
 
  private:
   void write_record(RecordType type, const uint8_t* payload, uint32_t size);
+  // Records are assembled in scratch_ (header slot, then payload) so that
+  // each one leaves in a single fwrite.
+  void begin_record();
+  void finish_record(RecordType type);
   std::FILE* file_ = nullptr;
   std::string path_;
   uint64_t records_ = 0;
   uint64_t bytes_ = 0;
   uint32_t fsync_every_ = 0;
   std::string scratch_;
+};
+
+// Reads a .klog file one record at a time (one payload in memory, buffers
+// reused). Damage after the file header never throws: each problem becomes a
+// LogProblem "file@offset" and the reader resynchronises on the next sync
+// marker whose record passes its CRC, so every intact record is replayed.
+class KlogReader final : public LogSource {
+ public:
+  struct Options {
+    // A damaged file header normally makes open fail because the rig is lost.
+    // With salvage on, the reader reports "bad-header", uses a default Rig and
+    // still recovers the records.
+    bool salvage_bad_header = false;
+  };
+
+  // Throws std::runtime_error naming the path when the file cannot be opened,
+  // is not a klog, has a damaged header (unless salvaging) or a newer version.
+  explicit KlogReader(const std::string& path);
+  KlogReader(const std::string& path, const Options& options);
+  // Reads from a copy of an in-memory image of a file; `name` stands in for
+  // the path in problems (tests and the fuzz target).
+  static std::unique_ptr<KlogReader> from_memory(const uint8_t* data, size_t size, const std::string& name,
+                                                 const Options& options);
+  ~KlogReader() override;
+  KlogReader(const KlogReader&) = delete;
+  KlogReader& operator=(const KlogReader&) = delete;
+
+  const Rig& rig() const override { return rig_; }
+  bool next(LogRecord& out) override;
+  void rewind() override;
+  const std::vector<LogProblem>& problems() const override { return problems_; }
+  std::string format_name() const override { return "klog"; }
+
+  uint32_t version() const { return version_; }
+  uint64_t file_size() const { return size_; }
+  uint64_t data_offset() const { return data_start_; }   // first byte after the file header
+
+ private:
+  struct RecordHeader {
+    uint32_t sync = 0;
+    uint16_t type = 0;
+    uint16_t flags = 0;
+    uint32_t length = 0;
+    uint32_t crc = 0;
+  };
+  KlogReader(std::string name, std::vector<uint8_t> memory, const Options& options);
+  void open_header(const Options& options);
+  bool read_at(uint64_t offset, void* dst, size_t n);
+  bool read_header_at(uint64_t offset, RecordHeader& h);
+  // Reads the payload of a header that fits the file and checks its CRC.
+  bool load_payload(uint64_t offset, const RecordHeader& h);
+  // The offset of the next record at or after `from` that passes its CRC
+  // (payload left in payload_), or size_ when there is none.
+  uint64_t resync(uint64_t from, RecordHeader& h);
+  bool decode(uint64_t offset, const RecordHeader& h, LogRecord& out, std::string& why);
+  void problem(uint64_t offset, const char* kind, std::string detail);
+
+  std::string name_;
+  int fd_ = -1;
+  std::vector<uint8_t> memory_;   // in-memory source when fd_ < 0
+  uint64_t size_ = 0;
+  uint64_t data_start_ = 0;
+  uint64_t pos_ = 0;
+  uint64_t reported_until_ = 0;   // problems before this offset were already reported (rewind)
+  uint32_t version_ = 0;
+  Rig rig_;
+  std::vector<LogProblem> problems_;
+  std::vector<uint8_t> payload_;
+  // Read-ahead window for headers and small payloads.
+  std::vector<uint8_t> window_;
+  uint64_t window_offset_ = 0;
+  size_t window_size_ = 0;
+  // A record found by resync, already loaded, to be returned next.
+  bool pending_ = false;
+  RecordHeader pending_header_;
 };
 
 }  // namespace kestrel::drivers

@@ -1,0 +1,122 @@
+// KlogLogger: records to a .klog from real-time threads without making them
+// wait for the disk.
+//
+// Producers (driver threads) call log_*(): a copy into a preallocated ring
+// slot or image buffer, no lock, no allocation, no I/O; when a ring or the
+// image pool is full the record is dropped and counted, never waited for. A
+// non-real-time logger thread drains the rings, oldest time stamp first, into
+// a KlogWriter (one fwrite + fflush per record).
+//
+// Thread contract: each stream has at most one producer thread at a time
+// (IMU; images — RGB and depth share one ring, so one camera thread; ground
+// truth; events). stop() is called once the producers are done.
+#pragma once
+
+#include <atomic>
+#include <cstddef>
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "kestrel/drivers/klog.hpp"
+#include "kestrel/msgs.hpp"
+#include "kestrel/rt/object_pool.hpp"
+#include "kestrel/rt/spsc_ring.hpp"
+
+namespace kestrel::drivers {
+
+class KlogLogger {
+ public:
+  // Ring depths: 10 s of 400 Hz IMU, ~1 s of 30 Hz RGB-D before drops.
+  static constexpr size_t kImuRingSize = 4096;
+  static constexpr size_t kImageRingSize = 64;
+  static constexpr size_t kImagePoolSize = 48;
+  static constexpr size_t kGroundTruthRingSize = 1024;
+  static constexpr size_t kEventRingSize = 256;
+  static constexpr size_t kEventTextBytes = 120;   // longer event texts are cut
+
+  struct Options {
+    size_t max_image_bytes = 640 * 480 * 3;   // each pool buffer; larger frames are dropped and counted
+    uint32_t idle_sleep_us = 1000;            // logger poll period when the rings are empty
+    uint32_t fsync_every = 0;                 // see KlogWriter::set_fsync_every
+  };
+
+  struct Stats {
+    uint64_t imu_drops = 0;
+    uint64_t image_drops = 0;        // ring full, no free buffer, or frame larger than max_image_bytes
+    uint64_t ground_truth_drops = 0;
+    uint64_t event_drops = 0;
+    uint64_t records_written = 0;
+    uint64_t bytes_written = 0;
+    uint64_t records_lost_to_write_errors = 0;
+  };
+
+  // Creates the file, writes the header, allocates every buffer and starts the
+  // logger thread. Throws std::runtime_error naming the path on failure.
+  KlogLogger(const std::string& path, const Rig& rig);
+  KlogLogger(const std::string& path, const Rig& rig, const Options& options);
+  ~KlogLogger();
+  KlogLogger(const KlogLogger&) = delete;
+  KlogLogger& operator=(const KlogLogger&) = delete;
+
+  // ---- producer side: real-time safe; false = dropped (counted) -------------
+  bool log_imu(const ImuSample& s) noexcept;
+  bool log_image(RecordType type, int64_t t_ns, int64_t t_recv_ns, uint32_t seq, int32_t exposure_us,
+                 const ImageView& view) noexcept;
+  bool log_ground_truth(const GroundTruthPose& gt) noexcept;
+  bool log_event(int64_t t_ns, EventCode code, const char* text) noexcept;
+
+  // Drains what was pushed, closes the file and joins the thread. Idempotent.
+  void stop();
+  // Counters; exact after stop(), approximate while running.
+  Stats stats() const;
+  // The first write error ("" if none); read after stop().
+  const std::string& error() const { return error_; }
+
+ private:
+  struct ImageBuffer {
+    std::vector<uint8_t> bytes;
+  };
+  struct ImageMsg {
+    RecordType type = RecordType::kRgb;
+    int64_t t_ns = 0;
+    int64_t t_recv_ns = 0;
+    uint32_t seq = 0;
+    int32_t exposure_us = 0;
+    int width = 0;
+    int height = 0;
+    PixelFormat format = PixelFormat::kGray8;
+    rt::PoolHandle handle = rt::kInvalidHandle;
+  };
+  struct EventMsg {
+    int64_t t_ns = 0;
+    EventCode code = EventCode::kInfo;
+    uint32_t length = 0;
+    char text[kEventTextBytes] = {};
+  };
+
+  void run();
+  // Writes the oldest pending record; false when all rings are empty.
+  bool write_one();
+  template <class F>
+  void guarded(F&& write);
+
+  Options options_;
+  KlogWriter writer_;
+  std::unique_ptr<rt::SpscRing<ImuSample, kImuRingSize>> imu_;
+  std::unique_ptr<rt::SpscRing<ImageMsg, kImageRingSize>> images_;
+  std::unique_ptr<rt::SpscRing<GroundTruthPose, kGroundTruthRingSize>> gt_;
+  std::unique_ptr<rt::SpscRing<EventMsg, kEventRingSize>> events_;
+  std::unique_ptr<rt::ObjectPool<ImageBuffer, kImagePoolSize>> pool_;
+  std::atomic<uint64_t> image_rejects_{0};   // no buffer or too large (ring-full drops are in the ring)
+  std::atomic<uint64_t> records_written_{0};
+  std::atomic<uint64_t> bytes_written_{0};
+  std::atomic<uint64_t> lost_{0};
+  std::atomic<bool> stop_{false};
+  std::string error_;
+  std::thread thread_;
+};
+
+}  // namespace kestrel::drivers

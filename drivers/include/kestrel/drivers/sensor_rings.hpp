@@ -1,0 +1,52 @@
+// The rings between the sensor side (live drivers or log replay) and the
+// estimator threads. Live drivers and the replay source fill exactly these, so
+// a replayed flight exercises the same hand-off as a real one.
+//
+// Full policy: a producer never waits on a full ring in real time (the push
+// fails and the ring's drop counter says so); only `--pace fast` replay waits,
+// because there the goal is to drain the log, not to model the sensors.
+#pragma once
+
+#include <cstdint>
+#include <vector>
+
+#include "kestrel/msgs.hpp"
+#include "kestrel/rt/object_pool.hpp"
+#include "kestrel/rt/spsc_ring.hpp"
+
+namespace kestrel::drivers {
+
+// Pixels of one image. The buffer is sized once at start-up (reserve) and only
+// resized within that capacity afterwards, so steady state never allocates.
+struct ImageBuffer {
+  int64_t t_ns = 0;
+  int width = 0;
+  int height = 0;
+  PixelFormat format = PixelFormat::kGray8;
+  std::vector<uint8_t> pixels;
+
+  ImageView view() const {
+    return ImageView{width, height, width * bytes_per_pixel(format), format, pixels.data()};
+  }
+};
+
+constexpr std::size_t kImuRingCapacity = 4096;   // > 10 s at 400 Hz
+constexpr std::size_t kFrameRingCapacity = 16;   // ~0.5 s at 30 Hz
+// Every frame in the ring holds up to two images, plus those being filled and
+// those being processed.
+constexpr std::size_t kImagePoolCapacity = 2 * kFrameRingCapacity + 8;
+
+using ImagePool = rt::ObjectPool<ImageBuffer, kImagePoolCapacity>;
+
+struct SensorRings {
+  // Sizes every image buffer for `max_image_bytes` (the largest image the rig
+  // produces). Call before any thread starts.
+  explicit SensorRings(std::size_t max_image_bytes);
+
+  rt::SpscRing<ImuSample, kImuRingCapacity> imu;
+  rt::SpscRing<RgbdFrameMsg, kFrameRingCapacity> frames;
+  ImagePool images;
+  std::size_t max_image_bytes = 0;
+};
+
+}  // namespace kestrel::drivers

@@ -1,0 +1,280 @@
+#include "text_log.hpp"
+
+#include "kestrel/drivers/folder_logs.hpp"
+
+#include <sys/stat.h>
+
+#include <algorithm>
+#include <memory>
+#include <cctype>
+#include <cstdint>
+#include <cerrno>
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <fstream>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+
+namespace kestrel::drivers::text {
+
+bool read_lines(const std::string& path, std::vector<std::string>& lines) {
+  std::ifstream f(path, std::ios::binary);
+  if (!f) return false;
+  lines.clear();
+  std::string l;
+  while (std::getline(f, l)) {
+    if (!l.empty() && l.back() == '\r') l.pop_back();
+    lines.push_back(std::move(l));
+  }
+  return !f.bad();
+}
+
+std::string trim(const std::string& s) {
+  size_t a = 0, b = s.size();
+  while (a < b && std::isspace(static_cast<unsigned char>(s[a]))) ++a;
+  while (b > a && std::isspace(static_cast<unsigned char>(s[b - 1]))) --b;
+  return s.substr(a, b - a);
+}
+
+std::vector<std::string> split(const std::string& s, char sep) {
+  std::vector<std::string> out;
+  size_t start = 0;
+  for (;;) {
+    const size_t k = s.find(sep, start);
+    out.push_back(trim(s.substr(start, k == std::string::npos ? std::string::npos : k - start)));
+    if (k == std::string::npos) break;
+    start = k + 1;
+  }
+  return out;
+}
+
+std::vector<std::string> split_ws(const std::string& s) {
+  std::vector<std::string> out;
+  size_t i = 0;
+  while (i < s.size()) {
+    while (i < s.size() && std::isspace(static_cast<unsigned char>(s[i]))) ++i;
+    size_t j = i;
+    while (j < s.size() && !std::isspace(static_cast<unsigned char>(s[j]))) ++j;
+    if (j > i) out.push_back(s.substr(i, j - i));
+    i = j;
+  }
+  return out;
+}
+
+bool parse_i64(const std::string& s, int64_t& v) {
+  if (s.empty()) return false;
+  errno = 0;
+  char* end = nullptr;
+  const long long x = std::strtoll(s.c_str(), &end, 10);
+  if (end != s.c_str() + s.size() || errno == ERANGE) return false;
+  v = x;
+  return true;
+}
+
+bool parse_f64(const std::string& s, double& v) {
+  if (s.empty()) return false;
+  char* end = nullptr;
+  const double x = std::strtod(s.c_str(), &end);
+  if (end != s.c_str() + s.size()) return false;
+  v = x;
+  return true;
+}
+
+bool parse_seconds_ns(const std::string& s, int64_t& t_ns) {
+  size_t i = 0;
+  bool neg = false;
+  if (i < s.size() && (s[i] == '-' || s[i] == '+')) neg = s[i++] == '-';
+  int64_t whole = 0;
+  size_t digits = 0;
+  for (; i < s.size() && std::isdigit(static_cast<unsigned char>(s[i])); ++i, ++digits) {
+    if (whole > (INT64_MAX / 1000000000 - 10) / 10) return false;
+    whole = whole * 10 + (s[i] - '0');
+  }
+  int64_t frac = 0;
+  int frac_digits = 0;
+  if (i < s.size() && s[i] == '.') {
+    for (++i; i < s.size() && std::isdigit(static_cast<unsigned char>(s[i])); ++i, ++digits) {
+      // Digits below a nanosecond are dropped (truncated), not rounded.
+      if (frac_digits < 9) {
+        frac = frac * 10 + (s[i] - '0');
+        ++frac_digits;
+      }
+    }
+  }
+  if (digits == 0 || i != s.size()) return false;
+  for (; frac_digits < 9; ++frac_digits) frac *= 10;
+  t_ns = whole * 1000000000 + frac;
+  if (neg) t_ns = -t_ns;
+  return true;
+}
+
+std::string seconds_from_ns(int64_t t_ns) {
+  char b[48];
+  const bool neg = t_ns < 0;
+  const uint64_t a = neg ? 0 - static_cast<uint64_t>(t_ns) : static_cast<uint64_t>(t_ns);
+  std::snprintf(b, sizeof b, "%s%llu.%09llu", neg ? "-" : "", static_cast<unsigned long long>(a / 1000000000u),
+                static_cast<unsigned long long>(a % 1000000000u));
+  return b;
+}
+
+std::string fmt17(double v) {
+  char b[40];
+  std::snprintf(b, sizeof b, "%.17g", v);
+  return b;
+}
+
+std::string file_name(const std::string& path) {
+  const size_t k = path.find_last_of('/');
+  return k == std::string::npos ? path : path.substr(k + 1);
+}
+
+bool is_file(const std::string& path) {
+  struct stat st {};
+  return ::stat(path.c_str(), &st) == 0 && S_ISREG(st.st_mode);
+}
+
+bool is_dir(const std::string& path) {
+  struct stat st {};
+  return ::stat(path.c_str(), &st) == 0 && S_ISDIR(st.st_mode);
+}
+
+void StreamLogSource::order_streams(const std::string& imu_file, const std::string& gt_file) {
+  auto check = [this](auto& rows, auto time_of, auto line_of, const std::string& file) {
+    for (size_t i = 1; i < rows.size(); ++i)
+      if (time_of(rows[i]) <= time_of(rows[i - 1]))
+        problem(file + ":" + std::to_string(line_of(rows[i])), "time-order",
+                "timestamp " + std::to_string(time_of(rows[i])) + " not after the previous row's " +
+                    std::to_string(time_of(rows[i - 1])) + "; replayed in sorted order");
+    std::stable_sort(rows.begin(), rows.end(), [&](const auto& a, const auto& b) { return time_of(a) < time_of(b); });
+  };
+  check(imu_, [](const Row<ImuSample>& r) { return r.value.t_ns; }, [](const auto& r) { return r.line; }, imu_file);
+  check(gt_, [](const Row<GroundTruthPose>& r) { return r.value.t_ns; }, [](const auto& r) { return r.line; }, gt_file);
+  // Image rows carry their own "file:line".
+  for (auto* images : {&rgb_, &depth_}) {
+    for (size_t i = 1; i < images->size(); ++i)
+      if ((*images)[i].t_ns <= (*images)[i - 1].t_ns)
+        problem((*images)[i].where, "time-order", "image timestamp not after the previous row's; replayed in sorted order");
+    std::stable_sort(images->begin(), images->end(),
+                     [](const ImageEntry& a, const ImageEntry& b) { return a.t_ns < b.t_ns; });
+  }
+  std::stable_sort(events_.begin(), events_.end(),
+                   [](const Row<Event>& a, const Row<Event>& b) { return a.value.t_ns < b.value.t_ns; });
+}
+
+bool StreamLogSource::load_image(const ImageEntry& e, RecordType type, LogImage& img) {
+  ++images_seen_;
+  const bool report = images_seen_ > images_reported_until_;
+  if (report) images_reported_until_ = images_seen_;
+  cv::Mat m;
+  try {
+    m = cv::imread(e.path, cv::IMREAD_UNCHANGED);
+  } catch (const cv::Exception& ex) {
+    if (report) problem(e.where, "bad-image", e.path + ": " + ex.what());
+    return false;
+  }
+  if (m.empty()) {
+    if (report) problem(e.where, "bad-image", e.path + ": cannot be read or decoded");
+    return false;
+  }
+  cv::Mat out;
+  PixelFormat fmt;
+  if (type == RecordType::kDepth) {
+    if (m.type() != CV_16UC1) {
+      if (report) problem(e.where, "bad-image", e.path + ": depth must be a 16-bit single-channel PNG");
+      return false;
+    }
+    out = m;
+    fmt = PixelFormat::kDepthU16;
+  } else if (m.type() == CV_8UC1) {
+    out = m;
+    fmt = PixelFormat::kGray8;
+  } else if (m.type() == CV_8UC3) {
+    cv::cvtColor(m, out, cv::COLOR_BGR2RGB);
+    fmt = PixelFormat::kRgb8;
+  } else if (m.type() == CV_8UC4) {
+    cv::cvtColor(m, out, cv::COLOR_BGRA2RGB);
+    fmt = PixelFormat::kRgb8;
+  } else {
+    if (report) problem(e.where, "bad-image", e.path + ": expected an 8-bit gray, RGB or RGBA image");
+    return false;
+  }
+  img.t_ns = e.t_ns;
+  img.t_recv_ns = e.t_recv_ns;
+  img.seq = e.seq;
+  img.exposure_us = 0;
+  img.width = out.cols;
+  img.height = out.rows;
+  img.format = fmt;
+  const size_t row = static_cast<size_t>(out.cols) * static_cast<size_t>(bytes_per_pixel(fmt));
+  img.pixels.resize(row * static_cast<size_t>(out.rows));
+  for (int y = 0; y < out.rows; ++y) std::copy_n(out.ptr<uint8_t>(y), row, img.pixels.data() + row * y);
+  return true;
+}
+
+bool StreamLogSource::next(LogRecord& out) {
+  for (;;) {
+    // At equal times IMU goes first, so a consumer can propagate up to the image it then receives.
+    int best = -1;
+    int64_t t_best = 0;
+    auto consider = [&](int which, bool has, int64_t t) {
+      if (has && (best < 0 || t < t_best)) {
+        best = which;
+        t_best = t;
+      }
+    };
+    consider(0, i_imu_ < imu_.size(), i_imu_ < imu_.size() ? imu_[i_imu_].value.t_ns : 0);
+    consider(1, i_rgb_ < rgb_.size(), i_rgb_ < rgb_.size() ? rgb_[i_rgb_].t_ns : 0);
+    consider(2, i_depth_ < depth_.size(), i_depth_ < depth_.size() ? depth_[i_depth_].t_ns : 0);
+    consider(3, i_gt_ < gt_.size(), i_gt_ < gt_.size() ? gt_[i_gt_].value.t_ns : 0);
+    consider(4, i_ev_ < events_.size(), i_ev_ < events_.size() ? events_[i_ev_].value.t_ns : 0);
+    switch (best) {
+      case 0:
+        out.type = RecordType::kImu;
+        out.offset = imu_[i_imu_].line;
+        out.imu = imu_[i_imu_++].value;
+        return true;
+      case 1:
+      case 2: {
+        const ImageEntry& e = best == 1 ? rgb_[i_rgb_++] : depth_[i_depth_++];
+        out.type = best == 1 ? RecordType::kRgb : RecordType::kDepth;
+        out.offset = e.line;
+        if (load_image(e, out.type, out.image)) return true;
+        continue;
+      }
+      case 3:
+        out.type = RecordType::kGroundTruth;
+        out.offset = gt_[i_gt_].line;
+        out.gt = gt_[i_gt_++].value;
+        return true;
+      case 4:
+        out.type = RecordType::kEvent;
+        out.offset = events_[i_ev_].line;
+        out.event = events_[i_ev_++].value;
+        return true;
+      default: return false;
+    }
+  }
+}
+
+void StreamLogSource::rewind() {
+  i_imu_ = i_rgb_ = i_depth_ = i_gt_ = i_ev_ = 0;
+  images_seen_ = 0;
+}
+
+}  // namespace kestrel::drivers::text
+
+namespace kestrel::drivers {
+
+FolderLogSource::FolderLogSource() : impl_(std::make_unique<text::StreamLogSource>()) {}
+FolderLogSource::~FolderLogSource() = default;
+const Rig& FolderLogSource::rig() const { return impl_->rig(); }
+bool FolderLogSource::next(LogRecord& out) { return impl_->next(out); }
+void FolderLogSource::rewind() { impl_->rewind(); }
+const std::vector<LogProblem>& FolderLogSource::problems() const { return impl_->problems(); }
+size_t FolderLogSource::imu_count() const { return impl_->imu_.size(); }
+size_t FolderLogSource::rgb_count() const { return impl_->rgb_.size(); }
+size_t FolderLogSource::depth_count() const { return impl_->depth_.size(); }
+size_t FolderLogSource::ground_truth_count() const { return impl_->gt_.size(); }
+
+}  // namespace kestrel::drivers
