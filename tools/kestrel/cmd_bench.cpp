@@ -1,1 +1,371 @@
-// placeholder: being written
+// `kestrel bench`: the benchmark suite as one table (and --json).
+//
+// Each case is simulated (built-in scenarios, and hybrid logs built from the
+// real IMU and ground truth of every EuRoC sequence in ../shared/data), then
+// replayed in a forked child so its peak RSS and allocations are its own, then
+// scored against ground truth. Figures that do not exist yet are null.
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <cstdio>
+#include <cmath>
+#include <cstring>
+#include <limits>
+#include <filesystem>
+#include <fstream>
+#include <iostream>
+#include <map>
+#include <sstream>
+
+#include "kestrel/commands.hpp"
+#include "kestrel/json_writer.hpp"
+#include "kestrel/replay_runner.hpp"
+#include "kestrel/tools/simulator.hpp"
+#include "kestrel/tools/trajectory_eval.hpp"
+
+namespace fs = std::filesystem;
+
+namespace kestrel::cli {
+namespace {
+
+constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+
+struct BenchCase {
+  std::string name;
+  std::string kind;        // "scenario", "hybrid", "real-images"
+  std::string scenario;    // scenario name
+  std::string gt_path;     // hybrid: EuRoC gt_body_20hz.csv; real-images: its GT
+  std::string imu_path;    // hybrid: EuRoC imu0.csv
+  std::string log_path;    // real-images: the EuRoC ASL folder
+  std::string skipped;     // non-empty: why it cannot run
+};
+
+// The figures of one row; NaN where a figure does not exist (yet).
+struct BenchRow {
+  std::string name;
+  std::string estimator;
+  std::string status = "ok";
+  double duration_s = kNaN;
+  double ate_rmse_m = kNaN;
+  double rpe_trans_m_per_s = kNaN;
+  double tracking_ms_p50 = kNaN, tracking_ms_p99 = kNaN;
+  double optimizer_ms_p50 = kNaN, optimizer_ms_p99 = kNaN;
+  double imu_to_output_ms_p99 = kNaN;
+  double allocs_per_frame = kNaN;
+  double realtime_factor = kNaN;
+  double peak_rss_mb = kNaN;
+  double pose_share = kNaN;       // frames that got a pose / frames
+  double sim_s = kNaN;
+  double replay_wall_s = kNaN;
+};
+
+std::vector<BenchCase> discover_cases(const std::string& data_dir) {
+  std::vector<BenchCase> cases;
+  for (const char* s : {"hover", "figure8", "aggressive", "static"}) {
+    BenchCase c;
+    c.name = s;
+    c.kind = "scenario";
+    c.scenario = s;
+    cases.push_back(c);
+  }
+  const fs::path euroc = fs::path(data_dir) / "euroc";
+  const char* sequences[] = {"MH_01_easy",   "MH_03_medium", "V1_01_easy",  "V1_02_medium",
+                             "V1_03_difficult", "V2_01_easy", "V2_02_medium"};
+  for (const char* seq : sequences) {
+    BenchCase c;
+    c.name = std::string("hybrid-") + seq;
+    c.kind = "hybrid";
+    c.gt_path = (euroc / seq / "gt_body_20hz.csv").string();
+    c.imu_path = (euroc / seq / "imu0.csv").string();
+    if (!fs::exists(c.gt_path) || !fs::exists(c.imu_path)) c.skipped = "not found: " + (euroc / seq).string();
+    cases.push_back(c);
+  }
+  {
+    BenchCase c;
+    c.name = "real-V1_01_first95";
+    c.kind = "real-images";
+    c.log_path = (euroc / "V1_01_easy_first95").string();
+    c.gt_path = (euroc / "V1_01_easy" / "gt_body_20hz.csv").string();
+    if (!fs::exists(c.log_path) || !fs::exists(c.gt_path)) c.skipped = "not found: " + c.log_path;
+    cases.push_back(c);
+  }
+  return cases;
+}
+
+// Runs replay + eval in a child process and returns its figures as text
+// lines "key value", so the child's peak RSS is the case's own.
+std::map<std::string, double> replay_in_child(const std::string& log, const std::string& gt,
+                                              drivers::ReplayPace pace, const std::string& traj_out,
+                                              std::string& estimator, std::string& error) {
+  int fds[2];
+  if (pipe(fds) != 0) throw std::runtime_error("pipe failed");
+  std::fflush(nullptr);
+  const pid_t pid = fork();
+  if (pid < 0) throw std::runtime_error("fork failed");
+  if (pid == 0) {
+    close(fds[0]);
+    std::ostringstream o;
+    o.precision(10);
+    try {
+      ReplayOptions opt;
+      opt.path = log;
+      opt.pace = pace;
+      ReplayReport r = run_replay(opt);
+      if (!traj_out.empty()) tools::write_tum(traj_out, r.trajectory);
+      o << "estimator " << r.estimator << "\n";
+      auto ms = [](int64_t ns) { return 1e-6 * static_cast<double>(ns); };
+      if (r.tracking.count() > 0) {
+        o << "tracking_ms_p50 " << ms(r.tracking.p50()) << "\n";
+        o << "tracking_ms_p99 " << ms(r.tracking.p99()) << "\n";
+      }
+      if (r.imu_to_output.count() > 0) o << "imu_to_output_ms_p99 " << ms(r.imu_to_output.p99()) << "\n";
+      if (r.alloc_counting && r.steady_frames > 0)
+        o << "allocs_per_frame " << static_cast<double>(r.steady_allocs) / static_cast<double>(r.steady_frames)
+          << "\n";
+      o << "realtime_factor " << r.realtime_factor << "\n";
+      o << "peak_rss_mb " << r.peak_rss_mb << "\n";
+      o << "duration_s " << r.log_duration_s << "\n";
+      o << "replay_wall_s " << r.wall_s << "\n";
+      const double frames = static_cast<double>(r.replay.frames_pushed);
+      if (frames > 0) o << "pose_share " << std::min(1.0, static_cast<double>(r.trajectory.size()) / frames) << "\n";
+      std::vector<std::string> warnings;
+      tools::Trajectory g = tools::load_trajectory(gt, &warnings);
+      tools::EvalOptions eo;
+      eo.align = tools::Alignment::kPosYaw;
+      tools::EvalResult e = tools::evaluate(g, r.trajectory, eo);
+      o << "ate_rmse_m " << e.ate_m.rmse << "\n";
+      o << "rpe_trans_m_per_s " << e.rpe_trans_m_per_s << "\n";
+    } catch (const std::exception& ex) {
+      o << "error " << ex.what() << "\n";
+    }
+    const std::string s = o.str();
+    ssize_t off = 0;
+    while (off < static_cast<ssize_t>(s.size())) {
+      const ssize_t n = write(fds[1], s.data() + off, s.size() - static_cast<size_t>(off));
+      if (n <= 0) break;
+      off += n;
+    }
+    close(fds[1]);
+    _exit(0);
+  }
+  close(fds[1]);
+  std::string text;
+  char buf[4096];
+  for (;;) {
+    const ssize_t n = read(fds[0], buf, sizeof buf);
+    if (n <= 0) break;
+    text.append(buf, static_cast<size_t>(n));
+  }
+  close(fds[0]);
+  int status = 0;
+  waitpid(pid, &status, 0);
+  if (!WIFEXITED(status) || WEXITSTATUS(status) != 0) error = "replay child crashed (status " + std::to_string(status) + ")";
+  std::map<std::string, double> out;
+  std::istringstream in(text);
+  std::string line;
+  while (std::getline(in, line)) {
+    const auto sp = line.find(' ');
+    if (sp == std::string::npos) continue;
+    const std::string k = line.substr(0, sp), v = line.substr(sp + 1);
+    if (k == "estimator") {
+      estimator = v;
+    } else if (k == "error") {
+      error = v;
+    } else {
+      out[k] = std::strtod(v.c_str(), nullptr);
+    }
+  }
+  return out;
+}
+
+double get(const std::map<std::string, double>& m, const char* k) {
+  auto it = m.find(k);
+  return it == m.end() ? kNaN : it->second;
+}
+
+std::string fmt(double v, const char* f) {
+  if (!std::isfinite(v)) return "-";
+  char buf[32];
+  std::snprintf(buf, sizeof buf, f, v);
+  return buf;
+}
+
+void print_table(const std::vector<BenchRow>& rows) {
+  std::printf("%-26s %-20s %9s %9s %8s %8s %8s %8s %9s %8s %8s %8s %7s\n", "case", "estimator", "ate_m", "rpe_m/s",
+              "trk_p50", "trk_p99", "opt_p50", "opt_p99", "imu_p99", "alloc/f", "rt_x", "rss_mb", "poses");
+  for (const auto& r : rows) {
+    if (r.status != "ok") {
+      std::printf("%-26s %s\n", r.name.c_str(), r.status.c_str());
+      continue;
+    }
+    std::printf("%-26s %-20s %9s %9s %8s %8s %8s %8s %9s %8s %8s %8s %7s\n", r.name.c_str(), r.estimator.c_str(),
+                fmt(r.ate_rmse_m, "%.4f").c_str(), fmt(r.rpe_trans_m_per_s, "%.4f").c_str(),
+                fmt(r.tracking_ms_p50, "%.3f").c_str(), fmt(r.tracking_ms_p99, "%.3f").c_str(),
+                fmt(r.optimizer_ms_p50, "%.2f").c_str(), fmt(r.optimizer_ms_p99, "%.2f").c_str(),
+                fmt(r.imu_to_output_ms_p99, "%.3f").c_str(), fmt(r.allocs_per_frame, "%.2f").c_str(),
+                fmt(r.realtime_factor, "%.1f").c_str(), fmt(r.peak_rss_mb, "%.0f").c_str(),
+                fmt(100.0 * r.pose_share, "%.1f%%").c_str());
+  }
+}
+
+std::string rows_json(const std::vector<BenchRow>& rows, double duration_s) {
+  JsonWriter j;
+  j.begin_object();
+  j.kv("duration_s_per_case", duration_s);
+  j.key("cases").begin_array();
+  for (const auto& r : rows) {
+    j.begin_object();
+    j.kv("name", r.name).kv("status", r.status).kv("estimator", r.estimator);
+    j.kv("duration_s", r.duration_s);
+    j.kv("ate_rmse_m", r.ate_rmse_m).kv("rpe_trans_m_per_s", r.rpe_trans_m_per_s);
+    j.kv("tracking_ms_p50", r.tracking_ms_p50).kv("tracking_ms_p99", r.tracking_ms_p99);
+    j.kv("optimizer_ms_p50", r.optimizer_ms_p50).kv("optimizer_ms_p99", r.optimizer_ms_p99);
+    j.kv("imu_to_output_ms_p99", r.imu_to_output_ms_p99);
+    j.kv("allocs_per_frame", r.allocs_per_frame);
+    j.kv("realtime_factor", r.realtime_factor).kv("peak_rss_mb", r.peak_rss_mb);
+    j.kv("pose_share", r.pose_share).kv("sim_s", r.sim_s).kv("replay_wall_s", r.replay_wall_s);
+    j.end_object();
+  }
+  j.end_array();
+  j.end_object();
+  return j.str() + "\n";
+}
+
+bool selected(const std::string& name, const std::vector<std::string>& only) {
+  if (only.empty()) return true;
+  for (const auto& o : only)
+    if (name == o || name.find(o) != std::string::npos) return true;
+  return false;
+}
+
+}  // namespace
+
+Subcommand add_bench_command(CLI::App& parent) {
+  struct Args {
+    std::string json_out;
+    std::vector<std::string> cases;
+    double duration_s = 30.0;
+    std::string workdir = "build/bench";
+    std::string data_dir = "../shared/data";
+    std::string pace = "fast";
+    int width = 640, height = 480;
+    bool keep_logs = false;
+    bool list = false;
+  };
+  auto args = std::make_shared<Args>();
+  CLI::App* app = parent.add_subcommand("bench", "run the benchmark suite and print one table");
+  app->add_option("--json", args->json_out, "also write the table as JSON to this file");
+  app->add_option("--cases", args->cases, "only the cases whose name contains one of these")->delimiter(',');
+  app->add_option("--duration", args->duration_s, "seconds of flight per case")->capture_default_str();
+  app->add_option("--workdir", args->workdir, "where generated logs and trajectories go")->capture_default_str();
+  app->add_option("--data", args->data_dir, "the shared data folder (EuRoC sequences)")->capture_default_str();
+  app->add_option("--pace", args->pace, "replay pace: fast or lockstep (realtime is for timing tests)")
+      ->capture_default_str();
+  app->add_option("--width", args->width, "rendered image width")->capture_default_str();
+  app->add_option("--height", args->height, "rendered image height")->capture_default_str();
+  app->add_flag("--keep-logs", args->keep_logs, "keep the generated .klog files (several GB at VGA)");
+  app->add_flag("--list", args->list, "list the cases and whether their data is present, then exit");
+
+  Subcommand cmd;
+  cmd.app = app;
+  cmd.run = [args]() -> int {
+    if (!(args->duration_s > 0)) throw UsageError("--duration must be > 0");
+    if (args->width < 32 || args->height < 32) throw UsageError("--width/--height must be >= 32");
+    drivers::ReplayPace pace;
+    try {
+      pace = drivers::parse_replay_pace(args->pace);
+    } catch (const std::exception& e) {
+      throw UsageError(e.what());
+    }
+    std::vector<BenchCase> cases = discover_cases(args->data_dir);
+    if (args->list) {
+      for (const auto& c : cases)
+        std::printf("%-26s %-12s %s\n", c.name.c_str(), c.kind.c_str(),
+                    c.skipped.empty() ? "ready" : ("SKIPPED: " + c.skipped).c_str());
+      return 0;
+    }
+    fs::create_directories(args->workdir);
+    std::vector<BenchRow> rows;
+    int ran = 0;
+    for (const auto& c : cases) {
+      if (!selected(c.name, args->cases)) continue;
+      BenchRow row;
+      row.name = c.name;
+      if (!c.skipped.empty()) {
+        row.status = "SKIPPED: " + c.skipped;
+        std::fprintf(stderr, "bench: %s SKIPPED: %s\n", c.name.c_str(), c.skipped.c_str());
+        rows.push_back(row);
+        continue;
+      }
+      std::fprintf(stderr, "bench: %s ...\n", c.name.c_str());
+      const std::string traj = (fs::path(args->workdir) / (c.name + ".traj.txt")).string();
+      std::string log = c.log_path;
+      std::string gt = c.gt_path;
+      bool generated = false;
+      if (c.kind != "real-images") {
+        tools::SimOptions so;
+        so.seed = 1;
+        so.duration_s = args->duration_s;
+        so.width = args->width;
+        so.height = args->height;
+        if (c.kind == "scenario") {
+          so.scenario = c.scenario;
+        } else {
+          so.trajectory_path = c.gt_path;
+          so.imu_path = c.imu_path;
+          so.fps = 30.0;
+        }
+        log = (fs::path(args->workdir) / (c.name + ".klog")).string();
+        so.out_path = log;
+        try {
+          tools::SimSummary s = tools::run_simulation(so);
+          row.sim_s = s.wall_s;
+        } catch (const std::exception& e) {
+          row.status = std::string("FAILED (sim): ") + e.what();
+          rows.push_back(row);
+          continue;
+        }
+        gt = log;   // the simulator writes ground truth into the log
+        generated = true;
+      }
+      std::string error;
+      const auto m = replay_in_child(log, gt, pace, traj, row.estimator, error);
+      if (generated && !args->keep_logs) fs::remove(log);
+      if (!error.empty()) {
+        row.status = "FAILED: " + error;
+        rows.push_back(row);
+        continue;
+      }
+      row.duration_s = get(m, "duration_s");
+      row.ate_rmse_m = get(m, "ate_rmse_m");
+      row.rpe_trans_m_per_s = get(m, "rpe_trans_m_per_s");
+      row.tracking_ms_p50 = get(m, "tracking_ms_p50");
+      row.tracking_ms_p99 = get(m, "tracking_ms_p99");
+      row.optimizer_ms_p50 = get(m, "optimizer_ms_p50");
+      row.optimizer_ms_p99 = get(m, "optimizer_ms_p99");
+      row.imu_to_output_ms_p99 = get(m, "imu_to_output_ms_p99");
+      row.allocs_per_frame = get(m, "allocs_per_frame");
+      row.realtime_factor = get(m, "realtime_factor");
+      row.peak_rss_mb = get(m, "peak_rss_mb");
+      row.pose_share = get(m, "pose_share");
+      row.replay_wall_s = get(m, "replay_wall_s");
+      rows.push_back(row);
+      ++ran;
+    }
+    print_table(rows);
+    if (!args->json_out.empty()) {
+      std::ofstream f(args->json_out);
+      if (!f) throw std::runtime_error("cannot write " + args->json_out);
+      f << rows_json(rows, args->duration_s);
+      std::printf("json: %s\n", args->json_out.c_str());
+    }
+    if (ran == 0) {
+      std::fprintf(stderr, "bench: no case ran\n");
+      return 1;
+    }
+    return 0;
+  };
+  return cmd;
+}
+
+}  // namespace kestrel::cli

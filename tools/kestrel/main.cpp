@@ -1,6 +1,7 @@
 // `kestrel`: one command line, git-style subcommands.
 #include <cstdio>
 #include <exception>
+#include <string>
 #include <iostream>
 #include <vector>
 
@@ -50,7 +51,14 @@ int main(int argc, char** argv) {
       print_subcommands(app);
       return kExitUsage;
     }
-    std::fprintf(stderr, "kestrel: %s\n\n", e.what());
+    const std::string first = argv[1];
+    bool known = first == "help" || first == "version";
+    for (const auto& c : commands) known = known || c.app->get_name() == first;
+    if (!known && !first.empty() && first[0] != '-') {
+      std::fprintf(stderr, "kestrel: unknown command '%s'\n\n", first.c_str());
+    } else {
+      std::fprintf(stderr, "kestrel: %s\n\n", e.what());
+    }
     const CLI::App* failing = nullptr;
     for (const auto& c : commands)
       if (c.app->parsed()) failing = c.app;
