@@ -11,6 +11,6 @@ jobs=$(nproc 2>/dev/null || echo 2)
 ctest --preset release -j "$jobs"
 if [ "${KESTREL_SKIP_TSAN:-0}" != "1" ]; then
   echo "== ThreadSanitizer: stress label =="
-  bash tools/build.sh tsan --target test_rt
+  bash tools/build.sh tsan --target rt_stress_test
   ctest --preset tsan -j "$jobs"
 fi

@@ -178,3 +178,24 @@ TEST(ImuPropagator, EurocV102OneSecondWindowsFollowGroundTruth) {
               median, errs.back());
   EXPECT_LT(median, 0.05);
 }
+
+#include "jacobian_check.hpp"
+
+// The checker itself must be able to fail, or every Jacobian test built on it
+// proves nothing.
+TEST(JacobianChecker, AcceptsTheRightJacobianAndRejectsAWrongOne) {
+  // r(x) = [x0^2 * x1, sin(x1)] around x = (1.5, 0.3), perturbed additively.
+  const Eigen::Vector2d x(1.5, 0.3);
+  auto r = [&](const Eigen::VectorXd& d) {
+    const Eigen::Vector2d y = x + d;
+    Eigen::VectorXd out(2);
+    out << y[0] * y[0] * y[1], std::sin(y[1]);
+    return out;
+  };
+  Eigen::Matrix2d J;
+  J << 2 * x[0] * x[1], x[0] * x[0], 0, std::cos(x[1]);
+  EXPECT_TRUE(kestrel::test::check_jacobian(J, r));
+  Eigen::Matrix2d wrong = J;
+  wrong(1, 1) *= 1.01;
+  EXPECT_FALSE(kestrel::test::check_jacobian(wrong, r));
+}
