@@ -5,6 +5,8 @@ preset=${1:-release}
 shift || true
 root=$(cd "$(dirname "$0")/.." && pwd)
 cd "$root"
+# Relative paths in the ccache hash: a fresh clone elsewhere reuses the cache.
+export CCACHE_BASEDIR="$root"
 if [ ! -f "build/$preset/build.ninja" ]; then
   cmake --preset "$preset" >/dev/null
 fi
