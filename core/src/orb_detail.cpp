@@ -1,0 +1,333 @@
+// Stages of the ORB extractor (see orb_detail.hpp). Written out here rather
+// than calling OpenCV because cv:: functions may allocate internally and the
+// tracking thread must not.
+#include "kestrel/core/orb_detail.hpp"
+
+#include <algorithm>
+#include <cmath>
+
+#if defined(__SSE2__)
+#include <emmintrin.h>
+#endif
+
+namespace kestrel::core::orb_detail {
+
+namespace {
+constexpr double kPi = 3.14159265358979323846;
+constexpr float kPiF = static_cast<float>(kPi);
+}  // namespace
+
+std::array<int, 16> fast_circle_offsets(int stride) {
+  static constexpr int kCircle[16][2] = {{0, -3}, {1, -3}, {2, -2}, {3, -1}, {3, 0},  {3, 1},  {2, 2},  {1, 3},
+                                         {0, 3},  {-1, 3}, {-2, 2}, {-3, 1}, {-3, 0}, {-3, -1}, {-2, -2}, {-1, -3}};
+  std::array<int, 16> off{};
+  for (int i = 0; i < 16; ++i) off[i] = kCircle[i][1] * stride + kCircle[i][0];
+  return off;
+}
+
+int fast_score(const uint8_t* p, const std::array<int, 16>& offsets) {
+  // d > 0: circle pixel darker than the centre. A darker arc survives every
+  // threshold below its smallest d, a brighter arc every threshold below its
+  // smallest -d; the score is the best arc's margin minus one (strict test).
+  int d[25];
+  const int c = p[0];
+  for (int i = 0; i < 16; ++i) d[i] = c - p[offsets[i]];
+  for (int i = 16; i < 25; ++i) d[i] = d[i - 16];
+  int best = 0;
+  for (int k = 0; k < 16; ++k) {
+    int mn = d[k];
+    int mx = d[k];
+    for (int j = 1; j < 9; ++j) {
+      mn = std::min(mn, d[k + j]);
+      mx = std::max(mx, d[k + j]);
+    }
+    best = std::max(best, std::max(mn, -mx));
+  }
+  return best - 1;
+}
+
+// ---- area resampling -------------------------------------------------------------
+
+namespace {
+
+// Overlap of input pixel j = [j, j+1) with [a, b), as 8-bit fixed-point
+// weights of three consecutive input pixels that sum to exactly 256.
+void make_area_taps(int n_src, int n_dst, AreaTap* tab) {
+  const double r = static_cast<double>(n_src) / n_dst;
+  for (int i = 0; i < n_dst; ++i) {
+    const double a = i * r;
+    const double b = std::min((i + 1) * r, static_cast<double>(n_src));
+    int first = static_cast<int>(std::floor(a));
+    double w[3];
+    for (int k = 0; k < 3; ++k) {
+      const double lo = std::max(a, static_cast<double>(first + k));
+      const double hi = std::min(b, static_cast<double>(first + k + 1));
+      w[k] = std::max(0.0, hi - lo) / (b - a);
+    }
+    // Keep the three taps inside the input: slide the window left, shifting
+    // weights right (the taps that fall outside have zero weight).
+    int shift = std::max(0, first + 2 - (n_src - 1));
+    shift = std::min(shift, first);
+    first -= shift;
+    double ws[3] = {0, 0, 0};
+    for (int k = 0; k < 3; ++k)
+      if (k + shift < 3) ws[k + shift] = w[k];
+    AreaTap& t = tab[i];
+    t.first = first;
+    int sum = 0;
+    int arg_max = 0;
+    for (int k = 0; k < 3; ++k) {
+      t.w[k] = static_cast<uint16_t>(std::lround(ws[k] * 256.0));
+      sum += t.w[k];
+      if (ws[k] > ws[arg_max]) arg_max = k;
+    }
+    t.w[arg_max] = static_cast<uint16_t>(t.w[arg_max] + (256 - sum));
+  }
+}
+
+}  // namespace
+
+namespace {
+
+// out[x] = (sum_i w[i] * rows[i][x] + 128) >> 8 over n rows, weights summing
+// to 256: every partial sum fits 16 bits, so SSE2 runs 16 pixels per step and
+// the scalar tail gives bit-identical results.
+template <int N>
+void weighted_rows(const uint8_t* const* rows, const uint16_t* w, uint8_t* out, int n) {
+  int x = 0;
+#if defined(__SSE2__)
+  const __m128i zero = _mm_setzero_si128();
+  const __m128i half = _mm_set1_epi16(128);
+  __m128i wv[N];
+  for (int i = 0; i < N; ++i) wv[i] = _mm_set1_epi16(static_cast<short>(w[i]));
+  for (; x + 16 <= n; x += 16) {
+    __m128i lo = half;
+    __m128i hi = half;
+    for (int i = 0; i < N; ++i) {
+      const __m128i v = _mm_loadu_si128(reinterpret_cast<const __m128i*>(rows[i] + x));
+      lo = _mm_add_epi16(lo, _mm_mullo_epi16(_mm_unpacklo_epi8(v, zero), wv[i]));
+      hi = _mm_add_epi16(hi, _mm_mullo_epi16(_mm_unpackhi_epi8(v, zero), wv[i]));
+    }
+    _mm_storeu_si128(reinterpret_cast<__m128i*>(out + x),
+                     _mm_packus_epi16(_mm_srli_epi16(lo, 8), _mm_srli_epi16(hi, 8)));
+  }
+#endif
+  for (; x < n; ++x) {
+    uint32_t acc = 128;
+    for (int i = 0; i < N; ++i) acc += w[i] * rows[i][x];
+    out[x] = static_cast<uint8_t>(acc >> 8);
+  }
+}
+
+}  // namespace
+
+void area_resize(Plane src, MutPlane dst, uint8_t* tmp, AreaTap* xtab, AreaTap* ytab) {
+  make_area_taps(src.width, dst.width, xtab);
+  make_area_taps(src.height, dst.height, ytab);
+  // Vertical first: contiguous in x (SIMD), then the horizontal 3-tap gather
+  // on the already shorter set of rows.
+  for (int j = 0; j < dst.height; ++j) {
+    const AreaTap& tp = ytab[j];
+    const uint8_t* rows[3] = {src.at(0, tp.first), src.at(0, tp.first + 1), src.at(0, tp.first + 2)};
+    weighted_rows<3>(rows, tp.w.data(), tmp, src.width);
+    uint8_t* d = dst.at(0, j);
+    for (int i = 0; i < dst.width; ++i) {
+      const AreaTap& t = xtab[i];
+      const uint8_t* q = tmp + t.first;
+      d[i] = static_cast<uint8_t>((t.w[0] * q[0] + t.w[1] * q[1] + t.w[2] * q[2] + 128) >> 8);
+    }
+  }
+}
+
+// ---- Gaussian blur ----------------------------------------------------------------
+
+std::array<uint16_t, 2 * kBlurRadius + 1> gaussian_kernel7() {
+  constexpr double kSigma = 2.0;
+  double g[2 * kBlurRadius + 1];
+  double sum = 0;
+  for (int i = -kBlurRadius; i <= kBlurRadius; ++i) {
+    g[i + kBlurRadius] = std::exp(-(i * i) / (2 * kSigma * kSigma));
+    sum += g[i + kBlurRadius];
+  }
+  std::array<uint16_t, 2 * kBlurRadius + 1> k{};
+  int isum = 0;
+  for (int i = 0; i < 2 * kBlurRadius + 1; ++i) {
+    k[i] = static_cast<uint16_t>(std::lround(256.0 * g[i] / sum));
+    isum += k[i];
+  }
+  k[kBlurRadius] = static_cast<uint16_t>(k[kBlurRadius] + (256 - isum));  // exact unit gain
+  return k;
+}
+
+void gaussian_blur7(Plane src, MutPlane dst, uint8_t* tmp) {
+  static const std::array<uint16_t, 2 * kBlurRadius + 1> k = gaussian_kernel7();
+  const int w = src.width;
+  const int h = src.height;
+  constexpr int R = kBlurRadius;
+  // Vertical pass (rows clamped at the borders) into tmp, 8-bit rounded:
+  // half a grey level of error, invisible to BRIEF's comparisons, and it keeps
+  // both passes in 16-bit SIMD lanes.
+  for (int y = 0; y < h; ++y) {
+    const uint8_t* rows[2 * R + 1];
+    for (int i = -R; i <= R; ++i) rows[i + R] = src.at(0, std::clamp(y + i, 0, h - 1));
+    weighted_rows<2 * R + 1>(rows, k.data(), tmp + static_cast<std::ptrdiff_t>(y) * w, w);
+  }
+  // Horizontal pass: the interior reads shifted row pointers; the R columns
+  // at each side replicate the border.
+  for (int y = 0; y < h; ++y) {
+    const uint8_t* t = tmp + static_cast<std::ptrdiff_t>(y) * w;
+    uint8_t* d = dst.at(0, y);
+    auto clamped = [&](int x) {
+      uint32_t acc = 128;
+      for (int i = -R; i <= R; ++i) acc += k[i + R] * t[std::clamp(x + i, 0, w - 1)];
+      return static_cast<uint8_t>(acc >> 8);
+    };
+    const int lo = std::min(R, w);
+    const int hi = std::max(lo, w - R);
+    for (int x = 0; x < lo; ++x) d[x] = clamped(x);
+    if (hi > lo) {
+      const uint8_t* shifted[2 * R + 1];
+      for (int i = 0; i < 2 * R + 1; ++i) shifted[i] = t + lo + i - R;
+      weighted_rows<2 * R + 1>(shifted, k.data(), d + lo, hi - lo);
+    }
+    for (int x = hi; x < w; ++x) d[x] = clamped(x);
+  }
+}
+
+// ---- orientation ---------------------------------------------------------------------
+
+std::array<int, kPatchRadius + 1> patch_umax() {
+  std::array<int, kPatchRadius + 1> umax{};
+  const int r2 = kPatchRadius * kPatchRadius + kPatchRadius;
+  for (int v = 0; v <= kPatchRadius; ++v) {
+    int u = 0;
+    while ((u + 1) * (u + 1) + v * v <= r2) ++u;
+    umax[v] = u;
+  }
+  return umax;
+}
+
+float ic_angle(Plane img, int x, int y, const std::array<int, kPatchRadius + 1>& umax) {
+  const uint8_t* c = img.at(x, y);
+  const int stride = img.stride;
+  int m10 = 0;
+  int m01 = 0;
+  for (int u = -kPatchRadius; u <= kPatchRadius; ++u) m10 += u * c[u];
+  for (int v = 1; v <= kPatchRadius; ++v) {
+    int v_sum = 0;
+    const int d = umax[v];
+    const uint8_t* below = c + v * stride;
+    const uint8_t* above = c - v * stride;
+    for (int u = -d; u <= d; ++u) {
+      const int b = below[u];
+      const int a = above[u];
+      v_sum += b - a;
+      m10 += u * (b + a);
+    }
+    m01 += v * v_sum;
+  }
+  float ang = std::atan2(static_cast<float>(m01), static_cast<float>(m10));
+  if (ang < 0) ang += 2.0f * kPiF;
+  if (ang >= 2.0f * kPiF) ang = 0.0f;  // float rounding of -tiny + 2pi
+  return ang;
+}
+
+// ---- BRIEF ------------------------------------------------------------------------------
+
+namespace {
+
+// splitmix64: tiny, and its output is fixed by its definition, unlike
+// std::normal_distribution, whose values differ between standard libraries;
+// the pattern (and so every stored descriptor) must not depend on the toolchain.
+struct SplitMix64 {
+  uint64_t s;
+  uint64_t next() {
+    uint64_t z = (s += 0x9e3779b97f4a7c15ULL);
+    z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ULL;
+    z = (z ^ (z >> 27)) * 0x94d049bb133111ebULL;
+    return z ^ (z >> 31);
+  }
+  double uniform01() { return (static_cast<double>(next() >> 11) + 0.5) * (1.0 / 9007199254740992.0); }
+};
+
+}  // namespace
+
+BriefPattern make_brief_pattern(uint64_t seed) {
+  SplitMix64 rng{seed};
+  constexpr double kSigma = kPatchDiameter / 5.0;  // BRIEF G II: sigma^2 = S^2 / 25
+  constexpr int kR2 = kPatternRadius * kPatternRadius;
+  auto gauss_point = [&](int8_t& px, int8_t& py) {
+    for (;;) {
+      // Box-Muller: two independent N(0, 1).
+      const double u1 = rng.uniform01();
+      const double u2 = rng.uniform01();
+      const double m = std::sqrt(-2.0 * std::log(u1));
+      const int x = static_cast<int>(std::lround(kSigma * m * std::cos(2.0 * kPi * u2)));
+      const int y = static_cast<int>(std::lround(kSigma * m * std::sin(2.0 * kPi * u2)));
+      if (x * x + y * y <= kR2) {
+        px = static_cast<int8_t>(x);
+        py = static_cast<int8_t>(y);
+        return;
+      }
+    }
+  };
+  BriefPattern pat{};
+  for (int i = 0; i < kBriefPairs;) {
+    auto& p = pat[i];
+    gauss_point(p[0], p[1]);
+    gauss_point(p[2], p[3]);
+    if (p[0] == p[2] && p[1] == p[3]) continue;  // a test against itself carries no bit
+    bool dup = false;
+    for (int j = 0; j < i && !dup; ++j) dup = pat[j] == p;
+    if (!dup) ++i;
+  }
+  return pat;
+}
+
+
+OrbDescriptor brief_describe(Plane blurred, int x, int y, float angle_rad, const BriefPattern& pattern) {
+  const float c = std::cos(angle_rad);
+  const float s = std::sin(angle_rad);
+  const uint8_t* center = blurred.at(x, y);
+  const int stride = blurred.stride;
+  // Byte offsets of the rotated test points. Rotation by the keypoint angle in
+  // image axes: the same rotation that carries the patch content, so the
+  // tests follow the content. Rounded to nearest (ties to even, as the SSE
+  // conversion does; the scalar path matches it).
+  alignas(16) int32_t off[2 * kBriefPairs];
+  int i = 0;
+#if defined(__SSE2__)
+  const __m128 cv = _mm_set1_ps(c), sv = _mm_set1_ps(s), stv = _mm_set1_ps(static_cast<float>(stride));
+  for (; i + 4 <= 2 * kBriefPairs; i += 4) {
+    // Points i..i+3 alternate a, b of two pairs: (ax ay bx by)(ax ay bx by).
+    const auto& p0 = pattern[i / 2];
+    const auto& p1 = pattern[i / 2 + 1];
+    const __m128 px = _mm_setr_ps(p0[0], p0[2], p1[0], p1[2]);
+    const __m128 py = _mm_setr_ps(p0[1], p0[3], p1[1], p1[3]);
+    const __m128i rx = _mm_cvtps_epi32(_mm_sub_ps(_mm_mul_ps(cv, px), _mm_mul_ps(sv, py)));
+    const __m128i ry = _mm_cvtps_epi32(_mm_add_ps(_mm_mul_ps(sv, px), _mm_mul_ps(cv, py)));
+    // ry * stride + rx, exactly, in float (|values| << 2^24).
+    const __m128 o = _mm_add_ps(_mm_mul_ps(_mm_cvtepi32_ps(ry), stv), _mm_cvtepi32_ps(rx));
+    _mm_store_si128(reinterpret_cast<__m128i*>(off + i), _mm_cvtps_epi32(o));
+  }
+#endif
+  for (; i < 2 * kBriefPairs; i += 2) {
+    const auto& p = pattern[i / 2];
+    for (int k = 0; k < 2; ++k) {
+      const float px = p[2 * k], py = p[2 * k + 1];
+      const int rx = static_cast<int>(std::nearbyint(c * px - s * py));
+      const int ry = static_cast<int>(std::nearbyint(s * px + c * py));
+      off[i + k] = ry * stride + rx;
+    }
+  }
+  OrbDescriptor d{};
+  for (int w = 0; w < 4; ++w) {
+    uint64_t bits = 0;
+    const int32_t* o = off + w * 128;
+    for (int b = 0; b < 64; ++b) bits |= static_cast<uint64_t>(center[o[2 * b]] < center[o[2 * b + 1]]) << b;
+    d[w] = bits;
+  }
+  return d;
+}
+
+}  // namespace kestrel::core::orb_detail
