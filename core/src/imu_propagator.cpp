@@ -2,21 +2,12 @@
 
 #include <cmath>
 
+#include "kestrel/core/so3.hpp"
+
 namespace kestrel::core {
 namespace {
 
 Eigen::Vector3d to_eigen(const Vec3d& v) { return {v[0], v[1], v[2]}; }
-
-// Exponential map of so(3) with the small-angle branch, so a zero rate is exact.
-Eigen::Quaterniond exp_so3(const Eigen::Vector3d& w) {
-  const double theta = w.norm();
-  if (theta < 1e-9) {
-    Eigen::Quaterniond q(1.0, 0.5 * w.x(), 0.5 * w.y(), 0.5 * w.z());
-    return q.normalized();
-  }
-  const Eigen::Vector3d axis = w / theta;
-  return Eigen::Quaterniond(Eigen::AngleAxisd(theta, axis));
-}
 
 }  // namespace
 
@@ -79,7 +70,7 @@ bool ImuPropagator::propagate(const ImuSample& s) {
 
   const Eigen::Vector3d w_mid = 0.5 * (prev_gyro_ + gyro) - state_.bg_rps;
   const Eigen::Quaterniond q0 = state_.q_WB;
-  const Eigen::Quaterniond q1 = (q0 * exp_so3(w_mid * dt)).normalized();
+  const Eigen::Quaterniond q1 = (q0 * so3::exp_quat(w_mid * dt)).normalized();
   const Eigen::Vector3d a0_W = q0 * (prev_acc_ - state_.ba_mps2) + g_W;
   const Eigen::Vector3d a1_W = q1 * (acc - state_.ba_mps2) + g_W;
   const Eigen::Vector3d a_mid = 0.5 * (a0_W + a1_W);
