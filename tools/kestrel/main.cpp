@@ -39,6 +39,7 @@ int main(int argc, char** argv) {
   commands.push_back(add_replay_command(app));
   commands.push_back(add_eval_command(app));
   commands.push_back(add_bench_command(app));
+  commands.push_back(add_ekf_slam_command(app));
 
   try {
     app.parse(argc, argv);

@@ -1,0 +1,151 @@
+// Fixed memory: after warm-up, prediction, IMU propagation and the update
+// (association, gating, chunked Cholesky updates, freezing, initialisation)
+// make no heap allocation at all.
+//
+// rt::AllocCountScope counts operator new; Eigen allocates with malloc, which
+// it does not see. So this binary also interposes malloc & co. (forwarding to
+// glibc's __libc_* entry points) and counts those per thread. Sanitizer
+// builds own malloc themselves: there only operator new is counted.
+#include <gtest/gtest.h>
+
+#include <cstdlib>
+
+#include "ekf_sim.hpp"
+#include "kestrel/core/ekf_slam.hpp"
+#include "kestrel/rt/alloc_counter.hpp"
+
+#if defined(__SANITIZE_ADDRESS__) || defined(__SANITIZE_THREAD__)
+#define KESTREL_EKF_COUNT_MALLOC 0
+#elif defined(__has_feature)
+#if __has_feature(address_sanitizer) || __has_feature(thread_sanitizer)
+#define KESTREL_EKF_COUNT_MALLOC 0
+#endif
+#endif
+#ifndef KESTREL_EKF_COUNT_MALLOC
+#define KESTREL_EKF_COUNT_MALLOC 1
+#endif
+
+#if KESTREL_EKF_COUNT_MALLOC
+namespace {
+thread_local unsigned long g_mallocs = 0;  // trivial thread_local: safe inside malloc
+}
+extern "C" {
+void* __libc_malloc(size_t);
+void __libc_free(void*);
+void* __libc_calloc(size_t, size_t);
+void* __libc_realloc(void*, size_t);
+void* __libc_memalign(size_t, size_t);
+void* malloc(size_t n) {
+  ++g_mallocs;
+  return __libc_malloc(n);
+}
+void free(void* p) { __libc_free(p); }
+void* calloc(size_t a, size_t b) {
+  ++g_mallocs;
+  return __libc_calloc(a, b);
+}
+void* realloc(void* p, size_t n) {
+  ++g_mallocs;
+  return __libc_realloc(p, n);
+}
+void* memalign(size_t a, size_t n) {
+  ++g_mallocs;
+  return __libc_memalign(a, n);
+}
+void* aligned_alloc(size_t a, size_t n) {
+  ++g_mallocs;
+  return __libc_memalign(a, n);
+}
+int posix_memalign(void** p, size_t a, size_t n) {
+  ++g_mallocs;
+  *p = __libc_memalign(a, n);
+  return *p != nullptr ? 0 : 12;
+}
+}
+#endif
+
+namespace {
+
+using namespace kestrel;
+
+unsigned long mallocs_now() {
+#if KESTREL_EKF_COUNT_MALLOC
+  return g_mallocs;
+#else
+  return 0;
+#endif
+}
+
+void run_and_count(core::EkfMotionModel motion, int capacity) {
+  ASSERT_TRUE(rt::alloc_hook_linked());
+#if KESTREL_EKF_COUNT_MALLOC
+  {
+    const unsigned long before = mallocs_now();
+    void* volatile p = std::malloc(64);
+    std::free(p);
+    ASSERT_GT(mallocs_now(), before) << "malloc interposition is not in effect";
+  }
+#endif
+  const auto traj = tools::make_scenario("figure8", 20.0);
+  const test::EkfSimWorld world = test::make_ekf_world(7);
+  tools::SimRng rng(5, tools::RngStream::kCamera);
+  core::EkfSlamOptions opt;
+  opt.motion = motion;
+  opt.landmark_capacity = capacity;
+  opt.max_missed_frames = 1;
+  opt.max_init_depth_m = 15.0;
+  core::EkfSlam ekf(opt, world.cam);
+  const auto s0 = traj->state(0.0);
+  ekf.reset_imu(test::pose_of(s0), s0.v_WB, Eigen::Vector3d::Zero(), Eigen::Vector3d::Zero(),
+                core::ekf::Mat6::Identity() * 1e-8, 1e-3, 1e-3, 1e-2);
+  // Observations are generated up front: only the filter is measured.
+  const double dt = 0.005;
+  const int frames = 120;
+  std::vector<std::vector<core::StereoObservation>> obs(frames);
+  std::vector<std::array<Eigen::Vector3d, 2>> inputs;
+  for (int f = 0; f < frames; ++f) {
+    for (int k = 0; k < 10; ++k) {
+      const auto s = traj->state((f * 10 + k + 0.5) * dt);
+      Eigen::Vector3d gyro, acc;
+      tools::true_imu(s, 9.81, gyro, acc);
+      if (motion == core::EkfMotionModel::kVelocity) acc = s.q_WB.conjugate() * s.v_WB;  // the body velocity
+      inputs.push_back({gyro, acc});
+    }
+    test::observe(world, test::pose_of(traj->state((f + 1) * 10 * dt)), 0.5, rng, obs[static_cast<size_t>(f)], 200);
+  }
+  unsigned long new_count = 0, malloc_count = 0;
+  int max_active = 0, frozen_total = 0, init_total = 0;
+  for (int f = 0; f < frames; ++f) {
+    const bool measure = f >= 20;  // warm-up: first frames fill the active set
+    rt::AllocCountScope scope;
+    const unsigned long m0 = mallocs_now();
+    for (int k = 0; k < 10; ++k) {
+      const auto& in = inputs[static_cast<size_t>(f * 10 + k)];
+      if (motion == core::EkfMotionModel::kImu)
+        ekf.propagate_imu(in[0], in[1], dt);
+      else
+        ekf.predict_velocity(in[1], in[0], dt);
+    }
+    const auto& o = obs[static_cast<size_t>(f)];
+    const core::EkfUpdateStats st = ekf.update(o.data(), static_cast<int>(o.size()));
+    frozen_total += ekf.frozen_count();
+    init_total += st.initialised;
+    ekf.clear_frozen();
+    if (measure) {
+      new_count += scope.count();
+      malloc_count += mallocs_now() - m0;
+    }
+    max_active = std::max(max_active, ekf.num_active());
+  }
+  EXPECT_EQ(new_count, 0u) << "operator new calls after warm-up";
+  EXPECT_EQ(malloc_count, 0u) << "malloc calls after warm-up";
+  // The run must have exercised what it claims to.
+  EXPECT_EQ(max_active, capacity);
+  EXPECT_GT(frozen_total, 50);
+  EXPECT_GT(init_total, 50);
+}
+
+TEST(EkfAlloc, ImuModeStepsAllocateNothing) { run_and_count(core::EkfMotionModel::kImu, 96); }
+TEST(EkfAlloc, VelocityModeLargeCapacityAllocatesNothing) { run_and_count(core::EkfMotionModel::kVelocity, 120); }
+
+}  // namespace
