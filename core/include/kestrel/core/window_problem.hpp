@@ -1,0 +1,134 @@
+// The sliding-window problem both solvers work on (ours in
+// window_optimizer.cpp, Ceres in ceres_window.cpp): states, landmarks,
+// observations, factors and priors, plus the residual functions with their
+// analytic Jacobians. One definition of every residual, so the two solvers
+// minimise the identical cost.
+//
+// Tangent of a state (15): [dp (W), dphi (B, right: q <- q Exp(dphi)), dv (W), dbg, dba]
+// (preintegration.hpp's perturbation convention). Landmarks: points in W, dl in W.
+#pragma once
+
+#include <Eigen/Core>
+#include <Eigen/Geometry>
+#include <cstdint>
+#include <vector>
+
+#include "kestrel/core/imu_propagator.hpp"
+#include "kestrel/core/motion_estimation.hpp"
+#include "kestrel/core/preintegration.hpp"
+#include "kestrel/core/window_options.hpp"
+
+namespace kestrel::core {
+
+constexpr int kWindowStateDim = 15;
+constexpr int kWindowMaxDim = kWindowStateDim * kWindowMaxStates;
+using Vector15d = Eigen::Matrix<double, 15, 1>;
+using Matrix15d = Eigen::Matrix<double, 15, 15>;
+using Matrix36d = Eigen::Matrix<double, 3, 6>;
+
+struct WindowObs {
+  int32_t lm = -1;  // landmark index, -1: unused (dropped, or its landmark is gone)
+  Eigen::Vector2d uv = Eigen::Vector2d::Zero();
+  double depth_m = 0.0;       // 0: none (or use_depth off)
+  double sigma_px = 1.0;
+  double sigma_depth_m = 0.0;
+};
+
+struct WindowLandmark {
+  bool used = false;
+  bool initialised = false;
+  uint32_t id = 0;
+  Eigen::Vector3d p_W = Eigen::Vector3d::Zero();
+  int n_obs = 0;
+  int n_depth = 0;  // observations carrying depth
+  // Where it is observed: (state slot, index into that slot's observations).
+  int8_t obs_slot[kWindowMaxStates] = {};
+  int16_t obs_idx[kWindowMaxStates] = {};
+  // Only landmarks whose 3x3 block is invertible take part: two views, or one with depth.
+  bool active() const { return initialised && (n_obs >= 2 || (n_obs >= 1 && n_depth >= 1)); }
+};
+
+struct WindowState {
+  bool used = false;
+  bool keyframe = false;
+  NavState x;
+  // IMU + bias factor from the previous state in the chain (imu_prev) to this one.
+  bool has_imu = false;
+  int imu_prev = -1;
+  Preintegrated pim;
+  Matrix9d imu_sqrt_info = Matrix9d::Zero();
+  Vector6d bias_sqrt_info = Vector6d::Zero();  // diagonal
+  int n_obs = 0;
+  // Marginalisation prior: linearisation point of this state (first estimate).
+  bool in_prior = false;
+  NavState x0;
+};
+
+struct WindowProblem {
+  WindowOptions opt;
+  ImuNoiseParams bias_noise;  // opt.imu with the accelerometer bias model applied
+  PinholeK K;
+  Eigen::Matrix3d R_CB = Eigen::Matrix3d::Identity();
+  Eigen::Vector3d p_CB = Eigen::Vector3d::Zero();
+  int max_states = 0;  // S + N
+
+  std::vector<WindowState> states;     // slots [max_states]
+  int order[kWindowMaxStates] = {};    // slots in time order, oldest first
+  int n_states = 0;
+  std::vector<WindowObs> obs;          // [max_states * opt.max_obs_per_frame]
+  std::vector<WindowLandmark> lms;     // [opt.max_landmarks]
+
+  // Gauge: position and yaw of the oldest state held at these values.
+  int gauge_slot = -1;
+  Eigen::Vector3d gauge_p = Eigen::Vector3d::Zero();
+  double gauge_yaw = 0.0;
+
+  // Marginalisation prior in slot space (15 * max_states square):
+  //   cost = prior_c + prior_g' dx + 1/2 dx' prior_H dx,  dx = x [-] x0 per state,
+  // which equals 1/2 |e + J dx|^2 with J'J = prior_H, J'e = prior_g, 1/2 e'e = prior_c.
+  Eigen::MatrixXd prior_H;
+  Eigen::VectorXd prior_g;
+  double prior_c = 0.0;
+  bool prior_active = false;
+
+  WindowObs* obs_of(int slot) { return obs.data() + static_cast<std::size_t>(slot) * opt.max_obs_per_frame; }
+  const WindowObs* obs_of(int slot) const {
+    return obs.data() + static_cast<std::size_t>(slot) * opt.max_obs_per_frame;
+  }
+  int newest_slot() const { return n_states > 0 ? order[n_states - 1] : -1; }
+};
+
+// ---- residuals ---------------------------------------------------------------
+
+// Huber on a squared whitened norm s (Ceres' HuberLoss): rho(s) = s for
+// s <= a^2, 2 a sqrt(s) - a^2 above; rho1 = rho'(s). a <= 0: rho(s) = s.
+double huber_rho(double s, double a, double* rho1);
+
+// Visual residual of one observation, whitened: rows 0-1 (pi(K p_C) - uv) / sigma_px,
+// row 2 (z_C - depth) / sigma_depth when the observation has depth.
+// p_C = R_CB R_WB^T (l_W - p_WB) + p_CB. Returns the number of rows (2 or 3),
+// 0 when the point is not in front of the camera (z_C < 1e-3 m).
+// J_pose: d r / d[dp, dphi]; J_l: d r / d l_W.
+int visual_residual(const WindowProblem& P, const NavState& x, const Eigen::Vector3d& l_W, const WindowObs& o,
+                    Eigen::Vector3d* r, Matrix36d* J_pose = nullptr, Eigen::Matrix3d* J_l = nullptr);
+
+// IMU (9, whitened by the preintegration's covariance) and bias (6, whitened
+// by bias_covariance) residuals stacked: [r_R, r_v, r_p, r_bg, r_ba].
+// J_i, J_j: d r / d (15-tangent of x_i, x_j).
+Vector15d imu_bias_residual(const WindowProblem& P, const WindowState& sj, const NavState& x_i,
+                            const NavState& x_j, Matrix15d* J_i = nullptr, Matrix15d* J_j = nullptr);
+
+// Yaw of R_WB: heading of the body x axis in W, atan2(R10, R00).
+double yaw_of(const Eigen::Quaterniond& q_WB);
+// Gauge residual [p - gauge_p; wrap(yaw - gauge_yaw)] / gauge_sigma and its
+// Jacobian w.r.t. [dp, dphi].
+Eigen::Vector4d gauge_residual(const WindowProblem& P, const NavState& x, Eigen::Matrix<double, 4, 6>* J = nullptr);
+
+// x [-] x0 in the state tangent: [p - p0, Log(R0^T R), v - v0, bg - bg0, ba - ba0],
+// and d(delta)/d(tangent of x) as the 3x3 block of the rotation part (Jr^-1);
+// the other blocks are identity.
+Vector15d state_minus(const NavState& x, const NavState& x0, Eigen::Matrix3d* J_rot = nullptr);
+// x [+] d in the same tangent.
+NavState state_plus(const NavState& x, const Vector15d& d);
+
+}  // namespace kestrel::core

@@ -1,0 +1,872 @@
+#include "kestrel/core/window_optimizer.hpp"
+
+#include <Eigen/Cholesky>
+#include <Eigen/Eigenvalues>
+#include <Eigen/LU>
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <sstream>
+#include <stdexcept>
+
+#include "kestrel/core/ceres_window.hpp"
+#include "kestrel/core/so3.hpp"
+
+namespace kestrel::core {
+namespace {
+
+constexpr int kD = kWindowStateDim;
+using Matrix63d = Eigen::Matrix<double, 6, 3>;
+
+double elapsed_ms(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+}
+
+uint32_t hash_id(uint32_t id) { return id * 2654435761u; }
+
+}  // namespace
+
+WindowOptions WindowOptions::embedded() {
+  WindowOptions o;
+  o.S = 2;
+  o.N = 3;
+  return o;
+}
+
+std::string WindowOptions::validate() const {
+  std::ostringstream e;
+  if (S < 1) e << "S must be >= 1 (got " << S << "); ";
+  if (N < 1) e << "N must be >= 1 (got " << N << "); ";
+  if (S + N > kWindowMaxStates) e << "S + N must be <= " << kWindowMaxStates << " (got " << S + N << "); ";
+  if (max_landmarks < 1) e << "max_landmarks must be >= 1; ";
+  if (max_obs_per_frame < 1 || max_obs_per_frame > 32767) e << "max_obs_per_frame must be in [1, 32767]; ";
+  if (max_iterations < 1) e << "max_iterations must be >= 1; ";
+  if (!(time_budget_ms > 0.0)) e << "time_budget_ms must be > 0; ";
+  if (!std::isfinite(huber_px)) e << "huber_px must be finite; ";
+  if (!(depth_sigma_coeff_per_m > 0.0)) e << "depth_sigma_coeff_per_m must be > 0; ";
+  if (!(pixel_sigma > 0.0)) e << "pixel_sigma must be > 0; ";
+  if (acc_bias_model == AccBiasModel::kBoundedRandomWalk && !(acc_bias_tau_s > 0.0))
+    e << "acc_bias_tau_s must be > 0 for the bounded random walk; ";
+  if (!(imu.gyro_random_walk_rad_s2_sqrthz > 0.0) || !(imu.acc_random_walk_mps3_sqrthz > 0.0))
+    e << "imu random walks (gyro_random_walk_rad_s2_sqrthz, acc_random_walk_mps3_sqrthz) must be > 0; ";
+  if (!(prior_gyro_bias_sigma_rps > 0.0) || !(prior_acc_bias_sigma_mps2 > 0.0)) e << "bias prior sigmas must be > 0; ";
+  if (!(gauge_sigma > 0.0)) e << "gauge_sigma must be > 0; ";
+  return e.str();
+}
+
+const char* to_string(WindowOptimizer::Status s) {
+  switch (s) {
+    case WindowOptimizer::Status::kConverged: return "converged";
+    case WindowOptimizer::Status::kMaxIterations: return "max_iterations";
+    case WindowOptimizer::Status::kTimeBudget: return "time_budget";
+    case WindowOptimizer::Status::kNoProgress: return "no_progress";
+    case WindowOptimizer::Status::kEmpty: return "empty";
+    case WindowOptimizer::Status::kFailed: return "failed";
+  }
+  return "?";
+}
+
+// Everything the solver and the marginalisation touch per call, sized once.
+struct WindowOptimizer::Workspace {
+  // Landmark id -> index: open addressing, linear probing, backward-shift deletion.
+  std::vector<uint32_t> map_key;
+  std::vector<int32_t> map_val;  // -1: empty
+  uint32_t map_mask = 0;
+  std::vector<int32_t> free_lms;
+
+  // Solver.
+  int pos_of_slot[kWindowMaxStates] = {};
+  std::vector<int32_t> active;      // active landmark indices
+  int n_active = 0;
+  Eigen::MatrixXd H_lin, H_red;     // camera part (landmark-free) / reduced system
+  Eigen::VectorXd b_lin, b_red, dx, diag_c;
+  std::vector<Eigen::Matrix3d> V, Vinv;
+  std::vector<Eigen::Vector3d> w, dl, diag_l;
+  std::vector<Matrix63d> W;         // per observation (slot-major like problem.obs)
+  std::vector<Eigen::Vector3d> cand_l;
+  NavState cand_x[kWindowMaxStates];
+  Eigen::Matrix3d prior_Jrot[kWindowMaxStates];
+  Vector15d prior_dx[kWindowMaxStates];
+
+  // Marginalisation.
+  Eigen::MatrixXd Hm;
+  Eigen::VectorXd gm;
+  Eigen::Matrix<double, Eigen::Dynamic, 15, 0, kWindowMaxDim, 15> T;
+  Eigen::MatrixXd Hc;
+  Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig;
+  std::vector<int32_t> marg_lms;
+  std::vector<uint8_t> lm_mark;
+};
+
+WindowOptimizer::WindowOptimizer(const PinholeK& K, const Eigen::Isometry3d& T_BC, const WindowOptions& options)
+    : problem_(std::make_unique<WindowProblem>()), ws_(std::make_unique<Workspace>()) {
+  const std::string err = options.validate();
+  if (!err.empty()) throw std::invalid_argument("WindowOptions: " + err);
+  WindowProblem& P = *problem_;
+  P.opt = options;
+  P.bias_noise = options.imu;
+  P.bias_noise.acc_bias_tau_s =
+      options.acc_bias_model == WindowOptions::AccBiasModel::kBoundedRandomWalk ? options.acc_bias_tau_s : 0.0;
+  P.K = K;
+  P.R_CB = T_BC.linear().transpose();
+  P.p_CB = -P.R_CB * T_BC.translation();
+  P.max_states = options.S + options.N;
+  P.states.resize(P.max_states);
+  P.obs.resize(static_cast<std::size_t>(P.max_states) * options.max_obs_per_frame);
+  P.lms.resize(options.max_landmarks);
+  const int D = kD * P.max_states;
+  P.prior_H = Eigen::MatrixXd::Zero(D, D);
+  P.prior_g = Eigen::VectorXd::Zero(D);
+
+  Workspace& ws = *ws_;
+  uint32_t cap = 16;
+  while (cap < 2u * static_cast<uint32_t>(options.max_landmarks)) cap <<= 1;
+  ws.map_key.assign(cap, 0);
+  ws.map_val.assign(cap, -1);
+  ws.map_mask = cap - 1;
+  ws.free_lms.reserve(options.max_landmarks);
+  for (int i = options.max_landmarks - 1; i >= 0; --i) ws.free_lms.push_back(i);
+  ws.active.resize(options.max_landmarks);
+  ws.H_lin = Eigen::MatrixXd::Zero(D, D);
+  ws.H_red = Eigen::MatrixXd::Zero(D, D);
+  ws.b_lin = Eigen::VectorXd::Zero(D);
+  ws.b_red = Eigen::VectorXd::Zero(D);
+  ws.dx = Eigen::VectorXd::Zero(D);
+  ws.diag_c = Eigen::VectorXd::Zero(D);
+  ws.V.resize(options.max_landmarks);
+  ws.Vinv.resize(options.max_landmarks);
+  ws.w.resize(options.max_landmarks);
+  ws.dl.resize(options.max_landmarks);
+  ws.diag_l.resize(options.max_landmarks);
+  ws.cand_l.resize(options.max_landmarks);
+  ws.W.resize(P.obs.size());
+  ws.Hm = Eigen::MatrixXd::Zero(D, D);
+  ws.gm = Eigen::VectorXd::Zero(D);
+  ws.T.resize(D, 15);
+  ws.Hc = Eigen::MatrixXd::Zero(D, D);
+  ws.eig = Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd>(D);
+  ws.marg_lms.resize(options.max_obs_per_frame);
+  ws.lm_mark.assign(options.max_landmarks, 0);
+}
+
+WindowOptimizer::~WindowOptimizer() = default;
+
+// ---- landmarks -----------------------------------------------------------------
+
+int WindowOptimizer::find_or_create_landmark(uint32_t id) {
+  Workspace& ws = *ws_;
+  uint32_t h = hash_id(id) & ws.map_mask;
+  while (ws.map_val[h] >= 0) {
+    if (ws.map_key[h] == id) return ws.map_val[h];
+    h = (h + 1) & ws.map_mask;
+  }
+  if (ws.free_lms.empty()) return -1;
+  const int lm = ws.free_lms.back();
+  ws.free_lms.pop_back();
+  ws.map_key[h] = id;
+  ws.map_val[h] = lm;
+  WindowLandmark& L = problem_->lms[lm];
+  L = WindowLandmark{};
+  L.used = true;
+  L.id = id;
+  return lm;
+}
+
+void WindowOptimizer::free_landmark(int lm) {
+  Workspace& ws = *ws_;
+  WindowProblem& P = *problem_;
+  WindowLandmark& L = P.lms[lm];
+  for (int k = 0; k < L.n_obs; ++k) P.obs_of(L.obs_slot[k])[L.obs_idx[k]].lm = -1;
+  // Backward-shift deletion keeps every probe chain unbroken without tombstones.
+  uint32_t i = hash_id(L.id) & ws.map_mask;
+  while (!(ws.map_val[i] == lm)) i = (i + 1) & ws.map_mask;
+  uint32_t j = i;
+  for (;;) {
+    ws.map_val[i] = -1;
+    for (;;) {
+      j = (j + 1) & ws.map_mask;
+      if (ws.map_val[j] < 0) goto done;
+      const uint32_t home = hash_id(ws.map_key[j]) & ws.map_mask;
+      // Move j back to i unless its home lies cyclically in (i, j].
+      const bool in_range = i <= j ? (home > i && home <= j) : (home > i || home <= j);
+      if (!in_range) break;
+    }
+    ws.map_key[i] = ws.map_key[j];
+    ws.map_val[i] = ws.map_val[j];
+    i = j;
+  }
+done:
+  L = WindowLandmark{};
+  ws.free_lms.push_back(lm);
+}
+
+int WindowOptimizer::num_landmarks() const {
+  int n = 0;
+  for (const WindowLandmark& L : problem_->lms) n += L.used && L.active();
+  return n;
+}
+
+int WindowOptimizer::prior_dimension() const {
+  if (!problem_->prior_active) return 0;
+  int n = 0;
+  for (int k = 0; k < problem_->n_states; ++k) n += problem_->states[problem_->order[k]].in_prior ? kD : 0;
+  return n;
+}
+
+// ---- frames --------------------------------------------------------------------
+
+void WindowOptimizer::reset_gauge() {
+  WindowProblem& P = *problem_;
+  if (P.n_states == 0) {
+    P.gauge_slot = -1;
+    return;
+  }
+  const int s = P.order[0];
+  if (P.gauge_slot == s) return;
+  P.gauge_slot = s;
+  P.gauge_p = P.states[s].x.p_WB;
+  P.gauge_yaw = yaw_of(P.states[s].x.q_WB);
+}
+
+bool WindowOptimizer::add_frame(const WindowFrameInput& in) {
+  WindowProblem& P = *problem_;
+  if (P.n_states > 0) {
+    if (in.imu_from_prev == nullptr) return false;
+    if (in.t_ns <= P.states[P.newest_slot()].x.t_ns) return false;
+  }
+  // Which state leaves: the frame dropping out of the S most recent is
+  // removed unless it is a keyframe; beyond N keyframes the oldest goes.
+  const int S = P.opt.S, n = P.n_states;
+  if (n >= S) {
+    const int c = P.order[n - S];
+    if (!P.states[c].keyframe) {
+      marginalize_or_drop(c);
+    } else if (n - S + 1 > P.opt.N) {
+      marginalize_or_drop(P.order[0]);
+    }
+  }
+  if (P.n_states >= P.max_states) marginalize_or_drop(P.order[0]);  // defensive: cannot happen
+
+  int slot = 0;
+  while (P.states[slot].used) ++slot;
+  WindowState& st = P.states[slot];
+  st.used = true;
+  st.keyframe = in.keyframe;
+  st.x = in.guess;
+  st.x.t_ns = in.t_ns;
+  st.x.q_WB.normalize();
+  st.n_obs = 0;
+  st.in_prior = false;
+  st.has_imu = P.n_states > 0;
+  st.imu_prev = st.has_imu ? P.newest_slot() : -1;
+  if (st.has_imu) {
+    st.pim = *in.imu_from_prev;
+    st.imu_sqrt_info = st.pim.sqrt_information();
+    const Matrix6d C = bias_covariance(st.pim.dt_total(), P.bias_noise);
+    for (int i = 0; i < 6; ++i) st.bias_sqrt_info(i) = 1.0 / std::sqrt(std::max(C(i, i), 1e-300));
+  }
+  const bool first = P.n_states == 0 && !P.prior_active;
+  P.order[P.n_states++] = slot;
+  if (first) {
+    // Start-up speed/bias prior (OKVIS): only the biases, the velocity is
+    // left to the IMU and the views.
+    const int o = kD * slot;
+    const double ig = 1.0 / (P.opt.prior_gyro_bias_sigma_rps * P.opt.prior_gyro_bias_sigma_rps);
+    const double ia = 1.0 / (P.opt.prior_acc_bias_sigma_mps2 * P.opt.prior_acc_bias_sigma_mps2);
+    for (int i = 0; i < 3; ++i) {
+      P.prior_H(o + 9 + i, o + 9 + i) = ig;
+      P.prior_H(o + 12 + i, o + 12 + i) = ia;
+    }
+    st.in_prior = true;
+    st.x0 = st.x;
+    P.prior_active = true;
+  }
+  reset_gauge();
+  add_observations(slot, in);
+  return true;
+}
+
+void WindowOptimizer::add_observations(int slot, const WindowFrameInput& in) {
+  WindowProblem& P = *problem_;
+  WindowState& st = P.states[slot];
+  WindowObs* obs = P.obs_of(slot);
+  const Eigen::Matrix3d R_WB = st.x.q_WB.toRotationMatrix();
+  for (int k = 0; k < in.n_obs; ++k) {
+    const WindowObservation& o = in.obs[k];
+    if (!o.uv.allFinite() || !std::isfinite(o.depth_m) || o.depth_m < 0.0) {
+      ++counters_.obs_skipped_invalid;
+      continue;
+    }
+    if (st.n_obs >= P.opt.max_obs_per_frame) {
+      counters_.obs_skipped_budget += in.n_obs - k;
+      break;
+    }
+    const int lm = find_or_create_landmark(o.landmark_id);
+    if (lm < 0) {
+      ++counters_.obs_skipped_budget;
+      continue;
+    }
+    WindowLandmark& L = P.lms[lm];
+    bool dup = false;
+    for (int j = 0; j < L.n_obs; ++j) dup |= L.obs_slot[j] == slot;
+    if (dup || L.n_obs >= kWindowMaxStates) {
+      ++counters_.obs_skipped_invalid;
+      continue;
+    }
+    WindowObs& w = obs[st.n_obs];
+    w.lm = lm;
+    w.uv = o.uv;
+    w.depth_m = P.opt.use_depth ? o.depth_m : 0.0;
+    w.sigma_px = o.sigma_px > 0.0f ? static_cast<double>(o.sigma_px) : P.opt.pixel_sigma;
+    w.sigma_depth_m = std::max(1e-3, P.opt.depth_sigma_coeff_per_m * o.depth_m * o.depth_m);
+    const Eigen::Vector3d ray_C((o.uv.x() - P.K.cx) / P.K.fx, (o.uv.y() - P.K.cy) / P.K.fy, 1.0);
+    if (!L.initialised && o.depth_m > 0.0) {
+      const Eigen::Vector3d p_B = P.R_CB.transpose() * (ray_C * o.depth_m - P.p_CB);
+      L.p_W = R_WB * p_B + st.x.p_WB;
+      L.initialised = true;
+      ++counters_.landmarks_from_depth;
+    } else if (!L.initialised && L.n_obs > 0) {
+      // Midpoint triangulation with the first view, at the current estimates.
+      const WindowState& s0 = P.states[L.obs_slot[0]];
+      const WindowObs& o0 = P.obs_of(L.obs_slot[0])[L.obs_idx[0]];
+      const Eigen::Matrix3d R0 = s0.x.q_WB.toRotationMatrix();
+      const Eigen::Matrix3d R_BC = P.R_CB.transpose();
+      const Eigen::Vector3d c0 = s0.x.p_WB + R0 * (-R_BC * P.p_CB);
+      const Eigen::Vector3d c1 = st.x.p_WB + R_WB * (-R_BC * P.p_CB);
+      const Eigen::Vector3d d0 =
+          (R0 * R_BC * Eigen::Vector3d((o0.uv.x() - P.K.cx) / P.K.fx, (o0.uv.y() - P.K.cy) / P.K.fy, 1.0))
+              .normalized();
+      const Eigen::Vector3d d1 = (R_WB * R_BC * ray_C).normalized();
+      const double b = d0.dot(d1);
+      const double den = 1.0 - b * b;
+      if (den > 3e-4) {  // parallax above ~1 degree
+        const Eigen::Vector3d c = c1 - c0;
+        const double t0 = (c.dot(d0) - b * c.dot(d1)) / den;
+        const double t1 = (b * c.dot(d0) - c.dot(d1)) / den;
+        if (t0 > 0.05 && t1 > 0.05) {
+          L.p_W = 0.5 * (c0 + t0 * d0 + c1 + t1 * d1);
+          L.initialised = true;
+          ++counters_.landmarks_triangulated;
+        }
+      }
+    }
+    L.obs_slot[L.n_obs] = static_cast<int8_t>(slot);
+    L.obs_idx[L.n_obs] = static_cast<int16_t>(st.n_obs);
+    ++L.n_obs;
+    if (w.depth_m > 0.0) ++L.n_depth;
+    ++st.n_obs;
+  }
+}
+
+void WindowOptimizer::remove_state(int slot) {
+  WindowProblem& P = *problem_;
+  WindowState& st = P.states[slot];
+  WindowObs* obs = P.obs_of(slot);
+  for (int k = 0; k < st.n_obs; ++k) {
+    const int lm = obs[k].lm;
+    if (lm < 0) continue;
+    WindowLandmark& L = P.lms[lm];
+    for (int j = 0; j < L.n_obs; ++j) {
+      if (L.obs_slot[j] != slot) continue;
+      if (obs[k].depth_m > 0.0) --L.n_depth;
+      --L.n_obs;
+      L.obs_slot[j] = L.obs_slot[L.n_obs];
+      L.obs_idx[j] = L.obs_idx[L.n_obs];
+      break;
+    }
+    obs[k].lm = -1;
+    if (L.n_obs == 0) free_landmark(lm);
+  }
+  st.n_obs = 0;
+  for (int k = 0; k < P.n_states; ++k) {
+    WindowState& o = P.states[P.order[k]];
+    if (o.has_imu && o.imu_prev == slot) {
+      o.has_imu = false;
+      o.imu_prev = -1;
+    }
+  }
+  int k = 0;
+  while (P.order[k] != slot) ++k;
+  for (; k + 1 < P.n_states; ++k) P.order[k] = P.order[k + 1];
+  --P.n_states;
+  // The prior rows of this slot were eliminated (or discarded) by the caller.
+  const int o = kD * slot;
+  P.prior_H.middleRows(o, kD).setZero();
+  P.prior_H.middleCols(o, kD).setZero();
+  P.prior_g.segment(o, kD).setZero();
+  st.used = false;
+  st.in_prior = false;
+  st.has_imu = false;
+  bool any = false;
+  for (int j = 0; j < P.n_states; ++j) any |= P.states[P.order[j]].in_prior;
+  if (!any) {
+    P.prior_active = false;
+    P.prior_c = 0.0;
+  }
+  if (P.gauge_slot == slot) P.gauge_slot = -1;
+  reset_gauge();
+}
+
+void WindowOptimizer::marginalize_or_drop(int m) {
+  WindowProblem& P = *problem_;
+  Workspace& ws = *ws_;
+  if (!P.opt.marginalize) {
+    ++counters_.drops;
+    remove_state(m);
+    return;
+  }
+  ++counters_.marginalizations;
+  const int D = kD * P.max_states;
+  auto lin = [&](int s) -> const NavState& { return P.states[s].in_prior ? P.states[s].x0 : P.states[s].x; };
+  bool touched[kWindowMaxStates] = {};
+  touched[m] = true;
+
+  ws.Hm = P.prior_H;
+  ws.gm = P.prior_g;
+  double c = P.prior_active ? P.prior_c : 0.0;
+
+  // IMU + bias factors into and out of m, at the first estimates.
+  auto add_imu = [&](int j) {
+    const WindowState& sj = P.states[j];
+    const int i = sj.imu_prev;
+    Matrix15d Ji, Jj;
+    const Vector15d r = imu_bias_residual(P, sj, lin(i), lin(j), &Ji, &Jj);
+    ws.Hm.block<kD, kD>(kD * i, kD * i) += Ji.transpose() * Ji;
+    ws.Hm.block<kD, kD>(kD * i, kD * j) += Ji.transpose() * Jj;
+    ws.Hm.block<kD, kD>(kD * j, kD * i) += Jj.transpose() * Ji;
+    ws.Hm.block<kD, kD>(kD * j, kD * j) += Jj.transpose() * Jj;
+    ws.gm.segment<kD>(kD * i) += Ji.transpose() * r;
+    ws.gm.segment<kD>(kD * j) += Jj.transpose() * r;
+    c += 0.5 * r.squaredNorm();
+    touched[i] = touched[j] = true;
+  };
+  if (P.states[m].has_imu) add_imu(m);
+  for (int k = 0; k < P.n_states; ++k) {
+    const int j = P.order[k];
+    if (P.states[j].has_imu && P.states[j].imu_prev == m) add_imu(j);
+  }
+
+  // Keyframe: landmarks it sees that the temporal window no longer tracks
+  // are marginalised with it (OKVIS); for the others its observations are
+  // dropped, which keeps the landmarks out of the prior.
+  int n_marg = 0;
+  if (P.states[m].keyframe) {
+    const int n = P.n_states, S = P.opt.S;
+    const WindowObs* obs = P.obs_of(m);
+    for (int k = 0; k < P.states[m].n_obs; ++k) {
+      const int lm = obs[k].lm;
+      if (lm < 0) continue;
+      const WindowLandmark& L = P.lms[lm];
+      if (!L.active() || L.n_obs < 2) continue;
+      bool recent = false;
+      for (int j = 0; j < L.n_obs; ++j)
+        for (int q = std::max(0, n - S + 1); q < n; ++q) recent |= L.obs_slot[j] == P.order[q];
+      if (recent) continue;
+      ws.marg_lms[n_marg++] = lm;
+      for (int j = 0; j < L.n_obs; ++j) touched[L.obs_slot[j]] = true;
+    }
+    for (int q = 0; q < n_marg; ++q) {
+      const WindowLandmark& L = P.lms[ws.marg_lms[q]];
+      Eigen::Matrix3d V = Eigen::Matrix3d::Zero();
+      Eigen::Vector3d wl = Eigen::Vector3d::Zero();
+      Matrix63d Wk[kWindowMaxStates];
+      int ok[kWindowMaxStates] = {};
+      for (int j = 0; j < L.n_obs; ++j) {
+        const int s = L.obs_slot[j];
+        const WindowObs& o = P.obs_of(s)[L.obs_idx[j]];
+        Eigen::Vector3d r;
+        Matrix36d Jp;
+        Eigen::Matrix3d Jl;
+        const int rows = visual_residual(P, lin(s), L.p_W, o, &r, &Jp, &Jl);
+        if (rows == 0) continue;
+        ok[j] = 1;
+        double rho1 = 1.0;
+        c += 0.5 * huber_rho(r.squaredNorm(), P.opt.huber_px, &rho1);
+        Jp *= std::sqrt(rho1);
+        Jl *= std::sqrt(rho1);
+        r *= std::sqrt(rho1);
+        ws.Hm.block<6, 6>(kD * s, kD * s) += Jp.transpose() * Jp;
+        ws.gm.segment<6>(kD * s) += Jp.transpose() * r;
+        Wk[j] = Jp.transpose() * Jl;
+        V += Jl.transpose() * Jl;
+        wl += Jl.transpose() * r;
+      }
+      const Eigen::Matrix3d Vi = V.inverse();
+      c -= 0.5 * wl.dot(Vi * wl);
+      for (int a = 0; a < L.n_obs; ++a) {
+        if (!ok[a]) continue;
+        const int sa = L.obs_slot[a];
+        const Matrix63d WV = Wk[a] * Vi;
+        ws.gm.segment<6>(kD * sa) -= WV * wl;
+        for (int b = 0; b < L.n_obs; ++b) {
+          if (!ok[b]) continue;
+          ws.Hm.block<6, 6>(kD * sa, kD * L.obs_slot[b]) -= WV * Wk[b].transpose();
+        }
+      }
+    }
+  }
+
+  // States newly tied to the prior get their linearisation point now.
+  for (int k = 0; k < P.n_states; ++k) {
+    const int s = P.order[k];
+    if (touched[s] && !P.states[s].in_prior) {
+      P.states[s].in_prior = true;
+      P.states[s].x0 = P.states[s].x;
+    }
+  }
+
+  // Schur complement of m (pseudo-inverse: m may be weakly constrained).
+  const int om = kD * m;
+  const Matrix15d Hmm = 0.5 * (ws.Hm.block<kD, kD>(om, om) + ws.Hm.block<kD, kD>(om, om).transpose());
+  Eigen::SelfAdjointEigenSolver<Matrix15d> em(Hmm);
+  const double emax = std::max(em.eigenvalues().maxCoeff(), 1e-300);
+  Eigen::Matrix<double, 15, 1> inv = Eigen::Matrix<double, 15, 1>::Zero();
+  for (int i = 0; i < 15; ++i)
+    if (em.eigenvalues()(i) > 1e-12 * emax) inv(i) = 1.0 / em.eigenvalues()(i);
+  const Matrix15d Hmm_pinv = em.eigenvectors() * inv.asDiagonal() * em.eigenvectors().transpose();
+  const Vector15d g_m = ws.gm.segment<kD>(om);
+  c -= 0.5 * g_m.dot(Hmm_pinv * g_m);
+  ws.T.noalias() = ws.Hm.middleCols<kD>(om) * Hmm_pinv;
+  ws.Hm.noalias() -= ws.T * ws.Hm.middleRows<kD>(om);
+  ws.gm.noalias() -= ws.T * g_m;
+  ws.Hm.middleRows<kD>(om).setZero();
+  ws.Hm.middleCols<kD>(om).setZero();
+  ws.gm.segment<kD>(om).setZero();
+
+  // Project onto the numerically positive part so that the prior is exactly
+  // 1/2 |e + J dx|^2 with J'J = H, J'e = g, 1/2 e'e = c: the same quadratic
+  // Ceres sees as a residual. Done in slot space (fixed size D: the
+  // decomposition's buffers are reused, unused slots are zero rows).
+  ws.Hc = 0.5 * (ws.Hm + ws.Hm.transpose());
+  ws.eig.compute(ws.Hc);
+  P.prior_H.setZero();
+  P.prior_g.setZero();
+  P.prior_c = 0.0;
+  {
+    const auto& ev = ws.eig.eigenvalues();
+    const auto& U = ws.eig.eigenvectors();
+    const double lmax = std::max(ev.maxCoeff(), 1e-300);
+    for (int i = 0; i < D; ++i) {
+      if (!(ev(i) > 1e-10 * lmax)) continue;
+      const double ug = U.col(i).dot(ws.gm);
+      P.prior_H.noalias() += ev(i) * U.col(i) * U.col(i).transpose();
+      P.prior_g += ug * U.col(i);
+      P.prior_c += 0.5 * ug * ug / ev(i);
+    }
+  }
+  (void)c;  // the irreducible part of the old cost: constant, not kept (see docs)
+  P.prior_active = P.prior_H.cwiseAbs().maxCoeff() > 0.0;
+  P.states[m].in_prior = false;
+  for (int q = 0; q < n_marg; ++q) free_landmark(ws.marg_lms[q]);
+  remove_state(m);
+  for (int k = 0; k < P.n_states; ++k) {
+    // A state whose prior rows all vanished (nothing tied it) leaves the prior.
+    const int s = P.order[k];
+    if (P.states[s].in_prior && P.prior_H.block<kD, kD>(kD * s, kD * s).cwiseAbs().maxCoeff() == 0.0)
+      P.states[s].in_prior = false;
+  }
+}
+
+// ---- cost and solver ---------------------------------------------------------------
+
+namespace {
+
+// Cost of the whole problem with states xs (indexed by slot) and landmark positions ls.
+double problem_cost(const WindowProblem& P, const NavState* xs, const Eigen::Vector3d* ls, const int32_t* active,
+                    int n_active, Vector15d* dx_scratch) {
+  double cost = 0.0;
+  for (int a = 0; a < n_active; ++a) {
+    const WindowLandmark& L = P.lms[active[a]];
+    for (int j = 0; j < L.n_obs; ++j) {
+      const int s = L.obs_slot[j];
+      Eigen::Vector3d r;
+      if (visual_residual(P, xs[s], ls[active[a]], P.obs_of(s)[L.obs_idx[j]], &r) == 0) continue;
+      cost += 0.5 * huber_rho(r.squaredNorm(), P.opt.huber_px, nullptr);
+    }
+  }
+  for (int k = 0; k < P.n_states; ++k) {
+    const int s = P.order[k];
+    const WindowState& st = P.states[s];
+    if (st.has_imu) cost += 0.5 * imu_bias_residual(P, st, xs[st.imu_prev], xs[s]).squaredNorm();
+  }
+  if (P.gauge_slot >= 0) cost += 0.5 * gauge_residual(P, xs[P.gauge_slot]).squaredNorm();
+  if (P.prior_active) {
+    double pc = P.prior_c;
+    for (int k = 0; k < P.n_states; ++k) {
+      const int s = P.order[k];
+      if (P.states[s].in_prior) dx_scratch[s] = state_minus(xs[s], P.states[s].x0);
+    }
+    for (int a = 0; a < P.n_states; ++a) {
+      const int s = P.order[a];
+      if (!P.states[s].in_prior) continue;
+      pc += P.prior_g.segment<kD>(kD * s).dot(dx_scratch[s]);
+      for (int b = 0; b < P.n_states; ++b) {
+        const int t = P.order[b];
+        if (!P.states[t].in_prior) continue;
+        pc += 0.5 * dx_scratch[s].dot(P.prior_H.block<kD, kD>(kD * s, kD * t) * dx_scratch[t]);
+      }
+    }
+    cost += pc;
+  }
+  return cost;
+}
+
+}  // namespace
+
+double WindowOptimizer::evaluate_cost() const {
+  const WindowProblem& P = *problem_;
+  Workspace& ws = *ws_;
+  int n_active = 0;
+  for (int i = 0; i < static_cast<int>(P.lms.size()); ++i)
+    if (P.lms[i].used && P.lms[i].active()) ws.active[n_active++] = i;
+  NavState xs[kWindowMaxStates];
+  for (int k = 0; k < P.n_states; ++k) xs[P.order[k]] = P.states[P.order[k]].x;
+  for (int a = 0; a < n_active; ++a) ws.cand_l[ws.active[a]] = P.lms[ws.active[a]].p_W;
+  return problem_cost(P, xs, ws.cand_l.data(), ws.active.data(), n_active, ws.prior_dx);
+}
+
+WindowOptimizer::Result WindowOptimizer::optimize() {
+  if (problem_->opt.solver == WindowOptions::Solver::kCeres) return solve_window_ceres(*problem_);
+  return optimize_ours();
+}
+
+WindowOptimizer::Result WindowOptimizer::optimize_ours() {
+  const auto t0 = std::chrono::steady_clock::now();
+  WindowProblem& P = *problem_;
+  Workspace& ws = *ws_;
+  Result res;
+  if (P.n_states == 0) {
+    res.status = Status::kEmpty;
+    return res;
+  }
+  const int n = kD * P.n_states;
+  for (int k = 0; k < P.n_states; ++k) ws.pos_of_slot[P.order[k]] = k;
+  ws.n_active = 0;
+  int n_vis = 0;
+  for (int i = 0; i < static_cast<int>(P.lms.size()); ++i) {
+    if (P.lms[i].used && P.lms[i].active()) {
+      ws.active[ws.n_active++] = i;
+      n_vis += P.lms[i].n_obs;
+    }
+  }
+  int n_imu = 0;
+  for (int k = 0; k < P.n_states; ++k) n_imu += P.states[P.order[k]].has_imu;
+  res.landmarks = ws.n_active;
+  res.residuals = n_vis + n_imu + (P.gauge_slot >= 0) + (P.prior_active ? 1 : 0);
+
+  NavState xs[kWindowMaxStates];
+  for (int k = 0; k < P.n_states; ++k) xs[P.order[k]] = P.states[P.order[k]].x;
+  for (int a = 0; a < ws.n_active; ++a) ws.cand_l[ws.active[a]] = P.lms[ws.active[a]].p_W;
+  double cost = problem_cost(P, xs, ws.cand_l.data(), ws.active.data(), ws.n_active, ws.prior_dx);
+  res.cost_initial = cost;
+
+  double lambda = 1e-4, nu = 2.0;
+  bool need_lin = true;
+  res.status = Status::kMaxIterations;
+  auto Hl = ws.H_lin.topLeftCorner(n, n);
+  auto bl = ws.b_lin.head(n);
+  for (int it = 0; it < P.opt.max_iterations; ++it) {
+    res.iterations = it + 1;
+    if (need_lin) {
+      Hl.setZero();
+      bl.setZero();
+      // Visual terms: pose blocks into H_lin, landmark blocks kept for the Schur complement.
+      for (int a = 0; a < ws.n_active; ++a) {
+        const int lm = ws.active[a];
+        const WindowLandmark& L = P.lms[lm];
+        Eigen::Matrix3d V = Eigen::Matrix3d::Zero();
+        Eigen::Vector3d wv = Eigen::Vector3d::Zero();
+        for (int j = 0; j < L.n_obs; ++j) {
+          const int s = L.obs_slot[j];
+          const int oi = s * P.opt.max_obs_per_frame + L.obs_idx[j];
+          Eigen::Vector3d r;
+          Matrix36d Jp;
+          Eigen::Matrix3d Jl;
+          if (visual_residual(P, P.states[s].x, L.p_W, P.obs[oi], &r, &Jp, &Jl) == 0) {
+            ws.W[oi].setZero();
+            continue;
+          }
+          double rho1 = 1.0;
+          huber_rho(r.squaredNorm(), P.opt.huber_px, &rho1);
+          const int o = kD * ws.pos_of_slot[s];
+          const Eigen::Matrix<double, 6, 3> JpT = rho1 * Jp.transpose();
+          Hl.block<6, 6>(o, o).noalias() += JpT * Jp;
+          bl.segment<6>(o).noalias() += JpT * r;
+          ws.W[oi].noalias() = JpT * Jl;
+          V.noalias() += rho1 * Jl.transpose() * Jl;
+          wv.noalias() += rho1 * Jl.transpose() * r;
+        }
+        ws.V[lm] = V;
+        ws.w[lm] = wv;
+        ws.diag_l[lm] = V.diagonal().cwiseMax(1e-6);
+      }
+      // IMU + bias.
+      for (int k = 0; k < P.n_states; ++k) {
+        const int j = P.order[k];
+        const WindowState& sj = P.states[j];
+        if (!sj.has_imu) continue;
+        const int i = sj.imu_prev;
+        Matrix15d Ji, Jj;
+        const Vector15d r = imu_bias_residual(P, sj, P.states[i].x, sj.x, &Ji, &Jj);
+        const int oi = kD * ws.pos_of_slot[i], oj = kD * k;
+        Hl.block<kD, kD>(oi, oi).noalias() += Ji.transpose() * Ji;
+        Hl.block<kD, kD>(oi, oj).noalias() += Ji.transpose() * Jj;
+        Hl.block<kD, kD>(oj, oi).noalias() += Jj.transpose() * Ji;
+        Hl.block<kD, kD>(oj, oj).noalias() += Jj.transpose() * Jj;
+        bl.segment<kD>(oi).noalias() += Ji.transpose() * r;
+        bl.segment<kD>(oj).noalias() += Jj.transpose() * r;
+      }
+      // Gauge.
+      if (P.gauge_slot >= 0) {
+        Eigen::Matrix<double, 4, 6> Jg;
+        const Eigen::Vector4d r = gauge_residual(P, P.states[P.gauge_slot].x, &Jg);
+        const int o = kD * ws.pos_of_slot[P.gauge_slot];
+        Hl.block<6, 6>(o, o).noalias() += Jg.transpose() * Jg;
+        bl.segment<6>(o).noalias() += Jg.transpose() * r;
+      }
+      // Marginalisation prior, chained through d(x [-] x0)/dx.
+      if (P.prior_active) {
+        for (int k = 0; k < P.n_states; ++k) {
+          const int s = P.order[k];
+          if (P.states[s].in_prior) ws.prior_dx[s] = state_minus(P.states[s].x, P.states[s].x0, &ws.prior_Jrot[s]);
+        }
+        for (int a = 0; a < P.n_states; ++a) {
+          const int s = P.order[a];
+          if (!P.states[s].in_prior) continue;
+          Vector15d g = P.prior_g.segment<kD>(kD * s);
+          for (int b = 0; b < P.n_states; ++b) {
+            const int t = P.order[b];
+            if (!P.states[t].in_prior) continue;
+            Matrix15d Hst = P.prior_H.block<kD, kD>(kD * s, kD * t);
+            g.noalias() += Hst * ws.prior_dx[t];
+            Hst.middleRows<3>(3) = (ws.prior_Jrot[s].transpose() * Hst.middleRows<3>(3)).eval();
+            Hst.middleCols<3>(3) = (Hst.middleCols<3>(3) * ws.prior_Jrot[t]).eval();
+            Hl.block<kD, kD>(kD * a, kD * b) += Hst;
+          }
+          g.segment<3>(3) = (ws.prior_Jrot[s].transpose() * g.segment<3>(3)).eval();
+          bl.segment<kD>(kD * a) += g;
+        }
+      }
+      for (int i = 0; i < n; ++i) ws.diag_c(i) = std::clamp(Hl(i, i), 1e-6, 1e32);
+      need_lin = false;
+    }
+
+    // Damped Schur complement: H_red = H_cc + lambda D - sum_l W V^-1 W'.
+    auto Hr = ws.H_red.topLeftCorner(n, n);
+    auto br = ws.b_red.head(n);
+    Hr = Hl;
+    br = bl;
+    Hr.diagonal() += lambda * ws.diag_c.head(n);
+    for (int a = 0; a < ws.n_active; ++a) {
+      const int lm = ws.active[a];
+      const WindowLandmark& L = P.lms[lm];
+      Eigen::Matrix3d Vd = ws.V[lm];
+      Vd.diagonal() += lambda * ws.diag_l[lm];
+      ws.Vinv[lm] = Vd.inverse();
+      for (int j = 0; j < L.n_obs; ++j) {
+        const int oj = L.obs_slot[j] * P.opt.max_obs_per_frame + L.obs_idx[j];
+        const int pj = kD * ws.pos_of_slot[L.obs_slot[j]];
+        const Matrix63d WV = ws.W[oj] * ws.Vinv[lm];
+        br.segment<6>(pj).noalias() -= WV * ws.w[lm];
+        for (int q = 0; q < L.n_obs; ++q) {
+          const int oq = L.obs_slot[q] * P.opt.max_obs_per_frame + L.obs_idx[q];
+          const int pq = kD * ws.pos_of_slot[L.obs_slot[q]];
+          Hr.block<6, 6>(pj, pq).noalias() -= WV * ws.W[oq].transpose();
+        }
+      }
+    }
+    Eigen::Ref<Eigen::MatrixXd> Hr_ref(Hr);
+    Eigen::LLT<Eigen::Ref<Eigen::MatrixXd>> llt(Hr_ref);
+    if (llt.info() != Eigen::Success) {
+      lambda *= nu;
+      nu *= 2.0;
+      if (elapsed_ms(t0) > P.opt.time_budget_ms) {
+        res.status = Status::kTimeBudget;
+        break;
+      }
+      continue;
+    }
+    auto dx = ws.dx.head(n);
+    dx = -br;
+    llt.solveInPlace(dx);
+    // Back-substitution: dl = V^-1 (-w - sum W' dx), and the model decrease.
+    double pred = 0.0;
+    pred += 0.5 * (lambda * dx.dot(ws.diag_c.head(n).cwiseProduct(dx)) - bl.dot(dx));
+    double max_step = dx.cwiseAbs().maxCoeff();
+    for (int a = 0; a < ws.n_active; ++a) {
+      const int lm = ws.active[a];
+      const WindowLandmark& L = P.lms[lm];
+      Eigen::Vector3d rhs = -ws.w[lm];
+      for (int j = 0; j < L.n_obs; ++j) {
+        const int oj = L.obs_slot[j] * P.opt.max_obs_per_frame + L.obs_idx[j];
+        rhs.noalias() -= ws.W[oj].transpose() * dx.segment<6>(kD * ws.pos_of_slot[L.obs_slot[j]]);
+      }
+      const Eigen::Vector3d d = ws.Vinv[lm] * rhs;
+      ws.dl[lm] = d;
+      pred += 0.5 * (lambda * d.dot(ws.diag_l[lm].cwiseProduct(d)) - ws.w[lm].dot(d));
+      max_step = std::max(max_step, d.cwiseAbs().maxCoeff());
+      ws.cand_l[lm] = L.p_W + d;
+    }
+    for (int k = 0; k < P.n_states; ++k) {
+      const int s = P.order[k];
+      xs[s] = state_plus(P.states[s].x, dx.segment<kD>(kD * k));
+    }
+    const double cost_new = problem_cost(P, xs, ws.cand_l.data(), ws.active.data(), ws.n_active, ws.prior_dx);
+    const double actual = cost - cost_new;
+    if (std::isfinite(cost_new) && actual > 0.0) {
+      for (int k = 0; k < P.n_states; ++k) P.states[P.order[k]].x = xs[P.order[k]];
+      for (int a = 0; a < ws.n_active; ++a) P.lms[ws.active[a]].p_W = ws.cand_l[ws.active[a]];
+      const double rho = pred > 0.0 ? actual / pred : 0.0;
+      const double t = 2.0 * rho - 1.0;
+      lambda *= std::max(1.0 / 3.0, 1.0 - t * t * t);
+      lambda = std::max(lambda, 1e-12);
+      nu = 2.0;
+      const bool small = actual < P.opt.function_tolerance * cost || max_step < P.opt.step_tolerance;
+      cost = cost_new;
+      need_lin = true;
+      if (small) {
+        res.status = Status::kConverged;
+        break;
+      }
+    } else {
+      if (max_step < P.opt.step_tolerance) {
+        res.status = Status::kConverged;  // nothing left to gain at machine precision
+        break;
+      }
+      lambda *= nu;
+      nu *= 2.0;
+      if (lambda > 1e16) {
+        res.status = Status::kNoProgress;
+        break;
+      }
+    }
+    if (elapsed_ms(t0) > P.opt.time_budget_ms) {
+      res.status = Status::kTimeBudget;
+      break;
+    }
+  }
+  res.cost_final = cost;
+  res.ok = std::isfinite(cost) && res.status != Status::kFailed && res.status != Status::kNoProgress;
+  if (res.status == Status::kNoProgress) res.ok = cost <= res.cost_initial;
+  res.solve_ms = elapsed_ms(t0);
+  return res;
+}
+
+const NavState& WindowOptimizer::latest() const {
+  static const NavState kNone{};
+  const int s = problem_->newest_slot();
+  return s >= 0 ? problem_->states[s].x : kNone;
+}
+
+bool WindowOptimizer::state_of(int64_t t_ns, NavState* out) const {
+  for (int k = 0; k < problem_->n_states; ++k) {
+    const WindowState& st = problem_->states[problem_->order[k]];
+    if (st.x.t_ns == t_ns) {
+      if (out) *out = st.x;
+      return true;
+    }
+  }
+  return false;
+}
+
+}  // namespace kestrel::core

@@ -1,0 +1,166 @@
+// Every analytic Jacobian of the window's residuals against central
+// differences through the same perturbation (tests/common/jacobian_check.hpp).
+#include <gtest/gtest.h>
+
+#include <random>
+
+#include "jacobian_check.hpp"
+#include "kestrel/core/so3.hpp"
+#include "kestrel/core/window_problem.hpp"
+#include "window_sim.hpp"
+
+namespace kestrel::core {
+namespace {
+
+using Eigen::Matrix3d;
+using Eigen::Vector3d;
+using Eigen::VectorXd;
+using kestrel::test::check_jacobian;
+
+Vector15d to15(const VectorXd& d) { return Vector15d(d.head<15>()); }
+
+WindowProblem make_problem(bool bounded = false) {
+  WindowProblem P;
+  P.opt = kestrel::test::sim_options();
+  P.opt.huber_px = 2.0;
+  P.bias_noise = P.opt.imu;
+  P.bias_noise.acc_bias_tau_s = bounded ? 300.0 : 0.0;
+  P.K = kestrel::test::sim_K();
+  const Eigen::Isometry3d T_BC = kestrel::test::sim_T_BC();
+  P.R_CB = T_BC.linear().transpose();
+  P.p_CB = -P.R_CB * T_BC.translation();
+  return P;
+}
+
+NavState some_state(std::mt19937_64& rng) {
+  std::normal_distribution<double> N(0.0, 1.0);
+  NavState x;
+  x.p_WB = Vector3d(N(rng), N(rng), N(rng));
+  x.q_WB = Eigen::Quaterniond(so3::Exp(0.8 * Vector3d(N(rng), N(rng), N(rng))));
+  x.v_WB = Vector3d(N(rng), N(rng), N(rng));
+  x.bg_rps = 0.01 * Vector3d(N(rng), N(rng), N(rng));
+  x.ba_mps2 = 0.1 * Vector3d(N(rng), N(rng), N(rng));
+  return x;
+}
+
+TEST(WindowResiduals, VisualJacobiansWithAndWithoutDepth) {
+  const WindowProblem P = make_problem();
+  std::mt19937_64 rng(3);
+  for (int depth = 0; depth < 2; ++depth) {
+    for (int trial = 0; trial < 5; ++trial) {
+      NavState x = some_state(rng);
+      // A landmark 3 m in front of the camera.
+      const Matrix3d R = x.q_WB.toRotationMatrix();
+      const Vector3d p_C(0.3 * trial - 0.5, 0.2, 3.0);
+      const Vector3d l = R * (P.R_CB.transpose() * (p_C - P.p_CB)) + x.p_WB;
+      WindowObs o;
+      o.uv = Eigen::Vector2d(300.0, 250.0);
+      o.sigma_px = 0.7;
+      o.depth_m = depth ? 2.9 : 0.0;
+      o.sigma_depth_m = 0.02;
+      Vector3d r;
+      Matrix36d Jp;
+      Matrix3d Jl;
+      const int rows = visual_residual(P, x, l, o, &r, &Jp, &Jl);
+      ASSERT_EQ(rows, depth ? 3 : 2);
+      EXPECT_TRUE(check_jacobian(Jp.topRows(rows), [&](const VectorXd& d) {
+        Vector15d d15 = Vector15d::Zero();
+        d15.head<6>() = d;
+        Vector3d rr;
+        visual_residual(P, state_plus(x, d15), l, o, &rr);
+        return VectorXd(rr.head(rows));
+      }));
+      EXPECT_TRUE(check_jacobian(Jl.topRows(rows), [&](const VectorXd& d) {
+        Vector3d rr;
+        visual_residual(P, x, l + d.head<3>(), o, &rr);
+        return VectorXd(rr.head(rows));
+      }));
+    }
+  }
+}
+
+TEST(WindowResiduals, BehindTheCameraHasNoRows) {
+  const WindowProblem P = make_problem();
+  NavState x;
+  WindowObs o;
+  Vector3d r;
+  // Camera looks along body x: a point behind the body is behind the camera.
+  EXPECT_EQ(visual_residual(P, x, Vector3d(-3, 0, 0), o, &r), 0);
+}
+
+void check_imu(bool bounded) {
+  const WindowProblem P = make_problem(bounded);
+  std::mt19937_64 rng(bounded ? 7 : 5);
+  kestrel::test::SimConfig c;
+  kestrel::test::SimWorld world(c);
+  const std::vector<kestrel::test::SimFrame> frames = world.frames(2, 1.0);
+  WindowState sj;
+  sj.pim = frames[1].pim;
+  sj.imu_sqrt_info = sj.pim.sqrt_information();
+  const Matrix6d C = bias_covariance(sj.pim.dt_total(), P.bias_noise);
+  for (int i = 0; i < 6; ++i) sj.bias_sqrt_info(i) = 1.0 / std::sqrt(C(i, i));
+  for (int trial = 0; trial < 4; ++trial) {
+    const NavState xi = kestrel::test::perturb(frames[0].truth, rng, 0.1, 0.1);
+    const NavState xj = kestrel::test::perturb(frames[1].truth, rng, 0.1, 0.1);
+    Matrix15d Ji, Jj;
+    imu_bias_residual(P, sj, xi, xj, &Ji, &Jj);
+    // Whitened residuals are large (1e3-1e5 per unit): relative tolerance on the worst entry.
+    EXPECT_TRUE(check_jacobian(Ji, [&](const VectorXd& d) {
+      return VectorXd(imu_bias_residual(P, sj, state_plus(xi, to15(d)), xj));
+    }, 1e-5, 1e-6, 1e-7));
+    EXPECT_TRUE(check_jacobian(Jj, [&](const VectorXd& d) {
+      return VectorXd(imu_bias_residual(P, sj, xi, state_plus(xj, to15(d))));
+    }, 1e-5, 1e-6, 1e-7));
+  }
+}
+
+TEST(WindowResiduals, ImuAndBiasJacobiansRandomWalk) { check_imu(false); }
+TEST(WindowResiduals, ImuAndBiasJacobiansBoundedRandomWalk) { check_imu(true); }
+
+TEST(WindowResiduals, GaugeJacobian) {
+  WindowProblem P = make_problem();
+  P.opt.gauge_sigma = 1e-2;
+  std::mt19937_64 rng(11);
+  for (int trial = 0; trial < 6; ++trial) {
+    const NavState x = some_state(rng);
+    P.gauge_p = x.p_WB + Vector3d(0.01, -0.02, 0.03);
+    P.gauge_yaw = yaw_of(x.q_WB) + 0.05;
+    Eigen::Matrix<double, 4, 6> J;
+    gauge_residual(P, x, &J);
+    EXPECT_TRUE(check_jacobian(J, [&](const VectorXd& d) {
+      Vector15d d15 = Vector15d::Zero();
+      d15.head<6>() = d;
+      return VectorXd(gauge_residual(P, state_plus(x, d15)));
+    }));
+  }
+}
+
+TEST(WindowResiduals, StateMinusJacobianAndRoundTrip) {
+  std::mt19937_64 rng(13);
+  for (int trial = 0; trial < 5; ++trial) {
+    const NavState x0 = some_state(rng);
+    const NavState x = kestrel::test::perturb(x0, rng, 0.2, 0.5);
+    Matrix3d Jr;
+    const Vector15d d = state_minus(x, x0, &Jr);
+    const NavState back = state_plus(x0, d);
+    EXPECT_LT((back.p_WB - x.p_WB).norm(), 1e-12);
+    EXPECT_LT(kestrel::test::rot_err(back.q_WB, x.q_WB), 1e-12);
+    EXPECT_TRUE(check_jacobian(Jr, [&](const VectorXd& dd) {
+      Vector15d d15 = Vector15d::Zero();
+      d15.segment<3>(3) = dd;
+      return VectorXd(state_minus(state_plus(x, d15), x0).segment<3>(3));
+    }));
+  }
+}
+
+TEST(WindowResiduals, HuberMatchesCeresConvention) {
+  double r1 = 0;
+  EXPECT_DOUBLE_EQ(huber_rho(3.0, 2.0, &r1), 3.0);
+  EXPECT_DOUBLE_EQ(r1, 1.0);
+  EXPECT_DOUBLE_EQ(huber_rho(9.0, 2.0, &r1), 2.0 * 2.0 * 3.0 - 4.0);
+  EXPECT_DOUBLE_EQ(r1, 2.0 / 3.0);
+  EXPECT_DOUBLE_EQ(huber_rho(9.0, 0.0, &r1), 9.0);
+}
+
+}  // namespace
+}  // namespace kestrel::core
