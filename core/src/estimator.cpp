@@ -29,13 +29,20 @@ bool DeadReckoningEstimator::add_imu(const ImuSample& s) {
     if (init_.add(s, s0)) {
       prop_.reset(s0);
     } else if (imu_sample_usable(s) && s.t_ns - first_t_ns_ > kForceInitAfterNs) {
-      // Never saw a still window (a moving start): take gravity from this
-      // sample's specific force. Crude, and the dynamic initialiser of the
-      // optimizer replaces it; dead reckoning has nothing better.
-      const Eigen::Vector3d a(s.acc_mps2[0], s.acc_mps2[1], s.acc_mps2[2]);
+      // Never saw a still window (a moving start): take gravity from the
+      // mean specific force of the last window, motion and all. Crude; the
+      // optimizer's dynamic initialiser replaces it, dead reckoning has
+      // nothing better.
+      Eigen::Vector3d mean_g, mean_a;
+      if (!init_.window_means(&mean_g, &mean_a)) {
+        mean_g.setZero();
+        mean_a = Eigen::Vector3d(s.acc_mps2[0], s.acc_mps2[1], s.acc_mps2[2]);
+      }
       s0 = NavState{};
       s0.t_ns = s.t_ns;
-      s0.q_WB = Eigen::Quaterniond::FromTwoVectors(a.normalized(), Eigen::Vector3d::UnitZ());
+      s0.q_WB = Eigen::Quaterniond::FromTwoVectors(mean_a.normalized(), Eigen::Vector3d::UnitZ());
+      // The mean rate of a moving window is motion, not bias.
+      s0.bg_rps.setZero();
       prop_.reset(s0);
     } else {
       return false;

@@ -1,5 +1,6 @@
 #include "kestrel/core/imu_propagator.hpp"
 
+#include <algorithm>
 #include <cmath>
 
 #include "kestrel/core/so3.hpp"
@@ -84,47 +85,82 @@ bool ImuPropagator::propagate(const ImuSample& s) {
   return true;
 }
 
+int StaticInitializer::ring_size() const {
+  const int64_t n = opt_.window_ns / std::max<int64_t>(1, opt_.block_ns);
+  return static_cast<int>(std::clamp<int64_t>(n, 1, kMaxBlocks));
+}
+
 void StaticInitializer::reset() {
-  t_start_ns_ = -1;
-  n_ = 0;
-  sum_g_.setZero();
-  sum_gg_.setZero();
-  sum_a_.setZero();
-  sum_aa_.setZero();
+  n_blocks_ = 0;
+  head_ = 0;
+  cur_ = Block{};
+  cur_start_ns_ = -1;
+  last_t_ns_ = -1;
+}
+
+bool StaticInitializer::window_stats(Eigen::Vector3d* mean_g, Eigen::Vector3d* mean_a, double* dev_g,
+                                     double* dev_a) const {
+  const int ring = ring_size();
+  if (n_blocks_ < ring) return false;
+  Eigen::Vector3d sg = Eigen::Vector3d::Zero(), sa = Eigen::Vector3d::Zero();
+  int n = 0;
+  for (int k = 0; k < n_blocks_; ++k) {
+    const Block& b = blocks_[(head_ + k) % ring];
+    sg += b.sum_g;
+    sa += b.sum_a;
+    n += b.n;
+  }
+  if (n < 10) return false;
+  *mean_g = sg / n;
+  *mean_a = sa / n;
+  double dg = 0, da = 0;
+  for (int k = 0; k < n_blocks_; ++k) {
+    const Block& b = blocks_[(head_ + k) % ring];
+    if (b.n == 0) continue;
+    dg = std::max(dg, (b.sum_g / b.n - *mean_g).cwiseAbs().maxCoeff());
+    da = std::max(da, (b.sum_a / b.n - *mean_a).cwiseAbs().maxCoeff());
+  }
+  *dev_g = dg;
+  *dev_a = da;
+  return true;
+}
+
+bool StaticInitializer::window_means(Eigen::Vector3d* gyro_mean, Eigen::Vector3d* acc_mean) const {
+  double dg, da;
+  return window_stats(gyro_mean, acc_mean, &dg, &da);
 }
 
 bool StaticInitializer::add(const ImuSample& s, NavState& out) {
   if (!imu_sample_usable(s)) return false;
-  if (t_start_ns_ < 0 || s.t_ns < t_start_ns_) {
-    reset();
-    t_start_ns_ = s.t_ns;
-  }
-  const Eigen::Vector3d g = to_eigen(s.gyro_rps);
-  const Eigen::Vector3d a = to_eigen(s.acc_mps2);
-  ++n_;
-  sum_g_ += g;
-  sum_gg_ += g.cwiseProduct(g);
-  sum_a_ += a;
-  sum_aa_ += a.cwiseProduct(a);
-  if (s.t_ns - t_start_ns_ < opt_.window_ns || n_ < 10) return false;
+  if (last_t_ns_ >= 0 && s.t_ns <= last_t_ns_) return false;   // out of order: counted by the propagator
+  if (last_t_ns_ >= 0 && s.t_ns - last_t_ns_ > opt_.block_ns) reset();   // a gap breaks the window
+  last_t_ns_ = s.t_ns;
+  if (cur_start_ns_ < 0) cur_start_ns_ = s.t_ns;
+  cur_.sum_g += to_eigen(s.gyro_rps);
+  cur_.sum_a += to_eigen(s.acc_mps2);
+  ++cur_.n;
+  if (s.t_ns - cur_start_ns_ < opt_.block_ns) return false;
 
-  const double n = static_cast<double>(n_);
-  const Eigen::Vector3d mean_g = sum_g_ / n;
-  const Eigen::Vector3d mean_a = sum_a_ / n;
-  const Eigen::Vector3d var_g = (sum_gg_ / n - mean_g.cwiseProduct(mean_g)).cwiseMax(0.0);
-  const Eigen::Vector3d var_a = (sum_aa_ / n - mean_a.cwiseProduct(mean_a)).cwiseMax(0.0);
-  const bool still = std::sqrt(var_g.maxCoeff()) < opt_.max_gyro_std_rps &&
-                     std::sqrt(var_a.maxCoeff()) < opt_.max_acc_std_mps2 &&
-                     std::abs(mean_a.norm() - opt_.gravity_mps2) < 0.5;
-  if (!still) {
-    // Tumbling window: start over from this sample.
-    reset();
-    t_start_ns_ = s.t_ns;
-    return false;
+  // Block complete: slide the window of blocks.
+  const int ring = ring_size();
+  if (n_blocks_ < ring) {
+    blocks_[(head_ + n_blocks_) % ring] = cur_;
+    ++n_blocks_;
+  } else {
+    blocks_[head_] = cur_;
+    head_ = (head_ + 1) % ring;
   }
+  cur_ = Block{};
+  cur_start_ns_ = s.t_ns;
+
+  Eigen::Vector3d mean_g, mean_a;
+  double dev_g, dev_a;
+  if (!window_stats(&mean_g, &mean_a, &dev_g, &dev_a)) return false;
+  const bool still = dev_g < opt_.max_gyro_dev_rps && dev_a < opt_.max_acc_dev_mps2 &&
+                     std::abs(mean_a.norm() - opt_.gravity_mps2) < 0.5;
+  if (!still) return false;
   // At rest the accelerometer measures -g rotated into B, i.e. +z_W up in B.
-  const Eigen::Quaterniond q_WB =
-      Eigen::Quaterniond::FromTwoVectors(mean_a.normalized(), Eigen::Vector3d::UnitZ());
+  const Eigen::Quaterniond q_WB = Eigen::Quaterniond::FromTwoVectors(mean_a.normalized(), Eigen::Vector3d::UnitZ());
   out = NavState{};
   out.t_ns = s.t_ns;
   out.q_WB = q_WB;

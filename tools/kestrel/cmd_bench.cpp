@@ -95,7 +95,8 @@ std::vector<BenchCase> discover_cases(const std::string& data_dir) {
 // Runs replay + eval in a child process and returns its figures as text
 // lines "key value", so the child's peak RSS is the case's own.
 std::map<std::string, double> replay_in_child(const std::string& log, const std::string& gt,
-                                              drivers::ReplayPace pace, const std::string& traj_out,
+                                              drivers::ReplayPace pace, const std::string& estimator_name,
+                                              const std::string& traj_out,
                                               std::string& estimator, std::string& error) {
   int fds[2];
   if (pipe(fds) != 0) throw std::runtime_error("pipe failed");
@@ -110,6 +111,7 @@ std::map<std::string, double> replay_in_child(const std::string& log, const std:
       ReplayOptions opt;
       opt.path = log;
       opt.pace = pace;
+      opt.estimator = estimator_name;
       ReplayReport r = run_replay(opt);
       if (!traj_out.empty()) tools::write_tum(traj_out, r.trajectory);
       o << "estimator " << r.estimator << "\n";
@@ -248,6 +250,7 @@ Subcommand add_bench_command(CLI::App& parent) {
     std::string workdir = "build/bench";
     std::string data_dir = "../shared/data";
     std::string pace = "fast";
+    std::string estimator = "vo";
     int width = 640, height = 480;
     bool keep_logs = false;
     bool list = false;
@@ -260,6 +263,8 @@ Subcommand add_bench_command(CLI::App& parent) {
   app->add_option("--workdir", args->workdir, "where generated logs and trajectories go")->capture_default_str();
   app->add_option("--data", args->data_dir, "the shared data folder (EuRoC sequences)")->capture_default_str();
   app->add_option("--pace", args->pace, "replay pace: fast or lockstep (realtime is for timing tests)")
+      ->capture_default_str();
+  app->add_option("--estimator", args->estimator, std::string("backend: ") + core::estimator_names())
       ->capture_default_str();
   app->add_option("--width", args->width, "rendered image width")->capture_default_str();
   app->add_option("--height", args->height, "rendered image height")->capture_default_str();
@@ -277,6 +282,8 @@ Subcommand add_bench_command(CLI::App& parent) {
     } catch (const std::exception& e) {
       throw UsageError(e.what());
     }
+    if (!core::estimator_known(args->estimator))
+      throw UsageError("unknown --estimator '" + args->estimator + "' (expected one of: " + core::estimator_names() + ")");
     std::vector<BenchCase> cases = discover_cases(args->data_dir);
     if (args->list) {
       for (const auto& c : cases)
@@ -329,7 +336,7 @@ Subcommand add_bench_command(CLI::App& parent) {
         generated = true;
       }
       std::string error;
-      const auto m = replay_in_child(log, gt, pace, traj, row.estimator, error);
+      const auto m = replay_in_child(log, gt, pace, args->estimator, traj, row.estimator, error);
       if (generated && !args->keep_logs) fs::remove(log);
       if (!error.empty()) {
         row.status = "FAILED: " + error;

@@ -13,6 +13,7 @@ Subcommand add_replay_command(CLI::App& parent) {
     std::string path;
     std::string format = "auto";
     std::string pace = "lockstep";
+    std::string estimator = "vo";
     std::string traj_out;
     std::string metrics_out;
     double warmup_s = 2.0;
@@ -26,6 +27,10 @@ Subcommand add_replay_command(CLI::App& parent) {
                   "realtime (sensor timing, drops like live), fast (as fast as it drains), "
                   "lockstep (deterministic, bit-identical output)")
       ->capture_default_str();
+  app->add_option("--estimator", args->estimator,
+                  std::string("backend: ") + core::estimator_names() +
+                      " (vo = tracking front end + IMU, imu = IMU dead reckoning)")
+      ->capture_default_str();
   app->add_option("--traj-out", args->traj_out, "write the trajectory here (TUM: t[s] x y z qx qy qz qw)");
   app->add_option("--metrics-out", args->metrics_out,
                   "write latency histograms, drops, counters, CPU, RSS, real-time factor as JSON");
@@ -38,6 +43,9 @@ Subcommand add_replay_command(CLI::App& parent) {
   cmd.run = [args]() -> int {
     ReplayOptions opt;
     opt.path = args->path;
+    opt.estimator = args->estimator;
+    if (!core::estimator_known(opt.estimator))
+      throw UsageError("unknown --estimator '" + opt.estimator + "' (expected one of: " + core::estimator_names() + ")");
     try {
       opt.format = drivers::parse_log_format(args->format);
       opt.pace = drivers::parse_replay_pace(args->pace);

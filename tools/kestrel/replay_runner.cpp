@@ -185,7 +185,8 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   // Everything sized here, before any thread starts.
   auto rings = std::make_unique<drivers::SensorRings>(max_image_bytes_for(log->rig()));
   auto out = std::make_unique<rt::SpscRing<OutPose, kOutRingCapacity>>();
-  core::DeadReckoningEstimator estimator(log->rig());
+  std::unique_ptr<core::Estimator> estimator_ptr = core::make_estimator(opt.estimator, log->rig());
+  core::Estimator& estimator = *estimator_ptr;
   report.estimator = estimator.name();
   report.trajectory.reserve(1 << 16);
 

@@ -19,6 +19,7 @@ struct ReplayOptions {
   std::string path;
   drivers::LogFormat format = drivers::LogFormat::kAuto;
   drivers::ReplayPace pace = drivers::ReplayPace::kLockstep;
+  std::string estimator = "vo";   // core::make_estimator name
   // Allocation counting and latency statistics start after this much log time,
   // so start-up (buffers reserved, first frames) is not counted as steady state.
   int64_t warmup_ns = 2'000'000'000;

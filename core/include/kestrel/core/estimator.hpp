@@ -74,3 +74,16 @@ class DeadReckoningEstimator final : public Estimator {
 };
 
 }  // namespace kestrel::core
+
+#include <memory>
+#include <string>
+
+namespace kestrel::core {
+
+// The backends by name: "imu" (dead reckoning), "vo" (front end only).
+// Throws std::invalid_argument listing the names for an unknown one.
+std::unique_ptr<Estimator> make_estimator(const std::string& name, const Rig& rig);
+const char* estimator_names();
+bool estimator_known(const std::string& name);
+
+}  // namespace kestrel::core

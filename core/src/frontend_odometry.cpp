@@ -1,0 +1,158 @@
+#include "kestrel/core/frontend_odometry.hpp"
+
+#include "kestrel/core/so3.hpp"
+
+#include <algorithm>
+
+namespace kestrel::core {
+namespace {
+
+Eigen::Isometry3d to_isometry(const Mat4d& T) {
+  Eigen::Isometry3d out = Eigen::Isometry3d::Identity();
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 4; ++c) out.matrix()(r, c) = T[static_cast<size_t>(r * 4 + c)];
+  return out;
+}
+
+ImuPropagatorOptions prop_options(const Rig& rig) {
+  ImuPropagatorOptions o;
+  o.gravity_mps2 = rig.gravity_mps2;
+  if (rig.imu_rate_hz > 0) o.max_gap_ns = static_cast<int64_t>(5e9 / rig.imu_rate_hz);
+  return o;
+}
+
+}  // namespace
+
+FrontendOdometry::FrontendOdometry(const Rig& rig, const FrontendOdometryOptions& opt)
+    : opt_(opt), T_BC_(to_isometry(rig.T_BC)), init_and_imu_(rig), tracker_(rig, opt.tracker),
+      prop_(prop_options(rig)) {}
+
+bool FrontendOdometry::add_imu(const ImuSample& s) {
+  ++counters_.imu_in;
+  if (!started_) {
+    // Until the static initialiser has a state, the dead-reckoning backend
+    // owns the samples; then this backend takes over the propagation.
+    if (!init_and_imu_.add_imu(s)) return false;
+    prop_.reset(init_and_imu_.output().state);
+    started_ = true;
+    ++counters_.resets;
+    out_.reset_counter = static_cast<uint32_t>(counters_.resets);
+  }
+  if (!prop_.propagate(s)) return false;
+  last_gyro_rps_ = Eigen::Vector3d(s.gyro_rps[0], s.gyro_rps[1], s.gyro_rps[2]);
+  ++counters_.imu_used;
+  out_.state = prop_.state();
+  if (out_.quality == TrackingQuality::kUninitialized) out_.quality = TrackingQuality::kImuOnly;
+  return true;
+}
+
+bool FrontendOdometry::add_frame(const RgbdFrame& f) {
+  ++counters_.frames_in;
+  if (!started_) return false;
+  const NavState& s = prop_.state();
+  // The propagated state is at the last IMU sample, up to one IMU period
+  // before the frame; extrapolate to the frame time with the last rate and
+  // the velocity (at 300 deg/s, 2.5 ms is 0.75 deg: several pixels).
+  const double ahead_s = 1e-9 * static_cast<double>(f.t_ns - s.t_ns);
+  const Eigen::Vector3d w_B = last_gyro_rps_ - s.bg_rps;
+  Eigen::Isometry3d T_WB_pred = Eigen::Isometry3d::Identity();
+  T_WB_pred.linear() = (s.q_WB * Eigen::Quaterniond(Eigen::AngleAxisd(
+                                     w_B.norm() * ahead_s, w_B.norm() > 1e-12 ? Eigen::Vector3d(w_B.normalized())
+                                                                              : Eigen::Vector3d::UnitZ())))
+                           .toRotationMatrix();
+  T_WB_pred.translation() = s.p_WB + s.v_WB * ahead_s;
+  const Eigen::Isometry3d T_WC_pred = T_WB_pred * T_BC_;
+  const double since_s =
+      last_tracked_t_ns_ < 0 ? 1.0 : 1e-9 * static_cast<double>(std::max<int64_t>(0, f.t_ns - last_tracked_t_ns_));
+  const double sigma_px = std::max(opt_.pred_sigma_min_px, opt_.pred_sigma_px_per_s * since_s);
+
+  const TrackResult& r = tracker_.track(f.t_ns, f.rgb, f.depth, T_WC_pred, sigma_px);
+  // Predict the (p, v) covariance to the frame time.
+  if (P_t_ns_ >= 0) {
+    const double dt = std::max(0.0, 1e-9 * static_cast<double>(f.t_ns - P_t_ns_));
+    Eigen::Matrix2d F;
+    F << 1, dt, 0, 1;
+    const double q = opt_.accel_noise_mps2_sqrthz * opt_.accel_noise_mps2_sqrthz;
+    Eigen::Matrix2d Q;
+    Q << q * dt * dt * dt / 3, q * dt * dt / 2, q * dt * dt / 2, q * dt;
+    P_pv_ = F * P_pv_ * F.transpose() + Q;
+  }
+  P_t_ns_ = f.t_ns;
+  bool accept = r.tracked() || r.status == TrackStatus::kNewKeyframe;
+  Eigen::Isometry3d T_WB = Eigen::Isometry3d::Identity();
+  Eigen::Vector3d innovation = Eigen::Vector3d::Zero();
+  const double S = P_pv_(0, 0) + opt_.position_sigma_m * opt_.position_sigma_m;
+  if (accept) {
+    T_WB = r.T_WC * T_BC_.inverse();
+    innovation = T_WB.translation() - T_WB_pred.translation();
+    if (r.tracked() && innovation.norm() > opt_.gate_sigma * std::sqrt(S)) {
+      // A jump the IMU cannot explain: wrong matches more likely than wrong physics.
+      accept = false;
+      ++gated_;
+    }
+  }
+  if (accept) {
+    NavState corrected = s;
+    // The tracked pose holds at the frame time; the propagated state is at
+    // the last IMU sample, up to one IMU period earlier: move the tracked
+    // pose back by that span so both refer to the state's time (at 1 m/s and
+    // 400 Hz the difference is 2.5 mm, the size of the errors we care about).
+    const double back_s = 1e-9 * static_cast<double>(f.t_ns - s.t_ns);
+    const Eigen::Vector3d w = last_gyro_rps_ - s.bg_rps;
+    const Eigen::Quaterniond q_meas =
+        Eigen::Quaterniond(T_WB.linear()) *
+        Eigen::Quaterniond(Eigen::AngleAxisd(-w.norm() * back_s, w.norm() > 1e-12 ? Eigen::Vector3d(w.normalized())
+                                                                                   : Eigen::Vector3d::UnitZ()));
+    const Eigen::Vector3d p_meas = T_WB.translation() - s.v_WB * back_s;
+    if (r.status == TrackStatus::kNewKeyframe && !tracker_has_tracked_) {
+      // First keyframe: it defines the pose; the velocity is still unknown.
+      corrected.p_WB = p_meas;
+      P_pv_ << opt_.position_sigma_m * opt_.position_sigma_m, 0, 0,
+          opt_.initial_velocity_sigma_mps * opt_.initial_velocity_sigma_mps;
+    } else if (r.tracked()) {
+      tracker_has_tracked_ = true;
+      const Eigen::Vector3d y = p_meas - s.p_WB;
+      const Eigen::Vector2d K = P_pv_.col(0) / S;
+      corrected.p_WB = s.p_WB + K(0) * y;
+      corrected.v_WB = s.v_WB + K(1) * y;
+      P_pv_ = (Eigen::Matrix2d::Identity() - K * Eigen::RowVector2d(1, 0)) * P_pv_;
+      // Mahony-style: a proportional pull of the attitude towards the tracked
+      // one, and an integral term that learns the gyro bias from the same
+      // rotation error (the static initialiser's bias is only as good as the
+      // still period it had, and some flights have none).
+      const Eigen::Vector3d e = so3::Log(Eigen::Quaterniond(s.q_WB.conjugate() * q_meas).toRotationMatrix());
+      corrected.q_WB = (s.q_WB * so3::exp_quat(opt_.attitude_gain * e)).normalized();
+      const double dt_frame =
+          last_tracked_t_ns_ < 0 ? 0.0 : 1e-9 * static_cast<double>(f.t_ns - last_tracked_t_ns_);
+      if (dt_frame > 1e-3 && dt_frame < 0.5) corrected.bg_rps -= opt_.gyro_bias_gain * e / dt_frame;
+    }
+    // A keyframe taken while coasting keeps the IMU pose: nothing to correct.
+    corrected.t_ns = s.t_ns;
+    prop_.reset(corrected);
+    out_.state = prop_.state();
+    out_.quality = TrackingQuality::kTracking;
+    last_tracked_t_ns_ = f.t_ns;
+    lost_frames_ = 0;
+    ++frames_tracked_;
+    ++counters_.frames_used;
+    return true;
+  }
+  // Not tracked: coast on the IMU; after a few frames, start over from a new
+  // keyframe at the predicted pose rather than matching an ever staler one.
+  ++lost_frames_;
+  out_.quality = TrackingQuality::kImuOnly;
+  if (lost_frames_ >= opt_.max_lost_frames && tracker_.has_keyframe()) {
+    tracker_.reset();
+    ++counters_.resets;
+    out_.reset_counter = static_cast<uint32_t>(counters_.resets);
+    lost_frames_ = 0;
+  }
+  return false;
+}
+
+const EstimatorCounters& FrontendOdometry::counters() const {
+  counters_.imu_rejects = prop_.counts();
+  return counters_;
+}
+
+}  // namespace kestrel::core

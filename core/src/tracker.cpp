@@ -1,0 +1,347 @@
+#include "kestrel/core/tracker.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <sstream>
+#include <stdexcept>
+
+namespace kestrel::core {
+
+const char* to_string(TrackStatus s) {
+  switch (s) {
+    case TrackStatus::kTracked: return "tracked";
+    case TrackStatus::kNewKeyframe: return "new-keyframe";
+    case TrackStatus::kNoImage: return "no-image";
+    case TrackStatus::kFeatureError: return "feature-error";
+    case TrackStatus::kTooFewMatches: return "too-few-matches";
+    case TrackStatus::kMotionFailed: return "motion-failed";
+  }
+  return "?";
+}
+
+std::string TrackerOptions::validate() const {
+  std::ostringstream e;
+  const std::string orb_err = orb.validate();
+  if (!orb_err.empty()) e << orb_err;
+  if (!(search_radius_min_px > 0 && search_radius_max_px >= search_radius_min_px))
+    e << "search_radius_min_px/max_px: need 0 < min <= max\n";
+  if (!(match_ratio > 0 && match_ratio <= 1)) e << "match_ratio: in (0, 1]\n";
+  if (min_inliers < 3) e << "min_inliers: at least 3\n";
+  if (!(keyframe_area_ratio > 0 && keyframe_area_ratio < 1)) e << "keyframe_area_ratio: in (0, 1)\n";
+  if (area_grid_cols < 2 || area_grid_rows < 2) e << "area_grid_cols/rows: at least 2\n";
+  return e.str();
+}
+
+namespace {
+
+constexpr int kSearchCellPx = 32;
+
+struct FrameData {
+  OrbFeatures feats;
+  std::unique_ptr<Eigen::Vector3d[]> p_C;   // back-projected keypoints, camera frame [m]
+  std::unique_ptr<uint8_t[]> has_depth;
+  Eigen::Isometry3d T_WC = Eigen::Isometry3d::Identity();
+  int64_t t_ns = 0;
+  int with_depth = 0;
+  bool valid = false;
+
+  explicit FrameData(int capacity)
+      : feats(capacity), p_C(new Eigen::Vector3d[capacity]), has_depth(new uint8_t[capacity]) {}
+
+  void swap(FrameData& o) noexcept {
+    std::swap(feats, o.feats);
+    std::swap(p_C, o.p_C);
+    std::swap(has_depth, o.has_depth);
+    std::swap(T_WC, o.T_WC);
+    std::swap(t_ns, o.t_ns);
+    std::swap(with_depth, o.with_depth);
+    std::swap(valid, o.valid);
+  }
+};
+
+}  // namespace
+
+struct Tracker::Impl {
+  Impl(const Rig& rig, const TrackerOptions& opt)
+      : cam(rig.rgb),
+        depth(rig.depth),
+        extractor(opt.orb, std::max(rig.rgb.width, 1), std::max(rig.rgb.height, 1)),
+        capacity(opt.orb.n_features),
+        cur(capacity),
+        kf(capacity),
+        grid_cols((std::max(rig.rgb.width, 1) + kSearchCellPx - 1) / kSearchCellPx),
+        grid_rows((std::max(rig.rgb.height, 1) + kSearchCellPx - 1) / kSearchCellPx),
+        cell_start(new int[static_cast<size_t>(grid_cols * grid_rows + 1)]),
+        cell_fill(new int[static_cast<size_t>(grid_cols * grid_rows)]),
+        cell_items(new int[static_cast<size_t>(capacity)]),
+        best_kf(new int[static_cast<size_t>(capacity)]),
+        best_dist(new int[static_cast<size_t>(capacity)]),
+        corr(new Correspondence2D3D[static_cast<size_t>(capacity)]),
+        corr_cur(new int[static_cast<size_t>(capacity)]),
+        order(new uint32_t[static_cast<size_t>(capacity)]),
+        area_detected(new uint8_t[static_cast<size_t>(opt.area_grid_cols * opt.area_grid_rows)]),
+        area_matched(new uint8_t[static_cast<size_t>(opt.area_grid_cols * opt.area_grid_rows)]),
+        lonsc(static_cast<size_t>(capacity), opt.lonsc),
+        orderer(static_cast<size_t>(capacity)) {
+    K.fx = cam.fx();
+    K.fy = cam.fy();
+    K.cx = cam.cx();
+    K.cy = cam.cy();
+  }
+
+  // Metric depth at a keypoint, or 0 when missing, out of range or on a depth edge.
+  double depth_at(const ImageView& d, float x, float y, double edge_rel) const {
+    const int cx = static_cast<int>(std::lround(x));
+    const int cy = static_cast<int>(std::lround(y));
+    if (cx < 1 || cy < 1 || cx >= d.width - 1 || cy >= d.height - 1) return 0.0;
+    double zmin = std::numeric_limits<double>::infinity(), zmax = 0.0, zc = 0.0;
+    for (int dy = -1; dy <= 1; ++dy) {
+      const auto* row = reinterpret_cast<const uint16_t*>(d.data + static_cast<size_t>(cy + dy) * d.stride_bytes);
+      for (int dx = -1; dx <= 1; ++dx) {
+        const uint16_t raw = row[cx + dx];
+        if (raw == 0) return 0.0;
+        const double z = raw * depth.scale_m_per_unit;
+        zmin = std::min(zmin, z);
+        zmax = std::max(zmax, z);
+        if (dx == 0 && dy == 0) zc = z;
+      }
+    }
+    if (zc < depth.min_range_m || zc > depth.max_range_m) return 0.0;
+    if (zmax - zmin > edge_rel * zc) return 0.0;
+    return zc;
+  }
+
+  void back_project(FrameData& f, const ImageView& d, double edge_rel) {
+    f.with_depth = 0;
+    const bool have = d.data != nullptr && d.format == PixelFormat::kDepthU16;
+    for (int i = 0; i < f.feats.size(); ++i) {
+      const OrbKeypoint& kp = f.feats.keypoint(i);
+      const double z = have ? depth_at(d, kp.x, kp.y, edge_rel) : 0.0;
+      f.has_depth[i] = z > 0 ? 1 : 0;
+      if (z > 0) {
+        f.p_C[i] = cam.back_project(Eigen::Vector2d(kp.x, kp.y), z);
+        ++f.with_depth;
+      }
+    }
+  }
+
+  void build_grid(const FrameData& f) {
+    const int cells = grid_cols * grid_rows;
+    std::fill(cell_fill.get(), cell_fill.get() + cells, 0);
+    for (int i = 0; i < f.feats.size(); ++i) ++cell_fill[cell_of(f.feats.keypoint(i))];
+    cell_start[0] = 0;
+    for (int c = 0; c < cells; ++c) cell_start[c + 1] = cell_start[c] + cell_fill[c];
+    std::fill(cell_fill.get(), cell_fill.get() + cells, 0);
+    for (int i = 0; i < f.feats.size(); ++i) {
+      const int c = cell_of(f.feats.keypoint(i));
+      cell_items[cell_start[c] + cell_fill[c]++] = i;
+    }
+  }
+
+  int cell_of(const OrbKeypoint& kp) const {
+    const int gx = std::clamp(static_cast<int>(kp.x) / kSearchCellPx, 0, grid_cols - 1);
+    const int gy = std::clamp(static_cast<int>(kp.y) / kSearchCellPx, 0, grid_rows - 1);
+    return gy * grid_cols + gx;
+  }
+
+  double area_ratio(const TrackerOptions& opt, const uint32_t* inlier_idx, size_t n_inliers) {
+    const int cols = opt.area_grid_cols, rows = opt.area_grid_rows;
+    std::fill(area_detected.get(), area_detected.get() + cols * rows, 0);
+    std::fill(area_matched.get(), area_matched.get() + cols * rows, 0);
+    const double sx = static_cast<double>(cols) / cam.width(), sy = static_cast<double>(rows) / cam.height();
+    auto cell = [&](const OrbKeypoint& kp) {
+      const int gx = std::clamp(static_cast<int>(kp.x * sx), 0, cols - 1);
+      const int gy = std::clamp(static_cast<int>(kp.y * sy), 0, rows - 1);
+      return gy * cols + gx;
+    };
+    for (int i = 0; i < cur.feats.size(); ++i) area_detected[cell(cur.feats.keypoint(i))] = 1;
+    for (size_t k = 0; k < n_inliers; ++k) area_matched[cell(cur.feats.keypoint(corr_cur[inlier_idx[k]]))] = 1;
+    int det = 0, mat = 0;
+    for (int c = 0; c < cols * rows; ++c) {
+      det += area_detected[c];
+      mat += area_matched[c];
+    }
+    return det > 0 ? static_cast<double>(mat) / det : 0.0;
+  }
+
+  PinholeCamera cam;
+  DepthModel depth;
+  PinholeK K;
+  OrbExtractor extractor;
+  int capacity;
+  FrameData cur, kf;
+  int grid_cols, grid_rows;
+  std::unique_ptr<int[]> cell_start, cell_fill, cell_items;
+  std::unique_ptr<int[]> best_kf, best_dist;
+  std::unique_ptr<Correspondence2D3D[]> corr;
+  std::unique_ptr<int[]> corr_cur;
+  std::unique_ptr<uint32_t[]> order;
+  std::unique_ptr<uint8_t[]> area_detected, area_matched;
+  LonscEstimator lonsc;
+  CorrespondenceOrderer orderer;
+};
+
+Tracker::Tracker(const Rig& rig, const TrackerOptions& opt) : opt_(opt) {
+  const std::string err = opt.validate();
+  if (!err.empty()) throw std::invalid_argument("TrackerOptions:\n" + err);
+  if (rig.rgb.width <= 0 || rig.rgb.height <= 0 || rig.rgb.fx <= 0 || rig.rgb.fy <= 0)
+    throw std::invalid_argument("Tracker: the rig has no camera intrinsics (camera.width_px, fx_px, ...)");
+  impl_ = std::make_unique<Impl>(rig, opt);
+}
+
+Tracker::~Tracker() = default;
+
+void Tracker::reset() { impl_->kf.valid = false; }
+bool Tracker::has_keyframe() const { return impl_->kf.valid; }
+int64_t Tracker::keyframe_t_ns() const { return impl_->kf.t_ns; }
+
+const TrackResult& Tracker::track(int64_t t_ns, const ImageView& image, const ImageView& depth,
+                                  const Eigen::Isometry3d& T_WC_pred, double pred_sigma_px) {
+  Impl& m = *impl_;
+  result_ = TrackResult{};
+  result_.T_WC = T_WC_pred;
+  if (image.data == nullptr) {
+    result_.status = TrackStatus::kNoImage;
+    return result_;
+  }
+  if (m.extractor.extract(image, m.cur.feats) != OrbStatus::kOk) {
+    result_.status = TrackStatus::kFeatureError;
+    return result_;
+  }
+  m.back_project(m.cur, depth, opt_.depth_edge_rel);
+  m.cur.t_ns = t_ns;
+  result_.detected = m.cur.feats.size();
+  result_.with_depth = m.cur.with_depth;
+
+  auto make_keyframe = [&](const Eigen::Isometry3d& T_WC) {
+    m.cur.T_WC = T_WC;
+    m.cur.valid = true;
+    m.kf.swap(m.cur);
+    m.cur.valid = false;
+    result_.keyframe = true;
+  };
+
+  if (!m.kf.valid) {
+    if (m.cur.with_depth >= 2 * opt_.min_inliers) {
+      make_keyframe(T_WC_pred);
+      result_.status = TrackStatus::kNewKeyframe;
+    } else {
+      result_.status = TrackStatus::kTooFewMatches;
+    }
+    return result_;
+  }
+
+  // ---- IMU-predicted projection and circle-window search ------------------
+  m.build_grid(m.cur);
+  const Eigen::Isometry3d T_CK_pred = T_WC_pred.inverse() * m.kf.T_WC;
+  const Eigen::Matrix3d R_pred = T_CK_pred.linear();
+  const Eigen::Vector3d t_pred = T_CK_pred.translation();
+  const double radius = std::clamp(opt_.search_k_sigma * pred_sigma_px, opt_.search_radius_min_px,
+                                   opt_.search_radius_max_px);
+  result_.search_radius_px = radius;
+  const double r2 = radius * radius;
+  const int n_cur = m.cur.feats.size();
+  std::fill(m.best_kf.get(), m.best_kf.get() + n_cur, -1);
+  std::fill(m.best_dist.get(), m.best_dist.get() + n_cur, std::numeric_limits<int>::max());
+
+  for (int i = 0; i < m.kf.feats.size(); ++i) {
+    if (!m.kf.has_depth[i]) continue;
+    const Eigen::Vector3d p_C = R_pred * m.kf.p_C[i] + t_pred;
+    if (p_C.z() < 0.1) continue;
+    const Eigen::Vector2d uv = m.cam.distort_normalized_to_pixel(p_C.head<2>() / p_C.z());
+    if (!m.cam.in_image(uv)) continue;
+    ++result_.predicted;
+    const OrbKeypoint& kkp = m.kf.feats.keypoint(i);
+    const OrbDescriptor& kd = m.kf.feats.descriptor(i);
+    const int gx0 = std::max(0, static_cast<int>((uv.x() - radius) / kSearchCellPx));
+    const int gx1 = std::min(m.grid_cols - 1, static_cast<int>((uv.x() + radius) / kSearchCellPx));
+    const int gy0 = std::max(0, static_cast<int>((uv.y() - radius) / kSearchCellPx));
+    const int gy1 = std::min(m.grid_rows - 1, static_cast<int>((uv.y() + radius) / kSearchCellPx));
+    int best = std::numeric_limits<int>::max(), second = std::numeric_limits<int>::max(), best_j = -1;
+    for (int gy = gy0; gy <= gy1; ++gy) {
+      for (int gx = gx0; gx <= gx1; ++gx) {
+        const int c = gy * m.grid_cols + gx;
+        for (int k = m.cell_start[c]; k < m.cell_start[c + 1]; ++k) {
+          const int j = m.cell_items[k];
+          const OrbKeypoint& ckp = m.cur.feats.keypoint(j);
+          const double dx = ckp.x - uv.x(), dy = ckp.y - uv.y();
+          if (dx * dx + dy * dy > r2) continue;
+          if (std::abs(ckp.level - kkp.level) > opt_.match_max_level_diff) continue;
+          const int d = hamming_distance(kd, m.cur.feats.descriptor(j));
+          if (d < best) {
+            second = best;
+            best = d;
+            best_j = j;
+          } else if (d < second) {
+            second = d;
+          }
+        }
+      }
+    }
+    if (best_j < 0 || best > opt_.match_max_hamming) continue;
+    if (second != std::numeric_limits<int>::max() && best >= opt_.match_ratio * second) continue;
+    // One keyframe point per current feature: the closest descriptor wins.
+    if (best < m.best_dist[best_j]) {
+      m.best_dist[best_j] = best;
+      m.best_kf[best_j] = i;
+    }
+  }
+
+  int n = 0;
+  for (int j = 0; j < n_cur; ++j) {
+    if (m.best_kf[j] < 0) continue;
+    const OrbKeypoint& ckp = m.cur.feats.keypoint(j);
+    Correspondence2D3D& c = m.corr[n];
+    c.p_prev = m.kf.p_C[m.best_kf[j]];
+    c.u_cur = m.cam.undistort_pixel(Eigen::Vector2d(ckp.x, ckp.y));
+    c.sigma_px = static_cast<float>(opt_.keypoint_sigma_px * m.extractor.level_scale(ckp.level));
+    c.match_cost = static_cast<float>(m.best_dist[j]);
+    c.id = static_cast<uint32_t>(j);
+    m.corr_cur[n] = j;
+    ++n;
+  }
+  result_.matched = n;
+  if (n < opt_.min_inliers) {
+    result_.status = TrackStatus::kTooFewMatches;
+    return result_;
+  }
+
+  // ---- LONSC with the IMU rotation, then Gauss-Newton on the inliers -------
+  const size_t n_ordered =
+      m.orderer.order(opt_.order, m.corr.get(), static_cast<size_t>(n), m.order.get(), m.cam.width(), m.cam.height());
+  const MotionEstimate est = m.lonsc.estimate(R_pred, m.K, m.corr.get(), static_cast<size_t>(n),
+                                              n_ordered > 0 ? m.order.get() : nullptr, t_pred);
+  result_.motion_status = est.status;
+  if (!est.ok() || static_cast<int>(est.num_inliers) < opt_.min_inliers) {
+    result_.status = TrackStatus::kMotionFailed;
+    result_.inliers = static_cast<int>(est.num_inliers);
+    return result_;
+  }
+  Eigen::Matrix3d R = R_pred;
+  Eigen::Vector3d t = est.t;
+  const PoseRefineResult ref = refine_pose_gauss_newton(&R, &t, m.K, m.corr.get(), static_cast<size_t>(n),
+                                                        m.lonsc.inlier_indices(), est.num_inliers, opt_.refine,
+                                                        opt_.refine.rotation_prior_sigma_rad > 0 ? &R_pred : nullptr);
+  if (!ref.ok) {
+    R = R_pred;
+    t = est.t;
+  }
+  result_.inliers = static_cast<int>(est.num_inliers);
+  result_.inlier_rms_px = est.inlier_rms_px;
+  Eigen::Isometry3d T_CK = Eigen::Isometry3d::Identity();
+  T_CK.linear() = R;
+  T_CK.translation() = t;
+  const Eigen::Isometry3d T_WC = m.kf.T_WC * T_CK.inverse();
+  result_.T_WC = T_WC;
+  result_.area_ratio = m.area_ratio(opt_, m.lonsc.inlier_indices(), est.num_inliers);
+  result_.status = TrackStatus::kTracked;
+
+  const bool stale = 1e-9 * static_cast<double>(t_ns - m.kf.t_ns) > opt_.keyframe_max_interval_s;
+  const bool new_kf =
+      result_.area_ratio < opt_.keyframe_area_ratio || result_.inliers < opt_.keyframe_min_inliers || stale;
+  if (new_kf && m.cur.with_depth >= 2 * opt_.min_inliers) make_keyframe(T_WC);
+  return result_;
+}
+
+}  // namespace kestrel::core
