@@ -26,6 +26,9 @@ Subcommand add_sim_command(CLI::App& parent);
 Subcommand add_eval_command(CLI::App& parent);
 Subcommand add_replay_command(CLI::App& parent);
 Subcommand add_bench_command(CLI::App& parent);
+Subcommand add_devices_command(CLI::App& parent);
+Subcommand add_record_command(CLI::App& parent);
+Subcommand add_run_command(CLI::App& parent);
 Subcommand add_ekf_slam_command(CLI::App& parent);
 
 }  // namespace kestrel::cli

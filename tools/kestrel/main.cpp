@@ -39,6 +39,9 @@ int main(int argc, char** argv) {
   commands.push_back(add_replay_command(app));
   commands.push_back(add_eval_command(app));
   commands.push_back(add_bench_command(app));
+  commands.push_back(add_devices_command(app));
+  commands.push_back(add_record_command(app));
+  commands.push_back(add_run_command(app));
   commands.push_back(add_ekf_slam_command(app));
 
   try {

@@ -1,0 +1,138 @@
+// Live rig configuration and the sensors it names.
+//
+//  - LiveConfig: a config file with a `rig:` section (drivers::rig_from_yaml_node)
+//    and a `drivers:` section (camera, IMU, strobe settings; units in key names,
+//    unknown keys are errors naming file and key).
+//  - probe_devices(): what is connected, for `kestrel devices`.
+//  - LiveSensors: opens every configured device (or explains each one that is
+//    missing) and runs one thread per sensor delivering into an ImuSink and a
+//    FrameSink. Used by `kestrel record` and `kestrel run`.
+#pragma once
+
+#include <atomic>
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include <yaml-cpp/yaml.h>
+
+#include "kestrel/drivers/bmx055.hpp"
+#include "kestrel/drivers/clock_sync.hpp"
+#include "kestrel/drivers/sensor_rings.hpp"
+#include "kestrel/drivers/usb_bridge.hpp"
+#include "kestrel/msgs.hpp"
+
+namespace kestrel::drivers {
+
+enum class CameraType { kNone, kOpenNi2, kV4l2 };
+enum class ImuType { kNone, kBmx055I2c, kBmx055Usb };
+
+struct CameraSettings {
+  CameraType type = CameraType::kNone;
+  int width_px = 640;
+  int height_px = 480;
+  double rate_hz = 30;
+  // openni2
+  std::string openni2_uri;
+  bool openni2_registration = true;
+  bool openni2_frame_sync = true;
+  bool openni2_mirror = false;
+  // v4l2
+  std::string v4l2_color_device;
+  std::string v4l2_color_format = "yuyv";
+  std::string v4l2_depth_device;   // "" = colour only
+  std::string v4l2_depth_format = "z16";
+  double v4l2_depth_unit_m = 0.001;
+  int v4l2_buffers = 4;
+  int64_t v4l2_readout_ns = 0;
+};
+
+struct ImuSettings {
+  ImuType type = ImuType::kNone;
+  bmx055::Config bmx055;            // ranges, ODR, FIFO, data-ready, self-test, axis remap
+  std::string i2c_bus_device;
+  std::string gpio_chip;            // data_ready: gpio
+  int gpio_line = -1;
+  UsbBridgeConfig usb;
+};
+
+struct StrobeSettings {
+  bool enabled = false;
+  int64_t initial_offset_ns = 0;
+  int64_t tolerance_ns = 8'000'000;
+};
+
+struct DriverSettings {
+  CameraSettings camera;
+  ImuSettings imu;
+  StrobeSettings strobe;
+};
+
+struct LiveConfig {
+  std::string path;
+  Rig rig;
+  DriverSettings drivers;
+};
+
+// Throws std::runtime_error "path: drivers.imu.acc_range_g: expected one of 2, 4, 8, 16".
+LiveConfig load_live_config(const std::string& path);
+LiveConfig live_config_from_yaml(const std::string& text, const std::string& where);
+DriverSettings driver_settings_from_yaml_node(const YAML::Node& node, const std::string& where);
+
+// "v4l2 built, openni2 built, libusb built, i2c-dev built, gpio-cdev built"
+std::string built_drivers_summary();
+
+struct FoundDevice {
+  std::string kind;     // "camera" | "imu"
+  std::string driver;   // "v4l2" | "openni2" | "bmx055-i2c" | "usb-bridge"
+  std::string where;    // path / URI / bus:address
+  std::string detail;
+};
+struct DeviceReport {
+  std::vector<FoundDevice> found;
+  std::vector<std::string> notes;   // why a driver could not look (permissions, not built)
+};
+DeviceReport probe_devices();
+
+// ---- live sensors ---------------------------------------------------------------------
+
+struct CameraFrame {
+  int64_t t_ns = 0;          // mid-exposure, host clock
+  int64_t t_recv_ns = 0;
+  uint32_t seq = 0;
+  int32_t exposure_us = 0;
+  bool strobe_matched = false;
+  const ImageBuffer* rgb = nullptr;
+  const ImageBuffer* depth = nullptr;   // nullptr when the rig has no depth
+};
+
+class FrameSink {
+ public:
+  virtual ~FrameSink() = default;
+  virtual bool push_frame(const CameraFrame& f) noexcept = 0;
+};
+
+class LiveSensors {
+ public:
+  // Opens every configured device. Throws std::runtime_error listing each
+  // device that is missing and why, and which drivers are built.
+  explicit LiveSensors(const LiveConfig& cfg);
+  ~LiveSensors();
+  LiveSensors(const LiveSensors&) = delete;
+  LiveSensors& operator=(const LiveSensors&) = delete;
+
+  // Starts the sensor threads; the sinks must outlive stop().
+  void start(ImuSink& imu, FrameSink& frames);
+  void stop();
+  // Counters of every driver, one line each (for the end-of-run report).
+  std::string report() const;
+  std::string description() const;   // what runs, in one line
+
+ private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace kestrel::drivers

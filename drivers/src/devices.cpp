@@ -1,0 +1,613 @@
+#include "kestrel/drivers/devices.hpp"
+
+#include <dirent.h>
+
+#include <algorithm>
+#include <cerrno>
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <fstream>
+#include <initializer_list>
+#include <sstream>
+#include <stdexcept>
+
+#include "kestrel/drivers/bmx055_drdy.hpp"
+#include "kestrel/drivers/i2c_bus.hpp"
+#include "kestrel/drivers/openni2_camera.hpp"
+#include "kestrel/drivers/rig_yaml.hpp"
+#include "kestrel/drivers/v4l2_camera.hpp"
+#include "kestrel/rt/clock.hpp"
+#include "kestrel/rt/spsc_ring.hpp"
+
+namespace kestrel::drivers {
+namespace {
+
+// ---- YAML helpers: every error names the file and the key ----------------------------
+class P {
+ public:
+  explicit P(std::string where) : where_(std::move(where)) {}
+  [[noreturn]] void fail(const std::string& key, const std::string& msg) const {
+    throw std::runtime_error(where_ + ": " + key + ": " + msg);
+  }
+  void only(const YAML::Node& m, const std::string& path, std::initializer_list<const char*> keys) const {
+    if (!m.IsMap()) fail(path, "expected a mapping");
+    for (const auto& kv : m) {
+      const std::string k = kv.first.Scalar();
+      if (std::none_of(keys.begin(), keys.end(), [&](const char* a) { return k == a; })) {
+        std::string list;
+        for (const char* a : keys) list += std::string(list.empty() ? "" : ", ") + a;
+        fail(path + "." + k, "unknown key (expected one of: " + list + ")");
+      }
+    }
+  }
+  double num(const YAML::Node& m, const char* k, const std::string& path, double def) const {
+    if (!m[k]) return def;
+    const YAML::Node n = m[k];
+    const std::string key = path + "." + k;
+    if (!n.IsScalar()) fail(key, "expected a number");
+    char* end = nullptr;
+    errno = 0;
+    const double v = std::strtod(n.Scalar().c_str(), &end);
+    if (n.Scalar().empty() || *end != '\0' || errno == ERANGE || !std::isfinite(v))
+      fail(key, "expected a number, got \"" + n.Scalar() + "\"");
+    return v;
+  }
+  long integer(const YAML::Node& m, const char* k, const std::string& path, long def, long lo, long hi) const {
+    if (!m[k]) return def;
+    const YAML::Node n = m[k];
+    const std::string key = path + "." + k;
+    if (!n.IsScalar()) fail(key, "expected an integer");
+    char* end = nullptr;
+    errno = 0;
+    const long v = std::strtol(n.Scalar().c_str(), &end, 0);   // 0x18 allowed for addresses
+    if (n.Scalar().empty() || *end != '\0' || errno == ERANGE) fail(key, "expected an integer, got \"" + n.Scalar() + "\"");
+    if (v < lo || v > hi) fail(key, "must be in " + std::to_string(lo) + ".." + std::to_string(hi));
+    return v;
+  }
+  std::string str(const YAML::Node& m, const char* k, const std::string& path, const std::string& def) const {
+    if (!m[k]) return def;
+    if (!m[k].IsScalar()) fail(path + "." + k, "expected a string");
+    return m[k].Scalar();
+  }
+  bool boolean(const YAML::Node& m, const char* k, const std::string& path, bool def) const {
+    if (!m[k]) return def;
+    const std::string s = m[k].IsScalar() ? m[k].Scalar() : "";
+    if (s == "true") return true;
+    if (s == "false") return false;
+    fail(path + "." + k, "expected true or false, got \"" + s + "\"");
+  }
+  template <class T>
+  T choice(const YAML::Node& m, const char* k, const std::string& path, T def,
+           std::initializer_list<std::pair<const char*, T>> options) const {
+    if (!m[k]) return def;
+    const std::string s = m[k].IsScalar() ? m[k].Scalar() : "";
+    for (const auto& [name, v] : options)
+      if (s == name) return v;
+    std::string list;
+    for (const auto& o : options) list += std::string(list.empty() ? "" : ", ") + o.first;
+    fail(path + "." + k, "expected one of " + list + ", got \"" + s + "\"");
+  }
+
+ private:
+  std::string where_;
+};
+
+template <class E>
+E pick_code(const P& p, const std::string& key, double v, std::initializer_list<std::pair<double, E>> table) {
+  std::string list;
+  for (const auto& [value, code] : table) {
+    if (std::abs(v - value) < 1e-6 * std::max(1.0, value)) return code;
+    char b[32];
+    std::snprintf(b, sizeof b, "%s%g", list.empty() ? "" : ", ", value);
+    list += b;
+  }
+  p.fail(key, "expected one of " + list);
+}
+
+}  // namespace
+
+DriverSettings driver_settings_from_yaml_node(const YAML::Node& root, const std::string& where) {
+  P p(where);
+  DriverSettings d;
+  if (!root || root.IsNull()) p.fail("drivers", "missing (required)");
+  p.only(root, "drivers", {"camera", "imu", "strobe"});
+
+  if (const YAML::Node c = root["camera"]) {
+    const std::string path = "drivers.camera";
+    p.only(c, path, {"type", "width_px", "height_px", "rate_hz", "openni2", "v4l2"});
+    CameraSettings& cs = d.camera;
+    cs.type = p.choice<CameraType>(c, "type", path, CameraType::kNone,
+                                   {{"none", CameraType::kNone}, {"openni2", CameraType::kOpenNi2}, {"v4l2", CameraType::kV4l2}});
+    cs.width_px = static_cast<int>(p.integer(c, "width_px", path, 640, 1, 8192));
+    cs.height_px = static_cast<int>(p.integer(c, "height_px", path, 480, 1, 8192));
+    cs.rate_hz = p.num(c, "rate_hz", path, 30);
+    if (cs.rate_hz <= 0 || cs.rate_hz > 1000) p.fail(path + ".rate_hz", "must be in (0, 1000]");
+    if (const YAML::Node o = c["openni2"]) {
+      const std::string op = path + ".openni2";
+      p.only(o, op, {"uri", "registration", "frame_sync", "mirror"});
+      cs.openni2_uri = p.str(o, "uri", op, "");
+      cs.openni2_registration =
+          p.choice<bool>(o, "registration", op, true, {{"depth_to_color", true}, {"off", false}});
+      cs.openni2_frame_sync = p.boolean(o, "frame_sync", op, true);
+      cs.openni2_mirror = p.boolean(o, "mirror", op, false);
+    }
+    if (const YAML::Node v = c["v4l2"]) {
+      const std::string vp = path + ".v4l2";
+      p.only(v, vp, {"color_device", "color_format", "depth_device", "depth_format", "depth_unit_m", "buffers", "readout_us"});
+      cs.v4l2_color_device = p.str(v, "color_device", vp, "");
+      cs.v4l2_color_format = p.choice<std::string>(v, "color_format", vp, "yuyv",
+                                                   {{"yuyv", "yuyv"}, {"mjpeg", "mjpeg"}, {"grey", "grey"}});
+      cs.v4l2_depth_device = p.str(v, "depth_device", vp, "");
+      cs.v4l2_depth_format = p.choice<std::string>(v, "depth_format", vp, "z16", {{"z16", "z16"}});
+      cs.v4l2_depth_unit_m = p.num(v, "depth_unit_m", vp, 0.001);
+      if (cs.v4l2_depth_unit_m <= 0) p.fail(vp + ".depth_unit_m", "must be > 0");
+      cs.v4l2_buffers = static_cast<int>(p.integer(v, "buffers", vp, 4, 2, 32));
+      cs.v4l2_readout_ns = 1000 * p.integer(v, "readout_us", vp, 0, 0, 1'000'000);
+    }
+    if (cs.type == CameraType::kV4l2 && cs.v4l2_color_device.empty())
+      p.fail(path + ".v4l2.color_device", "missing (required for type v4l2)");
+  }
+
+  if (const YAML::Node m = root["imu"]) {
+    const std::string path = "drivers.imu";
+    p.only(m, path, {"type", "acc_range_g", "acc_bandwidth_hz", "gyro_range_dps", "gyro_odr_hz", "gyro_bandwidth_hz",
+                     "axis_remap", "i2c", "usb"});
+    ImuSettings& is = d.imu;
+    is.type = p.choice<ImuType>(m, "type", path, ImuType::kNone,
+                                {{"none", ImuType::kNone}, {"bmx055_i2c", ImuType::kBmx055I2c}, {"bmx055_usb", ImuType::kBmx055Usb}});
+    bmx055::Config& b = is.bmx055;
+    using namespace bmx055;
+    b.acc_range = pick_code<acc::Range>(p, path + ".acc_range_g", p.num(m, "acc_range_g", path, 16),
+                                        {{2, acc::Range::k2g}, {4, acc::Range::k4g}, {8, acc::Range::k8g}, {16, acc::Range::k16g}});
+    b.acc_bw = pick_code<acc::Bandwidth>(
+        p, path + ".acc_bandwidth_hz", p.num(m, "acc_bandwidth_hz", path, 250),
+        {{7.81, acc::Bandwidth::k7_81Hz}, {15.63, acc::Bandwidth::k15_63Hz}, {31.25, acc::Bandwidth::k31_25Hz},
+         {62.5, acc::Bandwidth::k62_5Hz}, {125, acc::Bandwidth::k125Hz}, {250, acc::Bandwidth::k250Hz},
+         {500, acc::Bandwidth::k500Hz}, {1000, acc::Bandwidth::k1000Hz}});
+    b.gyro_range = pick_code<gyro::Range>(p, path + ".gyro_range_dps", p.num(m, "gyro_range_dps", path, 2000),
+                                          {{2000, gyro::Range::k2000dps}, {1000, gyro::Range::k1000dps},
+                                           {500, gyro::Range::k500dps}, {250, gyro::Range::k250dps}, {125, gyro::Range::k125dps}});
+    const double odr = p.num(m, "gyro_odr_hz", path, 400);
+    const double bw = p.num(m, "gyro_bandwidth_hz", path, 47);
+    const std::pair<double, double> odr_bw[] = {{2000, 523}, {2000, 230}, {1000, 116}, {400, 47},
+                                                {200, 23},   {100, 12},   {200, 64},   {100, 32}};
+    bool found = false;
+    for (unsigned i = 0; i < 8; ++i)
+      if (odr_bw[i].first == odr && odr_bw[i].second == bw) {
+        b.gyro_bw = static_cast<gyro::Bandwidth>(i);
+        found = true;
+      }
+    if (!found)
+      p.fail(path + ".gyro_odr_hz", "gyro_odr_hz/gyro_bandwidth_hz must be a BMG160 pair: 2000/523, 2000/230, "
+                                    "1000/116, 400/47, 200/23, 100/12, 200/64, 100/32");
+    if (const YAML::Node r = m["axis_remap"]) {
+      if (!r.IsSequence() || r.size() != 3) p.fail(path + ".axis_remap", "expected three of +x -x +y -y +z -z");
+      for (size_t i = 0; i < 3; ++i) {
+        const std::string s = r[i].IsScalar() ? r[i].Scalar() : "";
+        if (s.size() != 2 || (s[0] != '+' && s[0] != '-') || s[1] < 'x' || s[1] > 'z')
+          p.fail(path + ".axis_remap[" + std::to_string(i) + "]", "expected +x, -x, +y, -y, +z or -z, got \"" + s + "\"");
+        b.axis_remap[i] = static_cast<int8_t>((s[0] == '-' ? -1 : 1) * (s[1] - 'x' + 1));
+      }
+    }
+    is.usb.acc_range = b.acc_range;
+    is.usb.gyro_range = b.gyro_range;
+    is.usb.axis_remap = b.axis_remap;
+    if (const YAML::Node i2c = m["i2c"]) {
+      const std::string ip = path + ".i2c";
+      p.only(i2c, ip, {"bus_device", "acc_i2c_addr", "gyro_i2c_addr", "mag_enabled", "mag_i2c_addr", "data_ready",
+                       "gpio_chip", "gpio_line", "poll_period_us", "gyro_fifo_watermark_frames",
+                       "acc_fifo_watermark_frames", "self_test"});
+      is.i2c_bus_device = p.str(i2c, "bus_device", ip, "");
+      b.acc_addr = static_cast<uint8_t>(p.integer(i2c, "acc_i2c_addr", ip, 0x18, 0x18, 0x19));
+      b.gyro_addr = static_cast<uint8_t>(p.integer(i2c, "gyro_i2c_addr", ip, 0x68, 0x68, 0x69));
+      b.mag_enabled = p.boolean(i2c, "mag_enabled", ip, false);
+      b.mag_addr = static_cast<uint8_t>(p.integer(i2c, "mag_i2c_addr", ip, 0x10, 0x10, 0x13));
+      b.drdy = p.choice<DataReadyMode>(i2c, "data_ready", ip, DataReadyMode::kPoll,
+                                       {{"gpio", DataReadyMode::kGpio}, {"poll", DataReadyMode::kPoll}});
+      is.gpio_chip = p.str(i2c, "gpio_chip", ip, "");
+      is.gpio_line = static_cast<int>(p.integer(i2c, "gpio_line", ip, -1, -1, 1023));
+      b.poll_period_ns = 1000 * p.integer(i2c, "poll_period_us", ip, 5000, 100, 1'000'000);
+      b.gyro_watermark_frames = static_cast<int>(p.integer(i2c, "gyro_fifo_watermark_frames", ip, 4, 1, 99));
+      b.acc_watermark_frames = static_cast<int>(p.integer(i2c, "acc_fifo_watermark_frames", ip, 5, 1, 31));
+      b.self_test = p.boolean(i2c, "self_test", ip, true);
+      if (b.drdy == DataReadyMode::kGpio && (is.gpio_chip.empty() || is.gpio_line < 0))
+        p.fail(ip + ".gpio_line", "data_ready: gpio needs gpio_chip and gpio_line");
+    }
+    if (const YAML::Node u = m["usb"]) {
+      const std::string up = path + ".usb";
+      p.only(u, up, {"vid", "pid", "endpoint_in", "latency_floor_us", "read_timeout_ms", "no_data_timeout_ms"});
+      is.usb.vid = static_cast<uint16_t>(p.integer(u, "vid", up, usb_bridge::kDefaultVid, 0, 0xFFFF));
+      is.usb.pid = static_cast<uint16_t>(p.integer(u, "pid", up, usb_bridge::kDefaultPid, 0, 0xFFFF));
+      is.usb.endpoint_in = static_cast<uint8_t>(p.integer(u, "endpoint_in", up, 0x81, 0x81, 0x8F));
+      is.usb.clock.latency_floor_ns = 1000 * p.integer(u, "latency_floor_us", up, 0, 0, 100'000);
+      is.usb.read_timeout_ms = static_cast<int>(p.integer(u, "read_timeout_ms", up, 20, 1, 10'000));
+      is.usb.no_data_timeout_ns = 1'000'000 * p.integer(u, "no_data_timeout_ms", up, 200, 1, 60'000);
+    }
+    try {
+      b.validate();
+    } catch (const std::invalid_argument& e) {
+      p.fail(path, e.what());
+    }
+    if (is.type == ImuType::kBmx055I2c && is.i2c_bus_device.empty())
+      p.fail(path + ".i2c.bus_device", "missing (required for type bmx055_i2c)");
+  }
+
+  if (const YAML::Node s = root["strobe"]) {
+    const std::string sp = "drivers.strobe";
+    p.only(s, sp, {"enabled", "initial_offset_us", "tolerance_us"});
+    d.strobe.enabled = p.boolean(s, "enabled", sp, false);
+    d.strobe.initial_offset_ns = 1000 * p.integer(s, "initial_offset_us", sp, 0, -1'000'000, 1'000'000);
+    d.strobe.tolerance_ns = 1000 * p.integer(s, "tolerance_us", sp, 8000, 1, 1'000'000);
+  }
+  return d;
+}
+
+LiveConfig live_config_from_yaml(const std::string& text, const std::string& where) {
+  YAML::Node root;
+  try {
+    root = YAML::Load(text);
+  } catch (const YAML::ParserException& e) {
+    throw std::runtime_error(where + ":" + std::to_string(e.mark.line + 1) + ": YAML syntax error: " + e.msg);
+  }
+  if (!root.IsMap()) throw std::runtime_error(where + ": expected a mapping with `rig:` and `drivers:`");
+  for (const auto& kv : root) {
+    const std::string k = kv.first.Scalar();
+    if (k != "rig" && k != "drivers") throw std::runtime_error(where + ": " + k + ": unknown key (expected rig, drivers)");
+  }
+  if (!root["rig"]) throw std::runtime_error(where + ": rig: missing (required)");
+  LiveConfig c;
+  c.path = where;
+  try {
+    c.rig = rig_from_yaml_node(root["rig"], where, "rig.");
+    c.drivers = driver_settings_from_yaml_node(root["drivers"], where);
+  } catch (const YAML::Exception& e) {
+    throw std::runtime_error(where + ": " + e.what());
+  }
+  return c;
+}
+
+LiveConfig load_live_config(const std::string& path) {
+  std::ifstream f(path, std::ios::binary);
+  if (!f) throw std::runtime_error(path + ": cannot open config file");
+  std::ostringstream s;
+  s << f.rdbuf();
+  return live_config_from_yaml(s.str(), path);
+}
+
+std::string built_drivers_summary() {
+  auto b = [](bool x) { return x ? "built" : "NOT built"; };
+  return std::string("v4l2 ") + b(v4l2::v4l2_built()) + ", openni2 " + b(openni2::openni2_built()) + ", libusb (IMU bridge) " +
+         b(libusb_built()) + ", i2c-dev (BMX055) " + b(i2c_dev_built()) + ", gpio-cdev (data-ready) " +
+         b(bmx055::gpio_cdev_built());
+}
+
+DeviceReport probe_devices() {
+  DeviceReport r;
+  std::string err;
+  for (const auto& d : v4l2::list_devices(&err)) {
+    std::string fmts;
+    for (uint32_t f : d.formats) fmts += (fmts.empty() ? "" : " ") + v4l2::fourcc_name(f);
+    r.found.push_back({"camera", "v4l2", d.path, d.card + " [" + d.driver + ", " + d.bus_info + "] formats: " + fmts});
+  }
+  if (!err.empty()) r.notes.push_back("v4l2: " + err);
+  err.clear();
+  for (const auto& d : openni2::list_devices(&err)) r.found.push_back({"camera", "openni2", d, ""});
+  if (!err.empty()) r.notes.push_back("openni2: " + err);
+  // I2C: probe the BMX055 chip ids on every adapter (reads only).
+  if (i2c_dev_built()) {
+    std::vector<std::string> buses;
+    if (DIR* dir = opendir("/dev")) {
+      while (dirent* e = readdir(dir))
+        if (std::string(e->d_name).rfind("i2c-", 0) == 0) buses.push_back(std::string("/dev/") + e->d_name);
+      closedir(dir);
+    }
+    std::sort(buses.begin(), buses.end());
+    if (buses.empty()) r.notes.push_back("i2c: no /dev/i2c-* adapters (i2c-dev module loaded?)");
+    for (const auto& bus : buses) {
+      LinuxI2cBus b;
+      const std::string e = b.open(bus);
+      if (!e.empty()) {
+        r.notes.push_back("i2c: " + e);
+        continue;
+      }
+      for (uint8_t acc : {bmx055::kAccAddrDefault, bmx055::kAccAddrAlt}) {
+        uint8_t id = 0;
+        if (b.read_regs(acc, bmx055::acc::kChipIdReg, &id, 1) != I2cStatus::kOk || id != bmx055::acc::kChipId) continue;
+        std::string gyro = "gyro not found";
+        for (uint8_t g : {bmx055::kGyroAddrDefault, bmx055::kGyroAddrAlt})
+          if (b.read_regs(g, bmx055::gyro::kChipIdReg, &id, 1) == I2cStatus::kOk && id == bmx055::gyro::kChipId) {
+            char s[32];
+            std::snprintf(s, sizeof s, "gyro at 0x%02x", g);
+            gyro = s;
+          }
+        char s[64];
+        std::snprintf(s, sizeof s, "%s accelerometer at 0x%02x, ", bus.c_str(), acc);
+        r.found.push_back({"imu", "bmx055-i2c", bus, std::string(s) + gyro});
+      }
+    }
+  } else {
+    r.notes.push_back("i2c: not built");
+  }
+  err.clear();
+  for (const auto& u : list_usb_devices(usb_bridge::kDefaultVid, usb_bridge::kDefaultPid, &err)) {
+    char s[64];
+    std::snprintf(s, sizeof s, "bus %d address %d", u.bus, u.address);
+    r.found.push_back({"imu", "usb-bridge", s, "serial " + (u.serial.empty() ? std::string("?") : u.serial)});
+  }
+  if (!err.empty()) r.notes.push_back("usb: " + err);
+  return r;
+}
+
+// ---- LiveSensors --------------------------------------------------------------------------
+
+namespace {
+class StrobeRingSink final : public StrobeSink {
+ public:
+  bool push(const StrobeStamp& s) noexcept override { return ring.try_push(s); }
+  rt::SpscRing<StrobeStamp, 128> ring;
+};
+}  // namespace
+
+struct LiveSensors::Impl {
+  LiveConfig cfg;
+  MonotonicHostClock clock;
+  // IMU
+  LinuxI2cBus i2c;
+  bmx055::GpioDataReadyLine drdy;
+  std::unique_ptr<bmx055::Driver> bmx;
+  LibusbEndpoint usb;
+  std::unique_ptr<UsbBridgeDriver> bridge;
+  StrobeRingSink strobes;
+  // Cameras
+  openni2::Camera oni;
+  v4l2::Camera color, depth;
+  ImageBuffer rgb_buf, depth_buf;
+  StrobeMatcher matcher;
+  uint64_t frames = 0, frame_errors = 0, frame_timeouts = 0, unpaired = 0;
+  std::atomic<bool> stop{false};
+  std::thread imu_thread, cam_thread;
+
+  void imu_loop(ImuSink& sink);
+  void cam_loop(FrameSink& sink);
+};
+
+LiveSensors::LiveSensors(const LiveConfig& cfg) : impl_(std::make_unique<Impl>()) {
+  Impl& m = *impl_;
+  m.cfg = cfg;
+  const DriverSettings& d = cfg.drivers;
+  std::vector<std::string> missing;
+  const size_t px = static_cast<size_t>(d.camera.width_px) * static_cast<size_t>(d.camera.height_px);
+  m.rgb_buf.pixels.reserve(px * 3);
+  m.depth_buf.pixels.reserve(px * 2);
+  StrobeMatchOptions so;
+  so.initial_offset_ns = d.strobe.initial_offset_ns;
+  so.tolerance_ns = d.strobe.tolerance_ns;
+  m.matcher = StrobeMatcher(so);
+
+  switch (d.imu.type) {
+    case ImuType::kNone: break;
+    case ImuType::kBmx055I2c: {
+      std::string e = m.i2c.open(d.imu.i2c_bus_device);
+      if (!e.empty()) {
+        missing.push_back("IMU (BMX055 over I2C): " + e);
+        break;
+      }
+      uint8_t id = 0;
+      if (m.i2c.read_regs(d.imu.bmx055.acc_addr, bmx055::acc::kChipIdReg, &id, 1) != I2cStatus::kOk) {
+        char s[96];
+        std::snprintf(s, sizeof s, ": no BMX055 accelerometer answers at 0x%02x", d.imu.bmx055.acc_addr);
+        missing.push_back("IMU (BMX055 over I2C): " + d.imu.i2c_bus_device + s);
+        break;
+      }
+      if (d.imu.bmx055.drdy == bmx055::DataReadyMode::kGpio) {
+        e = m.drdy.open(d.imu.gpio_chip, static_cast<unsigned>(d.imu.gpio_line));
+        if (!e.empty()) {
+          missing.push_back("IMU data-ready line: " + e);
+          break;
+        }
+      }
+      m.bmx = std::make_unique<bmx055::Driver>(m.i2c, m.clock, d.imu.bmx055);
+      break;
+    }
+    case ImuType::kBmx055Usb: {
+      const std::string e = m.usb.open(d.imu.usb.vid, d.imu.usb.pid, d.imu.usb.endpoint_in);
+      if (!e.empty()) {
+        missing.push_back("IMU (BMX055 via USB bridge): " + e);
+        break;
+      }
+      m.bridge = std::make_unique<UsbBridgeDriver>(m.usb, m.clock, d.imu.usb);
+      break;
+    }
+  }
+  switch (d.camera.type) {
+    case CameraType::kNone: break;
+    case CameraType::kOpenNi2: {
+      openni2::Options o;
+      o.uri = d.camera.openni2_uri;
+      o.width = d.camera.width_px;
+      o.height = d.camera.height_px;
+      o.fps = static_cast<int>(std::lround(d.camera.rate_hz));
+      o.registration = d.camera.openni2_registration;
+      o.frame_sync = d.camera.openni2_frame_sync;
+      o.mirror = d.camera.openni2_mirror;
+      o.rig_depth_scale_m = cfg.rig.depth.scale_m_per_unit;
+      const std::string e = m.oni.open(o);
+      if (!e.empty()) missing.push_back("camera (OpenNI2): " + e);
+      break;
+    }
+    case CameraType::kV4l2: {
+      v4l2::Options o;
+      o.device = d.camera.v4l2_color_device;
+      o.request.width = d.camera.width_px;
+      o.request.height = d.camera.height_px;
+      o.request.fps = d.camera.rate_hz;
+      o.request.preferred = {v4l2::fourcc_from_name(d.camera.v4l2_color_format)};
+      o.buffers = d.camera.v4l2_buffers;
+      o.readout_ns = d.camera.v4l2_readout_ns;
+      std::string e = m.color.open(o);
+      if (!e.empty()) missing.push_back("colour camera (V4L2): " + e);
+      if (!d.camera.v4l2_depth_device.empty()) {
+        o.device = d.camera.v4l2_depth_device;
+        o.request.preferred = {v4l2::fourcc_from_name(d.camera.v4l2_depth_format)};
+        o.depth_scale_m = d.camera.v4l2_depth_unit_m;
+        o.rig_depth_scale_m = cfg.rig.depth.scale_m_per_unit;
+        e = m.depth.open(o);
+        if (!e.empty()) missing.push_back("depth camera (V4L2): " + e);
+      }
+      break;
+    }
+  }
+  if (d.imu.type == ImuType::kNone && d.camera.type == CameraType::kNone)
+    missing.push_back("the config names no sensor (drivers.camera.type and drivers.imu.type are none)");
+  if (!missing.empty()) {
+    std::string msg = "cannot start the live sensors of " + cfg.path + ":";
+    for (const auto& s : missing) msg += "\n  - " + s;
+    msg += "\n  drivers in this build: " + built_drivers_summary();
+    msg += "\n  (`kestrel devices` lists what is connected)";
+    throw std::runtime_error(msg);
+  }
+}
+
+LiveSensors::~LiveSensors() { stop(); }
+
+void LiveSensors::Impl::imu_loop(ImuSink& sink) {
+  while (!stop.load(std::memory_order_relaxed)) {
+    if (bmx) {
+      const int64_t wake = bmx->step(sink);
+      if (drdy.is_open() && bmx->state() == bmx055::State::kStream) {
+        int64_t edge = 0;
+        if (drdy.wait(std::min(wake, rt::now_ns() + 100'000'000), edge) == 1) bmx->notify_data_ready(edge);
+      } else {
+        rt::sleep_until_ns(std::min(wake, rt::now_ns() + 100'000'000));
+      }
+    } else if (bridge) {
+      if (bridge->step(sink, &strobes) == UsbBridgeState::kDisconnected) {
+        rt::sleep_for_ns(1'000'000'000);
+        const auto& u = cfg.drivers.imu.usb;
+        if (usb.open(u.vid, u.pid, u.endpoint_in).empty()) bridge = std::make_unique<UsbBridgeDriver>(usb, clock, u);
+      }
+    } else {
+      return;
+    }
+  }
+}
+
+void LiveSensors::Impl::cam_loop(FrameSink& sink) {
+  const DriverSettings& d = cfg.drivers;
+  const int timeout_ms = static_cast<int>(std::lround(3000.0 / d.camera.rate_hz));
+  while (!stop.load(std::memory_order_relaxed)) {
+    CameraFrame f;
+    bool ok = false;
+    if (d.camera.type == CameraType::kOpenNi2) {
+      openni2::FrameMeta meta;
+      const auto r = oni.grab(timeout_ms, rgb_buf, depth_buf, meta);
+      ok = r == openni2::GrabResult::kFrame;
+      if (r == openni2::GrabResult::kTimeout) ++frame_timeouts;
+      if (r == openni2::GrabResult::kError) ++frame_errors;
+      f.t_ns = meta.t_ns;
+      f.t_recv_ns = meta.t_recv_ns;
+      f.seq = meta.seq;
+      f.exposure_us = meta.exposure_us;
+      f.rgb = &rgb_buf;
+      f.depth = &depth_buf;
+    } else if (d.camera.type == CameraType::kV4l2) {
+      v4l2::FrameMeta meta;
+      const auto r = color.grab(timeout_ms, rgb_buf, meta);
+      ok = r == v4l2::GrabResult::kFrame;
+      if (r == v4l2::GrabResult::kTimeout) ++frame_timeouts;
+      if (r == v4l2::GrabResult::kError) ++frame_errors;
+      f.t_ns = meta.t_ns;
+      f.t_recv_ns = meta.t_recv_ns;
+      f.seq = meta.seq;
+      f.exposure_us = meta.exposure_us;
+      f.rgb = &rgb_buf;
+      if (ok && depth.is_open()) {
+        // Separate UVC nodes: the depth frame nearest in time (within half a period).
+        v4l2::FrameMeta dm;
+        if (depth.grab(timeout_ms, depth_buf, dm) == v4l2::GrabResult::kFrame &&
+            std::llabs(dm.t_ns - meta.t_ns) < static_cast<int64_t>(0.5e9 / d.camera.rate_hz)) {
+          f.depth = &depth_buf;
+        } else {
+          ++unpaired;
+        }
+      }
+    } else {
+      return;
+    }
+    if (!ok) continue;
+    if (d.strobe.enabled) {
+      StrobeStamp s;
+      while (strobes.ring.try_pop(s)) matcher.add_strobe(s);
+      // Strobe = start of exposure (bridge clock): publish mid-exposure.
+      const StrobeMatch sm = matcher.match(f.t_ns);
+      f.strobe_matched = sm.matched;
+      f.t_ns = sm.t_exposure_start_ns + static_cast<int64_t>(f.exposure_us) * 500;
+    }
+    ++frames;
+    (void)sink.push_frame(f);
+  }
+}
+
+void LiveSensors::start(ImuSink& imu, FrameSink& frames) {
+  Impl& m = *impl_;
+  m.stop.store(false);
+  if (m.bmx || m.bridge) m.imu_thread = std::thread([&m, &imu] { m.imu_loop(imu); });
+  if (m.cfg.drivers.camera.type != CameraType::kNone) m.cam_thread = std::thread([&m, &frames] { m.cam_loop(frames); });
+}
+
+void LiveSensors::stop() {
+  Impl& m = *impl_;
+  m.stop.store(true);
+  if (m.imu_thread.joinable()) m.imu_thread.join();
+  if (m.cam_thread.joinable()) m.cam_thread.join();
+}
+
+std::string LiveSensors::description() const {
+  const DriverSettings& d = impl_->cfg.drivers;
+  std::string s = "camera: ";
+  s += d.camera.type == CameraType::kOpenNi2 ? "OpenNI2" : d.camera.type == CameraType::kV4l2 ? "V4L2" : "none";
+  s += ", IMU: ";
+  s += d.imu.type == ImuType::kBmx055I2c ? "BMX055 over I2C (" + d.imu.i2c_bus_device + ")"
+       : d.imu.type == ImuType::kBmx055Usb ? std::string("BMX055 via USB bridge") : std::string("none");
+  return s;
+}
+
+std::string LiveSensors::report() const {
+  const Impl& m = *impl_;
+  char b[512];
+  std::string s;
+  std::snprintf(b, sizeof b, "camera: %llu frames, %llu timeouts, %llu errors, %llu depth unpaired\n",
+                (unsigned long long)m.frames, (unsigned long long)m.frame_timeouts, (unsigned long long)m.frame_errors,
+                (unsigned long long)m.unpaired);
+  s += b;
+  if (m.bmx) {
+    const auto& c = m.bmx->counters();
+    std::snprintf(b, sizeof b,
+                  "bmx055: state %s, %llu samples, %llu resets, %llu i2c errors, %llu overruns, %llu timeouts, "
+                  "%llu sink drops, gyro ODR %.3f Hz\n",
+                  bmx055::to_string(m.bmx->state()), (unsigned long long)c.samples, (unsigned long long)c.resets,
+                  (unsigned long long)c.i2c_errors, (unsigned long long)c.fifo_overruns, (unsigned long long)c.timeouts,
+                  (unsigned long long)c.sink_drops, m.bmx->gyro_odr_estimate_hz());
+    s += b;
+  }
+  if (m.bridge) {
+    const auto& c = m.bridge->counters();
+    std::snprintf(b, sizeof b,
+                  "usb bridge: state %s, %llu samples, %llu packets lost, %llu crc errors, %llu samples lost, "
+                  "clock skew %.1f ppm, %llu strobes\n",
+                  to_string(m.bridge->state()), (unsigned long long)c.samples, (unsigned long long)c.packets_lost,
+                  (unsigned long long)c.crc_errors, (unsigned long long)c.samples_lost,
+                  m.bridge->clock_sync().skew() * 1e6, (unsigned long long)c.strobes);
+    s += b;
+  }
+  if (m.cfg.drivers.strobe.enabled) {
+    std::snprintf(b, sizeof b, "strobes: %llu matched, %llu frames unmatched, residual camera offset %.3f ms\n",
+                  (unsigned long long)m.matcher.matched(), (unsigned long long)m.matcher.unmatched_frames(),
+                  m.matcher.residual_offset_ns() * 1e-6);
+    s += b;
+  }
+  return s;
+}
+
+}  // namespace kestrel::drivers
