@@ -7,6 +7,22 @@
 
 #include "kestrel/rt/alloc_counter.hpp"
 
+// Eigen's dynamic matrices (and C libraries) allocate with malloc, not
+// operator new; a zero-allocation claim that cannot see them proves little.
+// So malloc & co. are interposed too, forwarding to glibc's __libc_* entry
+// points. Sanitizer builds bring their own malloc: there only operator new
+// is counted (alloc_hook_counts_malloc() says which).
+#if defined(__SANITIZE_ADDRESS__) || defined(__SANITIZE_THREAD__)
+#define KESTREL_COUNT_MALLOC 0
+#elif defined(__has_feature)
+#if __has_feature(address_sanitizer) || __has_feature(thread_sanitizer) || __has_feature(memory_sanitizer)
+#define KESTREL_COUNT_MALLOC 0
+#endif
+#endif
+#ifndef KESTREL_COUNT_MALLOC
+#define KESTREL_COUNT_MALLOC 1
+#endif
+
 namespace {
 
 // Trivial thread_locals: no TLS init wrapper, safe to touch from operator new
@@ -23,12 +39,13 @@ void count(std::size_t n) noexcept {
 }
 
 void* alloc_plain(std::size_t n) noexcept {
-  count(n);
+  // With malloc interposed, the malloc below counts; never count twice.
+  if (!KESTREL_COUNT_MALLOC) count(n);
   return std::malloc(n == 0 ? 1 : n);
 }
 
 void* alloc_aligned(std::size_t n, std::align_val_t al) noexcept {
-  count(n);
+  if (!KESTREL_COUNT_MALLOC) count(n);
   std::size_t a = static_cast<std::size_t>(al);
   if (a < sizeof(void*)) a = sizeof(void*);  // posix_memalign's minimum
   void* p = nullptr;
@@ -54,6 +71,45 @@ void release(void* p) noexcept {
 }
 
 }  // namespace
+
+#if KESTREL_COUNT_MALLOC
+extern "C" {
+void* __libc_malloc(std::size_t);
+void* __libc_calloc(std::size_t, std::size_t);
+void* __libc_realloc(void*, std::size_t);
+void* __libc_memalign(std::size_t, std::size_t);
+void __libc_free(void*);
+
+void* malloc(std::size_t n) {
+  count(n);
+  return __libc_malloc(n);
+}
+void* calloc(std::size_t a, std::size_t b) {
+  count(a * b);
+  return __libc_calloc(a, b);
+}
+void* realloc(void* p, std::size_t n) {
+  count(n);
+  return __libc_realloc(p, n);
+}
+void* memalign(std::size_t a, std::size_t n) {
+  count(n);
+  return __libc_memalign(a, n);
+}
+void* aligned_alloc(std::size_t a, std::size_t n) {
+  count(n);
+  return __libc_memalign(a, n);
+}
+int posix_memalign(void** out, std::size_t a, std::size_t n) {
+  count(n);
+  void* p = __libc_memalign(a, n);
+  if (p == nullptr) return 12;  // ENOMEM
+  *out = p;
+  return 0;
+}
+void free(void* p) { __libc_free(p); }
+}
+#endif
 
 // ---- replaceable allocation functions ([new.delete], C++17) -----------------
 void* operator new(std::size_t n) { return alloc_or_throw([n] { return alloc_plain(n); }); }
@@ -88,6 +144,8 @@ std::uint64_t alloc_count_total() noexcept { return g_allocs.load(std::memory_or
 std::uint64_t alloc_count_this_thread() noexcept { return t_allocs; }
 std::uint64_t alloc_bytes_this_thread() noexcept { return t_bytes; }
 std::uint64_t dealloc_count_this_thread() noexcept { return t_deallocs; }
+
+bool alloc_hook_counts_malloc() noexcept { return KESTREL_COUNT_MALLOC != 0; }
 
 bool alloc_hook_linked() noexcept {
   // Through a volatile function pointer so the compiler can neither inline

@@ -2,10 +2,8 @@
 // (association, gating, chunked Cholesky updates, freezing, initialisation)
 // make no heap allocation at all.
 //
-// rt::AllocCountScope counts operator new; Eigen allocates with malloc, which
-// it does not see. So this binary also interposes malloc & co. (forwarding to
-// glibc's __libc_* entry points) and counts those per thread. Sanitizer
-// builds own malloc themselves: there only operator new is counted.
+// rt's allocation hook counts operator new and, outside sanitizer builds,
+// malloc & co. too (Eigen allocates with malloc).
 #include <gtest/gtest.h>
 
 #include <cstdlib>
@@ -14,78 +12,21 @@
 #include "kestrel/core/ekf_slam.hpp"
 #include "kestrel/rt/alloc_counter.hpp"
 
-#if defined(__SANITIZE_ADDRESS__) || defined(__SANITIZE_THREAD__)
-#define KESTREL_EKF_COUNT_MALLOC 0
-#elif defined(__has_feature)
-#if __has_feature(address_sanitizer) || __has_feature(thread_sanitizer)
-#define KESTREL_EKF_COUNT_MALLOC 0
-#endif
-#endif
-#ifndef KESTREL_EKF_COUNT_MALLOC
-#define KESTREL_EKF_COUNT_MALLOC 1
-#endif
-
-#if KESTREL_EKF_COUNT_MALLOC
-namespace {
-thread_local unsigned long g_mallocs = 0;  // trivial thread_local: safe inside malloc
-}
-extern "C" {
-void* __libc_malloc(size_t);
-void __libc_free(void*);
-void* __libc_calloc(size_t, size_t);
-void* __libc_realloc(void*, size_t);
-void* __libc_memalign(size_t, size_t);
-void* malloc(size_t n) {
-  ++g_mallocs;
-  return __libc_malloc(n);
-}
-void free(void* p) { __libc_free(p); }
-void* calloc(size_t a, size_t b) {
-  ++g_mallocs;
-  return __libc_calloc(a, b);
-}
-void* realloc(void* p, size_t n) {
-  ++g_mallocs;
-  return __libc_realloc(p, n);
-}
-void* memalign(size_t a, size_t n) {
-  ++g_mallocs;
-  return __libc_memalign(a, n);
-}
-void* aligned_alloc(size_t a, size_t n) {
-  ++g_mallocs;
-  return __libc_memalign(a, n);
-}
-int posix_memalign(void** p, size_t a, size_t n) {
-  ++g_mallocs;
-  *p = __libc_memalign(a, n);
-  return *p != nullptr ? 0 : 12;
-}
-}
-#endif
-
 namespace {
 
 using namespace kestrel;
 
-unsigned long mallocs_now() {
-#if KESTREL_EKF_COUNT_MALLOC
-  return g_mallocs;
-#else
-  return 0;
-#endif
-}
+// The project's hook counts malloc too (outside sanitizer builds).
+unsigned long mallocs_now() { return rt::alloc_hook_counts_malloc() ? rt::alloc_count_this_thread() : 0; }
 
 void run_and_count(core::EkfMotionModel motion, int capacity) {
   ASSERT_TRUE(rt::alloc_hook_linked());
-#if KESTREL_EKF_COUNT_MALLOC
-  {
+  if (rt::alloc_hook_counts_malloc()) {
     const unsigned long before = mallocs_now();
     void* volatile p = std::malloc(64);
     std::free(p);
     ASSERT_GT(mallocs_now(), before) << "malloc interposition is not in effect";
   }
-#endif
   const auto traj = tools::make_scenario("figure8", 20.0);
   const test::EkfSimWorld world = test::make_ekf_world(7);
   tools::SimRng rng(5, tools::RngStream::kCamera);

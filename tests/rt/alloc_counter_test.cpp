@@ -107,3 +107,25 @@ TEST(AllocCounter, RtPathsDoNotAllocate) {
 
 }  // namespace
 }  // namespace kestrel::rt
+
+#include <cstdlib>
+
+// Eigen's dynamic matrices allocate with malloc: the hook must see it too
+// (outside sanitizer builds, which own malloc).
+TEST(AllocCounter, CountsMallocOutsideSanitizers) {
+  if (!kestrel::rt::alloc_hook_counts_malloc()) GTEST_SKIP() << "sanitizer build: malloc not interposed";
+  const kestrel::rt::AllocCountScope scope;
+  void* volatile p = std::malloc(100);
+  std::free(p);
+  EXPECT_EQ(scope.count(), 1u);
+  void* volatile q = std::calloc(4, 8);
+  std::free(q);
+  EXPECT_EQ(scope.count(), 2u);
+}
+
+TEST(AllocCounter, OperatorNewIsCountedOnceWithMallocInterposed) {
+  const kestrel::rt::AllocCountScope scope;
+  int* volatile p = new int(3);
+  delete p;
+  EXPECT_EQ(scope.count(), 1u);
+}

@@ -39,7 +39,9 @@ struct ReplayReport {
   double cpu_s = 0;                    // whole process
   double estimator_cpu_s = 0;          // the estimator thread alone
   double peak_rss_mb = 0;
-  rt::LatencyHistogram imu_to_output;  // ring push of a sample -> its pose available
+  // Realtime pace: ring push of a sample -> its pose available (end to end).
+  // Fast/lockstep pace: estimator takes the sample -> its pose available.
+  rt::LatencyHistogram imu_to_output;
   rt::LatencyHistogram tracking;       // per frame, inside the estimator
   drivers::ReplayStats replay;
   core::EstimatorCounters estimator_counters;

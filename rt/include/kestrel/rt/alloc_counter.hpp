@@ -15,8 +15,9 @@
 // Works under ASan/UBSan/TSan: the sanitizers intercept malloc/free, which is
 // where the replacement ends up, so their checks still apply.
 //
-// Counts are of calls to operator new (all forms); malloc called directly
-// (C libraries) is not counted.
+// Counts are of calls to operator new (all forms) and, outside sanitizer
+// builds, of malloc/calloc/realloc/memalign/aligned_alloc/posix_memalign too
+// (Eigen's dynamic matrices allocate with malloc): alloc_hook_counts_malloc().
 #pragma once
 
 #include <cstdint>
@@ -29,6 +30,9 @@ std::uint64_t alloc_count_total() noexcept;
 std::uint64_t alloc_count_this_thread() noexcept;
 std::uint64_t alloc_bytes_this_thread() noexcept;
 std::uint64_t dealloc_count_this_thread() noexcept;
+
+// True when malloc & co. are counted as well (not under ASan/TSan).
+bool alloc_hook_counts_malloc() noexcept;
 
 // True when the counting operator new is in effect (checked by allocating).
 bool alloc_hook_linked() noexcept;
