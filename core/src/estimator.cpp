@@ -10,16 +10,10 @@ StaticInitOptions init_options(const Rig& rig) {
   o.gravity_mps2 = rig.gravity_mps2;
   return o;
 }
-ImuPropagatorOptions prop_options(const Rig& rig) {
-  ImuPropagatorOptions o;
-  o.gravity_mps2 = rig.gravity_mps2;
-  if (rig.imu_rate_hz > 0) o.max_gap_ns = static_cast<int64_t>(5e9 / rig.imu_rate_hz);
-  return o;
-}
 }  // namespace
 
 DeadReckoningEstimator::DeadReckoningEstimator(const Rig& rig)
-    : init_(init_options(rig)), prop_(prop_options(rig)) {}
+    : init_(init_options(rig)), prop_(imu_propagator_options(rig)) {}
 
 bool DeadReckoningEstimator::add_imu(const ImuSample& s) {
   ++counters_.imu_in;

@@ -14,18 +14,12 @@ Eigen::Isometry3d to_isometry(const Mat4d& T) {
   return out;
 }
 
-ImuPropagatorOptions prop_options(const Rig& rig) {
-  ImuPropagatorOptions o;
-  o.gravity_mps2 = rig.gravity_mps2;
-  if (rig.imu_rate_hz > 0) o.max_gap_ns = static_cast<int64_t>(5e9 / rig.imu_rate_hz);
-  return o;
-}
 
 }  // namespace
 
 FrontendOdometry::FrontendOdometry(const Rig& rig, const FrontendOdometryOptions& opt)
     : opt_(opt), T_BC_(to_isometry(rig.T_BC)), init_and_imu_(rig), tracker_(rig, opt.tracker),
-      prop_(prop_options(rig)) {}
+      prop_(imu_propagator_options(rig)) {}
 
 bool FrontendOdometry::add_imu(const ImuSample& s) {
   ++counters_.imu_in;

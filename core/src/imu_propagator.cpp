@@ -12,6 +12,13 @@ Eigen::Vector3d to_eigen(const Vec3d& v) { return {v[0], v[1], v[2]}; }
 
 }  // namespace
 
+ImuPropagatorOptions imu_propagator_options(const Rig& rig) {
+  ImuPropagatorOptions o;
+  o.gravity_mps2 = rig.gravity_mps2;
+  if (rig.imu_rate_hz > 0) o.max_gap_ns = static_cast<int64_t>(5e9 / rig.imu_rate_hz);
+  return o;
+}
+
 bool imu_sample_usable(const ImuSample& s) {
   for (int i = 0; i < 3; ++i) {
     if (!std::isfinite(s.gyro_rps[i]) || !std::isfinite(s.acc_mps2[i])) return false;

@@ -585,23 +585,12 @@ std::vector<OrbMatch> match_brute_force(const OrbDescriptor* query, int n_query,
   std::vector<OrbMatch> matches;
   matches.reserve(static_cast<std::size_t>(std::max(0, n_query)));
   for (int i = 0; i < n_query; ++i) {
-    int best = 1 << 30;
-    int second = 1 << 30;
-    int best_j = -1;
-    for (int j = 0; j < n_train; ++j) {
-      const int d = hamming_distance(query[i], train[j]);
-      if (d < best) {
-        second = best;
-        best = d;
-        best_j = j;
-      } else if (d < second) {
-        second = d;
-      }
-    }
-    if (best_j < 0 || best > max_distance) continue;
+    BestTwoMatches m;
+    for (int j = 0; j < n_train; ++j) m.offer(hamming_distance(query[i], train[j]), j);
+    if (m.best_index < 0 || m.best > max_distance) continue;
     // With a single train descriptor there is no second: accept on distance.
-    if (second < (1 << 30) && !(static_cast<float>(best) < ratio * static_cast<float>(second))) continue;
-    matches.push_back(OrbMatch{i, best_j, best});
+    if (!m.passes_ratio(ratio)) continue;
+    matches.push_back(OrbMatch{i, m.best_index, m.best});
   }
   return matches;
 }

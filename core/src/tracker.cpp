@@ -258,7 +258,7 @@ const TrackResult& Tracker::track(int64_t t_ns, const ImageView& image, const Im
     const int gx1 = std::min(m.grid_cols - 1, static_cast<int>((uv.x() + radius) / kSearchCellPx));
     const int gy0 = std::max(0, static_cast<int>((uv.y() - radius) / kSearchCellPx));
     const int gy1 = std::min(m.grid_rows - 1, static_cast<int>((uv.y() + radius) / kSearchCellPx));
-    int best = std::numeric_limits<int>::max(), second = std::numeric_limits<int>::max(), best_j = -1;
+    BestTwoMatches bt;
     for (int gy = gy0; gy <= gy1; ++gy) {
       for (int gx = gx0; gx <= gx1; ++gx) {
         const int c = gy * m.grid_cols + gx;
@@ -268,23 +268,15 @@ const TrackResult& Tracker::track(int64_t t_ns, const ImageView& image, const Im
           const double dx = ckp.x - uv.x(), dy = ckp.y - uv.y();
           if (dx * dx + dy * dy > r2) continue;
           if (std::abs(ckp.level - kkp.level) > opt_.match_max_level_diff) continue;
-          const int d = hamming_distance(kd, m.cur.feats.descriptor(j));
-          if (d < best) {
-            second = best;
-            best = d;
-            best_j = j;
-          } else if (d < second) {
-            second = d;
-          }
+          bt.offer(hamming_distance(kd, m.cur.feats.descriptor(j)), j);
         }
       }
     }
-    if (best_j < 0 || best > opt_.match_max_hamming) continue;
-    if (second != std::numeric_limits<int>::max() && best >= opt_.match_ratio * second) continue;
+    if (bt.best_index < 0 || bt.best > opt_.match_max_hamming || !bt.passes_ratio(opt_.match_ratio)) continue;
     // One keyframe point per current feature: the closest descriptor wins.
-    if (best < m.best_dist[best_j]) {
-      m.best_dist[best_j] = best;
-      m.best_kf[best_j] = i;
+    if (bt.best < m.best_dist[bt.best_index]) {
+      m.best_dist[bt.best_index] = bt.best;
+      m.best_kf[bt.best_index] = i;
     }
   }
 

@@ -70,6 +70,9 @@ bool ReplaySource::copy_image(const LogImage& img, uint32_t& handle) {
   if (handle == rt::kInvalidHandle) return false;
   ImageBuffer* b = rings_.images.get(handle);
   b->t_ns = img.t_ns;
+  b->t_recv_ns = img.t_recv_ns;
+  b->seq = img.seq;
+  b->exposure_us = img.exposure_us;
   b->width = img.width;
   b->height = img.height;
   b->format = img.format;

@@ -38,6 +38,9 @@ struct ImuPropagatorOptions {
   int64_t max_integration_step_ns = 200'000'000;  // beyond this, hold the state instead of integrating garbage
 };
 
+// Gravity and gap limits from the rig (gap: five IMU periods).
+ImuPropagatorOptions imu_propagator_options(const Rig& rig);
+
 // Midpoint (trapezoidal) strapdown integration in W (z up, gravity -z).
 class ImuPropagator {
  public:

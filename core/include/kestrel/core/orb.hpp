@@ -154,6 +154,25 @@ inline int hamming_distance(const OrbDescriptor& a, const OrbDescriptor& b) noex
          __builtin_popcountll(a[2] ^ b[2]) + __builtin_popcountll(a[3] ^ b[3]);
 }
 
+// The nearest and second-nearest descriptor distance seen so far, for
+// Lowe's ratio test.
+struct BestTwoMatches {
+  static constexpr int kNone = 1 << 30;
+  int best = kNone;
+  int second = kNone;
+  int best_index = -1;
+  void offer(int distance, int index) noexcept {
+    if (distance < best) {
+      second = best;
+      best = distance;
+      best_index = index;
+    } else if (distance < second) {
+      second = distance;
+    }
+  }
+  bool passes_ratio(float ratio) const noexcept { return second == kNone || best < ratio * second; }
+};
+
 struct OrbMatch {
   int query = 0;      // index into the first set
   int train = 0;      // index into the second set

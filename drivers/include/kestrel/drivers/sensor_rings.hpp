@@ -10,25 +10,17 @@
 #include <cstdint>
 #include <vector>
 
+#include "kestrel/drivers/log_source.hpp"
 #include "kestrel/msgs.hpp"
 #include "kestrel/rt/object_pool.hpp"
 #include "kestrel/rt/spsc_ring.hpp"
 
 namespace kestrel::drivers {
 
-// Pixels of one image. The buffer is sized once at start-up (reserve) and only
+// Pixels of one image: the log's image type, so replay copies field for
+// field. Each pool buffer is reserved once at start-up (SensorRings) and only
 // resized within that capacity afterwards, so steady state never allocates.
-struct ImageBuffer {
-  int64_t t_ns = 0;
-  int width = 0;
-  int height = 0;
-  PixelFormat format = PixelFormat::kGray8;
-  std::vector<uint8_t> pixels;
-
-  ImageView view() const {
-    return ImageView{width, height, width * bytes_per_pixel(format), format, pixels.data()};
-  }
-};
+using ImageBuffer = LogImage;
 
 constexpr std::size_t kImuRingCapacity = 4096;   // > 10 s at 400 Hz
 constexpr std::size_t kFrameRingCapacity = 16;   // ~0.5 s at 30 Hz
