@@ -198,6 +198,9 @@ TEST_F(OrbEuroc, TimePerFrameSideBySide) {
   std::printf("time per 752x480 frame, median of %zu (one thread): kestrel ORB %.2f ms, cv::ORB %.2f ms\n",
               t_ours.size(), median(t_ours), median(t_cv));
   // Not a timing test (label unit, shared machine): only a sanity bound far
-  // above the 10 ms target; bench_orb measures properly.
+  // above the 10 ms target; bench_orb measures properly. Unoptimised and
+  // sanitizer builds (the debug preset) measure nothing about speed.
+#if defined(NDEBUG) && !defined(__SANITIZE_ADDRESS__) && !defined(__SANITIZE_THREAD__)
   EXPECT_LT(median(t_ours), 50.0);
+#endif
 }
