@@ -1,5 +1,7 @@
 #include "kestrel/core/window_optimizer.hpp"
 
+#include <memory>
+
 #include <Eigen/Cholesky>
 #include <Eigen/Eigenvalues>
 #include <Eigen/LU>
@@ -93,7 +95,9 @@ struct WindowOptimizer::Workspace {
   Eigen::VectorXd gm;
   Eigen::Matrix<double, Eigen::Dynamic, 15, 0, kWindowMaxDim, 15> T;
   Eigen::MatrixXd Hc;
-  Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig;
+  // Built in place at the window's size: assigning a size-constructed solver
+  // copies its uninitialised status field (UBSan flags it).
+  std::unique_ptr<Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd>> eig;
   std::vector<int32_t> marg_lms;
   std::vector<uint8_t> lm_mark;
 };
@@ -144,7 +148,7 @@ WindowOptimizer::WindowOptimizer(const PinholeK& K, const Eigen::Isometry3d& T_B
   ws.gm = Eigen::VectorXd::Zero(D);
   ws.T.resize(D, 15);
   ws.Hc = Eigen::MatrixXd::Zero(D, D);
-  ws.eig = Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd>(D);
+  ws.eig = std::make_unique<Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd>>(D);
   ws.marg_lms.resize(options.max_obs_per_frame);
   ws.lm_mark.assign(options.max_landmarks, 0);
 }
@@ -538,13 +542,13 @@ void WindowOptimizer::marginalize_or_drop(int m) {
   // Ceres sees as a residual. Done in slot space (fixed size D: the
   // decomposition's buffers are reused, unused slots are zero rows).
   ws.Hc = 0.5 * (ws.Hm + ws.Hm.transpose());
-  ws.eig.compute(ws.Hc);
+  ws.eig->compute(ws.Hc);
   P.prior_H.setZero();
   P.prior_g.setZero();
   P.prior_c = 0.0;
   {
-    const auto& ev = ws.eig.eigenvalues();
-    const auto& U = ws.eig.eigenvectors();
+    const auto& ev = ws.eig->eigenvalues();
+    const auto& U = ws.eig->eigenvectors();
     const double lmax = std::max(ev.maxCoeff(), 1e-300);
     for (int i = 0; i < D; ++i) {
       if (!(ev(i) > 1e-10 * lmax)) continue;

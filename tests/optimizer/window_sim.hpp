@@ -212,6 +212,10 @@ inline core::WindowOptions sim_options(int S = 3, int N = 5) {
   o.N = N;
   o.imu = sim_noise();
   o.pixel_sigma = 0.7;
+  // Correctness tests must not depend on the machine's speed: an unoptimised
+  // sanitizer build would hit the 35 ms flight budget and stop early. The
+  // budget itself has its own test.
+  o.time_budget_ms = 1e5;
   return o;
 }
 
