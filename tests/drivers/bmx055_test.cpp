@@ -3,6 +3,8 @@
 // fake can inject (each one counted and recovered from).
 #include <gtest/gtest.h>
 
+#include "vec_imu_sink.hpp"
+
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
@@ -17,17 +19,7 @@ namespace {
 
 constexpr double kPi = 3.14159265358979323846;
 
-struct VecSink final : ImuSink {
-  std::vector<ImuSample> samples;
-  std::vector<std::string> events;
-  size_t capacity = SIZE_MAX;
-  bool push(const ImuSample& s) noexcept override {
-    if (samples.size() >= capacity) return false;
-    samples.push_back(s);
-    return true;
-  }
-  void event(int64_t, EventCode, const char* text) noexcept override { events.emplace_back(text); }
-};
+using VecImuSink = kestrel::test::VecImuSink;
 
 // ---- parser fixtures -------------------------------------------------------------
 
@@ -135,7 +127,7 @@ struct Rig {
   ManualClock clock{1'000'000'000};
   FakeBmx055 fake{clock, 7};
   Config cfg;
-  VecSink sink;
+  VecImuSink sink;
   std::unique_ptr<Driver> drv;
   int64_t wake = 0;
 

@@ -4,6 +4,8 @@
 // the stream recovers; sample times stay increasing.
 #include <gtest/gtest.h>
 
+#include "vec_imu_sink.hpp"
+
 #include <cmath>
 #include <cstdio>
 #include <cstring>
@@ -113,17 +115,7 @@ TEST(UsbBridgeProtocol, ParserSurvivesSplitsGarbageAndCorruption) {
 
 // ---- driver against the simulated bridge -------------------------------------------
 
-struct VecImuSink final : ImuSink {
-  std::vector<ImuSample> samples;
-  std::vector<std::string> events;
-  size_t capacity = SIZE_MAX;
-  bool push(const ImuSample& s) noexcept override {
-    if (samples.size() >= capacity) return false;
-    samples.push_back(s);
-    return true;
-  }
-  void event(int64_t, EventCode, const char* t) noexcept override { events.emplace_back(t); }
-};
+using VecImuSink = kestrel::test::VecImuSink;
 struct VecStrobeSink final : StrobeSink {
   std::vector<StrobeStamp> s;
   bool push(const StrobeStamp& x) noexcept override {
