@@ -1,0 +1,75 @@
+// MAVLink v2 framing and the one message Kestrel sends, ODOMETRY (#331),
+// written from the protocol specification rather than generated: the framing
+// is a few dozen lines and owning it keeps the pipeline free of a code
+// generator. The byte layout is documented in docs/px4.md.
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+
+namespace kestrel::mavlink {
+
+constexpr uint8_t kStxV2 = 0xFD;
+constexpr std::size_t kHeaderV2Bytes = 10;  // STX, len, incompat, compat, seq, sysid, compid, msgid[3]
+constexpr std::size_t kChecksumBytes = 2;
+constexpr std::size_t kMaxPayloadBytes = 255;
+constexpr std::size_t kMaxFrameBytes = kHeaderV2Bytes + kMaxPayloadBytes + kChecksumBytes;
+
+constexpr uint32_t kMsgIdOdometry = 331;
+// CRC_EXTRA is the X.25 hash of the message's base fields (common.xml), so a
+// sender and a receiver that disagree on the layout reject each other's frames.
+// tests/mavlink recomputes it from the field list.
+constexpr uint8_t kOdometryCrcExtra = 91;
+constexpr std::size_t kOdometryPayloadBytes = 233;  // untrimmed, extensions included
+
+// MAV_FRAME values used here (common.xml).
+enum MavFrame : uint8_t {
+  kMavFrameLocalNed = 1,
+  kMavFrameBodyFrd = 12,
+  kMavFrameLocalFrd = 20,  // earth-fixed, z down, x = the vehicle's heading at the origin
+};
+
+// MAV_ESTIMATOR_TYPE values (common.xml).
+enum MavEstimatorType : uint8_t {
+  kMavEstimatorUnknown = 0,
+  kMavEstimatorNaive = 1,
+  kMavEstimatorVision = 2,
+  kMavEstimatorVio = 3,
+};
+
+// ODOMETRY fields in MAVLink units and frames (conversion from Kestrel's W/B
+// happens in odometry_adapter.hpp, nowhere else).
+struct OdometryMsg {
+  uint64_t time_usec = 0;
+  uint8_t frame_id = kMavFrameLocalFrd;
+  uint8_t child_frame_id = kMavFrameBodyFrd;
+  float x = 0, y = 0, z = 0;  // m
+  float q[4] = {1, 0, 0, 0};  // w x y z
+  float vx = 0, vy = 0, vz = 0;
+  float rollspeed = 0, pitchspeed = 0, yawspeed = 0;
+  float pose_covariance[21] = {};      // row-major upper triangle of 6x6 (x y z roll pitch yaw)
+  float velocity_covariance[21] = {};  // (vx vy vz rollspeed pitchspeed yawspeed)
+  // Extensions.
+  uint8_t reset_counter = 0;
+  uint8_t estimator_type = kMavEstimatorVio;
+  int8_t quality = 0;  // % : -1 failed, 0 unknown, 1 worst .. 100 best
+};
+
+// X.25 / CRC-16-MCRF4XX as MAVLink uses it (init 0xFFFF, no final xor).
+uint16_t crc_x25_accumulate(uint8_t byte, uint16_t crc);
+uint16_t crc_x25(const uint8_t* data, std::size_t n, uint16_t crc = 0xFFFF);
+
+// The untrimmed wire payload: base fields sorted by type size (8, 4, 1 bytes),
+// then the extensions in definition order. Returns kOdometryPayloadBytes.
+std::size_t pack_odometry_payload(const OdometryMsg& m, uint8_t* payload);
+
+// Wraps a payload in a v2 frame: trailing zero bytes are trimmed (at least one
+// byte stays), header and checksum (with crc_extra) added. `out` needs
+// kMaxFrameBytes. Returns the frame length.
+std::size_t frame_v2(uint32_t msgid, uint8_t crc_extra, const uint8_t* payload, std::size_t payload_len,
+                     uint8_t seq, uint8_t sysid, uint8_t compid, uint8_t* out);
+
+// pack + frame in one call; no allocation.
+std::size_t encode_odometry(const OdometryMsg& m, uint8_t seq, uint8_t sysid, uint8_t compid, uint8_t* out);
+
+}  // namespace kestrel::mavlink
