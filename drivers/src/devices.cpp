@@ -243,6 +243,22 @@ DriverSettings driver_settings_from_yaml_node(const YAML::Node& root, const std:
   return d;
 }
 
+EstimatorSettings estimator_settings_from_yaml_node(const YAML::Node& node, const std::string& where) {
+  EstimatorSettings e;
+  if (!node) return e;
+  if (!node.IsMap()) throw std::runtime_error(where + ": estimator: expected a mapping (backend: NAME)");
+  for (const auto& kv : node) {
+    const std::string k = kv.first.Scalar();
+    if (k != "backend") throw std::runtime_error(where + ": estimator." + k + ": unknown key (expected backend)");
+  }
+  if (node["backend"]) {
+    if (!node["backend"].IsScalar() || node["backend"].Scalar().empty())
+      throw std::runtime_error(where + ": estimator.backend: expected a backend name");
+    e.backend = node["backend"].Scalar();
+  }
+  return e;
+}
+
 LiveConfig live_config_from_yaml(const std::string& text, const std::string& where) {
   YAML::Node root;
   try {
@@ -253,7 +269,8 @@ LiveConfig live_config_from_yaml(const std::string& text, const std::string& whe
   if (!root.IsMap()) throw std::runtime_error(where + ": expected a mapping with `rig:` and `drivers:`");
   for (const auto& kv : root) {
     const std::string k = kv.first.Scalar();
-    if (k != "rig" && k != "drivers") throw std::runtime_error(where + ": " + k + ": unknown key (expected rig, drivers)");
+    if (k != "rig" && k != "drivers" && k != "estimator")
+      throw std::runtime_error(where + ": " + k + ": unknown key (expected rig, drivers, estimator)");
   }
   if (!root["rig"]) throw std::runtime_error(where + ": rig: missing (required)");
   LiveConfig c;
@@ -261,6 +278,7 @@ LiveConfig live_config_from_yaml(const std::string& text, const std::string& whe
   try {
     c.rig = rig_from_yaml_node(root["rig"], where, "rig.");
     c.drivers = driver_settings_from_yaml_node(root["drivers"], where);
+    c.estimator = estimator_settings_from_yaml_node(root["estimator"], where);
   } catch (const YAML::Exception& e) {
     throw std::runtime_error(where + ": " + e.what());
   }

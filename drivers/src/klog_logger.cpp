@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <cstring>
 #include <stdexcept>
 
@@ -17,8 +18,12 @@ KlogLogger::KlogLogger(const std::string& path, const Rig& rig, const Options& o
   images_ = std::make_unique<rt::SpscRing<ImageMsg, kImageRingSize>>();
   gt_ = std::make_unique<rt::SpscRing<GroundTruthPose, kGroundTruthRingSize>>();
   events_ = std::make_unique<rt::SpscRing<EventMsg, kEventRingSize>>();
-  const size_t cap = options.max_image_bytes;
-  pool_ = std::make_unique<rt::ObjectPool<ImageBuffer, kImagePoolSize>>([cap](ImageBuffer& b) { b.bytes.resize(cap); });
+  stage_size_ = options.buffer_bytes > 0 ? options.buffer_bytes : 64 * options.max_image_bytes;
+  stage_size_ = std::max(stage_size_, options.max_image_bytes);
+  stage_.reset(new uint8_t[stage_size_]);
+  // Fault the pages in now, not on the first frames (a page fault per 4 KiB
+  // of a VGA frame is ~200 faults in the camera thread).
+  std::memset(stage_.get(), 0, stage_size_);
   thread_ = std::thread([this] { run(); });
 }
 
@@ -47,15 +52,20 @@ bool KlogLogger::log_image(RecordType type, int64_t t_ns, int64_t t_recv_ns, uin
     image_rejects_.fetch_add(1, std::memory_order_relaxed);
     return false;
   }
-  const rt::PoolHandle h = pool_->acquire();
-  ImageBuffer* buf = pool_->get(h);
-  if (!buf) {
+  // Reserve `bytes` contiguous bytes of the staging ring; a frame that does
+  // not fit before the end starts at the beginning, the tail stays unused.
+  const uint64_t read = stage_read_.load(std::memory_order_acquire);
+  uint64_t begin = stage_write_;
+  const size_t at = static_cast<size_t>(begin % stage_size_);
+  if (at + bytes > stage_size_) begin += stage_size_ - at;
+  const uint64_t end = begin + bytes;
+  if (end - read > stage_size_) {
     image_rejects_.fetch_add(1, std::memory_order_relaxed);
     return false;
   }
+  uint8_t* dst = stage_.get() + static_cast<size_t>(begin % stage_size_);
   for (int y = 0; y < view.height; ++y)
-    std::memcpy(buf->bytes.data() + row * static_cast<size_t>(y), view.data + static_cast<size_t>(y) * view.stride_bytes,
-                row);
+    std::memcpy(dst + row * static_cast<size_t>(y), view.data + static_cast<size_t>(y) * view.stride_bytes, row);
   ImageMsg m;
   m.type = type;
   m.t_ns = t_ns;
@@ -65,11 +75,13 @@ bool KlogLogger::log_image(RecordType type, int64_t t_ns, int64_t t_recv_ns, uin
   m.width = view.width;
   m.height = view.height;
   m.format = view.format;
-  m.handle = h;
-  if (!images_->try_push(m)) {
-    pool_->release(h);
-    return false;
-  }
+  m.begin = begin;
+  m.end = end;
+  // Nothing to undo on a full ring: the space counts as used only once pushed.
+  if (!images_->try_push(m)) return false;
+  stage_write_ = end;
+  const uint64_t used = end - read;
+  if (used > stage_peak_.load(std::memory_order_relaxed)) stage_peak_.store(used, std::memory_order_relaxed);
   return true;
 }
 
@@ -114,13 +126,13 @@ bool KlogLogger::write_one() {
       imu_->pop();
       return true;
     case 1: {
-      ImageBuffer* buf = pool_->get(img->handle);
+      const uint8_t* px = stage_.get() + static_cast<size_t>(img->begin % stage_size_);
       guarded([&] {
         const int bpp = bytes_per_pixel(img->format);
         writer_.write_image(img->type, img->t_ns, img->t_recv_ns, img->seq, img->exposure_us,
-                            ImageView{img->width, img->height, img->width * bpp, img->format, buf->bytes.data()});
+                            ImageView{img->width, img->height, img->width * bpp, img->format, px});
       });
-      pool_->release(img->handle);
+      stage_read_.store(img->end, std::memory_order_release);
       images_->pop();
       return true;
     }
@@ -162,7 +174,16 @@ KlogLogger::Stats KlogLogger::stats() const {
   s.records_written = records_written_.load(std::memory_order_relaxed);
   s.bytes_written = bytes_written_.load(std::memory_order_relaxed);
   s.records_lost_to_write_errors = lost_.load(std::memory_order_relaxed);
+  s.staging_bytes = stage_size_;
+  s.staging_peak_bytes = static_cast<size_t>(stage_peak_.load(std::memory_order_relaxed));
   return s;
+}
+
+size_t KlogLogger::staging_bytes_for(double seconds, double camera_hz, size_t rgb_bytes, size_t depth_bytes) {
+  const double frames = std::ceil(std::max(seconds, 0.0) * std::max(camera_hz, 0.0));
+  // One frame more: a frame that does not fit before the end of the ring
+  // wastes up to one frame of space.
+  return static_cast<size_t>(frames + 1.0) * (rgb_bytes + depth_bytes);
 }
 
 }  // namespace kestrel::drivers

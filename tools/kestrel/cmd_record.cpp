@@ -46,6 +46,7 @@ struct RecordArgs {
   std::string out;
   double duration_s = 0;
   uint32_t fsync_every = 0;
+  double buffer_s = 4.0;
 };
 
 }  // namespace
@@ -57,15 +58,22 @@ Subcommand add_record_command(CLI::App& parent) {
   app->add_option("--out", a->out, "output .klog")->required();
   app->add_option("--duration", a->duration_s, "seconds to record (0 = until Ctrl-C)")->capture_default_str();
   app->add_option("--fsync-every", a->fsync_every, "fsync every N records (0 = flush only)")->capture_default_str();
+  app->add_option("--buffer-s", a->buffer_s,
+                  "seconds of camera frames held in memory while the disk stalls (sizes the staging buffer)")
+      ->capture_default_str();
   app->footer("Example:\n  kestrel record --config configs/openni2_bmx055_i2c.yaml --out FLIGHT.klog\n"
               "Without the sensors it exits with 1 and names what is missing. Drivers: docs/drivers/README.md");
   Subcommand s;
   s.app = app;
   s.run = [a] {
     const drivers::LiveConfig cfg = drivers::load_live_config(a->config);
+    if (!(a->buffer_s > 0 && a->buffer_s <= 60)) throw UsageError("--buffer-s must be in (0, 60] seconds");
     drivers::LiveSensors sensors(cfg);   // throws, naming each missing device
     drivers::KlogLogger::Options lo;
-    lo.max_image_bytes = static_cast<size_t>(cfg.drivers.camera.width_px) * cfg.drivers.camera.height_px * 3;
+    const size_t pixels = static_cast<size_t>(cfg.drivers.camera.width_px) * cfg.drivers.camera.height_px;
+    lo.max_image_bytes = pixels * 3;
+    // Colour up to 3 bytes a pixel, depth 2.
+    lo.buffer_bytes = drivers::KlogLogger::staging_bytes_for(a->buffer_s, cfg.drivers.camera.rate_hz, pixels * 3, pixels * 2);
     lo.fsync_every = a->fsync_every;
     drivers::KlogLogger logger(a->out, cfg.rig, lo);
     LoggerImuSink imu(logger);
@@ -85,9 +93,11 @@ Subcommand add_record_command(CLI::App& parent) {
     std::signal(SIGTERM, SIG_DFL);
     const auto st = logger.stats();
     std::printf("%s", sensors.report().c_str());
-    std::printf("log: %llu records, %.1f MB, drops: imu %llu, images %llu, events %llu\n",
+    std::printf("log: %llu records, %.1f MB, drops: imu %llu, images %llu, events %llu; image staging peak %.1f of "
+                "%.1f MB\n",
                 (unsigned long long)st.records_written, st.bytes_written / 1e6, (unsigned long long)st.imu_drops,
-                (unsigned long long)st.image_drops, (unsigned long long)st.event_drops);
+                (unsigned long long)st.image_drops, (unsigned long long)st.event_drops, st.staging_peak_bytes / 1e6,
+                st.staging_bytes / 1e6);
     if (!logger.error().empty()) {
       std::fprintf(stderr, "kestrel record: write error: %s\n", logger.error().c_str());
       return 1;

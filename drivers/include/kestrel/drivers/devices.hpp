@@ -70,16 +70,25 @@ struct DriverSettings {
   StrobeSettings strobe;
 };
 
+// `estimator:` section (optional). The names are core's (drivers never
+// include core): the tools check them against core::estimator_known().
+struct EstimatorSettings {
+  std::string backend;   // "" when absent: the command's default
+};
+
 struct LiveConfig {
   std::string path;
   Rig rig;
   DriverSettings drivers;
+  EstimatorSettings estimator;
 };
 
 // Throws std::runtime_error "path: drivers.imu.acc_range_g: expected one of 2, 4, 8, 16".
 LiveConfig load_live_config(const std::string& path);
 LiveConfig live_config_from_yaml(const std::string& text, const std::string& where);
 DriverSettings driver_settings_from_yaml_node(const YAML::Node& node, const std::string& where);
+// The optional `estimator:` section: `backend: NAME`; unknown keys are errors.
+EstimatorSettings estimator_settings_from_yaml_node(const YAML::Node& node, const std::string& where);
 
 // "v4l2 built, openni2 built, libusb built, i2c-dev built, gpio-cdev built"
 std::string built_drivers_summary();

@@ -2,10 +2,15 @@
 // wait for the disk.
 //
 // Producers (driver threads) call log_*(): a copy into a preallocated ring
-// slot or image buffer, no lock, no allocation, no I/O; when a ring or the
-// image pool is full the record is dropped and counted, never waited for. A
-// non-real-time logger thread drains the rings, oldest time stamp first, into
-// a KlogWriter (one fwrite + fflush per record).
+// slot or into the image staging buffer, no lock, no allocation, no I/O; when
+// a ring or the staging buffer is full the record is dropped and counted,
+// never waited for. A non-real-time logger thread drains the rings, oldest
+// time stamp first, into a KlogWriter (one fwrite + fflush per record).
+//
+// Images are staged in one byte ring (each frame takes its own size, not the
+// largest frame's), so the staging memory is what rides out a disk stall:
+// buffer_bytes / (bytes per second of images) seconds. docs/drivers/README.md
+// ("Recording") has the sizing and the measured stalls.
 //
 // Thread contract: each stream has at most one producer thread at a time
 // (IMU; images — RGB and depth share one ring, so one camera thread; ground
@@ -22,36 +27,44 @@
 
 #include "kestrel/drivers/klog.hpp"
 #include "kestrel/msgs.hpp"
-#include "kestrel/rt/object_pool.hpp"
 #include "kestrel/rt/spsc_ring.hpp"
 
 namespace kestrel::drivers {
 
 class KlogLogger {
  public:
-  // Ring depths: 10 s of 400 Hz IMU, ~1 s of 30 Hz RGB-D before drops.
+  // Ring depths: 10 s of 400 Hz IMU; image messages for 8 s of 30 Hz RGB-D
+  // (the byte staging buffer is the tighter bound).
   static constexpr size_t kImuRingSize = 4096;
-  static constexpr size_t kImageRingSize = 64;
-  static constexpr size_t kImagePoolSize = 48;
+  static constexpr size_t kImageRingSize = 512;
   static constexpr size_t kGroundTruthRingSize = 1024;
   static constexpr size_t kEventRingSize = 256;
   static constexpr size_t kEventTextBytes = 120;   // longer event texts are cut
 
   struct Options {
-    size_t max_image_bytes = 640 * 480 * 3;   // each pool buffer; larger frames are dropped and counted
+    size_t max_image_bytes = 640 * 480 * 3;   // larger frames are dropped and counted
+    // Image staging memory. 0: 64 x max_image_bytes (VGA RGB: 59 MB, ~1.3 s
+    // of VGA RGB-D at 30 Hz). Size it with staging_bytes_for().
+    size_t buffer_bytes = 0;
     uint32_t idle_sleep_us = 1000;            // logger poll period when the rings are empty
     uint32_t fsync_every = 0;                 // see KlogWriter::set_fsync_every
   };
 
   struct Stats {
     uint64_t imu_drops = 0;
-    uint64_t image_drops = 0;        // ring full, no free buffer, or frame larger than max_image_bytes
+    uint64_t image_drops = 0;        // ring full, staging buffer full, or frame larger than max_image_bytes
     uint64_t ground_truth_drops = 0;
     uint64_t event_drops = 0;
     uint64_t records_written = 0;
     uint64_t bytes_written = 0;
     uint64_t records_lost_to_write_errors = 0;
+    size_t staging_bytes = 0;        // the image staging buffer
+    size_t staging_peak_bytes = 0;   // most of it ever in use: how close a stall came to dropping
   };
+
+  // Staging memory that holds `seconds` of camera_hz frames of rgb_bytes +
+  // depth_bytes each, e.g. a disk stall of that length.
+  static size_t staging_bytes_for(double seconds, double camera_hz, size_t rgb_bytes, size_t depth_bytes);
 
   // Creates the file, writes the header, allocates every buffer and starts the
   // logger thread. Throws std::runtime_error naming the path on failure.
@@ -76,9 +89,6 @@ class KlogLogger {
   const std::string& error() const { return error_; }
 
  private:
-  struct ImageBuffer {
-    std::vector<uint8_t> bytes;
-  };
   struct ImageMsg {
     RecordType type = RecordType::kRgb;
     int64_t t_ns = 0;
@@ -88,7 +98,8 @@ class KlogLogger {
     int width = 0;
     int height = 0;
     PixelFormat format = PixelFormat::kGray8;
-    rt::PoolHandle handle = rt::kInvalidHandle;
+    uint64_t begin = 0;   // staging position of the pixels (monotonic byte count; index = begin % size)
+    uint64_t end = 0;     // released up to here once written
   };
   struct EventMsg {
     int64_t t_ns = 0;
@@ -109,8 +120,16 @@ class KlogLogger {
   std::unique_ptr<rt::SpscRing<ImageMsg, kImageRingSize>> images_;
   std::unique_ptr<rt::SpscRing<GroundTruthPose, kGroundTruthRingSize>> gt_;
   std::unique_ptr<rt::SpscRing<EventMsg, kEventRingSize>> events_;
-  std::unique_ptr<rt::ObjectPool<ImageBuffer, kImagePoolSize>> pool_;
-  std::atomic<uint64_t> image_rejects_{0};   // no buffer or too large (ring-full drops are in the ring)
+  // Image staging byte ring: the camera thread writes at stage_write_, the
+  // logger thread releases up to stage_read_ (both monotonic byte counts).
+  // A frame never wraps: when it does not fit before the end, the tail is
+  // skipped and counted as used until the frame is released.
+  std::unique_ptr<uint8_t[]> stage_;
+  size_t stage_size_ = 0;
+  uint64_t stage_write_ = 0;                 // camera thread only
+  std::atomic<uint64_t> stage_read_{0};      // written by the logger thread
+  std::atomic<uint64_t> stage_peak_{0};
+  std::atomic<uint64_t> image_rejects_{0};   // no staging space or too large (ring-full drops are in the ring)
   std::atomic<uint64_t> records_written_{0};
   std::atomic<uint64_t> bytes_written_{0};
   std::atomic<uint64_t> lost_{0};
