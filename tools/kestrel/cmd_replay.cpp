@@ -4,6 +4,7 @@
 #include <iostream>
 
 #include "kestrel/commands.hpp"
+#include "kestrel/mavlink/udp_sender.hpp"
 #include "kestrel/replay_runner.hpp"
 
 namespace kestrel::cli {
@@ -18,6 +19,8 @@ Subcommand add_replay_command(CLI::App& parent) {
     std::string metrics_out;
     double warmup_s = 2.0;
     bool quiet = false;
+    std::string mavlink_udp;
+    std::string status = "auto";
   };
   auto args = std::make_shared<Args>();
   CLI::App* app = parent.add_subcommand("replay", "play a recorded log through the estimator (HIL harness)");
@@ -37,6 +40,11 @@ Subcommand add_replay_command(CLI::App& parent) {
   app->add_option("--warmup", args->warmup_s, "seconds of log before steady-state statistics start")
       ->capture_default_str();
   app->add_flag("-q,--quiet", args->quiet, "print nothing but errors");
+  app->add_option("--mavlink-udp", args->mavlink_udp,
+                  "stream MAVLink v2 ODOMETRY to HOST:PORT at the pose rate (flight controller; docs/px4.md)");
+  app->add_option("--status", args->status,
+                  "1 Hz status line (per second of log time): on, off, auto (= on in realtime pace)")
+      ->capture_default_str();
 
   Subcommand cmd;
   cmd.app = app;
@@ -54,6 +62,15 @@ Subcommand add_replay_command(CLI::App& parent) {
     }
     if (!(args->warmup_s >= 0)) throw UsageError("--warmup must be >= 0 seconds");
     opt.warmup_ns = static_cast<int64_t>(args->warmup_s * 1e9);
+    opt.mavlink_udp = args->mavlink_udp;
+    std::string host;
+    uint16_t port = 0;
+    if (!opt.mavlink_udp.empty() && !mavlink::parse_endpoint(opt.mavlink_udp, host, port))
+      throw UsageError("--mavlink-udp '" + opt.mavlink_udp + "': expected HOST:PORT with PORT in 1..65535");
+    if (args->status != "on" && args->status != "off" && args->status != "auto")
+      throw UsageError("--status must be on, off or auto");
+    opt.status_line = !args->quiet && (args->status == "on" ||
+                                       (args->status == "auto" && opt.pace == drivers::ReplayPace::kRealtime));
     ReplayReport r = run_replay(opt);
     if (!args->traj_out.empty()) tools::write_tum(args->traj_out, r.trajectory);
     if (!args->metrics_out.empty()) {

@@ -3,15 +3,19 @@
 #include <sys/resource.h>
 #include <time.h>
 
+#include <algorithm>
 #include <atomic>
 #include <cstdio>
 #include <memory>
 #include <stdexcept>
 #include <thread>
 
+#include "kestrel/core/frontend_odometry.hpp"
 #include "kestrel/json_writer.hpp"
+#include "kestrel/mavlink/odometry_stream.hpp"
 #include "kestrel/rt/alloc_counter.hpp"
 #include "kestrel/rt/clock.hpp"
+#include "kestrel/rt/mailbox.hpp"
 #include "kestrel/rt/spsc_ring.hpp"
 #include "kestrel/rt/thread_setup.hpp"
 
@@ -24,6 +28,10 @@ struct OutPose {
   int64_t t_ns;
   double p[3];
   double q[4];   // w x y z
+  double v[3];
+  double w[3];
+  core::TrackingQuality quality;
+  uint32_t reset_counter;
 };
 
 constexpr std::size_t kOutRingCapacity = 16384;
@@ -54,13 +62,55 @@ std::size_t max_image_bytes_for(const Rig& rig) {
   return w * h * 3;
 }
 
+// Features and inliers of the newest frame, where the backend exposes them
+// (the front end, and backends built on it); -1 otherwise. The one place the
+// harness looks behind the Estimator interface, for the status line only.
+void frame_stats(const core::Estimator& est, int& features, int& inliers) {
+  features = inliers = -1;
+  if (const auto* vo = dynamic_cast<const core::FrontendOdometry*>(&est)) {
+    features = vo->last_track().detected;
+    inliers = vo->last_track().inliers;
+  }
+}
+
+// A cheap fingerprint of an image: 256 bytes spread over it. Equal
+// fingerprints on consecutive frames mean a frozen camera (sensor noise makes
+// two real exposures differ).
+uint64_t image_fingerprint(const ImageView& v) {
+  if (v.data == nullptr || v.height <= 0 || v.stride_bytes <= 0) return 0;
+  uint64_t h = 1469598103934665603ull;
+  const int64_t total = static_cast<int64_t>(v.height) * v.stride_bytes;
+  for (int i = 0; i < 256; ++i) {
+    const int64_t off = (total * (2 * i + 1)) / 512;
+    h = (h ^ v.data[off]) * 1099511628211ull;
+  }
+  return h;
+}
+
+// Share of valid depth in a sparse sample of the image.
+double depth_valid_share(const ImageView& v) {
+  if (v.data == nullptr || v.format != PixelFormat::kDepthU16 || v.width <= 0 || v.height <= 0) return 0;
+  int valid = 0, n = 0;
+  for (int y = v.height / 16; y < v.height; y += v.height / 8 > 0 ? v.height / 8 : 1) {
+    const auto* row = reinterpret_cast<const uint16_t*>(v.data + static_cast<int64_t>(y) * v.stride_bytes);
+    for (int x = v.width / 32; x < v.width; x += v.width / 16 > 0 ? v.width / 16 : 1) {
+      valid += row[x] != 0;
+      ++n;
+    }
+  }
+  return n > 0 ? static_cast<double>(valid) / n : 0;
+}
+
 // The estimator side of the harness. In lockstep it is called from the
 // feeder's thread after every step; otherwise it is the estimator thread.
 class EstimatorStage {
  public:
   EstimatorStage(core::Estimator& est, drivers::SensorRings& rings, rt::SpscRing<OutPose, kOutRingCapacity>& out,
-                 const ReplayOptions& opt, ReplayReport& report)
-      : est_(est), rings_(rings), out_(out), opt_(opt), report_(report) {}
+                 rt::Mailbox<PipelineStatus>& status, const ReplayOptions& opt, const Rig& rig, ReplayReport& report)
+      : est_(est), rings_(rings), out_(out), status_(status), opt_(opt), report_(report) {
+    frame_period_ns_ = rig.camera_rate_hz > 0 ? static_cast<int64_t>(1e9 / rig.camera_rate_hz) : 0;
+    imu_gap_ns_ = rig.imu_rate_hz > 0 ? static_cast<int64_t>(5e9 / rig.imu_rate_hz) : 50'000'000;
+  }
 
   // Processes what the rings hold. `feeder_done` lets a frame go ahead of the
   // IMU samples that would normally follow it.
@@ -88,15 +138,46 @@ class EstimatorStage {
 
   void finish() {
     if (counting_) report_.steady_allocs = static_cast<int64_t>(rt::alloc_count_this_thread() - allocs_at_warmup_);
+    report_.input_faults = faults_;
   }
 
  private:
   void maybe_start_steady_state(int64_t t_ns) {
-    if (first_t_ns_ < 0) first_t_ns_ = t_ns;
+    if (t_ns > newest_t_ns_) newest_t_ns_ = t_ns;
+    if (first_t_ns_ < 0) {
+      first_t_ns_ = t_ns;
+      next_status_t_ns_ = t_ns + kStatusPeriodNs;
+    }
+    if (t_ns >= next_status_t_ns_) publish_status(t_ns);
     if (!counting_ && t_ns - first_t_ns_ >= opt_.warmup_ns) {
       counting_ = true;
       allocs_at_warmup_ = rt::alloc_count_this_thread();
     }
+  }
+
+  // Plain data copied into a mailbox: no allocation, no lock.
+  void publish_status(int64_t t_ns) {
+    while (next_status_t_ns_ <= t_ns) next_status_t_ns_ += kStatusPeriodNs;
+    PipelineStatus st;
+    st.t_ns = t_ns;
+    st.t_s = 1e-9 * static_cast<double>(t_ns - first_t_ns_);
+    const core::EstimatorOutput& o = est_.output();
+    st.quality = o.quality;
+    st.reset_counter = o.reset_counter;
+    frame_stats(est_, st.features, st.inliers);
+    st.frames_total = frames_fed_;
+    st.frames_in_window = frames_fed_ - frames_at_last_status_;
+    frames_at_last_status_ = frames_fed_;
+    st.tracking_max_ns = window_tracking_max_ns_;
+    st.imu_to_output_max_ns = window_imu_max_ns_;
+    window_tracking_max_ns_ = window_imu_max_ns_ = 0;
+    st.imu_ring_drops = rings_.imu.drops();
+    st.frame_ring_drops = rings_.frames.drops();
+    const core::ImuRejectCounts& r = est_.counters().imu_rejects;
+    st.imu_rejected = r.non_finite + r.saturated + r.out_of_order;
+    st.imu_gaps = r.gaps;
+    st.input_faults = faults_;
+    status_.publish(st);
   }
 
   void emit(const core::EstimatorOutput& o) {
@@ -107,20 +188,37 @@ class EstimatorStage {
     p.q[1] = o.state.q_WB.x();
     p.q[2] = o.state.q_WB.y();
     p.q[3] = o.state.q_WB.z();
+    for (int i = 0; i < 3; ++i) {
+      p.v[i] = o.state.v_WB[i];
+      p.w[i] = last_gyro_rps_[i] - o.state.bg_rps[i];
+    }
+    p.quality = o.quality;
+    // A backend that tracked the last frame it saw says kTracking until the
+    // next one; when frames stop reaching it (camera silent, frozen, withheld)
+    // the pipeline says what is true: the pose is IMU propagation.
+    const int64_t stale_ns = frame_period_ns_ > 0 ? std::max<int64_t>(3 * frame_period_ns_, 150'000'000) : 150'000'000;
+    if (p.quality == core::TrackingQuality::kTracking && last_frame_t_ns_ >= 0 &&
+        newest_t_ns_ - last_frame_t_ns_ > stale_ns)
+      p.quality = core::TrackingQuality::kImuOnly;
+    p.reset_counter = o.reset_counter;
     if (!out_.try_push(p)) ++report_.output_ring_drops;
     last_out_t_ns_ = p.t_ns;
   }
 
   void on_imu(const ImuSample& s) {
     maybe_start_steady_state(s.t_ns);
-    last_imu_t_ns_ = s.t_ns;
+    if (last_imu_t_ns_ >= 0 && s.t_ns - last_imu_t_ns_ > imu_gap_ns_) ++faults_.imu_gaps;
+    if (s.t_ns > last_imu_t_ns_) last_imu_t_ns_ = s.t_ns;
     // In realtime pace the sample waited in the ring only as long as a live
     // one would, so latency counts from the push. In fast and lockstep pace
     // the feeder runs ahead on purpose; there only the estimator's own time
     // from taking the sample to its pose means anything.
     const int64_t t_start = opt_.pace == drivers::ReplayPace::kRealtime ? s.t_recv_ns : rt::now_ns();
     if (!est_.add_imu(s)) return;
-    if (counting_) report_.imu_to_output.record(rt::now_ns() - t_start);
+    const int64_t latency = rt::now_ns() - t_start;
+    if (counting_) report_.imu_to_output.record(latency);
+    if (latency > window_imu_max_ns_) window_imu_max_ns_ = latency;
+    for (int i = 0; i < 3; ++i) last_gyro_rps_[i] = s.gyro_rps[i];
     // Without a camera the trajectory is sampled from the IMU-rate output.
     const bool camera_silent = last_frame_t_ns_ < 0 || s.t_ns - last_frame_t_ns_ > 1'000'000'000;
     if (camera_silent && (last_out_t_ns_ < 0 || s.t_ns - last_out_t_ns_ >= opt_.imu_only_output_period_ns)) {
@@ -130,29 +228,64 @@ class EstimatorStage {
 
   void on_frame(const RgbdFrameMsg& m) {
     maybe_start_steady_state(m.t_ns);
-    last_frame_t_ns_ = m.t_ns;
     core::RgbdFrame f;
     f.t_ns = m.t_ns;
     f.seq = m.seq;
     if (const drivers::ImageBuffer* b = rings_.images.get(m.rgb_handle)) f.rgb = b->view();
     if (const drivers::ImageBuffer* b = rings_.images.get(m.depth_handle)) f.depth = b->view();
-    const int64_t t0 = rt::now_ns();
-    est_.add_frame(f);
-    const int64_t t1 = rt::now_ns();
-    if (counting_) {
-      report_.tracking.record(t1 - t0);
-      ++report_.steady_frames;
+    if (screen(f)) {
+      last_frame_t_ns_ = m.t_ns;
+      const int64_t t0 = rt::now_ns();
+      est_.add_frame(f);
+      const int64_t t1 = rt::now_ns();
+      ++frames_fed_;
+      if (t1 - t0 > window_tracking_max_ns_) window_tracking_max_ns_ = t1 - t0;
+      if (counting_) {
+        report_.tracking.record(t1 - t0);
+        ++report_.steady_frames;
+      }
     }
     if (m.rgb_handle != rt::kInvalidHandle) rings_.images.release(m.rgb_handle);
     if (m.depth_handle != rt::kInvalidHandle) rings_.images.release(m.depth_handle);
     if (est_.output().quality != core::TrackingQuality::kUninitialized) emit(est_.output());
   }
 
+  // Counts camera faults; false withholds the frame from the estimator.
+  bool screen(const core::RgbdFrame& f) {
+    if (last_frame_t_ns_ >= 0 && f.t_ns <= last_frame_t_ns_) {
+      ++faults_.out_of_order;
+      return false;
+    }
+    const uint64_t fp = image_fingerprint(f.rgb);
+    if (fp != 0 && fp == last_fingerprint_) {
+      ++faults_.repeated;
+      return false;
+    }
+    last_fingerprint_ = fp;
+    if (last_frame_t_ns_ >= 0 && frame_period_ns_ > 0 && f.t_ns - last_frame_t_ns_ > frame_period_ns_ * 3 / 2)
+      faults_.missing += static_cast<uint64_t>((f.t_ns - last_frame_t_ns_ + frame_period_ns_ / 2) / frame_period_ns_) - 1;
+    if (depth_valid_share(f.depth) < 0.01) ++faults_.no_depth;
+    return true;
+  }
+
+  static constexpr int64_t kStatusPeriodNs = 1'000'000'000;
   core::Estimator& est_;
   drivers::SensorRings& rings_;
   rt::SpscRing<OutPose, kOutRingCapacity>& out_;
+  rt::Mailbox<PipelineStatus>& status_;
   const ReplayOptions& opt_;
   ReplayReport& report_;
+  int64_t frame_period_ns_ = 0;
+  int64_t imu_gap_ns_ = 50'000'000;
+  int64_t newest_t_ns_ = -1;   // newest record time seen (log time)
+  InputFaultCounts faults_;
+  uint64_t last_fingerprint_ = 0;
+  uint64_t frames_fed_ = 0;
+  uint64_t frames_at_last_status_ = 0;
+  int64_t next_status_t_ns_ = 0;
+  int64_t window_tracking_max_ns_ = 0;
+  int64_t window_imu_max_ns_ = 0;
+  double last_gyro_rps_[3] = {0, 0, 0};
   int64_t first_t_ns_ = -1;
   int64_t last_imu_t_ns_ = -1;
   int64_t last_frame_t_ns_ = -1;
@@ -161,16 +294,82 @@ class EstimatorStage {
   uint64_t allocs_at_warmup_ = 0;
 };
 
-void drain_output(rt::SpscRing<OutPose, kOutRingCapacity>& out, tools::Trajectory& traj) {
-  while (OutPose* p = out.front()) {
-    tools::TimedPose tp;
-    tp.t_ns = p->t_ns;
-    tp.p = Eigen::Vector3d(p->p[0], p->p[1], p->p[2]);
-    tp.q = Eigen::Quaterniond(p->q[0], p->q[1], p->q[2], p->q[3]);
-    traj.push_back(tp);
-    out.pop();
+// The output side: trajectory, pose callback, MAVLink, status line. Runs on
+// the calling thread (never the estimator thread), so it may block or allocate.
+class OutputStage {
+ public:
+  OutputStage(rt::SpscRing<OutPose, kOutRingCapacity>& out, const rt::Mailbox<PipelineStatus>& status,
+              const ReplayOptions& opt, ReplayReport& report)
+      : out_(out), status_(status), opt_(opt), report_(report) {
+    if (!opt.mavlink_udp.empty()) {
+      mavlink::OdometryStreamOptions mo;
+      mo.endpoint = opt.mavlink_udp;
+      mavlink_ = std::make_unique<mavlink::OdometryStream>(mo);
+    }
   }
-}
+
+  void drain() {
+    while (OutPose* p = out_.front()) {
+      PoseSample s;
+      s.t_ns = p->t_ns;
+      s.p_WB = Eigen::Vector3d(p->p[0], p->p[1], p->p[2]);
+      s.q_WB = Eigen::Quaterniond(p->q[0], p->q[1], p->q[2], p->q[3]);
+      s.v_WB = Eigen::Vector3d(p->v[0], p->v[1], p->v[2]);
+      s.omega_B_rps = Eigen::Vector3d(p->w[0], p->w[1], p->w[2]);
+      s.quality = p->quality;
+      s.reset_counter = p->reset_counter;
+      out_.pop();
+      tools::TimedPose tp;
+      tp.t_ns = s.t_ns;
+      tp.p = s.p_WB;
+      tp.q = s.q_WB;
+      report_.trajectory.push_back(tp);
+      if (opt_.on_pose) opt_.on_pose(s);
+      if (mavlink_) {
+        mavlink::OdometryInput in;
+        in.t_ns = s.t_ns;
+        in.p_WB = s.p_WB;
+        in.q_WB = s.q_WB;
+        in.v_WB = s.v_WB;
+        in.omega_B_rps = s.omega_B_rps;
+        in.quality = s.quality;
+        in.reset_counter = s.reset_counter;
+        mavlink_->publish(in);
+      }
+    }
+    if (opt_.status_line) {
+      PipelineStatus st;
+      uint64_t version = 0;
+      if (status_.read(st, &version) && version != status_version_) {
+        status_version_ = version;
+        ++report_.status_lines;
+        const std::string line = format_status(st);
+        if (opt_.on_status) {
+          opt_.on_status(st, line);
+        } else {
+          std::printf("%s\n", line.c_str());
+          std::fflush(stdout);
+        }
+      }
+    }
+  }
+
+  void finish() {
+    drain();
+    if (mavlink_) {
+      report_.mavlink_sent = mavlink_->stats().sent;
+      report_.mavlink_failed = mavlink_->stats().failed;
+    }
+  }
+
+ private:
+  rt::SpscRing<OutPose, kOutRingCapacity>& out_;
+  const rt::Mailbox<PipelineStatus>& status_;
+  const ReplayOptions& opt_;
+  ReplayReport& report_;
+  std::unique_ptr<mavlink::OdometryStream> mavlink_;
+  uint64_t status_version_ = 0;
+};
 
 // Thread table of the replay harness (docs/threads.md). Priorities are asked
 // for and fall back to SCHED_OTHER without privileges; the report says which.
@@ -181,7 +380,7 @@ constexpr rt::ThreadSpec kEstimatorThread{"kst-estimator", 0, -1, 0};
 
 ReplayReport run_replay(const ReplayOptions& opt) {
   ReplayReport report;
-  std::unique_ptr<drivers::LogSource> log = drivers::open_log(opt.path, opt.format);
+  std::unique_ptr<drivers::LogSource> log = opt.open_source ? opt.open_source() : drivers::open_log(opt.path, opt.format);
   report.log_path = opt.path;
   report.log_format = log->format_name();
   report.pace = opt.pace;
@@ -190,13 +389,15 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   // Everything sized here, before any thread starts.
   auto rings = std::make_unique<drivers::SensorRings>(max_image_bytes_for(log->rig()));
   auto out = std::make_unique<rt::SpscRing<OutPose, kOutRingCapacity>>();
+  auto status = std::make_unique<rt::Mailbox<PipelineStatus>>();
   std::unique_ptr<core::Estimator> estimator_ptr = core::make_estimator(opt.estimator, log->rig());
   core::Estimator& estimator = *estimator_ptr;
   report.estimator = estimator.name();
   report.trajectory.reserve(1 << 16);
 
   drivers::ReplaySource source(*log, *rings, opt.pace);
-  EstimatorStage stage(estimator, *rings, *out, opt, report);
+  EstimatorStage stage(estimator, *rings, *out, *status, opt, log->rig(), report);
+  OutputStage output(*out, *status, opt, report);
 
   const int64_t wall0 = rt::now_ns();
   const double cpu0 = process_cpu_s();
@@ -205,12 +406,12 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     // trajectory bit for bit.
     while (source.step()) {
       stage.drain(false, true);
-      drain_output(*out, report.trajectory);
+      output.drain();
     }
     stage.drain(true, true);
     stage.finish();
     report.estimator_cpu_s = thread_cpu_s();
-    drain_output(*out, report.trajectory);
+    output.finish();
   } else {
     std::atomic<bool> stop{false};
     std::atomic<bool> estimator_done{false};
@@ -230,12 +431,12 @@ ReplayReport run_replay(const ReplayOptions& opt) {
       estimator_done.store(true, std::memory_order_release);
     });
     while (!estimator_done.load(std::memory_order_acquire)) {
-      drain_output(*out, report.trajectory);
+      output.drain();
       rt::sleep_for_ns(1'000'000);
     }
     feeder.join();
     est_thread.join();
-    drain_output(*out, report.trajectory);
+    output.finish();
     report.estimator_cpu_s = est_cpu;
   }
   const int64_t wall1 = rt::now_ns();
@@ -292,6 +493,14 @@ std::string replay_metrics_json(const ReplayReport& r) {
   j.kv("output_ring", r.output_ring_drops).kv("image_pool_exhausted", r.image_pool_exhausted);
   j.kv("images_too_large", r.replay.images_too_large).kv("depth_unpaired", r.replay.depth_unpaired);
   j.end_object();
+  j.key("input_faults").begin_object();
+  j.kv("missing", r.input_faults.missing).kv("out_of_order", r.input_faults.out_of_order);
+  j.kv("repeated", r.input_faults.repeated).kv("no_depth", r.input_faults.no_depth);
+  j.kv("imu_gaps", r.input_faults.imu_gaps);
+  j.end_object();
+  j.key("mavlink").begin_object();
+  j.kv("sent", r.mavlink_sent).kv("failed", r.mavlink_failed);
+  j.end_object();
   const auto& c = r.estimator_counters;
   j.key("estimator_counters").begin_object();
   j.kv("imu_in", c.imu_in).kv("imu_used", c.imu_used).kv("frames_in", c.frames_in);
@@ -320,6 +529,30 @@ std::string replay_metrics_json(const ReplayReport& r) {
   j.end_array();
   j.end_object();
   return j.str() + "\n";
+}
+
+std::string format_status(const PipelineStatus& s) {
+  const char* state = "uninit";
+  switch (s.quality) {
+    case core::TrackingQuality::kTracking: state = "tracking"; break;
+    case core::TrackingQuality::kImuOnly: state = "imu-only"; break;
+    case core::TrackingQuality::kLost: state = "lost"; break;
+    case core::TrackingQuality::kUninitialized: break;
+  }
+  char buf[512];
+  std::snprintf(buf, sizeof buf,
+                "[%7.1f s] %-8s resets %u | feat %d inl %d | frames %llu/s | track max %.1f ms | imu->pose max "
+                "%.2f ms | drops imu %llu frame %llu | imu rej %llu gaps %llu | cam miss %llu ooo %llu frozen %llu "
+                "nodepth %llu",
+                s.t_s, state, s.reset_counter, s.features, s.inliers, static_cast<unsigned long long>(s.frames_in_window),
+                1e-6 * static_cast<double>(s.tracking_max_ns), 1e-6 * static_cast<double>(s.imu_to_output_max_ns),
+                static_cast<unsigned long long>(s.imu_ring_drops), static_cast<unsigned long long>(s.frame_ring_drops),
+                static_cast<unsigned long long>(s.imu_rejected), static_cast<unsigned long long>(s.input_faults.imu_gaps),
+                static_cast<unsigned long long>(s.input_faults.missing),
+                static_cast<unsigned long long>(s.input_faults.out_of_order),
+                static_cast<unsigned long long>(s.input_faults.repeated),
+                static_cast<unsigned long long>(s.input_faults.no_depth));
+  return buf;
 }
 
 std::string replay_summary(const ReplayReport& r) {
@@ -351,6 +584,21 @@ std::string replay_summary(const ReplayReport& r) {
                 static_cast<unsigned long long>(c.saturated), static_cast<unsigned long long>(c.out_of_order),
                 static_cast<unsigned long long>(c.gaps));
   s += buf;
+  const InputFaultCounts& ff = r.input_faults;
+  if (ff.missing + ff.out_of_order + ff.repeated + ff.no_depth + ff.imu_gaps > 0) {
+    std::snprintf(buf, sizeof buf,
+                  "input faults: %llu frames missing, %llu out of order (withheld), %llu repeated (withheld), %llu "
+                  "without depth; %llu IMU gaps\n",
+                  static_cast<unsigned long long>(ff.missing), static_cast<unsigned long long>(ff.out_of_order),
+                  static_cast<unsigned long long>(ff.repeated), static_cast<unsigned long long>(ff.no_depth),
+                  static_cast<unsigned long long>(ff.imu_gaps));
+    s += buf;
+  }
+  if (r.mavlink_sent + r.mavlink_failed > 0) {
+    std::snprintf(buf, sizeof buf, "MAVLink ODOMETRY: %llu sent, %llu failed\n",
+                  static_cast<unsigned long long>(r.mavlink_sent), static_cast<unsigned long long>(r.mavlink_failed));
+    s += buf;
+  }
   if (r.alloc_counting) {
     std::snprintf(buf, sizeof buf, "estimator-thread heap allocations after warm-up: %lld\n",
                   static_cast<long long>(r.steady_allocs));

@@ -3,7 +3,12 @@
 // output ring → trajectory.
 #pragma once
 
+#include <Eigen/Core>
+#include <Eigen/Geometry>
+
 #include <cstdint>
+#include <functional>
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -15,6 +20,52 @@
 
 namespace kestrel::cli {
 
+// One pose of the output stream as the output (writer) thread receives it.
+struct PoseSample {
+  int64_t t_ns = 0;
+  Eigen::Vector3d p_WB = Eigen::Vector3d::Zero();
+  Eigen::Quaterniond q_WB = Eigen::Quaterniond::Identity();
+  Eigen::Vector3d v_WB = Eigen::Vector3d::Zero();
+  Eigen::Vector3d omega_B_rps = Eigen::Vector3d::Zero();   // newest gyro minus the estimated bias
+  core::TrackingQuality quality = core::TrackingQuality::kUninitialized;
+  uint32_t reset_counter = 0;
+};
+
+// Input faults the harness sees before the estimator does (the estimator
+// counts its own: EstimatorCounters::imu_rejects). Out-of-order and repeated
+// (frozen) frames are counted and withheld: the estimator's contract is
+// time-ordered, fresh input.
+struct InputFaultCounts {
+  uint64_t missing = 0;        // frames absent from the stream (time gaps of more than 1.5 periods)
+  uint64_t out_of_order = 0;   // time not after the previous frame (duplicates included); withheld
+  uint64_t repeated = 0;       // pixels identical to the previous frame (frozen camera); withheld
+  uint64_t no_depth = 0;       // depth image absent or (almost) all invalid
+  uint64_t imu_gaps = 0;       // IMU time steps longer than five sample periods (lost samples)
+};
+
+// The 1 Hz status the estimator thread publishes (one per second of log time,
+// which in realtime pace is one per wall second), read lock-free by the
+// output thread.
+struct PipelineStatus {
+  int64_t t_ns = 0;
+  double t_s = 0;                // since the first record
+  core::TrackingQuality quality = core::TrackingQuality::kUninitialized;
+  uint32_t reset_counter = 0;
+  int features = -1;             // -1: the backend does not say
+  int inliers = -1;
+  uint64_t frames_in_window = 0;  // frames fed in the last second
+  uint64_t frames_total = 0;
+  int64_t tracking_max_ns = 0;    // over the last second
+  int64_t imu_to_output_max_ns = 0;
+  uint64_t imu_ring_drops = 0;
+  uint64_t frame_ring_drops = 0;
+  uint64_t imu_rejected = 0;      // non-finite + saturated + out of order (cumulative)
+  uint64_t imu_gaps = 0;
+  InputFaultCounts input_faults;
+};
+
+std::string format_status(const PipelineStatus& s);
+
 struct ReplayOptions {
   std::string path;
   drivers::LogFormat format = drivers::LogFormat::kAuto;
@@ -25,6 +76,17 @@ struct ReplayOptions {
   int64_t warmup_ns = 2'000'000'000;
   // Logs without camera records still get a trajectory, at this period.
   int64_t imu_only_output_period_ns = 50'000'000;
+  // Called on the output thread for every pose (not the estimator thread: it
+  // may block or allocate).
+  std::function<void(const PoseSample&)> on_pose;
+  // Stream MAVLink ODOMETRY to HOST:PORT at the pose rate ("" = off).
+  std::string mavlink_udp;
+  // Instead of opening `path`: a source made by the caller (a generator that
+  // streams a simulation, tests that build logs in memory).
+  std::function<std::unique_ptr<drivers::LogSource>()> open_source;
+  // The 1 Hz status line: to on_status, else to stdout.
+  bool status_line = false;
+  std::function<void(const PipelineStatus&, const std::string&)> on_status;
 };
 
 struct ReplayReport {
@@ -49,6 +111,10 @@ struct ReplayReport {
   uint64_t frame_ring_drops = 0;
   uint64_t output_ring_drops = 0;
   uint64_t image_pool_exhausted = 0;
+  InputFaultCounts input_faults;
+  uint64_t status_lines = 0;
+  uint64_t mavlink_sent = 0;
+  uint64_t mavlink_failed = 0;     // sendto() errors, counted, never retried
   // Heap allocations made by the estimator thread after warm-up, and how many
   // frames it processed in that span.
   int64_t steady_allocs = 0;

@@ -1,0 +1,77 @@
+// Timing budgets of the whole pipeline (docs/timing.md): a 60 s simulated
+// flight replayed at realtime pace through the real harness (feeder thread,
+// rings, estimator thread, output thread), with the budgets asserted:
+//   IMU-to-pose latency p99 < 2 ms, tracking p99 < one frame period,
+//   optimizer p99 < 100 ms (backends with one), no ring overflow, no heap
+//   allocation on the estimator thread after warm-up.
+// The margins are for a noisy 2-core CI machine; exact figures come from
+// `kestrel bench` and the JSON of `kestrel replay --metrics-out`.
+#include <cstdlib>
+
+#include "kestrel/rt/alloc_counter.hpp"
+#include "pipeline_fixture.hpp"
+
+namespace kestrel::pipeline_test {
+namespace {
+
+int env_int(const char* name, int def) {
+  const char* v = std::getenv(name);
+  return v != nullptr && *v != '\0' ? std::atoi(v) : def;
+}
+
+TEST(PipelineTiming, RealtimeBudgetsOverSixtySeconds) {
+  ASSERT_TRUE(rt::alloc_hook_linked())
+      << "the allocation hook is not linked: steady_allocs cannot be checked";
+  const std::string dir = test::temp_dir("pipeline_timing");
+  tools::SimOptions o = small_sim(env_int("KESTREL_TIMING_SECONDS", 60), 21);
+  o.width = env_int("KESTREL_TIMING_WIDTH", 320);
+  o.height = *o.width * 3 / 4;
+  o.threads = 2;
+  o.out_path = dir + "/hover60.klog";
+  const tools::SimSummary sim = tools::run_simulation(o);
+  std::printf("log: %.0f s, %dx%d, %llu frames, %.0f MB, rendered in %.1f s\n", sim.duration_s, *o.width,
+              *o.height, static_cast<unsigned long long>(sim.frames),
+              1e-6 * static_cast<double>(sim.output_bytes), sim.wall_s);
+
+  cli::ReplayOptions ro;
+  ro.path = o.out_path;
+  ro.pace = drivers::ReplayPace::kRealtime;
+  ro.estimator = backend();
+  ro.warmup_ns = 2'000'000'000;
+  const cli::ReplayReport r = cli::run_replay(ro);
+  std::filesystem::remove_all(dir);
+  std::printf("%s", cli::replay_summary(r).c_str());
+
+  const double frame_period_ms = 1000.0 / 30.0;
+  const double imu_p99_ms = 1e-6 * static_cast<double>(r.imu_to_output.percentile(99));
+  const double trk_p99_ms = 1e-6 * static_cast<double>(r.tracking.percentile(99));
+  std::printf(
+      "TIMING | backend %s | %dx%d | imu->pose p50 %.3f p99 %.3f max %.3f ms | tracking p50 %.2f p99 %.2f "
+      "max "
+      "%.2f ms | steady allocs %lld over %llu frames | drops imu %llu frame %llu out %llu | rt factor %.2f\n",
+      r.estimator.c_str(), *o.width, *o.height, 1e-6 * static_cast<double>(r.imu_to_output.percentile(50)),
+      imu_p99_ms, 1e-6 * static_cast<double>(r.imu_to_output.max()),
+      1e-6 * static_cast<double>(r.tracking.percentile(50)), trk_p99_ms,
+      1e-6 * static_cast<double>(r.tracking.max()), static_cast<long long>(r.steady_allocs),
+      static_cast<unsigned long long>(r.steady_frames), static_cast<unsigned long long>(r.imu_ring_drops),
+      static_cast<unsigned long long>(r.frame_ring_drops),
+      static_cast<unsigned long long>(r.output_ring_drops), r.realtime_factor);
+
+  ASSERT_GT(r.imu_to_output.count(), 20000u) << "too few IMU samples timed";
+  ASSERT_GT(r.tracking.count(), 1500u) << "too few frames timed";
+  EXPECT_LT(imu_p99_ms, 2.0) << "IMU-to-pose latency budget";
+  EXPECT_LT(trk_p99_ms, frame_period_ms) << "tracking budget: one frame period";
+  EXPECT_EQ(r.imu_ring_drops, 0u);
+  EXPECT_EQ(r.frame_ring_drops, 0u);
+  EXPECT_EQ(r.output_ring_drops, 0u);
+  EXPECT_EQ(r.replay.imu_dropped, 0u);
+  EXPECT_EQ(r.replay.frames_dropped, 0u);
+  EXPECT_EQ(r.image_pool_exhausted, 0u);
+  EXPECT_TRUE(r.alloc_counting);
+  EXPECT_EQ(r.steady_allocs, 0) << "heap allocations on the estimator thread after warm-up";
+  // Realtime pace keeps pace: the replay took about as long as the log.
+  EXPECT_NEAR(r.realtime_factor, 1.0, 0.05);
+}
+
+}  // namespace
+}  // namespace kestrel::pipeline_test
