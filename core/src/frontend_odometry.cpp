@@ -122,7 +122,7 @@ bool FrontendOdometry::add_frame(const RgbdFrame& f) {
     }
     // A keyframe taken while coasting keeps the IMU pose: nothing to correct.
     corrected.t_ns = s.t_ns;
-    prop_.reset(corrected);
+    prop_.correct(corrected);
     out_.state = prop_.state();
     out_.quality = TrackingQuality::kTracking;
     last_tracked_t_ns_ = f.t_ns;
@@ -142,6 +142,16 @@ bool FrontendOdometry::add_frame(const RgbdFrame& f) {
     lost_frames_ = 0;
   }
   return false;
+}
+
+void FrontendOdometry::correct_state(const NavState& x) {
+  prop_.correct(x);
+  out_.state = prop_.state();
+}
+
+void FrontendOdometry::count_reset() {
+  ++counters_.resets;
+  out_.reset_counter = static_cast<uint32_t>(counters_.resets);
 }
 
 const EstimatorCounters& FrontendOdometry::counters() const {

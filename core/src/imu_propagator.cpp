@@ -32,6 +32,14 @@ void ImuPropagator::reset(const NavState& s) {
   have_prev_ = false;
 }
 
+void ImuPropagator::correct(const NavState& s) {
+  if (!initialized_ || s.t_ns != state_.t_ns) {
+    reset(s);
+    return;
+  }
+  state_ = s;
+}
+
 bool ImuPropagator::propagate(const ImuSample& s) {
   if (!imu_sample_usable(s)) {
     bool finite = true;

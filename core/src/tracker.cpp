@@ -41,18 +41,23 @@ struct FrameData {
   OrbFeatures feats;
   std::unique_ptr<Eigen::Vector3d[]> p_C;   // back-projected keypoints, camera frame [m]
   std::unique_ptr<uint8_t[]> has_depth;
+  std::unique_ptr<uint32_t[]> lm_id;        // persistent landmark id per feature, 0: none yet
   Eigen::Isometry3d T_WC = Eigen::Isometry3d::Identity();
   int64_t t_ns = 0;
   int with_depth = 0;
   bool valid = false;
 
   explicit FrameData(int capacity)
-      : feats(capacity), p_C(new Eigen::Vector3d[capacity]), has_depth(new uint8_t[capacity]) {}
+      : feats(capacity),
+        p_C(new Eigen::Vector3d[capacity]),
+        has_depth(new uint8_t[capacity]),
+        lm_id(new uint32_t[capacity]) {}
 
   void swap(FrameData& o) noexcept {
     std::swap(feats, o.feats);
     std::swap(p_C, o.p_C);
     std::swap(has_depth, o.has_depth);
+    std::swap(lm_id, o.lm_id);
     std::swap(T_WC, o.T_WC);
     std::swap(t_ns, o.t_ns);
     std::swap(with_depth, o.with_depth);
@@ -82,6 +87,7 @@ struct Tracker::Impl {
         order(new uint32_t[static_cast<size_t>(capacity)]),
         area_detected(new uint8_t[static_cast<size_t>(opt.area_grid_cols * opt.area_grid_rows)]),
         area_matched(new uint8_t[static_cast<size_t>(opt.area_grid_cols * opt.area_grid_rows)]),
+        obs(new WindowObservation[static_cast<size_t>(capacity)]),
         lonsc(static_cast<size_t>(capacity), opt.lonsc),
         orderer(static_cast<size_t>(capacity)) {
     K.fx = cam.fx();
@@ -178,6 +184,9 @@ struct Tracker::Impl {
   std::unique_ptr<int[]> corr_cur;
   std::unique_ptr<uint32_t[]> order;
   std::unique_ptr<uint8_t[]> area_detected, area_matched;
+  std::unique_ptr<WindowObservation[]> obs;
+  int n_obs = 0;
+  uint32_t next_lm_id = 1;
   LonscEstimator lonsc;
   CorrespondenceOrderer orderer;
 };
@@ -195,12 +204,21 @@ Tracker::~Tracker() = default;
 void Tracker::reset() { impl_->kf.valid = false; }
 bool Tracker::has_keyframe() const { return impl_->kf.valid; }
 int64_t Tracker::keyframe_t_ns() const { return impl_->kf.t_ns; }
+int Tracker::num_observations() const { return impl_->n_obs; }
+const WindowObservation* Tracker::observations() const { return impl_->obs.get(); }
+
+bool Tracker::set_keyframe_pose(int64_t t_ns, const Eigen::Isometry3d& T_WC) {
+  if (!impl_->kf.valid || impl_->kf.t_ns != t_ns) return false;
+  impl_->kf.T_WC = T_WC;
+  return true;
+}
 
 const TrackResult& Tracker::track(int64_t t_ns, const ImageView& image, const ImageView& depth,
                                   const Eigen::Isometry3d& T_WC_pred, double pred_sigma_px) {
   Impl& m = *impl_;
   result_ = TrackResult{};
   result_.T_WC = T_WC_pred;
+  m.n_obs = 0;
   if (image.data == nullptr) {
     result_.status = TrackStatus::kNoImage;
     return result_;
@@ -211,10 +229,24 @@ const TrackResult& Tracker::track(int64_t t_ns, const ImageView& image, const Im
   }
   m.back_project(m.cur, depth, opt_.depth_edge_rel);
   m.cur.t_ns = t_ns;
+  std::fill(m.cur.lm_id.get(), m.cur.lm_id.get() + m.cur.feats.size(), 0u);
   result_.detected = m.cur.feats.size();
   result_.with_depth = m.cur.with_depth;
 
   auto make_keyframe = [&](const Eigen::Isometry3d& T_WC) {
+    // Features that matched a keyframe point keep its id; the others with a
+    // depth start new landmarks, observed here for the first time.
+    for (int j = 0; j < m.cur.feats.size(); ++j) {
+      if (m.cur.lm_id[j] != 0 || !m.cur.has_depth[j]) continue;
+      m.cur.lm_id[j] = m.next_lm_id++;
+      if (m.next_lm_id == 0) m.next_lm_id = 1;
+      const OrbKeypoint& kp = m.cur.feats.keypoint(j);
+      WindowObservation& o = m.obs[m.n_obs++];
+      o.landmark_id = m.cur.lm_id[j];
+      o.uv = m.cam.undistort_pixel(Eigen::Vector2d(kp.x, kp.y));
+      o.depth_m = m.cur.p_C[j].z();
+      o.sigma_px = static_cast<float>(opt_.keypoint_sigma_px * m.extractor.level_scale(kp.level));
+    }
     m.cur.T_WC = T_WC;
     m.cur.valid = true;
     m.kf.swap(m.cur);
@@ -328,6 +360,17 @@ const TrackResult& Tracker::track(int64_t t_ns, const ImageView& image, const Im
   result_.T_WC = T_WC;
   result_.area_ratio = m.area_ratio(opt_, m.lonsc.inlier_indices(), est.num_inliers);
   result_.status = TrackStatus::kTracked;
+  for (size_t k = 0; k < est.num_inliers; ++k) {
+    const uint32_t idx = m.lonsc.inlier_indices()[k];
+    const int j = m.corr_cur[idx];
+    const uint32_t id = m.kf.lm_id[m.best_kf[j]];
+    m.cur.lm_id[j] = id;
+    WindowObservation& o = m.obs[m.n_obs++];
+    o.landmark_id = id;
+    o.uv = m.corr[idx].u_cur;
+    o.depth_m = m.cur.has_depth[j] ? m.cur.p_C[j].z() : 0.0;
+    o.sigma_px = m.corr[idx].sigma_px;
+  }
 
   const bool stale = 1e-9 * static_cast<double>(t_ns - m.kf.t_ns) > opt_.keyframe_max_interval_s;
   const bool new_kf =

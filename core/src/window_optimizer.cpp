@@ -97,7 +97,8 @@ struct WindowOptimizer::Workspace {
   Eigen::MatrixXd Hc;
   // Built in place at the window's size: assigning a size-constructed solver
   // copies its uninitialised status field (UBSan flags it).
-  std::unique_ptr<Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd>> eig;
+  std::unique_ptr<Eigen::LDLT<Eigen::MatrixXd>> ldlt;
+  Eigen::VectorXd xm;
   std::vector<int32_t> marg_lms;
   std::vector<uint8_t> lm_mark;
 };
@@ -148,12 +149,38 @@ WindowOptimizer::WindowOptimizer(const PinholeK& K, const Eigen::Isometry3d& T_B
   ws.gm = Eigen::VectorXd::Zero(D);
   ws.T.resize(D, 15);
   ws.Hc = Eigen::MatrixXd::Zero(D, D);
-  ws.eig = std::make_unique<Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd>>(D);
+  ws.ldlt = std::make_unique<Eigen::LDLT<Eigen::MatrixXd>>(D);
+  ws.xm = Eigen::VectorXd::Zero(D);
   ws.marg_lms.resize(options.max_obs_per_frame);
   ws.lm_mark.assign(options.max_landmarks, 0);
 }
 
 WindowOptimizer::~WindowOptimizer() = default;
+
+void WindowOptimizer::reset() {
+  WindowProblem& P = *problem_;
+  Workspace& ws = *ws_;
+  for (WindowState& st : P.states) {
+    st.used = false;
+    st.keyframe = false;
+    st.has_imu = false;
+    st.imu_prev = -1;
+    st.n_obs = 0;
+    st.in_prior = false;
+  }
+  for (WindowObs& o : P.obs) o = WindowObs{};
+  for (WindowLandmark& L : P.lms) L = WindowLandmark{};
+  P.n_states = 0;
+  P.gauge_slot = -1;
+  P.prior_H.setZero();
+  P.prior_g.setZero();
+  P.prior_c = 0.0;
+  P.prior_active = false;
+  std::fill(ws.map_key.begin(), ws.map_key.end(), 0u);
+  std::fill(ws.map_val.begin(), ws.map_val.end(), -1);
+  ws.free_lms.clear();  // capacity stays: the refill below does not allocate
+  for (int i = P.opt.max_landmarks - 1; i >= 0; --i) ws.free_lms.push_back(i);
+}
 
 // ---- landmarks -----------------------------------------------------------------
 
@@ -420,7 +447,6 @@ void WindowOptimizer::marginalize_or_drop(int m) {
     return;
   }
   ++counters_.marginalizations;
-  const int D = kD * P.max_states;
   auto lin = [&](int s) -> const NavState& { return P.states[s].in_prior ? P.states[s].x0 : P.states[s].x; };
   bool touched[kWindowMaxStates] = {};
   touched[m] = true;
@@ -537,27 +563,18 @@ void WindowOptimizer::marginalize_or_drop(int m) {
   ws.Hm.middleCols<kD>(om).setZero();
   ws.gm.segment<kD>(om).setZero();
 
-  // Project onto the numerically positive part so that the prior is exactly
-  // 1/2 |e + J dx|^2 with J'J = H, J'e = g, 1/2 e'e = c: the same quadratic
-  // Ceres sees as a residual. Done in slot space (fixed size D: the
-  // decomposition's buffers are reused, unused slots are zero rows).
+  // The prior keeps H and g as they are: our solver works on them directly.
+  // Ceres needs the equivalent residual 1/2 |e + J dx|^2 and factors H itself
+  // (ceres_window.cpp), dropping the numerically non-positive directions; the
+  // constant 1/2 g' H^+ g it implies comes from a pivoting LDLT here, whose
+  // solve treats vanishing pivots as zero (a pseudo-inverse on the range of H).
+  // An eigen-decomposition would do both but allocates (Householder temporary).
   ws.Hc = 0.5 * (ws.Hm + ws.Hm.transpose());
-  ws.eig->compute(ws.Hc);
-  P.prior_H.setZero();
-  P.prior_g.setZero();
-  P.prior_c = 0.0;
-  {
-    const auto& ev = ws.eig->eigenvalues();
-    const auto& U = ws.eig->eigenvectors();
-    const double lmax = std::max(ev.maxCoeff(), 1e-300);
-    for (int i = 0; i < D; ++i) {
-      if (!(ev(i) > 1e-10 * lmax)) continue;
-      const double ug = U.col(i).dot(ws.gm);
-      P.prior_H.noalias() += ev(i) * U.col(i) * U.col(i).transpose();
-      P.prior_g += ug * U.col(i);
-      P.prior_c += 0.5 * ug * ug / ev(i);
-    }
-  }
+  P.prior_H = ws.Hc;
+  P.prior_g = ws.gm;
+  ws.ldlt->compute(ws.Hc);
+  ws.xm = ws.ldlt->solve(ws.gm);
+  P.prior_c = ws.xm.allFinite() ? 0.5 * ws.gm.dot(ws.xm) : 0.0;
   (void)c;  // the irreducible part of the old cost: constant, not kept (see docs)
   P.prior_active = P.prior_H.cwiseAbs().maxCoeff() > 0.0;
   P.states[m].in_prior = false;

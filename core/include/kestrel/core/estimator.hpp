@@ -5,9 +5,11 @@
 #pragma once
 
 #include <cstdint>
+#include <string>
 
 #include "kestrel/core/imu_propagator.hpp"
 #include "kestrel/msgs.hpp"
+#include "kestrel/rt/latency_histogram.hpp"
 
 namespace kestrel::core {
 
@@ -51,6 +53,20 @@ class Estimator {
   virtual bool add_frame(const RgbdFrame& f) = 0;
   virtual const EstimatorOutput& output() const = 0;
   virtual const EstimatorCounters& counters() const = 0;
+
+  // Backends with an optimizer. By default add_frame runs it inline, which is
+  // deterministic (lockstep replay, tests). After set_threaded_optimizer(true)
+  // (before the first sample) add_frame only queues the work and the caller
+  // runs optimizer_step() on a thread of its own: a lock-free hand-off both
+  // ways, so a slow solve delays refinement, never the pose output.
+  virtual bool has_optimizer() const { return false; }
+  virtual void set_threaded_optimizer(bool /*on*/) {}
+  // One queued solve; false when there was nothing to do. Optimizer thread only.
+  virtual bool optimizer_step() { return false; }
+  // Per solve [ns]; read it after the optimizer thread stopped.
+  virtual const rt::LatencyHistogram* optimizer_latency() const { return nullptr; }
+  // One line of backend-specific counters for reports ("" when none).
+  virtual std::string backend_summary() const { return {}; }
 };
 
 // IMU-only dead reckoning after a static initialisation. Named as what it is:

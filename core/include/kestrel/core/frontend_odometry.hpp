@@ -46,6 +46,16 @@ class FrontendOdometry final : public Estimator {
   const EstimatorCounters& counters() const override;
   const TrackResult& last_track() const { return tracker_.last(); }
 
+  // For a back end built on this front end (window_estimator.hpp).
+  bool started() const { return started_; }
+  Tracker& tracker() { return tracker_; }
+  // A better estimate of the propagated state, at its time (propagated().t_ns):
+  // replaces it, keeping the IMU integration anchor.
+  void correct_state(const NavState& x);
+  const NavState& propagated() const { return prop_.state(); }
+  // The back end re-initialised: count it in the reset counter the output carries.
+  void count_reset();
+
  private:
   FrontendOdometryOptions opt_;
   Eigen::Isometry3d T_BC_ = Eigen::Isometry3d::Identity();

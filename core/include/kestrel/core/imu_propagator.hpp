@@ -47,6 +47,10 @@ class ImuPropagator {
   explicit ImuPropagator(const ImuPropagatorOptions& opt = {}) : opt_(opt) {}
 
   void reset(const NavState& s);
+  // Replaces the state without dropping the last sample as the integration
+  // anchor: a correction of the estimate, not a restart. s.t_ns must be the
+  // current state's time (else this is a reset).
+  void correct(const NavState& s);
   bool initialized() const { return initialized_; }
   // Returns false when the sample was rejected (see counts()).
   bool propagate(const ImuSample& s);

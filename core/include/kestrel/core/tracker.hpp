@@ -23,6 +23,7 @@
 #include "kestrel/core/lonsc.hpp"
 #include "kestrel/core/motion_estimation.hpp"
 #include "kestrel/core/orb.hpp"
+#include "kestrel/core/window_options.hpp"
 #include "kestrel/msgs.hpp"
 
 namespace kestrel::core {
@@ -99,6 +100,16 @@ class Tracker {
   void reset();
   bool has_keyframe() const;
   int64_t keyframe_t_ns() const;
+  // The last frame's observations of landmarks with persistent ids, for the
+  // back ends: a tracked frame's inliers under the ids of the keyframe points
+  // they matched, and on a new keyframe also each of its features with depth
+  // (a feature that matched keeps the old id, so a landmark lives on across
+  // keyframes while it is re-detected). uv undistorted [px].
+  int num_observations() const;
+  const WindowObservation* observations() const;
+  // The back end refined the keyframe's pose: track against the refined one.
+  // False (nothing changed) when t_ns is not the current keyframe's time.
+  bool set_keyframe_pose(int64_t t_ns, const Eigen::Isometry3d& T_WC);
   const TrackResult& last() const { return result_; }
   const TrackerOptions& options() const { return opt_; }
 

@@ -59,6 +59,9 @@ class WindowOptimizer {
   // (returns false): the window's states must form an IMU chain.
   bool add_frame(const WindowFrameInput& in);
   Result optimize();
+  // Empties the window (states, landmarks, prior, gauge) for a
+  // re-initialisation; keeps every buffer, so no heap allocation.
+  void reset();
 
   const NavState& latest() const;
   bool state_of(int64_t t_ns, NavState* out) const;

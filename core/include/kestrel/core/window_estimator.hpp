@@ -1,0 +1,167 @@
+// The full estimator of paper 000: the front end (IMU propagation + tracking,
+// frontend_odometry.hpp) on the tracking side and the sliding-window
+// optimizer (window_optimizer.hpp: reprojection + depth + IMU preintegration
+// over S recent frames and N keyframes) behind it.
+//
+// Data flow, per tracked frame: the tracker's inlier observations (persistent
+// landmark ids) and the IMU preintegrated since the previous window frame
+// become one job; the optimizer adds it to the window and solves; the newest
+// optimized state, propagated through the preintegrations of every frame
+// queued since, replaces the front end's propagated state, and the tracker's
+// keyframe takes its refined pose. The pose output is always the front end's
+// IMU-rate propagation: it never waits for a solve.
+//
+// Threading: single-threaded by default (the optimizer runs inside add_frame /
+// add_imu: bit-exact replays). set_threaded_optimizer(true) splits the work:
+// the tracking thread queues jobs into a lock-free ring, another thread runs
+// optimizer_step(), and results come back through a seqlock mailbox. Job
+// buffers are a fixed pool; when the optimizer is behind, frames are left out
+// of the window (counted) and the IMU chain bridges them.
+//
+// Failure handling: a solve that fails, returns non-finite numbers, an absurd
+// speed, or a state far from the front end's is not applied (counted); a few
+// in a row re-initialise the window from the front end's state (counted in
+// the reset counter). An IMU gap too long to preintegrate does the same.
+#pragma once
+
+#include <atomic>
+#include <cstdint>
+#include <memory>
+#include <string>
+
+#include "kestrel/core/estimator.hpp"
+#include "kestrel/core/frontend_odometry.hpp"
+#include "kestrel/core/window_optimizer.hpp"
+#include "kestrel/rt/mailbox.hpp"
+#include "kestrel/rt/spsc_ring.hpp"
+
+namespace kestrel::core {
+
+struct WindowEstimatorOptions {
+  FrontendOdometryOptions frontend;
+  WindowOptions window;
+  // false: every tracked frame enters the window (the S recent frames are
+  // consecutive frames); true: keyframes only (cheaper, less accurate).
+  bool keyframes_only = false;
+  // The rig's IMU noise densities are a datasheet's, for a still sensor; on a
+  // flying vehicle vibration and unmodelled effects make the real errors
+  // larger. Every density is multiplied by this (docs/optimizer.md, tuning).
+  double imu_noise_inflation = 1.0;
+  int min_observations = 8;            // a frame with fewer stays out of the window
+  double max_correction_m = 0.5;       // optimized vs propagated position beyond this: a failure
+  double max_speed_mps = 25.0;         // an optimized speed beyond this: a failure
+  int max_consecutive_failures = 3;    // then the window restarts
+  int64_t max_imu_gap_ns = 200'000'000;  // a longer gap cannot be preintegrated: the window restarts
+
+  std::string validate() const;
+};
+
+struct WindowEstimatorCounters {
+  uint64_t jobs = 0;              // frames sent to the optimizer
+  uint64_t solves_ok = 0;
+  uint64_t applied = 0;           // results that corrected the front end
+  uint64_t failures = 0;          // solves not applied (failed, non-finite, absurd, far off)
+  uint64_t window_resets = 0;
+  uint64_t skipped_busy = 0;      // tracked frames left out: the optimizer was behind
+  uint64_t skipped_few_obs = 0;
+  uint64_t skipped_no_imu = 0;    // a frame not followed by IMU before the next one
+  uint64_t stale_results = 0;     // too old to propagate to now
+  uint64_t imu_gaps = 0;
+};
+
+// Optimizer -> tracking side. Trivially copyable: crosses threads through the mailbox.
+struct WindowSolveResult {
+  uint64_t seq = 0;
+  bool ok = false;
+  bool reset_done = false;
+  bool has_kf = false;
+  int64_t t_ns = 0;
+  double p[3], q[4], v[3], bg[3], ba[3];  // q: w, x, y, z
+  int64_t kf_t_ns = 0;
+  double kf_p[3], kf_q[4];                // T_WC of the tracker's keyframe
+};
+
+class WindowEstimator final : public Estimator {
+ public:
+  explicit WindowEstimator(const Rig& rig, const WindowEstimatorOptions& opt = {});
+  ~WindowEstimator() override;
+
+  const char* name() const override { return "window"; }
+  bool add_imu(const ImuSample& s) override;
+  bool add_frame(const RgbdFrame& f) override;
+  const EstimatorOutput& output() const override { return front_.output(); }
+  const EstimatorCounters& counters() const override { return front_.counters(); }
+
+  bool has_optimizer() const override { return true; }
+  void set_threaded_optimizer(bool on) override { threaded_ = on; }
+  bool optimizer_step() override;
+  const rt::LatencyHistogram* optimizer_latency() const override { return &opt_latency_; }
+  std::string backend_summary() const override;
+
+  const WindowEstimatorCounters& window_counters() const { return wc_; }
+  const FrontendOdometry& front() const { return front_; }
+
+ private:
+  static constexpr int kPool = 6;      // jobs in flight (front -> optimizer)
+  static constexpr int kChain = 16;    // preintegrations kept to propagate results to now
+
+  struct Job {
+    uint64_t seq = 0;
+    bool reset = false;        // restart the window with this frame
+    bool has_pim = false;
+    bool keyframe = false;
+    int64_t t_ns = 0;
+    int64_t tracker_kf_t_ns = -1;
+    NavState guess;
+    Preintegrated pim;
+    int n_obs = 0;
+  };
+
+  void process(int slot);                // optimizer side
+  void poll_results();                   // tracking side
+  void apply(const WindowSolveResult& r);
+  void submit_pending();
+  void fail_and_maybe_reset();
+  WindowObservation* obs_of(int slot) { return obs_pool_.get() + static_cast<size_t>(slot) * max_obs_; }
+
+  WindowEstimatorOptions opt_;
+  Eigen::Isometry3d T_BC_;
+  PreintegrationParams pim_params_;
+  FrontendOdometry front_;
+  std::unique_ptr<WindowOptimizer> window_;
+  bool threaded_ = false;
+  int max_obs_ = 0;
+
+  // Job pool and the two rings of slot indices.
+  std::unique_ptr<Job[]> jobs_;
+  std::unique_ptr<WindowObservation[]> obs_pool_;
+  rt::SpscRing<uint8_t, 8> todo_;   // front -> optimizer
+  rt::SpscRing<uint8_t, 8> done_;   // optimizer -> front (slots to reuse)
+  int free_slots_[kPool] = {};
+  int n_free_ = 0;
+  rt::Mailbox<WindowSolveResult> results_;
+  WindowSolveResult inline_result_;
+  bool inline_result_new_ = false;
+  uint64_t last_result_version_ = 0;
+
+  // Tracking side: preintegration since the last window frame.
+  Preintegrated pim_;
+  bool pim_active_ = false;
+  int64_t t_last_frame_ns_ = 0;
+  ImuSample last_sample_{};
+  bool have_last_sample_ = false;
+  int pending_slot_ = -1;              // a frame waiting for the IMU sample after it
+  uint64_t next_seq_ = 1;
+  Preintegrated chain_[kChain];        // pim of job seq k at k % kChain
+  uint64_t chain_seq_[kChain] = {};
+  uint64_t last_applied_seq_ = 0;
+  int consecutive_failures_ = 0;
+  bool reset_requested_ = false;
+
+  // Optimizer side.
+  rt::LatencyHistogram opt_latency_;
+  WindowEstimatorCounters wc_;
+  std::atomic<uint64_t> solves_ok_{0};
+};
+
+}  // namespace kestrel::core

@@ -1,0 +1,347 @@
+#include "kestrel/core/window_estimator.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <sstream>
+#include <stdexcept>
+
+#include "kestrel/rt/clock.hpp"
+
+namespace kestrel::core {
+namespace {
+
+Eigen::Isometry3d to_isometry(const Mat4d& T) {
+  Eigen::Isometry3d out = Eigen::Isometry3d::Identity();
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 4; ++c) out.matrix()(r, c) = T[static_cast<size_t>(r * 4 + c)];
+  return out;
+}
+
+PinholeK pinhole_of(const Rig& rig) {
+  PinholeK K;
+  K.fx = rig.rgb.fx;
+  K.fy = rig.rgb.fy;
+  K.cx = rig.rgb.cx;
+  K.cy = rig.rgb.cy;
+  return K;
+}
+
+bool finite(const NavState& x) {
+  return x.p_WB.allFinite() && x.v_WB.allFinite() && x.q_WB.coeffs().allFinite() && x.bg_rps.allFinite() &&
+         x.ba_mps2.allFinite();
+}
+
+}  // namespace
+
+std::string WindowEstimatorOptions::validate() const {
+  std::ostringstream e;
+  e << window.validate() << frontend.tracker.validate();
+  if (min_observations < 3) e << "min_observations: at least 3\n";
+  if (!(max_correction_m > 0)) e << "max_correction_m: must be > 0\n";
+  if (!(max_speed_mps > 0)) e << "max_speed_mps: must be > 0\n";
+  if (max_consecutive_failures < 1) e << "max_consecutive_failures: at least 1\n";
+  if (max_imu_gap_ns <= 0) e << "max_imu_gap_ns: must be > 0\n";
+  return e.str();
+}
+
+WindowEstimator::WindowEstimator(const Rig& rig, const WindowEstimatorOptions& opt)
+    : opt_([&] {
+        WindowEstimatorOptions o = opt;
+        o.window.imu = ImuNoiseParams::from_rig(rig).scaled(o.imu_noise_inflation);
+        if (const char* k = std::getenv("KESTREL_IMU_INFL")) o.window.imu = ImuNoiseParams::from_rig(rig).scaled(std::atof(k));
+        if (const char* k = std::getenv("KESTREL_WIN_N")) o.window.N = std::atoi(k);
+        if (const char* k = std::getenv("KESTREL_WIN_S")) o.window.S = std::atoi(k);
+        if (const char* k = std::getenv("KESTREL_WIN_PX")) o.frontend.tracker.keypoint_sigma_px = std::atof(k);
+        o.window.depth_sigma_coeff_per_m = rig.depth.sigma_coeff_per_m;
+        return o;
+      }()),
+      T_BC_(to_isometry(rig.T_BC)),
+      pim_params_([&] {
+        PreintegrationParams p = PreintegrationParams::from_rig(rig);
+        p.noise = opt_.window.imu;
+        return p;
+      }()),
+      front_(rig, opt.frontend),
+      pim_(pim_params_) {
+  const std::string err = opt_.validate();
+  if (!err.empty()) throw std::invalid_argument("WindowEstimatorOptions:\n" + err);
+  window_ = std::make_unique<WindowOptimizer>(pinhole_of(rig), T_BC_, opt_.window);
+  max_obs_ = opt.window.max_obs_per_frame;
+  jobs_.reset(new Job[kPool]);
+  for (int i = 0; i < kPool; ++i) jobs_[i].pim = Preintegrated(pim_params_);
+  obs_pool_.reset(new WindowObservation[static_cast<size_t>(kPool) * max_obs_]);
+  for (int i = kPool - 1; i >= 0; --i) free_slots_[n_free_++] = i;
+  for (auto& c : chain_) c = Preintegrated(pim_params_);
+}
+
+WindowEstimator::~WindowEstimator() = default;
+
+std::string WindowEstimator::backend_summary() const {
+  std::ostringstream o;
+  o << "window: jobs " << wc_.jobs << ", solves ok " << solves_ok_.load(std::memory_order_relaxed) << ", applied "
+    << wc_.applied << ", failures " << wc_.failures << ", window resets " << wc_.window_resets
+    << ", skipped (busy " << wc_.skipped_busy << ", few obs " << wc_.skipped_few_obs << ", no imu "
+    << wc_.skipped_no_imu << "), stale " << wc_.stale_results << ", imu gaps " << wc_.imu_gaps;
+  return o.str();
+}
+
+// ---- tracking side -------------------------------------------------------------
+
+bool WindowEstimator::add_frame(const RgbdFrame& f) {
+  bool changed = front_.add_frame(f);
+  if (!front_.started()) return changed;
+  const TrackResult& r = front_.last_track();
+  if (!(r.tracked() || r.status == TrackStatus::kNewKeyframe)) return changed;
+  Tracker& tracker = front_.tracker();
+  const int n = tracker.num_observations();
+  if (n < opt_.min_observations) {
+    ++wc_.skipped_few_obs;
+    return changed;
+  }
+  if (pending_slot_ >= 0) {
+    // The previous frame never saw the IMU sample after it: leave it out.
+    free_slots_[n_free_++] = pending_slot_;
+    pending_slot_ = -1;
+    ++wc_.skipped_no_imu;
+  }
+  if (opt_.keyframes_only && !r.keyframe && pim_active_) return changed;
+  if (!have_last_sample_) return changed;
+  // Reclaim the slots the optimizer is done with.
+  while (const uint8_t* s = done_.front()) {
+    free_slots_[n_free_++] = *s;
+    done_.pop();
+  }
+  if (n_free_ == 0) {
+    ++wc_.skipped_busy;
+    return changed;
+  }
+  const int slot = free_slots_[--n_free_];
+  Job& job = jobs_[slot];
+  job.t_ns = f.t_ns;
+  job.keyframe = r.keyframe;
+  job.tracker_kf_t_ns = tracker.has_keyframe() ? tracker.keyframe_t_ns() : -1;
+  job.guess = front_.propagated();
+  job.n_obs = std::min(n, max_obs_);
+  std::copy(tracker.observations(), tracker.observations() + job.n_obs, obs_of(slot));
+  job.reset = !pim_active_ || reset_requested_;
+  reset_requested_ = false;
+  pending_slot_ = slot;
+  if (job.reset) {
+    // The window (re)starts here: nothing to preintegrate from.
+    job.has_pim = false;
+    submit_pending();
+  }
+  // Results are applied in add_imu, where the propagated state and the
+  // preintegration since the last window frame end at the same sample.
+  return changed;
+}
+
+bool WindowEstimator::add_imu(const ImuSample& s) {
+  bool changed = front_.add_imu(s);
+  if (!imu_sample_usable(s) || (have_last_sample_ && s.t_ns <= last_sample_.t_ns)) {
+    poll_results();
+    return changed;
+  }
+  if (have_last_sample_ && s.t_ns - last_sample_.t_ns > opt_.max_imu_gap_ns && pim_active_) {
+    // Preintegrating across the gap would invent motion: restart the window
+    // at the next frame, from the front end's (IMU-coasted) state.
+    ++wc_.imu_gaps;
+    pim_active_ = false;
+    if (pending_slot_ >= 0) {
+      free_slots_[n_free_++] = pending_slot_;
+      pending_slot_ = -1;
+    }
+  }
+  if (pim_active_ && have_last_sample_) {
+    int64_t t0 = std::max(last_sample_.t_ns, t_last_frame_ns_);
+    if (pending_slot_ >= 0 && s.t_ns >= jobs_[pending_slot_].t_ns) {
+      const int64_t t_f = jobs_[pending_slot_].t_ns;
+      if (t_f > t0) pim_.integrate_segment(last_sample_, s, t0, t_f);
+      jobs_[pending_slot_].has_pim = true;
+      submit_pending();
+      t0 = t_f;
+    }
+    if (s.t_ns > t0) pim_.integrate_segment(last_sample_, s, t0, s.t_ns);
+  }
+  last_sample_ = s;
+  have_last_sample_ = true;
+  poll_results();
+  return changed;
+}
+
+// Sends the pending job and starts the next preintegration at its time.
+void WindowEstimator::submit_pending() {
+  const int slot = pending_slot_;
+  pending_slot_ = -1;
+  Job& job = jobs_[slot];
+  job.seq = next_seq_++;
+  if (job.has_pim) job.pim = pim_;
+  chain_[job.seq % kChain] = job.has_pim ? pim_ : Preintegrated(pim_params_);
+  chain_seq_[job.seq % kChain] = job.seq;
+  const NavState& x = front_.propagated();
+  pim_.reset(x.bg_rps, x.ba_mps2, job.t_ns);
+  pim_active_ = true;
+  t_last_frame_ns_ = job.t_ns;
+  ++wc_.jobs;
+  if (threaded_) {
+    // Cannot fail: the ring holds more than the pool.
+    (void)todo_.try_push(static_cast<uint8_t>(slot));
+  } else {
+    process(slot);
+    free_slots_[n_free_++] = slot;
+  }
+}
+
+void WindowEstimator::poll_results() {
+  WindowSolveResult r;
+  if (threaded_) {
+    uint64_t version = 0;
+    if (results_.version() == last_result_version_) return;
+    if (!results_.read(r, &version)) return;
+    last_result_version_ = version;
+  } else {
+    if (!inline_result_new_) return;
+    inline_result_new_ = false;
+    r = inline_result_;
+  }
+  if (r.seq <= last_applied_seq_) return;
+  last_applied_seq_ = r.seq;
+  apply(r);
+}
+
+void WindowEstimator::fail_and_maybe_reset() {
+  ++wc_.failures;
+  if (++consecutive_failures_ >= opt_.max_consecutive_failures) {
+    reset_requested_ = true;
+    consecutive_failures_ = 0;
+    ++wc_.window_resets;
+    front_.count_reset();
+  }
+}
+
+void WindowEstimator::apply(const WindowSolveResult& r) {
+  if (!r.ok) {
+    fail_and_maybe_reset();
+    return;
+  }
+  NavState x;
+  x.t_ns = r.t_ns;
+  x.p_WB = Eigen::Vector3d(r.p[0], r.p[1], r.p[2]);
+  x.q_WB = Eigen::Quaterniond(r.q[0], r.q[1], r.q[2], r.q[3]);
+  x.v_WB = Eigen::Vector3d(r.v[0], r.v[1], r.v[2]);
+  x.bg_rps = Eigen::Vector3d(r.bg[0], r.bg[1], r.bg[2]);
+  x.ba_mps2 = Eigen::Vector3d(r.ba[0], r.ba[1], r.ba[2]);
+  // Forward through the frames queued after this one, then the IMU since the
+  // newest of them, to the propagated state's time.
+  for (uint64_t k = r.seq + 1; k < next_seq_; ++k) {
+    if (chain_seq_[k % kChain] != k) {
+      ++wc_.stale_results;
+      return;
+    }
+    x = predict(x, chain_[k % kChain]);
+  }
+  x = predict(x, pim_);
+  const NavState& now = front_.propagated();
+  if (std::llabs(x.t_ns - now.t_ns) > 1'000'000) {
+    ++wc_.stale_results;  // the front end skipped samples we integrated (or the reverse)
+    return;
+  }
+  x.t_ns = now.t_ns;
+  if (!finite(x) || (x.p_WB - now.p_WB).norm() > opt_.max_correction_m) {
+    fail_and_maybe_reset();
+    return;
+  }
+  consecutive_failures_ = 0;
+  x.q_WB.normalize();
+  front_.correct_state(x);
+  ++wc_.applied;
+  if (r.has_kf) {
+    Eigen::Isometry3d T_WC = Eigen::Isometry3d::Identity();
+    T_WC.linear() = Eigen::Quaterniond(r.kf_q[0], r.kf_q[1], r.kf_q[2], r.kf_q[3]).normalized().toRotationMatrix();
+    T_WC.translation() = Eigen::Vector3d(r.kf_p[0], r.kf_p[1], r.kf_p[2]);
+    front_.tracker().set_keyframe_pose(r.kf_t_ns, T_WC);
+  }
+}
+
+// ---- optimizer side ------------------------------------------------------------
+
+bool WindowEstimator::optimizer_step() {
+  const uint8_t* s = todo_.front();
+  if (s == nullptr) return false;
+  const int slot = *s;
+  todo_.pop();
+  process(slot);
+  (void)done_.try_push(static_cast<uint8_t>(slot));
+  return true;
+}
+
+void WindowEstimator::process(int slot) {
+  const int64_t t0 = rt::now_ns();
+  const Job& job = jobs_[slot];
+  WindowSolveResult out;
+  out.seq = job.seq;
+  out.t_ns = job.t_ns;
+  WindowFrameInput in;
+  in.t_ns = job.t_ns;
+  in.guess = job.guess;
+  in.imu_from_prev = job.has_pim ? &job.pim : nullptr;
+  in.obs = obs_of(slot);
+  in.n_obs = job.n_obs;
+  in.keyframe = job.keyframe || window_->num_states() == 0;
+  if (job.reset || !job.has_pim) {
+    window_->reset();
+    in.imu_from_prev = nullptr;
+    in.keyframe = true;
+    out.reset_done = true;
+  }
+  bool ok = window_->add_frame(in);
+  if (ok) {
+    const WindowOptimizer::Result res = window_->optimize();
+    ok = res.ok;
+  }
+  const NavState& x = window_->latest();
+  if (static const bool dbg = std::getenv("KESTREL_DEBUG_WINDOW") != nullptr; dbg)
+    std::fprintf(stderr, "WIN %.9f %.6f %.6f %.6f %.6f %.6f %.6f %.6f\n", 1e-9 * x.t_ns, x.p_WB.x(), x.p_WB.y(),
+                 x.p_WB.z(), x.q_WB.x(), x.q_WB.y(), x.q_WB.z(), x.q_WB.w());
+  ok = ok && finite(x) && x.v_WB.norm() < opt_.max_speed_mps && x.t_ns == job.t_ns;
+  out.ok = ok;
+  if (ok) {
+    solves_ok_.fetch_add(1, std::memory_order_relaxed);
+    for (int i = 0; i < 3; ++i) {
+      out.p[i] = x.p_WB[i];
+      out.v[i] = x.v_WB[i];
+      out.bg[i] = x.bg_rps[i];
+      out.ba[i] = x.ba_mps2[i];
+    }
+    out.q[0] = x.q_WB.w();
+    out.q[1] = x.q_WB.x();
+    out.q[2] = x.q_WB.y();
+    out.q[3] = x.q_WB.z();
+    NavState kf;
+    if (job.tracker_kf_t_ns >= 0 && window_->state_of(job.tracker_kf_t_ns, &kf) && finite(kf)) {
+      Eigen::Isometry3d T_WB = Eigen::Isometry3d::Identity();
+      T_WB.linear() = kf.q_WB.normalized().toRotationMatrix();
+      T_WB.translation() = kf.p_WB;
+      const Eigen::Isometry3d T_WC = T_WB * T_BC_;
+      const Eigen::Quaterniond q(T_WC.linear());
+      out.has_kf = true;
+      out.kf_t_ns = job.tracker_kf_t_ns;
+      for (int i = 0; i < 3; ++i) out.kf_p[i] = T_WC.translation()[i];
+      out.kf_q[0] = q.w();
+      out.kf_q[1] = q.x();
+      out.kf_q[2] = q.y();
+      out.kf_q[3] = q.z();
+    }
+  }
+  opt_latency_.record(rt::now_ns() - t0);
+  if (threaded_) {
+    results_.publish(out);
+  } else {
+    inline_result_ = out;
+    inline_result_new_ = true;
+  }
+}
+
+}  // namespace kestrel::core
