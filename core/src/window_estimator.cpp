@@ -148,6 +148,8 @@ bool WindowEstimator::add_imu(const ImuSample& s) {
     // Preintegrating across the gap would invent motion: restart the window
     // at the next frame, from the front end's (IMU-coasted) state.
     ++wc_.imu_gaps;
+    ++wc_.window_resets;
+    front_.count_reset();
     pim_active_ = false;
     if (pending_slot_ >= 0) {
       free_slots_[n_free_++] = pending_slot_;

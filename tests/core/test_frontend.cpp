@@ -14,106 +14,16 @@
 #include "kestrel/rt/alloc_counter.hpp"
 #include "kestrel/tools/simulator.hpp"
 #include "kestrel/tools/trajectory_eval.hpp"
+#include "estimator_harness.hpp"
 #include "test_data.hpp"
 
 using namespace kestrel;
+using kestrel::test::ate;
+using kestrel::test::RunResult;
+using kestrel::test::run;
+using kestrel::test::simulate;
+using kestrel::test::to_iso;
 
-namespace {
-
-std::string simulate(const std::string& scenario, double duration_s, uint64_t seed = 7) {
-  const std::string dir = test::temp_dir("frontend_" + scenario);
-  tools::SimOptions o;
-  o.scenario = scenario;
-  o.duration_s = duration_s;
-  o.seed = seed;
-  o.width = 320;
-  o.height = 240;
-  o.out_path = dir + "/log.klog";
-  tools::run_simulation(o);
-  return o.out_path;
-}
-
-Eigen::Isometry3d to_iso(const Mat4d& T) {
-  Eigen::Isometry3d o = Eigen::Isometry3d::Identity();
-  for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 4; ++c) o.matrix()(r, c) = T[static_cast<size_t>(r * 4 + c)];
-  return o;
-}
-
-struct RunResult {
-  tools::Trajectory est, gt;
-  uint64_t steady_allocs = 0;
-  uint64_t frames = 0;
-  core::EstimatorCounters counters;
-};
-
-// Feeds a log to an estimator the way the replay harness does (IMU and frames
-// merged in time order), counting allocations inside the estimator after 1 s.
-RunResult run(const std::string& log_path, const std::string& estimator) {
-  auto log = drivers::open_log(log_path);
-  auto est = core::make_estimator(estimator, log->rig());
-  RunResult out;
-  drivers::LogRecord rec;
-  drivers::LogImage rgb;
-  bool have_rgb = false;
-  int64_t t_first = -1;
-  auto feed_frame = [&](const drivers::LogImage* depth) {
-    core::RgbdFrame f;
-    f.t_ns = rgb.t_ns;
-    f.rgb = rgb.view();
-    if (depth != nullptr) f.depth = depth->view();
-    const bool steady = t_first >= 0 && rgb.t_ns - t_first > 1'000'000'000;
-    rt::AllocCountScope scope;
-    est->add_frame(f);
-    if (steady) {
-      out.steady_allocs += scope.count();
-      ++out.frames;
-    }
-    if (est->output().quality != core::TrackingQuality::kUninitialized) {
-      const auto& s = est->output().state;
-      out.est.push_back(tools::TimedPose{s.t_ns, s.p_WB, s.q_WB});
-    }
-    have_rgb = false;
-  };
-  while (log->next(rec)) {
-    switch (rec.type) {
-      case drivers::RecordType::kImu: {
-        if (have_rgb) feed_frame(nullptr);
-        if (t_first < 0) t_first = rec.imu.t_ns;
-        const bool steady = rec.imu.t_ns - t_first > 1'000'000'000;
-        rt::AllocCountScope scope;
-        est->add_imu(rec.imu);
-        if (steady) out.steady_allocs += scope.count();
-        break;
-      }
-      case drivers::RecordType::kRgb:
-        if (have_rgb) feed_frame(nullptr);
-        rgb = rec.image;
-        have_rgb = true;
-        break;
-      case drivers::RecordType::kDepth:
-        if (have_rgb) feed_frame(&rec.image);
-        break;
-      case drivers::RecordType::kGroundTruth:
-        out.gt.push_back(tools::TimedPose{rec.gt.t_ns, Eigen::Vector3d(rec.gt.p_WB.data()),
-                                          Eigen::Quaterniond(rec.gt.q_WB[0], rec.gt.q_WB[1], rec.gt.q_WB[2],
-                                                             rec.gt.q_WB[3])});
-        break;
-      default:
-        break;
-    }
-  }
-  out.counters = est->counters();
-  return out;
-}
-
-double ate(const RunResult& r) {
-  tools::EvalOptions eo;
-  eo.align = tools::Alignment::kPosYaw;
-  return tools::evaluate(r.gt, r.est, eo).ate_m.rmse;
-}
-
-}  // namespace
 
 TEST(Tracker, FollowsGroundTruthWithAPerfectPrediction) {
   // With the IMU prediction replaced by the true pose, what is left is the

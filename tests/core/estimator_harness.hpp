@@ -1,0 +1,123 @@
+// Feeds simulated RGB-D + IMU logs to an Estimator the way the replay harness
+// does (IMU and frames merged in time order), for the core estimator tests.
+#pragma once
+
+#include <functional>
+#include <memory>
+#include <string>
+
+#include "kestrel/core/estimator.hpp"
+#include "kestrel/drivers/log_source.hpp"
+#include "kestrel/rt/alloc_counter.hpp"
+#include "kestrel/tools/simulator.hpp"
+#include "kestrel/tools/trajectory_eval.hpp"
+#include "test_data.hpp"
+
+namespace kestrel::test {
+
+inline std::string simulate(const std::string& scenario, double duration_s, uint64_t seed = 7) {
+  const std::string dir = test::temp_dir("estimator_" + scenario + "_" + std::to_string(seed));
+  tools::SimOptions o;
+  o.scenario = scenario;
+  o.duration_s = duration_s;
+  o.seed = seed;
+  o.width = 320;
+  o.height = 240;
+  o.out_path = dir + "/log.klog";
+  tools::run_simulation(o);
+  return o.out_path;
+}
+
+inline Eigen::Isometry3d to_iso(const Mat4d& T) {
+  Eigen::Isometry3d o = Eigen::Isometry3d::Identity();
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 4; ++c) o.matrix()(r, c) = T[static_cast<size_t>(r * 4 + c)];
+  return o;
+}
+
+struct RunResult {
+  tools::Trajectory est, gt;
+  uint64_t steady_allocs = 0;
+  uint64_t frames = 0;        // frames fed after warm-up
+  uint64_t frames_total = 0;  // frames fed
+  core::EstimatorCounters counters;
+};
+
+using EstimatorMaker = std::function<std::unique_ptr<core::Estimator>(const Rig&)>;
+using ImuFilter = std::function<bool(const ImuSample&)>;  // false: the sample is withheld
+
+// Counts allocations inside the estimator after 1 s of log. `est_out`, when
+// given, receives the estimator (for backend-specific counters).
+inline RunResult run(const std::string& log_path, const EstimatorMaker& make, const ImuFilter& keep_imu = {},
+                     std::unique_ptr<core::Estimator>* est_out = nullptr) {
+  auto log = drivers::open_log(log_path);
+  std::unique_ptr<core::Estimator> est = make(log->rig());
+  RunResult out;
+  drivers::LogRecord rec;
+  drivers::LogImage rgb;
+  bool have_rgb = false;
+  int64_t t_first = -1;
+  auto feed_frame = [&](const drivers::LogImage* depth) {
+    core::RgbdFrame f;
+    f.t_ns = rgb.t_ns;
+    f.rgb = rgb.view();
+    if (depth != nullptr) f.depth = depth->view();
+    const bool steady = t_first >= 0 && rgb.t_ns - t_first > 1'000'000'000;
+    rt::AllocCountScope scope;
+    est->add_frame(f);
+    if (steady) {
+      out.steady_allocs += scope.count();
+      ++out.frames;
+    }
+    ++out.frames_total;
+    if (est->output().quality != core::TrackingQuality::kUninitialized) {
+      const auto& s = est->output().state;
+      out.est.push_back(tools::TimedPose{s.t_ns, s.p_WB, s.q_WB});
+    }
+    have_rgb = false;
+  };
+  while (log->next(rec)) {
+    switch (rec.type) {
+      case drivers::RecordType::kImu: {
+        if (have_rgb) feed_frame(nullptr);
+        if (t_first < 0) t_first = rec.imu.t_ns;
+        if (keep_imu && !keep_imu(rec.imu)) break;
+        const bool steady = rec.imu.t_ns - t_first > 1'000'000'000;
+        rt::AllocCountScope scope;
+        est->add_imu(rec.imu);
+        if (steady) out.steady_allocs += scope.count();
+        break;
+      }
+      case drivers::RecordType::kRgb:
+        if (have_rgb) feed_frame(nullptr);
+        rgb = rec.image;
+        have_rgb = true;
+        break;
+      case drivers::RecordType::kDepth:
+        if (have_rgb) feed_frame(&rec.image);
+        break;
+      case drivers::RecordType::kGroundTruth:
+        out.gt.push_back(tools::TimedPose{rec.gt.t_ns, Eigen::Vector3d(rec.gt.p_WB.data()),
+                                          Eigen::Quaterniond(rec.gt.q_WB[0], rec.gt.q_WB[1], rec.gt.q_WB[2],
+                                                             rec.gt.q_WB[3])});
+        break;
+      default:
+        break;
+    }
+  }
+  out.counters = est->counters();
+  if (est_out != nullptr) *est_out = std::move(est);
+  return out;
+}
+
+inline RunResult run(const std::string& log_path, const std::string& estimator) {
+  return run(log_path, [&](const Rig& rig) { return core::make_estimator(estimator, rig); });
+}
+
+inline double ate(const RunResult& r) {
+  tools::EvalOptions eo;
+  eo.align = tools::Alignment::kPosYaw;
+  return tools::evaluate(r.gt, r.est, eo).ate_m.rmse;
+}
+
+}  // namespace kestrel::test
