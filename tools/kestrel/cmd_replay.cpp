@@ -13,6 +13,7 @@ Subcommand add_replay_command(CLI::App& parent) {
   struct Args {
     std::string path;
     std::string format = "auto";
+    drivers::LogOpenOptions open;
     std::string pace = "lockstep";
     std::string estimator = "vo";
     std::string traj_out;
@@ -24,8 +25,18 @@ Subcommand add_replay_command(CLI::App& parent) {
   };
   auto args = std::make_shared<Args>();
   CLI::App* app = parent.add_subcommand("replay", "play a recorded log through the estimator (HIL harness)");
-  app->add_option("log", args->path, "a .klog file, an EuRoC ASL folder or a TUM RGB-D folder")->required();
-  app->add_option("--format", args->format, "input format: auto, klog, euroc, tum")->capture_default_str();
+  app->add_option("log", args->path,
+                  "a .klog file, a ROS 1 bag, or an EuRoC / TUM / ETH3D / OpenLORIS folder (docs/datasets.md)")
+      ->required();
+  app->add_option("--format", args->format, std::string("input format: ") + drivers::log_format_names())
+      ->capture_default_str();
+  app->add_option("--rig", args->open.rig_path, "rig YAML for calibration the dataset lacks (ETH3D, OpenLORIS, rosbag)");
+  app->add_option("--rgb-topic", args->open.rgb_topic, "rosbag colour topic (default /camera/color/image_raw)");
+  app->add_option("--depth-topic", args->open.depth_topic,
+                  "rosbag depth topic (default /camera/aligned_depth_to_color/image_raw)");
+  app->add_option("--imu-topic", args->open.imu_topic, "rosbag IMU topic (default /camera/imu)");
+  app->add_option("--camera-info-topic", args->open.camera_info_topic,
+                  "rosbag CameraInfo topic (default: beside the colour topic)");
   app->add_option("--pace", args->pace,
                   "realtime (sensor timing, drops like live), fast (as fast as it drains), "
                   "lockstep (deterministic, bit-identical output)")
@@ -51,6 +62,7 @@ Subcommand add_replay_command(CLI::App& parent) {
   cmd.run = [args]() -> int {
     ReplayOptions opt;
     opt.path = args->path;
+    opt.open = args->open;
     opt.estimator = args->estimator;
     if (!core::estimator_known(opt.estimator))
       throw UsageError("unknown --estimator '" + opt.estimator + "' (expected one of: " + core::estimator_names() + ")");

@@ -380,7 +380,9 @@ constexpr rt::ThreadSpec kEstimatorThread{"kst-estimator", 0, -1, 0};
 
 ReplayReport run_replay(const ReplayOptions& opt) {
   ReplayReport report;
-  std::unique_ptr<drivers::LogSource> log = opt.open_source ? opt.open_source() : drivers::open_log(opt.path, opt.format);
+  drivers::LogOpenOptions open = opt.open;
+  open.format = opt.format;
+  std::unique_ptr<drivers::LogSource> log = opt.open_source ? opt.open_source() : drivers::open_log(opt.path, open);
   report.log_path = opt.path;
   report.log_format = log->format_name();
   report.pace = opt.pace;

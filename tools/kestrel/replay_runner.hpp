@@ -69,6 +69,7 @@ std::string format_status(const PipelineStatus& s);
 struct ReplayOptions {
   std::string path;
   drivers::LogFormat format = drivers::LogFormat::kAuto;
+  drivers::LogOpenOptions open;   // rig for datasets, bag topics (open.format is ignored: `format` rules)
   drivers::ReplayPace pace = drivers::ReplayPace::kLockstep;
   std::string estimator = "vo";   // core::make_estimator name
   // Allocation counting and latency statistics start after this much log time,

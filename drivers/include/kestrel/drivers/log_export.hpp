@@ -6,6 +6,7 @@
 #include <cstddef>
 #include <string>
 
+#include "kestrel/drivers/dataset_logs.hpp"
 #include "kestrel/drivers/log_source.hpp"
 
 namespace kestrel::drivers {
@@ -31,5 +32,32 @@ ExportStats export_euroc(LogSource& src, const std::string& out_dir);
 // Rewinds `src` and writes its ground truth as a TUM trajectory:
 // "t[s] x y z qx qy qz qw" per line (seconds with 9 decimals). Returns the pose count.
 size_t export_tum_groundtruth(LogSource& src, const std::string& path);
+
+// Rewinds `src` and writes an ETH3D SLAM folder: rgb/ + rgb.txt, depth/ +
+// depth.txt (16-bit PNG, 5000 units per metre, converted from the rig's
+// scale), associated.txt (colour and depth records with one stamp),
+// calibration.txt (fx fy cx cy: ETH3D images are undistorted pinhole, so
+// images of a rig with distortion are undistorted to the same K, colour
+// bilinear, depth nearest-neighbour), groundtruth.txt (the colour camera's pose
+// T_WC = T_WB * T_BC, TUM order) and imu.txt ("t gx gy gz ax ay az").
+// Timestamps are seconds with 9 decimals, numbers %.17g. What ETH3D cannot
+// hold (T_BC, IMU noise, depth range, distortion) goes to kestrel_rig.yaml
+// beside it, which Eth3dReader uses when no --rig is given. Lost: events,
+// receive times, sequence numbers.
+ExportStats export_eth3d(LogSource& src, const std::string& out_dir);
+
+// Rewinds `src` and writes an OpenLORIS-Scene folder: color/ + color.txt,
+// aligned_depth/ + aligned_depth.txt (the rig's depth units, written as
+// d400_depth_optical_frame.depth_scale in sensors.yaml), d400_gyroscope.txt
+// and d400_accelerometer.txt (both at the IMU stamps), groundtruth.txt
+// (base_link = the IMU body), sensors.yaml and trans_matrix.yaml
+// (base_link -> d400_gyroscope = I, d400_gyroscope -> colour = T_BC).
+ExportStats export_openloris(LogSource& src, const std::string& out_dir);
+
+// Rewinds `src` and writes a ROS 1 bag: sensor_msgs/Imu, sensor_msgs/Image
+// (rgb8 / bgr8 / mono8, depth 16UC1 in millimetres), a CameraInfo with each
+// colour image, ground truth as geometry_msgs/PoseStamped. Throws "not built"
+// without librosbag.
+ExportStats export_rosbag(LogSource& src, const std::string& path, const RosbagTopics& topics = {});
 
 }  // namespace kestrel::drivers
