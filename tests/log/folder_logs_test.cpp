@@ -322,7 +322,7 @@ TEST(OpenLog, DetectsFormatsAndRejectsUnknownOnes) {
   EXPECT_EQ(drivers::parse_log_format("klog"), drivers::LogFormat::kKlog);
   EXPECT_EQ(drivers::parse_log_format("euroc"), drivers::LogFormat::kEuroc);
   EXPECT_EQ(drivers::parse_log_format("tum"), drivers::LogFormat::kTum);
-  EXPECT_THROW(drivers::parse_log_format("rosbag"), std::runtime_error);
+  EXPECT_THROW(drivers::parse_log_format("rosbag2"), std::runtime_error);   // ROS 2 bags: not read
   const std::string dir = temp_dir("open_log");
   try {
     drivers::open_log(dir);
