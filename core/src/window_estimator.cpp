@@ -2,8 +2,6 @@
 
 #include <algorithm>
 #include <cmath>
-#include <cstdio>
-#include <cstdlib>
 #include <sstream>
 #include <stdexcept>
 
@@ -38,6 +36,7 @@ bool finite(const NavState& x) {
 std::string WindowEstimatorOptions::validate() const {
   std::ostringstream e;
   e << window.validate() << frontend.tracker.validate();
+  if (!(imu_noise_inflation > 0)) e << "imu_noise_inflation: must be > 0\n";
   if (min_observations < 3) e << "min_observations: at least 3\n";
   if (!(max_correction_m > 0)) e << "max_correction_m: must be > 0\n";
   if (!(max_speed_mps > 0)) e << "max_speed_mps: must be > 0\n";
@@ -50,10 +49,6 @@ WindowEstimator::WindowEstimator(const Rig& rig, const WindowEstimatorOptions& o
     : opt_([&] {
         WindowEstimatorOptions o = opt;
         o.window.imu = ImuNoiseParams::from_rig(rig).scaled(o.imu_noise_inflation);
-        if (const char* k = std::getenv("KESTREL_IMU_INFL")) o.window.imu = ImuNoiseParams::from_rig(rig).scaled(std::atof(k));
-        if (const char* k = std::getenv("KESTREL_WIN_N")) o.window.N = std::atoi(k);
-        if (const char* k = std::getenv("KESTREL_WIN_S")) o.window.S = std::atoi(k);
-        if (const char* k = std::getenv("KESTREL_WIN_PX")) o.frontend.tracker.keypoint_sigma_px = std::atof(k);
         o.window.depth_sigma_coeff_per_m = rig.depth.sigma_coeff_per_m;
         return o;
       }()),
@@ -304,9 +299,6 @@ void WindowEstimator::process(int slot) {
     ok = res.ok;
   }
   const NavState& x = window_->latest();
-  if (static const bool dbg = std::getenv("KESTREL_DEBUG_WINDOW") != nullptr; dbg)
-    std::fprintf(stderr, "WIN %.9f %.6f %.6f %.6f %.6f %.6f %.6f %.6f\n", 1e-9 * x.t_ns, x.p_WB.x(), x.p_WB.y(),
-                 x.p_WB.z(), x.q_WB.x(), x.q_WB.y(), x.q_WB.z(), x.q_WB.w());
   ok = ok && finite(x) && x.v_WB.norm() < opt_.max_speed_mps && x.t_ns == job.t_ns;
   out.ok = ok;
   if (ok) {

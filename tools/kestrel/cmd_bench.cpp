@@ -120,6 +120,10 @@ std::map<std::string, double> replay_in_child(const std::string& log, const std:
         o << "tracking_ms_p50 " << ms(r.tracking.p50()) << "\n";
         o << "tracking_ms_p99 " << ms(r.tracking.p99()) << "\n";
       }
+      if (r.optimizer.count() > 0) {
+        o << "optimizer_ms_p50 " << ms(r.optimizer.p50()) << "\n";
+        o << "optimizer_ms_p99 " << ms(r.optimizer.p99()) << "\n";
+      }
       if (r.imu_to_output.count() > 0) o << "imu_to_output_ms_p99 " << ms(r.imu_to_output.p99()) << "\n";
       if (r.alloc_counting && r.steady_frames > 0)
         o << "allocs_per_frame " << static_cast<double>(r.steady_allocs) / static_cast<double>(r.steady_frames)
@@ -250,7 +254,7 @@ Subcommand add_bench_command(CLI::App& parent) {
     std::string workdir = "build/bench";
     std::string data_dir = "../shared/data";
     std::string pace = "fast";
-    std::string estimator = "vo";
+    std::vector<std::string> estimators{"window"};
     int width = 640, height = 480;
     bool keep_logs = false;
     bool list = false;
@@ -264,7 +268,9 @@ Subcommand add_bench_command(CLI::App& parent) {
   app->add_option("--data", args->data_dir, "the shared data folder (EuRoC sequences)")->capture_default_str();
   app->add_option("--pace", args->pace, "replay pace: fast or lockstep (realtime is for timing tests)")
       ->capture_default_str();
-  app->add_option("--estimator", args->estimator, std::string("backend: ") + core::estimator_names())
+  app->add_option("--estimator", args->estimators,
+                  std::string("backends, comma separated, one row each per case: ") + core::estimator_names())
+      ->delimiter(',')
       ->capture_default_str();
   app->add_option("--width", args->width, "rendered image width")->capture_default_str();
   app->add_option("--height", args->height, "rendered image height")->capture_default_str();
@@ -282,8 +288,9 @@ Subcommand add_bench_command(CLI::App& parent) {
     } catch (const std::exception& e) {
       throw UsageError(e.what());
     }
-    if (!core::estimator_known(args->estimator))
-      throw UsageError("unknown --estimator '" + args->estimator + "' (expected one of: " + core::estimator_names() + ")");
+    for (const std::string& e : args->estimators)
+      if (!core::estimator_known(e))
+        throw UsageError("unknown --estimator '" + e + "' (expected one of: " + core::estimator_names() + ")");
     std::vector<BenchCase> cases = discover_cases(args->data_dir);
     if (args->list) {
       for (const auto& c : cases)
@@ -335,29 +342,37 @@ Subcommand add_bench_command(CLI::App& parent) {
         gt = log;   // the simulator writes ground truth into the log
         generated = true;
       }
-      std::string error;
-      const auto m = replay_in_child(log, gt, pace, args->estimator, traj, row.estimator, error);
-      if (generated && !args->keep_logs) fs::remove(log);
-      if (!error.empty()) {
-        row.status = "FAILED: " + error;
-        rows.push_back(row);
-        continue;
+      // One log, every backend on it: the comparison is like for like.
+      for (const std::string& est_name : args->estimators) {
+        BenchRow er = row;
+        std::string error;
+        const std::string traj_e = args->estimators.size() > 1
+                                       ? (fs::path(args->workdir) / (c.name + "." + est_name + ".traj.txt")).string()
+                                       : traj;
+        const auto m = replay_in_child(log, gt, pace, est_name, traj_e, er.estimator, error);
+        if (!error.empty()) {
+          er.estimator = est_name;
+          er.status = "FAILED: " + error;
+          rows.push_back(er);
+          continue;
+        }
+        er.duration_s = get(m, "duration_s");
+        er.ate_rmse_m = get(m, "ate_rmse_m");
+        er.rpe_trans_m_per_s = get(m, "rpe_trans_m_per_s");
+        er.tracking_ms_p50 = get(m, "tracking_ms_p50");
+        er.tracking_ms_p99 = get(m, "tracking_ms_p99");
+        er.optimizer_ms_p50 = get(m, "optimizer_ms_p50");
+        er.optimizer_ms_p99 = get(m, "optimizer_ms_p99");
+        er.imu_to_output_ms_p99 = get(m, "imu_to_output_ms_p99");
+        er.allocs_per_frame = get(m, "allocs_per_frame");
+        er.realtime_factor = get(m, "realtime_factor");
+        er.peak_rss_mb = get(m, "peak_rss_mb");
+        er.pose_share = get(m, "pose_share");
+        er.replay_wall_s = get(m, "replay_wall_s");
+        rows.push_back(er);
+        ++ran;
       }
-      row.duration_s = get(m, "duration_s");
-      row.ate_rmse_m = get(m, "ate_rmse_m");
-      row.rpe_trans_m_per_s = get(m, "rpe_trans_m_per_s");
-      row.tracking_ms_p50 = get(m, "tracking_ms_p50");
-      row.tracking_ms_p99 = get(m, "tracking_ms_p99");
-      row.optimizer_ms_p50 = get(m, "optimizer_ms_p50");
-      row.optimizer_ms_p99 = get(m, "optimizer_ms_p99");
-      row.imu_to_output_ms_p99 = get(m, "imu_to_output_ms_p99");
-      row.allocs_per_frame = get(m, "allocs_per_frame");
-      row.realtime_factor = get(m, "realtime_factor");
-      row.peak_rss_mb = get(m, "peak_rss_mb");
-      row.pose_share = get(m, "pose_share");
-      row.replay_wall_s = get(m, "replay_wall_s");
-      rows.push_back(row);
-      ++ran;
+      if (generated && !args->keep_logs) fs::remove(log);
     }
     print_table(rows);
     if (!args->json_out.empty()) {

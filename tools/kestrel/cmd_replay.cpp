@@ -15,7 +15,7 @@ Subcommand add_replay_command(CLI::App& parent) {
     std::string format = "auto";
     drivers::LogOpenOptions open;
     std::string pace = "lockstep";
-    std::string estimator = "vo";
+    std::string estimator = "window";
     std::string traj_out;
     std::string metrics_out;
     double warmup_s = 2.0;
@@ -43,7 +43,7 @@ Subcommand add_replay_command(CLI::App& parent) {
       ->capture_default_str();
   app->add_option("--estimator", args->estimator,
                   std::string("backend: ") + core::estimator_names() +
-                      " (vo = tracking front end + IMU, imu = IMU dead reckoning)")
+                      " (window = front end + sliding-window optimizer, the default; vo = tracking front end + IMU; ekf = EKF SLAM; imu = IMU dead reckoning)")
       ->capture_default_str();
   app->add_option("--traj-out", args->traj_out, "write the trajectory here (TUM: t[s] x y z qx qy qz qw)");
   app->add_option("--metrics-out", args->metrics_out,

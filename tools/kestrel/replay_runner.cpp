@@ -375,6 +375,7 @@ class OutputStage {
 // for and fall back to SCHED_OTHER without privileges; the report says which.
 constexpr rt::ThreadSpec kFeederThread{"kst-replay", 0, -1, 0};
 constexpr rt::ThreadSpec kEstimatorThread{"kst-estimator", 0, -1, 0};
+constexpr rt::ThreadSpec kOptimizerThread{"kst-optimizer", 0, -1, 0};
 
 }  // namespace
 
@@ -396,6 +397,12 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   core::Estimator& estimator = *estimator_ptr;
   report.estimator = estimator.name();
   report.trajectory.reserve(1 << 16);
+
+  // At realtime pace the optimizer gets its own thread, as it will fly; fast
+  // and lockstep run it inline, so both give the lockstep trajectory bit for
+  // bit whatever the machine's load.
+  const bool optimizer_thread = opt.pace == drivers::ReplayPace::kRealtime && estimator.has_optimizer();
+  estimator.set_threaded_optimizer(optimizer_thread);
 
   drivers::ReplaySource source(*log, *rings, opt.pace);
   EstimatorStage stage(estimator, *rings, *out, *status, opt, log->rig(), report);
@@ -432,12 +439,22 @@ ReplayReport run_replay(const ReplayOptions& opt) {
       est_cpu = thread_cpu_s();
       estimator_done.store(true, std::memory_order_release);
     });
+    std::thread opt_thread;
+    if (optimizer_thread) {
+      opt_thread = rt::start_thread(kOptimizerThread, [&] {
+        while (!estimator_done.load(std::memory_order_acquire)) {
+          // Polling keeps the hand-off lock-free; 0.5 ms is small beside a solve.
+          if (!estimator.optimizer_step()) rt::sleep_for_ns(500'000);
+        }
+      });
+    }
     while (!estimator_done.load(std::memory_order_acquire)) {
       output.drain();
       rt::sleep_for_ns(1'000'000);
     }
     feeder.join();
     est_thread.join();
+    if (opt_thread.joinable()) opt_thread.join();
     output.finish();
     report.estimator_cpu_s = est_cpu;
   }
@@ -445,6 +462,9 @@ ReplayReport run_replay(const ReplayOptions& opt) {
 
   report.replay = source.stats();
   report.estimator_counters = estimator.counters();
+  report.backend_summary = estimator.backend_summary();
+  report.optimizer_threaded = optimizer_thread;
+  if (const rt::LatencyHistogram* h = estimator.optimizer_latency()) report.optimizer = *h;
   report.imu_ring_drops = rings->imu.drops();
   report.frame_ring_drops = rings->frames.drops();
   report.image_pool_exhausted = rings->images.failed_acquires();
@@ -485,7 +505,9 @@ std::string replay_metrics_json(const ReplayReport& r) {
   j.key("latency").begin_object();
   histogram_json(j, "imu_to_output", r.imu_to_output);
   histogram_json(j, "tracking", r.tracking);
+  histogram_json(j, "optimizer", r.optimizer);
   j.end_object();
+  j.kv("optimizer_threaded", r.optimizer_threaded);
   j.key("records").begin_object();
   j.kv("imu", r.replay.imu_pushed).kv("frames", r.replay.frames_pushed);
   j.kv("ground_truth", r.replay.ground_truth).kv("events", r.replay.events);
@@ -586,6 +608,15 @@ std::string replay_summary(const ReplayReport& r) {
                 static_cast<unsigned long long>(c.saturated), static_cast<unsigned long long>(c.out_of_order),
                 static_cast<unsigned long long>(c.gaps));
   s += buf;
+  if (r.optimizer.count() > 0) {
+    std::snprintf(buf, sizeof buf, "optimizer (%s): %llu solves, p50 %.2f ms, p99 %.2f ms, max %.2f ms\n",
+                  r.optimizer_threaded ? "own thread" : "inline", static_cast<unsigned long long>(r.optimizer.count()),
+                  1e-6 * static_cast<double>(r.optimizer.percentile(50)),
+                  1e-6 * static_cast<double>(r.optimizer.percentile(99)),
+                  1e-6 * static_cast<double>(r.optimizer.max()));
+    s += buf;
+  }
+  if (!r.backend_summary.empty()) s += r.backend_summary + "\n";
   const InputFaultCounts& ff = r.input_faults;
   if (ff.missing + ff.out_of_order + ff.repeated + ff.no_depth + ff.imu_gaps > 0) {
     std::snprintf(buf, sizeof buf,

@@ -71,7 +71,7 @@ struct ReplayOptions {
   drivers::LogFormat format = drivers::LogFormat::kAuto;
   drivers::LogOpenOptions open;   // rig for datasets, bag topics (open.format is ignored: `format` rules)
   drivers::ReplayPace pace = drivers::ReplayPace::kLockstep;
-  std::string estimator = "vo";   // core::make_estimator name
+  std::string estimator = "window";   // core::make_estimator name
   // Allocation counting and latency statistics start after this much log time,
   // so start-up (buffers reserved, first frames) is not counted as steady state.
   int64_t warmup_ns = 2'000'000'000;
@@ -108,6 +108,9 @@ struct ReplayReport {
   rt::LatencyHistogram tracking;       // per frame, inside the estimator
   drivers::ReplayStats replay;
   core::EstimatorCounters estimator_counters;
+  std::string backend_summary;         // Estimator::backend_summary()
+  rt::LatencyHistogram optimizer;      // per solve (backends with an optimizer)
+  bool optimizer_threaded = false;     // on its own thread (realtime pace) or inline
   uint64_t imu_ring_drops = 0;
   uint64_t frame_ring_drops = 0;
   uint64_t output_ring_drops = 0;
