@@ -242,6 +242,22 @@ void drop_duplicate_imu(text::StreamLogSource& s, const std::string& file) {
   s.imu_.swap(kept);
 }
 
+void assume_imu_noise(Rig& r, text::StreamLogSource* s, std::vector<LogProblem>* problems,
+                      const std::string& where) {
+  // BMX055 / BMI055 datasheet densities (gyro 0.014 deg/s/sqrt(Hz), accel 150 ug/sqrt(Hz)) and the
+  // random walks Kestrel's simulator uses for that part.
+  r.imu.gyro_noise_density_rad_s_sqrthz = 2.4434609527920612e-04;
+  r.imu.gyro_random_walk_rad_s2_sqrthz = 2.0e-05;
+  r.imu.acc_noise_density_mps2_sqrthz = 1.4709975e-03;
+  r.imu.acc_random_walk_mps3_sqrthz = 3.2028384781419539e-03;
+  LogProblem p{where, "assumed",
+               "no IMU noise densities in the dataset: BMI055/BMX055-class figures assumed (gyro 2.44e-4 "
+               "rad/s/sqrt(Hz), "
+               "acc 1.47e-3 m/s^2/sqrt(Hz)); give yours with --rig"};
+  if (s) s->problems_.push_back(p);
+  if (problems) problems->push_back(p);
+}
+
 YAML::Node load_cv_yaml(const std::string& path) {
   std::vector<std::string> lines;
   if (!text::read_lines(path, lines)) throw std::runtime_error(path + ": cannot read");

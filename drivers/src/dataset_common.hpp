@@ -51,6 +51,12 @@ void read_tum_poses(const std::string& path, text::StreamLogSource& s,
 // reporting each; two samples at one instant would give a zero time step.
 void drop_duplicate_imu(text::StreamLogSource& s, const std::string& file);
 
+// None of the three formats states IMU noise densities, and the estimators need them. Without a
+// --rig, the figures of the Bosch BMI055/BMX055 class (the D435i's IMU; Kestrel's own IMU, as in
+// configs/sim_rgbd_bmx055.yaml) are put in and said to be assumed, naming `where`.
+void assume_imu_noise(Rig& r, text::StreamLogSource* s, std::vector<LogProblem>* problems,
+                      const std::string& where);
+
 // yaml-cpp over files that start with OpenCV's "%YAML:1.0" directive.
 YAML::Node load_cv_yaml(const std::string& path);
 

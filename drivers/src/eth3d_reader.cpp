@@ -208,6 +208,7 @@ Eth3dReader::Eth3dReader(const std::string& path_in, const Rig* rig) {
                 "no camera-IMU extrinsic in the ETH3D folder: T_BC = identity assumed (give --rig)");
       if (!s.imu_.empty())
         r.imu_rate_hz = rate_hz(s.imu_.front().value.t_ns, s.imu_.back().value.t_ns, s.imu_.size());
+      ds::assume_imu_noise(r, &s, nullptr, imu_txt);
     }
   }
 

@@ -172,54 +172,61 @@ OpenLorisReader::OpenLorisReader(const std::string& path_in, const Rig* rig) {
   double acc_fps = 0, gyro_fps = 0;
   bool have_intrinsics = false;
   if (text::is_file(sensors)) {
-    const YAML::Node y = ds::load_cv_yaml(sensors);
-    const YAML::Node c = y[kColorFrame];
-    if (c && c.IsMap()) {
-      std::vector<double> k, d;
-      double w = 0, h = 0, fps = 0;
-      if (!cv_numbers(c["intrinsics"], k) || k.size() != 4 || k[0] <= 0 || k[2] <= 0)
-        throw std::runtime_error(sensors + ": " + kColorFrame +
-                                 ".intrinsics: expected 4 numbers fx cx fy cy (fx, fy > 0)");
-      if (!cv_number(c["width"], w) || !cv_number(c["height"], h) || w < 1 || h < 1 || w > 32768 || h > 32768)
-        throw std::runtime_error(sensors + ": " + kColorFrame +
-                                 ".width/height: expected two positive integers");
-      r.rgb.width = static_cast<int>(w);
-      r.rgb.height = static_cast<int>(h);
-      r.rgb.fx = k[0], r.rgb.cx = k[1], r.rgb.fy = k[2], r.rgb.cy = k[3];
-      const std::string model =
-          c["distortion_model"] && c["distortion_model"].IsScalar() ? c["distortion_model"].Scalar() : "none";
-      r.rgb.dist = {};
-      if (model == "radial-tangential" || model == "plumb_bob" || model == "radtan")
-        r.rgb.distortion = DistortionModel::kRadTan;
-      else if (model == "equidistant" || model == "Kannala-Brandt")
-        r.rgb.distortion = DistortionModel::kEquidistant;
-      else if (model == "none")
-        r.rgb.distortion = DistortionModel::kNone;
-      else
-        throw std::runtime_error(sensors + ": " + kColorFrame + ".distortion_model: \"" + model +
-                                 "\" is not supported");
-      if (c["distortion_coefficients"]) {
-        if (!cv_numbers(c["distortion_coefficients"], d) || d.size() > 5)
+    try {
+      const YAML::Node y = ds::load_cv_yaml(sensors);
+      const YAML::Node c = y[kColorFrame];
+      if (c && c.IsMap()) {
+        std::vector<double> k, d;
+        double w = 0, h = 0, fps = 0;
+        if (!cv_numbers(c["intrinsics"], k) || k.size() != 4 || k[0] <= 0 || k[2] <= 0)
           throw std::runtime_error(sensors + ": " + kColorFrame +
-                                   ".distortion_coefficients: expected up to 5 numbers");
-        std::copy(d.begin(), d.end(), r.rgb.dist.begin());
+                                   ".intrinsics: expected 4 numbers fx cx fy cy (fx, fy > 0)");
+        if (!cv_number(c["width"], w) || !cv_number(c["height"], h) || w < 1 || h < 1 || w > 32768 ||
+            h > 32768)
+          throw std::runtime_error(sensors + ": " + kColorFrame +
+                                   ".width/height: expected two positive integers");
+        r.rgb.width = static_cast<int>(w);
+        r.rgb.height = static_cast<int>(h);
+        r.rgb.fx = k[0], r.rgb.cx = k[1], r.rgb.fy = k[2], r.rgb.cy = k[3];
+        const std::string model = c["distortion_model"] && c["distortion_model"].IsScalar()
+                                      ? c["distortion_model"].Scalar()
+                                      : "none";
+        r.rgb.dist = {};
+        if (model == "radial-tangential" || model == "plumb_bob" || model == "radtan")
+          r.rgb.distortion = DistortionModel::kRadTan;
+        else if (model == "equidistant" || model == "Kannala-Brandt")
+          r.rgb.distortion = DistortionModel::kEquidistant;
+        else if (model == "none")
+          r.rgb.distortion = DistortionModel::kNone;
+        else
+          throw std::runtime_error(sensors + ": " + kColorFrame + ".distortion_model: \"" + model +
+                                   "\" is not supported");
+        if (c["distortion_coefficients"]) {
+          if (!cv_numbers(c["distortion_coefficients"], d) || d.size() > 5)
+            throw std::runtime_error(sensors + ": " + kColorFrame +
+                                     ".distortion_coefficients: expected up to 5 numbers");
+          std::copy(d.begin(), d.end(), r.rgb.dist.begin());
+        }
+        if (cv_number(c["fps"], fps)) r.camera_rate_hz = fps;
+        have_intrinsics = true;
       }
-      if (cv_number(c["fps"], fps)) r.camera_rate_hz = fps;
-      have_intrinsics = true;
+      // Depth units: the RealSense z16 unit is 1 mm unless the file says otherwise.
+      double scale = 0;
+      const YAML::Node dnode = y["d400_depth_optical_frame"];
+      if (dnode && dnode.IsMap() && cv_number(dnode["depth_scale"], scale) && scale > 0) {
+        r.depth.scale_m_per_unit = scale;
+      } else {
+        r.depth.scale_m_per_unit = 0.001;
+        s.problem(
+            sensors, "assumed",
+            "no d400_depth_optical_frame.depth_scale: aligned depth taken as 1 mm per unit (RealSense z16)");
+      }
+      if (y["d400_accelerometer"]) cv_number(y["d400_accelerometer"]["fps"], acc_fps);
+      if (y["d400_gyroscope"]) cv_number(y["d400_gyroscope"]["fps"], gyro_fps);
+    } catch (const YAML::Exception& e) {
+      // A node of the wrong kind (a scalar where a map belongs) surfaces here.
+      throw std::runtime_error(sensors + ": unexpected structure: " + e.what());
     }
-    // Depth units: the RealSense z16 unit is 1 mm unless the file says otherwise.
-    double scale = 0;
-    const YAML::Node dnode = y["d400_depth_optical_frame"];
-    if (dnode && dnode.IsMap() && cv_number(dnode["depth_scale"], scale) && scale > 0) {
-      r.depth.scale_m_per_unit = scale;
-    } else {
-      r.depth.scale_m_per_unit = 0.001;
-      s.problem(
-          sensors, "assumed",
-          "no d400_depth_optical_frame.depth_scale: aligned depth taken as 1 mm per unit (RealSense z16)");
-    }
-    if (y["d400_accelerometer"]) cv_number(y["d400_accelerometer"]["fps"], acc_fps);
-    if (y["d400_gyroscope"]) cv_number(y["d400_gyroscope"]["fps"], gyro_fps);
   } else {
     r.depth.scale_m_per_unit = 0.001;
   }
@@ -235,7 +242,13 @@ OpenLorisReader::OpenLorisReader(const std::string& path_in, const Rig* rig) {
   // ---- trans_matrix.yaml: extrinsics. The body frame is the gyroscope's.
   FrameGraph g;
   const std::string trans = path + "/trans_matrix.yaml";
-  if (text::is_file(trans)) g.load(trans, s);
+  if (text::is_file(trans)) {
+    try {
+      g.load(trans, s);
+    } catch (const YAML::Exception& e) {
+      throw std::runtime_error(trans + ": unexpected structure: " + e.what());
+    }
+  }
   const std::string gyro_frame =
       g.first_of({"d400_gyroscope", "d400_gyro_optical_frame", "d400_imu_optical_frame", "d400_imu"});
   const std::string acc_frame =
@@ -323,6 +336,7 @@ OpenLorisReader::OpenLorisReader(const std::string& path_in, const Rig* rig) {
       s.problem(imu_file_, "imu-merge",
                 std::to_string(gap) + " samples inside a gap of the slower stream (> 4 periods); dropped");
     if (!rig || r.imu_rate_hz <= 0) r.imu_rate_hz = gyro_fast ? rg : ra;
+    if (!rig) ds::assume_imu_noise(r, &s, nullptr, sensors);
   } else if (!acc.empty() || !gyr.empty()) {
     s.problem(acc.empty() ? acc_txt : gyro_txt, "missing-file",
               "one IMU stream only: no IMU samples replayed");

@@ -384,6 +384,7 @@ RosbagReader::RosbagReader(const std::string& path, const RosbagTopics& topics, 
       return n > 1 && b > a ? (n - 1) * 1e9 / static_cast<double>(b - a) : 0.0;
     };
     if (!s.imu.empty()) {
+      ds::assume_imu_noise(r, nullptr, &s.problems, path + ":" + topics.imu);
       int64_t lo = INT64_MAX, hi = INT64_MIN;
       for (const auto& m : s.imu) lo = std::min(lo, m.t_ns), hi = std::max(hi, m.t_ns);
       r.imu_rate_hz = rate(lo, hi, s.imu.size());

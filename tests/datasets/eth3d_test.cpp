@@ -60,6 +60,9 @@ TEST(Eth3dReader, ReadsTheDocumentedLayout) {
   EXPECT_EQ(r.rgb.height, 6);
   EXPECT_EQ(r.depth.scale_m_per_unit, 1.0 / 5000.0);
   EXPECT_TRUE(has_problem(*log, "assumed", "calibration.txt")) << "T_BC = I must be said out loud";
+  EXPECT_TRUE(has_problem(*log, "assumed", "imu.txt")) << "so must the IMU noise figures";
+  EXPECT_GT(r.imu.gyro_random_walk_rad_s2_sqrthz, 0.0);
+  EXPECT_GT(r.imu.acc_noise_density_mps2_sqrthz, 0.0);
 
   const auto all = read_all(*log);
   const auto imu = of_type(all, RecordType::kImu);

@@ -67,3 +67,72 @@ TEST(OpenLogDatasets, RigOptionReachesTheDatasetReaders) {
 
 }  // namespace
 }  // namespace kestrel::test
+
+namespace kestrel::test {
+namespace {
+
+// Damaged text files (cut short, bytes changed, lines doubled) in every file of an exported
+// ETH3D and OpenLORIS folder: the reader either refuses with an error naming the file, or reads
+// what is intact and reports the rest. Never a crash, never an exception of another type.
+TEST(DatasetsMutation, DamagedTextFilesNeverCrashAReader) {
+  const std::string dir = temp_dir("datasets_mutation");
+  write_small_klog(dir + "/a.klog", small_rig(), 4);
+  {
+    auto k = drivers::open_log(dir + "/a.klog");
+    drivers::export_eth3d(*k, dir + "/eth3d");
+    drivers::export_openloris(*k, dir + "/ol");
+  }
+  const auto slurp = [](const std::string& p) {
+    std::ifstream f(p, std::ios::binary);
+    return std::string(std::istreambuf_iterator<char>(f), {});
+  };
+  uint64_t rng = 12345;
+  const auto next = [&rng] {
+    rng = rng * 6364136223846793005ull + 1442695040888963407ull;
+    return static_cast<uint32_t>(rng >> 33);
+  };
+  size_t refused = 0, read = 0;
+  for (const auto& [folder, format] :
+       {std::pair<std::string, drivers::LogFormat>{"eth3d", drivers::LogFormat::kEth3d},
+        {"ol", drivers::LogFormat::kOpenLoris}}) {
+    for (const auto& entry : std::filesystem::directory_iterator(dir + "/" + folder)) {
+      if (!entry.is_regular_file()) continue;
+      const std::string path = entry.path().string();
+      const std::string original = slurp(path);
+      for (int m = 0; m < 40; ++m) {
+        std::string s = original;
+        const size_t at = s.empty() ? 0 : next() % s.size();
+        switch (m % 4) {
+          case 0:
+            s.resize(at);
+            break;  // cut short
+          case 1:
+            if (!s.empty()) s[at] = "x-.:[{ \n9e"[next() % 11];
+            break;  // a byte changed
+          case 2:
+            s.insert(at, s.substr(at, std::min<size_t>(40, s.size() - at)));
+            break;  // bytes doubled
+          case 3:
+            s.insert(at, "\n1e309 nan -inf 99999999999999999999999 ]]]\n");
+            break;  // hostile numbers
+        }
+        write_text(path, s);
+        try {
+          auto log = drivers::open_log(dir + "/" + folder, format);
+          read_all(*log);
+          ++read;
+        } catch (const std::runtime_error& e) {
+          EXPECT_NE(std::string(e.what()).find(dir + "/" + folder), std::string::npos)
+              << e.what() << " (mutating " << path << ")";
+          ++refused;
+        }
+      }
+      write_text(path, original);
+    }
+  }
+  EXPECT_GT(read, 0u);
+  EXPECT_GT(refused, 0u);
+}
+
+}  // namespace
+}  // namespace kestrel::test
