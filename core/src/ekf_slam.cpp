@@ -58,6 +58,7 @@ void EkfSlamOptions::validate() const {
       !(acc_random_walk >= 0.0))
     fail("imu noise", "densities must be >= 0");
   if (!(gravity_mps2 > 0.0)) fail("gravity_mps2", "must be > 0");
+  if (!(rgbd_disparity_sigma_px >= 0.0)) fail("rgbd_disparity_sigma_px", "must be >= 0");
 }
 
 std::string EkfSlamOptions::describe() const {
@@ -72,6 +73,7 @@ std::string EkfSlamOptions::describe() const {
     << "max_init_depth_m: " << max_init_depth_m << "\n"
     << "max_missed_frames: " << max_missed_frames << "\n"
     << "max_consecutive_rejects: " << max_consecutive_rejects << "\n";
+  if (rgbd_disparity_sigma_px > 0.0) s << "rgbd_disparity_sigma_px: " << rgbd_disparity_sigma_px << "\n";
   if (motion == EkfMotionModel::kVelocity) {
     s << "vel_sigma_mps: " << vel_sigma_mps << "\n"
       << "gyro_vel_sigma_rps: " << gyro_vel_sigma_rps << "\n";
@@ -104,7 +106,16 @@ EkfSlam::EkfSlam(const EkfSlamOptions& options, const ekf::StereoCamera& camera)
   nmax_ = dx_ + 3 * cap_;
   chunk_ = opt_.update_chunk_landmarks;
   const double s2 = opt_.pixel_sigma_px * opt_.pixel_sigma_px;
-  R_diag_ = Vec3(s2, 0.5 * s2, s2);  // the v row is the mean of vL and vR
+  s2_ = s2;
+  R_.setZero();
+  if (opt_.rgbd_disparity_sigma_px > 0.0) {
+    // Virtual stereo: u, v and the disparity d are measured independently
+    // and uR = u - d, so uR carries u's error too (docs/ekf.md, "RGB-D").
+    const double d2 = opt_.rgbd_disparity_sigma_px * opt_.rgbd_disparity_sigma_px;
+    R_ << s2, 0, s2, 0, s2, 0, s2, 0, s2 + d2;
+  } else {
+    R_.diagonal() = Vec3(s2, 0.5 * s2, s2);  // the v row is the mean of vL and vR
+  }
 
   lm_p_.setZero(3, cap_);
   const auto cap = static_cast<size_t>(cap_);
@@ -305,7 +316,7 @@ bool EkfSlam::initialise_landmark(const StereoObservation& o) {
   cross_tmp_.topLeftCorner(3, n).noalias() = Jx * P_.topLeftCorner(kPoseDim, n);
   P_.block(a, 0, 3, n) = cross_tmp_.topLeftCorner(3, n);
   P_.block(0, a, n, 3) = cross_tmp_.topLeftCorner(3, n).transpose();
-  const Mat3 Pmm = Jx * P_.topLeftCorner<6, 6>() * Jx.transpose() + Jz * R_diag_.asDiagonal() * Jz.transpose();
+  const Mat3 Pmm = Jx * P_.topLeftCorner<6, 6>() * Jx.transpose() + Jz * R_ * Jz.transpose();
   P_.block<3, 3>(a, a) = 0.5 * (Pmm + Pmm.transpose());
   ++num_active_;
   ++counters_.landmarks_initialised;
@@ -336,12 +347,12 @@ bool EkfSlam::gate(int slot, const StereoObservation& o) const {
   Eigen::Matrix<double, 3, 9> H;
   H << Hp, Hm;
   Mat3 S = H * Ps * H.transpose();
-  S.diagonal() += R_diag_;
+  S += R_;
   const Vec3 nu(o.uL - zh(0), 0.5 * (o.vL + o.vR) - zh(1), o.uR - zh(2));
   const Eigen::LLT<Mat3> llt(S);
   if (llt.info() != Eigen::Success) return false;
   const double dv = o.vL - o.vR;
-  const double d2 = nu.dot(llt.solve(nu)) + dv * dv / (2.0 * R_diag_(0));
+  const double d2 = nu.dot(llt.solve(nu)) + dv * dv / (2.0 * s2_);
   return d2 <= opt_.gate_chi2;
 }
 
@@ -407,7 +418,7 @@ void EkfSlam::update_chunk(const int* slots, int count, EkfUpdateStats& stats) {
     Si.noalias() = Hp_[ii] * U_.topRows<6>().leftCols(m);
     Si.noalias() += Hm_[ii] * U_.middleRows<3>(a).leftCols(m);
   }
-  for (int i = 0; i < m; ++i) S_(i, i) += R_diag_(i % 3);
+  for (int i = 0; i < k; ++i) S_.block<3, 3>(3 * i, 3 * i) += R_;
   // S = L L^T in place; K = U S^-1 is never formed: W = U L^-T gives both the
   // correction W (L^-1 nu) and the covariance downdate W W^T.
   Eigen::Ref<Eigen::MatrixXd> S_ref(S_.topLeftCorner(m, m));

@@ -1,15 +1,16 @@
 #include <stdexcept>
 
+#include "kestrel/core/ekf_estimator.hpp"
 #include "kestrel/core/estimator.hpp"
 #include "kestrel/core/frontend_odometry.hpp"
 #include "kestrel/core/window_estimator.hpp"
 
 namespace kestrel::core {
 
-const char* estimator_names() { return "window, window-embedded, window-ceres, vo, imu"; }
+const char* estimator_names() { return "window, window-embedded, window-ceres, vo, ekf, imu"; }
 
 bool estimator_known(const std::string& name) {
-  return name == "vo" || name == "imu" || name == "window" || name == "window-embedded" ||
+  return name == "vo" || name == "imu" || name == "ekf" || name == "window" || name == "window-embedded" ||
          name == "window-ceres";
 }
 
@@ -23,6 +24,7 @@ std::unique_ptr<Estimator> make_estimator(const std::string& name, const Rig& ri
     if (name == "window-ceres") o.window.solver = WindowOptions::Solver::kCeres;
     return std::make_unique<WindowEstimator>(rig, o);
   }
+  if (name == "ekf") return std::make_unique<EkfEstimator>(rig);
   throw std::invalid_argument("unknown estimator '" + name + "' (expected one of: " + estimator_names() + ")");
 }
 

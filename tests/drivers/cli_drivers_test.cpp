@@ -58,6 +58,27 @@ TEST(CliDrivers, RunWithoutHardwareExitsOne) {
   EXPECT_EQ(run("run --config " + kSrc + "/configs/realsense_v4l2_bmx055_usb.yaml", out), 1) << out;
   EXPECT_NE(out.find("/dev/video4"), std::string::npos) << out;
   EXPECT_NE(out.find("USB"), std::string::npos) << out;
+  EXPECT_NE(out.find("cannot start the live sensors"), std::string::npos) << out;
+}
+
+TEST(CliDrivers, RunChecksTheEstimatorBeforeTheSensors) {
+  require_commands();
+  const auto cfg = std::filesystem::temp_directory_path() / "kestrel_cli_run_backend.yaml";
+  {
+    std::ifstream in(kSrc + "/configs/openni2_bmx055_i2c.yaml");
+    std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+    const auto at = text.find("backend: ekf");
+    ASSERT_NE(at, std::string::npos) << "the shipped config names its backend";
+    text.replace(at, 12, "backend: kalman");
+    std::ofstream(cfg) << text;
+  }
+  std::string out;
+  EXPECT_EQ(run("run --config " + cfg.string(), out), 1) << out;
+  EXPECT_NE(out.find("estimator.backend: unknown backend 'kalman'"), std::string::npos) << out;
+  EXPECT_NE(out.find("ekf"), std::string::npos) << out;   // the list of known names
+  EXPECT_EQ(run("run --config " + kSrc + "/configs/openni2_bmx055_i2c.yaml --estimator nope", out), 2) << out;
+  EXPECT_NE(out.find("unknown --estimator 'nope'"), std::string::npos) << out;
+  std::filesystem::remove(cfg);
 }
 
 TEST(CliDrivers, BadConfigNamesFileAndKey) {

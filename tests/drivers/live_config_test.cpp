@@ -29,6 +29,9 @@ TEST(LiveConfig, ShippedConfigsParse) {
   EXPECT_EQ(b.drivers.imu.usb.clock.latency_floor_ns, 125'000);
   EXPECT_TRUE(b.drivers.strobe.enabled);
   EXPECT_EQ(b.drivers.strobe.initial_offset_ns, 33'000'000);
+  // The shipped live rigs pick the EKF: the backend for small boards.
+  EXPECT_EQ(a.estimator.backend, "ekf");
+  EXPECT_EQ(b.estimator.backend, "ekf");
 }
 
 std::string with_drivers(const std::string& drivers) {
@@ -61,6 +64,18 @@ TEST(LiveConfig, ErrorsNameFileAndKey) {
                "drivers.imu.i2c.acc_i2c_addr: must be in 24..25");
   expect_error("rig:\n  camera: {width_px: 640, height_px: 480, fx: 500}\ndrivers: {}\n", "rig.camera.fx");
   expect_error(with_drivers("  camera: {type: none}\n") + "extra: 1\n", "extra: unknown key");
+}
+
+TEST(LiveConfig, EstimatorSectionIsOptionalAndChecked) {
+  EXPECT_EQ(live_config_from_yaml(with_drivers("  camera: {type: none}\n"), "x.yaml").estimator.backend, "");
+  EXPECT_EQ(live_config_from_yaml(with_drivers("  camera: {type: none}\n") + "estimator: {backend: vo}\n", "x.yaml")
+                .estimator.backend,
+            "vo");
+  expect_error(with_drivers("  camera: {type: none}\n") + "estimator: {backend: ekf, capacity: 3}\n",
+               "estimator.capacity: unknown key");
+  expect_error(with_drivers("  camera: {type: none}\n") + "estimator: ekf\n", "estimator: expected a mapping");
+  expect_error(with_drivers("  camera: {type: none}\n") + "estimator: {backend: [a, b]}\n",
+               "estimator.backend: expected a backend name");
 }
 
 TEST(LiveSensors, MissingHardwareIsNamed) {

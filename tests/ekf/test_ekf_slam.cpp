@@ -289,6 +289,15 @@ TEST(EkfSlamSim, ImuModeNeesConsistentOnFigure8) {
   expect_consistent(c, "imu");
 }
 
+// RGB-D (depth as virtual stereo, sigma_z = k z^2) with the exact noise of
+// [uL, v, uR] (docs/ekf.md, "RGB-D"): the pipeline backend's observation model.
+TEST(EkfSlamSim, ImuModeRgbdNeesConsistentOnFigure8) {
+  test::SimRunConfig c;
+  c.motion = EkfMotionModel::kImu;
+  c.rgbd_depth_coeff_per_m = 0.0025;
+  expect_consistent(c, "imu-rgbd");
+}
+
 TEST(EkfSlamSim, VelocityModeNeesConsistentOnFigure8) {
   test::SimRunConfig c;
   c.motion = EkfMotionModel::kVelocity;

@@ -59,6 +59,14 @@ struct EkfSlamOptions {
   double acc_random_walk = 3.0e-3;      // m/s^3/sqrt(Hz)
   double gravity_mps2 = 9.81;           // W has gravity along -z
 
+  // > 0: the observations are RGB-D pixels with depth as virtual stereo
+  // (virtual_stereo()): u, v and the virtual disparity d = fx b / depth are
+  // independent with stds pixel_sigma_px, pixel_sigma_px and this, so
+  // R = [[s2, 0, s2], [0, s2, 0], [s2, 0, s2 + sd2]] in [uL, v, uR] (vL = vR
+  // are one measurement, not two). With a depth noise sigma_z = k z^2 the
+  // disparity noise is fx b k whatever the depth. 0: a real stereo pair.
+  double rgbd_disparity_sigma_px = 0.0;
+
   // Throws std::invalid_argument naming the field.
   void validate() const;
   // Every effective setting, one per line.
@@ -178,7 +186,8 @@ class EkfSlam {
   int cap_ = 0;         // landmark capacity
   int nmax_ = 0;        // dx_ + 3 cap_
   int chunk_ = 32;      // landmarks per sequential update
-  Eigen::Vector3d R_diag_;  // noise of the compressed measurement [uL, v, uR]
+  Eigen::Matrix3d R_;       // noise of the compressed measurement [uL, v, uR]
+  double s2_ = 1.0;         // pixel variance
 
   // Mean.
   ekf::Pose T_WB_;

@@ -1,0 +1,130 @@
+// The EKF SLAM backend (ekf_slam.hpp, paper 003) as a pipeline estimator,
+// `--estimator ekf` / `estimator: backend: ekf`: IMU-mode EKF (pose, velocity,
+// biases and a bounded set of landmarks in one covariance) fed by the tracker's
+// correspondences as virtual-stereo observations.
+//
+// Per IMU sample: one strapdown step of the filter (pose block only).
+// Per frame: the filter is propagated to the frame time, its pose predicts the
+// tracker's search, and the tracker's observations (keyframe points with
+// persistent ids and the current frame's registered depth) update pose and
+// landmarks together. The tracker's own pose is not used: the filter is the
+// estimate. Start-up: the static initialiser of the dead-reckoning backend.
+//
+// Fixed memory: every buffer is sized in the constructor; add_imu and
+// add_frame make no heap allocation in steady state (tests/ekf). The update
+// needs ~300 KiB of stack (Eigen's GEMM panels, docs/ekf.md).
+#pragma once
+
+#include <Eigen/Geometry>
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "kestrel/core/ekf_slam.hpp"
+#include "kestrel/core/estimator.hpp"
+#include "kestrel/core/tracker.hpp"
+#include "kestrel/rt/latency_histogram.hpp"
+
+namespace kestrel::core {
+
+struct EkfEstimatorOptions {
+  TrackerOptions tracker;
+  // Active landmarks. The update costs ~ (15 + 3C)^2 * (observations) flops:
+  // 64 keeps a frame at a few ms on a small board (docs/ekf.md, figures).
+  int landmark_capacity = 64;
+  // Pixel noise of every observation. The tracker's keypoints are 1 px at
+  // level 0 and grow with the pyramid level; one value covers the mix.
+  double pixel_sigma_px = 1.5;
+  int max_missed_frames = 3;  // then a landmark leaves the filter into the map
+  double gate_chi2 = 13.28;   // 4 dof, 99 %
+  // Start-up covariance (the static initialiser fixes position and yaw by
+  // definition; roll/pitch and gyro bias come from a short still window).
+  double init_position_sigma_m = 1e-3;
+  double init_attitude_sigma_rad = 0.01;
+  double init_velocity_sigma_mps = 0.2;
+  double init_gyro_bias_sigma_rps = 0.005;
+  double init_acc_bias_sigma_mps2 = 0.1;
+  // IMU noise used when the rig gives none (EuRoC-class MEMS).
+  double default_gyro_noise_density = 1.7e-4;
+  double default_acc_noise_density = 2.0e-3;
+  double default_gyro_random_walk = 2.0e-5;
+  double default_acc_random_walk = 3.0e-3;
+  // Tracker search window: the prediction's pixel uncertainty grows with the
+  // time since the last update that used observations.
+  double pred_sigma_px_per_s = 60.0;
+  double pred_sigma_min_px = 4.0;
+  int max_lost_frames = 3;        // untracked frames before the tracker takes a new keyframe
+  int min_used_for_tracking = 5;  // observations in the update for the frame to count as tracked
+
+  // Empty when usable, else what is wrong (names the field).
+  std::string validate() const;
+};
+
+// Counters beyond the generic ones (what the filter did with the tracker's output).
+struct EkfEstimatorCounters {
+  uint64_t observations_in = 0;        // from the tracker
+  uint64_t observations_no_depth = 0;  // not usable: the EKF's model needs depth
+  uint64_t observations_dropped = 0;   // beyond the per-frame buffer
+  uint64_t frames_updated = 0;
+  uint64_t tracker_resets = 0;
+  uint64_t filter_resets = 0;  // non-finite state: restarted from the IMU state
+};
+
+class EkfEstimator final : public Estimator {
+ public:
+  EkfEstimator(const Rig& rig, const EkfEstimatorOptions& opt = {});
+  const char* name() const override { return "ekf"; }
+  bool add_imu(const ImuSample& s) override;
+  bool add_frame(const RgbdFrame& f) override;
+  const EstimatorOutput& output() const override { return out_; }
+  const EstimatorCounters& counters() const override { return counters_; }
+  // Filter counters and the time of the EKF update alone (tracking excluded).
+  std::string backend_summary() const override;
+
+  // For consistency tests: the filter's marginal pose covariance, error
+  // [rho, theta] with T_WB = T_hat exp([rho; theta]^) (docs/ekf.md).
+  ekf::Mat6 pose_covariance() const { return ekf_.pose_covariance(); }
+  bool started() const { return started_; }
+  const EkfSlam& filter() const { return ekf_; }
+  const EkfEstimatorCounters& ekf_counters() const { return ekf_counters_; }
+  const TrackResult& last_track() const { return tracker_.last(); }
+  const EkfEstimatorOptions& options() const { return opt_; }
+  // Per frame with observations: ekf_.update() alone [ns].
+  const rt::LatencyHistogram& update_latency() const { return update_latency_; }
+
+ private:
+  void start(const NavState& s0);
+  void propagate_to(int64_t t_ns);
+  void publish(int64_t t_ns);
+
+  EkfEstimatorOptions opt_;
+  Eigen::Isometry3d T_BC_ = Eigen::Isometry3d::Identity();
+  double fx_ = 1.0;
+  double baseline_m_ = 0.25;
+  int64_t max_gap_ns_ = 50'000'000;
+  int64_t max_step_ns_ = 200'000'000;
+  DeadReckoningEstimator init_;  // static initialisation only
+  Tracker tracker_;
+  EkfSlam ekf_;
+  std::vector<StereoObservation> obs_;  // capacity fixed in the constructor
+  bool started_ = false;
+  int64_t t_state_ns_ = -1;  // time of the filter's mean
+  int64_t last_imu_t_ns_ = -1;
+  Eigen::Vector3d last_gyro_ = Eigen::Vector3d::Zero();
+  Eigen::Vector3d last_acc_ = Eigen::Vector3d::Zero();
+  bool have_last_ = false;
+  int64_t last_tracked_t_ns_ = -1;
+  int lost_frames_ = 0;
+  EstimatorOutput out_;
+  EstimatorCounters counters_;
+  EkfEstimatorCounters ekf_counters_;
+  rt::LatencyHistogram update_latency_;
+};
+
+// The filter options the estimator derives from a rig: camera model and
+// virtual baseline (so the virtual disparity's noise matches the depth
+// sensor's sigma(z) = k z^2), depth range, IMU noise.
+EkfSlamOptions ekf_slam_options_for(const Rig& rig, const EkfEstimatorOptions& opt, ekf::StereoCamera* cam,
+                                    double* baseline_m);
+
+}  // namespace kestrel::core

@@ -1,0 +1,303 @@
+#include "kestrel/core/ekf_estimator.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <sstream>
+#include <stdexcept>
+
+#include "kestrel/rt/clock.hpp"
+
+namespace kestrel::core {
+namespace {
+
+Eigen::Isometry3d to_isometry(const Mat4d& T) {
+  Eigen::Isometry3d out = Eigen::Isometry3d::Identity();
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 4; ++c) out.matrix()(r, c) = T[static_cast<size_t>(r * 4 + c)];
+  return out;
+}
+
+double positive_or(double v, double fallback) { return v > 0.0 ? v : fallback; }
+
+bool finite_state(const EkfSlam& f) {
+  return f.pose().R.allFinite() && f.pose().p.allFinite() && f.v_WB().allFinite() &&
+         f.gyro_bias().allFinite() && f.acc_bias().allFinite();
+}
+
+// A depth sensor with no error model: the structured-light default of msgs.hpp.
+constexpr double kDefaultDepthCoeffPerM = 0.0025;
+// Any value works (the disparity noise is set to match the depth noise); one
+// that keeps the virtual right pixel near the image is easier to read in logs.
+constexpr double kVirtualBaselineM = 0.1;
+
+}  // namespace
+
+std::string EkfEstimatorOptions::validate() const {
+  std::ostringstream e;
+  const std::string t = tracker.validate();
+  if (!t.empty()) e << t;
+  if (landmark_capacity < 4 || landmark_capacity > 512) e << "landmark_capacity: in [4, 512]\n";
+  if (!(pixel_sigma_px > 0)) e << "pixel_sigma_px: must be > 0\n";
+  if (max_missed_frames < 0) e << "max_missed_frames: must be >= 0\n";
+  if (!(gate_chi2 > 0)) e << "gate_chi2: must be > 0\n";
+  if (!(init_position_sigma_m > 0 && init_attitude_sigma_rad > 0 && init_velocity_sigma_mps > 0 &&
+        init_gyro_bias_sigma_rps > 0 && init_acc_bias_sigma_mps2 > 0))
+    e << "init_*_sigma: must be > 0\n";
+  if (!(pred_sigma_min_px > 0 && pred_sigma_px_per_s >= 0)) e << "pred_sigma_*: min > 0, rate >= 0\n";
+  if (max_lost_frames < 1) e << "max_lost_frames: at least 1\n";
+  return e.str();
+}
+
+EkfSlamOptions ekf_slam_options_for(const Rig& rig, const EkfEstimatorOptions& opt, ekf::StereoCamera* cam,
+                                    double* baseline_m) {
+  EkfSlamOptions o;
+  o.motion = EkfMotionModel::kImu;
+  o.landmark_capacity = opt.landmark_capacity;
+  o.max_observations = std::max(1, opt.tracker.orb.n_features);
+  o.pixel_sigma_px = opt.pixel_sigma_px;
+  o.gate_chi2 = opt.gate_chi2;
+  o.min_depth_m = positive_or(rig.depth.min_range_m, 0.1);
+  o.max_init_depth_m = std::max(positive_or(rig.depth.max_range_m, 8.0), o.min_depth_m + 0.1);
+  o.max_missed_frames = opt.max_missed_frames;
+  o.gyro_noise_density = positive_or(rig.imu.gyro_noise_density_rad_s_sqrthz, opt.default_gyro_noise_density);
+  o.acc_noise_density = positive_or(rig.imu.acc_noise_density_mps2_sqrthz, opt.default_acc_noise_density);
+  o.gyro_random_walk = positive_or(rig.imu.gyro_random_walk_rad_s2_sqrthz, opt.default_gyro_random_walk);
+  o.acc_random_walk = positive_or(rig.imu.acc_random_walk_mps3_sqrthz, opt.default_acc_random_walk);
+  o.gravity_mps2 = positive_or(rig.gravity_mps2, 9.81);
+  // Depth noise sigma_z = k z^2 is a disparity noise fx b k, the same at every depth.
+  const double k = positive_or(rig.depth.sigma_coeff_per_m, kDefaultDepthCoeffPerM);
+  o.rgbd_disparity_sigma_px = rig.rgb.fx * kVirtualBaselineM * k;
+  if (cam != nullptr) {
+    cam->fsu = rig.rgb.fx;
+    cam->fsv = rig.rgb.fy;
+    cam->cu = rig.rgb.cx;
+    cam->cv = rig.rgb.cy;
+    cam->baseline_m = kVirtualBaselineM;
+    const Eigen::Isometry3d T_CB = to_isometry(rig.T_BC).inverse();
+    cam->T_CB = ekf::Pose(T_CB.linear(), T_CB.translation());
+  }
+  if (baseline_m != nullptr) *baseline_m = kVirtualBaselineM;
+  return o;
+}
+
+namespace {
+EkfSlam make_filter(const Rig& rig, const EkfEstimatorOptions& opt) {
+  const std::string err = opt.validate();
+  if (!err.empty()) throw std::invalid_argument("EkfEstimatorOptions:\n" + err);
+  if (rig.rgb.fx <= 0 || rig.rgb.fy <= 0)
+    throw std::invalid_argument("ekf estimator: the rig has no camera intrinsics (camera.fx_px, fy_px)");
+  ekf::StereoCamera cam;
+  const EkfSlamOptions o = ekf_slam_options_for(rig, opt, &cam, nullptr);
+  return EkfSlam(o, cam);
+}
+}  // namespace
+
+EkfEstimator::EkfEstimator(const Rig& rig, const EkfEstimatorOptions& opt)
+    : opt_(opt),
+      T_BC_(to_isometry(rig.T_BC)),
+      fx_(rig.rgb.fx),
+      init_(rig),
+      tracker_(rig, opt.tracker),
+      ekf_(make_filter(rig, opt)) {
+  ekf_slam_options_for(rig, opt_, nullptr, &baseline_m_);
+  const ImuPropagatorOptions p = imu_propagator_options(rig);
+  max_gap_ns_ = p.max_gap_ns;
+  max_step_ns_ = p.max_integration_step_ns;
+  obs_.resize(static_cast<size_t>(std::max(1, opt_.tracker.orb.n_features)));
+}
+
+void EkfEstimator::start(const NavState& s0) {
+  ekf::Mat6 P0 = ekf::Mat6::Zero();
+  P0.diagonal().head<3>().setConstant(opt_.init_position_sigma_m * opt_.init_position_sigma_m);
+  P0.diagonal().tail<3>().setConstant(opt_.init_attitude_sigma_rad * opt_.init_attitude_sigma_rad);
+  ekf_.reset_imu(ekf::Pose(s0.q_WB.normalized().toRotationMatrix(), s0.p_WB), s0.v_WB, s0.bg_rps, s0.ba_mps2,
+                 P0, opt_.init_velocity_sigma_mps, opt_.init_gyro_bias_sigma_rps,
+                 opt_.init_acc_bias_sigma_mps2);
+  t_state_ns_ = s0.t_ns;
+  started_ = true;
+  tracker_.reset();
+  last_tracked_t_ns_ = -1;
+  lost_frames_ = 0;
+  ++counters_.resets;
+  out_.reset_counter = static_cast<uint32_t>(counters_.resets);
+}
+
+void EkfEstimator::publish(int64_t t_ns) {
+  NavState& s = out_.state;
+  s.t_ns = t_ns;
+  s.p_WB = ekf_.pose().p;
+  s.q_WB = Eigen::Quaterniond(ekf_.pose().R).normalized();
+  s.v_WB = ekf_.v_WB();
+  s.bg_rps = ekf_.gyro_bias();
+  s.ba_mps2 = ekf_.acc_bias();
+}
+
+void EkfEstimator::propagate_to(int64_t t_ns) {
+  const int64_t dt_ns = t_ns - t_state_ns_;
+  if (dt_ns <= 0 || !have_last_) return;
+  if (dt_ns > max_step_ns_) {
+    // Integrating a long gap with one held sample invents motion; hold.
+    t_state_ns_ = t_ns;
+    return;
+  }
+  ekf_.propagate_imu(last_gyro_, last_acc_, 1e-9 * static_cast<double>(dt_ns));
+  t_state_ns_ = t_ns;
+}
+
+bool EkfEstimator::add_imu(const ImuSample& s) {
+  ++counters_.imu_in;
+  if (!started_) {
+    // The dead-reckoning backend's static initialiser gives the first state.
+    if (!init_.add_imu(s)) {
+      counters_.imu_rejects = init_.counters().imu_rejects;
+      return false;
+    }
+    start(init_.output().state);
+  }
+  if (!imu_sample_usable(s)) {
+    bool finite = true;
+    for (int i = 0; i < 3; ++i)
+      finite = finite && std::isfinite(s.gyro_rps[i]) && std::isfinite(s.acc_mps2[i]);
+    if (!finite || (s.flags & kImuNonFinite)) {
+      ++counters_.imu_rejects.non_finite;
+    } else {
+      ++counters_.imu_rejects.saturated;
+    }
+    return false;
+  }
+  if (last_imu_t_ns_ >= 0 && s.t_ns <= last_imu_t_ns_) {
+    ++counters_.imu_rejects.out_of_order;
+    return false;
+  }
+  const Eigen::Vector3d gyro(s.gyro_rps[0], s.gyro_rps[1], s.gyro_rps[2]);
+  const Eigen::Vector3d acc(s.acc_mps2[0], s.acc_mps2[1], s.acc_mps2[2]);
+  if (last_imu_t_ns_ >= 0 && s.t_ns - last_imu_t_ns_ > max_gap_ns_) ++counters_.imu_rejects.gaps;
+  if (have_last_ && s.t_ns > t_state_ns_) {
+    // The filter holds one input over the step; the mean of the two samples
+    // around it is the midpoint rule (the step may start at a frame time).
+    const int64_t dt_ns = s.t_ns - t_state_ns_;
+    if (dt_ns <= max_step_ns_) {
+      ekf_.propagate_imu(0.5 * (last_gyro_ + gyro), 0.5 * (last_acc_ + acc),
+                         1e-9 * static_cast<double>(dt_ns));
+    }
+  }
+  if (s.t_ns > t_state_ns_) t_state_ns_ = s.t_ns;
+  last_gyro_ = gyro;
+  last_acc_ = acc;
+  have_last_ = true;
+  last_imu_t_ns_ = s.t_ns;
+  ++counters_.imu_used;
+  if (!finite_state(ekf_)) {
+    ++ekf_counters_.filter_resets;
+    NavState s0 = out_.state;
+    s0.t_ns = s.t_ns;
+    start(s0);
+  }
+  publish(t_state_ns_);
+  if (out_.quality == TrackingQuality::kUninitialized) out_.quality = TrackingQuality::kImuOnly;
+  return true;
+}
+
+bool EkfEstimator::add_frame(const RgbdFrame& f) {
+  ++counters_.frames_in;
+  if (!started_) return false;
+  // The mean is at the last IMU sample, up to one IMU period before the
+  // frame: carry it to the frame time with that sample, so the update and
+  // the tracker's prediction refer to the exposure.
+  propagate_to(f.t_ns);
+  const ekf::Pose& T = ekf_.pose();
+  Eigen::Isometry3d T_WB = Eigen::Isometry3d::Identity();
+  T_WB.linear() = T.R;
+  T_WB.translation() = T.p;
+  const double since_s = last_tracked_t_ns_ < 0
+                             ? 1.0
+                             : 1e-9 * static_cast<double>(std::max<int64_t>(0, f.t_ns - last_tracked_t_ns_));
+  const double sigma_px = std::max(opt_.pred_sigma_min_px, opt_.pred_sigma_px_per_s * since_s);
+  const TrackResult& r = tracker_.track(f.t_ns, f.rgb, f.depth, T_WB * T_BC_, sigma_px);
+
+  const int n_in = tracker_.num_observations();
+  const WindowObservation* in = tracker_.observations();
+  int n = 0;
+  for (int i = 0; i < n_in; ++i) {
+    const WindowObservation& o = in[i];
+    if (!(o.depth_m > 0.0)) {
+      ++ekf_counters_.observations_no_depth;
+      continue;
+    }
+    if (n >= static_cast<int>(obs_.size())) {
+      ++ekf_counters_.observations_dropped;
+      continue;
+    }
+    obs_[static_cast<size_t>(n++)] =
+        virtual_stereo(o.landmark_id, o.uv.x(), o.uv.y(), o.depth_m, fx_, baseline_m_);
+  }
+  ekf_counters_.observations_in += static_cast<uint64_t>(n_in);
+
+  int used = 0;
+  if (n > 0) {
+    // Also freezes the landmarks the tracker no longer sees (none of their
+    // ids in this frame's list) after max_missed_frames.
+    const int64_t t0 = rt::now_ns();
+    const EkfUpdateStats st = ekf_.update(obs_.data(), n);
+    update_latency_.record(rt::now_ns() - t0);
+    used = st.used;
+    ++ekf_counters_.frames_updated;
+  } else if (r.status != TrackStatus::kNoImage && r.status != TrackStatus::kFeatureError) {
+    // An empty update still counts the miss of every active landmark.
+    ekf_.update(nullptr, 0);
+  }
+  // The estimator keeps no map: frozen landmarks are dropped here.
+  ekf_.clear_frozen();
+  if (!finite_state(ekf_)) {
+    ++ekf_counters_.filter_resets;
+    NavState s0 = out_.state;
+    s0.t_ns = f.t_ns;
+    start(s0);
+    return false;
+  }
+  publish(f.t_ns);
+
+  const bool tracked = r.tracked() && used >= opt_.min_used_for_tracking;
+  if (tracked || r.status == TrackStatus::kNewKeyframe) {
+    out_.quality = TrackingQuality::kTracking;
+    last_tracked_t_ns_ = f.t_ns;
+    lost_frames_ = 0;
+    ++counters_.frames_used;
+    return true;
+  }
+  // Not tracked: coast on the IMU; after a few frames take a new keyframe at
+  // the filter's pose rather than matching an ever staler one.
+  ++lost_frames_;
+  out_.quality = TrackingQuality::kImuOnly;
+  if (lost_frames_ >= opt_.max_lost_frames && tracker_.has_keyframe()) {
+    tracker_.reset();
+    ++ekf_counters_.tracker_resets;
+    lost_frames_ = 0;
+  }
+  return true;
+}
+
+std::string EkfEstimator::backend_summary() const {
+  const EkfCounters& c = ekf_.counters();
+  const EkfEstimatorCounters& e = ekf_counters_;
+  char buf[640];
+  auto ms = [this](double p) {
+    return update_latency_.count() > 0 ? 1e-6 * static_cast<double>(update_latency_.percentile(p)) : 0.0;
+  };
+  std::snprintf(
+      buf, sizeof buf,
+      "ekf: %d of %d landmarks active; initialised %llu, frozen %llu, dropped %llu, capacity full %llu; "
+      "observations %llu in, %llu used, %llu gated, %llu without depth; tracker resets %llu, filter "
+      "resets %llu; update p50 %.2f ms, p99 %.2f ms, max %.2f ms",
+      ekf_.num_active(), ekf_.options().landmark_capacity, (unsigned long long)c.landmarks_initialised,
+      (unsigned long long)c.landmarks_frozen, (unsigned long long)c.landmarks_dropped,
+      (unsigned long long)c.capacity_full, (unsigned long long)e.observations_in,
+      (unsigned long long)c.observations_used, (unsigned long long)c.observations_gated,
+      (unsigned long long)e.observations_no_depth, (unsigned long long)e.tracker_resets,
+      (unsigned long long)e.filter_resets, ms(50), ms(99),
+      update_latency_.count() > 0 ? 1e-6 * static_cast<double>(update_latency_.max()) : 0.0);
+  return buf;
+}
+
+}  // namespace kestrel::core
