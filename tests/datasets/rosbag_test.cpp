@@ -37,8 +37,10 @@ sensor_msgs::Image image_msg(int64_t t_ns, const std::string& enc, int bpp) {
 }
 
 // A D435i-like bag: IMU at 200 Hz, colour (rgb8, then bgr8, then mono8) and 16UC1 / 32FC1 depth at 10 Hz.
-void write_d435i_bag(const std::string& path, bool camera_info = true, bool stray_type = false) {
+void write_d435i_bag(const std::string& path, bool camera_info = true, bool stray_type = false,
+                     rosbag::compression::CompressionType compression = rosbag::compression::Uncompressed) {
   rosbag::Bag bag(path, rosbag::bagmode::Write);
+  bag.setCompression(compression);
   const int64_t t0 = 1'600'000'000'000'000'000;
   for (int i = 0; i < 60; ++i) {
     const int64_t t = t0 + int64_t{i} * 5'000'000;
@@ -119,6 +121,19 @@ TEST(RosbagReader, ReadsImuImagesAndCameraInfo) {
   EXPECT_EQ(v, 1000) << "32FC1 metres become millimetres";
   std::memcpy(&v, depth[1].image.pixels.data() + 2 * 5, 2);
   EXPECT_EQ(v, 0) << "NaN depth is invalid";
+}
+
+TEST(RosbagReader, ReadsCompressedBags) {
+  ASSERT_TRUE(drivers::rosbag_built());
+  const std::string dir = temp_dir("rosbag_compressed");
+  for (const auto c : {rosbag::compression::BZ2, rosbag::compression::LZ4}) {
+    write_d435i_bag(dir + "/c.bag", true, false, c);
+    drivers::RosbagReader log(dir + "/c.bag");
+    const auto all = read_all(log);
+    EXPECT_EQ(of_type(all, RecordType::kImu).size(), 60u);
+    ASSERT_EQ(of_type(all, RecordType::kRgb).size(), 3u);
+    EXPECT_EQ(of_type(all, RecordType::kRgb)[0].image.pixels[12], static_cast<uint8_t>(14 * 3 + 1));
+  }
 }
 
 TEST(RosbagReader, MissingCameraInfoNamesTheFieldOrTakesTheRig) {
