@@ -13,7 +13,11 @@
 #include "kestrel/core/estimator.hpp"
 #include "kestrel/drivers/devices.hpp"
 #include "kestrel/drivers/sensor_rings.hpp"
+#include "kestrel/mavlink/odometry_stream.hpp"
+#include "kestrel/replay_runner.hpp"
 #include "kestrel/rt/clock.hpp"
+#include "kestrel/rt/mailbox.hpp"
+#include "kestrel/rt/spsc_ring.hpp"
 
 namespace kestrel::cli {
 namespace {
@@ -70,6 +74,15 @@ struct RunArgs {
   std::string config;
   std::string estimator;
   double duration_s = 0;
+  std::string mavlink_udp;
+};
+
+// A pose crossing from the estimator thread to the output (main) thread.
+struct RunPose {
+  int64_t t_ns;
+  double p[3], q[4], v[3], w[3];
+  core::TrackingQuality quality;
+  uint32_t reset_counter;
 };
 
 // A frame waits for the IMU up to its time at most this long (wall clock):
@@ -86,6 +99,8 @@ Subcommand add_run_command(CLI::App& parent) {
                   std::string("backend: ") + core::estimator_names() +
                       " (default: the config's estimator.backend, else vo)");
   app->add_option("--duration", a->duration_s, "seconds to run (0 = until Ctrl-C)")->capture_default_str();
+  app->add_option("--mavlink-udp", a->mavlink_udp,
+                  "stream MAVLink v2 ODOMETRY to HOST:PORT at the pose rate (flight controller; docs/px4.md)");
   app->footer("Runs: live drivers -> sensor rings -> estimator thread (IMU and frames in time order).\n"
               "Without the sensors it exits with 1 naming what is missing.");
   Subcommand s;
@@ -104,6 +119,16 @@ Subcommand add_run_command(CLI::App& parent) {
                                  "' (expected one of: " + core::estimator_names() + ")");
       backend = cfg.estimator.backend;
     }
+    std::unique_ptr<mavlink::OdometryStream> odometry;
+    if (!a->mavlink_udp.empty()) {
+      std::string host;
+      uint16_t port = 0;
+      if (!mavlink::parse_endpoint(a->mavlink_udp, host, port))
+        throw UsageError("--mavlink-udp '" + a->mavlink_udp + "': expected HOST:PORT with PORT in 1..65535");
+      mavlink::OdometryStreamOptions mo;
+      mo.endpoint = a->mavlink_udp;
+      odometry = std::make_unique<mavlink::OdometryStream>(mo);
+    }
     drivers::LiveSensors sensors(cfg);
     const size_t max_image = static_cast<size_t>(cfg.drivers.camera.width_px) * cfg.drivers.camera.height_px * 3;
     auto rings = std::make_unique<drivers::SensorRings>(max_image);
@@ -117,16 +142,82 @@ Subcommand add_run_command(CLI::App& parent) {
     std::signal(SIGTERM, run_on_signal);
     std::atomic<bool> consumer_stop{false};
     std::atomic<uint64_t> frames_seen{0}, imu_seen{0};
+    // Poses and the 1 Hz status leave the estimator thread without a lock or
+    // an allocation; the main thread sends and prints them.
+    auto poses = std::make_unique<rt::SpscRing<RunPose, 1024>>();
+    auto status = std::make_unique<rt::Mailbox<PipelineStatus>>();
     std::thread consumer([&] {
       int64_t last_imu_t_ns = -1;
       int64_t frame_waiting_since_ns = -1;
+      int64_t last_frame_t_ns = -1, last_pose_t_ns = -1, first_t_ns = -1, next_status_ns = 0;
+      int64_t track_max_ns = 0, imu_max_ns = 0;
+      uint64_t frames_at_status = 0;
+      Eigen::Vector3d gyro = Eigen::Vector3d::Zero();
+      auto emit = [&](int64_t now_t_ns) {
+        const core::EstimatorOutput& o = est->output();
+        if (o.quality == core::TrackingQuality::kUninitialized) return;
+        RunPose p{};
+        p.t_ns = o.state.t_ns;
+        for (int i = 0; i < 3; ++i) {
+          p.p[i] = o.state.p_WB[i];
+          p.v[i] = o.state.v_WB[i];
+          p.w[i] = gyro[i] - o.state.bg_rps[i];
+        }
+        p.q[0] = o.state.q_WB.w();
+        p.q[1] = o.state.q_WB.x();
+        p.q[2] = o.state.q_WB.y();
+        p.q[3] = o.state.q_WB.z();
+        p.quality = o.quality;
+        // No frame for 150 ms: the pose is IMU propagation, whatever the backend last said.
+        if (p.quality == core::TrackingQuality::kTracking && (last_frame_t_ns < 0 || now_t_ns - last_frame_t_ns > 150'000'000))
+          p.quality = core::TrackingQuality::kImuOnly;
+        p.reset_counter = o.reset_counter;
+        (void)poses->try_push(p);   // full: counted in drops(), reported at the end
+        last_pose_t_ns = now_t_ns;
+      };
+      auto maybe_status = [&](int64_t t_ns) {
+        if (first_t_ns < 0) {
+          first_t_ns = t_ns;
+          next_status_ns = t_ns + 1'000'000'000;
+        }
+        if (t_ns < next_status_ns) return;
+        while (next_status_ns <= t_ns) next_status_ns += 1'000'000'000;
+        PipelineStatus st;
+        st.t_ns = t_ns;
+        st.t_s = 1e-9 * static_cast<double>(t_ns - first_t_ns);
+        st.quality = est->output().quality;
+        st.reset_counter = est->output().reset_counter;
+        frame_stats(*est, st.features, st.inliers);
+        st.frames_total = frames_seen.load(std::memory_order_relaxed);
+        st.frames_in_window = st.frames_total - frames_at_status;
+        frames_at_status = st.frames_total;
+        st.tracking_max_ns = track_max_ns;
+        st.imu_to_output_max_ns = imu_max_ns;
+        track_max_ns = imu_max_ns = 0;
+        st.imu_ring_drops = rings->imu.drops();
+        st.frame_ring_drops = rings->frames.drops() + frames.drops;
+        const core::ImuRejectCounts& r = est->counters().imu_rejects;
+        st.imu_rejected = r.non_finite + r.saturated + r.out_of_order;
+        st.imu_gaps = r.gaps;
+        st.input_faults.imu_gaps = r.gaps;
+        status->publish(st);
+      };
       while (!consumer_stop.load(std::memory_order_relaxed)) {
         bool any = false;
         for (;;) {
           ImuSample* s = rings->imu.front();
           RgbdFrameMsg* m = rings->frames.front();
           if (s != nullptr && (m == nullptr || s->t_ns <= m->t_ns)) {
-            est->add_imu(*s);
+            maybe_status(s->t_ns);
+            if (est->add_imu(*s)) {
+              // From the driver's receive stamp: the sample's whole way to a pose.
+              const int64_t lat = rt::now_ns() - s->t_recv_ns;
+              if (lat > imu_max_ns) imu_max_ns = lat;
+              gyro = Eigen::Vector3d(s->gyro_rps[0], s->gyro_rps[1], s->gyro_rps[2]);
+              if ((last_frame_t_ns < 0 || s->t_ns - last_frame_t_ns > 150'000'000) &&
+                  (last_pose_t_ns < 0 || s->t_ns - last_pose_t_ns >= 50'000'000))
+                emit(s->t_ns);
+            }
             imu_seen.fetch_add(1, std::memory_order_relaxed);
             last_imu_t_ns = s->t_ns;
             rings->imu.pop();
@@ -145,7 +236,12 @@ Subcommand add_run_command(CLI::App& parent) {
           f.seq = m->seq;
           if (const auto* b = rings->images.get(m->rgb_handle)) f.rgb = b->view();
           if (const auto* b = rings->images.get(m->depth_handle)) f.depth = b->view();
+          const int64_t t_track0 = rt::now_ns();
           est->add_frame(f);
+          const int64_t t_track = rt::now_ns() - t_track0;
+          if (t_track > track_max_ns) track_max_ns = t_track;
+          last_frame_t_ns = m->t_ns;
+          emit(m->t_ns);
           rings->images.release(m->rgb_handle);
           if (m->depth_handle != rt::kInvalidHandle) rings->images.release(m->depth_handle);
           rings->frames.pop();
@@ -158,13 +254,36 @@ Subcommand add_run_command(CLI::App& parent) {
     const int64_t t0 = rt::now_ns();
     sensors.start(imu, frames);
     int64_t next_print = t0 + 1'000'000'000;
+    uint64_t status_version = 0;
     while (!g_run_stop.load() && (a->duration_s <= 0 || rt::now_ns() - t0 < static_cast<int64_t>(a->duration_s * 1e9))) {
-      rt::sleep_for_ns(100'000'000);
+      rt::sleep_for_ns(2'000'000);
+      RunPose p;
+      while (poses->try_pop(p)) {
+        if (!odometry) continue;
+        mavlink::OdometryInput in;
+        in.t_ns = p.t_ns;
+        in.p_WB = Eigen::Vector3d(p.p[0], p.p[1], p.p[2]);
+        in.q_WB = Eigen::Quaterniond(p.q[0], p.q[1], p.q[2], p.q[3]);
+        in.v_WB = Eigen::Vector3d(p.v[0], p.v[1], p.v[2]);
+        in.omega_B_rps = Eigen::Vector3d(p.w[0], p.w[1], p.w[2]);
+        in.quality = p.quality;
+        in.reset_counter = p.reset_counter;
+        odometry->publish(in);
+      }
       if (rt::now_ns() >= next_print) {
         next_print += 1'000'000'000;
-        std::printf("t=%5.1f s  imu %llu  frames %llu  ring drops imu %llu frames %llu\n", (rt::now_ns() - t0) * 1e-9,
-                    (unsigned long long)imu_seen.load(), (unsigned long long)frames_seen.load(),
-                    (unsigned long long)rings->imu.drops(), (unsigned long long)(rings->frames.drops() + frames.drops));
+        PipelineStatus st;
+        uint64_t v = 0;
+        if (status->read(st, &v) && v != status_version) {
+          status_version = v;
+          std::printf("%s\n", format_status(st).c_str());
+        } else {
+          // No sample reached the estimator in the last second: say what arrives at all.
+          std::printf("t=%5.1f s  imu %llu  frames %llu  ring drops imu %llu frames %llu\n", (rt::now_ns() - t0) * 1e-9,
+                      (unsigned long long)imu_seen.load(), (unsigned long long)frames_seen.load(),
+                      (unsigned long long)rings->imu.drops(), (unsigned long long)(rings->frames.drops() + frames.drops));
+        }
+        std::fflush(stdout);
       }
     }
     sensors.stop();
@@ -173,6 +292,10 @@ Subcommand add_run_command(CLI::App& parent) {
     std::signal(SIGINT, SIG_DFL);
     std::signal(SIGTERM, SIG_DFL);
     std::printf("%s", sensors.report().c_str());
+    if (odometry)
+      std::printf("MAVLink ODOMETRY to %s: %llu sent, %llu failed, %llu pose-ring drops\n", odometry->endpoint().c_str(),
+                  (unsigned long long)odometry->stats().sent, (unsigned long long)odometry->stats().failed,
+                  (unsigned long long)poses->drops());
     const auto& c = est->counters();
     const auto& o = est->output();
     std::printf("estimator %s: imu %llu used of %llu, frames %llu used of %llu, resets %llu; last pose t=%.3f s "

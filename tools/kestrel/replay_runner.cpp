@@ -11,10 +11,12 @@
 #include <thread>
 
 #include "kestrel/core/frontend_odometry.hpp"
+#include "kestrel/core/window_estimator.hpp"
 #include "kestrel/json_writer.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"
 #include "kestrel/rt/alloc_counter.hpp"
 #include "kestrel/rt/clock.hpp"
+#include "kestrel/rt/history_ring.hpp"
 #include "kestrel/rt/mailbox.hpp"
 #include "kestrel/rt/spsc_ring.hpp"
 #include "kestrel/rt/thread_setup.hpp"
@@ -35,6 +37,111 @@ struct OutPose {
 };
 
 constexpr std::size_t kOutRingCapacity = 16384;
+
+using ImuRing = rt::SpscRing<ImuSample, drivers::kImuRingCapacity>;
+
+// The estimator's newest state, handed to the IMU-rate propagation thread.
+struct Anchor {
+  int64_t t_ns;
+  double p[3], q[4], v[3], bg[3], ba[3];
+};
+
+Anchor to_anchor(const core::NavState& x) {
+  Anchor a{};
+  a.t_ns = x.t_ns;
+  for (int i = 0; i < 3; ++i) {
+    a.p[i] = x.p_WB[i];
+    a.v[i] = x.v_WB[i];
+    a.bg[i] = x.bg_rps[i];
+    a.ba[i] = x.ba_mps2[i];
+  }
+  a.q[0] = x.q_WB.w();
+  a.q[1] = x.q_WB.x();
+  a.q[2] = x.q_WB.y();
+  a.q[3] = x.q_WB.z();
+  return a;
+}
+
+core::NavState from_anchor(const Anchor& a) {
+  core::NavState x;
+  x.t_ns = a.t_ns;
+  x.p_WB = Eigen::Vector3d(a.p[0], a.p[1], a.p[2]);
+  x.v_WB = Eigen::Vector3d(a.v[0], a.v[1], a.v[2]);
+  x.bg_rps = Eigen::Vector3d(a.bg[0], a.bg[1], a.bg[2]);
+  x.ba_mps2 = Eigen::Vector3d(a.ba[0], a.ba[1], a.ba[2]);
+  x.q_WB = Eigen::Quaterniond(a.q[0], a.q[1], a.q[2], a.q[3]);
+  return x;
+}
+
+// Realtime pace: the IMU-rate pose must not wait while the estimator thread
+// tracks a frame (several ms). This stage is the sensor IMU ring's consumer:
+// it forwards every sample to the estimator thread and propagates the
+// estimator's newest state (a seqlock mailbox, re-propagated over the
+// samples the estimator has not reached yet) to the newest sample at once.
+// Backend-agnostic: it needs only EstimatorOutput::state.
+class PropagatorStage {
+ public:
+  PropagatorStage(ImuRing& in, ImuRing& to_estimator, const rt::Mailbox<Anchor>& anchor, const Rig& rig,
+                  const ReplayOptions& opt, ReplayReport& report)
+      : in_(in), to_est_(to_estimator), anchor_(anchor), prop_(core::imu_propagator_options(rig)), opt_(opt),
+        report_(report) {}
+
+  bool step() {
+    bool any = false;
+    while (ImuSample* p = in_.front()) {
+      const ImuSample s = *p;
+      in_.pop();
+      any = true;
+      if (!to_est_.try_push(s)) ++report_.propagator_forward_drops;
+      if (first_t_ns_ < 0) first_t_ns_ = s.t_ns;
+      if (!counting_ && s.t_ns - first_t_ns_ >= opt_.warmup_ns) {
+        counting_ = true;
+        allocs_at_warmup_ = rt::alloc_count_this_thread();
+      }
+      refresh_anchor();
+      history_.push(s);
+      if (have_anchor_ && prop_.propagate(s)) {
+        newest_ = prop_.state();
+        if (counting_) report_.imu_to_output.record(rt::now_ns() - s.t_recv_ns);
+      }
+    }
+    return any;
+  }
+
+  void finish() {
+    if (counting_) report_.steady_allocs += static_cast<int64_t>(rt::alloc_count_this_thread() - allocs_at_warmup_);
+  }
+
+ private:
+  void refresh_anchor() {
+    Anchor a;
+    uint64_t version = 0;
+    if (!anchor_.read(a, &version) || version == anchor_version_) return;
+    anchor_version_ = version;
+    prop_.reset(from_anchor(a));
+    have_anchor_ = true;
+    // The sample at the anchor's time re-anchors the integration, later ones
+    // carry the state to the newest sample.
+    size_t k = 0;
+    while (k < history_.size() && history_[k].t_ns < a.t_ns) ++k;
+    history_.pop_front(k);
+    for (size_t i = 0; i < history_.size(); ++i) prop_.propagate(history_[i]);
+  }
+
+  ImuRing& in_;
+  ImuRing& to_est_;
+  const rt::Mailbox<Anchor>& anchor_;
+  core::ImuPropagator prop_;
+  const ReplayOptions& opt_;
+  ReplayReport& report_;
+  rt::HistoryRing<ImuSample, 1024> history_;   // 2.5 s at 400 Hz: longer than any tracking step
+  uint64_t anchor_version_ = 0;
+  bool have_anchor_ = false;
+  core::NavState newest_;
+  int64_t first_t_ns_ = -1;
+  bool counting_ = false;
+  uint64_t allocs_at_warmup_ = 0;
+};
 
 double thread_cpu_s() {
   timespec ts{};
@@ -60,17 +167,6 @@ std::size_t max_image_bytes_for(const Rig& rig) {
   const std::size_t w = rig.rgb.width > 0 ? static_cast<std::size_t>(rig.rgb.width) : 640;
   const std::size_t h = rig.rgb.height > 0 ? static_cast<std::size_t>(rig.rgb.height) : 480;
   return w * h * 3;
-}
-
-// Features and inliers of the newest frame, where the backend exposes them
-// (the front end, and backends built on it); -1 otherwise. The one place the
-// harness looks behind the Estimator interface, for the status line only.
-void frame_stats(const core::Estimator& est, int& features, int& inliers) {
-  features = inliers = -1;
-  if (const auto* vo = dynamic_cast<const core::FrontendOdometry*>(&est)) {
-    features = vo->last_track().detected;
-    inliers = vo->last_track().inliers;
-  }
 }
 
 // A cheap fingerprint of an image: 256 bytes spread over it. Equal
@@ -105,9 +201,13 @@ double depth_valid_share(const ImageView& v) {
 // feeder's thread after every step; otherwise it is the estimator thread.
 class EstimatorStage {
  public:
-  EstimatorStage(core::Estimator& est, drivers::SensorRings& rings, rt::SpscRing<OutPose, kOutRingCapacity>& out,
-                 rt::Mailbox<PipelineStatus>& status, const ReplayOptions& opt, const Rig& rig, ReplayReport& report)
-      : est_(est), rings_(rings), out_(out), status_(status), opt_(opt), report_(report) {
+  // imu: the ring this stage takes IMU samples from (the sensor ring, or the
+  // propagation stage's forward ring); anchor: where to publish the state for
+  // the propagation stage (nullptr: no such stage, this thread is the output).
+  EstimatorStage(core::Estimator& est, drivers::SensorRings& rings, ImuRing& imu,
+                 rt::SpscRing<OutPose, kOutRingCapacity>& out, rt::Mailbox<PipelineStatus>& status,
+                 rt::Mailbox<Anchor>* anchor, const ReplayOptions& opt, const Rig& rig, ReplayReport& report)
+      : est_(est), rings_(rings), imu_(imu), out_(out), status_(status), anchor_(anchor), opt_(opt), report_(report) {
     frame_period_ns_ = rig.camera_rate_hz > 0 ? static_cast<int64_t>(1e9 / rig.camera_rate_hz) : 0;
     imu_gap_ns_ = rig.imu_rate_hz > 0 ? static_cast<int64_t>(5e9 / rig.imu_rate_hz) : 50'000'000;
   }
@@ -116,11 +216,11 @@ class EstimatorStage {
   // IMU samples that would normally follow it.
   void drain(bool feeder_done, bool lockstep) {
     for (;;) {
-      ImuSample* s = rings_.imu.front();
+      ImuSample* s = imu_.front();
       RgbdFrameMsg* f = rings_.frames.front();
       if (s != nullptr && (f == nullptr || s->t_ns <= f->t_ns)) {
         on_imu(*s);
-        rings_.imu.pop();
+        imu_.pop();
         continue;
       }
       if (f != nullptr) {
@@ -216,7 +316,12 @@ class EstimatorStage {
     const int64_t t_start = opt_.pace == drivers::ReplayPace::kRealtime ? s.t_recv_ns : rt::now_ns();
     if (!est_.add_imu(s)) return;
     const int64_t latency = rt::now_ns() - t_start;
-    if (counting_) report_.imu_to_output.record(latency);
+    if (anchor_ != nullptr) {
+      anchor_->publish(to_anchor(est_.output().state));
+      if (counting_) report_.estimator_imu_latency.record(latency);
+    } else if (counting_) {
+      report_.imu_to_output.record(latency);
+    }
     if (latency > window_imu_max_ns_) window_imu_max_ns_ = latency;
     for (int i = 0; i < 3; ++i) last_gyro_rps_[i] = s.gyro_rps[i];
     // Without a camera the trajectory is sampled from the IMU-rate output.
@@ -238,6 +343,7 @@ class EstimatorStage {
       const int64_t t0 = rt::now_ns();
       est_.add_frame(f);
       const int64_t t1 = rt::now_ns();
+      if (anchor_ != nullptr) anchor_->publish(to_anchor(est_.output().state));
       ++frames_fed_;
       if (t1 - t0 > window_tracking_max_ns_) window_tracking_max_ns_ = t1 - t0;
       if (counting_) {
@@ -271,8 +377,10 @@ class EstimatorStage {
   static constexpr int64_t kStatusPeriodNs = 1'000'000'000;
   core::Estimator& est_;
   drivers::SensorRings& rings_;
+  ImuRing& imu_;
   rt::SpscRing<OutPose, kOutRingCapacity>& out_;
   rt::Mailbox<PipelineStatus>& status_;
+  rt::Mailbox<Anchor>* anchor_;
   const ReplayOptions& opt_;
   ReplayReport& report_;
   int64_t frame_period_ns_ = 0;
@@ -375,6 +483,10 @@ class OutputStage {
 // for and fall back to SCHED_OTHER without privileges; the report says which.
 constexpr rt::ThreadSpec kFeederThread{"kst-replay", 0, -1, 0};
 constexpr rt::ThreadSpec kEstimatorThread{"kst-estimator", 0, -1, 0};
+// The IMU-rate pose asks for the live tracking thread's SCHED_FIFO priority
+// (docs/threads.md): it sleeps between samples, so it cannot starve anything,
+// and without the privilege it runs SCHED_OTHER and the report says so.
+constexpr rt::ThreadSpec kPropagatorThread{"kst-propagate", 60, -1, 0};
 constexpr rt::ThreadSpec kOptimizerThread{"kst-optimizer", 0, -1, 0};
 
 }  // namespace
@@ -393,6 +505,9 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   auto rings = std::make_unique<drivers::SensorRings>(max_image_bytes_for(log->rig()));
   auto out = std::make_unique<rt::SpscRing<OutPose, kOutRingCapacity>>();
   auto status = std::make_unique<rt::Mailbox<PipelineStatus>>();
+  const bool realtime = opt.pace == drivers::ReplayPace::kRealtime;
+  auto est_imu = std::make_unique<ImuRing>();
+  auto anchor = std::make_unique<rt::Mailbox<Anchor>>();
   std::unique_ptr<core::Estimator> estimator_ptr = core::make_estimator(opt.estimator, log->rig());
   core::Estimator& estimator = *estimator_ptr;
   report.estimator = estimator.name();
@@ -405,7 +520,9 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   estimator.set_threaded_optimizer(optimizer_thread);
 
   drivers::ReplaySource source(*log, *rings, opt.pace);
-  EstimatorStage stage(estimator, *rings, *out, *status, opt, log->rig(), report);
+  EstimatorStage stage(estimator, *rings, realtime ? *est_imu : rings->imu, *out, *status,
+                       realtime ? anchor.get() : nullptr, opt, log->rig(), report);
+  PropagatorStage propagator(rings->imu, *est_imu, *anchor, log->rig(), opt, report);
   OutputStage output(*out, *status, opt, report);
 
   const int64_t wall0 = rt::now_ns();
@@ -424,13 +541,33 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   } else {
     std::atomic<bool> stop{false};
     std::atomic<bool> estimator_done{false};
+    std::atomic<bool> imu_forwarded{!realtime};
     double est_cpu = 0;
     std::thread feeder = rt::start_thread(kFeederThread, [&] { source.run(stop); });
+    std::thread prop_thread;
+    if (realtime) {
+      rt::ThreadSetupReport prop_sched;
+      prop_thread = rt::start_thread(kPropagatorThread, [&] {
+        for (;;) {
+          const bool done = source.finished();
+          // Sleeps 100 us when idle rather than spinning: on a 2-core machine a
+          // second spinning thread would take the estimator's CPU.
+          if (!propagator.step()) {
+            if (done && rings->imu.empty()) break;
+            rt::sleep_for_ns(100'000);
+          }
+        }
+        propagator.finish();
+        imu_forwarded.store(true, std::memory_order_release);
+      }, &prop_sched);
+      report.propagator_thread = rt::to_string(prop_sched);
+    }
+    ImuRing& est_in = realtime ? *est_imu : rings->imu;
     std::thread est_thread = rt::start_thread(kEstimatorThread, [&] {
       for (;;) {
-        const bool done = source.finished();
+        const bool done = source.finished() && imu_forwarded.load(std::memory_order_acquire);
         stage.drain(done, false);
-        if (done && rings->imu.empty() && rings->frames.empty()) break;
+        if (done && est_in.empty() && rings->frames.empty()) break;
         // Busy-yield: the lowest latency a non-RT process can get without a
         // wake-up primitive; a live build blocks on the driver's eventfd.
         std::this_thread::yield();
@@ -453,6 +590,7 @@ ReplayReport run_replay(const ReplayOptions& opt) {
       rt::sleep_for_ns(1'000'000);
     }
     feeder.join();
+    if (prop_thread.joinable()) prop_thread.join();
     est_thread.join();
     if (opt_thread.joinable()) opt_thread.join();
     output.finish();
@@ -505,6 +643,7 @@ std::string replay_metrics_json(const ReplayReport& r) {
   j.key("latency").begin_object();
   histogram_json(j, "imu_to_output", r.imu_to_output);
   histogram_json(j, "tracking", r.tracking);
+  histogram_json(j, "estimator_imu", r.estimator_imu_latency);
   histogram_json(j, "optimizer", r.optimizer);
   j.end_object();
   j.kv("optimizer_threaded", r.optimizer_threaded);
@@ -515,6 +654,7 @@ std::string replay_metrics_json(const ReplayReport& r) {
   j.key("drops").begin_object();
   j.kv("imu_ring", r.imu_ring_drops).kv("frame_ring", r.frame_ring_drops);
   j.kv("output_ring", r.output_ring_drops).kv("image_pool_exhausted", r.image_pool_exhausted);
+  j.kv("propagator_forward", r.propagator_forward_drops);
   j.kv("images_too_large", r.replay.images_too_large).kv("depth_unpaired", r.replay.depth_unpaired);
   j.end_object();
   j.key("input_faults").begin_object();
@@ -555,6 +695,17 @@ std::string replay_metrics_json(const ReplayReport& r) {
   return j.str() + "\n";
 }
 
+// The one place the harness looks behind the Estimator interface.
+void frame_stats(const core::Estimator& est, int& features, int& inliers) {
+  features = inliers = -1;
+  const core::FrontendOdometry* vo = dynamic_cast<const core::FrontendOdometry*>(&est);
+  if (const auto* w = dynamic_cast<const core::WindowEstimator*>(&est)) vo = &w->front();
+  if (vo != nullptr) {
+    features = vo->last_track().detected;
+    inliers = vo->last_track().inliers;
+  }
+}
+
 std::string format_status(const PipelineStatus& s) {
   const char* state = "uninit";
   switch (s.quality) {
@@ -565,7 +716,7 @@ std::string format_status(const PipelineStatus& s) {
   }
   char buf[512];
   std::snprintf(buf, sizeof buf,
-                "[%7.1f s] %-8s resets %u | feat %d inl %d | frames %llu/s | track max %.1f ms | imu->pose max "
+                "[%7.1f s] %-8s resets %u | feat %d inl %d | frames %llu/s | track max %.1f ms | imu->estimator max "
                 "%.2f ms | drops imu %llu frame %llu | imu rej %llu gaps %llu | cam miss %llu ooo %llu frozen %llu "
                 "nodepth %llu",
                 s.t_s, state, s.reset_counter, s.features, s.inliers, static_cast<unsigned long long>(s.frames_in_window),
@@ -627,6 +778,7 @@ std::string replay_summary(const ReplayReport& r) {
                   static_cast<unsigned long long>(ff.imu_gaps));
     s += buf;
   }
+  if (!r.propagator_thread.empty()) s += "IMU-rate propagation " + r.propagator_thread + "\n";
   if (r.mavlink_sent + r.mavlink_failed > 0) {
     std::snprintf(buf, sizeof buf, "MAVLink ODOMETRY: %llu sent, %llu failed\n",
                   static_cast<unsigned long long>(r.mavlink_sent), static_cast<unsigned long long>(r.mavlink_failed));

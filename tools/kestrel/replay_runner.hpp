@@ -56,7 +56,7 @@ struct PipelineStatus {
   uint64_t frames_in_window = 0;  // frames fed in the last second
   uint64_t frames_total = 0;
   int64_t tracking_max_ns = 0;    // over the last second
-  int64_t imu_to_output_max_ns = 0;
+  int64_t imu_to_output_max_ns = 0;  // the estimator thread's view (in realtime pace the IMU-rate pose is faster)
   uint64_t imu_ring_drops = 0;
   uint64_t frame_ring_drops = 0;
   uint64_t imu_rejected = 0;      // non-finite + saturated + out of order (cumulative)
@@ -65,6 +65,9 @@ struct PipelineStatus {
 };
 
 std::string format_status(const PipelineStatus& s);
+// Features and inliers of the newest frame where the backend exposes them
+// (the front end and backends built on it), else -1: for status lines only.
+void frame_stats(const core::Estimator& est, int& features, int& inliers);
 
 struct ReplayOptions {
   std::string path;
@@ -102,9 +105,16 @@ struct ReplayReport {
   double cpu_s = 0;                    // whole process
   double estimator_cpu_s = 0;          // the estimator thread alone
   double peak_rss_mb = 0;
-  // Realtime pace: ring push of a sample -> its pose available (end to end).
+  // Realtime pace: ring push of a sample -> its IMU-rate pose available on the
+  // propagation thread (end to end, what a flight controller would wait).
   // Fast/lockstep pace: estimator takes the sample -> its pose available.
   rt::LatencyHistogram imu_to_output;
+  // In realtime pace the IMU-rate pose comes from the propagation thread
+  // (docs/threads.md); this is the estimator thread's own view of the same
+  // samples (push -> its add_imu returned), which waits behind tracking.
+  rt::LatencyHistogram estimator_imu_latency;
+  uint64_t propagator_forward_drops = 0;   // propagation -> estimator ring full
+  std::string propagator_thread;           // scheduling the propagation thread got (realtime pace)
   rt::LatencyHistogram tracking;       // per frame, inside the estimator
   drivers::ReplayStats replay;
   core::EstimatorCounters estimator_counters;
