@@ -108,12 +108,15 @@ EkfEstimator::EkfEstimator(const Rig& rig, const EkfEstimatorOptions& opt)
 }
 
 void EkfEstimator::start(const NavState& s0) {
+  // A start later than the initialiser's forced-start delay had no still window.
+  const bool moving = first_imu_t_ns_ >= 0 && s0.t_ns - first_imu_t_ns_ >= 2'000'000'000;
+  const double att = moving ? opt_.moving_init_attitude_sigma_rad : opt_.init_attitude_sigma_rad;
   ekf::Mat6 P0 = ekf::Mat6::Zero();
   P0.diagonal().head<3>().setConstant(opt_.init_position_sigma_m * opt_.init_position_sigma_m);
-  P0.diagonal().tail<3>().setConstant(opt_.init_attitude_sigma_rad * opt_.init_attitude_sigma_rad);
+  P0.diagonal().tail<3>().setConstant(att * att);
   ekf_.reset_imu(ekf::Pose(s0.q_WB.normalized().toRotationMatrix(), s0.p_WB), s0.v_WB, s0.bg_rps, s0.ba_mps2,
-                 P0, opt_.init_velocity_sigma_mps, opt_.init_gyro_bias_sigma_rps,
-                 opt_.init_acc_bias_sigma_mps2);
+                 P0, moving ? opt_.moving_init_velocity_sigma_mps : opt_.init_velocity_sigma_mps,
+                 opt_.init_gyro_bias_sigma_rps, opt_.init_acc_bias_sigma_mps2);
   t_state_ns_ = s0.t_ns;
   started_ = true;
   tracker_.reset();
@@ -147,6 +150,7 @@ void EkfEstimator::propagate_to(int64_t t_ns) {
 
 bool EkfEstimator::add_imu(const ImuSample& s) {
   ++counters_.imu_in;
+  if (first_imu_t_ns_ < 0) first_imu_t_ns_ = s.t_ns;
   if (!started_) {
     // The dead-reckoning backend's static initialiser gives the first state.
     if (!init_.add_imu(s)) {

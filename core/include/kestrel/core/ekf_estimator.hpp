@@ -44,6 +44,10 @@ struct EkfEstimatorOptions {
   double init_velocity_sigma_mps = 0.2;
   double init_gyro_bias_sigma_rps = 0.005;
   double init_acc_bias_sigma_mps2 = 0.1;
+  // Without a still window the initialiser takes gravity from a moving
+  // window after 2 s (estimator.hpp): tilt and velocity are then guesses.
+  double moving_init_attitude_sigma_rad = 0.1;
+  double moving_init_velocity_sigma_mps = 1.0;
   // IMU noise used when the rig gives none (EuRoC-class MEMS).
   double default_gyro_noise_density = 1.7e-4;
   double default_acc_noise_density = 2.0e-3;
@@ -110,6 +114,7 @@ class EkfEstimator final : public Estimator {
   bool started_ = false;
   int64_t t_state_ns_ = -1;  // time of the filter's mean
   int64_t last_imu_t_ns_ = -1;
+  int64_t first_imu_t_ns_ = -1;
   Eigen::Vector3d last_gyro_ = Eigen::Vector3d::Zero();
   Eigen::Vector3d last_acc_ = Eigen::Vector3d::Zero();
   bool have_last_ = false;
