@@ -29,9 +29,9 @@ TEST(LiveConfig, ShippedConfigsParse) {
   EXPECT_EQ(b.drivers.imu.usb.clock.latency_floor_ns, 125'000);
   EXPECT_TRUE(b.drivers.strobe.enabled);
   EXPECT_EQ(b.drivers.strobe.initial_offset_ns, 33'000'000);
-  // The shipped live rigs pick the EKF: the backend for small boards.
+  // The shipped live rigs name their backend: one each of the small-board EKF and the window optimizer.
   EXPECT_EQ(a.estimator.backend, "ekf");
-  EXPECT_EQ(b.estimator.backend, "ekf");
+  EXPECT_EQ(b.estimator.backend, "window");
 }
 
 std::string with_drivers(const std::string& drivers) {

@@ -1,6 +1,6 @@
 // `kestrel run`: live drivers into the sensor rings, consumed by an
 // estimator thread running the backend the config names (`estimator:
-// backend:`, or --estimator; default vo). The estimator sees IMU and frames
+// backend:`, or --estimator; default window, as in replay). The estimator sees IMU and frames
 // merged in time order, as in replay.
 #include <atomic>
 #include <csignal>
@@ -97,7 +97,7 @@ Subcommand add_run_command(CLI::App& parent) {
   app->add_option("--config", a->config, "rig + drivers config (configs/*.yaml)")->required();
   app->add_option("--estimator", a->estimator,
                   std::string("backend: ") + core::estimator_names() +
-                      " (default: the config's estimator.backend, else vo)");
+                      " (default: the config's estimator.backend, else window)");
   app->add_option("--duration", a->duration_s, "seconds to run (0 = until Ctrl-C)")->capture_default_str();
   app->add_option("--mavlink-udp", a->mavlink_udp,
                   "stream MAVLink v2 ODOMETRY to HOST:PORT at the pose rate (flight controller; docs/px4.md)");
@@ -107,7 +107,7 @@ Subcommand add_run_command(CLI::App& parent) {
   s.app = app;
   s.run = [a] {
     const drivers::LiveConfig cfg = drivers::load_live_config(a->config);
-    std::string backend = "vo";
+    std::string backend = "window";   // the default of replay
     if (!a->estimator.empty()) {
       if (!core::estimator_known(a->estimator))
         throw UsageError("unknown --estimator '" + a->estimator + "' (expected one of: " + core::estimator_names() +
