@@ -148,6 +148,24 @@ class ImuCost final : public ceres::SizedCostFunction<15, 7, 9, 7, 9> {
   const WindowState& sj_;
 };
 
+// Zero-velocity factor on the speed/bias block [v, bg, ba].
+class ZeroVelocityCost final : public ceres::SizedCostFunction<3, 9> {
+ public:
+  explicit ZeroVelocityCost(double sigma) : inv_sigma_(1.0 / sigma) {}
+  bool Evaluate(double const* const* params, double* residuals, double** jacobians) const override {
+    for (int i = 0; i < 3; ++i) residuals[i] = params[0][i] * inv_sigma_;
+    if (jacobians && jacobians[0]) {
+      Eigen::Map<Eigen::Matrix<double, 3, 9, Eigen::RowMajor>> J(jacobians[0]);
+      J.setZero();
+      J.leftCols<3>().diagonal().setConstant(inv_sigma_);
+    }
+    return true;
+  }
+
+ private:
+  double inv_sigma_;
+};
+
 class GaugeCost final : public ceres::SizedCostFunction<4, 7> {
  public:
   explicit GaugeCost(const WindowProblem& P) : P_(P) {}
@@ -246,6 +264,12 @@ struct CeresWindow {
       const int i = sj.imu_prev;
       problem.AddResidualBlock(new ImuCost(P, sj), nullptr, pose[i].data(), sb[i].data(), pose[j].data(),
                                sb[j].data());
+      ++n_residual_blocks;
+    }
+    for (int k = 0; k < P.n_states; ++k) {
+      const int s = P.order[k];
+      if (!P.states[s].zero_velocity) continue;
+      problem.AddResidualBlock(new ZeroVelocityCost(P.opt.zero_velocity_sigma_mps), nullptr, sb[s].data());
       ++n_residual_blocks;
     }
     if (P.gauge_slot >= 0) {

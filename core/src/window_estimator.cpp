@@ -59,7 +59,13 @@ WindowEstimator::WindowEstimator(const Rig& rig, const WindowEstimatorOptions& o
         return p;
       }()),
       front_(rig, opt.frontend),
-      pim_(pim_params_) {
+      pim_(pim_params_),
+      still_([&] {
+        StaticInitOptions o;
+        o.gravity_mps2 = rig.gravity_mps2;
+        o.window_ns = 300'000'000;
+        return o;
+      }()) {
   const std::string err = opt_.validate();
   if (!err.empty()) throw std::invalid_argument("WindowEstimatorOptions:\n" + err);
   window_ = std::make_unique<WindowOptimizer>(pinhole_of(rig), T_BC_, opt_.window);
@@ -69,16 +75,22 @@ WindowEstimator::WindowEstimator(const Rig& rig, const WindowEstimatorOptions& o
   obs_pool_.reset(new WindowObservation[static_cast<size_t>(kPool) * max_obs_]);
   for (int i = kPool - 1; i >= 0; --i) free_slots_[n_free_++] = i;
   for (auto& c : chain_) c = Preintegrated(pim_params_);
+  set_threaded_optimizer(false);
 }
 
 WindowEstimator::~WindowEstimator() = default;
+
+void WindowEstimator::set_threaded_optimizer(bool on) {
+  threaded_ = on;
+  window_->problem().opt.time_budget_ms = on ? opt_.window.time_budget_ms : 1e9;
+}
 
 std::string WindowEstimator::backend_summary() const {
   std::ostringstream o;
   o << "window: jobs " << wc_.jobs << ", solves ok " << solves_ok_.load(std::memory_order_relaxed) << ", applied "
     << wc_.applied << ", failures " << wc_.failures << ", window resets " << wc_.window_resets
     << ", skipped (busy " << wc_.skipped_busy << ", few obs " << wc_.skipped_few_obs << ", no imu "
-    << wc_.skipped_no_imu << "), stale " << wc_.stale_results << ", imu gaps " << wc_.imu_gaps;
+    << wc_.skipped_no_imu << "), stale " << wc_.stale_results << ", imu gaps " << wc_.imu_gaps << ", still frames " << wc_.stationary_frames;
   return o.str();
 }
 
@@ -120,6 +132,9 @@ bool WindowEstimator::add_frame(const RgbdFrame& f) {
   job.guess = front_.propagated();
   job.n_obs = std::min(n, max_obs_);
   std::copy(tracker.observations(), tracker.observations() + job.n_obs, obs_of(slot));
+  job.stationary = opt_.zero_velocity_when_still && still_t_ns_ >= 0 && f.t_ns - still_t_ns_ <= 150'000'000 &&
+                   front_.propagated().v_WB.norm() < opt_.still_max_speed_mps;
+  wc_.stationary_frames += job.stationary ? 1 : 0;
   job.reset = !pim_active_ || reset_requested_;
   reset_requested_ = false;
   pending_slot_ = slot;
@@ -139,6 +154,8 @@ bool WindowEstimator::add_imu(const ImuSample& s) {
     poll_results();
     return changed;
   }
+  NavState still_state;
+  if (still_.add(s, still_state)) still_t_ns_ = s.t_ns;
   if (have_last_sample_ && s.t_ns - last_sample_.t_ns > opt_.max_imu_gap_ns && pim_active_) {
     // Preintegrating across the gap would invent motion: restart the window
     // at the next frame, from the front end's (IMU-coasted) state.
@@ -287,6 +304,7 @@ void WindowEstimator::process(int slot) {
   in.obs = obs_of(slot);
   in.n_obs = job.n_obs;
   in.keyframe = job.keyframe || window_->num_states() == 0;
+  in.stationary = job.stationary;
   if (job.reset || !job.has_pim) {
     window_->reset();
     in.imu_from_prev = nullptr;

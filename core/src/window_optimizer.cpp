@@ -53,6 +53,7 @@ std::string WindowOptions::validate() const {
     e << "imu random walks (gyro_random_walk_rad_s2_sqrthz, acc_random_walk_mps3_sqrthz) must be > 0; ";
   if (!(prior_gyro_bias_sigma_rps > 0.0) || !(prior_acc_bias_sigma_mps2 > 0.0)) e << "bias prior sigmas must be > 0; ";
   if (!(gauge_sigma > 0.0)) e << "gauge_sigma must be > 0; ";
+  if (!(zero_velocity_sigma_mps > 0.0)) e << "zero_velocity_sigma_mps must be > 0; ";
   return e.str();
 }
 
@@ -163,6 +164,7 @@ void WindowOptimizer::reset() {
   for (WindowState& st : P.states) {
     st.used = false;
     st.keyframe = false;
+    st.zero_velocity = false;
     st.has_imu = false;
     st.imu_prev = -1;
     st.n_obs = 0;
@@ -283,6 +285,7 @@ bool WindowOptimizer::add_frame(const WindowFrameInput& in) {
   WindowState& st = P.states[slot];
   st.used = true;
   st.keyframe = in.keyframe;
+  st.zero_velocity = in.stationary;
   st.x = in.guess;
   st.x.t_ns = in.t_ns;
   st.x.q_WB.normalize();
@@ -609,6 +612,7 @@ double problem_cost(const WindowProblem& P, const NavState* xs, const Eigen::Vec
     const int s = P.order[k];
     const WindowState& st = P.states[s];
     if (st.has_imu) cost += 0.5 * imu_bias_residual(P, st, xs[st.imu_prev], xs[s]).squaredNorm();
+    if (st.zero_velocity) cost += 0.5 * (xs[s].v_WB / P.opt.zero_velocity_sigma_mps).squaredNorm();
   }
   if (P.gauge_slot >= 0) cost += 0.5 * gauge_residual(P, xs[P.gauge_slot]).squaredNorm();
   if (P.prior_active) {
@@ -673,7 +677,9 @@ WindowOptimizer::Result WindowOptimizer::optimize_ours() {
   int n_imu = 0;
   for (int k = 0; k < P.n_states; ++k) n_imu += P.states[P.order[k]].has_imu;
   res.landmarks = ws.n_active;
-  res.residuals = n_vis + n_imu + (P.gauge_slot >= 0) + (P.prior_active ? 1 : 0);
+  int n_zv = 0;
+  for (int k = 0; k < P.n_states; ++k) n_zv += P.states[P.order[k]].zero_velocity ? 1 : 0;
+  res.residuals = n_vis + n_imu + n_zv + (P.gauge_slot >= 0) + (P.prior_active ? 1 : 0);
 
   NavState xs[kWindowMaxStates];
   for (int k = 0; k < P.n_states; ++k) xs[P.order[k]] = P.states[P.order[k]].x;
@@ -736,6 +742,15 @@ WindowOptimizer::Result WindowOptimizer::optimize_ours() {
         Hl.block<kD, kD>(oj, oj).noalias() += Jj.transpose() * Jj;
         bl.segment<kD>(oi).noalias() += Ji.transpose() * r;
         bl.segment<kD>(oj).noalias() += Jj.transpose() * r;
+      }
+      // Zero velocity: r = v / sigma, d r / d dv = I / sigma.
+      for (int k = 0; k < P.n_states; ++k) {
+        const int s = P.order[k];
+        if (!P.states[s].zero_velocity) continue;
+        const double w = 1.0 / (P.opt.zero_velocity_sigma_mps * P.opt.zero_velocity_sigma_mps);
+        const int o = kD * ws.pos_of_slot[s] + 6;
+        Hl.block<3, 3>(o, o).diagonal().array() += w;
+        bl.segment<3>(o).noalias() += w * P.states[s].x.v_WB;
       }
       // Gauge.
       if (P.gauge_slot >= 0) {

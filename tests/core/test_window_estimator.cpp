@@ -168,3 +168,24 @@ TEST(Tracker, LandmarkIdsPersistWhileTrackedAndAcrossKeyframes) {
   EXPECT_EQ(obs_not_in_kf, 0u) << "a tracked frame's inlier carries an id its keyframe does not have";
   EXPECT_GT(inherited, 20) << "landmarks must outlive the keyframe that created them";
 }
+
+TEST(WindowEstimator, ParkedVehicleGetsTheZeroVelocityFactorAndDoesNotDrift) {
+  // "static": on the floor for the first half (4 s), then a take-off.
+  const std::string path = test::simulate("static", 8.0, 4);
+  std::unique_ptr<core::Estimator> est;
+  const test::RunResult win = test::run(path, window_maker(), {}, &est);
+  const core::WindowEstimatorCounters& c = as_window(est).window_counters();
+  ASSERT_FALSE(win.est.empty());
+  const int64_t t0 = win.gt.front().t_ns;
+  auto pos_at = [&](double t_s) {
+    for (const auto& p : win.est)
+      if (p.t_ns - t0 >= static_cast<int64_t>(t_s * 1e9)) return p.p;
+    return win.est.back().p;
+  };
+  const double drift = (pos_at(3.8) - pos_at(1.0)).norm();
+  std::printf("static 8 s: drift while parked (1.0 -> 3.8 s) %.5f m, ATE %.4f m; %s\n", drift, test::ate(win),
+              est->backend_summary().c_str());
+  EXPECT_GT(c.stationary_frames, 70u);  // of ~110 window frames while parked
+  EXPECT_LT(drift, 0.002);
+  EXPECT_LT(test::ate(win), 0.02);      // the take-off after it still tracks
+}

@@ -55,6 +55,10 @@ struct WindowEstimatorOptions {
   double max_speed_mps = 25.0;         // an optimized speed beyond this: a failure
   int max_consecutive_failures = 3;    // then the window restarts
   int64_t max_imu_gap_ns = 200'000'000;  // a longer gap cannot be preintegrated: the window restarts
+  bool zero_velocity_when_still = true;  // window.zero_velocity_sigma_mps on frames the IMU says are still
+  // The IMU test alone also passes smooth flight at near-constant
+  // acceleration; a frame counts as still only if the estimated speed agrees.
+  double still_max_speed_mps = 0.05;
 
   std::string validate() const;
 };
@@ -70,6 +74,7 @@ struct WindowEstimatorCounters {
   uint64_t skipped_no_imu = 0;    // a frame not followed by IMU before the next one
   uint64_t stale_results = 0;     // too old to propagate to now
   uint64_t imu_gaps = 0;
+  uint64_t stationary_frames = 0; // window frames given the zero-velocity factor
 };
 
 // Optimizer -> tracking side. Trivially copyable: crosses threads through the mailbox.
@@ -96,7 +101,10 @@ class WindowEstimator final : public Estimator {
   const EstimatorCounters& counters() const override { return front_.counters(); }
 
   bool has_optimizer() const override { return true; }
-  void set_threaded_optimizer(bool on) override { threaded_ = on; }
+  // Inline solves are bounded by the iteration limit only: a wall-clock budget
+  // would make the result depend on the machine's load, and inline is the
+  // bit-exact replay mode. On its own thread the time budget applies.
+  void set_threaded_optimizer(bool on) override;
   bool optimizer_step() override;
   const rt::LatencyHistogram* optimizer_latency() const override { return &opt_latency_; }
   std::string backend_summary() const override;
@@ -111,6 +119,7 @@ class WindowEstimator final : public Estimator {
   struct Job {
     uint64_t seq = 0;
     bool reset = false;        // restart the window with this frame
+    bool stationary = false;
     bool has_pim = false;
     bool keyframe = false;
     int64_t t_ns = 0;
@@ -159,6 +168,10 @@ class WindowEstimator final : public Estimator {
   uint64_t chain_seq_[kChain] = {};
   uint64_t last_applied_seq_ = 0;
   int consecutive_failures_ = 0;
+  // Stationarity: the static initialiser's test (0.1 s block means agree),
+  // run continuously; still while its last verdict is at most a block old.
+  StaticInitializer still_;
+  int64_t still_t_ns_ = -1;
   bool reset_requested_ = false;
 
   // Optimizer side.

@@ -38,6 +38,9 @@ struct WindowOptions {
   double prior_acc_bias_sigma_mps2 = 0.1;
   // Gauge: the oldest state's position and yaw are held by a stiff prior of this sigma [m, rad].
   double gauge_sigma = 1e-5;
+  // Zero-velocity factor on states the front end flags as stationary:
+  // r = v_WB / sigma. Soft, so a hovering vehicle (a few cm/s) is not pinned.
+  double zero_velocity_sigma_mps = 0.02;
   // Convergence (ours): stop when the relative cost decrease of an accepted step or the step's
   // max-norm falls below these.
   double function_tolerance = 1e-10;
@@ -63,6 +66,7 @@ struct WindowFrameInput {
   const WindowObservation* obs = nullptr;
   int n_obs = 0;
   bool keyframe = false;
+  bool stationary = false;  // the IMU says the vehicle is still: add the zero-velocity factor
 };
 
 }  // namespace kestrel::core

@@ -51,6 +51,7 @@ struct WindowLandmark {
 struct WindowState {
   bool used = false;
   bool keyframe = false;
+  bool zero_velocity = false;  // carries the zero-velocity factor
   NavState x;
   // IMU + bias factor from the previous state in the chain (imu_prev) to this one.
   bool has_imu = false;
