@@ -20,11 +20,11 @@
 
 namespace kestrel::pipeline_test {
 
-// The backend under test. One word to switch (the window backend when it is
-// in the factory): KESTREL_PIPELINE_ESTIMATOR=window ctest -L ...
+// The backend under test: `window` (the default of `kestrel replay|run`);
+// KESTREL_PIPELINE_ESTIMATOR=vo (or any factory name) runs the suite on another.
 inline std::string backend() {
   const char* e = std::getenv("KESTREL_PIPELINE_ESTIMATOR");
-  return e != nullptr && *e != '\0' ? e : "vo";
+  return e != nullptr && *e != '\0' ? e : "window";
 }
 
 // Writes what the simulator produces into a .klog, through hooks that may
