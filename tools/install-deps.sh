@@ -9,6 +9,7 @@ packages=(
   libgtest-dev libgmock-dev libbenchmark-dev libboost-dev
   libusb-1.0-0-dev libv4l-dev libopenni2-dev
   librosbag-dev libsensor-msgs-dev libgeometry-msgs-dev
+  nodejs npm   # tests/mavlink: the independent node-mavlink decoder (installed from npm by the test)
 )
 
 missing=()
