@@ -9,7 +9,8 @@ packages=(
   libgtest-dev libgmock-dev libbenchmark-dev libboost-dev
   libusb-1.0-0-dev libv4l-dev libopenni2-dev
   librosbag-dev libsensor-msgs-dev libgeometry-msgs-dev
-  nodejs npm   # tests/mavlink: the independent node-mavlink decoder (installed from npm by the test)
+  nodejs   # tests/mavlink: node-mavlink decoder. Debian ships npm apart (apt-get install npm where `npm` is missing;
+           # not listed: it conflicts with a NodeSource nodejs, which bundles npm). Without npm the test skips loudly.
 )
 
 missing=()
