@@ -259,6 +259,25 @@ EstimatorSettings estimator_settings_from_yaml_node(const YAML::Node& node, cons
   return e;
 }
 
+EstimatorSettings load_estimator_settings(const std::string& path) {
+  std::ifstream f(path, std::ios::binary);
+  if (!f) throw std::runtime_error(path + ": cannot open config file");
+  std::ostringstream text;
+  text << f.rdbuf();
+  YAML::Node root;
+  try {
+    root = YAML::Load(text.str());
+  } catch (const YAML::ParserException& e) {
+    throw std::runtime_error(path + ":" + std::to_string(e.mark.line + 1) + ": YAML syntax error: " + e.msg);
+  }
+  if (!root.IsMap()) throw std::runtime_error(path + ": expected a mapping");
+  try {
+    return estimator_settings_from_yaml_node(root["estimator"], path);
+  } catch (const YAML::Exception& e) {
+    throw std::runtime_error(path + ": " + e.what());
+  }
+}
+
 LiveConfig live_config_from_yaml(const std::string& text, const std::string& where) {
   YAML::Node root;
   try {

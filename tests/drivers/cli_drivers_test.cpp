@@ -81,6 +81,30 @@ TEST(CliDrivers, RunChecksTheEstimatorBeforeTheSensors) {
   std::filesystem::remove(cfg);
 }
 
+TEST(CliDrivers, ReplayTakesTheBackendFromAConfig) {
+  require_commands();
+  const auto dir = std::filesystem::temp_directory_path() / "kestrel_cli_replay_config";
+  std::filesystem::create_directories(dir);
+  const std::string log = (dir / "static.klog").string(), metrics = (dir / "m.json").string();
+  const std::string cfg = (dir / "est.yaml").string();
+  std::string out;
+  ASSERT_EQ(run("sim --scenario static --duration 1 --width 64 --height 48 --out " + log, out), 0) << out;
+  std::ofstream(cfg) << "estimator:\n  backend: imu\n";
+  ASSERT_EQ(run("replay " + log + " --config " + cfg + " -q --metrics-out " + metrics, out), 0) << out;
+  std::ifstream m(metrics);
+  const std::string json((std::istreambuf_iterator<char>(m)), std::istreambuf_iterator<char>());
+  EXPECT_NE(json.find("\"estimator\": \"imu-dead-reckoning\""), std::string::npos) << json;
+  // --estimator wins over the config.
+  ASSERT_EQ(run("replay " + log + " --config " + cfg + " --estimator ekf -q --metrics-out " + metrics, out), 0) << out;
+  std::ifstream m2(metrics);
+  const std::string json2((std::istreambuf_iterator<char>(m2)), std::istreambuf_iterator<char>());
+  EXPECT_NE(json2.find("\"estimator\": \"ekf\""), std::string::npos) << json2;
+  std::ofstream(cfg) << "estimator:\n  backend: kalman\n";
+  EXPECT_EQ(run("replay " + log + " --config " + cfg, out), 1) << out;
+  EXPECT_NE(out.find("estimator.backend: unknown backend 'kalman'"), std::string::npos) << out;
+  std::filesystem::remove_all(dir);
+}
+
 TEST(CliDrivers, BadConfigNamesFileAndKey) {
   require_commands();
   const auto cfg = std::filesystem::temp_directory_path() / "kestrel_cli_bad.yaml";

@@ -4,6 +4,7 @@
 #include <iostream>
 
 #include "kestrel/commands.hpp"
+#include "kestrel/drivers/devices.hpp"
 #include "kestrel/mavlink/udp_sender.hpp"
 #include "kestrel/replay_runner.hpp"
 
@@ -16,6 +17,7 @@ Subcommand add_replay_command(CLI::App& parent) {
     drivers::LogOpenOptions open;
     std::string pace = "lockstep";
     std::string estimator = "window";
+    std::string config;
     std::string traj_out;
     std::string metrics_out;
     double warmup_s = 2.0;
@@ -47,6 +49,8 @@ Subcommand add_replay_command(CLI::App& parent) {
                   std::string("backend: ") + core::estimator_names() +
                       " (window = front end + sliding-window optimizer, the default; vo = tracking front end + IMU; ekf = EKF SLAM; imu = IMU dead reckoning)")
       ->capture_default_str();
+  app->add_option("--config", args->config,
+                  "a config whose `estimator: backend:` picks the backend (configs/*.yaml); --estimator overrides it");
   app->add_option("--traj-out", args->traj_out, "write the trajectory here (TUM: t[s] x y z qx qy qz qw)");
   app->add_option("--metrics-out", args->metrics_out,
                   "write latency histograms, drops, counters, CPU, RSS, real-time factor as JSON");
@@ -61,11 +65,18 @@ Subcommand add_replay_command(CLI::App& parent) {
 
   Subcommand cmd;
   cmd.app = app;
-  cmd.run = [args]() -> int {
+  cmd.run = [args, app]() -> int {
     ReplayOptions opt;
     opt.path = args->path;
     opt.open = args->open;
     opt.estimator = args->estimator;
+    if (!args->config.empty() && app->count("--estimator") == 0) {
+      const std::string b = drivers::load_estimator_settings(args->config).backend;
+      if (!b.empty() && !core::estimator_known(b))
+        throw std::runtime_error(args->config + ": estimator.backend: unknown backend '" + b +
+                                 "' (expected one of: " + core::estimator_names() + ")");
+      if (!b.empty()) opt.estimator = b;
+    }
     if (!core::estimator_known(opt.estimator))
       throw UsageError("unknown --estimator '" + opt.estimator + "' (expected one of: " + core::estimator_names() + ")");
     try {

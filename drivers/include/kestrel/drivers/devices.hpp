@@ -89,6 +89,10 @@ LiveConfig live_config_from_yaml(const std::string& text, const std::string& whe
 DriverSettings driver_settings_from_yaml_node(const YAML::Node& node, const std::string& where);
 // The optional `estimator:` section: `backend: NAME`; unknown keys are errors.
 EstimatorSettings estimator_settings_from_yaml_node(const YAML::Node& node, const std::string& where);
+// The `estimator:` section of any YAML file (a live config, or a file with
+// only that section; other top-level keys are not looked at). Throws
+// std::runtime_error naming the file.
+EstimatorSettings load_estimator_settings(const std::string& path);
 
 // "v4l2 built, openni2 built, libusb built, i2c-dev built, gpio-cdev built"
 std::string built_drivers_summary();
