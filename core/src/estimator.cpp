@@ -16,8 +16,8 @@ StaticInitOptions init_options(const Rig& rig) {
 }
 }  // namespace
 
-DeadReckoningEstimator::DeadReckoningEstimator(const Rig& rig)
-    : init_(init_options(rig)), prop_(imu_propagator_options(rig)) {}
+DeadReckoningEstimator::DeadReckoningEstimator(const Rig& rig, int64_t moving_start_after_ns)
+    : init_(init_options(rig)), prop_(imu_propagator_options(rig)), moving_start_after_ns_(moving_start_after_ns) {}
 
 bool DeadReckoningEstimator::add_imu(const ImuSample& s) {
   ++counters_.imu_in;
@@ -26,7 +26,7 @@ bool DeadReckoningEstimator::add_imu(const ImuSample& s) {
     NavState s0;
     if (init_.add(s, s0)) {
       prop_.reset(s0);
-    } else if (imu_sample_usable(s) && s.t_ns - first_t_ns_ > kForceInitAfterNs) {
+    } else if (imu_sample_usable(s) && s.t_ns - first_t_ns_ > moving_start_after_ns_) {
       // Never saw a still window (a moving start): take gravity from the
       // mean specific force of the last window, motion and all. Crude; the
       // optimizer's dynamic initialiser replaces it, dead reckoning has

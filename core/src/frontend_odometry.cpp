@@ -18,7 +18,7 @@ Eigen::Isometry3d to_isometry(const Mat4d& T) {
 }  // namespace
 
 FrontendOdometry::FrontendOdometry(const Rig& rig, const FrontendOdometryOptions& opt)
-    : opt_(opt), T_BC_(to_isometry(rig.T_BC)), init_and_imu_(rig), tracker_(rig, opt.tracker),
+    : opt_(opt), T_BC_(to_isometry(rig.T_BC)), init_and_imu_(rig, opt.moving_start_after_ns), tracker_(rig, opt.tracker),
       prop_(imu_propagator_options(rig)) {}
 
 bool FrontendOdometry::add_imu(const ImuSample& s) {

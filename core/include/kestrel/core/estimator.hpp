@@ -73,7 +73,9 @@ class Estimator {
 // it ignores the camera, and its error grows quadratically with time.
 class DeadReckoningEstimator final : public Estimator {
  public:
-  DeadReckoningEstimator(const Rig& rig);
+  // moving_start_after_ns: with no still window by then, start anyway with
+  // gravity from the mean specific force (a moving start).
+  explicit DeadReckoningEstimator(const Rig& rig, int64_t moving_start_after_ns = 2'000'000'000);
   const char* name() const override { return "imu-dead-reckoning"; }
   bool add_imu(const ImuSample& s) override;
   bool add_frame(const RgbdFrame& f) override;
@@ -86,7 +88,7 @@ class DeadReckoningEstimator final : public Estimator {
   EstimatorOutput out_;
   mutable EstimatorCounters counters_;
   int64_t first_t_ns_ = -1;
-  static constexpr int64_t kForceInitAfterNs = 2'000'000'000;
+  int64_t moving_start_after_ns_;
 };
 
 }  // namespace kestrel::core

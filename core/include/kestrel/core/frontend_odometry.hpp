@@ -31,6 +31,10 @@ struct FrontendOdometryOptions {
   // Consecutive untracked frames before the keyframe is dropped and a new one
   // taken at the IMU-predicted pose (a re-initialisation, counted).
   int max_lost_frames = 3;
+  // No still window within this span: start moving, gravity from the mean
+  // specific force, velocity unknown (initial_velocity_sigma_mps). The window
+  // backend starts after 0.5 s and lets the optimizer fix attitude and velocity.
+  int64_t moving_start_after_ns = 2'000'000'000;
   // Prediction uncertainty growth for the search window [px per second since the last tracked frame].
   double pred_sigma_px_per_s = 60.0;
   double pred_sigma_min_px = 4.0;

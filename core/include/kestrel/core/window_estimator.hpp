@@ -38,7 +38,11 @@
 namespace kestrel::core {
 
 struct WindowEstimatorOptions {
-  FrontendOdometryOptions frontend;
+  FrontendOdometryOptions frontend = [] {
+    FrontendOdometryOptions f;
+    f.moving_start_after_ns = 500'000'000;  // the dynamic start: the window sorts out attitude and velocity
+    return f;
+  }();
   WindowOptions window;
   // false: every tracked frame enters the window (the S recent frames are
   // consecutive frames); true: keyframes only (cheaper, less accurate).
