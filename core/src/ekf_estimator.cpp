@@ -1,4 +1,5 @@
 #include "kestrel/core/ekf_estimator.hpp"
+#include "kestrel/core/rig_transforms.hpp"
 
 #include <algorithm>
 #include <cmath>
@@ -10,13 +11,6 @@
 
 namespace kestrel::core {
 namespace {
-
-Eigen::Isometry3d to_isometry(const Mat4d& T) {
-  Eigen::Isometry3d out = Eigen::Isometry3d::Identity();
-  for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 4; ++c) out.matrix()(r, c) = T[static_cast<size_t>(r * 4 + c)];
-  return out;
-}
 
 double positive_or(double v, double fallback) { return v > 0.0 ? v : fallback; }
 

@@ -1,24 +1,16 @@
 #include "kestrel/core/frontend_odometry.hpp"
 
-#include "kestrel/core/so3.hpp"
-
 #include <algorithm>
 
+#include "kestrel/core/rig_transforms.hpp"
+#include "kestrel/core/so3.hpp"
+
 namespace kestrel::core {
-namespace {
-
-Eigen::Isometry3d to_isometry(const Mat4d& T) {
-  Eigen::Isometry3d out = Eigen::Isometry3d::Identity();
-  for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 4; ++c) out.matrix()(r, c) = T[static_cast<size_t>(r * 4 + c)];
-  return out;
-}
-
-
-}  // namespace
-
 FrontendOdometry::FrontendOdometry(const Rig& rig, const FrontendOdometryOptions& opt)
-    : opt_(opt), T_BC_(to_isometry(rig.T_BC)), init_and_imu_(rig, opt.moving_start_after_ns), tracker_(rig, opt.tracker),
+    : opt_(opt),
+      T_BC_(to_isometry(rig.T_BC)),
+      init_and_imu_(rig, opt.moving_start_after_ns),
+      tracker_(rig, opt.tracker),
       prop_(imu_propagator_options(rig)) {}
 
 bool FrontendOdometry::add_imu(const ImuSample& s) {
@@ -50,14 +42,16 @@ bool FrontendOdometry::add_frame(const RgbdFrame& f) {
   const double ahead_s = 1e-9 * static_cast<double>(f.t_ns - s.t_ns);
   const Eigen::Vector3d w_B = last_gyro_rps_ - s.bg_rps;
   Eigen::Isometry3d T_WB_pred = Eigen::Isometry3d::Identity();
-  T_WB_pred.linear() = (s.q_WB * Eigen::Quaterniond(Eigen::AngleAxisd(
-                                     w_B.norm() * ahead_s, w_B.norm() > 1e-12 ? Eigen::Vector3d(w_B.normalized())
-                                                                              : Eigen::Vector3d::UnitZ())))
-                           .toRotationMatrix();
+  T_WB_pred.linear() =
+      (s.q_WB * Eigen::Quaterniond(Eigen::AngleAxisd(
+                    w_B.norm() * ahead_s,
+                    w_B.norm() > 1e-12 ? Eigen::Vector3d(w_B.normalized()) : Eigen::Vector3d::UnitZ())))
+          .toRotationMatrix();
   T_WB_pred.translation() = s.p_WB + s.v_WB * ahead_s;
   const Eigen::Isometry3d T_WC_pred = T_WB_pred * T_BC_;
-  const double since_s =
-      last_tracked_t_ns_ < 0 ? 1.0 : 1e-9 * static_cast<double>(std::max<int64_t>(0, f.t_ns - last_tracked_t_ns_));
+  const double since_s = last_tracked_t_ns_ < 0
+                             ? 1.0
+                             : 1e-9 * static_cast<double>(std::max<int64_t>(0, f.t_ns - last_tracked_t_ns_));
   const double sigma_px = std::max(opt_.pred_sigma_min_px, opt_.pred_sigma_px_per_s * since_s);
 
   const TrackResult& r = tracker_.track(f.t_ns, f.rgb, f.depth, T_WC_pred, sigma_px);
@@ -95,8 +89,9 @@ bool FrontendOdometry::add_frame(const RgbdFrame& f) {
     const Eigen::Vector3d w = last_gyro_rps_ - s.bg_rps;
     const Eigen::Quaterniond q_meas =
         Eigen::Quaterniond(T_WB.linear()) *
-        Eigen::Quaterniond(Eigen::AngleAxisd(-w.norm() * back_s, w.norm() > 1e-12 ? Eigen::Vector3d(w.normalized())
-                                                                                   : Eigen::Vector3d::UnitZ()));
+        Eigen::Quaterniond(Eigen::AngleAxisd(-w.norm() * back_s, w.norm() > 1e-12
+                                                                     ? Eigen::Vector3d(w.normalized())
+                                                                     : Eigen::Vector3d::UnitZ()));
     const Eigen::Vector3d p_meas = T_WB.translation() - s.v_WB * back_s;
     if (r.status == TrackStatus::kNewKeyframe && !tracker_has_tracked_) {
       // First keyframe: it defines the pose; the velocity is still unknown.

@@ -5,17 +5,11 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "kestrel/core/rig_transforms.hpp"
 #include "kestrel/rt/clock.hpp"
 
 namespace kestrel::core {
 namespace {
-
-Eigen::Isometry3d to_isometry(const Mat4d& T) {
-  Eigen::Isometry3d out = Eigen::Isometry3d::Identity();
-  for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 4; ++c) out.matrix()(r, c) = T[static_cast<size_t>(r * 4 + c)];
-  return out;
-}
 
 PinholeK pinhole_of(const Rig& rig) {
   PinholeK K;
@@ -87,10 +81,11 @@ void WindowEstimator::set_threaded_optimizer(bool on) {
 
 std::string WindowEstimator::backend_summary() const {
   std::ostringstream o;
-  o << "window: jobs " << wc_.jobs << ", solves ok " << solves_ok_.load(std::memory_order_relaxed) << ", applied "
-    << wc_.applied << ", failures " << wc_.failures << ", window resets " << wc_.window_resets
+  o << "window: jobs " << wc_.jobs << ", solves ok " << solves_ok_.load(std::memory_order_relaxed)
+    << ", applied " << wc_.applied << ", failures " << wc_.failures << ", window resets " << wc_.window_resets
     << ", skipped (busy " << wc_.skipped_busy << ", few obs " << wc_.skipped_few_obs << ", no imu "
-    << wc_.skipped_no_imu << "), stale " << wc_.stale_results << ", imu gaps " << wc_.imu_gaps << ", still frames " << wc_.stationary_frames;
+    << wc_.skipped_no_imu << "), stale " << wc_.stale_results << ", imu gaps " << wc_.imu_gaps
+    << ", still frames " << wc_.stationary_frames;
   return o.str();
 }
 
@@ -273,7 +268,8 @@ void WindowEstimator::apply(const WindowSolveResult& r) {
   ++wc_.applied;
   if (r.has_kf) {
     Eigen::Isometry3d T_WC = Eigen::Isometry3d::Identity();
-    T_WC.linear() = Eigen::Quaterniond(r.kf_q[0], r.kf_q[1], r.kf_q[2], r.kf_q[3]).normalized().toRotationMatrix();
+    T_WC.linear() =
+        Eigen::Quaterniond(r.kf_q[0], r.kf_q[1], r.kf_q[2], r.kf_q[3]).normalized().toRotationMatrix();
     T_WC.translation() = Eigen::Vector3d(r.kf_p[0], r.kf_p[1], r.kf_p[2]);
     front_.tracker().set_keyframe_pose(r.kf_t_ns, T_WC);
   }

@@ -7,6 +7,7 @@
 #include <string>
 
 #include "kestrel/core/estimator.hpp"
+#include "kestrel/core/rig_transforms.hpp"
 #include "kestrel/drivers/log_source.hpp"
 #include "kestrel/rt/alloc_counter.hpp"
 #include "kestrel/tools/simulator.hpp"
@@ -16,7 +17,10 @@
 namespace kestrel::test {
 
 inline std::string simulate(const std::string& scenario, double duration_s, uint64_t seed = 7) {
-  const std::string dir = test::temp_dir("estimator_" + scenario + "_" + std::to_string(seed));
+  // Unique per (scenario, duration, seed): ctest runs tests in parallel
+  // processes, and temp_dir() empties the folder it hands out.
+  const std::string dir = test::temp_dir("estimator_" + scenario + "_" + std::to_string(seed) + "_" +
+                                         std::to_string(static_cast<int>(duration_s * 1000)));
   tools::SimOptions o;
   o.scenario = scenario;
   o.duration_s = duration_s;
@@ -28,12 +32,7 @@ inline std::string simulate(const std::string& scenario, double duration_s, uint
   return o.out_path;
 }
 
-inline Eigen::Isometry3d to_iso(const Mat4d& T) {
-  Eigen::Isometry3d o = Eigen::Isometry3d::Identity();
-  for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 4; ++c) o.matrix()(r, c) = T[static_cast<size_t>(r * 4 + c)];
-  return o;
-}
+inline Eigen::Isometry3d to_iso(const Mat4d& T) { return core::to_isometry(T); }
 
 struct RunResult {
   tools::Trajectory est, gt;
@@ -97,9 +96,9 @@ inline RunResult run(const std::string& log_path, const EstimatorMaker& make, co
         if (have_rgb) feed_frame(&rec.image);
         break;
       case drivers::RecordType::kGroundTruth:
-        out.gt.push_back(tools::TimedPose{rec.gt.t_ns, Eigen::Vector3d(rec.gt.p_WB.data()),
-                                          Eigen::Quaterniond(rec.gt.q_WB[0], rec.gt.q_WB[1], rec.gt.q_WB[2],
-                                                             rec.gt.q_WB[3])});
+        out.gt.push_back(tools::TimedPose{
+            rec.gt.t_ns, Eigen::Vector3d(rec.gt.p_WB.data()),
+            Eigen::Quaterniond(rec.gt.q_WB[0], rec.gt.q_WB[1], rec.gt.q_WB[2], rec.gt.q_WB[3])});
         break;
       default:
         break;

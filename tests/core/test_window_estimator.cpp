@@ -153,16 +153,18 @@ TEST(Tracker, LandmarkIdsPersistWhileTrackedAndAcrossKeyframes) {
         for (int i = 0; i < n; ++i) {
           EXPECT_NE(obs[i].landmark_id, 0u);
           EXPECT_TRUE(ids.insert(obs[i].landmark_id).second) << "duplicate id in one frame";
-          if (seen_before.count(obs[i].landmark_id)) ++inherited;
-          else ++kf_new_total;
+          if (seen_before.count(obs[i].landmark_id))
+            ++inherited;
+          else
+            ++kf_new_total;
         }
         seen_before.insert(ids.begin(), ids.end());
         kf_ids = ids;
       }
     }
   }
-  std::printf("%d keyframes, %d tracked frames; keyframe observations: %d inherited ids, %d new\n", keyframes, tracked,
-              inherited, kf_new_total);
+  std::printf("%d keyframes, %d tracked frames; keyframe observations: %d inherited ids, %d new\n", keyframes,
+              tracked, inherited, kf_new_total);
   EXPECT_GT(tracked, 60);
   EXPECT_GE(keyframes, 2);
   EXPECT_EQ(obs_not_in_kf, 0u) << "a tracked frame's inlier carries an id its keyframe does not have";
@@ -187,5 +189,5 @@ TEST(WindowEstimator, ParkedVehicleGetsTheZeroVelocityFactorAndDoesNotDrift) {
               est->backend_summary().c_str());
   EXPECT_GT(c.stationary_frames, 70u);  // of ~110 window frames while parked
   EXPECT_LT(drift, 0.002);
-  EXPECT_LT(test::ate(win), 0.02);      // the take-off after it still tracks
+  EXPECT_LT(test::ate(win), 0.02);  // the take-off after it still tracks
 }

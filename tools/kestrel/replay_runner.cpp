@@ -603,8 +603,10 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   report.backend_summary = estimator.backend_summary();
   report.optimizer_threaded = optimizer_thread;
   if (const rt::LatencyHistogram* h = estimator.optimizer_latency()) report.optimizer = *h;
-  report.imu_ring_drops = rings->imu.drops();
-  report.frame_ring_drops = rings->frames.drops();
+  // What the feeder lost, not the rings' refused pushes: in fast pace the
+  // feeder retries a full ring (back-pressure), and every retry is a refusal.
+  report.imu_ring_drops = report.replay.imu_dropped;
+  report.frame_ring_drops = report.replay.frames_dropped;
   report.image_pool_exhausted = rings->images.failed_acquires();
   report.problems = log->problems();
   report.wall_s = 1e-9 * static_cast<double>(wall1 - wall0);

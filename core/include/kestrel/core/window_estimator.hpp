@@ -54,10 +54,10 @@ struct WindowEstimatorOptions {
   // the simulator's ideal-model IMU it costs a little (figure8: 1.0 -> 2.1 cm).
   // docs/optimizer.md, "Window estimator".
   double imu_noise_inflation = 30.0;
-  int min_observations = 8;            // a frame with fewer stays out of the window
-  double max_correction_m = 0.5;       // optimized vs propagated position beyond this: a failure
-  double max_speed_mps = 25.0;         // an optimized speed beyond this: a failure
-  int max_consecutive_failures = 3;    // then the window restarts
+  int min_observations = 8;              // a frame with fewer stays out of the window
+  double max_correction_m = 0.5;         // optimized vs propagated position beyond this: a failure
+  double max_speed_mps = 25.0;           // an optimized speed beyond this: a failure
+  int max_consecutive_failures = 3;      // then the window restarts
   int64_t max_imu_gap_ns = 200'000'000;  // a longer gap cannot be preintegrated: the window restarts
   bool zero_velocity_when_still = true;  // window.zero_velocity_sigma_mps on frames the IMU says are still
   // The IMU test alone also passes smooth flight at near-constant
@@ -68,17 +68,17 @@ struct WindowEstimatorOptions {
 };
 
 struct WindowEstimatorCounters {
-  uint64_t jobs = 0;              // frames sent to the optimizer
+  uint64_t jobs = 0;  // frames sent to the optimizer
   uint64_t solves_ok = 0;
-  uint64_t applied = 0;           // results that corrected the front end
-  uint64_t failures = 0;          // solves not applied (failed, non-finite, absurd, far off)
+  uint64_t applied = 0;   // results that corrected the front end
+  uint64_t failures = 0;  // solves not applied (failed, non-finite, absurd, far off)
   uint64_t window_resets = 0;
-  uint64_t skipped_busy = 0;      // tracked frames left out: the optimizer was behind
+  uint64_t skipped_busy = 0;  // tracked frames left out: the optimizer was behind
   uint64_t skipped_few_obs = 0;
-  uint64_t skipped_no_imu = 0;    // a frame not followed by IMU before the next one
-  uint64_t stale_results = 0;     // too old to propagate to now
+  uint64_t skipped_no_imu = 0;  // a frame not followed by IMU before the next one
+  uint64_t stale_results = 0;   // too old to propagate to now
   uint64_t imu_gaps = 0;
-  uint64_t stationary_frames = 0; // window frames given the zero-velocity factor
+  uint64_t stationary_frames = 0;  // window frames given the zero-velocity factor
 };
 
 // Optimizer -> tracking side. Trivially copyable: crosses threads through the mailbox.
@@ -90,7 +90,7 @@ struct WindowSolveResult {
   int64_t t_ns = 0;
   double p[3], q[4], v[3], bg[3], ba[3];  // q: w, x, y, z
   int64_t kf_t_ns = 0;
-  double kf_p[3], kf_q[4];                // T_WC of the tracker's keyframe
+  double kf_p[3], kf_q[4];  // T_WC of the tracker's keyframe
 };
 
 class WindowEstimator final : public Estimator {
@@ -117,12 +117,12 @@ class WindowEstimator final : public Estimator {
   const FrontendOdometry& front() const { return front_; }
 
  private:
-  static constexpr int kPool = 6;      // jobs in flight (front -> optimizer)
-  static constexpr int kChain = 16;    // preintegrations kept to propagate results to now
+  static constexpr int kPool = 6;    // jobs in flight (front -> optimizer)
+  static constexpr int kChain = 16;  // preintegrations kept to propagate results to now
 
   struct Job {
     uint64_t seq = 0;
-    bool reset = false;        // restart the window with this frame
+    bool reset = false;  // restart the window with this frame
     bool stationary = false;
     bool has_pim = false;
     bool keyframe = false;
@@ -133,8 +133,8 @@ class WindowEstimator final : public Estimator {
     int n_obs = 0;
   };
 
-  void process(int slot);                // optimizer side
-  void poll_results();                   // tracking side
+  void process(int slot);  // optimizer side
+  void poll_results();     // tracking side
   void apply(const WindowSolveResult& r);
   void submit_pending();
   void fail_and_maybe_reset();
@@ -151,8 +151,8 @@ class WindowEstimator final : public Estimator {
   // Job pool and the two rings of slot indices.
   std::unique_ptr<Job[]> jobs_;
   std::unique_ptr<WindowObservation[]> obs_pool_;
-  rt::SpscRing<uint8_t, 8> todo_;   // front -> optimizer
-  rt::SpscRing<uint8_t, 8> done_;   // optimizer -> front (slots to reuse)
+  rt::SpscRing<uint8_t, 8> todo_;  // front -> optimizer
+  rt::SpscRing<uint8_t, 8> done_;  // optimizer -> front (slots to reuse)
   int free_slots_[kPool] = {};
   int n_free_ = 0;
   rt::Mailbox<WindowSolveResult> results_;
@@ -166,9 +166,9 @@ class WindowEstimator final : public Estimator {
   int64_t t_last_frame_ns_ = 0;
   ImuSample last_sample_{};
   bool have_last_sample_ = false;
-  int pending_slot_ = -1;              // a frame waiting for the IMU sample after it
+  int pending_slot_ = -1;  // a frame waiting for the IMU sample after it
   uint64_t next_seq_ = 1;
-  Preintegrated chain_[kChain];        // pim of job seq k at k % kChain
+  Preintegrated chain_[kChain];  // pim of job seq k at k % kChain
   uint64_t chain_seq_[kChain] = {};
   uint64_t last_applied_seq_ = 0;
   int consecutive_failures_ = 0;
