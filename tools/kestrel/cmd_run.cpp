@@ -135,6 +135,9 @@ Subcommand add_run_command(CLI::App& parent) {
     drivers::RingImuSink<decltype(rings->imu)> imu(rings->imu);
     RingFrameSink frames(*rings);
     std::unique_ptr<core::Estimator> est = core::make_estimator(backend, cfg.rig);
+    // Live, the optimizer always has its own thread: a solve must never hold
+    // up the IMU-rate pose (docs/threads.md).
+    est->set_threaded_optimizer(est->has_optimizer());
     std::printf("running %s -> estimator '%s' (%s)\n", sensors.description().c_str(), est->name(),
                 a->estimator.empty() && !cfg.estimator.backend.empty() ? "from the config" : "");
     g_run_stop.store(false);
@@ -146,6 +149,13 @@ Subcommand add_run_command(CLI::App& parent) {
     // an allocation; the main thread sends and prints them.
     auto poses = std::make_unique<rt::SpscRing<RunPose, 1024>>();
     auto status = std::make_unique<rt::Mailbox<PipelineStatus>>();
+    std::thread optimizer;
+    if (est->has_optimizer()) {
+      optimizer = std::thread([&] {
+        while (!consumer_stop.load(std::memory_order_relaxed))
+          if (!est->optimizer_step()) rt::sleep_for_ns(500'000);
+      });
+    }
     std::thread consumer([&] {
       int64_t last_imu_t_ns = -1;
       int64_t frame_waiting_since_ns = -1;
@@ -289,6 +299,7 @@ Subcommand add_run_command(CLI::App& parent) {
     sensors.stop();
     consumer_stop.store(true);
     consumer.join();
+    if (optimizer.joinable()) optimizer.join();
     std::signal(SIGINT, SIG_DFL);
     std::signal(SIGTERM, SIG_DFL);
     std::printf("%s", sensors.report().c_str());
