@@ -99,6 +99,21 @@ TEST(DatasetsCli, SimExportedToEth3dReplaysAndScoresLikeTheKlog) {
   EXPECT_NE(nocal.out.find("fx fy cx cy"), std::string::npos) << nocal.out;
 }
 
+TEST(DatasetsCli, SimWritesAnEth3dFolderDirectly) {
+  const std::string dir = kestrel::test::temp_dir("datasets_sim_eth3d_" + std::to_string(getpid()));
+  const std::string eth3d = dir + "/flight";
+  const CmdResult sim = run("sim --scenario hover --duration 3 --seed 2 --width 160 --height 120 --out " + dir +
+                            "/sim.klog --export-eth3d " + eth3d);
+  ASSERT_EQ(sim.code, 0) << sim.out;
+  EXPECT_NE(sim.out.find("ETH3D folder"), std::string::npos) << sim.out;
+  const CmdResult rep = run("replay " + eth3d + " --traj-out " + dir + "/est.txt");
+  ASSERT_EQ(rep.code, 0) << rep.out;
+  EXPECT_NE(rep.out.find("eth3d"), std::string::npos) << rep.out;
+  const CmdResult ev = run("eval --gt " + eth3d + " --est " + dir + "/est.txt");
+  ASSERT_EQ(ev.code, 0) << ev.out;
+  EXPECT_LT(ate_of(ev), 0.05) << ev.out;
+}
+
 TEST(DatasetsCli, ConvertRejectsUnknownFormats) {
   EXPECT_EQ(run("convert x --out y.klog --format banana").code, 2);
   EXPECT_EQ(run("convert x --out y --to banana").code, 2);

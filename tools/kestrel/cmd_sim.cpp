@@ -4,6 +4,8 @@
 #include <string>
 
 #include "kestrel/commands.hpp"
+#include "kestrel/drivers/log_export.hpp"
+#include "kestrel/drivers/log_source.hpp"
 #include "kestrel/tools/simulator.hpp"
 
 namespace kestrel::cli {
@@ -15,6 +17,7 @@ struct SimArgs {
   double fps = 30.0, imu_rate = 400.0;
   double duration = -1.0;
   bool fixed_yaw = false, no_noise = false;
+  std::string export_eth3d;
   CLI::Option *width_opt = nullptr, *height_opt = nullptr, *fps_opt = nullptr, *imu_rate_opt = nullptr,
               *duration_opt = nullptr;
 };
@@ -40,6 +43,8 @@ Subcommand add_sim_command(CLI::App& parent) {
   app->add_option("--imu", o.imu_path, "hybrid mode: write this real IMU (EuRoC imu0.csv) instead of a synthetic one")
       ->needs(traj);
   app->add_option("--out", o.out_path, "output .klog")->required();
+  app->add_option("--export-eth3d", args->export_eth3d,
+                  "also write the flight as an ETH3D SLAM folder here (same as `kestrel convert OUT --to eth3d`)");
   args->duration_opt = app->add_option("--duration", args->duration,
                                        "seconds (default: hover 189, others 60, a file: all of it)");
   app->add_option("--start", o.start_s, "seconds into the ground-truth file to start at")->needs(traj);
@@ -89,6 +94,12 @@ Subcommand add_sim_command(CLI::App& parent) {
       throw UsageError(e.what());
     }
     std::printf("kestrel sim: wrote %s\n%s", opt.out_path.c_str(), tools::format_summary(s).c_str());
+    if (!args->export_eth3d.empty()) {
+      auto src = drivers::open_log(opt.out_path);
+      const drivers::ExportStats st = drivers::export_eth3d(*src, args->export_eth3d);
+      std::printf("kestrel sim: ETH3D folder %s (%llu frames, %llu IMU samples)\n", args->export_eth3d.c_str(),
+                  static_cast<unsigned long long>(st.rgb), static_cast<unsigned long long>(st.imu));
+    }
     return 0;
   };
   return cmd;
