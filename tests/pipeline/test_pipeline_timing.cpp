@@ -42,6 +42,14 @@ TEST(PipelineTiming, RealtimeBudgetsOverSixtySeconds) {
   ro.pace = drivers::ReplayPace::kRealtime;
   ro.estimator = backend();
   ro.warmup_ns = 2'000'000'000;
+  uint64_t imu_poses_seen = 0;
+  int64_t last_imu_pose_t_ns = -1;
+  bool imu_poses_in_order = true;
+  ro.on_imu_pose = [&](const cli::PoseSample& p) {
+    ++imu_poses_seen;
+    imu_poses_in_order = imu_poses_in_order && p.t_ns > last_imu_pose_t_ns;
+    last_imu_pose_t_ns = p.t_ns;
+  };
   const cli::ReplayReport r = cli::run_replay(ro);
   std::filesystem::remove_all(dir);
   std::printf("%s", cli::replay_summary(r).c_str());
@@ -81,6 +89,11 @@ TEST(PipelineTiming, RealtimeBudgetsOverSixtySeconds) {
                 1e-6 * static_cast<double>(r.optimizer.max()));
     EXPECT_LT(opt_p99_ms, 100.0) << "optimizer budget";
   }
+  // The IMU-rate pose reaches the output: at least one per output drain
+  // (~1 ms) at 400 Hz IMU is ~13 per frame; ask for 5 to leave room for load.
+  EXPECT_EQ(imu_poses_seen, r.imu_rate_poses);
+  EXPECT_GT(imu_poses_seen, 5u * r.tracking.count());
+  EXPECT_TRUE(imu_poses_in_order);
   EXPECT_EQ(r.imu_ring_drops, 0u);
   EXPECT_EQ(r.frame_ring_drops, 0u);
   EXPECT_EQ(r.output_ring_drops, 0u);

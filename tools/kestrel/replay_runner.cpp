@@ -29,7 +29,7 @@ namespace {
 struct OutPose {
   int64_t t_ns;
   double p[3];
-  double q[4];   // w x y z
+  double q[4];  // w x y z
   double v[3];
   double w[3];
   core::TrackingQuality quality;
@@ -44,10 +44,15 @@ using ImuRing = rt::SpscRing<ImuSample, drivers::kImuRingCapacity>;
 struct Anchor {
   int64_t t_ns;
   double p[3], q[4], v[3], bg[3], ba[3];
+  core::TrackingQuality quality;
+  uint32_t reset_counter;
 };
 
-Anchor to_anchor(const core::NavState& x) {
+Anchor to_anchor(const core::NavState& x, core::TrackingQuality quality = core::TrackingQuality::kTracking,
+                 uint32_t reset_counter = 0) {
   Anchor a{};
+  a.quality = quality;
+  a.reset_counter = reset_counter;
   a.t_ns = x.t_ns;
   for (int i = 0; i < 3; ++i) {
     a.p[i] = x.p_WB[i];
@@ -82,9 +87,14 @@ core::NavState from_anchor(const Anchor& a) {
 class PropagatorStage {
  public:
   PropagatorStage(ImuRing& in, ImuRing& to_estimator, const rt::Mailbox<Anchor>& anchor, const Rig& rig,
-                  const ReplayOptions& opt, ReplayReport& report)
-      : in_(in), to_est_(to_estimator), anchor_(anchor), prop_(core::imu_propagator_options(rig)), opt_(opt),
-        report_(report) {}
+                  const ReplayOptions& opt, ReplayReport& report, rt::Mailbox<OutPose>& imu_pose)
+      : in_(in),
+        to_est_(to_estimator),
+        anchor_(anchor),
+        prop_(core::imu_propagator_options(rig)),
+        opt_(opt),
+        report_(report),
+        imu_pose_(imu_pose) {}
 
   bool step() {
     bool any = false;
@@ -102,6 +112,22 @@ class PropagatorStage {
       history_.push(s);
       if (have_anchor_ && prop_.propagate(s)) {
         newest_ = prop_.state();
+        // Published the moment it exists: a latest-value mailbox, so a slow
+        // reader skips poses instead of holding up this thread.
+        OutPose o{};
+        o.t_ns = newest_.t_ns;
+        for (int i = 0; i < 3; ++i) {
+          o.p[i] = newest_.p_WB[i];
+          o.v[i] = newest_.v_WB[i];
+          o.w[i] = s.gyro_rps[i] - newest_.bg_rps[i];
+        }
+        o.q[0] = newest_.q_WB.w();
+        o.q[1] = newest_.q_WB.x();
+        o.q[2] = newest_.q_WB.y();
+        o.q[3] = newest_.q_WB.z();
+        o.quality = anchor_quality_;
+        o.reset_counter = anchor_reset_counter_;
+        imu_pose_.publish(o);
         if (counting_) report_.imu_to_output.record(rt::now_ns() - s.t_recv_ns);
       }
     }
@@ -109,7 +135,8 @@ class PropagatorStage {
   }
 
   void finish() {
-    if (counting_) report_.steady_allocs += static_cast<int64_t>(rt::alloc_count_this_thread() - allocs_at_warmup_);
+    if (counting_)
+      report_.steady_allocs += static_cast<int64_t>(rt::alloc_count_this_thread() - allocs_at_warmup_);
   }
 
  private:
@@ -118,6 +145,8 @@ class PropagatorStage {
     uint64_t version = 0;
     if (!anchor_.read(a, &version) || version == anchor_version_) return;
     anchor_version_ = version;
+    anchor_quality_ = a.quality;
+    anchor_reset_counter_ = a.reset_counter;
     prop_.reset(from_anchor(a));
     have_anchor_ = true;
     // The sample at the anchor's time re-anchors the integration, later ones
@@ -134,10 +163,13 @@ class PropagatorStage {
   core::ImuPropagator prop_;
   const ReplayOptions& opt_;
   ReplayReport& report_;
-  rt::HistoryRing<ImuSample, 1024> history_;   // 2.5 s at 400 Hz: longer than any tracking step
+  rt::HistoryRing<ImuSample, 1024> history_;  // 2.5 s at 400 Hz: longer than any tracking step
   uint64_t anchor_version_ = 0;
   bool have_anchor_ = false;
   core::NavState newest_;
+  rt::Mailbox<OutPose>& imu_pose_;
+  core::TrackingQuality anchor_quality_ = core::TrackingQuality::kUninitialized;
+  uint32_t anchor_reset_counter_ = 0;
   int64_t first_t_ns_ = -1;
   bool counting_ = false;
   uint64_t allocs_at_warmup_ = 0;
@@ -158,7 +190,7 @@ double process_cpu_s() {
 double peak_rss_mb() {
   rusage ru{};
   getrusage(RUSAGE_SELF, &ru);
-  return static_cast<double>(ru.ru_maxrss) / 1024.0;   // ru_maxrss is in KiB on Linux
+  return static_cast<double>(ru.ru_maxrss) / 1024.0;  // ru_maxrss is in KiB on Linux
 }
 
 std::size_t max_image_bytes_for(const Rig& rig) {
@@ -187,9 +219,9 @@ uint64_t image_fingerprint(const ImageView& v) {
 double depth_valid_share(const ImageView& v) {
   if (v.data == nullptr || v.format != PixelFormat::kDepthU16 || v.width <= 0 || v.height <= 0) return 0;
   int valid = 0, n = 0;
-  for (int y = v.height / 16; y < v.height; y += v.height / 8 > 0 ? v.height / 8 : 1) {
+  for (int y = v.height / 16; y<v.height; y += v.height / 8> 0 ? v.height / 8 : 1) {
     const auto* row = reinterpret_cast<const uint16_t*>(v.data + static_cast<int64_t>(y) * v.stride_bytes);
-    for (int x = v.width / 32; x < v.width; x += v.width / 16 > 0 ? v.width / 16 : 1) {
+    for (int x = v.width / 32; x<v.width; x += v.width / 16> 0 ? v.width / 16 : 1) {
       valid += row[x] != 0;
       ++n;
     }
@@ -207,7 +239,14 @@ class EstimatorStage {
   EstimatorStage(core::Estimator& est, drivers::SensorRings& rings, ImuRing& imu,
                  rt::SpscRing<OutPose, kOutRingCapacity>& out, rt::Mailbox<PipelineStatus>& status,
                  rt::Mailbox<Anchor>* anchor, const ReplayOptions& opt, const Rig& rig, ReplayReport& report)
-      : est_(est), rings_(rings), imu_(imu), out_(out), status_(status), anchor_(anchor), opt_(opt), report_(report) {
+      : est_(est),
+        rings_(rings),
+        imu_(imu),
+        out_(out),
+        status_(status),
+        anchor_(anchor),
+        opt_(opt),
+        report_(report) {
     frame_period_ns_ = rig.camera_rate_hz > 0 ? static_cast<int64_t>(1e9 / rig.camera_rate_hz) : 0;
     imu_gap_ns_ = rig.imu_rate_hz > 0 ? static_cast<int64_t>(5e9 / rig.imu_rate_hz) : 50'000'000;
   }
@@ -237,7 +276,8 @@ class EstimatorStage {
   }
 
   void finish() {
-    if (counting_) report_.steady_allocs = static_cast<int64_t>(rt::alloc_count_this_thread() - allocs_at_warmup_);
+    if (counting_)
+      report_.steady_allocs = static_cast<int64_t>(rt::alloc_count_this_thread() - allocs_at_warmup_);
     report_.input_faults = faults_;
   }
 
@@ -296,7 +336,8 @@ class EstimatorStage {
     // A backend that tracked the last frame it saw says kTracking until the
     // next one; when frames stop reaching it (camera silent, frozen, withheld)
     // the pipeline says what is true: the pose is IMU propagation.
-    const int64_t stale_ns = frame_period_ns_ > 0 ? std::max<int64_t>(3 * frame_period_ns_, 150'000'000) : 150'000'000;
+    const int64_t stale_ns =
+        frame_period_ns_ > 0 ? std::max<int64_t>(3 * frame_period_ns_, 150'000'000) : 150'000'000;
     if (p.quality == core::TrackingQuality::kTracking && last_frame_t_ns_ >= 0 &&
         newest_t_ns_ - last_frame_t_ns_ > stale_ns)
       p.quality = core::TrackingQuality::kImuOnly;
@@ -317,7 +358,7 @@ class EstimatorStage {
     if (!est_.add_imu(s)) return;
     const int64_t latency = rt::now_ns() - t_start;
     if (anchor_ != nullptr) {
-      anchor_->publish(to_anchor(est_.output().state));
+      anchor_->publish(to_anchor(est_.output().state, est_.output().quality, est_.output().reset_counter));
       if (counting_) report_.estimator_imu_latency.record(latency);
     } else if (counting_) {
       report_.imu_to_output.record(latency);
@@ -343,7 +384,8 @@ class EstimatorStage {
       const int64_t t0 = rt::now_ns();
       est_.add_frame(f);
       const int64_t t1 = rt::now_ns();
-      if (anchor_ != nullptr) anchor_->publish(to_anchor(est_.output().state));
+      if (anchor_ != nullptr)
+        anchor_->publish(to_anchor(est_.output().state, est_.output().quality, est_.output().reset_counter));
       ++frames_fed_;
       if (t1 - t0 > window_tracking_max_ns_) window_tracking_max_ns_ = t1 - t0;
       if (counting_) {
@@ -369,7 +411,8 @@ class EstimatorStage {
     }
     last_fingerprint_ = fp;
     if (last_frame_t_ns_ >= 0 && frame_period_ns_ > 0 && f.t_ns - last_frame_t_ns_ > frame_period_ns_ * 3 / 2)
-      faults_.missing += static_cast<uint64_t>((f.t_ns - last_frame_t_ns_ + frame_period_ns_ / 2) / frame_period_ns_) - 1;
+      faults_.missing +=
+          static_cast<uint64_t>((f.t_ns - last_frame_t_ns_ + frame_period_ns_ / 2) / frame_period_ns_) - 1;
     if (depth_valid_share(f.depth) < 0.01) ++faults_.no_depth;
     return true;
   }
@@ -385,7 +428,7 @@ class EstimatorStage {
   ReplayReport& report_;
   int64_t frame_period_ns_ = 0;
   int64_t imu_gap_ns_ = 50'000'000;
-  int64_t newest_t_ns_ = -1;   // newest record time seen (log time)
+  int64_t newest_t_ns_ = -1;  // newest record time seen (log time)
   InputFaultCounts faults_;
   uint64_t last_fingerprint_ = 0;
   uint64_t frames_fed_ = 0;
@@ -407,8 +450,8 @@ class EstimatorStage {
 class OutputStage {
  public:
   OutputStage(rt::SpscRing<OutPose, kOutRingCapacity>& out, const rt::Mailbox<PipelineStatus>& status,
-              const ReplayOptions& opt, ReplayReport& report)
-      : out_(out), status_(status), opt_(opt), report_(report) {
+              const ReplayOptions& opt, ReplayReport& report, const rt::Mailbox<OutPose>* imu_pose)
+      : out_(out), status_(status), opt_(opt), report_(report), imu_pose_(imu_pose) {
     if (!opt.mavlink_udp.empty()) {
       mavlink::OdometryStreamOptions mo;
       mo.endpoint = opt.mavlink_udp;
@@ -416,16 +459,28 @@ class OutputStage {
     }
   }
 
+  static PoseSample to_sample(const OutPose& p) {
+    PoseSample s;
+    s.t_ns = p.t_ns;
+    s.p_WB = Eigen::Vector3d(p.p[0], p.p[1], p.p[2]);
+    s.q_WB = Eigen::Quaterniond(p.q[0], p.q[1], p.q[2], p.q[3]);
+    s.v_WB = Eigen::Vector3d(p.v[0], p.v[1], p.v[2]);
+    s.omega_B_rps = Eigen::Vector3d(p.w[0], p.w[1], p.w[2]);
+    s.quality = p.quality;
+    s.reset_counter = p.reset_counter;
+    return s;
+  }
+
   void drain() {
+    if (imu_pose_ != nullptr && imu_pose_->version() != imu_pose_version_) {
+      OutPose o{};
+      if (imu_pose_->read(o, &imu_pose_version_)) {
+        ++report_.imu_rate_poses;
+        if (opt_.on_imu_pose) opt_.on_imu_pose(to_sample(o));
+      }
+    }
     while (OutPose* p = out_.front()) {
-      PoseSample s;
-      s.t_ns = p->t_ns;
-      s.p_WB = Eigen::Vector3d(p->p[0], p->p[1], p->p[2]);
-      s.q_WB = Eigen::Quaterniond(p->q[0], p->q[1], p->q[2], p->q[3]);
-      s.v_WB = Eigen::Vector3d(p->v[0], p->v[1], p->v[2]);
-      s.omega_B_rps = Eigen::Vector3d(p->w[0], p->w[1], p->w[2]);
-      s.quality = p->quality;
-      s.reset_counter = p->reset_counter;
+      const PoseSample s = to_sample(*p);
       out_.pop();
       tools::TimedPose tp;
       tp.t_ns = s.t_ns;
@@ -477,6 +532,8 @@ class OutputStage {
   ReplayReport& report_;
   std::unique_ptr<mavlink::OdometryStream> mavlink_;
   uint64_t status_version_ = 0;
+  const rt::Mailbox<OutPose>* imu_pose_ = nullptr;
+  uint64_t imu_pose_version_ = 0;
 };
 
 // Thread table of the replay harness (docs/threads.md). Priorities are asked
@@ -495,7 +552,8 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   ReplayReport report;
   drivers::LogOpenOptions open = opt.open;
   open.format = opt.format;
-  std::unique_ptr<drivers::LogSource> log = opt.open_source ? opt.open_source() : drivers::open_log(opt.path, open);
+  std::unique_ptr<drivers::LogSource> log =
+      opt.open_source ? opt.open_source() : drivers::open_log(opt.path, open);
   report.log_path = opt.path;
   report.log_format = log->format_name();
   report.pace = opt.pace;
@@ -522,8 +580,9 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   drivers::ReplaySource source(*log, *rings, opt.pace);
   EstimatorStage stage(estimator, *rings, realtime ? *est_imu : rings->imu, *out, *status,
                        realtime ? anchor.get() : nullptr, opt, log->rig(), report);
-  PropagatorStage propagator(rings->imu, *est_imu, *anchor, log->rig(), opt, report);
-  OutputStage output(*out, *status, opt, report);
+  auto imu_pose = std::make_unique<rt::Mailbox<OutPose>>();
+  PropagatorStage propagator(rings->imu, *est_imu, *anchor, log->rig(), opt, report, *imu_pose);
+  OutputStage output(*out, *status, opt, report, imu_pose.get());
 
   const int64_t wall0 = rt::now_ns();
   const double cpu0 = process_cpu_s();
@@ -547,19 +606,22 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     std::thread prop_thread;
     if (realtime) {
       rt::ThreadSetupReport prop_sched;
-      prop_thread = rt::start_thread(kPropagatorThread, [&] {
-        for (;;) {
-          const bool done = source.finished();
-          // Sleeps 100 us when idle rather than spinning: on a 2-core machine a
-          // second spinning thread would take the estimator's CPU.
-          if (!propagator.step()) {
-            if (done && rings->imu.empty()) break;
-            rt::sleep_for_ns(100'000);
-          }
-        }
-        propagator.finish();
-        imu_forwarded.store(true, std::memory_order_release);
-      }, &prop_sched);
+      prop_thread = rt::start_thread(
+          kPropagatorThread,
+          [&] {
+            for (;;) {
+              const bool done = source.finished();
+              // Sleeps 100 us when idle rather than spinning: on a 2-core machine a
+              // second spinning thread would take the estimator's CPU.
+              if (!propagator.step()) {
+                if (done && rings->imu.empty()) break;
+                rt::sleep_for_ns(100'000);
+              }
+            }
+            propagator.finish();
+            imu_forwarded.store(true, std::memory_order_release);
+          },
+          &prop_sched);
       report.propagator_thread = rt::to_string(prop_sched);
     }
     ImuRing& est_in = realtime ? *est_imu : rings->imu;
@@ -649,6 +711,7 @@ std::string replay_metrics_json(const ReplayReport& r) {
   histogram_json(j, "optimizer", r.optimizer);
   j.end_object();
   j.kv("optimizer_threaded", r.optimizer_threaded);
+  j.kv("imu_rate_poses", r.imu_rate_poses);
   j.key("records").begin_object();
   j.kv("imu", r.replay.imu_pushed).kv("frames", r.replay.frames_pushed);
   j.kv("ground_truth", r.replay.ground_truth).kv("events", r.replay.events);
@@ -711,39 +774,50 @@ void frame_stats(const core::Estimator& est, int& features, int& inliers) {
 std::string format_status(const PipelineStatus& s) {
   const char* state = "uninit";
   switch (s.quality) {
-    case core::TrackingQuality::kTracking: state = "tracking"; break;
-    case core::TrackingQuality::kImuOnly: state = "imu-only"; break;
-    case core::TrackingQuality::kLost: state = "lost"; break;
-    case core::TrackingQuality::kUninitialized: break;
+    case core::TrackingQuality::kTracking:
+      state = "tracking";
+      break;
+    case core::TrackingQuality::kImuOnly:
+      state = "imu-only";
+      break;
+    case core::TrackingQuality::kLost:
+      state = "lost";
+      break;
+    case core::TrackingQuality::kUninitialized:
+      break;
   }
   char buf[512];
-  std::snprintf(buf, sizeof buf,
-                "[%7.1f s] %-8s resets %u | feat %d inl %d | frames %llu/s | track max %.1f ms | imu->estimator max "
-                "%.2f ms | drops imu %llu frame %llu | imu rej %llu gaps %llu | cam miss %llu ooo %llu frozen %llu "
-                "nodepth %llu",
-                s.t_s, state, s.reset_counter, s.features, s.inliers, static_cast<unsigned long long>(s.frames_in_window),
-                1e-6 * static_cast<double>(s.tracking_max_ns), 1e-6 * static_cast<double>(s.imu_to_output_max_ns),
-                static_cast<unsigned long long>(s.imu_ring_drops), static_cast<unsigned long long>(s.frame_ring_drops),
-                static_cast<unsigned long long>(s.imu_rejected), static_cast<unsigned long long>(s.input_faults.imu_gaps),
-                static_cast<unsigned long long>(s.input_faults.missing),
-                static_cast<unsigned long long>(s.input_faults.out_of_order),
-                static_cast<unsigned long long>(s.input_faults.repeated),
-                static_cast<unsigned long long>(s.input_faults.no_depth));
+  std::snprintf(
+      buf, sizeof buf,
+      "[%7.1f s] %-8s resets %u | feat %d inl %d | frames %llu/s | track max %.1f ms | imu->estimator max "
+      "%.2f ms | drops imu %llu frame %llu | imu rej %llu gaps %llu | cam miss %llu ooo %llu frozen %llu "
+      "nodepth %llu",
+      s.t_s, state, s.reset_counter, s.features, s.inliers,
+      static_cast<unsigned long long>(s.frames_in_window), 1e-6 * static_cast<double>(s.tracking_max_ns),
+      1e-6 * static_cast<double>(s.imu_to_output_max_ns), static_cast<unsigned long long>(s.imu_ring_drops),
+      static_cast<unsigned long long>(s.frame_ring_drops), static_cast<unsigned long long>(s.imu_rejected),
+      static_cast<unsigned long long>(s.input_faults.imu_gaps),
+      static_cast<unsigned long long>(s.input_faults.missing),
+      static_cast<unsigned long long>(s.input_faults.out_of_order),
+      static_cast<unsigned long long>(s.input_faults.repeated),
+      static_cast<unsigned long long>(s.input_faults.no_depth));
   return buf;
 }
 
 std::string replay_summary(const ReplayReport& r) {
   char buf[512];
   std::string s;
-  std::snprintf(buf, sizeof buf, "estimator: %s (pace %s)\nlog: %s [%s], %.2f s of data\n", r.estimator.c_str(),
-                drivers::to_string(r.pace), r.log_path.c_str(), r.log_format.c_str(), r.log_duration_s);
+  std::snprintf(buf, sizeof buf, "estimator: %s (pace %s)\nlog: %s [%s], %.2f s of data\n",
+                r.estimator.c_str(), drivers::to_string(r.pace), r.log_path.c_str(), r.log_format.c_str(),
+                r.log_duration_s);
   s += buf;
-  std::snprintf(buf, sizeof buf,
-                "records: %llu IMU, %llu frames; poses out: %zu\nwall %.3f s, real-time factor %.1fx, cpu %.3f s, "
-                "peak RSS %.1f MB\n",
-                static_cast<unsigned long long>(r.replay.imu_pushed),
-                static_cast<unsigned long long>(r.replay.frames_pushed), r.trajectory.size(), r.wall_s,
-                r.realtime_factor, r.cpu_s, r.peak_rss_mb);
+  std::snprintf(
+      buf, sizeof buf,
+      "records: %llu IMU, %llu frames; poses out: %zu\nwall %.3f s, real-time factor %.1fx, cpu %.3f s, "
+      "peak RSS %.1f MB\n",
+      static_cast<unsigned long long>(r.replay.imu_pushed),
+      static_cast<unsigned long long>(r.replay.frames_pushed), r.trajectory.size(), r.wall_s,
+      r.realtime_factor, r.cpu_s, r.peak_rss_mb);
   s += buf;
   if (r.imu_to_output.count() > 0) {
     std::snprintf(buf, sizeof buf, "imu->output latency: p50 %.3f ms, p99 %.3f ms, max %.3f ms\n",
@@ -753,17 +827,19 @@ std::string replay_summary(const ReplayReport& r) {
     s += buf;
   }
   const auto& c = r.estimator_counters.imu_rejects;
-  std::snprintf(buf, sizeof buf,
-                "drops: imu ring %llu, frame ring %llu, output %llu; imu rejected: %llu non-finite, %llu saturated, "
-                "%llu out of order, %llu gaps\n",
-                static_cast<unsigned long long>(r.imu_ring_drops), static_cast<unsigned long long>(r.frame_ring_drops),
-                static_cast<unsigned long long>(r.output_ring_drops), static_cast<unsigned long long>(c.non_finite),
-                static_cast<unsigned long long>(c.saturated), static_cast<unsigned long long>(c.out_of_order),
-                static_cast<unsigned long long>(c.gaps));
+  std::snprintf(
+      buf, sizeof buf,
+      "drops: imu ring %llu, frame ring %llu, output %llu; imu rejected: %llu non-finite, %llu saturated, "
+      "%llu out of order, %llu gaps\n",
+      static_cast<unsigned long long>(r.imu_ring_drops), static_cast<unsigned long long>(r.frame_ring_drops),
+      static_cast<unsigned long long>(r.output_ring_drops), static_cast<unsigned long long>(c.non_finite),
+      static_cast<unsigned long long>(c.saturated), static_cast<unsigned long long>(c.out_of_order),
+      static_cast<unsigned long long>(c.gaps));
   s += buf;
   if (r.optimizer.count() > 0) {
     std::snprintf(buf, sizeof buf, "optimizer (%s): %llu solves, p50 %.2f ms, p99 %.2f ms, max %.2f ms\n",
-                  r.optimizer_threaded ? "own thread" : "inline", static_cast<unsigned long long>(r.optimizer.count()),
+                  r.optimizer_threaded ? "own thread" : "inline",
+                  static_cast<unsigned long long>(r.optimizer.count()),
                   1e-6 * static_cast<double>(r.optimizer.percentile(50)),
                   1e-6 * static_cast<double>(r.optimizer.percentile(99)),
                   1e-6 * static_cast<double>(r.optimizer.max()));
@@ -772,18 +848,22 @@ std::string replay_summary(const ReplayReport& r) {
   if (!r.backend_summary.empty()) s += r.backend_summary + "\n";
   const InputFaultCounts& ff = r.input_faults;
   if (ff.missing + ff.out_of_order + ff.repeated + ff.no_depth + ff.imu_gaps > 0) {
-    std::snprintf(buf, sizeof buf,
-                  "input faults: %llu frames missing, %llu out of order (withheld), %llu repeated (withheld), %llu "
-                  "without depth; %llu IMU gaps\n",
-                  static_cast<unsigned long long>(ff.missing), static_cast<unsigned long long>(ff.out_of_order),
-                  static_cast<unsigned long long>(ff.repeated), static_cast<unsigned long long>(ff.no_depth),
-                  static_cast<unsigned long long>(ff.imu_gaps));
+    std::snprintf(
+        buf, sizeof buf,
+        "input faults: %llu frames missing, %llu out of order (withheld), %llu repeated (withheld), %llu "
+        "without depth; %llu IMU gaps\n",
+        static_cast<unsigned long long>(ff.missing), static_cast<unsigned long long>(ff.out_of_order),
+        static_cast<unsigned long long>(ff.repeated), static_cast<unsigned long long>(ff.no_depth),
+        static_cast<unsigned long long>(ff.imu_gaps));
     s += buf;
   }
-  if (!r.propagator_thread.empty()) s += "IMU-rate propagation " + r.propagator_thread + "\n";
+  if (!r.propagator_thread.empty())
+    s += "IMU-rate propagation " + r.propagator_thread + ", " + std::to_string(r.imu_rate_poses) +
+         " IMU-rate poses published\n";
   if (r.mavlink_sent + r.mavlink_failed > 0) {
     std::snprintf(buf, sizeof buf, "MAVLink ODOMETRY: %llu sent, %llu failed\n",
-                  static_cast<unsigned long long>(r.mavlink_sent), static_cast<unsigned long long>(r.mavlink_failed));
+                  static_cast<unsigned long long>(r.mavlink_sent),
+                  static_cast<unsigned long long>(r.mavlink_failed));
     s += buf;
   }
   if (r.alloc_counting) {

@@ -5,7 +5,6 @@
 
 #include <Eigen/Core>
 #include <Eigen/Geometry>
-
 #include <cstdint>
 #include <functional>
 #include <memory>
@@ -26,7 +25,7 @@ struct PoseSample {
   Eigen::Vector3d p_WB = Eigen::Vector3d::Zero();
   Eigen::Quaterniond q_WB = Eigen::Quaterniond::Identity();
   Eigen::Vector3d v_WB = Eigen::Vector3d::Zero();
-  Eigen::Vector3d omega_B_rps = Eigen::Vector3d::Zero();   // newest gyro minus the estimated bias
+  Eigen::Vector3d omega_B_rps = Eigen::Vector3d::Zero();  // newest gyro minus the estimated bias
   core::TrackingQuality quality = core::TrackingQuality::kUninitialized;
   uint32_t reset_counter = 0;
 };
@@ -36,11 +35,11 @@ struct PoseSample {
 // (frozen) frames are counted and withheld: the estimator's contract is
 // time-ordered, fresh input.
 struct InputFaultCounts {
-  uint64_t missing = 0;        // frames absent from the stream (time gaps of more than 1.5 periods)
-  uint64_t out_of_order = 0;   // time not after the previous frame (duplicates included); withheld
-  uint64_t repeated = 0;       // pixels identical to the previous frame (frozen camera); withheld
-  uint64_t no_depth = 0;       // depth image absent or (almost) all invalid
-  uint64_t imu_gaps = 0;       // IMU time steps longer than five sample periods (lost samples)
+  uint64_t missing = 0;       // frames absent from the stream (time gaps of more than 1.5 periods)
+  uint64_t out_of_order = 0;  // time not after the previous frame (duplicates included); withheld
+  uint64_t repeated = 0;      // pixels identical to the previous frame (frozen camera); withheld
+  uint64_t no_depth = 0;      // depth image absent or (almost) all invalid
+  uint64_t imu_gaps = 0;      // IMU time steps longer than five sample periods (lost samples)
 };
 
 // The 1 Hz status the estimator thread publishes (one per second of log time,
@@ -48,18 +47,19 @@ struct InputFaultCounts {
 // output thread.
 struct PipelineStatus {
   int64_t t_ns = 0;
-  double t_s = 0;                // since the first record
+  double t_s = 0;  // since the first record
   core::TrackingQuality quality = core::TrackingQuality::kUninitialized;
   uint32_t reset_counter = 0;
-  int features = -1;             // -1: the backend does not say
+  int features = -1;  // -1: the backend does not say
   int inliers = -1;
   uint64_t frames_in_window = 0;  // frames fed in the last second
   uint64_t frames_total = 0;
-  int64_t tracking_max_ns = 0;    // over the last second
-  int64_t imu_to_output_max_ns = 0;  // the estimator thread's view (in realtime pace the IMU-rate pose is faster)
+  int64_t tracking_max_ns = 0;  // over the last second
+  int64_t imu_to_output_max_ns =
+      0;  // the estimator thread's view (in realtime pace the IMU-rate pose is faster)
   uint64_t imu_ring_drops = 0;
   uint64_t frame_ring_drops = 0;
-  uint64_t imu_rejected = 0;      // non-finite + saturated + out of order (cumulative)
+  uint64_t imu_rejected = 0;  // non-finite + saturated + out of order (cumulative)
   uint64_t imu_gaps = 0;
   InputFaultCounts input_faults;
 };
@@ -72,9 +72,9 @@ void frame_stats(const core::Estimator& est, int& features, int& inliers);
 struct ReplayOptions {
   std::string path;
   drivers::LogFormat format = drivers::LogFormat::kAuto;
-  drivers::LogOpenOptions open;   // rig for datasets, bag topics (open.format is ignored: `format` rules)
+  drivers::LogOpenOptions open;  // rig for datasets, bag topics (open.format is ignored: `format` rules)
   drivers::ReplayPace pace = drivers::ReplayPace::kLockstep;
-  std::string estimator = "window";   // core::make_estimator name
+  std::string estimator = "window";  // core::make_estimator name
   // Allocation counting and latency statistics start after this much log time,
   // so start-up (buffers reserved, first frames) is not counted as steady state.
   int64_t warmup_ns = 2'000'000'000;
@@ -83,6 +83,10 @@ struct ReplayOptions {
   // Called on the output thread for every pose (not the estimator thread: it
   // may block or allocate).
   std::function<void(const PoseSample&)> on_pose;
+  // Realtime pace: the IMU-rate pose kst-propagate publishes (latest-value
+  // mailbox), handed over on the output thread as it drains (every ~1 ms; a
+  // pose newer than the last one seen, skipped ones are not replayed).
+  std::function<void(const PoseSample&)> on_imu_pose;
   // Stream MAVLink ODOMETRY to HOST:PORT at the pose rate ("" = off).
   std::string mavlink_udp;
   // Instead of opening `path`: a source made by the caller (a generator that
@@ -98,12 +102,12 @@ struct ReplayReport {
   std::string log_path;
   std::string log_format;
   drivers::ReplayPace pace = drivers::ReplayPace::kLockstep;
-  tools::Trajectory trajectory;        // body pose in W at each camera frame
+  tools::Trajectory trajectory;  // body pose in W at each camera frame
   double log_duration_s = 0;
   double wall_s = 0;
-  double realtime_factor = 0;          // log seconds per wall second
-  double cpu_s = 0;                    // whole process
-  double estimator_cpu_s = 0;          // the estimator thread alone
+  double realtime_factor = 0;  // log seconds per wall second
+  double cpu_s = 0;            // whole process
+  double estimator_cpu_s = 0;  // the estimator thread alone
   double peak_rss_mb = 0;
   // Realtime pace: ring push of a sample -> its IMU-rate pose available on the
   // propagation thread (end to end, what a flight controller would wait).
@@ -113,22 +117,23 @@ struct ReplayReport {
   // (docs/threads.md); this is the estimator thread's own view of the same
   // samples (push -> its add_imu returned), which waits behind tracking.
   rt::LatencyHistogram estimator_imu_latency;
-  uint64_t propagator_forward_drops = 0;   // propagation -> estimator ring full
-  std::string propagator_thread;           // scheduling the propagation thread got (realtime pace)
-  rt::LatencyHistogram tracking;       // per frame, inside the estimator
+  uint64_t propagator_forward_drops = 0;  // propagation -> estimator ring full
+  std::string propagator_thread;          // scheduling the propagation thread got (realtime pace)
+  rt::LatencyHistogram tracking;          // per frame, inside the estimator
   drivers::ReplayStats replay;
   core::EstimatorCounters estimator_counters;
-  std::string backend_summary;         // Estimator::backend_summary()
-  rt::LatencyHistogram optimizer;      // per solve (backends with an optimizer)
-  bool optimizer_threaded = false;     // on its own thread (realtime pace) or inline
+  std::string backend_summary;      // Estimator::backend_summary()
+  rt::LatencyHistogram optimizer;   // per solve (backends with an optimizer)
+  bool optimizer_threaded = false;  // on its own thread (realtime pace) or inline
   uint64_t imu_ring_drops = 0;
   uint64_t frame_ring_drops = 0;
   uint64_t output_ring_drops = 0;
   uint64_t image_pool_exhausted = 0;
   InputFaultCounts input_faults;
   uint64_t status_lines = 0;
+  uint64_t imu_rate_poses = 0;  // IMU-rate poses the output thread took from kst-propagate
   uint64_t mavlink_sent = 0;
-  uint64_t mavlink_failed = 0;     // sendto() errors, counted, never retried
+  uint64_t mavlink_failed = 0;  // sendto() errors, counted, never retried
   // Heap allocations made by the estimator thread after warm-up, and how many
   // frames it processed in that span.
   int64_t steady_allocs = 0;
