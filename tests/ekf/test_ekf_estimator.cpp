@@ -10,6 +10,7 @@
 #include <string>
 #include <vector>
 
+#include "estimator_harness.hpp"
 #include "kestrel/core/ekf_estimator.hpp"
 #include "kestrel/core/estimator.hpp"
 #include "kestrel/drivers/log_source.hpp"
@@ -23,92 +24,12 @@ using namespace kestrel;
 namespace {
 
 std::string simulate(const std::string& scenario, double duration_s, uint64_t seed) {
-  const std::string dir = test::temp_dir("ekf_estimator_" + scenario + "_" + std::to_string(seed));
-  tools::SimOptions o;
-  o.scenario = scenario;
-  o.duration_s = duration_s;
-  o.seed = seed;
-  o.width = 320;
-  o.height = 240;
-  o.out_path = dir + "/log.klog";
-  tools::run_simulation(o);
-  return o.out_path;
+  return test::simulate(scenario, duration_s, seed, "ekf_estimator");
 }
 
-struct RunResult {
-  tools::Trajectory est, gt;
-  uint64_t steady_allocs = 0;
-  uint64_t steady_frames = 0;
-  core::EstimatorCounters counters;
-};
-
-// Feeds a log the way the replay harness does (IMU and frames merged in time
-// order); counts allocations inside the estimator after 1 s of log; calls
-// `after_frame` with the newest ground truth after each frame.
-RunResult run(const std::string& log_path, core::Estimator& est,
-              const std::function<void(const tools::TimedPose& gt)>& after_frame = {}) {
-  auto log = drivers::open_log(log_path);
-  RunResult out;
-  drivers::LogRecord rec;
-  drivers::LogImage rgb;
-  bool have_rgb = false;
-  int64_t t_first = -1;
-  auto feed_frame = [&](const drivers::LogImage* depth) {
-    core::RgbdFrame f;
-    f.t_ns = rgb.t_ns;
-    f.rgb = rgb.view();
-    if (depth != nullptr) f.depth = depth->view();
-    const bool steady = t_first >= 0 && rgb.t_ns - t_first > 1'000'000'000;
-    rt::AllocCountScope scope;
-    est.add_frame(f);
-    if (steady) {
-      out.steady_allocs += scope.count();
-      ++out.steady_frames;
-    }
-    if (est.output().quality != core::TrackingQuality::kUninitialized) {
-      const auto& s = est.output().state;
-      out.est.push_back(tools::TimedPose{s.t_ns, s.p_WB, s.q_WB});
-      if (after_frame && !out.gt.empty() && out.gt.back().t_ns == f.t_ns) after_frame(out.gt.back());
-    }
-    have_rgb = false;
-  };
-  while (log->next(rec)) {
-    switch (rec.type) {
-      case drivers::RecordType::kImu: {
-        if (have_rgb) feed_frame(nullptr);
-        if (t_first < 0) t_first = rec.imu.t_ns;
-        const bool steady = rec.imu.t_ns - t_first > 1'000'000'000;
-        rt::AllocCountScope scope;
-        est.add_imu(rec.imu);
-        if (steady) out.steady_allocs += scope.count();
-        break;
-      }
-      case drivers::RecordType::kRgb:
-        if (have_rgb) feed_frame(nullptr);
-        rgb = rec.image;
-        have_rgb = true;
-        break;
-      case drivers::RecordType::kDepth:
-        if (have_rgb) feed_frame(&rec.image);
-        break;
-      case drivers::RecordType::kGroundTruth:
-        out.gt.push_back(tools::TimedPose{
-            rec.gt.t_ns, Eigen::Vector3d(rec.gt.p_WB.data()),
-            Eigen::Quaterniond(rec.gt.q_WB[0], rec.gt.q_WB[1], rec.gt.q_WB[2], rec.gt.q_WB[3])});
-        break;
-      default:
-        break;
-    }
-  }
-  out.counters = est.counters();
-  return out;
-}
-
-double ate(const RunResult& r) {
-  tools::EvalOptions eo;
-  eo.align = tools::Alignment::kPosYaw;
-  return tools::evaluate(r.gt, r.est, eo).ate_m.rmse;
-}
+using test::ate;
+using test::run;
+using test::RunResult;
 
 core::ekf::Pose to_pose(const tools::TimedPose& p) { return {p.q.normalized().toRotationMatrix(), p.p}; }
 
@@ -217,7 +138,7 @@ TEST(EkfEstimator, NoHeapAllocationPerFrameInSteadyState) {
   core::EkfEstimator ekf(log->rig());
   const RunResult r = run(path, ekf);
   ASSERT_TRUE(rt::alloc_hook_linked());
-  ASSERT_GT(r.steady_frames, 50u);
+  ASSERT_GT(r.frames, 50u);
   ASSERT_GT(ekf.filter().counters().observations_used, 1000u) << "the run must exercise the update";
   EXPECT_EQ(r.steady_allocs, 0u) << "allocations in add_imu/add_frame after warm-up";
 }

@@ -16,10 +16,11 @@
 
 namespace kestrel::test {
 
-inline std::string simulate(const std::string& scenario, double duration_s, uint64_t seed = 7) {
+inline std::string simulate(const std::string& scenario, double duration_s, uint64_t seed = 7,
+                            const std::string& prefix = "estimator") {
   // Unique per (scenario, duration, seed): ctest runs tests in parallel
   // processes, and temp_dir() empties the folder it hands out.
-  const std::string dir = test::temp_dir("estimator_" + scenario + "_" + std::to_string(seed) + "_" +
+  const std::string dir = test::temp_dir(prefix + "_" + scenario + "_" + std::to_string(seed) + "_" +
                                          std::to_string(static_cast<int>(duration_s * 1000)));
   tools::SimOptions o;
   o.scenario = scenario;
@@ -45,12 +46,13 @@ struct RunResult {
 using EstimatorMaker = std::function<std::unique_ptr<core::Estimator>(const Rig&)>;
 using ImuFilter = std::function<bool(const ImuSample&)>;  // false: the sample is withheld
 
-// Counts allocations inside the estimator after 1 s of log. `est_out`, when
-// given, receives the estimator (for backend-specific counters).
-inline RunResult run(const std::string& log_path, const EstimatorMaker& make, const ImuFilter& keep_imu = {},
-                     std::unique_ptr<core::Estimator>* est_out = nullptr) {
-  auto log = drivers::open_log(log_path);
-  std::unique_ptr<core::Estimator> est = make(log->rig());
+using AfterFrame = std::function<void(const tools::TimedPose& gt)>;  // newest ground truth at the frame
+
+// Counts allocations inside the estimator after 1 s of log; calls
+// `after_frame` (when given) after each frame that got a pose and has ground
+// truth at its time.
+inline RunResult run_on(drivers::LogSource& log, core::Estimator& est, const ImuFilter& keep_imu = {},
+                        const AfterFrame& after_frame = {}) {
   RunResult out;
   drivers::LogRecord rec;
   drivers::LogImage rgb;
@@ -63,19 +65,20 @@ inline RunResult run(const std::string& log_path, const EstimatorMaker& make, co
     if (depth != nullptr) f.depth = depth->view();
     const bool steady = t_first >= 0 && rgb.t_ns - t_first > 1'000'000'000;
     rt::AllocCountScope scope;
-    est->add_frame(f);
+    est.add_frame(f);
     if (steady) {
       out.steady_allocs += scope.count();
       ++out.frames;
     }
     ++out.frames_total;
-    if (est->output().quality != core::TrackingQuality::kUninitialized) {
-      const auto& s = est->output().state;
+    if (est.output().quality != core::TrackingQuality::kUninitialized) {
+      const auto& s = est.output().state;
       out.est.push_back(tools::TimedPose{s.t_ns, s.p_WB, s.q_WB});
+      if (after_frame && !out.gt.empty() && out.gt.back().t_ns == f.t_ns) after_frame(out.gt.back());
     }
     have_rgb = false;
   };
-  while (log->next(rec)) {
+  while (log.next(rec)) {
     switch (rec.type) {
       case drivers::RecordType::kImu: {
         if (have_rgb) feed_frame(nullptr);
@@ -83,7 +86,7 @@ inline RunResult run(const std::string& log_path, const EstimatorMaker& make, co
         if (keep_imu && !keep_imu(rec.imu)) break;
         const bool steady = rec.imu.t_ns - t_first > 1'000'000'000;
         rt::AllocCountScope scope;
-        est->add_imu(rec.imu);
+        est.add_imu(rec.imu);
         if (steady) out.steady_allocs += scope.count();
         break;
       }
@@ -104,9 +107,24 @@ inline RunResult run(const std::string& log_path, const EstimatorMaker& make, co
         break;
     }
   }
-  out.counters = est->counters();
+  out.counters = est.counters();
+  return out;
+}
+
+// The same with an estimator made for the log's rig. `est_out`, when given,
+// receives the estimator (for backend-specific counters).
+inline RunResult run(const std::string& log_path, const EstimatorMaker& make, const ImuFilter& keep_imu = {},
+                     std::unique_ptr<core::Estimator>* est_out = nullptr) {
+  auto log = drivers::open_log(log_path);
+  std::unique_ptr<core::Estimator> est = make(log->rig());
+  RunResult out = run_on(*log, *est, keep_imu);
   if (est_out != nullptr) *est_out = std::move(est);
   return out;
+}
+
+inline RunResult run(const std::string& log_path, core::Estimator& est, const AfterFrame& after_frame = {}) {
+  auto log = drivers::open_log(log_path);
+  return run_on(*log, est, {}, after_frame);
 }
 
 inline RunResult run(const std::string& log_path, const std::string& estimator) {
