@@ -3,6 +3,7 @@
 #include <cmath>
 #include <stdexcept>
 
+#include "dataset_common.hpp"
 #include "kestrel/drivers/folder_logs.hpp"
 #include "kestrel/drivers/rig_yaml.hpp"
 #include "text_log.hpp"
@@ -13,33 +14,8 @@ namespace {
 using text::ImageEntry;
 using text::StreamLogSource;
 
-struct Listed {
-  int64_t t_ns = 0;
-  std::string file;
-  size_t line = 0;
-};
-
-// "t filename" lines; '#' comments.
-std::vector<Listed> read_list(const std::string& path, StreamLogSource& s) {
-  std::vector<Listed> out;
-  std::vector<std::string> lines;
-  if (!text::read_lines(path, lines)) return out;
-  for (size_t i = 0; i < lines.size(); ++i) {
-    const std::string t = text::trim(lines[i]);
-    if (t.empty() || t[0] == '#') continue;
-    const auto f = text::split_ws(t);
-    Listed l;
-    if (f.size() != 2 || !text::parse_seconds_ns(f[0], l.t_ns)) {
-      s.problem(path + ":" + std::to_string(i + 1), "bad-row", "expected \"timestamp[s] filename\"");
-      continue;
-    }
-    l.file = f[1];
-    l.line = i + 1;
-    out.push_back(std::move(l));
-  }
-  std::stable_sort(out.begin(), out.end(), [](const Listed& a, const Listed& b) { return a.t_ns < b.t_ns; });
-  return out;
-}
+using ds::Listed;
+using ds::read_list;
 
 // Published calibrations of the three Kinects (TUM RGB-D "intrinsic calibration" page);
 // depth is registered to the colour camera and scaled 5000 units per metre.
@@ -88,31 +64,17 @@ TumReader::TumReader(const std::string& path_in, const Options& options) {
   const auto depth = text::is_file(depth_txt) ? read_list(depth_txt, s) : std::vector<Listed>{};
   if (!text::is_file(depth_txt)) s.problem(depth_txt, "missing-file", "no depth listing; RGB only");
 
-  // Associate like TUM's associate.py: candidate pairs within the window, the
-  // closest first, each frame used once.
-  struct Pair {
-    int64_t dt;
-    size_t r, d;
-  };
-  std::vector<Pair> cand;
-  size_t lo = 0;
-  for (size_t r = 0; r < rgb.size(); ++r) {
-    while (lo < depth.size() && depth[lo].t_ns < rgb[r].t_ns - options.max_association_dt_ns) ++lo;
-    for (size_t d = lo; d < depth.size() && depth[d].t_ns <= rgb[r].t_ns + options.max_association_dt_ns; ++d)
-      cand.push_back({std::abs(depth[d].t_ns - rgb[r].t_ns), r, d});
-  }
-  std::stable_sort(cand.begin(), cand.end(), [](const Pair& a, const Pair& b) { return a.dt < b.dt; });
-  std::vector<long> depth_of(rgb.size(), -1);
+  // Like TUM's associate.py: candidate pairs within the window, the closest
+  // first, each frame used once.
+  const std::vector<long> depth_of = ds::associate(rgb, depth, options.max_association_dt_ns, pairs_);
   std::vector<bool> depth_used(depth.size(), false);
-  for (const Pair& p : cand)
-    if (depth_of[p.r] < 0 && !depth_used[p.d]) {
-      depth_of[p.r] = static_cast<long>(p.d);
-      depth_used[p.d] = true;
-      ++pairs_;
-    }
+  for (long d : depth_of)
+    if (d >= 0) depth_used[static_cast<size_t>(d)] = true;
 
-  const bool rgb_dir = text::is_dir(path + "/rgb") || rgb.empty() || rgb[0].file.find('/') == std::string::npos;
-  const bool depth_dir = text::is_dir(path + "/depth") || depth.empty() || depth[0].file.find('/') == std::string::npos;
+  const bool rgb_dir =
+      text::is_dir(path + "/rgb") || rgb.empty() || rgb[0].file.find('/') == std::string::npos;
+  const bool depth_dir =
+      text::is_dir(path + "/depth") || depth.empty() || depth[0].file.find('/') == std::string::npos;
   size_t rgb_missing = 0, depth_missing = 0;
   auto add = [&](const Listed& l, const std::string& listing, int64_t t_ns, int64_t t_recv_ns, uint32_t seq,
                  bool dir_ok, size_t& missing, std::vector<ImageEntry>& out) {
@@ -145,18 +107,21 @@ TumReader::TumReader(const std::string& path_in, const Options& options) {
     // The pair shares the colour time stamp so consumers pair by equal t_ns;
     // the depth frame's own stamp is kept in t_recv_ns.
     const Listed& d = depth[static_cast<size_t>(depth_of[r])];
-    add(d, depth_txt, rgb[r].t_ns, d.t_ns, static_cast<uint32_t>(depth_of[r]), depth_dir, depth_missing, s.depth_);
+    add(d, depth_txt, rgb[r].t_ns, d.t_ns, static_cast<uint32_t>(depth_of[r]), depth_dir, depth_missing,
+        s.depth_);
   }
   for (size_t d = 0; d < depth.size(); ++d)
     if (!depth_used[d])
       s.problem(depth_txt + ":" + std::to_string(depth[d].line), "unassociated",
                 "no RGB frame within the association window; depth frame skipped");
   if (rgb_missing > 0)
-    s.problem(path + "/rgb", "missing-file",
-              "image folder absent: " + std::to_string(rgb_missing) + " RGB frames listed in rgb.txt skipped");
+    s.problem(
+        path + "/rgb", "missing-file",
+        "image folder absent: " + std::to_string(rgb_missing) + " RGB frames listed in rgb.txt skipped");
   if (depth_missing > 0)
     s.problem(path + "/depth", "missing-file",
-              "image folder absent: " + std::to_string(depth_missing) + " depth frames listed in depth.txt skipped");
+              "image folder absent: " + std::to_string(depth_missing) +
+                  " depth frames listed in depth.txt skipped");
 
   // groundtruth.txt: t tx ty tz qx qy qz qw (TUM stores the quaternion x y z w; ours is w x y z).
   const std::string gt_txt = path + "/groundtruth.txt";
@@ -172,12 +137,14 @@ TumReader::TumReader(const std::string& path_in, const Options& options) {
       bool ok = f.size() == 8 && text::parse_seconds_ns(f[0], g.t_ns);
       for (int k = 0; k < 7 && ok; ++k) ok = text::parse_f64(f[k + 1], v[k]) && std::isfinite(v[k]);
       if (!ok) {
-        s.problem(gt_txt + ":" + std::to_string(i + 1), "bad-row", "expected \"t[s] tx ty tz qx qy qz qw\" (8 finite numbers)");
+        s.problem(gt_txt + ":" + std::to_string(i + 1), "bad-row",
+                  "expected \"t[s] tx ty tz qx qy qz qw\" (8 finite numbers)");
         continue;
       }
       const double qn = std::sqrt(v[3] * v[3] + v[4] * v[4] + v[5] * v[5] + v[6] * v[6]);
       if (std::abs(qn - 1.0) > 1e-2) {
-        s.problem(gt_txt + ":" + std::to_string(i + 1), "bad-row", "quaternion norm " + text::fmt17(qn) + " is not 1");
+        s.problem(gt_txt + ":" + std::to_string(i + 1), "bad-row",
+                  "quaternion norm " + text::fmt17(qn) + " is not 1");
         continue;
       }
       g.p_WB = {v[0], v[1], v[2]};
@@ -197,7 +164,8 @@ TumReader::TumReader(const std::string& path_in, const Options& options) {
       if (!t.empty() && t[0] != '#') ++n;
     }
     s.problem(acc_txt, "no-gyro",
-              std::to_string(n) + " accelerometer-only samples (Kinect tilt sensor, no gyroscope): not replayed as IMU");
+              std::to_string(n) +
+                  " accelerometer-only samples (Kinect tilt sensor, no gyroscope): not replayed as IMU");
   }
   s.order_streams(imu_file_, gt_file_);
 }
