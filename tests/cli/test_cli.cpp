@@ -9,29 +9,15 @@
 #include <sstream>
 #include <string>
 
+#include "run_command.hpp"
 #include "test_data.hpp"
 
 namespace fs = std::filesystem;
 
 namespace {
 
-struct CmdResult {
-  int code = -1;
-  std::string out;   // stdout and stderr together
-};
-
-CmdResult run(const std::string& args) {
-  const std::string cmd = std::string(KESTREL_BIN_DIR) + "/kestrel " + args + " 2>&1";
-  CmdResult r;
-  FILE* p = popen(cmd.c_str(), "r");
-  if (p == nullptr) return r;
-  std::array<char, 4096> buf{};
-  size_t n;
-  while ((n = fread(buf.data(), 1, buf.size(), p)) > 0) r.out.append(buf.data(), n);
-  const int status = pclose(p);
-  r.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  return r;
-}
+using kestrel::test::CmdResult;
+CmdResult run(const std::string& args) { return kestrel::test::run_kestrel(args); }
 
 std::string slurp(const std::string& path) {
   std::ifstream f(path, std::ios::binary);
@@ -108,8 +94,8 @@ TEST(Replay, FastPaceGivesTheSameTrajectoryAsLockstep) {
   // replay (two threads) must not change a single pose either.
   const std::string dir = kestrel::test::temp_dir("cli_fast");
   const CmdResult a = run("replay " + small_log() + " --pace lockstep --traj-out " + dir + "/a.txt -q");
-  const CmdResult b = run("replay " + small_log() + " --pace fast --traj-out " + dir + "/b.txt --metrics-out " + dir +
-                    "/m.json -q");
+  const CmdResult b = run("replay " + small_log() + " --pace fast --traj-out " + dir +
+                          "/b.txt --metrics-out " + dir + "/m.json -q");
   ASSERT_EQ(a.code, 0) << a.out;
   ASSERT_EQ(b.code, 0) << b.out;
   EXPECT_EQ(slurp(dir + "/a.txt"), slurp(dir + "/b.txt"));

@@ -10,27 +10,13 @@
 #include <filesystem>
 #include <string>
 
+#include "run_command.hpp"
 #include "test_data.hpp"
 
 namespace {
 
-struct CmdResult {
-  int code = -1;
-  std::string out;  // stdout and stderr together
-};
-
-CmdResult run(const std::string& args) {
-  const std::string cmd = std::string(KESTREL_BIN_DIR) + "/kestrel " + args + " 2>&1";
-  CmdResult r;
-  FILE* p = popen(cmd.c_str(), "r");
-  if (p == nullptr) return r;
-  std::array<char, 4096> buf{};
-  size_t n;
-  while ((n = fread(buf.data(), 1, buf.size(), p)) > 0) r.out.append(buf.data(), n);
-  const int status = pclose(p);
-  r.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  return r;
-}
+using kestrel::test::CmdResult;
+CmdResult run(const std::string& args) { return kestrel::test::run_kestrel(args); }
 
 double ate_of(const CmdResult& e) {
   const size_t k = e.out.find("ate_rmse_m: ");
@@ -102,8 +88,8 @@ TEST(DatasetsCli, SimExportedToEth3dReplaysAndScoresLikeTheKlog) {
 TEST(DatasetsCli, SimWritesAnEth3dFolderDirectly) {
   const std::string dir = kestrel::test::temp_dir("datasets_sim_eth3d_" + std::to_string(getpid()));
   const std::string eth3d = dir + "/flight";
-  const CmdResult sim = run("sim --scenario hover --duration 3 --seed 2 --width 160 --height 120 --out " + dir +
-                            "/sim.klog --export-eth3d " + eth3d);
+  const CmdResult sim = run("sim --scenario hover --duration 3 --seed 2 --width 160 --height 120 --out " +
+                            dir + "/sim.klog --export-eth3d " + eth3d);
   ASSERT_EQ(sim.code, 0) << sim.out;
   EXPECT_NE(sim.out.find("ETH3D folder"), std::string::npos) << sim.out;
   const CmdResult rep = run("replay " + eth3d + " --traj-out " + dir + "/est.txt");

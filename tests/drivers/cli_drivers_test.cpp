@@ -3,7 +3,6 @@
 // Runs the kestrel binary of this build; skips loudly when it is not built
 // yet or predates these commands.
 #include <gtest/gtest.h>
-
 #include <sys/wait.h>
 
 #include <cstdio>
@@ -11,27 +10,24 @@
 #include <fstream>
 #include <string>
 
+#include "run_command.hpp"
+
 namespace {
 
 const std::string kBin = std::string(KESTREL_BIN_DIR) + "/kestrel";
 const std::string kSrc = KESTREL_SOURCE_DIR;
 
 int run(const std::string& args, std::string& out) {
-  const std::string cmd = kBin + " " + args + " 2>&1";
-  FILE* p = popen(cmd.c_str(), "r");
-  if (p == nullptr) return -1;
-  char buf[4096];
-  out.clear();
-  while (size_t n = fread(buf, 1, sizeof buf, p)) out.append(buf, n);
-  const int st = pclose(p);
-  return WIFEXITED(st) ? WEXITSTATUS(st) : -1;
+  const kestrel::test::CmdResult r = kestrel::test::run_command(kBin + " " + args);
+  out = r.out;
+  return r.code;
 }
 
 bool have_commands() {
   std::string out;
   return std::filesystem::exists(kBin) && run("help", out) == 0 && out.find("record") != std::string::npos;
 }
-#define require_commands()                                                                     \
+#define require_commands() \
   if (!have_commands()) GTEST_SKIP() << "kestrel binary missing or without the driver commands: " << kBin
 
 TEST(CliDrivers, DevicesListsOrSaysNone) {
@@ -45,11 +41,13 @@ TEST(CliDrivers, RecordWithoutHardwareExitsOneNamingTheDevices) {
   require_commands();
   const auto klog = std::filesystem::temp_directory_path() / "kestrel_cli_record_none.klog";
   std::string out;
-  EXPECT_EQ(run("record --config " + kSrc + "/configs/openni2_bmx055_i2c.yaml --out " + klog.string(), out), 1) << out;
+  EXPECT_EQ(run("record --config " + kSrc + "/configs/openni2_bmx055_i2c.yaml --out " + klog.string(), out),
+            1)
+      << out;
   EXPECT_NE(out.find("cannot start the live sensors"), std::string::npos) << out;
   EXPECT_NE(out.find("OpenNI2"), std::string::npos) << out;
   EXPECT_NE(out.find("/dev/i2c-1"), std::string::npos) << out;
-  EXPECT_FALSE(std::filesystem::exists(klog));   // nothing half-written
+  EXPECT_FALSE(std::filesystem::exists(klog));  // nothing half-written
 }
 
 TEST(CliDrivers, RunWithoutHardwareExitsOne) {
@@ -75,7 +73,7 @@ TEST(CliDrivers, RunChecksTheEstimatorBeforeTheSensors) {
   std::string out;
   EXPECT_EQ(run("run --config " + cfg.string(), out), 1) << out;
   EXPECT_NE(out.find("estimator.backend: unknown backend 'kalman'"), std::string::npos) << out;
-  EXPECT_NE(out.find("ekf"), std::string::npos) << out;   // the list of known names
+  EXPECT_NE(out.find("ekf"), std::string::npos) << out;  // the list of known names
   EXPECT_EQ(run("run --config " + kSrc + "/configs/openni2_bmx055_i2c.yaml --estimator nope", out), 2) << out;
   EXPECT_NE(out.find("unknown --estimator 'nope'"), std::string::npos) << out;
   std::filesystem::remove(cfg);
@@ -95,7 +93,9 @@ TEST(CliDrivers, ReplayTakesTheBackendFromAConfig) {
   const std::string json((std::istreambuf_iterator<char>(m)), std::istreambuf_iterator<char>());
   EXPECT_NE(json.find("\"estimator\": \"imu-dead-reckoning\""), std::string::npos) << json;
   // --estimator wins over the config.
-  ASSERT_EQ(run("replay " + log + " --config " + cfg + " --estimator ekf -q --metrics-out " + metrics, out), 0) << out;
+  ASSERT_EQ(run("replay " + log + " --config " + cfg + " --estimator ekf -q --metrics-out " + metrics, out),
+            0)
+      << out;
   std::ifstream m2(metrics);
   const std::string json2((std::istreambuf_iterator<char>(m2)), std::istreambuf_iterator<char>());
   EXPECT_NE(json2.find("\"estimator\": \"ekf\""), std::string::npos) << json2;
@@ -108,8 +108,9 @@ TEST(CliDrivers, ReplayTakesTheBackendFromAConfig) {
 TEST(CliDrivers, BadConfigNamesFileAndKey) {
   require_commands();
   const auto cfg = std::filesystem::temp_directory_path() / "kestrel_cli_bad.yaml";
-  std::ofstream(cfg) << "rig:\n  camera: {width_px: 640, height_px: 480, fx_px: 1, fy_px: 1, cx_px: 0, cy_px: 0}\n"
-                        "drivers:\n  imu: {type: bmx055_i2c, gyro_range_dps: 3000, i2c: {bus_device: /dev/i2c-1}}\n";
+  std::ofstream(cfg)
+      << "rig:\n  camera: {width_px: 640, height_px: 480, fx_px: 1, fy_px: 1, cx_px: 0, cy_px: 0}\n"
+         "drivers:\n  imu: {type: bmx055_i2c, gyro_range_dps: 3000, i2c: {bus_device: /dev/i2c-1}}\n";
   std::string out;
   EXPECT_EQ(run("record --config " + cfg.string() + " --out /tmp/x.klog", out), 1) << out;
   EXPECT_NE(out.find("drivers.imu.gyro_range_dps"), std::string::npos) << out;

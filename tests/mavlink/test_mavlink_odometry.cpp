@@ -22,6 +22,7 @@
 #include "kestrel/mavlink/mavlink_v2.hpp"
 #include "kestrel/mavlink/odometry_adapter.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"
+#include "run_command.hpp"
 #include "test_data.hpp"
 
 namespace km = kestrel::mavlink;
@@ -29,18 +30,9 @@ namespace km = kestrel::mavlink;
 namespace {
 
 std::string run_capture(const std::string& cmd, int* code) {
-  std::string out;
-  FILE* p = popen((cmd + " 2>&1").c_str(), "r");
-  if (p == nullptr) {
-    *code = -1;
-    return out;
-  }
-  std::array<char, 4096> buf{};
-  size_t n;
-  while ((n = fread(buf.data(), 1, buf.size(), p)) > 0) out.append(buf.data(), n);
-  const int st = pclose(p);
-  *code = WIFEXITED(st) ? WEXITSTATUS(st) : -1;
-  return out;
+  const kestrel::test::CmdResult r = kestrel::test::run_command(cmd);
+  *code = r.code;
+  return r.out;
 }
 
 std::string hex(const uint8_t* d, size_t n) {
@@ -310,7 +302,8 @@ TEST(MavlinkEncode, DecodedByNodeMavlinkFieldByField) {
       // bytes. Node still decodes ours (checked above); its own frame must
       // differ from ours exactly by that byte.
       EXPECT_EQ(ours_hex[i].substr(2, 2), "01");
-      EXPECT_EQ(reser[i].substr(2, 2), "00") << "node-mavlink changed its trimming: compare whole frames again";
+      EXPECT_EQ(reser[i].substr(2, 2), "00")
+          << "node-mavlink changed its trimming: compare whole frames again";
     } else {
       EXPECT_EQ(reser[i], ours_hex[i]) << "node-mavlink encodes the same message differently";
     }
