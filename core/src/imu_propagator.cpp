@@ -26,6 +26,33 @@ bool imu_sample_usable(const ImuSample& s) {
   return (s.flags & (kImuNonFinite | kImuGyroSaturated | kImuAccSaturated)) == 0;
 }
 
+PackedNavState pack(const NavState& x) {
+  PackedNavState o{};
+  o.t_ns = x.t_ns;
+  for (int i = 0; i < 3; ++i) {
+    o.p[i] = x.p_WB[i];
+    o.v[i] = x.v_WB[i];
+    o.bg[i] = x.bg_rps[i];
+    o.ba[i] = x.ba_mps2[i];
+  }
+  o.q[0] = x.q_WB.w();
+  o.q[1] = x.q_WB.x();
+  o.q[2] = x.q_WB.y();
+  o.q[3] = x.q_WB.z();
+  return o;
+}
+
+NavState unpack(const PackedNavState& o) {
+  NavState x;
+  x.t_ns = o.t_ns;
+  x.p_WB = Eigen::Vector3d(o.p[0], o.p[1], o.p[2]);
+  x.q_WB = Eigen::Quaterniond(o.q[0], o.q[1], o.q[2], o.q[3]);
+  x.v_WB = Eigen::Vector3d(o.v[0], o.v[1], o.v[2]);
+  x.bg_rps = Eigen::Vector3d(o.bg[0], o.bg[1], o.bg[2]);
+  x.ba_mps2 = Eigen::Vector3d(o.ba[0], o.ba[1], o.ba[2]);
+  return x;
+}
+
 void ImuPropagator::reset(const NavState& s) {
   state_ = s;
   initialized_ = true;
@@ -43,7 +70,8 @@ void ImuPropagator::correct(const NavState& s) {
 bool ImuPropagator::propagate(const ImuSample& s) {
   if (!imu_sample_usable(s)) {
     bool finite = true;
-    for (int i = 0; i < 3; ++i) finite = finite && std::isfinite(s.gyro_rps[i]) && std::isfinite(s.acc_mps2[i]);
+    for (int i = 0; i < 3; ++i)
+      finite = finite && std::isfinite(s.gyro_rps[i]) && std::isfinite(s.acc_mps2[i]);
     if (!finite || (s.flags & kImuNonFinite)) {
       ++counts_.non_finite;
     } else {
@@ -147,8 +175,8 @@ bool StaticInitializer::window_means(Eigen::Vector3d* gyro_mean, Eigen::Vector3d
 
 bool StaticInitializer::add(const ImuSample& s, NavState& out) {
   if (!imu_sample_usable(s)) return false;
-  if (last_t_ns_ >= 0 && s.t_ns <= last_t_ns_) return false;   // out of order: counted by the propagator
-  if (last_t_ns_ >= 0 && s.t_ns - last_t_ns_ > opt_.block_ns) reset();   // a gap breaks the window
+  if (last_t_ns_ >= 0 && s.t_ns <= last_t_ns_) return false;  // out of order: counted by the propagator
+  if (last_t_ns_ >= 0 && s.t_ns - last_t_ns_ > opt_.block_ns) reset();  // a gap breaks the window
   last_t_ns_ = s.t_ns;
   if (cur_start_ns_ < 0) cur_start_ns_ = s.t_ns;
   cur_.sum_g += to_eigen(s.gyro_rps);
@@ -175,7 +203,8 @@ bool StaticInitializer::add(const ImuSample& s, NavState& out) {
                      std::abs(mean_a.norm() - opt_.gravity_mps2) < 0.5;
   if (!still) return false;
   // At rest the accelerometer measures -g rotated into B, i.e. +z_W up in B.
-  const Eigen::Quaterniond q_WB = Eigen::Quaterniond::FromTwoVectors(mean_a.normalized(), Eigen::Vector3d::UnitZ());
+  const Eigen::Quaterniond q_WB =
+      Eigen::Quaterniond::FromTwoVectors(mean_a.normalized(), Eigen::Vector3d::UnitZ());
   out = NavState{};
   out.t_ns = s.t_ns;
   out.q_WB = q_WB;

@@ -235,13 +235,7 @@ void WindowEstimator::apply(const WindowSolveResult& r) {
     fail_and_maybe_reset();
     return;
   }
-  NavState x;
-  x.t_ns = r.t_ns;
-  x.p_WB = Eigen::Vector3d(r.p[0], r.p[1], r.p[2]);
-  x.q_WB = Eigen::Quaterniond(r.q[0], r.q[1], r.q[2], r.q[3]);
-  x.v_WB = Eigen::Vector3d(r.v[0], r.v[1], r.v[2]);
-  x.bg_rps = Eigen::Vector3d(r.bg[0], r.bg[1], r.bg[2]);
-  x.ba_mps2 = Eigen::Vector3d(r.ba[0], r.ba[1], r.ba[2]);
+  NavState x = unpack(r.x);
   // Forward through the frames queued after this one, then the IMU since the
   // newest of them, to the propagated state's time.
   for (uint64_t k = r.seq + 1; k < next_seq_; ++k) {
@@ -292,7 +286,7 @@ void WindowEstimator::process(int slot) {
   const Job& job = jobs_[slot];
   WindowSolveResult out;
   out.seq = job.seq;
-  out.t_ns = job.t_ns;
+  out.x.t_ns = job.t_ns;
   WindowFrameInput in;
   in.t_ns = job.t_ns;
   in.guess = job.guess;
@@ -317,16 +311,7 @@ void WindowEstimator::process(int slot) {
   out.ok = ok;
   if (ok) {
     solves_ok_.fetch_add(1, std::memory_order_relaxed);
-    for (int i = 0; i < 3; ++i) {
-      out.p[i] = x.p_WB[i];
-      out.v[i] = x.v_WB[i];
-      out.bg[i] = x.bg_rps[i];
-      out.ba[i] = x.ba_mps2[i];
-    }
-    out.q[0] = x.q_WB.w();
-    out.q[1] = x.q_WB.x();
-    out.q[2] = x.q_WB.y();
-    out.q[3] = x.q_WB.z();
+    out.x = pack(x);
     NavState kf;
     if (job.tracker_kf_t_ns >= 0 && window_->state_of(job.tracker_kf_t_ns, &kf) && finite(kf)) {
       Eigen::Isometry3d T_WB = Eigen::Isometry3d::Identity();

@@ -42,40 +42,13 @@ using ImuRing = rt::SpscRing<ImuSample, drivers::kImuRingCapacity>;
 
 // The estimator's newest state, handed to the IMU-rate propagation thread.
 struct Anchor {
-  int64_t t_ns;
-  double p[3], q[4], v[3], bg[3], ba[3];
+  core::PackedNavState x;
   core::TrackingQuality quality;
   uint32_t reset_counter;
 };
 
-Anchor to_anchor(const core::NavState& x, core::TrackingQuality quality = core::TrackingQuality::kTracking,
-                 uint32_t reset_counter = 0) {
-  Anchor a{};
-  a.quality = quality;
-  a.reset_counter = reset_counter;
-  a.t_ns = x.t_ns;
-  for (int i = 0; i < 3; ++i) {
-    a.p[i] = x.p_WB[i];
-    a.v[i] = x.v_WB[i];
-    a.bg[i] = x.bg_rps[i];
-    a.ba[i] = x.ba_mps2[i];
-  }
-  a.q[0] = x.q_WB.w();
-  a.q[1] = x.q_WB.x();
-  a.q[2] = x.q_WB.y();
-  a.q[3] = x.q_WB.z();
-  return a;
-}
-
-core::NavState from_anchor(const Anchor& a) {
-  core::NavState x;
-  x.t_ns = a.t_ns;
-  x.p_WB = Eigen::Vector3d(a.p[0], a.p[1], a.p[2]);
-  x.v_WB = Eigen::Vector3d(a.v[0], a.v[1], a.v[2]);
-  x.bg_rps = Eigen::Vector3d(a.bg[0], a.bg[1], a.bg[2]);
-  x.ba_mps2 = Eigen::Vector3d(a.ba[0], a.ba[1], a.ba[2]);
-  x.q_WB = Eigen::Quaterniond(a.q[0], a.q[1], a.q[2], a.q[3]);
-  return x;
+Anchor to_anchor(const core::NavState& x, core::TrackingQuality quality, uint32_t reset_counter) {
+  return Anchor{core::pack(x), quality, reset_counter};
 }
 
 // Realtime pace: the IMU-rate pose must not wait while the estimator thread
@@ -147,12 +120,12 @@ class PropagatorStage {
     anchor_version_ = version;
     anchor_quality_ = a.quality;
     anchor_reset_counter_ = a.reset_counter;
-    prop_.reset(from_anchor(a));
+    prop_.reset(core::unpack(a.x));
     have_anchor_ = true;
     // The sample at the anchor's time re-anchors the integration, later ones
     // carry the state to the newest sample.
     size_t k = 0;
-    while (k < history_.size() && history_[k].t_ns < a.t_ns) ++k;
+    while (k < history_.size() && history_[k].t_ns < a.x.t_ns) ++k;
     history_.pop_front(k);
     for (size_t i = 0; i < history_.size(); ++i) prop_.propagate(history_[i]);
   }

@@ -24,18 +24,28 @@ struct NavState {
   Eigen::Vector3d ba_mps2 = Eigen::Vector3d::Zero();  // accelerometer bias
 };
 
+// A NavState as plain numbers (trivially copyable), for the seqlock
+// mailboxes that hand states between threads (rt::Mailbox).
+struct PackedNavState {
+  int64_t t_ns;
+  double p[3], q[4], v[3], bg[3], ba[3];  // q: w, x, y, z
+};
+PackedNavState pack(const NavState& x);
+NavState unpack(const PackedNavState& x);
+
 // Why an IMU sample was not used. Counted, never thrown.
 struct ImuRejectCounts {
   uint64_t non_finite = 0;
   uint64_t saturated = 0;
-  uint64_t out_of_order = 0;   // time not after the previous sample (duplicates included)
-  uint64_t gaps = 0;           // spacing larger than max_gap_ns: integrated across, but counted
+  uint64_t out_of_order = 0;  // time not after the previous sample (duplicates included)
+  uint64_t gaps = 0;          // spacing larger than max_gap_ns: integrated across, but counted
 };
 
 struct ImuPropagatorOptions {
   double gravity_mps2 = 9.81;
-  int64_t max_gap_ns = 50'000'000;        // above this a gap is reported
-  int64_t max_integration_step_ns = 200'000'000;  // beyond this, hold the state instead of integrating garbage
+  int64_t max_gap_ns = 50'000'000;  // above this a gap is reported
+  int64_t max_integration_step_ns =
+      200'000'000;  // beyond this, hold the state instead of integrating garbage
 };
 
 // Gravity and gap limits from the rig (gap: five IMU periods).
@@ -71,8 +81,8 @@ class ImuPropagator {
 bool imu_sample_usable(const ImuSample& s);
 
 struct StaticInitOptions {
-  int64_t window_ns = 500'000'000;          // stationary span needed
-  int64_t block_ns = 100'000'000;           // the window is judged by the means of blocks this long
+  int64_t window_ns = 500'000'000;  // stationary span needed
+  int64_t block_ns = 100'000'000;   // the window is judged by the means of blocks this long
   // Stationarity: every block mean within these bounds of the window mean.
   // Judging block means, not samples, lets a vehicle sitting with its motors
   // running (vibration: 0.6 m/s^2, 0.05 rad/s sample spread on EuRoC) count
@@ -107,8 +117,8 @@ class StaticInitializer {
   bool window_stats(Eigen::Vector3d* mean_g, Eigen::Vector3d* mean_a, double* dev_g, double* dev_a) const;
   StaticInitOptions opt_;
   Block blocks_[kMaxBlocks];
-  int n_blocks_ = 0;         // complete blocks held (oldest first, ring)
-  int head_ = 0;             // ring index of the oldest complete block
+  int n_blocks_ = 0;  // complete blocks held (oldest first, ring)
+  int head_ = 0;      // ring index of the oldest complete block
   Block cur_;
   int64_t cur_start_ns_ = -1;
   int64_t last_t_ns_ = -1;

@@ -87,8 +87,7 @@ struct WindowSolveResult {
   bool ok = false;
   bool reset_done = false;
   bool has_kf = false;
-  int64_t t_ns = 0;
-  double p[3], q[4], v[3], bg[3], ba[3];  // q: w, x, y, z
+  PackedNavState x{};  // the newest window state (at the job's frame time)
   int64_t kf_t_ns = 0;
   double kf_p[3], kf_q[4];  // T_WC of the tracker's keyframe
 };
