@@ -278,6 +278,86 @@ EstimatorSettings load_estimator_settings(const std::string& path) {
   }
 }
 
+namespace {
+constexpr const char* kThreadNames[kPipelineThreads] = {"kst-imu",      "kst-cam",       "kst-replay",
+                                                        "kst-propagate", "kst-estimator", "kst-optimizer"};
+}  // namespace
+
+ThreadTable default_thread_table() {
+  ThreadTable t;
+  // What the pipeline ran with before the table became configurable: only the
+  // IMU-rate pose asks for SCHED_FIFO (it sleeps between samples, so it cannot
+  // starve anything), the rest is SCHED_OTHER on any CPU. A live rig's config
+  // names its own table (configs/*.yaml, docs/threads.md).
+  for (int i = 0; i < kPipelineThreads; ++i) t.spec[i] = rt::ThreadSpec{kThreadNames[i], 0, -1, 0};
+  t[PipelineThread::kImu].period_ns = 2'500'000;
+  t[PipelineThread::kCamera].period_ns = 33'333'333;
+  t[PipelineThread::kPropagate].priority = 60;
+  return t;
+}
+
+std::string thread_names() {
+  std::string s;
+  for (const char* n : kThreadNames) s += std::string(s.empty() ? "" : ", ") + n;
+  return s;
+}
+
+ThreadTable thread_table_from_yaml_node(const YAML::Node& node, const std::string& where) {
+  ThreadTable t = default_thread_table();
+  if (!node) return t;
+  P p(where);
+  if (!node.IsMap()) p.fail("threads", "expected a mapping of thread name -> {cpu, policy, priority}");
+  t.from_config = true;
+  for (const auto& kv : node) {
+    const std::string name = kv.first.Scalar();
+    int idx = -1;
+    for (int i = 0; i < kPipelineThreads; ++i)
+      if (name == kThreadNames[i]) idx = i;
+    const std::string path = "threads." + name;
+    if (idx < 0) p.fail(path, "unknown thread (expected one of: " + thread_names() + ")");
+    const YAML::Node m = kv.second;
+    p.only(m, path, {"cpu", "policy", "priority"});
+    rt::ThreadSpec& s = t.spec[idx];
+    s.cpu = static_cast<int>(p.integer(m, "cpu", path, -1, -1, 1023));
+    const bool fifo = p.choice<bool>(m, "policy", path, s.priority > 0, {{"fifo", true}, {"other", false}});
+    if (fifo && !m["priority"]) {
+      if (s.priority <= 0) p.fail(path + ".priority", "missing (required for policy fifo, 1..99)");
+    } else if (fifo) {
+      const YAML::Node pr = m["priority"];
+      char* end = nullptr;
+      const std::string txt = pr.IsScalar() ? pr.Scalar() : "";
+      const long v = std::strtol(txt.c_str(), &end, 10);
+      if (txt.empty() || *end != '\0' || v < 1 || v > 99)
+        p.fail(path + ".priority", "expected 1..99 for policy fifo, got \"" + txt + "\"");
+      s.priority = static_cast<int>(v);
+    } else {
+      if (m["priority"] && !(m["priority"].IsScalar() && m["priority"].Scalar() == "0"))
+        p.fail(path + ".priority", "policy other takes no priority (0 or absent)");
+      s.priority = 0;
+    }
+  }
+  return t;
+}
+
+ThreadTable load_thread_table(const std::string& path) {
+  std::ifstream f(path, std::ios::binary);
+  if (!f) throw std::runtime_error(path + ": cannot open config file");
+  std::ostringstream text;
+  text << f.rdbuf();
+  YAML::Node root;
+  try {
+    root = YAML::Load(text.str());
+  } catch (const YAML::ParserException& e) {
+    throw std::runtime_error(path + ":" + std::to_string(e.mark.line + 1) + ": YAML syntax error: " + e.msg);
+  }
+  if (!root.IsMap()) throw std::runtime_error(path + ": expected a mapping");
+  try {
+    return thread_table_from_yaml_node(root["threads"], path);
+  } catch (const YAML::Exception& e) {
+    throw std::runtime_error(path + ": " + e.what());
+  }
+}
+
 LiveConfig live_config_from_yaml(const std::string& text, const std::string& where) {
   YAML::Node root;
   try {
@@ -288,8 +368,8 @@ LiveConfig live_config_from_yaml(const std::string& text, const std::string& whe
   if (!root.IsMap()) throw std::runtime_error(where + ": expected a mapping with `rig:` and `drivers:`");
   for (const auto& kv : root) {
     const std::string k = kv.first.Scalar();
-    if (k != "rig" && k != "drivers" && k != "estimator")
-      throw std::runtime_error(where + ": " + k + ": unknown key (expected rig, drivers, estimator)");
+    if (k != "rig" && k != "drivers" && k != "estimator" && k != "threads")
+      throw std::runtime_error(where + ": " + k + ": unknown key (expected rig, drivers, estimator, threads)");
   }
   if (!root["rig"]) throw std::runtime_error(where + ": rig: missing (required)");
   LiveConfig c;
@@ -298,6 +378,7 @@ LiveConfig live_config_from_yaml(const std::string& text, const std::string& whe
     c.rig = rig_from_yaml_node(root["rig"], where, "rig.");
     c.drivers = driver_settings_from_yaml_node(root["drivers"], where);
     c.estimator = estimator_settings_from_yaml_node(root["estimator"], where);
+    c.threads = thread_table_from_yaml_node(root["threads"], where);
   } catch (const YAML::Exception& e) {
     throw std::runtime_error(where + ": " + e.what());
   }
@@ -404,6 +485,7 @@ struct LiveSensors::Impl {
   uint64_t frames = 0, frame_errors = 0, frame_timeouts = 0, unpaired = 0;
   std::atomic<bool> stop{false};
   std::thread imu_thread, cam_thread;
+  std::vector<std::pair<rt::ThreadSpec, rt::ThreadSetupReport>> thread_reports;
 
   void imu_loop(ImuSink& sink);
   void cam_loop(FrameSink& sink);
@@ -589,8 +671,22 @@ void LiveSensors::Impl::cam_loop(FrameSink& sink) {
 void LiveSensors::start(ImuSink& imu, FrameSink& frames) {
   Impl& m = *impl_;
   m.stop.store(false);
-  if (m.bmx || m.bridge) m.imu_thread = std::thread([&m, &imu] { m.imu_loop(imu); });
-  if (m.cfg.drivers.camera.type != CameraType::kNone) m.cam_thread = std::thread([&m, &frames] { m.cam_loop(frames); });
+  m.thread_reports.clear();
+  rt::ThreadSetupReport r;
+  if (m.bmx || m.bridge) {
+    const rt::ThreadSpec& spec = m.cfg.threads[PipelineThread::kImu];
+    m.imu_thread = rt::start_thread(spec, [&m, &imu] { m.imu_loop(imu); }, &r);
+    m.thread_reports.emplace_back(spec, r);
+  }
+  if (m.cfg.drivers.camera.type != CameraType::kNone) {
+    const rt::ThreadSpec& spec = m.cfg.threads[PipelineThread::kCamera];
+    m.cam_thread = rt::start_thread(spec, [&m, &frames] { m.cam_loop(frames); }, &r);
+    m.thread_reports.emplace_back(spec, r);
+  }
+}
+
+std::vector<std::pair<rt::ThreadSpec, rt::ThreadSetupReport>> LiveSensors::thread_reports() const {
+  return impl_->thread_reports;
 }
 
 void LiveSensors::stop() {

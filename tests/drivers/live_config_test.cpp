@@ -78,6 +78,74 @@ TEST(LiveConfig, EstimatorSectionIsOptionalAndChecked) {
                "estimator.backend: expected a backend name");
 }
 
+TEST(ThreadTable, AbsentSectionIsTheBuiltInDefaults) {
+  const ThreadTable t = live_config_from_yaml(with_drivers("  camera: {type: none}\n"), "x.yaml").threads;
+  const ThreadTable d = default_thread_table();
+  EXPECT_FALSE(t.from_config);
+  for (int i = 0; i < kPipelineThreads; ++i) {
+    EXPECT_STREQ(t.spec[i].name, d.spec[i].name);
+    EXPECT_EQ(t.spec[i].priority, d.spec[i].priority) << d.spec[i].name;
+    EXPECT_EQ(t.spec[i].cpu, d.spec[i].cpu) << d.spec[i].name;
+  }
+  EXPECT_EQ(d[PipelineThread::kPropagate].priority, 60);  // the one FIFO thread of the replay harness
+  EXPECT_EQ(d[PipelineThread::kEstimator].priority, 0);
+}
+
+TEST(ThreadTable, SectionParsesAndLeavesUnnamedThreadsAtTheirDefaults) {
+  const ThreadTable t = live_config_from_yaml(with_drivers("  camera: {type: none}\n") +
+                                                  "threads:\n"
+                                                  "  kst-imu: {cpu: 1, policy: fifo, priority: 80}\n"
+                                                  "  kst-optimizer: {cpu: -1, policy: other}\n"
+                                                  "  kst-propagate: {cpu: 0}\n",
+                                              "x.yaml")
+                            .threads;
+  EXPECT_TRUE(t.from_config);
+  EXPECT_EQ(t[PipelineThread::kImu].cpu, 1);
+  EXPECT_EQ(t[PipelineThread::kImu].priority, 80);
+  EXPECT_EQ(t[PipelineThread::kOptimizer].priority, 0);
+  EXPECT_EQ(t[PipelineThread::kOptimizer].cpu, -1);
+  // Policy absent: the default policy and priority stay, only the CPU changes.
+  EXPECT_EQ(t[PipelineThread::kPropagate].cpu, 0);
+  EXPECT_EQ(t[PipelineThread::kPropagate].priority, 60);
+  EXPECT_EQ(t[PipelineThread::kCamera].cpu, default_thread_table()[PipelineThread::kCamera].cpu);
+  // A bare rig file may carry the table too (configs/sim_rgbd_bmx055.yaml).
+  const ThreadTable sim = load_thread_table(kConfigs + "sim_rgbd_bmx055.yaml");
+  EXPECT_TRUE(sim.from_config);
+  EXPECT_EQ(sim[PipelineThread::kPropagate].priority, 60);
+  EXPECT_NO_THROW(load_rig_file(kConfigs + "sim_rgbd_bmx055.yaml"));
+  // Both live rigs ship a table: the IMU driver outranks everything.
+  for (const char* f : {"openni2_bmx055_i2c.yaml", "realsense_v4l2_bmx055_usb.yaml"}) {
+    const ThreadTable l = load_live_config(kConfigs + f).threads;
+    EXPECT_TRUE(l.from_config) << f;
+    for (int i = 0; i < kPipelineThreads; ++i)
+      EXPECT_LE(l.spec[i].priority, l[PipelineThread::kImu].priority) << f << " " << l.spec[i].name;
+  }
+}
+
+TEST(ThreadTable, BadFieldsAndUnknownNamesAreErrorsNamingFileAndField) {
+  const std::string base = with_drivers("  camera: {type: none}\n");
+  expect_error(base + "threads:\n  kst-optimizer: {policy: fifo, priority: 120}\n",
+               "x.yaml: threads.kst-optimizer.priority: expected 1..99");
+  expect_error(base + "threads:\n  kst-optimizer: {policy: fifo, priority: 0}\n",
+               "threads.kst-optimizer.priority: expected 1..99");
+  expect_error(base + "threads:\n  kst-optimizer: {policy: fifo}\n", "threads.kst-optimizer.priority: missing");
+  expect_error(base + "threads:\n  kst-imu: {policy: rr, priority: 5}\n",
+               "threads.kst-imu.policy: expected one of fifo, other");
+  expect_error(base + "threads:\n  kst-imu: {policy: other, priority: 5}\n", "threads.kst-imu.priority");
+  expect_error(base + "threads:\n  kst-cam: {cpu: two}\n", "threads.kst-cam.cpu: expected an integer");
+  expect_error(base + "threads:\n  kst-cam: {cpu: -2}\n", "threads.kst-cam.cpu: must be in -1..1023");
+  expect_error(base + "threads:\n  kst-cam: {cpu: 0, nice: 3}\n", "threads.kst-cam.nice: unknown key");
+  expect_error(base + "threads: [kst-imu]\n", "threads: expected a mapping");
+  // Unknown thread names list the known ones.
+  expect_error(base + "threads:\n  kst-track: {cpu: 0}\n",
+               "threads.kst-track: unknown thread (expected one of: " + thread_names() + ")");
+  EXPECT_NE(thread_names().find("kst-propagate"), std::string::npos);
+  // Inside a live config's rig section the key stays unknown.
+  expect_error("rig:\n  camera: {width_px: 640, height_px: 480, fx_px: 500, fy_px: 500, cx_px: 320, cy_px: 240}\n"
+               "  threads: {}\ndrivers: {camera: {type: none}}\n",
+               "rig.threads: unknown key");
+}
+
 TEST(LiveSensors, MissingHardwareIsNamed) {
   LiveConfig c = live_config_from_yaml(
       with_drivers("  camera:\n    type: v4l2\n    v4l2: {color_device: /dev/video-kestrel-none}\n"

@@ -50,7 +50,8 @@ Subcommand add_replay_command(CLI::App& parent) {
                       " (window = front end + sliding-window optimizer, the default; vo = tracking front end + IMU; ekf = EKF SLAM; imu = IMU dead reckoning)")
       ->capture_default_str();
   app->add_option("--config", args->config,
-                  "a config whose `estimator: backend:` picks the backend (configs/*.yaml); --estimator overrides it");
+                  "a config whose `estimator: backend:` picks the backend (--estimator overrides it) and whose "
+                  "`threads:` table schedules the threads in realtime pace (configs/*.yaml, docs/threads.md)");
   app->add_option("--traj-out", args->traj_out, "write the trajectory here (TUM: t[s] x y z qx qy qz qw)");
   app->add_option("--metrics-out", args->metrics_out,
                   "write latency histograms, drops, counters, CPU, RSS, real-time factor as JSON");
@@ -77,6 +78,7 @@ Subcommand add_replay_command(CLI::App& parent) {
                                  "' (expected one of: " + core::estimator_names() + ")");
       if (!b.empty()) opt.estimator = b;
     }
+    if (!args->config.empty()) opt.threads = drivers::load_thread_table(args->config);
     if (!core::estimator_known(opt.estimator))
       throw UsageError("unknown --estimator '" + opt.estimator + "' (expected one of: " + core::estimator_names() + ")");
     try {

@@ -8,6 +8,7 @@
 #include <memory>
 #include <string>
 #include <thread>
+#include <vector>
 
 #include "kestrel/commands.hpp"
 #include "kestrel/core/estimator.hpp"
@@ -18,6 +19,7 @@
 #include "kestrel/rt/clock.hpp"
 #include "kestrel/rt/mailbox.hpp"
 #include "kestrel/rt/spsc_ring.hpp"
+#include "kestrel/rt/thread_setup.hpp"
 
 namespace kestrel::cli {
 namespace {
@@ -149,14 +151,23 @@ Subcommand add_run_command(CLI::App& parent) {
     // an allocation; the main thread sends and prints them.
     auto poses = std::make_unique<rt::SpscRing<RunPose, 1024>>();
     auto status = std::make_unique<rt::Mailbox<PipelineStatus>>();
+    // The config's thread table (`threads:`, or the defaults): a refused
+    // SCHED_FIFO or CPU pin leaves the thread running, and the summary says so.
+    using drivers::PipelineThread;
+    std::vector<AppliedThread> applied;
+    rt::ThreadSetupReport sched;
     std::thread optimizer;
     if (est->has_optimizer()) {
-      optimizer = std::thread([&] {
-        while (!consumer_stop.load(std::memory_order_relaxed))
-          if (!est->optimizer_step()) rt::sleep_for_ns(500'000);
-      });
+      optimizer = rt::start_thread(
+          cfg.threads[PipelineThread::kOptimizer],
+          [&] {
+            while (!consumer_stop.load(std::memory_order_relaxed))
+              if (!est->optimizer_step()) rt::sleep_for_ns(500'000);
+          },
+          &sched);
+      applied.push_back(applied_thread(cfg.threads[PipelineThread::kOptimizer], sched));
     }
-    std::thread consumer([&] {
+    std::thread consumer = rt::start_thread(cfg.threads[PipelineThread::kEstimator], [&] {
       int64_t last_imu_t_ns = -1;
       int64_t frame_waiting_since_ns = -1;
       int64_t last_frame_t_ns = -1, last_pose_t_ns = -1, first_t_ns = -1, next_status_ns = 0;
@@ -260,9 +271,13 @@ Subcommand add_run_command(CLI::App& parent) {
         }
         if (!any) rt::sleep_for_ns(1'000'000);
       }
-    });
+    }, &sched);
+    applied.push_back(applied_thread(cfg.threads[PipelineThread::kEstimator], sched));
     const int64_t t0 = rt::now_ns();
     sensors.start(imu, frames);
+    for (const auto& [spec, rep] : sensors.thread_reports()) applied.push_back(applied_thread(spec, rep));
+    std::printf("thread table (%s):\n%s", cfg.threads.from_config ? "from the config" : "built-in defaults",
+                threads_summary(applied).c_str());
     int64_t next_print = t0 + 1'000'000'000;
     uint64_t status_version = 0;
     while (!g_run_stop.load() && (a->duration_s <= 0 || rt::now_ns() - t0 < static_cast<int64_t>(a->duration_s * 1e9))) {
@@ -303,6 +318,7 @@ Subcommand add_run_command(CLI::App& parent) {
     std::signal(SIGINT, SIG_DFL);
     std::signal(SIGTERM, SIG_DFL);
     std::printf("%s", sensors.report().c_str());
+    std::printf("%s", threads_summary(applied).c_str());
     if (odometry)
       std::printf("MAVLink ODOMETRY to %s: %llu sent, %llu failed, %llu pose-ring drops\n", odometry->endpoint().c_str(),
                   (unsigned long long)odometry->stats().sent, (unsigned long long)odometry->stats().failed,

@@ -509,17 +509,31 @@ class OutputStage {
   uint64_t imu_pose_version_ = 0;
 };
 
-// Thread table of the replay harness (docs/threads.md). Priorities are asked
-// for and fall back to SCHED_OTHER without privileges; the report says which.
-constexpr rt::ThreadSpec kFeederThread{"kst-replay", 0, -1, 0};
-constexpr rt::ThreadSpec kEstimatorThread{"kst-estimator", 0, -1, 0};
-// The IMU-rate pose asks for the live tracking thread's SCHED_FIFO priority
-// (docs/threads.md): it sleeps between samples, so it cannot starve anything,
-// and without the privilege it runs SCHED_OTHER and the report says so.
-constexpr rt::ThreadSpec kPropagatorThread{"kst-propagate", 60, -1, 0};
-constexpr rt::ThreadSpec kOptimizerThread{"kst-optimizer", 0, -1, 0};
-
 }  // namespace
+
+AppliedThread applied_thread(const rt::ThreadSpec& spec, const rt::ThreadSetupReport& r) {
+  AppliedThread a;
+  a.name = spec.name;
+  a.cpu = spec.cpu;
+  a.policy = spec.priority > 0 ? "fifo" : "other";
+  a.priority = spec.priority;
+  a.applied = r.fully_granted();
+  if (r.granted_priority != r.requested_priority) a.error = std::string("scheduling: ") + r.sched_note;
+  if (spec.cpu >= 0 && !r.pinned)
+    a.error += std::string(a.error.empty() ? "" : "; ") + "cpu " + std::to_string(spec.cpu) + ": " + r.affinity_note;
+  if (!r.name_set) a.error += std::string(a.error.empty() ? "" : "; ") + "thread name not set";
+  return a;
+}
+
+std::string threads_summary(const std::vector<AppliedThread>& t) {
+  std::string s;
+  for (const AppliedThread& a : t) {
+    s += "thread " + a.name + ": " + a.policy + (a.priority > 0 ? " " + std::to_string(a.priority) : "") + ", cpu " +
+         (a.cpu < 0 ? std::string("any") : std::to_string(a.cpu)) +
+         (a.applied ? " - applied\n" : " - NOT applied, runs anyway (" + a.error + ")\n");
+  }
+  return s;
+}
 
 ReplayReport run_replay(const ReplayOptions& opt) {
   ReplayReport report;
@@ -575,12 +589,19 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     std::atomic<bool> estimator_done{false};
     std::atomic<bool> imu_forwarded{!realtime};
     double est_cpu = 0;
-    std::thread feeder = rt::start_thread(kFeederThread, [&] { source.run(stop); });
+    // The config's table in realtime pace (as it will fly); fast pace is a
+    // throughput run and keeps the defaults.
+    const drivers::ThreadTable table = realtime ? opt.threads : drivers::default_thread_table();
+    using drivers::PipelineThread;
+    rt::ThreadSetupReport sched;
+    std::thread feeder =
+        rt::start_thread(table[PipelineThread::kReplay], [&] { source.run(stop); }, &sched);
+    report.threads.push_back(applied_thread(table[PipelineThread::kReplay], sched));
     std::thread prop_thread;
     if (realtime) {
       rt::ThreadSetupReport prop_sched;
       prop_thread = rt::start_thread(
-          kPropagatorThread,
+          table[PipelineThread::kPropagate],
           [&] {
             for (;;) {
               const bool done = source.finished();
@@ -596,29 +617,45 @@ ReplayReport run_replay(const ReplayOptions& opt) {
           },
           &prop_sched);
       report.propagator_thread = rt::to_string(prop_sched);
+      report.threads.push_back(applied_thread(table[PipelineThread::kPropagate], prop_sched));
     }
     ImuRing& est_in = realtime ? *est_imu : rings->imu;
-    std::thread est_thread = rt::start_thread(kEstimatorThread, [&] {
-      for (;;) {
-        const bool done = source.finished() && imu_forwarded.load(std::memory_order_acquire);
-        stage.drain(done, false);
-        if (done && est_in.empty() && rings->frames.empty()) break;
-        // Busy-yield: the lowest latency a non-RT process can get without a
-        // wake-up primitive; a live build blocks on the driver's eventfd.
-        std::this_thread::yield();
-      }
-      stage.finish();
-      est_cpu = thread_cpu_s();
-      estimator_done.store(true, std::memory_order_release);
-    });
+    const bool est_fifo = table[PipelineThread::kEstimator].priority > 0;
+    std::thread est_thread = rt::start_thread(
+        table[PipelineThread::kEstimator],
+        [&] {
+          for (;;) {
+            const bool done = source.finished() && imu_forwarded.load(std::memory_order_acquire);
+            stage.drain(done, false);
+            if (done && est_in.empty() && rings->frames.empty()) break;
+            // Busy-yield: the lowest latency a non-RT process can get without a
+            // wake-up primitive; a live build blocks on the driver's eventfd.
+            // Under SCHED_FIFO yield() gives way to nothing of lower priority,
+            // so the thread sleeps instead of holding a CPU.
+            if (est_fifo) {
+              rt::sleep_for_ns(100'000);
+            } else {
+              std::this_thread::yield();
+            }
+          }
+          stage.finish();
+          est_cpu = thread_cpu_s();
+          estimator_done.store(true, std::memory_order_release);
+        },
+        &sched);
+    report.threads.push_back(applied_thread(table[PipelineThread::kEstimator], sched));
     std::thread opt_thread;
     if (optimizer_thread) {
-      opt_thread = rt::start_thread(kOptimizerThread, [&] {
-        while (!estimator_done.load(std::memory_order_acquire)) {
-          // Polling keeps the hand-off lock-free; 0.5 ms is small beside a solve.
-          if (!estimator.optimizer_step()) rt::sleep_for_ns(500'000);
-        }
-      });
+      opt_thread = rt::start_thread(
+          table[PipelineThread::kOptimizer],
+          [&] {
+            while (!estimator_done.load(std::memory_order_acquire)) {
+              // Polling keeps the hand-off lock-free; 0.5 ms is small beside a solve.
+              if (!estimator.optimizer_step()) rt::sleep_for_ns(500'000);
+            }
+          },
+          &sched);
+      report.threads.push_back(applied_thread(table[PipelineThread::kOptimizer], sched));
     }
     while (!estimator_done.load(std::memory_order_acquire)) {
       output.drain();
@@ -724,6 +761,12 @@ std::string replay_metrics_json(const ReplayReport& r) {
     j.key("per_frame").null();
   }
   j.end_object();
+  j.key("threads").begin_array();
+  for (const AppliedThread& t : r.threads) {
+    j.begin_object().kv("name", t.name).kv("cpu", static_cast<int64_t>(t.cpu)).kv("policy", t.policy);
+    j.kv("priority", static_cast<int64_t>(t.priority)).kv("applied", t.applied).kv("error", t.error).end_object();
+  }
+  j.end_array();
   j.key("problems").begin_array();
   for (const auto& p : r.problems) {
     j.begin_object().kv("where", p.where).kv("kind", p.kind).kv("detail", p.detail).end_object();
@@ -830,6 +873,7 @@ std::string replay_summary(const ReplayReport& r) {
         static_cast<unsigned long long>(ff.imu_gaps));
     s += buf;
   }
+  s += threads_summary(r.threads);
   if (!r.propagator_thread.empty())
     s += "IMU-rate propagation " + r.propagator_thread + ", " + std::to_string(r.imu_rate_poses) +
          " IMU-rate poses published\n";

@@ -12,6 +12,7 @@
 #include <vector>
 
 #include "kestrel/core/estimator.hpp"
+#include "kestrel/drivers/devices.hpp"
 #include "kestrel/drivers/log_source.hpp"
 #include "kestrel/drivers/replay_source.hpp"
 #include "kestrel/rt/latency_histogram.hpp"
@@ -65,6 +66,21 @@ struct PipelineStatus {
 };
 
 std::string format_status(const PipelineStatus& s);
+
+// One row of the thread table as it was applied: what was asked for, and
+// whether the system granted it (a refused SCHED_FIFO or CPU pin leaves the
+// thread running SCHED_OTHER / unpinned; `error` says why).
+struct AppliedThread {
+  std::string name;
+  int cpu = -1;
+  std::string policy;  // "fifo" | "other" (as requested)
+  int priority = 0;
+  bool applied = false;
+  std::string error;
+};
+AppliedThread applied_thread(const rt::ThreadSpec& spec, const rt::ThreadSetupReport& r);
+// "threads: kst-replay other/any ok; kst-propagate fifo 60/cpu 0 NOT applied (...)", one line per thread.
+std::string threads_summary(const std::vector<AppliedThread>& t);
 // Features and inliers of the newest frame where the backend exposes them
 // (the front end and backends built on it), else -1: for status lines only.
 void frame_stats(const core::Estimator& est, int& features, int& inliers);
@@ -75,6 +91,9 @@ struct ReplayOptions {
   drivers::LogOpenOptions open;  // rig for datasets, bag topics (open.format is ignored: `format` rules)
   drivers::ReplayPace pace = drivers::ReplayPace::kLockstep;
   std::string estimator = "window";  // core::make_estimator name
+  // Scheduling and CPUs of the harness threads in realtime pace (a config's
+  // `threads:` section); fast pace runs the default table, lockstep one thread.
+  drivers::ThreadTable threads = drivers::default_thread_table();
   // Allocation counting and latency statistics start after this much log time,
   // so start-up (buffers reserved, first frames) is not counted as steady state.
   int64_t warmup_ns = 2'000'000'000;
@@ -119,6 +138,7 @@ struct ReplayReport {
   rt::LatencyHistogram estimator_imu_latency;
   uint64_t propagator_forward_drops = 0;  // propagation -> estimator ring full
   std::string propagator_thread;          // scheduling the propagation thread got (realtime pace)
+  std::vector<AppliedThread> threads;     // every thread the harness started, as applied
   rt::LatencyHistogram tracking;          // per frame, inside the estimator
   drivers::ReplayStats replay;
   core::EstimatorCounters estimator_counters;

@@ -14,6 +14,7 @@
 #include <memory>
 #include <string>
 #include <thread>
+#include <utility>
 #include <vector>
 
 #include <yaml-cpp/yaml.h>
@@ -23,6 +24,7 @@
 #include "kestrel/drivers/sensor_rings.hpp"
 #include "kestrel/drivers/usb_bridge.hpp"
 #include "kestrel/msgs.hpp"
+#include "kestrel/rt/thread_setup.hpp"
 
 namespace kestrel::drivers {
 
@@ -76,11 +78,36 @@ struct EstimatorSettings {
   std::string backend;   // "" when absent: the command's default
 };
 
+// `threads:` section (optional): scheduling and CPU of every pipeline thread.
+// One rt::ThreadSpec per known thread (priority 0 = SCHED_OTHER, cpu -1 =
+// any). Threads the section does not name keep default_thread_table()'s value.
+enum class PipelineThread : int { kImu, kCamera, kReplay, kPropagate, kEstimator, kOptimizer, kCount };
+constexpr int kPipelineThreads = static_cast<int>(PipelineThread::kCount);
+
+struct ThreadTable {
+  rt::ThreadSpec spec[kPipelineThreads];
+  bool from_config = false;  // a `threads:` section was read
+  const rt::ThreadSpec& operator[](PipelineThread t) const { return spec[static_cast<int>(t)]; }
+  rt::ThreadSpec& operator[](PipelineThread t) { return spec[static_cast<int>(t)]; }
+};
+
+// The built-in table, used when a config has no `threads:` section (the one
+// place the defaults live; docs/threads.md explains each value).
+ThreadTable default_thread_table();
+// "kst-imu, kst-cam, ..." (the names a `threads:` section may use).
+std::string thread_names();
+// Throws std::runtime_error "where: threads.kst-optimizer.priority: expected 1..99".
+ThreadTable thread_table_from_yaml_node(const YAML::Node& node, const std::string& where);
+// The `threads:` section of any YAML file (a live config, a rig file, a file
+// with only that section); the default table when the file has none.
+ThreadTable load_thread_table(const std::string& path);
+
 struct LiveConfig {
   std::string path;
   Rig rig;
   DriverSettings drivers;
   EstimatorSettings estimator;
+  ThreadTable threads = default_thread_table();
 };
 
 // Throws std::runtime_error "path: drivers.imu.acc_range_g: expected one of 2, 4, 8, 16".
@@ -136,8 +163,12 @@ class LiveSensors {
   LiveSensors(const LiveSensors&) = delete;
   LiveSensors& operator=(const LiveSensors&) = delete;
 
-  // Starts the sensor threads; the sinks must outlive stop().
+  // Starts the sensor threads (kst-imu, kst-cam) with the config's thread
+  // table; the sinks must outlive stop(). Scheduling that is refused falls
+  // back (the thread runs anyway): thread_reports() says what each got.
   void start(ImuSink& imu, FrameSink& frames);
+  // One per started sensor thread, filled when start() returns.
+  std::vector<std::pair<rt::ThreadSpec, rt::ThreadSetupReport>> thread_reports() const;
   void stop();
   // Counters of every driver, one line each (for the end-of-run report).
   std::string report() const;
