@@ -1,7 +1,9 @@
-// `kestrel run`: live drivers into the sensor rings, consumed by an
-// estimator thread running the backend the config names (`estimator:
-// backend:`, or --estimator; default window, as in replay). The estimator sees IMU and frames
-// merged in time order, as in replay.
+// `kestrel run`: live drivers into the sensor rings; the IMU ring is consumed
+// by the IMU-rate propagation thread (kst-propagate, imu_rate_stage.hpp, the
+// same stage as realtime replay), which publishes the IMU-rate pose at once and
+// forwards every sample to the estimator thread running the backend the
+// config names (`estimator: backend:`, or --estimator; default window, as in
+// replay). The estimator sees IMU and frames merged in time order, as in replay.
 #include <atomic>
 #include <csignal>
 #include <cstdio>
@@ -14,6 +16,7 @@
 #include "kestrel/core/estimator.hpp"
 #include "kestrel/drivers/devices.hpp"
 #include "kestrel/drivers/sensor_rings.hpp"
+#include "kestrel/imu_rate_stage.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"
 #include "kestrel/replay_runner.hpp"
 #include "kestrel/rt/clock.hpp"
@@ -90,6 +93,8 @@ struct RunPose {
 // A frame waits for the IMU up to its time at most this long (wall clock):
 // an IMU that stopped must not stall the camera.
 constexpr int64_t kFrameWaitForImuNs = 50'000'000;
+// Latency statistics start after this much sample time (start-up is not steady state).
+constexpr int64_t kWarmupNs = 2'000'000'000;
 
 }  // namespace
 
@@ -103,7 +108,8 @@ Subcommand add_run_command(CLI::App& parent) {
   app->add_option("--duration", a->duration_s, "seconds to run (0 = until Ctrl-C)")->capture_default_str();
   app->add_option("--mavlink-udp", a->mavlink_udp,
                   "stream MAVLink v2 ODOMETRY to HOST:PORT at the pose rate (flight controller; docs/px4.md)");
-  app->footer("Runs: live drivers -> sensor rings -> estimator thread (IMU and frames in time order).\n"
+  app->footer("Runs: live drivers -> sensor rings -> kst-propagate (IMU-rate pose at once) -> estimator thread (IMU and\n"
+              "frames in time order) -> kst-optimizer; thread scheduling from the config's threads: table.\n"
               "Without the sensors it exits with 1 naming what is missing.");
   Subcommand s;
   s.app = app;
@@ -151,6 +157,12 @@ Subcommand add_run_command(CLI::App& parent) {
     // an allocation; the main thread sends and prints them.
     auto poses = std::make_unique<rt::SpscRing<RunPose, 1024>>();
     auto status = std::make_unique<rt::Mailbox<PipelineStatus>>();
+    // The IMU-rate pose must not wait while the estimator thread tracks a frame.
+    auto est_imu = std::make_unique<ImuRing>();
+    auto anchor = std::make_unique<rt::Mailbox<Anchor>>();
+    auto imu_pose = std::make_unique<rt::Mailbox<OutPose>>();
+    ImuRateStage propagation(rings->imu, *est_imu, *anchor, cfg.rig, kWarmupNs, *imu_pose);
+    std::atomic<bool> propagation_stop{false};
     // The config's thread table (`threads:`, or the defaults): a refused
     // SCHED_FIFO or CPU pin leaves the thread running, and the summary says so.
     using drivers::PipelineThread;
@@ -226,12 +238,14 @@ Subcommand add_run_command(CLI::App& parent) {
       while (!consumer_stop.load(std::memory_order_relaxed)) {
         bool any = false;
         for (;;) {
-          ImuSample* s = rings->imu.front();
+          ImuSample* s = est_imu->front();
           RgbdFrameMsg* m = rings->frames.front();
           if (s != nullptr && (m == nullptr || s->t_ns <= m->t_ns)) {
             maybe_status(s->t_ns);
             if (est->add_imu(*s)) {
-              // From the driver's receive stamp: the sample's whole way to a pose.
+              anchor->publish(to_anchor(est->output()));
+              // From the driver's receive stamp to the estimator's own pose
+              // (the IMU-rate pose of kst-propagate is faster: summary).
               const int64_t lat = rt::now_ns() - s->t_recv_ns;
               if (lat > imu_max_ns) imu_max_ns = lat;
               gyro = Eigen::Vector3d(s->gyro_rps[0], s->gyro_rps[1], s->gyro_rps[2]);
@@ -241,7 +255,7 @@ Subcommand add_run_command(CLI::App& parent) {
             }
             imu_seen.fetch_add(1, std::memory_order_relaxed);
             last_imu_t_ns = s->t_ns;
-            rings->imu.pop();
+            est_imu->pop();
             any = true;
             continue;
           }
@@ -259,6 +273,7 @@ Subcommand add_run_command(CLI::App& parent) {
           if (const auto* b = rings->images.get(m->depth_handle)) f.depth = b->view();
           const int64_t t_track0 = rt::now_ns();
           est->add_frame(f);
+          anchor->publish(to_anchor(est->output()));
           const int64_t t_track = rt::now_ns() - t_track0;
           if (t_track > track_max_ns) track_max_ns = t_track;
           last_frame_t_ns = m->t_ns;
@@ -273,6 +288,17 @@ Subcommand add_run_command(CLI::App& parent) {
       }
     }, &sched);
     applied.push_back(applied_thread(cfg.threads[PipelineThread::kEstimator], sched));
+    std::thread propagator = rt::start_thread(
+        cfg.threads[PipelineThread::kPropagate],
+        [&] {
+          // Sleeps 100 us when idle rather than spinning (docs/threads.md).
+          while (!propagation_stop.load(std::memory_order_relaxed))
+            if (!propagation.step()) rt::sleep_for_ns(100'000);
+          propagation.finish();
+        },
+        &sched);
+    applied.push_back(applied_thread(cfg.threads[PipelineThread::kPropagate], sched));
+    uint64_t imu_rate_poses = 0, imu_pose_version = 0;
     const int64_t t0 = rt::now_ns();
     sensors.start(imu, frames);
     for (const auto& [spec, rep] : sensors.thread_reports()) applied.push_back(applied_thread(spec, rep));
@@ -282,6 +308,10 @@ Subcommand add_run_command(CLI::App& parent) {
     uint64_t status_version = 0;
     while (!g_run_stop.load() && (a->duration_s <= 0 || rt::now_ns() - t0 < static_cast<int64_t>(a->duration_s * 1e9))) {
       rt::sleep_for_ns(2'000'000);
+      if (imu_pose->version() != imu_pose_version) {
+        OutPose o{};
+        if (imu_pose->read(o, &imu_pose_version)) ++imu_rate_poses;
+      }
       RunPose p;
       while (poses->try_pop(p)) {
         if (!odometry) continue;
@@ -312,6 +342,8 @@ Subcommand add_run_command(CLI::App& parent) {
       }
     }
     sensors.stop();
+    propagation_stop.store(true);
+    propagator.join();
     consumer_stop.store(true);
     consumer.join();
     if (optimizer.joinable()) optimizer.join();
@@ -319,6 +351,19 @@ Subcommand add_run_command(CLI::App& parent) {
     std::signal(SIGTERM, SIG_DFL);
     std::printf("%s", sensors.report().c_str());
     std::printf("%s", threads_summary(applied).c_str());
+    const ImuRateStats& ps = propagation.stats();
+    if (ps.imu_to_output.count() > 0) {
+      std::printf("IMU-rate pose (kst-propagate): %llu published, %llu taken by the output thread; driver receive -> "
+                  "pose p50 %.3f ms, p99 %.3f ms, max %.3f ms; %llu forward drops\n",
+                  (unsigned long long)ps.poses, (unsigned long long)imu_rate_poses,
+                  1e-6 * static_cast<double>(ps.imu_to_output.percentile(50)),
+                  1e-6 * static_cast<double>(ps.imu_to_output.percentile(99)),
+                  1e-6 * static_cast<double>(ps.imu_to_output.max()), (unsigned long long)ps.forward_drops);
+    } else {
+      std::printf("IMU-rate pose (kst-propagate): %llu published (none after the %.0f s warm-up); %llu forward drops\n",
+                  (unsigned long long)ps.poses, 1e-9 * static_cast<double>(kWarmupNs),
+                  (unsigned long long)ps.forward_drops);
+    }
     if (odometry)
       std::printf("MAVLink ODOMETRY to %s: %llu sent, %llu failed, %llu pose-ring drops\n", odometry->endpoint().c_str(),
                   (unsigned long long)odometry->stats().sent, (unsigned long long)odometry->stats().failed,

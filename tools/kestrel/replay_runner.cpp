@@ -12,6 +12,7 @@
 
 #include "kestrel/core/frontend_odometry.hpp"
 #include "kestrel/core/window_estimator.hpp"
+#include "kestrel/imu_rate_stage.hpp"
 #include "kestrel/json_writer.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"
 #include "kestrel/rt/alloc_counter.hpp"
@@ -24,129 +25,7 @@
 namespace kestrel::cli {
 namespace {
 
-// One pose of the estimator's output as it crosses from the estimator thread
-// to the writer: plain data, so the ring slot is all the memory it needs.
-struct OutPose {
-  int64_t t_ns;
-  double p[3];
-  double q[4];  // w x y z
-  double v[3];
-  double w[3];
-  core::TrackingQuality quality;
-  uint32_t reset_counter;
-};
-
 constexpr std::size_t kOutRingCapacity = 16384;
-
-using ImuRing = rt::SpscRing<ImuSample, drivers::kImuRingCapacity>;
-
-// The estimator's newest state, handed to the IMU-rate propagation thread.
-struct Anchor {
-  core::PackedNavState x;
-  core::TrackingQuality quality;
-  uint32_t reset_counter;
-};
-
-Anchor to_anchor(const core::NavState& x, core::TrackingQuality quality, uint32_t reset_counter) {
-  return Anchor{core::pack(x), quality, reset_counter};
-}
-
-// Realtime pace: the IMU-rate pose must not wait while the estimator thread
-// tracks a frame (several ms). This stage is the sensor IMU ring's consumer:
-// it forwards every sample to the estimator thread and propagates the
-// estimator's newest state (a seqlock mailbox, re-propagated over the
-// samples the estimator has not reached yet) to the newest sample at once.
-// Backend-agnostic: it needs only EstimatorOutput::state.
-class PropagatorStage {
- public:
-  PropagatorStage(ImuRing& in, ImuRing& to_estimator, const rt::Mailbox<Anchor>& anchor, const Rig& rig,
-                  const ReplayOptions& opt, ReplayReport& report, rt::Mailbox<OutPose>& imu_pose)
-      : in_(in),
-        to_est_(to_estimator),
-        anchor_(anchor),
-        prop_(core::imu_propagator_options(rig)),
-        opt_(opt),
-        report_(report),
-        imu_pose_(imu_pose) {}
-
-  bool step() {
-    bool any = false;
-    while (ImuSample* p = in_.front()) {
-      const ImuSample s = *p;
-      in_.pop();
-      any = true;
-      if (!to_est_.try_push(s)) ++report_.propagator_forward_drops;
-      if (first_t_ns_ < 0) first_t_ns_ = s.t_ns;
-      if (!counting_ && s.t_ns - first_t_ns_ >= opt_.warmup_ns) {
-        counting_ = true;
-        allocs_at_warmup_ = rt::alloc_count_this_thread();
-      }
-      refresh_anchor();
-      history_.push(s);
-      if (have_anchor_ && prop_.propagate(s)) {
-        newest_ = prop_.state();
-        // Published the moment it exists: a latest-value mailbox, so a slow
-        // reader skips poses instead of holding up this thread.
-        OutPose o{};
-        o.t_ns = newest_.t_ns;
-        for (int i = 0; i < 3; ++i) {
-          o.p[i] = newest_.p_WB[i];
-          o.v[i] = newest_.v_WB[i];
-          o.w[i] = s.gyro_rps[i] - newest_.bg_rps[i];
-        }
-        o.q[0] = newest_.q_WB.w();
-        o.q[1] = newest_.q_WB.x();
-        o.q[2] = newest_.q_WB.y();
-        o.q[3] = newest_.q_WB.z();
-        o.quality = anchor_quality_;
-        o.reset_counter = anchor_reset_counter_;
-        imu_pose_.publish(o);
-        if (counting_) report_.imu_to_output.record(rt::now_ns() - s.t_recv_ns);
-      }
-    }
-    return any;
-  }
-
-  void finish() {
-    if (counting_)
-      report_.steady_allocs += static_cast<int64_t>(rt::alloc_count_this_thread() - allocs_at_warmup_);
-  }
-
- private:
-  void refresh_anchor() {
-    Anchor a;
-    uint64_t version = 0;
-    if (!anchor_.read(a, &version) || version == anchor_version_) return;
-    anchor_version_ = version;
-    anchor_quality_ = a.quality;
-    anchor_reset_counter_ = a.reset_counter;
-    prop_.reset(core::unpack(a.x));
-    have_anchor_ = true;
-    // The sample at the anchor's time re-anchors the integration, later ones
-    // carry the state to the newest sample.
-    size_t k = 0;
-    while (k < history_.size() && history_[k].t_ns < a.x.t_ns) ++k;
-    history_.pop_front(k);
-    for (size_t i = 0; i < history_.size(); ++i) prop_.propagate(history_[i]);
-  }
-
-  ImuRing& in_;
-  ImuRing& to_est_;
-  const rt::Mailbox<Anchor>& anchor_;
-  core::ImuPropagator prop_;
-  const ReplayOptions& opt_;
-  ReplayReport& report_;
-  rt::HistoryRing<ImuSample, 1024> history_;  // 2.5 s at 400 Hz: longer than any tracking step
-  uint64_t anchor_version_ = 0;
-  bool have_anchor_ = false;
-  core::NavState newest_;
-  rt::Mailbox<OutPose>& imu_pose_;
-  core::TrackingQuality anchor_quality_ = core::TrackingQuality::kUninitialized;
-  uint32_t anchor_reset_counter_ = 0;
-  int64_t first_t_ns_ = -1;
-  bool counting_ = false;
-  uint64_t allocs_at_warmup_ = 0;
-};
 
 double thread_cpu_s() {
   timespec ts{};
@@ -331,7 +210,7 @@ class EstimatorStage {
     if (!est_.add_imu(s)) return;
     const int64_t latency = rt::now_ns() - t_start;
     if (anchor_ != nullptr) {
-      anchor_->publish(to_anchor(est_.output().state, est_.output().quality, est_.output().reset_counter));
+      anchor_->publish(to_anchor(est_.output()));
       if (counting_) report_.estimator_imu_latency.record(latency);
     } else if (counting_) {
       report_.imu_to_output.record(latency);
@@ -358,7 +237,7 @@ class EstimatorStage {
       est_.add_frame(f);
       const int64_t t1 = rt::now_ns();
       if (anchor_ != nullptr)
-        anchor_->publish(to_anchor(est_.output().state, est_.output().quality, est_.output().reset_counter));
+        anchor_->publish(to_anchor(est_.output()));
       ++frames_fed_;
       if (t1 - t0 > window_tracking_max_ns_) window_tracking_max_ns_ = t1 - t0;
       if (counting_) {
@@ -568,7 +447,7 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   EstimatorStage stage(estimator, *rings, realtime ? *est_imu : rings->imu, *out, *status,
                        realtime ? anchor.get() : nullptr, opt, log->rig(), report);
   auto imu_pose = std::make_unique<rt::Mailbox<OutPose>>();
-  PropagatorStage propagator(rings->imu, *est_imu, *anchor, log->rig(), opt, report, *imu_pose);
+  ImuRateStage propagator(rings->imu, *est_imu, *anchor, log->rig(), opt.warmup_ns, *imu_pose);
   OutputStage output(*out, *status, opt, report, imu_pose.get());
 
   const int64_t wall0 = rt::now_ns();
@@ -667,6 +546,11 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     if (opt_thread.joinable()) opt_thread.join();
     output.finish();
     report.estimator_cpu_s = est_cpu;
+    if (realtime) {
+      report.imu_to_output = propagator.stats().imu_to_output;
+      report.propagator_forward_drops = propagator.stats().forward_drops;
+      report.steady_allocs += propagator.stats().steady_allocs;
+    }
   }
   const int64_t wall1 = rt::now_ns();
 
