@@ -128,6 +128,15 @@ void EkfEstimator::publish(int64_t t_ns) {
   s.v_WB = ekf_.v_WB();
   s.bg_rps = ekf_.gyro_bias();
   s.ba_mps2 = ekf_.acc_bias();
+  // The filter's error is [rho, theta] with T = T_hat exp([rho; theta]^): to
+  // first order theta is the body-frame rotation error and R_hat rho the
+  // position error in W (EstimatorOutput's order and frames).
+  Eigen::Matrix<double, 6, 6> J = Eigen::Matrix<double, 6, 6>::Identity();
+  J.topLeftCorner<3, 3>() = ekf_.pose().R;
+  out_.pose_cov.cov.noalias() = J * ekf_.pose_covariance() * J.transpose();
+  out_.pose_cov.cov = (0.5 * (out_.pose_cov.cov + out_.pose_cov.cov.transpose())).eval();
+  out_.pose_cov.t_ns = t_ns;
+  out_.pose_cov.valid = started_ && out_.pose_cov.cov.allFinite();
 }
 
 void EkfEstimator::propagate_to(int64_t t_ns) {

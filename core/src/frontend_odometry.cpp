@@ -134,6 +134,7 @@ bool FrontendOdometry::add_frame(const RgbdFrame& f) {
     tracker_.reset();
     ++counters_.resets;
     out_.reset_counter = static_cast<uint32_t>(counters_.resets);
+    out_.pose_cov.valid = false;
     lost_frames_ = 0;
   }
   return false;
@@ -147,6 +148,7 @@ void FrontendOdometry::correct_state(const NavState& x) {
 void FrontendOdometry::count_reset() {
   ++counters_.resets;
   out_.reset_counter = static_cast<uint32_t>(counters_.resets);
+  out_.pose_cov.valid = false;
 }
 
 const EstimatorCounters& FrontendOdometry::counters() const {

@@ -259,6 +259,7 @@ void WindowEstimator::apply(const WindowSolveResult& r) {
   consecutive_failures_ = 0;
   x.q_WB.normalize();
   front_.correct_state(x);
+  front_.set_pose_covariance(window_->newest_pose_covariance());  // the last solve's, kept until the next one
   ++wc_.applied;
   if (r.has_kf) {
     Eigen::Isometry3d T_WC = Eigen::Isometry3d::Identity();

@@ -13,6 +13,7 @@
 
 #include "kestrel/core/ceres_window.hpp"
 #include "kestrel/core/so3.hpp"
+#include "kestrel/rt/mailbox.hpp"
 
 namespace kestrel::core {
 namespace {
@@ -25,6 +26,14 @@ double elapsed_ms(std::chrono::steady_clock::time_point t0) {
 }
 
 uint32_t hash_id(uint32_t id) { return id * 2654435761u; }
+
+// The newest pose covariance as it crosses from the optimizer thread to the
+// tracking side: plain data for the seqlock mailbox.
+struct CovarianceSnapshot {
+  double cov[36];  // column-major 6x6
+  int64_t t_ns;
+  bool valid;
+};
 
 }  // namespace
 
@@ -102,6 +111,24 @@ struct WindowOptimizer::Workspace {
   Eigen::VectorXd xm;
   std::vector<int32_t> marg_lms;
   std::vector<uint8_t> lm_mark;
+
+  // The newest pose covariance: whether H_red holds a valid factor of an
+  // n x n system, and the last one computed.
+  bool factor_ok = false;
+  int factor_n = 0;
+  rt::Mailbox<CovarianceSnapshot> covariance;
+  // Drift from before the window: the gauge pins the oldest state, so the
+  // window's covariance is relative to it. Each time the gauge moves to the
+  // next state, that state's covariance relative to the old gauge (computed
+  // at the solve before) is compounded into the gauge's own: position in W
+  // and yaw about W z (roll and pitch are observable through gravity).
+  Eigen::Matrix3d drift_pos = Eigen::Matrix3d::Zero();
+  double drift_yaw_var = 0.0;
+  int64_t gauge_t_ns = -1;
+  Eigen::Vector3d gauge_p = Eigen::Vector3d::Zero();
+  int64_t next_gauge_t_ns = -1;  // order[1] at the last solve, with its relative covariance
+  Eigen::Matrix3d next_pos_cov = Eigen::Matrix3d::Zero();
+  double next_yaw_var = 0.0;
 };
 
 WindowOptimizer::WindowOptimizer(const PinholeK& K, const Eigen::Isometry3d& T_BC, const WindowOptions& options)
@@ -651,7 +678,12 @@ double WindowOptimizer::evaluate_cost() const {
 }
 
 WindowOptimizer::Result WindowOptimizer::optimize() {
-  if (problem_->opt.solver == WindowOptions::Solver::kCeres) return solve_window_ceres(*problem_);
+  if (problem_->opt.solver == WindowOptions::Solver::kCeres) {
+    ws_->factor_ok = false;  // Ceres leaves no factor here: the covariance is not known
+    const Result r = solve_window_ceres(*problem_);
+    publish_newest_covariance();
+    return r;
+  }
   return optimize_ours();
 }
 
@@ -660,8 +692,10 @@ WindowOptimizer::Result WindowOptimizer::optimize_ours() {
   WindowProblem& P = *problem_;
   Workspace& ws = *ws_;
   Result res;
+  ws.factor_ok = false;
   if (P.n_states == 0) {
     res.status = Status::kEmpty;
+    publish_newest_covariance();
     return res;
   }
   const int n = kD * P.n_states;
@@ -813,6 +847,8 @@ WindowOptimizer::Result WindowOptimizer::optimize_ours() {
     }
     Eigen::Ref<Eigen::MatrixXd> Hr_ref(Hr);
     Eigen::LLT<Eigen::Ref<Eigen::MatrixXd>> llt(Hr_ref);
+    ws.factor_ok = llt.info() == Eigen::Success;
+    ws.factor_n = n;
     if (llt.info() != Eigen::Success) {
       lambda *= nu;
       nu *= 2.0;
@@ -885,6 +921,7 @@ WindowOptimizer::Result WindowOptimizer::optimize_ours() {
   res.ok = std::isfinite(cost) && res.status != Status::kFailed && res.status != Status::kNoProgress;
   if (res.status == Status::kNoProgress) res.ok = cost <= res.cost_initial;
   res.solve_ms = elapsed_ms(t0);
+  publish_newest_covariance();
   return res;
 }
 
@@ -903,6 +940,82 @@ bool WindowOptimizer::state_of(int64_t t_ns, NavState* out) const {
     }
   }
   return false;
+}
+
+namespace {
+
+// Marginal [dp, dphi] covariance of the state at block k of a system whose
+// Cholesky factor L (lower triangle of H, n x n) is given: Y = L[o:, o:]^-1
+// [I6; 0], cov = Y'Y. Column by column on a fixed-capacity buffer: no heap.
+Eigen::Matrix<double, 6, 6> marginal_pose(const Eigen::MatrixXd& H, int n, int k) {
+  const int o = kD * k, m = n - o;
+  Eigen::Matrix<double, Eigen::Dynamic, 6, 0, kWindowMaxDim, 6> Y(m, 6);
+  Y.setZero();
+  const auto L = H.block(o, o, m, m).triangularView<Eigen::Lower>();
+  for (int j = 0; j < 6; ++j) {
+    Y(j, j) = 1.0;
+    auto y = Y.col(j);
+    L.solveInPlace(y);
+  }
+  return Y.transpose() * Y;
+}
+
+}  // namespace
+
+void WindowOptimizer::publish_newest_covariance() {
+  const WindowProblem& P = *problem_;
+  Workspace& ws = *ws_;
+  CovarianceSnapshot c{};
+  const int s = P.newest_slot();
+  // The factor belongs to this window only if nothing was added since and the
+  // newest state is the system's last block (time order: it always is).
+  if (ws.factor_ok && s >= 0 && ws.factor_n == kD * P.n_states && ws.pos_of_slot[s] == P.n_states - 1) {
+    const Eigen::Vector3d ez = Eigen::Vector3d::UnitZ();
+    // The gauge moved since the last solve: compound the new gauge's relative covariance.
+    const NavState& g = P.states[P.order[0]].x;
+    if (g.t_ns != ws.gauge_t_ns) {
+      if (ws.gauge_t_ns >= 0 && g.t_ns == ws.next_gauge_t_ns) {
+        const Eigen::Vector3d lever = ez.cross(g.p_WB - ws.gauge_p);
+        ws.drift_pos += ws.next_pos_cov + ws.drift_yaw_var * lever * lever.transpose();
+        ws.drift_yaw_var += ws.next_yaw_var;
+      }
+      ws.gauge_t_ns = g.t_ns;
+      ws.gauge_p = g.p_WB;
+    }
+    ws.next_gauge_t_ns = -1;
+    if (P.n_states >= 2) {
+      const Eigen::Matrix<double, 6, 6> c1 = marginal_pose(ws.H_red, ws.factor_n, 1);
+      const Eigen::Vector3d yaw_B = P.states[P.order[1]].x.q_WB.conjugate() * ez;  // W z in B
+      ws.next_pos_cov = c1.topLeftCorner<3, 3>();
+      ws.next_yaw_var = yaw_B.dot(c1.bottomRightCorner<3, 3>() * yaw_B);
+      ws.next_gauge_t_ns = P.states[P.order[1]].x.t_ns;
+    }
+    // The newest state relative to the gauge, then the gauge's own drift:
+    // its position error shifts the newest, its yaw error turns it about W z.
+    const NavState& x = P.states[s].x;
+    Eigen::Matrix<double, 6, 6> cov = marginal_pose(ws.H_red, ws.factor_n, P.n_states - 1);
+    cov.topLeftCorner<3, 3>() += ws.drift_pos;
+    Eigen::Matrix<double, 6, 1> J;
+    J.head<3>() = ez.cross(x.p_WB - ws.gauge_p);
+    J.tail<3>() = x.q_WB.conjugate() * ez;
+    cov.noalias() += ws.drift_yaw_var * J * J.transpose();
+    if (cov.allFinite()) {
+      Eigen::Map<Eigen::Matrix<double, 6, 6>>(c.cov) = 0.5 * (cov + cov.transpose());
+      c.t_ns = x.t_ns;
+      c.valid = true;
+    }
+  }
+  ws.covariance.publish(c);
+}
+
+PoseCovariance WindowOptimizer::newest_pose_covariance() const {
+  PoseCovariance out;
+  CovarianceSnapshot c{};
+  if (!ws_->covariance.read(c) || !c.valid) return out;
+  out.cov = Eigen::Map<const Eigen::Matrix<double, 6, 6>>(c.cov);
+  out.t_ns = c.t_ns;
+  out.valid = true;
+  return out;
 }
 
 }  // namespace kestrel::core

@@ -45,6 +45,29 @@ std::string hex(const uint8_t* d, size_t n) {
   return s;
 }
 
+// An estimator pose covariance [dp_W; dtheta_B] with every cross term set
+// (symmetric positive definite), as the window / EKF backends export it.
+Eigen::Matrix<double, 6, 6> full_covariance() {
+  Eigen::Matrix<double, 6, 6> A;
+  for (int r = 0; r < 6; ++r)
+    for (int c = 0; c < 6; ++c) A(r, c) = 0.01 * std::sin(1.0 + 7.0 * r + 3.0 * c);
+  Eigen::Matrix<double, 6, 6> P = A * A.transpose();
+  P.diagonal() += Eigen::Matrix<double, 6, 1>(4e-4, 9e-4, 1e-4, 2e-4, 3e-4, 5e-4);
+  return P;
+}
+
+km::OdometryInput covariance_input() {
+  km::OdometryInput in;
+  in.t_ns = 7'000'000'000;
+  in.quality = kestrel::core::TrackingQuality::kTracking;
+  in.p_WB = Eigen::Vector3d(0.5, -1.5, 2.0);
+  in.q_WB = Eigen::Quaterniond(Eigen::AngleAxisd(0.7, Eigen::Vector3d(0.2, -0.3, 1.0).normalized()));
+  in.v_WB = Eigen::Vector3d(0.3, 0.1, -0.2);
+  in.has_covariance = true;
+  in.pose_cov = full_covariance();
+  return in;
+}
+
 // Messages that exercise every field, the extension tail, trimming and NaN.
 std::vector<km::OdometryMsg> sample_messages() {
   std::vector<km::OdometryMsg> v;
@@ -98,6 +121,11 @@ std::vector<km::OdometryMsg> sample_messages() {
   e.quality = 42;
   e.time_usec = 0xFFFFFFFFFFFFFFFFull;
   v.push_back(e);
+
+  // A backend's full pose covariance through the adapter (FRD frames): the
+  // 21 floats must survive node-mavlink's decode exactly.
+  km::OdometryMsg f;
+  if (km::to_odometry(covariance_input(), km::OdometryAdapterOptions{}, f)) v.push_back(f);
   return v;
 }
 
@@ -198,6 +226,12 @@ TEST(MavlinkEncode, DecodedByNodeMavlinkFieldByField) {
   if (code != 0) GTEST_SKIP() << "node-mavlink unavailable, independent decode NOT checked: " << install;
 
   const auto msgs = sample_messages();
+  // The last one carries a backend's full covariance, rotated into FRD: every
+  // one of its 21 floats (cross terms included) must come back from node.
+  ASSERT_EQ(msgs.size(), 6u);
+  int nonzero = 0;
+  for (float c : msgs[5].pose_covariance) nonzero += c != 0.0f ? 1 : 0;
+  ASSERT_EQ(nonzero, 21);
   const std::string dir = kestrel::test::temp_dir("mavlink_node");
   const std::string bin = dir + "/frames.bin";
   std::vector<std::string> ours_hex;
@@ -376,6 +410,53 @@ TEST(MavlinkAdapter, FramesToLocalFrdAndBodyFrd) {
   ASSERT_TRUE(km::to_odometry(in, opt, m));
   EXPECT_FLOAT_EQ(m.pose_covariance[0], 1.0f);
   EXPECT_FLOAT_EQ(m.pose_covariance[1], -0.25f);
+}
+
+TEST(MavlinkAdapter, EstimatorCovarianceIsRotatedIntoFrdAndCheckedByPerturbation) {
+  // Independent of the adapter's Jacobian: perturb the estimate in the
+  // covariance's own convention (p + dp_W, R Exp(dtheta_B)), convert both
+  // poses with the adapter, read the error back in FRD (dp_L, Log(R_LF' R'_LF)),
+  // and propagate the covariance through that measured linear map.
+  const km::OdometryAdapterOptions opt;
+  const km::OdometryInput in = covariance_input();
+  km::OdometryMsg m0;
+  ASSERT_TRUE(km::to_odometry(in, opt, m0));
+  auto rot = [](const km::OdometryMsg& m) {
+    return Eigen::Quaterniond(m.q[0], m.q[1], m.q[2], m.q[3]).normalized().toRotationMatrix().cast<double>();
+  };
+  const double h = 1e-4;
+  Eigen::Matrix<double, 6, 6> M;
+  for (int k = 0; k < 6; ++k) {
+    km::OdometryInput d = in;
+    Eigen::Matrix<double, 6, 1> e = Eigen::Matrix<double, 6, 1>::Zero();
+    e[k] = h;
+    d.p_WB += e.head<3>();
+    d.q_WB = in.q_WB * Eigen::Quaterniond(Eigen::AngleAxisd(e.tail<3>().norm(), e.tail<3>().normalized()));
+    if (k < 3) d.q_WB = in.q_WB;
+    km::OdometryMsg m1;
+    ASSERT_TRUE(km::to_odometry(d, opt, m1));
+    Eigen::Matrix<double, 6, 1> f;
+    f.head<3>() = Eigen::Vector3d(m1.x - m0.x, m1.y - m0.y, m1.z - m0.z);
+    const Eigen::AngleAxisd aa(rot(m0).transpose() * rot(m1));
+    f.tail<3>() = aa.angle() * aa.axis();
+    M.col(k) = f / h;
+  }
+  const Eigen::Matrix<double, 6, 6> expect = M * in.pose_cov * M.transpose();
+  int idx = 0;
+  for (int r = 0; r < 6; ++r)
+    for (int c = r; c < 6; ++c, ++idx)
+      // float32 positions and quaternion limit the finite difference to ~1e-3 relative.
+      EXPECT_NEAR(m0.pose_covariance[idx], expect(r, c), 2e-3 * expect.diagonal().maxCoeff() + 1e-7)
+          << "pose_covariance[" << idx << "] (" << r << "," << c << ")";
+  // The backends export no twist covariance: the documented fixed value.
+  EXPECT_FLOAT_EQ(m0.velocity_covariance[0], static_cast<float>(opt.tracking_vel_sigma_mps * opt.tracking_vel_sigma_mps));
+  // Coasting: the last camera update's covariance would be over-confident; the fixed coasting value goes out.
+  km::OdometryInput coast = in;
+  coast.quality = kestrel::core::TrackingQuality::kImuOnly;
+  km::OdometryMsg mc;
+  ASSERT_TRUE(km::to_odometry(coast, opt, mc));
+  EXPECT_FLOAT_EQ(mc.pose_covariance[0], static_cast<float>(opt.coasting_pos_sigma_m * opt.coasting_pos_sigma_m));
+  EXPECT_FLOAT_EQ(mc.pose_covariance[1], 0.0f);
 }
 
 TEST(MavlinkUdp, StreamSendsOneDatagramPerPose) {

@@ -82,13 +82,6 @@ struct RunArgs {
   std::string mavlink_udp;
 };
 
-// A pose crossing from the estimator thread to the output (main) thread.
-struct RunPose {
-  int64_t t_ns;
-  double p[3], q[4], v[3], w[3];
-  core::TrackingQuality quality;
-  uint32_t reset_counter;
-};
 
 // A frame waits for the IMU up to its time at most this long (wall clock):
 // an IMU that stopped must not stall the camera.
@@ -155,7 +148,7 @@ Subcommand add_run_command(CLI::App& parent) {
     std::atomic<uint64_t> frames_seen{0}, imu_seen{0};
     // Poses and the 1 Hz status leave the estimator thread without a lock or
     // an allocation; the main thread sends and prints them.
-    auto poses = std::make_unique<rt::SpscRing<RunPose, 1024>>();
+    auto poses = std::make_unique<rt::SpscRing<OutPose, 1024>>();
     auto status = std::make_unique<rt::Mailbox<PipelineStatus>>();
     // The IMU-rate pose must not wait while the estimator thread tracks a frame.
     auto est_imu = std::make_unique<ImuRing>();
@@ -189,7 +182,7 @@ Subcommand add_run_command(CLI::App& parent) {
       auto emit = [&](int64_t now_t_ns) {
         const core::EstimatorOutput& o = est->output();
         if (o.quality == core::TrackingQuality::kUninitialized) return;
-        RunPose p{};
+        OutPose p{};
         p.t_ns = o.state.t_ns;
         for (int i = 0; i < 3; ++i) {
           p.p[i] = o.state.p_WB[i];
@@ -205,6 +198,7 @@ Subcommand add_run_command(CLI::App& parent) {
         if (p.quality == core::TrackingQuality::kTracking && (last_frame_t_ns < 0 || now_t_ns - last_frame_t_ns > 150'000'000))
           p.quality = core::TrackingQuality::kImuOnly;
         p.reset_counter = o.reset_counter;
+        set_covariance(p, o.pose_cov);
         (void)poses->try_push(p);   // full: counted in drops(), reported at the end
         last_pose_t_ns = now_t_ns;
       };
@@ -312,7 +306,7 @@ Subcommand add_run_command(CLI::App& parent) {
         OutPose o{};
         if (imu_pose->read(o, &imu_pose_version)) ++imu_rate_poses;
       }
-      RunPose p;
+      OutPose p;
       while (poses->try_pop(p)) {
         if (!odometry) continue;
         mavlink::OdometryInput in;
@@ -323,6 +317,8 @@ Subcommand add_run_command(CLI::App& parent) {
         in.omega_B_rps = Eigen::Vector3d(p.w[0], p.w[1], p.w[2]);
         in.quality = p.quality;
         in.reset_counter = p.reset_counter;
+        in.has_covariance = p.pose_cov_valid;
+        in.pose_cov = covariance_of(p).cov;
         odometry->publish(in);
       }
       if (rt::now_ns() >= next_print) {

@@ -5,6 +5,20 @@
 
 namespace kestrel::cli {
 
+void set_covariance(OutPose& o, const core::PoseCovariance& c) {
+  Eigen::Map<Eigen::Matrix<double, 6, 6>>(o.pose_cov) = c.cov;
+  o.pose_cov_t_ns = c.t_ns;
+  o.pose_cov_valid = c.valid;
+}
+
+core::PoseCovariance covariance_of(const OutPose& o) {
+  core::PoseCovariance c;
+  c.cov = Eigen::Map<const Eigen::Matrix<double, 6, 6>>(o.pose_cov);
+  c.t_ns = o.pose_cov_t_ns;
+  c.valid = o.pose_cov_valid;
+  return c;
+}
+
 Anchor to_anchor(const core::EstimatorOutput& o) {
   return Anchor{core::pack(o.state), o.quality, o.reset_counter};
 }

@@ -32,7 +32,14 @@ struct OutPose {
   double w[3];  // body rate, gyro minus the estimated bias [rad/s]
   core::TrackingQuality quality;
   uint32_t reset_counter;
+  // core::PoseCovariance, column-major ([dp_W; dtheta_B]); the IMU-rate pose has none.
+  double pose_cov[36];
+  int64_t pose_cov_t_ns;
+  bool pose_cov_valid;
 };
+
+void set_covariance(OutPose& o, const core::PoseCovariance& c);
+core::PoseCovariance covariance_of(const OutPose& o);
 
 // The estimator's newest state, handed to the propagation stage.
 struct Anchor {

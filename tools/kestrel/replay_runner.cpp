@@ -194,6 +194,7 @@ class EstimatorStage {
         newest_t_ns_ - last_frame_t_ns_ > stale_ns)
       p.quality = core::TrackingQuality::kImuOnly;
     p.reset_counter = o.reset_counter;
+    set_covariance(p, o.pose_cov);
     if (!out_.try_push(p)) ++report_.output_ring_drops;
     last_out_t_ns_ = p.t_ns;
   }
@@ -320,6 +321,7 @@ class OutputStage {
     s.omega_B_rps = Eigen::Vector3d(p.w[0], p.w[1], p.w[2]);
     s.quality = p.quality;
     s.reset_counter = p.reset_counter;
+    s.pose_cov = covariance_of(p);
     return s;
   }
 
@@ -349,6 +351,8 @@ class OutputStage {
         in.omega_B_rps = s.omega_B_rps;
         in.quality = s.quality;
         in.reset_counter = s.reset_counter;
+        in.has_covariance = s.pose_cov.valid;
+        in.pose_cov = s.pose_cov.cov;
         mavlink_->publish(in);
       }
     }

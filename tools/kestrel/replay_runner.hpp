@@ -29,6 +29,7 @@ struct PoseSample {
   Eigen::Vector3d omega_B_rps = Eigen::Vector3d::Zero();  // newest gyro minus the estimated bias
   core::TrackingQuality quality = core::TrackingQuality::kUninitialized;
   uint32_t reset_counter = 0;
+  core::PoseCovariance pose_cov;  // the backend's (window, ekf); invalid for the IMU-rate pose
 };
 
 // Input faults the harness sees before the estimator does (the estimator

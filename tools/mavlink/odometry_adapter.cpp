@@ -73,26 +73,35 @@ bool to_odometry(const OdometryInput& in, const OdometryAdapterOptions& opt, Odo
   out.pitchspeed = static_cast<float>(w_F.y());
   out.yawspeed = static_cast<float>(w_F.z());
 
+  const bool tracking = in.quality == core::TrackingQuality::kTracking;
   if (in.quality == core::TrackingQuality::kLost) {
     unknown(out.pose_covariance);
     unknown(out.velocity_covariance);
-  } else if (in.has_covariance) {
-    Mat6 J = Mat6::Zero();
-    J.topLeftCorner<3, 3>() = opt.R_LW;
-    J.bottomRightCorner<3, 3>() = opt.R_FB;
-    upper_triangle(J * in.pose_cov * J.transpose(), out.pose_covariance);
-    Mat6 Jv = Mat6::Zero();
-    Jv.topLeftCorner<3, 3>() = R_FW;
-    Jv.bottomRightCorner<3, 3>() = opt.R_FB;
-    upper_triangle(Jv * in.twist_cov * Jv.transpose(), out.velocity_covariance);
-  } else if (in.quality == core::TrackingQuality::kTracking) {
-    upper_triangle(diagonal(opt.tracking_pos_sigma_m, opt.tracking_att_sigma_rad), out.pose_covariance);
-    upper_triangle(diagonal(opt.tracking_vel_sigma_mps, opt.tracking_rate_sigma_rps),
-                   out.velocity_covariance);
   } else {
-    upper_triangle(diagonal(opt.coasting_pos_sigma_m, opt.coasting_att_sigma_rad), out.pose_covariance);
-    upper_triangle(diagonal(opt.coasting_vel_sigma_mps, opt.tracking_rate_sigma_rps),
-                   out.velocity_covariance);
+    if (tracking && in.has_covariance && in.pose_cov.allFinite()) {
+      // [dp_W; dtheta_B] -> [dp_L; dtheta_F]: p_L = R_LW p_W, and R_LF = R_LW R_WB R_FB' with
+      // R_WB = R_hat Exp(dtheta_B) gives R_LF = R_LF_hat Exp(R_FB dtheta_B). Small body-frame
+      // angles are what MAVLink's roll, pitch, yaw rows mean for a near-level vehicle.
+      Mat6 J = Mat6::Zero();
+      J.topLeftCorner<3, 3>() = opt.R_LW;
+      J.bottomRightCorner<3, 3>() = opt.R_FB;
+      upper_triangle(J * in.pose_cov * J.transpose(), out.pose_covariance);
+    } else if (tracking) {
+      upper_triangle(diagonal(opt.tracking_pos_sigma_m, opt.tracking_att_sigma_rad), out.pose_covariance);
+    } else {
+      upper_triangle(diagonal(opt.coasting_pos_sigma_m, opt.coasting_att_sigma_rad), out.pose_covariance);
+    }
+    if (tracking && in.has_twist_covariance && in.twist_cov.allFinite()) {
+      // [v_W; omega_B] -> [v_F; omega_F]: the twist is in the child frame.
+      Mat6 Jv = Mat6::Zero();
+      Jv.topLeftCorner<3, 3>() = R_FW;
+      Jv.bottomRightCorner<3, 3>() = opt.R_FB;
+      upper_triangle(Jv * in.twist_cov * Jv.transpose(), out.velocity_covariance);
+    } else {
+      upper_triangle(diagonal(tracking ? opt.tracking_vel_sigma_mps : opt.coasting_vel_sigma_mps,
+                              opt.tracking_rate_sigma_rps),
+                     out.velocity_covariance);
+    }
   }
   // The counter wraps at 256 on the wire; receivers only compare for change.
   out.reset_counter = static_cast<uint8_t>(in.reset_counter & 0xFF);

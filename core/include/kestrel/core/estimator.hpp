@@ -29,10 +29,26 @@ enum class TrackingQuality : uint8_t {
   kLost = 3,
 };
 
+// Covariance of a pose estimate, 6x6 in the order [dp_W; dtheta_B]:
+//   dp_W     position error in W [m] (x, y, z of W): p_WB = p_hat + dp_W
+//   dtheta_B rotation error in B [rad] (x, y, z of the body), a right
+//            perturbation: R_WB = R_hat Exp(dtheta_B)
+// (the window optimizer's tangent, window_problem.hpp). Frames of a flight
+// controller are converted in its adapter only (tools/mavlink).
+struct PoseCovariance {
+  Eigen::Matrix<double, 6, 6> cov = Eigen::Matrix<double, 6, 6>::Zero();
+  int64_t t_ns = 0;    // the state time it was computed for
+  bool valid = false;  // false: the backend has none (vo, imu) or lost it (reset)
+};
+
 struct EstimatorOutput {
   NavState state;
   TrackingQuality quality = TrackingQuality::kUninitialized;
   uint32_t reset_counter = 0;
+  // Between its updates a backend may keep the last one (the window backend:
+  // the last applied solve's, so pose_cov.t_ns < state.t_ns; the EKF: its
+  // propagated covariance, at the state's time).
+  PoseCovariance pose_cov;
 };
 
 struct EstimatorCounters {

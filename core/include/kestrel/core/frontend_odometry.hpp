@@ -57,8 +57,12 @@ class FrontendOdometry final : public Estimator {
   // replaces it, keeping the IMU integration anchor.
   void correct_state(const NavState& x);
   const NavState& propagated() const { return prop_.state(); }
-  // The back end re-initialised: count it in the reset counter the output carries.
+  // The back end re-initialised: count it in the reset counter the output carries
+  // (and drop the back end's covariance: it described the old estimate).
   void count_reset();
+  // A back end's covariance of the pose, carried in the output until the next
+  // one or a reset (the front end has none of its own).
+  void set_pose_covariance(const PoseCovariance& c) { out_.pose_cov = c; }
 
  private:
   FrontendOdometryOptions opt_;

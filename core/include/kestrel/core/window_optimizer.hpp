@@ -19,6 +19,7 @@
 #include <memory>
 #include <string>
 
+#include "kestrel/core/estimator.hpp"
 #include "kestrel/core/imu_propagator.hpp"
 #include "kestrel/core/motion_estimation.hpp"
 #include "kestrel/core/preintegration.hpp"
@@ -66,6 +67,24 @@ class WindowOptimizer {
   const NavState& latest() const;
   bool state_of(int64_t t_ns, NavState* out) const;
 
+  // Marginal covariance of the newest state's pose [dp (W), dphi (B)] (the
+  // order and frames of PoseCovariance) from the last solve of our solver: the
+  // inverse of the reduced camera system (landmarks Schur-eliminated) it last
+  // Cholesky-factored, H_red = L L'. The newest state is last in the system,
+  // so its block is Y'Y with Y = L_nn^-1 [I6; 0] over the trailing 15x15
+  // factor: 6 triangular solves, fixed capacity, no heap. That is the
+  // Gauss-Newton covariance at that linearisation, with that factorisation's
+  // Levenberg-Marquardt damping (lambda D: negligible once converged; it can
+  // only make the figure smaller), and relative to the window's gauge (the
+  // oldest state's position and yaw are pinned). Drift from before the window
+  // is added: each time the gauge moves on, the new gauge's covariance
+  // relative to the old one (position, and yaw about W z with its lever arm)
+  // is compounded into a running gauge covariance (first order; correlations
+  // between moves are ignored). valid = false after a Ceres solve or a failed
+  // factorisation. Computed at the end of each optimize(); this read is a
+  // seqlock copy, safe from the tracking thread while the optimizer runs.
+  PoseCovariance newest_pose_covariance() const;
+
   // For tests and benchmarks.
   int num_states() const { return problem_->n_states; }
   int num_landmarks() const;      // initialised landmarks in the problem
@@ -86,6 +105,7 @@ class WindowOptimizer {
   int find_or_create_landmark(uint32_t id);
   void free_landmark(int lm);
   void reset_gauge();
+  void publish_newest_covariance();
 
   std::unique_ptr<WindowProblem> problem_;
   std::unique_ptr<Workspace> ws_;

@@ -21,8 +21,10 @@ struct OdometryAdapterOptions {
   // Local FRD axes in W. Default: W's x stays forward, z flips to down.
   Eigen::Matrix3d R_LW = Eigen::Vector3d(1, -1, -1).asDiagonal();
   uint8_t estimator_type = kMavEstimatorVio;
-  // Sent when the estimator has no covariance of its own (the front end has
-  // none today). 1-sigma, per axis; documented in docs/px4.md.
+  // Sent when the estimator has no covariance of its own (vo, imu; window
+  // and ekf have a pose covariance, none for the twist), or it is coasting
+  // (a covariance from the last camera update would be over-confident).
+  // 1-sigma, per axis; documented in docs/px4.md.
   double tracking_pos_sigma_m = 0.03;
   double tracking_att_sigma_rad = 0.02;
   double tracking_vel_sigma_mps = 0.1;
@@ -45,10 +47,12 @@ struct OdometryInput {
   Eigen::Vector3d omega_B_rps = Eigen::Vector3d::Zero();  // bias-corrected body rate
   core::TrackingQuality quality = core::TrackingQuality::kUninitialized;
   uint32_t reset_counter = 0;
-  // When the backend has a covariance: pose (p_W, rotation error in B) and
-  // velocity (v_W, omega_B) blocks, 6x6 each. Otherwise fixed values above.
-  bool has_covariance = false;
+  // When the backend has them: the pose covariance in core::PoseCovariance's
+  // order and frames [dp_W; dtheta_B], and the twist's [v_W; omega_B]. Used
+  // while tracking; otherwise (or absent) the fixed values above.
+  bool has_covariance = false;  // pose_cov
   Eigen::Matrix<double, 6, 6> pose_cov = Eigen::Matrix<double, 6, 6>::Zero();
+  bool has_twist_covariance = false;
   Eigen::Matrix<double, 6, 6> twist_cov = Eigen::Matrix<double, 6, 6>::Zero();
 };
 
