@@ -166,6 +166,25 @@ class ZeroVelocityCost final : public ceres::SizedCostFunction<3, 9> {
   double inv_sigma_;
 };
 
+class PosePriorCost final : public ceres::SizedCostFunction<6, 7> {
+ public:
+  explicit PosePriorCost(const WindowState& st) : st_(st) {}
+  bool Evaluate(double const* const* params, double* residuals, double** jacobians) const override {
+    Matrix6d J;
+    Eigen::Map<Vector6d> res(residuals);
+    res = pose_prior_residual(st_, to_nav(params[0], nullptr), jacobians ? &J : nullptr);
+    if (jacobians && jacobians[0]) {
+      Eigen::Map<Eigen::Matrix<double, 6, 7, Eigen::RowMajor>> Jm(jacobians[0]);
+      Jm.setZero();
+      Jm.leftCols<6>() = J;
+    }
+    return true;
+  }
+
+ private:
+  const WindowState& st_;
+};
+
 class GaugeCost final : public ceres::SizedCostFunction<4, 7> {
  public:
   explicit GaugeCost(const WindowProblem& P) : P_(P) {}
@@ -272,7 +291,13 @@ struct CeresWindow {
       problem.AddResidualBlock(new ZeroVelocityCost(P.opt.zero_velocity_sigma_mps), nullptr, sb[s].data());
       ++n_residual_blocks;
     }
-    if (P.gauge_slot >= 0) {
+    for (int k = 0; k < P.n_states; ++k) {
+      const int s = P.order[k];
+      if (!P.states[s].has_pose_prior) continue;
+      problem.AddResidualBlock(new PosePriorCost(P.states[s]), nullptr, pose[s].data());
+      ++n_residual_blocks;
+    }
+    if (P.gauge_active()) {
       problem.AddResidualBlock(new GaugeCost(P), nullptr, pose[P.gauge_slot].data());
       ++n_residual_blocks;
     }

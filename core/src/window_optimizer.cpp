@@ -192,6 +192,7 @@ void WindowOptimizer::reset() {
     st.used = false;
     st.keyframe = false;
     st.zero_velocity = false;
+    st.has_pose_prior = false;
     st.has_imu = false;
     st.imu_prev = -1;
     st.n_obs = 0;
@@ -313,6 +314,14 @@ bool WindowOptimizer::add_frame(const WindowFrameInput& in) {
   st.used = true;
   st.keyframe = in.keyframe;
   st.zero_velocity = in.stationary;
+  st.has_pose_prior = in.has_pose_prior && in.prior_sigma_p_m > 0.0 && in.prior_sigma_rad > 0.0 &&
+                      in.prior_p_WB.allFinite() && in.prior_q_WB.coeffs().allFinite();
+  if (st.has_pose_prior) {
+    st.prior_p_WB = in.prior_p_WB;
+    st.prior_q_WB = in.prior_q_WB.normalized();
+    st.prior_sigma_p_m = in.prior_sigma_p_m;
+    st.prior_sigma_rad = in.prior_sigma_rad;
+  }
   st.x = in.guess;
   st.x.t_ns = in.t_ns;
   st.x.q_WB.normalize();
@@ -501,6 +510,15 @@ void WindowOptimizer::marginalize_or_drop(int m) {
     touched[i] = touched[j] = true;
   };
   if (P.states[m].has_imu) add_imu(m);
+  // The map pose factor goes into the prior with its state: the window keeps
+  // what the map said after the state is gone.
+  if (P.states[m].has_pose_prior) {
+    Matrix6d J;
+    const Vector6d r = pose_prior_residual(P.states[m], lin(m), &J);
+    ws.Hm.block<6, 6>(kD * m, kD * m) += J.transpose() * J;
+    ws.gm.segment<6>(kD * m) += J.transpose() * r;
+    c += 0.5 * r.squaredNorm();
+  }
   for (int k = 0; k < P.n_states; ++k) {
     const int j = P.order[k];
     if (P.states[j].has_imu && P.states[j].imu_prev == m) add_imu(j);
@@ -640,8 +658,9 @@ double problem_cost(const WindowProblem& P, const NavState* xs, const Eigen::Vec
     const WindowState& st = P.states[s];
     if (st.has_imu) cost += 0.5 * imu_bias_residual(P, st, xs[st.imu_prev], xs[s]).squaredNorm();
     if (st.zero_velocity) cost += 0.5 * (xs[s].v_WB / P.opt.zero_velocity_sigma_mps).squaredNorm();
+    if (st.has_pose_prior) cost += 0.5 * pose_prior_residual(st, xs[s]).squaredNorm();
   }
-  if (P.gauge_slot >= 0) cost += 0.5 * gauge_residual(P, xs[P.gauge_slot]).squaredNorm();
+  if (P.gauge_active()) cost += 0.5 * gauge_residual(P, xs[P.gauge_slot]).squaredNorm();
   if (P.prior_active) {
     double pc = P.prior_c;
     for (int k = 0; k < P.n_states; ++k) {
@@ -712,8 +731,9 @@ WindowOptimizer::Result WindowOptimizer::optimize_ours() {
   for (int k = 0; k < P.n_states; ++k) n_imu += P.states[P.order[k]].has_imu;
   res.landmarks = ws.n_active;
   int n_zv = 0;
-  for (int k = 0; k < P.n_states; ++k) n_zv += P.states[P.order[k]].zero_velocity ? 1 : 0;
-  res.residuals = n_vis + n_imu + n_zv + (P.gauge_slot >= 0) + (P.prior_active ? 1 : 0);
+  for (int k = 0; k < P.n_states; ++k)
+    n_zv += (P.states[P.order[k]].zero_velocity ? 1 : 0) + (P.states[P.order[k]].has_pose_prior ? 1 : 0);
+  res.residuals = n_vis + n_imu + n_zv + (P.gauge_active() ? 1 : 0) + (P.prior_active ? 1 : 0);
 
   NavState xs[kWindowMaxStates];
   for (int k = 0; k < P.n_states; ++k) xs[P.order[k]] = P.states[P.order[k]].x;
@@ -786,8 +806,18 @@ WindowOptimizer::Result WindowOptimizer::optimize_ours() {
         Hl.block<3, 3>(o, o).diagonal().array() += w;
         bl.segment<3>(o).noalias() += w * P.states[s].x.v_WB;
       }
+      // Map pose factors.
+      for (int k = 0; k < P.n_states; ++k) {
+        const int s = P.order[k];
+        if (!P.states[s].has_pose_prior) continue;
+        Matrix6d J;
+        const Vector6d r = pose_prior_residual(P.states[s], P.states[s].x, &J);
+        const int o = kD * ws.pos_of_slot[s];
+        Hl.block<6, 6>(o, o).noalias() += J.transpose() * J;
+        bl.segment<6>(o).noalias() += J.transpose() * r;
+      }
       // Gauge.
-      if (P.gauge_slot >= 0) {
+      if (P.gauge_active()) {
         Eigen::Matrix<double, 4, 6> Jg;
         const Eigen::Vector4d r = gauge_residual(P, P.states[P.gauge_slot].x, &Jg);
         const int o = kD * ws.pos_of_slot[P.gauge_slot];

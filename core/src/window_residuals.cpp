@@ -102,6 +102,19 @@ Eigen::Vector4d gauge_residual(const WindowProblem& P, const NavState& x, Eigen:
   return r;
 }
 
+Vector6d pose_prior_residual(const WindowState& st, const NavState& x, Matrix6d* J) {
+  Vector6d r;
+  const Eigen::Vector3d phi = so3::Log(st.prior_q_WB.toRotationMatrix().transpose() * x.q_WB.toRotationMatrix());
+  r.head<3>() = (x.p_WB - st.prior_p_WB) / st.prior_sigma_p_m;
+  r.tail<3>() = phi / st.prior_sigma_rad;
+  if (J) {
+    J->setZero();
+    J->topLeftCorner<3, 3>().diagonal().setConstant(1.0 / st.prior_sigma_p_m);
+    J->bottomRightCorner<3, 3>() = so3::right_jacobian_inv(phi) / st.prior_sigma_rad;
+  }
+  return r;
+}
+
 Vector15d state_minus(const NavState& x, const NavState& x0, Eigen::Matrix3d* J_rot) {
   Vector15d d;
   d.segment<3>(0) = x.p_WB - x0.p_WB;

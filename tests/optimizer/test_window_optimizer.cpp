@@ -136,7 +136,7 @@ TEST(WindowOptimizer, GaugeHoldsFirstPositionAndYaw) {
 
 // Two optimisers fed identically; one solved by ours, one by Ceres.
 void cross_check(int S, int N, int n_frames, int keyframe_every, bool huber_active, uint64_t seed,
-                 bool zero_velocity = false) {
+                 bool zero_velocity = false, bool pose_prior = false) {
   Fixture fx(n_frames, seed, keyframe_every);
   WindowOptions o = kestrel::test::sim_options(S, N);
   o.max_iterations = 100;
@@ -146,7 +146,7 @@ void cross_check(int S, int N, int n_frames, int keyframe_every, bool huber_acti
   if (!huber_active) o.huber_px = 0.0;
   WindowOptimizer a(kestrel::test::sim_K(), kestrel::test::sim_T_BC(), o);
   WindowOptimizer b(kestrel::test::sim_K(), kestrel::test::sim_T_BC(), o);
-  std::mt19937_64 rng_a(seed + 100), rng_b(seed + 100);
+  std::mt19937_64 rng_a(seed + 100), rng_b(seed + 100), rng_map(seed + 200);
   // Slide through the sequence (building a marginalisation prior), optimising
   // each with our solver; then perturb the last window identically.
   for (int k = 0; k < n_frames; ++k) {
@@ -157,6 +157,17 @@ void cross_check(int S, int N, int n_frames, int keyframe_every, bool huber_acti
     // The factor is wrong for these moving frames, which makes it pull hard:
     // what matters here is that both solvers minimise the same cost.
     ia.stationary = ib.stationary = zero_velocity && k % 2 == 0;
+    if (pose_prior && k % 3 == 1) {
+      // A map pose a little off the truth, as the tracker's would be.
+      const NavState m = kestrel::test::perturb(fx.frames[k].truth, rng_map, 0.01, 0.005, false);
+      for (WindowFrameInput* in : {&ia, &ib}) {
+        in->has_pose_prior = true;
+        in->prior_p_WB = m.p_WB;
+        in->prior_q_WB = m.q_WB;
+        in->prior_sigma_p_m = 0.02;
+        in->prior_sigma_rad = 0.01;
+      }
+    }
     a.add_frame(ia);
     b.add_frame(ib);
     if (k + 1 < n_frames) {
@@ -205,6 +216,8 @@ TEST(WindowOptimizer, MatchesCeresWithMarginalisationPrior) { cross_check(3, 5, 
 TEST(WindowOptimizer, MatchesCeresEmbeddedNoHuber) { cross_check(2, 3, 14, 2, false, 33); }
 
 TEST(WindowOptimizer, MatchesCeresWithZeroVelocityFactors) { cross_check(3, 5, 12, 2, true, 55, true); }
+// Map pose factors, some marginalised into the prior, and the gauge off while one is in the window.
+TEST(WindowOptimizer, MatchesCeresWithMapPoseFactors) { cross_check(3, 5, 14, 2, true, 56, false, true); }
 
 TEST(WindowOptimizer, CeresIsSelectable) {
   Fixture fx(8, 41, 1, 5.0);

@@ -2,6 +2,7 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <Eigen/Geometry>
 #include <cstdint>
 #include <string>
 
@@ -67,6 +68,17 @@ struct WindowFrameInput {
   int n_obs = 0;
   bool keyframe = false;
   bool stationary = false;  // the IMU says the vehicle is still: add the zero-velocity factor
+  // A pose measured against landmarks of earlier keyframes (the tracker's
+  // local map): a unary factor r = [p - p_prior; Log(R_prior^T R)] / sigma.
+  // It ties the window to the map instead of only to its own oldest state, so
+  // drift stops growing where the vehicle sees old landmarks again; while a
+  // state in the window carries one, the gauge prior is off (the map fixes
+  // position and yaw).
+  bool has_pose_prior = false;
+  Eigen::Vector3d prior_p_WB = Eigen::Vector3d::Zero();
+  Eigen::Quaterniond prior_q_WB = Eigen::Quaterniond::Identity();
+  double prior_sigma_p_m = 0.02;
+  double prior_sigma_rad = 0.01;
 };
 
 }  // namespace kestrel::core

@@ -52,6 +52,11 @@ struct WindowState {
   bool used = false;
   bool keyframe = false;
   bool zero_velocity = false;  // carries the zero-velocity factor
+  // Map pose factor (WindowFrameInput::has_pose_prior).
+  bool has_pose_prior = false;
+  Eigen::Vector3d prior_p_WB = Eigen::Vector3d::Zero();
+  Eigen::Quaterniond prior_q_WB = Eigen::Quaterniond::Identity();
+  double prior_sigma_p_m = 1.0, prior_sigma_rad = 1.0;
   NavState x;
   // IMU + bias factor from the previous state in the chain (imu_prev) to this one.
   bool has_imu = false;
@@ -97,6 +102,13 @@ struct WindowProblem {
     return obs.data() + static_cast<std::size_t>(slot) * opt.max_obs_per_frame;
   }
   int newest_slot() const { return n_states > 0 ? order[n_states - 1] : -1; }
+  // The gauge prior holds only while no state carries a map pose factor.
+  bool gauge_active() const {
+    if (gauge_slot < 0) return false;
+    for (int k = 0; k < n_states; ++k)
+      if (states[order[k]].has_pose_prior) return false;
+    return true;
+  }
 };
 
 // ---- residuals ---------------------------------------------------------------
@@ -118,6 +130,10 @@ int visual_residual(const WindowProblem& P, const NavState& x, const Eigen::Vect
 // J_i, J_j: d r / d (15-tangent of x_i, x_j).
 Vector15d imu_bias_residual(const WindowProblem& P, const WindowState& sj, const NavState& x_i,
                             const NavState& x_j, Matrix15d* J_i = nullptr, Matrix15d* J_j = nullptr);
+
+// Map pose factor of a state carrying one: [(p - p_prior) / sigma_p;
+// Log(R_prior^T R) / sigma_r], J = d r / d[dp, dphi].
+Vector6d pose_prior_residual(const WindowState& st, const NavState& x, Matrix6d* J = nullptr);
 
 // Yaw of R_WB: heading of the body x axis in W, atan2(R10, R00).
 double yaw_of(const Eigen::Quaterniond& q_WB);
