@@ -1,10 +1,14 @@
 #include "kestrel/core/tracker.hpp"
 
+#include <Eigen/Cholesky>
+
 #include <algorithm>
 #include <cmath>
 #include <limits>
 #include <sstream>
 #include <stdexcept>
+
+#include "kestrel/core/so3.hpp"
 
 namespace kestrel::core {
 
@@ -30,6 +34,10 @@ std::string TrackerOptions::validate() const {
   if (min_inliers < 3) e << "min_inliers: at least 3\n";
   if (!(keyframe_area_ratio > 0 && keyframe_area_ratio < 1)) e << "keyframe_area_ratio: in (0, 1)\n";
   if (area_grid_cols < 2 || area_grid_rows < 2) e << "area_grid_cols/rows: at least 2\n";
+  if (map_capacity < 0) e << "map_capacity: >= 0 (0: no local map)\n";
+  if (map_capacity > 0 && !(map_search_radius_px > 0 && map_min_inliers >= 6 && map_match_ratio > 0 &&
+                            map_match_ratio <= 1 && map_max_correction_m > 0 && map_max_correction_rad > 0))
+    e << "map_*: radius > 0, min_inliers >= 6, ratio in (0, 1], max corrections > 0\n";
   return e.str();
 }
 
@@ -42,6 +50,8 @@ struct FrameData {
   std::unique_ptr<Eigen::Vector3d[]> p_C;   // back-projected keypoints, camera frame [m]
   std::unique_ptr<uint8_t[]> has_depth;
   std::unique_ptr<uint32_t[]> lm_id;        // persistent landmark id per feature, 0: none yet
+  std::unique_ptr<int32_t[]> map_idx;       // its local-map entry, -1: none
+  std::unique_ptr<uint8_t[]> owned;         // 1: this frame created that entry (as a keyframe)
   Eigen::Isometry3d T_WC = Eigen::Isometry3d::Identity();
   int64_t t_ns = 0;
   int with_depth = 0;
@@ -51,19 +61,78 @@ struct FrameData {
       : feats(capacity),
         p_C(new Eigen::Vector3d[capacity]),
         has_depth(new uint8_t[capacity]),
-        lm_id(new uint32_t[capacity]) {}
+        lm_id(new uint32_t[capacity]),
+        map_idx(new int32_t[capacity]),
+        owned(new uint8_t[capacity]) {}
 
   void swap(FrameData& o) noexcept {
     std::swap(feats, o.feats);
     std::swap(p_C, o.p_C);
     std::swap(has_depth, o.has_depth);
     std::swap(lm_id, o.lm_id);
+    std::swap(map_idx, o.map_idx);
+    std::swap(owned, o.owned);
     std::swap(T_WC, o.T_WC);
     std::swap(t_ns, o.t_ns);
     std::swap(with_depth, o.with_depth);
     std::swap(valid, o.valid);
   }
 };
+
+// A local-map point: where a keyframe's depth put it, and what it looked like.
+struct MapPoint {
+  Eigen::Vector3d p_W = Eigen::Vector3d::Zero();
+  OrbDescriptor desc{};
+  uint32_t id = 0;  // 0: empty
+  int level = 0;
+  uint32_t stamp = 0;  // == the search's stamp: already matched in this frame
+};
+
+// Pose from 2D-3D matches with a measured depth each (RGB-D PnP): p' = R p + t
+// must reproject onto u (sigma_px) and lie at depth z (sigma_z). Image-only
+// PnP with a few dozen points leaves the distance along the optical axis
+// uncertain by about a centimetre; the depth rows pin it. Gauss-Newton with
+// Huber weights on the whitened 3-row error, left perturbation; true when the
+// system stayed solvable.
+// cov: the [t, w] covariance of the last linearisation (whitened errors, so
+// in m and rad).
+bool refine_pose_rgbd(Eigen::Matrix3d* R, Eigen::Vector3d* t, const PinholeK& K, const Correspondence2D3D* c,
+                      const double* z, const double* sigma_z, const uint32_t* idx, std::size_t n, double huber,
+                      Eigen::Matrix<double, 6, 6>* cov) {
+  if (n < 3) return false;
+  for (int it = 0; it < 6; ++it) {
+    Eigen::Matrix<double, 6, 6> H = Eigen::Matrix<double, 6, 6>::Zero();
+    Eigen::Matrix<double, 6, 1> g = Eigen::Matrix<double, 6, 1>::Zero();
+    for (std::size_t k = 0; k < n; ++k) {
+      const uint32_t i = idx[k];
+      const Eigen::Vector3d q = *R * c[i].p_prev + *t;
+      if (q.z() < 0.05) continue;
+      const double iz = 1.0 / q.z(), s = 1.0 / std::max(1e-3, static_cast<double>(c[i].sigma_px));
+      Eigen::Vector3d r(s * (K.fx * q.x() * iz + K.cx - c[i].u_cur.x()), s * (K.fy * q.y() * iz + K.cy - c[i].u_cur.y()),
+                        (q.z() - z[i]) / sigma_z[i]);
+      Eigen::Matrix3d Jq;
+      Jq << s * K.fx * iz, 0, -s * K.fx * q.x() * iz * iz, 0, s * K.fy * iz, -s * K.fy * q.y() * iz * iz, 0, 0,
+          1.0 / sigma_z[i];
+      Eigen::Matrix<double, 3, 6> J;
+      J.leftCols<3>() = Jq;                         // d q / d t = I
+      J.rightCols<3>() = -Jq * so3::hat(q);         // d q / d w = -[q]x
+      const double e = r.norm();
+      const double w = e <= huber ? 1.0 : huber / e;
+      H.noalias() += w * J.transpose() * J;
+      g.noalias() += w * J.transpose() * r;
+    }
+    const Eigen::LDLT<Eigen::Matrix<double, 6, 6>> ldlt(H);
+    if (ldlt.info() != Eigen::Success || !(ldlt.vectorD().array() > 0.0).all()) return false;
+    *cov = ldlt.solve(Eigen::Matrix<double, 6, 6>::Identity());
+    const Eigen::Matrix<double, 6, 1> d = -ldlt.solve(g);
+    if (!d.allFinite()) return false;
+    const Eigen::Matrix3d dR = so3::Exp(d.tail<3>());
+    *R = dR * *R;
+    *t = dR * *t + d.head<3>();
+    if (d.norm() < 1e-8) break;
+  }
+  return true;
+}
 
 }  // namespace
 
@@ -88,6 +157,10 @@ struct Tracker::Impl {
         area_detected(new uint8_t[static_cast<size_t>(opt.area_grid_cols * opt.area_grid_rows)]),
         area_matched(new uint8_t[static_cast<size_t>(opt.area_grid_cols * opt.area_grid_rows)]),
         obs(new WindowObservation[static_cast<size_t>(capacity)]),
+        map_capacity(opt.map_capacity),
+        map(new MapPoint[static_cast<size_t>(std::max(opt.map_capacity, 1))]),
+        map_z(new double[static_cast<size_t>(capacity)]),
+        map_sz(new double[static_cast<size_t>(capacity)]),
         lonsc(static_cast<size_t>(capacity), opt.lonsc),
         orderer(static_cast<size_t>(capacity)) {
     K.fx = cam.fx();
@@ -171,6 +244,147 @@ struct Tracker::Impl {
     return det > 0 ? static_cast<double>(mat) / det : 0.0;
   }
 
+  // Searches the local map from T_WC (a new keyframe's chained pose) for
+  // points of older keyframes that cur does not see through the keyframe it
+  // tracked; with enough RGB-D PnP inliers those features take the points'
+  // ids and res carries the map's pose with its uncertainty. A few dozen
+  // matches give a pose good to a centimetre or two, noisier than tracking's
+  // chained one, so it only replaces *T_WC when apply (a restart with no
+  // chain); otherwise the window weighs it against the chain. Allocation-free.
+  void search_map(const TrackerOptions& opt, Eigen::Isometry3d* T_WC, bool apply, TrackResult& res) {
+    if (map_size == 0) return;
+    if (++map_stamp == 0) map_stamp = 1;
+    const int n_cur = cur.feats.size();
+    for (int j = 0; j < n_cur; ++j) {
+      const int32_t i = cur.map_idx[j];
+      if (i >= 0 && map[i].id == cur.lm_id[j]) map[i].stamp = map_stamp;
+    }
+    build_grid(cur);
+    std::fill(best_kf.get(), best_kf.get() + n_cur, -1);
+    std::fill(best_dist.get(), best_dist.get() + n_cur, std::numeric_limits<int>::max());
+    const Eigen::Isometry3d T_CW = T_WC->inverse();
+    const double radius = opt.map_search_radius_px, r2 = radius * radius;
+    for (int i = 0; i < map_size; ++i) {
+      const MapPoint& mp = map[i];
+      if (mp.id == 0 || mp.stamp == map_stamp) continue;
+      const Eigen::Vector3d p_C = T_CW * mp.p_W;
+      if (p_C.z() < 0.1) continue;
+      const Eigen::Vector2d uv = cam.distort_normalized_to_pixel(p_C.head<2>() / p_C.z());
+      if (!cam.in_image(uv)) continue;
+      const double z_tol = opt.map_depth_tol_rel * p_C.z() + 0.03;
+      const int gx0 = std::max(0, static_cast<int>((uv.x() - radius) / kSearchCellPx));
+      const int gx1 = std::min(grid_cols - 1, static_cast<int>((uv.x() + radius) / kSearchCellPx));
+      const int gy0 = std::max(0, static_cast<int>((uv.y() - radius) / kSearchCellPx));
+      const int gy1 = std::min(grid_rows - 1, static_cast<int>((uv.y() + radius) / kSearchCellPx));
+      BestTwoMatches bt;
+      for (int gy = gy0; gy <= gy1; ++gy) {
+        for (int gx = gx0; gx <= gx1; ++gx) {
+          const int c = gy * grid_cols + gx;
+          for (int k = cell_start[c]; k < cell_start[c + 1]; ++k) {
+            const int j = cell_items[k];
+            if (cur.lm_id[j] != 0 || !cur.has_depth[j]) continue;
+            const OrbKeypoint& ckp = cur.feats.keypoint(j);
+            const double dx = ckp.x - uv.x(), dy = ckp.y - uv.y();
+            if (dx * dx + dy * dy > r2) continue;
+            if (std::abs(ckp.level - mp.level) > opt.match_max_level_diff) continue;
+            if (std::abs(cur.p_C[j].z() - p_C.z()) > z_tol) continue;
+            bt.offer(hamming_distance(mp.desc, cur.feats.descriptor(j)), j);
+          }
+        }
+      }
+      if (bt.best_index < 0 || bt.best > opt.map_match_max_hamming || !bt.passes_ratio(opt.map_match_ratio)) continue;
+      if (bt.best < best_dist[bt.best_index]) {
+        best_dist[bt.best_index] = bt.best;
+        best_kf[bt.best_index] = i;
+      }
+    }
+    int n = 0;
+    for (int j = 0; j < n_cur; ++j) {
+      if (best_kf[j] < 0) continue;
+      const OrbKeypoint& ckp = cur.feats.keypoint(j);
+      Correspondence2D3D& c = corr[n];
+      c.p_prev = T_CW * map[best_kf[j]].p_W;
+      c.u_cur = cam.undistort_pixel(Eigen::Vector2d(ckp.x, ckp.y));
+      c.sigma_px = static_cast<float>(opt.keypoint_sigma_px * extractor.level_scale(ckp.level));
+      c.id = static_cast<uint32_t>(j);
+      order[n] = static_cast<uint32_t>(n);
+      ++n;
+    }
+    res.map_matched = n;
+    if (n < opt.map_min_inliers) return;
+    // RGB-D PnP from the chained pose: two rounds, dropping matches beyond
+    // 3 sigma (3-row error) in between.
+    for (int k = 0; k < n; ++k) {
+      const double zk = cur.p_C[corr[k].id].z();
+      map_z[k] = zk;
+      map_sz[k] = std::max(0.005, depth.sigma_coeff_per_m * zk * zk);
+    }
+    Eigen::Matrix3d R = Eigen::Matrix3d::Identity();
+    Eigen::Vector3d t = Eigen::Vector3d::Zero();
+    Eigen::Matrix<double, 6, 6> cov;
+    size_t n_in = static_cast<size_t>(n);
+    for (int round = 0; round < 2; ++round) {
+      if (!refine_pose_rgbd(&R, &t, K, corr.get(), map_z.get(), map_sz.get(), order.get(), n_in, 2.0, &cov)) return;
+      n_in = 0;
+      for (int k = 0; k < n; ++k) {
+        const Eigen::Vector3d q = R * corr[k].p_prev + t;
+        if (q.z() < 0.1) continue;
+        const double s = 1.0 / corr[k].sigma_px;
+        const Eigen::Vector3d e(s * (K.fx * q.x() / q.z() + K.cx - corr[k].u_cur.x()),
+                                s * (K.fy * q.y() / q.z() + K.cy - corr[k].u_cur.y()), (q.z() - map_z[k]) / map_sz[k]);
+        if (e.norm() <= 3.0) order[n_in++] = static_cast<uint32_t>(k);
+      }
+      if (static_cast<int>(n_in) < opt.map_min_inliers) return;
+    }
+    // p_new = R p_guess + t: the guess camera seen from the corrected one.
+    Eigen::Isometry3d T_CnewCguess = Eigen::Isometry3d::Identity();
+    T_CnewCguess.linear() = R;
+    T_CnewCguess.translation() = t;
+    const Eigen::Isometry3d T_WC_new = *T_WC * T_CnewCguess.inverse();
+    const double dp = (T_WC_new.translation() - T_WC->translation()).norm();
+    const double dr = Eigen::AngleAxisd(R).angle();
+    const double sigma_p = std::sqrt(cov.topLeftCorner<3, 3>().diagonal().maxCoeff());
+    if (dp > opt.map_max_correction_m || dr > opt.map_max_correction_rad || !(sigma_p <= opt.map_max_sigma_m)) return;
+    res.map_inliers = static_cast<int>(n_in);
+    res.map_pose_valid = true;
+    res.T_WC_map = T_WC_new;
+    res.map_sigma_p_m = sigma_p;
+    res.map_sigma_rad = std::sqrt(cov.bottomRightCorner<3, 3>().diagonal().maxCoeff());
+    res.map_correction_m = dp;
+    if (apply) {
+      *T_WC = T_WC_new;
+      res.map_corrected = true;
+    }
+    for (size_t k = 0; k < n_in; ++k) {
+      const int j = static_cast<int>(corr[order[k]].id);
+      const int i = best_kf[j];
+      map[i].stamp = map_stamp;
+      cur.lm_id[j] = map[i].id;
+      cur.map_idx[j] = i;
+      WindowObservation& o = obs[n_obs++];
+      o.landmark_id = map[i].id;
+      o.uv = corr[order[k]].u_cur;
+      o.depth_m = cur.p_C[j].z();
+      o.sigma_px = corr[order[k]].sigma_px;
+    }
+  }
+
+  // A keyframe's new points enter the map (overwriting the oldest when full).
+  void add_to_map(FrameData& f, int j) {
+    if (map_capacity <= 0) return;
+    const int i = map_next;
+    map_next = (map_next + 1) % map_capacity;
+    map_size = std::max(map_size, i + 1);
+    MapPoint& mp = map[i];
+    mp.p_W = f.T_WC * f.p_C[j];
+    mp.desc = f.feats.descriptor(j);
+    mp.id = f.lm_id[j];
+    mp.level = f.feats.keypoint(j).level;
+    mp.stamp = 0;
+    f.map_idx[j] = i;
+    f.owned[j] = 1;
+  }
+
   PinholeCamera cam;
   DepthModel depth;
   PinholeK K;
@@ -186,6 +400,12 @@ struct Tracker::Impl {
   std::unique_ptr<uint8_t[]> area_detected, area_matched;
   std::unique_ptr<WindowObservation[]> obs;
   int n_obs = 0;
+  int map_capacity;
+  std::unique_ptr<MapPoint[]> map;
+  std::unique_ptr<double[]> map_z, map_sz;  // per map match: measured depth and its sigma
+  int map_size = 0;
+  int map_next = 0;  // ring cursor: the oldest entry once full
+  uint32_t map_stamp = 0;
   uint32_t next_lm_id = 1;
   LonscEstimator lonsc;
   CorrespondenceOrderer orderer;
@@ -209,7 +429,14 @@ const WindowObservation* Tracker::observations() const { return impl_->obs.get()
 
 bool Tracker::set_keyframe_pose(int64_t t_ns, const Eigen::Isometry3d& T_WC) {
   if (!impl_->kf.valid || impl_->kf.t_ns != t_ns) return false;
-  impl_->kf.T_WC = T_WC;
+  Impl& m = *impl_;
+  m.kf.T_WC = T_WC;
+  // The points this keyframe put into the map move with it; points it
+  // re-found belong to older keyframes and stay where they are.
+  for (int j = 0; j < m.kf.feats.size(); ++j) {
+    const int32_t i = m.kf.map_idx[j];
+    if (m.kf.owned[j] && i >= 0 && m.map[i].id == m.kf.lm_id[j]) m.map[i].p_W = T_WC * m.kf.p_C[j];
+  }
   return true;
 }
 
@@ -230,10 +457,14 @@ const TrackResult& Tracker::track(int64_t t_ns, const ImageView& image, const Im
   m.back_project(m.cur, depth, opt_.depth_edge_rel);
   m.cur.t_ns = t_ns;
   std::fill(m.cur.lm_id.get(), m.cur.lm_id.get() + m.cur.feats.size(), 0u);
+  std::fill(m.cur.map_idx.get(), m.cur.map_idx.get() + m.cur.feats.size(), -1);
+  std::fill(m.cur.owned.get(), m.cur.owned.get() + m.cur.feats.size(), uint8_t{0});
   result_.detected = m.cur.feats.size();
   result_.with_depth = m.cur.with_depth;
 
-  auto make_keyframe = [&](const Eigen::Isometry3d& T_WC) {
+  auto make_keyframe = [&](Eigen::Isometry3d T_WC) {
+    if (m.map_capacity > 0) m.search_map(opt_, &T_WC, !m.kf.valid, result_);
+    m.cur.T_WC = T_WC;
     // Features that matched a keyframe point keep its id; the others with a
     // depth start new landmarks, observed here for the first time.
     for (int j = 0; j < m.cur.feats.size(); ++j) {
@@ -246,8 +477,8 @@ const TrackResult& Tracker::track(int64_t t_ns, const ImageView& image, const Im
       o.uv = m.cam.undistort_pixel(Eigen::Vector2d(kp.x, kp.y));
       o.depth_m = m.cur.p_C[j].z();
       o.sigma_px = static_cast<float>(opt_.keypoint_sigma_px * m.extractor.level_scale(kp.level));
+      m.add_to_map(m.cur, j);
     }
-    m.cur.T_WC = T_WC;
     m.cur.valid = true;
     m.kf.swap(m.cur);
     m.cur.valid = false;
@@ -257,6 +488,7 @@ const TrackResult& Tracker::track(int64_t t_ns, const ImageView& image, const Im
   if (!m.kf.valid) {
     if (m.cur.with_depth >= 2 * opt_.min_inliers) {
       make_keyframe(T_WC_pred);
+      result_.T_WC = m.kf.T_WC;
       result_.status = TrackStatus::kNewKeyframe;
     } else {
       result_.status = TrackStatus::kTooFewMatches;
@@ -365,6 +597,7 @@ const TrackResult& Tracker::track(int64_t t_ns, const ImageView& image, const Im
     const int j = m.corr_cur[idx];
     const uint32_t id = m.kf.lm_id[m.best_kf[j]];
     m.cur.lm_id[j] = id;
+    m.cur.map_idx[j] = m.kf.map_idx[m.best_kf[j]];
     WindowObservation& o = m.obs[m.n_obs++];
     o.landmark_id = id;
     o.uv = m.corr[idx].u_cur;
@@ -375,7 +608,9 @@ const TrackResult& Tracker::track(int64_t t_ns, const ImageView& image, const Im
   const bool stale = 1e-9 * static_cast<double>(t_ns - m.kf.t_ns) > opt_.keyframe_max_interval_s;
   const bool new_kf =
       result_.area_ratio < opt_.keyframe_area_ratio || result_.inliers < opt_.keyframe_min_inliers || stale;
-  if (new_kf && m.cur.with_depth >= 2 * opt_.min_inliers) make_keyframe(T_WC);
+  if (new_kf && m.cur.with_depth >= 2 * opt_.min_inliers) {
+    make_keyframe(T_WC);
+  }
   return result_;
 }
 

@@ -85,7 +85,7 @@ std::string WindowEstimator::backend_summary() const {
     << ", applied " << wc_.applied << ", failures " << wc_.failures << ", window resets " << wc_.window_resets
     << ", skipped (busy " << wc_.skipped_busy << ", few obs " << wc_.skipped_few_obs << ", no imu "
     << wc_.skipped_no_imu << "), stale " << wc_.stale_results << ", imu gaps " << wc_.imu_gaps
-    << ", still frames " << wc_.stationary_frames;
+    << ", still frames " << wc_.stationary_frames << ", map poses " << wc_.map_poses;
   return o.str();
 }
 
@@ -130,6 +130,13 @@ bool WindowEstimator::add_frame(const RgbdFrame& f) {
   job.stationary = opt_.zero_velocity_when_still && still_t_ns_ >= 0 && f.t_ns - still_t_ns_ <= 150'000'000 &&
                    front_.propagated().v_WB.norm() < opt_.still_max_speed_mps;
   wc_.stationary_frames += job.stationary ? 1 : 0;
+  job.has_map_pose = opt_.use_map_pose && r.keyframe && r.map_pose_valid;
+  if (job.has_map_pose) {
+    job.T_WB_map = r.T_WC_map * T_BC_.inverse();
+    job.map_sigma_p_m = std::max(opt_.map_pose_sigma_m, r.map_sigma_p_m);
+    job.map_sigma_rad = std::max(opt_.map_pose_sigma_rad, r.map_sigma_rad);
+    ++wc_.map_poses;
+  }
   job.reset = !pim_active_ || reset_requested_;
   reset_requested_ = false;
   pending_slot_ = slot;
@@ -296,6 +303,13 @@ void WindowEstimator::process(int slot) {
   in.n_obs = job.n_obs;
   in.keyframe = job.keyframe || window_->num_states() == 0;
   in.stationary = job.stationary;
+  if (job.has_map_pose) {
+    in.has_pose_prior = true;
+    in.prior_p_WB = job.T_WB_map.translation();
+    in.prior_q_WB = Eigen::Quaterniond(job.T_WB_map.linear());
+    in.prior_sigma_p_m = job.map_sigma_p_m;
+    in.prior_sigma_rad = job.map_sigma_rad;
+  }
   if (job.reset || !job.has_pim) {
     window_->reset();
     in.imu_from_prev = nullptr;

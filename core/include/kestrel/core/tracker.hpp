@@ -51,6 +51,20 @@ struct TrackerOptions {
   // Depth: a 3x3 neighbourhood spread above this fraction of the depth marks
   // a depth edge, where the back-projection would mix two surfaces.
   double depth_edge_rel = 0.05;
+  // Local map: the depth-backed points of past keyframes, kept in world
+  // coordinates (ring of map_capacity, oldest overwritten). A new keyframe
+  // searches it by projection, and when enough old points are found again it
+  // takes the pose they give (PnP) instead of the chained one: drift then
+  // stops growing wherever the vehicle returns to what it has seen.
+  int map_capacity = 8192;              // 0: off
+  double map_search_radius_px = 12.0;
+  int map_match_max_hamming = 60;
+  float map_match_ratio = 0.8f;
+  double map_depth_tol_rel = 0.05;      // |z_feature - z_map| <= rel * z + 3 cm
+  int map_min_inliers = 20;             // fewer: the keyframe keeps its chained pose
+  double map_max_correction_m = 0.15;   // a larger jump is taken for a false match set
+  double map_max_correction_rad = 0.05;
+  double map_max_sigma_m = 0.03;        // a PnP less certain than this (clustered points) is not reported
 
   [[nodiscard]] std::string validate() const;
 };
@@ -77,6 +91,17 @@ struct TrackResult {
   double area_ratio = 0;        // matched / detected cells of the area grid
   double search_radius_px = 0;
   double inlier_rms_px = 0;
+  // Local map search (keyframes only): points re-found, PnP inliers, and
+  // the pose they give (camera in W, 1-sigma bounds: the largest axis) with
+  // its distance from the chained pose. map_corrected: the keyframe took it
+  // (only when it started without a keyframe to chain from).
+  int map_matched = 0;
+  int map_inliers = 0;
+  bool map_pose_valid = false;
+  Eigen::Isometry3d T_WC_map = Eigen::Isometry3d::Identity();
+  double map_sigma_p_m = 0, map_sigma_rad = 0;
+  double map_correction_m = 0;
+  bool map_corrected = false;
   MotionStatus motion_status = MotionStatus::kOk;
   bool tracked() const { return status == TrackStatus::kTracked; }
 };

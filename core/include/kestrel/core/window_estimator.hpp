@@ -63,6 +63,14 @@ struct WindowEstimatorOptions {
   // The IMU test alone also passes smooth flight at near-constant
   // acceleration; a frame counts as still only if the estimated speed agrees.
   double still_max_speed_mps = 0.05;
+  // A keyframe the tracker re-located against its local map carries that
+  // pose into the window as a factor, with the PnP's own sigma but at least
+  // these (the map points carry the error of the keyframes that made them):
+  // loose enough that the window's IMU and landmark terms still shape it,
+  // tight enough to undo the chain's drift (docs/optimizer.md, "Local map").
+  bool use_map_pose = true;
+  double map_pose_sigma_m = 0.02;
+  double map_pose_sigma_rad = 0.01;
 
   std::string validate() const;
 };
@@ -79,6 +87,7 @@ struct WindowEstimatorCounters {
   uint64_t stale_results = 0;   // too old to propagate to now
   uint64_t imu_gaps = 0;
   uint64_t stationary_frames = 0;  // window frames given the zero-velocity factor
+  uint64_t map_poses = 0;          // window frames given the local map's pose
 };
 
 // Optimizer -> tracking side. Trivially copyable: crosses threads through the mailbox.
@@ -125,6 +134,9 @@ class WindowEstimator final : public Estimator {
     bool stationary = false;
     bool has_pim = false;
     bool keyframe = false;
+    bool has_map_pose = false;
+    Eigen::Isometry3d T_WB_map = Eigen::Isometry3d::Identity();
+    double map_sigma_p_m = 0, map_sigma_rad = 0;
     int64_t t_ns = 0;
     int64_t tracker_kf_t_ns = -1;
     NavState guess;
