@@ -40,7 +40,7 @@ namespace kestrel::core {
 struct WindowEstimatorOptions {
   FrontendOdometryOptions frontend = [] {
     FrontendOdometryOptions f;
-    f.moving_start_after_ns = 500'000'000;  // the dynamic start: the window sorts out attitude and velocity
+    f.moving_start_after_ns = 250'000'000;  // the dynamic start: the window sorts out attitude and velocity
     return f;
   }();
   WindowOptions window;
