@@ -1001,9 +1001,17 @@ void WindowOptimizer::publish_newest_covariance() {
   // newest state is the system's last block (time order: it always is).
   if (ws.factor_ok && s >= 0 && ws.factor_n == kD * P.n_states && ws.pos_of_slot[s] == P.n_states - 1) {
     const Eigen::Vector3d ez = Eigen::Vector3d::UnitZ();
+    // A map pose factor in the window replaces the gauge: the window is then
+    // anchored to the map (its factors carry their own sigma), and the drift
+    // chain starts again from there once the gauge returns.
+    if (!P.gauge_active()) {
+      ws.drift_pos.setZero();
+      ws.drift_yaw_var = 0.0;
+      ws.gauge_t_ns = -1;
+    }
     // The gauge moved since the last solve: compound the new gauge's relative covariance.
     const NavState& g = P.states[P.order[0]].x;
-    if (g.t_ns != ws.gauge_t_ns) {
+    if (P.gauge_active() && g.t_ns != ws.gauge_t_ns) {
       if (ws.gauge_t_ns >= 0 && g.t_ns == ws.next_gauge_t_ns) {
         const Eigen::Vector3d lever = ez.cross(g.p_WB - ws.gauge_p);
         ws.drift_pos += ws.next_pos_cov + ws.drift_yaw_var * lever * lever.transpose();
@@ -1013,7 +1021,7 @@ void WindowOptimizer::publish_newest_covariance() {
       ws.gauge_p = g.p_WB;
     }
     ws.next_gauge_t_ns = -1;
-    if (P.n_states >= 2) {
+    if (P.gauge_active() && P.n_states >= 2) {
       const Eigen::Matrix<double, 6, 6> c1 = marginal_pose(ws.H_red, ws.factor_n, 1);
       const Eigen::Vector3d yaw_B = P.states[P.order[1]].x.q_WB.conjugate() * ez;  // W z in B
       ws.next_pos_cov = c1.topLeftCorner<3, 3>();
@@ -1026,7 +1034,7 @@ void WindowOptimizer::publish_newest_covariance() {
     Eigen::Matrix<double, 6, 6> cov = marginal_pose(ws.H_red, ws.factor_n, P.n_states - 1);
     cov.topLeftCorner<3, 3>() += ws.drift_pos;
     Eigen::Matrix<double, 6, 1> J;
-    J.head<3>() = ez.cross(x.p_WB - ws.gauge_p);
+    J.head<3>() = ez.cross(x.p_WB - ws.gauge_p);  // drift_yaw_var is 0 while the map anchors the window
     J.tail<3>() = x.q_WB.conjugate() * ez;
     cov.noalias() += ws.drift_yaw_var * J * J.transpose();
     if (cov.allFinite()) {

@@ -80,7 +80,9 @@ class WindowOptimizer {
   // is added: each time the gauge moves on, the new gauge's covariance
   // relative to the old one (position, and yaw about W z with its lever arm)
   // is compounded into a running gauge covariance (first order; correlations
-  // between moves are ignored). valid = false after a Ceres solve or a failed
+  // between moves are ignored). While a map pose factor is in the window it
+  // replaces the gauge: the covariance is then relative to the map factors
+  // (their sigmas), and the drift chain restarts. valid = false after a Ceres solve or a failed
   // factorisation. Computed at the end of each optimize(); this read is a
   // seqlock copy, safe from the tracking thread while the optimizer runs.
   PoseCovariance newest_pose_covariance() const;
