@@ -72,8 +72,22 @@ TEST(WindowEstimator, OptimizerOnItsOwnThreadNeverBlocksTheOutput) {
     });
     return e;
   };
+  // Fed at the log's own pace, as the pipeline would be: the test is about
+  // the hand-off between the threads, not about how far a loaded CI machine
+  // lets a flat-out feeder outrun the solver (that only skips more frames).
+  int64_t t0_log = -1, t0_wall = 0;
+  auto paced = [&](const ImuSample& s) {
+    if (t0_log < 0) {
+      t0_log = s.t_ns;
+      t0_wall = rt::now_ns();
+    }
+    const int64_t due = t0_wall + (s.t_ns - t0_log);
+    const int64_t now = rt::now_ns();
+    if (due > now) rt::sleep_for_ns(due - now);
+    return true;
+  };
   std::unique_ptr<core::Estimator> est;
-  const test::RunResult win = test::run(path, make, {}, &est);
+  const test::RunResult win = test::run(path, make, paced, &est);
   stop = true;
   optimizer.join();
   const core::WindowEstimatorCounters& c = as_window(est).window_counters();
@@ -81,10 +95,10 @@ TEST(WindowEstimator, OptimizerOnItsOwnThreadNeverBlocksTheOutput) {
   std::printf("threaded optimizer, figure8 8 s: ATE %.4f m; %s; solve p50 %.2f ms p99 %.2f ms\n", ate_win,
               est->backend_summary().c_str(), 1e-6 * est->optimizer_latency()->percentile(50),
               1e-6 * est->optimizer_latency()->percentile(99));
-  // The feeding loop runs far faster than real time, so the optimizer falls
-  // behind and frames are skipped (counted): quality degrades gracefully.
-  EXPECT_GT(c.applied, 20u);
-  EXPECT_LT(ate_win, 0.10);
+  // At real-time pace the solver keeps up: most frames are applied, and the
+  // result matches the inline optimizer's accuracy class.
+  EXPECT_GT(c.applied, c.jobs / 2);
+  EXPECT_LT(ate_win, 0.05);
   EXPECT_GT(est->optimizer_latency()->count(), 20u);
 }
 
