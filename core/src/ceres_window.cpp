@@ -6,6 +6,7 @@
 #include <chrono>
 #include <cmath>
 #include <memory>
+#include <utility>
 #include <vector>
 
 #include "kestrel/core/so3.hpp"
@@ -166,44 +167,32 @@ class ZeroVelocityCost final : public ceres::SizedCostFunction<3, 9> {
   double inv_sigma_;
 };
 
-class PosePriorCost final : public ceres::SizedCostFunction<6, 7> {
+// A residual on one pose block alone (gauge, map pose factor): f(x, J*)
+// returns the kRows residual and d r / d[dp, dphi] from window_problem.hpp.
+template <int kRows, class F>
+class PoseBlockCost final : public ceres::SizedCostFunction<kRows, 7> {
  public:
-  explicit PosePriorCost(const WindowState& st) : st_(st) {}
+  explicit PoseBlockCost(F f) : f_(std::move(f)) {}
   bool Evaluate(double const* const* params, double* residuals, double** jacobians) const override {
-    Matrix6d J;
-    Eigen::Map<Vector6d> res(residuals);
-    res = pose_prior_residual(st_, to_nav(params[0], nullptr), jacobians ? &J : nullptr);
+    Eigen::Matrix<double, kRows, 6> J;
+    Eigen::Map<Eigen::Matrix<double, kRows, 1>> res(residuals);
+    res = f_(to_nav(params[0], nullptr), jacobians ? &J : nullptr);
     if (jacobians && jacobians[0]) {
-      Eigen::Map<Eigen::Matrix<double, 6, 7, Eigen::RowMajor>> Jm(jacobians[0]);
+      Eigen::Map<Eigen::Matrix<double, kRows, 7, Eigen::RowMajor>> Jm(jacobians[0]);
       Jm.setZero();
-      Jm.leftCols<6>() = J;
+      Jm.template leftCols<6>() = J;
     }
     return true;
   }
 
  private:
-  const WindowState& st_;
+  F f_;
 };
 
-class GaugeCost final : public ceres::SizedCostFunction<4, 7> {
- public:
-  explicit GaugeCost(const WindowProblem& P) : P_(P) {}
-  bool Evaluate(double const* const* params, double* residuals, double** jacobians) const override {
-    Eigen::Matrix<double, 4, 6> J;
-    const Eigen::Vector4d r = gauge_residual(P_, to_nav(params[0], nullptr), jacobians ? &J : nullptr);
-    Eigen::Map<Eigen::Vector4d> res(residuals);
-    res = r;
-    if (jacobians && jacobians[0]) {
-      Eigen::Map<Eigen::Matrix<double, 4, 7, Eigen::RowMajor>> Jm(jacobians[0]);
-      Jm.setZero();
-      Jm.leftCols<6>() = J;
-    }
-    return true;
-  }
-
- private:
-  const WindowProblem& P_;
-};
+template <int kRows, class F>
+ceres::CostFunction* pose_block_cost(F f) {
+  return new PoseBlockCost<kRows, F>(std::move(f));
+}
 
 // Marginalisation prior 1/2 |e + J (x [-] x0)|^2 over the prior's states,
 // parameters (pose, speed/bias) per state.
@@ -294,11 +283,17 @@ struct CeresWindow {
     for (int k = 0; k < P.n_states; ++k) {
       const int s = P.order[k];
       if (!P.states[s].has_pose_prior) continue;
-      problem.AddResidualBlock(new PosePriorCost(P.states[s]), nullptr, pose[s].data());
+      const WindowState& st = P.states[s];
+      problem.AddResidualBlock(
+          pose_block_cost<6>([&st](const NavState& x, Matrix6d* J) { return pose_prior_residual(st, x, J); }),
+          nullptr, pose[s].data());
       ++n_residual_blocks;
     }
     if (P.gauge_active()) {
-      problem.AddResidualBlock(new GaugeCost(P), nullptr, pose[P.gauge_slot].data());
+      problem.AddResidualBlock(pose_block_cost<4>([&P](const NavState& x, Eigen::Matrix<double, 4, 6>* J) {
+                                 return gauge_residual(P, x, J);
+                               }),
+                               nullptr, pose[P.gauge_slot].data());
       ++n_residual_blocks;
     }
     if (P.prior_active) add_prior(P);

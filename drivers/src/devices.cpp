@@ -259,7 +259,12 @@ EstimatorSettings estimator_settings_from_yaml_node(const YAML::Node& node, cons
   return e;
 }
 
-EstimatorSettings load_estimator_settings(const std::string& path) {
+namespace {
+
+// One section of a config file, parsed by `parse` with the file's name for
+// its errors; YAML syntax errors name the line.
+template <class Parse>
+auto parse_config_section(const std::string& path, const char* section, Parse parse) {
   std::ifstream f(path, std::ios::binary);
   if (!f) throw std::runtime_error(path + ": cannot open config file");
   std::ostringstream text;
@@ -272,10 +277,16 @@ EstimatorSettings load_estimator_settings(const std::string& path) {
   }
   if (!root.IsMap()) throw std::runtime_error(path + ": expected a mapping");
   try {
-    return estimator_settings_from_yaml_node(root["estimator"], path);
+    return parse(root[section], path);
   } catch (const YAML::Exception& e) {
     throw std::runtime_error(path + ": " + e.what());
   }
+}
+
+}  // namespace
+
+EstimatorSettings load_estimator_settings(const std::string& path) {
+  return parse_config_section(path, "estimator", estimator_settings_from_yaml_node);
 }
 
 namespace {
@@ -340,22 +351,7 @@ ThreadTable thread_table_from_yaml_node(const YAML::Node& node, const std::strin
 }
 
 ThreadTable load_thread_table(const std::string& path) {
-  std::ifstream f(path, std::ios::binary);
-  if (!f) throw std::runtime_error(path + ": cannot open config file");
-  std::ostringstream text;
-  text << f.rdbuf();
-  YAML::Node root;
-  try {
-    root = YAML::Load(text.str());
-  } catch (const YAML::ParserException& e) {
-    throw std::runtime_error(path + ":" + std::to_string(e.mark.line + 1) + ": YAML syntax error: " + e.msg);
-  }
-  if (!root.IsMap()) throw std::runtime_error(path + ": expected a mapping");
-  try {
-    return thread_table_from_yaml_node(root["threads"], path);
-  } catch (const YAML::Exception& e) {
-    throw std::runtime_error(path + ": " + e.what());
-  }
+  return parse_config_section(path, "threads", thread_table_from_yaml_node);
 }
 
 LiveConfig live_config_from_yaml(const std::string& text, const std::string& where) {
