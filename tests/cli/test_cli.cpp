@@ -195,3 +195,25 @@ TEST(Replay, RealtimeReplayAppliesTheConfigsThreadTableAndReportsIt) {
   EXPECT_EQ(bad.code, 1) << bad.out;
   EXPECT_NE(bad.out.find(cfg + ": threads.kst-optimizer.priority: expected 1..99"), std::string::npos) << bad.out;
 }
+
+// The JSON keys other checks read (issues 5 and 7): accuracy under both
+// alignments, the pose share, and p50 / p99 / max per stage.
+TEST(Cli, BenchJsonCarriesAccuracyAndTheTimingTable) {
+  const std::string dir = kestrel::test::temp_dir("cli_bench_" + std::to_string(getpid()));
+  const CmdResult r = run("bench --cases hover --duration 4 --width 160 --height 120 --estimator window --workdir " +
+                          dir + " --json " + dir + "/b.json");
+  ASSERT_EQ(r.code, 0) << r.out;
+  EXPECT_NE(r.out.find("timing [ms] (p50 / p99 / max)"), std::string::npos) << r.out;
+  const std::string j = slurp(dir + "/b.json");
+  for (const char* key : {"ate_rmse_m", "ate_se3_rmse_m", "pose_share", "tracking_ms_p50", "tracking_ms_p99",
+                          "tracking_ms_max", "optimizer_ms_p50", "optimizer_ms_p99", "optimizer_ms_max",
+                          "imu_to_output_ms_p50", "imu_to_output_ms_p99", "imu_to_output_ms_max",
+                          "realtime_factor"}) {
+    const size_t at = j.find(std::string("\"") + key + "\":");
+    ASSERT_NE(at, std::string::npos) << key << " missing from:\n" << j;
+    // The window backend has every figure: none may be null here.
+    const size_t colon = j.find(':', at);
+    EXPECT_NE(j.compare(colon + 1, 5, " null"), 0) << key;
+    EXPECT_NE(j.compare(colon + 1, 4, "null"), 0) << key;
+  }
+}

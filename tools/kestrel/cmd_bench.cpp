@@ -53,6 +53,8 @@ struct BenchRow {
   double tracking_ms_p50 = kNaN, tracking_ms_p99 = kNaN;
   double optimizer_ms_p50 = kNaN, optimizer_ms_p99 = kNaN;
   double imu_to_output_ms_p99 = kNaN;
+  double tracking_ms_max = kNaN, optimizer_ms_max = kNaN;
+  double imu_to_output_ms_p50 = kNaN, imu_to_output_ms_max = kNaN;
   double allocs_per_frame = kNaN;
   double realtime_factor = kNaN;
   double peak_rss_mb = kNaN;
@@ -121,12 +123,18 @@ std::map<std::string, double> replay_in_child(const std::string& log, const std:
       if (r.tracking.count() > 0) {
         o << "tracking_ms_p50 " << ms(r.tracking.p50()) << "\n";
         o << "tracking_ms_p99 " << ms(r.tracking.p99()) << "\n";
+        o << "tracking_ms_max " << ms(r.tracking.max()) << "\n";
       }
       if (r.optimizer.count() > 0) {
         o << "optimizer_ms_p50 " << ms(r.optimizer.p50()) << "\n";
         o << "optimizer_ms_p99 " << ms(r.optimizer.p99()) << "\n";
+        o << "optimizer_ms_max " << ms(r.optimizer.max()) << "\n";
       }
-      if (r.imu_to_output.count() > 0) o << "imu_to_output_ms_p99 " << ms(r.imu_to_output.p99()) << "\n";
+      if (r.imu_to_output.count() > 0) {
+        o << "imu_to_output_ms_p50 " << ms(r.imu_to_output.p50()) << "\n";
+        o << "imu_to_output_ms_p99 " << ms(r.imu_to_output.p99()) << "\n";
+        o << "imu_to_output_ms_max " << ms(r.imu_to_output.max()) << "\n";
+      }
       if (r.alloc_counting && r.steady_frames > 0)
         o << "allocs_per_frame " << static_cast<double>(r.steady_allocs) / static_cast<double>(r.steady_frames)
           << "\n";
@@ -220,6 +228,23 @@ void print_table(const std::vector<BenchRow>& rows) {
   }
 }
 
+// Per stage p50 / p99 / max [ms]: the timing table of the pipeline issue.
+void print_timing_table(const std::vector<BenchRow>& rows) {
+  std::printf("\ntiming [ms] (p50 / p99 / max)\n%-26s %-20s %-26s %-26s %-26s %6s\n", "case", "estimator", "tracking",
+              "optimizer", "imu_to_output", "rt_x");
+  auto three = [](double a, double b, double c) {
+    return fmt(a, "%.3f") + " / " + fmt(b, "%.3f") + " / " + fmt(c, "%.3f");
+  };
+  for (const auto& r : rows) {
+    if (r.status != "ok") continue;
+    std::printf("%-26s %-20s %-26s %-26s %-26s %6s\n", r.name.c_str(), r.estimator.c_str(),
+                three(r.tracking_ms_p50, r.tracking_ms_p99, r.tracking_ms_max).c_str(),
+                three(r.optimizer_ms_p50, r.optimizer_ms_p99, r.optimizer_ms_max).c_str(),
+                three(r.imu_to_output_ms_p50, r.imu_to_output_ms_p99, r.imu_to_output_ms_max).c_str(),
+                fmt(r.realtime_factor, "%.1f").c_str());
+  }
+}
+
 std::string rows_json(const std::vector<BenchRow>& rows, double duration_s) {
   JsonWriter j;
   j.begin_object();
@@ -232,8 +257,11 @@ std::string rows_json(const std::vector<BenchRow>& rows, double duration_s) {
     j.kv("ate_rmse_m", r.ate_rmse_m).kv("ate_se3_rmse_m", r.ate_se3_rmse_m);
     j.kv("rpe_trans_m_per_s", r.rpe_trans_m_per_s);
     j.kv("tracking_ms_p50", r.tracking_ms_p50).kv("tracking_ms_p99", r.tracking_ms_p99);
+    j.kv("tracking_ms_max", r.tracking_ms_max);
     j.kv("optimizer_ms_p50", r.optimizer_ms_p50).kv("optimizer_ms_p99", r.optimizer_ms_p99);
-    j.kv("imu_to_output_ms_p99", r.imu_to_output_ms_p99);
+    j.kv("optimizer_ms_max", r.optimizer_ms_max);
+    j.kv("imu_to_output_ms_p50", r.imu_to_output_ms_p50).kv("imu_to_output_ms_p99", r.imu_to_output_ms_p99);
+    j.kv("imu_to_output_ms_max", r.imu_to_output_ms_max);
     j.kv("allocs_per_frame", r.allocs_per_frame);
     j.kv("realtime_factor", r.realtime_factor).kv("peak_rss_mb", r.peak_rss_mb);
     j.kv("pose_share", r.pose_share).kv("sim_s", r.sim_s).kv("replay_wall_s", r.replay_wall_s);
@@ -372,6 +400,10 @@ Subcommand add_bench_command(CLI::App& parent) {
         er.optimizer_ms_p50 = get(m, "optimizer_ms_p50");
         er.optimizer_ms_p99 = get(m, "optimizer_ms_p99");
         er.imu_to_output_ms_p99 = get(m, "imu_to_output_ms_p99");
+        er.imu_to_output_ms_p50 = get(m, "imu_to_output_ms_p50");
+        er.imu_to_output_ms_max = get(m, "imu_to_output_ms_max");
+        er.tracking_ms_max = get(m, "tracking_ms_max");
+        er.optimizer_ms_max = get(m, "optimizer_ms_max");
         er.allocs_per_frame = get(m, "allocs_per_frame");
         er.realtime_factor = get(m, "realtime_factor");
         er.peak_rss_mb = get(m, "peak_rss_mb");
@@ -383,6 +415,7 @@ Subcommand add_bench_command(CLI::App& parent) {
       if (generated && !args->keep_logs) fs::remove(log);
     }
     print_table(rows);
+    print_timing_table(rows);
     if (!args->json_out.empty()) {
       std::ofstream f(args->json_out);
       if (!f) throw std::runtime_error("cannot write " + args->json_out);
