@@ -8,10 +8,11 @@ namespace {
 StaticInitOptions init_options(const Rig& rig) {
   StaticInitOptions o;
   o.gravity_mps2 = rig.gravity_mps2;
-  // Three 0.1 s blocks: enough to average the gyro bias far below what the
-  // window then refines, and short enough that a log starting on the ground
-  // gets poses for more than 99 % of its frames.
-  o.window_ns = 300'000'000;
+  // Two 0.1 s blocks: enough to average the gyro bias far below what the
+  // window then refines, short enough that a log starting on the ground gets
+  // poses for more than 99 % of its frames, and shorter than the window
+  // backend's dynamic start (0.25 s), which must not pre-empt a still start.
+  o.window_ns = 200'000'000;
   return o;
 }
 }  // namespace
