@@ -18,8 +18,8 @@ namespace kestrel::test {
 
 inline std::string simulate(const std::string& scenario, double duration_s, uint64_t seed = 7,
                             const std::string& prefix = "estimator") {
-  // Unique per (scenario, duration, seed): ctest runs tests in parallel
-  // processes, and temp_dir() empties the folder it hands out.
+  // One log per (scenario, duration, seed) in a folder of this process's own
+  // (temp_dir): a test that asks twice gets the same log rebuilt.
   const std::string dir = test::temp_dir(prefix + "_" + scenario + "_" + std::to_string(seed) + "_" +
                                          std::to_string(static_cast<int>(duration_s * 1000)));
   tools::SimOptions o;

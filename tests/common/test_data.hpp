@@ -6,6 +6,10 @@
 #include <cstdio>
 #include <filesystem>
 #include <string>
+#include <system_error>
+#include <vector>
+
+#include <unistd.h>
 
 namespace kestrel::test {
 
@@ -16,11 +20,30 @@ inline std::string shared_data_dir() {
 
 inline std::string shared_path(const std::string& rel) { return shared_data_dir() + "/" + rel; }
 
-// A fresh scratch directory per test, removed by the caller if it wants.
+// A fresh folder for this process: ctest runs every test as its own process,
+// two at a time, and two tests asking for the same name must not empty each
+// other's folder (a reader once saw 94 of 300 frames of a log another test was
+// still writing).
+// Removed when the process exits normally, as per-process names would
+// otherwise leave gigabytes of logs behind every run.
+struct TempDirs {
+  std::vector<std::filesystem::path> dirs;
+  ~TempDirs() {
+    std::error_code ec;
+    for (const auto& d : dirs) std::filesystem::remove_all(d, ec);
+  }
+};
+inline TempDirs& temp_dirs() {
+  static TempDirs t;
+  return t;
+}
+
 inline std::string temp_dir(const std::string& name) {
-  auto dir = std::filesystem::temp_directory_path() / ("kestrel_test_" + name);
+  auto dir = std::filesystem::temp_directory_path() /
+             ("kestrel_test_" + name + "_" + std::to_string(static_cast<long>(getpid())));
   std::filesystem::remove_all(dir);
   std::filesystem::create_directories(dir);
+  temp_dirs().dirs.push_back(dir);
   return dir.string();
 }
 
