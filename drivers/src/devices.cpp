@@ -290,8 +290,8 @@ EstimatorSettings load_estimator_settings(const std::string& path) {
 }
 
 namespace {
-constexpr const char* kThreadNames[kPipelineThreads] = {"kst-imu",      "kst-cam",       "kst-replay",
-                                                        "kst-propagate", "kst-estimator", "kst-optimizer"};
+constexpr const char* kThreadNames[kPipelineThreads] = {"kst-imu",       "kst-cam",       "kst-replay", "kst-propagate",
+                                                        "kst-estimator", "kst-optimizer", "kst-log"};
 }  // namespace
 
 ThreadTable default_thread_table() {

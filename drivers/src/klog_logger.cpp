@@ -24,7 +24,8 @@ KlogLogger::KlogLogger(const std::string& path, const Rig& rig, const Options& o
   // Fault the pages in now, not on the first frames (a page fault per 4 KiB
   // of a VGA frame is ~200 faults in the camera thread).
   std::memset(stage_.get(), 0, stage_size_);
-  thread_ = std::thread([this] { run(); });
+  thread_spec_ = options.thread;
+  thread_ = rt::start_thread(thread_spec_, [this] { run(); }, &thread_report_);
 }
 
 KlogLogger::~KlogLogger() { stop(); }

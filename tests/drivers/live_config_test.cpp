@@ -96,7 +96,8 @@ TEST(ThreadTable, SectionParsesAndLeavesUnnamedThreadsAtTheirDefaults) {
                                                   "threads:\n"
                                                   "  kst-imu: {cpu: 1, policy: fifo, priority: 80}\n"
                                                   "  kst-optimizer: {cpu: -1, policy: other}\n"
-                                                  "  kst-propagate: {cpu: 0}\n",
+                                                  "  kst-propagate: {cpu: 0}\n"
+                                                  "  kst-log: {cpu: 1, policy: other}\n",
                                               "x.yaml")
                             .threads;
   EXPECT_TRUE(t.from_config);
@@ -108,6 +109,9 @@ TEST(ThreadTable, SectionParsesAndLeavesUnnamedThreadsAtTheirDefaults) {
   EXPECT_EQ(t[PipelineThread::kPropagate].cpu, 0);
   EXPECT_EQ(t[PipelineThread::kPropagate].priority, 60);
   EXPECT_EQ(t[PipelineThread::kCamera].cpu, default_thread_table()[PipelineThread::kCamera].cpu);
+  EXPECT_EQ(t[PipelineThread::kLog].cpu, 1);
+  EXPECT_EQ(t[PipelineThread::kLog].priority, 0);
+  EXPECT_STREQ(t[PipelineThread::kLog].name, "kst-log");
   // A bare rig file may carry the table too (configs/sim_rgbd_bmx055.yaml).
   const ThreadTable sim = load_thread_table(kConfigs + "sim_rgbd_bmx055.yaml");
   EXPECT_TRUE(sim.from_config);

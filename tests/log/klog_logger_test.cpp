@@ -110,5 +110,23 @@ TEST(KlogLogger, OversizeFramesAndFullPoolAreCountedNotBlocking) {
                std::runtime_error);
 }
 
+// The config's `threads: kst-log:` reaches the logger thread; a CPU the
+// process may not use is reported, and the logger runs anyway.
+TEST(KlogLogger, ThreadSpecIsAppliedAndReported) {
+  const std::string path = temp_dir("klog_logger_thread") + "/t.klog";
+  drivers::KlogLogger::Options o;
+  o.thread = rt::ThreadSpec{"kst-log", 0, 4095, 0};
+  drivers::KlogLogger logger(path, fixture_rig(), o);
+  EXPECT_STREQ(logger.thread_spec().name, "kst-log");
+  EXPECT_TRUE(logger.thread_report().name_set);
+  EXPECT_FALSE(logger.thread_report().pinned);
+  EXPECT_FALSE(logger.thread_report().fully_granted());
+  ImuSample s{};
+  s.t_ns = 1;
+  EXPECT_TRUE(logger.log_imu(s));
+  logger.stop();
+  EXPECT_EQ(logger.stats().records_written, 1u);
+}
+
 }  // namespace
 }  // namespace kestrel::test

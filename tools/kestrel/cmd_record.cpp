@@ -7,6 +7,7 @@
 #include <string>
 
 #include "kestrel/commands.hpp"
+#include "kestrel/replay_runner.hpp"
 #include "kestrel/drivers/devices.hpp"
 #include "kestrel/drivers/klog_logger.hpp"
 #include "kestrel/rt/clock.hpp"
@@ -75,6 +76,7 @@ Subcommand add_record_command(CLI::App& parent) {
     // Colour up to 3 bytes a pixel, depth 2.
     lo.buffer_bytes = drivers::KlogLogger::staging_bytes_for(a->buffer_s, cfg.drivers.camera.rate_hz, pixels * 3, pixels * 2);
     lo.fsync_every = a->fsync_every;
+    lo.thread = cfg.threads[drivers::PipelineThread::kLog];
     drivers::KlogLogger logger(a->out, cfg.rig, lo);
     LoggerImuSink imu(logger);
     LoggerFrameSink frames(logger);
@@ -93,6 +95,10 @@ Subcommand add_record_command(CLI::App& parent) {
     std::signal(SIGTERM, SIG_DFL);
     const auto st = logger.stats();
     std::printf("%s", sensors.report().c_str());
+    std::vector<AppliedThread> applied;
+    for (const auto& [spec, rep] : sensors.thread_reports()) applied.push_back(applied_thread(spec, rep));
+    applied.push_back(applied_thread(logger.thread_spec(), logger.thread_report()));
+    std::printf("%s", threads_summary(applied).c_str());
     std::printf("log: %llu records, %.1f MB, drops: imu %llu, images %llu, events %llu; image staging peak %.1f of "
                 "%.1f MB\n",
                 (unsigned long long)st.records_written, st.bytes_written / 1e6, (unsigned long long)st.imu_drops,

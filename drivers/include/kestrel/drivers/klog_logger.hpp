@@ -28,6 +28,7 @@
 #include "kestrel/drivers/klog.hpp"
 #include "kestrel/msgs.hpp"
 #include "kestrel/rt/spsc_ring.hpp"
+#include "kestrel/rt/thread_setup.hpp"
 
 namespace kestrel::drivers {
 
@@ -48,6 +49,10 @@ class KlogLogger {
     size_t buffer_bytes = 0;
     uint32_t idle_sleep_us = 1000;            // logger poll period when the rings are empty
     uint32_t fsync_every = 0;                 // see KlogWriter::set_fsync_every
+    // The logger thread's scheduling (the config's `threads: kst-log:`).
+    // SCHED_OTHER by default: it does blocking disk I/O and must never hold
+    // a CPU the sensor threads need.
+    rt::ThreadSpec thread{"kst-log", 0, -1, 0};
   };
 
   struct Stats {
@@ -85,6 +90,9 @@ class KlogLogger {
   void stop();
   // Counters; exact after stop(), approximate while running.
   Stats stats() const;
+  // What the logger thread asked for and was granted (a refused FIFO/pin runs anyway).
+  const rt::ThreadSpec& thread_spec() const { return thread_spec_; }
+  const rt::ThreadSetupReport& thread_report() const { return thread_report_; }
   // The first write error ("" if none); read after stop().
   const std::string& error() const { return error_; }
 
@@ -135,6 +143,8 @@ class KlogLogger {
   std::atomic<uint64_t> lost_{0};
   std::atomic<bool> stop_{false};
   std::string error_;
+  rt::ThreadSpec thread_spec_{};
+  rt::ThreadSetupReport thread_report_{};
   std::thread thread_;
 };
 
