@@ -309,17 +309,7 @@ Subcommand add_run_command(CLI::App& parent) {
       OutPose p;
       while (poses->try_pop(p)) {
         if (!odometry) continue;
-        mavlink::OdometryInput in;
-        in.t_ns = p.t_ns;
-        in.p_WB = Eigen::Vector3d(p.p[0], p.p[1], p.p[2]);
-        in.q_WB = Eigen::Quaterniond(p.q[0], p.q[1], p.q[2], p.q[3]);
-        in.v_WB = Eigen::Vector3d(p.v[0], p.v[1], p.v[2]);
-        in.omega_B_rps = Eigen::Vector3d(p.w[0], p.w[1], p.w[2]);
-        in.quality = p.quality;
-        in.reset_counter = p.reset_counter;
-        in.has_covariance = p.pose_cov_valid;
-        in.pose_cov = covariance_of(p).cov;
-        odometry->publish(in);
+        odometry->publish(odometry_input_of(pose_sample_of(p)));
       }
       if (rt::now_ns() >= next_print) {
         next_print += 1'000'000'000;

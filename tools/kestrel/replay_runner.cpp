@@ -23,6 +23,34 @@
 #include "kestrel/rt/thread_setup.hpp"
 
 namespace kestrel::cli {
+
+PoseSample pose_sample_of(const OutPose& p) {
+  PoseSample s;
+  s.t_ns = p.t_ns;
+  s.p_WB = Eigen::Vector3d(p.p[0], p.p[1], p.p[2]);
+  s.q_WB = Eigen::Quaterniond(p.q[0], p.q[1], p.q[2], p.q[3]);
+  s.v_WB = Eigen::Vector3d(p.v[0], p.v[1], p.v[2]);
+  s.omega_B_rps = Eigen::Vector3d(p.w[0], p.w[1], p.w[2]);
+  s.quality = p.quality;
+  s.reset_counter = p.reset_counter;
+  s.pose_cov = covariance_of(p);
+  return s;
+}
+
+mavlink::OdometryInput odometry_input_of(const PoseSample& s) {
+  mavlink::OdometryInput in;
+  in.t_ns = s.t_ns;
+  in.p_WB = s.p_WB;
+  in.q_WB = s.q_WB;
+  in.v_WB = s.v_WB;
+  in.omega_B_rps = s.omega_B_rps;
+  in.quality = s.quality;
+  in.reset_counter = s.reset_counter;
+  in.has_covariance = s.pose_cov.valid;
+  in.pose_cov = s.pose_cov.cov;
+  return in;
+}
+
 namespace {
 
 constexpr std::size_t kOutRingCapacity = 16384;
@@ -312,29 +340,16 @@ class OutputStage {
     }
   }
 
-  static PoseSample to_sample(const OutPose& p) {
-    PoseSample s;
-    s.t_ns = p.t_ns;
-    s.p_WB = Eigen::Vector3d(p.p[0], p.p[1], p.p[2]);
-    s.q_WB = Eigen::Quaterniond(p.q[0], p.q[1], p.q[2], p.q[3]);
-    s.v_WB = Eigen::Vector3d(p.v[0], p.v[1], p.v[2]);
-    s.omega_B_rps = Eigen::Vector3d(p.w[0], p.w[1], p.w[2]);
-    s.quality = p.quality;
-    s.reset_counter = p.reset_counter;
-    s.pose_cov = covariance_of(p);
-    return s;
-  }
-
   void drain() {
     if (imu_pose_ != nullptr && imu_pose_->version() != imu_pose_version_) {
       OutPose o{};
       if (imu_pose_->read(o, &imu_pose_version_)) {
         ++report_.imu_rate_poses;
-        if (opt_.on_imu_pose) opt_.on_imu_pose(to_sample(o));
+        if (opt_.on_imu_pose) opt_.on_imu_pose(pose_sample_of(o));
       }
     }
     while (OutPose* p = out_.front()) {
-      const PoseSample s = to_sample(*p);
+      const PoseSample s = pose_sample_of(*p);
       out_.pop();
       tools::TimedPose tp;
       tp.t_ns = s.t_ns;
@@ -342,19 +357,7 @@ class OutputStage {
       tp.q = s.q_WB;
       report_.trajectory.push_back(tp);
       if (opt_.on_pose) opt_.on_pose(s);
-      if (mavlink_) {
-        mavlink::OdometryInput in;
-        in.t_ns = s.t_ns;
-        in.p_WB = s.p_WB;
-        in.q_WB = s.q_WB;
-        in.v_WB = s.v_WB;
-        in.omega_B_rps = s.omega_B_rps;
-        in.quality = s.quality;
-        in.reset_counter = s.reset_counter;
-        in.has_covariance = s.pose_cov.valid;
-        in.pose_cov = s.pose_cov.cov;
-        mavlink_->publish(in);
-      }
+      if (mavlink_) mavlink_->publish(odometry_input_of(s));
     }
     if (opt_.status_line) {
       PipelineStatus st;

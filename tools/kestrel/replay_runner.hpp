@@ -15,6 +15,7 @@
 #include "kestrel/drivers/devices.hpp"
 #include "kestrel/drivers/log_source.hpp"
 #include "kestrel/drivers/replay_source.hpp"
+#include "kestrel/mavlink/odometry_adapter.hpp"
 #include "kestrel/rt/latency_histogram.hpp"
 #include "kestrel/tools/trajectory_eval.hpp"
 
@@ -31,6 +32,11 @@ struct PoseSample {
   uint32_t reset_counter = 0;
   core::PoseCovariance pose_cov;  // the backend's (window, ekf); invalid for the IMU-rate pose
 };
+
+struct OutPose;  // imu_rate_stage.hpp
+PoseSample pose_sample_of(const OutPose& p);
+// What the MAVLink adapter needs of a pose: one conversion for replay and run.
+mavlink::OdometryInput odometry_input_of(const PoseSample& s);
 
 // Input faults the harness sees before the estimator does (the estimator
 // counts its own: EstimatorCounters::imu_rejects). Out-of-order and repeated
