@@ -5,8 +5,12 @@ preset=${1:-release}
 shift || true
 root=$(cd "$(dirname "$0")/.." && pwd)
 cd "$root"
-# Relative paths in the ccache hash: a fresh clone elsewhere reuses the cache.
+# Relative paths in the ccache hash, and the build folder left out of it
+# (ccache hashes the working directory of every -g compile by default): a fresh
+# clone or worktree elsewhere (CI) reuses the cache. The price is that debug
+# info of a cache hit names the folder that first compiled it.
 export CCACHE_BASEDIR="$root"
+export CCACHE_NOHASHDIR=1
 if [ ! -f "build/$preset/build.ninja" ]; then
   cmake --preset "$preset" >/dev/null
 fi

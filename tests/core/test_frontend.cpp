@@ -10,6 +10,7 @@
 #include "kestrel/core/estimator.hpp"
 #include "kestrel/core/frontend_odometry.hpp"
 #include "kestrel/core/tracker.hpp"
+#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/log_source.hpp"
 #include "kestrel/rt/alloc_counter.hpp"
 #include "kestrel/tools/simulator.hpp"

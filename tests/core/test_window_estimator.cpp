@@ -8,6 +8,7 @@
 #include <set>
 #include <thread>
 
+#include "kestrel/drivers/open_log.hpp"
 #include "estimator_harness.hpp"
 #include "kestrel/core/tracker.hpp"
 #include "kestrel/core/window_estimator.hpp"

@@ -11,6 +11,7 @@
 #include <filesystem>
 
 #include "dataset_fixtures.hpp"
+#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/dataset_logs.hpp"
 #include "kestrel/drivers/klog.hpp"
 #include "kestrel/drivers/log_export.hpp"

@@ -11,8 +11,10 @@
 #include <vector>
 
 #include "estimator_harness.hpp"
+#include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/core/ekf_estimator.hpp"
 #include "kestrel/core/estimator.hpp"
+#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/log_source.hpp"
 #include "kestrel/rt/alloc_counter.hpp"
 #include "kestrel/tools/simulator.hpp"

@@ -3,6 +3,7 @@
 
 #include <cmath>
 
+#include "kestrel/drivers/open_log.hpp"
 #include "eval_test_util.hpp"
 #include "kestrel/tools/trajectory_eval.hpp"
 #include "test_data.hpp"

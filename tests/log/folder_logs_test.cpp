@@ -7,6 +7,7 @@
 #include <opencv2/imgcodecs.hpp>
 #include <sstream>
 
+#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/folder_logs.hpp"
 #include "kestrel/drivers/log_source.hpp"
 #include "test_data.hpp"

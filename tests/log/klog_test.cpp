@@ -9,6 +9,7 @@
 
 #include <zlib.h>
 
+#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/klog.hpp"
 #include "kestrel/drivers/klog_format.hpp"
 #include "kestrel/drivers/rig_yaml.hpp"

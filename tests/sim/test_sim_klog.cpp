@@ -5,6 +5,7 @@
 #include <fstream>
 #include <iterator>
 
+#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/log_source.hpp"
 #include "kestrel/tools/simulator.hpp"
 #include "test_data.hpp"

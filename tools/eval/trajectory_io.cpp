@@ -13,6 +13,7 @@
 #include <string>
 #include <vector>
 
+#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/log_source.hpp"
 #include "kestrel/tools/trajectory_eval.hpp"
 

@@ -17,6 +17,7 @@
 #include <map>
 #include <sstream>
 
+#include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/commands.hpp"
 #include "kestrel/json_writer.hpp"
 #include "kestrel/replay_runner.hpp"

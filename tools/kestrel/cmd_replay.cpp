@@ -3,7 +3,9 @@
 #include <fstream>
 #include <iostream>
 
+#include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/commands.hpp"
+#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/devices.hpp"
 #include "kestrel/mavlink/udp_sender.hpp"
 #include "kestrel/replay_runner.hpp"

@@ -13,6 +13,7 @@
 #include <vector>
 
 #include "kestrel/commands.hpp"
+#include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/core/estimator.hpp"
 #include "kestrel/drivers/devices.hpp"
 #include "kestrel/drivers/sensor_rings.hpp"

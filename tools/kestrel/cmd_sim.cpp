@@ -4,6 +4,7 @@
 #include <string>
 
 #include "kestrel/commands.hpp"
+#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/log_export.hpp"
 #include "kestrel/drivers/log_source.hpp"
 #include "kestrel/tools/simulator.hpp"

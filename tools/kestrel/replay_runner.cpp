@@ -1,3 +1,4 @@
+#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/replay_runner.hpp"
 
 #include <sys/resource.h>
@@ -10,6 +11,7 @@
 #include <stdexcept>
 #include <thread>
 
+#include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/core/frontend_odometry.hpp"
 #include "kestrel/core/window_estimator.hpp"
 #include "kestrel/imu_rate_stage.hpp"

@@ -11,7 +11,9 @@
 #include <string>
 #include <vector>
 
+#include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/core/estimator.hpp"
+#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/devices.hpp"
 #include "kestrel/drivers/log_source.hpp"
 #include "kestrel/drivers/replay_source.hpp"

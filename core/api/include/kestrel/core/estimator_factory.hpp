@@ -1,0 +1,18 @@
+// Every backend by name: the one place that knows them all, so it sits above
+// the estimator, window and EKF modules.
+#pragma once
+
+#include "kestrel/core/estimator.hpp"
+
+#include <memory>
+#include <string>
+
+namespace kestrel::core {
+
+// The backends by name: "imu" (dead reckoning), "vo" (front end only).
+// Throws std::invalid_argument listing the names for an unknown one.
+std::unique_ptr<Estimator> make_estimator(const std::string& name, const Rig& rig);
+const char* estimator_names();
+bool estimator_known(const std::string& name);
+
+}  // namespace kestrel::core

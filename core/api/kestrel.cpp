@@ -1,0 +1,66 @@
+#include "kestrel/core/estimator_factory.hpp"
+#include "kestrel/core/kestrel.hpp"
+
+#include <utility>
+
+namespace kestrel {
+
+Estimator::Estimator(const Rig& rig, const std::string& backend)
+    : impl_(core::make_estimator(backend, rig)) {}
+
+Estimator::~Estimator() = default;
+
+void Estimator::on_state(StateCallback cb, bool imu_rate) {
+  cb_ = std::move(cb);
+  imu_rate_ = imu_rate;
+}
+
+bool Estimator::feed_imu(const ImuSample& s) {
+  if (!impl_->add_imu(s)) return false;
+  publish(false);
+  return true;
+}
+
+bool Estimator::feed_rgbd(int64_t t_ns, const ImageView& rgb, const ImageView& depth) {
+  // The backends assume fresh frames in time order; a repeated or older
+  // stamp (a driver hiccup, a replayed buffer) is refused and counted.
+  if (rgb.data == nullptr || (last_frame_t_ns_ >= 0 && t_ns <= last_frame_t_ns_)) {
+    ++counters_.frames_rejected;
+    return false;
+  }
+  last_frame_t_ns_ = t_ns;
+  core::RgbdFrame f;
+  f.t_ns = t_ns;
+  f.seq = frame_seq_++;
+  f.rgb = rgb;
+  f.depth = depth;
+  if (!impl_->add_frame(f)) return false;
+  publish(true);
+  return true;
+}
+
+void Estimator::publish(bool from_frame) {
+  const core::EstimatorOutput& o = impl_->output();
+  state_.t_ns = o.state.t_ns;
+  state_.p_WB = o.state.p_WB;
+  state_.q_WB = o.state.q_WB;
+  state_.v_WB = o.state.v_WB;
+  state_.gyro_bias_rps = o.state.bg_rps;
+  state_.acc_bias_mps2 = o.state.ba_mps2;
+  state_.quality = o.quality;
+  state_.reset_counter = o.reset_counter;
+  state_.from_frame = from_frame;
+  if (cb_ && (from_frame || imu_rate_)) {
+    ++counters_.callbacks;
+    cb_(state_);
+  }
+}
+
+const EmbeddedCounters& Estimator::counters() const {
+  counters_.estimator = impl_->counters();
+  return counters_;
+}
+
+const char* Estimator::backend_name() const { return impl_->name(); }
+
+}  // namespace kestrel

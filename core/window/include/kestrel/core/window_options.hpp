@@ -1,0 +1,78 @@
+// Configuration and inputs of the sliding-window optimiser (window_optimizer.hpp).
+#pragma once
+
+#include <Eigen/Core>
+#include <Eigen/Geometry>
+#include <cstdint>
+#include <string>
+
+#include "kestrel/core/imu_propagator.hpp"
+#include "kestrel/core/observation.hpp"
+#include "kestrel/core/preintegration.hpp"
+
+namespace kestrel::core {
+
+// Compile-time capacity of the window (S + N); the dense reduced camera
+// system is at most 15 * kWindowMaxStates square.
+constexpr int kWindowMaxStates = 10;
+
+struct WindowOptions {
+  int S = 3;  // most recent frames (temporal window), >= 1
+  int N = 5;  // keyframes outside the temporal window, >= 1; S + N <= kWindowMaxStates
+  int max_landmarks = 600;      // landmark budget, fixed at construction
+  int max_obs_per_frame = 300;  // observations kept per frame (the rest are skipped and counted)
+  enum class Solver { kOurs, kCeres } solver = Solver::kOurs;
+  int max_iterations = 8;
+  double time_budget_ms = 35.0;  // wall-clock bound of one optimize() (checked after each iteration)
+  double huber_px = 2.0;         // Huber threshold on the whitened residual norm; <= 0: plain least squares
+  bool use_depth = true;         // RGB-D depth as a third row of the visual residual
+  double depth_sigma_coeff_per_m = 0.0025;  // sigma_depth(z) = k z^2 [m]
+  bool marginalize = true;                  // false: dropped states and their factors are simply discarded
+  double pixel_sigma = 1.0;  // [px] used when an observation's sigma_px <= 0
+  ImuNoiseParams imu;        // noise densities for the bias factor (preintegrations carry their own)
+  // Accelerometer bias model of the bias factor: Forster's random walk, or
+  // paper 000 eq. 6 bounded random walk db/dt = -b/tau + w (tau below).
+  enum class AccBiasModel { kRandomWalk, kBoundedRandomWalk } acc_bias_model = AccBiasModel::kRandomWalk;
+  double acc_bias_tau_s = 300.0;
+  // Prior on the very first state's biases (OKVIS adds the same speed/bias
+  // prior at start-up); it is part of the marginalisation prior afterwards.
+  double prior_gyro_bias_sigma_rps = 0.01;
+  double prior_acc_bias_sigma_mps2 = 0.1;
+  // Gauge: the oldest state's position and yaw are held by a stiff prior of this sigma [m, rad].
+  double gauge_sigma = 1e-5;
+  // Zero-velocity factor on states the front end flags as stationary:
+  // r = v_WB / sigma. Soft, so a hovering vehicle (a few cm/s) is not pinned.
+  double zero_velocity_sigma_mps = 0.02;
+  // Convergence (ours): stop when the relative cost decrease of an accepted step or the step's
+  // max-norm falls below these.
+  double function_tolerance = 1e-10;
+  double step_tolerance = 1e-10;
+
+  // The embedded profile: S = 2, N = 3.
+  static WindowOptions embedded();
+  // Empty when usable, else what is wrong (names the field).
+  std::string validate() const;
+};
+
+struct WindowFrameInput {
+  int64_t t_ns = 0;
+  NavState guess;                             // pose/vel/bias initial guess (from the front end)
+  const Preintegrated* imu_from_prev = nullptr;  // previous added frame -> this one (null for the first); copied
+  const WindowObservation* obs = nullptr;
+  int n_obs = 0;
+  bool keyframe = false;
+  bool stationary = false;  // the IMU says the vehicle is still: add the zero-velocity factor
+  // A pose measured against landmarks of earlier keyframes (the tracker's
+  // local map): a unary factor r = [p - p_prior; Log(R_prior^T R)] / sigma.
+  // It ties the window to the map instead of only to its own oldest state, so
+  // drift stops growing where the vehicle sees old landmarks again; while a
+  // state in the window carries one, the gauge prior is off (the map fixes
+  // position and yaw).
+  bool has_pose_prior = false;
+  Eigen::Vector3d prior_p_WB = Eigen::Vector3d::Zero();
+  Eigen::Quaterniond prior_q_WB = Eigen::Quaterniond::Identity();
+  double prior_sigma_p_m = 0.02;
+  double prior_sigma_rad = 0.01;
+};
+
+}  // namespace kestrel::core

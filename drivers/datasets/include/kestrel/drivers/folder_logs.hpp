@@ -1,0 +1,78 @@
+// LogSources over public dataset folders: EuRoC MAV (ASL layout or the flat
+// layout of ../shared/data/euroc/<seq>/) and TUM RGB-D. What each reader
+// takes from which file, and its choices, are in docs/log-format.md.
+#pragma once
+
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "kestrel/drivers/open_log.hpp"
+#include "kestrel/drivers/log_source.hpp"
+
+namespace kestrel::drivers {
+namespace text {
+class StreamLogSource;
+}
+
+// Both readers index their tables at construction (IMU and ground truth in
+// memory, images listed but decoded only when replayed) and merge the
+// streams in time order; at equal times IMU comes first.
+class FolderLogSource : public LogSource {
+ public:
+  ~FolderLogSource() override;
+  const Rig& rig() const override;
+  bool next(LogRecord& out) override;
+  void rewind() override;
+  const std::vector<LogProblem>& problems() const override;
+
+  // The files the streams were read from ("" when a stream is absent).
+  const std::string& imu_file() const { return imu_file_; }
+  const std::string& ground_truth_file() const { return gt_file_; }
+  size_t imu_count() const;
+  size_t rgb_count() const;     // listed images whose file exists
+  size_t depth_count() const;
+  size_t ground_truth_count() const;
+
+ protected:
+  FolderLogSource();
+  std::unique_ptr<text::StreamLogSource> impl_;
+  std::string imu_file_;
+  std::string gt_file_;
+};
+
+// EuRoC: `path` is a sequence folder holding mav0/, a mav0/ folder, or a flat
+// folder with imu0.csv. cam0 images become kRgb records in kGray8; a
+// depth0/ folder (as written by export_euroc) becomes kDepth records; a
+// kestrel_rig.yaml beside the sensor folders replaces the sensor.yaml rig.
+// Throws std::runtime_error when there is no IMU table or a sensor.yaml is malformed.
+class EurocReader final : public FolderLogSource {
+ public:
+  explicit EurocReader(const std::string& path);
+  std::string format_name() const override { return "euroc"; }
+  bool flat_layout() const { return flat_; }
+
+ private:
+  bool flat_ = false;
+};
+
+// TUM RGB-D: rgb.txt (required), depth.txt, groundtruth.txt, accelerometer.txt.
+class TumReader final : public FolderLogSource {
+ public:
+  struct Options {
+    int64_t max_association_dt_ns = 20'000'000;   // rgb <-> depth, as TUM's associate.py uses
+  };
+  explicit TumReader(const std::string& path);
+  TumReader(const std::string& path, const Options& options);
+  std::string format_name() const override { return "tum"; }
+  size_t associated_pairs() const { return pairs_; }
+
+ private:
+  size_t pairs_ = 0;
+};
+
+// True when `path` looks like an EuRoC / a TUM folder (used by open_log).
+bool is_euroc_folder(const std::string& path);
+bool is_tum_folder(const std::string& path);
+
+}  // namespace kestrel::drivers
