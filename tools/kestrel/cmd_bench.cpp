@@ -18,6 +18,7 @@
 #include <sstream>
 
 #include "kestrel/core/estimator_factory.hpp"
+#include "kestrel/tools/estimator_config_yaml.hpp"
 #include "kestrel/commands.hpp"
 #include "kestrel/json_writer.hpp"
 #include "kestrel/replay_runner.hpp"
@@ -100,7 +101,7 @@ std::vector<BenchCase> discover_cases(const std::string& data_dir) {
 // Runs replay + eval in a child process and returns its figures as text
 // lines "key value", so the child's peak RSS is the case's own.
 std::map<std::string, double> replay_in_child(const std::string& log, const std::string& gt,
-                                              drivers::ReplayPace pace, const std::string& estimator_name,
+                                              drivers::ReplayPace pace, const core::EstimatorConfig& config,
                                               const std::string& traj_out,
                                               std::string& estimator, std::string& error) {
   int fds[2];
@@ -116,7 +117,8 @@ std::map<std::string, double> replay_in_child(const std::string& log, const std:
       ReplayOptions opt;
       opt.path = log;
       opt.pace = pace;
-      opt.estimator = estimator_name;
+      opt.estimator = config.backend;
+      opt.config = config;
       ReplayReport r = run_replay(opt);
       if (!traj_out.empty()) tools::write_tum(traj_out, r.trajectory);
       o << "estimator " << r.estimator << "\n";
@@ -291,6 +293,8 @@ Subcommand add_bench_command(CLI::App& parent) {
     std::string data_dir = "../shared/data";
     std::string pace = "fast";
     std::vector<std::string> estimators{"window"};
+    std::vector<std::string> lonsc_variants{"tuned"};
+    std::string config;
     int width = 640, height = 480;
     bool keep_logs = false;
     bool list = false;
@@ -308,6 +312,12 @@ Subcommand add_bench_command(CLI::App& parent) {
                   std::string("backends, comma separated, one row each per case: ") + core::estimator_names())
       ->delimiter(',')
       ->capture_default_str();
+  app->add_option("--lonsc-variant", args->lonsc_variants,
+                  "LONSC variants, comma separated, one row each per backend: tuned, paper (docs/lonsc.md)")
+      ->delimiter(',')
+      ->capture_default_str();
+  app->add_option("--config", args->config,
+                  "estimator settings applied to every backend (its estimator sections; docs/config.md)");
   app->add_option("--width", args->width, "rendered image width")->capture_default_str();
   app->add_option("--height", args->height, "rendered image height")->capture_default_str();
   app->add_flag("--keep-logs", args->keep_logs, "keep the generated .klog files (several GB at VGA)");
@@ -327,6 +337,8 @@ Subcommand add_bench_command(CLI::App& parent) {
     for (const std::string& e : args->estimators)
       if (!core::estimator_known(e))
         throw UsageError("unknown --estimator '" + e + "' (expected one of: " + core::estimator_names() + ")");
+    for (const std::string& v : args->lonsc_variants)
+      if (v != "tuned" && v != "paper") throw UsageError("unknown --lonsc-variant '" + v + "' (expected tuned, paper)");
     std::vector<BenchCase> cases = discover_cases(args->data_dir);
     if (args->list) {
       for (const auto& c : cases)
@@ -379,13 +391,22 @@ Subcommand add_bench_command(CLI::App& parent) {
         generated = true;
       }
       // One log, every backend on it: the comparison is like for like.
-      for (const std::string& est_name : args->estimators) {
+      for (const std::string& backend : args->estimators)
+      for (const std::string& variant : args->lonsc_variants) {
+        // A row's name: the backend, and the LONSC variant when it is not the default.
+        const std::string est_name = variant == "tuned" ? backend : backend + "+lonsc-" + variant;
+        core::EstimatorConfig cfg = tools::load_estimator_config(args->config, backend);
+        if (variant != to_string(cfg.lonsc_variant)) {
+          cfg.lonsc_variant = variant == "paper" ? core::LonscVariant::kPaper : core::LonscVariant::kTuned;
+          cfg.tracker.lonsc = core::lonsc_options(cfg.lonsc_variant);
+        }
         BenchRow er = row;
         std::string error;
-        const std::string traj_e = args->estimators.size() > 1
-                                       ? (fs::path(args->workdir) / (c.name + "." + est_name + ".traj.txt")).string()
-                                       : traj;
-        const auto m = replay_in_child(log, gt, pace, est_name, traj_e, er.estimator, error);
+        const bool many = args->estimators.size() * args->lonsc_variants.size() > 1;
+        const std::string traj_e =
+            many ? (fs::path(args->workdir) / (c.name + "." + est_name + ".traj.txt")).string() : traj;
+        const auto m = replay_in_child(log, gt, pace, cfg, traj_e, er.estimator, error);
+        if (error.empty() && variant != "tuned") er.estimator += "+lonsc-" + variant;
         if (!error.empty()) {
           er.estimator = est_name;
           er.status = "FAILED: " + error;

@@ -5,6 +5,7 @@
 #include <time.h>
 
 #include <algorithm>
+#include <cerrno>
 #include <atomic>
 #include <cstdio>
 #include <memory>
@@ -441,7 +442,8 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   const bool realtime = opt.pace == drivers::ReplayPace::kRealtime;
   auto est_imu = std::make_unique<ImuRing>();
   auto anchor = std::make_unique<rt::Mailbox<Anchor>>();
-  std::unique_ptr<core::Estimator> estimator_ptr = core::make_estimator(opt.estimator, log->rig());
+  std::unique_ptr<core::Estimator> estimator_ptr = opt.config ? core::make_estimator(*opt.config, log->rig())
+                                                                       : core::make_estimator(opt.estimator, log->rig());
   core::Estimator& estimator = *estimator_ptr;
   report.estimator = estimator.name();
   report.trajectory.reserve(1 << 16);
@@ -599,6 +601,37 @@ void histogram_json(JsonWriter& j, const std::string& name, const rt::LatencyHis
 }
 }  // namespace
 
+namespace {
+// A setting's YAML text as a typed JSON value: true/false, integers exactly,
+// other numbers as doubles, names as strings.
+void config_value_json(JsonWriter& j, const std::string& k, const std::string& v) {
+  if (v == "true" || v == "false") {
+    j.kv(k, v == "true");
+    return;
+  }
+  char* end = nullptr;
+  if (!v.empty() && v.find_first_of(".eEn") == std::string::npos) {
+    errno = 0;
+    const long long i = std::strtoll(v.c_str(), &end, 10);
+    if (end == v.c_str() + v.size() && errno == 0) {
+      j.kv(k, static_cast<int64_t>(i));
+      return;
+    }
+    const unsigned long long u = std::strtoull(v.c_str(), &end, 10);
+    if (end == v.c_str() + v.size() && v[0] != '-') {
+      j.kv(k, static_cast<uint64_t>(u));
+      return;
+    }
+  }
+  const double d = std::strtod(v.c_str(), &end);
+  if (!v.empty() && end == v.c_str() + v.size()) {
+    j.kv(k, d);
+    return;
+  }
+  j.kv(k, v);
+}
+}  // namespace
+
 std::string replay_metrics_json(const ReplayReport& r) {
   JsonWriter j;
   j.begin_object();
@@ -607,6 +640,11 @@ std::string replay_metrics_json(const ReplayReport& r) {
   j.kv("log_duration_s", r.log_duration_s).kv("wall_s", r.wall_s).kv("realtime_factor", r.realtime_factor);
   j.kv("cpu_s", r.cpu_s).kv("estimator_cpu_s", r.estimator_cpu_s).kv("peak_rss_mb", r.peak_rss_mb);
   j.kv("poses_out", static_cast<uint64_t>(r.trajectory.size()));
+  if (!r.config.empty()) {
+    j.key("config").begin_object();
+    for (const auto& [k, v] : r.config) config_value_json(j, k, v);
+    j.end_object();
+  }
   j.key("latency").begin_object();
   histogram_json(j, "imu_to_output", r.imu_to_output);
   histogram_json(j, "tracking", r.tracking);
