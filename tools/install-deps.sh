@@ -5,7 +5,7 @@ set -euo pipefail
 
 packages=(
   build-essential cmake ninja-build ccache pkg-config git
-  libeigen3-dev libopencv-dev libceres-dev libcli11-dev libyaml-cpp-dev zlib1g-dev libzip-dev
+  libeigen3-dev libopencv-dev libceres-dev libcli11-dev libyaml-cpp-dev zlib1g-dev libzip-dev nlohmann-json3-dev
   libgtest-dev libgmock-dev libbenchmark-dev libboost-dev
   libusb-1.0-0-dev libv4l-dev libopenni2-dev
   librosbag-dev libsensor-msgs-dev libgeometry-msgs-dev
