@@ -188,6 +188,7 @@ EstimatorConfig EstimatorConfig::defaults(const std::string& backend, LonscVaria
 FrontendOdometryOptions EstimatorConfig::vo_options() const {
   FrontendOdometryOptions o = vo;
   o.tracker = tracker;
+  o.divergence = safety;
   return o;
 }
 
@@ -201,8 +202,29 @@ WindowEstimatorOptions EstimatorConfig::window_options() const {
 EkfEstimatorOptions EstimatorConfig::ekf_options() const {
   EkfEstimatorOptions o = ekf;
   o.tracker = tracker;
+  o.divergence = safety;
   return o;
 }
+
+namespace {
+
+void visit_safety(DivergenceOptions& o, OptionVisitor& v) {
+  v.begin_section("safety", "divergence detection in every backend that uses vision (docs/safety.md)");
+  v.value("max_coast_s", o.max_coast_s,
+          "IMU-only time after the last visual fix before the pose is reported lost (the state is kept)");
+  v.value("max_lost_s", o.max_lost_s, "reported lost this long without a fix: the backend re-initialises");
+  v.value("max_speed_mps", o.max_speed_mps, "an estimated speed beyond this is a divergence");
+  v.value("max_acc_bias_mps2", o.max_acc_bias_mps2, "an accelerometer bias estimate beyond this is a divergence");
+  v.value("max_gyro_bias_rps", o.max_gyro_bias_rps, "a gyro bias estimate beyond this is a divergence");
+  v.value("max_position_sigma_m", o.max_position_sigma_m,
+          "a position standard deviation beyond this (ekf, window) is a divergence");
+  v.value("max_rejected_fixes", o.max_rejected_fixes,
+          "consecutive tracked frames the backend refuses (vision vs IMU beyond the gate) before it re-initialises; "
+          "0: off");
+  v.end_section();
+}
+
+}  // namespace
 
 void visit_options(EstimatorConfig& c, OptionVisitor& v) {
   {
@@ -220,6 +242,7 @@ void visit_options(EstimatorConfig& c, OptionVisitor& v) {
   }
   visit_window(c, v);
   visit_ekf(c.ekf, v);
+  visit_safety(c.safety, v);
 }
 
 std::string validate(const EstimatorConfig& c) {
@@ -240,6 +263,8 @@ std::string validate(const EstimatorConfig& c) {
   if (!s.empty()) e << "window: " << s;
   s = c.ekf_options().validate();
   if (!s.empty()) e << "ekf: " << s << "\n";
+  s = c.safety.validate();
+  if (!s.empty()) e << "safety: " << s;
   return e.str();
 }
 

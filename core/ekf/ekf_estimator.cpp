@@ -93,7 +93,8 @@ EkfEstimator::EkfEstimator(const Rig& rig, const EkfEstimatorOptions& opt)
       fx_(rig.rgb.fx),
       init_(rig),
       tracker_(rig, opt.tracker),
-      ekf_(make_filter(rig, opt)) {
+      ekf_(make_filter(rig, opt)),
+      monitor_(opt.divergence) {
   ekf_slam_options_for(rig, opt_, nullptr, &baseline_m_);
   const ImuPropagatorOptions p = imu_propagator_options(rig);
   max_gap_ns_ = p.max_gap_ns;
@@ -101,9 +102,7 @@ EkfEstimator::EkfEstimator(const Rig& rig, const EkfEstimatorOptions& opt)
   obs_.resize(static_cast<size_t>(std::max(1, opt_.tracker.orb.n_features)));
 }
 
-void EkfEstimator::start(const NavState& s0) {
-  // A start later than the initialiser's forced-start delay had no still window.
-  const bool moving = first_imu_t_ns_ >= 0 && s0.t_ns - first_imu_t_ns_ >= 2'000'000'000;
+void EkfEstimator::start(const NavState& s0, bool moving) {
   const double att = moving ? opt_.moving_init_attitude_sigma_rad : opt_.init_attitude_sigma_rad;
   ekf::Mat6 P0 = ekf::Mat6::Zero();
   P0.diagonal().head<3>().setConstant(opt_.init_position_sigma_m * opt_.init_position_sigma_m);
@@ -160,7 +159,9 @@ bool EkfEstimator::add_imu(const ImuSample& s) {
       counters_.imu_rejects = init_.counters().imu_rejects;
       return false;
     }
-    start(init_.output().state);
+    // A start later than the initialiser's forced-start delay had no still window.
+    const NavState& s0 = init_.output().state;
+    start(s0, first_imu_t_ns_ >= 0 && s0.t_ns - first_imu_t_ns_ >= 2'000'000'000);
   }
   if (!imu_sample_usable(s)) {
     bool finite = true;
@@ -199,11 +200,51 @@ bool EkfEstimator::add_imu(const ImuSample& s) {
     ++ekf_counters_.filter_resets;
     NavState s0 = out_.state;
     s0.t_ns = s.t_ns;
-    start(s0);
+    start(s0, false);
   }
   publish(t_state_ns_);
   if (out_.quality == TrackingQuality::kUninitialized) out_.quality = TrackingQuality::kImuOnly;
+  supervise();
   return true;
+}
+
+void EkfEstimator::set_quality(bool tracking) {
+  if (monitor_.lost()) {
+    out_.quality = TrackingQuality::kLost;
+  } else {
+    out_.quality = tracking ? TrackingQuality::kTracking : TrackingQuality::kImuOnly;
+  }
+}
+
+// After a divergence the filter restarts from its attitude and position with
+// the velocity unknown and any implausible bias forgotten, and says kLost
+// until an update uses observations again (docs/safety.md).
+void EkfEstimator::supervise() {
+  const DivergenceCause why = monitor_.check(out_.state, &out_.pose_cov);
+  if (why == DivergenceCause::kNone) {
+    // A coast timeout only flags the output; the filter runs on.
+    if (monitor_.lost()) out_.quality = TrackingQuality::kLost;
+    return;
+  }
+  NavState s0 = out_.state;
+  const bool finite = s0.p_WB.allFinite() && s0.q_WB.coeffs().allFinite() && s0.bg_rps.allFinite() &&
+                      s0.ba_mps2.allFinite();
+  if (!finite && have_fix_state_) {
+    const int64_t t = s0.t_ns;
+    s0 = last_fix_state_;
+    s0.t_ns = t;
+  } else if (!finite) {
+    s0.p_WB.setZero();
+    s0.q_WB.setIdentity();
+  }
+  s0.v_WB.setZero();
+  const DivergenceOptions& d = opt_.divergence;
+  if (!finite || why == DivergenceCause::kAccBias || !(s0.ba_mps2.norm() <= d.max_acc_bias_mps2)) s0.ba_mps2.setZero();
+  if (!finite || why == DivergenceCause::kGyroBias || !(s0.bg_rps.norm() <= d.max_gyro_bias_rps)) s0.bg_rps.setZero();
+  start(s0, true);
+  publish(s0.t_ns);
+  monitor_.on_reinitialised(s0.t_ns, why);
+  out_.quality = TrackingQuality::kLost;
 }
 
 bool EkfEstimator::add_frame(const RgbdFrame& f) {
@@ -260,23 +301,32 @@ bool EkfEstimator::add_frame(const RgbdFrame& f) {
     ++ekf_counters_.filter_resets;
     NavState s0 = out_.state;
     s0.t_ns = f.t_ns;
-    start(s0);
+    start(s0, false);
     return false;
   }
   publish(f.t_ns);
 
   const bool tracked = r.tracked() && used >= opt_.min_used_for_tracking;
+  // The tracker found a motion the filter would not take: IMU and vision disagree.
+  monitor_.on_frame(f.t_ns, tracked, r.tracked() && !tracked);
+  if (tracked) {
+    last_fix_state_ = out_.state;
+    have_fix_state_ = true;
+  }
   if (tracked || r.status == TrackStatus::kNewKeyframe) {
-    out_.quality = TrackingQuality::kTracking;
+    // A keyframe alone is not a fix: it claims tracking only when the last frame did.
+    set_quality(tracked || out_.quality == TrackingQuality::kTracking);
     last_tracked_t_ns_ = f.t_ns;
     lost_frames_ = 0;
     ++counters_.frames_used;
+    supervise();
     return true;
   }
   // Not tracked: coast on the IMU; after a few frames take a new keyframe at
   // the filter's pose rather than matching an ever staler one.
   ++lost_frames_;
-  out_.quality = TrackingQuality::kImuOnly;
+  set_quality(false);
+  supervise();
   if (lost_frames_ >= opt_.max_lost_frames && tracker_.has_keyframe()) {
     tracker_.reset();
     ++ekf_counters_.tracker_resets;

@@ -11,7 +11,8 @@ FrontendOdometry::FrontendOdometry(const Rig& rig, const FrontendOdometryOptions
       T_BC_(to_isometry(rig.T_BC)),
       init_and_imu_(rig, opt.moving_start_after_ns),
       tracker_(rig, opt.tracker),
-      prop_(imu_propagator_options(rig)) {}
+      prop_(imu_propagator_options(rig)),
+      monitor_(opt.divergence) {}
 
 bool FrontendOdometry::add_imu(const ImuSample& s) {
   ++counters_.imu_in;
@@ -29,7 +30,65 @@ bool FrontendOdometry::add_imu(const ImuSample& s) {
   ++counters_.imu_used;
   out_.state = prop_.state();
   if (out_.quality == TrackingQuality::kUninitialized) out_.quality = TrackingQuality::kImuOnly;
+  supervise();
   return true;
+}
+
+void FrontendOdometry::set_quality(bool tracking) {
+  if (monitor_.lost()) {
+    out_.quality = TrackingQuality::kLost;
+  } else {
+    out_.quality = tracking ? TrackingQuality::kTracking : TrackingQuality::kImuOnly;
+  }
+}
+
+void FrontendOdometry::supervise() {
+  const DivergenceCause why = monitor_.check(prop_.state(), &out_.pose_cov);
+  if (why != DivergenceCause::kNone) reinitialise(why);
+  // A coast timeout only flags the output; the state runs on.
+  if (monitor_.lost()) out_.quality = TrackingQuality::kLost;
+}
+
+void FrontendOdometry::report_divergence(DivergenceCause why) {
+  if (!started_ || monitor_.lost()) return;
+  reinitialise(why);
+}
+
+// A clean restart: the velocity and any implausible bias are forgotten, the
+// tracker's keyframe is dropped (its pose came from the diverged state), and
+// the next keyframe re-anchors the pose with the velocity unknown, as at the
+// start. The attitude is kept: the gyro holds it far longer than the
+// accelerometer holds position. The output says kLost until a visual fix.
+void FrontendOdometry::reinitialise(DivergenceCause why) {
+  NavState x = prop_.state();
+  const bool finite = x.p_WB.allFinite() && x.q_WB.coeffs().allFinite() && x.bg_rps.allFinite() &&
+                      x.ba_mps2.allFinite();
+  if (!finite && have_fix_state_) {
+    const int64_t t = x.t_ns;
+    x = last_fix_state_;
+    x.t_ns = t;
+  } else if (!finite) {
+    x.p_WB.setZero();
+    x.q_WB.setIdentity();
+  }
+  x.v_WB.setZero();
+  const DivergenceOptions& d = opt_.divergence;
+  if (!finite || why == DivergenceCause::kAccBias || !(x.ba_mps2.norm() <= d.max_acc_bias_mps2)) x.ba_mps2.setZero();
+  if (!finite || why == DivergenceCause::kGyroBias || !(x.bg_rps.norm() <= d.max_gyro_bias_rps)) x.bg_rps.setZero();
+  prop_.correct(x);
+  out_.state = prop_.state();
+  tracker_.reset();
+  tracker_has_tracked_ = false;
+  last_tracked_t_ns_ = -1;
+  lost_frames_ = 0;
+  P_pv_ << opt_.position_sigma_m * opt_.position_sigma_m, 0, 0,
+      opt_.initial_velocity_sigma_mps * opt_.initial_velocity_sigma_mps;
+  ++counters_.resets;
+  out_.reset_counter = static_cast<uint32_t>(counters_.resets);
+  out_.pose_cov.valid = false;
+  ++divergence_epoch_;
+  monitor_.on_reinitialised(x.t_ns, why);
+  out_.quality = TrackingQuality::kLost;
 }
 
 bool FrontendOdometry::add_frame(const RgbdFrame& f) {
@@ -67,6 +126,7 @@ bool FrontendOdometry::add_frame(const RgbdFrame& f) {
   }
   P_t_ns_ = f.t_ns;
   bool accept = r.tracked() || r.status == TrackStatus::kNewKeyframe;
+  bool rejected = false;
   Eigen::Isometry3d T_WB = Eigen::Isometry3d::Identity();
   Eigen::Vector3d innovation = Eigen::Vector3d::Zero();
   const double S = P_pv_(0, 0) + opt_.position_sigma_m * opt_.position_sigma_m;
@@ -76,6 +136,7 @@ bool FrontendOdometry::add_frame(const RgbdFrame& f) {
     if (r.tracked() && innovation.norm() > opt_.gate_sigma * std::sqrt(S)) {
       // A jump the IMU cannot explain: wrong matches more likely than wrong physics.
       accept = false;
+      rejected = true;
       ++gated_;
     }
   }
@@ -119,18 +180,39 @@ bool FrontendOdometry::add_frame(const RgbdFrame& f) {
     corrected.t_ns = s.t_ns;
     prop_.correct(corrected);
     out_.state = prop_.state();
-    out_.quality = TrackingQuality::kTracking;
+    // A keyframe alone anchors the pose; only a tracked frame is a fix.
+    monitor_.on_frame(f.t_ns, r.tracked(), false);
+    if (r.tracked()) {
+      last_fix_state_ = out_.state;
+      have_fix_state_ = true;
+    }
+    // A keyframe alone is an anchor at the predicted pose, not a fix: it
+    // claims tracking only when the last frame did.
+    set_quality(r.tracked() || out_.quality == TrackingQuality::kTracking);
+    if (r.tracked()) refused_in_streak_ = false;
     last_tracked_t_ns_ = f.t_ns;
     lost_frames_ = 0;
     ++frames_tracked_;
     ++counters_.frames_used;
+    supervise();
     return true;
   }
   // Not tracked: coast on the IMU; after a few frames, start over from a new
   // keyframe at the predicted pose rather than matching an ever staler one.
   ++lost_frames_;
-  out_.quality = TrackingQuality::kImuOnly;
+  refused_in_streak_ = refused_in_streak_ || rejected;
+  monitor_.on_frame(f.t_ns, false, rejected);
+  set_quality(false);
+  supervise();
   if (lost_frames_ >= opt_.max_lost_frames && tracker_.has_keyframe()) {
+    // Frames refused for disagreeing with the prediction: the velocity is
+    // the suspect, so the frames after the new keyframe may correct it at
+    // the start-up rate instead of the steady-state one.
+    if (refused_in_streak_) {
+      P_pv_(0, 1) = P_pv_(1, 0) = 0.0;
+      P_pv_(1, 1) = std::max(P_pv_(1, 1), opt_.initial_velocity_sigma_mps * opt_.initial_velocity_sigma_mps);
+      refused_in_streak_ = false;
+    }
     tracker_.reset();
     ++counters_.resets;
     out_.reset_counter = static_cast<uint32_t>(counters_.resets);
@@ -153,6 +235,7 @@ void FrontendOdometry::count_reset() {
 
 const EstimatorCounters& FrontendOdometry::counters() const {
   counters_.imu_rejects = prop_.counts();
+  counters_.divergence = monitor_.counts();
   return counters_;
 }
 

@@ -97,8 +97,24 @@ std::string WindowEstimator::backend_summary() const {
 
 // ---- tracking side -------------------------------------------------------------
 
+// The front end re-initialised after a divergence: the window restarts with
+// it at the next frame, and nothing queued before is applied.
+void WindowEstimator::follow_front_end_restart() {
+  if (front_.divergence_epoch() == epoch_) return;
+  epoch_ = front_.divergence_epoch();
+  first_seq_of_epoch_ = next_seq_;
+  pim_active_ = false;
+  consecutive_failures_ = 0;
+  ++wc_.window_resets;
+  if (pending_slot_ >= 0) {
+    free_slots_[n_free_++] = pending_slot_;
+    pending_slot_ = -1;
+  }
+}
+
 bool WindowEstimator::add_frame(const RgbdFrame& f) {
   bool changed = front_.add_frame(f);
+  follow_front_end_restart();
   if (!front_.started()) return changed;
   const TrackResult& r = front_.last_track();
   if (!(r.tracked() || r.status == TrackStatus::kNewKeyframe)) return changed;
@@ -158,6 +174,7 @@ bool WindowEstimator::add_frame(const RgbdFrame& f) {
 
 bool WindowEstimator::add_imu(const ImuSample& s) {
   bool changed = front_.add_imu(s);
+  follow_front_end_restart();
   if (!imu_sample_usable(s) || (have_last_sample_ && s.t_ns <= last_sample_.t_ns)) {
     poll_results();
     return changed;
@@ -230,6 +247,10 @@ void WindowEstimator::poll_results() {
   }
   if (r.seq <= last_applied_seq_) return;
   last_applied_seq_ = r.seq;
+  if (r.seq < first_seq_of_epoch_) {
+    ++wc_.stale_results;
+    return;
+  }
   apply(r);
 }
 

@@ -355,11 +355,18 @@ class OutputStage {
     while (OutPose* p = out_.front()) {
       const PoseSample s = pose_sample_of(*p);
       out_.pop();
-      tools::TimedPose tp;
-      tp.t_ns = s.t_ns;
-      tp.p = s.p_WB;
-      tp.q = s.q_WB;
-      report_.trajectory.push_back(tp);
+      // A pose the backend says is lost is a placeholder, not an estimate:
+      // the flight controller gets it flagged (quality -1), the trajectory
+      // that is scored and written leaves it out (pose_share shows the gap).
+      if (s.quality == core::TrackingQuality::kLost) {
+        ++report_.lost_poses_withheld;
+      } else {
+        tools::TimedPose tp;
+        tp.t_ns = s.t_ns;
+        tp.p = s.p_WB;
+        tp.q = s.q_WB;
+        report_.trajectory.push_back(tp);
+      }
       if (opt_.on_pose) opt_.on_pose(s);
       if (mavlink_) mavlink_->publish(odometry_input_of(s));
     }
@@ -664,6 +671,21 @@ std::string replay_metrics_json(const ReplayReport& r) {
                            {"imu_gaps", r.input_faults.imu_gaps}};
   j["mavlink"] = Json{{"sent", r.mavlink_sent}, {"failed", r.mavlink_failed}};
   const auto& c = r.estimator_counters;
+  // Contract keys (issue 17): how often the backend said it had lost the
+  // truth, and how long it coasted on the IMU alone.
+  const core::DivergenceCounts& dv = c.divergence;
+  j["divergences"] = dv.divergences;
+  j["coast_seconds"] = 1e-9 * static_cast<double>(dv.coast_ns);
+  {
+    Json causes = Json::object();
+    for (int k = 1; k < core::kDivergenceCauseCount; ++k)
+      causes[core::to_string(static_cast<core::DivergenceCause>(k))] = dv.by_cause[static_cast<size_t>(k)];
+    j["divergence"] = Json{{"causes", std::move(causes)},
+                           {"restarts_while_lost", dv.restarts_while_lost},
+                           {"coast_timeouts", dv.coast_timeouts},
+                           {"lost_seconds", 1e-9 * static_cast<double>(dv.lost_ns)},
+                           {"lost_poses_withheld", r.lost_poses_withheld}};
+  }
   j["estimator_counters"] = Json{{"imu_in", c.imu_in},
                                  {"imu_used", c.imu_used},
                                  {"frames_in", c.frames_in},
@@ -782,6 +804,25 @@ std::string replay_summary(const ReplayReport& r) {
     s += buf;
   }
   if (!r.backend_summary.empty()) s += r.backend_summary + "\n";
+  {
+    const core::DivergenceCounts& dv = r.estimator_counters.divergence;
+    std::string causes;
+    for (int k = 1; k < core::kDivergenceCauseCount; ++k) {
+      const uint64_t n = dv.by_cause[static_cast<size_t>(k)];
+      if (n == 0) continue;
+      causes += (causes.empty() ? " (" : ", ") + std::string(core::to_string(static_cast<core::DivergenceCause>(k))) +
+                " " + std::to_string(n);
+    }
+    if (!causes.empty()) causes += ")";
+    std::snprintf(buf, sizeof buf,
+                  "divergences: %llu%s; coasting %.2f s, %llu coast timeouts, lost %.2f s (%llu restarts while lost, "
+                  "%llu lost poses left out of the trajectory)\n",
+                  static_cast<unsigned long long>(dv.divergences), causes.c_str(), 1e-9 * static_cast<double>(dv.coast_ns),
+                  static_cast<unsigned long long>(dv.coast_timeouts),
+                  1e-9 * static_cast<double>(dv.lost_ns), static_cast<unsigned long long>(dv.restarts_while_lost),
+                  static_cast<unsigned long long>(r.lost_poses_withheld));
+    s += buf;
+  }
   const InputFaultCounts& ff = r.input_faults;
   if (ff.missing + ff.out_of_order + ff.repeated + ff.no_depth + ff.imu_gaps > 0) {
     std::snprintf(

@@ -137,7 +137,8 @@ struct ReplayReport {
   std::string log_path;
   std::string log_format;
   drivers::ReplayPace pace = drivers::ReplayPace::kLockstep;
-  tools::Trajectory trajectory;  // body pose in W at each camera frame
+  tools::Trajectory trajectory;  // body pose in W at each camera frame the backend did not call lost
+  uint64_t lost_poses_withheld = 0;  // poses flagged kLost: sent on (flagged), not in the trajectory
   double log_duration_s = 0;
   double wall_s = 0;
   double realtime_factor = 0;  // log seconds per wall second

@@ -12,6 +12,7 @@
 #include <string>
 #include <vector>
 
+#include "kestrel/core/divergence.hpp"
 #include "kestrel/core/ekf_estimator.hpp"
 #include "kestrel/core/frontend_odometry.hpp"
 #include "kestrel/core/window_estimator.hpp"
@@ -33,6 +34,8 @@ struct EstimatorConfig {
   WindowEstimatorOptions window;
   int64_t window_moving_start_after_ns = 250'000'000;
   EkfEstimatorOptions ekf;
+  // Divergence detection, the same for every backend that uses vision.
+  DivergenceOptions safety;
 
   // The defaults of a backend ("window-embedded" is S = 2, N = 3; "window-ceres"
   // solves with Ceres) with a LONSC variant applied. Throws

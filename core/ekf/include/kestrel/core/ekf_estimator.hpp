@@ -22,6 +22,7 @@
 
 #include "kestrel/core/ekf_slam.hpp"
 #include "kestrel/core/estimator.hpp"
+#include "kestrel/core/divergence.hpp"
 #include "kestrel/core/tracker.hpp"
 #include "kestrel/rt/latency_histogram.hpp"
 
@@ -59,6 +60,8 @@ struct EkfEstimatorOptions {
   double pred_sigma_min_px = 4.0;
   int max_lost_frames = 3;        // untracked frames before the tracker takes a new keyframe
   int min_used_for_tracking = 5;  // observations in the update for the frame to count as tracked
+  // Divergence detection (the config's safety: section, docs/safety.md).
+  DivergenceOptions divergence;
 
   // Empty when usable, else what is wrong (names the field).
   std::string validate() const;
@@ -81,7 +84,10 @@ class EkfEstimator final : public Estimator {
   bool add_imu(const ImuSample& s) override;
   bool add_frame(const RgbdFrame& f) override;
   const EstimatorOutput& output() const override { return out_; }
-  const EstimatorCounters& counters() const override { return counters_; }
+  const EstimatorCounters& counters() const override {
+    counters_.divergence = monitor_.counts();
+    return counters_;
+  }
   // Filter counters and the time of the EKF update alone (tracking excluded).
   std::string backend_summary() const override;
 
@@ -95,9 +101,14 @@ class EkfEstimator final : public Estimator {
   const EkfEstimatorOptions& options() const { return opt_; }
   // Per frame with observations: ekf_.update() alone [ns].
   const rt::LatencyHistogram& update_latency() const { return update_latency_; }
+  const DivergenceMonitor& divergence() const { return monitor_; }
 
  private:
-  void start(const NavState& s0);
+  // moving: the velocity and tilt are guesses (a moving start, or a restart
+  // after a divergence), with the wider start-up covariance.
+  void start(const NavState& s0, bool moving);
+  void supervise();
+  void set_quality(bool tracking);
   void propagate_to(int64_t t_ns);
   void publish(int64_t t_ns);
 
@@ -121,9 +132,12 @@ class EkfEstimator final : public Estimator {
   int64_t last_tracked_t_ns_ = -1;
   int lost_frames_ = 0;
   EstimatorOutput out_;
-  EstimatorCounters counters_;
+  mutable EstimatorCounters counters_;
   EkfEstimatorCounters ekf_counters_;
   rt::LatencyHistogram update_latency_;
+  DivergenceMonitor monitor_;
+  NavState last_fix_state_;
+  bool have_fix_state_ = false;
 };
 
 // The filter options the estimator derives from a rig: camera model and

@@ -4,6 +4,7 @@
 // threads, the replay harness and embedders call nothing else.
 #pragma once
 
+#include <array>
 #include <cstdint>
 #include <string>
 
@@ -51,6 +52,31 @@ struct EstimatorOutput {
   PoseCovariance pose_cov;
 };
 
+// Why a backend decided it had lost the truth (divergence.hpp).
+enum class DivergenceCause : uint8_t {
+  kNone = 0,
+  kCoastTimeout,
+  kSpeed,
+  kAccBias,
+  kGyroBias,
+  kCovariance,
+  kVisualImuDisagreement,
+  kNonFinite,
+};
+constexpr int kDivergenceCauseCount = 8;
+const char* to_string(DivergenceCause c);
+
+struct DivergenceCounts {
+  uint64_t divergences = 0;  // detections that made the backend re-initialise
+  std::array<uint64_t, kDivergenceCauseCount> by_cause{};
+  // Restarts while already lost (no fix came back within another coast span):
+  // they bound the drift of the placeholder pose, they are not new divergences.
+  uint64_t restarts_while_lost = 0;
+  uint64_t coast_timeouts = 0;  // coasts that reached max_coast_s: reported lost, state kept
+  int64_t coast_ns = 0;  // IMU-only time after a fix, up to max_coast_s each time
+  int64_t lost_ns = 0;   // time reported lost
+};
+
 struct EstimatorCounters {
   uint64_t imu_in = 0;
   uint64_t imu_used = 0;
@@ -58,6 +84,7 @@ struct EstimatorCounters {
   uint64_t frames_used = 0;
   uint64_t resets = 0;
   ImuRejectCounts imu_rejects;
+  DivergenceCounts divergence;  // zero for backends without divergence detection (imu)
 };
 
 class Estimator {

@@ -7,6 +7,7 @@
 
 #include <memory>
 
+#include "kestrel/core/divergence.hpp"
 #include "kestrel/core/estimator.hpp"
 #include "kestrel/core/tracker.hpp"
 
@@ -38,6 +39,8 @@ struct FrontendOdometryOptions {
   // Prediction uncertainty growth for the search window [px per second since the last tracked frame].
   double pred_sigma_px_per_s = 60.0;
   double pred_sigma_min_px = 4.0;
+  // Divergence detection (the config's safety: section, docs/safety.md).
+  DivergenceOptions divergence;
 };
 
 class FrontendOdometry final : public Estimator {
@@ -63,6 +66,13 @@ class FrontendOdometry final : public Estimator {
   // A back end's covariance of the pose, carried in the output until the next
   // one or a reset (the front end has none of its own).
   void set_pose_covariance(const PoseCovariance& c) { out_.pose_cov = c; }
+  // Increments on every re-initialisation after a divergence: a back end
+  // built on this front end restarts its own state when it changes.
+  uint64_t divergence_epoch() const { return divergence_epoch_; }
+  const DivergenceMonitor& divergence() const { return monitor_; }
+  // A back end's own finding (its window solves keep failing, say): handled
+  // like the front end's own, so both re-initialise together.
+  void report_divergence(DivergenceCause why);
 
  private:
   FrontendOdometryOptions opt_;
@@ -82,6 +92,15 @@ class FrontendOdometry final : public Estimator {
   int64_t P_t_ns_ = -1;
   uint64_t gated_ = 0;
   bool tracker_has_tracked_ = false;
+  bool refused_in_streak_ = false;  // a frame of the current untracked streak was refused by the gate
+  DivergenceMonitor monitor_;
+  uint64_t divergence_epoch_ = 0;
+  NavState last_fix_state_;   // the state after the newest visual fix: a finite anchor to restart from
+  bool have_fix_state_ = false;
+
+  void supervise();
+  void reinitialise(DivergenceCause why);
+  void set_quality(bool tracking);
 };
 
 }  // namespace kestrel::core

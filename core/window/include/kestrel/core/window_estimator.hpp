@@ -188,6 +188,12 @@ class WindowEstimator final : public Estimator {
   StaticInitializer still_;
   int64_t still_t_ns_ = -1;
   bool reset_requested_ = false;
+  // The front end's divergence epoch this window was built in; results of
+  // jobs sent before the newest re-initialisation describe the diverged
+  // state and are never applied.
+  uint64_t epoch_ = 0;
+  uint64_t first_seq_of_epoch_ = 0;
+  void follow_front_end_restart();
 
   // Optimizer side.
   rt::LatencyHistogram opt_latency_;
