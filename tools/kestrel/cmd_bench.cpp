@@ -41,6 +41,7 @@ struct BenchCase {
   std::string imu_path;    // hybrid: EuRoC imu0.csv
   std::string log_path;    // real-images: the EuRoC ASL folder
   std::string skipped;     // non-empty: why it cannot run
+  double room_m = 0.0;     // hybrid: rendered hall size (SimOptions::room_m); 0: a room around the flight
 };
 
 // The figures of one row; NaN where a figure does not exist (yet).
@@ -62,13 +63,17 @@ struct BenchRow {
   double realtime_factor = kNaN;
   double peak_rss_mb = kNaN;
   double pose_share = kNaN;       // frames that got a pose / frames
+  double divergences = kNaN;      // times the backend said it lost the truth and re-initialised
+  double coast_s = kNaN;          // IMU-only time after visual fixes
+  double cpu_s_per_s = kNaN;      // estimator thread CPU seconds per second of flight
+  std::string fail;               // why the row fails (empty: it does not); docs/bench.md "FAIL"
   double sim_s = kNaN;
   double replay_wall_s = kNaN;
 };
 
 std::vector<BenchCase> discover_cases(const std::string& data_dir) {
   std::vector<BenchCase> cases;
-  for (const char* s : {"hover", "figure8", "aggressive", "static"}) {
+  for (const char* s : {"hover", "figure8", "aggressive", "static", "hard"}) {
     BenchCase c;
     c.name = s;
     c.kind = "scenario";
@@ -82,6 +87,19 @@ std::vector<BenchCase> discover_cases(const std::string& data_dir) {
     BenchCase c;
     c.name = std::string("hybrid-") + seq;
     c.kind = "hybrid";
+    c.gt_path = (euroc / seq / "gt_body_20hz.csv").string();
+    c.imu_path = (euroc / seq / "imu0.csv").string();
+    if (!fs::exists(c.gt_path) || !fs::exists(c.imu_path)) c.skipped = "not found: " + (euroc / seq).string();
+    cases.push_back(c);
+  }
+  // The machine-hall flights again, in a rendered hall as large as the real
+  // one (walls up to 20 m away, far beyond the 6 m depth range), where the
+  // hybrid cases above render a room around the flight.
+  for (const char* seq : {"MH_01_easy", "MH_03_medium"}) {
+    BenchCase c;
+    c.name = std::string("hall-") + seq;
+    c.kind = "hybrid";
+    c.room_m = 20.0;
     c.gt_path = (euroc / seq / "gt_body_20hz.csv").string();
     c.imu_path = (euroc / seq / "imu0.csv").string();
     if (!fs::exists(c.gt_path) || !fs::exists(c.imu_path)) c.skipped = "not found: " + (euroc / seq).string();
@@ -143,6 +161,10 @@ std::map<std::string, double> replay_in_child(const std::string& log, const std:
         o << "allocs_per_frame " << static_cast<double>(r.steady_allocs) / static_cast<double>(r.steady_frames)
           << "\n";
       o << "realtime_factor " << r.realtime_factor << "\n";
+      o << "divergences " << r.estimator_counters.divergence.divergences << "\n";
+      o << "coast_s " << 1e-9 * static_cast<double>(r.estimator_counters.divergence.coast_ns) << "\n";
+      if (r.log_duration_s > 0 && r.estimator_cpu_s > 0)
+        o << "cpu_s_per_s " << r.estimator_cpu_s / r.log_duration_s << "\n";
       o << "peak_rss_mb " << r.peak_rss_mb << "\n";
       o << "duration_s " << r.log_duration_s << "\n";
       o << "replay_wall_s " << r.wall_s << "\n";
@@ -213,23 +235,36 @@ std::string fmt(double v, const char* f) {
 }
 
 void print_table(const std::vector<BenchRow>& rows) {
-  std::printf("%-26s %-20s %9s %9s %9s %8s %8s %8s %8s %9s %8s %8s %8s %7s\n", "case", "estimator", "ate_m",
-              "ate_se3_m", "rpe_m/s",
-              "trk_p50", "trk_p99", "opt_p50", "opt_p99", "imu_p99", "alloc/f", "rt_x", "rss_mb", "poses");
+  std::printf("%-26s %-20s %9s %9s %9s %8s %8s %8s %8s %9s %8s %8s %8s %7s %5s %7s %6s\n", "case", "estimator",
+              "ate_m", "ate_se3_m", "rpe_m/s", "trk_p50", "trk_p99", "opt_p50", "opt_p99", "imu_p99", "alloc/f", "rt_x",
+              "rss_mb", "poses", "div", "coast_s", "cpu/s");
   for (const auto& r : rows) {
     if (r.status != "ok") {
       std::printf("%-26s %s\n", r.name.c_str(), r.status.c_str());
       continue;
     }
-    std::printf("%-26s %-20s %9s %9s %9s %8s %8s %8s %8s %9s %8s %8s %8s %7s\n", r.name.c_str(),
+    std::printf("%-26s %-20s %9s %9s %9s %8s %8s %8s %8s %9s %8s %8s %8s %7s %5s %7s %6s%s\n", r.name.c_str(),
                 r.estimator.c_str(), fmt(r.ate_rmse_m, "%.4f").c_str(), fmt(r.ate_se3_rmse_m, "%.4f").c_str(),
                 fmt(r.rpe_trans_m_per_s, "%.4f").c_str(),
                 fmt(r.tracking_ms_p50, "%.3f").c_str(), fmt(r.tracking_ms_p99, "%.3f").c_str(),
                 fmt(r.optimizer_ms_p50, "%.2f").c_str(), fmt(r.optimizer_ms_p99, "%.2f").c_str(),
                 fmt(r.imu_to_output_ms_p99, "%.3f").c_str(), fmt(r.allocs_per_frame, "%.2f").c_str(),
                 fmt(r.realtime_factor, "%.1f").c_str(), fmt(r.peak_rss_mb, "%.0f").c_str(),
-                fmt(100.0 * r.pose_share, "%.1f%%").c_str());
+                fmt(100.0 * r.pose_share, "%.1f%%").c_str(), fmt(r.divergences, "%.0f").c_str(),
+                fmt(r.coast_s, "%.2f").c_str(), fmt(r.cpu_s_per_s, "%.3f").c_str(),
+                r.fail.empty() ? "" : ("  FAIL: " + r.fail).c_str());
   }
+}
+
+// The bench's floor (issue 17): a backend that ends a metre off or leaves
+// frames without a pose has failed the case, whatever its other figures.
+std::string fail_reasons(const BenchRow& r) {
+  std::string f;
+  auto add = [&f](const std::string& s) { f += (f.empty() ? "" : ", ") + s; };
+  if (!std::isfinite(r.ate_rmse_m) || r.ate_rmse_m > 1.0 || (std::isfinite(r.ate_se3_rmse_m) && r.ate_se3_rmse_m > 1.0))
+    add("ATE over 1 m");
+  if (!std::isfinite(r.pose_share) || r.pose_share < 0.99) add("pose share under 99 %");
+  return f;
 }
 
 // Per stage p50 / p99 / max [ms]: the timing table of the pipeline issue.
@@ -275,9 +310,14 @@ std::string rows_json(const std::vector<BenchRow>& rows, double duration_s) {
         {"realtime_factor", r.realtime_factor},
         {"peak_rss_mb", r.peak_rss_mb},
         {"pose_share", r.pose_share},
+        {"divergences", r.divergences},
+        {"coast_s", r.coast_s},
+        {"cpu_s_per_s", r.cpu_s_per_s},
         {"sim_s", r.sim_s},
         {"replay_wall_s", r.replay_wall_s}};
     for (const auto& [key, value] : figures) c[key] = json_figure(value);
+    c["fail"] = !r.fail.empty();
+    c["fail_reasons"] = r.fail;
     cases.push_back(std::move(c));
   }
   tools::Json j = tools::Json::object();
@@ -309,6 +349,7 @@ Subcommand add_bench_command(CLI::App& parent) {
     int width = 640, height = 480;
     bool keep_logs = false;
     bool list = false;
+    bool strict = false;
   };
   auto args = std::make_shared<Args>();
   CLI::App* app = parent.add_subcommand("bench", "run the benchmark suite and print one table");
@@ -333,6 +374,8 @@ Subcommand add_bench_command(CLI::App& parent) {
   app->add_option("--height", args->height, "rendered image height")->capture_default_str();
   app->add_flag("--keep-logs", args->keep_logs, "keep the generated .klog files (several GB at VGA)");
   app->add_flag("--list", args->list, "list the cases and whether their data is present, then exit");
+  app->add_flag("--strict", args->strict,
+                "exit non-zero when a row FAILs (ATE over 1 m or pose share under 99 %) or a case fails to run");
 
   Subcommand cmd;
   cmd.app = app;
@@ -387,6 +430,7 @@ Subcommand add_bench_command(CLI::App& parent) {
           so.trajectory_path = c.gt_path;
           so.imu_path = c.imu_path;
           so.fps = 30.0;
+          so.room_m = c.room_m;
         }
         log = (fs::path(args->workdir) / (c.name + ".klog")).string();
         so.out_path = log;
@@ -442,6 +486,10 @@ Subcommand add_bench_command(CLI::App& parent) {
         er.peak_rss_mb = get(m, "peak_rss_mb");
         er.pose_share = get(m, "pose_share");
         er.replay_wall_s = get(m, "replay_wall_s");
+        er.divergences = get(m, "divergences");
+        er.coast_s = get(m, "coast_s");
+        er.cpu_s_per_s = get(m, "cpu_s_per_s");
+        er.fail = fail_reasons(er);
         rows.push_back(er);
         ++ran;
       }
@@ -458,6 +506,15 @@ Subcommand add_bench_command(CLI::App& parent) {
     if (ran == 0) {
       std::fprintf(stderr, "bench: no case ran\n");
       return 1;
+    }
+    if (args->strict) {
+      int failed = 0;
+      for (const auto& r : rows)
+        if (!r.fail.empty() || r.status.rfind("FAILED", 0) == 0) ++failed;
+      if (failed > 0) {
+        std::fprintf(stderr, "bench: %d row(s) FAIL (--strict)\n", failed);
+        return 2;
+      }
     }
     return 0;
   };

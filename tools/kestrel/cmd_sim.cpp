@@ -36,7 +36,7 @@ Subcommand add_sim_command(CLI::App& parent) {
       "              --imu ../shared/data/euroc/V1_02_medium/imu0.csv --out v102.klog\n"
       "Models and numbers: docs/simulator.md");
 
-  auto* scen = app->add_option("--scenario", o.scenario, "built-in motion: hover, figure8, aggressive, static")
+  auto* scen = app->add_option("--scenario", o.scenario, "built-in motion: hover, figure8, aggressive, static, hard")
                    ->capture_default_str();
   auto* traj = app->add_option("--trajectory", o.trajectory_path,
                                "fly a ground-truth file instead (EuRoC gt csv or TUM groundtruth.txt)");
@@ -62,6 +62,12 @@ Subcommand add_sim_command(CLI::App& parent) {
       ->capture_default_str();
   app->add_option("--frame-drop-rate", o.frame_drop_rate, "probability a frame is lost")->capture_default_str();
   app->add_option("--texture", o.texture_path, "image file for walls, floor and ceiling (default: procedural)");
+  app->add_option("--room-m", o.room_m,
+                  "a hall at least this long on each side, walls up to this far from the path (0: a room around "
+                  "the flight; scenario hard: 24)");
+  app->add_option("--exposure-change", o.exposure_change, "image gain swings by up to +- this share (hard: 0.45)");
+  app->add_option("--motion-blur-ms", o.motion_blur_ms, "exposure time rendered as averaged sub-frames (hard: 8)");
+  app->add_flag("--bare-wall", o.bare_wall, "the +x wall is bare paint, a low-texture wall (hard: on)");
   app->add_flag("--no-noise", args->no_noise, "ideal sensors: no IMU noise or bias, exact depth, clean images");
   app->add_option("--depth-dropout", o.depth_dropout, "share of depth pixels lost in small blobs")
       ->capture_default_str();

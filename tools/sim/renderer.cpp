@@ -487,8 +487,15 @@ void Renderer::Impl::render_rows(const Frame& f, int y0, int y1, uint8_t* rgb, u
       const float ndot = h.nx * d[0] + h.ny * d[1] + h.nz * d[2];
       const float cos_inc = std::abs(ndot) / len;
       const float footprint = h.t * len / (focal * std::max(cos_inc, 0.15f));
-      const Rgb tex = (h.surface < kRoomSurfaces && !mips.empty()) ? image_texture(h.u, h.v, footprint)
-                                                                   : pattern(h.surface, h.u, h.v, footprint, true);
+      Rgb tex;
+      if (opt.bare_surface >= 0 && h.surface == static_cast<uint32_t>(opt.bare_surface)) {
+        // Paint with a faint large-scale shading: nothing a corner detector can hold on to.
+        const float g = 0.62f + 0.03f * std::sin(0.7f * h.u) * std::sin(0.5f * h.v);
+        tex = Rgb{g, g, 0.97f * g};
+      } else {
+        tex = (h.surface < kRoomSurfaces && !mips.empty()) ? image_texture(h.u, h.v, footprint)
+                                                           : pattern(h.surface, h.u, h.v, footprint, true);
+      }
       const float lambert = std::max(0.f, h.nx * light[0] + h.ny * light[1] + h.nz * light[2]);
       const float shade = 255.f * (0.55f + 0.45f * lambert);
 

@@ -233,12 +233,42 @@ std::unique_ptr<MotionModel> make_static(double T) {
 
 }  // namespace
 
-std::vector<std::string> scenario_names() { return {"hover", "figure8", "aggressive", "static"}; }
+namespace {
+
+// Built to make backends lose the truth (issue 17): wide sweeps through a
+// hall whose walls are beyond the depth range, faster yaw bursts than
+// `aggressive`, and passes that face the bare wall; the simulator adds the
+// exposure steps and motion blur (simulator.cpp).
+std::unique_ptr<MotionModel> make_hard(double T) {
+  auto tr = std::make_unique<ChannelTrajectory>("hard", T);
+  auto& c = tr->ch;
+  for (auto& ch : c) ch.ramp_len_s = 3.0;
+  c[2].base = 1.5;
+  c[0].sines = {{3.0, 0.07, 0.0}, {0.6, 0.41, 1.0}};
+  c[1].sines = {{2.5, 0.09, 2.0}, {0.4, 0.53, 0.5}};
+  c[2].sines = {{0.6, 0.13, 1.0}, {0.1, 0.9, 0.0}};
+  c[3].sines = {{deg(15.0), 0.4, 0.0}, {deg(6.0), 1.1, 1.0}};
+  c[4].sines = {{deg(15.0), 0.35, 1.0}, {deg(6.0), 1.3, 2.0}};
+  c[5].sines = {{deg(40.0), 0.05, 0.0}};
+  // Yaw bursts peaking at 400 deg/s, every 4 s.
+  const double peak = deg(400.0);
+  const double sizes_deg[] = {150.0, -210.0, 120.0, 180.0, -150.0, -120.0, 210.0, -180.0};
+  int k = 0;
+  for (double t0 = 3.5; t0 + 1.5 < T; t0 += 4.0, ++k) {
+    const double d = deg(sizes_deg[k % 8]);
+    c[5].steps.push_back({t0, 15.0 / 8.0 * std::abs(d) / peak, d});
+  }
+  return tr;
+}
+
+}  // namespace
+
+std::vector<std::string> scenario_names() { return {"hover", "figure8", "aggressive", "static", "hard"}; }
 
 double default_scenario_duration_s(const std::string& name) {
   if (name == "hover") return 189.0;
-  if (name == "figure8" || name == "aggressive" || name == "static") return 60.0;
-  throw std::invalid_argument("unknown scenario '" + name + "' (known: hover, figure8, aggressive, static)");
+  if (name == "figure8" || name == "aggressive" || name == "static" || name == "hard") return 60.0;
+  throw std::invalid_argument("unknown scenario '" + name + "' (known: hover, figure8, aggressive, static, hard)");
 }
 
 std::unique_ptr<MotionModel> make_scenario(const std::string& name, double duration_s, const ScenarioOptions& options) {
@@ -247,7 +277,8 @@ std::unique_ptr<MotionModel> make_scenario(const std::string& name, double durat
   if (name == "figure8") return std::make_unique<Figure8Trajectory>(T, options.yaw_follows_path);
   if (name == "aggressive") return make_aggressive(T);
   if (name == "static") return make_static(T);
-  throw std::invalid_argument("unknown scenario '" + name + "' (known: hover, figure8, aggressive, static)");
+  if (name == "hard") return make_hard(T);
+  throw std::invalid_argument("unknown scenario '" + name + "' (known: hover, figure8, aggressive, static, hard)");
 }
 
 Eigen::Quaterniond so3_exp(const Eigen::Vector3d& phi) {

@@ -27,7 +27,7 @@ void validate(const SimOptions& o) {
   if (!from_file) {
     const auto names = scenario_names();
     require(std::find(names.begin(), names.end(), o.scenario) != names.end(),
-            "--scenario '" + o.scenario + "' is not one of hover, figure8, aggressive, static");
+            "--scenario '" + o.scenario + "' is not one of hover, figure8, aggressive, static, hard");
     require(o.start_s == 0.0, "--start applies to --trajectory files only");
     require(o.imu_path.empty(), "--imu (hybrid mode) needs --trajectory");
   } else {
@@ -47,6 +47,9 @@ void validate(const SimOptions& o) {
   require(o.depth_dropout >= 0.0 && o.depth_dropout <= 0.5, "--depth-dropout must be in [0, 0.5]");
   require(o.image_noise_sigma >= 0.0 && o.image_noise_sigma <= 50.0, "image noise sigma must be in [0, 50]");
   require(o.acc_bias_tau_s >= 0.0, "accelerometer bias tau must be >= 0");
+  require(o.room_m >= 0.0 && o.room_m <= 200.0, "--room-m must be in [0, 200]");
+  require(o.exposure_change >= 0.0 && o.exposure_change <= 0.9, "--exposure-change must be in [0, 0.9]");
+  require(o.motion_blur_ms >= 0.0 && o.motion_blur_ms <= 50.0, "--motion-blur-ms must be in [0, 50]");
   require(o.gt_rate_hz > 0.0 && o.gt_rate_hz <= 10000.0, "ground-truth rate must be in (0, 10000]");
   require(o.threads >= 1 && o.threads <= 64, "threads must be in [1, 64]");
 }
@@ -207,8 +210,24 @@ SimSummary run_simulation(const SimOptions& o, SimSink& sink) {
   };
 
   // ---- scene and renderer ----
-  const Scene scene = Scene::build(*traj, T_BC, o.seed);
+  // The hard scenario is a large hall with every difficult condition on
+  // (an explicit option still wins where it asks for more).
+  const bool hard = !from_file && o.scenario == "hard";
+  const double room_m = o.room_m > 0.0 ? o.room_m : (hard ? 24.0 : 0.0);
+  const double exposure_change = std::max(o.exposure_change, hard ? 0.45 : 0.0);
+  const double motion_blur_ms = std::max(o.motion_blur_ms, hard ? 8.0 : 0.0);
+  SceneOptions scene_opt;
+  if (room_m > 0.0) {
+    scene_opt.min_room_m = room_m;
+    scene_opt.max_wall_distance_m = room_m;
+    scene_opt.margin_m = std::max(scene_opt.margin_m, 0.5 * room_m);
+    scene_opt.min_height_m = std::max(scene_opt.min_height_m, 0.25 * room_m);
+    // Clutter stays as dense as in a room; the cap keeps a hall's render time bounded.
+    scene_opt.max_clutter = 250;
+  }
+  const Scene scene = Scene::build(*traj, T_BC, o.seed, scene_opt);
   RenderOptions ro;
+  ro.bare_surface = (o.bare_wall || hard) ? 1 : -1;
   ro.threads = o.threads;
   ro.depth_noise = o.noise;
   ro.dropout_fraction = o.noise ? o.depth_dropout : 0.0;
@@ -219,6 +238,20 @@ SimSummary run_simulation(const SimOptions& o, SimSink& sink) {
   const int W = rig.rgb.width, H = rig.rgb.height;
   std::vector<uint8_t> rgb(static_cast<size_t>(W) * H * 3);
   std::vector<uint16_t> depth(static_cast<size_t>(W) * H);
+  // Motion blur: sub-frames across the exposure, averaged; the depth is the
+  // middle one's (a structured-light or ToF sensor integrates differently).
+  const int blur_subframes = motion_blur_ms > 0.0 ? 4 : 1;
+  std::vector<uint8_t> sub_rgb(blur_subframes > 1 ? rgb.size() : 0);
+  std::vector<uint16_t> sub_depth(blur_subframes > 1 ? depth.size() : 0);
+  std::vector<uint16_t> acc(blur_subframes > 1 ? rgb.size() : 0);
+  // Auto-exposure as a camera does it: a slow drift and a step every few
+  // seconds, the same for every run of a seed.
+  auto gain_at = [&](double t) {
+    if (exposure_change <= 0.0) return 1.0;
+    const double drift = 0.6 * std::sin(2.0 * 3.14159265358979 * t / 7.0);
+    const double step = (static_cast<int64_t>(std::floor(t / 3.0)) % 2 == 0) ? 0.4 : -0.4;
+    return 1.0 + exposure_change * (drift + step);
+  };
 
   SimSummary sum;
   sum.trajectory = traj->description();
@@ -284,10 +317,27 @@ SimSummary run_simulation(const SimOptions& o, SimSink& sink) {
         ++sum.frames_dropped;
         continue;
       }
-      const TrajectoryState s = traj->state(f.t_true_s);
-      const Eigen::Isometry3d T_WC = Eigen::Translation3d(s.p_WB) * s.q_WB * T_BC;
       const auto r0 = Clock::now();
-      renderer.render(T_WC, f.seq, rgb.data(), depth.data());
+      if (blur_subframes == 1) {
+        const TrajectoryState s = traj->state(f.t_true_s);
+        renderer.render(Eigen::Translation3d(s.p_WB) * s.q_WB * T_BC, f.seq, rgb.data(), depth.data());
+      } else {
+        std::fill(acc.begin(), acc.end(), 0);
+        for (int j = 0; j < blur_subframes; ++j) {
+          const double dt = (static_cast<double>(j) / (blur_subframes - 1) - 0.5) * motion_blur_ms * 1e-3;
+          const TrajectoryState s = traj->state(std::clamp(f.t_true_s + dt, 0.0, T));
+          const bool middle = j == blur_subframes / 2;
+          renderer.render(Eigen::Translation3d(s.p_WB) * s.q_WB * T_BC, f.seq, sub_rgb.data(),
+                          middle ? depth.data() : sub_depth.data());
+          for (size_t i = 0; i < acc.size(); ++i) acc[i] = static_cast<uint16_t>(acc[i] + sub_rgb[i]);
+        }
+        for (size_t i = 0; i < acc.size(); ++i)
+          rgb[i] = static_cast<uint8_t>((acc[i] + blur_subframes / 2) / blur_subframes);
+      }
+      if (exposure_change > 0.0) {
+        const double g = gain_at(f.t_true_s);
+        for (uint8_t& p : rgb) p = static_cast<uint8_t>(std::min(255.0, p * g + 0.5));
+      }
       render_s += std::chrono::duration<double>(Clock::now() - r0).count();
       sink.image(drivers::RecordType::kRgb, f.stamp_ns, f.seq, ImageView{W, H, W * 3, PixelFormat::kRgb8, rgb.data()});
       sink.image(drivers::RecordType::kDepth, f.stamp_ns, f.seq,

@@ -63,6 +63,9 @@ struct RenderOptions {
   double max_incidence_deg = 75.0;    // no depth on surfaces seen more obliquely
   std::string texture_path;           // optional image (OpenCV imread) for the room's walls, floor, ceiling
   double texture_size_m = 2.0;        // width of one tile of that image in the world
+  // A room face drawn as bare paint (a low-texture wall): 0..5 = -x, +x, -y,
+  // +y, floor, ceiling; -1 = none.
+  int bare_surface = -1;
   uint64_t seed = 1;
 };
 

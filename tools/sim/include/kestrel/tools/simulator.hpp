@@ -60,6 +60,12 @@ struct SimOptions {
   double image_noise_sigma = 1.0;       // 8-bit DN
   double acc_bias_tau_s = 300.0;        // paper 000 eq. 6
   std::string texture_path;             // optional image for walls, floor and ceiling
+  // Conditions that make tracking hard (the `hard` scenario turns them all on, docs/simulator.md):
+  double room_m = 0.0;                  // > 0: a hall at least this long on each side, walls up to this far
+                                        // from the path (beyond the depth range)
+  double exposure_change = 0.0;         // image gain swings by up to +- this share (drift and sudden steps)
+  double motion_blur_ms = 0.0;          // exposure time, rendered as sub-frames averaged
+  bool bare_wall = false;               // the +x wall is bare paint (low texture)
   bool yaw_follows_path = true;         // figure8
   double gt_rate_hz = 200.0;            // ground truth records (plus one at every frame)
   double knot_spacing_s = 0.0;          // GT spline; <= 0: the file's sample interval
