@@ -125,6 +125,8 @@ TEST(SimRender, SceneKeepsClearOfEveryScenarioPath) {
         wall = std::min(wall, std::min(lo.minCoeff(), hi.minCoeff()));
         // Every wall within 5 m horizontally, so the camera sees texture in range.
         // (The room is sized from 50 Hz samples, these are at 200 Hz.)
+        // (`hard` sweeps 6 m through a hall on purpose: walls beyond the depth range.)
+        if (name == "hard") continue;
         EXPECT_LE(std::max(lo.x(), hi.x()), 5.01) << name;
         EXPECT_LE(std::max(lo.y(), hi.y()), 5.01) << name;
       }
