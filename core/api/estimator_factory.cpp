@@ -1,6 +1,7 @@
 #include <stdexcept>
 
 #include "kestrel/core/estimator_factory.hpp"
+#include "kestrel/core/estimator_config.hpp"
 #include "kestrel/core/ekf_estimator.hpp"
 #include "kestrel/core/estimator.hpp"
 #include "kestrel/core/frontend_odometry.hpp"
@@ -16,16 +17,18 @@ bool estimator_known(const std::string& name) {
 }
 
 std::unique_ptr<Estimator> make_estimator(const std::string& name, const Rig& rig) {
-  if (name == "imu") return std::make_unique<DeadReckoningEstimator>(rig);
-  if (name == "vo") return std::make_unique<FrontendOdometry>(rig);
-  if (name == "window") return std::make_unique<WindowEstimator>(rig);
-  if (name == "window-embedded" || name == "window-ceres") {
-    WindowEstimatorOptions o;
-    if (name == "window-embedded") o.window = WindowOptions::embedded();
-    if (name == "window-ceres") o.window.solver = WindowOptions::Solver::kCeres;
-    return std::make_unique<WindowEstimator>(rig, o);
-  }
-  if (name == "ekf") return std::make_unique<EkfEstimator>(rig);
+  return make_estimator(EstimatorConfig::defaults(name), rig);
+}
+
+std::unique_ptr<Estimator> make_estimator(const EstimatorConfig& c, const Rig& rig) {
+  const std::string err = validate(c);
+  if (!err.empty()) throw std::invalid_argument("estimator config:\n" + err);
+  const std::string& name = c.backend;
+  if (name == "imu") return std::make_unique<DeadReckoningEstimator>(rig, c.vo.moving_start_after_ns);
+  if (name == "vo") return std::make_unique<FrontendOdometry>(rig, c.vo_options());
+  if (name == "window" || name == "window-embedded" || name == "window-ceres")
+    return std::make_unique<WindowEstimator>(rig, c.window_options());
+  if (name == "ekf") return std::make_unique<EkfEstimator>(rig, c.ekf_options());
   throw std::invalid_argument("unknown estimator '" + name + "' (expected one of: " + estimator_names() + ")");
 }
 

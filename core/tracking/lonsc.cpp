@@ -7,6 +7,17 @@
 
 namespace kestrel::core {
 
+LonscOptions LonscOptions::paper() {
+  LonscOptions o;
+  o.verify_seed_pair = false;
+  o.grow_model = false;
+  o.candidate_runs = 1;
+  o.weighted_least_squares = false;
+  o.refine_passes = 0;
+  o.min_run_length = 2;
+  return o;
+}
+
 namespace {
 
 uint64_t splitmix64(uint64_t* s) {

@@ -43,6 +43,12 @@ WindowEstimator::WindowEstimator(const Rig& rig, const WindowEstimatorOptions& o
     : opt_([&] {
         WindowEstimatorOptions o = opt;
         o.window.imu = ImuNoiseParams::from_rig(rig).scaled(o.imu_noise_inflation);
+        // One accelerometer bias model for prediction and for the bias factor:
+        // the rig's tau describes the sensor, the window's model is a choice.
+        // (predict() used to decay the bias with the rig's tau while the factor
+        // held it as a random walk: two models in one estimator.)
+        o.window.imu.acc_bias_tau_s =
+            o.window.acc_bias_model == WindowOptions::AccBiasModel::kBoundedRandomWalk ? o.window.acc_bias_tau_s : 0.0;
         o.window.depth_sigma_coeff_per_m = rig.depth.sigma_coeff_per_m;
         return o;
       }()),

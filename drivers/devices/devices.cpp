@@ -247,10 +247,8 @@ EstimatorSettings estimator_settings_from_yaml_node(const YAML::Node& node, cons
   EstimatorSettings e;
   if (!node) return e;
   if (!node.IsMap()) throw std::runtime_error(where + ": estimator: expected a mapping (backend: NAME)");
-  for (const auto& kv : node) {
-    const std::string k = kv.first.Scalar();
-    if (k != "backend") throw std::runtime_error(where + ": estimator." + k + ": unknown key (expected backend)");
-  }
+  // The section's other keys are the estimator's options: the tools check
+  // them against core's options table (tools/config), which drivers cannot see.
   if (node["backend"]) {
     if (!node["backend"].IsScalar() || node["backend"].Scalar().empty())
       throw std::runtime_error(where + ": estimator.backend: expected a backend name");
@@ -354,7 +352,8 @@ ThreadTable load_thread_table(const std::string& path) {
   return parse_config_section(path, "threads", thread_table_from_yaml_node);
 }
 
-LiveConfig live_config_from_yaml(const std::string& text, const std::string& where) {
+LiveConfig live_config_from_yaml(const std::string& text, const std::string& where,
+                                 const std::vector<std::string>& estimator_sections) {
   YAML::Node root;
   try {
     root = YAML::Load(text);
@@ -364,8 +363,14 @@ LiveConfig live_config_from_yaml(const std::string& text, const std::string& whe
   if (!root.IsMap()) throw std::runtime_error(where + ": expected a mapping with `rig:` and `drivers:`");
   for (const auto& kv : root) {
     const std::string k = kv.first.Scalar();
-    if (k != "rig" && k != "drivers" && k != "estimator" && k != "threads")
-      throw std::runtime_error(where + ": " + k + ": unknown key (expected rig, drivers, estimator, threads)");
+    bool estimator_section = k == "estimator";
+    for (const std::string& e : estimator_sections) estimator_section = estimator_section || k == e;
+    if (k != "rig" && k != "drivers" && k != "threads" && !estimator_section) {
+      std::string expected = "rig, drivers, threads, estimator";
+      for (const std::string& e : estimator_sections)
+        if (e != "estimator") expected += ", " + e;
+      throw std::runtime_error(where + ": " + k + ": unknown key (expected " + expected + ")");
+    }
   }
   if (!root["rig"]) throw std::runtime_error(where + ": rig: missing (required)");
   LiveConfig c;
@@ -381,12 +386,12 @@ LiveConfig live_config_from_yaml(const std::string& text, const std::string& whe
   return c;
 }
 
-LiveConfig load_live_config(const std::string& path) {
+LiveConfig load_live_config(const std::string& path, const std::vector<std::string>& estimator_sections) {
   std::ifstream f(path, std::ios::binary);
   if (!f) throw std::runtime_error(path + ": cannot open config file");
   std::ostringstream s;
   s << f.rdbuf();
-  return live_config_from_yaml(s.str(), path);
+  return live_config_from_yaml(s.str(), path, estimator_sections);
 }
 
 std::string built_drivers_summary() {

@@ -128,12 +128,7 @@ void print_table(int trials) {
       std::string name;
       kt::Method m;
     };
-    kc::LonscOptions paper;
-    paper.verify_seed_pair = false;
-    paper.refine_passes = 0;
-    paper.weighted_least_squares = false;
-    paper.grow_model = false;
-    paper.candidate_runs = 1;
+    const kc::LonscOptions paper = kc::LonscOptions::paper();
     kc::LonscOptions longest_only;
     longest_only.candidate_runs = 1;
     kc::LonscOptions pair_model;

@@ -16,11 +16,13 @@
 #include <iostream>
 #include <map>
 #include <sstream>
+#include <utility>
 
 #include "kestrel/core/estimator_factory.hpp"
+#include "kestrel/tools/estimator_config_yaml.hpp"
 #include "kestrel/commands.hpp"
-#include "kestrel/json_writer.hpp"
 #include "kestrel/replay_runner.hpp"
+#include "kestrel/tools/report_json.hpp"
 #include "kestrel/tools/simulator.hpp"
 #include "kestrel/tools/trajectory_eval.hpp"
 
@@ -100,7 +102,7 @@ std::vector<BenchCase> discover_cases(const std::string& data_dir) {
 // Runs replay + eval in a child process and returns its figures as text
 // lines "key value", so the child's peak RSS is the case's own.
 std::map<std::string, double> replay_in_child(const std::string& log, const std::string& gt,
-                                              drivers::ReplayPace pace, const std::string& estimator_name,
+                                              drivers::ReplayPace pace, const core::EstimatorConfig& config,
                                               const std::string& traj_out,
                                               std::string& estimator, std::string& error) {
   int fds[2];
@@ -116,7 +118,8 @@ std::map<std::string, double> replay_in_child(const std::string& log, const std:
       ReplayOptions opt;
       opt.path = log;
       opt.pace = pace;
-      opt.estimator = estimator_name;
+      opt.estimator = config.backend;
+      opt.config = config;
       ReplayReport r = run_replay(opt);
       if (!traj_out.empty()) tools::write_tum(traj_out, r.trajectory);
       o << "estimator " << r.estimator << "\n";
@@ -247,30 +250,40 @@ void print_timing_table(const std::vector<BenchRow>& rows) {
 }
 
 std::string rows_json(const std::vector<BenchRow>& rows, double duration_s) {
-  JsonWriter j;
-  j.begin_object();
-  j.kv("duration_s_per_case", duration_s);
-  j.key("cases").begin_array();
+  using tools::json_figure;
+  tools::Json cases = tools::Json::array();
   for (const auto& r : rows) {
-    j.begin_object();
-    j.kv("name", r.name).kv("status", r.status).kv("estimator", r.estimator);
-    j.kv("duration_s", r.duration_s);
-    j.kv("ate_rmse_m", r.ate_rmse_m).kv("ate_se3_rmse_m", r.ate_se3_rmse_m);
-    j.kv("rpe_trans_m_per_s", r.rpe_trans_m_per_s);
-    j.kv("tracking_ms_p50", r.tracking_ms_p50).kv("tracking_ms_p99", r.tracking_ms_p99);
-    j.kv("tracking_ms_max", r.tracking_ms_max);
-    j.kv("optimizer_ms_p50", r.optimizer_ms_p50).kv("optimizer_ms_p99", r.optimizer_ms_p99);
-    j.kv("optimizer_ms_max", r.optimizer_ms_max);
-    j.kv("imu_to_output_ms_p50", r.imu_to_output_ms_p50).kv("imu_to_output_ms_p99", r.imu_to_output_ms_p99);
-    j.kv("imu_to_output_ms_max", r.imu_to_output_ms_max);
-    j.kv("allocs_per_frame", r.allocs_per_frame);
-    j.kv("realtime_factor", r.realtime_factor).kv("peak_rss_mb", r.peak_rss_mb);
-    j.kv("pose_share", r.pose_share).kv("sim_s", r.sim_s).kv("replay_wall_s", r.replay_wall_s);
-    j.end_object();
+    tools::Json c = tools::Json::object();
+    c["name"] = r.name;
+    c["status"] = r.status;
+    c["estimator"] = r.estimator;
+    const std::pair<const char*, double> figures[] = {
+        {"duration_s", r.duration_s},
+        {"ate_rmse_m", r.ate_rmse_m},
+        {"ate_se3_rmse_m", r.ate_se3_rmse_m},
+        {"rpe_trans_m_per_s", r.rpe_trans_m_per_s},
+        {"tracking_ms_p50", r.tracking_ms_p50},
+        {"tracking_ms_p99", r.tracking_ms_p99},
+        {"tracking_ms_max", r.tracking_ms_max},
+        {"optimizer_ms_p50", r.optimizer_ms_p50},
+        {"optimizer_ms_p99", r.optimizer_ms_p99},
+        {"optimizer_ms_max", r.optimizer_ms_max},
+        {"imu_to_output_ms_p50", r.imu_to_output_ms_p50},
+        {"imu_to_output_ms_p99", r.imu_to_output_ms_p99},
+        {"imu_to_output_ms_max", r.imu_to_output_ms_max},
+        {"allocs_per_frame", r.allocs_per_frame},
+        {"realtime_factor", r.realtime_factor},
+        {"peak_rss_mb", r.peak_rss_mb},
+        {"pose_share", r.pose_share},
+        {"sim_s", r.sim_s},
+        {"replay_wall_s", r.replay_wall_s}};
+    for (const auto& [key, value] : figures) c[key] = json_figure(value);
+    cases.push_back(std::move(c));
   }
-  j.end_array();
-  j.end_object();
-  return j.str() + "\n";
+  tools::Json j = tools::Json::object();
+  j["duration_s_per_case"] = json_figure(duration_s);
+  j["cases"] = std::move(cases);
+  return tools::json_text(j);
 }
 
 bool selected(const std::string& name, const std::vector<std::string>& only) {
@@ -291,6 +304,8 @@ Subcommand add_bench_command(CLI::App& parent) {
     std::string data_dir = "../shared/data";
     std::string pace = "fast";
     std::vector<std::string> estimators{"window"};
+    std::vector<std::string> lonsc_variants{"tuned"};
+    std::string config;
     int width = 640, height = 480;
     bool keep_logs = false;
     bool list = false;
@@ -308,6 +323,12 @@ Subcommand add_bench_command(CLI::App& parent) {
                   std::string("backends, comma separated, one row each per case: ") + core::estimator_names())
       ->delimiter(',')
       ->capture_default_str();
+  app->add_option("--lonsc-variant", args->lonsc_variants,
+                  "LONSC variants, comma separated, one row each per backend: tuned, paper (docs/lonsc.md)")
+      ->delimiter(',')
+      ->capture_default_str();
+  app->add_option("--config", args->config,
+                  "estimator settings applied to every backend (its estimator sections; docs/config.md)");
   app->add_option("--width", args->width, "rendered image width")->capture_default_str();
   app->add_option("--height", args->height, "rendered image height")->capture_default_str();
   app->add_flag("--keep-logs", args->keep_logs, "keep the generated .klog files (several GB at VGA)");
@@ -327,6 +348,8 @@ Subcommand add_bench_command(CLI::App& parent) {
     for (const std::string& e : args->estimators)
       if (!core::estimator_known(e))
         throw UsageError("unknown --estimator '" + e + "' (expected one of: " + core::estimator_names() + ")");
+    for (const std::string& v : args->lonsc_variants)
+      if (v != "tuned" && v != "paper") throw UsageError("unknown --lonsc-variant '" + v + "' (expected tuned, paper)");
     std::vector<BenchCase> cases = discover_cases(args->data_dir);
     if (args->list) {
       for (const auto& c : cases)
@@ -379,13 +402,22 @@ Subcommand add_bench_command(CLI::App& parent) {
         generated = true;
       }
       // One log, every backend on it: the comparison is like for like.
-      for (const std::string& est_name : args->estimators) {
+      for (const std::string& backend : args->estimators)
+      for (const std::string& variant : args->lonsc_variants) {
+        // A row's name: the backend, and the LONSC variant when it is not the default.
+        const std::string est_name = variant == "tuned" ? backend : backend + "+lonsc-" + variant;
+        core::EstimatorConfig cfg = tools::load_estimator_config(args->config, backend);
+        if (variant != to_string(cfg.lonsc_variant)) {
+          cfg.lonsc_variant = variant == "paper" ? core::LonscVariant::kPaper : core::LonscVariant::kTuned;
+          cfg.tracker.lonsc = core::lonsc_options(cfg.lonsc_variant);
+        }
         BenchRow er = row;
         std::string error;
-        const std::string traj_e = args->estimators.size() > 1
-                                       ? (fs::path(args->workdir) / (c.name + "." + est_name + ".traj.txt")).string()
-                                       : traj;
-        const auto m = replay_in_child(log, gt, pace, est_name, traj_e, er.estimator, error);
+        const bool many = args->estimators.size() * args->lonsc_variants.size() > 1;
+        const std::string traj_e =
+            many ? (fs::path(args->workdir) / (c.name + "." + est_name + ".traj.txt")).string() : traj;
+        const auto m = replay_in_child(log, gt, pace, cfg, traj_e, er.estimator, error);
+        if (error.empty() && variant != "tuned") er.estimator += "+lonsc-" + variant;
         if (!error.empty()) {
           er.estimator = est_name;
           er.status = "FAILED: " + error;

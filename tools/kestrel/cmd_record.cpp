@@ -7,6 +7,7 @@
 #include <string>
 
 #include "kestrel/commands.hpp"
+#include "kestrel/tools/estimator_config_yaml.hpp"
 #include "kestrel/replay_runner.hpp"
 #include "kestrel/drivers/devices.hpp"
 #include "kestrel/drivers/klog_logger.hpp"
@@ -67,7 +68,7 @@ Subcommand add_record_command(CLI::App& parent) {
   Subcommand s;
   s.app = app;
   s.run = [a] {
-    const drivers::LiveConfig cfg = drivers::load_live_config(a->config);
+    const drivers::LiveConfig cfg = drivers::load_live_config(a->config, tools::estimator_config_sections());
     if (!(a->buffer_s > 0 && a->buffer_s <= 60)) throw UsageError("--buffer-s must be in (0, 60] seconds");
     drivers::LiveSensors sensors(cfg);   // throws, naming each missing device
     drivers::KlogLogger::Options lo;

@@ -10,6 +10,7 @@
 #include "kestrel/mavlink/udp_sender.hpp"
 #include "kestrel/replay_runner.hpp"
 #include "kestrel/view_cli.hpp"
+#include "kestrel/tools/estimator_config_yaml.hpp"
 
 namespace kestrel::cli {
 
@@ -28,12 +29,13 @@ Subcommand add_replay_command(CLI::App& parent) {
     std::string mavlink_udp;
     std::string status = "auto";
     ViewArgs view;
+    bool print_config = false;
   };
   auto args = std::make_shared<Args>();
   CLI::App* app = parent.add_subcommand("replay", "play a recorded log through the estimator (HIL harness)");
   app->add_option("log", args->path,
-                  "a .klog file, a ROS 1 bag, or an EuRoC / TUM / ETH3D / OpenLORIS folder (docs/datasets.md)")
-      ->required();
+                  "a .klog file, a ROS 1 bag, or an EuRoC / TUM / ETH3D / OpenLORIS folder (docs/datasets.md); "
+                  "required unless --print-config");
   app->add_option("--format", args->format, std::string("input format: ") + drivers::log_format_names())
       ->capture_default_str();
   app->add_option("--rig", args->open.rig_path, "rig YAML for calibration the dataset lacks (ETH3D, OpenLORIS, rosbag)");
@@ -54,8 +56,11 @@ Subcommand add_replay_command(CLI::App& parent) {
                       " (window = front end + sliding-window optimizer, the default; vo = tracking front end + IMU; ekf = EKF SLAM; imu = IMU dead reckoning)")
       ->capture_default_str();
   app->add_option("--config", args->config,
-                  "a config whose `estimator: backend:` picks the backend (--estimator overrides it) and whose "
-                  "`threads:` table schedules the threads in realtime pace (configs/*.yaml, docs/threads.md)");
+                  "a config whose estimator sections (estimator:, frontend:, window:, ekf:; docs/config.md) set every "
+                  "tunable (--estimator overrides its backend) and whose `threads:` table schedules the threads in "
+                  "realtime pace (configs/*.yaml, docs/threads.md)");
+  app->add_flag("--print-config", args->print_config,
+                "print the effective estimator settings as YAML and exit (with a log: after opening it)");
   app->add_option("--traj-out", args->traj_out, "write the trajectory here (TUM: t[s] x y z qx qy qz qw)");
   app->add_option("--metrics-out", args->metrics_out,
                   "write latency histograms, drops, counters, CPU, RSS, real-time factor as JSON");
@@ -76,16 +81,13 @@ Subcommand add_replay_command(CLI::App& parent) {
     opt.path = args->path;
     opt.open = args->open;
     opt.estimator = args->estimator;
-    if (!args->config.empty() && app->count("--estimator") == 0) {
-      const std::string b = drivers::load_estimator_settings(args->config).backend;
-      if (!b.empty() && !core::estimator_known(b))
-        throw std::runtime_error(args->config + ": estimator.backend: unknown backend '" + b +
-                                 "' (expected one of: " + core::estimator_names() + ")");
-      if (!b.empty()) opt.estimator = b;
-    }
+    const std::string override_backend = app->count("--estimator") ? args->estimator : "";
+    if (!override_backend.empty() && !core::estimator_known(override_backend))
+      throw UsageError("unknown --estimator '" + override_backend + "' (expected one of: " + core::estimator_names() +
+                       ")");
+    opt.config = tools::load_estimator_config(args->config, override_backend);
+    opt.estimator = opt.config->backend;
     if (!args->config.empty()) opt.threads = drivers::load_thread_table(args->config);
-    if (!core::estimator_known(opt.estimator))
-      throw UsageError("unknown --estimator '" + opt.estimator + "' (expected one of: " + core::estimator_names() + ")");
     try {
       opt.format = drivers::parse_log_format(args->format);
       opt.pace = drivers::parse_replay_pace(args->pace);
@@ -111,7 +113,19 @@ Subcommand add_replay_command(CLI::App& parent) {
     } else if (app->count("--view-wait") + app->count("--view-clients") + app->count("--view-bandwidth") > 0) {
       throw UsageError("--view-wait, --view-clients and --view-bandwidth need --view [ADDR:]PORT");
     }
+    if (args->print_config) {
+      // With a log, open it first: the settings printed are the ones a replay of it would run with.
+      if (!args->path.empty()) {
+        drivers::LogOpenOptions o = opt.open;
+        o.format = opt.format;
+        (void)drivers::open_log(opt.path, o);
+      }
+      std::cout << tools::estimator_config_to_yaml(*opt.config);
+      return 0;
+    }
+    if (args->path.empty()) throw UsageError("replay: the log is required (unless --print-config)");
     ReplayReport r = run_replay(opt);
+    r.config = tools::estimator_config_entries(*opt.config);
     if (!args->traj_out.empty()) tools::write_tum(args->traj_out, r.trajectory);
     if (!args->metrics_out.empty()) {
       std::ofstream f(args->metrics_out);

@@ -5,6 +5,7 @@
 // config names (`estimator: backend:`, or --estimator; default window, as in
 // replay). The estimator sees IMU and frames merged in time order, as in replay.
 #include <atomic>
+#include <iostream>
 #include <csignal>
 #include <cstdio>
 #include <memory>
@@ -15,6 +16,7 @@
 #include "kestrel/commands.hpp"
 #include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/core/estimator.hpp"
+#include "kestrel/tools/estimator_config_yaml.hpp"
 #include "kestrel/drivers/devices.hpp"
 #include "kestrel/drivers/sensor_rings.hpp"
 #include "kestrel/imu_rate_stage.hpp"
@@ -85,6 +87,7 @@ struct RunArgs {
   double duration_s = 0;
   std::string mavlink_udp;
   ViewArgs view;
+  bool print_config = false;
 };
 
 
@@ -103,6 +106,9 @@ Subcommand add_run_command(CLI::App& parent) {
   app->add_option("--estimator", a->estimator,
                   std::string("backend: ") + core::estimator_names() +
                       " (default: the config's estimator.backend, else window)");
+  app->add_flag("--print-config", a->print_config,
+                "print the effective estimator settings as YAML (the config's estimator sections on the backend's "
+                "defaults, docs/config.md) and exit");
   app->add_option("--duration", a->duration_s, "seconds to run (0 = until Ctrl-C)")->capture_default_str();
   app->add_option("--mavlink-udp", a->mavlink_udp,
                   "stream MAVLink v2 ODOMETRY to HOST:PORT at the pose rate (flight controller; docs/px4.md)");
@@ -113,18 +119,14 @@ Subcommand add_run_command(CLI::App& parent) {
   Subcommand s;
   s.app = app;
   s.run = [a] {
-    const drivers::LiveConfig cfg = drivers::load_live_config(a->config);
-    std::string backend = "window";   // the default of replay
-    if (!a->estimator.empty()) {
-      if (!core::estimator_known(a->estimator))
-        throw UsageError("unknown --estimator '" + a->estimator + "' (expected one of: " + core::estimator_names() +
-                         ")");
-      backend = a->estimator;
-    } else if (!cfg.estimator.backend.empty()) {
-      if (!core::estimator_known(cfg.estimator.backend))
-        throw std::runtime_error(a->config + ": estimator.backend: unknown backend '" + cfg.estimator.backend +
-                                 "' (expected one of: " + core::estimator_names() + ")");
-      backend = cfg.estimator.backend;
+    const drivers::LiveConfig cfg = drivers::load_live_config(a->config, tools::estimator_config_sections());
+    if (!a->estimator.empty() && !core::estimator_known(a->estimator))
+      throw UsageError("unknown --estimator '" + a->estimator + "' (expected one of: " + core::estimator_names() + ")");
+    // The default backend is replay's (window) unless the config or --estimator names one.
+    const core::EstimatorConfig est_cfg = tools::load_estimator_config(a->config, a->estimator);
+    if (a->print_config) {
+      std::cout << tools::estimator_config_to_yaml(est_cfg);
+      return 0;
     }
     std::unique_ptr<mavlink::OdometryStream> odometry;
     if (!a->mavlink_udp.empty()) {
@@ -143,7 +145,7 @@ Subcommand add_run_command(CLI::App& parent) {
     auto rings = std::make_unique<drivers::SensorRings>(max_image);
     drivers::RingImuSink<decltype(rings->imu)> imu(rings->imu);
     RingFrameSink frames(*rings);
-    std::unique_ptr<core::Estimator> est = core::make_estimator(backend, cfg.rig);
+    std::unique_ptr<core::Estimator> est = core::make_estimator(est_cfg, cfg.rig);
     // Live, the optimizer always has its own thread: a solve must never hold
     // up the IMU-rate pose (docs/threads.md).
     est->set_threaded_optimizer(est->has_optimizer());

@@ -8,11 +8,13 @@
 #include <cstdint>
 #include <functional>
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
 #include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/core/estimator.hpp"
+#include "kestrel/core/estimator_config.hpp"
 #include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/devices.hpp"
 #include "kestrel/drivers/log_source.hpp"
@@ -100,7 +102,10 @@ struct ReplayOptions {
   drivers::LogFormat format = drivers::LogFormat::kAuto;
   drivers::LogOpenOptions open;  // rig for datasets, bag topics (open.format is ignored: `format` rules)
   drivers::ReplayPace pace = drivers::ReplayPace::kLockstep;
-  std::string estimator = "window";  // core::make_estimator name
+  std::string estimator = "window";  // core::make_estimator name, when `config` is empty
+  // Every option of the backend (config.backend names it); empty: the
+  // defaults of `estimator`.
+  std::optional<core::EstimatorConfig> config;
   // Scheduling and CPUs of the harness threads in realtime pace (a config's
   // `threads:` section); fast pace runs the default table, lockstep one thread.
   drivers::ThreadTable threads = drivers::default_thread_table();
@@ -137,6 +142,8 @@ struct ReplayOptions {
 
 struct ReplayReport {
   std::string estimator;
+  // The effective settings ("section.key", YAML value), for the metrics JSON.
+  std::vector<std::pair<std::string, std::string>> config;
   std::string log_path;
   std::string log_format;
   drivers::ReplayPace pace = drivers::ReplayPace::kLockstep;

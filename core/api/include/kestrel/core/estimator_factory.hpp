@@ -12,6 +12,11 @@ namespace kestrel::core {
 // The backends by name: "imu" (dead reckoning), "vo" (front end only).
 // Throws std::invalid_argument listing the names for an unknown one.
 std::unique_ptr<Estimator> make_estimator(const std::string& name, const Rig& rig);
+// A backend with every option from a config (estimator_config.hpp; its
+// `backend` names the backend). Throws std::invalid_argument listing every
+// option that is out of range.
+struct EstimatorConfig;
+std::unique_ptr<Estimator> make_estimator(const EstimatorConfig& config, const Rig& rig);
 const char* estimator_names();
 bool estimator_known(const std::string& name);
 

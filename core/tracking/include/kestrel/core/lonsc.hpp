@@ -102,6 +102,13 @@ struct LonscOptions {
   // paper's final least squares (0 = paper-literal).
   int refine_passes = 1;
   std::size_t min_inliers = 6;
+
+  // Algorithm 1 as the paper prints it: the run's model is the 2-point T that
+  // started it, a new pair is trusted unchecked and starts a run of 1, the
+  // single longest run gives t_hat, plain least squares (eq. 3), no extra
+  // passes, and a run of 2 is a run. The config's `frontend.lonsc_variant:
+  // paper` selects it (docs/lonsc.md measures both).
+  static LonscOptions paper();
 };
 
 struct RansacOptions {

@@ -111,10 +111,16 @@ struct LiveConfig {
 };
 
 // Throws std::runtime_error "path: drivers.imu.acc_range_g: expected one of 2, 4, 8, 16".
-LiveConfig load_live_config(const std::string& path);
-LiveConfig live_config_from_yaml(const std::string& text, const std::string& where);
+// estimator_sections: the top-level sections that hold estimator options
+// (core's options table, which drivers cannot see: the tools pass
+// tools/config's estimator_config_sections()); they are accepted here and
+// checked key by key by the tools.
+LiveConfig load_live_config(const std::string& path, const std::vector<std::string>& estimator_sections = {});
+LiveConfig live_config_from_yaml(const std::string& text, const std::string& where,
+                                 const std::vector<std::string>& estimator_sections = {});
 DriverSettings driver_settings_from_yaml_node(const YAML::Node& node, const std::string& where);
-// The optional `estimator:` section: `backend: NAME`; unknown keys are errors.
+// The optional `estimator:` section's `backend: NAME` (its other keys are
+// estimator options, checked by the tools).
 EstimatorSettings estimator_settings_from_yaml_node(const YAML::Node& node, const std::string& where);
 // The `estimator:` section of any YAML file (a live config, or a file with
 // only that section; other top-level keys are not looked at). Throws

@@ -1,0 +1,246 @@
+#include "kestrel/core/estimator_config.hpp"
+
+#include <sstream>
+#include <stdexcept>
+
+#include "kestrel/core/estimator_factory.hpp"
+
+namespace kestrel::core {
+
+namespace {
+
+// Enums travel through the visitor as an index into their names.
+template <typename E>
+void enum_choice(OptionVisitor& v, const char* key, E& e, const std::vector<const char*>& names, const char* doc) {
+  int i = static_cast<int>(e);
+  v.choice(key, i, names, doc);
+  e = static_cast<E>(i);
+}
+
+void visit_orb(OrbOptions& o, OptionVisitor& v) {
+  v.begin_section("orb", "ORB extraction (core/features, docs/orb.md)");
+  v.value("n_features", o.n_features, "feature budget per frame over all pyramid levels");
+  v.value("n_levels", o.n_levels, "pyramid levels (1 = no pyramid), at most 8");
+  v.value("scale_factor", o.scale_factor, "linear size ratio between consecutive levels, in (1, 2]");
+  v.value("fast_threshold", o.fast_threshold, "FAST intensity threshold [grey levels]");
+  v.value("fast_threshold_min", o.fast_threshold_min,
+          "FAST threshold [grey levels] used inside grid cells with no corner at fast_threshold");
+  v.value("edge_margin_px", o.edge_margin, "keypoints keep this far from the border of their level, >= 16");
+  v.value("cell_size_px", o.cell_size, "bucketing grid cell side [level pixels]");
+  v.value("pattern_seed", o.pattern_seed, "seed of the BRIEF test pattern (a vocabulary is tied to it)");
+  v.end_section();
+}
+
+void visit_lonsc(LonscOptions& o, OptionVisitor& v) {
+  v.begin_section("lonsc", "LONSC outlier rejection (core/tracking, docs/lonsc.md); lonsc_variant sets the defaults");
+  v.value("threshold_px", o.consistency.threshold_px, "reprojection error bound of the consistency test");
+  v.value("scale_by_sigma", o.consistency.scale_by_sigma, "scale the bound with the keypoint's sigma");
+  v.value("reference_sigma_px", o.consistency.reference_sigma_px, "sigma at which the bound is threshold_px");
+  v.value("min_depth_m", o.consistency.min_depth_m, "a point closer than this counts as behind the camera");
+  v.value("min_run_length", o.min_run_length, "shorter runs are not trusted");
+  v.value("verify_seed_pair", o.verify_seed_pair, "a new pair must agree with its own model (paper: false)");
+  v.value("grow_model", o.grow_model, "re-solve the run's model as it grows (paper: false)");
+  v.value("candidate_runs", o.candidate_runs, "longest runs that each propose t_hat, at most 8 (paper: 1)");
+  v.value("min_pair_separation_px", o.min_pair_separation_px, "closer pixel pairs leave t_z unobservable");
+  v.value("weighted_least_squares", o.weighted_least_squares, "depth-normalised (ML) weights (paper: false)");
+  v.value("refine_passes", o.refine_passes, "extra collect-and-resolve passes (paper: 0)");
+  int min_inliers = static_cast<int>(o.min_inliers);
+  v.value("min_inliers", min_inliers, "fewer inliers: no motion");
+  o.min_inliers = static_cast<std::size_t>(min_inliers < 0 ? 0 : min_inliers);
+  v.end_section();
+}
+
+void visit_tracker(TrackerOptions& o, OptionVisitor& v) {
+  v.value("search_radius_min_px", o.search_radius_min_px, "circle search window radius, lower bound");
+  v.value("search_radius_max_px", o.search_radius_max_px, "circle search window radius, upper bound");
+  v.value("search_k_sigma", o.search_k_sigma, "search radius = this x the predicted pixel uncertainty");
+  v.value("match_ratio", o.match_ratio, "best < ratio x second best Hamming distance within the window");
+  v.value("match_max_hamming", o.match_max_hamming, "largest accepted Hamming distance [bits of 256]");
+  v.value("match_max_level_diff", o.match_max_level_diff, "pyramid levels between keyframe and current keypoint");
+  enum_choice(v, "correspondence_order", o.order, {"as_given", "by_match_cost", "hilbert", "shuffled"},
+              "order of the correspondences LONSC walks");
+  v.value("keypoint_sigma_px", o.keypoint_sigma_px, "keypoint noise at pyramid level 0 (scales with the level)");
+  v.value("min_inliers", o.min_inliers, "fewer LONSC inliers: the frame is not tracked");
+  v.value("keyframe_area_ratio", o.keyframe_area_ratio,
+          "matched / detected area below this: new keyframe (paper 000: 50-60 %)");
+  v.value("keyframe_min_inliers", o.keyframe_min_inliers, "fewer inliers than this: new keyframe");
+  v.value("keyframe_max_interval_s", o.keyframe_max_interval_s, "a keyframe at least this often");
+  v.value("area_grid_cols", o.area_grid_cols, "columns of the grid the area ratio counts");
+  v.value("area_grid_rows", o.area_grid_rows, "rows of the grid the area ratio counts");
+  v.value("depth_edge_rel", o.depth_edge_rel, "3x3 depth spread above this share of the depth: a depth edge");
+  v.value("map_capacity", o.map_capacity, "points of past keyframes kept for the local map search (0: off)");
+  v.value("map_search_radius_px", o.map_search_radius_px, "local map search radius");
+  v.value("map_match_max_hamming", o.map_match_max_hamming, "largest Hamming distance for a map match");
+  v.value("map_match_ratio", o.map_match_ratio, "best < ratio x second best for a map match");
+  v.value("map_depth_tol_rel", o.map_depth_tol_rel, "measured vs map depth within rel x z + 3 cm");
+  v.value("map_min_inliers", o.map_min_inliers, "fewer PnP inliers: the keyframe keeps its chained pose");
+  v.value("map_max_correction_m", o.map_max_correction_m, "a larger map correction is taken for false matches");
+  v.value("map_max_correction_rad", o.map_max_correction_rad, "a larger map correction is taken for false matches");
+  v.value("map_max_sigma_m", o.map_max_sigma_m, "a less certain map pose is not reported");
+  visit_orb(o.orb, v);
+  visit_lonsc(o.lonsc, v);
+  v.begin_section("pose_refine", "6-DoF Gauss-Newton on the LONSC inliers (docs/lonsc.md)");
+  v.value("max_iterations", o.refine.max_iterations, "Gauss-Newton iterations");
+  v.value("huber_px", o.refine.huber_px, "Huber threshold on the whitened error (<= 0: least squares)");
+  v.value("rotation_prior_sigma_rad", o.refine.rotation_prior_sigma_rad, "> 0: keep R near the gyro's (0: off)");
+  v.value("min_step", o.refine.min_step, "stop when the step falls below this [rad, m]");
+  v.end_section();
+}
+
+void visit_vo(FrontendOdometryOptions& o, OptionVisitor& v) {
+  v.value("accel_noise_mps2_sqrthz", o.accel_noise_mps2_sqrthz, "vo fusion: white acceleration error");
+  v.value("position_sigma_m", o.position_sigma_m, "vo fusion: tracked position noise");
+  v.value("initial_velocity_sigma_mps", o.initial_velocity_sigma_mps, "vo fusion: velocity sigma at the start");
+  v.value("attitude_gain", o.attitude_gain, "share of the way to the tracked attitude per tracked frame");
+  v.value("gyro_bias_gain", o.gyro_bias_gain, "integral share of the gyro bias per tracked frame");
+  v.value("gate_sigma", o.gate_sigma, "innovations beyond this many sigma are not believed");
+  v.value("max_lost_frames", o.max_lost_frames, "untracked frames before a new keyframe at the IMU pose");
+  v.value("moving_start_after_ns", o.moving_start_after_ns,
+          "vo/imu: no still window by then: start moving (the window backend: window.moving_start_after_ns)");
+  v.value("pred_sigma_px_per_s", o.pred_sigma_px_per_s, "search window growth per second since the last track");
+  v.value("pred_sigma_min_px", o.pred_sigma_min_px, "search window pixel uncertainty, lower bound");
+}
+
+void visit_window(EstimatorConfig& c, OptionVisitor& v) {
+  WindowEstimatorOptions& e = c.window;
+  WindowOptions& w = e.window;
+  v.begin_section("window", "the sliding-window optimizer and the window backend (core/window, docs/optimizer.md)");
+  v.value("recent_frames", w.S, "S: most recent frames in the window");
+  v.value("keyframes", w.N, "N: keyframes outside the recent frames; S + N <= 10");
+  v.value("max_landmarks", w.max_landmarks, "landmark budget, fixed at start-up");
+  v.value("max_obs_per_frame", w.max_obs_per_frame, "observations kept per frame");
+  enum_choice(v, "solver", w.solver, {"ours", "ceres"}, "our Schur + Cholesky solver, or Ceres (reference)");
+  v.value("max_iterations", w.max_iterations, "iterations per solve");
+  v.value("time_budget_ms", w.time_budget_ms, "wall-clock bound of one solve (checked after each iteration)");
+  v.value("huber_px", w.huber_px, "Huber threshold on the whitened residual norm (<= 0: least squares)");
+  v.value("use_depth", w.use_depth, "RGB-D depth as a third row of the visual residual");
+  v.value("marginalize", w.marginalize, "marginalise dropped states into a prior (false: discard)");
+  v.value("pixel_sigma_px", w.pixel_sigma, "pixel noise of an observation that gives none");
+  enum_choice(v, "acc_bias_model", w.acc_bias_model, {"random_walk", "bounded_random_walk"},
+              "accelerometer bias: Forster's random walk, or paper 000 eq. 6 (db/dt = -b/tau + w)");
+  v.value("acc_bias_tau_s", w.acc_bias_tau_s, "tau of the bounded random walk");
+  v.value("prior_gyro_bias_sigma_rps", w.prior_gyro_bias_sigma_rps, "prior on the first state's gyro bias");
+  v.value("prior_acc_bias_sigma_mps2", w.prior_acc_bias_sigma_mps2, "prior on the first state's accel bias");
+  v.value("gauge_sigma", w.gauge_sigma, "stiff prior on the oldest state's position and yaw [m, rad]");
+  v.value("zero_velocity_sigma_mps", w.zero_velocity_sigma_mps, "zero-velocity factor on still frames");
+  v.value("function_tolerance", w.function_tolerance, "stop when the relative cost decrease falls below");
+  v.value("step_tolerance", w.step_tolerance, "stop when the step's max-norm falls below");
+  v.value("keyframes_only", e.keyframes_only, "only keyframes enter the window (cheaper, less accurate)");
+  v.value("imu_noise_inflation", e.imu_noise_inflation,
+          "every IMU noise density of the rig is multiplied by this (docs/optimizer.md)");
+  v.value("min_observations", e.min_observations, "a frame with fewer observations stays out of the window");
+  v.value("max_correction_m", e.max_correction_m, "optimized vs propagated position beyond this: a failure");
+  v.value("max_speed_mps", e.max_speed_mps, "an optimized speed beyond this: a failure");
+  v.value("max_consecutive_failures", e.max_consecutive_failures, "then the window restarts");
+  v.value("max_imu_gap_ns", e.max_imu_gap_ns, "a longer IMU gap cannot be preintegrated: the window restarts");
+  v.value("zero_velocity_when_still", e.zero_velocity_when_still, "zero-velocity factor on still frames");
+  v.value("still_max_speed_mps", e.still_max_speed_mps, "a frame is still only if the speed is below this too");
+  v.value("use_map_pose", e.use_map_pose, "keyframes re-located on the local map carry that pose as a factor");
+  v.value("map_pose_sigma_m", e.map_pose_sigma_m, "map pose factor sigma, lower bound");
+  v.value("map_pose_sigma_rad", e.map_pose_sigma_rad, "map pose factor sigma, lower bound");
+  v.value("moving_start_after_ns", c.window_moving_start_after_ns,
+          "no still window by then: the dynamic start (the optimizer fixes attitude and velocity)");
+  v.end_section();
+}
+
+void visit_ekf(EkfEstimatorOptions& o, OptionVisitor& v) {
+  v.begin_section("ekf", "the SE(3) EKF backend (core/ekf, docs/ekf.md)");
+  v.value("landmark_capacity", o.landmark_capacity, "active landmarks in the filter; cost ~ (15 + 3C)^2");
+  v.value("pixel_sigma_px", o.pixel_sigma_px, "pixel noise of every observation");
+  v.value("max_missed_frames", o.max_missed_frames, "then a landmark leaves the filter into the map");
+  v.value("gate_chi2", o.gate_chi2, "innovation gate (chi2, 4 dof; 13.28 = 99 %)");
+  v.value("init_position_sigma_m", o.init_position_sigma_m, "start-up covariance");
+  v.value("init_attitude_sigma_rad", o.init_attitude_sigma_rad, "start-up covariance");
+  v.value("init_velocity_sigma_mps", o.init_velocity_sigma_mps, "start-up covariance");
+  v.value("init_gyro_bias_sigma_rps", o.init_gyro_bias_sigma_rps, "start-up covariance");
+  v.value("init_acc_bias_sigma_mps2", o.init_acc_bias_sigma_mps2, "start-up covariance");
+  v.value("moving_init_attitude_sigma_rad", o.moving_init_attitude_sigma_rad, "after a moving start");
+  v.value("moving_init_velocity_sigma_mps", o.moving_init_velocity_sigma_mps, "after a moving start");
+  v.value("default_gyro_noise_density_rad_s_sqrthz", o.default_gyro_noise_density, "when the rig gives none");
+  v.value("default_acc_noise_density_mps2_sqrthz", o.default_acc_noise_density, "when the rig gives none");
+  v.value("default_gyro_random_walk_rad_s2_sqrthz", o.default_gyro_random_walk, "when the rig gives none");
+  v.value("default_acc_random_walk_mps3_sqrthz", o.default_acc_random_walk, "when the rig gives none");
+  v.value("pred_sigma_px_per_s", o.pred_sigma_px_per_s, "search window growth per second since the last update");
+  v.value("pred_sigma_min_px", o.pred_sigma_min_px, "search window pixel uncertainty, lower bound");
+  v.value("max_lost_frames", o.max_lost_frames, "untracked frames before the tracker takes a new keyframe");
+  v.value("min_used_for_tracking", o.min_used_for_tracking, "observations used for the frame to count as tracked");
+  v.end_section();
+}
+
+}  // namespace
+
+LonscOptions lonsc_options(LonscVariant v) { return v == LonscVariant::kPaper ? LonscOptions::paper() : LonscOptions{}; }
+
+const char* to_string(LonscVariant v) { return v == LonscVariant::kPaper ? "paper" : "tuned"; }
+
+EstimatorConfig EstimatorConfig::defaults(const std::string& backend, LonscVariant variant) {
+  if (!estimator_known(backend))
+    throw std::invalid_argument("unknown estimator '" + backend + "' (expected one of: " + estimator_names() + ")");
+  EstimatorConfig c;
+  c.backend = backend;
+  c.lonsc_variant = variant;
+  c.tracker.lonsc = lonsc_options(variant);
+  if (backend == "window-embedded") c.window.window = WindowOptions::embedded();
+  if (backend == "window-ceres") c.window.window.solver = WindowOptions::Solver::kCeres;
+  return c;
+}
+
+FrontendOdometryOptions EstimatorConfig::vo_options() const {
+  FrontendOdometryOptions o = vo;
+  o.tracker = tracker;
+  return o;
+}
+
+WindowEstimatorOptions EstimatorConfig::window_options() const {
+  WindowEstimatorOptions o = window;
+  o.frontend = vo_options();
+  o.frontend.moving_start_after_ns = window_moving_start_after_ns;
+  return o;
+}
+
+EkfEstimatorOptions EstimatorConfig::ekf_options() const {
+  EkfEstimatorOptions o = ekf;
+  o.tracker = tracker;
+  return o;
+}
+
+void visit_options(EstimatorConfig& c, OptionVisitor& v) {
+  {
+    v.begin_section("estimator", "which backend runs");
+    v.value("backend", c.backend, "window, window-embedded, window-ceres, vo, ekf, imu (selects the defaults)");
+    v.end_section();
+  }
+  {
+    v.begin_section("frontend", "the tracker every backend shares, and the vo backend's fusion (core/tracking)");
+    enum_choice(v, "lonsc_variant", c.lonsc_variant, {"tuned", "paper"},
+                "LONSC defaults: this project's (tuned) or paper 000's Algorithm 1 as printed (paper)");
+    visit_vo(c.vo, v);
+    visit_tracker(c.tracker, v);
+    v.end_section();
+  }
+  visit_window(c, v);
+  visit_ekf(c.ekf, v);
+}
+
+std::string validate(const EstimatorConfig& c) {
+  std::ostringstream e;
+  if (!estimator_known(c.backend)) e << "estimator.backend: unknown '" << c.backend << "'\n";
+  std::string s = c.tracker.validate();
+  if (!s.empty()) e << "frontend: " << s << "\n";
+  // The window's IMU noise comes from the rig at construction: validate the
+  // rest with a nominal one.
+  WindowEstimatorOptions w = c.window_options();
+  ImuNoise nominal;
+  nominal.gyro_noise_density_rad_s_sqrthz = 1e-4;
+  nominal.acc_noise_density_mps2_sqrthz = 1e-3;
+  nominal.gyro_random_walk_rad_s2_sqrthz = 1e-5;
+  nominal.acc_random_walk_mps3_sqrthz = 1e-4;
+  w.window.imu = ImuNoiseParams::from_imu_noise(nominal, 200.0);
+  s = w.validate();
+  if (!s.empty()) e << "window: " << s;
+  s = c.ekf_options().validate();
+  if (!s.empty()) e << "ekf: " << s << "\n";
+  return e.str();
+}
+
+}  // namespace kestrel::core

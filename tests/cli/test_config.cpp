@@ -1,0 +1,184 @@
+// The estimator's options table as a config file (tools/config, docs/config.md):
+// every key reads back, bad keys and values name the file, line and key, the
+// two preset keys select defaults, and docs/config.md agrees with the code.
+#include <gtest/gtest.h>
+#include <unistd.h>
+
+#include <fstream>
+#include <sstream>
+#include <string>
+
+#include "kestrel/core/estimator_config.hpp"
+#include "kestrel/tools/estimator_config_yaml.hpp"
+#include "run_command.hpp"
+#include "test_data.hpp"
+
+namespace {
+
+using kestrel::core::EstimatorConfig;
+using kestrel::core::LonscVariant;
+using kestrel::tools::estimator_config_entries;
+using kestrel::tools::estimator_config_from_yaml;
+using kestrel::tools::estimator_config_to_yaml;
+
+std::string error_of(const std::string& yaml) {
+  try {
+    estimator_config_from_yaml(yaml, "x.yaml");
+  } catch (const std::exception& e) {
+    return e.what();
+  }
+  return "";
+}
+
+std::string slurp(const std::string& path) {
+  std::ifstream f(path, std::ios::binary);
+  std::ostringstream s;
+  s << f.rdbuf();
+  return s.str();
+}
+
+}  // namespace
+
+TEST(ConfigFile, EmptyFileGivesTheBackendsDefaults) {
+  const EstimatorConfig c = estimator_config_from_yaml("", "x.yaml");
+  EXPECT_EQ(c.backend, "window");
+  EXPECT_EQ(c.window.window.S, 3);
+  EXPECT_EQ(c.window.imu_noise_inflation, 30.0);
+  EXPECT_EQ(estimator_config_entries(c), estimator_config_entries(EstimatorConfig::defaults("window")));
+  const EstimatorConfig e = estimator_config_from_yaml("estimator: {backend: window-embedded}\n", "x.yaml");
+  EXPECT_EQ(e.window.window.S, 2);
+  EXPECT_EQ(e.window.window.N, 3);
+}
+
+TEST(ConfigFile, PrintedSettingsReadBackToTheSame) {
+  EstimatorConfig c = EstimatorConfig::defaults("ekf", LonscVariant::kPaper);
+  c.tracker.orb.n_features = 512;
+  c.tracker.match_ratio = 0.7f;
+  c.window.window.acc_bias_model = kestrel::core::WindowOptions::AccBiasModel::kBoundedRandomWalk;
+  c.window.max_imu_gap_ns = 123'456'789;
+  c.ekf.gate_chi2 = 9.49;
+  const std::string yaml = estimator_config_to_yaml(c);
+  const EstimatorConfig back = estimator_config_from_yaml(yaml, "printed.yaml");
+  EXPECT_EQ(estimator_config_entries(back), estimator_config_entries(c));
+  EXPECT_EQ(estimator_config_to_yaml(back), yaml);
+  EXPECT_GT(estimator_config_entries(c).size(), 100u) << "the table lost its tunables";
+}
+
+TEST(ConfigFile, KeysOverrideWhateverTheirPlace) {
+  const EstimatorConfig c = estimator_config_from_yaml(
+      "window:\n  imu_noise_inflation: 10\n  solver: ceres\nfrontend:\n  orb: {n_features: 450}\n"
+      "  lonsc: {candidate_runs: 2}\n  min_inliers: 12\nekf: {landmark_capacity: 96}\n",
+      "x.yaml");
+  EXPECT_EQ(c.window.imu_noise_inflation, 10.0);
+  EXPECT_EQ(c.window.window.solver, kestrel::core::WindowOptions::Solver::kCeres);
+  EXPECT_EQ(c.tracker.orb.n_features, 450);
+  EXPECT_EQ(c.tracker.lonsc.candidate_runs, 2);
+  EXPECT_EQ(c.tracker.min_inliers, 12);
+  EXPECT_EQ(c.ekf.landmark_capacity, 96);
+  // The backends are built with the shared tracker.
+  EXPECT_EQ(c.window_options().frontend.tracker.orb.n_features, 450);
+  EXPECT_EQ(c.ekf_options().tracker.orb.n_features, 450);
+  EXPECT_EQ(c.window_options().frontend.moving_start_after_ns, 250'000'000);
+  EXPECT_EQ(c.vo_options().moving_start_after_ns, 2'000'000'000);
+}
+
+TEST(ConfigFile, LonscVariantSelectsThePapersAlgorithmAndKeysStillOverride) {
+  const EstimatorConfig p = estimator_config_from_yaml("frontend: {lonsc_variant: paper}\n", "x.yaml");
+  EXPECT_EQ(p.lonsc_variant, LonscVariant::kPaper);
+  EXPECT_FALSE(p.tracker.lonsc.grow_model);
+  EXPECT_FALSE(p.tracker.lonsc.verify_seed_pair);
+  EXPECT_FALSE(p.tracker.lonsc.weighted_least_squares);
+  EXPECT_EQ(p.tracker.lonsc.candidate_runs, 1);
+  EXPECT_EQ(p.tracker.lonsc.refine_passes, 0);
+  EXPECT_EQ(p.tracker.lonsc.min_run_length, 2);
+  // A key written before the variant still wins: presets apply first.
+  const EstimatorConfig q =
+      estimator_config_from_yaml("frontend:\n  lonsc: {refine_passes: 2}\n  lonsc_variant: paper\n", "x.yaml");
+  EXPECT_EQ(q.tracker.lonsc.refine_passes, 2);
+  EXPECT_FALSE(q.tracker.lonsc.grow_model);
+  const EstimatorConfig t = estimator_config_from_yaml("frontend: {lonsc_variant: tuned}\n", "x.yaml");
+  EXPECT_TRUE(t.tracker.lonsc.grow_model);
+}
+
+TEST(ConfigFile, BadInputNamesFileLineAndKey) {
+  EXPECT_NE(error_of("window:\n  recent_frames: 3\n  bogus_ms: 1\n").find("x.yaml:3: window.bogus_ms: unknown key"),
+            std::string::npos);
+  EXPECT_NE(error_of("frontend:\n  orb:\n    n_features: lots\n").find("x.yaml:3: frontend.orb.n_features: expected an integer"),
+            std::string::npos);
+  EXPECT_NE(error_of("window: {use_depth: maybe}\n").find("window.use_depth: expected true or false"), std::string::npos);
+  EXPECT_NE(error_of("window: {huber_px: .nan}\n").find("window.huber_px: expected a finite number"), std::string::npos);
+  EXPECT_NE(error_of("window: {solver: gtsam}\n").find("window.solver: expected one of ours, ceres"), std::string::npos);
+  EXPECT_NE(error_of("window: [1, 2]\n").find("window: expected a mapping"), std::string::npos);
+  EXPECT_NE(error_of("window: {recent_frames: [3]}\n").find("window.recent_frames: expected a single value"),
+            std::string::npos);
+  EXPECT_NE(error_of("estimator: {backend: kalman}\n").find("estimator.backend: unknown backend 'kalman'"),
+            std::string::npos);
+  EXPECT_NE(error_of("frontend: {lonsc_variant: ransac}\n").find("frontend.lonsc_variant: expected one of"),
+            std::string::npos);
+  EXPECT_NE(error_of("window: {recent_frames: 0}\n").find("S must be >= 1"), std::string::npos);
+  EXPECT_NE(error_of("window: {recent_frames: 99999999999}\n").find("window.recent_frames: out of range"),
+            std::string::npos);
+  EXPECT_NE(error_of("window:\n  recent_frames: 3\n bad indent: [\n").find("x.yaml:"), std::string::npos);
+  // Sections of other readers are not this table's business.
+  EXPECT_EQ(error_of("rig: {name: x}\nthreads: {}\ncamera: {width_px: 640}\n"), "");
+}
+
+TEST(ConfigDocs, ReferenceTableMatchesTheCode) {
+  const std::string doc = slurp(std::string(KESTREL_SOURCE_DIR) + "/docs/config.md");
+  const std::string marker = "<!-- generated: kestrel config --markdown -->\n";
+  const size_t at = doc.find(marker);
+  ASSERT_NE(at, std::string::npos) << "docs/config.md lost its generated-table marker";
+  EXPECT_EQ(doc.substr(at + marker.size()), kestrel::tools::estimator_config_reference_markdown())
+      << "docs/config.md's table disagrees with the options table: regenerate it with `kestrel config --markdown`";
+}
+
+TEST(ConfigCli, PrintConfigPrintsTheEffectiveSettingsAndExits) {
+  const std::string dir = kestrel::test::temp_dir("cfg_cli_" + std::to_string(getpid()));
+  {
+    std::ofstream f(dir + "/c.yaml");
+    f << "estimator: {backend: vo}\nfrontend: {orb: {n_features: 222}}\nthreads: {}\n";
+  }
+  auto r = kestrel::test::run_kestrel("replay --config " + dir + "/c.yaml --print-config");
+  ASSERT_EQ(r.code, 0) << r.out;
+  EXPECT_NE(r.out.find("backend: vo"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("n_features: 222"), std::string::npos) << r.out;
+  // --estimator overrides the file's backend.
+  r = kestrel::test::run_kestrel("replay --config " + dir + "/c.yaml --estimator ekf --print-config");
+  ASSERT_EQ(r.code, 0) << r.out;
+  EXPECT_NE(r.out.find("backend: ekf"), std::string::npos) << r.out;
+  // With a log, the log is opened first: a missing one is an error.
+  r = kestrel::test::run_kestrel("replay /nonexistent/x.klog --print-config");
+  EXPECT_NE(r.code, 0) << r.out;
+  EXPECT_NE(r.out.find("/nonexistent/x.klog"), std::string::npos) << r.out;
+  // A bad key fails the command with the file and key named.
+  {
+    std::ofstream f(dir + "/bad.yaml");
+    f << "window:\n  recentframes: 3\n";
+  }
+  r = kestrel::test::run_kestrel("replay --config " + dir + "/bad.yaml --print-config");
+  EXPECT_NE(r.code, 0) << r.out;
+  EXPECT_NE(r.out.find("bad.yaml:2: window.recentframes: unknown key"), std::string::npos) << r.out;
+  // kestrel config prints the same as --print-config.
+  const auto a = kestrel::test::run_kestrel("config --config " + dir + "/c.yaml");
+  const auto b = kestrel::test::run_kestrel("replay --config " + dir + "/c.yaml --print-config");
+  EXPECT_EQ(a.out, b.out);
+}
+
+TEST(ConfigCli, MetricsJsonCarriesTheSettings) {
+  const std::string dir = kestrel::test::temp_dir("cfg_metrics_" + std::to_string(getpid()));
+  auto r = kestrel::test::run_kestrel("sim --scenario hover --duration 3 --seed 2 --width 160 --height 120 --out " +
+                                      dir + "/h.klog");
+  ASSERT_EQ(r.code, 0) << r.out;
+  {
+    std::ofstream f(dir + "/c.yaml");
+    f << "window: {imu_noise_inflation: 12.5, keyframes: 4}\n";
+  }
+  r = kestrel::test::run_kestrel("replay " + dir + "/h.klog --config " + dir + "/c.yaml -q --metrics-out " + dir +
+                                 "/m.json");
+  ASSERT_EQ(r.code, 0) << r.out;
+  const std::string m = slurp(dir + "/m.json");
+  EXPECT_NE(m.find("\"config\""), std::string::npos) << m.substr(0, 400);
+  EXPECT_NE(m.find("\"window.imu_noise_inflation\": 12.5"), std::string::npos);
+  EXPECT_NE(m.find("\"window.keyframes\": 4"), std::string::npos);
+  EXPECT_NE(m.find("\"frontend.lonsc_variant\": \"tuned\""), std::string::npos);
+}

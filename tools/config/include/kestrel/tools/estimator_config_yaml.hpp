@@ -1,0 +1,40 @@
+// core's options table (kestrel/core/estimator_config.hpp) to and from YAML.
+//
+// A config file's estimator sections (`estimator:`, `frontend:`, `window:`,
+// `ekf:`) are read key by key against the table: an unknown key, a value of
+// the wrong type or out of range is an error naming the file, the line and
+// the key. Other top-level sections (rig, drivers, threads, camera, imu, ...)
+// belong to other readers and are not looked at here.
+#pragma once
+
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "kestrel/core/estimator_config.hpp"
+
+namespace kestrel::tools {
+
+// The top-level section names the table uses.
+std::vector<std::string> estimator_config_sections();
+
+// Defaults of `backend_override` (or of the file's `estimator.backend`, or
+// "window"), with the file's keys applied. `path` empty: the defaults.
+// Throws std::runtime_error "FILE:LINE: window.recent_frames: expected an integer".
+core::EstimatorConfig load_estimator_config(const std::string& path, const std::string& backend_override = "");
+// The same from YAML text; `where` names it in errors.
+core::EstimatorConfig estimator_config_from_yaml(const std::string& text, const std::string& where,
+                                                 const std::string& backend_override = "");
+
+// The effective settings as YAML, one commented key per line (what
+// `--print-config` prints; loading it back gives the same config).
+std::string estimator_config_to_yaml(const core::EstimatorConfig& c);
+
+// Every key as ("section.key", value as YAML text), in table order (metrics JSON).
+std::vector<std::pair<std::string, std::string>> estimator_config_entries(const core::EstimatorConfig& c);
+
+// The reference table of docs/config.md: every key, its default (window
+// backend, tuned LONSC) and its doc line, as Markdown.
+std::string estimator_config_reference_markdown();
+
+}  // namespace kestrel::tools
