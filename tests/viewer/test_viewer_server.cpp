@@ -5,7 +5,9 @@
 // lockstep pause / step contract.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <atomic>
+#include <cstdio>
 #include <memory>
 #include <random>
 #include <string>
@@ -309,6 +311,46 @@ TEST(ViewerFeed, PublishingAllocatesNothingAndSkipsWhenTheViewerHoldsEverySlot) 
   EXPECT_EQ(s->rgb[(320 + 1) * 3], img.rgb[(640 * 2 + 2) * 3]);
   feed.release(h);
   EXPECT_EQ(feed.take_newest(&h), nullptr);
+}
+
+// What --view costs the estimator thread per published VGA frame: the copies
+// into a free slot (subsampled colour and depth, features, state) and nothing
+// else. Printed for docs/viewer.md; the bound catches work that does not
+// belong there (encoding, a wait), not a slow machine.
+TEST(ViewerFeed, PublishingAVgaFrameCostsTheEstimatorOnlyCopies) {
+  Rig rig = tools::default_sim_rig();
+  auto est = core::make_estimator("window", rig);
+  FeedOptions fo;
+  fo.max_rate_hz = 0;
+  ViewerFeed feed(*est, rig, fo);
+  feed.set_wanted(true);
+  Images img;
+  FrameInfo info;
+  std::vector<int64_t> publish_ns, idle_ns;
+  for (int i = 0; i < 400; ++i) {
+    const int64_t t0 = rt::now_ns();
+    feed.on_frame(img.frame, info);
+    publish_ns.push_back(rt::now_ns() - t0);
+    rt::PoolHandle h = rt::kInvalidHandle;
+    ASSERT_NE(feed.take_newest(&h), nullptr);  // the viewer keeps up: every call publishes
+    feed.release(h);
+  }
+  feed.set_wanted(false);  // no browser: on_frame only keeps a few maxima
+  for (int i = 0; i < 400; ++i) {
+    const int64_t t0 = rt::now_ns();
+    feed.on_frame(img.frame, info);
+    idle_ns.push_back(rt::now_ns() - t0);
+  }
+  auto median = [](std::vector<int64_t> v) {
+    std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(v.size() / 2), v.end());
+    return v[v.size() / 2];
+  };
+  const int64_t pub = median(publish_ns), idle = median(idle_ns);
+  std::printf("ViewerFeed::on_frame at VGA: median %.1f us publishing (at most 10 Hz), %.3f us with no browser\n",
+              1e-3 * static_cast<double>(pub), 1e-3 * static_cast<double>(idle));
+  EXPECT_EQ(feed.published(), 400u);
+  EXPECT_LT(pub, 2'000'000) << "publishing should be a few copies of ~270 kB";
+  EXPECT_LT(idle, 20'000) << "with no browser on_frame should copy nothing";
 }
 
 TEST(PlaybackControl, PauseHoldsAfterTheNextFrameAndStepLetsOneThrough) {
