@@ -5,11 +5,14 @@ Debian's chromium, headless, driven by chromedriver over the W3C WebDriver
 protocol (plain HTTP + JSON: no client library needed). Two modes:
 
   viewer  replays LOG with `kestrel replay --pace lockstep --view`, loads the
-          page, waits for the live data and checks what a person would see
-          (image updating, trajectory drawn in the 3-D view, the estimator's
-          name in the state panel, pause / step), throws bad requests at the
-          server meanwhile, then lets the replay finish and checks its metrics
-          (no estimator-thread allocation with a browser connected).
+          page with ?paused (the replay holds from the moment it connects, so
+          no check races a replay faster than real time), steps through the
+          first second of flight one frame at a time and checks what a person
+          would see (image updating, trajectory drawn in the 3-D view, the
+          estimator's name in the state panel, pause / step), throws bad
+          requests at the server meanwhile, then resumes, lets the replay
+          finish and checks its metrics (no estimator-thread allocation with
+          a browser connected).
   report  runs `kestrel eval --report` and checks the page opens with no
           network and shows its plots.
 
@@ -95,6 +98,11 @@ class Browser:
 
     def js(self, script, *args):
         return self.s("POST", "/execute/sync", {"script": script, "args": list(args)})
+
+    def js_async(self, script, timeout_s):
+        """A script that ends by calling its last argument with the result."""
+        self.s("POST", "/timeouts", {"script": int(timeout_s * 1000)})
+        return self.s("POST", "/execute/async", {"script": script, "args": []})
 
     def click(self, css):
         el = self.s("POST", "/element", {"using": "css selector", "value": css})
@@ -214,18 +222,41 @@ def run_viewer(args, b):
         check(url is not None, "kestrel replay --view printed the viewer's URL")
         port = int(re.search(r":(\d+)/", url).group(1))
 
-        b.go(url)
+        # ?paused: the page holds the lockstep replay as soon as it connects, so
+        # nothing below races a replay that runs faster than real time.
+        b.go(url + "?paused")
         b.wait("return window.kestrelViewer && window.kestrelViewer.connected", "the page connected its WebSocket")
         b.wait("return document.getElementById('estimator').textContent === 'window'",
                "the header names the estimator (window)")
-        # Lockstep runs faster than the log's own time: hold it as soon as
-        # there is something to look at, then look at it.
-        b.wait("const v = window.kestrelViewer; return v.framesShown >= 3 && v.trajectoryPoints >= 30",
-               "camera frames shown and >= 30 trajectory points in the 3-D view", 60)
-        b.click("#btn-pause")
-        # Pause holds after the next frame, and that frame is the one shown.
-        b.wait("const v = window.kestrelViewer; return v.paused && v.heldFrame > 0 && v.state.frames === v.heldFrame",
-               "pause reached the replay and the page shows the frame it holds at")
+        b.wait("const v = window.kestrelViewer; return v.paused && v.heldFrame > 0 && !!v.state && "
+               "v.state.frames === v.heldFrame", "?paused held the replay and the page shows the frame it holds at")
+        f0 = b.js("return window.kestrelViewer.state.frames")
+        # Step through the first second or so of flight, one frame at a time:
+        # each step lets exactly one frame through and the page shows it.
+        r = b.js_async("""
+          const done = arguments[arguments.length - 1];
+          const v = window.kestrelViewer;
+          const enough = () => v.framesShown >= 3 && v.trajectoryPoints >= 30 && v.keyframes >= 1 && v.mapPoints > 0;
+          let steps = 0;
+          function next() {
+            if (enough() || steps >= 300) { done({steps: steps, frames: v.state.frames}); return; }
+            const f = v.state.frames;
+            document.getElementById('btn-step').click();
+            ++steps;
+            const t0 = performance.now();
+            (function poll() {
+              if (v.paused && v.heldFrame === f + 1 && v.state.frames === f + 1) next();
+              else if (v.state.frames > f + 1) done({error: `step ${steps} let ${v.state.frames - f} frames through`});
+              else if (performance.now() - t0 > 15000)
+                done({error: `step ${steps} from frame ${f}: frame ${f + 1} not shown in 15 s (held ${v.heldFrame}, shown ${v.state.frames})`});
+              else setTimeout(poll, 10);
+            })();
+          }
+          next();""", 240)
+        check("error" not in r, f"every step let exactly one frame through and showed it ({r})")
+        check(r["frames"] == f0 + r["steps"], f"{r['steps']} steps from frame {f0} reached frame {r['frames']}")
+        check(b.js("const v = window.kestrelViewer; return v.framesShown >= 3 && v.trajectoryPoints >= 30"),
+              "camera frames shown and >= 30 trajectory points in the 3-D view")
         check(b.js("return document.getElementById('rgb').naturalWidth > 0"), "the camera image is shown")
         check(b.js("return document.getElementById('state-table').textContent.includes('window')"),
               "the state panel shows the estimator name")
@@ -245,7 +276,7 @@ def run_viewer(args, b):
           return n;""")
         check(lit > 500, f"the 3-D canvas shows drawn geometry ({lit} bright pixels)")
 
-        # Pause holds the replay; step lets exactly one frame through, and the image follows.
+        # Paused holds the replay; a step lets exactly one frame through, and the image element follows.
         f1 = b.js("return window.kestrelViewer.state.frames")
         time.sleep(1.5)
         f2 = b.js("return window.kestrelViewer.state.frames")
@@ -253,7 +284,7 @@ def run_viewer(args, b):
         src0 = b.js("return document.getElementById('rgb').src")
         b.click("#btn-step")
         b.wait(f"const v = window.kestrelViewer; return v.state.frames === {f1 + 1} && v.heldFrame === {f1 + 1}",
-               "step: exactly one more frame, shown", 10)
+               "step: exactly one more frame, shown", 15)
         b.wait(f"return document.getElementById('rgb').src !== {json.dumps(src0)} && "
                "document.getElementById('rgb').naturalWidth > 0", "the camera image element updates")
         time.sleep(1.0)

@@ -234,26 +234,37 @@ TEST(ViewerServer, AClientThatNeverReadsStallsNeitherThePublisherNorOtherBrowser
       if (reader.next(100, &op, &m) && op == 0x2 && !m.empty() && m[0] == 1) frames_read.fetch_add(1);
   });
   Images img;
-  int64_t worst_ns = 0;
-  const int64_t end = rt::now_ns() + 4'000'000'000;
+  std::vector<int64_t> publish_ns;
+  // Publish until the stalled browser has been let go and the other one has
+  // read its frames: on an idle machine ~2 s (the socket buffers fill, then
+  // the 1.5 s timeout), under a loaded test run longer; the deadline only
+  // bounds a failure.
+  const int64_t start = rt::now_ns(), deadline = start + 30'000'000'000;
   uint64_t n = 0;
-  while (rt::now_ns() < end) {
+  while (rt::now_ns() < deadline) {
     FrameInfo info;
     info.frames_fed = ++n;
     const int64_t t0 = rt::now_ns();
     f.feed->on_frame(img.frame, info);
-    worst_ns = std::max(worst_ns, rt::now_ns() - t0);
+    publish_ns.push_back(rt::now_ns() - t0);
     rt::sleep_for_ns(5'000'000);
+    if (rt::now_ns() - start > 2'000'000'000 && f.server->stats().clients_dropped >= 1 && frames_read.load() > 20)
+      break;
   }
   stop.store(true);
   read_thread.join();
   const ServerStats s = f.server->stats();
-  // The publisher copies and returns: a few hundred microseconds even on a loaded machine, never a wait.
-  EXPECT_LT(worst_ns, 20'000'000) << "on_frame took " << worst_ns * 1e-6 << " ms";
+  // The publisher copies and returns, never waits for a socket: a wait would
+  // slow every publish once the stalled socket is full, so the 95th
+  // percentile shows it; single slow calls are the test thread preempted.
+  std::sort(publish_ns.begin(), publish_ns.end());
+  const int64_t p95 = publish_ns[publish_ns.size() * 95 / 100];
+  EXPECT_LT(p95, 20'000'000) << "on_frame p95 " << p95 * 1e-6 << " ms, worst " << publish_ns.back() * 1e-6 << " ms";
   EXPECT_GT(f.feed->published(), 40u);
   EXPECT_GT(frames_read.load(), 20u) << "the reading browser starved";
   EXPECT_GT(s.frames_skipped_backlog, 0u) << "frames kept queueing for the stalled socket";
-  EXPECT_GE(s.clients_dropped, 1u) << "the stalled browser was never let go";
+  EXPECT_GE(s.clients_dropped, 1u) << "the stalled browser was never let go (in " << (rt::now_ns() - start) * 1e-9
+                                   << " s)";
 }
 
 TEST(ViewerServer, BandwidthCapSkipsFrames) {

@@ -380,7 +380,17 @@ $('btn-pause').onclick = () => command('pause');
 $('btn-step').onclick = () => command('step');
 $('btn-resume').onclick = () => command('resume');
 
+// http://host:port/?paused holds a lockstep replay from the moment the page
+// connects: a person can start stepping from the first frames instead of
+// racing a replay that runs faster than real time (and a test can too).
+const startPaused = new URLSearchParams(location.search).has('paused');
+let startPauseSent = false;
+
 function showControl(m) {
+  if (startPaused && !startPauseSent && m.available) {
+    startPauseSent = true;
+    if (!m.paused) command('pause');
+  }
   kv.controlsAvailable = m.available;
   kv.paused = m.paused;
   kv.heldFrame = m.paused ? m.frames : null;
