@@ -9,6 +9,8 @@ packages=(
   libgtest-dev libgmock-dev libbenchmark-dev libboost-dev
   libusb-1.0-0-dev libopenni2-dev   # V4L2 needs only linux/videodev2.h (linux-libc-dev, via build-essential)
   librosbag-dev libsensor-msgs-dev libgeometry-msgs-dev
+  libwebsocketpp-dev nlohmann-json3-dev   # tools/viewer: HTTP + WebSocket server (over Boost.Asio), its messages
+  libjs-three                             # the viewer page's 3-D view, served from /usr/share/javascript/three
   nodejs   # tests/mavlink: node-mavlink decoder. Debian ships npm apart (apt-get install npm where `npm` is missing;
            # not listed: it conflicts with a NodeSource nodejs, which bundles npm). Without npm the test skips loudly.
 )

@@ -32,4 +32,13 @@ std::unique_ptr<Estimator> make_estimator(const EstimatorConfig& c, const Rig& r
   throw std::invalid_argument("unknown estimator '" + name + "' (expected one of: " + estimator_names() + ")");
 }
 
+const Tracker* tracker_of(const Estimator& est) {
+  if (const auto* w = dynamic_cast<const WindowEstimator*>(&est)) return &w->front().tracker();
+  if (const auto* vo = dynamic_cast<const FrontendOdometry*>(&est)) return &vo->tracker();
+  if (const auto* e = dynamic_cast<const EkfEstimator*>(&est)) return &e->tracker();
+  return nullptr;
+}
+
+const WindowEstimator* window_of(const Estimator& est) { return dynamic_cast<const WindowEstimator*>(&est); }
+
 }  // namespace kestrel::core

@@ -157,6 +157,7 @@ struct Tracker::Impl {
         area_detected(new uint8_t[static_cast<size_t>(opt.area_grid_cols * opt.area_grid_rows)]),
         area_matched(new uint8_t[static_cast<size_t>(opt.area_grid_cols * opt.area_grid_rows)]),
         obs(new WindowObservation[static_cast<size_t>(capacity)]),
+        mark(new uint8_t[static_cast<size_t>(capacity)]),
         map_capacity(opt.map_capacity),
         map(new MapPoint[static_cast<size_t>(std::max(opt.map_capacity, 1))]),
         map_z(new double[static_cast<size_t>(capacity)]),
@@ -401,6 +402,7 @@ struct Tracker::Impl {
       map[i].stamp = map_stamp;
       cur.lm_id[j] = map[i].id;
       cur.map_idx[j] = i;
+      mark[j] |= FeatureMark::kMapPoint;
       add_observation(map[i].id, corr[order[k]].u_cur, cur.p_C[j].z(), corr[order[k]].sigma_px);
     }
   }
@@ -447,6 +449,7 @@ struct Tracker::Impl {
       c.match_cost = static_cast<float>(best_dist[j]);
       c.id = static_cast<uint32_t>(j);
       corr_cur[n] = j;
+      mark[j] |= FeatureMark::kMatched;
       ++n;
     }
     return n;
@@ -460,6 +463,7 @@ struct Tracker::Impl {
       const int j = corr_cur[idx];
       cur.lm_id[j] = kf.lm_id[best_kf[j]];
       cur.map_idx[j] = kf.map_idx[best_kf[j]];
+      mark[j] |= FeatureMark::kInlier;
       add_observation(cur.lm_id[j], corr[idx].u_cur, cur.has_depth[j] ? cur.p_C[j].z() : 0.0, corr[idx].sigma_px);
     }
   }
@@ -482,6 +486,7 @@ struct Tracker::Impl {
     cur.valid = true;
     kf.swap(cur);
     cur.valid = false;
+    mark_in_kf = true;
     res.keyframe = true;
   }
 
@@ -516,6 +521,11 @@ struct Tracker::Impl {
   std::unique_ptr<uint8_t[]> area_detected, area_matched;
   std::unique_ptr<WindowObservation[]> obs;
   int n_obs = 0;
+  // FeatureMark flags of the last frame's features, by feature index; that
+  // frame is kf after it became the keyframe (swapped), else cur.
+  std::unique_ptr<uint8_t[]> mark;
+  int n_mark = 0;
+  bool mark_in_kf = false;
   int map_capacity;
   std::unique_ptr<MapPoint[]> map;
   std::unique_ptr<double[]> map_z, map_sz;  // per map match: measured depth and its sigma
@@ -543,6 +553,35 @@ int64_t Tracker::keyframe_t_ns() const { return impl_->kf.t_ns; }
 int Tracker::num_observations() const { return impl_->n_obs; }
 const WindowObservation* Tracker::observations() const { return impl_->obs.get(); }
 
+int Tracker::copy_last_features(FeatureMark* out, int max_n) const {
+  const Impl& m = *impl_;
+  const FrameData& f = m.mark_in_kf ? m.kf : m.cur;
+  const int n = std::min({m.n_mark, f.feats.size(), std::max(max_n, 0)});
+  for (int j = 0; j < n; ++j) {
+    const OrbKeypoint& kp = f.feats.keypoint(j);
+    out[j].x_px = kp.x;
+    out[j].y_px = kp.y;
+    out[j].flags = m.mark[j];
+  }
+  return n;
+}
+
+int Tracker::copy_map_points(float* xyz, int max_n) const {
+  const Impl& m = *impl_;
+  if (max_n <= 0 || m.map_size == 0) return 0;
+  const int stride = (m.map_size + max_n - 1) / max_n;
+  int n = 0;
+  for (int i = 0; i < m.map_size && n < max_n; i += stride) {
+    const MapPoint& mp = m.map[i];
+    if (mp.id == 0) continue;
+    xyz[3 * n + 0] = static_cast<float>(mp.p_W.x());
+    xyz[3 * n + 1] = static_cast<float>(mp.p_W.y());
+    xyz[3 * n + 2] = static_cast<float>(mp.p_W.z());
+    ++n;
+  }
+  return n;
+}
+
 bool Tracker::set_keyframe_pose(int64_t t_ns, const Eigen::Isometry3d& T_WC) {
   if (!impl_->kf.valid || impl_->kf.t_ns != t_ns) return false;
   Impl& m = *impl_;
@@ -562,6 +601,8 @@ const TrackResult& Tracker::track(int64_t t_ns, const ImageView& image, const Im
   result_ = TrackResult{};
   result_.T_WC = T_WC_pred;
   m.n_obs = 0;
+  m.n_mark = 0;
+  m.mark_in_kf = false;
   if (image.data == nullptr) {
     result_.status = TrackStatus::kNoImage;
     return result_;
@@ -577,6 +618,8 @@ const TrackResult& Tracker::track(int64_t t_ns, const ImageView& image, const Im
   std::fill(m.cur.owned.get(), m.cur.owned.get() + m.cur.feats.size(), uint8_t{0});
   result_.detected = m.cur.feats.size();
   result_.with_depth = m.cur.with_depth;
+  m.n_mark = m.cur.feats.size();
+  for (int j = 0; j < m.n_mark; ++j) m.mark[j] = m.cur.has_depth[j] ? FeatureMark::kDepth : uint8_t{0};
 
   if (!m.kf.valid) {
     if (m.cur.with_depth >= 2 * opt_.min_inliers) {

@@ -247,6 +247,7 @@ void WindowEstimator::poll_results() {
   }
   if (r.seq <= last_applied_seq_) return;
   last_applied_seq_ = r.seq;
+  last_solve_ns_ = r.solve_ns;
   if (r.seq < first_seq_of_epoch_) {
     ++wc_.stale_results;
     return;
@@ -370,7 +371,8 @@ void WindowEstimator::process(int slot) {
       out.kf_q[3] = q.z();
     }
   }
-  opt_latency_.record(rt::now_ns() - t0);
+  out.solve_ns = rt::now_ns() - t0;
+  opt_latency_.record(out.solve_ns);
   if (threaded_) {
     results_.publish(out);
   } else {

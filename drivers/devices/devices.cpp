@@ -289,7 +289,7 @@ EstimatorSettings load_estimator_settings(const std::string& path) {
 
 namespace {
 constexpr const char* kThreadNames[kPipelineThreads] = {"kst-imu",       "kst-cam",       "kst-replay", "kst-propagate",
-                                                        "kst-estimator", "kst-optimizer", "kst-log"};
+                                                        "kst-estimator", "kst-optimizer", "kst-log",    "kst-viewer"};
 }  // namespace
 
 ThreadTable default_thread_table() {

@@ -148,6 +148,7 @@ bool ReplaySource::step() {
     }
     case RecordType::kGroundTruth:
       ++stats_.ground_truth;
+      if (gt_ring_ != nullptr) (void)gt_ring_->try_push(rec_.gt);
       break;
     case RecordType::kEvent:
       ++stats_.events;

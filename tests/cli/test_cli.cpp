@@ -8,6 +8,7 @@
 #include <fstream>
 #include <sstream>
 #include <string>
+#include <vector>
 
 #include "run_command.hpp"
 #include "test_data.hpp"
@@ -149,6 +150,40 @@ TEST(Replay, DemoChainScoresAgainstTheLogsGroundTruth) {
   const double ate = std::stod(e.out.substr(12));
   EXPECT_GT(ate, 0.0);
   EXPECT_LT(ate, 2.0);
+}
+
+// The viewer's and the report's options: mistakes are usage errors naming the
+// option, and a replay with --view but no browser runs to the end and says
+// what the viewer did (the browser tests cover a connected page).
+TEST(Cli, ViewAndReportOptionsAreCheckedAndAViewWithoutBrowserFinishes) {
+  struct Bad {
+    std::string args, names;
+  };
+  for (const Bad& b : std::vector<Bad>{
+           {"replay " + small_log() + " --view 70000", "--view '70000': expected [ADDR:]PORT"},
+           {"replay " + small_log() + " --view host:port", "--view 'host:port'"},
+           {"replay " + small_log() + " --view 127.0.0.1:0 --view-clients 0", "--view-clients must be"},
+           {"replay " + small_log() + " --view 127.0.0.1:0 --view-bandwidth 1", "--view-bandwidth must be"},
+           {"replay " + small_log() + " --view-wait 3", "need --view"},
+           {"run --config " + std::string(KESTREL_SOURCE_DIR) + "/configs/openni2_bmx055_i2c.yaml --view 70000",
+            "kestrel run: --view '70000'"},
+           {"eval --gt a.txt --est b.txt --metrics m.json", "--metrics goes with --report"},
+       }) {
+    const CmdResult r = run(b.args);
+    EXPECT_EQ(r.code, 2) << b.args << "\n" << r.out;
+    EXPECT_NE(r.out.find(b.names), std::string::npos) << b.args << "\n" << r.out;
+  }
+  const std::string dir = kestrel::test::temp_dir("cli_view");
+  const CmdResult r = run("replay " + small_log() + " --view 127.0.0.1:0 --metrics-out " + dir + "/m.json");
+  ASSERT_EQ(r.code, 0) << r.out;
+  EXPECT_NE(r.out.find("viewer: http://127.0.0.1:"), std::string::npos) << r.out;
+  const std::string m = slurp(dir + "/m.json");
+  EXPECT_NE(m.find("\"viewer\""), std::string::npos) << m;
+  EXPECT_NE(m.find("\"bins\""), std::string::npos) << m;  // what eval --report --metrics reads
+  const CmdResult bad_metrics = run("eval --gt " + small_log() + " --est " + small_log() + " --report " + dir +
+                                    "/r.html --metrics " + dir + "/absent.json");
+  EXPECT_EQ(bad_metrics.code, 1) << bad_metrics.out;
+  EXPECT_NE(bad_metrics.out.find("absent.json"), std::string::npos) << bad_metrics.out;
 }
 
 TEST(Replay, RealtimeReplayAppliesTheConfigsThreadTableAndReportsIt) {

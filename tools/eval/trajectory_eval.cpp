@@ -192,6 +192,50 @@ std::optional<TimedPose> pose_at(const Trajectory& trajectory, int64_t t_ns, int
   return std::nullopt;
 }
 
+RpeStats relative_pose_error(const EvalResult& r, double delta_s, double max_gap_ms) {
+  if (!(delta_s > 0) || !std::isfinite(delta_s)) throw std::invalid_argument("RPE delta must be > 0 s");
+  RpeStats out;
+  out.delta_s = delta_s;
+  // Pair each pose with the first one at least delta later. It is accepted when
+  // it lies within max(max_gap, median estimate period) of t_i + delta: close
+  // enough for any regular estimator, but a pair across a hole (or past the end,
+  // which would silently shorten delta) is not made.
+  const auto delta_ns = static_cast<int64_t>(std::llround(delta_s * 1e9));
+  const auto max_gap_ns = static_cast<int64_t>(std::llround(max_gap_ms * 1e6));
+  const auto& E = r.est_aligned;
+  int64_t median_dt_ns = 0;
+  if (E.size() >= 2) {
+    std::vector<int64_t> dts;
+    dts.reserve(E.size() - 1);
+    for (size_t i = 1; i < E.size(); ++i) dts.push_back(E[i].t_ns - E[i - 1].t_ns);
+    std::nth_element(dts.begin(), dts.begin() + static_cast<std::ptrdiff_t>(dts.size() / 2), dts.end());
+    median_dt_ns = dts[dts.size() / 2];
+  }
+  const int64_t pair_tol_ns = std::max(max_gap_ns, median_dt_ns);
+  std::vector<double> rpe_t, rpe_r, rpe_t_per_s;
+  for (size_t i = 0; i < E.size(); ++i) {
+    const int64_t target = E[i].t_ns + delta_ns;
+    const auto it = std::lower_bound(E.begin() + static_cast<std::ptrdiff_t>(i) + 1, E.end(), target,
+                                     [](const TimedPose& p, int64_t t) { return p.t_ns < t; });
+    if (it == E.end()) break;   // later starts reach further still
+    if (it->t_ns - target > pair_tol_ns) continue;
+    const size_t j = static_cast<size_t>(it - E.begin());
+    double et = 0, er = 0;
+    relative_error(r.gt_matched[i], r.gt_matched[j], E[i], E[j], &et, &er);
+    rpe_t.push_back(et);
+    rpe_r.push_back(er * kRadToDeg);
+    rpe_t_per_s.push_back(et / (static_cast<double>(E[j].t_ns - E[i].t_ns) * 1e-9));
+  }
+  out.pairs = static_cast<int>(rpe_t.size());
+  const Stats st = make_stats(rpe_t), sr = make_stats(rpe_r), sps = make_stats(rpe_t_per_s);
+  out.trans_rmse_m = st.rmse;
+  out.trans_mean_m = st.mean;
+  out.trans_m_per_s = sps.rmse;
+  out.rot_rmse_deg = sr.rmse;
+  out.rot_mean_deg = sr.mean;
+  return out;
+}
+
 EvalResult evaluate(const Trajectory& gt_in, const Trajectory& est_in, const EvalOptions& opt) {
   if (!(opt.max_gap_ms >= 0) || !std::isfinite(opt.max_gap_ms))
     throw std::invalid_argument("max_gap_ms must be a finite value >= 0");
@@ -296,46 +340,18 @@ EvalResult evaluate(const Trajectory& gt_in, const Trajectory& est_in, const Eva
                               : (r.matched > 0 ? 1.0 : 0.0);
 
   // ---- RPE over a fixed time step ----
-  // Pair each pose with the first one at least delta later. It is accepted when
-  // it lies within max(max_gap, median estimate period) of t_i + delta: close
-  // enough for any regular estimator, but a pair across a hole (or past the end,
-  // which would silently shorten delta) is not made.
-  const auto delta_ns = static_cast<int64_t>(std::llround(opt.rpe_delta_s * 1e9));
-  const auto& E = r.est_aligned;
-  int64_t median_dt_ns = 0;
-  if (E.size() >= 2) {
-    std::vector<int64_t> dts;
-    dts.reserve(E.size() - 1);
-    for (size_t i = 1; i < E.size(); ++i) dts.push_back(E[i].t_ns - E[i - 1].t_ns);
-    std::nth_element(dts.begin(), dts.begin() + static_cast<std::ptrdiff_t>(dts.size() / 2), dts.end());
-    median_dt_ns = dts[dts.size() / 2];
-  }
-  const int64_t pair_tol_ns = std::max(max_gap_ns, median_dt_ns);
-  std::vector<double> rpe_t, rpe_r, rpe_t_per_s;
-  for (size_t i = 0; i < E.size(); ++i) {
-    const int64_t target = E[i].t_ns + delta_ns;
-    const auto it = std::lower_bound(E.begin() + static_cast<std::ptrdiff_t>(i) + 1, E.end(), target,
-                                     [](const TimedPose& p, int64_t t) { return p.t_ns < t; });
-    if (it == E.end()) break;   // later starts reach further still
-    if (it->t_ns - target > pair_tol_ns) continue;
-    const size_t j = static_cast<size_t>(it - E.begin());
-    double et = 0, er = 0;
-    relative_error(r.gt_matched[i], r.gt_matched[j], E[i], E[j], &et, &er);
-    rpe_t.push_back(et);
-    rpe_r.push_back(er * kRadToDeg);
-    rpe_t_per_s.push_back(et / (static_cast<double>(E[j].t_ns - E[i].t_ns) * 1e-9));
-  }
-  r.rpe_pairs = static_cast<int>(rpe_t.size());
-  const Stats st = make_stats(rpe_t), sr = make_stats(rpe_r), sps = make_stats(rpe_t_per_s);
-  r.rpe_trans_rmse_m = st.rmse;
-  r.rpe_trans_mean_m = st.mean;
-  r.rpe_trans_m_per_s = sps.rmse;
-  r.rpe_rot_rmse_deg = sr.rmse;
-  r.rpe_rot_mean_deg = sr.mean;
+  const RpeStats rpe = relative_pose_error(r, opt.rpe_delta_s, opt.max_gap_ms);
+  r.rpe_pairs = rpe.pairs;
+  r.rpe_trans_rmse_m = rpe.trans_rmse_m;
+  r.rpe_trans_mean_m = rpe.trans_mean_m;
+  r.rpe_trans_m_per_s = rpe.trans_m_per_s;
+  r.rpe_rot_rmse_deg = rpe.rot_rmse_deg;
+  r.rpe_rot_mean_deg = rpe.rot_mean_deg;
   if (r.rpe_pairs == 0)
     r.warnings.push_back("no RPE pairs: the associated estimate spans less than rpe_delta_s = " +
                          num(opt.rpe_delta_s) + " s or has no poses that far apart");
 
+  const auto& E = r.est_aligned;
   // ---- RPE over travelled distance (KITTI odometry style) ----
   std::vector<double> dist(E.size(), 0.0);
   for (size_t i = 1; i < E.size(); ++i) dist[i] = dist[i - 1] + (r.gt_matched[i].p - r.gt_matched[i - 1].p).norm();

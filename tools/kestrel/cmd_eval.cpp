@@ -22,6 +22,8 @@ struct EvalArgs {
   bool json = false;
   std::string plot_path;
   std::string aligned_out;
+  std::string report_path;
+  std::string metrics_path;
 };
 
 std::string num(double v) {
@@ -35,6 +37,8 @@ void print_warnings(const std::vector<std::string>& warnings) {
 }
 
 int run_eval(const EvalArgs& a) {
+  if (!a.metrics_path.empty() && a.report_path.empty())
+    throw UsageError("--metrics goes with --report (its latency histograms go into the page)");
   tools::EvalOptions opt;
   const auto align = tools::parse_alignment(a.align);
   if (!align) throw UsageError("unknown --align '" + a.align + "' (expected se3, sim3, posyaw or none)");
@@ -55,6 +59,14 @@ int run_eval(const EvalArgs& a) {
   const tools::Trajectory est = tools::load_trajectory(a.est_path, &est_warnings);
   print_warnings(est_warnings);
 
+  // The metrics file is read before anything is computed: a bad one is a
+  // mistake to report at once, not after the evaluation.
+  tools::HtmlReportOptions report;
+  if (!a.metrics_path.empty()) {
+    report.latencies = tools::read_replay_latencies(a.metrics_path);
+    report.metrics_file = a.metrics_path;
+  }
+
   tools::EvalResult result = tools::evaluate(gt, est, opt);
   result.gt_file = a.gt_path;
   result.est_file = a.est_path;
@@ -72,6 +84,12 @@ int run_eval(const EvalArgs& a) {
   if (!a.plot_path.empty()) {
     tools::write_svg_plot(a.plot_path, gt, result, a.est_path);
     std::fprintf(stderr, "kestrel eval: plot written to %s\n", a.plot_path.c_str());
+  }
+  if (!a.report_path.empty()) {
+    report.title = "Kestrel: " + a.est_path + " against " + a.gt_path;
+    report.max_gap_ms = a.max_gap_ms;
+    tools::write_html_report(a.report_path, gt, result, report);
+    std::fprintf(stderr, "kestrel eval: report written to %s\n", a.report_path.c_str());
   }
   if (!a.aligned_out.empty()) {
     tools::write_tum(a.aligned_out, result.est_aligned);
@@ -101,6 +119,11 @@ Subcommand add_eval_command(CLI::App& parent) {
       ->capture_default_str();
   app->add_flag("--json", args->json, "print a JSON object instead of key: value lines");
   app->add_option("--plot", args->plot_path, "write an SVG plot (top view + error over time)");
+  app->add_option("--report", args->report_path,
+                  "write a self-contained HTML page: top/side views after alignment, error over time and per axis, "
+                  "RPE over several time steps (opens with no network)");
+  app->add_option("--metrics", args->metrics_path,
+                  "with --report: a `kestrel replay --metrics-out` JSON whose latency histograms go into the page");
   app->add_option("--save-aligned", args->aligned_out, "write the aligned, associated estimate as TUM text");
   return Subcommand{app, [args]() { return run_eval(*args); }};
 }

@@ -9,6 +9,7 @@
 #include "kestrel/drivers/devices.hpp"
 #include "kestrel/mavlink/udp_sender.hpp"
 #include "kestrel/replay_runner.hpp"
+#include "kestrel/view_cli.hpp"
 #include "kestrel/tools/estimator_config_yaml.hpp"
 
 namespace kestrel::cli {
@@ -27,6 +28,7 @@ Subcommand add_replay_command(CLI::App& parent) {
     bool quiet = false;
     std::string mavlink_udp;
     std::string status = "auto";
+    ViewArgs view;
     bool print_config = false;
   };
   auto args = std::make_shared<Args>();
@@ -70,6 +72,7 @@ Subcommand add_replay_command(CLI::App& parent) {
   app->add_option("--status", args->status,
                   "1 Hz status line (per second of log time): on, off, auto (= on in realtime pace)")
       ->capture_default_str();
+  add_view_options(app, args->view, true);
 
   Subcommand cmd;
   cmd.app = app;
@@ -102,6 +105,14 @@ Subcommand add_replay_command(CLI::App& parent) {
       throw UsageError("--status must be on, off or auto");
     opt.status_line = !args->quiet && (args->status == "on" ||
                                        (args->status == "auto" && opt.pace == drivers::ReplayPace::kRealtime));
+    if (!args->view.endpoint.empty()) {
+      opt.view = true;
+      opt.view_options = view_server_options(args->view, "replay " + args->path);
+      opt.view_wait_s = args->view.wait_s;
+      opt.on_view_ready = [args](const viewer::Server& s) { print_view_ready(s, args->view); };
+    } else if (app->count("--view-wait") + app->count("--view-clients") + app->count("--view-bandwidth") > 0) {
+      throw UsageError("--view-wait, --view-clients and --view-bandwidth need --view [ADDR:]PORT");
+    }
     if (args->print_config) {
       // With a log, open it first: the settings printed are the ones a replay of it would run with.
       if (!args->path.empty()) {

@@ -26,6 +26,9 @@
 #include "kestrel/rt/mailbox.hpp"
 #include "kestrel/rt/spsc_ring.hpp"
 #include "kestrel/rt/thread_setup.hpp"
+#include "kestrel/view_cli.hpp"
+#include "kestrel/viewer/feed.hpp"
+#include "kestrel/viewer/server.hpp"
 
 namespace kestrel::cli {
 namespace {
@@ -83,6 +86,7 @@ struct RunArgs {
   std::string estimator;
   double duration_s = 0;
   std::string mavlink_udp;
+  ViewArgs view;
   bool print_config = false;
 };
 
@@ -108,6 +112,7 @@ Subcommand add_run_command(CLI::App& parent) {
   app->add_option("--duration", a->duration_s, "seconds to run (0 = until Ctrl-C)")->capture_default_str();
   app->add_option("--mavlink-udp", a->mavlink_udp,
                   "stream MAVLink v2 ODOMETRY to HOST:PORT at the pose rate (flight controller; docs/px4.md)");
+  add_view_options(app, a->view, false);
   app->footer("Runs: live drivers -> sensor rings -> kst-propagate (IMU-rate pose at once) -> estimator thread (IMU and\n"
               "frames in time order) -> kst-optimizer; thread scheduling from the config's threads: table.\n"
               "Without the sensors it exits with 1 naming what is missing.");
@@ -133,6 +138,8 @@ Subcommand add_run_command(CLI::App& parent) {
       mo.endpoint = a->mavlink_udp;
       odometry = std::make_unique<mavlink::OdometryStream>(mo);
     }
+    viewer::ServerOptions view_options;
+    if (!a->view.endpoint.empty()) view_options = view_server_options(a->view, "run " + a->config);
     drivers::LiveSensors sensors(cfg);
     const size_t max_image = static_cast<size_t>(cfg.drivers.camera.width_px) * cfg.drivers.camera.height_px * 3;
     auto rings = std::make_unique<drivers::SensorRings>(max_image);
@@ -159,6 +166,14 @@ Subcommand add_run_command(CLI::App& parent) {
     auto imu_pose = std::make_unique<rt::Mailbox<OutPose>>();
     ImuRateStage propagation(rings->imu, *est_imu, *anchor, cfg.rig, kWarmupNs, *imu_pose);
     std::atomic<bool> propagation_stop{false};
+    // The live viewer (docs/viewer.md): snapshots from the estimator thread, served on kst-viewer.
+    std::unique_ptr<viewer::ViewerFeed> feed;
+    std::unique_ptr<viewer::Server> view;
+    if (!a->view.endpoint.empty()) {
+      feed = std::make_unique<viewer::ViewerFeed>(*est, cfg.rig);
+      view = std::make_unique<viewer::Server>(view_options, *feed);
+      view->set_imu_latency_probe([&propagation] { return propagation.take_recent_max_ns(); });
+    }
     // The config's thread table (`threads:`, or the defaults): a refused
     // SCHED_FIFO or CPU pin leaves the thread running, and the summary says so.
     using drivers::PipelineThread;
@@ -273,6 +288,15 @@ Subcommand add_run_command(CLI::App& parent) {
           anchor->publish(to_anchor(est->output()));
           const int64_t t_track = rt::now_ns() - t_track0;
           if (t_track > track_max_ns) track_max_ns = t_track;
+          if (feed) {
+            viewer::FrameInfo vi;
+            vi.tracking_ns = t_track;
+            vi.frames_fed = frames_seen.load(std::memory_order_relaxed) + 1;
+            vi.imu_ring_drops = rings->imu.drops();
+            vi.frame_ring_drops = rings->frames.drops() + frames.drops;
+            vi.imu_gaps = est->counters().imu_rejects.gaps;
+            feed->on_frame(f, vi);
+          }
           last_frame_t_ns = m->t_ns;
           emit(m->t_ns);
           rings->images.release(m->rgb_handle);
@@ -295,6 +319,11 @@ Subcommand add_run_command(CLI::App& parent) {
         },
         &sched);
     applied.push_back(applied_thread(cfg.threads[PipelineThread::kPropagate], sched));
+    if (view) {
+      applied.push_back(
+          applied_thread(cfg.threads[PipelineThread::kViewer], view->start(cfg.threads[PipelineThread::kViewer])));
+      print_view_ready(*view, a->view);
+    }
     uint64_t imu_rate_poses = 0, imu_pose_version = 0;
     const int64_t t0 = rt::now_ns();
     sensors.start(imu, frames);
@@ -311,8 +340,9 @@ Subcommand add_run_command(CLI::App& parent) {
       }
       OutPose p;
       while (poses->try_pop(p)) {
-        if (!odometry) continue;
-        odometry->publish(odometry_input_of(pose_sample_of(p)));
+        const PoseSample ps = pose_sample_of(p);
+        if (view) view->add_pose(ps.t_ns, ps.p_WB, ps.q_WB, ps.quality);
+        if (odometry) odometry->publish(odometry_input_of(ps));
       }
       if (rt::now_ns() >= next_print) {
         next_print += 1'000'000'000;
@@ -336,6 +366,10 @@ Subcommand add_run_command(CLI::App& parent) {
     consumer_stop.store(true);
     consumer.join();
     if (optimizer.joinable()) optimizer.join();
+    if (view) {
+      view->mark_finished("kestrel run stopped");
+      view->stop();
+    }
     std::signal(SIGINT, SIG_DFL);
     std::signal(SIGTERM, SIG_DFL);
     std::printf("%s", sensors.report().c_str());
@@ -353,6 +387,7 @@ Subcommand add_run_command(CLI::App& parent) {
                   (unsigned long long)ps.poses, 1e-9 * static_cast<double>(kWarmupNs),
                   (unsigned long long)ps.forward_drops);
     }
+    if (view) std::printf("%s", viewer::stats_summary(view->stats()).c_str());
     if (odometry)
       std::printf("MAVLink ODOMETRY to %s: %llu sent, %llu failed, %llu pose-ring drops\n", odometry->endpoint().c_str(),
                   (unsigned long long)odometry->stats().sent, (unsigned long long)odometry->stats().failed,

@@ -63,7 +63,12 @@ bool ImuRateStage::step() {
       o.reset_counter = anchor_reset_counter_;
       imu_pose_.publish(o);
       ++stats_.poses;
-      if (counting_) stats_.imu_to_output.record(rt::now_ns() - s.t_recv_ns);
+      const int64_t latency = rt::now_ns() - s.t_recv_ns;
+      if (counting_) stats_.imu_to_output.record(latency);
+      // A reader may reset it between the load and the store: it then sees
+      // this one sample's max late, which a display can afford.
+      if (latency > recent_max_ns_.load(std::memory_order_relaxed))
+        recent_max_ns_.store(latency, std::memory_order_relaxed);
     }
   }
   return any;

@@ -8,6 +8,7 @@
 // no lock in step() (docs/threads.md).
 #pragma once
 
+#include <atomic>
 #include <cstdint>
 
 #include "kestrel/core/estimator.hpp"
@@ -73,6 +74,9 @@ class ImuRateStage {
   void finish();
   // Read after the thread stopped.
   const ImuRateStats& stats() const { return stats_; }
+  // Any thread, while it runs (the live viewer's latency plot): the largest
+  // sample -> pose latency since the previous call [ns].
+  int64_t take_recent_max_ns() { return recent_max_ns_.exchange(0, std::memory_order_relaxed); }
 
  private:
   void refresh_anchor();
@@ -92,6 +96,7 @@ class ImuRateStage {
   bool counting_ = false;
   uint64_t allocs_at_warmup_ = 0;
   ImuRateStats stats_;
+  std::atomic<int64_t> recent_max_ns_{0};
 };
 
 }  // namespace kestrel::cli

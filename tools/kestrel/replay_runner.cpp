@@ -14,8 +14,7 @@
 #include <thread>
 
 #include "kestrel/core/estimator_factory.hpp"
-#include "kestrel/core/frontend_odometry.hpp"
-#include "kestrel/core/window_estimator.hpp"
+#include "kestrel/core/tracker.hpp"
 #include "kestrel/imu_rate_stage.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"
 #include "kestrel/rt/alloc_counter.hpp"
@@ -120,9 +119,11 @@ class EstimatorStage {
   // imu: the ring this stage takes IMU samples from (the sensor ring, or the
   // propagation stage's forward ring); anchor: where to publish the state for
   // the propagation stage (nullptr: no such stage, this thread is the output).
+  // feed: the live viewer's hand-off (nullptr: no viewer).
   EstimatorStage(core::Estimator& est, drivers::SensorRings& rings, ImuRing& imu,
                  rt::SpscRing<OutPose, kOutRingCapacity>& out, rt::Mailbox<PipelineStatus>& status,
-                 rt::Mailbox<Anchor>* anchor, const ReplayOptions& opt, const Rig& rig, ReplayReport& report)
+                 rt::Mailbox<Anchor>* anchor, const ReplayOptions& opt, const Rig& rig, ReplayReport& report,
+                 viewer::ViewerFeed* feed)
       : est_(est),
         rings_(rings),
         imu_(imu),
@@ -130,7 +131,8 @@ class EstimatorStage {
         status_(status),
         anchor_(anchor),
         opt_(opt),
-        report_(report) {
+        report_(report),
+        feed_(feed) {
     frame_period_ns_ = rig.camera_rate_hz > 0 ? static_cast<int64_t>(1e9 / rig.camera_rate_hz) : 0;
     imu_gap_ns_ = rig.imu_rate_hz > 0 ? static_cast<int64_t>(5e9 / rig.imu_rate_hz) : 50'000'000;
   }
@@ -164,6 +166,8 @@ class EstimatorStage {
       report_.steady_allocs = static_cast<int64_t>(rt::alloc_count_this_thread() - allocs_at_warmup_);
     report_.input_faults = faults_;
   }
+
+  uint64_t frames_fed() const { return frames_fed_; }
 
  private:
   void maybe_start_steady_state(int64_t t_ns) {
@@ -249,6 +253,7 @@ class EstimatorStage {
       report_.imu_to_output.record(latency);
     }
     if (latency > window_imu_max_ns_) window_imu_max_ns_ = latency;
+    if (latency > imu_max_since_frame_ns_) imu_max_since_frame_ns_ = latency;
     for (int i = 0; i < 3; ++i) last_gyro_rps_[i] = s.gyro_rps[i];
     // Without a camera the trajectory is sampled from the IMU-rate output.
     const bool camera_silent = last_frame_t_ns_ < 0 || s.t_ns - last_frame_t_ns_ > 1'000'000'000;
@@ -277,10 +282,28 @@ class EstimatorStage {
         report_.tracking.record(t1 - t0);
         ++report_.steady_frames;
       }
+      if (feed_ != nullptr) publish_view(f, t1 - t0);
     }
     if (m.rgb_handle != rt::kInvalidHandle) rings_.images.release(m.rgb_handle);
     if (m.depth_handle != rt::kInvalidHandle) rings_.images.release(m.depth_handle);
     if (est_.output().quality != core::TrackingQuality::kUninitialized) emit(est_.output());
+  }
+
+  // The live viewer's snapshot: copies only, into memory sized at start-up.
+  void publish_view(const core::RgbdFrame& f, int64_t tracking_ns) {
+    viewer::FrameInfo vi;
+    vi.tracking_ns = tracking_ns;
+    vi.imu_to_pose_max_ns = imu_max_since_frame_ns_;
+    imu_max_since_frame_ns_ = 0;
+    vi.frames_fed = frames_fed_;
+    vi.imu_ring_drops = rings_.imu.drops();
+    vi.frame_ring_drops = rings_.frames.drops();
+    vi.frames_missing = faults_.missing;
+    vi.frames_out_of_order = faults_.out_of_order;
+    vi.frames_repeated = faults_.repeated;
+    vi.frames_no_depth = faults_.no_depth;
+    vi.imu_gaps = faults_.imu_gaps;
+    feed_->on_frame(f, vi);
   }
 
   // Counts camera faults; false withholds the frame from the estimator.
@@ -311,6 +334,8 @@ class EstimatorStage {
   rt::Mailbox<Anchor>* anchor_;
   const ReplayOptions& opt_;
   ReplayReport& report_;
+  viewer::ViewerFeed* feed_;
+  int64_t imu_max_since_frame_ns_ = 0;
   int64_t frame_period_ns_ = 0;
   int64_t imu_gap_ns_ = 50'000'000;
   int64_t newest_t_ns_ = -1;  // newest record time seen (log time)
@@ -335,8 +360,9 @@ class EstimatorStage {
 class OutputStage {
  public:
   OutputStage(rt::SpscRing<OutPose, kOutRingCapacity>& out, const rt::Mailbox<PipelineStatus>& status,
-              const ReplayOptions& opt, ReplayReport& report, const rt::Mailbox<OutPose>* imu_pose)
-      : out_(out), status_(status), opt_(opt), report_(report), imu_pose_(imu_pose) {
+              const ReplayOptions& opt, ReplayReport& report, const rt::Mailbox<OutPose>* imu_pose,
+              viewer::Server* view)
+      : out_(out), status_(status), opt_(opt), report_(report), imu_pose_(imu_pose), view_(view) {
     if (!opt.mavlink_udp.empty()) {
       mavlink::OdometryStreamOptions mo;
       mo.endpoint = opt.mavlink_udp;
@@ -369,6 +395,7 @@ class OutputStage {
       }
       if (opt_.on_pose) opt_.on_pose(s);
       if (mavlink_) mavlink_->publish(odometry_input_of(s));
+      if (view_ != nullptr) view_->add_pose(s.t_ns, s.p_WB, s.q_WB, s.quality);
     }
     if (opt_.status_line) {
       PipelineStatus st;
@@ -404,6 +431,7 @@ class OutputStage {
   uint64_t status_version_ = 0;
   const rt::Mailbox<OutPose>* imu_pose_ = nullptr;
   uint64_t imu_pose_version_ = 0;
+  viewer::Server* view_ = nullptr;
 };
 
 }  // namespace
@@ -463,18 +491,42 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   estimator.set_threaded_optimizer(optimizer_thread);
 
   drivers::ReplaySource source(*log, *rings, opt.pace);
+  // The live viewer: its snapshot pool is sized here with the rest.
+  std::unique_ptr<viewer::ViewerFeed> feed;
+  std::unique_ptr<viewer::PlaybackControl> control;
+  std::unique_ptr<viewer::Server> view;
+  if (opt.view) {
+    feed = std::make_unique<viewer::ViewerFeed>(estimator, log->rig());
+    control = std::make_unique<viewer::PlaybackControl>(opt.pace == drivers::ReplayPace::kLockstep, feed.get());
+    view = std::make_unique<viewer::Server>(opt.view_options, *feed, control.get());
+    source.set_ground_truth_ring(&feed->ground_truth_ring());
+  }
   EstimatorStage stage(estimator, *rings, realtime ? *est_imu : rings->imu, *out, *status,
-                       realtime ? anchor.get() : nullptr, opt, log->rig(), report);
+                       realtime ? anchor.get() : nullptr, opt, log->rig(), report, feed.get());
   auto imu_pose = std::make_unique<rt::Mailbox<OutPose>>();
   ImuRateStage propagator(rings->imu, *est_imu, *anchor, log->rig(), opt.warmup_ns, *imu_pose);
-  OutputStage output(*out, *status, opt, report, imu_pose.get());
+  OutputStage output(*out, *status, opt, report, imu_pose.get(), view.get());
+  if (view) {
+    // In realtime pace kst-propagate owns the IMU -> pose figure.
+    if (realtime) view->set_imu_latency_probe([&propagator] { return propagator.take_recent_max_ns(); });
+    const rt::ThreadSpec& spec = opt.threads[drivers::PipelineThread::kViewer];
+    report.threads.push_back(applied_thread(spec, view->start(spec)));
+    report.view = true;
+    if (opt.on_view_ready) opt.on_view_ready(*view);
+    if (opt.view_wait_s > 0) view->wait_for_client(static_cast<int64_t>(opt.view_wait_s * 1e9));
+  }
 
   const int64_t wall0 = rt::now_ns();
   const double cpu0 = process_cpu_s();
   if (opt.pace == drivers::ReplayPace::kLockstep) {
     // One thread, strictly alternating: the same log and config give the same
-    // trajectory bit for bit.
-    while (source.step()) {
+    // trajectory bit for bit. A paused viewer holds it between records.
+    for (;;) {
+      while (control && !control->may_proceed(stage.frames_fed())) {
+        output.drain();
+        rt::sleep_for_ns(5'000'000);
+      }
+      if (!source.step()) break;
       stage.drain(false, true);
       output.drain();
     }
@@ -590,6 +642,16 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     report.log_duration_s = 1e-9 * static_cast<double>(report.replay.last_t_ns - report.replay.first_t_ns);
   report.realtime_factor = report.wall_s > 0 ? report.log_duration_s / report.wall_s : 0;
   report.peak_rss_mb = peak_rss_mb();
+  if (view) {
+    report.viewer_snapshots = feed->published();
+    report.viewer_snapshots_skipped = feed->skipped_busy();
+    char line[160];
+    std::snprintf(line, sizeof line, "replay finished: %zu poses, %.1f s of log in %.1f s", report.trajectory.size(),
+                  report.log_duration_s, report.wall_s);
+    view->mark_finished(line);
+    view->stop();
+    report.viewer = view->stats();
+  }
   return report;
 }
 
@@ -606,6 +668,16 @@ Json histogram_json(const rt::LatencyHistogram& h) {
   j["p90_ms"] = json_figure(empty ? nan : 1e-6 * static_cast<double>(h.percentile(90)));
   j["p99_ms"] = json_figure(empty ? nan : 1e-6 * static_cast<double>(h.percentile(99)));
   j["max_ms"] = json_figure(empty ? nan : 1e-6 * static_cast<double>(h.max()));
+  // The whole distribution, for `kestrel eval --report --metrics`: the
+  // non-empty bins as [lower bound ns, width ns, count].
+  Json bins = Json::array();
+  for (size_t i = 0; i < rt::LatencyHistogram::kBins; ++i) {
+    const uint64_t n = h.bin_count(i);
+    if (n == 0) continue;
+    bins.push_back(Json::array({static_cast<int64_t>(rt::LatencyHistogram::bin_lower(i)),
+                                static_cast<int64_t>(rt::LatencyHistogram::bin_width(i)), n}));
+  }
+  j["bins"] = std::move(bins);
   return j;
 }
 }  // namespace
@@ -712,20 +784,43 @@ std::string replay_metrics_json(const ReplayReport& r) {
                            {"applied", t.applied},
                            {"error", t.error}});
   j["threads"] = std::move(threads);
+  if (r.view) {
+    const viewer::ServerStats& v = r.viewer;
+    const bool streamed = v.streaming_s > 0;
+    j["viewer"] = Json{
+        {"browsers", v.clients},
+        {"browsers_peak", static_cast<int64_t>(v.clients_peak)},
+        {"streaming_s", json_figure(v.streaming_s)},
+        {"kbytes_per_s", streamed ? 1e-3 * static_cast<double>(v.streaming_bytes) / v.streaming_s : 0.0},
+        {"cpu_ms_per_s", streamed ? 1e3 * v.streaming_cpu_s / v.streaming_s : 0.0},
+        {"cpu_s", json_figure(v.cpu_s)},
+        {"bytes_sent", v.bytes_sent},
+        {"snapshots_published", r.viewer_snapshots},
+        {"snapshots_skipped", r.viewer_snapshots_skipped},
+        {"frames_sent", v.frames_sent},
+        {"frames_skipped_budget", v.frames_skipped_budget},
+        {"frames_skipped_backlog", v.frames_skipped_backlog},
+        {"connections", v.connections},
+        {"connections_refused", v.connections_refused},
+        {"browsers_refused", v.clients_refused},
+        {"browsers_dropped", v.clients_dropped},
+        {"http_requests", v.http_requests},
+        {"http_errors", v.http_errors},
+        {"protocol_errors", v.protocol_errors},
+        {"commands", v.commands},
+        {"bad_commands", v.bad_commands}};
+  }
   Json problems = Json::array();
   for (const auto& p : r.problems) problems.push_back(Json{{"where", p.where}, {"kind", p.kind}, {"detail", p.detail}});
   j["problems"] = std::move(problems);
   return tools::json_text(j);
 }
 
-// The one place the harness looks behind the Estimator interface.
 void frame_stats(const core::Estimator& est, int& features, int& inliers) {
   features = inliers = -1;
-  const core::FrontendOdometry* vo = dynamic_cast<const core::FrontendOdometry*>(&est);
-  if (const auto* w = dynamic_cast<const core::WindowEstimator*>(&est)) vo = &w->front();
-  if (vo != nullptr) {
-    features = vo->last_track().detected;
-    inliers = vo->last_track().inliers;
+  if (const core::Tracker* t = core::tracker_of(est)) {
+    features = t->last().detected;
+    inliers = t->last().inliers;
   }
 }
 
@@ -844,6 +939,7 @@ std::string replay_summary(const ReplayReport& r) {
                   static_cast<unsigned long long>(r.mavlink_failed));
     s += buf;
   }
+  if (r.view) s += viewer::stats_summary(r.viewer);
   if (r.alloc_counting) {
     std::snprintf(buf, sizeof buf, "estimator-thread heap allocations after warm-up: %lld\n",
                   static_cast<long long>(r.steady_allocs));

@@ -22,6 +22,7 @@
 #include "kestrel/mavlink/odometry_adapter.hpp"
 #include "kestrel/rt/latency_histogram.hpp"
 #include "kestrel/tools/trajectory_eval.hpp"
+#include "kestrel/viewer/server.hpp"
 
 namespace kestrel::cli {
 
@@ -128,6 +129,15 @@ struct ReplayOptions {
   // The 1 Hz status line: to on_status, else to stdout.
   bool status_line = false;
   std::function<void(const PipelineStatus&, const std::string&)> on_status;
+  // The live viewer (tools/viewer, docs/viewer.md), served while the replay
+  // runs; its thread is the table's kst-viewer. Lockstep pace gets pause and
+  // step from the page.
+  bool view = false;
+  viewer::ServerOptions view_options;
+  // Wait up to this long for a browser before the first record (0: start at once).
+  double view_wait_s = 0;
+  // Called once the viewer listens (the CLI prints where to point a browser).
+  std::function<void(const viewer::Server&)> on_view_ready;
 };
 
 struct ReplayReport {
@@ -177,6 +187,10 @@ struct ReplayReport {
   uint64_t steady_frames = 0;
   bool alloc_counting = false;
   std::vector<drivers::LogProblem> problems;
+  bool view = false;  // the viewer ran: its cost figures follow
+  viewer::ServerStats viewer;
+  uint64_t viewer_snapshots = 0;          // published by the estimator thread
+  uint64_t viewer_snapshots_skipped = 0;  // no free slot: the viewer was behind
 };
 
 ReplayReport run_replay(const ReplayOptions& opt);

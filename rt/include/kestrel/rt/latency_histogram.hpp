@@ -123,6 +123,10 @@ class LatencyHistogram {
     return std::int64_t{1} << (static_cast<int>(i / static_cast<std::size_t>(kSub)) - 1);
   }
   static std::int64_t bin_mid(std::size_t i) noexcept { return bin_lower(i) + (bin_width(i) - 1) / 2; }
+  // Samples in bin i (i < kBins): for tools that export the whole distribution.
+  [[nodiscard]] std::uint64_t bin_count(std::size_t i) const noexcept {
+    return bins_[i].load(std::memory_order_relaxed);
+  }
 
  private:
   template <class A, class V>

@@ -20,4 +20,12 @@ std::unique_ptr<Estimator> make_estimator(const EstimatorConfig& config, const R
 const char* estimator_names();
 bool estimator_known(const std::string& name);
 
+class Tracker;
+class WindowEstimator;
+// The one place that looks behind the interface, for status lines and the
+// live viewer: the tracker of the backends built on it (vo, window, ekf;
+// nullptr for imu), and the window backend itself (nullptr for the others).
+const Tracker* tracker_of(const Estimator& est);
+const WindowEstimator* window_of(const Estimator& est);
+
 }  // namespace kestrel::core

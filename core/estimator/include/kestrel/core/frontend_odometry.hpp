@@ -56,6 +56,7 @@ class FrontendOdometry final : public Estimator {
   // For a back end built on this front end (window_estimator.hpp).
   bool started() const { return started_; }
   Tracker& tracker() { return tracker_; }
+  const Tracker& tracker() const { return tracker_; }
   // A better estimate of the propagated state, at its time (propagated().t_ns):
   // replaces it, keeping the IMU integration anchor.
   void correct_state(const NavState& x);

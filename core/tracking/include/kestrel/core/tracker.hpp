@@ -106,6 +106,17 @@ struct TrackResult {
   bool tracked() const { return status == TrackStatus::kTracked; }
 };
 
+// One feature of the last frame as a display draws it (tools/viewer): where it
+// was detected and what became of it. Flags combine.
+struct FeatureMark {
+  static constexpr uint8_t kDepth = 1;     // a valid depth at the keypoint
+  static constexpr uint8_t kMatched = 2;   // matched to a keyframe point (handed to LONSC)
+  static constexpr uint8_t kInlier = 4;    // a LONSC inlier: it moved the pose
+  static constexpr uint8_t kMapPoint = 8;  // re-found in the local map (keyframes only)
+  float x_px = 0, y_px = 0;                // as detected (distorted pixel, level 0)
+  uint8_t flags = 0;
+};
+
 class Tracker {
  public:
   Tracker(const Rig& rig, const TrackerOptions& opt = {});
@@ -137,6 +148,14 @@ class Tracker {
   bool set_keyframe_pose(int64_t t_ns, const Eigen::Isometry3d& T_WC);
   const TrackResult& last() const { return result_; }
   const TrackerOptions& options() const { return opt_; }
+
+  // Read-only views for a display, on the tracking thread between track()
+  // calls; both copy into the caller's buffer (no allocation) and return how
+  // many they wrote. The last frame's features (none when extraction failed):
+  int copy_last_features(FeatureMark* out, int max_n) const;
+  // The local map's points p_W [m] as x y z floats (xyz holds 3 * max_n); a
+  // map larger than max_n is subsampled evenly.
+  int copy_map_points(float* xyz, int max_n) const;
 
  private:
   struct Impl;

@@ -99,6 +99,7 @@ struct WindowSolveResult {
   PackedNavState x{};  // the newest window state (at the job's frame time)
   int64_t kf_t_ns = 0;
   double kf_p[3], kf_q[4];  // T_WC of the tracker's keyframe
+  int64_t solve_ns = 0;     // wall time of this solve on the optimizer thread
 };
 
 class WindowEstimator final : public Estimator {
@@ -122,6 +123,9 @@ class WindowEstimator final : public Estimator {
   std::string backend_summary() const override;
 
   const WindowEstimatorCounters& window_counters() const { return wc_; }
+  // Wall time of the newest solve whose result reached the tracking side
+  // (0 before the first): a live figure for displays, read on the tracking thread.
+  int64_t last_solve_ns() const { return last_solve_ns_; }
   const FrontendOdometry& front() const { return front_; }
 
  private:
@@ -182,6 +186,7 @@ class WindowEstimator final : public Estimator {
   Preintegrated chain_[kChain];  // pim of job seq k at k % kChain
   uint64_t chain_seq_[kChain] = {};
   uint64_t last_applied_seq_ = 0;
+  int64_t last_solve_ns_ = 0;
   int consecutive_failures_ = 0;
   // Stationarity: the static initialiser's test (0.1 s block means agree),
   // run continuously; still while its last verdict is at most a block old.

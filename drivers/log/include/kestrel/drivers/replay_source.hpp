@@ -8,6 +8,7 @@
 
 #include "kestrel/drivers/log_source.hpp"
 #include "kestrel/drivers/sensor_rings.hpp"
+#include "kestrel/rt/spsc_ring.hpp"
 
 namespace kestrel::drivers {
 
@@ -41,6 +42,12 @@ class ReplaySource {
 
   ReplaySource(LogSource& log, SensorRings& rings, ReplayPace pace);
 
+  // Ground-truth records also go here as they pass (the live viewer draws
+  // them beside the estimate); a full ring drops them (its drops()). Without
+  // a ring they are only counted. Set before the first step().
+  using GroundTruthRing = rt::SpscRing<GroundTruthPose, 1024>;
+  void set_ground_truth_ring(GroundTruthRing* ring) { gt_ring_ = ring; }
+
   // Moves the next record into the rings (in realtime pace, after sleeping
   // until it is due). Returns false at the end of the log, after flushing a
   // pending frame.
@@ -70,6 +77,7 @@ class ReplaySource {
   ReplayStats stats_;
   std::atomic<bool> finished_{false};
   const std::atomic<bool>* stop_ = nullptr;
+  GroundTruthRing* gt_ring_ = nullptr;
 };
 
 }  // namespace kestrel::drivers

@@ -131,6 +131,20 @@ struct EvalResult {
 // std::invalid_argument for nonsensical options.
 EvalResult evaluate(const Trajectory& gt, const Trajectory& est, const EvalOptions& options);
 
+// RPE over a fixed time step on what evaluate() associated and aligned
+// (r.gt_matched, r.est_aligned): evaluate() reports it for
+// EvalOptions::rpe_delta_s; a report calls it for several deltas. pairs == 0
+// (and NaN statistics) when no pose has another delta_s later. Throws
+// std::invalid_argument for delta_s <= 0.
+struct RpeStats {
+  double delta_s = 0;
+  int pairs = 0;
+  double trans_rmse_m = 0, trans_mean_m = 0;
+  double trans_m_per_s = 0;  // RMSE of |translation error| / pair duration
+  double rot_rmse_deg = 0, rot_mean_deg = 0;
+};
+RpeStats relative_pose_error(const EvalResult& r, double delta_s, double max_gap_ms);
+
 // `key: value` lines; the first line is always `ate_rmse_m: <value>`.
 std::string to_text(const EvalResult& result);
 // One JSON object with the same keys as to_text (non-finite numbers as null).
@@ -141,5 +155,38 @@ std::string to_json(const EvalResult& result);
 // the path when it cannot be written.
 void write_svg_plot(const std::string& path, const Trajectory& gt, const EvalResult& result,
                     const std::string& title = "");
+
+// One latency distribution of a replay, as `kestrel replay --metrics-out`
+// exports it: percentiles and the histogram's non-empty bins.
+struct LatencyDistribution {
+  struct Bin {
+    int64_t lower_ns = 0, width_ns = 0;
+    uint64_t count = 0;
+  };
+  std::string name;  // imu_to_output, tracking, estimator_imu, optimizer
+  uint64_t count = 0;
+  double p50_ms = 0, p90_ms = 0, p99_ms = 0, max_ms = 0;
+  std::vector<Bin> bins;
+};
+// The non-empty histograms of a replay metrics file. Throws std::runtime_error
+// naming the file and the field ("m.json: latency.tracking.bins[3]: expected
+// [lower_ns, width_ns, count]").
+std::vector<LatencyDistribution> read_replay_latencies(const std::string& metrics_json_path);
+
+struct HtmlReportOptions {
+  std::string title;
+  // RPE is shown for each of these that fits in the associated estimate.
+  std::vector<double> rpe_deltas_s{0.1, 0.2, 0.5, 1, 2, 5, 10, 20, 50, 100};
+  double max_gap_ms = 20.0;                    // as evaluated (RPE pairing tolerance)
+  std::vector<LatencyDistribution> latencies;  // empty: no latency section
+  std::string metrics_file;                    // where they came from, for the page
+};
+// One self-contained HTML page (inline CSS and SVG, no script, nothing
+// fetched): summary, top and side views after alignment, position / rotation
+// / per-axis error over time, RPE over several time steps, and the run's
+// latency histograms when given. Throws std::runtime_error naming the path
+// when it cannot be written.
+void write_html_report(const std::string& path, const Trajectory& gt, const EvalResult& result,
+                       const HtmlReportOptions& options);
 
 }  // namespace kestrel::tools
