@@ -60,7 +60,11 @@ TEST(LogExport, KlogToEurocFolderRoundTrips) {
 
   drivers::EurocReader back(dir + "/out");
   EXPECT_TRUE(back.problems().empty()) << back.problems()[0].where << " " << back.problems()[0].detail;
-  EXPECT_TRUE(drivers::rig_equal(back.rig(), fixture_rig()));
+  // The klog reader moved the camera stamps onto the IMU's clock, so the
+  // export carries them shifted and its rig has no offset left.
+  Rig expected = fixture_rig();
+  expected.time_offset_cam_imu_ns = 0;
+  EXPECT_TRUE(drivers::rig_equal(back.rig(), expected));
   const auto a = all(in);
   const auto b = all(back);
   ASSERT_EQ(a.size(), b.size());
