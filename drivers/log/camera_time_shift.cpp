@@ -10,17 +10,6 @@ namespace {
 // (ReplaySource pairs them within the same bound).
 constexpr int64_t kDepthFollowsNs = 20'000'000;
 
-int64_t raw_time(const LogRecord& r) {
-  switch (r.type) {
-    case RecordType::kImu: return r.imu.t_ns;
-    case RecordType::kRgb:
-    case RecordType::kDepth: return r.image.t_ns;
-    case RecordType::kGroundTruth: return r.gt.t_ns;
-    case RecordType::kEvent: return r.event.t_ns;
-  }
-  return 0;
-}
-
 int rank_of(RecordType t) {
   switch (t) {
     case RecordType::kImu: return 0;
@@ -34,6 +23,17 @@ int rank_of(RecordType t) {
 
 }  // namespace
 
+int64_t record_time_ns(const LogRecord& r) {
+  switch (r.type) {
+    case RecordType::kImu: return r.imu.t_ns;
+    case RecordType::kRgb:
+    case RecordType::kDepth: return r.image.t_ns;
+    case RecordType::kGroundTruth: return r.gt.t_ns;
+    case RecordType::kEvent: return r.event.t_ns;
+  }
+  return 0;
+}
+
 void CameraTimeShift::clear() {
   held_.clear();
   newest_raw_ns_ = INT64_MIN;
@@ -41,7 +41,7 @@ void CameraTimeShift::clear() {
 }
 
 void CameraTimeShift::push(LogRecord&& r) {
-  const int64_t raw = raw_time(r);
+  const int64_t raw = record_time_ns(r);
   newest_raw_ns_ = std::max(newest_raw_ns_, raw);
   int64_t key = raw;
   int rank = rank_of(r.type);

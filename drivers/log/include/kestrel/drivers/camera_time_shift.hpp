@@ -18,6 +18,9 @@ inline int64_t camera_stamp_on_imu_clock(const Rig& rig, int64_t t_cam_ns) {
   return t_cam_ns + rig.time_offset_cam_imu_ns;
 }
 
+// A record's own stamp (sample, image, ground-truth or event time), as stored.
+int64_t record_time_ns(const LogRecord& r);
+
 // The rig to write beside records read from a LogSource: their camera stamps
 // already carry the offset, so a file written from them has none left.
 inline Rig rig_for_shifted_records(Rig rig) {
