@@ -22,13 +22,6 @@ namespace {
 using drivers::LogRecord;
 using drivers::RecordType;
 
-std::vector<LogRecord> read_all(drivers::LogSource& s) {
-  std::vector<LogRecord> v;
-  LogRecord r;
-  while (s.next(r)) v.push_back(r);
-  return v;
-}
-
 // 1 s of a 400 Hz IMU, 30 Hz colour + depth (stamped on the camera's clock)
 // and 100 Hz ground truth, written in time order as a recorder would.
 std::string write_log(const std::string& dir, int64_t offset_ns) {
@@ -94,17 +87,17 @@ TEST(CameraTimeShift, KlogReaderShiftsAndReordersBothSigns) {
   // Zero: stored order and stamps, untouched; the reference for the others.
   const std::vector<LogRecord> stored = [&] {
     drivers::KlogReader r(write_log(dir, 0));
-    return read_all(r);
+    return all_records(r);
   }();
   for (const int64_t offset_ns : {int64_t{30'000'000}, int64_t{-30'000'000}, int64_t{2'345'678}}) {
     SCOPED_TRACE("offset " + std::to_string(offset_ns) + " ns");
     drivers::KlogReader r(write_log(dir, offset_ns));
     EXPECT_EQ(r.rig().time_offset_cam_imu_ns, offset_ns);  // what was applied
-    const std::vector<LogRecord> got = read_all(r);
+    const std::vector<LogRecord> got = all_records(r);
     expect_shifted_and_ordered(got, stored, offset_ns);
     // Rewind replays the same sequence.
     r.rewind();
-    const std::vector<LogRecord> again = read_all(r);
+    const std::vector<LogRecord> again = all_records(r);
     ASSERT_EQ(again.size(), got.size());
     for (size_t i = 0; i < got.size(); ++i) {
       EXPECT_EQ(again[i].type, got[i].type);
@@ -143,14 +136,14 @@ TEST(CameraTimeShift, FolderReaderShiftsItsTables) {
   drivers::export_euroc(zero, dir + "/euroc");
   const std::vector<LogRecord> stored = [&] {
     drivers::EurocReader r(dir + "/euroc");
-    return read_all(r);
+    return all_records(r);
   }();
   Rig rig = drivers::load_rig_file(dir + "/euroc/mav0/kestrel_rig.yaml");
   EXPECT_EQ(rig.time_offset_cam_imu_ns, 0);
   rig.time_offset_cam_imu_ns = -25'000'000;
   std::ofstream(dir + "/euroc/mav0/kestrel_rig.yaml") << drivers::rig_to_yaml(rig);
   drivers::EurocReader shifted(dir + "/euroc");
-  expect_shifted_and_ordered(read_all(shifted), stored, -25'000'000);
+  expect_shifted_and_ordered(all_records(shifted), stored, -25'000'000);
 }
 
 }  // namespace

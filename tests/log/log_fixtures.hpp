@@ -14,6 +14,15 @@
 
 namespace kestrel::test {
 
+// Every record of a source from its start.
+inline std::vector<drivers::LogRecord> all_records(drivers::LogSource& s) {
+  std::vector<drivers::LogRecord> v;
+  drivers::LogRecord r;
+  s.rewind();
+  while (s.next(r)) v.push_back(r);
+  return v;
+}
+
 struct RecordSpan {
   drivers::RecordType type;
   uint64_t begin;   // byte offset of the record header
