@@ -125,6 +125,11 @@ void visit_window(EstimatorConfig& c, OptionVisitor& v) {
   v.value("zero_velocity_sigma_mps", w.zero_velocity_sigma_mps, "zero-velocity factor on still frames");
   v.value("function_tolerance", w.function_tolerance, "stop when the relative cost decrease falls below");
   v.value("step_tolerance", w.step_tolerance, "stop when the step's max-norm falls below");
+  v.value("estimate_time_offset", w.estimate_time_offset,
+          "estimate the camera-IMU time offset online on top of the rig's time_offset_cam_imu_ns (VINS-Mono's t_d); "
+          "experimental: does not recover an unstated offset yet (docs/optimizer.md)");
+  v.value("time_offset_prior_sigma_ms", w.time_offset_prior_sigma_ms,
+          "prior on the estimated offset around the rig's value");
   v.value("keyframes_only", e.keyframes_only, "only keyframes enter the window (cheaper, less accurate)");
   v.value("imu_noise_inflation", e.imu_noise_inflation,
           "every IMU noise density of the rig is multiplied by this (docs/optimizer.md)");

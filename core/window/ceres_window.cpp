@@ -84,26 +84,31 @@ void split_jacobian(const M& J15, int rows, double* j_pose, double* j_sb) {
   }
 }
 
+// Parameters: pose, landmark, and the time offset t_d when it is estimated.
 class VisualCost final : public ceres::CostFunction {
  public:
-  VisualCost(const WindowProblem& P, const WindowObs& o) : P_(P), o_(o) {
+  VisualCost(const WindowProblem& P, const WindowObs& o) : P_(P), o_(o), with_td_(P.estimate_td()) {
     rows_ = o.depth_m > 0.0 ? 3 : 2;
     set_num_residuals(rows_);
     mutable_parameter_block_sizes()->push_back(7);
     mutable_parameter_block_sizes()->push_back(3);
+    if (with_td_) mutable_parameter_block_sizes()->push_back(1);
   }
   bool Evaluate(double const* const* params, double* residuals, double** jacobians) const override {
     const NavState x = to_nav(params[0], nullptr);
     const Eigen::Vector3d l(params[1][0], params[1][1], params[1][2]);
-    Eigen::Vector3d r;
+    const double td_s = with_td_ ? params[2][0] : P_.td_s;
+    Eigen::Vector3d r, Jt;
     Matrix36d Jp;
     Eigen::Matrix3d Jl;
     const bool want = jacobians != nullptr;
-    if (visual_residual(P_, x, l, o_, &r, want ? &Jp : nullptr, want ? &Jl : nullptr) == 0) {
+    if (visual_residual(P_, x, l, o_, td_s, &r, want ? &Jp : nullptr, want ? &Jl : nullptr, want ? &Jt : nullptr) ==
+        0) {
       // Behind the camera: contributes nothing, exactly as in our solver.
       r.setZero();
       Jp.setZero();
       Jl.setZero();
+      Jt.setZero();
     }
     for (int i = 0; i < rows_; ++i) residuals[i] = r(i);
     if (want) {
@@ -116,6 +121,8 @@ class VisualCost final : public ceres::CostFunction {
         Eigen::Map<RowMajor> J(jacobians[1], rows_, 3);
         J = Jl.topRows(rows_);
       }
+      if (with_td_ && jacobians[2])
+        for (int i = 0; i < rows_; ++i) jacobians[2][i] = Jt(i);
     }
     return true;
   }
@@ -123,7 +130,22 @@ class VisualCost final : public ceres::CostFunction {
  private:
   const WindowProblem& P_;
   WindowObs o_;
+  bool with_td_;
   int rows_ = 2;
+};
+
+class TimeOffsetPriorCost final : public ceres::SizedCostFunction<1, 1> {
+ public:
+  explicit TimeOffsetPriorCost(const WindowProblem& P) : P_(P) {}
+  bool Evaluate(double const* const* params, double* residuals, double** jacobians) const override {
+    double J = 0.0;
+    residuals[0] = time_offset_prior_residual(P_, params[0][0], &J);
+    if (jacobians && jacobians[0]) jacobians[0][0] = J;
+    return true;
+  }
+
+ private:
+  const WindowProblem& P_;
 };
 
 class ImuCost final : public ceres::SizedCostFunction<15, 7, 9, 7, 9> {
@@ -196,24 +218,27 @@ ceres::CostFunction* pose_block_cost(F f) {
 
 // Marginalisation prior 1/2 |e + J (x [-] x0)|^2 over the prior's states,
 // parameters (pose, speed/bias) per state.
+// (and t_d - td0 last, one more parameter block, when the prior holds t_d).
 class PriorCost final : public ceres::CostFunction {
  public:
-  PriorCost(Eigen::VectorXd e, Eigen::MatrixXd J, std::vector<NavState> x0)
-      : e_(std::move(e)), J_(std::move(J)), x0_(std::move(x0)) {
+  PriorCost(Eigen::VectorXd e, Eigen::MatrixXd J, std::vector<NavState> x0, bool with_td, double td0_s)
+      : e_(std::move(e)), J_(std::move(J)), x0_(std::move(x0)), with_td_(with_td), td0_s_(td0_s) {
     set_num_residuals(static_cast<int>(e_.size()));
     for (std::size_t k = 0; k < x0_.size(); ++k) {
       mutable_parameter_block_sizes()->push_back(7);
       mutable_parameter_block_sizes()->push_back(9);
     }
+    if (with_td_) mutable_parameter_block_sizes()->push_back(1);
   }
   bool Evaluate(double const* const* params, double* residuals, double** jacobians) const override {
     const int k_n = static_cast<int>(x0_.size());
     const int r = static_cast<int>(e_.size());
-    Eigen::VectorXd dx(kD * k_n);
+    Eigen::VectorXd dx(kD * k_n + (with_td_ ? 1 : 0));
     std::vector<Eigen::Matrix3d> Jr(k_n);
     for (int k = 0; k < k_n; ++k) {
       dx.segment<kD>(kD * k) = state_minus(to_nav(params[2 * k], params[2 * k + 1]), x0_[k], &Jr[k]);
     }
+    if (with_td_) dx(kD * k_n) = params[2 * k_n][0] - td0_s_;
     Eigen::Map<Eigen::VectorXd>(residuals, r) = e_ + J_ * dx;
     if (jacobians) {
       for (int k = 0; k < k_n; ++k) {
@@ -221,6 +246,7 @@ class PriorCost final : public ceres::CostFunction {
         Jk.middleCols(3, 3) = (Jk.middleCols(3, 3) * Jr[k]).eval();
         split_jacobian(Jk, r, jacobians[2 * k], jacobians[2 * k + 1]);
       }
+      if (with_td_ && jacobians[2 * k_n]) Eigen::Map<Eigen::VectorXd>(jacobians[2 * k_n], r) = J_.col(kD * k_n);
     }
     return true;
   }
@@ -229,6 +255,8 @@ class PriorCost final : public ceres::CostFunction {
   Eigen::VectorXd e_;
   Eigen::MatrixXd J_;
   std::vector<NavState> x0_;
+  bool with_td_;
+  double td0_s_;
 };
 
 struct CeresWindow {
@@ -237,6 +265,7 @@ struct CeresWindow {
   std::vector<std::array<double, 9>> sb;
   std::vector<int> lm_index;                // active landmark indices
   std::vector<std::array<double, 3>> lm;
+  double td_s = 0.0;  // the time offset's parameter block (estimate_td)
   int n_residual_blocks = 0;
 
   explicit CeresWindow(const WindowProblem& P) : problem(options()) {
@@ -252,6 +281,12 @@ struct CeresWindow {
       problem.AddParameterBlock(pose[s].data(), 7, manifold);
       problem.AddParameterBlock(sb[s].data(), 9);
     }
+    td_s = P.td_s;
+    if (P.estimate_td()) {
+      problem.AddParameterBlock(&td_s, 1);
+      problem.AddResidualBlock(new TimeOffsetPriorCost(P), nullptr, &td_s);
+      ++n_residual_blocks;
+    }
     for (int i = 0; i < static_cast<int>(P.lms.size()); ++i)
       if (P.lms[i].used && P.lms[i].active()) lm_index.push_back(i);
     lm.resize(lm_index.size());
@@ -261,7 +296,11 @@ struct CeresWindow {
       lm[a] = {L.p_W.x(), L.p_W.y(), L.p_W.z()};
       for (int j = 0; j < L.n_obs; ++j) {
         const int s = L.obs_slot[j];
-        problem.AddResidualBlock(new VisualCost(P, P.obs_of(s)[L.obs_idx[j]]), loss, pose[s].data(), lm[a].data());
+        if (P.estimate_td())
+          problem.AddResidualBlock(new VisualCost(P, P.obs_of(s)[L.obs_idx[j]]), loss, pose[s].data(), lm[a].data(),
+                                   &td_s);
+        else
+          problem.AddResidualBlock(new VisualCost(P, P.obs_of(s)[L.obs_idx[j]]), loss, pose[s].data(), lm[a].data());
         ++n_residual_blocks;
       }
     }
@@ -303,7 +342,10 @@ struct CeresWindow {
     std::vector<int> slots;
     for (int k = 0; k < P.n_states; ++k)
       if (P.states[P.order[k]].in_prior) slots.push_back(P.order[k]);
-    const int d = kD * static_cast<int>(slots.size());
+    const bool with_td = P.estimate_td() && P.td_in_prior;
+    const int T = P.td_index();
+    const int ds = kD * static_cast<int>(slots.size());
+    const int d = ds + (with_td ? 1 : 0);
     if (d == 0) return;
     Eigen::MatrixXd H(d, d);
     Eigen::VectorXd g(d);
@@ -311,6 +353,14 @@ struct CeresWindow {
       g.segment<kD>(kD * a) = P.prior_g.segment<kD>(kD * slots[a]);
       for (int b = 0; b < static_cast<int>(slots.size()); ++b)
         H.block<kD, kD>(kD * a, kD * b) = P.prior_H.block<kD, kD>(kD * slots[a], kD * slots[b]);
+      if (with_td) {
+        H.block<kD, 1>(kD * a, ds) = P.prior_H.block<kD, 1>(kD * slots[a], T);
+        H.block<1, kD>(ds, kD * a) = P.prior_H.block<1, kD>(T, kD * slots[a]);
+      }
+    }
+    if (with_td) {
+      H(ds, ds) = P.prior_H(T, T);
+      g(ds) = P.prior_g(T);
     }
     // H = U S U' -> J = S^1/2 U', e = S^-1/2 U' g (OKVIS' MarginalizationError).
     Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig(0.5 * (H + H.transpose()));
@@ -334,7 +384,8 @@ struct CeresWindow {
       blocks.push_back(pose[s].data());
       blocks.push_back(sb[s].data());
     }
-    problem.AddResidualBlock(new PriorCost(e, J, x0), nullptr, blocks);
+    if (with_td) blocks.push_back(&td_s);
+    problem.AddResidualBlock(new PriorCost(e, J, x0, with_td, P.td0_s), nullptr, blocks);
     ++n_residual_blocks;
   }
 
@@ -359,6 +410,7 @@ struct CeresWindow {
     }
     for (std::size_t a = 0; a < lm_index.size(); ++a)
       P.lms[lm_index[a]].p_W = Eigen::Vector3d(lm[a][0], lm[a][1], lm[a][2]);
+    if (P.estimate_td()) P.td_s = td_s;
   }
 };
 
@@ -391,6 +443,7 @@ WindowOptimizer::Result solve_window_ceres(WindowProblem& P, const CeresWindowOp
     ordering->AddElementToGroup(cw.pose[P.order[k]].data(), 1);
     ordering->AddElementToGroup(cw.sb[P.order[k]].data(), 1);
   }
+  if (P.estimate_td()) ordering->AddElementToGroup(&cw.td_s, 1);
   so.linear_solver_ordering.reset(ordering);
   ceres::Solver::Summary summary;
   ceres::Solve(so, &cw.problem, &summary);

@@ -73,6 +73,9 @@ WindowEstimator::WindowEstimator(const Rig& rig, const WindowEstimatorOptions& o
   jobs_.reset(new Job[kPool]);
   for (int i = 0; i < kPool; ++i) jobs_[i].pim = Preintegrated(pim_params_);
   obs_pool_.reset(new WindowObservation[static_cast<size_t>(kPool) * max_obs_]);
+  vel_pool_.reset(new Eigen::Vector2d[static_cast<size_t>(kPool) * max_obs_]);
+  prev_cap_ = std::max(opt.frontend.tracker.orb.n_features, max_obs_);
+  prev_obs_.reset(new PrevObs[static_cast<size_t>(prev_cap_)]);
   for (int i = kPool - 1; i >= 0; --i) free_slots_[n_free_++] = i;
   for (auto& c : chain_) c = Preintegrated(pim_params_);
   set_threaded_optimizer(false);
@@ -92,7 +95,31 @@ std::string WindowEstimator::backend_summary() const {
     << ", skipped (busy " << wc_.skipped_busy << ", few obs " << wc_.skipped_few_obs << ", no imu "
     << wc_.skipped_no_imu << "), stale " << wc_.stale_results << ", imu gaps " << wc_.imu_gaps
     << ", still frames " << wc_.stationary_frames << ", map poses " << wc_.map_poses;
+  if (opt_.window.estimate_time_offset) o << ", time offset " << 1e3 * td_s_ << " ms";
   return o.str();
+}
+
+bool WindowEstimator::estimated_time_offset_s(double* td_s) const {
+  if (!opt_.window.estimate_time_offset) return false;
+  if (td_s) *td_s = td_s_;
+  return true;
+}
+
+// Backward differences over the previous tracked frame (VINS-Mono's feature
+// velocity): the velocity half a frame earlier, good enough to move a pixel
+// by the few milliseconds of an offset. None across a gap or a lost track.
+void WindowEstimator::image_velocities(int64_t t_ns, const WindowObservation* obs, int n, Eigen::Vector2d* vel) {
+  const double dt_s = 1e-9 * static_cast<double>(t_ns - prev_t_ns_);
+  const bool usable = prev_t_ns_ >= 0 && dt_s > 0.0 && dt_s <= 0.1;
+  for (int k = 0; k < n; ++k) {
+    vel[k].setZero();
+    if (!usable) continue;
+    const PrevObs* begin = prev_obs_.get();
+    const PrevObs* end = begin + n_prev_;
+    const PrevObs* p = std::lower_bound(begin, end, obs[k].landmark_id,
+                                        [](const PrevObs& a, uint32_t id) { return a.id < id; });
+    if (p != end && p->id == obs[k].landmark_id) vel[k] = (obs[k].uv - p->uv) / dt_s;
+  }
 }
 
 // ---- tracking side -------------------------------------------------------------
@@ -118,11 +145,26 @@ bool WindowEstimator::add_frame(const RgbdFrame& f) {
   if (!front_.started()) return changed;
   const TrackResult& r = front_.last_track();
   if (!(r.tracked() || r.status == TrackStatus::kNewKeyframe)) return changed;
+  queue_job(f, r);
+  if (opt_.window.estimate_time_offset) {
+    // This frame's observations by id, for the next frame's image velocities.
+    const Tracker& tracker = front_.tracker();
+    n_prev_ = std::min(tracker.num_observations(), prev_cap_);
+    for (int k = 0; k < n_prev_; ++k)
+      prev_obs_[k] = PrevObs{tracker.observations()[k].landmark_id, tracker.observations()[k].uv};
+    std::sort(prev_obs_.get(), prev_obs_.get() + n_prev_, [](const PrevObs& a, const PrevObs& b) { return a.id < b.id; });
+    prev_t_ns_ = f.t_ns;
+  }
+  return changed;
+}
+
+// A tracked frame becomes a job for the optimizer (unless it is left out).
+void WindowEstimator::queue_job(const RgbdFrame& f, const TrackResult& r) {
   Tracker& tracker = front_.tracker();
   const int n = tracker.num_observations();
   if (n < opt_.min_observations) {
     ++wc_.skipped_few_obs;
-    return changed;
+    return;
   }
   if (pending_slot_ >= 0) {
     // The previous frame never saw the IMU sample after it: leave it out.
@@ -130,8 +172,8 @@ bool WindowEstimator::add_frame(const RgbdFrame& f) {
     pending_slot_ = -1;
     ++wc_.skipped_no_imu;
   }
-  if (opt_.keyframes_only && !r.keyframe && pim_active_) return changed;
-  if (!have_last_sample_) return changed;
+  if (opt_.keyframes_only && !r.keyframe && pim_active_) return;
+  if (!have_last_sample_) return;
   // Reclaim the slots the optimizer is done with.
   while (const uint8_t* s = done_.front()) {
     free_slots_[n_free_++] = *s;
@@ -139,7 +181,7 @@ bool WindowEstimator::add_frame(const RgbdFrame& f) {
   }
   if (n_free_ == 0) {
     ++wc_.skipped_busy;
-    return changed;
+    return;
   }
   const int slot = free_slots_[--n_free_];
   Job& job = jobs_[slot];
@@ -149,6 +191,7 @@ bool WindowEstimator::add_frame(const RgbdFrame& f) {
   job.guess = front_.propagated();
   job.n_obs = std::min(n, max_obs_);
   std::copy(tracker.observations(), tracker.observations() + job.n_obs, obs_of(slot));
+  if (opt_.window.estimate_time_offset) image_velocities(f.t_ns, obs_of(slot), job.n_obs, vel_of(slot));
   job.stationary = opt_.zero_velocity_when_still && still_t_ns_ >= 0 && f.t_ns - still_t_ns_ <= 150'000'000 &&
                    front_.propagated().v_WB.norm() < opt_.still_max_speed_mps;
   wc_.stationary_frames += job.stationary ? 1 : 0;
@@ -169,7 +212,6 @@ bool WindowEstimator::add_frame(const RgbdFrame& f) {
   }
   // Results are applied in add_imu, where the propagated state and the
   // preintegration since the last window frame end at the same sample.
-  return changed;
 }
 
 bool WindowEstimator::add_imu(const ImuSample& s) {
@@ -292,6 +334,7 @@ void WindowEstimator::apply(const WindowSolveResult& r) {
     return;
   }
   consecutive_failures_ = 0;
+  td_s_ = r.td_s;
   x.q_WB.normalize();
   front_.correct_state(x);
   front_.set_pose_covariance(window_->newest_pose_covariance());  // the last solve's, kept until the next one
@@ -329,6 +372,7 @@ void WindowEstimator::process(int slot) {
   in.imu_from_prev = job.has_pim ? &job.pim : nullptr;
   in.obs = obs_of(slot);
   in.n_obs = job.n_obs;
+  in.uv_vel_pxps = opt_.window.estimate_time_offset ? vel_of(slot) : nullptr;
   in.keyframe = job.keyframe || window_->num_states() == 0;
   in.stationary = job.stationary;
   if (job.has_map_pose) {
@@ -355,6 +399,7 @@ void WindowEstimator::process(int slot) {
   if (ok) {
     solves_ok_.fetch_add(1, std::memory_order_relaxed);
     out.x = pack(x);
+    out.td_s = window_->problem().td_s;
     NavState kf;
     if (job.tracker_kf_t_ns >= 0 && window_->state_of(job.tracker_kf_t_ns, &kf) && finite(kf)) {
       Eigen::Isometry3d T_WB = Eigen::Isometry3d::Identity();

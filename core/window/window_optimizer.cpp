@@ -63,6 +63,7 @@ std::string WindowOptions::validate() const {
   if (!(prior_gyro_bias_sigma_rps > 0.0) || !(prior_acc_bias_sigma_mps2 > 0.0)) e << "bias prior sigmas must be > 0; ";
   if (!(gauge_sigma > 0.0)) e << "gauge_sigma must be > 0; ";
   if (!(zero_velocity_sigma_mps > 0.0)) e << "zero_velocity_sigma_mps must be > 0; ";
+  if (!(time_offset_prior_sigma_ms > 0.0)) e << "time_offset_prior_sigma_ms must be > 0; ";
   return e.str();
 }
 
@@ -95,6 +96,7 @@ struct WindowOptimizer::Workspace {
   std::vector<Eigen::Matrix3d> V, Vinv;
   std::vector<Eigen::Vector3d> w, dl, diag_l;
   std::vector<Matrix63d> W;         // per observation (slot-major like problem.obs)
+  std::vector<Eigen::RowVector3d> Wt;  // per landmark: its coupling with t_d, sum over its observations
   std::vector<Eigen::Vector3d> cand_l;
   NavState cand_x[kWindowMaxStates];
   Eigen::Matrix3d prior_Jrot[kWindowMaxStates];
@@ -147,7 +149,7 @@ WindowOptimizer::WindowOptimizer(const PinholeK& K, const Eigen::Isometry3d& T_B
   P.states.resize(P.max_states);
   P.obs.resize(static_cast<std::size_t>(P.max_states) * options.max_obs_per_frame);
   P.lms.resize(options.max_landmarks);
-  const int D = kD * P.max_states;
+  const int D = kD * P.max_states + 1;  // + t_d
   P.prior_H = Eigen::MatrixXd::Zero(D, D);
   P.prior_g = Eigen::VectorXd::Zero(D);
 
@@ -173,6 +175,7 @@ WindowOptimizer::WindowOptimizer(const PinholeK& K, const Eigen::Isometry3d& T_B
   ws.diag_l.resize(options.max_landmarks);
   ws.cand_l.resize(options.max_landmarks);
   ws.W.resize(P.obs.size());
+  ws.Wt.resize(options.max_landmarks);
   ws.Hm = Eigen::MatrixXd::Zero(D, D);
   ws.gm = Eigen::VectorXd::Zero(D);
   ws.T.resize(D, 15);
@@ -206,6 +209,7 @@ void WindowOptimizer::reset() {
   P.prior_g.setZero();
   P.prior_c = 0.0;
   P.prior_active = false;
+  P.td_in_prior = false;  // td_s itself is a calibration: it survives the restart
   std::fill(ws.map_key.begin(), ws.map_key.end(), 0u);
   std::fill(ws.map_val.begin(), ws.map_val.end(), -1);
   ws.free_lms.clear();  // capacity stays: the refill below does not allocate
@@ -271,7 +275,7 @@ int WindowOptimizer::prior_dimension() const {
   if (!problem_->prior_active) return 0;
   int n = 0;
   for (int k = 0; k < problem_->n_states; ++k) n += problem_->states[problem_->order[k]].in_prior ? kD : 0;
-  return n;
+  return n + (problem_->td_in_prior ? 1 : 0);
 }
 
 // ---- frames --------------------------------------------------------------------
@@ -389,6 +393,8 @@ void WindowOptimizer::add_observations(int slot, const WindowFrameInput& in) {
     w.depth_m = P.opt.use_depth ? o.depth_m : 0.0;
     w.sigma_px = o.sigma_px > 0.0f ? static_cast<double>(o.sigma_px) : P.opt.pixel_sigma;
     w.sigma_depth_m = std::max(1e-3, P.opt.depth_sigma_coeff_per_m * o.depth_m * o.depth_m);
+    w.uv_vel_pxps = in.uv_vel_pxps != nullptr && in.uv_vel_pxps[k].allFinite() ? in.uv_vel_pxps[k]
+                                                                                : Eigen::Vector2d::Zero();
     const Eigen::Vector3d ray_C((o.uv.x() - P.K.cx) / P.K.fx, (o.uv.y() - P.K.cy) / P.K.fy, 1.0);
     if (!L.initialised && o.depth_m > 0.0) {
       const Eigen::Vector3d p_B = P.R_CB.transpose() * (ray_C * o.depth_m - P.p_CB);
@@ -467,7 +473,7 @@ void WindowOptimizer::remove_state(int slot) {
   st.used = false;
   st.in_prior = false;
   st.has_imu = false;
-  bool any = false;
+  bool any = P.td_in_prior;
   for (int j = 0; j < P.n_states; ++j) any |= P.states[P.order[j]].in_prior;
   if (!any) {
     P.prior_active = false;
@@ -487,6 +493,10 @@ void WindowOptimizer::marginalize_or_drop(int m) {
   }
   ++counters_.marginalizations;
   auto lin = [&](int s) -> const NavState& { return P.states[s].in_prior ? P.states[s].x0 : P.states[s].x; };
+  const double td_lin = P.td_in_prior ? P.td0_s : P.td_s;
+  const bool with_td = P.estimate_td();
+  const int T = P.td_index();
+  bool td_touched = false;
   bool touched[kWindowMaxStates] = {};
   touched[m] = true;
 
@@ -548,26 +558,36 @@ void WindowOptimizer::marginalize_or_drop(int m) {
       Eigen::Matrix3d V = Eigen::Matrix3d::Zero();
       Eigen::Vector3d wl = Eigen::Vector3d::Zero();
       Matrix63d Wk[kWindowMaxStates];
+      Eigen::RowVector3d Wt = Eigen::RowVector3d::Zero();  // t_d - landmark coupling
       int ok[kWindowMaxStates] = {};
       for (int j = 0; j < L.n_obs; ++j) {
         const int s = L.obs_slot[j];
         const WindowObs& o = P.obs_of(s)[L.obs_idx[j]];
-        Eigen::Vector3d r;
+        Eigen::Vector3d r, Jt;
         Matrix36d Jp;
         Eigen::Matrix3d Jl;
-        const int rows = visual_residual(P, lin(s), L.p_W, o, &r, &Jp, &Jl);
+        const int rows = visual_residual(P, lin(s), L.p_W, o, td_lin, &r, &Jp, &Jl, &Jt);
         if (rows == 0) continue;
         ok[j] = 1;
         double rho1 = 1.0;
         c += 0.5 * huber_rho(r.squaredNorm(), P.opt.huber_px, &rho1);
         Jp *= std::sqrt(rho1);
         Jl *= std::sqrt(rho1);
+        Jt *= std::sqrt(rho1);
         r *= std::sqrt(rho1);
         ws.Hm.block<6, 6>(kD * s, kD * s) += Jp.transpose() * Jp;
         ws.gm.segment<6>(kD * s) += Jp.transpose() * r;
         Wk[j] = Jp.transpose() * Jl;
         V += Jl.transpose() * Jl;
         wl += Jl.transpose() * r;
+        if (with_td) {
+          ws.Hm.block<6, 1>(kD * s, T) += Jp.transpose() * Jt;
+          ws.Hm.block<1, 6>(T, kD * s) += Jt.transpose() * Jp;
+          ws.Hm(T, T) += Jt.squaredNorm();
+          ws.gm(T) += Jt.dot(r);
+          Wt += Jt.transpose() * Jl;
+          td_touched = true;
+        }
       }
       const Eigen::Matrix3d Vi = V.inverse();
       c -= 0.5 * wl.dot(Vi * wl);
@@ -580,6 +600,15 @@ void WindowOptimizer::marginalize_or_drop(int m) {
           if (!ok[b]) continue;
           ws.Hm.block<6, 6>(kD * sa, kD * L.obs_slot[b]) -= WV * Wk[b].transpose();
         }
+        if (with_td) {
+          const Eigen::Matrix<double, 6, 1> h = WV * Wt.transpose();
+          ws.Hm.block<6, 1>(kD * sa, T) -= h;
+          ws.Hm.block<1, 6>(T, kD * sa) -= h.transpose();
+        }
+      }
+      if (with_td) {
+        ws.gm(T) -= Wt * (Vi * wl);
+        ws.Hm(T, T) -= Wt * Vi * Wt.transpose();
       }
     }
   }
@@ -591,6 +620,10 @@ void WindowOptimizer::marginalize_or_drop(int m) {
       P.states[s].in_prior = true;
       P.states[s].x0 = P.states[s].x;
     }
+  }
+  if (td_touched && !P.td_in_prior) {
+    P.td_in_prior = true;
+    P.td0_s = P.td_s;
   }
 
   // Schur complement of m (pseudo-inverse: m may be weakly constrained).
@@ -634,6 +667,7 @@ void WindowOptimizer::marginalize_or_drop(int m) {
     if (P.states[s].in_prior && P.prior_H.block<kD, kD>(kD * s, kD * s).cwiseAbs().maxCoeff() == 0.0)
       P.states[s].in_prior = false;
   }
+  if (P.td_in_prior && P.prior_H(T, T) == 0.0) P.td_in_prior = false;
 }
 
 // ---- cost and solver ---------------------------------------------------------------
@@ -641,15 +675,16 @@ void WindowOptimizer::marginalize_or_drop(int m) {
 namespace {
 
 // Cost of the whole problem with states xs (indexed by slot) and landmark positions ls.
+// td_s: the time offset (P.td_s unless a step is being tried).
 double problem_cost(const WindowProblem& P, const NavState* xs, const Eigen::Vector3d* ls, const int32_t* active,
-                    int n_active, Vector15d* dx_scratch) {
+                    int n_active, Vector15d* dx_scratch, double td_s) {
   double cost = 0.0;
   for (int a = 0; a < n_active; ++a) {
     const WindowLandmark& L = P.lms[active[a]];
     for (int j = 0; j < L.n_obs; ++j) {
       const int s = L.obs_slot[j];
       Eigen::Vector3d r;
-      if (visual_residual(P, xs[s], ls[active[a]], P.obs_of(s)[L.obs_idx[j]], &r) == 0) continue;
+      if (visual_residual(P, xs[s], ls[active[a]], P.obs_of(s)[L.obs_idx[j]], td_s, &r) == 0) continue;
       cost += 0.5 * huber_rho(r.squaredNorm(), P.opt.huber_px, nullptr);
     }
   }
@@ -661,6 +696,10 @@ double problem_cost(const WindowProblem& P, const NavState* xs, const Eigen::Vec
     if (st.has_pose_prior) cost += 0.5 * pose_prior_residual(st, xs[s]).squaredNorm();
   }
   if (P.gauge_active()) cost += 0.5 * gauge_residual(P, xs[P.gauge_slot]).squaredNorm();
+  if (P.estimate_td()) {
+    const double r = time_offset_prior_residual(P, td_s);
+    cost += 0.5 * r * r;
+  }
   if (P.prior_active) {
     double pc = P.prior_c;
     for (int k = 0; k < P.n_states; ++k) {
@@ -675,6 +714,15 @@ double problem_cost(const WindowProblem& P, const NavState* xs, const Eigen::Vec
         const int t = P.order[b];
         if (!P.states[t].in_prior) continue;
         pc += 0.5 * dx_scratch[s].dot(P.prior_H.block<kD, kD>(kD * s, kD * t) * dx_scratch[t]);
+      }
+    }
+    if (P.td_in_prior) {
+      const int T = P.td_index();
+      const double dt = td_s - P.td0_s;
+      pc += P.prior_g(T) * dt + 0.5 * P.prior_H(T, T) * dt * dt;
+      for (int a = 0; a < P.n_states; ++a) {
+        const int s = P.order[a];
+        if (P.states[s].in_prior) pc += dt * P.prior_H.block<1, kD>(T, kD * s).dot(dx_scratch[s]);
       }
     }
     cost += pc;
@@ -693,7 +741,7 @@ double WindowOptimizer::evaluate_cost() const {
   NavState xs[kWindowMaxStates];
   for (int k = 0; k < P.n_states; ++k) xs[P.order[k]] = P.states[P.order[k]].x;
   for (int a = 0; a < n_active; ++a) ws.cand_l[ws.active[a]] = P.lms[ws.active[a]].p_W;
-  return problem_cost(P, xs, ws.cand_l.data(), ws.active.data(), n_active, ws.prior_dx);
+  return problem_cost(P, xs, ws.cand_l.data(), ws.active.data(), n_active, ws.prior_dx, P.td_s);
 }
 
 WindowOptimizer::Result WindowOptimizer::optimize() {
@@ -718,6 +766,10 @@ WindowOptimizer::Result WindowOptimizer::optimize_ours() {
     return res;
   }
   const int n = kD * P.n_states;
+  // The unknowns: the states in time order, then t_d (when estimated) at n.
+  const bool with_td = P.estimate_td();
+  const int nt = n + (with_td ? 1 : 0);
+  const int T = P.td_index();
   for (int k = 0; k < P.n_states; ++k) ws.pos_of_slot[P.order[k]] = k;
   ws.n_active = 0;
   int n_vis = 0;
@@ -733,19 +785,19 @@ WindowOptimizer::Result WindowOptimizer::optimize_ours() {
   int n_zv = 0;
   for (int k = 0; k < P.n_states; ++k)
     n_zv += (P.states[P.order[k]].zero_velocity ? 1 : 0) + (P.states[P.order[k]].has_pose_prior ? 1 : 0);
-  res.residuals = n_vis + n_imu + n_zv + (P.gauge_active() ? 1 : 0) + (P.prior_active ? 1 : 0);
+  res.residuals = n_vis + n_imu + n_zv + (P.gauge_active() ? 1 : 0) + (P.prior_active ? 1 : 0) + (with_td ? 1 : 0);
 
   NavState xs[kWindowMaxStates];
   for (int k = 0; k < P.n_states; ++k) xs[P.order[k]] = P.states[P.order[k]].x;
   for (int a = 0; a < ws.n_active; ++a) ws.cand_l[ws.active[a]] = P.lms[ws.active[a]].p_W;
-  double cost = problem_cost(P, xs, ws.cand_l.data(), ws.active.data(), ws.n_active, ws.prior_dx);
+  double cost = problem_cost(P, xs, ws.cand_l.data(), ws.active.data(), ws.n_active, ws.prior_dx, P.td_s);
   res.cost_initial = cost;
 
   double lambda = 1e-4, nu = 2.0;
   bool need_lin = true;
   res.status = Status::kMaxIterations;
-  auto Hl = ws.H_lin.topLeftCorner(n, n);
-  auto bl = ws.b_lin.head(n);
+  auto Hl = ws.H_lin.topLeftCorner(nt, nt);
+  auto bl = ws.b_lin.head(nt);
   for (int it = 0; it < P.opt.max_iterations; ++it) {
     res.iterations = it + 1;
     if (need_lin) {
@@ -757,13 +809,14 @@ WindowOptimizer::Result WindowOptimizer::optimize_ours() {
         const WindowLandmark& L = P.lms[lm];
         Eigen::Matrix3d V = Eigen::Matrix3d::Zero();
         Eigen::Vector3d wv = Eigen::Vector3d::Zero();
+        Eigen::RowVector3d Wt = Eigen::RowVector3d::Zero();
         for (int j = 0; j < L.n_obs; ++j) {
           const int s = L.obs_slot[j];
           const int oi = s * P.opt.max_obs_per_frame + L.obs_idx[j];
-          Eigen::Vector3d r;
+          Eigen::Vector3d r, Jt;
           Matrix36d Jp;
           Eigen::Matrix3d Jl;
-          if (visual_residual(P, P.states[s].x, L.p_W, P.obs[oi], &r, &Jp, &Jl) == 0) {
+          if (visual_residual(P, P.states[s].x, L.p_W, P.obs[oi], P.td_s, &r, &Jp, &Jl, &Jt) == 0) {
             ws.W[oi].setZero();
             continue;
           }
@@ -776,9 +829,18 @@ WindowOptimizer::Result WindowOptimizer::optimize_ours() {
           ws.W[oi].noalias() = JpT * Jl;
           V.noalias() += rho1 * Jl.transpose() * Jl;
           wv.noalias() += rho1 * Jl.transpose() * r;
+          if (with_td) {
+            const Eigen::Matrix<double, 6, 1> h = JpT * Jt;
+            Hl.block<6, 1>(o, n) += h;
+            Hl.block<1, 6>(n, o) += h.transpose();
+            Hl(n, n) += rho1 * Jt.squaredNorm();
+            bl(n) += rho1 * Jt.dot(r);
+            Wt.noalias() += rho1 * Jt.transpose() * Jl;
+          }
         }
         ws.V[lm] = V;
         ws.w[lm] = wv;
+        ws.Wt[lm] = Wt;
         ws.diag_l[lm] = V.diagonal().cwiseMax(1e-6);
       }
       // IMU + bias.
@@ -824,7 +886,15 @@ WindowOptimizer::Result WindowOptimizer::optimize_ours() {
         Hl.block<6, 6>(o, o).noalias() += Jg.transpose() * Jg;
         bl.segment<6>(o).noalias() += Jg.transpose() * r;
       }
-      // Marginalisation prior, chained through d(x [-] x0)/dx.
+      if (with_td) {
+        double J = 0.0;
+        const double r = time_offset_prior_residual(P, P.td_s, &J);
+        Hl(n, n) += J * J;
+        bl(n) += J * r;
+      }
+      // Marginalisation prior, chained through d(x [-] x0)/dx (t_d: linear).
+      const bool td_prior = with_td && P.td_in_prior;
+      const double dtd = P.td_s - P.td0_s;
       if (P.prior_active) {
         for (int k = 0; k < P.n_states; ++k) {
           const int s = P.order[k];
@@ -843,20 +913,36 @@ WindowOptimizer::Result WindowOptimizer::optimize_ours() {
             Hst.middleCols<3>(3) = (Hst.middleCols<3>(3) * ws.prior_Jrot[t]).eval();
             Hl.block<kD, kD>(kD * a, kD * b) += Hst;
           }
+          if (td_prior) {
+            Vector15d h = P.prior_H.block<kD, 1>(kD * s, T);
+            g.noalias() += h * dtd;
+            h.segment<3>(3) = (ws.prior_Jrot[s].transpose() * h.segment<3>(3)).eval();
+            Hl.block<kD, 1>(kD * a, n) += h;
+            Hl.block<1, kD>(n, kD * a) += h.transpose();
+          }
           g.segment<3>(3) = (ws.prior_Jrot[s].transpose() * g.segment<3>(3)).eval();
           bl.segment<kD>(kD * a) += g;
         }
+        if (td_prior) {
+          double g = P.prior_g(T) + P.prior_H(T, T) * dtd;
+          for (int b = 0; b < P.n_states; ++b) {
+            const int t = P.order[b];
+            if (P.states[t].in_prior) g += P.prior_H.block<1, kD>(T, kD * t).dot(ws.prior_dx[t]);
+          }
+          Hl(n, n) += P.prior_H(T, T);
+          bl(n) += g;
+        }
       }
-      for (int i = 0; i < n; ++i) ws.diag_c(i) = std::clamp(Hl(i, i), 1e-6, 1e32);
+      for (int i = 0; i < nt; ++i) ws.diag_c(i) = std::clamp(Hl(i, i), 1e-6, 1e32);
       need_lin = false;
     }
 
     // Damped Schur complement: H_red = H_cc + lambda D - sum_l W V^-1 W'.
-    auto Hr = ws.H_red.topLeftCorner(n, n);
-    auto br = ws.b_red.head(n);
+    auto Hr = ws.H_red.topLeftCorner(nt, nt);
+    auto br = ws.b_red.head(nt);
     Hr = Hl;
     br = bl;
-    Hr.diagonal() += lambda * ws.diag_c.head(n);
+    Hr.diagonal() += lambda * ws.diag_c.head(nt);
     for (int a = 0; a < ws.n_active; ++a) {
       const int lm = ws.active[a];
       const WindowLandmark& L = P.lms[lm];
@@ -873,12 +959,22 @@ WindowOptimizer::Result WindowOptimizer::optimize_ours() {
           const int pq = kD * ws.pos_of_slot[L.obs_slot[q]];
           Hr.block<6, 6>(pj, pq).noalias() -= WV * ws.W[oq].transpose();
         }
+        if (with_td) {
+          const Eigen::Matrix<double, 6, 1> h = WV * ws.Wt[lm].transpose();
+          Hr.block<6, 1>(pj, n) -= h;
+          Hr.block<1, 6>(n, pj) -= h.transpose();
+        }
+      }
+      if (with_td) {
+        const Eigen::RowVector3d WtV = ws.Wt[lm] * ws.Vinv[lm];
+        Hr(n, n) -= WtV.dot(ws.Wt[lm]);
+        br(n) -= WtV.dot(ws.w[lm]);
       }
     }
     Eigen::Ref<Eigen::MatrixXd> Hr_ref(Hr);
     Eigen::LLT<Eigen::Ref<Eigen::MatrixXd>> llt(Hr_ref);
     ws.factor_ok = llt.info() == Eigen::Success;
-    ws.factor_n = n;
+    ws.factor_n = nt;
     if (llt.info() != Eigen::Success) {
       lambda *= nu;
       nu *= 2.0;
@@ -888,12 +984,12 @@ WindowOptimizer::Result WindowOptimizer::optimize_ours() {
       }
       continue;
     }
-    auto dx = ws.dx.head(n);
+    auto dx = ws.dx.head(nt);
     dx = -br;
     llt.solveInPlace(dx);
     // Back-substitution: dl = V^-1 (-w - sum W' dx), and the model decrease.
     double pred = 0.0;
-    pred += 0.5 * (lambda * dx.dot(ws.diag_c.head(n).cwiseProduct(dx)) - bl.dot(dx));
+    pred += 0.5 * (lambda * dx.dot(ws.diag_c.head(nt).cwiseProduct(dx)) - bl.dot(dx));
     double max_step = dx.cwiseAbs().maxCoeff();
     for (int a = 0; a < ws.n_active; ++a) {
       const int lm = ws.active[a];
@@ -903,6 +999,7 @@ WindowOptimizer::Result WindowOptimizer::optimize_ours() {
         const int oj = L.obs_slot[j] * P.opt.max_obs_per_frame + L.obs_idx[j];
         rhs.noalias() -= ws.W[oj].transpose() * dx.segment<6>(kD * ws.pos_of_slot[L.obs_slot[j]]);
       }
+      if (with_td) rhs.noalias() -= ws.Wt[lm].transpose() * dx(n);
       const Eigen::Vector3d d = ws.Vinv[lm] * rhs;
       ws.dl[lm] = d;
       pred += 0.5 * (lambda * d.dot(ws.diag_l[lm].cwiseProduct(d)) - ws.w[lm].dot(d));
@@ -913,10 +1010,13 @@ WindowOptimizer::Result WindowOptimizer::optimize_ours() {
       const int s = P.order[k];
       xs[s] = state_plus(P.states[s].x, dx.segment<kD>(kD * k));
     }
-    const double cost_new = problem_cost(P, xs, ws.cand_l.data(), ws.active.data(), ws.n_active, ws.prior_dx);
+    const double td_cand = with_td ? P.td_s + dx(n) : P.td_s;
+    const double cost_new =
+        problem_cost(P, xs, ws.cand_l.data(), ws.active.data(), ws.n_active, ws.prior_dx, td_cand);
     const double actual = cost - cost_new;
     if (std::isfinite(cost_new) && actual > 0.0) {
       for (int k = 0; k < P.n_states; ++k) P.states[P.order[k]].x = xs[P.order[k]];
+      P.td_s = td_cand;
       for (int a = 0; a < ws.n_active; ++a) P.lms[ws.active[a]].p_W = ws.cand_l[ws.active[a]];
       const double rho = pred > 0.0 ? actual / pred : 0.0;
       const double t = 2.0 * rho - 1.0;
@@ -999,7 +1099,8 @@ void WindowOptimizer::publish_newest_covariance() {
   const int s = P.newest_slot();
   // The factor belongs to this window only if nothing was added since and the
   // newest state is the system's last block (time order: it always is).
-  if (ws.factor_ok && s >= 0 && ws.factor_n == kD * P.n_states && ws.pos_of_slot[s] == P.n_states - 1) {
+  if (ws.factor_ok && s >= 0 && ws.factor_n == kD * P.n_states + (P.estimate_td() ? 1 : 0) &&
+      ws.pos_of_slot[s] == P.n_states - 1) {
     const Eigen::Vector3d ez = Eigen::Vector3d::UnitZ();
     // A map pose factor in the window replaces the gauge: the window is then
     // anchored to the map (its factors carry their own sigma), and the drift

@@ -16,7 +16,7 @@ double huber_rho(double s, double a, double* rho1) {
 }
 
 int visual_residual(const WindowProblem& P, const NavState& x, const Eigen::Vector3d& l_W, const WindowObs& o,
-                    Eigen::Vector3d* r, Matrix36d* J_pose, Eigen::Matrix3d* J_l) {
+                    double td_s, Eigen::Vector3d* r, Matrix36d* J_pose, Eigen::Matrix3d* J_l, Eigen::Vector3d* J_td) {
   const Eigen::Matrix3d R = x.q_WB.toRotationMatrix();
   const Eigen::Vector3d p_B = R.transpose() * (l_W - x.p_WB);
   const Eigen::Vector3d p_C = P.R_CB * p_B + P.p_CB;
@@ -24,9 +24,12 @@ int visual_residual(const WindowProblem& P, const NavState& x, const Eigen::Vect
   const double iz = 1.0 / p_C.z();
   const double isp = 1.0 / o.sigma_px;
   const int rows = o.depth_m > 0.0 ? 3 : 2;
-  (*r)(0) = (P.K.fx * p_C.x() * iz + P.K.cx - o.uv.x()) * isp;
-  (*r)(1) = (P.K.fy * p_C.y() * iz + P.K.cy - o.uv.y()) * isp;
+  // The pixel where the feature was at the state's time (first order).
+  const Eigen::Vector2d uv = o.uv - o.uv_vel_pxps * td_s;
+  (*r)(0) = (P.K.fx * p_C.x() * iz + P.K.cx - uv.x()) * isp;
+  (*r)(1) = (P.K.fy * p_C.y() * iz + P.K.cy - uv.y()) * isp;
   (*r)(2) = rows == 3 ? (p_C.z() - o.depth_m) / o.sigma_depth_m : 0.0;
+  if (J_td) *J_td = Eigen::Vector3d(o.uv_vel_pxps.x() * isp, o.uv_vel_pxps.y() * isp, 0.0);
   if (J_pose == nullptr && J_l == nullptr) return rows;
   // d r / d p_C, whitened.
   Eigen::Matrix3d D = Eigen::Matrix3d::Zero();
@@ -43,6 +46,12 @@ int visual_residual(const WindowProblem& P, const NavState& x, const Eigen::Vect
   }
   if (J_l) *J_l = DR * R.transpose();
   return rows;
+}
+
+double time_offset_prior_residual(const WindowProblem& P, double td_s, double* J) {
+  const double w = 1.0 / (1e-3 * P.opt.time_offset_prior_sigma_ms);
+  if (J) *J = w;
+  return w * td_s;
 }
 
 Vector15d imu_bias_residual(const WindowProblem& P, const WindowState& sj, const NavState& x_i, const NavState& x_j,

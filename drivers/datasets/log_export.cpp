@@ -10,6 +10,7 @@
 #include <stdexcept>
 
 #include "dataset_common.hpp"
+#include "kestrel/drivers/camera_time_shift.hpp"
 #include "kestrel/drivers/rig_yaml.hpp"
 #include "text_log.hpp"
 
@@ -111,7 +112,7 @@ ExportStats export_euroc(LogSource& src, const std::string& out_dir) {
   const Rig& rig = src.rig();
   {
     OutFile f(mav + "/kestrel_rig.yaml");
-    f.put(rig_to_yaml(rig));
+    f.put(rig_to_yaml(rig_for_shifted_records(rig)));  // the stamps carry the offset
     f.close();
   }
   {
@@ -334,7 +335,7 @@ ExportStats export_eth3d(LogSource& src, const std::string& out_dir) {
   {
     // What ETH3D has no place for (T_BC, IMU noise, ...): Eth3dReader takes it when no --rig is given.
     OutFile f(out_dir + "/kestrel_rig.yaml");
-    f.put(rig_to_yaml(rig));
+    f.put(rig_to_yaml(rig_for_shifted_records(rig)));  // the stamps carry the offset
     f.close();
   }
   {

@@ -6,6 +6,7 @@
 #include <stdexcept>
 
 #include "dataset_common.hpp"
+#include "kestrel/drivers/camera_time_shift.hpp"
 #include "kestrel/drivers/dataset_logs.hpp"
 #include "kestrel/drivers/log_export.hpp"
 #include "text_log.hpp"
@@ -344,6 +345,9 @@ RosbagReader::RosbagReader(const std::string& path, const RosbagTopics& topics, 
               std::to_string(unassoc) + " depth images without a colour image within 20 ms; skipped");
   if (rgb_t.empty()) s.problem(path + ":" + topics.rgb, "missing-file", "no colour images on this topic");
 
+  // Camera stamps onto the IMU's clock (the rig's time_offset_cam_imu_ns).
+  for (auto& e : s.entries)
+    if (e.kind == kRgbK || e.kind == kDepthK) e.t_ns = camera_stamp_on_imu_clock(r, e.t_ns);
   // Replayed in stamp order; at equal stamps IMU, colour, depth, ground truth.
   size_t late = 0;
   for (size_t i = 1; i < s.entries.size(); ++i)

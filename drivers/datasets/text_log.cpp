@@ -1,5 +1,6 @@
 #include "text_log.hpp"
 
+#include "kestrel/drivers/camera_time_shift.hpp"
 #include "kestrel/drivers/folder_logs.hpp"
 
 #include <algorithm>
@@ -21,6 +22,10 @@ void StreamLogSource::order_streams(const std::string& imu_file, const std::stri
   };
   check(imu_, [](const Row<ImuSample>& r) { return r.value.t_ns; }, [](const auto& r) { return r.line; }, imu_file);
   check(gt_, [](const Row<GroundTruthPose>& r) { return r.value.t_ns; }, [](const auto& r) { return r.line; }, gt_file);
+  // Camera stamps onto the IMU's clock (the rig's time_offset_cam_imu_ns);
+  // the merge in next() then interleaves them where they belong.
+  for (auto* images : {&rgb_, &depth_})
+    for (ImageEntry& e : *images) e.t_ns = camera_stamp_on_imu_clock(rig_, e.t_ns);
   // Image rows carry their own "file:line".
   for (auto* images : {&rgb_, &depth_}) {
     for (size_t i = 1; i < images->size(); ++i)

@@ -42,7 +42,9 @@ class StreamLogSource final : public LogSource {
   void problem(std::string where, std::string kind, std::string detail) {
     problems_.push_back(LogProblem{std::move(where), std::move(kind), std::move(detail)});
   }
-  // Stable-sorts each stream by time; rows out of order are reported (and kept).
+  // Puts the camera stamps on the IMU's clock (rig_'s time_offset_cam_imu_ns:
+  // set rig_ first), then stable-sorts each stream by time; rows out of order
+  // are reported (and kept).
   void order_streams(const std::string& imu_file, const std::string& gt_file);
 
   Rig rig_;

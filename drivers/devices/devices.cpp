@@ -14,6 +14,7 @@
 
 #include "kestrel/drivers/bmx055_drdy.hpp"
 #include "kestrel/drivers/i2c_bus.hpp"
+#include "kestrel/drivers/klog.hpp"
 #include "kestrel/drivers/openni2_camera.hpp"
 #include "kestrel/drivers/rig_yaml.hpp"
 #include "kestrel/drivers/v4l2_camera.hpp"
@@ -111,14 +112,17 @@ DriverSettings driver_settings_from_yaml_node(const YAML::Node& root, const std:
   P p(where);
   DriverSettings d;
   if (!root || root.IsNull()) p.fail("drivers", "missing (required)");
-  p.only(root, "drivers", {"camera", "imu", "strobe"});
+  p.only(root, "drivers", {"camera", "imu", "strobe", "log"});
 
   if (const YAML::Node c = root["camera"]) {
     const std::string path = "drivers.camera";
     p.only(c, path, {"type", "width_px", "height_px", "rate_hz", "openni2", "v4l2"});
     CameraSettings& cs = d.camera;
     cs.type = p.choice<CameraType>(c, "type", path, CameraType::kNone,
-                                   {{"none", CameraType::kNone}, {"openni2", CameraType::kOpenNi2}, {"v4l2", CameraType::kV4l2}});
+                                   {{"none", CameraType::kNone},
+                                    {"openni2", CameraType::kOpenNi2},
+                                    {"v4l2", CameraType::kV4l2},
+                                    {"log", CameraType::kLog}});
     cs.width_px = static_cast<int>(p.integer(c, "width_px", path, 640, 1, 8192));
     cs.height_px = static_cast<int>(p.integer(c, "height_px", path, 480, 1, 8192));
     cs.rate_hz = p.num(c, "rate_hz", path, 30);
@@ -155,7 +159,10 @@ DriverSettings driver_settings_from_yaml_node(const YAML::Node& root, const std:
                      "axis_remap", "i2c", "usb"});
     ImuSettings& is = d.imu;
     is.type = p.choice<ImuType>(m, "type", path, ImuType::kNone,
-                                {{"none", ImuType::kNone}, {"bmx055_i2c", ImuType::kBmx055I2c}, {"bmx055_usb", ImuType::kBmx055Usb}});
+                                {{"none", ImuType::kNone},
+                                 {"bmx055_i2c", ImuType::kBmx055I2c},
+                                 {"bmx055_usb", ImuType::kBmx055Usb},
+                                 {"log", ImuType::kLog}});
     bmx055::Config& b = is.bmx055;
     using namespace bmx055;
     b.acc_range = pick_code<acc::Range>(p, path + ".acc_range_g", p.num(m, "acc_range_g", path, 16),
@@ -240,7 +247,61 @@ DriverSettings driver_settings_from_yaml_node(const YAML::Node& root, const std:
     d.strobe.initial_offset_ns = 1000 * p.integer(s, "initial_offset_us", sp, 0, -1'000'000, 1'000'000);
     d.strobe.tolerance_ns = 1000 * p.integer(s, "tolerance_us", sp, 8000, 1, 1'000'000);
   }
+  if (const YAML::Node l = root["log"]) {
+    p.only(l, "drivers.log", {"path"});
+    d.log_path = p.str(l, "path", "drivers.log", "");
+    const auto slash = where.rfind('/');
+    if (!d.log_path.empty() && d.log_path[0] != '/' && slash != std::string::npos)
+      d.log_path = where.substr(0, slash + 1) + d.log_path;
+  }
+  const bool cam_log = d.camera.type == CameraType::kLog, imu_log = d.imu.type == ImuType::kLog;
+  if (cam_log != imu_log) p.fail("drivers", "camera.type and imu.type must both be log, or neither");
+  if (cam_log && d.log_path.empty()) p.fail("drivers.log.path", "missing (required for the log sensors)");
   return d;
+}
+
+MavlinkSettings mavlink_settings_from_yaml_node(const YAML::Node& node, const std::string& where) {
+  MavlinkSettings m;
+  if (!node) return m;
+  P p(where);
+  const std::string path = "mavlink";
+  p.only(node, path,
+         {"udp", "serial_device", "serial_baud", "sysid", "compid", "R_FB", "odometry_rate_hz", "heartbeat_rate_hz",
+          "timesync", "timesync_max_rtt_ms"});
+  m.present = true;
+  m.udp = p.str(node, "udp", path, m.udp);
+  m.serial_device = p.str(node, "serial_device", path, m.serial_device);
+  m.serial_baud = static_cast<int>(p.integer(node, "serial_baud", path, m.serial_baud, 1200, 4000000));
+  m.sysid = static_cast<int>(p.integer(node, "sysid", path, m.sysid, 1, 255));
+  m.compid = static_cast<int>(p.integer(node, "compid", path, m.compid, 1, 255));
+  if (const YAML::Node r = node["R_FB"]) {
+    if (!r.IsSequence() || r.size() != 9) p.fail(path + ".R_FB", "expected 9 numbers (3x3, row-major)");
+    for (int i = 0; i < 9; ++i) {
+      YAML::Node holder;
+      holder["v"] = r[i];
+      m.R_FB[i] = p.num(holder, "v", path + ".R_FB[" + std::to_string(i) + "]", 0.0);
+    }
+    // A rotation: orthonormal rows and determinant +1 (a mirror is a mistake).
+    const auto& R = m.R_FB;
+    double worst = 0;
+    for (int i = 0; i < 3; ++i)
+      for (int j = 0; j < 3; ++j)
+        worst = std::max(worst, std::abs(R[3 * i] * R[3 * j] + R[3 * i + 1] * R[3 * j + 1] + R[3 * i + 2] * R[3 * j + 2] -
+                                         (i == j ? 1.0 : 0.0)));
+    const double det = R[0] * (R[4] * R[8] - R[5] * R[7]) - R[1] * (R[3] * R[8] - R[5] * R[6]) +
+                       R[2] * (R[3] * R[7] - R[4] * R[6]);
+    if (worst > 1e-6 || det < 0) p.fail(path + ".R_FB", "not a rotation (rows must be orthonormal, determinant +1)");
+  }
+  m.odometry_rate_hz = p.num(node, "odometry_rate_hz", path, m.odometry_rate_hz);
+  m.heartbeat_rate_hz = p.num(node, "heartbeat_rate_hz", path, m.heartbeat_rate_hz);
+  m.timesync = p.boolean(node, "timesync", path, m.timesync);
+  m.timesync_max_rtt_ms = p.num(node, "timesync_max_rtt_ms", path, m.timesync_max_rtt_ms);
+  if (m.odometry_rate_hz < 0) p.fail(path + ".odometry_rate_hz", "must be >= 0 (0 = every pose)");
+  if (m.heartbeat_rate_hz < 0) p.fail(path + ".heartbeat_rate_hz", "must be >= 0");
+  if (!(m.timesync_max_rtt_ms > 0)) p.fail(path + ".timesync_max_rtt_ms", "must be > 0");
+  if (!m.udp.empty() && !m.serial_device.empty())
+    p.fail(path, "udp and serial_device both set: one link at a time");
+  return m;
 }
 
 EstimatorSettings estimator_settings_from_yaml_node(const YAML::Node& node, const std::string& where) {
@@ -285,6 +346,10 @@ auto parse_config_section(const std::string& path, const char* section, Parse pa
 
 EstimatorSettings load_estimator_settings(const std::string& path) {
   return parse_config_section(path, "estimator", estimator_settings_from_yaml_node);
+}
+
+MavlinkSettings load_mavlink_settings(const std::string& path) {
+  return parse_config_section(path, "mavlink", mavlink_settings_from_yaml_node);
 }
 
 namespace {
@@ -365,8 +430,8 @@ LiveConfig live_config_from_yaml(const std::string& text, const std::string& whe
     const std::string k = kv.first.Scalar();
     bool estimator_section = k == "estimator";
     for (const std::string& e : estimator_sections) estimator_section = estimator_section || k == e;
-    if (k != "rig" && k != "drivers" && k != "threads" && !estimator_section) {
-      std::string expected = "rig, drivers, threads, estimator";
+    if (k != "rig" && k != "drivers" && k != "threads" && k != "mavlink" && !estimator_section) {
+      std::string expected = "rig, drivers, threads, mavlink, estimator";
       for (const std::string& e : estimator_sections)
         if (e != "estimator") expected += ", " + e;
       throw std::runtime_error(where + ": " + k + ": unknown key (expected " + expected + ")");
@@ -376,10 +441,19 @@ LiveConfig live_config_from_yaml(const std::string& text, const std::string& whe
   LiveConfig c;
   c.path = where;
   try {
-    c.rig = rig_from_yaml_node(root["rig"], where, "rig.");
+    if (root["rig"].IsScalar()) {
+      // A rig file of its own (what `kestrel calib import-kalibr` writes), relative to this config.
+      std::string file = root["rig"].Scalar();
+      const auto slash = where.rfind('/');
+      if (!file.empty() && file[0] != '/' && slash != std::string::npos) file = where.substr(0, slash + 1) + file;
+      c.rig = load_rig_file(file);
+    } else {
+      c.rig = rig_from_yaml_node(root["rig"], where, "rig.");
+    }
     c.drivers = driver_settings_from_yaml_node(root["drivers"], where);
     c.estimator = estimator_settings_from_yaml_node(root["estimator"], where);
     c.threads = thread_table_from_yaml_node(root["threads"], where);
+    c.mavlink = mavlink_settings_from_yaml_node(root["mavlink"], where);
   } catch (const YAML::Exception& e) {
     throw std::runtime_error(where + ": " + e.what());
   }
@@ -483,6 +557,8 @@ struct LiveSensors::Impl {
   v4l2::Camera color, depth;
   ImageBuffer rgb_buf, depth_buf;
   StrobeMatcher matcher;
+  std::unique_ptr<KlogReader> log;  // the `log` sensors
+  uint64_t log_imu = 0;
   uint64_t frames = 0, frame_errors = 0, frame_timeouts = 0, unpaired = 0;
   std::atomic<bool> stop{false};
   std::thread imu_thread, cam_thread;
@@ -490,6 +566,7 @@ struct LiveSensors::Impl {
 
   void imu_loop(ImuSink& sink);
   void cam_loop(FrameSink& sink);
+  void log_loop(ImuSink& imu, FrameSink& frames);
 };
 
 LiveSensors::LiveSensors(const LiveConfig& cfg) : impl_(std::make_unique<Impl>()) {
@@ -505,8 +582,16 @@ LiveSensors::LiveSensors(const LiveConfig& cfg) : impl_(std::make_unique<Impl>()
   so.tolerance_ns = d.strobe.tolerance_ns;
   m.matcher = StrobeMatcher(so);
 
+  if (d.imu.type == ImuType::kLog) {
+    try {
+      m.log = std::make_unique<KlogReader>(d.log_path);
+    } catch (const std::exception& e) {
+      missing.push_back(std::string("log sensors: ") + e.what());
+    }
+  }
   switch (d.imu.type) {
-    case ImuType::kNone: break;
+    case ImuType::kNone:
+    case ImuType::kLog: break;
     case ImuType::kBmx055I2c: {
       std::string e = m.i2c.open(d.imu.i2c_bus_device);
       if (!e.empty()) {
@@ -541,7 +626,8 @@ LiveSensors::LiveSensors(const LiveConfig& cfg) : impl_(std::make_unique<Impl>()
     }
   }
   switch (d.camera.type) {
-    case CameraType::kNone: break;
+    case CameraType::kNone:
+    case CameraType::kLog: break;
     case CameraType::kOpenNi2: {
       openni2::Options o;
       o.uri = d.camera.openni2_uri;
@@ -669,11 +755,75 @@ void LiveSensors::Impl::cam_loop(FrameSink& sink) {
   }
 }
 
+// Both sensors from one file, released at the log's pace on the wall clock.
+void LiveSensors::Impl::log_loop(ImuSink& imu, FrameSink& sink) {
+  const int64_t offset_ns = log->rig().time_offset_cam_imu_ns;
+  LogRecord r;
+  int64_t wall0 = -1, log0 = 0;
+  bool have_rgb = false;
+  CameraFrame f;
+  auto copy = [](const LogImage& in, ImageBuffer& out) {
+    if (in.pixels.size() > out.pixels.capacity()) return false;  // larger than the config's camera
+    out.t_ns = in.t_ns;
+    out.t_recv_ns = rt::now_ns();
+    out.seq = in.seq;
+    out.width = in.width;
+    out.height = in.height;
+    out.format = in.format;
+    out.pixels.assign(in.pixels.begin(), in.pixels.end());
+    return true;
+  };
+  auto flush = [&] {
+    if (!have_rgb) return;
+    have_rgb = false;
+    ++frames;
+    (void)sink.push_frame(f);
+  };
+  while (!stop.load(std::memory_order_relaxed) && log->next(r)) {
+    const bool image = r.type == RecordType::kRgb || r.type == RecordType::kDepth;
+    const int64_t t = r.type == RecordType::kImu ? r.imu.t_ns : image ? r.image.t_ns : -1;
+    if (t < 0) continue;  // ground truth and events are not sensors
+    if (wall0 < 0) wall0 = rt::now_ns(), log0 = t;
+    if (!(r.type == RecordType::kDepth && have_rgb)) flush();
+    const int64_t due = wall0 + (t - log0);
+    if (due > rt::now_ns()) rt::sleep_until_ns(due);
+    if (r.type == RecordType::kImu) {
+      r.imu.t_recv_ns = rt::now_ns();
+      ++log_imu;
+      (void)imu.push(r.imu);
+    } else if (r.type == RecordType::kRgb) {
+      if (!copy(r.image, rgb_buf)) {
+        ++frame_errors;
+        continue;
+      }
+      f = CameraFrame{};
+      f.t_ns = r.image.t_ns - offset_ns;  // the camera's own clock, as a driver stamps it
+      f.t_recv_ns = rt::now_ns();
+      f.seq = r.image.seq;
+      f.exposure_us = r.image.exposure_us;
+      f.rgb = &rgb_buf;
+      have_rgb = true;
+    } else if (have_rgb) {
+      if (copy(r.image, depth_buf)) f.depth = &depth_buf;
+      flush();
+    } else {
+      ++unpaired;
+    }
+  }
+  flush();
+}
+
 void LiveSensors::start(ImuSink& imu, FrameSink& frames) {
   Impl& m = *impl_;
   m.stop.store(false);
   m.thread_reports.clear();
   rt::ThreadSetupReport r;
+  if (m.log) {
+    const rt::ThreadSpec& spec = m.cfg.threads[PipelineThread::kCamera];
+    m.cam_thread = rt::start_thread(spec, [&m, &imu, &frames] { m.log_loop(imu, frames); }, &r);
+    m.thread_reports.emplace_back(spec, r);
+    return;
+  }
   if (m.bmx || m.bridge) {
     const rt::ThreadSpec& spec = m.cfg.threads[PipelineThread::kImu];
     m.imu_thread = rt::start_thread(spec, [&m, &imu] { m.imu_loop(imu); }, &r);
@@ -700,6 +850,7 @@ void LiveSensors::stop() {
 std::string LiveSensors::description() const {
   const DriverSettings& d = impl_->cfg.drivers;
   std::string s = "camera: ";
+  if (d.camera.type == CameraType::kLog) return "camera and IMU: log " + d.log_path;
   s += d.camera.type == CameraType::kOpenNi2 ? "OpenNI2" : d.camera.type == CameraType::kV4l2 ? "V4L2" : "none";
   s += ", IMU: ";
   s += d.imu.type == ImuType::kBmx055I2c ? "BMX055 over I2C (" + d.imu.i2c_bus_device + ")"
@@ -715,6 +866,10 @@ std::string LiveSensors::report() const {
                 (unsigned long long)m.frames, (unsigned long long)m.frame_timeouts, (unsigned long long)m.frame_errors,
                 (unsigned long long)m.unpaired);
   s += b;
+  if (m.log) {
+    std::snprintf(b, sizeof b, "log sensors: %llu IMU samples played\n", (unsigned long long)m.log_imu);
+    s += b;
+  }
   if (m.bmx) {
     const auto& c = m.bmx->counters();
     std::snprintf(b, sizeof b,

@@ -123,6 +123,7 @@ void KlogReader::open_header(const Options& options) {
   if (why.empty()) {
     data_start_ = header_len;
     pos_ = data_start_;
+    shift_ = CameraTimeShift(rig_.time_offset_cam_imu_ns);
     return;
   }
   if (!options.salvage_bad_header)
@@ -228,6 +229,18 @@ bool KlogReader::decode(uint64_t offset, const RecordHeader& h, LogRecord& out, 
 }
 
 bool KlogReader::next(LogRecord& out) {
+  if (shift_.offset_ns() == 0) return next_as_stored(out);
+  for (;;) {
+    if (shift_.pop(out, stored_done_)) return true;
+    if (stored_done_) return false;
+    if (next_as_stored(scratch_))
+      shift_.push(std::move(scratch_));
+    else
+      stored_done_ = true;
+  }
+}
+
+bool KlogReader::next_as_stored(LogRecord& out) {
   for (;;) {
     const uint64_t at = pos_;
     RecordHeader h;
@@ -298,6 +311,8 @@ bool KlogReader::next(LogRecord& out) {
 
 void KlogReader::rewind() {
   pos_ = data_start_;
+  shift_.clear();
+  stored_done_ = false;
   pending_ = false;
 }
 

@@ -18,14 +18,6 @@ namespace {
 using drivers::LogRecord;
 using drivers::RecordType;
 
-std::vector<LogRecord> all(drivers::LogSource& s) {
-  std::vector<LogRecord> v;
-  LogRecord r;
-  s.rewind();
-  while (s.next(r)) v.push_back(r);
-  return v;
-}
-
 TEST(LogExport, KlogToEurocFolderRoundTrips) {
   const std::string dir = temp_dir("export_euroc");
   const std::string klog = dir + "/in.klog";
@@ -60,9 +52,13 @@ TEST(LogExport, KlogToEurocFolderRoundTrips) {
 
   drivers::EurocReader back(dir + "/out");
   EXPECT_TRUE(back.problems().empty()) << back.problems()[0].where << " " << back.problems()[0].detail;
-  EXPECT_TRUE(drivers::rig_equal(back.rig(), fixture_rig()));
-  const auto a = all(in);
-  const auto b = all(back);
+  // The klog reader moved the camera stamps onto the IMU's clock, so the
+  // export carries them shifted and its rig has no offset left.
+  Rig expected = fixture_rig();
+  expected.time_offset_cam_imu_ns = 0;
+  EXPECT_TRUE(drivers::rig_equal(back.rig(), expected));
+  const auto a = all_records(in);
+  const auto b = all_records(back);
   ASSERT_EQ(a.size(), b.size());
   // Both are time-ordered with IMU first at equal times, so records pair up one to one.
   auto by_type = [](const std::vector<LogRecord>& v, RecordType t) {

@@ -1,4 +1,4 @@
-// Decodes a file of MAVLink frames with node-mavlink (an implementation
+// Decodes a file of MAVLink frames (minimal.xml and common.xml messages) with node-mavlink (an implementation
 // independent of ours) and prints what it found, one fact per line, for
 // tests/mavlink/test_mavlink_odometry.cpp to compare field by field:
 //   pkt I seq sysid compid msgid payload_len crc_in_frame crc_node_computed
@@ -9,7 +9,7 @@
 'use strict';
 const fs = require('fs');
 const { Readable } = require('stream');
-const { MavLinkPacketSplitter, MavLinkPacketParser, MavLinkProtocolV2, common } = require('node-mavlink');
+const { MavLinkPacketSplitter, MavLinkPacketParser, MavLinkProtocolV2, minimal, common } = require('node-mavlink');
 const { x25crc } = require('mavlink-mappings');
 
 const bytes = fs.readFileSync(process.argv[2]);
@@ -20,7 +20,7 @@ const fmt = (v) => (Array.isArray(v) ? v.map(fmt).join(',') : typeof v === 'bigi
 
 parser.on('data', (packet) => {
   const h = packet.header;
-  const clazz = common.REGISTRY[h.msgid];
+  const clazz = common.REGISTRY[h.msgid] || minimal.REGISTRY[h.msgid];
   const frame = packet.buffer;
   const crcIn = frame.readUInt16LE(frame.length - 2);
   const crcNode = x25crc(frame, 1, 2, clazz ? clazz.MAGIC_NUMBER : 0);

@@ -22,6 +22,7 @@
 #include "kestrel/mavlink/mavlink_v2.hpp"
 #include "kestrel/mavlink/odometry_adapter.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"
+#include "kestrel/mavlink/udp_sender.hpp"
 #include "run_command.hpp"
 #include "test_data.hpp"
 

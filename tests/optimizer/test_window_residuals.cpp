@@ -43,8 +43,9 @@ NavState some_state(std::mt19937_64& rng) {
   return x;
 }
 
-TEST(WindowResiduals, VisualJacobiansWithAndWithoutDepth) {
-  const WindowProblem P = make_problem();
+TEST(WindowResiduals, VisualJacobiansWithAndWithoutDepthAndTimeOffset) {
+  WindowProblem P = make_problem();
+  P.opt.estimate_time_offset = true;
   std::mt19937_64 rng(3);
   for (int depth = 0; depth < 2; ++depth) {
     for (int trial = 0; trial < 5; ++trial) {
@@ -58,25 +59,44 @@ TEST(WindowResiduals, VisualJacobiansWithAndWithoutDepth) {
       o.sigma_px = 0.7;
       o.depth_m = depth ? 2.9 : 0.0;
       o.sigma_depth_m = 0.02;
-      Vector3d r;
+      o.uv_vel_pxps = Eigen::Vector2d(120.0 - 60.0 * trial, 35.0 * trial);  // image motion [px/s]
+      const double td_s = 0.004 * trial - 0.01;
+      Vector3d r, Jt;
       Matrix36d Jp;
       Matrix3d Jl;
-      const int rows = visual_residual(P, x, l, o, &r, &Jp, &Jl);
+      const int rows = visual_residual(P, x, l, o, td_s, &r, &Jp, &Jl, &Jt);
       ASSERT_EQ(rows, depth ? 3 : 2);
       EXPECT_TRUE(check_jacobian(Jp.topRows(rows), [&](const VectorXd& d) {
         Vector15d d15 = Vector15d::Zero();
         d15.head<6>() = d;
         Vector3d rr;
-        visual_residual(P, state_plus(x, d15), l, o, &rr);
+        visual_residual(P, state_plus(x, d15), l, o, td_s, &rr);
         return VectorXd(rr.head(rows));
       }));
       EXPECT_TRUE(check_jacobian(Jl.topRows(rows), [&](const VectorXd& d) {
         Vector3d rr;
-        visual_residual(P, x, l + d.head<3>(), o, &rr);
+        visual_residual(P, x, l + d.head<3>(), o, td_s, &rr);
         return VectorXd(rr.head(rows));
       }));
+      EXPECT_TRUE(check_jacobian(Jt.head(rows), [&](const VectorXd& d) {
+        Vector3d rr;
+        visual_residual(P, x, l, o, td_s + d(0), &rr);
+        return VectorXd(rr.head(rows));
+      }));
+      // The offset moves the pixel back along its image velocity: a point seen
+      // at uv while moving at uv_vel was at uv - uv_vel td at the state's time.
+      Vector3d r0;
+      visual_residual(P, x, l, o, 0.0, &r0);
+      EXPECT_NEAR(r(0) - r0(0), o.uv_vel_pxps.x() * td_s / o.sigma_px, 1e-9);
+      EXPECT_NEAR(r(1) - r0(1), o.uv_vel_pxps.y() * td_s / o.sigma_px, 1e-9);
     }
   }
+  double J = 0.0;
+  const double r = time_offset_prior_residual(P, 0.003, &J);
+  EXPECT_TRUE(check_jacobian(Eigen::Matrix<double, 1, 1>::Constant(J), [&](const VectorXd& d) {
+    return VectorXd::Constant(1, time_offset_prior_residual(P, 0.003 + d(0)));
+  }));
+  EXPECT_NEAR(r, 0.003 / (1e-3 * P.opt.time_offset_prior_sigma_ms), 1e-12);
 }
 
 TEST(WindowResiduals, BehindTheCameraHasNoRows) {
@@ -85,7 +105,7 @@ TEST(WindowResiduals, BehindTheCameraHasNoRows) {
   WindowObs o;
   Vector3d r;
   // Camera looks along body x: a point behind the body is behind the camera.
-  EXPECT_EQ(visual_residual(P, x, Vector3d(-3, 0, 0), o, &r), 0);
+  EXPECT_EQ(visual_residual(P, x, Vector3d(-3, 0, 0), o, 0.0, &r), 0);
 }
 
 void check_imu(bool bounded) {

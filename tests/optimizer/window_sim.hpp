@@ -36,6 +36,7 @@ struct SimFrame {
   core::NavState truth;
   bool keyframe = false;
   std::vector<core::WindowObservation> obs;
+  std::vector<Eigen::Vector2d> uv_vel;  // image velocity per observation [px/s] (with_time_offset)
   core::Preintegrated pim;  // previous frame -> this one (empty for the first)
 };
 
@@ -170,6 +171,33 @@ class SimWorld {
     return out;
   }
 
+  // The camera saw each frame td_s later than its stamp: every pixel is
+  // re-projected at t + td_s (keeping its noise), and its image velocity is the
+  // backward difference over the previous frame, as the window estimator
+  // computes it (frame 0: none).
+  void with_time_offset(std::vector<SimFrame>& frames, double td_s) const {
+    const Eigen::Isometry3d T_CB = sim_T_BC().inverse();
+    const core::PinholeK K = sim_K();
+    auto project = [&](double t, const Eigen::Vector3d& p_W) {
+      const core::NavState x = state(t);
+      const Eigen::Vector3d p_C = T_CB * (x.q_WB.conjugate() * (p_W - x.p_WB));
+      return Eigen::Vector2d(K.fx * p_C.x() / p_C.z() + K.cx, K.fy * p_C.y() / p_C.z() + K.cy);
+    };
+    const double dtf = 1.0 / c_.frame_rate_hz;
+    for (std::size_t k = 0; k < frames.size(); ++k) {
+      SimFrame& f = frames[k];
+      const double t = 1e-9 * static_cast<double>(f.t_ns);
+      f.uv_vel.assign(f.obs.size(), Eigen::Vector2d::Zero());
+      for (std::size_t i = 0; i < f.obs.size(); ++i) {
+        const Eigen::Vector3d& p_W = points_[f.obs[i].landmark_id - 1000];
+        const Eigen::Vector2d noise = f.obs[i].uv - project(t, p_W);
+        const Eigen::Vector2d seen = project(t + td_s, p_W);
+        f.obs[i].uv = seen + noise;
+        if (k > 0) f.uv_vel[i] = (seen - project(t - dtf + td_s, p_W)) / dtf;
+      }
+    }
+  }
+
   const std::vector<Eigen::Vector3d>& points() const { return points_; }
   std::mt19937_64& rng() { return rng_; }
 
@@ -227,6 +255,7 @@ inline core::WindowFrameInput frame_input(const SimFrame& f, const core::NavStat
   in.imu_from_prev = first ? nullptr : &f.pim;
   in.obs = f.obs.data();
   in.n_obs = static_cast<int>(f.obs.size());
+  in.uv_vel_pxps = f.uv_vel.empty() ? nullptr : f.uv_vel.data();
   in.keyframe = f.keyframe;
   return in;
 }

@@ -7,6 +7,7 @@
 #include <string>
 
 #include "kestrel/commands.hpp"
+#include "kestrel/drivers/camera_time_shift.hpp"
 #include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/dataset_logs.hpp"
 #include "kestrel/drivers/klog.hpp"
@@ -34,7 +35,8 @@ bool ends_with(const std::string& s, const std::string& e) {
 
 drivers::ExportStats write_klog(drivers::LogSource& src, const std::string& path) {
   drivers::KlogWriter w;
-  w.open(path, src.rig());
+  // The reader put the camera stamps on the IMU's clock: the copy has no offset left.
+  w.open(path, drivers::rig_for_shifted_records(src.rig()));
   drivers::ExportStats st;
   drivers::LogRecord r;
   src.rewind();
@@ -116,7 +118,7 @@ int run_convert(const ConvertArgs& a) {
   }
   if (!a.rig_out.empty()) {
     std::ofstream f(a.rig_out);
-    if (!(f << drivers::rig_to_yaml(src->rig())))
+    if (!(f << drivers::rig_to_yaml(drivers::rig_for_shifted_records(src->rig()))))
       throw std::runtime_error(a.rig_out + ": cannot write the rig");
   }
   size_t skipped = 0;

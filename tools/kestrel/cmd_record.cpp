@@ -11,6 +11,7 @@
 #include "kestrel/replay_runner.hpp"
 #include "kestrel/drivers/devices.hpp"
 #include "kestrel/drivers/klog_logger.hpp"
+#include "kestrel/recording.hpp"
 #include "kestrel/rt/clock.hpp"
 
 namespace kestrel::cli {
@@ -18,30 +19,6 @@ namespace {
 
 std::atomic<bool> g_record_stop{false};
 extern "C" void record_on_signal(int) { g_record_stop.store(true); }
-
-class LoggerImuSink final : public drivers::ImuSink {
- public:
-  explicit LoggerImuSink(drivers::KlogLogger& l) : log_(l) {}
-  bool push(const ImuSample& s) noexcept override { return log_.log_imu(s); }
-  void event(int64_t t, EventCode c, const char* text) noexcept override { (void)log_.log_event(t, c, text); }
-
- private:
-  drivers::KlogLogger& log_;
-};
-
-class LoggerFrameSink final : public drivers::FrameSink {
- public:
-  explicit LoggerFrameSink(drivers::KlogLogger& l) : log_(l) {}
-  bool push_frame(const drivers::CameraFrame& f) noexcept override {
-    bool ok = log_.log_image(drivers::RecordType::kRgb, f.t_ns, f.t_recv_ns, f.seq, f.exposure_us, f.rgb->view());
-    if (f.depth != nullptr)
-      ok = log_.log_image(drivers::RecordType::kDepth, f.t_ns, f.t_recv_ns, f.seq, f.exposure_us, f.depth->view()) && ok;
-    return ok;
-  }
-
- private:
-  drivers::KlogLogger& log_;
-};
 
 struct RecordArgs {
   std::string config;
@@ -71,14 +48,8 @@ Subcommand add_record_command(CLI::App& parent) {
     const drivers::LiveConfig cfg = drivers::load_live_config(a->config, tools::estimator_config_sections());
     if (!(a->buffer_s > 0 && a->buffer_s <= 60)) throw UsageError("--buffer-s must be in (0, 60] seconds");
     drivers::LiveSensors sensors(cfg);   // throws, naming each missing device
-    drivers::KlogLogger::Options lo;
-    const size_t pixels = static_cast<size_t>(cfg.drivers.camera.width_px) * cfg.drivers.camera.height_px;
-    lo.max_image_bytes = pixels * 3;
-    // Colour up to 3 bytes a pixel, depth 2.
-    lo.buffer_bytes = drivers::KlogLogger::staging_bytes_for(a->buffer_s, cfg.drivers.camera.rate_hz, pixels * 3, pixels * 2);
-    lo.fsync_every = a->fsync_every;
-    lo.thread = cfg.threads[drivers::PipelineThread::kLog];
-    drivers::KlogLogger logger(a->out, cfg.rig, lo);
+    const std::unique_ptr<drivers::KlogLogger> log = make_recording_logger(cfg, a->out, a->buffer_s, a->fsync_every);
+    drivers::KlogLogger& logger = *log;
     LoggerImuSink imu(logger);
     LoggerFrameSink frames(logger);
     g_record_stop.store(false);
@@ -94,17 +65,12 @@ Subcommand add_record_command(CLI::App& parent) {
     logger.stop();
     std::signal(SIGINT, SIG_DFL);
     std::signal(SIGTERM, SIG_DFL);
-    const auto st = logger.stats();
     std::printf("%s", sensors.report().c_str());
     std::vector<AppliedThread> applied;
     for (const auto& [spec, rep] : sensors.thread_reports()) applied.push_back(applied_thread(spec, rep));
     applied.push_back(applied_thread(logger.thread_spec(), logger.thread_report()));
     std::printf("%s", threads_summary(applied).c_str());
-    std::printf("log: %llu records, %.1f MB, drops: imu %llu, images %llu, events %llu; image staging peak %.1f of "
-                "%.1f MB\n",
-                (unsigned long long)st.records_written, st.bytes_written / 1e6, (unsigned long long)st.imu_drops,
-                (unsigned long long)st.image_drops, (unsigned long long)st.event_drops, st.staging_peak_bytes / 1e6,
-                st.staging_bytes / 1e6);
+    std::printf("%s", recording_summary(logger).c_str());
     if (!logger.error().empty()) {
       std::fprintf(stderr, "kestrel record: write error: %s\n", logger.error().c_str());
       return 1;

@@ -7,7 +7,6 @@
 #include "kestrel/commands.hpp"
 #include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/devices.hpp"
-#include "kestrel/mavlink/udp_sender.hpp"
 #include "kestrel/replay_runner.hpp"
 #include "kestrel/view_cli.hpp"
 #include "kestrel/tools/estimator_config_yaml.hpp"
@@ -27,6 +26,7 @@ Subcommand add_replay_command(CLI::App& parent) {
     double warmup_s = 2.0;
     bool quiet = false;
     std::string mavlink_udp;
+    std::string mavlink_serial;
     std::string status = "auto";
     ViewArgs view;
     bool print_config = false;
@@ -68,7 +68,10 @@ Subcommand add_replay_command(CLI::App& parent) {
       ->capture_default_str();
   app->add_flag("-q,--quiet", args->quiet, "print nothing but errors");
   app->add_option("--mavlink-udp", args->mavlink_udp,
-                  "stream MAVLink v2 ODOMETRY to HOST:PORT at the pose rate (flight controller; docs/px4.md)");
+                  "MAVLink v2 to a flight controller at HOST:PORT: ODOMETRY per pose, HEARTBEAT 1 Hz, TIMESYNC "
+                  "(the config's mavlink: section sets ids, R_FB, rates; docs/px4.md)");
+  app->add_option("--mavlink-serial", args->mavlink_serial,
+                  "the same over a serial port, DEVICE[:BAUD] (baud default: the config's, else 921600)");
   app->add_option("--status", args->status,
                   "1 Hz status line (per second of log time): on, off, auto (= on in realtime pace)")
       ->capture_default_str();
@@ -96,11 +99,13 @@ Subcommand add_replay_command(CLI::App& parent) {
     }
     if (!(args->warmup_s >= 0)) throw UsageError("--warmup must be >= 0 seconds");
     opt.warmup_ns = static_cast<int64_t>(args->warmup_s * 1e9);
-    opt.mavlink_udp = args->mavlink_udp;
-    std::string host;
-    uint16_t port = 0;
-    if (!opt.mavlink_udp.empty() && !mavlink::parse_endpoint(opt.mavlink_udp, host, port))
-      throw UsageError("--mavlink-udp '" + opt.mavlink_udp + "': expected HOST:PORT with PORT in 1..65535");
+    try {
+      const drivers::MavlinkSettings ms =
+          args->config.empty() ? drivers::MavlinkSettings{} : drivers::load_mavlink_settings(args->config);
+      opt.mavlink = mavlink_options(ms, args->mavlink_udp, args->mavlink_serial);
+    } catch (const std::invalid_argument& e) {
+      throw UsageError(e.what());
+    }
     if (args->status != "on" && args->status != "off" && args->status != "auto")
       throw UsageError("--status must be on, off or auto");
     opt.status_line = !args->quiet && (args->status == "on" ||

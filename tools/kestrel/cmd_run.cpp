@@ -17,9 +17,11 @@
 #include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/core/estimator.hpp"
 #include "kestrel/tools/estimator_config_yaml.hpp"
+#include "kestrel/drivers/camera_time_shift.hpp"
 #include "kestrel/drivers/devices.hpp"
 #include "kestrel/drivers/sensor_rings.hpp"
 #include "kestrel/imu_rate_stage.hpp"
+#include "kestrel/recording.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"
 #include "kestrel/replay_runner.hpp"
 #include "kestrel/rt/clock.hpp"
@@ -36,12 +38,15 @@ namespace {
 std::atomic<bool> g_run_stop{false};
 extern "C" void run_on_signal(int) { g_run_stop.store(true); }
 
+// Frames into the estimator's rings, their stamps moved onto the IMU's clock
+// (the rig's time_offset_cam_imu_ns) as every log reader does; a recording
+// keeps them as the driver stamped them, beside the rig that says the offset.
 class RingFrameSink final : public drivers::FrameSink {
  public:
-  explicit RingFrameSink(drivers::SensorRings& r) : rings_(r) {}
+  RingFrameSink(drivers::SensorRings& r, const Rig& rig) : rings_(r), rig_(rig) {}
   bool push_frame(const drivers::CameraFrame& f) noexcept override {
     RgbdFrameMsg m;
-    m.t_ns = f.t_ns;
+    m.t_ns = drivers::camera_stamp_on_imu_clock(rig_, f.t_ns);
     m.t_recv_ns = f.t_recv_ns;
     m.seq = f.seq;
     m.exposure_us = f.exposure_us;
@@ -71,7 +76,7 @@ class RingFrameSink final : public drivers::FrameSink {
       handle = rt::kInvalidHandle;
       return false;
     }
-    dst->t_ns = src.t_ns;
+    dst->t_ns = drivers::camera_stamp_on_imu_clock(rig_, src.t_ns);
     dst->width = src.width;
     dst->height = src.height;
     dst->format = src.format;
@@ -79,6 +84,7 @@ class RingFrameSink final : public drivers::FrameSink {
     return true;
   }
   drivers::SensorRings& rings_;
+  const Rig& rig_;
 };
 
 struct RunArgs {
@@ -87,6 +93,10 @@ struct RunArgs {
   double duration_s = 0;
   std::string mavlink_udp;
   ViewArgs view;
+  std::string mavlink_serial;
+  std::string record;
+  std::string traj_out;
+  double record_buffer_s = 4.0;
   bool print_config = false;
 };
 
@@ -111,7 +121,16 @@ Subcommand add_run_command(CLI::App& parent) {
                 "defaults, docs/config.md) and exit");
   app->add_option("--duration", a->duration_s, "seconds to run (0 = until Ctrl-C)")->capture_default_str();
   app->add_option("--mavlink-udp", a->mavlink_udp,
-                  "stream MAVLink v2 ODOMETRY to HOST:PORT at the pose rate (flight controller; docs/px4.md)");
+                  "MAVLink v2 to the flight controller at HOST:PORT: ODOMETRY per pose, HEARTBEAT 1 Hz, TIMESYNC "
+                  "(over the config's mavlink: link; docs/px4.md)");
+  app->add_option("--mavlink-serial", a->mavlink_serial,
+                  "the same over a serial port, DEVICE[:BAUD] (baud default: the config's mavlink.serial_baud)");
+  app->add_option("--record", a->record,
+                  "also record the sensors into this .klog while estimating (replay it afterwards with kestrel replay)");
+  app->add_option("--record-buffer-s", a->record_buffer_s,
+                  "seconds of camera frames the recorder holds while the disk stalls")
+      ->capture_default_str();
+  app->add_option("--traj-out", a->traj_out, "write the estimated trajectory here (TUM: t[s] x y z qx qy qz qw)");
   add_view_options(app, a->view, false);
   app->footer("Runs: live drivers -> sensor rings -> kst-propagate (IMU-rate pose at once) -> estimator thread (IMU and\n"
               "frames in time order) -> kst-optimizer; thread scheduling from the config's threads: table.\n"
@@ -128,29 +147,49 @@ Subcommand add_run_command(CLI::App& parent) {
       std::cout << tools::estimator_config_to_yaml(est_cfg);
       return 0;
     }
-    std::unique_ptr<mavlink::OdometryStream> odometry;
-    if (!a->mavlink_udp.empty()) {
-      std::string host;
-      uint16_t port = 0;
-      if (!mavlink::parse_endpoint(a->mavlink_udp, host, port))
-        throw UsageError("--mavlink-udp '" + a->mavlink_udp + "': expected HOST:PORT with PORT in 1..65535");
-      mavlink::OdometryStreamOptions mo;
-      mo.endpoint = a->mavlink_udp;
-      odometry = std::make_unique<mavlink::OdometryStream>(mo);
+    std::optional<mavlink::OdometryStreamOptions> mo;
+    try {
+      mo = mavlink_options(cfg.mavlink, a->mavlink_udp, a->mavlink_serial);
+    } catch (const std::invalid_argument& e) {
+      throw UsageError(e.what());
     }
     viewer::ServerOptions view_options;
     if (!a->view.endpoint.empty()) view_options = view_server_options(a->view, "run " + a->config);
-    drivers::LiveSensors sensors(cfg);
+    if (!a->record.empty() && !(a->record_buffer_s > 0 && a->record_buffer_s <= 60))
+      throw UsageError("--record-buffer-s must be in (0, 60] seconds");
+    drivers::LiveSensors sensors(cfg);  // missing sensors are named first
+    std::unique_ptr<mavlink::OdometryStream> odometry;
+    if (mo) odometry = std::make_unique<mavlink::OdometryStream>(*mo);
     const size_t max_image = static_cast<size_t>(cfg.drivers.camera.width_px) * cfg.drivers.camera.height_px * 3;
     auto rings = std::make_unique<drivers::SensorRings>(max_image);
     drivers::RingImuSink<decltype(rings->imu)> imu(rings->imu);
-    RingFrameSink frames(*rings);
+    RingFrameSink frames(*rings, cfg.rig);
     std::unique_ptr<core::Estimator> est = core::make_estimator(est_cfg, cfg.rig);
     // Live, the optimizer always has its own thread: a solve must never hold
     // up the IMU-rate pose (docs/threads.md).
     est->set_threaded_optimizer(est->has_optimizer());
     std::printf("running %s -> estimator '%s' (%s)\n", sensors.description().c_str(), est->name(),
                 a->estimator.empty() && !cfg.estimator.backend.empty() ? "from the config" : "");
+    // --record: every sample also goes to the recorder (its own rings and disk
+    // thread), with the stamps the drivers gave it, so the flight replays.
+    std::unique_ptr<drivers::KlogLogger> recorder;
+    std::unique_ptr<LoggerImuSink> rec_imu;
+    std::unique_ptr<LoggerFrameSink> rec_frames;
+    std::unique_ptr<TeeImuSink> tee_imu;
+    std::unique_ptr<TeeFrameSink> tee_frames;
+    drivers::ImuSink* imu_sink = &imu;
+    drivers::FrameSink* frame_sink = &frames;
+    if (!a->record.empty()) {
+      recorder = make_recording_logger(cfg, a->record, a->record_buffer_s, 0);
+      rec_imu = std::make_unique<LoggerImuSink>(*recorder);
+      rec_frames = std::make_unique<LoggerFrameSink>(*recorder);
+      tee_imu = std::make_unique<TeeImuSink>(imu, *rec_imu);
+      tee_frames = std::make_unique<TeeFrameSink>(frames, *rec_frames);
+      imu_sink = tee_imu.get();
+      frame_sink = tee_frames.get();
+      std::printf("recording the sensors to %s\n", a->record.c_str());
+    }
+    tools::Trajectory trajectory;
     g_run_stop.store(false);
     std::signal(SIGINT, run_on_signal);
     std::signal(SIGTERM, run_on_signal);
@@ -326,7 +365,7 @@ Subcommand add_run_command(CLI::App& parent) {
     }
     uint64_t imu_rate_poses = 0, imu_pose_version = 0;
     const int64_t t0 = rt::now_ns();
-    sensors.start(imu, frames);
+    sensors.start(*imu_sink, *frame_sink);
     for (const auto& [spec, rep] : sensors.thread_reports()) applied.push_back(applied_thread(spec, rep));
     std::printf("thread table (%s):\n%s", cfg.threads.from_config ? "from the config" : "built-in defaults",
                 threads_summary(applied).c_str());
@@ -338,10 +377,18 @@ Subcommand add_run_command(CLI::App& parent) {
         OutPose o{};
         if (imu_pose->read(o, &imu_pose_version)) ++imu_rate_poses;
       }
+      if (odometry) odometry->service(rt::now_ns());
       OutPose p;
       while (poses->try_pop(p)) {
         const PoseSample ps = pose_sample_of(p);
         if (view) view->add_pose(ps.t_ns, ps.p_WB, ps.q_WB, ps.quality);
+        if (!a->traj_out.empty() && ps.quality != core::TrackingQuality::kLost) {  // as replay: lost poses are not estimates
+          tools::TimedPose tp;
+          tp.t_ns = ps.t_ns;
+          tp.p = ps.p_WB;
+          tp.q = ps.q_WB;
+          trajectory.push_back(tp);
+        }
         if (odometry) odometry->publish(odometry_input_of(ps));
       }
       if (rt::now_ns() >= next_print) {
@@ -361,6 +408,10 @@ Subcommand add_run_command(CLI::App& parent) {
       }
     }
     sensors.stop();
+    if (recorder) {
+      recorder->stop();
+      applied.push_back(applied_thread(recorder->thread_spec(), recorder->thread_report()));
+    }
     propagation_stop.store(true);
     propagator.join();
     consumer_stop.store(true);
@@ -389,9 +440,25 @@ Subcommand add_run_command(CLI::App& parent) {
     }
     if (view) std::printf("%s", viewer::stats_summary(view->stats()).c_str());
     if (odometry)
-      std::printf("MAVLink ODOMETRY to %s: %llu sent, %llu failed, %llu pose-ring drops\n", odometry->endpoint().c_str(),
-                  (unsigned long long)odometry->stats().sent, (unsigned long long)odometry->stats().failed,
-                  (unsigned long long)poses->drops());
+      std::printf("MAVLink to %s: ODOMETRY %llu sent, %llu failed, %llu pose-ring drops; HEARTBEAT %llu; TIMESYNC %s "
+                  "(%llu requests answered)\n",
+                  odometry->endpoint().c_str(), (unsigned long long)odometry->stream_stats().odometry_sent,
+                  (unsigned long long)odometry->stats().failed, (unsigned long long)poses->drops(),
+                  (unsigned long long)odometry->stream_stats().heartbeats_sent,
+                  odometry->time_sync().converged()
+                      ? ("converged, autopilot clock - ours " +
+                         std::to_string(1e-6 * static_cast<double>(odometry->time_sync().offset_ns())) + " ms")
+                            .c_str()
+                      : "no answer from an autopilot",
+                  (unsigned long long)odometry->time_sync().stats().requests_answered);
+    if (recorder) {
+      std::printf("%s", recording_summary(*recorder).c_str());
+      if (!recorder->error().empty()) std::fprintf(stderr, "kestrel run: recording: %s\n", recorder->error().c_str());
+    }
+    if (!a->traj_out.empty()) {
+      tools::write_tum(a->traj_out, trajectory);
+      std::printf("trajectory: %s (%zu poses)\n", a->traj_out.c_str(), trajectory.size());
+    }
     const auto& c = est->counters();
     const auto& o = est->output();
     std::printf("estimator %s: imu %llu used of %llu, frames %llu used of %llu, resets %llu; last pose t=%.3f s "

@@ -20,7 +20,8 @@ struct SimArgs {
   bool fixed_yaw = false, no_noise = false;
   std::string export_eth3d;
   CLI::Option *width_opt = nullptr, *height_opt = nullptr, *fps_opt = nullptr, *imu_rate_opt = nullptr,
-              *duration_opt = nullptr;
+              *duration_opt = nullptr, *rig_offset_opt = nullptr;
+  double rig_time_offset_ms = 0;
 };
 
 }  // namespace
@@ -58,6 +59,9 @@ Subcommand add_sim_command(CLI::App& parent) {
   args->imu_rate_opt = app->add_option("--imu-rate", args->imu_rate, "synthetic IMU rate [Hz]")->capture_default_str();
   app->add_option("--time-offset-ms", o.time_offset_ms, "camera-IMU offset: frame stamps = true time - offset")
       ->capture_default_str();
+  args->rig_offset_opt = app->add_option("--rig-time-offset-ms", args->rig_time_offset_ms,
+                  "the offset the log's rig states (default: --time-offset-ms); another value makes a miscalibrated "
+                  "log whose remaining offset `window.estimate_time_offset` can find");
   app->add_option("--timestamp-jitter-us", o.timestamp_jitter_us, "std of frame stamp noise [us]")
       ->capture_default_str();
   app->add_option("--frame-drop-rate", o.frame_drop_rate, "probability a frame is lost")->capture_default_str();
@@ -88,6 +92,7 @@ Subcommand add_sim_command(CLI::App& parent) {
     if (args->height_opt->count()) opt.height = args->height;
     if (args->fps_opt->count()) opt.fps = args->fps;
     if (args->imu_rate_opt->count()) opt.imu_rate_hz = args->imu_rate;
+    if (args->rig_offset_opt->count()) opt.rig_time_offset_ms = args->rig_time_offset_ms;
     if (args->duration_opt->count()) {
       if (!(args->duration > 0.0)) throw UsageError("--duration must be > 0");
       opt.duration_s = args->duration;

@@ -6,6 +6,8 @@
 #include <vector>
 
 #include "kestrel/commands.hpp"
+#include "kestrel/drivers/dataset_logs.hpp"
+#include "kestrel/drivers/devices.hpp"
 
 namespace {
 
@@ -45,6 +47,7 @@ int main(int argc, char** argv) {
   commands.push_back(add_ekf_slam_command(app));
   commands.push_back(add_convert_command(app));
   commands.push_back(add_config_command(app));
+  commands.push_back(add_calib_command(app));
 
   try {
     app.parse(argc, argv);
@@ -92,6 +95,10 @@ int main(int argc, char** argv) {
   }
   if (version->parsed()) {
     std::printf("kestrel %s (%s)\n", KESTREL_VERSION, KESTREL_GIT_REV);
+    std::printf("drivers: %s\n", kestrel::drivers::built_drivers_summary().c_str());
+    std::printf("logs: klog, euroc, tum, eth3d, openloris; rosbag %s\n",
+                kestrel::drivers::rosbag_built() ? "built" : "NOT built (librosbag-dev missing at build time)");
+    std::printf("flight controller: MAVLink v2 over UDP and serial (termios)\n");
     return 0;
   }
   for (const auto& c : commands) {

@@ -17,6 +17,8 @@
 #include "kestrel/core/tracker.hpp"
 #include "kestrel/imu_rate_stage.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"
+#include "kestrel/mavlink/serial_link.hpp"
+#include "kestrel/mavlink/udp_sender.hpp"
 #include "kestrel/rt/alloc_counter.hpp"
 #include "kestrel/rt/clock.hpp"
 #include "kestrel/rt/history_ring.hpp"
@@ -363,14 +365,15 @@ class OutputStage {
               const ReplayOptions& opt, ReplayReport& report, const rt::Mailbox<OutPose>* imu_pose,
               viewer::Server* view)
       : out_(out), status_(status), opt_(opt), report_(report), imu_pose_(imu_pose), view_(view) {
-    if (!opt.mavlink_udp.empty()) {
-      mavlink::OdometryStreamOptions mo;
-      mo.endpoint = opt.mavlink_udp;
+    if (opt.mavlink) {
+      mavlink::OdometryStreamOptions mo = *opt.mavlink;
+      mo.stamps_on_host_clock = false;  // log time, not CLOCK_MONOTONIC
       mavlink_ = std::make_unique<mavlink::OdometryStream>(mo);
     }
   }
 
   void drain() {
+    if (mavlink_) mavlink_->service(rt::now_ns());
     if (imu_pose_ != nullptr && imu_pose_->version() != imu_pose_version_) {
       OutPose o{};
       if (imu_pose_->read(o, &imu_pose_version_)) {
@@ -417,8 +420,13 @@ class OutputStage {
   void finish() {
     drain();
     if (mavlink_) {
-      report_.mavlink_sent = mavlink_->stats().sent;
+      report_.mavlink_sent = mavlink_->stream_stats().odometry_sent;
       report_.mavlink_failed = mavlink_->stats().failed;
+      report_.mavlink_heartbeats = mavlink_->stream_stats().heartbeats_sent;
+      report_.mavlink_frames = mavlink_->stats().sent;
+      report_.mavlink_timesync_converged = mavlink_->time_sync().converged();
+      report_.mavlink_timesync_offset_ms = 1e-6 * static_cast<double>(mavlink_->time_sync().offset_ns());
+      report_.mavlink_timesync_answered = mavlink_->time_sync().stats().requests_answered;
     }
   }
 
@@ -628,6 +636,9 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   report.replay = source.stats();
   report.estimator_counters = estimator.counters();
   report.backend_summary = estimator.backend_summary();
+  double td_s = 0.0;
+  report.time_offset_estimated = estimator.estimated_time_offset_s(&td_s);
+  report.time_offset_ms = 1e-6 * static_cast<double>(log->rig().time_offset_cam_imu_ns) + 1e3 * td_s;
   report.optimizer_threaded = optimizer_thread;
   if (const rt::LatencyHistogram* h = estimator.optimizer_latency()) report.optimizer = *h;
   // What the feeder lost, not the rings' refused pushes: in fast pace the
@@ -701,6 +712,39 @@ Json config_value_json(const std::string& v) {
 }
 }  // namespace
 
+std::optional<mavlink::OdometryStreamOptions> mavlink_options(const drivers::MavlinkSettings& cfg,
+                                                              const std::string& udp, const std::string& serial) {
+  if (!udp.empty() && !serial.empty())
+    throw std::invalid_argument("--mavlink-udp and --mavlink-serial: one link at a time");
+  mavlink::OdometryStreamOptions o;
+  o.endpoint = cfg.udp;
+  o.serial_device = cfg.serial_device;
+  o.serial_baud = cfg.serial_baud;
+  if (!udp.empty()) {
+    o.endpoint = udp;
+    o.serial_device.clear();
+  }
+  if (!serial.empty()) {
+    o.endpoint.clear();
+    if (!mavlink::parse_serial_spec(serial, cfg.serial_baud, o.serial_device, o.serial_baud))
+      throw std::invalid_argument("--mavlink-serial '" + serial + "': expected DEVICE[:BAUD]");
+  }
+  if (o.endpoint.empty() && o.serial_device.empty()) return std::nullopt;
+  std::string host;
+  uint16_t port = 0;
+  if (!o.endpoint.empty() && !mavlink::parse_endpoint(o.endpoint, host, port))
+    throw std::invalid_argument("MAVLink UDP '" + o.endpoint + "': expected HOST:PORT with PORT in 1..65535");
+  o.sysid = static_cast<uint8_t>(cfg.sysid);
+  o.compid = static_cast<uint8_t>(cfg.compid);
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c) o.adapter.R_FB(r, c) = cfg.R_FB[3 * r + c];
+  o.odometry_rate_hz = cfg.odometry_rate_hz;
+  o.heartbeat_rate_hz = cfg.heartbeat_rate_hz;
+  o.timesync = cfg.timesync;
+  o.timesync_options.max_rtt_ns = static_cast<int64_t>(cfg.timesync_max_rtt_ms * 1e6);
+  return o;
+}
+
 std::string replay_metrics_json(const ReplayReport& r) {
   Json j = Json::object();
   j["estimator"] = r.estimator;
@@ -741,7 +785,15 @@ std::string replay_metrics_json(const ReplayReport& r) {
                            {"repeated", r.input_faults.repeated},
                            {"no_depth", r.input_faults.no_depth},
                            {"imu_gaps", r.input_faults.imu_gaps}};
-  j["mavlink"] = Json{{"sent", r.mavlink_sent}, {"failed", r.mavlink_failed}};
+  j["mavlink"] = Json{{"sent", r.mavlink_sent},
+                      {"failed", r.mavlink_failed},
+                      {"heartbeats", r.mavlink_heartbeats},
+                      {"frames", r.mavlink_frames},
+                      {"timesync_answered", r.mavlink_timesync_answered},
+                      {"timesync_converged", r.mavlink_timesync_converged},
+                      {"timesync_offset_ms", json_figure(r.mavlink_timesync_offset_ms)}};
+  j["time_offset_ms"] = json_figure(r.time_offset_ms);
+  j["time_offset_estimated"] = r.time_offset_estimated;
   const auto& c = r.estimator_counters;
   // Contract keys (issue 17): how often the backend said it had lost the
   // truth, and how long it coasted on the IMU alone.
@@ -918,6 +970,9 @@ std::string replay_summary(const ReplayReport& r) {
                   static_cast<unsigned long long>(r.lost_poses_withheld));
     s += buf;
   }
+  std::snprintf(buf, sizeof buf, "camera-IMU time offset: %.3f ms (%s)\n", r.time_offset_ms,
+                r.time_offset_estimated ? "the rig's plus the online estimate" : "the rig's; not estimated");
+  s += buf;
   const InputFaultCounts& ff = r.input_faults;
   if (ff.missing + ff.out_of_order + ff.repeated + ff.no_depth + ff.imu_gaps > 0) {
     std::snprintf(
@@ -933,10 +988,11 @@ std::string replay_summary(const ReplayReport& r) {
   if (!r.propagator_thread.empty())
     s += "IMU-rate propagation " + r.propagator_thread + ", " + std::to_string(r.imu_rate_poses) +
          " IMU-rate poses published\n";
-  if (r.mavlink_sent + r.mavlink_failed > 0) {
-    std::snprintf(buf, sizeof buf, "MAVLink ODOMETRY: %llu sent, %llu failed\n",
-                  static_cast<unsigned long long>(r.mavlink_sent),
-                  static_cast<unsigned long long>(r.mavlink_failed));
+  if (r.mavlink_frames + r.mavlink_failed > 0) {
+    std::snprintf(buf, sizeof buf, "MAVLink ODOMETRY: %llu sent, %llu failed; %llu HEARTBEAT; TIMESYNC %s\n",
+                  static_cast<unsigned long long>(r.mavlink_sent), static_cast<unsigned long long>(r.mavlink_failed),
+                  static_cast<unsigned long long>(r.mavlink_heartbeats),
+                  r.mavlink_timesync_converged ? "converged" : "no answer from an autopilot");
     s += buf;
   }
   if (r.view) s += viewer::stats_summary(r.viewer);

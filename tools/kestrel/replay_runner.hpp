@@ -20,11 +20,20 @@
 #include "kestrel/drivers/log_source.hpp"
 #include "kestrel/drivers/replay_source.hpp"
 #include "kestrel/mavlink/odometry_adapter.hpp"
+#include "kestrel/mavlink/odometry_stream.hpp"
 #include "kestrel/rt/latency_histogram.hpp"
 #include "kestrel/tools/trajectory_eval.hpp"
 #include "kestrel/viewer/server.hpp"
 
 namespace kestrel::cli {
+
+// The flight-controller link from a config's `mavlink:` section and the
+// command line, whose --mavlink-udp HOST:PORT or --mavlink-serial
+// DEVICE[:BAUD] chooses the transport over the section's; sysid, compid,
+// R_FB, rates and TIMESYNC come from the section. nullopt when no transport
+// is named. Throws std::invalid_argument naming the bad value.
+std::optional<mavlink::OdometryStreamOptions> mavlink_options(const drivers::MavlinkSettings& cfg,
+                                                              const std::string& udp, const std::string& serial);
 
 // One pose of the output stream as the output (writer) thread receives it.
 struct PoseSample {
@@ -121,8 +130,9 @@ struct ReplayOptions {
   // mailbox), handed over on the output thread as it drains (every ~1 ms; a
   // pose newer than the last one seen, skipped ones are not replayed).
   std::function<void(const PoseSample&)> on_imu_pose;
-  // Stream MAVLink ODOMETRY to HOST:PORT at the pose rate ("" = off).
-  std::string mavlink_udp;
+  // The flight-controller link: ODOMETRY per pose, HEARTBEAT, TIMESYNC
+  // (mavlink_options() below; nullopt = off).
+  std::optional<mavlink::OdometryStreamOptions> mavlink;
   // Instead of opening `path`: a source made by the caller (a generator that
   // streams a simulation, tests that build logs in memory).
   std::function<std::unique_ptr<drivers::LogSource>()> open_source;
@@ -170,6 +180,10 @@ struct ReplayReport {
   drivers::ReplayStats replay;
   core::EstimatorCounters estimator_counters;
   std::string backend_summary;      // Estimator::backend_summary()
+  // Camera-IMU time offset: the rig's time_offset_cam_imu_ns (applied to the
+  // stamps by the reader) plus what the backend estimated online on top.
+  double time_offset_ms = 0.0;
+  bool time_offset_estimated = false;
   rt::LatencyHistogram optimizer;   // per solve (backends with an optimizer)
   bool optimizer_threaded = false;  // on its own thread (realtime pace) or inline
   uint64_t imu_ring_drops = 0;
@@ -179,7 +193,12 @@ struct ReplayReport {
   InputFaultCounts input_faults;
   uint64_t status_lines = 0;
   uint64_t imu_rate_poses = 0;  // IMU-rate poses the output thread took from kst-propagate
-  uint64_t mavlink_sent = 0;
+  uint64_t mavlink_sent = 0;  // ODOMETRY messages
+  uint64_t mavlink_heartbeats = 0;
+  uint64_t mavlink_frames = 0;  // every frame sent (ODOMETRY, HEARTBEAT, TIMESYNC)
+  bool mavlink_timesync_converged = false;
+  double mavlink_timesync_offset_ms = 0.0;
+  uint64_t mavlink_timesync_answered = 0;
   uint64_t mavlink_failed = 0;  // sendto() errors, counted, never retried
   // Heap allocations made by the estimator thread after warm-up, and how many
   // frames it processed in that span.

@@ -14,6 +14,15 @@ uint8_t* put_u64(uint8_t* p, uint64_t v) {
   for (int i = 0; i < 8; ++i) p[i] = static_cast<uint8_t>(v >> (8 * i));
   return p + 8;
 }
+uint8_t* put_u32(uint8_t* p, uint32_t v) {
+  for (int i = 0; i < 4; ++i) p[i] = static_cast<uint8_t>(v >> (8 * i));
+  return p + 4;
+}
+uint64_t get_u64(const uint8_t* p) {
+  uint64_t v = 0;
+  for (int i = 0; i < 8; ++i) v |= static_cast<uint64_t>(p[i]) << (8 * i);
+  return v;
+}
 uint8_t* put_f32(uint8_t* p, float f) {
   uint32_t v;
   std::memcpy(&v, &f, 4);
@@ -91,6 +100,57 @@ std::size_t encode_odometry(const OdometryMsg& m, uint8_t seq, uint8_t sysid, ui
   uint8_t payload[kOdometryPayloadBytes];
   const std::size_t n = pack_odometry_payload(m, payload);
   return frame_v2(kMsgIdOdometry, kOdometryCrcExtra, payload, n, seq, sysid, compid, out);
+}
+
+
+std::size_t encode_heartbeat(const HeartbeatMsg& m, uint8_t seq, uint8_t sysid, uint8_t compid, uint8_t* out) {
+  uint8_t payload[kHeartbeatPayloadBytes];
+  uint8_t* p = put_u32(payload, m.custom_mode);
+  p = put_u8(p, m.type);
+  p = put_u8(p, m.autopilot);
+  p = put_u8(p, m.base_mode);
+  p = put_u8(p, m.system_status);
+  put_u8(p, m.mavlink_version);
+  return frame_v2(kMsgIdHeartbeat, kHeartbeatCrcExtra, payload, sizeof payload, seq, sysid, compid, out);
+}
+
+std::size_t encode_timesync(const TimesyncMsg& m, uint8_t seq, uint8_t sysid, uint8_t compid, uint8_t* out) {
+  uint8_t payload[kTimesyncPayloadBytes];
+  uint8_t* p = put_u64(payload, static_cast<uint64_t>(m.tc1));
+  p = put_u64(p, static_cast<uint64_t>(m.ts1));
+  p = put_u8(p, m.target_system);
+  put_u8(p, m.target_component);
+  return frame_v2(kMsgIdTimesync, kTimesyncCrcExtra, payload, sizeof payload, seq, sysid, compid, out);
+}
+
+HeartbeatMsg unpack_heartbeat(const uint8_t* payload) {
+  HeartbeatMsg m;
+  m.custom_mode = static_cast<uint32_t>(payload[0]) | static_cast<uint32_t>(payload[1]) << 8 |
+                  static_cast<uint32_t>(payload[2]) << 16 | static_cast<uint32_t>(payload[3]) << 24;
+  m.type = payload[4];
+  m.autopilot = payload[5];
+  m.base_mode = payload[6];
+  m.system_status = payload[7];
+  m.mavlink_version = payload[8];
+  return m;
+}
+
+TimesyncMsg unpack_timesync(const uint8_t* payload) {
+  TimesyncMsg m;
+  m.tc1 = static_cast<int64_t>(get_u64(payload));
+  m.ts1 = static_cast<int64_t>(get_u64(payload + 8));
+  m.target_system = payload[16];
+  m.target_component = payload[17];
+  return m;
+}
+
+bool message_spec(uint32_t msgid, uint8_t* crc_extra, std::size_t* payload_len) {
+  switch (msgid) {
+    case kMsgIdHeartbeat: *crc_extra = kHeartbeatCrcExtra, *payload_len = kHeartbeatPayloadBytes; return true;
+    case kMsgIdTimesync: *crc_extra = kTimesyncCrcExtra, *payload_len = kTimesyncPayloadBytes; return true;
+    case kMsgIdOdometry: *crc_extra = kOdometryCrcExtra, *payload_len = kOdometryPayloadBytes; return true;
+    default: return false;
+  }
 }
 
 }  // namespace kestrel::mavlink

@@ -64,3 +64,14 @@ bool UdpSender::send(const uint8_t* data, std::size_t n) noexcept {
 }
 
 }  // namespace kestrel::mavlink
+
+namespace kestrel::mavlink {
+
+std::size_t UdpSender::receive(uint8_t* buf, std::size_t cap) noexcept {
+  const ssize_t r = ::recv(fd_, buf, cap, MSG_DONTWAIT);
+  if (r <= 0) return 0;
+  stats_.bytes_received += static_cast<uint64_t>(r);
+  return static_cast<std::size_t>(r);
+}
+
+}  // namespace kestrel::mavlink

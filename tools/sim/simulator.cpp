@@ -42,6 +42,8 @@ void validate(const SimOptions& o) {
   if (o.fps) require(*o.fps > 0.0 && *o.fps <= 1000.0, "--fps must be in (0, 1000]");
   if (o.imu_rate_hz) require(*o.imu_rate_hz > 0.0 && *o.imu_rate_hz <= 10000.0, "--imu-rate must be in (0, 10000]");
   require(std::abs(o.time_offset_ms) <= 1000.0, "--time-offset-ms must be within +-1000");
+  require(!o.rig_time_offset_ms || std::abs(*o.rig_time_offset_ms) <= 1000.0,
+          "--rig-time-offset-ms must be within +-1000");
   require(o.timestamp_jitter_us >= 0.0 && o.timestamp_jitter_us <= 1e5, "--timestamp-jitter-us must be in [0, 1e5]");
   require(o.frame_drop_rate >= 0.0 && o.frame_drop_rate < 1.0, "--frame-drop-rate must be in [0, 1)");
   require(o.depth_dropout >= 0.0 && o.depth_dropout <= 0.5, "--depth-dropout must be in [0, 0.5]");
@@ -126,6 +128,10 @@ SimSummary run_simulation(const SimOptions& o, SimSink& sink) {
   rig.imu = model.to_rig();
   // A rig file's own offset stands unless an offset is asked for.
   if (o.rig_path.empty() || o.time_offset_ms != 0.0) rig.time_offset_cam_imu_ns = to_ns(o.time_offset_ms * 1e-3);
+  // The stamps carry the true offset; the log's rig may claim another (a
+  // miscalibrated rig, for the online estimate to find the difference).
+  const int64_t true_offset_ns = rig.time_offset_cam_imu_ns;
+  if (o.rig_time_offset_ms) rig.time_offset_cam_imu_ns = to_ns(*o.rig_time_offset_ms * 1e-3);
   const Eigen::Isometry3d T_BC = to_isometry(rig.T_BC);
 
   // ---- trajectory ----
@@ -179,7 +185,7 @@ SimSummary run_simulation(const SimOptions& o, SimSink& sink) {
       f.seq = static_cast<uint32_t>(k);
       f.dropped = drop;
       // Clipped so stamps keep their order.
-      f.stamp_ns = t0 + to_ns(f.t_true_s) - rig.time_offset_cam_imu_ns +
+      f.stamp_ns = t0 + to_ns(f.t_true_s) - true_offset_ns +
                    static_cast<int64_t>(std::llround(std::clamp(jitter, -0.4 * period_ns, 0.4 * period_ns)));
     }
   }

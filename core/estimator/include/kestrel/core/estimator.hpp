@@ -110,6 +110,10 @@ class Estimator {
   virtual const rt::LatencyHistogram* optimizer_latency() const { return nullptr; }
   // One line of backend-specific counters for reports ("" when none).
   virtual std::string backend_summary() const { return {}; }
+  // The camera-IMU time offset the backend estimated online on top of the
+  // rig's time_offset_cam_imu_ns [s] (a frame stamped t was taken at t + it);
+  // false when it does not estimate one. Read it from the thread that feeds.
+  virtual bool estimated_time_offset_s(double* /*td_s*/) const { return false; }
 };
 
 // IMU-only dead reckoning after a static initialisation. Named as what it is:

@@ -97,6 +97,7 @@ struct WindowSolveResult {
   bool reset_done = false;
   bool has_kf = false;
   PackedNavState x{};  // the newest window state (at the job's frame time)
+  double td_s = 0.0;   // the window's time offset estimate (estimate_time_offset)
   int64_t kf_t_ns = 0;
   double kf_p[3], kf_q[4];  // T_WC of the tracker's keyframe
   int64_t solve_ns = 0;     // wall time of this solve on the optimizer thread
@@ -121,6 +122,7 @@ class WindowEstimator final : public Estimator {
   bool optimizer_step() override;
   const rt::LatencyHistogram* optimizer_latency() const override { return &opt_latency_; }
   std::string backend_summary() const override;
+  bool estimated_time_offset_s(double* td_s) const override;
 
   const WindowEstimatorCounters& window_counters() const { return wc_; }
   // Wall time of the newest solve whose result reached the tracking side
@@ -148,12 +150,16 @@ class WindowEstimator final : public Estimator {
     int n_obs = 0;
   };
 
+  void queue_job(const RgbdFrame& f, const TrackResult& r);
   void process(int slot);  // optimizer side
   void poll_results();     // tracking side
   void apply(const WindowSolveResult& r);
   void submit_pending();
   void fail_and_maybe_reset();
   WindowObservation* obs_of(int slot) { return obs_pool_.get() + static_cast<size_t>(slot) * max_obs_; }
+  Eigen::Vector2d* vel_of(int slot) { return vel_pool_.get() + static_cast<size_t>(slot) * max_obs_; }
+  // Image velocities of a frame's observations from the previous tracked frame (time offset).
+  void image_velocities(int64_t t_ns, const WindowObservation* obs, int n, Eigen::Vector2d* vel);
 
   WindowEstimatorOptions opt_;
   Eigen::Isometry3d T_BC_;
@@ -166,6 +172,17 @@ class WindowEstimator final : public Estimator {
   // Job pool and the two rings of slot indices.
   std::unique_ptr<Job[]> jobs_;
   std::unique_ptr<WindowObservation[]> obs_pool_;
+  std::unique_ptr<Eigen::Vector2d[]> vel_pool_;  // per observation of a job [px/s]
+  // The previous tracked frame's observations by landmark id (sorted), for
+  // the image velocities; fixed capacity (the tracker's feature budget).
+  struct PrevObs {
+    uint32_t id;
+    Eigen::Vector2d uv;
+  };
+  std::unique_ptr<PrevObs[]> prev_obs_;
+  int prev_cap_ = 0, n_prev_ = 0;
+  int64_t prev_t_ns_ = -1;
+  double td_s_ = 0.0;  // the last applied solve's time offset
   rt::SpscRing<uint8_t, 8> todo_;  // front -> optimizer
   rt::SpscRing<uint8_t, 8> done_;  // optimizer -> front (slots to reuse)
   int free_slots_[kPool] = {};

@@ -47,6 +47,16 @@ struct WindowOptions {
   // max-norm falls below these.
   double function_tolerance = 1e-10;
   double step_tolerance = 1e-10;
+  // Online camera-IMU time offset t_d (VINS-Mono's estimate_td): what is left
+  // of the offset after the rig's time_offset_cam_imu_ns was applied to the
+  // stamps. A frame stamped t was taken at t + t_d; each observation is moved
+  // back to its state's time along its image velocity, r = pi(p_C) - (uv - vel t_d),
+  // and t_d is one more variable of the window (and of the marginalisation
+  // prior), held near 0 by a prior of this sigma. Off by default: on the
+  // simulated flights it does not recover an unstated offset yet (to first
+  // order t_d is a pose shift along (v, w); docs/optimizer.md).
+  bool estimate_time_offset = false;
+  double time_offset_prior_sigma_ms = 50.0;
 
   // The embedded profile: S = 2, N = 3.
   static WindowOptions embedded();
@@ -62,6 +72,8 @@ struct WindowFrameInput {
   int n_obs = 0;
   bool keyframe = false;
   bool stationary = false;  // the IMU says the vehicle is still: add the zero-velocity factor
+  // Image velocity of each observation [px/s] (estimate_time_offset; null: none known).
+  const Eigen::Vector2d* uv_vel_pxps = nullptr;
   // A pose measured against landmarks of earlier keyframes (the tracker's
   // local map): a unary factor r = [p - p_prior; Log(R_prior^T R)] / sigma.
   // It ties the window to the map instead of only to its own oldest state, so

@@ -21,7 +21,8 @@
 namespace kestrel::core {
 
 constexpr int kWindowStateDim = 15;
-constexpr int kWindowMaxDim = kWindowStateDim * kWindowMaxStates;
+// The states, plus one for the camera-IMU time offset t_d (last).
+constexpr int kWindowMaxDim = kWindowStateDim * kWindowMaxStates + 1;
 using Vector15d = Eigen::Matrix<double, 15, 1>;
 using Matrix15d = Eigen::Matrix<double, 15, 15>;
 using Matrix36d = Eigen::Matrix<double, 3, 6>;
@@ -32,6 +33,7 @@ struct WindowObs {
   double depth_m = 0.0;       // 0: none (or use_depth off)
   double sigma_px = 1.0;
   double sigma_depth_m = 0.0;
+  Eigen::Vector2d uv_vel_pxps = Eigen::Vector2d::Zero();  // image velocity (time offset)
 };
 
 struct WindowLandmark {
@@ -84,13 +86,22 @@ struct WindowProblem {
   std::vector<WindowObs> obs;          // [max_states * opt.max_obs_per_frame]
   std::vector<WindowLandmark> lms;     // [opt.max_landmarks]
 
+  // Camera-IMU time offset t_d [s] (opt.estimate_time_offset): a frame
+  // stamped t was taken at t + td_s. Kept across resets (a calibration);
+  // in the marginalisation prior at index td_index() with its first estimate td0_s.
+  double td_s = 0.0;
+  double td0_s = 0.0;
+  bool td_in_prior = false;
+  bool estimate_td() const { return opt.estimate_time_offset; }
+  int td_index() const { return kWindowStateDim * max_states; }
+
   // Gauge: position and yaw of the oldest state held at these values.
   int gauge_slot = -1;
   Eigen::Vector3d gauge_p = Eigen::Vector3d::Zero();
   double gauge_yaw = 0.0;
 
-  // Marginalisation prior in slot space (15 * max_states square):
-  //   cost = prior_c + prior_g' dx + 1/2 dx' prior_H dx,  dx = x [-] x0 per state,
+  // Marginalisation prior in slot space (15 * max_states + 1 square, t_d last):
+  //   cost = prior_c + prior_g' dx + 1/2 dx' prior_H dx,  dx = x [-] x0 per state (td - td0 for t_d),
   // which equals 1/2 |e + J dx|^2 with J'J = prior_H, J'e = prior_g, 1/2 e'e = prior_c.
   Eigen::MatrixXd prior_H;
   Eigen::VectorXd prior_g;
@@ -117,13 +128,18 @@ struct WindowProblem {
 // s <= a^2, 2 a sqrt(s) - a^2 above; rho1 = rho'(s). a <= 0: rho(s) = s.
 double huber_rho(double s, double a, double* rho1);
 
-// Visual residual of one observation, whitened: rows 0-1 (pi(K p_C) - uv) / sigma_px,
-// row 2 (z_C - depth) / sigma_depth when the observation has depth.
-// p_C = R_CB R_WB^T (l_W - p_WB) + p_CB. Returns the number of rows (2 or 3),
+// Visual residual of one observation, whitened: rows 0-1
+// (pi(K p_C) - (uv - uv_vel td_s)) / sigma_px, row 2 (z_C - depth) / sigma_depth
+// when the observation has depth. p_C = R_CB R_WB^T (l_W - p_WB) + p_CB;
+// td_s: the time offset (0 when not estimated): the pixel is moved back along
+// its image velocity to the state's time. Returns the number of rows (2 or 3),
 // 0 when the point is not in front of the camera (z_C < 1e-3 m).
-// J_pose: d r / d[dp, dphi]; J_l: d r / d l_W.
+// J_pose: d r / d[dp, dphi]; J_l: d r / d l_W; J_td: d r / d td_s.
 int visual_residual(const WindowProblem& P, const NavState& x, const Eigen::Vector3d& l_W, const WindowObs& o,
-                    Eigen::Vector3d* r, Matrix36d* J_pose = nullptr, Eigen::Matrix3d* J_l = nullptr);
+                    double td_s, Eigen::Vector3d* r, Matrix36d* J_pose = nullptr, Eigen::Matrix3d* J_l = nullptr,
+                    Eigen::Vector3d* J_td = nullptr);
+// The time offset's prior td_s / sigma and its derivative.
+double time_offset_prior_residual(const WindowProblem& P, double td_s, double* J = nullptr);
 
 // IMU (9, whitened by the preintegration's covariance) and bias (6, whitened
 // by bias_covariance) residuals stacked: [r_R, r_v, r_p, r_bg, r_ba].

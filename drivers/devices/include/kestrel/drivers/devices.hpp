@@ -9,6 +9,7 @@
 //    FrameSink. Used by `kestrel record` and `kestrel run`.
 #pragma once
 
+#include <array>
 #include <atomic>
 #include <cstdint>
 #include <memory>
@@ -28,8 +29,12 @@
 
 namespace kestrel::drivers {
 
-enum class CameraType { kNone, kOpenNi2, kV4l2 };
-enum class ImuType { kNone, kBmx055I2c, kBmx055Usb };
+// kLog: both sensors played from a recorded .klog at its own pace, through the
+// same sinks and threads as the hardware (a bench without sensors, and the
+// tests of `kestrel run`). Camera stamps are handed out as the camera's clock
+// gave them (the log's offset taken back out), like a camera driver's.
+enum class CameraType { kNone, kOpenNi2, kV4l2, kLog };
+enum class ImuType { kNone, kBmx055I2c, kBmx055Usb, kLog };
 
 struct CameraSettings {
   CameraType type = CameraType::kNone;
@@ -70,12 +75,32 @@ struct DriverSettings {
   CameraSettings camera;
   ImuSettings imu;
   StrobeSettings strobe;
+  std::string log_path;  // drivers.log.path: the .klog both `log` sensors play (relative to the config)
 };
 
 // `estimator:` section (optional). The names are core's (drivers never
 // include core): the tools check them against core::estimator_known().
 struct EstimatorSettings {
   std::string backend;   // "" when absent: the command's default
+};
+
+// `mavlink:` section (optional): the flight-controller link (tools/mavlink,
+// docs/px4.md). The command line's --mavlink-udp / --mavlink-serial choose
+// the transport over these; the rest holds for either.
+struct MavlinkSettings {
+  bool present = false;        // the section was read
+  std::string udp;             // HOST:PORT, "" = none
+  std::string serial_device;   // e.g. /dev/ttyTHS1, "" = none
+  int serial_baud = 921600;
+  int sysid = 1;               // the vehicle's system id (a companion shares it)
+  int compid = 197;            // MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY
+  // The vehicle's FRD body axes in B, row-major 3x3 (p_F = R_FB p_B): a
+  // rotation. Default: B is forward-left-up, so FRD is a half turn about x.
+  std::array<double, 9> R_FB{1, 0, 0, 0, -1, 0, 0, 0, -1};
+  double odometry_rate_hz = 0;  // at most this often; 0 = every pose
+  double heartbeat_rate_hz = 1;
+  bool timesync = true;
+  double timesync_max_rtt_ms = 10;
 };
 
 // `threads:` section (optional): scheduling and CPU of every pipeline thread.
@@ -104,10 +129,11 @@ ThreadTable load_thread_table(const std::string& path);
 
 struct LiveConfig {
   std::string path;
-  Rig rig;
+  Rig rig;  // `rig:` inline, or `rig: FILE.yaml` (relative to the config), e.g. from `kestrel calib import-kalibr`
   DriverSettings drivers;
   EstimatorSettings estimator;
   ThreadTable threads = default_thread_table();
+  MavlinkSettings mavlink;
 };
 
 // Throws std::runtime_error "path: drivers.imu.acc_range_g: expected one of 2, 4, 8, 16".
@@ -122,6 +148,11 @@ DriverSettings driver_settings_from_yaml_node(const YAML::Node& node, const std:
 // The optional `estimator:` section's `backend: NAME` (its other keys are
 // estimator options, checked by the tools).
 EstimatorSettings estimator_settings_from_yaml_node(const YAML::Node& node, const std::string& where);
+// Throws std::runtime_error "where: mavlink.sysid: must be in 1..255".
+MavlinkSettings mavlink_settings_from_yaml_node(const YAML::Node& node, const std::string& where);
+// The `mavlink:` section of any YAML file (defaults, present = false, when none).
+MavlinkSettings load_mavlink_settings(const std::string& path);
+
 // The `estimator:` section of any YAML file (a live config, or a file with
 // only that section; other top-level keys are not looked at). Throws
 // std::runtime_error naming the file.

@@ -8,6 +8,7 @@
 #include <string>
 #include <vector>
 
+#include "kestrel/drivers/camera_time_shift.hpp"
 #include "kestrel/drivers/log_source.hpp"
 #include "kestrel/msgs.hpp"
 
@@ -84,6 +85,8 @@ class KlogReader final : public LogSource {
   KlogReader& operator=(const KlogReader&) = delete;
 
   const Rig& rig() const override { return rig_; }
+  // Camera stamps come out on the IMU's clock (the rig's
+  // time_offset_cam_imu_ns added; the file keeps them as recorded).
   bool next(LogRecord& out) override;
   void rewind() override;
   const std::vector<LogProblem>& problems() const override { return problems_; }
@@ -111,6 +114,7 @@ class KlogReader final : public LogSource {
   // (payload left in payload_), or size_ when there is none.
   uint64_t resync(uint64_t from, RecordHeader& h);
   bool decode(uint64_t offset, const RecordHeader& h, LogRecord& out, std::string& why);
+  bool next_as_stored(LogRecord& out);
   void problem(uint64_t offset, const char* kind, std::string detail);
 
   std::string name_;
@@ -131,6 +135,10 @@ class KlogReader final : public LogSource {
   // A record found by resync, already loaded, to be returned next.
   bool pending_ = false;
   RecordHeader pending_header_;
+  // Non-zero camera-IMU offset: records re-sorted after the shift.
+  CameraTimeShift shift_;
+  LogRecord scratch_;
+  bool stored_done_ = false;
 };
 
 }  // namespace kestrel::drivers

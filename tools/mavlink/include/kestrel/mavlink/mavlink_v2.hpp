@@ -22,6 +22,43 @@ constexpr uint32_t kMsgIdOdometry = 331;
 constexpr uint8_t kOdometryCrcExtra = 91;
 constexpr std::size_t kOdometryPayloadBytes = 233;  // untrimmed, extensions included
 
+// HEARTBEAT (#0, minimal.xml): who we are, once a second.
+constexpr uint32_t kMsgIdHeartbeat = 0;
+constexpr uint8_t kHeartbeatCrcExtra = 50;
+constexpr std::size_t kHeartbeatPayloadBytes = 9;
+// TIMESYNC (#111): tc1 = 0 asks the peer for its clock; its answer echoes ts1.
+constexpr uint32_t kMsgIdTimesync = 111;
+constexpr uint8_t kTimesyncCrcExtra = 34;
+constexpr std::size_t kTimesyncPayloadBytes = 18;  // extensions target_system, target_component included
+
+constexpr uint8_t kMavCompIdVisualInertialOdometry = 197;  // MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY
+constexpr uint8_t kMavTypeOnboardController = 18;          // MAV_TYPE_ONBOARD_CONTROLLER
+constexpr uint8_t kMavAutopilotInvalid = 8;                // MAV_AUTOPILOT_INVALID: not a flight controller
+// MAV_STATE values (minimal.xml).
+enum MavState : uint8_t {
+  kMavStateUninit = 0,
+  kMavStateBoot = 1,
+  kMavStateStandby = 3,
+  kMavStateActive = 4,
+  kMavStateCritical = 5,
+};
+
+struct HeartbeatMsg {
+  uint32_t custom_mode = 0;
+  uint8_t type = kMavTypeOnboardController;
+  uint8_t autopilot = kMavAutopilotInvalid;
+  uint8_t base_mode = 0;
+  uint8_t system_status = kMavStateStandby;
+  uint8_t mavlink_version = 3;
+};
+
+struct TimesyncMsg {
+  int64_t tc1 = 0;  // ns; 0 in a request
+  int64_t ts1 = 0;  // ns: the requester's clock, echoed in the answer
+  uint8_t target_system = 0;
+  uint8_t target_component = 0;
+};
+
 // MAV_FRAME values used here (common.xml).
 enum MavFrame : uint8_t {
   kMavFrameLocalNed = 1,
@@ -71,5 +108,16 @@ std::size_t frame_v2(uint32_t msgid, uint8_t crc_extra, const uint8_t* payload, 
 
 // pack + frame in one call; no allocation.
 std::size_t encode_odometry(const OdometryMsg& m, uint8_t seq, uint8_t sysid, uint8_t compid, uint8_t* out);
+std::size_t encode_heartbeat(const HeartbeatMsg& m, uint8_t seq, uint8_t sysid, uint8_t compid, uint8_t* out);
+std::size_t encode_timesync(const TimesyncMsg& m, uint8_t seq, uint8_t sysid, uint8_t compid, uint8_t* out);
+
+// From a payload zero-extended to the message's full length (what
+// MavlinkDecoder hands out).
+HeartbeatMsg unpack_heartbeat(const uint8_t* payload);
+TimesyncMsg unpack_timesync(const uint8_t* payload);
+
+// CRC_EXTRA and untrimmed payload length of the messages this build knows
+// (HEARTBEAT, TIMESYNC, ODOMETRY); false for any other id.
+bool message_spec(uint32_t msgid, uint8_t* crc_extra, std::size_t* payload_len);
 
 }  // namespace kestrel::mavlink

@@ -52,6 +52,10 @@ struct SimOptions {
   std::string rig_path;                 // optional rig YAML (drivers/rig_yaml.hpp schema)
 
   double time_offset_ms = 0.0;          // frame stamps = true time - offset (t_imu = t_cam + offset)
+  // What the log's rig says the offset is (unset: time_offset_ms). A value
+  // other than the true one makes a miscalibrated log (kestrel replay with
+  // window.estimate_time_offset finds the difference).
+  std::optional<double> rig_time_offset_ms;
   double timestamp_jitter_us = 0.0;     // std of frame stamp noise
   double frame_drop_rate = 0.0;         // probability a frame is lost (not written)
 
