@@ -140,6 +140,42 @@ void visit_window(EstimatorConfig& c, OptionVisitor& v) {
   v.value("map_pose_sigma_rad", e.map_pose_sigma_rad, "map pose factor sigma, lower bound");
   v.value("moving_start_after_ns", c.window_moving_start_after_ns,
           "no still window by then: the dynamic start (the optimizer fixes attitude and velocity)");
+  v.value("use_map_points", w.use_map_points, "map points hold their window landmarks by a prior (docs/map.md)");
+  v.value("map_anchor_min_landmarks", w.map_anchor_min_landmarks,
+          "with this many map-point landmarks the map fixes the gauge");
+  v.end_section();
+}
+
+void visit_map(MapSystemOptions& m, OptionVisitor& v) {
+  MapOptions& o = m.map;
+  v.begin_section("map", "the map beside the window backend: local mapping, loop closing (core/map, docs/map.md)");
+  v.value("mapping", m.mapping, "build a map on the kst-mapping thread and track against it (--mapping on|off)");
+  v.value("loop", m.loop, "loop closing and relocalisation on the kst-loop thread (--loop on|off)");
+  v.value("max_keyframes", o.max_keyframes, "keyframes the map holds, fixed at start-up");
+  v.value("max_points", o.max_points, "map points the map holds, fixed at start-up");
+  v.value("ba_keyframes", o.ba_keyframes, "covisible keyframes bundle-adjusted with each new one");
+  v.value("ba_fixed_keyframes", o.ba_fixed_keyframes, "other keyframes seeing the same points, held fixed");
+  v.value("ba_iterations", o.ba_iterations, "Levenberg-Marquardt iterations per round (two rounds)");
+  v.value("ba_huber", o.ba_huber, "Huber threshold on the whitened observation error");
+  v.value("ba_outlier_chi2", o.ba_outlier_chi2, "observations above this whitened squared error are dropped");
+  v.value("ba_gravity_sigma_rad", o.ba_gravity_sigma_rad,
+          "the odometry's gravity direction holds each keyframe's roll and pitch (0: off)");
+  v.value("fuse_radius_px", o.fuse_radius_px, "search radius when fusing covisible points (level 0)");
+  v.value("fuse_max_hamming", o.fuse_max_hamming, "largest Hamming distance for a fused match");
+  v.value("fuse_depth_tol_rel", o.fuse_depth_tol_rel, "measured vs projected depth within rel x z + 3 cm");
+  v.value("cull_keyframe_redundancy", o.cull_keyframe_redundancy,
+          "a keyframe whose points are this share seen by 3 others is culled");
+  v.value("cull_point_min_keyframes", o.cull_point_min_keyframes,
+          "a point seen by fewer keyframes 3 keyframes after it was made is culled");
+  v.value("cull_point_min_found_ratio", o.cull_point_min_found_ratio,
+          "a point found in fewer than this share of the keyframes it should be seen in is culled");
+  v.value("update_max_points", o.update_max_points, "refined points handed to the tracker per keyframe");
+  v.value("neighbour_radius_m", o.neighbour_radius_m, "keyframes this close count as the neighbourhood");
+  v.value("neighbour_max_angle_rad", o.neighbour_max_angle_rad, "... when their optical axes are this close");
+  v.value("point_sigma_floor_m", o.point_sigma_floor_m, "a map point's prior in the window: at least this sigma");
+  v.value("point_min_keyframes_for_prior", o.point_min_keyframes_for_prior,
+          "points seen by fewer keyframes are not handed to the tracker");
+  v.value("min_keyframe_interval_s", o.min_keyframe_interval_s, "keyframes closer in time are not mapped");
   v.end_section();
 }
 
@@ -219,6 +255,7 @@ void visit_options(EstimatorConfig& c, OptionVisitor& v) {
     v.end_section();
   }
   visit_window(c, v);
+  visit_map(c.window.map, v);
   visit_ekf(c.ekf, v);
 }
 

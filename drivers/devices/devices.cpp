@@ -288,8 +288,9 @@ EstimatorSettings load_estimator_settings(const std::string& path) {
 }
 
 namespace {
-constexpr const char* kThreadNames[kPipelineThreads] = {"kst-imu",       "kst-cam",       "kst-replay", "kst-propagate",
-                                                        "kst-estimator", "kst-optimizer", "kst-log"};
+constexpr const char* kThreadNames[kPipelineThreads] = {"kst-imu",       "kst-cam",       "kst-replay",
+                                                        "kst-propagate", "kst-estimator", "kst-optimizer",
+                                                        "kst-log",       "kst-mapping",   "kst-loop"};
 }  // namespace
 
 ThreadTable default_thread_table() {

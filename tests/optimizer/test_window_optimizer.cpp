@@ -66,7 +66,9 @@ struct Fixture {
     c.imu_per_frame = static_cast<int>(200.0 / rate_hz);
     SimWorld world(c);
     frames = world.frames(n, 0.5);
+    points = world.points();
   }
+  std::vector<Eigen::Vector3d> points;
 };
 
 TEST(WindowOptimizer, OptionsValidate) {
@@ -136,8 +138,22 @@ TEST(WindowOptimizer, GaugeHoldsFirstPositionAndYaw) {
 
 // Two optimisers fed identically; one solved by ours, one by Ceres.
 void cross_check(int S, int N, int n_frames, int keyframe_every, bool huber_active, uint64_t seed,
-                 bool zero_velocity = false, bool pose_prior = false) {
+                 bool zero_velocity = false, bool pose_prior = false, bool landmark_prior = false) {
   Fixture fx(n_frames, seed, keyframe_every);
+  if (landmark_prior) {
+    // Every third landmark is a map point: its position a few mm off the
+    // truth, as a bundle adjustment would give it.
+    std::mt19937_64 rng(seed + 300);
+    std::normal_distribution<double> N01(0.0, 0.005);
+    std::vector<Eigen::Vector3d> map_p(fx.points.size());
+    for (std::size_t i = 0; i < map_p.size(); ++i) map_p[i] = fx.points[i] + Eigen::Vector3d(N01(rng), N01(rng), N01(rng));
+    for (SimFrame& f : fx.frames)
+      for (WindowObservation& o : f.obs)
+        if (o.landmark_id % 3 == 0) {
+          o.map_sigma_m = 0.01f;
+          o.map_p_W = map_p[o.landmark_id - 1000];
+        }
+  }
   WindowOptions o = kestrel::test::sim_options(S, N);
   o.max_iterations = 100;
   o.time_budget_ms = 1e5;
@@ -218,6 +234,7 @@ TEST(WindowOptimizer, MatchesCeresEmbeddedNoHuber) { cross_check(2, 3, 14, 2, fa
 TEST(WindowOptimizer, MatchesCeresWithZeroVelocityFactors) { cross_check(3, 5, 12, 2, true, 55, true); }
 // Map pose factors, some marginalised into the prior, and the gauge off while one is in the window.
 TEST(WindowOptimizer, MatchesCeresWithMapPoseFactors) { cross_check(3, 5, 14, 2, true, 56, false, true); }
+TEST(WindowOptimizer, MatchesCeresWithMapPointPriors) { cross_check(3, 5, 14, 2, true, 57, false, false, true); }
 
 TEST(WindowOptimizer, CeresIsSelectable) {
   Fixture fx(8, 41, 1, 5.0);

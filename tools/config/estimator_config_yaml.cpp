@@ -348,4 +348,15 @@ std::string estimator_config_reference_markdown() {
   return m.out.str();
 }
 
+void apply_map_switches(core::EstimatorConfig& c, const std::string& mapping, const std::string& loop) {
+  auto parse = [](const std::string& v, const char* opt) {
+    if (v == "on") return true;
+    if (v == "off") return false;
+    throw std::invalid_argument(std::string(opt) + " '" + v + "': expected on or off");
+  };
+  if (!mapping.empty()) c.window.map.mapping = parse(mapping, "--mapping");
+  if (!loop.empty()) c.window.map.loop = parse(loop, "--loop");
+  if (loop == "on" && !c.window.map.mapping) throw std::invalid_argument("--loop on needs the map (--mapping on)");
+}
+
 }  // namespace kestrel::tools

@@ -17,6 +17,7 @@
 #include "kestrel/core/window_estimator.hpp"
 #include "kestrel/imu_rate_stage.hpp"
 #include "kestrel/json_writer.hpp"
+#include "kestrel/map_threads.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"
 #include "kestrel/rt/alloc_counter.hpp"
 #include "kestrel/rt/clock.hpp"
@@ -37,7 +38,15 @@ PoseSample pose_sample_of(const OutPose& p) {
   s.quality = p.quality;
   s.reset_counter = p.reset_counter;
   s.pose_cov = covariance_of(p);
+  s.map = p.map;
   return s;
+}
+
+Eigen::Isometry3d PoseSample::T_map_body() const {
+  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+  T.linear() = q_WB.normalized().toRotationMatrix();
+  T.translation() = p_WB;
+  return map.active ? map.T_map_odom() * T : T;
 }
 
 mavlink::OdometryInput odometry_input_of(const PoseSample& s) {
@@ -226,6 +235,7 @@ class EstimatorStage {
       p.quality = core::TrackingQuality::kImuOnly;
     p.reset_counter = o.reset_counter;
     set_covariance(p, o.pose_cov);
+    p.map = o.map;
     if (!out_.try_push(p)) ++report_.output_ring_drops;
     last_out_t_ns_ = p.t_ns;
   }
@@ -268,6 +278,11 @@ class EstimatorStage {
       const int64_t t0 = rt::now_ns();
       est_.add_frame(f);
       const int64_t t1 = rt::now_ns();
+      // Deterministic paces let the map finish the keyframe just handed over
+      // (the mapping and loop threads run it), so the next frame sees its
+      // result at the same point on every run; realtime never waits.
+      if (opt_.pace != drivers::ReplayPace::kRealtime)
+        while (est_.map_busy()) rt::sleep_for_ns(20'000);
       if (anchor_ != nullptr)
         anchor_->publish(to_anchor(est_.output()));
       ++frames_fed_;
@@ -359,6 +374,20 @@ class OutputStage {
       tp.p = s.p_WB;
       tp.q = s.q_WB;
       report_.trajectory.push_back(tp);
+      if (s.map.active) {
+        const Eigen::Isometry3d T = s.T_map_body();
+        tools::TimedPose mp;
+        mp.t_ns = s.t_ns;
+        mp.p = T.translation();
+        mp.q = Eigen::Quaterniond(T.linear());
+        report_.map_trajectory.push_back(mp);
+        if (s.map.alignment != map_alignment_) {
+          map_alignment_ = s.map.alignment;
+          ++report_.map_corrections;
+          if (opt_.on_map_correction) opt_.on_map_correction(s);
+        }
+        report_.map = s.map;
+      }
       if (opt_.on_pose) opt_.on_pose(s);
       if (mavlink_) mavlink_->publish(odometry_input_of(s));
     }
@@ -394,6 +423,7 @@ class OutputStage {
   ReplayReport& report_;
   std::unique_ptr<mavlink::OdometryStream> mavlink_;
   uint64_t status_version_ = 0;
+  uint32_t map_alignment_ = 0;
   const rt::Mailbox<OutPose>* imu_pose_ = nullptr;
   uint64_t imu_pose_version_ = 0;
 };
@@ -447,6 +477,8 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   core::Estimator& estimator = *estimator_ptr;
   report.estimator = estimator.name();
   report.trajectory.reserve(1 << 16);
+  report.has_map = estimator.has_map();
+  if (report.has_map) report.map_trajectory.reserve(1 << 16);
 
   // At realtime pace the optimizer gets its own thread, as it will fly; fast
   // and lockstep run it inline, so both give the lockstep trajectory bit for
@@ -460,6 +492,12 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   auto imu_pose = std::make_unique<rt::Mailbox<OutPose>>();
   ImuRateStage propagator(rings->imu, *est_imu, *anchor, log->rig(), opt.warmup_ns, *imu_pose);
   OutputStage output(*out, *status, opt, report, imu_pose.get());
+
+  // The map's two threads, in every pace: the deterministic paces wait for
+  // them per keyframe (EstimatorStage::on_frame), realtime does not.
+  MapThreads map_threads(estimator,
+                         opt.pace == drivers::ReplayPace::kRealtime ? opt.threads : drivers::default_thread_table(),
+                         report.threads);
 
   const int64_t wall0 = rt::now_ns();
   const double cpu0 = process_cpu_s();
@@ -563,9 +601,14 @@ ReplayReport run_replay(const ReplayOptions& opt) {
       report.steady_allocs += propagator.stats().steady_allocs;
     }
   }
+  map_threads.stop();
+  report.mapping_cpu_s = map_threads.mapping_cpu_s();
+  report.loop_cpu_s = map_threads.loop_cpu_s();
   const int64_t wall1 = rt::now_ns();
 
   report.replay = source.stats();
+  if (const rt::LatencyHistogram* h = estimator.mapping_latency()) report.mapping = *h;
+  if (const rt::LatencyHistogram* h = estimator.loop_latency()) report.loop = *h;
   report.estimator_counters = estimator.counters();
   report.backend_summary = estimator.backend_summary();
   report.optimizer_threaded = optimizer_thread;
@@ -650,7 +693,20 @@ std::string replay_metrics_json(const ReplayReport& r) {
   histogram_json(j, "tracking", r.tracking);
   histogram_json(j, "estimator_imu", r.estimator_imu_latency);
   histogram_json(j, "optimizer", r.optimizer);
+  histogram_json(j, "mapping", r.mapping);
+  histogram_json(j, "loop", r.loop);
   j.end_object();
+  // The map (docs/map.md): null when the backend has none.
+  if (r.has_map) {
+    j.kv("loop_closures", r.map.loop_closures).kv("relocalisations", r.map.relocalisations);
+    j.kv("keyframes_in_map", static_cast<uint64_t>(r.map.keyframes)).kv("map_points", static_cast<uint64_t>(r.map.points));
+    j.kv("map_correction_m", r.map.T_map_odom().translation().norm());
+    j.kv("map_localized", r.map.localized).kv("map_corrections", r.map_corrections);
+    j.kv("mapping_cpu_s", r.mapping_cpu_s).kv("loop_cpu_s", r.loop_cpu_s);
+  } else {
+    for (const char* k : {"loop_closures", "relocalisations", "keyframes_in_map", "map_points", "map_correction_m"})
+      j.key(k).null();
+  }
   j.kv("optimizer_threaded", r.optimizer_threaded);
   j.kv("imu_rate_poses", r.imu_rate_poses);
   j.key("records").begin_object();
@@ -793,6 +849,18 @@ std::string replay_summary(const ReplayReport& r) {
     s += buf;
   }
   if (!r.backend_summary.empty()) s += r.backend_summary + "\n";
+  if (r.has_map) {
+    std::snprintf(buf, sizeof buf,
+                  "map threads: mapping %llu keyframes, p50 %.1f ms, p99 %.1f ms, cpu %.1f s; loop p50 %.1f ms, "
+                  "p99 %.1f ms, cpu %.1f s; loop closures %llu, relocalisations %llu, |t(T_map_odom)| %.3f m\n",
+                  static_cast<unsigned long long>(r.mapping.count()),
+                  1e-6 * static_cast<double>(r.mapping.percentile(50)),
+                  1e-6 * static_cast<double>(r.mapping.percentile(99)), r.mapping_cpu_s,
+                  1e-6 * static_cast<double>(r.loop.percentile(50)), 1e-6 * static_cast<double>(r.loop.percentile(99)),
+                  r.loop_cpu_s, static_cast<unsigned long long>(r.map.loop_closures),
+                  static_cast<unsigned long long>(r.map.relocalisations), r.map.T_map_odom().translation().norm());
+    s += buf;
+  }
   const InputFaultCounts& ff = r.input_faults;
   if (ff.missing + ff.out_of_order + ff.repeated + ff.no_depth + ff.imu_gaps > 0) {
     std::snprintf(

@@ -63,6 +63,8 @@ class FrontendOdometry final : public Estimator {
   // A back end's covariance of the pose, carried in the output until the next
   // one or a reset (the front end has none of its own).
   void set_pose_covariance(const PoseCovariance& c) { out_.pose_cov = c; }
+  // A back end's map: where W sits in the map frame, carried in the output.
+  void set_map_frame(const MapFrameState& m) { out_.map = m; }
 
  private:
   FrontendOdometryOptions opt_;

@@ -31,6 +31,7 @@
 
 #include "kestrel/core/estimator.hpp"
 #include "kestrel/core/frontend_odometry.hpp"
+#include "kestrel/core/map_system.hpp"
 #include "kestrel/core/window_optimizer.hpp"
 #include "kestrel/rt/mailbox.hpp"
 #include "kestrel/rt/spsc_ring.hpp"
@@ -71,6 +72,10 @@ struct WindowEstimatorOptions {
   bool use_map_pose = true;
   double map_pose_sigma_m = 0.02;
   double map_pose_sigma_rad = 0.01;
+  // The map (local mapping, loop closing, relocalisation; docs/map.md). Its
+  // work runs on threads the caller provides (Estimator::mapping_step /
+  // loop_step); without them nothing is mapped.
+  MapSystemOptions map;
 
   std::string validate() const;
 };
@@ -121,6 +126,14 @@ class WindowEstimator final : public Estimator {
   const rt::LatencyHistogram* optimizer_latency() const override { return &opt_latency_; }
   std::string backend_summary() const override;
 
+  bool has_map() const override { return map_ != nullptr; }
+  bool mapping_step() override { return map_ && map_->mapping_step(); }
+  bool loop_step() override { return map_ && map_->loop_step(); }
+  bool map_busy() const override { return map_ && map_->busy(); }
+  const rt::LatencyHistogram* mapping_latency() const override { return map_ ? &map_->mapping_latency() : nullptr; }
+  const rt::LatencyHistogram* loop_latency() const override { return map_ ? &map_->loop_latency() : nullptr; }
+  MapSystem* map_system() { return map_.get(); }
+
   const WindowEstimatorCounters& window_counters() const { return wc_; }
   const FrontendOdometry& front() const { return front_; }
 
@@ -149,6 +162,8 @@ class WindowEstimator final : public Estimator {
   void apply(const WindowSolveResult& r);
   void submit_pending();
   void fail_and_maybe_reset();
+  void map_before_tracking();
+  void map_after_tracking();
   WindowObservation* obs_of(int slot) { return obs_pool_.get() + static_cast<size_t>(slot) * max_obs_; }
 
   WindowEstimatorOptions opt_;
@@ -188,6 +203,11 @@ class WindowEstimator final : public Estimator {
   StaticInitializer still_;
   int64_t still_t_ns_ = -1;
   bool reset_requested_ = false;
+
+  // The map: the keyframe being held until the window has refined it, and
+  // the newest state of the map's frame.
+  std::unique_ptr<MapSystem> map_;
+  KeyframePacket* map_pending_ = nullptr;
 
   // Optimizer side.
   rt::LatencyHistogram opt_latency_;

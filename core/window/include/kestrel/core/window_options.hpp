@@ -47,6 +47,11 @@ struct WindowOptions {
   // max-norm falls below these.
   double function_tolerance = 1e-10;
   double step_tolerance = 1e-10;
+  // Map points (observations with WindowObservation::map_sigma_m > 0) hold
+  // their landmarks by a prior; with at least this many such landmarks in
+  // the problem the map fixes the gauge and the oldest state is let go.
+  bool use_map_points = true;
+  int map_anchor_min_landmarks = 10;
 
   // The embedded profile: S = 2, N = 3.
   static WindowOptions embedded();

@@ -81,7 +81,9 @@ struct EstimatorSettings {
 // `threads:` section (optional): scheduling and CPU of every pipeline thread.
 // One rt::ThreadSpec per known thread (priority 0 = SCHED_OTHER, cpu -1 =
 // any). Threads the section does not name keep default_thread_table()'s value.
-enum class PipelineThread : int { kImu, kCamera, kReplay, kPropagate, kEstimator, kOptimizer, kLog, kCount };
+enum class PipelineThread : int {
+  kImu, kCamera, kReplay, kPropagate, kEstimator, kOptimizer, kLog, kMapping, kLoop, kCount
+};
 constexpr int kPipelineThreads = static_cast<int>(PipelineThread::kCount);
 
 struct ThreadTable {
