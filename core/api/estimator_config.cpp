@@ -151,6 +151,8 @@ void visit_map(MapSystemOptions& m, OptionVisitor& v) {
   v.begin_section("map", "the map beside the window backend: local mapping, loop closing (core/map, docs/map.md)");
   v.value("mapping", m.mapping, "build a map on the kst-mapping thread and track against it (--mapping on|off)");
   v.value("loop", m.loop, "loop closing and relocalisation on the kst-loop thread (--loop on|off)");
+  v.value("vocabulary", m.vocabulary_path,
+          "place recognition vocabulary file (kestrel vocab); empty: the one built into kestrel");
   v.value("max_keyframes", o.max_keyframes, "keyframes the map holds, fixed at start-up");
   v.value("max_points", o.max_points, "map points the map holds, fixed at start-up");
   v.value("ba_keyframes", o.ba_keyframes, "covisible keyframes bundle-adjusted with each new one");

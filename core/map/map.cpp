@@ -26,7 +26,8 @@ std::string MapOptions::validate() const {
   return e.str();
 }
 
-Map::Map(const MapOptions& opt, int features_per_keyframe) : opt_(opt), fpk_(features_per_keyframe) {
+Map::Map(const MapOptions& opt, int features_per_keyframe, std::shared_ptr<const Vocabulary> vocabulary)
+    : opt_(opt), fpk_(features_per_keyframe), vocab_(std::move(vocabulary)) {
   const std::string err = opt.validate();
   if (!err.empty()) throw std::invalid_argument("MapOptions:\n" + err);
   if (fpk_ < 1) throw std::invalid_argument("Map: features_per_keyframe must be >= 1");
@@ -49,6 +50,14 @@ Map::Map(const MapOptions& opt, int features_per_keyframe) : opt_(opt), fpk_(fea
   covis_count_.reset(new int32_t[K]);
   std::fill(covis_count_.get(), covis_count_.get() + K, 0);
   covis_list_.reset(new int32_t[K]);
+  if (vocab_ && !vocab_->empty()) {
+    db_ = std::make_unique<KeyframeDatabase>(vocab_->words(), opt.max_keyframes, opt.max_keyframes * fpk_);
+    bow_.reset(new BowEntry[K * static_cast<size_t>(fpk_)]);
+    words_.reset(new uint32_t[K * static_cast<size_t>(fpk_)]);
+    desc_scratch_.reset(new OrbDescriptor[static_cast<size_t>(fpk_)]);
+  } else {
+    vocab_.reset();
+  }
 }
 
 Map::~Map() = default;
@@ -119,6 +128,12 @@ int Map::add_keyframe(int64_t t_ns, const Eigen::Isometry3d& T_MC, const Eigen::
   std::fill(point_of_.get() + K.first_feature, point_of_.get() + K.first_feature + fpk_, -1);
   ++n_kf_;
   if (newest_kf_ < 0 || kfs_[newest_kf_].id < K.id) newest_kf_ = k;
+  if (vocab_) {
+    for (int j = 0; j < K.n; ++j) desc_scratch_[j] = f[j].desc;
+    BowEntry* b = bow_.get() + static_cast<size_t>(k) * fpk_;
+    K.n_bow = vocab_->transform(desc_scratch_.get(), K.n, b, words_.get() + static_cast<size_t>(k) * fpk_);
+    db_->add(k, b, K.n_bow);
+  }
   return k;
 }
 
@@ -131,6 +146,7 @@ void Map::erase_keyframe(int kf) {
   }
   for (int k = 0; k < opt_.max_keyframes; ++k)
     if (kfs_[k].id != 0 && kfs_[k].parent == kf) kfs_[k].parent = K.parent;
+  if (db_) db_->erase(kf, bow(kf), K.n_bow);
   K.id = 0;
   --n_kf_;
   free_kf_.push_back(kf);

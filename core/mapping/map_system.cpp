@@ -12,7 +12,7 @@ std::string MapSystemOptions::validate() const { return map.validate(); }
 MapSystem::MapSystem(const MapCamera& cam, int features_per_keyframe, const MapSystemOptions& opt) : opt_(opt) {
   const std::string err = opt.validate();
   if (!err.empty()) throw std::invalid_argument("MapSystemOptions:\n" + err);
-  map_ = std::make_unique<Map>(opt.map, features_per_keyframe);
+  map_ = std::make_unique<Map>(opt.map, features_per_keyframe, opt.loop ? opt.vocabulary : nullptr);
   mapper_ = std::make_unique<LocalMapper>(*map_, cam);
   packets_.reset(new KeyframePacket[kPackets]);
   packet_features_.reset(new KeyframeFeature[static_cast<size_t>(kPackets) * features_per_keyframe]);

@@ -32,5 +32,6 @@ Subcommand add_run_command(CLI::App& parent);
 Subcommand add_ekf_slam_command(CLI::App& parent);
 Subcommand add_convert_command(CLI::App& parent);
 Subcommand add_config_command(CLI::App& parent);
+Subcommand add_vocab_command(CLI::App& parent);
 
 }  // namespace kestrel::cli

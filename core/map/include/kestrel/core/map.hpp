@@ -23,6 +23,7 @@
 #include <vector>
 
 #include "kestrel/core/observation.hpp"
+#include "kestrel/core/vocabulary.hpp"
 
 namespace kestrel::core {
 
@@ -83,6 +84,7 @@ struct MapKeyframe {
   uint32_t session = 0;  // 0: this flight; > 0: loaded from a map file
   int n = 0;             // features
   int first_feature = 0;  // into Map::features / Map::point_of
+  int n_bow = 0;          // its BoW vector: Map::bow(kf), n_bow entries (with a vocabulary)
   uint64_t mark = 0;     // scratch stamps for set membership in one pass
   uint64_t mark2 = 0;
 };
@@ -104,7 +106,9 @@ struct MapPoint {
 
 class Map {
  public:
-  Map(const MapOptions& opt, int features_per_keyframe);
+  // With a vocabulary every keyframe gets a BoW vector and enters the
+  // inverted index (place recognition); without one it does not.
+  Map(const MapOptions& opt, int features_per_keyframe, std::shared_ptr<const Vocabulary> vocabulary = nullptr);
   ~Map();
   Map(const Map&) = delete;
   Map& operator=(const Map&) = delete;
@@ -131,6 +135,12 @@ class Map {
   int32_t point_of(int kf, int j) const { return point_of_[static_cast<size_t>(kf) * fpk_ + j]; }
   // The newest keyframe (largest id), -1 when empty.
   int newest_keyframe() const { return newest_kf_; }
+  // Place recognition (null without a vocabulary).
+  const Vocabulary* vocabulary() const { return vocab_.get(); }
+  const KeyframeDatabase* database() const { return db_.get(); }
+  const BowEntry* bow(int kf) const { return bow_.get() + static_cast<size_t>(kf) * fpk_; }
+  // The word of feature j of keyframe kf (with a vocabulary).
+  uint32_t word(int kf, int j) const { return words_[static_cast<size_t>(kf) * fpk_ + j]; }
 
   // Points. add_point returns the slot, -1 when full (or the id is taken).
   int add_point(uint32_t landmark_id, const Eigen::Vector3d& p_M, const OrbDescriptor& d, int level, int kf,
@@ -179,6 +189,11 @@ class Map {
   std::unique_ptr<uint32_t[]> idx_key_;
   std::unique_ptr<int32_t[]> idx_val_;
   uint32_t idx_mask_ = 0;
+  std::shared_ptr<const Vocabulary> vocab_;
+  std::unique_ptr<KeyframeDatabase> db_;
+  std::unique_ptr<BowEntry[]> bow_;
+  std::unique_ptr<uint32_t[]> words_;
+  std::unique_ptr<OrbDescriptor[]> desc_scratch_;
   mutable std::unique_ptr<int32_t[]> covis_count_;  // scratch per keyframe slot
   mutable std::unique_ptr<int32_t[]> covis_list_;
   int n_kf_ = 0, n_pt_ = 0;

@@ -37,6 +37,11 @@ struct MapSystemOptions {
   bool mapping = true;  // the map and the local mapping thread (--mapping on|off)
   bool loop = true;     // loop closing and relocalisation (--loop on|off; nothing without mapping)
   MapOptions map;
+  // Place recognition's vocabulary file ("": the one built into `kestrel`,
+  // configs/vocabulary/). Core does no I/O: tools load it into `vocabulary`;
+  // without one, loop closing and relocalisation are off.
+  std::string vocabulary_path;
+  std::shared_ptr<const Vocabulary> vocabulary;
 
   [[nodiscard]] std::string validate() const;
 };
