@@ -1,26 +1,21 @@
 #include "kestrel/core/bytes.hpp"
 
-#include <array>
+#include <zlib.h>
+
+#include <algorithm>
 
 namespace kestrel::core {
 
-namespace {
-std::array<uint32_t, 256> make_table() {
-  std::array<uint32_t, 256> t{};
-  for (uint32_t i = 0; i < 256; ++i) {
-    uint32_t c = i;
-    for (int k = 0; k < 8; ++k) c = (c & 1u) ? 0xEDB88320u ^ (c >> 1) : c >> 1;
-    t[i] = c;
-  }
-  return t;
-}
-}  // namespace
-
+// zlib's CRC-32, the one the .klog files and the USB bridge use.
 uint32_t crc32(const uint8_t* data, size_t n, uint32_t crc) {
-  static const std::array<uint32_t, 256> table = make_table();
-  crc = ~crc;
-  for (size_t i = 0; i < n; ++i) crc = table[(crc ^ data[i]) & 0xFFu] ^ (crc >> 8);
-  return ~crc;
+  uLong c = crc;
+  while (n > 0) {  // zlib takes uInt lengths
+    const uInt chunk = static_cast<uInt>(std::min<size_t>(n, 1u << 30));
+    c = ::crc32(c, data, chunk);
+    data += chunk;
+    n -= chunk;
+  }
+  return static_cast<uint32_t>(c);
 }
 
 std::vector<uint8_t> seal(const char magic[4], uint32_t version, const std::vector<uint8_t>& payload) {

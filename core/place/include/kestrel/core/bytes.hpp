@@ -12,7 +12,7 @@
 
 namespace kestrel::core {
 
-// CRC-32 (IEEE 802.3, reflected, polynomial 0xEDB88320), as zlib's crc32().
+// CRC-32 (IEEE 802.3): zlib's crc32(), chained through crc.
 uint32_t crc32(const uint8_t* data, size_t n, uint32_t crc = 0);
 
 class ByteWriter {
