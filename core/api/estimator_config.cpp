@@ -178,6 +178,30 @@ void visit_map(MapSystemOptions& m, OptionVisitor& v) {
   v.value("point_min_keyframes_for_prior", o.point_min_keyframes_for_prior,
           "points seen by fewer keyframes are not handed to the tracker");
   v.value("min_keyframe_interval_s", o.min_keyframe_interval_s, "keyframes closer in time are not mapped");
+  LoopOptions& l = m.closing;
+  v.value("loop_min_age_s", l.min_age_s, "loop candidates are at least this much older than the keyframe");
+  v.value("loop_max_candidates", l.max_candidates, "best place-recognition candidates verified per keyframe");
+  v.value("loop_min_score", l.min_score, "BoW score floor of a candidate");
+  v.value("loop_candidate_neighbours", l.candidate_neighbours,
+          "covisible keyframes of a candidate whose points are matched too");
+  v.value("loop_match_max_hamming", l.match_max_hamming, "largest Hamming distance of a loop match");
+  v.value("loop_match_ratio", l.match_ratio, "best / second-best Hamming ratio of a loop match");
+  v.value("loop_ransac_iterations", l.ransac_iterations, "4-DoF RANSAC iterations on the 3D-3D matches");
+  v.value("loop_inlier_m", l.inlier_m, "3D-3D inlier distance, plus 3 sigma of the depth");
+  v.value("loop_min_inliers", l.min_inliers, "inliers a loop needs");
+  v.value("loop_min_inlier_share", l.min_inlier_share, "... and this share of the matches");
+  v.value("loop_max_correction_m", l.max_correction_m,
+          "a loop's correction is drift: at most this + loop_max_correction_per_m x path since the candidate");
+  v.value("loop_max_correction_per_m", l.max_correction_per_m, "drift per metre flown (beyond: an alias)");
+  v.value("loop_max_yaw_rad", l.max_yaw_rad, "yaw correction at most this + loop_max_yaw_per_m x path");
+  v.value("loop_max_yaw_per_m", l.max_yaw_per_m, "yaw drift per metre flown [rad/m]");
+  v.value("loop_consistent_keyframes", l.consistent_keyframes,
+          "consecutive keyframes that must verify the same correction");
+  v.value("loop_consistency_m", l.consistency_m, "their corrections agree within this at the keyframe");
+  v.value("loop_consistency_rad", l.consistency_rad, "... and this in yaw");
+  v.value("loop_pose_graph_iterations", l.pose_graph_iterations, "4-DoF pose graph iterations");
+  v.value("loop_covis_edge_min_shared", l.covis_edge_min_shared, "points shared by a covisibility edge of the pose graph");
+  v.value("loop_cooldown_keyframes", l.cooldown_keyframes, "no new loop within this many keyframes of one");
   v.end_section();
 }
 

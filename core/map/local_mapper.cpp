@@ -90,6 +90,10 @@ int LocalMapper::insert(const KeyframePacket& pk, const Eigen::Isometry3d& T_MW,
     }
   }
   ++stats_.keyframes;
+  if (have_last_) path_m_ += (pk.T_WC.translation() - last_p_W_).norm();
+  have_last_ = true;
+  last_p_W_ = pk.T_WC.translation();
+  map_.keyframe(kf).path_m = path_m_;
   link_features(kf);
   fuse(kf);
   bundle_adjust(kf);

@@ -3,17 +3,19 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "kestrel/core/pose_graph.hpp"
 #include "kestrel/rt/clock.hpp"
 
 namespace kestrel::core {
 
-std::string MapSystemOptions::validate() const { return map.validate(); }
+std::string MapSystemOptions::validate() const { return map.validate() + closing.validate(); }
 
 MapSystem::MapSystem(const MapCamera& cam, int features_per_keyframe, const MapSystemOptions& opt) : opt_(opt) {
   const std::string err = opt.validate();
   if (!err.empty()) throw std::invalid_argument("MapSystemOptions:\n" + err);
   map_ = std::make_unique<Map>(opt.map, features_per_keyframe, opt.loop ? opt.vocabulary : nullptr);
   mapper_ = std::make_unique<LocalMapper>(*map_, cam);
+  closer_ = std::make_unique<LoopCloser>(*map_, cam, opt.closing);
   packets_.reset(new KeyframePacket[kPackets]);
   packet_features_.reset(new KeyframeFeature[static_cast<size_t>(kPackets) * features_per_keyframe]);
   for (int i = 0; i < kPackets; ++i) packets_[i].features = packet_features_.get() + i * features_per_keyframe;
@@ -145,6 +147,16 @@ bool MapSystem::loop_step() {
   if (k == nullptr) return false;
   loop_todo_.pop();
   const int64_t t0 = rt::now_ns();
+  const LoopClosure c = closer_->process(*k);
+  if (c.closed) {
+    // The odometry stays where it is; the map frame moves against it by the
+    // correction the loop made at the newest keyframe (4 DoF: both see gravity).
+    state_.set_T_map_odom(project_4dof(c.newest_delta * state_.T_map_odom()));
+    ++state_.alignment;
+    ++state_.loop_closures;
+    realigned_ = true;
+    publish_frame();
+  }
   loop_latency_.record(rt::now_ns() - t0);
   in_flight_.fetch_sub(1, std::memory_order_acq_rel);
   return true;
@@ -160,6 +172,11 @@ std::string MapSystem::summary() const {
     << "; local BA " << m.ba_runs << " (failed " << m.ba_failures << ", outliers " << m.ba_outliers
     << "); updates " << counters_.updates_published << " published, " << applied_.load() << " applied, "
     << counters_.updates_skipped << " skipped";
+  const LoopStats& l = closer_->stats();
+  o << "; loop: " << l.queries << " queries, " << l.candidates << " candidates, " << l.verified << " verified, rejected "
+    << l.rejected_inliers << " inliers / " << l.rejected_drift << " drift / " << l.rejected_consistency
+    << " consistency, " << l.closures << " closed (pose graph failed " << l.pose_graph_failures << "), "
+    << l.points_merged << " points merged";
   return o.str();
 }
 

@@ -76,6 +76,10 @@ class LocalMapper {
   MapCamera cam_;
   LocalMapperStats stats_;
   std::vector<int32_t> kf_scratch_, shared_scratch_, pt_scratch_;
+  // The odometry path flown (MapKeyframe::path_m).
+  double path_m_ = 0.0;
+  bool have_last_ = false;
+  Eigen::Vector3d last_p_W_ = Eigen::Vector3d::Zero();
 };
 
 }  // namespace kestrel::core

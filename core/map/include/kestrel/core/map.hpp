@@ -85,6 +85,7 @@ struct MapKeyframe {
   int n = 0;             // features
   int first_feature = 0;  // into Map::features / Map::point_of
   int n_bow = 0;          // its BoW vector: Map::bow(kf), n_bow entries (with a vocabulary)
+  double path_m = 0.0;    // odometry path flown before it, this session (bounds a loop's drift)
   uint64_t mark = 0;     // scratch stamps for set membership in one pass
   uint64_t mark2 = 0;
 };

@@ -26,6 +26,7 @@
 
 #include "kestrel/core/estimator.hpp"
 #include "kestrel/core/local_mapper.hpp"
+#include "kestrel/core/loop_closer.hpp"
 #include "kestrel/core/map.hpp"
 #include "kestrel/rt/latency_histogram.hpp"
 #include "kestrel/rt/mailbox.hpp"
@@ -37,6 +38,7 @@ struct MapSystemOptions {
   bool mapping = true;  // the map and the local mapping thread (--mapping on|off)
   bool loop = true;     // loop closing and relocalisation (--loop on|off; nothing without mapping)
   MapOptions map;
+  LoopOptions closing;  // loop detection, verification, correction (loop_closer.hpp)
   // Place recognition's vocabulary file ("": the one built into `kestrel`,
   // configs/vocabulary/). Core does no I/O: tools load it into `vocabulary`;
   // without one, loop closing and relocalisation are off.
@@ -96,6 +98,7 @@ class MapSystem {
   Map& map() { return *map_; }
   const Map& map() const { return *map_; }
   const LocalMapper& mapper() const { return *mapper_; }
+  const LoopCloser& loop_closer() const { return *closer_; }
   const MapSystemCounters& counters() const { return counters_; }
   const rt::LatencyHistogram& mapping_latency() const { return mapping_latency_; }
   const rt::LatencyHistogram& loop_latency() const { return loop_latency_; }
@@ -111,6 +114,7 @@ class MapSystem {
   MapSystemOptions opt_;
   std::unique_ptr<Map> map_;
   std::unique_ptr<LocalMapper> mapper_;
+  std::unique_ptr<LoopCloser> closer_;
   // Packets: slot indices tracking -> mapping (todo), mapping -> tracking (free).
   std::unique_ptr<KeyframePacket[]> packets_;
   std::unique_ptr<KeyframeFeature[]> packet_features_;
