@@ -149,9 +149,11 @@ bool MapSystem::loop_step() {
   const int64_t t0 = rt::now_ns();
   const LoopClosure c = closer_->process(*k);
   if (c.closed) {
-    // The odometry stays where it is; the map frame moves against it by the
-    // correction the loop made at the newest keyframe (4 DoF: both see gravity).
-    state_.set_T_map_odom(project_4dof(c.newest_delta * state_.T_map_odom()));
+    // The odometry stays where it is; the map frame moves against it: W sits
+    // in M where the newest keyframe's corrected pose says (4 DoF: both see
+    // gravity). This also takes in what local BA moved since the last change.
+    const MapKeyframe& N = map_->keyframe(c.newest);
+    state_.set_T_map_odom(project_4dof(N.T_MC * N.T_WC.inverse()));
     ++state_.alignment;
     ++state_.loop_closures;
     realigned_ = true;

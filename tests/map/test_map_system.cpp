@@ -97,6 +97,71 @@ TEST(MapSystem, WithoutAMappingThreadTheTrackingSideOverrunsAndCounts) {
   EXPECT_NE(sys.summary().find("overrun " + std::to_string(20 - got)), std::string::npos) << sys.summary();
 }
 
+// A loop through the map system: a circuit whose odometry drifts in yaw and
+// position (the tracker's ids live 3 keyframes), handed over keyframe by
+// keyframe as the tracking thread does. The loop thread closes it, the map's
+// frame moves (T_map_odom, alignment, loop_closures) and the next update
+// tells the tracker to refill its local map; the odometry itself is untouched.
+TEST(MapSystem, ALoopMovesTheMapFrameNotTheOdometry) {
+  SimRoom room(6000, 31);
+  std::vector<std::vector<core::OrbDescriptor>> docs;
+  for (size_t i = 0; i < room.desc.size(); i += 300)
+    docs.emplace_back(room.desc.begin() + static_cast<long>(i),
+                      room.desc.begin() + static_cast<long>(std::min(room.desc.size(), i + 300)));
+  core::Vocabulary::TrainOptions vo;
+  vo.levels = 3;
+  core::MapSystemOptions o;
+  o.map.max_keyframes = 128;
+  o.map.max_points = 40000;
+  o.vocabulary = std::make_shared<core::Vocabulary>(core::Vocabulary::train(docs, vo));
+  o.closing.max_yaw_per_m = 0.05;  // this odometry drifts 4 mrad a keyframe: far worse than ours
+  core::MapSystem sys(sim_camera(), 300, o);
+  std::mt19937_64 rng(2);
+  const int per_lap = 36;
+  bool realigned_seen = false;
+  uint32_t alignment = 0;
+  double first_err_odom = -1, first_err_map = -1, worst_err_map = 0;  // at the keyframes where the map frame moved
+  for (int k = 0; k < per_lap + 12; ++k) {
+    const double a = 2 * M_PI * k / per_lap;
+    const Eigen::Isometry3d T_true = SimRoom::camera(Eigen::Vector3d(1.5 * std::cos(a), 1.5 * std::sin(a), 1.5), a);
+    Eigen::Isometry3d D = Eigen::Isometry3d::Identity();
+    D.linear() = Eigen::AngleAxisd(0.004 * k, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+    D.translation() = Eigen::Vector3d(0.006 * k, 0.003 * k, 0.0);
+    const SimKeyframe s = room.observe(T_true, rng, 1 + 10000u * static_cast<uint32_t>(k / 3));
+    core::KeyframePacket* p = sys.begin_keyframe();
+    ASSERT_NE(p, nullptr);
+    fill(p, s, static_cast<int64_t>(k) * 500'000'000);
+    p->T_WC = D * T_true;
+    sys.submit_keyframe(p);
+    while (sys.mapping_step() || sys.loop_step()) {
+    }
+    if (const core::MapUpdate* u = sys.take_update()) {
+      realigned_seen |= u->realigned;
+      sys.release_update(u);
+    }
+    const core::MapFrameState f = sys.frame();
+    if (f.alignment != alignment) {
+      alignment = f.alignment;
+      const double err_odom = pos_err(D * T_true, T_true), err_map = pos_err(f.T_map_odom() * D * T_true, T_true);
+      std::printf("loop at keyframe %d: odometry %.3f m off, in the map frame %.3f m off (|T_map_odom| %.3f m)\n", k,
+                  err_odom, err_map, f.T_map_odom().translation().norm());
+      if (first_err_odom < 0) {
+        first_err_odom = err_odom;
+        first_err_map = err_map;
+      }
+      worst_err_map = std::max(worst_err_map, err_map);
+    }
+  }
+  const core::MapFrameState f = sys.frame();
+  std::printf("%s\n", sys.summary().c_str());
+  ASSERT_GE(f.loop_closures, 1u);
+  EXPECT_GE(f.alignment, 1u);
+  EXPECT_TRUE(realigned_seen) << "the tracker was not told to refill its local map";
+  EXPECT_GT(first_err_odom, 0.3);
+  EXPECT_LT(first_err_map, 0.05) << "the first loop brings the keyframe back to where it is";
+  EXPECT_LT(worst_err_map, 0.05);
+}
+
 // The whole pipeline on a simulated figure-8 (it returns to where it has
 // been): the map runs on its own threads, the tracking thread still
 // allocates nothing, the map holds keyframes and points, and the odometry

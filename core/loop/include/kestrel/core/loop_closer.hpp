@@ -103,10 +103,11 @@ class LoopCloser {
  private:
   bool verify(int kf, int candidate, double score, LoopMatch* out);
 
+  // A closed loop, kept for later pose graphs: b seen from a (camera frames).
   struct LoopEdge {
     uint32_t id_a, id_b;
     Eigen::Vector3d t_ab;
-    double yaw_ab;
+    Eigen::Matrix3d R_ab;
   };
   Map& map_;
   MapCamera cam_;
