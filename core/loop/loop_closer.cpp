@@ -134,21 +134,12 @@ bool LoopCloser::verify(int kf, int cand, double score, LoopMatch* out) {
   for (int j = 0; j < K.n; ++j) {
     const KeyframeFeature& f = map_.feature(kf, j);
     if (f.depth_m <= 0) continue;
-    int best = 257, second = 257, arg = -1;
-    for (int32_t pt : pts_) {
-      const int h = hamming_distance(f.desc, map_.point(pt).desc);
-      if (h < best) {
-        second = best;
-        best = h;
-        arg = pt;
-      } else if (h < second) {
-        second = h;
-      }
-    }
-    if (arg < 0 || best > opt_.match_max_hamming || best >= opt_.match_ratio * second) continue;
-    const Eigen::Vector3d x_C((f.u_px - cam_.K.cx) / cam_.K.fx * f.depth_m, (f.v_px - cam_.K.cy) / cam_.K.fy * f.depth_m,
-                              f.depth_m);
-    q.push_back(K.T_MC * x_C);
+    BestTwoMatches bt;
+    for (int32_t pt : pts_) bt.offer(hamming_distance(f.desc, map_.point(pt).desc), pt);
+    if (bt.best_index < 0 || bt.best > opt_.match_max_hamming || !bt.passes_ratio(static_cast<float>(opt_.match_ratio)))
+      continue;
+    const int32_t arg = bt.best_index;
+    q.push_back(K.T_MC * cam_.point_C(f));
     p.push_back(map_.point(arg).p_M);
     thr.push_back(opt_.inlier_m + 3.0 * cam_.sigma_depth_m(f.depth_m));
     pairs.emplace_back(j, arg);

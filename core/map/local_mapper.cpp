@@ -9,6 +9,9 @@ namespace kestrel::core {
 
 double MapCamera::sigma_px(int level) const { return keypoint_sigma_px * std::pow(level_scale, level); }
 double MapCamera::sigma_depth_m(double z) const { return std::max(1e-3, depth_sigma_coeff_per_m * z * z); }
+Eigen::Vector3d MapCamera::point_C(const KeyframeFeature& f) const {
+  return Eigen::Vector3d((f.u_px - K.cx) / K.fx * f.depth_m, (f.v_px - K.cy) / K.fy * f.depth_m, f.depth_m);
+}
 
 namespace {
 
@@ -116,8 +119,7 @@ void LocalMapper::link_features(int kf) {
       continue;
     }
     if (f.depth_m <= 0) continue;
-    const Eigen::Vector3d p_C((f.u_px - cam_.K.cx) / cam_.K.fx * f.depth_m,
-                              (f.v_px - cam_.K.cy) / cam_.K.fy * f.depth_m, f.depth_m);
+    const Eigen::Vector3d p_C = cam_.point_C(f);
     const int q = map_.add_point(f.landmark_id, K.T_MC * p_C, f.desc, f.level, kf, j);
     if (q >= 0) {
       ++stats_.points_created;

@@ -4,8 +4,10 @@
 #pragma once
 
 #include <Eigen/Geometry>
+#include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <memory>
 #include <random>
 #include <vector>
 
@@ -95,6 +97,18 @@ struct SimRoom {
     return k;
   }
 };
+
+// A place-recognition vocabulary of a room's own descriptors (documents of 300).
+inline std::shared_ptr<const core::Vocabulary> room_vocabulary(const SimRoom& room) {
+  std::vector<std::vector<core::OrbDescriptor>> docs;
+  for (size_t i = 0; i < room.desc.size(); i += 300)
+    docs.emplace_back(room.desc.begin() + static_cast<long>(i),
+                      room.desc.begin() + static_cast<long>(std::min(room.desc.size(), i + 300)));
+  core::Vocabulary::TrainOptions o;
+  o.k = 10;
+  o.levels = 3;
+  return std::make_shared<core::Vocabulary>(core::Vocabulary::train(docs, o));
+}
 
 inline Eigen::Isometry3d perturbed(const Eigen::Isometry3d& T, std::mt19937_64& rng, double pos_m, double rot_rad) {
   std::normal_distribution<double> N(0.0, 1.0);

@@ -20,18 +20,6 @@ using core::LoopOptions;
 using core::Map;
 using core::MapOptions;
 
-// A vocabulary of the room's own descriptors (documents of 300).
-std::shared_ptr<const core::Vocabulary> room_vocabulary(const SimRoom& room) {
-  std::vector<std::vector<core::OrbDescriptor>> docs;
-  for (size_t i = 0; i < room.desc.size(); i += 300)
-    docs.emplace_back(room.desc.begin() + static_cast<long>(i),
-                      room.desc.begin() + static_cast<long>(std::min(room.desc.size(), i + 300)));
-  core::Vocabulary::TrainOptions o;
-  o.k = 10;
-  o.levels = 3;
-  return std::make_shared<core::Vocabulary>(core::Vocabulary::train(docs, o));
-}
-
 // The map as drifting odometry builds it: each keyframe at its drifted pose,
 // points placed from its depths; landmark ids live for `id_life` keyframes
 // (the tracker loses them), so a place seen again is new points.
@@ -66,9 +54,7 @@ struct DriftedMap {
         map.add_observation(p, kf, j);
         continue;
       }
-      const Eigen::Vector3d x_C((f.u_px - cam.K.cx) / cam.K.fx * f.depth_m, (f.v_px - cam.K.cy) / cam.K.fy * f.depth_m,
-                                f.depth_m);
-      map.add_point(f.landmark_id, T_odom * x_C, f.desc, 0, kf, j);
+      map.add_point(f.landmark_id, T_odom * cam.point_C(f), f.desc, 0, kf, j);
     }
     truth[static_cast<size_t>(kf)] = T_true;
     last = kf;

@@ -104,16 +104,10 @@ TEST(MapSystem, WithoutAMappingThreadTheTrackingSideOverrunsAndCounts) {
 // tells the tracker to refill its local map; the odometry itself is untouched.
 TEST(MapSystem, ALoopMovesTheMapFrameNotTheOdometry) {
   SimRoom room(6000, 31);
-  std::vector<std::vector<core::OrbDescriptor>> docs;
-  for (size_t i = 0; i < room.desc.size(); i += 300)
-    docs.emplace_back(room.desc.begin() + static_cast<long>(i),
-                      room.desc.begin() + static_cast<long>(std::min(room.desc.size(), i + 300)));
-  core::Vocabulary::TrainOptions vo;
-  vo.levels = 3;
   core::MapSystemOptions o;
   o.map.max_keyframes = 128;
   o.map.max_points = 40000;
-  o.vocabulary = std::make_shared<core::Vocabulary>(core::Vocabulary::train(docs, vo));
+  o.vocabulary = room_vocabulary(room);
   o.closing.max_yaw_per_m = 0.05;  // this odometry drifts 4 mrad a keyframe: far worse than ours
   core::MapSystem sys(sim_camera(), 300, o);
   std::mt19937_64 rng(2);

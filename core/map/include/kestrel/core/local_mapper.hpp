@@ -30,6 +30,8 @@ struct MapCamera {
   double level_scale = 1.2;                 // per pyramid level
   double sigma_px(int level) const;
   double sigma_depth_m(double z) const;
+  // A feature's point in the camera frame from its undistorted pixel and depth.
+  Eigen::Vector3d point_C(const KeyframeFeature& f) const;
 };
 
 struct LocalMapperStats {
