@@ -145,6 +145,68 @@ void visit_window(EstimatorConfig& c, OptionVisitor& v) {
   v.value("map_pose_sigma_rad", e.map_pose_sigma_rad, "map pose factor sigma, lower bound");
   v.value("moving_start_after_ns", c.window_moving_start_after_ns,
           "no still window by then: the dynamic start (the optimizer fixes attitude and velocity)");
+  v.value("use_map_points", w.use_map_points, "map points hold their window landmarks by a prior (docs/map.md)");
+  v.value("map_anchor_min_landmarks", w.map_anchor_min_landmarks,
+          "with this many map-point landmarks the map fixes the gauge");
+  v.end_section();
+}
+
+void visit_map(MapSystemOptions& m, OptionVisitor& v) {
+  MapOptions& o = m.map;
+  v.begin_section("map", "the map beside the window backend: local mapping, loop closing (core/map, docs/map.md)");
+  v.value("mapping", m.mapping, "build a map on the kst-mapping thread and track against it (--mapping on|off)");
+  v.value("loop", m.loop, "loop closing and relocalisation on the kst-loop thread (--loop on|off)");
+  v.value("vocabulary", m.vocabulary_path,
+          "place recognition vocabulary file (kestrel vocab); empty: the one built into kestrel");
+  v.value("max_keyframes", o.max_keyframes, "keyframes the map holds, fixed at start-up");
+  v.value("max_points", o.max_points, "map points the map holds, fixed at start-up");
+  v.value("ba_keyframes", o.ba_keyframes, "covisible keyframes bundle-adjusted with each new one");
+  v.value("ba_fixed_keyframes", o.ba_fixed_keyframes, "other keyframes seeing the same points, held fixed");
+  v.value("ba_iterations", o.ba_iterations, "Levenberg-Marquardt iterations per round (two rounds)");
+  v.value("ba_huber", o.ba_huber, "Huber threshold on the whitened observation error");
+  v.value("ba_outlier_chi2", o.ba_outlier_chi2, "observations above this whitened squared error are dropped");
+  v.value("ba_gravity_sigma_rad", o.ba_gravity_sigma_rad,
+          "the odometry's gravity direction holds each keyframe's roll and pitch (0: off)");
+  v.value("fuse_radius_px", o.fuse_radius_px, "search radius when fusing covisible points (level 0)");
+  v.value("fuse_max_hamming", o.fuse_max_hamming, "largest Hamming distance for a fused match");
+  v.value("fuse_depth_tol_rel", o.fuse_depth_tol_rel, "measured vs projected depth within rel x z + 3 cm");
+  v.value("cull_keyframe_redundancy", o.cull_keyframe_redundancy,
+          "a keyframe whose points are this share seen by 3 others is culled");
+  v.value("cull_point_min_keyframes", o.cull_point_min_keyframes,
+          "a point seen by fewer keyframes 3 keyframes after it was made is culled");
+  v.value("cull_point_min_found_ratio", o.cull_point_min_found_ratio,
+          "a point found in fewer than this share of the keyframes it should be seen in is culled");
+  v.value("update_max_points", o.update_max_points, "refined points handed to the tracker per keyframe");
+  v.value("neighbour_radius_m", o.neighbour_radius_m, "keyframes this close count as the neighbourhood");
+  v.value("neighbour_max_angle_rad", o.neighbour_max_angle_rad, "... when their optical axes are this close");
+  v.value("point_sigma_floor_m", o.point_sigma_floor_m, "a map point's prior in the window: at least this sigma");
+  v.value("point_min_keyframes_for_prior", o.point_min_keyframes_for_prior,
+          "points seen by fewer keyframes are not handed to the tracker");
+  v.value("min_keyframe_interval_s", o.min_keyframe_interval_s, "keyframes closer in time are not mapped");
+  LoopOptions& l = m.closing;
+  v.value("loop_min_age_s", l.min_age_s, "loop candidates are at least this much older than the keyframe");
+  v.value("loop_max_candidates", l.max_candidates, "best place-recognition candidates verified per keyframe");
+  v.value("loop_min_score", l.min_score, "BoW score floor of a candidate");
+  v.value("loop_candidate_neighbours", l.candidate_neighbours,
+          "covisible keyframes of a candidate whose points are matched too");
+  v.value("loop_match_max_hamming", l.match_max_hamming, "largest Hamming distance of a loop match");
+  v.value("loop_match_ratio", l.match_ratio, "best / second-best Hamming ratio of a loop match");
+  v.value("loop_ransac_iterations", l.ransac_iterations, "4-DoF RANSAC iterations on the 3D-3D matches");
+  v.value("loop_inlier_m", l.inlier_m, "3D-3D inlier distance, plus 3 sigma of the depth");
+  v.value("loop_min_inliers", l.min_inliers, "inliers a loop needs");
+  v.value("loop_min_inlier_share", l.min_inlier_share, "... and this share of the matches");
+  v.value("loop_max_correction_m", l.max_correction_m,
+          "a loop's correction is drift: at most this + loop_max_correction_per_m x path since the candidate");
+  v.value("loop_max_correction_per_m", l.max_correction_per_m, "drift per metre flown (beyond: an alias)");
+  v.value("loop_max_yaw_rad", l.max_yaw_rad, "yaw correction at most this + loop_max_yaw_per_m x path");
+  v.value("loop_max_yaw_per_m", l.max_yaw_per_m, "yaw drift per metre flown [rad/m]");
+  v.value("loop_consistent_keyframes", l.consistent_keyframes,
+          "consecutive keyframes that must verify the same correction");
+  v.value("loop_consistency_m", l.consistency_m, "their corrections agree within this at the keyframe");
+  v.value("loop_consistency_rad", l.consistency_rad, "... and this in yaw");
+  v.value("loop_pose_graph_iterations", l.pose_graph_iterations, "4-DoF pose graph iterations");
+  v.value("loop_covis_edge_min_shared", l.covis_edge_min_shared, "points shared by a covisibility edge of the pose graph");
+  v.value("loop_cooldown_keyframes", l.cooldown_keyframes, "no new loop within this many keyframes of one");
   v.end_section();
 }
 
@@ -246,6 +308,7 @@ void visit_options(EstimatorConfig& c, OptionVisitor& v) {
     v.end_section();
   }
   visit_window(c, v);
+  visit_map(c.window.map, v);
   visit_ekf(c.ekf, v);
   visit_safety(c.safety, v);
 }

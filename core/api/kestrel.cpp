@@ -1,3 +1,4 @@
+#include "kestrel/core/estimator_config.hpp"
 #include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/core/kestrel.hpp"
 
@@ -5,8 +6,19 @@
 
 namespace kestrel {
 
+namespace {
+// The embedded estimator runs on the caller's thread alone: no mapping or
+// loop-closing threads, so no map (the pipeline of `kestrel replay|run` has them).
+core::EstimatorConfig embedded_config(const std::string& backend) {
+  core::EstimatorConfig c = core::EstimatorConfig::defaults(backend);
+  c.window.map.mapping = false;
+  c.window.map.loop = false;
+  return c;
+}
+}  // namespace
+
 Estimator::Estimator(const Rig& rig, const std::string& backend)
-    : impl_(core::make_estimator(backend, rig)) {}
+    : impl_(core::make_estimator(embedded_config(backend), rig)) {}
 
 Estimator::~Estimator() = default;
 

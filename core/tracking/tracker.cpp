@@ -86,6 +86,9 @@ struct MapPoint {
   uint32_t id = 0;  // 0: empty
   int level = 0;
   uint32_t stamp = 0;  // == the search's stamp: already matched in this frame
+  // > 0: the point came from the map (local bundle adjustment), with this
+  // 1-sigma [m]; 0: the tracker's own, placed by its keyframe's depth.
+  float sigma_m = 0.0f;
 };
 
 // Pose from 2D-3D matches with a measured depth each (RGB-D PnP): p' = R p + t
@@ -162,12 +165,21 @@ struct Tracker::Impl {
         map(new MapPoint[static_cast<size_t>(std::max(opt.map_capacity, 1))]),
         map_z(new double[static_cast<size_t>(capacity)]),
         map_sz(new double[static_cast<size_t>(capacity)]),
+        id_slot(new int32_t[id_table_size(opt.map_capacity)]),
+        id_mask(static_cast<uint32_t>(id_table_size(opt.map_capacity) - 1)),
         lonsc(static_cast<size_t>(capacity), opt.lonsc),
         orderer(static_cast<size_t>(capacity)) {
     K.fx = cam.fx();
     K.fy = cam.fy();
     K.cx = cam.cx();
     K.cy = cam.cy();
+    std::fill(id_slot.get(), id_slot.get() + id_mask + 1, -1);
+  }
+
+  static size_t id_table_size(int ring) {
+    size_t n = 1;
+    while (n < 4 * static_cast<size_t>(std::max(ring, 1))) n <<= 1;
+    return n;
   }
 
   // Metric depth at a keypoint, or 0 when missing, out of range or on a depth edge.
@@ -403,16 +415,41 @@ struct Tracker::Impl {
       cur.lm_id[j] = map[i].id;
       cur.map_idx[j] = i;
       mark[j] |= FeatureMark::kMapPoint;
-      add_observation(map[i].id, corr[order[k]].u_cur, cur.p_C[j].z(), corr[order[k]].sigma_px);
+      add_observation(map[i].id, corr[order[k]].u_cur, cur.p_C[j].z(), corr[order[k]].sigma_px, i);
     }
   }
 
-  void add_observation(uint32_t id, const Eigen::Vector2d& uv, double depth_m, float sigma_px) {
+  // map_i: the ring slot of the landmark (-1: none); a map point's refined
+  // position goes with the observation to the window as a prior.
+  void add_observation(uint32_t id, const Eigen::Vector2d& uv, double depth_m, float sigma_px, int32_t map_i) {
     WindowObservation& o = obs[n_obs++];
     o.landmark_id = id;
     o.uv = uv;
     o.depth_m = depth_m;
     o.sigma_px = sigma_px;
+    attach_map_point(o, map_i);
+  }
+
+  void attach_map_point(WindowObservation& o, int32_t i) const {
+    o.map_sigma_m = 0.0f;
+    if (i < 0 || map[i].id != o.landmark_id || !(map[i].sigma_m > 0.0f)) return;
+    o.map_sigma_m = map[i].sigma_m;
+    o.map_p_W = map[i].p_W;
+  }
+
+  // Ring slot of a landmark id through the direct-mapped id cache; -1 when
+  // not (or no longer) in the ring.
+  int32_t find_in_map(uint32_t id) const {
+    const int32_t i = id_slot[id & id_mask];
+    return i >= 0 && map[i].id == id ? i : -1;
+  }
+
+  // The next ring slot (the oldest entry once full).
+  int take_ring_slot() {
+    const int i = map_next;
+    map_next = (map_next + 1) % map_capacity;
+    map_size = std::max(map_size, i + 1);
+    return i;
   }
 
   // ---- Tracking against the keyframe -----------------------------------------
@@ -464,7 +501,8 @@ struct Tracker::Impl {
       cur.lm_id[j] = kf.lm_id[best_kf[j]];
       cur.map_idx[j] = kf.map_idx[best_kf[j]];
       mark[j] |= FeatureMark::kInlier;
-      add_observation(cur.lm_id[j], corr[idx].u_cur, cur.has_depth[j] ? cur.p_C[j].z() : 0.0, corr[idx].sigma_px);
+      add_observation(cur.lm_id[j], corr[idx].u_cur, cur.has_depth[j] ? cur.p_C[j].z() : 0.0, corr[idx].sigma_px,
+                      cur.map_idx[j]);
     }
   }
 
@@ -480,7 +518,7 @@ struct Tracker::Impl {
       if (next_lm_id == 0) next_lm_id = 1;
       const OrbKeypoint& kp = cur.feats.keypoint(j);
       add_observation(cur.lm_id[j], cam.undistort_pixel(Eigen::Vector2d(kp.x, kp.y)), cur.p_C[j].z(),
-                      static_cast<float>(opt.keypoint_sigma_px * extractor.level_scale(kp.level)));
+                      static_cast<float>(opt.keypoint_sigma_px * extractor.level_scale(kp.level)), -1);
       add_to_map(cur, j);
     }
     cur.valid = true;
@@ -493,15 +531,15 @@ struct Tracker::Impl {
   // A keyframe's new points enter the map (overwriting the oldest when full).
   void add_to_map(FrameData& f, int j) {
     if (map_capacity <= 0) return;
-    const int i = map_next;
-    map_next = (map_next + 1) % map_capacity;
-    map_size = std::max(map_size, i + 1);
+    const int i = take_ring_slot();
     MapPoint& mp = map[i];
     mp.p_W = f.T_WC * f.p_C[j];
     mp.desc = f.feats.descriptor(j);
     mp.id = f.lm_id[j];
     mp.level = f.feats.keypoint(j).level;
     mp.stamp = 0;
+    mp.sigma_m = 0.0f;
+    id_slot[mp.id & id_mask] = i;
     f.map_idx[j] = i;
     f.owned[j] = 1;
   }
@@ -529,6 +567,10 @@ struct Tracker::Impl {
   int map_capacity;
   std::unique_ptr<MapPoint[]> map;
   std::unique_ptr<double[]> map_z, map_sz;  // per map match: measured depth and its sigma
+  // Landmark id -> ring slot, direct-mapped (id & id_mask): a cache, checked
+  // against the slot's id; a collision only costs a duplicate ring entry.
+  std::unique_ptr<int32_t[]> id_slot;
+  uint32_t id_mask = 0;
   int map_size = 0;
   int map_next = 0;  // ring cursor: the oldest entry once full
   uint32_t map_stamp = 0;
@@ -590,9 +632,60 @@ bool Tracker::set_keyframe_pose(int64_t t_ns, const Eigen::Isometry3d& T_WC) {
   // re-found belong to older keyframes and stay where they are.
   for (int j = 0; j < m.kf.feats.size(); ++j) {
     const int32_t i = m.kf.map_idx[j];
-    if (m.kf.owned[j] && i >= 0 && m.map[i].id == m.kf.lm_id[j]) m.map[i].p_W = T_WC * m.kf.p_C[j];
+    if (m.kf.owned[j] && i >= 0 && m.map[i].id == m.kf.lm_id[j] && m.map[i].sigma_m == 0.0f)
+      m.map[i].p_W = T_WC * m.kf.p_C[j];
   }
   return true;
+}
+
+Eigen::Isometry3d Tracker::keyframe_pose() const { return impl_->kf.T_WC; }
+
+int Tracker::keyframe_features(KeyframeFeature* out, int capacity) const {
+  const Impl& m = *impl_;
+  if (!m.kf.valid) return 0;
+  const int n = std::min(capacity, m.kf.feats.size());
+  for (int j = 0; j < n; ++j) {
+    const OrbKeypoint& kp = m.kf.feats.keypoint(j);
+    KeyframeFeature& f = out[j];
+    f.x_px = kp.x;
+    f.y_px = kp.y;
+    const Eigen::Vector2d uv = m.cam.undistort_pixel(Eigen::Vector2d(kp.x, kp.y));
+    f.u_px = static_cast<float>(uv.x());
+    f.v_px = static_cast<float>(uv.y());
+    f.depth_m = m.kf.has_depth[j] ? static_cast<float>(m.kf.p_C[j].z()) : 0.0f;
+    f.level = kp.level;
+    f.landmark_id = m.kf.lm_id[j];
+    f.desc = m.kf.feats.descriptor(j);
+  }
+  return n;
+}
+
+void Tracker::apply_map_points(const MapPointUpdate* pts, int n) {
+  Impl& m = *impl_;
+  if (m.map_capacity <= 0) return;
+  for (int k = 0; k < n; ++k) {
+    const MapPointUpdate& u = pts[k];
+    if (u.landmark_id == 0 || !u.p_W.allFinite()) continue;
+    int32_t i = m.find_in_map(u.landmark_id);
+    if (i < 0) {
+      i = m.take_ring_slot();
+      m.map[i].stamp = 0;
+      m.id_slot[u.landmark_id & m.id_mask] = i;
+    }
+    MapPoint& mp = m.map[i];
+    mp.id = u.landmark_id;
+    mp.p_W = u.p_W;
+    mp.desc = u.desc;
+    mp.level = u.level;
+    mp.sigma_m = std::max(u.sigma_m, 1e-4f);
+  }
+}
+
+void Tracker::clear_map() {
+  Impl& m = *impl_;
+  for (int i = 0; i < m.map_size; ++i) m.map[i].id = 0;
+  m.map_size = 0;
+  m.map_next = 0;
 }
 
 const TrackResult& Tracker::track(int64_t t_ns, const ImageView& image, const ImageView& depth,

@@ -189,6 +189,25 @@ class ZeroVelocityCost final : public ceres::SizedCostFunction<3, 9> {
   double inv_sigma_;
 };
 
+// Map prior of a landmark: (l - prior) / sigma (window_problem.hpp).
+class LandmarkPriorCost final : public ceres::SizedCostFunction<3, 3> {
+ public:
+  explicit LandmarkPriorCost(const WindowLandmark& L) : L_(L) {}
+  bool Evaluate(double const* const* params, double* residuals, double** jacobians) const override {
+    Eigen::Map<Eigen::Vector3d> r(residuals);
+    r = landmark_prior_residual(L_, Eigen::Vector3d(params[0][0], params[0][1], params[0][2]));
+    if (jacobians && jacobians[0]) {
+      Eigen::Map<Eigen::Matrix<double, 3, 3, Eigen::RowMajor>> J(jacobians[0]);
+      J.setIdentity();
+      J /= L_.prior_sigma_m;
+    }
+    return true;
+  }
+
+ private:
+  const WindowLandmark& L_;
+};
+
 // A residual on one pose block alone (gauge, map pose factor): f(x, J*)
 // returns the kRows residual and d r / d[dp, dphi] from window_problem.hpp.
 template <int kRows, class F>
@@ -301,6 +320,10 @@ struct CeresWindow {
                                    &td_s);
         else
           problem.AddResidualBlock(new VisualCost(P, P.obs_of(s)[L.obs_idx[j]]), loss, pose[s].data(), lm[a].data());
+        ++n_residual_blocks;
+      }
+      if (L.has_prior) {
+        problem.AddResidualBlock(new LandmarkPriorCost(L), loss, lm[a].data());
         ++n_residual_blocks;
       }
     }

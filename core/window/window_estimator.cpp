@@ -29,7 +29,7 @@ bool finite(const NavState& x) {
 
 std::string WindowEstimatorOptions::validate() const {
   std::ostringstream e;
-  e << window.validate() << frontend.tracker.validate();
+  e << window.validate() << frontend.tracker.validate() << map.validate();
   if (!(imu_noise_inflation > 0)) e << "imu_noise_inflation: must be > 0\n";
   if (min_observations < 3) e << "min_observations: at least 3\n";
   if (!(max_correction_m > 0)) e << "max_correction_m: must be > 0\n";
@@ -79,6 +79,16 @@ WindowEstimator::WindowEstimator(const Rig& rig, const WindowEstimatorOptions& o
   for (int i = kPool - 1; i >= 0; --i) free_slots_[n_free_++] = i;
   for (auto& c : chain_) c = Preintegrated(pim_params_);
   set_threaded_optimizer(false);
+  if (opt_.map.mapping) {
+    MapCamera cam;
+    cam.K = pinhole_of(rig);
+    cam.width = rig.rgb.width;
+    cam.height = rig.rgb.height;
+    cam.depth_sigma_coeff_per_m = rig.depth.sigma_coeff_per_m;
+    cam.keypoint_sigma_px = opt_.frontend.tracker.keypoint_sigma_px;
+    cam.level_scale = opt_.frontend.tracker.orb.scale_factor;
+    map_ = std::make_unique<MapSystem>(cam, opt_.frontend.tracker.orb.n_features, opt_.map);
+  }
 }
 
 WindowEstimator::~WindowEstimator() = default;
@@ -96,6 +106,7 @@ std::string WindowEstimator::backend_summary() const {
     << wc_.skipped_no_imu << "), stale " << wc_.stale_results << ", imu gaps " << wc_.imu_gaps
     << ", still frames " << wc_.stationary_frames << ", map poses " << wc_.map_poses;
   if (opt_.window.estimate_time_offset) o << ", time offset " << 1e3 * td_s_ << " ms";
+  if (map_) o << "\n" << map_->summary();
   return o.str();
 }
 
@@ -139,10 +150,40 @@ void WindowEstimator::follow_front_end_restart() {
   }
 }
 
+// Before tracking: the newest refined points go into the tracker's local map,
+// and the held keyframe takes the pose the window has refined meanwhile.
+void WindowEstimator::map_before_tracking() {
+  Tracker& tracker = front_.tracker();
+  if (const MapUpdate* u = map_->take_update()) {
+    if (u->realigned) tracker.clear_map();
+    tracker.apply_map_points(u->points, u->n);
+    map_->release_update(u);
+  }
+  front_.set_map_frame(map_->frame());
+  if (map_pending_ != nullptr && tracker.has_keyframe() && tracker.keyframe_t_ns() == map_pending_->t_ns)
+    map_pending_->T_WC = tracker.keyframe_pose();
+}
+
+// After tracking: a new keyframe sends the held one to the map (the window
+// has refined it for a keyframe's span) and is held in its place.
+void WindowEstimator::map_after_tracking() {
+  const TrackResult& r = front_.last_track();
+  if (!r.keyframe) return;
+  if (map_pending_ != nullptr) map_->submit_keyframe(map_pending_);
+  map_pending_ = map_->begin_keyframe();
+  if (map_pending_ == nullptr) return;
+  Tracker& tracker = front_.tracker();
+  map_pending_->t_ns = tracker.keyframe_t_ns();
+  map_pending_->T_WC = tracker.keyframe_pose();
+  map_pending_->n = tracker.keyframe_features(map_pending_->features, opt_.frontend.tracker.orb.n_features);
+}
+
 bool WindowEstimator::add_frame(const RgbdFrame& f) {
+  if (map_) map_before_tracking();
   bool changed = front_.add_frame(f);
   follow_front_end_restart();
   if (!front_.started()) return changed;
+  if (map_) map_after_tracking();
   const TrackResult& r = front_.last_track();
   if (!(r.tracked() || r.status == TrackStatus::kNewKeyframe)) return changed;
   queue_job(f, r);

@@ -387,6 +387,16 @@ void WindowOptimizer::add_observations(int slot, const WindowFrameInput& in) {
       ++counters_.obs_skipped_invalid;
       continue;
     }
+    if (P.opt.use_map_points && o.map_sigma_m > 0.0f && o.map_p_W.allFinite()) {
+      // The newest position the map gave wins; it also places a landmark not yet placed.
+      L.has_prior = true;
+      L.prior_p_W = o.map_p_W;
+      L.prior_sigma_m = static_cast<double>(o.map_sigma_m);
+      if (!L.initialised) {
+        L.p_W = o.map_p_W;
+        L.initialised = true;
+      }
+    }
     WindowObs& w = obs[st.n_obs];
     w.lm = lm;
     w.uv = o.uv;
@@ -589,6 +599,15 @@ void WindowOptimizer::marginalize_or_drop(int m) {
           td_touched = true;
         }
       }
+      if (L.has_prior) {
+        // The map's word on the point goes into the prior with it.
+        const Eigen::Vector3d r = landmark_prior_residual(L, L.p_W);
+        double rho1 = 1.0;
+        c += 0.5 * huber_rho(r.squaredNorm(), P.opt.huber_px, &rho1);
+        const double w = rho1 / L.prior_sigma_m;
+        V.diagonal().array() += w / L.prior_sigma_m;
+        wl += w * r;
+      }
       const Eigen::Matrix3d Vi = V.inverse();
       c -= 0.5 * wl.dot(Vi * wl);
       for (int a = 0; a < L.n_obs; ++a) {
@@ -687,6 +706,8 @@ double problem_cost(const WindowProblem& P, const NavState* xs, const Eigen::Vec
       if (visual_residual(P, xs[s], ls[active[a]], P.obs_of(s)[L.obs_idx[j]], td_s, &r) == 0) continue;
       cost += 0.5 * huber_rho(r.squaredNorm(), P.opt.huber_px, nullptr);
     }
+    if (L.has_prior)
+      cost += 0.5 * huber_rho(landmark_prior_residual(L, ls[active[a]]).squaredNorm(), P.opt.huber_px, nullptr);
   }
   for (int k = 0; k < P.n_states; ++k) {
     const int s = P.order[k];
@@ -745,6 +766,12 @@ double WindowOptimizer::evaluate_cost() const {
 }
 
 WindowOptimizer::Result WindowOptimizer::optimize() {
+  {
+    WindowProblem& P = *problem_;
+    int n_map = 0;
+    for (const WindowLandmark& L : P.lms) n_map += L.used && L.has_prior && L.active();
+    P.map_anchored = P.opt.use_map_points && n_map >= P.opt.map_anchor_min_landmarks;
+  }
   if (problem_->opt.solver == WindowOptions::Solver::kCeres) {
     ws_->factor_ok = false;  // Ceres leaves no factor here: the covariance is not known
     const Result r = solve_window_ceres(*problem_);
@@ -776,7 +803,7 @@ WindowOptimizer::Result WindowOptimizer::optimize_ours() {
   for (int i = 0; i < static_cast<int>(P.lms.size()); ++i) {
     if (P.lms[i].used && P.lms[i].active()) {
       ws.active[ws.n_active++] = i;
-      n_vis += P.lms[i].n_obs;
+      n_vis += P.lms[i].n_obs + (P.lms[i].has_prior ? 1 : 0);
     }
   }
   int n_imu = 0;
@@ -837,6 +864,14 @@ WindowOptimizer::Result WindowOptimizer::optimize_ours() {
             bl(n) += rho1 * Jt.dot(r);
             Wt.noalias() += rho1 * Jt.transpose() * Jl;
           }
+        }
+        if (L.has_prior) {
+          const Eigen::Vector3d r = landmark_prior_residual(L, L.p_W);
+          double rho1 = 1.0;
+          huber_rho(r.squaredNorm(), P.opt.huber_px, &rho1);
+          const double w = rho1 / L.prior_sigma_m;
+          V.diagonal().array() += w / L.prior_sigma_m;
+          wv.noalias() += w * r;
         }
         ws.V[lm] = V;
         ws.w[lm] = wv;

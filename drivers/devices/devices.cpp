@@ -353,8 +353,9 @@ MavlinkSettings load_mavlink_settings(const std::string& path) {
 }
 
 namespace {
-constexpr const char* kThreadNames[kPipelineThreads] = {"kst-imu",       "kst-cam",       "kst-replay", "kst-propagate",
-                                                        "kst-estimator", "kst-optimizer", "kst-log",    "kst-viewer"};
+constexpr const char* kThreadNames[kPipelineThreads] = {
+    "kst-imu", "kst-cam", "kst-replay", "kst-propagate", "kst-estimator", "kst-optimizer", "kst-log", "kst-viewer",
+    "kst-mapping", "kst-loop"};
 }  // namespace
 
 ThreadTable default_thread_table() {

@@ -70,7 +70,9 @@ struct Fixture {
     SimWorld world(c);
     frames = world.frames(n, 0.5);
     if (td_s != 0.0 || image_velocities) world.with_time_offset(frames, td_s);
+    points = world.points();
   }
+  std::vector<Eigen::Vector3d> points;
 };
 
 TEST(WindowOptimizer, OptionsValidate) {
@@ -143,8 +145,23 @@ TEST(WindowOptimizer, GaugeHoldsFirstPositionAndYaw) {
 
 // Two optimisers fed identically; one solved by ours, one by Ceres.
 void cross_check(int S, int N, int n_frames, int keyframe_every, bool huber_active, uint64_t seed,
-                 bool zero_velocity = false, bool pose_prior = false, double td_s = 0.0) {
+                 bool zero_velocity = false, bool pose_prior = false, double td_s = 0.0,
+                 bool landmark_prior = false) {
   Fixture fx(n_frames, seed, keyframe_every, 20.0, td_s);
+  if (landmark_prior) {
+    // Every third landmark is a map point: its position a few mm off the
+    // truth, as a bundle adjustment would give it.
+    std::mt19937_64 rng(seed + 300);
+    std::normal_distribution<double> N01(0.0, 0.005);
+    std::vector<Eigen::Vector3d> map_p(fx.points.size());
+    for (std::size_t i = 0; i < map_p.size(); ++i) map_p[i] = fx.points[i] + Eigen::Vector3d(N01(rng), N01(rng), N01(rng));
+    for (SimFrame& f : fx.frames)
+      for (WindowObservation& o : f.obs)
+        if (o.landmark_id % 3 == 0) {
+          o.map_sigma_m = 0.01f;
+          o.map_p_W = map_p[o.landmark_id - 1000];
+        }
+  }
   WindowOptions o = kestrel::test::sim_options(S, N);
   o.estimate_time_offset = td_s != 0.0;
   o.max_iterations = 100;
@@ -275,6 +292,7 @@ TEST(WindowOptimizer, TimeOffsetStateSlidesAndDoesNoHarmWithoutOffset) {
   }
   EXPECT_LT(pos_err[1], 1.1 * pos_err[0] + 1e-3);
 }
+TEST(WindowOptimizer, MatchesCeresWithMapPointPriors) { cross_check(3, 5, 14, 2, true, 57, false, false, 0.0, true); }
 
 TEST(WindowOptimizer, CeresIsSelectable) {
   Fixture fx(8, 41, 1, 5.0);

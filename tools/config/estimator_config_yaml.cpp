@@ -1,4 +1,5 @@
 #include "kestrel/tools/estimator_config_yaml.hpp"
+#include "kestrel/tools/vocabulary_files.hpp"
 
 #include "kestrel/core/estimator_factory.hpp"
 
@@ -48,7 +49,8 @@ class PathVisitor : public core::OptionVisitor {
   void value(const char* k, int64_t& v, const char* d) override { key(k, std::to_string(v), d); }
   void value(const char* k, uint64_t& v, const char* d) override { key(k, std::to_string(v), d); }
   void value(const char* k, bool& v, const char* d) override { key(k, v ? "true" : "false", d); }
-  void value(const char* k, std::string& v, const char* d) override { key(k, v, d); }
+  // An empty string printed bare would read back as YAML null.
+  void value(const char* k, std::string& v, const char* d) override { key(k, v.empty() ? "\"\"" : v, d); }
   void choice(const char* k, int& i, const std::vector<const char*>& names, const char* d) override {
     std::string doc = d;
     doc += " (";
@@ -191,7 +193,8 @@ class YamlLoader final : public core::OptionVisitor {
   void value(const char* k, std::string& v, const char*) override {
     if (const auto o = get(k)) {
       const YAML::Node& n = *o;
-      if (n.Scalar().empty()) fail(n, k, "expected a non-empty name");
+      // Empty is a value only where it is the default (a file name meaning "the built-in one").
+      if (n.Scalar().empty() && !v.empty()) fail(n, k, "expected a non-empty name");
       v = n.Scalar();
     }
   }
@@ -318,12 +321,18 @@ core::EstimatorConfig estimator_config_from_yaml(const std::string& text, const 
 }
 
 core::EstimatorConfig load_estimator_config(const std::string& path, const std::string& backend_override) {
-  if (path.empty()) return estimator_config_from_yaml("{}", "(defaults)", backend_override);
-  std::ifstream f(path, std::ios::binary);
-  if (!f) throw std::runtime_error(path + ": cannot open config file");
-  std::ostringstream s;
-  s << f.rdbuf();
-  return estimator_config_from_yaml(s.str(), path, backend_override);
+  core::EstimatorConfig c;
+  if (path.empty()) {
+    c = estimator_config_from_yaml("{}", "(defaults)", backend_override);
+  } else {
+    std::ifstream f(path, std::ios::binary);
+    if (!f) throw std::runtime_error(path + ": cannot open config file");
+    std::ostringstream s;
+    s << f.rdbuf();
+    c = estimator_config_from_yaml(s.str(), path, backend_override);
+  }
+  resolve_vocabulary(c);
+  return c;
 }
 
 std::string estimator_config_to_yaml(const core::EstimatorConfig& c) {
@@ -346,6 +355,18 @@ std::string estimator_config_reference_markdown() {
   MarkdownTable m;
   core::visit_options(c, m);
   return m.out.str();
+}
+
+void apply_map_switches(core::EstimatorConfig& c, const std::string& mapping, const std::string& loop) {
+  auto parse = [](const std::string& v, const char* opt) {
+    if (v == "on") return true;
+    if (v == "off") return false;
+    throw std::invalid_argument(std::string(opt) + " '" + v + "': expected on or off");
+  };
+  if (!mapping.empty()) c.window.map.mapping = parse(mapping, "--mapping");
+  if (!loop.empty()) c.window.map.loop = parse(loop, "--loop");
+  if (loop == "on" && !c.window.map.mapping) throw std::invalid_argument("--loop on needs the map (--mapping on)");
+  resolve_vocabulary(c);
 }
 
 }  // namespace kestrel::tools

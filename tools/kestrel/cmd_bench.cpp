@@ -69,6 +69,13 @@ struct BenchRow {
   std::string fail;               // why the row fails (empty: it does not); docs/bench.md "FAIL"
   double sim_s = kNaN;
   double replay_wall_s = kNaN;
+  double cpu_per_s = kNaN;        // process CPU seconds per second of flight (all threads)
+  // The map (backends with one): the trajectory in the map frame, the map's
+  // counters, and the mapping / loop threads' time per keyframe.
+  double map_ate_se3_rmse_m = kNaN;
+  double loop_closures = kNaN, relocalisations = kNaN, keyframes_in_map = kNaN, map_points = kNaN;
+  double map_correction_m = kNaN;
+  double mapping_ms_p50 = kNaN, mapping_ms_p99 = kNaN, loop_ms_p50 = kNaN, loop_ms_p99 = kNaN;
 };
 
 std::vector<BenchCase> discover_cases(const std::string& data_dir) {
@@ -165,6 +172,16 @@ std::map<std::string, double> replay_in_child(const std::string& log, const std:
       o << "coast_s " << 1e-9 * static_cast<double>(r.estimator_counters.divergence.coast_ns) << "\n";
       if (r.log_duration_s > 0 && r.estimator_cpu_s > 0)
         o << "cpu_s_per_s " << r.estimator_cpu_s / r.log_duration_s << "\n";
+      if (r.log_duration_s > 0) o << "cpu_per_s " << r.cpu_s / r.log_duration_s << "\n";
+      if (r.has_map) {
+        o << "loop_closures " << r.map.loop_closures << "\nrelocalisations " << r.map.relocalisations << "\n";
+        o << "keyframes_in_map " << r.map.keyframes << "\nmap_points " << r.map.points << "\n";
+        o << "map_correction_m " << r.map.T_map_odom().translation().norm() << "\n";
+        if (r.mapping.count() > 0)
+          o << "mapping_ms_p50 " << ms(r.mapping.p50()) << "\nmapping_ms_p99 " << ms(r.mapping.p99()) << "\n";
+        if (r.loop.count() > 0)
+          o << "loop_ms_p50 " << ms(r.loop.p50()) << "\nloop_ms_p99 " << ms(r.loop.p99()) << "\n";
+      }
       o << "peak_rss_mb " << r.peak_rss_mb << "\n";
       o << "duration_s " << r.log_duration_s << "\n";
       o << "replay_wall_s " << r.wall_s << "\n";
@@ -178,6 +195,8 @@ std::map<std::string, double> replay_in_child(const std::string& log, const std:
       o << "ate_rmse_m " << e.ate_m.rmse << "\n";
       eo.align = tools::Alignment::kSe3;
       o << "ate_se3_rmse_m " << tools::evaluate(g, r.trajectory, eo).ate_m.rmse << "\n";
+      if (r.has_map && !r.map_trajectory.empty())
+        o << "map_ate_se3_rmse_m " << tools::evaluate(g, r.map_trajectory, eo).ate_m.rmse << "\n";
       o << "rpe_trans_m_per_s " << e.rpe_trans_m_per_s << "\n";
     } catch (const std::exception& ex) {
       o << "error " << ex.what() << "\n";
@@ -235,17 +254,17 @@ std::string fmt(double v, const char* f) {
 }
 
 void print_table(const std::vector<BenchRow>& rows) {
-  std::printf("%-26s %-20s %9s %9s %9s %8s %8s %8s %8s %9s %8s %8s %8s %7s %5s %7s %6s\n", "case", "estimator",
-              "ate_m", "ate_se3_m", "rpe_m/s", "trk_p50", "trk_p99", "opt_p50", "opt_p99", "imu_p99", "alloc/f", "rt_x",
-              "rss_mb", "poses", "div", "coast_s", "cpu/s");
+  std::printf("%-26s %-20s %9s %9s %9s %9s %8s %8s %8s %8s %9s %8s %8s %8s %7s %5s %7s %6s\n", "case", "estimator",
+              "ate_m", "ate_se3_m", "map_se3_m", "rpe_m/s", "trk_p50", "trk_p99", "opt_p50", "opt_p99", "imu_p99",
+              "alloc/f", "rt_x", "rss_mb", "poses", "div", "coast_s", "cpu/s");
   for (const auto& r : rows) {
     if (r.status != "ok") {
       std::printf("%-26s %s\n", r.name.c_str(), r.status.c_str());
       continue;
     }
-    std::printf("%-26s %-20s %9s %9s %9s %8s %8s %8s %8s %9s %8s %8s %8s %7s %5s %7s %6s%s\n", r.name.c_str(),
+    std::printf("%-26s %-20s %9s %9s %9s %9s %8s %8s %8s %8s %9s %8s %8s %8s %7s %5s %7s %6s%s\n", r.name.c_str(),
                 r.estimator.c_str(), fmt(r.ate_rmse_m, "%.4f").c_str(), fmt(r.ate_se3_rmse_m, "%.4f").c_str(),
-                fmt(r.rpe_trans_m_per_s, "%.4f").c_str(),
+                fmt(r.map_ate_se3_rmse_m, "%.4f").c_str(), fmt(r.rpe_trans_m_per_s, "%.4f").c_str(),
                 fmt(r.tracking_ms_p50, "%.3f").c_str(), fmt(r.tracking_ms_p99, "%.3f").c_str(),
                 fmt(r.optimizer_ms_p50, "%.2f").c_str(), fmt(r.optimizer_ms_p99, "%.2f").c_str(),
                 fmt(r.imu_to_output_ms_p99, "%.3f").c_str(), fmt(r.allocs_per_frame, "%.2f").c_str(),
@@ -284,6 +303,24 @@ void print_timing_table(const std::vector<BenchRow>& rows) {
   }
 }
 
+// The map's figures: per keyframe cost of its threads and what it did.
+void print_map_table(const std::vector<BenchRow>& rows) {
+  bool any = false;
+  for (const auto& r : rows) any |= r.status == "ok" && std::isfinite(r.keyframes_in_map);
+  if (!any) return;
+  std::printf("\nmap (per keyframe [ms] p50 / p99)\n%-26s %-20s %-17s %-17s %6s %8s %6s %6s %8s %7s\n", "case",
+              "estimator", "mapping", "loop", "kfs", "points", "loops", "relocs", "corr_m", "cpu/s");
+  for (const auto& r : rows) {
+    if (r.status != "ok" || !std::isfinite(r.keyframes_in_map)) continue;
+    std::printf("%-26s %-20s %-17s %-17s %6s %8s %6s %6s %8s %7s\n", r.name.c_str(), r.estimator.c_str(),
+                (fmt(r.mapping_ms_p50, "%.1f") + " / " + fmt(r.mapping_ms_p99, "%.1f")).c_str(),
+                (fmt(r.loop_ms_p50, "%.1f") + " / " + fmt(r.loop_ms_p99, "%.1f")).c_str(),
+                fmt(r.keyframes_in_map, "%.0f").c_str(), fmt(r.map_points, "%.0f").c_str(),
+                fmt(r.loop_closures, "%.0f").c_str(), fmt(r.relocalisations, "%.0f").c_str(),
+                fmt(r.map_correction_m, "%.3f").c_str(), fmt(r.cpu_per_s, "%.2f").c_str());
+  }
+}
+
 std::string rows_json(const std::vector<BenchRow>& rows, double duration_s) {
   using tools::json_figure;
   tools::Json cases = tools::Json::array();
@@ -314,14 +351,26 @@ std::string rows_json(const std::vector<BenchRow>& rows, double duration_s) {
         {"coast_s", r.coast_s},
         {"cpu_s_per_s", r.cpu_s_per_s},
         {"sim_s", r.sim_s},
-        {"replay_wall_s", r.replay_wall_s}};
+        {"replay_wall_s", r.replay_wall_s},
+        {"cpu_per_s", r.cpu_per_s},
+        {"map_ate_se3_rmse_m", r.map_ate_se3_rmse_m},
+        {"loop_closures", r.loop_closures},
+        {"relocalisations", r.relocalisations},
+        {"keyframes_in_map", r.keyframes_in_map},
+        {"map_points", r.map_points},
+        {"map_correction_m", r.map_correction_m},
+        {"mapping_ms_p50", r.mapping_ms_p50},
+        {"mapping_ms_p99", r.mapping_ms_p99},
+        {"loop_ms_p50", r.loop_ms_p50},
+        {"loop_ms_p99", r.loop_ms_p99}};
     for (const auto& [key, value] : figures) c[key] = json_figure(value);
     c["fail"] = !r.fail.empty();
     c["fail_reasons"] = r.fail;
     cases.push_back(std::move(c));
   }
   tools::Json j = tools::Json::object();
-  j["duration_s_per_case"] = json_figure(duration_s);
+  // --duration full: each case's own length (its duration_s), null here.
+  j["duration_s_per_case"] = duration_s > 0 ? json_figure(duration_s) : tools::Json(nullptr);
   j["cases"] = std::move(cases);
   return tools::json_text(j);
 }
@@ -339,7 +388,8 @@ Subcommand add_bench_command(CLI::App& parent) {
   struct Args {
     std::string json_out;
     std::vector<std::string> cases;
-    double duration_s = 30.0;
+    std::string duration = "30";
+    std::vector<std::string> mapping{"on"};
     std::string workdir = "build/bench";
     std::string data_dir = "../shared/data";
     std::string pace = "fast";
@@ -355,7 +405,14 @@ Subcommand add_bench_command(CLI::App& parent) {
   CLI::App* app = parent.add_subcommand("bench", "run the benchmark suite and print one table");
   app->add_option("--json", args->json_out, "also write the table as JSON to this file");
   app->add_option("--cases", args->cases, "only the cases whose name contains one of these")->delimiter(',');
-  app->add_option("--duration", args->duration_s, "seconds of flight per case")->capture_default_str();
+  app->add_option("--duration", args->duration,
+                  "seconds of flight per case, or `full`: every hybrid flight over its whole length (scenarios: "
+                  "their default length)")
+      ->capture_default_str();
+  app->add_option("--mapping", args->mapping,
+                  "on, off or both (on,off): the window backend with and without the map threads, one row each")
+      ->delimiter(',')
+      ->capture_default_str();
   app->add_option("--workdir", args->workdir, "where generated logs and trajectories go")->capture_default_str();
   app->add_option("--data", args->data_dir, "the shared data folder (EuRoC sequences)")->capture_default_str();
   app->add_option("--pace", args->pace, "replay pace: fast or lockstep (realtime is for timing tests)")
@@ -380,7 +437,15 @@ Subcommand add_bench_command(CLI::App& parent) {
   Subcommand cmd;
   cmd.app = app;
   cmd.run = [args]() -> int {
-    if (!(args->duration_s > 0)) throw UsageError("--duration must be > 0");
+    double duration_s = -1.0;  // full
+    if (args->duration != "full") {
+      char* end = nullptr;
+      duration_s = std::strtod(args->duration.c_str(), &end);
+      if (end == args->duration.c_str() || *end != '\0' || !(duration_s > 0))
+        throw UsageError("--duration must be > 0 seconds or `full`, got '" + args->duration + "'");
+    }
+    for (const std::string& m : args->mapping)
+      if (m != "on" && m != "off") throw UsageError("unknown --mapping '" + m + "' (expected on, off)");
     if (args->width < 32 || args->height < 32) throw UsageError("--width/--height must be >= 32");
     drivers::ReplayPace pace;
     try {
@@ -421,7 +486,7 @@ Subcommand add_bench_command(CLI::App& parent) {
       if (c.kind != "real-images") {
         tools::SimOptions so;
         so.seed = 1;
-        so.duration_s = args->duration_s;
+        so.duration_s = duration_s;
         so.width = args->width;
         so.height = args->height;
         if (c.kind == "scenario") {
@@ -447,21 +512,28 @@ Subcommand add_bench_command(CLI::App& parent) {
       }
       // One log, every backend on it: the comparison is like for like.
       for (const std::string& backend : args->estimators)
-      for (const std::string& variant : args->lonsc_variants) {
-        // A row's name: the backend, and the LONSC variant when it is not the default.
-        const std::string est_name = variant == "tuned" ? backend : backend + "+lonsc-" + variant;
+      for (const std::string& variant : args->lonsc_variants)
+      for (const std::string& mapping : args->mapping) {
+        const bool windowed = backend.rfind("window", 0) == 0;
+        if (!windowed && mapping == "off" && args->mapping.size() > 1) continue;  // no map to switch off
+        // A row's name: the backend, the LONSC variant when it is not the
+        // default, and "-nomap" for the window without its map.
+        const std::string map_tag = windowed && mapping == "off" ? "-nomap" : "";
+        const std::string est_name = (variant == "tuned" ? backend : backend + "+lonsc-" + variant) + map_tag;
         core::EstimatorConfig cfg = tools::load_estimator_config(args->config, backend);
+        tools::apply_map_switches(cfg, mapping, "");
         if (variant != to_string(cfg.lonsc_variant)) {
           cfg.lonsc_variant = variant == "paper" ? core::LonscVariant::kPaper : core::LonscVariant::kTuned;
           cfg.tracker.lonsc = core::lonsc_options(cfg.lonsc_variant);
         }
         BenchRow er = row;
         std::string error;
-        const bool many = args->estimators.size() * args->lonsc_variants.size() > 1;
+        const bool many = args->estimators.size() * args->lonsc_variants.size() * args->mapping.size() > 1;
         const std::string traj_e =
             many ? (fs::path(args->workdir) / (c.name + "." + est_name + ".traj.txt")).string() : traj;
         const auto m = replay_in_child(log, gt, pace, cfg, traj_e, er.estimator, error);
         if (error.empty() && variant != "tuned") er.estimator += "+lonsc-" + variant;
+        if (error.empty()) er.estimator += map_tag;
         if (!error.empty()) {
           er.estimator = est_name;
           er.status = "FAILED: " + error;
@@ -490,6 +562,17 @@ Subcommand add_bench_command(CLI::App& parent) {
         er.coast_s = get(m, "coast_s");
         er.cpu_s_per_s = get(m, "cpu_s_per_s");
         er.fail = fail_reasons(er);
+        er.cpu_per_s = get(m, "cpu_per_s");
+        er.map_ate_se3_rmse_m = get(m, "map_ate_se3_rmse_m");
+        er.loop_closures = get(m, "loop_closures");
+        er.relocalisations = get(m, "relocalisations");
+        er.keyframes_in_map = get(m, "keyframes_in_map");
+        er.map_points = get(m, "map_points");
+        er.map_correction_m = get(m, "map_correction_m");
+        er.mapping_ms_p50 = get(m, "mapping_ms_p50");
+        er.mapping_ms_p99 = get(m, "mapping_ms_p99");
+        er.loop_ms_p50 = get(m, "loop_ms_p50");
+        er.loop_ms_p99 = get(m, "loop_ms_p99");
         rows.push_back(er);
         ++ran;
       }
@@ -497,10 +580,11 @@ Subcommand add_bench_command(CLI::App& parent) {
     }
     print_table(rows);
     print_timing_table(rows);
+    print_map_table(rows);
     if (!args->json_out.empty()) {
       std::ofstream f(args->json_out);
       if (!f) throw std::runtime_error("cannot write " + args->json_out);
-      f << rows_json(rows, args->duration_s);
+      f << rows_json(rows, duration_s);
       std::printf("json: %s\n", args->json_out.c_str());
     }
     if (ran == 0) {

@@ -30,6 +30,8 @@ Subcommand add_replay_command(CLI::App& parent) {
     std::string status = "auto";
     ViewArgs view;
     bool print_config = false;
+    std::string mapping, loop;
+    std::string map_traj_out;
   };
   auto args = std::make_shared<Args>();
   CLI::App* app = parent.add_subcommand("replay", "play a recorded log through the estimator (HIL harness)");
@@ -62,6 +64,13 @@ Subcommand add_replay_command(CLI::App& parent) {
   app->add_flag("--print-config", args->print_config,
                 "print the effective estimator settings as YAML and exit (with a log: after opening it)");
   app->add_option("--traj-out", args->traj_out, "write the trajectory here (TUM: t[s] x y z qx qy qz qw)");
+  app->add_option("--mapping", args->mapping,
+                  "on|off: the map beside the window backend (local mapping thread, tracking against the refined "
+                  "map; default on for window; docs/map.md)");
+  app->add_option("--loop", args->loop, "on|off: loop closing and relocalisation on the map (default on)");
+  app->add_option("--map-traj-out", args->map_traj_out,
+                  "write the trajectory in the map frame here, T_map_odom(t) * pose(t) (TUM); --traj-out keeps the "
+                  "continuous odometry");
   app->add_option("--metrics-out", args->metrics_out,
                   "write latency histograms, drops, counters, CPU, RSS, real-time factor as JSON");
   app->add_option("--warmup", args->warmup_s, "seconds of log before steady-state statistics start")
@@ -89,6 +98,11 @@ Subcommand add_replay_command(CLI::App& parent) {
       throw UsageError("unknown --estimator '" + override_backend + "' (expected one of: " + core::estimator_names() +
                        ")");
     opt.config = tools::load_estimator_config(args->config, override_backend);
+    try {
+      tools::apply_map_switches(*opt.config, args->mapping, args->loop);
+    } catch (const std::invalid_argument& e) {
+      throw UsageError(e.what());
+    }
     opt.estimator = opt.config->backend;
     if (!args->config.empty()) opt.threads = drivers::load_thread_table(args->config);
     try {
@@ -132,6 +146,10 @@ Subcommand add_replay_command(CLI::App& parent) {
     ReplayReport r = run_replay(opt);
     r.config = tools::estimator_config_entries(*opt.config);
     if (!args->traj_out.empty()) tools::write_tum(args->traj_out, r.trajectory);
+    if (!args->map_traj_out.empty()) {
+      if (!r.has_map) throw UsageError("--map-traj-out: the backend '" + r.estimator + "' runs without a map");
+      tools::write_tum(args->map_traj_out, r.map_trajectory);
+    }
     if (!args->metrics_out.empty()) {
       std::ofstream f(args->metrics_out);
       if (!f) throw std::runtime_error("cannot write " + args->metrics_out);

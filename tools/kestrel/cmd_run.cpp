@@ -23,6 +23,7 @@
 #include "kestrel/imu_rate_stage.hpp"
 #include "kestrel/recording.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"
+#include "kestrel/map_threads.hpp"
 #include "kestrel/replay_runner.hpp"
 #include "kestrel/rt/clock.hpp"
 #include "kestrel/rt/mailbox.hpp"
@@ -98,6 +99,7 @@ struct RunArgs {
   std::string traj_out;
   double record_buffer_s = 4.0;
   bool print_config = false;
+  std::string mapping, loop;
 };
 
 
@@ -120,6 +122,8 @@ Subcommand add_run_command(CLI::App& parent) {
                 "print the effective estimator settings as YAML (the config's estimator sections on the backend's "
                 "defaults, docs/config.md) and exit");
   app->add_option("--duration", a->duration_s, "seconds to run (0 = until Ctrl-C)")->capture_default_str();
+  app->add_option("--mapping", a->mapping, "on|off: the map beside the window backend (default on; docs/map.md)");
+  app->add_option("--loop", a->loop, "on|off: loop closing and relocalisation (default on)");
   app->add_option("--mavlink-udp", a->mavlink_udp,
                   "MAVLink v2 to the flight controller at HOST:PORT: ODOMETRY per pose, HEARTBEAT 1 Hz, TIMESYNC "
                   "(over the config's mavlink: link; docs/px4.md)");
@@ -142,7 +146,12 @@ Subcommand add_run_command(CLI::App& parent) {
     if (!a->estimator.empty() && !core::estimator_known(a->estimator))
       throw UsageError("unknown --estimator '" + a->estimator + "' (expected one of: " + core::estimator_names() + ")");
     // The default backend is replay's (window) unless the config or --estimator names one.
-    const core::EstimatorConfig est_cfg = tools::load_estimator_config(a->config, a->estimator);
+    core::EstimatorConfig est_cfg = tools::load_estimator_config(a->config, a->estimator);
+    try {
+      tools::apply_map_switches(est_cfg, a->mapping, a->loop);
+    } catch (const std::invalid_argument& e) {
+      throw UsageError(e.what());
+    }
     if (a->print_config) {
       std::cout << tools::estimator_config_to_yaml(est_cfg);
       return 0;
@@ -229,6 +238,8 @@ Subcommand add_run_command(CLI::App& parent) {
           &sched);
       applied.push_back(applied_thread(cfg.threads[PipelineThread::kOptimizer], sched));
     }
+    // The map, when the backend has one: kst-mapping and kst-loop (never waited for live).
+    MapThreads map_threads(*est, cfg.threads, applied);
     std::thread consumer = rt::start_thread(cfg.threads[PipelineThread::kEstimator], [&] {
       int64_t last_imu_t_ns = -1;
       int64_t frame_waiting_since_ns = -1;
@@ -421,6 +432,7 @@ Subcommand add_run_command(CLI::App& parent) {
       view->mark_finished("kestrel run stopped");
       view->stop();
     }
+    map_threads.stop();
     std::signal(SIGINT, SIG_DFL);
     std::signal(SIGTERM, SIG_DFL);
     std::printf("%s", sensors.report().c_str());
@@ -466,6 +478,7 @@ Subcommand add_run_command(CLI::App& parent) {
                 est->name(), (unsigned long long)c.imu_used, (unsigned long long)c.imu_in,
                 (unsigned long long)c.frames_used, (unsigned long long)c.frames_in, (unsigned long long)c.resets,
                 o.state.t_ns * 1e-9, o.state.p_WB.x(), o.state.p_WB.y(), o.state.p_WB.z());
+    if (!est->backend_summary().empty()) std::printf("%s\n", est->backend_summary().c_str());
     return 0;
   };
   return s;

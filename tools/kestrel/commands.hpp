@@ -33,5 +33,6 @@ Subcommand add_ekf_slam_command(CLI::App& parent);
 Subcommand add_convert_command(CLI::App& parent);
 Subcommand add_config_command(CLI::App& parent);
 Subcommand add_calib_command(CLI::App& parent);
+Subcommand add_vocab_command(CLI::App& parent);
 
 }  // namespace kestrel::cli

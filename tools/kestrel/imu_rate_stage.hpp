@@ -37,6 +37,7 @@ struct OutPose {
   double pose_cov[36];
   int64_t pose_cov_t_ns;
   bool pose_cov_valid;
+  core::MapFrameState map;  // where W sits in the map frame (backends with a map)
 };
 
 void set_covariance(OutPose& o, const core::PoseCovariance& c);

@@ -48,6 +48,7 @@ int main(int argc, char** argv) {
   commands.push_back(add_convert_command(app));
   commands.push_back(add_config_command(app));
   commands.push_back(add_calib_command(app));
+  commands.push_back(add_vocab_command(app));
 
   try {
     app.parse(argc, argv);

@@ -16,6 +16,7 @@
 #include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/core/tracker.hpp"
 #include "kestrel/imu_rate_stage.hpp"
+#include "kestrel/map_threads.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"
 #include "kestrel/mavlink/serial_link.hpp"
 #include "kestrel/mavlink/udp_sender.hpp"
@@ -39,7 +40,15 @@ PoseSample pose_sample_of(const OutPose& p) {
   s.quality = p.quality;
   s.reset_counter = p.reset_counter;
   s.pose_cov = covariance_of(p);
+  s.map = p.map;
   return s;
+}
+
+Eigen::Isometry3d PoseSample::T_map_body() const {
+  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+  T.linear() = q_WB.normalized().toRotationMatrix();
+  T.translation() = p_WB;
+  return map.active ? map.T_map_odom() * T : T;
 }
 
 mavlink::OdometryInput odometry_input_of(const PoseSample& s) {
@@ -233,6 +242,7 @@ class EstimatorStage {
       p.quality = core::TrackingQuality::kImuOnly;
     p.reset_counter = o.reset_counter;
     set_covariance(p, o.pose_cov);
+    p.map = o.map;
     if (!out_.try_push(p)) ++report_.output_ring_drops;
     last_out_t_ns_ = p.t_ns;
   }
@@ -276,6 +286,11 @@ class EstimatorStage {
       const int64_t t0 = rt::now_ns();
       est_.add_frame(f);
       const int64_t t1 = rt::now_ns();
+      // Deterministic paces let the map finish the keyframe just handed over
+      // (the mapping and loop threads run it), so the next frame sees its
+      // result at the same point on every run; realtime never waits.
+      if (opt_.pace != drivers::ReplayPace::kRealtime)
+        while (est_.map_busy()) rt::sleep_for_ns(20'000);
       if (anchor_ != nullptr)
         anchor_->publish(to_anchor(est_.output()));
       ++frames_fed_;
@@ -385,9 +400,10 @@ class OutputStage {
       const PoseSample s = pose_sample_of(*p);
       out_.pop();
       // A pose the backend says is lost is a placeholder, not an estimate:
-      // the flight controller gets it flagged (quality -1), the trajectory
-      // that is scored and written leaves it out (pose_share shows the gap).
-      if (s.quality == core::TrackingQuality::kLost) {
+      // the flight controller gets it flagged (quality -1), the trajectories
+      // that are scored and written leave it out (pose_share shows the gap).
+      const bool lost = s.quality == core::TrackingQuality::kLost;
+      if (lost) {
         ++report_.lost_poses_withheld;
       } else {
         tools::TimedPose tp;
@@ -395,6 +411,22 @@ class OutputStage {
         tp.p = s.p_WB;
         tp.q = s.q_WB;
         report_.trajectory.push_back(tp);
+      }
+      if (s.map.active) {
+        const Eigen::Isometry3d T = s.T_map_body();
+        if (!lost) {
+          tools::TimedPose mp;
+          mp.t_ns = s.t_ns;
+          mp.p = T.translation();
+          mp.q = Eigen::Quaterniond(T.linear());
+          report_.map_trajectory.push_back(mp);
+        }
+        if (s.map.alignment != map_alignment_) {
+          map_alignment_ = s.map.alignment;
+          ++report_.map_corrections;
+          if (opt_.on_map_correction) opt_.on_map_correction(s);
+        }
+        report_.map = s.map;
       }
       if (opt_.on_pose) opt_.on_pose(s);
       if (mavlink_) mavlink_->publish(odometry_input_of(s));
@@ -437,6 +469,7 @@ class OutputStage {
   ReplayReport& report_;
   std::unique_ptr<mavlink::OdometryStream> mavlink_;
   uint64_t status_version_ = 0;
+  uint32_t map_alignment_ = 0;
   const rt::Mailbox<OutPose>* imu_pose_ = nullptr;
   uint64_t imu_pose_version_ = 0;
   viewer::Server* view_ = nullptr;
@@ -491,6 +524,8 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   core::Estimator& estimator = *estimator_ptr;
   report.estimator = estimator.name();
   report.trajectory.reserve(1 << 16);
+  report.has_map = estimator.has_map();
+  if (report.has_map) report.map_trajectory.reserve(1 << 16);
 
   // At realtime pace the optimizer gets its own thread, as it will fly; fast
   // and lockstep run it inline, so both give the lockstep trajectory bit for
@@ -523,6 +558,12 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     if (opt.on_view_ready) opt.on_view_ready(*view);
     if (opt.view_wait_s > 0) view->wait_for_client(static_cast<int64_t>(opt.view_wait_s * 1e9));
   }
+
+  // The map's two threads, in every pace: the deterministic paces wait for
+  // them per keyframe (EstimatorStage::on_frame), realtime does not.
+  MapThreads map_threads(estimator,
+                         opt.pace == drivers::ReplayPace::kRealtime ? opt.threads : drivers::default_thread_table(),
+                         report.threads);
 
   const int64_t wall0 = rt::now_ns();
   const double cpu0 = process_cpu_s();
@@ -631,9 +672,14 @@ ReplayReport run_replay(const ReplayOptions& opt) {
       report.steady_allocs += propagator.stats().steady_allocs;
     }
   }
+  map_threads.stop();
+  report.mapping_cpu_s = map_threads.mapping_cpu_s();
+  report.loop_cpu_s = map_threads.loop_cpu_s();
   const int64_t wall1 = rt::now_ns();
 
   report.replay = source.stats();
+  if (const rt::LatencyHistogram* h = estimator.mapping_latency()) report.mapping = *h;
+  if (const rt::LatencyHistogram* h = estimator.loop_latency()) report.loop = *h;
   report.estimator_counters = estimator.counters();
   report.backend_summary = estimator.backend_summary();
   double td_s = 0.0;
@@ -766,7 +812,24 @@ std::string replay_metrics_json(const ReplayReport& r) {
   j["latency"] = Json{{"imu_to_output", histogram_json(r.imu_to_output)},
                       {"tracking", histogram_json(r.tracking)},
                       {"estimator_imu", histogram_json(r.estimator_imu_latency)},
-                      {"optimizer", histogram_json(r.optimizer)}};
+                      {"optimizer", histogram_json(r.optimizer)},
+                      {"mapping", histogram_json(r.mapping)},
+                      {"loop", histogram_json(r.loop)}};
+  // The map (docs/map.md): null when the backend has none.
+  if (r.has_map) {
+    j["loop_closures"] = r.map.loop_closures;
+    j["relocalisations"] = r.map.relocalisations;
+    j["keyframes_in_map"] = r.map.keyframes;
+    j["map_points"] = r.map.points;
+    j["map_correction_m"] = r.map.T_map_odom().translation().norm();
+    j["map_localized"] = r.map.localized;
+    j["map_corrections"] = r.map_corrections;
+    j["mapping_cpu_s"] = r.mapping_cpu_s;
+    j["loop_cpu_s"] = r.loop_cpu_s;
+  } else {
+    for (const char* k : {"loop_closures", "relocalisations", "keyframes_in_map", "map_points", "map_correction_m"})
+      j[k] = nullptr;
+  }
   j["optimizer_threaded"] = r.optimizer_threaded;
   j["imu_rate_poses"] = r.imu_rate_poses;
   j["records"] = Json{{"imu", r.replay.imu_pushed},
@@ -973,6 +1036,18 @@ std::string replay_summary(const ReplayReport& r) {
   std::snprintf(buf, sizeof buf, "camera-IMU time offset: %.3f ms (%s)\n", r.time_offset_ms,
                 r.time_offset_estimated ? "the rig's plus the online estimate" : "the rig's; not estimated");
   s += buf;
+  if (r.has_map) {
+    std::snprintf(buf, sizeof buf,
+                  "map threads: mapping %llu keyframes, p50 %.1f ms, p99 %.1f ms, cpu %.1f s; loop p50 %.1f ms, "
+                  "p99 %.1f ms, cpu %.1f s; loop closures %llu, relocalisations %llu, |t(T_map_odom)| %.3f m\n",
+                  static_cast<unsigned long long>(r.mapping.count()),
+                  1e-6 * static_cast<double>(r.mapping.percentile(50)),
+                  1e-6 * static_cast<double>(r.mapping.percentile(99)), r.mapping_cpu_s,
+                  1e-6 * static_cast<double>(r.loop.percentile(50)), 1e-6 * static_cast<double>(r.loop.percentile(99)),
+                  r.loop_cpu_s, static_cast<unsigned long long>(r.map.loop_closures),
+                  static_cast<unsigned long long>(r.map.relocalisations), r.map.T_map_odom().translation().norm());
+    s += buf;
+  }
   const InputFaultCounts& ff = r.input_faults;
   if (ff.missing + ff.out_of_order + ff.repeated + ff.no_depth + ff.imu_gaps > 0) {
     std::snprintf(

@@ -45,6 +45,9 @@ struct PoseSample {
   core::TrackingQuality quality = core::TrackingQuality::kUninitialized;
   uint32_t reset_counter = 0;
   core::PoseCovariance pose_cov;  // the backend's (window, ekf); invalid for the IMU-rate pose
+  core::MapFrameState map;        // T_map_odom and the map's counters (backends with a map)
+  // The pose in the map frame: T_map_odom * T_WB (the odometry when there is no map).
+  Eigen::Isometry3d T_map_body() const;
 };
 
 struct OutPose;  // imu_rate_stage.hpp
@@ -133,6 +136,10 @@ struct ReplayOptions {
   // The flight-controller link: ODOMETRY per pose, HEARTBEAT, TIMESYNC
   // (mavlink_options() below; nullopt = off).
   std::optional<mavlink::OdometryStreamOptions> mavlink;
+  // Called on the output thread when T_map_odom changes (a loop closure, a
+  // relocalisation, a loaded map found): the correction, published apart
+  // from the continuous odometry (docs/map.md).
+  std::function<void(const PoseSample&)> on_map_correction;
   // Instead of opening `path`: a source made by the caller (a generator that
   // streams a simulation, tests that build logs in memory).
   std::function<std::unique_ptr<drivers::LogSource>()> open_source;
@@ -159,6 +166,15 @@ struct ReplayReport {
   drivers::ReplayPace pace = drivers::ReplayPace::kLockstep;
   tools::Trajectory trajectory;  // body pose in W at each camera frame the backend did not call lost
   uint64_t lost_poses_withheld = 0;  // poses flagged kLost: sent on (flagged), not in the trajectory
+  tools::Trajectory map_trajectory;  // the same poses in the map frame, T_map_odom(t) * T_WB(t)
+  // The map (backends with one): its frame at the end, per keyframe cost of
+  // the mapping and loop threads, and their CPU time.
+  bool has_map = false;
+  core::MapFrameState map;
+  uint64_t map_corrections = 0;  // changes of T_map_odom seen by the output
+  rt::LatencyHistogram mapping;
+  rt::LatencyHistogram loop;
+  double mapping_cpu_s = 0, loop_cpu_s = 0;
   double log_duration_s = 0;
   double wall_s = 0;
   double realtime_factor = 0;  // log seconds per wall second

@@ -5,6 +5,7 @@
 #pragma once
 
 #include <array>
+#include <Eigen/Geometry>
 #include <cstdint>
 #include <string>
 
@@ -42,6 +43,36 @@ struct PoseCovariance {
   bool valid = false;  // false: the backend has none (vo, imu) or lost it (reset)
 };
 
+// Where the odometry frame W sits in the map frame M (backends with a map;
+// docs/map.md). The odometry stays continuous; corrections of the map (loop
+// closures, relocalisations, a loaded map) move T_map_odom instead.
+// Trivially copyable: it crosses threads in mailboxes and rings.
+struct MapFrameState {
+  bool active = false;     // a map is built (or used)
+  bool localized = false;  // T_map_odom is known (false: lost, or a loaded map not found yet)
+  uint32_t alignment = 0;  // steps on every change of T_map_odom
+  double p[3] = {0, 0, 0};     // T_map_odom: translation [m]
+  double q[4] = {1, 0, 0, 0};  // and rotation (w x y z)
+  uint64_t loop_closures = 0;
+  uint64_t relocalisations = 0;
+  uint32_t keyframes = 0;  // in the map
+  uint32_t points = 0;
+  Eigen::Isometry3d T_map_odom() const {
+    Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+    T.linear() = Eigen::Quaterniond(q[0], q[1], q[2], q[3]).normalized().toRotationMatrix();
+    T.translation() = Eigen::Vector3d(p[0], p[1], p[2]);
+    return T;
+  }
+  void set_T_map_odom(const Eigen::Isometry3d& T) {
+    const Eigen::Quaterniond r(T.linear());
+    for (int i = 0; i < 3; ++i) p[i] = T.translation()[i];
+    q[0] = r.w();
+    q[1] = r.x();
+    q[2] = r.y();
+    q[3] = r.z();
+  }
+};
+
 struct EstimatorOutput {
   NavState state;
   TrackingQuality quality = TrackingQuality::kUninitialized;
@@ -50,6 +81,7 @@ struct EstimatorOutput {
   // the last applied solve's, so pose_cov.t_ns < state.t_ns; the EKF: its
   // propagated covariance, at the state's time).
   PoseCovariance pose_cov;
+  MapFrameState map;
 };
 
 // Why a backend decided it had lost the truth (divergence.hpp).
@@ -114,6 +146,21 @@ class Estimator {
   // rig's time_offset_cam_imu_ns [s] (a frame stamped t was taken at t + it);
   // false when it does not estimate one. Read it from the thread that feeds.
   virtual bool estimated_time_offset_s(double* /*td_s*/) const { return false; }
+
+  // Backends with a map (window with mapping on, docs/map.md). Keyframes go
+  // to the map through a lock-free ring the tracking side may overrun;
+  // the harness runs mapping_step() on a mapping thread and loop_step() on a
+  // loop-closing thread, never both at once (they share the map), and reads
+  // nothing else. map_busy(): a keyframe handed over is not fully processed
+  // yet (deterministic paces wait for it). Without such threads nothing is
+  // mapped and the tracking side only counts the overrun.
+  virtual bool has_map() const { return false; }
+  virtual bool mapping_step() { return false; }
+  virtual bool loop_step() { return false; }
+  virtual bool map_busy() const { return false; }
+  // Per keyframe [ns], for the two threads; read after they stopped.
+  virtual const rt::LatencyHistogram* mapping_latency() const { return nullptr; }
+  virtual const rt::LatencyHistogram* loop_latency() const { return nullptr; }
 };
 
 // IMU-only dead reckoning after a static initialisation. Named as what it is:

@@ -74,6 +74,8 @@ class FrontendOdometry final : public Estimator {
   // A back end's own finding (its window solves keep failing, say): handled
   // like the front end's own, so both re-initialise together.
   void report_divergence(DivergenceCause why);
+  // A back end's map: where W sits in the map frame, carried in the output.
+  void set_map_frame(const MapFrameState& m) { out_.map = m; }
 
  private:
   FrontendOdometryOptions opt_;

@@ -146,6 +146,20 @@ class Tracker {
   // The back end refined the keyframe's pose: track against the refined one.
   // False (nothing changed) when t_ns is not the current keyframe's time.
   bool set_keyframe_pose(int64_t t_ns, const Eigen::Isometry3d& T_WC);
+  // The current keyframe's pose (valid when has_keyframe()).
+  Eigen::Isometry3d keyframe_pose() const;
+  // The current keyframe's features for the map: at most `capacity`, returns
+  // how many were written (0 without a keyframe). Allocation-free.
+  int keyframe_features(KeyframeFeature* out, int capacity) const;
+  // Points of the map (refined by local bundle adjustment, in W) enter the
+  // local map: a point already there (same landmark id) takes the new
+  // position, the others take ring slots (the oldest entries go). Tracked
+  // observations of these points then carry their position to the window as
+  // a prior (WindowObservation::map_sigma_m). Allocation-free.
+  void apply_map_points(const MapPointUpdate* pts, int n);
+  // Empties the local map (the map's frame moved against W: its points are
+  // re-sent in the new alignment).
+  void clear_map();
   const TrackResult& last() const { return result_; }
   const TrackerOptions& options() const { return opt_; }
 

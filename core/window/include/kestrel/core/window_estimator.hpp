@@ -31,6 +31,7 @@
 
 #include "kestrel/core/estimator.hpp"
 #include "kestrel/core/frontend_odometry.hpp"
+#include "kestrel/core/map_system.hpp"
 #include "kestrel/core/window_optimizer.hpp"
 #include "kestrel/rt/mailbox.hpp"
 #include "kestrel/rt/spsc_ring.hpp"
@@ -71,6 +72,10 @@ struct WindowEstimatorOptions {
   bool use_map_pose = true;
   double map_pose_sigma_m = 0.02;
   double map_pose_sigma_rad = 0.01;
+  // The map (local mapping, loop closing, relocalisation; docs/map.md). Its
+  // work runs on threads the caller provides (Estimator::mapping_step /
+  // loop_step); without them nothing is mapped.
+  MapSystemOptions map;
 
   std::string validate() const;
 };
@@ -124,6 +129,14 @@ class WindowEstimator final : public Estimator {
   std::string backend_summary() const override;
   bool estimated_time_offset_s(double* td_s) const override;
 
+  bool has_map() const override { return map_ != nullptr; }
+  bool mapping_step() override { return map_ && map_->mapping_step(); }
+  bool loop_step() override { return map_ && map_->loop_step(); }
+  bool map_busy() const override { return map_ && map_->busy(); }
+  const rt::LatencyHistogram* mapping_latency() const override { return map_ ? &map_->mapping_latency() : nullptr; }
+  const rt::LatencyHistogram* loop_latency() const override { return map_ ? &map_->loop_latency() : nullptr; }
+  MapSystem* map_system() { return map_.get(); }
+
   const WindowEstimatorCounters& window_counters() const { return wc_; }
   // Wall time of the newest solve whose result reached the tracking side
   // (0 before the first): a live figure for displays, read on the tracking thread.
@@ -156,6 +169,8 @@ class WindowEstimator final : public Estimator {
   void apply(const WindowSolveResult& r);
   void submit_pending();
   void fail_and_maybe_reset();
+  void map_before_tracking();
+  void map_after_tracking();
   WindowObservation* obs_of(int slot) { return obs_pool_.get() + static_cast<size_t>(slot) * max_obs_; }
   Eigen::Vector2d* vel_of(int slot) { return vel_pool_.get() + static_cast<size_t>(slot) * max_obs_; }
   // Image velocities of a frame's observations from the previous tracked frame (time offset).
@@ -216,6 +231,11 @@ class WindowEstimator final : public Estimator {
   uint64_t epoch_ = 0;
   uint64_t first_seq_of_epoch_ = 0;
   void follow_front_end_restart();
+
+  // The map: the keyframe being held until the window has refined it, and
+  // the newest state of the map's frame.
+  std::unique_ptr<MapSystem> map_;
+  KeyframePacket* map_pending_ = nullptr;
 
   // Optimizer side.
   rt::LatencyHistogram opt_latency_;

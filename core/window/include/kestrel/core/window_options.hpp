@@ -57,6 +57,11 @@ struct WindowOptions {
   // order t_d is a pose shift along (v, w); docs/optimizer.md).
   bool estimate_time_offset = false;
   double time_offset_prior_sigma_ms = 50.0;
+  // Map points (observations with WindowObservation::map_sigma_m > 0) hold
+  // their landmarks by a prior; with at least this many such landmarks in
+  // the problem the map fixes the gauge and the oldest state is let go.
+  bool use_map_points = true;
+  int map_anchor_min_landmarks = 10;
 
   // The embedded profile: S = 2, N = 3.
   static WindowOptions embedded();

@@ -46,8 +46,13 @@ struct WindowLandmark {
   // Where it is observed: (state slot, index into that slot's observations).
   int8_t obs_slot[kWindowMaxStates] = {};
   int16_t obs_idx[kWindowMaxStates] = {};
-  // Only landmarks whose 3x3 block is invertible take part: two views, or one with depth.
-  bool active() const { return initialised && (n_obs >= 2 || (n_obs >= 1 && n_depth >= 1)); }
+  // A map point: its position from the map's bundle adjustment, held by a
+  // prior (l - prior_p_W) / prior_sigma_m (Huber like the visual terms).
+  bool has_prior = false;
+  Eigen::Vector3d prior_p_W = Eigen::Vector3d::Zero();
+  double prior_sigma_m = 1.0;
+  // Only landmarks whose 3x3 block is invertible take part: two views, or one with depth or a map prior.
+  bool active() const { return initialised && (n_obs >= 2 || (n_obs >= 1 && (n_depth >= 1 || has_prior))); }
 };
 
 struct WindowState {
@@ -97,6 +102,9 @@ struct WindowProblem {
 
   // Gauge: position and yaw of the oldest state held at these values.
   int gauge_slot = -1;
+  // Enough landmarks carry map priors (WindowOptions::map_anchor_min_landmarks):
+  // the map fixes position and yaw, like a map pose factor. Set by optimize().
+  bool map_anchored = false;
   Eigen::Vector3d gauge_p = Eigen::Vector3d::Zero();
   double gauge_yaw = 0.0;
 
@@ -115,7 +123,7 @@ struct WindowProblem {
   int newest_slot() const { return n_states > 0 ? order[n_states - 1] : -1; }
   // The gauge prior holds only while no state carries a map pose factor.
   bool gauge_active() const {
-    if (gauge_slot < 0) return false;
+    if (gauge_slot < 0 || map_anchored) return false;
     for (int k = 0; k < n_states; ++k)
       if (states[order[k]].has_pose_prior) return false;
     return true;
@@ -150,6 +158,11 @@ Vector15d imu_bias_residual(const WindowProblem& P, const WindowState& sj, const
 // Map pose factor of a state carrying one: [(p - p_prior) / sigma_p;
 // Log(R_prior^T R) / sigma_r], J = d r / d[dp, dphi].
 Vector6d pose_prior_residual(const WindowState& st, const NavState& x, Matrix6d* J = nullptr);
+
+// Map prior of a landmark carrying one: (l_W - prior_p_W) / prior_sigma_m; d r / d l = I / sigma.
+inline Eigen::Vector3d landmark_prior_residual(const WindowLandmark& L, const Eigen::Vector3d& l_W) {
+  return (l_W - L.prior_p_W) / L.prior_sigma_m;
+}
 
 // Yaw of R_WB: heading of the body x axis in W, atan2(R10, R00).
 double yaw_of(const Eigen::Quaterniond& q_WB);

@@ -106,7 +106,9 @@ struct MavlinkSettings {
 // `threads:` section (optional): scheduling and CPU of every pipeline thread.
 // One rt::ThreadSpec per known thread (priority 0 = SCHED_OTHER, cpu -1 =
 // any). Threads the section does not name keep default_thread_table()'s value.
-enum class PipelineThread : int { kImu, kCamera, kReplay, kPropagate, kEstimator, kOptimizer, kLog, kViewer, kCount };
+enum class PipelineThread : int {
+  kImu, kCamera, kReplay, kPropagate, kEstimator, kOptimizer, kLog, kViewer, kMapping, kLoop, kCount
+};
 constexpr int kPipelineThreads = static_cast<int>(PipelineThread::kCount);
 
 struct ThreadTable {

@@ -29,6 +29,10 @@ core::EstimatorConfig estimator_config_from_yaml(const std::string& text, const 
 // The effective settings as YAML, one commented key per line (what
 // `--print-config` prints; loading it back gives the same config).
 std::string estimator_config_to_yaml(const core::EstimatorConfig& c);
+// The command-line switches `--mapping on|off` and `--loop on|off` (empty:
+// the config's value). `--loop on` with mapping off is refused, as is any
+// other value: std::invalid_argument naming the option.
+void apply_map_switches(core::EstimatorConfig& c, const std::string& mapping, const std::string& loop);
 
 // Every key as ("section.key", value as YAML text), in table order (metrics JSON).
 std::vector<std::pair<std::string, std::string>> estimator_config_entries(const core::EstimatorConfig& c);

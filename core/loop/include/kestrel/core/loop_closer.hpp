@@ -1,0 +1,125 @@
+// Loop closing (paper 001's third thread, for RGB-D + IMU): for each new
+// keyframe of the map,
+//  1. candidates by place recognition (the inverted index), leaving out the
+//     keyframe's covisible neighbours and everything younger than min_age_s,
+//     and scoring at least what its covisible neighbours score with it;
+//  2. geometric verification: the keyframe's depth-backed features matched to
+//     the points of the candidate and its covisible neighbours, then a
+//     4-DoF RANSAC (yaw + translation: both frames see gravity, so a
+//     correction that tilts is not a loop) on the 3D-3D matches; enough
+//     inliers, and a correction the odometry could have drifted by the path
+//     flown since the candidate (a far jump is an alias, not drift);
+//  3. consistency: consecutive keyframes must verify the same correction;
+//  4. correction: the 4-DoF pose graph (pose_graph.hpp) over the map's
+//     keyframes (spanning tree, strong covisibility and earlier loop edges,
+//     the new loop edge), the candidate and the map's first keyframe held;
+//     points move with their reference keyframe; the matched points are merged.
+// Not real time: the loop thread. docs/map.md.
+#pragma once
+
+#include <Eigen/Geometry>
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "kestrel/core/local_mapper.hpp"
+#include "kestrel/core/map.hpp"
+
+namespace kestrel::core {
+
+struct LoopOptions {
+  double min_age_s = 10.0;   // candidates at least this much older than the query
+  int max_candidates = 3;    // best BoW candidates verified per keyframe
+  double min_score = 0.01;   // BoW score floor
+  int candidate_neighbours = 5;  // covisible keyframes of a candidate whose points are matched too
+  int match_max_hamming = 50;
+  double match_ratio = 0.8;
+  int ransac_iterations = 300;
+  double inlier_m = 0.05;    // 3D-3D inlier: this + 3 sigma of the depth
+  int min_inliers = 40;
+  double min_inlier_share = 0.3;  // of the matches
+  // The correction must be drift: at most base + per_m x path flown since the candidate.
+  double max_correction_m = 0.3;
+  double max_correction_per_m = 0.05;
+  double max_yaw_rad = 0.1;
+  double max_yaw_per_m = 0.005;
+  int consistent_keyframes = 2;  // consecutive keyframes verifying the same correction
+  double consistency_m = 0.1;    // their corrections agree within (at the keyframe's position)
+  double consistency_rad = 0.05;
+  int pose_graph_iterations = 30;
+  int covis_edge_min_shared = 50;  // covisibility edges of the pose graph
+  int cooldown_keyframes = 10;     // no new loop this soon after one
+
+  [[nodiscard]] std::string validate() const;
+};
+
+struct LoopStats {
+  uint64_t queries = 0;
+  uint64_t candidates = 0;        // from the inverted index
+  uint64_t verified = 0;          // passed geometry and the drift bound
+  uint64_t rejected_inliers = 0;  // too few 3D-3D inliers
+  uint64_t rejected_drift = 0;    // a correction the odometry could not have drifted (an alias)
+  uint64_t rejected_consistency = 0;
+  uint64_t closures = 0;
+  uint64_t pose_graph_failures = 0;
+  uint64_t points_merged = 0;
+};
+
+// A verified match of a keyframe against an older place.
+struct LoopMatch {
+  int query = -1, candidate = -1;  // keyframe slots
+  uint32_t query_id = 0, candidate_id = 0;
+  // T_MC_true = correction * T_MC (4 DoF): where the query keyframe really is.
+  Eigen::Isometry3d correction = Eigen::Isometry3d::Identity();
+  int matches = 0, inliers = 0;
+  double score = 0.0;
+  std::vector<std::pair<int, int>> inlier_pairs;  // (query feature, map point)
+};
+
+struct LoopClosure {
+  bool closed = false;
+  LoopMatch match;
+  // Correction of the newest keyframe (T_new = delta * T_old), for T_map_odom.
+  Eigen::Isometry3d newest_delta = Eigen::Isometry3d::Identity();
+  int newest = -1;
+};
+
+class LoopCloser {
+ public:
+  LoopCloser(Map& map, const MapCamera& cam, const LoopOptions& opt);
+
+  // Looks at keyframe kf (just mapped): detection, verification,
+  // consistency, and when a loop is accepted its correction of the map.
+  LoopClosure process(int kf);
+
+  // Steps 1-2 alone for one keyframe: the best verified match, or false.
+  bool detect(int kf, LoopMatch* out);
+  // Step 4 for a verified match.
+  bool close(const LoopMatch& m, LoopClosure* out);
+
+  const LoopStats& stats() const { return stats_; }
+  const LoopOptions& options() const { return opt_; }
+
+ private:
+  bool verify(int kf, int candidate, double score, LoopMatch* out);
+
+  // A closed loop, kept for later pose graphs: b seen from a (camera frames).
+  struct LoopEdge {
+    uint32_t id_a, id_b;
+    Eigen::Vector3d t_ab;
+    Eigen::Matrix3d R_ab;
+  };
+  Map& map_;
+  MapCamera cam_;
+  LoopOptions opt_;
+  LoopStats stats_;
+  std::vector<LoopEdge> loop_edges_;
+  // Consistency: the last verified match and how many consecutive keyframes agree.
+  LoopMatch pending_;
+  int pending_count_ = 0;
+  uint32_t last_query_id_ = 0;
+  uint32_t last_closure_kf_id_ = 0;
+  std::vector<int32_t> kf_scratch_, shared_scratch_, pts_;
+};
+
+}  // namespace kestrel::core

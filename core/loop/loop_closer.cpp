@@ -1,0 +1,327 @@
+#include "kestrel/core/loop_closer.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <random>
+#include <sstream>
+#include <unordered_map>
+
+#include "kestrel/core/pose_graph.hpp"
+#include "kestrel/core/vocabulary.hpp"
+
+namespace kestrel::core {
+
+std::string LoopOptions::validate() const {
+  std::ostringstream e;
+  if (min_age_s < 0) e << "  loop_min_age_s must be >= 0\n";
+  if (max_candidates < 1) e << "  loop_max_candidates must be >= 1\n";
+  if (min_inliers < 3) e << "  loop_min_inliers must be >= 3\n";
+  if (!(min_inlier_share >= 0 && min_inlier_share <= 1)) e << "  loop_min_inlier_share must be in [0, 1]\n";
+  if (ransac_iterations < 1) e << "  loop_ransac_iterations must be >= 1\n";
+  if (!(inlier_m > 0)) e << "  loop_inlier_m must be > 0\n";
+  if (consistent_keyframes < 1) e << "  loop_consistent_keyframes must be >= 1\n";
+  if (!(max_correction_m >= 0 && max_correction_per_m >= 0 && max_yaw_rad >= 0 && max_yaw_per_m >= 0))
+    e << "  the loop's drift bounds must be >= 0\n";
+  if (pose_graph_iterations < 1) e << "  loop_pose_graph_iterations must be >= 1\n";
+  return e.str();
+}
+
+namespace {
+
+// A verified loop edge is stiffer than the odometry's chain: the chain's
+// edges carry the drift the loop corrects, and over tens of keyframes their
+// sum would otherwise hold the loop back (a 1 cm chain edge x 36 keyframes is
+// 6 cm of slack against the loop's 2 mm).
+constexpr double kLoopSigma_m = 0.002, kLoopSigma_rad = 0.0005;
+
+double yaw_of(const Eigen::Matrix3d& R) { return std::atan2(R(1, 0), R(0, 0)); }
+
+// 4-DoF least squares of p = Rz(yaw) q + t over the index set (closed form:
+// centroids, then the yaw of the centred xy cross-covariance).
+Eigen::Isometry3d fit_4dof(const std::vector<Eigen::Vector3d>& q, const std::vector<Eigen::Vector3d>& p,
+                           const std::vector<int>& idx) {
+  Eigen::Vector3d qm = Eigen::Vector3d::Zero(), pm = Eigen::Vector3d::Zero();
+  for (int i : idx) {
+    qm += q[i];
+    pm += p[i];
+  }
+  qm /= static_cast<double>(idx.size());
+  pm /= static_cast<double>(idx.size());
+  double s_cross = 0, s_dot = 0;
+  for (int i : idx) {
+    const Eigen::Vector3d a = q[i] - qm, b = p[i] - pm;
+    s_cross += a.x() * b.y() - a.y() * b.x();
+    s_dot += a.x() * b.x() + a.y() * b.y();
+  }
+  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+  T.linear() = rot_z(std::atan2(s_cross, s_dot));
+  T.translation() = pm - T.linear() * qm;
+  return T;
+}
+
+}  // namespace
+
+LoopCloser::LoopCloser(Map& map, const MapCamera& cam, const LoopOptions& opt) : map_(map), cam_(cam), opt_(opt) {
+  const std::string err = opt.validate();
+  if (!err.empty()) throw std::invalid_argument("LoopOptions:\n" + err);
+  kf_scratch_.resize(static_cast<size_t>(map.max_keyframes()));
+  shared_scratch_.resize(static_cast<size_t>(map.max_keyframes()));
+}
+
+bool LoopCloser::detect(int kf, LoopMatch* out) {
+  const KeyframeDatabase* db = map_.database();
+  if (db == nullptr || !map_.keyframe_used(kf)) return false;
+  MapKeyframe& K = map_.keyframe(kf);
+  if (K.n_bow == 0) return false;
+  // The keyframe's covisible neighbours are not loops; the lowest score among
+  // the closest of them says how alike "the same place" looks here.
+  const int nc = map_.covisible(kf, 1, map_.max_keyframes(), kf_scratch_.data(), shared_scratch_.data());
+  const uint64_t mark = map_.next_mark();
+  K.mark = mark;
+  double min_covis = 1.0;
+  int n_scored = 0;
+  for (int i = 0; i < nc; ++i) {
+    MapKeyframe& N = map_.keyframe(kf_scratch_[i]);
+    N.mark = mark;
+    if (n_scored < 10 && shared_scratch_[i] >= 15) {
+      min_covis = std::min(min_covis, bow_score(map_.bow(kf), K.n_bow, map_.bow(kf_scratch_[i]), N.n_bow));
+      ++n_scored;
+    }
+  }
+  const double min_score = std::max(opt_.min_score, n_scored > 0 ? 0.7 * min_covis : opt_.min_score);
+  const int64_t min_age_ns = static_cast<int64_t>(opt_.min_age_s * 1e9);
+  const auto skip = [&](int k) {
+    const MapKeyframe& C = map_.keyframe(k);
+    return C.mark == mark || K.t_ns - C.t_ns < min_age_ns;
+  };
+  KeyframeDatabase::Match cands[16];
+  const int n = db->query(map_.bow(kf), K.n_bow, skip, static_cast<float>(min_score), 0.8,
+                          std::min(opt_.max_candidates, 16), cands);
+  stats_.candidates += static_cast<uint64_t>(n);
+  bool found = false;
+  for (int c = 0; c < n; ++c) {
+    LoopMatch m;
+    if (!verify(kf, cands[c].keyframe, cands[c].score, &m)) continue;
+    if (!found || m.inliers > out->inliers) *out = std::move(m);
+    found = true;
+  }
+  if (found) ++stats_.verified;
+  return found;
+}
+
+bool LoopCloser::verify(int kf, int cand, double score, LoopMatch* out) {
+  const MapKeyframe& K = map_.keyframe(kf);
+  const MapKeyframe& C = map_.keyframe(cand);
+  // The candidate's place: its points and those of its closest covisible keyframes.
+  const int nn = map_.covisible(cand, 1, opt_.candidate_neighbours, kf_scratch_.data(), shared_scratch_.data());
+  const uint64_t mark = map_.next_mark();
+  pts_.clear();
+  for (int i = -1; i < nn; ++i) {
+    const int k = i < 0 ? cand : kf_scratch_[i];
+    const MapKeyframe& N = map_.keyframe(k);
+    for (int j = 0; j < N.n; ++j) {
+      const int32_t p = map_.point_of(k, j);
+      if (p < 0 || map_.point(p).mark == mark) continue;
+      map_.point(p).mark = mark;
+      pts_.push_back(p);
+    }
+  }
+  if (static_cast<int>(pts_.size()) < opt_.min_inliers) return false;
+  // Descriptor matches of the keyframe's depth-backed features, best two with the ratio test.
+  std::vector<Eigen::Vector3d> q, p;
+  std::vector<double> thr;
+  std::vector<std::pair<int, int>> pairs;
+  for (int j = 0; j < K.n; ++j) {
+    const KeyframeFeature& f = map_.feature(kf, j);
+    if (f.depth_m <= 0) continue;
+    BestTwoMatches bt;
+    for (int32_t pt : pts_) bt.offer(hamming_distance(f.desc, map_.point(pt).desc), pt);
+    if (bt.best_index < 0 || bt.best > opt_.match_max_hamming || !bt.passes_ratio(static_cast<float>(opt_.match_ratio)))
+      continue;
+    const int32_t arg = bt.best_index;
+    q.push_back(K.T_MC * cam_.point_C(f));
+    p.push_back(map_.point(arg).p_M);
+    thr.push_back(opt_.inlier_m + 3.0 * cam_.sigma_depth_m(f.depth_m));
+    pairs.emplace_back(j, arg);
+  }
+  const int m = static_cast<int>(q.size());
+  if (m < opt_.min_inliers) {
+    ++stats_.rejected_inliers;
+    return false;
+  }
+  // 4-DoF RANSAC: two matches fix yaw and translation. Seeded by the
+  // keyframe ids, so a replay closes the same loops.
+  std::mt19937_64 rng(static_cast<uint64_t>(K.id) * 1000003u + C.id);
+  std::vector<int> best_in, in;
+  auto inliers_of = [&](const Eigen::Isometry3d& T, std::vector<int>& set) {
+    set.clear();
+    for (int i = 0; i < m; ++i)
+      if ((T * q[i] - p[i]).norm() < thr[i]) set.push_back(i);
+  };
+  for (int it = 0; it < opt_.ransac_iterations; ++it) {
+    const int a = static_cast<int>(rng() % static_cast<uint64_t>(m));
+    const int b = static_cast<int>(rng() % static_cast<uint64_t>(m));
+    if (a == b || (q[a] - q[b]).head<2>().norm() < 0.1 || (p[a] - p[b]).head<2>().norm() < 0.1) continue;
+    const Eigen::Isometry3d T = fit_4dof(q, p, {a, b});
+    inliers_of(T, in);
+    if (in.size() > best_in.size()) best_in.swap(in);
+  }
+  if (static_cast<int>(best_in.size()) < opt_.min_inliers) {
+    ++stats_.rejected_inliers;
+    return false;
+  }
+  Eigen::Isometry3d T = fit_4dof(q, p, best_in);
+  for (int round = 0; round < 2; ++round) {
+    inliers_of(T, in);
+    if (static_cast<int>(in.size()) < opt_.min_inliers) break;
+    T = fit_4dof(q, p, in);
+  }
+  inliers_of(T, in);
+  if (static_cast<int>(in.size()) < opt_.min_inliers || in.size() < opt_.min_inlier_share * m) {
+    ++stats_.rejected_inliers;
+    return false;
+  }
+  // Drift, or an alias? The odometry drifts by a few percent of the path at
+  // most; a correction beyond that means another place that looks the same.
+  const double path_m = std::max(0.0, K.path_m - C.path_m);
+  const Eigen::Vector3d pos = K.T_MC.translation();
+  const double dp = (T * pos - pos).norm(), dyaw = std::abs(yaw_of(T.linear()));
+  if (dp > opt_.max_correction_m + opt_.max_correction_per_m * path_m ||
+      dyaw > opt_.max_yaw_rad + opt_.max_yaw_per_m * path_m) {
+    ++stats_.rejected_drift;
+    return false;
+  }
+  out->query = kf;
+  out->candidate = cand;
+  out->query_id = K.id;
+  out->candidate_id = C.id;
+  out->correction = T;
+  out->matches = m;
+  out->inliers = static_cast<int>(in.size());
+  out->score = score;
+  out->inlier_pairs.clear();
+  for (int i : in) out->inlier_pairs.push_back(pairs[static_cast<size_t>(i)]);
+  return true;
+}
+
+bool LoopCloser::close(const LoopMatch& lm, LoopClosure* out) {
+  if (!map_.keyframe_used(lm.query) || !map_.keyframe_used(lm.candidate) ||
+      map_.keyframe(lm.query).id != lm.query_id || map_.keyframe(lm.candidate).id != lm.candidate_id)
+    return false;
+  // Nodes: every keyframe; held: the candidate's place and the map's first keyframe.
+  PoseGraph4 g;
+  std::vector<int> node_of(static_cast<size_t>(map_.max_keyframes()), -1);
+  std::vector<int> slot_of;
+  std::unordered_map<uint32_t, int> node_by_id;
+  int first = -1;
+  map_.for_each_keyframe([&](int k) {
+    if (first < 0 || map_.keyframe(k).id < map_.keyframe(first).id) first = k;
+  });
+  const uint32_t query_id = lm.query_id;
+  map_.for_each_keyframe([&](int k) {
+    const MapKeyframe& K = map_.keyframe(k);
+    node_of[static_cast<size_t>(k)] = g.add_node(K.T_MC, k == lm.candidate || k == first);
+    slot_of.push_back(k);
+    node_by_id[K.id] = node_of[static_cast<size_t>(k)];
+  });
+  const size_t n_nodes = g.T.size();
+  const std::vector<Eigen::Isometry3d> T_old = g.T;
+  // Edges from the current poses: the spanning tree and strong covisibility.
+  for (size_t a = 0; a < n_nodes; ++a) {
+    const int k = slot_of[a];
+    const MapKeyframe& K = map_.keyframe(k);
+    if (map_.keyframe_used(K.parent)) g.add_edge_from_current(node_of[static_cast<size_t>(K.parent)], static_cast<int>(a), 0.01, 0.002);
+    const int nc = map_.covisible(k, opt_.covis_edge_min_shared, 5, kf_scratch_.data(), shared_scratch_.data());
+    for (int i = 0; i < nc; ++i) {
+      const int o = kf_scratch_[i];
+      if (map_.keyframe(o).id < K.id && o != K.parent)
+        g.add_edge_from_current(node_of[static_cast<size_t>(o)], static_cast<int>(a), 0.02, 0.005);
+    }
+  }
+  // Earlier loops stay closed.
+  for (const LoopEdge& e : loop_edges_) {
+    const auto ia = node_by_id.find(e.id_a), ib = node_by_id.find(e.id_b);
+    if (ia == node_by_id.end() || ib == node_by_id.end()) continue;
+    // Its yaw on top of the rotations the two keyframes have now.
+    const Eigen::Matrix3d R = g.T[static_cast<size_t>(ia->second)].linear() * e.R_ab *
+                              g.T[static_cast<size_t>(ib->second)].linear().transpose();
+    g.add_edge(ia->second, ib->second, e.t_ab, yaw_of(R), kLoopSigma_m, kLoopSigma_rad);
+  }
+  // The new loop: where the query keyframe really is, seen from the candidate.
+  const int ic = node_of[static_cast<size_t>(lm.candidate)], iq = node_of[static_cast<size_t>(lm.query)];
+  const Eigen::Isometry3d T_q_true = lm.correction * g.T[static_cast<size_t>(iq)];
+  const Eigen::Isometry3d& T_c = g.T[static_cast<size_t>(ic)];
+  LoopEdge le{lm.candidate_id, lm.query_id, T_c.linear().transpose() * (T_q_true.translation() - T_c.translation()),
+              T_c.linear().transpose() * T_q_true.linear()};
+  g.add_edge(ic, iq, le.t_ab, yaw_of(lm.correction.linear()), kLoopSigma_m, kLoopSigma_rad);
+  // Start the keyframes flown since the query where the loop says they are.
+  for (size_t a = 0; a < n_nodes; ++a)
+    if (!g.fixed[a] && map_.keyframe(slot_of[a]).id >= query_id) g.move_node(static_cast<int>(a), lm.correction);
+  if (!g.solve(opt_.pose_graph_iterations)) {
+    ++stats_.pose_graph_failures;
+    return false;
+  }
+  loop_edges_.push_back(le);
+  // Keyframes take their corrected poses, points move with their first observer.
+  std::vector<Eigen::Isometry3d> delta(n_nodes);
+  for (size_t a = 0; a < n_nodes; ++a) delta[a] = g.T[a] * T_old[a].inverse();
+  for (int pt = 0; pt < map_.max_points(); ++pt) {
+    if (!map_.point_used(pt)) continue;
+    MapPoint& P = map_.point(pt);
+    if (P.n_obs == 0) continue;
+    const int ref = node_of[static_cast<size_t>(P.obs_kf[0])];
+    if (ref >= 0) P.p_M = delta[static_cast<size_t>(ref)] * P.p_M;
+  }
+  for (size_t a = 0; a < n_nodes; ++a) map_.keyframe(slot_of[a]).T_MC = g.T[a];
+  // The matched points are one: the query's observations join the old place's points.
+  for (const auto& [j, pt] : lm.inlier_pairs) {
+    if (!map_.point_used(pt)) continue;
+    const int32_t pa = map_.point_of(lm.query, j);
+    if (pa == pt) continue;
+    if (pa >= 0) {
+      map_.merge_point(pa, pt);
+      ++stats_.points_merged;
+    } else if (map_.add_observation(pt, lm.query, j)) {
+      ++stats_.points_merged;
+    }
+  }
+  out->closed = true;
+  out->match = lm;
+  out->newest = map_.newest_keyframe();
+  if (out->newest >= 0) out->newest_delta = delta[static_cast<size_t>(node_of[static_cast<size_t>(out->newest)])];
+  ++stats_.closures;
+  return true;
+}
+
+LoopClosure LoopCloser::process(int kf) {
+  LoopClosure r;
+  if (!map_.keyframe_used(kf)) return r;
+  ++stats_.queries;
+  const uint32_t id = map_.keyframe(kf).id;
+  if (last_closure_kf_id_ != 0 && id < last_closure_kf_id_ + static_cast<uint32_t>(opt_.cooldown_keyframes)) {
+    pending_count_ = 0;
+    return r;
+  }
+  LoopMatch m;
+  if (!detect(kf, &m)) {
+    pending_count_ = 0;
+    return r;
+  }
+  bool consistent = false;
+  if (pending_count_ > 0 && map_.keyframe_used(m.query)) {
+    // Both corrections at this keyframe's position: the same drift, seen twice.
+    const Eigen::Vector3d pos = map_.keyframe(m.query).T_MC.translation();
+    const double dp = (pending_.correction * pos - m.correction * pos).norm();
+    const double dyaw = std::abs(yaw_of((pending_.correction.linear().transpose() * m.correction.linear())));
+    consistent = dp < opt_.consistency_m && dyaw < opt_.consistency_rad;
+    if (!consistent) ++stats_.rejected_consistency;
+  }
+  pending_count_ = consistent ? pending_count_ + 1 : 1;
+  pending_ = m;
+  if (pending_count_ < opt_.consistent_keyframes) return r;
+  pending_count_ = 0;
+  if (close(m, &r)) last_closure_kf_id_ = map_.keyframe(map_.newest_keyframe()).id;
+  return r;
+}
+
+}  // namespace kestrel::core

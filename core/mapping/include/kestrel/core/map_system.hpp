@@ -1,0 +1,142 @@
+// The map beside the odometry: the hand-off between the tracking thread and
+// the mapping and loop-closing threads (paper 001's three threads), and the
+// work those two threads do. docs/map.md.
+//
+//   tracking thread --KeyframePacket slots--> SpscRing --> mapping thread
+//        ^                                                   | LocalMapper: insert, fuse,
+//        |                                                   | local BA, cull
+//        +--MapUpdate slots (refined points, T_map_odom)-----+
+//                                                            v
+//                                            loop thread (place recognition,
+//                                            loop closing, relocalisation)
+//
+// The tracking side never allocates and never waits: keyframe packets and
+// updates are fixed pools whose slot indices travel through SPSC rings; with
+// every packet in flight a keyframe is not mapped (counted), and an update
+// the tracking side has not taken is replaced by the next one. The mapping
+// and loop threads share the Map and are serialised by their caller (the
+// harness holds one mutex around mapping_step() and loop_step()): core has
+// no threads and no locks.
+#pragma once
+
+#include <atomic>
+#include <cstdint>
+#include <memory>
+#include <string>
+
+#include "kestrel/core/estimator.hpp"
+#include "kestrel/core/local_mapper.hpp"
+#include "kestrel/core/loop_closer.hpp"
+#include "kestrel/core/map.hpp"
+#include "kestrel/rt/latency_histogram.hpp"
+#include "kestrel/rt/mailbox.hpp"
+#include "kestrel/rt/spsc_ring.hpp"
+
+namespace kestrel::core {
+
+struct MapSystemOptions {
+  bool mapping = true;  // the map and the local mapping thread (--mapping on|off)
+  bool loop = true;     // loop closing and relocalisation (--loop on|off; nothing without mapping)
+  MapOptions map;
+  LoopOptions closing;  // loop detection, verification, correction (loop_closer.hpp)
+  // Place recognition's vocabulary file ("": the one built into `kestrel`,
+  // configs/vocabulary/). Core does no I/O: tools load it into `vocabulary`;
+  // without one, loop closing and relocalisation are off.
+  std::string vocabulary_path;
+  std::shared_ptr<const Vocabulary> vocabulary;
+
+  [[nodiscard]] std::string validate() const;
+};
+
+// Mapping -> tracking: the refined points around the newest keyframe, in W.
+struct MapUpdate {
+  uint64_t keyframe_seq = 0;  // the packet it answers
+  // T_map_odom changed since the last update (a loop closure, a
+  // relocalisation): the tracker's local map is emptied before these points
+  // go in, since its old points sit where the old alignment put them.
+  bool realigned = false;
+  MapFrameState frame;
+  int n = 0;
+  MapPointUpdate* points = nullptr;  // capacity MapOptions::update_max_points
+};
+
+struct MapSystemCounters {
+  uint64_t keyframes_submitted = 0;
+  uint64_t keyframes_overrun = 0;  // no free packet: the tracking side went on without the map
+  uint64_t keyframes_mapped = 0;
+  uint64_t updates_published = 0;
+  uint64_t updates_applied = 0;
+  uint64_t updates_skipped = 0;  // no free update slot on the mapping side
+};
+
+class MapSystem {
+ public:
+  MapSystem(const MapCamera& cam, int features_per_keyframe, const MapSystemOptions& opt);
+  ~MapSystem();
+  MapSystem(const MapSystem&) = delete;
+  MapSystem& operator=(const MapSystem&) = delete;
+
+  // ---- tracking thread: no allocation, no waiting ----
+  // A free packet (features sized for the tracker), or nullptr (counted).
+  KeyframePacket* begin_keyframe();
+  void submit_keyframe(KeyframePacket* p);
+  void cancel_keyframe(KeyframePacket* p);
+  // The newest update not yet taken, or nullptr; give it back with release_update().
+  const MapUpdate* take_update();
+  void release_update(const MapUpdate* u);
+  // A submitted keyframe is not fully processed yet.
+  bool busy() const { return in_flight_.load(std::memory_order_acquire) > 0; }
+  // Latest state of the map's frame (any thread).
+  MapFrameState frame() const;
+
+  // ---- mapping thread ----
+  bool mapping_step();
+  // ---- loop thread ----
+  bool loop_step();
+
+  // ---- after the threads stopped (or from the mapping/loop threads) ----
+  Map& map() { return *map_; }
+  const Map& map() const { return *map_; }
+  const LocalMapper& mapper() const { return *mapper_; }
+  const LoopCloser& loop_closer() const { return *closer_; }
+  const MapSystemCounters& counters() const { return counters_; }
+  const rt::LatencyHistogram& mapping_latency() const { return mapping_latency_; }
+  const rt::LatencyHistogram& loop_latency() const { return loop_latency_; }
+  const MapSystemOptions& options() const { return opt_; }
+  std::string summary() const;
+
+ private:
+  static constexpr int kPackets = 6;
+  static constexpr int kUpdates = 3;
+  void publish_update(int kf, uint64_t seq);
+  void publish_frame();
+
+  MapSystemOptions opt_;
+  std::unique_ptr<Map> map_;
+  std::unique_ptr<LocalMapper> mapper_;
+  std::unique_ptr<LoopCloser> closer_;
+  // Packets: slot indices tracking -> mapping (todo), mapping -> tracking (free).
+  std::unique_ptr<KeyframePacket[]> packets_;
+  std::unique_ptr<KeyframeFeature[]> packet_features_;
+  rt::SpscRing<uint8_t, 8> packet_todo_, packet_free_;
+  int free_packets_[kPackets] = {};
+  int n_free_packets_ = 0;
+  uint64_t next_seq_ = 1;
+  // Updates: mapping -> tracking (ready), tracking -> mapping (free).
+  std::unique_ptr<MapUpdate[]> updates_;
+  std::unique_ptr<MapPointUpdate[]> update_points_;
+  rt::SpscRing<uint8_t, 8> update_ready_, update_free_;
+  // Mapping -> loop: keyframe slots to look at.
+  rt::SpscRing<int32_t, 64> loop_todo_;
+  std::atomic<int> in_flight_{0};
+  rt::Mailbox<MapFrameState> frame_;
+  // Mapping/loop side.
+  MapFrameState state_;
+  bool realigned_ = false;
+  int32_t last_kf_ = -1;
+  rt::LatencyHistogram mapping_latency_, loop_latency_;
+  MapSystemCounters counters_;
+  std::atomic<uint64_t> overrun_{0}, applied_{0};
+};
+
+}  // namespace kestrel::core

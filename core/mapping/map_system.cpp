@@ -1,0 +1,185 @@
+#include "kestrel/core/map_system.hpp"
+
+#include <sstream>
+#include <stdexcept>
+
+#include "kestrel/core/pose_graph.hpp"
+#include "kestrel/rt/clock.hpp"
+
+namespace kestrel::core {
+
+std::string MapSystemOptions::validate() const { return map.validate() + closing.validate(); }
+
+MapSystem::MapSystem(const MapCamera& cam, int features_per_keyframe, const MapSystemOptions& opt) : opt_(opt) {
+  const std::string err = opt.validate();
+  if (!err.empty()) throw std::invalid_argument("MapSystemOptions:\n" + err);
+  map_ = std::make_unique<Map>(opt.map, features_per_keyframe, opt.loop ? opt.vocabulary : nullptr);
+  mapper_ = std::make_unique<LocalMapper>(*map_, cam);
+  closer_ = std::make_unique<LoopCloser>(*map_, cam, opt.closing);
+  packets_.reset(new KeyframePacket[kPackets]);
+  packet_features_.reset(new KeyframeFeature[static_cast<size_t>(kPackets) * features_per_keyframe]);
+  for (int i = 0; i < kPackets; ++i) packets_[i].features = packet_features_.get() + i * features_per_keyframe;
+  for (int i = kPackets - 1; i >= 0; --i) free_packets_[n_free_packets_++] = i;
+  const int cap = std::max(1, opt.map.update_max_points);
+  updates_.reset(new MapUpdate[kUpdates]);
+  update_points_.reset(new MapPointUpdate[static_cast<size_t>(kUpdates) * cap]);
+  for (int i = 0; i < kUpdates; ++i) {
+    updates_[i].points = update_points_.get() + static_cast<size_t>(i) * cap;
+    (void)update_free_.try_push(static_cast<uint8_t>(i));
+  }
+  state_.active = true;
+  state_.localized = true;
+  frame_.publish(state_);
+}
+
+MapSystem::~MapSystem() = default;
+
+// ---- tracking side -------------------------------------------------------------
+
+KeyframePacket* MapSystem::begin_keyframe() {
+  while (const uint8_t* s = packet_free_.front()) {
+    free_packets_[n_free_packets_++] = *s;
+    packet_free_.pop();
+  }
+  if (n_free_packets_ == 0) {
+    overrun_.fetch_add(1, std::memory_order_relaxed);
+    return nullptr;
+  }
+  KeyframePacket* p = &packets_[free_packets_[--n_free_packets_]];
+  p->n = 0;
+  p->lost = false;
+  return p;
+}
+
+void MapSystem::cancel_keyframe(KeyframePacket* p) {
+  if (p != nullptr) free_packets_[n_free_packets_++] = static_cast<int>(p - packets_.get());
+}
+
+void MapSystem::submit_keyframe(KeyframePacket* p) {
+  p->seq = next_seq_++;
+  in_flight_.fetch_add(1, std::memory_order_acq_rel);
+  // Cannot fail: the ring holds more than the pool.
+  (void)packet_todo_.try_push(static_cast<uint8_t>(p - packets_.get()));
+}
+
+const MapUpdate* MapSystem::take_update() {
+  const MapUpdate* newest = nullptr;
+  while (const uint8_t* s = update_ready_.front()) {
+    if (newest != nullptr) (void)update_free_.try_push(static_cast<uint8_t>(newest - updates_.get()));
+    newest = &updates_[*s];
+    update_ready_.pop();
+  }
+  return newest;
+}
+
+void MapSystem::release_update(const MapUpdate* u) {
+  if (u == nullptr) return;
+  applied_.fetch_add(1, std::memory_order_relaxed);
+  (void)update_free_.try_push(static_cast<uint8_t>(u - updates_.get()));
+}
+
+MapFrameState MapSystem::frame() const {
+  MapFrameState s;
+  frame_.read(s);
+  return s;
+}
+
+// ---- mapping thread ------------------------------------------------------------
+
+bool MapSystem::mapping_step() {
+  const uint8_t* s = packet_todo_.front();
+  if (s == nullptr) return false;
+  const int slot = *s;
+  packet_todo_.pop();
+  const int64_t t0 = rt::now_ns();
+  KeyframePacket& pk = packets_[slot];
+  const Eigen::Isometry3d T_MW = state_.T_map_odom();
+  int kf = -1;
+  if (!pk.lost && opt_.mapping) {
+    const int64_t min_dt = static_cast<int64_t>(opt_.map.min_keyframe_interval_s * 1e9);
+    const bool too_soon = last_kf_ >= 0 && map_->keyframe_used(last_kf_) &&
+                          pk.t_ns - map_->keyframe(last_kf_).t_ns < min_dt;
+    if (!too_soon) kf = mapper_->insert(pk, T_MW, last_kf_);
+  }
+  if (kf >= 0) {
+    last_kf_ = kf;
+    ++counters_.keyframes_mapped;
+    publish_update(kf, pk.seq);
+  }
+  publish_frame();
+  mapping_latency_.record(rt::now_ns() - t0);
+  // The packet goes back before the loop thread looks at the keyframe: the map holds a copy.
+  (void)packet_free_.try_push(static_cast<uint8_t>(slot));
+  if (opt_.loop && kf >= 0 && loop_todo_.try_push(kf)) return true;
+  in_flight_.fetch_sub(1, std::memory_order_acq_rel);
+  return true;
+}
+
+void MapSystem::publish_update(int kf, uint64_t seq) {
+  const uint8_t* s = update_free_.front();
+  if (s == nullptr) {
+    ++counters_.updates_skipped;
+    return;
+  }
+  MapUpdate& u = updates_[*s];
+  update_free_.pop();
+  u.keyframe_seq = seq;
+  u.realigned = realigned_;
+  realigned_ = false;
+  u.n = mapper_->export_points(kf, state_.T_map_odom().inverse(), u.points, opt_.map.update_max_points);
+  state_.keyframes = static_cast<uint32_t>(map_->num_keyframes());
+  state_.points = static_cast<uint32_t>(map_->num_points());
+  u.frame = state_;
+  (void)update_ready_.try_push(static_cast<uint8_t>(&u - updates_.get()));
+  ++counters_.updates_published;
+}
+
+void MapSystem::publish_frame() {
+  state_.keyframes = static_cast<uint32_t>(map_->num_keyframes());
+  state_.points = static_cast<uint32_t>(map_->num_points());
+  frame_.publish(state_);
+}
+
+// ---- loop thread ---------------------------------------------------------------
+
+bool MapSystem::loop_step() {
+  const int32_t* k = loop_todo_.front();
+  if (k == nullptr) return false;
+  loop_todo_.pop();
+  const int64_t t0 = rt::now_ns();
+  const LoopClosure c = closer_->process(*k);
+  if (c.closed) {
+    // The odometry stays where it is; the map frame moves against it: W sits
+    // in M where the newest keyframe's corrected pose says (4 DoF: both see
+    // gravity). This also takes in what local BA moved since the last change.
+    const MapKeyframe& N = map_->keyframe(c.newest);
+    state_.set_T_map_odom(project_4dof(N.T_MC * N.T_WC.inverse()));
+    ++state_.alignment;
+    ++state_.loop_closures;
+    realigned_ = true;
+    publish_frame();
+  }
+  loop_latency_.record(rt::now_ns() - t0);
+  in_flight_.fetch_sub(1, std::memory_order_acq_rel);
+  return true;
+}
+
+std::string MapSystem::summary() const {
+  const LocalMapperStats& m = mapper_->stats();
+  std::ostringstream o;
+  o << "map: " << map_->num_keyframes() << " keyframes, " << map_->num_points() << " points; keyframes mapped "
+    << counters_.keyframes_mapped << " (overrun " << overrun_.load() << ", refused full " << m.refused_full
+    << "), culled " << m.keyframes_culled << "; points created " << m.points_created << ", fused "
+    << m.points_fused << ", culled " << m.points_culled << ", observations by projection " << m.observations_added
+    << "; local BA " << m.ba_runs << " (failed " << m.ba_failures << ", outliers " << m.ba_outliers
+    << "); updates " << counters_.updates_published << " published, " << applied_.load() << " applied, "
+    << counters_.updates_skipped << " skipped";
+  const LoopStats& l = closer_->stats();
+  o << "; loop: " << l.queries << " queries, " << l.candidates << " candidates, " << l.verified << " verified, rejected "
+    << l.rejected_inliers << " inliers / " << l.rejected_drift << " drift / " << l.rejected_consistency
+    << " consistency, " << l.closures << " closed (pose graph failed " << l.pose_graph_failures << "), "
+    << l.points_merged << " points merged";
+  return o.str();
+}
+
+}  // namespace kestrel::core

@@ -1,0 +1,209 @@
+// The map beside the odometry (core/mapping): the lock-free hand-off between
+// the tracking side and the mapping thread, its allocation-free tracking
+// side, and the whole pipeline (replay harness, kst-mapping and kst-loop)
+// with and without the map on a simulated flight.
+#include <gtest/gtest.h>
+
+#include <atomic>
+#include <filesystem>
+#include <thread>
+
+#include "kestrel/core/map_system.hpp"
+#include "kestrel/replay_runner.hpp"
+#include "kestrel/rt/alloc_counter.hpp"
+#include "kestrel/tools/simulator.hpp"
+#include "kestrel/tools/trajectory_eval.hpp"
+#include "map_sim.hpp"
+#include "test_data.hpp"
+
+namespace kestrel::map_test {
+namespace {
+
+core::MapSystemOptions small_system() {
+  core::MapSystemOptions o;
+  o.map.max_keyframes = 64;
+  o.map.max_points = 20000;
+  o.loop = false;
+  return o;
+}
+
+void fill(core::KeyframePacket* p, const SimKeyframe& s, int64_t t_ns) {
+  p->t_ns = t_ns;
+  p->T_WC = s.T_WC_true;
+  p->n = static_cast<int>(s.features.size());
+  std::copy(s.features.begin(), s.features.end(), p->features);
+}
+
+// Keyframes go over, refined points come back, on two threads; the tracking
+// side's calls allocate nothing.
+TEST(MapSystem, HandsKeyframesOverAndPointsBackWithoutAllocating) {
+  ASSERT_TRUE(rt::alloc_hook_linked());
+  SimRoom room(1500, 21);
+  core::MapSystem sys(sim_camera(), 300, small_system());
+  std::mt19937_64 rng(1);
+  std::vector<SimKeyframe> kfs;
+  for (int k = 0; k < 12; ++k)
+    kfs.push_back(room.observe(SimRoom::camera(Eigen::Vector3d(0.2 * k, 0.0, 1.5), 0.1 * k), rng));
+  std::atomic<bool> stop{false};
+  std::thread mapper([&] {
+    while (!stop.load()) {
+      if (!sys.mapping_step()) std::this_thread::sleep_for(std::chrono::microseconds(200));
+    }
+  });
+  uint64_t allocs = 0;
+  int updates = 0, points_back = 0;
+  for (size_t k = 0; k < kfs.size(); ++k) {
+    {
+      rt::AllocCountScope scope;
+      core::KeyframePacket* p = sys.begin_keyframe();
+      ASSERT_NE(p, nullptr);
+      fill(p, kfs[k], static_cast<int64_t>(k) * 100'000'000);
+      sys.submit_keyframe(p);
+      allocs += scope.count();
+    }
+    while (sys.busy()) std::this_thread::sleep_for(std::chrono::microseconds(100));
+    rt::AllocCountScope scope;
+    if (const core::MapUpdate* u = sys.take_update()) {
+      ++updates;
+      points_back = u->n;
+      sys.release_update(u);
+    }
+    const core::MapFrameState f = sys.frame();
+    allocs += scope.count();
+    EXPECT_TRUE(f.active);
+  }
+  stop = true;
+  mapper.join();
+  EXPECT_EQ(allocs, 0u) << "the tracking side of the hand-off allocated";
+  EXPECT_EQ(updates, 12);
+  EXPECT_GT(points_back, 200) << "refined points come back to the tracker";
+  EXPECT_EQ(sys.counters().keyframes_mapped, 12u);
+  std::printf("%s\n", sys.summary().c_str());
+}
+
+// Nobody services the map (no mapping thread): the tracking side never waits,
+// it runs out of packets and counts the overrun.
+TEST(MapSystem, WithoutAMappingThreadTheTrackingSideOverrunsAndCounts) {
+  core::MapSystem sys(sim_camera(), 300, small_system());
+  int got = 0;
+  for (int k = 0; k < 20; ++k) {
+    core::KeyframePacket* p = sys.begin_keyframe();
+    if (p == nullptr) continue;
+    ++got;
+    sys.submit_keyframe(p);
+  }
+  EXPECT_LT(got, 20);
+  EXPECT_EQ(sys.take_update(), nullptr);
+  EXPECT_NE(sys.summary().find("overrun " + std::to_string(20 - got)), std::string::npos) << sys.summary();
+}
+
+// A loop through the map system: a circuit whose odometry drifts in yaw and
+// position (the tracker's ids live 3 keyframes), handed over keyframe by
+// keyframe as the tracking thread does. The loop thread closes it, the map's
+// frame moves (T_map_odom, alignment, loop_closures) and the next update
+// tells the tracker to refill its local map; the odometry itself is untouched.
+TEST(MapSystem, ALoopMovesTheMapFrameNotTheOdometry) {
+  SimRoom room(6000, 31);
+  core::MapSystemOptions o;
+  o.map.max_keyframes = 128;
+  o.map.max_points = 40000;
+  o.vocabulary = room_vocabulary(room);
+  o.closing.max_yaw_per_m = 0.05;  // this odometry drifts 4 mrad a keyframe: far worse than ours
+  core::MapSystem sys(sim_camera(), 300, o);
+  std::mt19937_64 rng(2);
+  const int per_lap = 36;
+  bool realigned_seen = false;
+  uint32_t alignment = 0;
+  double first_err_odom = -1, first_err_map = -1, worst_err_map = 0;  // at the keyframes where the map frame moved
+  for (int k = 0; k < per_lap + 12; ++k) {
+    const double a = 2 * M_PI * k / per_lap;
+    const Eigen::Isometry3d T_true = SimRoom::camera(Eigen::Vector3d(1.5 * std::cos(a), 1.5 * std::sin(a), 1.5), a);
+    Eigen::Isometry3d D = Eigen::Isometry3d::Identity();
+    D.linear() = Eigen::AngleAxisd(0.004 * k, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+    D.translation() = Eigen::Vector3d(0.006 * k, 0.003 * k, 0.0);
+    const SimKeyframe s = room.observe(T_true, rng, 1 + 10000u * static_cast<uint32_t>(k / 3));
+    core::KeyframePacket* p = sys.begin_keyframe();
+    ASSERT_NE(p, nullptr);
+    fill(p, s, static_cast<int64_t>(k) * 500'000'000);
+    p->T_WC = D * T_true;
+    sys.submit_keyframe(p);
+    while (sys.mapping_step() || sys.loop_step()) {
+    }
+    if (const core::MapUpdate* u = sys.take_update()) {
+      realigned_seen |= u->realigned;
+      sys.release_update(u);
+    }
+    const core::MapFrameState f = sys.frame();
+    if (f.alignment != alignment) {
+      alignment = f.alignment;
+      const double err_odom = pos_err(D * T_true, T_true), err_map = pos_err(f.T_map_odom() * D * T_true, T_true);
+      std::printf("loop at keyframe %d: odometry %.3f m off, in the map frame %.3f m off (|T_map_odom| %.3f m)\n", k,
+                  err_odom, err_map, f.T_map_odom().translation().norm());
+      if (first_err_odom < 0) {
+        first_err_odom = err_odom;
+        first_err_map = err_map;
+      }
+      worst_err_map = std::max(worst_err_map, err_map);
+    }
+  }
+  const core::MapFrameState f = sys.frame();
+  std::printf("%s\n", sys.summary().c_str());
+  ASSERT_GE(f.loop_closures, 1u);
+  EXPECT_GE(f.alignment, 1u);
+  EXPECT_TRUE(realigned_seen) << "the tracker was not told to refill its local map";
+  EXPECT_GT(first_err_odom, 0.3);
+  EXPECT_LT(first_err_map, 0.05) << "the first loop brings the keyframe back to where it is";
+  EXPECT_LT(worst_err_map, 0.05);
+}
+
+// The whole pipeline on a simulated figure-8 (it returns to where it has
+// been): the map runs on its own threads, the tracking thread still
+// allocates nothing, the map holds keyframes and points, and the odometry
+// tracking against the refined map is no worse than without it.
+TEST(MapPipeline, FigureEightWithAndWithoutTheMap) {
+  const std::string dir = test::temp_dir("map_pipeline");
+  tools::SimOptions so;
+  so.scenario = "figure8";
+  so.duration_s = 25;
+  so.seed = 4;
+  so.width = 320;
+  so.height = 240;
+  so.threads = 2;
+  so.out_path = dir + "/f8.klog";
+  tools::run_simulation(so);
+  double ate[2] = {0, 0};
+  for (int on = 0; on < 2; ++on) {
+    cli::ReplayOptions ro;
+    ro.path = so.out_path;
+    ro.pace = drivers::ReplayPace::kLockstep;
+    core::EstimatorConfig c = core::EstimatorConfig::defaults("window");
+    c.window.map.mapping = on == 1;
+    c.window.map.loop = false;
+    ro.config = c;
+    const cli::ReplayReport r = cli::run_replay(ro);
+    std::vector<std::string> w;
+    const tools::Trajectory gt = tools::load_trajectory(so.out_path, &w);
+    tools::EvalOptions eo;
+    eo.align = tools::Alignment::kSe3;
+    ate[on] = tools::evaluate(gt, r.trajectory, eo).ate_m.rmse;
+    std::printf("mapping %s: se3 ATE %.2f mm, %zu poses; %s\n", on ? "on" : "off", 1e3 * ate[on],
+                r.trajectory.size(), r.backend_summary.c_str());
+    EXPECT_EQ(r.steady_allocs, 0) << "tracking-thread allocations";
+    EXPECT_EQ(r.has_map, on == 1);
+    if (on == 1) {
+      EXPECT_GT(r.map.keyframes, 10u);
+      EXPECT_GT(r.map.points, 500u);
+      EXPECT_GT(r.mapping.count(), 10u);
+      EXPECT_EQ(r.map_trajectory.size(), r.trajectory.size());
+      const std::string json = cli::replay_metrics_json(r);
+      for (const char* k : {"\"loop_closures\"", "\"relocalisations\"", "\"keyframes_in_map\"", "\"map_points\"",
+                            "\"map_correction_m\""})
+        EXPECT_NE(json.find(k), std::string::npos) << k;
+    }
+  }
+  EXPECT_LT(ate[1], 1.1 * ate[0] + 0.001) << "tracking against the refined map made the odometry worse";
+  std::filesystem::remove_all(dir);
+}
+
+}  // namespace
+}  // namespace kestrel::map_test

@@ -1,0 +1,45 @@
+// The map's two threads, shared by `kestrel replay` and `kestrel run`:
+// kst-mapping runs Estimator::mapping_step() (local mapping), kst-loop runs
+// Estimator::loop_step() (place recognition, loop closing, relocalisation).
+// They share the map, so one mutex serialises them; no real-time thread
+// touches that mutex (the tracking side reaches the map only through the
+// lock-free hand-off of core/mapping). docs/map.md, docs/threads.md.
+#pragma once
+
+#include <atomic>
+#include <mutex>
+#include <thread>
+#include <vector>
+
+#include "kestrel/core/estimator.hpp"
+#include "kestrel/drivers/devices.hpp"
+#include "kestrel/replay_runner.hpp"
+
+namespace kestrel::cli {
+
+class MapThreads {
+ public:
+  // Starts both threads when est.has_map() (nothing otherwise), scheduled by
+  // the table's kst-mapping and kst-loop rows; what was granted is appended to `applied`.
+  MapThreads(core::Estimator& est, const drivers::ThreadTable& table, std::vector<AppliedThread>& applied);
+  ~MapThreads();
+  MapThreads(const MapThreads&) = delete;
+  MapThreads& operator=(const MapThreads&) = delete;
+
+  // Lets the work handed over finish, then joins. Idempotent.
+  void stop();
+  bool running() const { return started_; }
+  // CPU seconds of each thread (after stop()).
+  double mapping_cpu_s() const { return cpu_s_[0]; }
+  double loop_cpu_s() const { return cpu_s_[1]; }
+
+ private:
+  core::Estimator& est_;
+  bool started_ = false;
+  std::atomic<bool> stop_{false};
+  std::mutex mutex_;
+  std::thread threads_[2];
+  double cpu_s_[2] = {0, 0};
+};
+
+}  // namespace kestrel::cli
