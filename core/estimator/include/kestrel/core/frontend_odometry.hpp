@@ -38,6 +38,14 @@ struct FrontendOdometryOptions {
   // Prediction uncertainty growth for the search window [px per second since the last tracked frame].
   double pred_sigma_px_per_s = 60.0;
   double pred_sigma_min_px = 4.0;
+  // IMU failure in flight (unplugged, bus error): a frame this long after the
+  // last IMU sample finds the IMU lost. Tracking then goes on in 6 DoF on the
+  // camera alone (a constant-velocity prediction, quality kVisionOnly); when
+  // samples return the propagation restarts from the camera's pose and
+  // velocity with the biases it had. 0: never (the pose coasts on the last
+  // IMU state and the tracker trusts its stale rotation).
+  int64_t imu_outage_after_ns = 200'000'000;
+  double vision_only_pred_sigma_px = 10.0;  // the constant-velocity prediction's pixel uncertainty at one frame
 };
 
 class FrontendOdometry final : public Estimator {
@@ -63,8 +71,14 @@ class FrontendOdometry final : public Estimator {
   // A back end's covariance of the pose, carried in the output until the next
   // one or a reset (the front end has none of its own).
   void set_pose_covariance(const PoseCovariance& c) { out_.pose_cov = c; }
+  // The IMU is silent (imu_outage_after_ns): frames are tracked on the camera alone.
+  bool vision_only() const { return vision_only_; }
+  uint64_t imu_outages() const { return outages_; }
 
  private:
+  bool add_frame_vision_only(const RgbdFrame& f);
+  void note_pose(const Eigen::Isometry3d& T_WC, int64_t t_ns);
+
   FrontendOdometryOptions opt_;
   Eigen::Isometry3d T_BC_ = Eigen::Isometry3d::Identity();
   DeadReckoningEstimator init_and_imu_;   // static initialisation + IMU propagation
@@ -82,6 +96,13 @@ class FrontendOdometry final : public Estimator {
   int64_t P_t_ns_ = -1;
   uint64_t gated_ = 0;
   bool tracker_has_tracked_ = false;
+  // IMU outage: the last sample used, and the last two camera poses for the
+  // constant-velocity prediction while the IMU is silent.
+  int64_t last_imu_t_ns_ = -1;
+  bool vision_only_ = false;
+  uint64_t outages_ = 0;
+  Eigen::Isometry3d T_WC_last_ = Eigen::Isometry3d::Identity(), T_WC_prev_ = Eigen::Isometry3d::Identity();
+  int64_t t_last_ns_ = -1, t_prev_ns_ = -1;
 };
 
 }  // namespace kestrel::core
