@@ -14,6 +14,7 @@
 
 #include "kestrel/core/ekf_estimator.hpp"
 #include "kestrel/core/frontend_odometry.hpp"
+#include "kestrel/core/rgbd_estimator.hpp"
 #include "kestrel/core/window_estimator.hpp"
 
 namespace kestrel::core {
@@ -23,7 +24,8 @@ namespace kestrel::core {
 enum class LonscVariant : uint8_t { kTuned = 0, kPaper = 1 };
 
 struct EstimatorConfig {
-  std::string backend = "window";
+  // "auto": window when the rig has an IMU (imu.rate_hz > 0), rgbd when it has none.
+  std::string backend = "auto";
   LonscVariant lonsc_variant = LonscVariant::kTuned;
   // The tracker is shared by every backend that tracks (vo, window, ekf).
   TrackerOptions tracker;
@@ -33,6 +35,7 @@ struct EstimatorConfig {
   WindowEstimatorOptions window;
   int64_t window_moving_start_after_ns = 250'000'000;
   EkfEstimatorOptions ekf;
+  RgbdEstimatorOptions rgbd;
 
   // The defaults of a backend ("window-embedded" is S = 2, N = 3; "window-ceres"
   // solves with Ceres) with a LONSC variant applied. Throws
@@ -43,7 +46,12 @@ struct EstimatorConfig {
   FrontendOdometryOptions vo_options() const;
   WindowEstimatorOptions window_options() const;
   EkfEstimatorOptions ekf_options() const;
+  RgbdEstimatorOptions rgbd_options() const;
 };
+
+// The backend a config runs on a rig: its own, or for "auto" window with an
+// IMU and rgbd without one.
+std::string resolve_backend(const std::string& backend, const Rig& rig);
 
 // The LONSC options of a variant (kTuned: LonscOptions{}).
 LonscOptions lonsc_options(LonscVariant v);
