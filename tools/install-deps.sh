@@ -5,9 +5,9 @@ set -euo pipefail
 
 packages=(
   build-essential cmake ninja-build ccache pkg-config git
-  libeigen3-dev libopencv-dev libceres-dev libcli11-dev libyaml-cpp-dev zlib1g-dev libzip-dev
+  libeigen3-dev libopencv-dev libceres-dev libcli11-dev libyaml-cpp-dev zlib1g-dev libzip-dev nlohmann-json3-dev
   libgtest-dev libgmock-dev libbenchmark-dev libboost-dev
-  libusb-1.0-0-dev libv4l-dev libopenni2-dev
+  libusb-1.0-0-dev libopenni2-dev   # V4L2 needs only linux/videodev2.h (linux-libc-dev, via build-essential)
   librosbag-dev libsensor-msgs-dev libgeometry-msgs-dev
   nodejs   # tests/mavlink: node-mavlink decoder. Debian ships npm apart (apt-get install npm where `npm` is missing;
            # not listed: it conflicts with a NodeSource nodejs, which bundles npm). Without npm the test skips loudly.

@@ -254,6 +254,47 @@ struct Tracker::Impl {
     return det > 0 ? static_cast<double>(mat) / det : 0.0;
   }
 
+  // The best current feature within `radius` of uv for a descriptor, over the
+  // search grid of cur (build_grid), among the features `accept` lets through.
+  template <typename Accept>
+  BestTwoMatches search_circle(const Eigen::Vector2d& uv, double radius, const OrbDescriptor& desc,
+                               Accept accept) const {
+    const double r2 = radius * radius;
+    const int gx0 = std::max(0, static_cast<int>((uv.x() - radius) / kSearchCellPx));
+    const int gx1 = std::min(grid_cols - 1, static_cast<int>((uv.x() + radius) / kSearchCellPx));
+    const int gy0 = std::max(0, static_cast<int>((uv.y() - radius) / kSearchCellPx));
+    const int gy1 = std::min(grid_rows - 1, static_cast<int>((uv.y() + radius) / kSearchCellPx));
+    BestTwoMatches bt;
+    for (int gy = gy0; gy <= gy1; ++gy) {
+      for (int gx = gx0; gx <= gx1; ++gx) {
+        const int c = gy * grid_cols + gx;
+        for (int k = cell_start[c]; k < cell_start[c + 1]; ++k) {
+          const int j = cell_items[k];
+          const OrbKeypoint& ckp = cur.feats.keypoint(j);
+          const double dx = ckp.x - uv.x(), dy = ckp.y - uv.y();
+          if (dx * dx + dy * dy > r2) continue;
+          if (!accept(j, ckp)) continue;
+          bt.offer(hamming_distance(desc, cur.feats.descriptor(j)), j);
+        }
+      }
+    }
+    return bt;
+  }
+
+  // One candidate per current feature: the closest descriptor wins.
+  void keep_best(const BestTwoMatches& bt, int candidate) {
+    if (bt.best < best_dist[bt.best_index]) {
+      best_dist[bt.best_index] = bt.best;
+      best_kf[bt.best_index] = candidate;
+    }
+  }
+
+  void reset_best(int n_cur) {
+    std::fill(best_kf.get(), best_kf.get() + n_cur, -1);
+    std::fill(best_dist.get(), best_dist.get() + n_cur, std::numeric_limits<int>::max());
+  }
+
+  // ---- The local map ----------------------------------------------------------
   // Searches the local map from T_WC (a new keyframe's chained pose) for
   // points of older keyframes that cur does not see through the keyframe it
   // tracked; with enough RGB-D PnP inliers those features take the points'
@@ -263,89 +304,14 @@ struct Tracker::Impl {
   // chain); otherwise the window weighs it against the chain. Allocation-free.
   void search_map(const TrackerOptions& opt, Eigen::Isometry3d* T_WC, bool apply, TrackResult& res) {
     if (map_size == 0) return;
-    if (++map_stamp == 0) map_stamp = 1;
-    const int n_cur = cur.feats.size();
-    for (int j = 0; j < n_cur; ++j) {
-      const int32_t i = cur.map_idx[j];
-      if (i >= 0 && map[i].id == cur.lm_id[j]) map[i].stamp = map_stamp;
-    }
-    build_grid(cur);
-    std::fill(best_kf.get(), best_kf.get() + n_cur, -1);
-    std::fill(best_dist.get(), best_dist.get() + n_cur, std::numeric_limits<int>::max());
-    const Eigen::Isometry3d T_CW = T_WC->inverse();
-    const double radius = opt.map_search_radius_px, r2 = radius * radius;
-    for (int i = 0; i < map_size; ++i) {
-      const MapPoint& mp = map[i];
-      if (mp.id == 0 || mp.stamp == map_stamp) continue;
-      const Eigen::Vector3d p_C = T_CW * mp.p_W;
-      if (p_C.z() < 0.1) continue;
-      const Eigen::Vector2d uv = cam.distort_normalized_to_pixel(p_C.head<2>() / p_C.z());
-      if (!cam.in_image(uv)) continue;
-      const double z_tol = opt.map_depth_tol_rel * p_C.z() + 0.03;
-      const int gx0 = std::max(0, static_cast<int>((uv.x() - radius) / kSearchCellPx));
-      const int gx1 = std::min(grid_cols - 1, static_cast<int>((uv.x() + radius) / kSearchCellPx));
-      const int gy0 = std::max(0, static_cast<int>((uv.y() - radius) / kSearchCellPx));
-      const int gy1 = std::min(grid_rows - 1, static_cast<int>((uv.y() + radius) / kSearchCellPx));
-      BestTwoMatches bt;
-      for (int gy = gy0; gy <= gy1; ++gy) {
-        for (int gx = gx0; gx <= gx1; ++gx) {
-          const int c = gy * grid_cols + gx;
-          for (int k = cell_start[c]; k < cell_start[c + 1]; ++k) {
-            const int j = cell_items[k];
-            if (cur.lm_id[j] != 0 || !cur.has_depth[j]) continue;
-            const OrbKeypoint& ckp = cur.feats.keypoint(j);
-            const double dx = ckp.x - uv.x(), dy = ckp.y - uv.y();
-            if (dx * dx + dy * dy > r2) continue;
-            if (std::abs(ckp.level - mp.level) > opt.match_max_level_diff) continue;
-            if (std::abs(cur.p_C[j].z() - p_C.z()) > z_tol) continue;
-            bt.offer(hamming_distance(mp.desc, cur.feats.descriptor(j)), j);
-          }
-        }
-      }
-      if (bt.best_index < 0 || bt.best > opt.map_match_max_hamming || !bt.passes_ratio(opt.map_match_ratio)) continue;
-      if (bt.best < best_dist[bt.best_index]) {
-        best_dist[bt.best_index] = bt.best;
-        best_kf[bt.best_index] = i;
-      }
-    }
-    int n = 0;
-    for (int j = 0; j < n_cur; ++j) {
-      if (best_kf[j] < 0) continue;
-      const OrbKeypoint& ckp = cur.feats.keypoint(j);
-      Correspondence2D3D& c = corr[n];
-      c.p_prev = T_CW * map[best_kf[j]].p_W;
-      c.u_cur = cam.undistort_pixel(Eigen::Vector2d(ckp.x, ckp.y));
-      c.sigma_px = static_cast<float>(opt.keypoint_sigma_px * extractor.level_scale(ckp.level));
-      c.id = static_cast<uint32_t>(j);
-      order[n] = static_cast<uint32_t>(n);
-      ++n;
-    }
+    const int n = match_map_points(opt, T_WC->inverse());
     res.map_matched = n;
     if (n < opt.map_min_inliers) return;
-    // RGB-D PnP from the chained pose: two rounds, dropping matches beyond
-    // 3 sigma (3-row error) in between.
-    for (int k = 0; k < n; ++k) {
-      const double zk = cur.p_C[corr[k].id].z();
-      map_z[k] = zk;
-      map_sz[k] = std::max(0.005, depth.sigma_coeff_per_m * zk * zk);
-    }
     Eigen::Matrix3d R = Eigen::Matrix3d::Identity();
     Eigen::Vector3d t = Eigen::Vector3d::Zero();
     Eigen::Matrix<double, 6, 6> cov;
-    size_t n_in = static_cast<size_t>(n);
-    for (int round = 0; round < 2; ++round) {
-      if (!refine_pose_rgbd(&R, &t, K, corr.get(), map_z.get(), map_sz.get(), order.get(), n_in, 2.0, &cov)) return;
-      n_in = 0;
-      for (int k = 0; k < n; ++k) {
-        const Eigen::Vector3d q = R * corr[k].p_prev + t;
-        if (q.z() < 0.1) continue;
-        const double s = 1.0 / corr[k].sigma_px;
-        const Eigen::Vector3d e(s * (K.fx * q.x() / q.z() + K.cx - corr[k].u_cur.x()),
-                                s * (K.fy * q.y() / q.z() + K.cy - corr[k].u_cur.y()), (q.z() - map_z[k]) / map_sz[k]);
-        if (e.norm() <= 3.0) order[n_in++] = static_cast<uint32_t>(k);
-      }
-      if (static_cast<int>(n_in) < opt.map_min_inliers) return;
-    }
+    size_t n_in = 0;
+    if (!solve_map_pose(opt, n, &R, &t, &cov, &n_in)) return;
     // p_new = R p_guess + t: the guess camera seen from the corrected one.
     Eigen::Isometry3d T_CnewCguess = Eigen::Isometry3d::Identity();
     T_CnewCguess.linear() = R;
@@ -365,18 +331,169 @@ struct Tracker::Impl {
       *T_WC = T_WC_new;
       res.map_corrected = true;
     }
+    adopt_map_matches(n_in);
+  }
+
+  // Projects every map point cur does not already see into cur from T_CW and
+  // matches it in a circle (level, depth and descriptor gates); fills corr
+  // (points in the guess camera frame) and returns how many matched.
+  int match_map_points(const TrackerOptions& opt, const Eigen::Isometry3d& T_CW) {
+    if (++map_stamp == 0) map_stamp = 1;
+    const int n_cur = cur.feats.size();
+    for (int j = 0; j < n_cur; ++j) {
+      const int32_t i = cur.map_idx[j];
+      if (i >= 0 && map[i].id == cur.lm_id[j]) map[i].stamp = map_stamp;
+    }
+    build_grid(cur);
+    reset_best(n_cur);
+    const double radius = opt.map_search_radius_px;
+    for (int i = 0; i < map_size; ++i) {
+      const MapPoint& mp = map[i];
+      if (mp.id == 0 || mp.stamp == map_stamp) continue;
+      const Eigen::Vector3d p_C = T_CW * mp.p_W;
+      if (p_C.z() < 0.1) continue;
+      const Eigen::Vector2d uv = cam.distort_normalized_to_pixel(p_C.head<2>() / p_C.z());
+      if (!cam.in_image(uv)) continue;
+      const double z_tol = opt.map_depth_tol_rel * p_C.z() + 0.03;
+      const BestTwoMatches bt = search_circle(uv, radius, mp.desc, [&](int j, const OrbKeypoint& ckp) {
+        return cur.lm_id[j] == 0 && cur.has_depth[j] && std::abs(ckp.level - mp.level) <= opt.match_max_level_diff &&
+               std::abs(cur.p_C[j].z() - p_C.z()) <= z_tol;
+      });
+      if (bt.best_index < 0 || bt.best > opt.map_match_max_hamming || !bt.passes_ratio(opt.map_match_ratio)) continue;
+      keep_best(bt, i);
+    }
+    int n = 0;
+    for (int j = 0; j < n_cur; ++j) {
+      if (best_kf[j] < 0) continue;
+      const OrbKeypoint& ckp = cur.feats.keypoint(j);
+      Correspondence2D3D& c = corr[n];
+      c.p_prev = T_CW * map[best_kf[j]].p_W;
+      c.u_cur = cam.undistort_pixel(Eigen::Vector2d(ckp.x, ckp.y));
+      c.sigma_px = static_cast<float>(opt.keypoint_sigma_px * extractor.level_scale(ckp.level));
+      c.id = static_cast<uint32_t>(j);
+      order[n] = static_cast<uint32_t>(n);
+      ++n;
+    }
+    return n;
+  }
+
+  // RGB-D PnP on corr[0..n) from the guess: two rounds, dropping matches
+  // beyond 3 sigma (3-row error) in between. The inliers are order[0..*n_in).
+  bool solve_map_pose(const TrackerOptions& opt, int n, Eigen::Matrix3d* R, Eigen::Vector3d* t,
+                      Eigen::Matrix<double, 6, 6>* cov, size_t* n_in) {
+    for (int k = 0; k < n; ++k) {
+      const double zk = cur.p_C[corr[k].id].z();
+      map_z[k] = zk;
+      map_sz[k] = std::max(0.005, depth.sigma_coeff_per_m * zk * zk);
+    }
+    *n_in = static_cast<size_t>(n);
+    for (int round = 0; round < 2; ++round) {
+      if (!refine_pose_rgbd(R, t, K, corr.get(), map_z.get(), map_sz.get(), order.get(), *n_in, 2.0, cov)) return false;
+      *n_in = 0;
+      for (int k = 0; k < n; ++k) {
+        const Eigen::Vector3d q = *R * corr[k].p_prev + *t;
+        if (q.z() < 0.1) continue;
+        const double s = 1.0 / corr[k].sigma_px;
+        const Eigen::Vector3d e(s * (K.fx * q.x() / q.z() + K.cx - corr[k].u_cur.x()),
+                                s * (K.fy * q.y() / q.z() + K.cy - corr[k].u_cur.y()), (q.z() - map_z[k]) / map_sz[k]);
+        if (e.norm() <= 3.0) order[(*n_in)++] = static_cast<uint32_t>(k);
+      }
+      if (static_cast<int>(*n_in) < opt.map_min_inliers) return false;
+    }
+    return true;
+  }
+
+  // The PnP inliers' features take their map points' ids and become observations.
+  void adopt_map_matches(size_t n_in) {
     for (size_t k = 0; k < n_in; ++k) {
       const int j = static_cast<int>(corr[order[k]].id);
       const int i = best_kf[j];
       map[i].stamp = map_stamp;
       cur.lm_id[j] = map[i].id;
       cur.map_idx[j] = i;
-      WindowObservation& o = obs[n_obs++];
-      o.landmark_id = map[i].id;
-      o.uv = corr[order[k]].u_cur;
-      o.depth_m = cur.p_C[j].z();
-      o.sigma_px = corr[order[k]].sigma_px;
+      add_observation(map[i].id, corr[order[k]].u_cur, cur.p_C[j].z(), corr[order[k]].sigma_px);
     }
+  }
+
+  void add_observation(uint32_t id, const Eigen::Vector2d& uv, double depth_m, float sigma_px) {
+    WindowObservation& o = obs[n_obs++];
+    o.landmark_id = id;
+    o.uv = uv;
+    o.depth_m = depth_m;
+    o.sigma_px = sigma_px;
+  }
+
+  // ---- Tracking against the keyframe -----------------------------------------
+  // Projects the keyframe's depth-backed points into cur with the IMU-predicted
+  // motion (R_pred, t_pred: keyframe camera -> current camera) and matches each
+  // in a circle of `radius`; fills corr / corr_cur and returns how many matched.
+  int match_keyframe(const TrackerOptions& opt, const Eigen::Matrix3d& R_pred, const Eigen::Vector3d& t_pred,
+                     double radius, TrackResult& res) {
+    build_grid(cur);
+    const int n_cur = cur.feats.size();
+    reset_best(n_cur);
+    for (int i = 0; i < kf.feats.size(); ++i) {
+      if (!kf.has_depth[i]) continue;
+      const Eigen::Vector3d p_C = R_pred * kf.p_C[i] + t_pred;
+      if (p_C.z() < 0.1) continue;
+      const Eigen::Vector2d uv = cam.distort_normalized_to_pixel(p_C.head<2>() / p_C.z());
+      if (!cam.in_image(uv)) continue;
+      ++res.predicted;
+      const int kf_level = kf.feats.keypoint(i).level;
+      const BestTwoMatches bt = search_circle(uv, radius, kf.feats.descriptor(i), [&](int, const OrbKeypoint& ckp) {
+        return std::abs(ckp.level - kf_level) <= opt.match_max_level_diff;
+      });
+      if (bt.best_index < 0 || bt.best > opt.match_max_hamming || !bt.passes_ratio(opt.match_ratio)) continue;
+      keep_best(bt, i);
+    }
+    int n = 0;
+    for (int j = 0; j < n_cur; ++j) {
+      if (best_kf[j] < 0) continue;
+      const OrbKeypoint& ckp = cur.feats.keypoint(j);
+      Correspondence2D3D& c = corr[n];
+      c.p_prev = kf.p_C[best_kf[j]];
+      c.u_cur = cam.undistort_pixel(Eigen::Vector2d(ckp.x, ckp.y));
+      c.sigma_px = static_cast<float>(opt.keypoint_sigma_px * extractor.level_scale(ckp.level));
+      c.match_cost = static_cast<float>(best_dist[j]);
+      c.id = static_cast<uint32_t>(j);
+      corr_cur[n] = j;
+      ++n;
+    }
+    return n;
+  }
+
+  // LONSC's inliers carry their keyframe point's landmark id into cur and
+  // become this frame's observations.
+  // inl: the motion's inliers (LONSC's, or the rigid model's without an IMU rotation).
+  void adopt_tracked_inliers(const uint32_t* inl, size_t n_inl) {
+    for (size_t k = 0; k < n_inl; ++k) {
+      const uint32_t idx = inl[k];
+      const int j = corr_cur[idx];
+      cur.lm_id[j] = kf.lm_id[best_kf[j]];
+      cur.map_idx[j] = kf.map_idx[best_kf[j]];
+      add_observation(cur.lm_id[j], corr[idx].u_cur, cur.has_depth[j] ? cur.p_C[j].z() : 0.0, corr[idx].sigma_px);
+    }
+  }
+
+  // cur becomes the keyframe at T_WC (after the local map had its say):
+  // features that matched a keyframe point keep its id; the others with a
+  // depth start new landmarks, observed here for the first time, and enter the map.
+  void make_keyframe(const TrackerOptions& opt, Eigen::Isometry3d T_WC, TrackResult& res) {
+    if (map_capacity > 0) search_map(opt, &T_WC, !kf.valid, res);
+    cur.T_WC = T_WC;
+    for (int j = 0; j < cur.feats.size(); ++j) {
+      if (cur.lm_id[j] != 0 || !cur.has_depth[j]) continue;
+      cur.lm_id[j] = next_lm_id++;
+      if (next_lm_id == 0) next_lm_id = 1;
+      const OrbKeypoint& kp = cur.feats.keypoint(j);
+      add_observation(cur.lm_id[j], cam.undistort_pixel(Eigen::Vector2d(kp.x, kp.y)), cur.p_C[j].z(),
+                      static_cast<float>(opt.keypoint_sigma_px * extractor.level_scale(kp.level)));
+      add_to_map(cur, j);
+    }
+    cur.valid = true;
+    kf.swap(cur);
+    cur.valid = false;
+    res.keyframe = true;
   }
 
   // A keyframe's new points enter the map (overwriting the oldest when full).
@@ -477,32 +594,9 @@ const TrackResult& Tracker::track(int64_t t_ns, const ImageView& image, const Im
   result_.detected = m.cur.feats.size();
   result_.with_depth = m.cur.with_depth;
 
-  auto make_keyframe = [&](Eigen::Isometry3d T_WC) {
-    if (m.map_capacity > 0) m.search_map(opt_, &T_WC, !m.kf.valid, result_);
-    m.cur.T_WC = T_WC;
-    // Features that matched a keyframe point keep its id; the others with a
-    // depth start new landmarks, observed here for the first time.
-    for (int j = 0; j < m.cur.feats.size(); ++j) {
-      if (m.cur.lm_id[j] != 0 || !m.cur.has_depth[j]) continue;
-      m.cur.lm_id[j] = m.next_lm_id++;
-      if (m.next_lm_id == 0) m.next_lm_id = 1;
-      const OrbKeypoint& kp = m.cur.feats.keypoint(j);
-      WindowObservation& o = m.obs[m.n_obs++];
-      o.landmark_id = m.cur.lm_id[j];
-      o.uv = m.cam.undistort_pixel(Eigen::Vector2d(kp.x, kp.y));
-      o.depth_m = m.cur.p_C[j].z();
-      o.sigma_px = static_cast<float>(opt_.keypoint_sigma_px * m.extractor.level_scale(kp.level));
-      m.add_to_map(m.cur, j);
-    }
-    m.cur.valid = true;
-    m.kf.swap(m.cur);
-    m.cur.valid = false;
-    result_.keyframe = true;
-  };
-
   if (!m.kf.valid) {
     if (m.cur.with_depth >= 2 * opt_.min_inliers) {
-      make_keyframe(T_WC_pred);
+      m.make_keyframe(opt_, T_WC_pred, result_);
       result_.T_WC = m.kf.T_WC;
       result_.status = TrackStatus::kNewKeyframe;
     } else {
@@ -512,66 +606,13 @@ const TrackResult& Tracker::track(int64_t t_ns, const ImageView& image, const Im
   }
 
   // ---- IMU-predicted projection and circle-window search ------------------
-  m.build_grid(m.cur);
   const Eigen::Isometry3d T_CK_pred = T_WC_pred.inverse() * m.kf.T_WC;
   const Eigen::Matrix3d R_pred = T_CK_pred.linear();
   const Eigen::Vector3d t_pred = T_CK_pred.translation();
   const double radius = std::clamp(opt_.search_k_sigma * pred_sigma_px, opt_.search_radius_min_px,
                                    opt_.search_radius_max_px);
   result_.search_radius_px = radius;
-  const double r2 = radius * radius;
-  const int n_cur = m.cur.feats.size();
-  std::fill(m.best_kf.get(), m.best_kf.get() + n_cur, -1);
-  std::fill(m.best_dist.get(), m.best_dist.get() + n_cur, std::numeric_limits<int>::max());
-
-  for (int i = 0; i < m.kf.feats.size(); ++i) {
-    if (!m.kf.has_depth[i]) continue;
-    const Eigen::Vector3d p_C = R_pred * m.kf.p_C[i] + t_pred;
-    if (p_C.z() < 0.1) continue;
-    const Eigen::Vector2d uv = m.cam.distort_normalized_to_pixel(p_C.head<2>() / p_C.z());
-    if (!m.cam.in_image(uv)) continue;
-    ++result_.predicted;
-    const OrbKeypoint& kkp = m.kf.feats.keypoint(i);
-    const OrbDescriptor& kd = m.kf.feats.descriptor(i);
-    const int gx0 = std::max(0, static_cast<int>((uv.x() - radius) / kSearchCellPx));
-    const int gx1 = std::min(m.grid_cols - 1, static_cast<int>((uv.x() + radius) / kSearchCellPx));
-    const int gy0 = std::max(0, static_cast<int>((uv.y() - radius) / kSearchCellPx));
-    const int gy1 = std::min(m.grid_rows - 1, static_cast<int>((uv.y() + radius) / kSearchCellPx));
-    BestTwoMatches bt;
-    for (int gy = gy0; gy <= gy1; ++gy) {
-      for (int gx = gx0; gx <= gx1; ++gx) {
-        const int c = gy * m.grid_cols + gx;
-        for (int k = m.cell_start[c]; k < m.cell_start[c + 1]; ++k) {
-          const int j = m.cell_items[k];
-          const OrbKeypoint& ckp = m.cur.feats.keypoint(j);
-          const double dx = ckp.x - uv.x(), dy = ckp.y - uv.y();
-          if (dx * dx + dy * dy > r2) continue;
-          if (std::abs(ckp.level - kkp.level) > opt_.match_max_level_diff) continue;
-          bt.offer(hamming_distance(kd, m.cur.feats.descriptor(j)), j);
-        }
-      }
-    }
-    if (bt.best_index < 0 || bt.best > opt_.match_max_hamming || !bt.passes_ratio(opt_.match_ratio)) continue;
-    // One keyframe point per current feature: the closest descriptor wins.
-    if (bt.best < m.best_dist[bt.best_index]) {
-      m.best_dist[bt.best_index] = bt.best;
-      m.best_kf[bt.best_index] = i;
-    }
-  }
-
-  int n = 0;
-  for (int j = 0; j < n_cur; ++j) {
-    if (m.best_kf[j] < 0) continue;
-    const OrbKeypoint& ckp = m.cur.feats.keypoint(j);
-    Correspondence2D3D& c = m.corr[n];
-    c.p_prev = m.kf.p_C[m.best_kf[j]];
-    c.u_cur = m.cam.undistort_pixel(Eigen::Vector2d(ckp.x, ckp.y));
-    c.sigma_px = static_cast<float>(opt_.keypoint_sigma_px * m.extractor.level_scale(ckp.level));
-    c.match_cost = static_cast<float>(m.best_dist[j]);
-    c.id = static_cast<uint32_t>(j);
-    m.corr_cur[n] = j;
-    ++n;
-  }
+  const int n = m.match_keyframe(opt_, R_pred, t_pred, radius, result_);
   result_.matched = n;
   if (n < opt_.min_inliers) {
     result_.status = TrackStatus::kTooFewMatches;
@@ -646,24 +687,13 @@ const TrackResult& Tracker::track(int64_t t_ns, const ImageView& image, const Im
   result_.T_WC = T_WC;
   result_.area_ratio = m.area_ratio(opt_, inl, n_inl);
   result_.status = TrackStatus::kTracked;
-  for (size_t k = 0; k < n_inl; ++k) {
-    const uint32_t idx = inl[k];
-    const int j = m.corr_cur[idx];
-    const uint32_t id = m.kf.lm_id[m.best_kf[j]];
-    m.cur.lm_id[j] = id;
-    m.cur.map_idx[j] = m.kf.map_idx[m.best_kf[j]];
-    WindowObservation& o = m.obs[m.n_obs++];
-    o.landmark_id = id;
-    o.uv = m.corr[idx].u_cur;
-    o.depth_m = m.cur.has_depth[j] ? m.cur.p_C[j].z() : 0.0;
-    o.sigma_px = m.corr[idx].sigma_px;
-  }
+  m.adopt_tracked_inliers(inl, n_inl);
 
   const bool stale = 1e-9 * static_cast<double>(t_ns - m.kf.t_ns) > opt_.keyframe_max_interval_s;
   const bool new_kf =
       result_.area_ratio < opt_.keyframe_area_ratio || result_.inliers < opt_.keyframe_min_inliers || stale;
   if (new_kf && m.cur.with_depth >= 2 * opt_.min_inliers) {
-    make_keyframe(T_WC);
+    m.make_keyframe(opt_, T_WC, result_);
   }
   return result_;
 }

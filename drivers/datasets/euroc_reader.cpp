@@ -8,6 +8,7 @@
 
 #include "kestrel/drivers/folder_logs.hpp"
 #include "kestrel/drivers/rig_yaml.hpp"
+#include "dataset_common.hpp"
 #include "text_log.hpp"
 
 namespace kestrel::drivers {
@@ -20,25 +21,6 @@ using text::StreamLogSource;
 std::string strip_slash(std::string p) {
   while (p.size() > 1 && p.back() == '/') p.pop_back();
   return p;
-}
-
-// ASL sensor files start with OpenCV's "%YAML:1.0", which yaml-cpp rejects.
-YAML::Node load_sensor_yaml(const std::string& path) {
-  std::vector<std::string> lines;
-  if (!text::read_lines(path, lines)) throw std::runtime_error(path + ": cannot read");
-  std::string body;
-  for (size_t i = 0; i < lines.size(); ++i) {
-    if (i == 0 && lines[i].rfind("%YAML:", 0) == 0) {
-      body += "\n";   // keep line numbers of errors right
-      continue;
-    }
-    body += lines[i] + "\n";
-  }
-  try {
-    return YAML::Load(body);
-  } catch (const YAML::ParserException& e) {
-    throw std::runtime_error(path + ":" + std::to_string(e.mark.line + 1) + ": YAML syntax error: " + e.msg);
-  }
 }
 
 double yaml_number(const YAML::Node& n, const std::string& path, const std::string& field) {
@@ -58,58 +40,31 @@ std::vector<double> yaml_numbers(const YAML::Node& n, const std::string& path, c
   return v;
 }
 
-Mat4d yaml_T_BS(const YAML::Node& root, const std::string& path) {
-  const YAML::Node t = root["T_BS"];
-  if (!t || !t.IsMap()) throw std::runtime_error(path + ": T_BS: missing (expected rows, cols, data)");
-  const auto d = yaml_numbers(t["data"], path, "T_BS.data", 16, 16);
-  Mat4d m;
-  for (size_t i = 0; i < 16; ++i) m[i] = d[i];
-  return m;
-}
-
 void camera_from_sensor(const std::string& path, Rig& rig) {
-  const YAML::Node n = load_sensor_yaml(path);
-  if (!n.IsMap()) throw std::runtime_error(path + ": expected a mapping");
-  const auto res = yaml_numbers(n["resolution"], path, "resolution", 2, 2);
-  const auto k = yaml_numbers(n["intrinsics"], path, "intrinsics", 4, 4);
-  if (res[0] < 1 || res[1] < 1 || res[0] != std::floor(res[0]) || res[1] != std::floor(res[1]) || res[0] > 32768 ||
-      res[1] > 32768)
-    throw std::runtime_error(path + ": resolution: expected two positive integers");
-  if (k[0] <= 0 || k[1] <= 0) throw std::runtime_error(path + ": intrinsics: focal lengths must be > 0");
-  rig.rgb.width = static_cast<int>(res[0]);
-  rig.rgb.height = static_cast<int>(res[1]);
-  rig.rgb.fx = k[0];
-  rig.rgb.fy = k[1];
-  rig.rgb.cx = k[2];
-  rig.rgb.cy = k[3];
-  const std::string model = n["distortion_model"] && n["distortion_model"].IsScalar()
-                                ? n["distortion_model"].Scalar() : "none";
-  if (model == "radial-tangential" || model == "radtan") rig.rgb.distortion = DistortionModel::kRadTan;
-  else if (model == "equidistant") rig.rgb.distortion = DistortionModel::kEquidistant;
-  else if (model == "none") rig.rgb.distortion = DistortionModel::kNone;
-  else throw std::runtime_error(path + ": distortion_model: expected radial-tangential, equidistant or none, got \"" +
-                                model + "\"");
+  const EurocSensorYaml y = read_euroc_sensor_yaml(path);
+  if (!y.resolution_px) throw std::runtime_error(path + ": resolution: expected a list of 2 numbers");
+  if (!y.intrinsics_px) throw std::runtime_error(path + ": intrinsics: expected a list of 4 numbers");
+  rig.rgb.width = (*y.resolution_px)[0];
+  rig.rgb.height = (*y.resolution_px)[1];
+  rig.rgb.fx = (*y.intrinsics_px)[0];
+  rig.rgb.fy = (*y.intrinsics_px)[1];
+  rig.rgb.cx = (*y.intrinsics_px)[2];
+  rig.rgb.cy = (*y.intrinsics_px)[3];
+  rig.rgb.distortion = y.distortion;
   rig.rgb.dist = {};
-  if (n["distortion_coefficients"]) {
-    const auto d = yaml_numbers(n["distortion_coefficients"], path, "distortion_coefficients", 0, 5);
-    for (size_t i = 0; i < d.size(); ++i) rig.rgb.dist[i] = d[i];
-  }
-  rig.T_BC = yaml_T_BS(n, path);
-  if (n["rate_hz"]) rig.camera_rate_hz = yaml_number(n["rate_hz"], path, "rate_hz");
+  for (size_t i = 0; i < y.distortion_coefficients.size(); ++i) rig.rgb.dist[i] = y.distortion_coefficients[i];
+  rig.T_BC = y.T_BS;
+  if (y.rate_hz) rig.camera_rate_hz = *y.rate_hz;
 }
 
 void imu_from_sensor(const std::string& path, Rig& rig) {
-  const YAML::Node n = load_sensor_yaml(path);
-  if (!n.IsMap()) throw std::runtime_error(path + ": expected a mapping");
-  rig.T_BI = yaml_T_BS(n, path);
-  if (n["rate_hz"]) rig.imu_rate_hz = yaml_number(n["rate_hz"], path, "rate_hz");
-  const std::pair<const char*, double*> fields[] = {
-      {"gyroscope_noise_density", &rig.imu.gyro_noise_density_rad_s_sqrthz},
-      {"gyroscope_random_walk", &rig.imu.gyro_random_walk_rad_s2_sqrthz},
-      {"accelerometer_noise_density", &rig.imu.acc_noise_density_mps2_sqrthz},
-      {"accelerometer_random_walk", &rig.imu.acc_random_walk_mps3_sqrthz}};
-  for (const auto& [key, dst] : fields)
-    if (n[key]) *dst = yaml_number(n[key], path, key);
+  const EurocSensorYaml y = read_euroc_sensor_yaml(path);
+  rig.T_BI = y.T_BS;
+  if (y.rate_hz) rig.imu_rate_hz = *y.rate_hz;
+  if (y.gyro_noise_density_rad_s_sqrthz) rig.imu.gyro_noise_density_rad_s_sqrthz = *y.gyro_noise_density_rad_s_sqrthz;
+  if (y.gyro_random_walk_rad_s2_sqrthz) rig.imu.gyro_random_walk_rad_s2_sqrthz = *y.gyro_random_walk_rad_s2_sqrthz;
+  if (y.acc_noise_density_mps2_sqrthz) rig.imu.acc_noise_density_mps2_sqrthz = *y.acc_noise_density_mps2_sqrthz;
+  if (y.acc_random_walk_mps3_sqrthz) rig.imu.acc_random_walk_mps3_sqrthz = *y.acc_random_walk_mps3_sqrthz;
 }
 
 std::string where(const std::string& file, size_t line) { return file + ":" + std::to_string(line); }
@@ -266,6 +221,50 @@ void read_events_csv(const std::string& path, StreamLogSource& s) {
 }
 
 }  // namespace
+
+EurocSensorYaml read_euroc_sensor_yaml(const std::string& path) {
+  const YAML::Node n = ds::load_cv_yaml(path);
+  if (!n.IsMap()) throw std::runtime_error(path + ": expected a mapping");
+  EurocSensorYaml y;
+  // Cameras: both lists are read before either is judged, so a bad number is named first.
+  if (n["resolution"] || n["intrinsics"]) {
+    const auto res = n["resolution"] ? yaml_numbers(n["resolution"], path, "resolution", 2, 2) : std::vector<double>{};
+    const auto k = n["intrinsics"] ? yaml_numbers(n["intrinsics"], path, "intrinsics", 4, 4) : std::vector<double>{};
+    if (!res.empty()) {
+      if (res[0] < 1 || res[1] < 1 || res[0] != std::floor(res[0]) || res[1] != std::floor(res[1]) ||
+          res[0] > 32768 || res[1] > 32768)
+        throw std::runtime_error(path + ": resolution: expected two positive integers");
+      y.resolution_px = std::array<int, 2>{static_cast<int>(res[0]), static_cast<int>(res[1])};
+    }
+    if (!k.empty()) {
+      if (k[0] <= 0 || k[1] <= 0) throw std::runtime_error(path + ": intrinsics: focal lengths must be > 0");
+      y.intrinsics_px = std::array<double, 4>{k[0], k[1], k[2], k[3]};
+    }
+  }
+  const std::string model = n["distortion_model"] && n["distortion_model"].IsScalar()
+                                ? n["distortion_model"].Scalar() : "none";
+  if (model == "radial-tangential" || model == "radtan") y.distortion = DistortionModel::kRadTan;
+  else if (model == "equidistant") y.distortion = DistortionModel::kEquidistant;
+  else if (model == "none") y.distortion = DistortionModel::kNone;
+  else throw std::runtime_error(path + ": distortion_model: expected radial-tangential, equidistant or none, got \"" +
+                                model + "\"");
+  if (n["distortion_coefficients"])
+    y.distortion_coefficients = yaml_numbers(n["distortion_coefficients"], path, "distortion_coefficients", 0, 5);
+  const YAML::Node t = n["T_BS"];
+  if (!t || !(t.IsMap() || t.IsSequence()))
+    throw std::runtime_error(path + ": T_BS: missing (expected rows, cols, data)");
+  const auto d = t.IsMap() ? yaml_numbers(t["data"], path, "T_BS.data", 16, 16) : yaml_numbers(t, path, "T_BS", 16, 16);
+  for (size_t i = 0; i < 16; ++i) y.T_BS[i] = d[i];
+  if (n["rate_hz"]) y.rate_hz = yaml_number(n["rate_hz"], path, "rate_hz");
+  const std::pair<const char*, std::optional<double>*> noise[] = {
+      {"gyroscope_noise_density", &y.gyro_noise_density_rad_s_sqrthz},
+      {"gyroscope_random_walk", &y.gyro_random_walk_rad_s2_sqrthz},
+      {"accelerometer_noise_density", &y.acc_noise_density_mps2_sqrthz},
+      {"accelerometer_random_walk", &y.acc_random_walk_mps3_sqrthz}};
+  for (const auto& [key, dst] : noise)
+    if (n[key]) *dst = yaml_number(n[key], path, key);
+  return y;
+}
 
 bool is_euroc_folder(const std::string& path) {
   return text::is_dir(path + "/mav0") || text::is_file(path + "/imu0/data.csv") || text::is_file(path + "/imu0.csv");

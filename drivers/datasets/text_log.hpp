@@ -1,6 +1,7 @@
-// Internal to kestrel_drivers: what the folder readers (EuRoC, TUM) share —
-// line splitting and exact number parsing, and a LogSource that merges
-// per-stream tables in time order and loads images only when replayed.
+// Internal to kestrel_drivers_datasets: the LogSource the folder readers
+// (EuRoC, TUM, ETH3D, OpenLORIS, rosbag) fill with per-stream tables, merged
+// in time order, images loaded only when replayed. Their line splitting and
+// number parsing is the text layer's (kestrel/drivers/text.hpp).
 #pragma once
 
 #include <cstdint>
@@ -8,25 +9,9 @@
 #include <vector>
 
 #include "kestrel/drivers/log_source.hpp"
+#include "kestrel/drivers/text.hpp"
 
 namespace kestrel::drivers::text {
-
-// Lines of a text file without their end-of-line (CRLF tolerated). False when
-// the file cannot be read.
-bool read_lines(const std::string& path, std::vector<std::string>& lines);
-std::string trim(const std::string& s);
-std::vector<std::string> split(const std::string& s, char sep);     // fields trimmed
-std::vector<std::string> split_ws(const std::string& s);
-bool parse_i64(const std::string& s, int64_t& v);
-// Any number strtod accepts, including nan/inf (callers decide about those).
-bool parse_f64(const std::string& s, double& v);
-// "1305031102.175304" -> 1305031102175304000, exactly (no double rounding).
-bool parse_seconds_ns(const std::string& s, int64_t& t_ns);
-std::string seconds_from_ns(int64_t t_ns);   // "1305031102.175304000"
-std::string fmt17(double v);                 // %.17g
-std::string file_name(const std::string& path);
-bool is_file(const std::string& path);
-bool is_dir(const std::string& path);
 
 struct ImageEntry {
   int64_t t_ns = 0;

@@ -1,21 +1,11 @@
 #include "kestrel/drivers/usb_bridge_protocol.hpp"
 
+#include <zlib.h>
+
 #include <cstring>
 
 namespace kestrel::drivers::usb_bridge {
 namespace {
-
-struct CrcTable {
-  uint32_t t[256];
-  constexpr CrcTable() : t{} {
-    for (uint32_t i = 0; i < 256; ++i) {
-      uint32_t c = i;
-      for (int k = 0; k < 8; ++k) c = (c & 1u) ? 0xEDB88320u ^ (c >> 1) : c >> 1;
-      t[i] = c;
-    }
-  }
-};
-constexpr CrcTable kCrc;
 
 void put16(uint8_t* p, uint16_t v) {
   p[0] = static_cast<uint8_t>(v);
@@ -41,10 +31,14 @@ uint64_t get64(const uint8_t* p) {
 
 }  // namespace
 
+// The wire CRC is zlib's (CRC-32/ISO-HDLC: reflected 0xEDB88320, init and
+// final xor 0xFFFFFFFF, the same chaining argument), so zlib computes it; the
+// firmware side uses the same definition (docs/drivers/usb-imu-bridge.md).
+// zlib's tables are static: no allocation on the driver thread. Nothing to
+// add leaves the running value as is (zlib would answer 0 for a null buffer).
 uint32_t crc32(const uint8_t* data, size_t n, uint32_t crc) {
-  crc = ~crc;
-  for (size_t i = 0; i < n; ++i) crc = kCrc.t[(crc ^ data[i]) & 0xFFu] ^ (crc >> 8);
-  return ~crc;
+  if (n == 0) return crc;
+  return static_cast<uint32_t>(::crc32_z(crc, data, n));
 }
 
 size_t encode_packet(PacketType type, uint16_t seq, uint64_t t_tx_us, const uint8_t* payload, size_t len,

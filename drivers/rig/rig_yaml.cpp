@@ -1,16 +1,15 @@
-// Rig <-> YAML. Numbers are parsed with strtod/strtoll on the scalar text so
+// Rig <-> YAML. Numbers are parsed from the scalar text by the text layer so
 // that every failure can name its field, and printed with %.17g so that a
 // round trip is exact.
 #include "kestrel/drivers/rig_yaml.hpp"
 
-#include <cerrno>
 #include <cmath>
-#include <cstdio>
-#include <cstdlib>
 #include <fstream>
 #include <initializer_list>
 #include <sstream>
 #include <stdexcept>
+
+#include "kestrel/drivers/text.hpp"
 
 namespace kestrel::drivers {
 namespace {
@@ -41,22 +40,17 @@ class Parser {
   double number(const YAML::Node& n, const std::string& field) const {
     if (!n.IsScalar()) fail(field, "expected a number");
     const std::string& s = n.Scalar();
-    errno = 0;
-    char* end = nullptr;
-    const double v = std::strtod(s.c_str(), &end);
-    if (s.empty() || end != s.c_str() + s.size()) fail(field, "expected a number, got \"" + s + "\"");
-    if (!std::isfinite(v) || errno == ERANGE) fail(field, "expected a finite number, got \"" + s + "\"");
+    double v = 0;
+    if (!text::parse_f64(s, v)) fail(field, "expected a number, got \"" + s + "\"");
+    if (!text::parse_finite_f64(s, v)) fail(field, "expected a finite number, got \"" + s + "\"");
     return v;
   }
 
   int64_t integer(const YAML::Node& n, const std::string& field) const {
     if (!n.IsScalar()) fail(field, "expected an integer");
     const std::string& s = n.Scalar();
-    errno = 0;
-    char* end = nullptr;
-    const long long v = std::strtoll(s.c_str(), &end, 10);
-    if (s.empty() || end != s.c_str() + s.size() || errno == ERANGE)
-      fail(field, "expected an integer, got \"" + s + "\"");
+    int64_t v = 0;
+    if (!text::parse_i64(s, v)) fail(field, "expected an integer, got \"" + s + "\"");
     return v;
   }
 
@@ -91,17 +85,11 @@ class Parser {
   std::string prefix_;
 };
 
-std::string num(double v) {
-  char b[40];
-  std::snprintf(b, sizeof b, "%.17g", v);
-  return b;
-}
-
 std::string list(const double* v, size_t n, const char* indent) {
   std::string s = "[";
   for (size_t i = 0; i < n; ++i) {
     if (i > 0) s += (n == 16 && i % 4 == 0) ? std::string(",\n") + indent : std::string(", ");
-    s += num(v[i]);
+    s += text::fmt17(v[i]);
   }
   return s + "]";
 }
@@ -138,10 +126,10 @@ void intrinsics(const Parser& p, const YAML::Node& cam, const std::string& path,
 void emit_intrinsics(std::ostringstream& o, const CameraIntrinsics& k) {
   o << "  width_px: " << k.width << "\n";
   o << "  height_px: " << k.height << "\n";
-  o << "  fx_px: " << num(k.fx) << "\n";
-  o << "  fy_px: " << num(k.fy) << "\n";
-  o << "  cx_px: " << num(k.cx) << "\n";
-  o << "  cy_px: " << num(k.cy) << "\n";
+  o << "  fx_px: " << text::fmt17(k.fx) << "\n";
+  o << "  fy_px: " << text::fmt17(k.fy) << "\n";
+  o << "  cx_px: " << text::fmt17(k.cx) << "\n";
+  o << "  cy_px: " << text::fmt17(k.cy) << "\n";
   o << "  distortion: " << distortion_name(k.distortion) << "\n";
   o << "  dist_coeffs: " << list(k.dist.data(), 5, "") << "\n";
 }
@@ -264,12 +252,12 @@ std::string rig_to_yaml(const Rig& r) {
   o << "name: " << name.c_str() << "\n";
   o << "camera:\n";
   emit_intrinsics(o, r.rgb);
-  o << "  rate_hz: " << num(r.camera_rate_hz) << "\n";
+  o << "  rate_hz: " << text::fmt17(r.camera_rate_hz) << "\n";
   o << "depth:\n";
-  o << "  scale_m_per_unit: " << num(r.depth.scale_m_per_unit) << "\n";
-  o << "  min_range_m: " << num(r.depth.min_range_m) << "\n";
-  o << "  max_range_m: " << num(r.depth.max_range_m) << "\n";
-  o << "  sigma_coeff_per_m: " << num(r.depth.sigma_coeff_per_m) << "\n";
+  o << "  scale_m_per_unit: " << text::fmt17(r.depth.scale_m_per_unit) << "\n";
+  o << "  min_range_m: " << text::fmt17(r.depth.min_range_m) << "\n";
+  o << "  max_range_m: " << text::fmt17(r.depth.max_range_m) << "\n";
+  o << "  sigma_coeff_per_m: " << text::fmt17(r.depth.sigma_coeff_per_m) << "\n";
   if (r.depth_camera.present) {
     o << "# the depth sensor when it is not the colour camera; its depth is registered to the colour camera\n";
     o << "depth_camera:\n";
@@ -282,17 +270,17 @@ std::string rig_to_yaml(const Rig& r) {
   o << "# IMU -> body, 4x4 row-major\n";
   o << "T_BI: " << list(r.T_BI.data(), 16, "       ") << "\n";
   o << "imu:\n";
-  o << "  rate_hz: " << num(r.imu_rate_hz) << "\n";
-  o << "  gyro_noise_density_rad_s_sqrthz: " << num(r.imu.gyro_noise_density_rad_s_sqrthz) << "\n";
-  o << "  gyro_random_walk_rad_s2_sqrthz: " << num(r.imu.gyro_random_walk_rad_s2_sqrthz) << "\n";
-  o << "  acc_noise_density_mps2_sqrthz: " << num(r.imu.acc_noise_density_mps2_sqrthz) << "\n";
-  o << "  acc_random_walk_mps3_sqrthz: " << num(r.imu.acc_random_walk_mps3_sqrthz) << "\n";
-  o << "  acc_bias_tau_s: " << num(r.imu.acc_bias_tau_s) << "\n";
-  o << "  gyro_range_rps: " << num(r.imu.gyro_range_rps) << "\n";
-  o << "  acc_range_mps2: " << num(r.imu.acc_range_mps2) << "\n";
+  o << "  rate_hz: " << text::fmt17(r.imu_rate_hz) << "\n";
+  o << "  gyro_noise_density_rad_s_sqrthz: " << text::fmt17(r.imu.gyro_noise_density_rad_s_sqrthz) << "\n";
+  o << "  gyro_random_walk_rad_s2_sqrthz: " << text::fmt17(r.imu.gyro_random_walk_rad_s2_sqrthz) << "\n";
+  o << "  acc_noise_density_mps2_sqrthz: " << text::fmt17(r.imu.acc_noise_density_mps2_sqrthz) << "\n";
+  o << "  acc_random_walk_mps3_sqrthz: " << text::fmt17(r.imu.acc_random_walk_mps3_sqrthz) << "\n";
+  o << "  acc_bias_tau_s: " << text::fmt17(r.imu.acc_bias_tau_s) << "\n";
+  o << "  gyro_range_rps: " << text::fmt17(r.imu.gyro_range_rps) << "\n";
+  o << "  acc_range_mps2: " << text::fmt17(r.imu.acc_range_mps2) << "\n";
   o << "# t_imu = t_cam + offset\n";
   o << "time_offset_cam_imu_ns: " << r.time_offset_cam_imu_ns << "\n";
-  o << "gravity_mps2: " << num(r.gravity_mps2) << "\n";
+  o << "gravity_mps2: " << text::fmt17(r.gravity_mps2) << "\n";
   return o.str();
 }
 

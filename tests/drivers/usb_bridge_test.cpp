@@ -22,8 +22,14 @@ namespace {
 using namespace usb_bridge;
 
 TEST(UsbBridgeProtocol, Crc32IsTheIeeeCheckValue) {
+  // CRC-32/ISO-HDLC's check value: the definition the bridge firmware uses.
   const char* s = "123456789";
   EXPECT_EQ(crc32(reinterpret_cast<const uint8_t*>(s), 9), 0xCBF43926u);
+  EXPECT_EQ(crc32(nullptr, 0), 0u);
+  EXPECT_EQ(crc32(nullptr, 0, 0x1234u), 0x1234u);   // nothing added: the running value stands
+  // Chained over two pieces, as over one.
+  const auto* p = reinterpret_cast<const uint8_t*>(s);
+  EXPECT_EQ(crc32(p + 4, 5, crc32(p, 4)), 0xCBF43926u);
 }
 
 TEST(UsbBridgeProtocol, PacketBytesFixture) {
@@ -40,6 +46,7 @@ TEST(UsbBridgeProtocol, PacketBytesFixture) {
   const uint8_t body[20] = {1, 0, 0, 0, 0x08, 0x07, 0x06, 0x05, 0x04, 0x03, 0x02, 0x01, 7, 0, 0, 0, 0xA0, 0x0F, 0, 0};
   EXPECT_EQ(std::memcmp(pkt + 16, body, 20), 0);
   const uint32_t crc = crc32(pkt, 36);
+  EXPECT_EQ(crc, 0xB232E7C0u);   // as the hand-written table computed it before zlib took over
   EXPECT_EQ(pkt[36] | (pkt[37] << 8) | (pkt[38] << 16) | (static_cast<uint32_t>(pkt[39]) << 24), crc);
 }
 

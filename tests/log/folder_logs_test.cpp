@@ -209,6 +209,68 @@ TEST(EurocReader, MalformedSensorYamlNamesFileAndField) {
   EXPECT_THROW(drivers::EurocReader(dir + "/absent"), std::runtime_error);
 }
 
+// The one reader of EuRoC sensor files, which the EuRoC reader and the
+// simulator's hybrid mode both go through.
+TEST(EurocSensorYaml, ReadsTheRealCameraAndImuFiles) {
+  KESTREL_REQUIRE_SHARED("euroc/V1_02_medium/cam0_sensor.yaml");
+  const auto cam = drivers::read_euroc_sensor_yaml(shared_path("euroc/V1_02_medium/cam0_sensor.yaml"));
+  ASSERT_TRUE(cam.resolution_px && cam.intrinsics_px);
+  EXPECT_EQ((*cam.resolution_px)[0], 752);
+  EXPECT_EQ((*cam.resolution_px)[1], 480);
+  EXPECT_DOUBLE_EQ((*cam.intrinsics_px)[0], 458.654);
+  EXPECT_EQ(cam.distortion, DistortionModel::kRadTan);
+  ASSERT_EQ(cam.distortion_coefficients.size(), 4u);
+  EXPECT_DOUBLE_EQ(cam.distortion_coefficients[0], -0.28340811);
+  EXPECT_DOUBLE_EQ(cam.T_BS[3], -0.0216401454975);
+  EXPECT_EQ(cam.T_BS[15], 1.0);
+  EXPECT_EQ(cam.rate_hz, 20.0);
+  EXPECT_FALSE(cam.gyro_noise_density_rad_s_sqrthz);
+
+  const auto imu = drivers::read_euroc_sensor_yaml(shared_path("euroc/V1_02_medium/imu0_sensor.yaml"));
+  EXPECT_FALSE(imu.resolution_px);
+  EXPECT_EQ(imu.rate_hz, 200.0);
+  EXPECT_EQ(imu.gyro_noise_density_rad_s_sqrthz, 1.6968e-04);
+  EXPECT_EQ(imu.gyro_random_walk_rad_s2_sqrthz, 1.9393e-05);
+  EXPECT_EQ(imu.acc_noise_density_mps2_sqrthz, 2.0e-3);
+  EXPECT_EQ(imu.acc_random_walk_mps3_sqrthz, 3.0e-3);
+  for (size_t i = 0; i < 16; ++i) EXPECT_EQ(imu.T_BS[i], i % 5 == 0 ? 1.0 : 0.0) << i;   // the IMU is the body
+}
+
+TEST(EurocSensorYaml, OptionalKeysStayAbsentAndBadOnesAreNamed) {
+  const std::string dir = temp_dir("euroc_sensor_yaml");
+  const std::string path = dir + "/sensor.yaml";
+  // A bare list of 16 is taken for T_BS as well as OpenCV's matrix map.
+  write_file(path, "%YAML:1.0\r\nsensor_type: imu\r\nT_BS: [1,0,0,0.5, 0,1,0,0, 0,0,1,0, 0,0,0,1]\r\n");
+  const auto y = drivers::read_euroc_sensor_yaml(path);
+  EXPECT_EQ(y.T_BS[3], 0.5);
+  EXPECT_FALSE(y.rate_hz);
+  EXPECT_FALSE(y.intrinsics_px);
+  EXPECT_EQ(y.distortion, DistortionModel::kNone);
+  EXPECT_TRUE(y.distortion_coefficients.empty());
+  EXPECT_FALSE(y.acc_random_walk_mps3_sqrthz);
+
+  auto error_of = [&](const std::string& body) -> std::string {
+    write_file(path, body);
+    try {
+      drivers::read_euroc_sensor_yaml(path);
+    } catch (const std::runtime_error& e) {
+      return e.what();
+    }
+    return "no error";
+  };
+  const std::string T = "T_BS: {rows: 4, cols: 4, data: [1,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1]}\n";
+  EXPECT_EQ(error_of("%YAML:1.0\nrate_hz: 200\n"), path + ": T_BS: missing (expected rows, cols, data)");
+  EXPECT_EQ(error_of("T_BS: {data: [1, 2, 3]}\n"), path + ": T_BS.data: expected a list of 16 numbers");
+  EXPECT_EQ(error_of(T + "gyroscope_noise_density: .nan\n"), path + ": gyroscope_noise_density: expected a finite number");
+  EXPECT_EQ(error_of(T + "rate_hz: fast\n"), path + ": rate_hz: expected a finite number");
+  EXPECT_EQ(error_of(T + "resolution: [752.5, 480]\n"), path + ": resolution: expected two positive integers");
+  EXPECT_EQ(error_of(T + "intrinsics: [0, 1, 2, 3]\n"), path + ": intrinsics: focal lengths must be > 0");
+  EXPECT_EQ(error_of(T + "distortion_model: fisheye\n"),
+            path + ": distortion_model: expected radial-tangential, equidistant or none, got \"fisheye\"");
+  EXPECT_EQ(error_of("%YAML:1.0\nT_BS: [1, 2\n"), path + ":3: YAML syntax error: end of sequence flow not found");
+  EXPECT_EQ(error_of("- 1\n- 2\n"), path + ": expected a mapping");
+}
+
 TEST(TumReader, Freiburg1XyzTextFiles) {
   KESTREL_REQUIRE_SHARED("tum-rgbd/rgbd_dataset_freiburg1_xyz");
   const std::string seq = shared_path("tum-rgbd/rgbd_dataset_freiburg1_xyz");

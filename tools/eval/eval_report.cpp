@@ -1,10 +1,13 @@
 // Text and JSON renderings of an EvalResult. Both come from one ordered field
-// list so their keys can never drift apart.
+// list so their keys can never drift apart. Also the JSON conventions every
+// report of the tools shares (report_json.hpp).
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <string>
 #include <vector>
 
+#include "kestrel/tools/report_json.hpp"
 #include "kestrel/tools/trajectory_eval.hpp"
 
 namespace kestrel::tools {
@@ -80,36 +83,11 @@ std::vector<Field> fields(const EvalResult& r) {
   return f;
 }
 
-std::string format_number(double v, const char* non_finite) {
-  if (!std::isfinite(v)) return non_finite;
+std::string format_number(double v) {
+  if (!std::isfinite(v)) return "nan";
   char buf[40];
   std::snprintf(buf, sizeof buf, "%.10g", v);
   return buf;
-}
-
-std::string json_escape(const std::string& s) {
-  std::string out = "\"";
-  for (const char ch : s) {
-    const auto c = static_cast<unsigned char>(ch);
-    switch (c) {
-      case '"': out += "\\\""; break;
-      case '\\': out += "\\\\"; break;
-      case '\b': out += "\\b"; break;
-      case '\f': out += "\\f"; break;
-      case '\n': out += "\\n"; break;
-      case '\r': out += "\\r"; break;
-      case '\t': out += "\\t"; break;
-      default:
-        if (c < 0x20 || c == 0x7f) {
-          char buf[8];
-          std::snprintf(buf, sizeof buf, "\\u%04x", c);
-          out += buf;
-        } else {
-          out += ch;   // UTF-8 passes through unchanged
-        }
-    }
-  }
-  return out + "\"";
 }
 
 }  // namespace
@@ -119,7 +97,7 @@ std::string to_text(const EvalResult& r) {
   for (const Field& f : fields(r)) {
     out += f.key + ": ";
     switch (f.kind) {
-      case Field::kNumber: out += format_number(f.number, "nan"); break;
+      case Field::kNumber: out += format_number(f.number); break;
       case Field::kInteger: out += std::to_string(f.integer); break;
       case Field::kString: {
         // One line per key, whatever the value holds.
@@ -133,19 +111,26 @@ std::string to_text(const EvalResult& r) {
 }
 
 std::string to_json(const EvalResult& r) {
-  std::string out = "{\n";
-  const std::vector<Field> fs = fields(r);
-  for (size_t i = 0; i < fs.size(); ++i) {
-    const Field& f = fs[i];
-    out += "  " + json_escape(f.key) + ": ";
+  Json j = Json::object();
+  for (const Field& f : fields(r)) {
     switch (f.kind) {
-      case Field::kNumber: out += format_number(f.number, "null"); break;
-      case Field::kInteger: out += std::to_string(f.integer); break;
-      case Field::kString: out += json_escape(f.text); break;
+      case Field::kNumber: j[f.key] = json_figure(f.number); break;
+      case Field::kInteger: j[f.key] = f.integer; break;
+      case Field::kString: j[f.key] = f.text; break;
     }
-    out += i + 1 < fs.size() ? ",\n" : "\n";
   }
-  return out + "}\n";
+  return json_text(j);
 }
+
+Json json_figure(double v) {
+  if (!std::isfinite(v)) return nullptr;
+  // Through the decimal text: the double nearest the 10-digit figure, which
+  // the serializer then prints in its shortest form (those same digits).
+  char buf[40];
+  std::snprintf(buf, sizeof buf, "%.10g", v);
+  return std::strtod(buf, nullptr);
+}
+
+std::string json_text(const Json& j) { return j.dump(2, ' ', false, Json::error_handler_t::replace) + "\n"; }
 
 }  // namespace kestrel::tools

@@ -4,23 +4,23 @@
 #include <cerrno>
 #include <cmath>
 #include <cstdio>
-#include <cstdlib>
 #include <cstring>
 #include <filesystem>
 #include <fstream>
-#include <limits>
 #include <stdexcept>
 #include <string>
 #include <vector>
 
-#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/log_source.hpp"
+#include "kestrel/drivers/open_log.hpp"
+#include "kestrel/drivers/text.hpp"
 #include "kestrel/tools/trajectory_eval.hpp"
 
 namespace kestrel::tools {
 namespace {
 
 namespace fs = std::filesystem;
+namespace text = drivers::text;
 
 // Past this many per-line messages a file's problems are only counted: a
 // corrupt million-line file must not bury the summary.
@@ -68,104 +68,26 @@ struct Row {
   std::string where;   // "file:line" it came from
 };
 
-std::string trim(const std::string& s) {
-  size_t b = 0, e = s.size();
-  while (b < e && std::isspace(static_cast<unsigned char>(s[b]))) ++b;
-  while (e > b && std::isspace(static_cast<unsigned char>(s[e - 1]))) --e;
-  return s.substr(b, e - b);
-}
-
 std::string lower_extension(const std::string& path) {
   std::string ext = fs::path(path).extension().string();
   for (char& c : ext) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
   return ext;
 }
 
-// strtod on the whole token; NaN/Inf parse (and are rejected later as non-finite).
+// Any strtod number, NaN/Inf included (rejected later as non-finite, which
+// names the problem better), but not a subnormal: an underflowing coordinate
+// is garbage, not a pose.
 bool parse_double(const std::string& tok, double* out) {
-  if (tok.empty()) return false;
-  errno = 0;
-  char* end = nullptr;
-  const double v = std::strtod(tok.c_str(), &end);
-  if (end != tok.c_str() + tok.size()) return false;
-  if (errno == ERANGE && std::isfinite(v) && v != 0.0) return false;
+  double v = 0;
+  if (!text::parse_f64(tok, v) || std::fpclassify(v) == FP_SUBNORMAL) return false;
   *out = v;
   return true;
 }
 
-bool parse_int64(const std::string& tok, int64_t* out) {
-  if (tok.empty()) return false;
-  errno = 0;
-  char* end = nullptr;
-  const long long v = std::strtoll(tok.c_str(), &end, 10);
-  if (end != tok.c_str() + tok.size() || errno == ERANGE) return false;
-  *out = static_cast<int64_t>(v);
-  return true;
-}
-
-// Decimal seconds to nanoseconds without going through a double, so TUM stamps
-// such as 1305031098.6659 keep every digit (a double has ~100 ns there).
+// TUM stamps such as 1305031098.6659 keep every digit (a double has ~100 ns
+// there); a rare exponent form is exact too. Sub-nanosecond digits round.
 bool parse_seconds_ns(const std::string& tok, int64_t* out) {
-  if (tok.find_first_of("eE") != std::string::npos) {   // rare exponent form: double is all we have
-    double s = 0;
-    if (!parse_double(tok, &s) || !std::isfinite(s) || std::fabs(s) > 9.2e9) return false;
-    *out = static_cast<int64_t>(std::llround(s * 1e9));
-    return true;
-  }
-  size_t i = 0;
-  bool neg = false;
-  if (i < tok.size() && (tok[i] == '+' || tok[i] == '-')) neg = tok[i++] == '-';
-  int64_t whole = 0;
-  int whole_digits = 0;
-  while (i < tok.size() && std::isdigit(static_cast<unsigned char>(tok[i]))) {
-    if (whole > 9'200'000'000LL / 10) return false;
-    whole = whole * 10 + (tok[i++] - '0');
-    ++whole_digits;
-  }
-  int64_t frac = 0;
-  int frac_digits = 0;
-  bool round_up = false;
-  if (i < tok.size() && tok[i] == '.') {
-    ++i;
-    while (i < tok.size() && std::isdigit(static_cast<unsigned char>(tok[i]))) {
-      if (frac_digits < 9) {
-        frac = frac * 10 + (tok[i] - '0');
-      } else if (frac_digits == 9) {
-        round_up = tok[i] >= '5';
-      }
-      ++frac_digits;
-      ++i;
-    }
-  }
-  if (i != tok.size() || whole_digits + frac_digits == 0 || whole > 9'200'000'000LL) return false;
-  for (int d = std::min(frac_digits, 9); d < 9; ++d) frac *= 10;
-  int64_t ns = whole * 1'000'000'000LL + frac + (round_up ? 1 : 0);
-  *out = neg ? -ns : ns;
-  return true;
-}
-
-std::vector<std::string> split_csv(const std::string& line) {
-  std::vector<std::string> out;
-  size_t start = 0;
-  while (true) {
-    const size_t comma = line.find(',', start);
-    out.push_back(trim(line.substr(start, comma == std::string::npos ? std::string::npos : comma - start)));
-    if (comma == std::string::npos) break;
-    start = comma + 1;
-  }
-  return out;
-}
-
-std::vector<std::string> split_ws(const std::string& line) {
-  std::vector<std::string> out;
-  size_t i = 0;
-  while (i < line.size()) {
-    while (i < line.size() && std::isspace(static_cast<unsigned char>(line[i]))) ++i;
-    const size_t b = i;
-    while (i < line.size() && !std::isspace(static_cast<unsigned char>(line[i]))) ++i;
-    if (i > b) out.push_back(line.substr(b, i - b));
-  }
-  return out;
+  return text::parse_seconds_ns(tok, *out, text::SecondsSyntax{text::BelowNs::kRound, true});
 }
 
 enum class TextFormat { kTum, kEurocCsv };
@@ -201,8 +123,10 @@ bool fill_pose(const std::vector<std::string>& f, const char* const* names, cons
 }
 
 std::vector<Row> read_text(const std::string& path, Reporter& rep, int* non_unit_quats) {
-  std::ifstream in(path);
-  if (!in) throw std::runtime_error("cannot open '" + path + "': " + std::strerror(errno));
+  std::vector<std::string> lines;
+  const text::LinesRead read = text::read_lines(path, lines);
+  if (!read.opened) throw std::runtime_error("cannot open '" + path + "': " + std::strerror(read.error));
+  if (!read) throw std::runtime_error("error reading '" + path + "': " + std::strerror(read.error));
 
   static const char* const kTumNames[8] = {"timestamp", "tx", "ty", "tz", "qx", "qy", "qz", "qw"};
   static const char* const kCsvNames[8] = {"timestamp", "p_x", "p_y", "p_z", "q_w", "q_x", "q_y", "q_z"};
@@ -212,12 +136,10 @@ std::vector<Row> read_text(const std::string& path, Reporter& rep, int* non_unit
   TextFormat format = TextFormat::kTum;
 
   std::vector<Row> rows;
-  std::string raw;
-  int line_no = 0;
   bool first_data_line = true;
-  while (std::getline(in, raw)) {
-    ++line_no;
-    const std::string line = trim(raw);
+  for (size_t k = 0; k < lines.size(); ++k) {
+    const size_t line_no = k + 1;
+    const std::string line = text::trim(lines[k]);
     if (line.empty() || line[0] == '#') continue;
     const std::string where = path + ":" + std::to_string(line_no);
     if (first_data_line) {
@@ -225,7 +147,7 @@ std::vector<Row> read_text(const std::string& path, Reporter& rep, int* non_unit
       format = line.find(',') != std::string::npos ? TextFormat::kEurocCsv : TextFormat::kTum;
     }
     const bool csv = format == TextFormat::kEurocCsv;
-    const std::vector<std::string> f = csv ? split_csv(line) : split_ws(line);
+    const std::vector<std::string> f = csv ? text::split(line, ',') : text::split_ws(line);
     if (first_data_line) {
       first_data_line = false;
       // A header without '#' ("timestamp,p_x,..."): its first field is no number.
@@ -241,7 +163,7 @@ std::vector<Row> read_text(const std::string& path, Reporter& rep, int* non_unit
     Row row;
     row.where = where;
     if (csv) {
-      if (!parse_int64(f[0], &row.pose.t_ns)) {
+      if (!text::parse_i64(f[0], row.pose.t_ns)) {
         rep.loss(where, "field 'timestamp' (column 1): not integer nanoseconds '" + f[0] + "'");
         continue;
       }
@@ -266,7 +188,6 @@ std::vector<Row> read_text(const std::string& path, Reporter& rep, int* non_unit
     if (std::fabs(raw_norm - 1.0) > 0.01) ++*non_unit_quats;
     rows.push_back(std::move(row));
   }
-  if (in.bad()) throw std::runtime_error("error reading '" + path + "': " + std::strerror(errno));
   return rows;
 }
 
@@ -398,12 +319,8 @@ void write_tum(const std::string& path, const Trajectory& trajectory) {
   std::fprintf(f, "# timestamp[s] tx ty tz qx qy qz qw  (T_WB: body pose in world)\n");
   for (const TimedPose& p : trajectory) {
     // Seconds printed from the integer so no nanosecond is rounded away.
-    const bool neg = p.t_ns < 0;
-    const uint64_t mag = neg ? 0ULL - static_cast<uint64_t>(p.t_ns) : static_cast<uint64_t>(p.t_ns);
-    std::fprintf(f, "%s%llu.%09llu %.9f %.9f %.9f %.12f %.12f %.12f %.12f\n", neg ? "-" : "",
-                 static_cast<unsigned long long>(mag / 1'000'000'000ULL),
-                 static_cast<unsigned long long>(mag % 1'000'000'000ULL), p.p.x(), p.p.y(), p.p.z(), p.q.x(),
-                 p.q.y(), p.q.z(), p.q.w());
+    std::fprintf(f, "%s %.9f %.9f %.9f %.12f %.12f %.12f %.12f\n", text::seconds_from_ns(p.t_ns).c_str(), p.p.x(),
+                 p.p.y(), p.p.z(), p.q.x(), p.q.y(), p.q.z(), p.q.w());
   }
   const bool write_failed = std::ferror(f) != 0;
   if (std::fclose(f) != 0 || write_failed)

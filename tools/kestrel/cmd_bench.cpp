@@ -16,12 +16,13 @@
 #include <iostream>
 #include <map>
 #include <sstream>
+#include <utility>
 
 #include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/tools/estimator_config_yaml.hpp"
 #include "kestrel/commands.hpp"
-#include "kestrel/json_writer.hpp"
 #include "kestrel/replay_runner.hpp"
+#include "kestrel/tools/report_json.hpp"
 #include "kestrel/tools/simulator.hpp"
 #include "kestrel/tools/trajectory_eval.hpp"
 
@@ -272,30 +273,40 @@ void print_timing_table(const std::vector<BenchRow>& rows) {
 }
 
 std::string rows_json(const std::vector<BenchRow>& rows, double duration_s) {
-  JsonWriter j;
-  j.begin_object();
-  j.kv("duration_s_per_case", duration_s);
-  j.key("cases").begin_array();
+  using tools::json_figure;
+  tools::Json cases = tools::Json::array();
   for (const auto& r : rows) {
-    j.begin_object();
-    j.kv("name", r.name).kv("status", r.status).kv("estimator", r.estimator);
-    j.kv("duration_s", r.duration_s);
-    j.kv("ate_rmse_m", r.ate_rmse_m).kv("ate_se3_rmse_m", r.ate_se3_rmse_m);
-    j.kv("rpe_trans_m_per_s", r.rpe_trans_m_per_s);
-    j.kv("tracking_ms_p50", r.tracking_ms_p50).kv("tracking_ms_p99", r.tracking_ms_p99);
-    j.kv("tracking_ms_max", r.tracking_ms_max);
-    j.kv("optimizer_ms_p50", r.optimizer_ms_p50).kv("optimizer_ms_p99", r.optimizer_ms_p99);
-    j.kv("optimizer_ms_max", r.optimizer_ms_max);
-    j.kv("imu_to_output_ms_p50", r.imu_to_output_ms_p50).kv("imu_to_output_ms_p99", r.imu_to_output_ms_p99);
-    j.kv("imu_to_output_ms_max", r.imu_to_output_ms_max);
-    j.kv("allocs_per_frame", r.allocs_per_frame);
-    j.kv("realtime_factor", r.realtime_factor).kv("peak_rss_mb", r.peak_rss_mb);
-    j.kv("pose_share", r.pose_share).kv("sim_s", r.sim_s).kv("replay_wall_s", r.replay_wall_s);
-    j.end_object();
+    tools::Json c = tools::Json::object();
+    c["name"] = r.name;
+    c["status"] = r.status;
+    c["estimator"] = r.estimator;
+    const std::pair<const char*, double> figures[] = {
+        {"duration_s", r.duration_s},
+        {"ate_rmse_m", r.ate_rmse_m},
+        {"ate_se3_rmse_m", r.ate_se3_rmse_m},
+        {"rpe_trans_m_per_s", r.rpe_trans_m_per_s},
+        {"tracking_ms_p50", r.tracking_ms_p50},
+        {"tracking_ms_p99", r.tracking_ms_p99},
+        {"tracking_ms_max", r.tracking_ms_max},
+        {"optimizer_ms_p50", r.optimizer_ms_p50},
+        {"optimizer_ms_p99", r.optimizer_ms_p99},
+        {"optimizer_ms_max", r.optimizer_ms_max},
+        {"imu_to_output_ms_p50", r.imu_to_output_ms_p50},
+        {"imu_to_output_ms_p99", r.imu_to_output_ms_p99},
+        {"imu_to_output_ms_max", r.imu_to_output_ms_max},
+        {"allocs_per_frame", r.allocs_per_frame},
+        {"realtime_factor", r.realtime_factor},
+        {"peak_rss_mb", r.peak_rss_mb},
+        {"pose_share", r.pose_share},
+        {"sim_s", r.sim_s},
+        {"replay_wall_s", r.replay_wall_s}};
+    for (const auto& [key, value] : figures) c[key] = json_figure(value);
+    cases.push_back(std::move(c));
   }
-  j.end_array();
-  j.end_object();
-  return j.str() + "\n";
+  tools::Json j = tools::Json::object();
+  j["duration_s_per_case"] = json_figure(duration_s);
+  j["cases"] = std::move(cases);
+  return tools::json_text(j);
 }
 
 bool selected(const std::string& name, const std::vector<std::string>& only) {

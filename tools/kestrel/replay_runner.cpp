@@ -7,6 +7,7 @@
 #include <algorithm>
 #include <cerrno>
 #include <atomic>
+#include <cmath>
 #include <cstdio>
 #include <memory>
 #include <stdexcept>
@@ -17,7 +18,6 @@
 #include "kestrel/core/rgbd_estimator.hpp"
 #include "kestrel/core/window_estimator.hpp"
 #include "kestrel/imu_rate_stage.hpp"
-#include "kestrel/json_writer.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"
 #include "kestrel/rt/alloc_counter.hpp"
 #include "kestrel/rt/clock.hpp"
@@ -25,6 +25,7 @@
 #include "kestrel/rt/mailbox.hpp"
 #include "kestrel/rt/spsc_ring.hpp"
 #include "kestrel/rt/thread_setup.hpp"
+#include "kestrel/tools/report_json.hpp"
 
 namespace kestrel::cli {
 
@@ -594,125 +595,113 @@ ReplayReport run_replay(const ReplayOptions& opt) {
 }
 
 namespace {
-void histogram_json(JsonWriter& j, const std::string& name, const rt::LatencyHistogram& h) {
-  j.key(name).begin_object();
-  j.kv("count", static_cast<uint64_t>(h.count()));
-  if (h.count() == 0) {
-    j.key("p50_ms").null().key("p90_ms").null().key("p99_ms").null().key("max_ms").null();
-  } else {
-    j.kv("p50_ms", 1e-6 * static_cast<double>(h.percentile(50)));
-    j.kv("p90_ms", 1e-6 * static_cast<double>(h.percentile(90)));
-    j.kv("p99_ms", 1e-6 * static_cast<double>(h.percentile(99)));
-    j.kv("max_ms", 1e-6 * static_cast<double>(h.max()));
-  }
-  j.end_object();
+using tools::Json;
+using tools::json_figure;
+
+Json histogram_json(const rt::LatencyHistogram& h) {
+  Json j = Json::object();
+  j["count"] = static_cast<uint64_t>(h.count());
+  const bool empty = h.count() == 0;
+  const double nan = std::nan("");
+  j["p50_ms"] = json_figure(empty ? nan : 1e-6 * static_cast<double>(h.percentile(50)));
+  j["p90_ms"] = json_figure(empty ? nan : 1e-6 * static_cast<double>(h.percentile(90)));
+  j["p99_ms"] = json_figure(empty ? nan : 1e-6 * static_cast<double>(h.percentile(99)));
+  j["max_ms"] = json_figure(empty ? nan : 1e-6 * static_cast<double>(h.max()));
+  return j;
 }
 }  // namespace
 
 namespace {
 // A setting's YAML text as a typed JSON value: true/false, integers exactly,
 // other numbers as doubles, names as strings.
-void config_value_json(JsonWriter& j, const std::string& k, const std::string& v) {
-  if (v == "true" || v == "false") {
-    j.kv(k, v == "true");
-    return;
-  }
+Json config_value_json(const std::string& v) {
+  if (v == "true" || v == "false") return v == "true";
   char* end = nullptr;
   if (!v.empty() && v.find_first_of(".eEn") == std::string::npos) {
     errno = 0;
     const long long i = std::strtoll(v.c_str(), &end, 10);
-    if (end == v.c_str() + v.size() && errno == 0) {
-      j.kv(k, static_cast<int64_t>(i));
-      return;
-    }
+    if (end == v.c_str() + v.size() && errno == 0) return static_cast<int64_t>(i);
     const unsigned long long u = std::strtoull(v.c_str(), &end, 10);
-    if (end == v.c_str() + v.size() && v[0] != '-') {
-      j.kv(k, static_cast<uint64_t>(u));
-      return;
-    }
+    if (end == v.c_str() + v.size() && v[0] != '-') return static_cast<uint64_t>(u);
   }
   const double d = std::strtod(v.c_str(), &end);
-  if (!v.empty() && end == v.c_str() + v.size()) {
-    j.kv(k, d);
-    return;
-  }
-  j.kv(k, v);
+  if (!v.empty() && end == v.c_str() + v.size()) return d;
+  return v;
 }
 }  // namespace
 
 std::string replay_metrics_json(const ReplayReport& r) {
-  JsonWriter j;
-  j.begin_object();
-  j.kv("estimator", r.estimator).kv("log", r.log_path).kv("log_format", r.log_format);
-  j.kv("pace", drivers::to_string(r.pace));
-  j.kv("log_duration_s", r.log_duration_s).kv("wall_s", r.wall_s).kv("realtime_factor", r.realtime_factor);
-  j.kv("cpu_s", r.cpu_s).kv("estimator_cpu_s", r.estimator_cpu_s).kv("peak_rss_mb", r.peak_rss_mb);
-  j.kv("poses_out", static_cast<uint64_t>(r.trajectory.size()));
+  Json j = Json::object();
+  j["estimator"] = r.estimator;
+  j["log"] = r.log_path;
+  j["log_format"] = r.log_format;
+  j["pace"] = drivers::to_string(r.pace);
+  j["log_duration_s"] = json_figure(r.log_duration_s);
+  j["wall_s"] = json_figure(r.wall_s);
+  j["realtime_factor"] = json_figure(r.realtime_factor);
+  j["cpu_s"] = json_figure(r.cpu_s);
+  j["estimator_cpu_s"] = json_figure(r.estimator_cpu_s);
+  j["peak_rss_mb"] = json_figure(r.peak_rss_mb);
+  j["poses_out"] = static_cast<uint64_t>(r.trajectory.size());
   if (!r.config.empty()) {
-    j.key("config").begin_object();
-    for (const auto& [k, v] : r.config) config_value_json(j, k, v);
-    j.end_object();
+    Json c = Json::object();
+    for (const auto& [k, v] : r.config) c[k] = config_value_json(v);
+    j["config"] = std::move(c);
   }
-  j.key("latency").begin_object();
-  histogram_json(j, "imu_to_output", r.imu_to_output);
-  histogram_json(j, "tracking", r.tracking);
-  histogram_json(j, "estimator_imu", r.estimator_imu_latency);
-  histogram_json(j, "optimizer", r.optimizer);
-  j.end_object();
-  j.kv("optimizer_threaded", r.optimizer_threaded);
-  j.kv("imu_rate_poses", r.imu_rate_poses);
-  j.key("records").begin_object();
-  j.kv("imu", r.replay.imu_pushed).kv("frames", r.replay.frames_pushed);
-  j.kv("ground_truth", r.replay.ground_truth).kv("events", r.replay.events);
-  j.end_object();
-  j.key("drops").begin_object();
-  j.kv("imu_ring", r.imu_ring_drops).kv("frame_ring", r.frame_ring_drops);
-  j.kv("output_ring", r.output_ring_drops).kv("image_pool_exhausted", r.image_pool_exhausted);
-  j.kv("propagator_forward", r.propagator_forward_drops);
-  j.kv("images_too_large", r.replay.images_too_large).kv("depth_unpaired", r.replay.depth_unpaired);
-  j.end_object();
-  j.key("input_faults").begin_object();
-  j.kv("missing", r.input_faults.missing).kv("out_of_order", r.input_faults.out_of_order);
-  j.kv("repeated", r.input_faults.repeated).kv("no_depth", r.input_faults.no_depth);
-  j.kv("imu_gaps", r.input_faults.imu_gaps);
-  j.end_object();
-  j.key("mavlink").begin_object();
-  j.kv("sent", r.mavlink_sent).kv("failed", r.mavlink_failed);
-  j.end_object();
+  j["latency"] = Json{{"imu_to_output", histogram_json(r.imu_to_output)},
+                      {"tracking", histogram_json(r.tracking)},
+                      {"estimator_imu", histogram_json(r.estimator_imu_latency)},
+                      {"optimizer", histogram_json(r.optimizer)}};
+  j["optimizer_threaded"] = r.optimizer_threaded;
+  j["imu_rate_poses"] = r.imu_rate_poses;
+  j["records"] = Json{{"imu", r.replay.imu_pushed},
+                      {"frames", r.replay.frames_pushed},
+                      {"ground_truth", r.replay.ground_truth},
+                      {"events", r.replay.events}};
+  j["drops"] = Json{{"imu_ring", r.imu_ring_drops},
+                    {"frame_ring", r.frame_ring_drops},
+                    {"output_ring", r.output_ring_drops},
+                    {"image_pool_exhausted", r.image_pool_exhausted},
+                    {"propagator_forward", r.propagator_forward_drops},
+                    {"images_too_large", r.replay.images_too_large},
+                    {"depth_unpaired", r.replay.depth_unpaired}};
+  j["input_faults"] = Json{{"missing", r.input_faults.missing},
+                           {"out_of_order", r.input_faults.out_of_order},
+                           {"repeated", r.input_faults.repeated},
+                           {"no_depth", r.input_faults.no_depth},
+                           {"imu_gaps", r.input_faults.imu_gaps}};
+  j["mavlink"] = Json{{"sent", r.mavlink_sent}, {"failed", r.mavlink_failed}};
   const auto& c = r.estimator_counters;
-  j.key("estimator_counters").begin_object();
-  j.kv("imu_in", c.imu_in).kv("imu_used", c.imu_used).kv("frames_in", c.frames_in);
-  j.kv("frames_used", c.frames_used).kv("resets", c.resets);
-  j.kv("imu_non_finite", c.imu_rejects.non_finite).kv("imu_saturated", c.imu_rejects.saturated);
-  j.kv("imu_out_of_order", c.imu_rejects.out_of_order).kv("imu_gaps", c.imu_rejects.gaps);
-  j.end_object();
-  j.key("allocations").begin_object();
-  j.kv("counting", r.alloc_counting);
-  if (r.alloc_counting) {
-    j.kv("estimator_thread_steady", r.steady_allocs);
-  } else {
-    j.key("estimator_thread_steady").null();
-  }
-  j.kv("steady_frames", r.steady_frames);
-  if (r.alloc_counting && r.steady_frames > 0) {
-    j.kv("per_frame", static_cast<double>(r.steady_allocs) / static_cast<double>(r.steady_frames));
-  } else {
-    j.key("per_frame").null();
-  }
-  j.end_object();
-  j.key("threads").begin_array();
-  for (const AppliedThread& t : r.threads) {
-    j.begin_object().kv("name", t.name).kv("cpu", static_cast<int64_t>(t.cpu)).kv("policy", t.policy);
-    j.kv("priority", static_cast<int64_t>(t.priority)).kv("applied", t.applied).kv("error", t.error).end_object();
-  }
-  j.end_array();
-  j.key("problems").begin_array();
-  for (const auto& p : r.problems) {
-    j.begin_object().kv("where", p.where).kv("kind", p.kind).kv("detail", p.detail).end_object();
-  }
-  j.end_array();
-  j.end_object();
-  return j.str() + "\n";
+  j["estimator_counters"] = Json{{"imu_in", c.imu_in},
+                                 {"imu_used", c.imu_used},
+                                 {"frames_in", c.frames_in},
+                                 {"frames_used", c.frames_used},
+                                 {"resets", c.resets},
+                                 {"imu_non_finite", c.imu_rejects.non_finite},
+                                 {"imu_saturated", c.imu_rejects.saturated},
+                                 {"imu_out_of_order", c.imu_rejects.out_of_order},
+                                 {"imu_gaps", c.imu_rejects.gaps}};
+  Json alloc = Json::object();
+  alloc["counting"] = r.alloc_counting;
+  alloc["estimator_thread_steady"] = r.alloc_counting ? Json(r.steady_allocs) : Json(nullptr);
+  alloc["steady_frames"] = r.steady_frames;
+  alloc["per_frame"] = json_figure(r.alloc_counting && r.steady_frames > 0
+                                       ? static_cast<double>(r.steady_allocs) / static_cast<double>(r.steady_frames)
+                                       : std::nan(""));
+  j["allocations"] = std::move(alloc);
+  Json threads = Json::array();
+  for (const AppliedThread& t : r.threads)
+    threads.push_back(Json{{"name", t.name},
+                           {"cpu", static_cast<int64_t>(t.cpu)},
+                           {"policy", t.policy},
+                           {"priority", static_cast<int64_t>(t.priority)},
+                           {"applied", t.applied},
+                           {"error", t.error}});
+  j["threads"] = std::move(threads);
+  Json problems = Json::array();
+  for (const auto& p : r.problems) problems.push_back(Json{{"where", p.where}, {"kind", p.kind}, {"detail", p.detail}});
+  j["problems"] = std::move(problems);
+  return tools::json_text(j);
 }
 
 // The one place the harness looks behind the Estimator interface.

@@ -23,6 +23,8 @@ uint8_t* put_f32(uint8_t* p, float f) {
 
 }  // namespace
 
+// MAVLink's checksum is the 16-bit CRC-16/MCRF4XX (X.25 polynomial 0x1021, reflected, no final xor),
+// which zlib does not offer (it has CRC-32 only), so it stays written out, as MAVLink specifies it.
 uint16_t crc_x25_accumulate(uint8_t byte, uint16_t crc) {
   uint8_t tmp = static_cast<uint8_t>(byte ^ static_cast<uint8_t>(crc & 0xFF));
   tmp = static_cast<uint8_t>(tmp ^ static_cast<uint8_t>(tmp << 4));

@@ -1,11 +1,10 @@
 // IMU synthesis and the real-IMU CSV reader for hybrid logs.
-#include <cerrno>
 #include <cmath>
-#include <cstdlib>
-#include <fstream>
-#include <sstream>
 #include <stdexcept>
+#include <string>
+#include <vector>
 
+#include "kestrel/drivers/text.hpp"
 #include "kestrel/tools/sim_imu.hpp"
 
 namespace kestrel::tools {
@@ -125,35 +124,26 @@ ImuSample ImuSynth::sample(const TrajectoryState& s, int64_t t_ns) {
 }
 
 std::vector<ImuSample> load_euroc_imu_csv(const std::string& path) {
-  std::ifstream in(path);
-  if (!in) throw std::runtime_error(path + ": cannot open IMU file");
+  namespace text = drivers::text;
+  std::vector<std::string> lines;
+  const text::LinesRead read = text::read_lines(path, lines);
+  if (!read.opened) throw std::runtime_error(path + ": cannot open IMU file");
+  if (!read) throw std::runtime_error(path + ": read error");
   std::vector<ImuSample> out;
-  std::string line;
-  size_t line_no = 0;
-  while (std::getline(in, line)) {
-    ++line_no;
-    const auto first = line.find_first_not_of(" \t\r");
-    if (first == std::string::npos || line[first] == '#') continue;
-    const std::string at = path + ":" + std::to_string(line_no);
-    std::istringstream is(line);
-    std::string f[7];
-    int n = 0;
-    while (n < 7 && std::getline(is, f[n], ',')) ++n;
-    if (n < 7) throw std::runtime_error(at + ": expected 7 fields (t_ns, w_xyz, a_xyz), got " + std::to_string(n));
+  for (size_t k = 0; k < lines.size(); ++k) {
+    const std::string line = text::trim(lines[k]);
+    if (line.empty() || line[0] == '#') continue;
+    const std::string at = path + ":" + std::to_string(k + 1);
+    // Columns past the seventh are ignored, as EuRoC-derived files sometimes carry more.
+    const std::vector<std::string> f = text::split(line, ',');
+    if (f.size() < 7)
+      throw std::runtime_error(at + ": expected 7 fields (t_ns, w_xyz, a_xyz), got " + std::to_string(f.size()));
     ImuSample s;
-    errno = 0;
-    char* end = nullptr;
-    s.t_ns = std::strtoll(f[0].c_str(), &end, 10);
-    if (errno != 0 || end == f[0].c_str() || (*end != '\0' && *end != ' ' && *end != '\r'))
-      throw std::runtime_error(at + ": bad timestamp '" + f[0] + "'");
+    if (!text::parse_i64(f[0], s.t_ns)) throw std::runtime_error(at + ": bad timestamp '" + f[0] + "'");
     double v[6];
-    for (int k = 0; k < 6; ++k) {
-      errno = 0;
-      v[k] = std::strtod(f[k + 1].c_str(), &end);
-      while (*end == ' ' || *end == '\r') ++end;
-      if (errno != 0 || end == f[k + 1].c_str() || *end != '\0' || !std::isfinite(v[k]))
-        throw std::runtime_error(at + ": field " + std::to_string(k + 2) + " is not a number: '" + f[k + 1] + "'");
-    }
+    for (int j = 0; j < 6; ++j)
+      if (!text::parse_finite_f64(f[j + 1], v[j]))
+        throw std::runtime_error(at + ": field " + std::to_string(j + 2) + " is not a number: '" + f[j + 1] + "'");
     if (!out.empty() && s.t_ns <= out.back().t_ns)
       throw std::runtime_error(at + ": time " + f[0] + " does not increase");
     s.t_recv_ns = s.t_ns;

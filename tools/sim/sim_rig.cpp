@@ -1,58 +1,14 @@
 // Rigs for the simulator: the built-in one, rig YAML files and EuRoC sensor files.
-#include <yaml-cpp/yaml.h>
-
 #include <filesystem>
-#include <fstream>
-#include <sstream>
+#include <optional>
 #include <stdexcept>
+#include <utility>
 
+#include "kestrel/drivers/folder_logs.hpp"
 #include "kestrel/drivers/rig_yaml.hpp"
 #include "kestrel/tools/simulator.hpp"
 
 namespace kestrel::tools {
-namespace {
-
-// EuRoC files start with "%YAML:1.0", an OpenCV-style directive yaml-cpp rejects.
-YAML::Node load_yaml_file(const std::string& path) {
-  std::ifstream in(path);
-  if (!in) throw std::runtime_error(path + ": cannot open");
-  std::stringstream text;
-  std::string line;
-  while (std::getline(in, line))
-    if (line.rfind("%YAML", 0) != 0) text << line << '\n';
-  try {
-    return YAML::Load(text.str());
-  } catch (const YAML::Exception& e) {
-    throw std::runtime_error(path + ":" + std::to_string(e.mark.line + 1) + ": " + e.msg);
-  }
-}
-
-template <typename T>
-void get(const YAML::Node& node, const char* key, T& out, const std::string& where) {
-  const YAML::Node v = node[key];
-  if (!v) return;
-  try {
-    out = v.as<T>();
-  } catch (const YAML::Exception&) {
-    throw std::runtime_error(where + ": key '" + key + "' has a bad value");
-  }
-}
-
-bool read_matrix4(const YAML::Node& node, Mat4d& out, const std::string& where) {
-  if (!node) return false;
-  const YAML::Node data = node.IsMap() ? node["data"] : node;
-  if (!data || !data.IsSequence() || data.size() != 16) throw std::runtime_error(where + ": expected 16 numbers (row-major 4x4)");
-  for (size_t i = 0; i < 16; ++i) {
-    try {
-      out[i] = data[i].as<double>();
-    } catch (const YAML::Exception&) {
-      throw std::runtime_error(where + ": element " + std::to_string(i) + " is not a number");
-    }
-  }
-  return true;
-}
-
-}  // namespace
 
 Eigen::Isometry3d to_isometry(const Mat4d& T) {
   Eigen::Matrix4d M;
@@ -121,31 +77,31 @@ void load_sim_rig_yaml(const std::string& path, Rig& rig, ImuModel& imu) {
   if (n.acc_range_mps2 > 0) imu.acc_range_mps2 = n.acc_range_mps2;
 }
 
+// Both through the one EuRoC sensor-file reader (drivers/folder_logs.hpp), so
+// the simulator and the EuRoC reader can never read a file differently.
 bool read_euroc_imu_yaml(const std::string& path, ImuModel& model, double& rate_hz) {
   if (!std::filesystem::exists(path)) return false;
-  const YAML::Node root = load_yaml_file(path);
-  const char* keys[4] = {"gyroscope_noise_density", "gyroscope_random_walk", "accelerometer_noise_density",
-                         "accelerometer_random_walk"};
-  double v[4];
-  for (int i = 0; i < 4; ++i) {
-    if (!root[keys[i]]) throw std::runtime_error(path + ": missing key '" + keys[i] + "'");
-    get(root, keys[i], v[i], path);
-  }
+  const drivers::EurocSensorYaml y = drivers::read_euroc_sensor_yaml(path);
+  // The hybrid log claims the real IMU's noise: all four figures or none.
+  const std::pair<const char*, const std::optional<double>*> noise[] = {
+      {"gyroscope_noise_density", &y.gyro_noise_density_rad_s_sqrthz},
+      {"gyroscope_random_walk", &y.gyro_random_walk_rad_s2_sqrthz},
+      {"accelerometer_noise_density", &y.acc_noise_density_mps2_sqrthz},
+      {"accelerometer_random_walk", &y.acc_random_walk_mps3_sqrthz}};
+  for (const auto& [key, value] : noise)
+    if (!*value) throw std::runtime_error(path + ": missing key '" + key + "'");
   model = ImuModel{};
-  model.gyro_noise_density_rad_s_sqrthz = v[0];
-  model.gyro_random_walk_rad_s2_sqrthz = v[1];
-  model.acc_noise_density_mps2_sqrthz = v[2];
-  model.acc_random_walk_mps3_sqrthz = v[3];
-  get(root, "rate_hz", rate_hz, path);
+  model.gyro_noise_density_rad_s_sqrthz = *y.gyro_noise_density_rad_s_sqrthz;
+  model.gyro_random_walk_rad_s2_sqrthz = *y.gyro_random_walk_rad_s2_sqrthz;
+  model.acc_noise_density_mps2_sqrthz = *y.acc_noise_density_mps2_sqrthz;
+  model.acc_random_walk_mps3_sqrthz = *y.acc_random_walk_mps3_sqrthz;
+  if (y.rate_hz) rate_hz = *y.rate_hz;
   return true;
 }
 
 bool read_euroc_T_BS(const std::string& path, Eigen::Isometry3d& T_BS) {
   if (!std::filesystem::exists(path)) return false;
-  const YAML::Node root = load_yaml_file(path);
-  Mat4d M = kIdentity4;
-  if (!read_matrix4(root["T_BS"], M, path + ": T_BS")) throw std::runtime_error(path + ": missing key 'T_BS'");
-  T_BS = to_isometry(M);
+  T_BS = to_isometry(drivers::read_euroc_sensor_yaml(path).T_BS);
   return true;
 }
 

@@ -3,74 +3,27 @@
 #include <Eigen/SparseCholesky>
 
 #include <algorithm>
-#include <cerrno>
 #include <cmath>
-#include <cstdlib>
-#include <fstream>
-#include <sstream>
 #include <stdexcept>
 #include <string>
 #include <vector>
 
+#include "kestrel/drivers/text.hpp"
 #include "kestrel/tools/sim_trajectory.hpp"
 
 namespace kestrel::tools {
 namespace {
 
+namespace text = drivers::text;
+
 std::string where(const std::string& path, size_t line) { return path + ":" + std::to_string(line); }
 
-std::vector<std::string> split_fields(const std::string& s, bool csv) {
-  std::vector<std::string> out;
-  if (csv) {
-    std::string cur;
-    std::istringstream is(s);
-    while (std::getline(is, cur, ',')) out.push_back(cur);
-    if (!s.empty() && s.back() == ',') out.emplace_back();
-  } else {
-    std::istringstream is(s);
-    std::string tok;
-    while (is >> tok) out.push_back(tok);
-  }
-  for (auto& f : out) {
-    const auto b = f.find_first_not_of(" \t\r");
-    const auto e = f.find_last_not_of(" \t\r");
-    f = b == std::string::npos ? std::string() : f.substr(b, e - b + 1);
-  }
-  return out;
-}
-
-bool parse_double(const std::string& s, double& out) {
-  if (s.empty()) return false;
-  errno = 0;
-  char* end = nullptr;
-  out = std::strtod(s.c_str(), &end);
-  return errno == 0 && end == s.c_str() + s.size() && std::isfinite(out);
-}
-
-bool parse_int64(const std::string& s, int64_t& out) {
-  if (s.empty()) return false;
-  errno = 0;
-  char* end = nullptr;
-  const long long v = std::strtoll(s.c_str(), &end, 10);
-  if (errno != 0 || end != s.c_str() + s.size()) return false;
-  out = v;
-  return true;
-}
-
-// TUM stamps are decimal seconds with ~1e9 magnitude: parsed digit by digit so
-// no precision is lost on the way to nanoseconds.
-bool parse_seconds_to_ns(const std::string& s, int64_t& out) {
-  const auto dot = s.find('.');
-  int64_t whole = 0;
-  if (!parse_int64(dot == std::string::npos ? s : s.substr(0, dot), whole) || whole < 0) return false;
-  int64_t frac = 0;
-  if (dot != std::string::npos) {
-    std::string f = s.substr(dot + 1);
-    if (f.empty() || f.size() > 9 || f.find_first_not_of("0123456789") != std::string::npos) return false;
-    f.append(9 - f.size(), '0');
-    if (!parse_int64(f, frac)) return false;
-  }
-  out = whole * 1'000'000'000 + frac;
+// Ground-truth stamps: exact, never negative, and no digit below a nanosecond
+// silently dropped (a file with finer stamps than the spline can honour is refused).
+bool parse_stamp_s(const std::string& s, int64_t& t_ns) {
+  int64_t t = 0;
+  if (!text::parse_seconds_ns(s, t, text::SecondsSyntax{text::BelowNs::kReject, false}) || t < 0) return false;
+  t_ns = t;
   return true;
 }
 
@@ -111,33 +64,34 @@ void locate(double t, double dt, size_t n_ctrl, size_t& i, double& u) {
 }  // namespace
 
 std::vector<GtSample> load_gt_file(const std::string& path) {
-  std::ifstream in(path);
-  if (!in) throw std::runtime_error(path + ": cannot open ground-truth file");
+  std::vector<std::string> lines;
+  const text::LinesRead read = text::read_lines(path, lines);
+  if (!read.opened) throw std::runtime_error(path + ": cannot open ground-truth file");
+  if (!read) throw std::runtime_error(path + ": read error");
   std::vector<GtSample> out;
-  std::string line;
-  size_t line_no = 0;
   int csv = -1;   // decided by the first data line
-  while (std::getline(in, line)) {
-    ++line_no;
-    const auto first = line.find_first_not_of(" \t\r");
-    if (first == std::string::npos || line[first] == '#') continue;
+  for (size_t k = 0; k < lines.size(); ++k) {
+    const size_t line_no = k + 1;
+    const std::string line = text::trim(lines[k]);
+    if (line.empty() || line[0] == '#') continue;
     if (csv < 0) csv = line.find(',') != std::string::npos ? 1 : 0;
-    const auto f = split_fields(line, csv == 1);
+    const auto f = csv == 1 ? text::split(line, ',') : text::split_ws(line);
     if (f.size() < 8)
       throw std::runtime_error(where(path, line_no) + ": expected 8 fields (" +
                                (csv ? "t_ns,px,py,pz,qw,qx,qy,qz" : "t x y z qx qy qz qw") + "), got " +
                                std::to_string(f.size()));
     GtSample s;
     if (csv) {
-      if (!parse_int64(f[0], s.t_ns)) throw std::runtime_error(where(path, line_no) + ": bad timestamp '" + f[0] + "'");
-    } else if (!parse_seconds_to_ns(f[0], s.t_ns)) {
+      if (!text::parse_i64(f[0], s.t_ns))
+        throw std::runtime_error(where(path, line_no) + ": bad timestamp '" + f[0] + "'");
+    } else if (!parse_stamp_s(f[0], s.t_ns)) {
       throw std::runtime_error(where(path, line_no) + ": bad timestamp '" + f[0] + "'");
     }
     double v[7];
-    for (int k = 0; k < 7; ++k)
-      if (!parse_double(f[1 + k], v[k]))
-        throw std::runtime_error(where(path, line_no) + ": field " + std::to_string(k + 2) + " is not a number: '" +
-                                 f[1 + k] + "'");
+    for (int j = 0; j < 7; ++j)
+      if (!text::parse_finite_f64(f[1 + j], v[j]))
+        throw std::runtime_error(where(path, line_no) + ": field " + std::to_string(j + 2) + " is not a number: '" +
+                                 f[1 + j] + "'");
     s.p_WB = {v[0], v[1], v[2]};
     s.q_WB = csv ? Eigen::Quaterniond(v[3], v[4], v[5], v[6]) : Eigen::Quaterniond(v[6], v[3], v[4], v[5]);
     const double n = s.q_WB.norm();
@@ -148,7 +102,6 @@ std::vector<GtSample> load_gt_file(const std::string& path) {
       throw std::runtime_error(where(path, line_no) + ": time " + f[0] + " does not increase");
     out.push_back(s);
   }
-  if (in.bad()) throw std::runtime_error(path + ": read error");
   if (out.size() < 4)
     throw std::runtime_error(path + ": needs at least 4 ground-truth samples, found " + std::to_string(out.size()));
   return out;

@@ -3,7 +3,9 @@
 // takes from which file, and its choices, are in docs/log-format.md.
 #pragma once
 
+#include <array>
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -70,6 +72,28 @@ class TumReader final : public FolderLogSource {
  private:
   size_t pairs_ = 0;
 };
+
+// One EuRoC ASL sensor file (mav0/<sensor>/sensor.yaml, or <sensor>_sensor.yaml
+// in the flat layout), as the dataset writes it (OpenCV's "%YAML:1.0" first line
+// tolerated). The one reader of these files: the EuRoC reader builds its rig
+// from it, the simulator's hybrid mode takes the real IMU's noise and the
+// camera placement from it. Keys other than T_BS are optional, present ones
+// are checked; a malformed file throws std::runtime_error naming it and the key.
+struct EurocSensorYaml {
+  Mat4d T_BS{};                   // sensor -> body, row-major ("T_BS: {rows, cols, data}" or a bare list of 16)
+  std::optional<double> rate_hz;
+  // Cameras.
+  std::optional<std::array<int, 2>> resolution_px;      // width, height
+  std::optional<std::array<double, 4>> intrinsics_px;   // fu fv cu cv (focal lengths > 0)
+  DistortionModel distortion = DistortionModel::kNone;  // radial-tangential (radtan), equidistant, none
+  std::vector<double> distortion_coefficients;          // up to 5
+  // IMUs (continuous-time densities, as Kalibr states them).
+  std::optional<double> gyro_noise_density_rad_s_sqrthz;   // gyroscope_noise_density
+  std::optional<double> gyro_random_walk_rad_s2_sqrthz;    // gyroscope_random_walk
+  std::optional<double> acc_noise_density_mps2_sqrthz;     // accelerometer_noise_density
+  std::optional<double> acc_random_walk_mps3_sqrthz;       // accelerometer_random_walk
+};
+EurocSensorYaml read_euroc_sensor_yaml(const std::string& path);
 
 // True when `path` looks like an EuRoC / a TUM folder (used by open_log).
 bool is_euroc_folder(const std::string& path);

@@ -89,6 +89,8 @@ struct StatusWire {
   uint32_t reserved3 = 0;
 };
 
+// The packet CRC (zlib's crc32, CRC-32/ISO-HDLC). `crc` continues a running
+// value: crc32(b, nb, crc32(a, na)) is the CRC of a followed by b.
 uint32_t crc32(const uint8_t* data, size_t n, uint32_t crc = 0);
 
 // Encoders (the fake bridge and the docs' examples use them). Return bytes

@@ -126,8 +126,10 @@ Mat4d to_mat4(const Eigen::Isometry3d& T);
 // its IMU noise figures, when it has any, replace those of `imu`. Throws
 // std::runtime_error naming the file and field.
 void load_sim_rig_yaml(const std::string& path, Rig& rig, ImuModel& imu);
-// EuRoC ASL sensor files (tolerates their "%YAML:1.0" line). Return false
-// when the file does not exist; throw std::runtime_error when it is malformed.
+// EuRoC ASL sensor files, read by drivers::read_euroc_sensor_yaml (the EuRoC
+// reader's own). Return false when the file does not exist; throw
+// std::runtime_error naming file and key when it is malformed (the IMU file
+// must state all four noise figures).
 bool read_euroc_imu_yaml(const std::string& path, ImuModel& model, double& rate_hz);
 bool read_euroc_T_BS(const std::string& path, Eigen::Isometry3d& T_BS);
 
