@@ -132,19 +132,27 @@ bool FrontendOdometry::add_frame(const RgbdFrame& f) {
     // A keyframe taken while coasting keeps the IMU pose: nothing to correct.
     corrected.t_ns = s.t_ns;
     prop_.correct(corrected);
-    note_pose(r.T_WC, f.t_ns);
-    out_.state = prop_.state();
-    out_.quality = TrackingQuality::kTracking;
-    last_tracked_t_ns_ = f.t_ns;
-    lost_frames_ = 0;
-    ++frames_tracked_;
-    ++counters_.frames_used;
-    return true;
+    return took_frame(r.T_WC, f.t_ns, TrackingQuality::kTracking);
   }
   // Not tracked: coast on the IMU; after a few frames, start over from a new
   // keyframe at the predicted pose rather than matching an ever staler one.
+  return missed_frame(TrackingQuality::kImuOnly);
+}
+
+bool FrontendOdometry::took_frame(const Eigen::Isometry3d& T_WC, int64_t t_ns, TrackingQuality q) {
+  note_pose(T_WC, t_ns);
+  out_.state = prop_.state();
+  out_.quality = q;
+  last_tracked_t_ns_ = t_ns;
+  lost_frames_ = 0;
+  ++frames_tracked_;
+  ++counters_.frames_used;
+  return true;
+}
+
+bool FrontendOdometry::missed_frame(TrackingQuality q) {
   ++lost_frames_;
-  out_.quality = TrackingQuality::kImuOnly;
+  out_.quality = q;
   if (lost_frames_ >= opt_.max_lost_frames && tracker_.has_keyframe()) {
     tracker_.reset();
     ++counters_.resets;
@@ -205,26 +213,10 @@ bool FrontendOdometry::add_frame_vision_only(const RgbdFrame& f) {
     x.q_WB = Eigen::Quaterniond(T_WB.linear()).normalized();
     x.t_ns = f.t_ns;
     prop_.reset(x);
-    note_pose(r.T_WC, f.t_ns);
-    out_.state = prop_.state();
-    out_.quality = TrackingQuality::kVisionOnly;
-    last_tracked_t_ns_ = f.t_ns;
-    lost_frames_ = 0;
-    ++frames_tracked_;
-    ++counters_.frames_used;
-    return true;
+    return took_frame(r.T_WC, f.t_ns, TrackingQuality::kVisionOnly);
   }
   // Neither camera nor IMU: the pose coasts on the motion model, and says so.
-  ++lost_frames_;
-  out_.quality = TrackingQuality::kLost;
-  if (lost_frames_ >= opt_.max_lost_frames && tracker_.has_keyframe()) {
-    tracker_.reset();
-    ++counters_.resets;
-    out_.reset_counter = static_cast<uint32_t>(counters_.resets);
-    out_.pose_cov.valid = false;
-    lost_frames_ = 0;
-  }
-  return false;
+  return missed_frame(TrackingQuality::kLost);
 }
 
 void FrontendOdometry::correct_state(const NavState& x) {

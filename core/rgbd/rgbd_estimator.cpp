@@ -11,15 +11,6 @@
 namespace kestrel::core {
 namespace {
 
-PinholeK pinhole_of(const Rig& rig) {
-  PinholeK K;
-  K.fx = rig.rgb.fx;
-  K.fy = rig.rgb.fy;
-  K.cx = rig.rgb.cx;
-  K.cy = rig.rgb.cy;
-  return K;
-}
-
 // The window's bias factor needs IMU densities even when no state has an IMU
 // factor; nominal ones, never used for a residual.
 WindowOptions vision_only(WindowOptions w, const Rig& rig) {
@@ -57,7 +48,7 @@ RgbdEstimator::RgbdEstimator(const Rig& rig, const RgbdEstimatorOptions& opt)
       tracker_(rig, opt.tracker) {
   const std::string err = opt_.validate();
   if (!err.empty()) throw std::invalid_argument("RgbdEstimatorOptions:\n" + err);
-  if (opt_.use_window) window_ = std::make_unique<WindowOptimizer>(pinhole_of(rig), T_BC_, opt_.window);
+  if (opt_.use_window) window_ = std::make_unique<WindowOptimizer>(WindowOptimizer::pinhole_of(rig), T_BC_, opt_.window);
   // The world is the first body pose.
   T_WC_last_ = T_WC_prev_ = T_BC_;
 }

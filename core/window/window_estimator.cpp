@@ -11,15 +11,6 @@
 namespace kestrel::core {
 namespace {
 
-PinholeK pinhole_of(const Rig& rig) {
-  PinholeK K;
-  K.fx = rig.rgb.fx;
-  K.fy = rig.rgb.fy;
-  K.cx = rig.rgb.cx;
-  K.cy = rig.rgb.cy;
-  return K;
-}
-
 bool finite(const NavState& x) {
   return x.p_WB.allFinite() && x.v_WB.allFinite() && x.q_WB.coeffs().allFinite() && x.bg_rps.allFinite() &&
          x.ba_mps2.allFinite();
@@ -68,7 +59,7 @@ WindowEstimator::WindowEstimator(const Rig& rig, const WindowEstimatorOptions& o
       }()) {
   const std::string err = opt_.validate();
   if (!err.empty()) throw std::invalid_argument("WindowEstimatorOptions:\n" + err);
-  window_ = std::make_unique<WindowOptimizer>(pinhole_of(rig), T_BC_, opt_.window);
+  window_ = std::make_unique<WindowOptimizer>(WindowOptimizer::pinhole_of(rig), T_BC_, opt_.window);
   max_obs_ = opt.window.max_obs_per_frame;
   jobs_.reset(new Job[kPool]);
   for (int i = 0; i < kPool; ++i) jobs_[i].pim = Preintegrated(pim_params_);

@@ -338,6 +338,14 @@ SevenScenesReader::SevenScenesReader(const std::string& path_in, const Rig* rig_
   // it belongs to the previous instant.
   uint64_t prev_c = 0, prev_d = 0, prev_cs = 0, prev_ds = 0;
   long prev_i = -2;
+  auto entry = [](const std::string& file, int64_t t_ns, long i) {
+    text::ImageEntry e;
+    e.t_ns = e.t_recv_ns = t_ns;
+    e.seq = static_cast<uint32_t>(i);
+    e.path = e.where = file;
+    e.line = static_cast<uint64_t>(i);
+    return e;
+  };
   for (const auto& [i, f] : frames) {
     const int64_t t_ns = static_cast<int64_t>(std::llround(static_cast<double>(i) * 1e9 / opt.fps));
     const bool consecutive = i == prev_i + 1;
@@ -349,12 +357,7 @@ SevenScenesReader::SevenScenesReader(const std::string& path_in, const Rig* rig_
         ++repeated_colour_;
         s.problem(f.colour, "repeated-colour", "byte-identical to the previous frame's colour image; withheld");
       } else {
-        text::ImageEntry e;
-        e.t_ns = e.t_recv_ns = t_ns;
-        e.seq = static_cast<uint32_t>(i);
-        e.path = e.where = f.colour;
-        e.line = static_cast<uint64_t>(i);
-        s.rgb_.push_back(e);
+        s.rgb_.push_back(entry(f.colour, t_ns, i));
       }
       prev_c = h, prev_cs = sz;
     } else {
@@ -370,12 +373,7 @@ SevenScenesReader::SevenScenesReader(const std::string& path_in, const Rig* rig_
                   "byte-identical to the previous frame's depth image; withheld, and this frame's ground truth "
                   "(KinectFusion's pose from that same depth) with it");
       } else if (!f.colour.empty()) {
-        text::ImageEntry e;
-        e.t_ns = e.t_recv_ns = t_ns;
-        e.seq = static_cast<uint32_t>(i);
-        e.path = e.where = f.depth;
-        e.line = static_cast<uint64_t>(i);
-        s.depth_.push_back(e);
+        s.depth_.push_back(entry(f.depth, t_ns, i));
       }
       prev_d = h, prev_ds = sz;
     } else {

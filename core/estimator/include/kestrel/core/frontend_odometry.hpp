@@ -78,6 +78,10 @@ class FrontendOdometry final : public Estimator {
  private:
   bool add_frame_vision_only(const RgbdFrame& f);
   void note_pose(const Eigen::Isometry3d& T_WC, int64_t t_ns);
+  // A frame tracked (the state already corrected) / not tracked: the output's
+  // quality and the lost-frame count that restarts the tracker.
+  bool took_frame(const Eigen::Isometry3d& T_WC, int64_t t_ns, TrackingQuality q);
+  bool missed_frame(TrackingQuality q);
 
   FrontendOdometryOptions opt_;
   Eigen::Isometry3d T_BC_ = Eigen::Isometry3d::Identity();
