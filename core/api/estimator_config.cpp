@@ -79,6 +79,22 @@ void visit_tracker(TrackerOptions& o, OptionVisitor& v) {
   v.value("map_max_sigma_m", o.map_max_sigma_m, "a less certain map pose is not reported");
   visit_orb(o.orb, v);
   visit_lonsc(o.lonsc, v);
+  v.begin_section("rigid", "6-DoF tracking without an IMU rotation (rgbd backend, IMU outage; docs/real-imagery.md)");
+  enum_choice(v, "method", o.rigid_method, {"lonsc", "ransac"},
+              "how the 3-point rigid model is found: LONSC's ordered runs, or RANSAC");
+  v.value("threshold_px", o.rigid.consistency.threshold_px, "reprojection error bound of the consistency test");
+  v.value("depth_tol_rel", o.rigid.depth_tol_rel, "3D distance bound: this share of the current depth...");
+  v.value("depth_tol_m", o.rigid.depth_tol_m, "...plus this");
+  v.value("min_run_length", o.rigid.min_run_length, "lonsc: shorter runs are not trusted");
+  v.value("candidate_runs", o.rigid.candidate_runs, "lonsc: longest runs that each propose a motion, at most 8");
+  v.value("min_sample_spread_m", o.rigid.min_sample_spread_m, "points of a model closer than this: degenerate");
+  int rigid_min_inliers = static_cast<int>(o.rigid.min_inliers);
+  v.value("min_inliers", rigid_min_inliers, "fewer inliers: no motion");
+  o.rigid.min_inliers = static_cast<std::size_t>(rigid_min_inliers < 0 ? 0 : rigid_min_inliers);
+  v.value("confidence", o.rigid.confidence, "ransac: stop when an all-inlier triple was drawn with this probability");
+  v.value("max_iterations", o.rigid.max_iterations, "ransac: hypotheses at most");
+  v.value("seed", o.rigid.seed, "ransac: random seed (re-seeded every frame: replays are deterministic)");
+  v.end_section();
   v.begin_section("pose_refine", "6-DoF Gauss-Newton on the LONSC inliers (docs/lonsc.md)");
   v.value("max_iterations", o.refine.max_iterations, "Gauss-Newton iterations");
   v.value("huber_px", o.refine.huber_px, "Huber threshold on the whitened error (<= 0: least squares)");
@@ -99,6 +115,10 @@ void visit_vo(FrontendOdometryOptions& o, OptionVisitor& v) {
           "vo/imu: no still window by then: start moving (the window backend: window.moving_start_after_ns)");
   v.value("pred_sigma_px_per_s", o.pred_sigma_px_per_s, "search window growth per second since the last track");
   v.value("pred_sigma_min_px", o.pred_sigma_min_px, "search window pixel uncertainty, lower bound");
+  v.value("imu_outage_after_ns", o.imu_outage_after_ns,
+          "a frame this long after the last IMU sample: IMU lost, track on the camera alone (0: never)");
+  v.value("vision_only_pred_sigma_px", o.vision_only_pred_sigma_px,
+          "IMU lost: the constant-velocity prediction's pixel uncertainty at one frame");
 }
 
 void visit_window(EstimatorConfig& c, OptionVisitor& v) {
@@ -137,7 +157,12 @@ void visit_window(EstimatorConfig& c, OptionVisitor& v) {
   v.value("max_correction_m", e.max_correction_m, "optimized vs propagated position beyond this: a failure");
   v.value("max_speed_mps", e.max_speed_mps, "an optimized speed beyond this: a failure");
   v.value("max_consecutive_failures", e.max_consecutive_failures, "then the window restarts");
-  v.value("max_imu_gap_ns", e.max_imu_gap_ns, "a longer IMU gap cannot be preintegrated: the window restarts");
+  v.value("max_imu_gap_ns", e.max_imu_gap_ns, "a longer IMU gap cannot be preintegrated (continue_without_imu)");
+  v.value("continue_without_imu", e.continue_without_imu,
+          "IMU lost in flight: frames go on as vision-only states (false: the window restarts after the gap)");
+  v.value("hold_velocity_sigma_mps", e.window.hold_velocity_sigma_mps, "vision-only states: velocity held at the guess");
+  v.value("hold_gyro_bias_sigma_rps", e.window.hold_gyro_bias_sigma_rps, "vision-only states: gyro bias held");
+  v.value("hold_acc_bias_sigma_mps2", e.window.hold_acc_bias_sigma_mps2, "vision-only states: accel bias held");
   v.value("zero_velocity_when_still", e.zero_velocity_when_still, "zero-velocity factor on still frames");
   v.value("still_max_speed_mps", e.still_max_speed_mps, "a frame is still only if the speed is below this too");
   v.value("use_map_pose", e.use_map_pose, "keyframes re-located on the local map carry that pose as a factor");
@@ -210,6 +235,29 @@ void visit_map(MapSystemOptions& m, OptionVisitor& v) {
   v.end_section();
 }
 
+void visit_rgbd(RgbdEstimatorOptions& o, OptionVisitor& v) {
+  WindowOptions& w = o.window;
+  v.begin_section("rgbd", "the rgbd backend: RGB-D tracking without an IMU (core/rgbd, docs/real-imagery.md)");
+  v.value("use_window", o.use_window, "refine with the sliding window (false: the tracker's poses alone)");
+  v.value("recent_frames", w.S, "S: most recent frames in its window");
+  v.value("keyframes", w.N, "N: keyframes outside the recent frames; S + N <= 10");
+  v.value("max_landmarks", w.max_landmarks, "landmark budget of its window, fixed at start-up");
+  v.value("max_iterations", w.max_iterations, "iterations per solve (inline: no time budget)");
+  v.value("huber_px", w.huber_px, "Huber threshold on the whitened residual norm (<= 0: least squares)");
+  v.value("use_depth", w.use_depth, "RGB-D depth as a third row of the visual residual");
+  v.value("pixel_sigma_px", w.pixel_sigma, "pixel noise of an observation that gives none");
+  v.value("gauge_sigma", w.gauge_sigma, "stiff prior on the oldest state's pose [m, rad]");
+  v.value("min_observations", o.min_observations, "a frame with fewer observations stays out of the window");
+  v.value("pred_sigma_px", o.pred_sigma_px, "motion model pixel uncertainty at one frame (search window)");
+  v.value("pred_sigma_px_per_s", o.pred_sigma_px_per_s, "its growth per second without a tracked frame");
+  v.value("max_lost_frames", o.max_lost_frames, "untracked frames before the tracker and the window restart");
+  v.value("use_map_pose", o.use_map_pose, "keyframes re-located on the local map carry that pose as a factor");
+  v.value("map_pose_sigma_m", o.map_pose_sigma_m, "map pose factor sigma, lower bound");
+  v.value("map_pose_sigma_rad", o.map_pose_sigma_rad, "map pose factor sigma, lower bound");
+  v.value("max_correction_m", o.max_correction_m, "window vs tracked pose beyond this: the solve is not taken");
+  v.end_section();
+}
+
 void visit_ekf(EkfEstimatorOptions& o, OptionVisitor& v) {
   v.begin_section("ekf", "the SE(3) EKF backend (core/ekf, docs/ekf.md)");
   v.value("landmark_capacity", o.landmark_capacity, "active landmarks in the filter; cost ~ (15 + 3C)^2");
@@ -266,6 +314,17 @@ WindowEstimatorOptions EstimatorConfig::window_options() const {
   return o;
 }
 
+RgbdEstimatorOptions EstimatorConfig::rgbd_options() const {
+  RgbdEstimatorOptions o = rgbd;
+  o.tracker = tracker;
+  return o;
+}
+
+std::string resolve_backend(const std::string& backend, const Rig& rig) {
+  if (backend != "auto") return backend;
+  return rig.imu_rate_hz > 0 ? "window" : "rgbd";
+}
+
 EkfEstimatorOptions EstimatorConfig::ekf_options() const {
   EkfEstimatorOptions o = ekf;
   o.tracker = tracker;
@@ -296,7 +355,9 @@ void visit_safety(DivergenceOptions& o, OptionVisitor& v) {
 void visit_options(EstimatorConfig& c, OptionVisitor& v) {
   {
     v.begin_section("estimator", "which backend runs");
-    v.value("backend", c.backend, "window, window-embedded, window-ceres, vo, ekf, imu (selects the defaults)");
+    v.value("backend", c.backend,
+            "auto, window, window-embedded, window-ceres, vo, ekf, imu, rgbd (selects the defaults; auto: window "
+            "with an IMU, rgbd without)");
     v.end_section();
   }
   {
@@ -309,6 +370,7 @@ void visit_options(EstimatorConfig& c, OptionVisitor& v) {
   }
   visit_window(c, v);
   visit_map(c.window.map, v);
+  visit_rgbd(c.rgbd, v);
   visit_ekf(c.ekf, v);
   visit_safety(c.safety, v);
 }
@@ -333,6 +395,10 @@ std::string validate(const EstimatorConfig& c) {
   if (!s.empty()) e << "ekf: " << s << "\n";
   s = c.safety.validate();
   if (!s.empty()) e << "safety: " << s;
+  RgbdEstimatorOptions r = c.rgbd_options();
+  r.window.imu = w.window.imu;
+  s = r.validate();
+  if (!s.empty()) e << "rgbd: " << s;
   return e.str();
 }
 

@@ -5,15 +5,16 @@
 #include "kestrel/core/ekf_estimator.hpp"
 #include "kestrel/core/estimator.hpp"
 #include "kestrel/core/frontend_odometry.hpp"
+#include "kestrel/core/rgbd_estimator.hpp"
 #include "kestrel/core/window_estimator.hpp"
 
 namespace kestrel::core {
 
-const char* estimator_names() { return "window, window-embedded, window-ceres, vo, ekf, imu"; }
+const char* estimator_names() { return "auto, window, window-embedded, window-ceres, vo, ekf, imu, rgbd"; }
 
 bool estimator_known(const std::string& name) {
-  return name == "vo" || name == "imu" || name == "ekf" || name == "window" || name == "window-embedded" ||
-         name == "window-ceres";
+  return name == "auto" || name == "vo" || name == "imu" || name == "ekf" || name == "window" ||
+         name == "window-embedded" || name == "window-ceres" || name == "rgbd";
 }
 
 std::unique_ptr<Estimator> make_estimator(const std::string& name, const Rig& rig) {
@@ -23,12 +24,13 @@ std::unique_ptr<Estimator> make_estimator(const std::string& name, const Rig& ri
 std::unique_ptr<Estimator> make_estimator(const EstimatorConfig& c, const Rig& rig) {
   const std::string err = validate(c);
   if (!err.empty()) throw std::invalid_argument("estimator config:\n" + err);
-  const std::string& name = c.backend;
+  const std::string name = resolve_backend(c.backend, rig);
   if (name == "imu") return std::make_unique<DeadReckoningEstimator>(rig, c.vo.moving_start_after_ns);
   if (name == "vo") return std::make_unique<FrontendOdometry>(rig, c.vo_options());
   if (name == "window" || name == "window-embedded" || name == "window-ceres")
     return std::make_unique<WindowEstimator>(rig, c.window_options());
   if (name == "ekf") return std::make_unique<EkfEstimator>(rig, c.ekf_options());
+  if (name == "rgbd") return std::make_unique<RgbdEstimator>(rig, c.rgbd_options());
   throw std::invalid_argument("unknown estimator '" + name + "' (expected one of: " + estimator_names() + ")");
 }
 
@@ -36,6 +38,7 @@ const Tracker* tracker_of(const Estimator& est) {
   if (const auto* w = dynamic_cast<const WindowEstimator*>(&est)) return &w->front().tracker();
   if (const auto* vo = dynamic_cast<const FrontendOdometry*>(&est)) return &vo->tracker();
   if (const auto* e = dynamic_cast<const EkfEstimator*>(&est)) return &e->tracker();
+  if (const auto* r = dynamic_cast<const RgbdEstimator*>(&est)) return &r->tracker();
   return nullptr;
 }
 

@@ -1,6 +1,7 @@
 #include "kestrel/core/frontend_odometry.hpp"
 
 #include <algorithm>
+#include <cmath>
 
 #include "kestrel/core/rig_transforms.hpp"
 #include "kestrel/core/so3.hpp"
@@ -25,7 +26,18 @@ bool FrontendOdometry::add_imu(const ImuSample& s) {
     ++counters_.resets;
     out_.reset_counter = static_cast<uint32_t>(counters_.resets);
   }
+  if (vision_only_ && imu_sample_usable(s)) {
+    // The IMU is back: restart the propagation at this sample from the
+    // camera's pose moved on by its velocity, with the biases from before.
+    NavState x = prop_.state();
+    const double ahead_s = 1e-9 * static_cast<double>(s.t_ns - x.t_ns);
+    if (ahead_s > 0 && ahead_s < 0.5) x.p_WB += x.v_WB * ahead_s;
+    x.t_ns = s.t_ns;
+    prop_.reset(x);
+    vision_only_ = false;
+  }
   if (!prop_.propagate(s)) return false;
+  last_imu_t_ns_ = s.t_ns;
   last_gyro_rps_ = Eigen::Vector3d(s.gyro_rps[0], s.gyro_rps[1], s.gyro_rps[2]);
   ++counters_.imu_used;
   out_.state = prop_.state();
@@ -33,15 +45,6 @@ bool FrontendOdometry::add_imu(const ImuSample& s) {
   supervise();
   return true;
 }
-
-void FrontendOdometry::set_quality(bool tracking) {
-  if (monitor_.lost()) {
-    out_.quality = TrackingQuality::kLost;
-  } else {
-    out_.quality = tracking ? TrackingQuality::kTracking : TrackingQuality::kImuOnly;
-  }
-}
-
 void FrontendOdometry::supervise() {
   const DivergenceCause why = monitor_.check(prop_.state(), &out_.pose_cov);
   if (why != DivergenceCause::kNone) reinitialise(why);
@@ -94,6 +97,8 @@ void FrontendOdometry::reinitialise(DivergenceCause why) {
 bool FrontendOdometry::add_frame(const RgbdFrame& f) {
   ++counters_.frames_in;
   if (!started_) return false;
+  if (opt_.imu_outage_after_ns > 0 && last_imu_t_ns_ >= 0 && f.t_ns - last_imu_t_ns_ > opt_.imu_outage_after_ns)
+    return add_frame_vision_only(f);
   const NavState& s = prop_.state();
   // The propagated state is at the last IMU sample, up to one IMU period
   // before the frame; extrapolate to the frame time with the last rate and
@@ -179,30 +184,45 @@ bool FrontendOdometry::add_frame(const RgbdFrame& f) {
     // A keyframe taken while coasting keeps the IMU pose: nothing to correct.
     corrected.t_ns = s.t_ns;
     prop_.correct(corrected);
-    out_.state = prop_.state();
-    // A keyframe alone anchors the pose; only a tracked frame is a fix.
-    monitor_.on_frame(f.t_ns, r.tracked(), false);
-    if (r.tracked()) {
-      last_fix_state_ = out_.state;
-      have_fix_state_ = true;
-    }
-    // A keyframe alone is an anchor at the predicted pose, not a fix: it
-    // claims tracking only when the last frame did.
-    set_quality(r.tracked() || out_.quality == TrackingQuality::kTracking);
-    if (r.tracked()) refused_in_streak_ = false;
-    last_tracked_t_ns_ = f.t_ns;
-    lost_frames_ = 0;
-    ++frames_tracked_;
-    ++counters_.frames_used;
-    supervise();
-    return true;
+    return took_frame(r.T_WC, f.t_ns, TrackingQuality::kTracking, r.tracked());
   }
   // Not tracked: coast on the IMU; after a few frames, start over from a new
   // keyframe at the predicted pose rather than matching an ever staler one.
+  return missed_frame(f.t_ns, TrackingQuality::kImuOnly, rejected);
+}
+
+// fix: the frame was tracked (a keyframe alone is an anchor at the predicted
+// pose, not a fix, and claims q only when the last frame did).
+bool FrontendOdometry::took_frame(const Eigen::Isometry3d& T_WC, int64_t t_ns, TrackingQuality q, bool fix) {
+  note_pose(T_WC, t_ns);
+  out_.state = prop_.state();
+  monitor_.on_frame(t_ns, fix, false);
+  if (fix) {
+    last_fix_state_ = out_.state;
+    have_fix_state_ = true;
+    refused_in_streak_ = false;
+  }
+  if (monitor_.lost()) {
+    out_.quality = TrackingQuality::kLost;
+  } else if (fix || out_.quality == q) {
+    out_.quality = q;
+  } else if (q == TrackingQuality::kTracking) {
+    out_.quality = TrackingQuality::kImuOnly;
+  }
+  last_tracked_t_ns_ = t_ns;
+  lost_frames_ = 0;
+  ++frames_tracked_;
+  ++counters_.frames_used;
+  supervise();
+  return true;
+}
+
+// rejected: the tracker had a pose the gate refused (vision and the IMU disagree).
+bool FrontendOdometry::missed_frame(int64_t t_ns, TrackingQuality q, bool rejected) {
   ++lost_frames_;
   refused_in_streak_ = refused_in_streak_ || rejected;
-  monitor_.on_frame(f.t_ns, false, rejected);
-  set_quality(false);
+  monitor_.on_frame(t_ns, false, rejected);
+  out_.quality = monitor_.lost() ? TrackingQuality::kLost : q;
   supervise();
   if (lost_frames_ >= opt_.max_lost_frames && tracker_.has_keyframe()) {
     // Frames refused for disagreeing with the prediction: the velocity is
@@ -222,9 +242,72 @@ bool FrontendOdometry::add_frame(const RgbdFrame& f) {
   return false;
 }
 
+void FrontendOdometry::note_pose(const Eigen::Isometry3d& T_WC, int64_t t_ns) {
+  T_WC_prev_ = T_WC_last_;
+  t_prev_ns_ = t_last_ns_;
+  T_WC_last_ = T_WC;
+  t_last_ns_ = t_ns;
+}
+
+// The IMU is silent: constant-velocity prediction, 6-DoF tracking, and the
+// tracked pose (with the velocity between the last two) becomes the state.
+bool FrontendOdometry::add_frame_vision_only(const RgbdFrame& f) {
+  if (!vision_only_) {
+    vision_only_ = true;
+    ++outages_;
+  }
+  if (t_last_ns_ <= last_imu_t_ns_) {
+    // No frame tracked since the last sample (frames tracked while the IMU
+    // was silent but not yet given up on are newer, and better): the last
+    // IMU state's pose and velocity start the motion model.
+    const NavState& s = prop_.state();
+    Eigen::Isometry3d T_WB = Eigen::Isometry3d::Identity();
+    T_WB.linear() = s.q_WB.toRotationMatrix();
+    T_WB.translation() = s.p_WB;
+    T_WC_prev_ = T_WB * T_BC_;
+    t_prev_ns_ = s.t_ns;
+    T_WB.translation() += s.v_WB * 0.001;
+    T_WC_last_ = T_WB * T_BC_;
+    t_last_ns_ = s.t_ns + 1'000'000;
+  }
+  Eigen::Isometry3d T_WC_pred = T_WC_last_;
+  if (t_prev_ns_ >= 0 && t_last_ns_ > t_prev_ns_) {
+    const double ratio =
+        std::clamp(static_cast<double>(f.t_ns - t_last_ns_) / static_cast<double>(t_last_ns_ - t_prev_ns_), 0.0, 100.0);
+    const Eigen::Isometry3d D = T_WC_prev_.inverse() * T_WC_last_;
+    Eigen::Isometry3d Ds = Eigen::Isometry3d::Identity();
+    Ds.linear() = so3::Exp(ratio * so3::Log(D.linear()));
+    Ds.translation() = ratio * D.translation();
+    T_WC_pred = T_WC_last_ * Ds;
+  }
+  const double since_s = last_tracked_t_ns_ < 0 ? 1.0 : 1e-9 * static_cast<double>(f.t_ns - last_tracked_t_ns_);
+  const double sigma_px = opt_.vision_only_pred_sigma_px + opt_.pred_sigma_px_per_s * std::max(0.0, since_s - 0.034);
+  const TrackResult& r = tracker_.track(f.t_ns, f.rgb, f.depth, T_WC_pred, sigma_px, /*rotation_known=*/false);
+  if (r.tracked() || r.status == TrackStatus::kNewKeyframe) {
+    const Eigen::Isometry3d T_WB = r.T_WC * T_BC_.inverse();
+    const double dt_s = 1e-9 * static_cast<double>(f.t_ns - t_last_ns_);
+    NavState x = prop_.state();
+    if (dt_s > 1e-3) x.v_WB = (T_WB.translation() - (T_WC_last_ * T_BC_.inverse()).translation()) / dt_s;
+    x.p_WB = T_WB.translation();
+    x.q_WB = Eigen::Quaterniond(T_WB.linear()).normalized();
+    x.t_ns = f.t_ns;
+    prop_.reset(x);
+    return took_frame(r.T_WC, f.t_ns, TrackingQuality::kVisionOnly, r.tracked());
+  }
+  // Neither camera nor IMU: the pose coasts on the motion model, and says so.
+  return missed_frame(f.t_ns, TrackingQuality::kLost, false);
+}
+
 void FrontendOdometry::correct_state(const NavState& x) {
   prop_.correct(x);
   out_.state = prop_.state();
+  // While the IMU is silent the motion model runs on these poses: it takes the back end's too.
+  if (vision_only_ && x.t_ns == t_last_ns_) {
+    Eigen::Isometry3d T_WB = Eigen::Isometry3d::Identity();
+    T_WB.linear() = x.q_WB.normalized().toRotationMatrix();
+    T_WB.translation() = x.p_WB;
+    T_WC_last_ = T_WB * T_BC_;
+  }
 }
 
 void FrontendOdometry::count_reset() {

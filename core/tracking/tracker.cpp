@@ -35,6 +35,11 @@ std::string TrackerOptions::validate() const {
   if (!(keyframe_area_ratio > 0 && keyframe_area_ratio < 1)) e << "keyframe_area_ratio: in (0, 1)\n";
   if (area_grid_cols < 2 || area_grid_rows < 2) e << "area_grid_cols/rows: at least 2\n";
   if (map_capacity < 0) e << "map_capacity: >= 0 (0: no local map)\n";
+  if (!(rigid.consistency.threshold_px > 0 && rigid.depth_tol_rel >= 0 && rigid.depth_tol_m >= 0 &&
+        rigid.min_run_length >= 3 && rigid.candidate_runs >= 1 && rigid.candidate_runs <= 8 &&
+        rigid.confidence > 0 && rigid.confidence < 1 && rigid.max_iterations >= 1))
+    e << "rigid.*: threshold_px > 0, tolerances >= 0, min_run_length >= 3, candidate_runs in [1, 8], confidence "
+         "in (0, 1), max_iterations >= 1\n";
   if (map_capacity > 0 && !(map_search_radius_px > 0 && map_min_inliers >= 6 && map_match_ratio > 0 &&
                             map_match_ratio <= 1 && map_max_correction_m > 0 && map_max_correction_rad > 0))
     e << "map_*: radius > 0, min_inliers >= 6, ratio in (0, 1], max corrections > 0\n";
@@ -168,6 +173,11 @@ struct Tracker::Impl {
         id_slot(new int32_t[id_table_size(opt.map_capacity)]),
         id_mask(static_cast<uint32_t>(id_table_size(opt.map_capacity) - 1)),
         lonsc(static_cast<size_t>(capacity), opt.lonsc),
+        rigid(static_cast<size_t>(capacity), opt.rigid),
+        corr_q(new Eigen::Vector3d[static_cast<size_t>(capacity)]),
+        corr_has_q(new uint8_t[static_cast<size_t>(capacity)]),
+        corr_z(new double[static_cast<size_t>(capacity)]),
+        corr_sz(new double[static_cast<size_t>(capacity)]),
         orderer(static_cast<size_t>(capacity)) {
     K.fx = cam.fx();
     K.fy = cam.fy();
@@ -494,9 +504,10 @@ struct Tracker::Impl {
 
   // LONSC's inliers carry their keyframe point's landmark id into cur and
   // become this frame's observations.
-  void adopt_tracked_inliers(const MotionEstimate& est) {
-    for (size_t k = 0; k < est.num_inliers; ++k) {
-      const uint32_t idx = lonsc.inlier_indices()[k];
+  // inl: the motion's inliers (LONSC's, or the rigid model's without an IMU rotation).
+  void adopt_tracked_inliers(const uint32_t* inl, size_t n_inl) {
+    for (size_t k = 0; k < n_inl; ++k) {
+      const uint32_t idx = inl[k];
       const int j = corr_cur[idx];
       cur.lm_id[j] = kf.lm_id[best_kf[j]];
       cur.map_idx[j] = kf.map_idx[best_kf[j]];
@@ -576,6 +587,11 @@ struct Tracker::Impl {
   uint32_t map_stamp = 0;
   uint32_t next_lm_id = 1;
   LonscEstimator lonsc;
+  RigidConsensus rigid;
+  // 6-DoF tracking: per correspondence the current point (from its depth), and its depth with the sigma.
+  std::unique_ptr<Eigen::Vector3d[]> corr_q;
+  std::unique_ptr<uint8_t[]> corr_has_q;
+  std::unique_ptr<double[]> corr_z, corr_sz;
   CorrespondenceOrderer orderer;
 };
 
@@ -689,7 +705,7 @@ void Tracker::clear_map() {
 }
 
 const TrackResult& Tracker::track(int64_t t_ns, const ImageView& image, const ImageView& depth,
-                                  const Eigen::Isometry3d& T_WC_pred, double pred_sigma_px) {
+                                  const Eigen::Isometry3d& T_WC_pred, double pred_sigma_px, bool rotation_known) {
   Impl& m = *impl_;
   result_ = TrackResult{};
   result_.T_WC = T_WC_pred;
@@ -739,36 +755,75 @@ const TrackResult& Tracker::track(int64_t t_ns, const ImageView& image, const Im
     return result_;
   }
 
-  // ---- LONSC with the IMU rotation, then Gauss-Newton on the inliers -------
+  // ---- LONSC with the IMU rotation (or a 6-DoF rigid model without one), ---
+  // ---- then Gauss-Newton on the inliers ------------------------------------
   const size_t n_ordered =
       m.orderer.order(opt_.order, m.corr.get(), static_cast<size_t>(n), m.order.get(), m.cam.width(), m.cam.height());
-  const MotionEstimate est = m.lonsc.estimate(R_pred, m.K, m.corr.get(), static_cast<size_t>(n),
-                                              n_ordered > 0 ? m.order.get() : nullptr, t_pred);
-  result_.motion_status = est.status;
-  if (!est.ok() || static_cast<int>(est.num_inliers) < opt_.min_inliers) {
-    result_.status = TrackStatus::kMotionFailed;
-    result_.inliers = static_cast<int>(est.num_inliers);
-    return result_;
-  }
   Eigen::Matrix3d R = R_pred;
-  Eigen::Vector3d t = est.t;
-  const PoseRefineResult ref = refine_pose_gauss_newton(&R, &t, m.K, m.corr.get(), static_cast<size_t>(n),
-                                                        m.lonsc.inlier_indices(), est.num_inliers, opt_.refine,
-                                                        opt_.refine.rotation_prior_sigma_rad > 0 ? &R_pred : nullptr);
-  if (!ref.ok) {
-    R = R_pred;
+  Eigen::Vector3d t = t_pred;
+  const uint32_t* inl = nullptr;
+  size_t n_inl = 0;
+  if (rotation_known) {
+    const MotionEstimate est = m.lonsc.estimate(R_pred, m.K, m.corr.get(), static_cast<size_t>(n),
+                                                n_ordered > 0 ? m.order.get() : nullptr, t_pred);
+    result_.motion_status = est.status;
+    if (!est.ok() || static_cast<int>(est.num_inliers) < opt_.min_inliers) {
+      result_.status = TrackStatus::kMotionFailed;
+      result_.inliers = static_cast<int>(est.num_inliers);
+      return result_;
+    }
     t = est.t;
+    const PoseRefineResult ref = refine_pose_gauss_newton(&R, &t, m.K, m.corr.get(), static_cast<size_t>(n),
+                                                          m.lonsc.inlier_indices(), est.num_inliers, opt_.refine,
+                                                          opt_.refine.rotation_prior_sigma_rad > 0 ? &R_pred : nullptr);
+    if (!ref.ok) {
+      R = R_pred;
+      t = est.t;
+    }
+    inl = m.lonsc.inlier_indices();
+    n_inl = est.num_inliers;
+    result_.inlier_rms_px = est.inlier_rms_px;
+  } else {
+    for (int k = 0; k < n; ++k) {
+      const int j = m.corr_cur[k];
+      m.corr_has_q[k] = m.cur.has_depth[j];
+      m.corr_q[k] = m.cur.p_C[j];
+      m.corr_z[k] = m.cur.has_depth[j] ? m.cur.p_C[j].z() : 1.0;
+      // No depth: the depth row weighs nothing.
+      m.corr_sz[k] = m.cur.has_depth[j] ? std::max(0.005, m.depth.sigma_coeff_per_m * m.corr_z[k] * m.corr_z[k]) : 1e9;
+    }
+    const RigidEstimate est = m.rigid.estimate(opt_.rigid_method, m.K, m.corr.get(), m.corr_q.get(),
+                                               m.corr_has_q.get(), static_cast<size_t>(n),
+                                               n_ordered > 0 ? m.order.get() : nullptr);
+    result_.six_dof = true;
+    result_.model_estimates = est.model_estimates;
+    result_.motion_status = est.status;
+    if (!est.ok() || static_cast<int>(est.num_inliers) < opt_.min_inliers) {
+      result_.status = TrackStatus::kMotionFailed;
+      result_.inliers = static_cast<int>(est.num_inliers);
+      return result_;
+    }
+    R = est.R;
+    t = est.t;
+    Eigen::Matrix<double, 6, 6> cov;
+    if (!refine_pose_rgbd(&R, &t, m.K, m.corr.get(), m.corr_z.get(), m.corr_sz.get(), m.rigid.inlier_indices(),
+                          est.num_inliers, opt_.refine.huber_px, &cov)) {
+      R = est.R;
+      t = est.t;
+    }
+    inl = m.rigid.inlier_indices();
+    n_inl = est.num_inliers;
+    result_.inlier_rms_px = est.inlier_rms_px;
   }
-  result_.inliers = static_cast<int>(est.num_inliers);
-  result_.inlier_rms_px = est.inlier_rms_px;
+  result_.inliers = static_cast<int>(n_inl);
   Eigen::Isometry3d T_CK = Eigen::Isometry3d::Identity();
   T_CK.linear() = R;
   T_CK.translation() = t;
   const Eigen::Isometry3d T_WC = m.kf.T_WC * T_CK.inverse();
   result_.T_WC = T_WC;
-  result_.area_ratio = m.area_ratio(opt_, m.lonsc.inlier_indices(), est.num_inliers);
+  result_.area_ratio = m.area_ratio(opt_, inl, n_inl);
   result_.status = TrackStatus::kTracked;
-  m.adopt_tracked_inliers(est);
+  m.adopt_tracked_inliers(inl, n_inl);
 
   const bool stale = 1e-9 * static_cast<double>(t_ns - m.kf.t_ns) > opt_.keyframe_max_interval_s;
   const bool new_kf =

@@ -208,6 +208,30 @@ class LandmarkPriorCost final : public ceres::SizedCostFunction<3, 3> {
   const WindowLandmark& L_;
 };
 
+// Hold prior on the speed/bias block of a vision-only state (window_problem.hpp).
+class HoldCost final : public ceres::SizedCostFunction<9, 9> {
+ public:
+  HoldCost(const WindowProblem& P, const WindowState& st) : P_(P), st_(st) {}
+  bool Evaluate(double const* const* params, double* residuals, double** jacobians) const override {
+    NavState x;
+    x.v_WB = Eigen::Vector3d(params[0][0], params[0][1], params[0][2]);
+    x.bg_rps = Eigen::Vector3d(params[0][3], params[0][4], params[0][5]);
+    x.ba_mps2 = Eigen::Vector3d(params[0][6], params[0][7], params[0][8]);
+    Eigen::Map<Vector9d> res(residuals);
+    res = hold_residual(P_, st_, x);
+    if (jacobians && jacobians[0]) {
+      Eigen::Map<Eigen::Matrix<double, 9, 9, Eigen::RowMajor>> J(jacobians[0]);
+      J.setZero();
+      J.diagonal() = hold_weights(P_);
+    }
+    return true;
+  }
+
+ private:
+  const WindowProblem& P_;
+  const WindowState& st_;
+};
+
 // A residual on one pose block alone (gauge, map pose factor): f(x, J*)
 // returns the kRows residual and d r / d[dp, dphi] from window_problem.hpp.
 template <int kRows, class F>
@@ -349,6 +373,19 @@ struct CeresWindow {
       problem.AddResidualBlock(
           pose_block_cost<6>([&st](const NavState& x, Matrix6d* J) { return pose_prior_residual(st, x, J); }),
           nullptr, pose[s].data());
+      ++n_residual_blocks;
+    }
+    for (int k = 0; k < P.n_states; ++k) {
+      const int s = P.order[k];
+      if (!P.states[s].hold) continue;
+      problem.AddResidualBlock(new HoldCost(P, P.states[s]), nullptr, sb[s].data());
+      ++n_residual_blocks;
+    }
+    if (P.gauge_rotation_active()) {
+      problem.AddResidualBlock(pose_block_cost<3>([&P](const NavState& x, Eigen::Matrix<double, 3, 6>* J) {
+                                 return gauge_rotation_residual(P, x, J);
+                               }),
+                               nullptr, pose[P.gauge_slot].data());
       ++n_residual_blocks;
     }
     if (P.gauge_active()) {

@@ -11,15 +11,6 @@
 namespace kestrel::core {
 namespace {
 
-PinholeK pinhole_of(const Rig& rig) {
-  PinholeK K;
-  K.fx = rig.rgb.fx;
-  K.fy = rig.rgb.fy;
-  K.cx = rig.rgb.cx;
-  K.cy = rig.rgb.cy;
-  return K;
-}
-
 bool finite(const NavState& x) {
   return x.p_WB.allFinite() && x.v_WB.allFinite() && x.q_WB.coeffs().allFinite() && x.bg_rps.allFinite() &&
          x.ba_mps2.allFinite();
@@ -68,7 +59,7 @@ WindowEstimator::WindowEstimator(const Rig& rig, const WindowEstimatorOptions& o
       }()) {
   const std::string err = opt_.validate();
   if (!err.empty()) throw std::invalid_argument("WindowEstimatorOptions:\n" + err);
-  window_ = std::make_unique<WindowOptimizer>(pinhole_of(rig), T_BC_, opt_.window);
+  window_ = std::make_unique<WindowOptimizer>(WindowOptimizer::pinhole_of(rig), T_BC_, opt_.window);
   max_obs_ = opt.window.max_obs_per_frame;
   jobs_.reset(new Job[kPool]);
   for (int i = 0; i < kPool; ++i) jobs_[i].pim = Preintegrated(pim_params_);
@@ -104,7 +95,8 @@ std::string WindowEstimator::backend_summary() const {
     << ", applied " << wc_.applied << ", failures " << wc_.failures << ", window resets " << wc_.window_resets
     << ", skipped (busy " << wc_.skipped_busy << ", few obs " << wc_.skipped_few_obs << ", no imu "
     << wc_.skipped_no_imu << "), stale " << wc_.stale_results << ", imu gaps " << wc_.imu_gaps
-    << ", still frames " << wc_.stationary_frames << ", map poses " << wc_.map_poses;
+    << ", still frames " << wc_.stationary_frames << ", map poses " << wc_.map_poses << ", vision-only frames "
+    << wc_.vision_only_frames;
   if (opt_.window.estimate_time_offset) o << ", time offset " << 1e3 * td_s_ << " ms";
   if (map_) o << "\n" << map_->summary();
   return o.str();
@@ -215,6 +207,7 @@ void WindowEstimator::queue_job(const RgbdFrame& f, const TrackResult& r) {
   }
   if (opt_.keyframes_only && !r.keyframe && pim_active_) return;
   if (!have_last_sample_) return;
+  if (front_.vision_only() && !opt_.continue_without_imu) return;
   // Reclaim the slots the optimizer is done with.
   while (const uint8_t* s = done_.front()) {
     free_slots_[n_free_++] = *s;
@@ -243,13 +236,24 @@ void WindowEstimator::queue_job(const RgbdFrame& f, const TrackResult& r) {
     job.map_sigma_rad = std::max(opt_.map_pose_sigma_rad, r.map_sigma_rad);
     ++wc_.map_poses;
   }
-  job.reset = !pim_active_ || reset_requested_;
+  job.reset = !window_started_ || reset_requested_ || (!pim_active_ && !opt_.continue_without_imu);
   reset_requested_ = false;
+  // Without the IMU chain (silent IMU, or the first frame after it returned)
+  // the frame enters without an IMU factor and the chain restarts here.
+  job.vision_only = !job.reset && (!pim_active_ || front_.vision_only());
+  wc_.vision_only_frames += job.vision_only ? 1 : 0;
   pending_slot_ = slot;
-  if (job.reset) {
-    // The window (re)starts here: nothing to preintegrate from.
+  if (job.reset || job.vision_only) {
+    // The window (re)starts here, or the chain does: nothing to preintegrate from.
     job.has_pim = false;
+    window_started_ = true;
     submit_pending();
+    if (front_.vision_only()) {
+      pim_active_ = false;  // the next frame too, until samples return
+      // No IMU sample will come to apply the result: the front end's state
+      // is at this frame, where the result is.
+      poll_results();
+    }
   }
   // Results are applied in add_imu, where the propagated state and the
   // preintegration since the last window frame end at the same sample.
@@ -264,12 +268,16 @@ bool WindowEstimator::add_imu(const ImuSample& s) {
   }
   NavState still_state;
   if (still_.add(s, still_state)) still_t_ns_ = s.t_ns;
-  if (have_last_sample_ && s.t_ns - last_sample_.t_ns > opt_.max_imu_gap_ns && pim_active_) {
-    // Preintegrating across the gap would invent motion: restart the window
-    // at the next frame, from the front end's (IMU-coasted) state.
+  if (have_last_sample_ && s.t_ns - last_sample_.t_ns > opt_.max_imu_gap_ns && (pim_active_ || window_started_)) {
+    // Preintegrating across the gap would invent motion. With
+    // continue_without_imu the frames of the gap went in vision-only and the
+    // chain restarts at the next frame; without it the window restarts
+    // there, from the front end's (IMU-coasted) state.
     ++wc_.imu_gaps;
-    ++wc_.window_resets;
-    front_.count_reset();
+    if (!opt_.continue_without_imu) {
+      ++wc_.window_resets;
+      front_.count_reset();
+    }
     pim_active_ = false;
     if (pending_slot_ >= 0) {
       free_slots_[n_free_++] = pending_slot_;
@@ -342,6 +350,7 @@ void WindowEstimator::fail_and_maybe_reset() {
   ++wc_.failures;
   if (++consecutive_failures_ >= opt_.max_consecutive_failures) {
     reset_requested_ = true;
+    window_started_ = false;
     consecutive_failures_ = 0;
     ++wc_.window_resets;
     front_.count_reset();
@@ -416,6 +425,7 @@ void WindowEstimator::process(int slot) {
   in.uv_vel_pxps = opt_.window.estimate_time_offset ? vel_of(slot) : nullptr;
   in.keyframe = job.keyframe || window_->num_states() == 0;
   in.stationary = job.stationary;
+  in.vision_only = job.vision_only;
   if (job.has_map_pose) {
     in.has_pose_prior = true;
     in.prior_p_WB = job.T_WB_map.translation();
@@ -423,7 +433,7 @@ void WindowEstimator::process(int slot) {
     in.prior_sigma_p_m = job.map_sigma_p_m;
     in.prior_sigma_rad = job.map_sigma_rad;
   }
-  if (job.reset || !job.has_pim) {
+  if (job.reset || (!job.has_pim && !job.vision_only)) {
     window_->reset();
     in.imu_from_prev = nullptr;
     in.keyframe = true;

@@ -64,6 +64,8 @@ std::string WindowOptions::validate() const {
   if (!(gauge_sigma > 0.0)) e << "gauge_sigma must be > 0; ";
   if (!(zero_velocity_sigma_mps > 0.0)) e << "zero_velocity_sigma_mps must be > 0; ";
   if (!(time_offset_prior_sigma_ms > 0.0)) e << "time_offset_prior_sigma_ms must be > 0; ";
+  if (!(hold_velocity_sigma_mps > 0.0) || !(hold_gyro_bias_sigma_rps > 0.0) || !(hold_acc_bias_sigma_mps2 > 0.0))
+    e << "hold sigmas (hold_velocity_sigma_mps, hold_gyro_bias_sigma_rps, hold_acc_bias_sigma_mps2) must be > 0; ";
   return e.str();
 }
 
@@ -196,6 +198,7 @@ void WindowOptimizer::reset() {
     st.keyframe = false;
     st.zero_velocity = false;
     st.has_pose_prior = false;
+    st.hold = false;
     st.has_imu = false;
     st.imu_prev = -1;
     st.n_obs = 0;
@@ -291,12 +294,13 @@ void WindowOptimizer::reset_gauge() {
   P.gauge_slot = s;
   P.gauge_p = P.states[s].x.p_WB;
   P.gauge_yaw = yaw_of(P.states[s].x.q_WB);
+  P.gauge_q = P.states[s].x.q_WB.normalized();
 }
 
 bool WindowOptimizer::add_frame(const WindowFrameInput& in) {
   WindowProblem& P = *problem_;
   if (P.n_states > 0) {
-    if (in.imu_from_prev == nullptr) return false;
+    if (in.imu_from_prev == nullptr && !in.vision_only) return false;
     if (in.t_ns <= P.states[P.newest_slot()].x.t_ns) return false;
   }
   // Which state leaves: the frame dropping out of the S most recent is
@@ -331,7 +335,9 @@ bool WindowOptimizer::add_frame(const WindowFrameInput& in) {
   st.x.q_WB.normalize();
   st.n_obs = 0;
   st.in_prior = false;
-  st.has_imu = P.n_states > 0;
+  st.hold = in.vision_only;
+  st.hold_x = st.x;
+  st.has_imu = P.n_states > 0 && !in.vision_only;
   st.imu_prev = st.has_imu ? P.newest_slot() : -1;
   if (st.has_imu) {
     st.pim = *in.imu_from_prev;
@@ -539,6 +545,13 @@ void WindowOptimizer::marginalize_or_drop(int m) {
     ws.gm.segment<6>(kD * m) += J.transpose() * r;
     c += 0.5 * r.squaredNorm();
   }
+  if (P.states[m].hold) {
+    const Vector9d w = hold_weights(P);
+    const Vector9d r = hold_residual(P, P.states[m], lin(m));
+    ws.Hm.block<9, 9>(kD * m + 6, kD * m + 6).diagonal() += w.cwiseProduct(w);
+    ws.gm.segment<9>(kD * m + 6) += w.cwiseProduct(r);
+    c += 0.5 * r.squaredNorm();
+  }
   for (int k = 0; k < P.n_states; ++k) {
     const int j = P.order[k];
     if (P.states[j].has_imu && P.states[j].imu_prev == m) add_imu(j);
@@ -715,12 +728,14 @@ double problem_cost(const WindowProblem& P, const NavState* xs, const Eigen::Vec
     if (st.has_imu) cost += 0.5 * imu_bias_residual(P, st, xs[st.imu_prev], xs[s]).squaredNorm();
     if (st.zero_velocity) cost += 0.5 * (xs[s].v_WB / P.opt.zero_velocity_sigma_mps).squaredNorm();
     if (st.has_pose_prior) cost += 0.5 * pose_prior_residual(st, xs[s]).squaredNorm();
+    if (st.hold) cost += 0.5 * hold_residual(P, st, xs[s]).squaredNorm();
   }
   if (P.gauge_active()) cost += 0.5 * gauge_residual(P, xs[P.gauge_slot]).squaredNorm();
   if (P.estimate_td()) {
     const double r = time_offset_prior_residual(P, td_s);
     cost += 0.5 * r * r;
   }
+  if (P.gauge_rotation_active()) cost += 0.5 * gauge_rotation_residual(P, xs[P.gauge_slot]).squaredNorm();
   if (P.prior_active) {
     double pc = P.prior_c;
     for (int k = 0; k < P.n_states; ++k) {
@@ -811,8 +826,10 @@ WindowOptimizer::Result WindowOptimizer::optimize_ours() {
   res.landmarks = ws.n_active;
   int n_zv = 0;
   for (int k = 0; k < P.n_states; ++k)
-    n_zv += (P.states[P.order[k]].zero_velocity ? 1 : 0) + (P.states[P.order[k]].has_pose_prior ? 1 : 0);
-  res.residuals = n_vis + n_imu + n_zv + (P.gauge_active() ? 1 : 0) + (P.prior_active ? 1 : 0) + (with_td ? 1 : 0);
+    n_zv += (P.states[P.order[k]].zero_velocity ? 1 : 0) + (P.states[P.order[k]].has_pose_prior ? 1 : 0) +
+            (P.states[P.order[k]].hold ? 1 : 0);
+  res.residuals = n_vis + n_imu + n_zv + (P.gauge_active() ? 1 : 0) + (P.gauge_rotation_active() ? 1 : 0) +
+                  (P.prior_active ? 1 : 0) + (with_td ? 1 : 0);
 
   NavState xs[kWindowMaxStates];
   for (int k = 0; k < P.n_states; ++k) xs[P.order[k]] = P.states[P.order[k]].x;
@@ -912,6 +929,22 @@ WindowOptimizer::Result WindowOptimizer::optimize_ours() {
         const int o = kD * ws.pos_of_slot[s];
         Hl.block<6, 6>(o, o).noalias() += J.transpose() * J;
         bl.segment<6>(o).noalias() += J.transpose() * r;
+      }
+      // Hold priors of vision-only states: r = w (x - x_hold) on [v, bg, ba].
+      for (int k = 0; k < P.n_states; ++k) {
+        const WindowState& st = P.states[P.order[k]];
+        if (!st.hold) continue;
+        const Vector9d w = hold_weights(P);
+        const int o = kD * k + 6;
+        Hl.block<9, 9>(o, o).diagonal() += w.cwiseProduct(w);
+        bl.segment<9>(o).noalias() += w.cwiseProduct(hold_residual(P, st, st.x));
+      }
+      if (P.gauge_rotation_active()) {
+        Eigen::Matrix<double, 3, 6> Jg;
+        const Eigen::Vector3d r = gauge_rotation_residual(P, P.states[P.gauge_slot].x, &Jg);
+        const int o = kD * ws.pos_of_slot[P.gauge_slot];
+        Hl.block<6, 6>(o, o).noalias() += Jg.transpose() * Jg;
+        bl.segment<6>(o).noalias() += Jg.transpose() * r;
       }
       // Gauge.
       if (P.gauge_active()) {

@@ -111,6 +111,31 @@ Eigen::Vector4d gauge_residual(const WindowProblem& P, const NavState& x, Eigen:
   return r;
 }
 
+Eigen::Vector3d gauge_rotation_residual(const WindowProblem& P, const NavState& x, Eigen::Matrix<double, 3, 6>* J) {
+  const Eigen::Vector3d phi = so3::Log(P.gauge_q.toRotationMatrix().transpose() * x.q_WB.toRotationMatrix());
+  if (J) {
+    J->setZero();
+    J->rightCols<3>() = so3::right_jacobian_inv(phi) / P.opt.gauge_sigma;
+  }
+  return phi / P.opt.gauge_sigma;
+}
+
+Vector9d hold_weights(const WindowProblem& P) {
+  Vector9d w;
+  w.segment<3>(0).setConstant(1.0 / P.opt.hold_velocity_sigma_mps);
+  w.segment<3>(3).setConstant(1.0 / P.opt.hold_gyro_bias_sigma_rps);
+  w.segment<3>(6).setConstant(1.0 / P.opt.hold_acc_bias_sigma_mps2);
+  return w;
+}
+
+Vector9d hold_residual(const WindowProblem& P, const WindowState& st, const NavState& x) {
+  Vector9d d;
+  d.segment<3>(0) = x.v_WB - st.hold_x.v_WB;
+  d.segment<3>(3) = x.bg_rps - st.hold_x.bg_rps;
+  d.segment<3>(6) = x.ba_mps2 - st.hold_x.ba_mps2;
+  return d.cwiseProduct(hold_weights(P));
+}
+
 Vector6d pose_prior_residual(const WindowState& st, const NavState& x, Matrix6d* J) {
   Vector6d r;
   const Eigen::Vector3d phi = so3::Log(st.prior_q_WB.toRotationMatrix().transpose() * x.q_WB.toRotationMatrix());

@@ -179,6 +179,15 @@ void copy_rows(const uint8_t* src, int row_bytes, int height, int src_stride, ui
                 src + static_cast<size_t>(y) * static_cast<size_t>(src_stride), static_cast<size_t>(row_bytes));
 }
 
+bool z16_to_registered_depth(const uint8_t* src, int width, int height, int src_stride, double src_scale_m,
+                             double dst_scale_m, const DepthRegistration& reg, uint16_t* scratch, uint16_t* dst,
+                             int dst_stride, RegistrationStats* stats) {
+  if (width != reg.depth_width() || height != reg.depth_height()) return false;
+  z16_to_depth(src, width, height, src_stride, src_scale_m, dst_scale_m, scratch);
+  const ImageView v{width, height, width * 2, PixelFormat::kDepthU16, reinterpret_cast<const uint8_t*>(scratch)};
+  return reg.register_into(v, dst, dst_stride, stats);
+}
+
 PixelFormat Camera::output_format() const {
   switch (active_.fourcc) {
     case kZ16: return PixelFormat::kDepthU16;
@@ -296,6 +305,19 @@ std::string Camera::open(const Options& o) {
     return fail("the driver changed the requested format (verify after set failed)");
   active_ = choice.option;
   stride_ = static_cast<int>(fmt.fmt.pix.bytesperline);
+  registration_.reset();
+  if (o.depth_camera.present && choice.option.fourcc == kZ16) {
+    const CameraIntrinsics& d = o.depth_camera.intrinsics;
+    if (d.width != choice.option.width || d.height != choice.option.height)
+      return fail("depth stream " + std::to_string(choice.option.width) + "x" + std::to_string(choice.option.height) +
+                  " but the rig's depth_camera is " + std::to_string(d.width) + "x" + std::to_string(d.height));
+    try {
+      registration_ = std::make_unique<DepthRegistration>(o.depth_camera, o.colour, o.rig_depth_scale_m);
+    } catch (const std::invalid_argument& e) {
+      return fail(e.what());
+    }
+    depth_scratch_.assign(static_cast<size_t>(d.width) * static_cast<size_t>(d.height), 0);
+  }
   if (choice.option.fps > 0) {
     v4l2_streamparm parm;
     std::memset(&parm, 0, sizeof parm);
@@ -385,20 +407,27 @@ GrabResult Camera::grab(int timeout_ms, ImageBuffer& dst, FrameMeta& meta) {
 
   const auto* src = static_cast<const uint8_t*>(maps_[b.index].ptr);
   const int w = active_.width, h = active_.height;
+  // A registered depth frame has the colour camera's size.
+  const int ow = registration_ ? registration_->colour_width() : w;
+  const int oh = registration_ ? registration_->colour_height() : h;
   dst.t_ns = meta.t_ns;
-  dst.width = w;
-  dst.height = h;
+  dst.width = ow;
+  dst.height = oh;
   dst.format = output_format();
   bool ok = (b.flags & V4L2_BUF_FLAG_ERROR) == 0;
-  const size_t need = static_cast<size_t>(w) * h * static_cast<size_t>(bytes_per_pixel(dst.format));
+  const size_t need = static_cast<size_t>(ow) * oh * static_cast<size_t>(bytes_per_pixel(dst.format));
   if (ok && need <= dst.pixels.capacity()) {
     dst.pixels.resize(need);   // within the start-up reservation: no allocation
     switch (active_.fourcc) {
       case kYuyv: yuyv_to_rgb(src, w, h, stride_, dst.pixels.data(), w * 3); break;
       case kGrey: copy_rows(src, w, h, stride_, dst.pixels.data()); break;
       case kZ16:
-        z16_to_depth(src, w, h, stride_, opt_.depth_scale_m, opt_.rig_depth_scale_m,
-                     reinterpret_cast<uint16_t*>(dst.pixels.data()));
+        if (registration_)
+          ok = z16_to_registered_depth(src, w, h, stride_, opt_.depth_scale_m, opt_.rig_depth_scale_m, *registration_,
+                                       depth_scratch_.data(), reinterpret_cast<uint16_t*>(dst.pixels.data()), ow * 2);
+        else
+          z16_to_depth(src, w, h, stride_, opt_.depth_scale_m, opt_.rig_depth_scale_m,
+                       reinterpret_cast<uint16_t*>(dst.pixels.data()));
         break;
       case kMjpeg: {
         // Decoded into the destination buffer; libjpeg's own scratch is the

@@ -31,6 +31,12 @@ RosbagTopics topics_of(const LogOpenOptions& o) {
   return t;
 }
 
+SevenScenesReader::Options seven_scenes(const LogOpenOptions& o) {
+  SevenScenesReader::Options s;
+  s.fps = o.fps;
+  return s;
+}
+
 }  // namespace
 
 LogFormat parse_log_format(const std::string& name) {
@@ -41,10 +47,11 @@ LogFormat parse_log_format(const std::string& name) {
   if (name == "eth3d") return LogFormat::kEth3d;
   if (name == "openloris") return LogFormat::kOpenLoris;
   if (name == "rosbag") return LogFormat::kRosbag;
+  if (name == "7scenes") return LogFormat::kSevenScenes;
   throw std::runtime_error("unknown log format \"" + name + "\" (expected " + log_format_names() + ")");
 }
 
-const char* log_format_names() { return "auto, klog, euroc, tum, eth3d, openloris, rosbag"; }
+const char* log_format_names() { return "auto, klog, euroc, tum, eth3d, openloris, rosbag, 7scenes"; }
 
 std::unique_ptr<LogSource> open_log(const std::string& path, LogFormat format) {
   LogOpenOptions o;
@@ -63,6 +70,7 @@ std::unique_ptr<LogSource> open_log(const std::string& path, const LogOpenOption
     case LogFormat::kEth3d: return std::make_unique<Eth3dReader>(path, r);
     case LogFormat::kOpenLoris: return std::make_unique<OpenLorisReader>(path, r);
     case LogFormat::kRosbag: return std::make_unique<RosbagReader>(path, topics_of(opt), r);
+    case LogFormat::kSevenScenes: return std::make_unique<SevenScenesReader>(path, r, seven_scenes(opt));
     case LogFormat::kAuto: break;
   }
   if (text::is_file(path)) {
@@ -77,8 +85,9 @@ std::unique_ptr<LogSource> open_log(const std::string& path, const LogOpenOption
     if (is_eth3d_folder(path)) return std::make_unique<Eth3dReader>(path, r);
     if (is_openloris_folder(path)) return std::make_unique<OpenLorisReader>(path, r);
     if (is_tum_folder(path)) return std::make_unique<TumReader>(path);
-    throw std::runtime_error(path +
-                             ": unknown log folder (no mav0/, imu0/, imu0.csv, rgb.txt, color.txt or calibration.txt)");
+    if (is_sevenscenes_folder(path)) return std::make_unique<SevenScenesReader>(path, r, seven_scenes(opt));
+    throw std::runtime_error(path + ": unknown log folder (no mav0/, imu0/, imu0.csv, rgb.txt, color.txt, "
+                                    "calibration.txt or frame-000000.pose.txt)");
   }
   throw std::runtime_error(path + ": no such file or folder");
 }

@@ -659,6 +659,13 @@ LiveSensors::LiveSensors(const LiveConfig& cfg) : impl_(std::make_unique<Impl>()
         o.request.preferred = {v4l2::fourcc_from_name(d.camera.v4l2_depth_format)};
         o.depth_scale_m = d.camera.v4l2_depth_unit_m;
         o.rig_depth_scale_m = cfg.rig.depth.scale_m_per_unit;
+        // A depth camera in the rig: its own size, and its frames registered to colour in the driver.
+        o.depth_camera = cfg.rig.depth_camera;
+        o.colour = cfg.rig.rgb;
+        if (o.depth_camera.present) {
+          o.request.width = o.depth_camera.intrinsics.width;
+          o.request.height = o.depth_camera.intrinsics.height;
+        }
         e = m.depth.open(o);
         if (!e.empty()) missing.push_back("depth camera (V4L2): " + e);
       }

@@ -94,6 +94,51 @@ std::string list(const double* v, size_t n, const char* indent) {
   return s + "]";
 }
 
+void intrinsics(const Parser& p, const YAML::Node& cam, const std::string& path, CameraIntrinsics& k) {
+  const std::pair<const char*, int*> sizes[] = {{"width_px", &k.width}, {"height_px", &k.height}};
+  for (const auto& [key, dst] : sizes) {
+    if (!cam[key]) p.fail(path + key, "missing (required)");
+    const int64_t v = p.integer(cam[key], path + key);
+    if (v <= 0 || v > 32768) p.fail(path + key, "must be in 1..32768");
+    *dst = static_cast<int>(v);
+  }
+  p.req_number(cam, "fx_px", path, k.fx);
+  p.req_number(cam, "fy_px", path, k.fy);
+  p.req_number(cam, "cx_px", path, k.cx);
+  p.req_number(cam, "cy_px", path, k.cy);
+  if (k.fx <= 0) p.fail(path + "fx_px", "must be > 0");
+  if (k.fy <= 0) p.fail(path + "fy_px", "must be > 0");
+  if (cam["distortion"]) {
+    const std::string d = cam["distortion"].IsScalar() ? cam["distortion"].Scalar() : "";
+    if (d == "none") k.distortion = DistortionModel::kNone;
+    else if (d == "radtan") k.distortion = DistortionModel::kRadTan;
+    else if (d == "equidistant") k.distortion = DistortionModel::kEquidistant;
+    else p.fail(path + "distortion", "expected radtan, equidistant or none, got \"" + d + "\"");
+  }
+  if (cam["dist_coeffs"]) {
+    const YAML::Node dc = cam["dist_coeffs"];
+    if (!dc.IsSequence() || dc.size() > 5)
+      p.fail(path + "dist_coeffs", "expected a list of up to 5 numbers (radtan k1 k2 p1 p2 k3, equidistant k1..k4)");
+    for (size_t i = 0; i < dc.size(); ++i) k.dist[i] = p.number(dc[i], path + "dist_coeffs[" + std::to_string(i) + "]");
+  }
+}
+
+void emit_intrinsics(std::ostringstream& o, const CameraIntrinsics& k) {
+  o << "  width_px: " << k.width << "\n";
+  o << "  height_px: " << k.height << "\n";
+  o << "  fx_px: " << text::fmt17(k.fx) << "\n";
+  o << "  fy_px: " << text::fmt17(k.fy) << "\n";
+  o << "  cx_px: " << text::fmt17(k.cx) << "\n";
+  o << "  cy_px: " << text::fmt17(k.cy) << "\n";
+  o << "  distortion: " << distortion_name(k.distortion) << "\n";
+  o << "  dist_coeffs: " << list(k.dist.data(), 5, "") << "\n";
+}
+
+bool intrinsics_equal(const CameraIntrinsics& ca, const CameraIntrinsics& cb) {
+  return ca.width == cb.width && ca.height == cb.height && ca.fx == cb.fx && ca.fy == cb.fy && ca.cx == cb.cx &&
+         ca.cy == cb.cy && ca.distortion == cb.distortion && ca.dist == cb.dist;
+}
+
 }  // namespace
 
 const char* distortion_name(DistortionModel m) {
@@ -112,10 +157,12 @@ Rig rig_from_yaml_node(const YAML::Node& root, const std::string& where, const s
   // table (drivers::load_thread_table reads it); inside a live config `rig.threads` stays an error.
   if (prefix.empty())
     p.only_keys(root, "",
-                {"name", "camera", "depth", "T_BC", "T_BI", "imu", "time_offset_cam_imu_ns", "gravity_mps2", "threads"});
+                {"name", "camera", "depth", "depth_camera", "T_BC", "T_BI", "imu", "time_offset_cam_imu_ns", "gravity_mps2",
+                 "threads"});
   else
     p.only_keys(root, "",
-                {"name", "camera", "depth", "T_BC", "T_BI", "imu", "time_offset_cam_imu_ns", "gravity_mps2"});
+                {"name", "camera", "depth", "depth_camera", "T_BC", "T_BI", "imu", "time_offset_cam_imu_ns",
+                 "gravity_mps2"});
   Rig rig;
   if (root["name"]) {
     if (!root["name"].IsScalar()) p.fail("name", "expected a string");
@@ -126,35 +173,18 @@ Rig rig_from_yaml_node(const YAML::Node& root, const std::string& where, const s
   if (!cam) p.fail("camera", "missing (required)");
   p.only_keys(cam, "camera",
               {"width_px", "height_px", "fx_px", "fy_px", "cx_px", "cy_px", "distortion", "dist_coeffs", "rate_hz"});
-  const std::pair<const char*, int*> sizes[] = {{"width_px", &rig.rgb.width}, {"height_px", &rig.rgb.height}};
-  for (const auto& [key, dst] : sizes) {
-    if (!cam[key]) p.fail(std::string("camera.") + key, "missing (required)");
-    const int64_t v = p.integer(cam[key], std::string("camera.") + key);
-    if (v <= 0 || v > 32768) p.fail(std::string("camera.") + key, "must be in 1..32768");
-    *dst = static_cast<int>(v);
-  }
-  p.req_number(cam, "fx_px", "camera.", rig.rgb.fx);
-  p.req_number(cam, "fy_px", "camera.", rig.rgb.fy);
-  p.req_number(cam, "cx_px", "camera.", rig.rgb.cx);
-  p.req_number(cam, "cy_px", "camera.", rig.rgb.cy);
-  if (rig.rgb.fx <= 0) p.fail("camera.fx_px", "must be > 0");
-  if (rig.rgb.fy <= 0) p.fail("camera.fy_px", "must be > 0");
-  if (cam["distortion"]) {
-    const std::string d = cam["distortion"].IsScalar() ? cam["distortion"].Scalar() : "";
-    if (d == "none") rig.rgb.distortion = DistortionModel::kNone;
-    else if (d == "radtan") rig.rgb.distortion = DistortionModel::kRadTan;
-    else if (d == "equidistant") rig.rgb.distortion = DistortionModel::kEquidistant;
-    else p.fail("camera.distortion", "expected radtan, equidistant or none, got \"" + d + "\"");
-  }
-  if (cam["dist_coeffs"]) {
-    const YAML::Node dc = cam["dist_coeffs"];
-    if (!dc.IsSequence() || dc.size() > 5)
-      p.fail("camera.dist_coeffs", "expected a list of up to 5 numbers (radtan k1 k2 p1 p2 k3, equidistant k1..k4)");
-    for (size_t i = 0; i < dc.size(); ++i)
-      rig.rgb.dist[i] = p.number(dc[i], "camera.dist_coeffs[" + std::to_string(i) + "]");
-  }
+  intrinsics(p, cam, "camera.", rig.rgb);
   p.opt_number(cam, "rate_hz", "camera.", rig.camera_rate_hz);
   p.non_negative(rig.camera_rate_hz, "camera.rate_hz");
+
+  if (const YAML::Node dc = root["depth_camera"]) {
+    p.only_keys(dc, "depth_camera",
+                {"width_px", "height_px", "fx_px", "fy_px", "cx_px", "cy_px", "distortion", "dist_coeffs", "T_CD"});
+    intrinsics(p, dc, "depth_camera.", rig.depth_camera.intrinsics);
+    if (!dc["T_CD"]) p.fail("depth_camera.T_CD", "missing (required: depth camera -> colour camera, 4x4 row-major)");
+    p.matrix(dc["T_CD"], "depth_camera.T_CD", rig.depth_camera.T_CD);
+    rig.depth_camera.present = true;
+  }
 
   if (const YAML::Node d = root["depth"]) {
     p.only_keys(d, "depth", {"scale_m_per_unit", "min_range_m", "max_range_m", "sigma_coeff_per_m"});
@@ -221,20 +251,20 @@ std::string rig_to_yaml(const Rig& r) {
   o << "# Kestrel rig. Units are in the key names (docs/log-format.md).\n";
   o << "name: " << name.c_str() << "\n";
   o << "camera:\n";
-  o << "  width_px: " << r.rgb.width << "\n";
-  o << "  height_px: " << r.rgb.height << "\n";
-  o << "  fx_px: " << text::fmt17(r.rgb.fx) << "\n";
-  o << "  fy_px: " << text::fmt17(r.rgb.fy) << "\n";
-  o << "  cx_px: " << text::fmt17(r.rgb.cx) << "\n";
-  o << "  cy_px: " << text::fmt17(r.rgb.cy) << "\n";
-  o << "  distortion: " << distortion_name(r.rgb.distortion) << "\n";
-  o << "  dist_coeffs: " << list(r.rgb.dist.data(), 5, "") << "\n";
+  emit_intrinsics(o, r.rgb);
   o << "  rate_hz: " << text::fmt17(r.camera_rate_hz) << "\n";
   o << "depth:\n";
   o << "  scale_m_per_unit: " << text::fmt17(r.depth.scale_m_per_unit) << "\n";
   o << "  min_range_m: " << text::fmt17(r.depth.min_range_m) << "\n";
   o << "  max_range_m: " << text::fmt17(r.depth.max_range_m) << "\n";
   o << "  sigma_coeff_per_m: " << text::fmt17(r.depth.sigma_coeff_per_m) << "\n";
+  if (r.depth_camera.present) {
+    o << "# the depth sensor when it is not the colour camera; its depth is registered to the colour camera\n";
+    o << "depth_camera:\n";
+    emit_intrinsics(o, r.depth_camera.intrinsics);
+    o << "  # depth camera -> colour camera, 4x4 row-major\n";
+    o << "  T_CD: " << list(r.depth_camera.T_CD.data(), 16, "        ") << "\n";
+  }
   o << "# camera -> body (body = IMU frame), 4x4 row-major\n";
   o << "T_BC: " << list(r.T_BC.data(), 16, "       ") << "\n";
   o << "# IMU -> body, 4x4 row-major\n";
@@ -263,10 +293,11 @@ Rig load_rig_file(const std::string& path) {
 }
 
 bool rig_equal(const Rig& a, const Rig& b) {
-  const auto& ca = a.rgb;
-  const auto& cb = b.rgb;
-  return a.name == b.name && ca.width == cb.width && ca.height == cb.height && ca.fx == cb.fx && ca.fy == cb.fy &&
-         ca.cx == cb.cx && ca.cy == cb.cy && ca.distortion == cb.distortion && ca.dist == cb.dist &&
+  const bool depth_camera_equal =
+      a.depth_camera.present == b.depth_camera.present &&
+      (!a.depth_camera.present || (intrinsics_equal(a.depth_camera.intrinsics, b.depth_camera.intrinsics) &&
+                                   a.depth_camera.T_CD == b.depth_camera.T_CD));
+  return a.name == b.name && intrinsics_equal(a.rgb, b.rgb) && depth_camera_equal &&
          a.depth.scale_m_per_unit == b.depth.scale_m_per_unit && a.depth.min_range_m == b.depth.min_range_m &&
          a.depth.max_range_m == b.depth.max_range_m && a.depth.sigma_coeff_per_m == b.depth.sigma_coeff_per_m &&
          a.T_BC == b.T_BC && a.T_BI == b.T_BI &&

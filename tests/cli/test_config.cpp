@@ -41,10 +41,17 @@ std::string slurp(const std::string& path) {
 
 TEST(ConfigFile, EmptyFileGivesTheBackendsDefaults) {
   const EstimatorConfig c = estimator_config_from_yaml("", "x.yaml");
-  EXPECT_EQ(c.backend, "window");
+  // "auto": window with an IMU, rgbd without; the window's defaults either way.
+  EXPECT_EQ(c.backend, "auto");
   EXPECT_EQ(c.window.window.S, 3);
   EXPECT_EQ(c.window.imu_noise_inflation, 30.0);
-  EXPECT_EQ(estimator_config_entries(c), estimator_config_entries(EstimatorConfig::defaults("window")));
+  EXPECT_EQ(estimator_config_entries(c), estimator_config_entries(EstimatorConfig::defaults("auto")));
+  auto without_backend = [](std::vector<std::pair<std::string, std::string>> v) {
+    v.erase(v.begin());
+    return v;
+  };
+  EXPECT_EQ(without_backend(estimator_config_entries(c)),
+            without_backend(estimator_config_entries(EstimatorConfig::defaults("window"))));
   const EstimatorConfig e = estimator_config_from_yaml("estimator: {backend: window-embedded}\n", "x.yaml");
   EXPECT_EQ(e.window.window.S, 2);
   EXPECT_EQ(e.window.window.N, 3);

@@ -132,6 +132,43 @@ TEST(V4l2Convert, Z16ToDepthKeepsInvalidAndRescales) {
   EXPECT_EQ(dst[3], 168);
 }
 
+// A RealSense-style depth node with its own camera: the driver's depth path
+// converts units and registers to colour in one go, into the colour size.
+TEST(V4l2Convert, Z16FromASeparateDepthCameraIsRegisteredToColour) {
+  DepthCamera dc;
+  dc.present = true;
+  dc.intrinsics.width = 8, dc.intrinsics.height = 4;
+  dc.intrinsics.fx = dc.intrinsics.fy = 8;
+  dc.intrinsics.cx = 3.5, dc.intrinsics.cy = 1.5;
+  dc.T_CD[3] = -0.25;  // 25 cm baseline: 1 px of disparity at 2 m
+  CameraIntrinsics colour = dc.intrinsics;
+  colour.width = 10, colour.height = 6;
+  colour.cx = 4.5, colour.cy = 2.5;
+  const DepthRegistration reg(dc, colour, 0.001);
+  // Device units of 0.25 mm: 8000 = 2 m; one invalid pixel.
+  uint16_t src[8 * 4];
+  for (uint16_t& v : src) v = 8000;
+  src[0] = 0;
+  uint16_t scratch[8 * 4], out[10 * 6];
+  RegistrationStats st;
+  ASSERT_TRUE(z16_to_registered_depth(reinterpret_cast<const uint8_t*>(src), 8, 4, 16, 0.00025, 0.001, reg, scratch,
+                                      out, 20, &st));
+  EXPECT_EQ(st.valid_in, 31);
+  // Depth pixel (u, v) lands at colour (u, v + 1): the principal points differ
+  // by (1, 1) and the baseline takes 1 px back in x. 2000 mm; the colour
+  // border the depth camera does not cover stays 0.
+  EXPECT_EQ(out[1 * 10 + 0], 0);  // the invalid pixel (0, 0)
+  EXPECT_EQ(out[1 * 10 + 2], 2000);
+  EXPECT_EQ(out[4 * 10 + 7], 2000);
+  EXPECT_EQ(out[0 * 10 + 5], 0);
+  EXPECT_EQ(out[5 * 10 + 5], 0);
+  EXPECT_EQ(out[2 * 10 + 8], 0);
+  EXPECT_EQ(out[2 * 10 + 9], 0);
+  // A frame of another size is refused.
+  EXPECT_FALSE(z16_to_registered_depth(reinterpret_cast<const uint8_t*>(src), 4, 4, 8, 0.00025, 0.001, reg, scratch,
+                                       out, 20));
+}
+
 // A frame source standing in for the kernel's V4L2 queue: frames arrive every
 // 33 ms into a queued buffer, or are dropped (sequence still advances, as the
 // kernel does) when the application holds every buffer.

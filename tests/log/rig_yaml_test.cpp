@@ -48,6 +48,16 @@ TEST(RigYaml, RoundTripIsExact) {
     r.camera_rate_hz = 30 * std::abs(u(rng));
     r.time_offset_cam_imu_ns = static_cast<int64_t>(rng()) >> 3;
     r.gravity_mps2 = 9.80665 + 1e-3 * u(rng);
+    // Every other rig has a separate depth camera (optional keys, omitted when absent).
+    r.depth_camera.present = iter % 2 == 0;
+    if (r.depth_camera.present) {
+      r.depth_camera.intrinsics = r.rgb;
+      r.depth_camera.intrinsics.fx *= 1.1 + 0.1 * u(rng);
+      r.depth_camera.intrinsics.distortion = static_cast<DistortionModel>(rng() % 3);
+      const double b = 0.05 * u(rng);
+      r.depth_camera.T_CD = {std::cos(b), 0, std::sin(b), -0.025 + 1e-3 * u(rng), 0, 1, 0, u(rng) * 1e-3,
+                             -std::sin(b), 0, std::cos(b), 2e-3, 0, 0, 0, 1};
+    }
     const Rig back = rig_from_yaml(rig_to_yaml(r), "roundtrip");
     ASSERT_TRUE(drivers::rig_equal(back, r)) << rig_to_yaml(r) << "\n----\n" << rig_to_yaml(back);
   }
@@ -99,6 +109,35 @@ TEST(RigYaml, ErrorsNameTheFileAndTheField) {
   // Syntax errors carry line:column.
   EXPECT_EQ(error_of("camera:\n  width_px: [1, 2\n").rfind("configs/x.yaml:", 0), 0u);
   EXPECT_NE(error_of("camera:\n  width_px: [1, 2\n").find("YAML syntax error"), std::string::npos);
+}
+
+TEST(RigYaml, DepthCameraIsOptionalAndChecked) {
+  // Absent: not written, and a rig without it stays without it.
+  EXPECT_EQ(rig_to_yaml(fixture_rig()).find("depth_camera"), std::string::npos);
+  EXPECT_FALSE(rig_from_yaml(rig_to_yaml(fixture_rig()), "x").depth_camera.present);
+  const std::string dc =
+      "depth_camera:\n  width_px: 640\n  height_px: 480\n  fx_px: 585\n  fy_px: 585\n  cx_px: 320\n  cy_px: 240\n"
+      "  T_CD: [1, 0, 0, -0.025, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]\n";
+  const Rig r = rig_from_yaml(rig_to_yaml(fixture_rig()) + dc, "x");
+  ASSERT_TRUE(r.depth_camera.present);
+  EXPECT_EQ(r.depth_camera.intrinsics.fx, 585);
+  EXPECT_EQ(r.depth_camera.intrinsics.distortion, DistortionModel::kNone);
+  EXPECT_EQ(r.depth_camera.T_CD[3], -0.025);
+  EXPECT_TRUE(drivers::rig_equal(rig_from_yaml(rig_to_yaml(r), "x"), r));
+  auto err = [&](const std::string& from, const std::string& to) {
+    std::string y = rig_to_yaml(fixture_rig()) + dc;
+    const size_t k = y.find(from, y.find("depth_camera:"));
+    EXPECT_NE(k, std::string::npos) << from;
+    return error_of(y.replace(k, from.size(), to));
+  };
+  EXPECT_EQ(err("  T_CD: [1, 0, 0, -0.025, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]\n", ""),
+            "configs/x.yaml: depth_camera.T_CD: missing (required: depth camera -> colour camera, 4x4 row-major)");
+  EXPECT_EQ(err("T_CD: [1, 0,", "T_CD: [2, 0,"),
+            "configs/x.yaml: depth_camera.T_CD: rotation part is not orthonormal (column dot products off by more "
+            "than 1e-5)");
+  EXPECT_EQ(err("fx_px: 585", "fx_px: 0"), "configs/x.yaml: depth_camera.fx_px: must be > 0");
+  EXPECT_EQ(err("  cy_px: 240\n", ""), "configs/x.yaml: depth_camera.cy_px: missing (required)");
+  EXPECT_NE(err("fx_px: 585", "f_px: 585").find("configs/x.yaml: depth_camera.f_px: unknown key"), std::string::npos);
 }
 
 TEST(RigYaml, LoadsFilesAndNamesMissingOnes) {

@@ -302,7 +302,7 @@ core::EstimatorConfig estimator_config_from_yaml(const std::string& text, const 
   if (!root.IsMap()) throw std::runtime_error(where + ": expected a mapping of sections");
   // The two keys that select defaults come first, then everything on top.
   std::string backend = scalar_at(root, "estimator", "backend");
-  if (backend.empty()) backend = "window";
+  if (backend.empty()) backend = "auto";
   if (!backend_override.empty()) backend = backend_override;
   const std::string variant = scalar_at(root, "frontend", "lonsc_variant");
   if (!variant.empty() && variant != "tuned" && variant != "paper")
@@ -351,7 +351,7 @@ std::vector<std::pair<std::string, std::string>> estimator_config_entries(const 
 }
 
 std::string estimator_config_reference_markdown() {
-  core::EstimatorConfig c = core::EstimatorConfig::defaults("window");
+  core::EstimatorConfig c = core::EstimatorConfig::defaults("auto");
   MarkdownTable m;
   core::visit_options(c, m);
   return m.out.str();

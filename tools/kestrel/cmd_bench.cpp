@@ -35,11 +35,13 @@ constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 
 struct BenchCase {
   std::string name;
-  std::string kind;        // "scenario", "hybrid", "real-images"
+  std::string kind;        // "scenario", "hybrid", "real-images", "real-rgbd", "real-synth-imu"
   std::string scenario;    // scenario name
   std::string gt_path;     // hybrid: EuRoC gt_body_20hz.csv; real-images: its GT
   std::string imu_path;    // hybrid: EuRoC imu0.csv
-  std::string log_path;    // real-images: the EuRoC ASL folder
+  std::string log_path;    // real-images: the EuRoC ASL folder; real-rgbd: the recording
+  std::string images_path; // real-synth-imu: the recording its log is made from (`kestrel sim --images`)
+  std::vector<std::string> backends;  // non-empty: these backends, whatever --estimator says
   std::string skipped;     // non-empty: why it cannot run
   double room_m = 0.0;     // hybrid: rendered hall size (SimOptions::room_m); 0: a room around the flight
 };
@@ -119,6 +121,27 @@ std::vector<BenchCase> discover_cases(const std::string& data_dir) {
     c.log_path = (euroc / "V1_01_easy_first95").string();
     c.gt_path = (euroc / "V1_01_easy" / "gt_body_20hz.csv").string();
     if (!fs::exists(c.log_path) || !fs::exists(c.gt_path)) c.skipped = "not found: " + c.log_path;
+    cases.push_back(c);
+  }
+  // Real Kinect v1 images (7-Scenes, 500 frames, hand-held, no IMU): the rgbd
+  // backend on them as they are, and the visual-inertial backends with an IMU
+  // synthesised along their ground truth (docs/real-imagery.md).
+  const fs::path seven = fs::path(data_dir) / "real-rgbd" / "7scenes_first500";
+  {
+    BenchCase c;
+    c.name = "real-7scenes-rgbd";
+    c.kind = "real-rgbd";
+    c.log_path = c.gt_path = seven.string();
+    c.backends = {"rgbd"};
+    if (!fs::exists(seven)) c.skipped = "not found: " + seven.string();
+    cases.push_back(c);
+  }
+  {
+    BenchCase c;
+    c.name = "real-7scenes-synth-imu";
+    c.kind = "real-synth-imu";
+    c.images_path = seven.string();
+    if (!fs::exists(seven)) c.skipped = "not found: " + seven.string();
     cases.push_back(c);
   }
   return cases;
@@ -414,7 +437,7 @@ Subcommand add_bench_command(CLI::App& parent) {
       ->delimiter(',')
       ->capture_default_str();
   app->add_option("--workdir", args->workdir, "where generated logs and trajectories go")->capture_default_str();
-  app->add_option("--data", args->data_dir, "the shared data folder (EuRoC sequences)")->capture_default_str();
+  app->add_option("--data", args->data_dir, "the shared data folder (EuRoC sequences, real-rgbd/)")->capture_default_str();
   app->add_option("--pace", args->pace, "replay pace: fast or lockstep (realtime is for timing tests)")
       ->capture_default_str();
   app->add_option("--estimator", args->estimators,
@@ -483,13 +506,19 @@ Subcommand add_bench_command(CLI::App& parent) {
       std::string log = c.log_path;
       std::string gt = c.gt_path;
       bool generated = false;
-      if (c.kind != "real-images") {
+      if (c.kind != "real-images" && c.kind != "real-rgbd") {
         tools::SimOptions so;
         so.seed = 1;
-        so.duration_s = duration_s;
-        so.width = args->width;
-        so.height = args->height;
-        if (c.kind == "scenario") {
+        if (c.kind == "real-synth-imu") {
+          so.images_path = c.images_path;  // the recording's length, size and rate
+        } else {
+          so.duration_s = duration_s;
+          so.width = args->width;
+          so.height = args->height;
+        }
+        if (c.kind == "real-synth-imu") {
+          // nothing more: the motion is the recording's
+        } else if (c.kind == "scenario") {
           so.scenario = c.scenario;
         } else {
           so.trajectory_path = c.gt_path;
@@ -507,11 +536,11 @@ Subcommand add_bench_command(CLI::App& parent) {
           rows.push_back(row);
           continue;
         }
-        gt = log;   // the simulator writes ground truth into the log
+        gt = log;   // the simulator writes ground truth into the log (--images: the recording's own)
         generated = true;
       }
       // One log, every backend on it: the comparison is like for like.
-      for (const std::string& backend : args->estimators)
+      for (const std::string& backend : c.backends.empty() ? args->estimators : c.backends)
       for (const std::string& variant : args->lonsc_variants)
       for (const std::string& mapping : args->mapping) {
         const bool windowed = backend.rfind("window", 0) == 0;
@@ -528,7 +557,8 @@ Subcommand add_bench_command(CLI::App& parent) {
         }
         BenchRow er = row;
         std::string error;
-        const bool many = args->estimators.size() * args->lonsc_variants.size() * args->mapping.size() > 1;
+        const bool many =
+            (c.backends.empty() ? args->estimators : c.backends).size() * args->lonsc_variants.size() * args->mapping.size() > 1;
         const std::string traj_e =
             many ? (fs::path(args->workdir) / (c.name + "." + est_name + ".traj.txt")).string() : traj;
         const auto m = replay_in_child(log, gt, pace, cfg, traj_e, er.estimator, error);

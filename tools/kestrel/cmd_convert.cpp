@@ -90,10 +90,10 @@ int run_convert(const ConvertArgs& a) {
   std::unique_ptr<drivers::LogSource> src = drivers::open_log(a.in, o);
   const bool rig_used = o.format == drivers::LogFormat::kEth3d ||
                         o.format == drivers::LogFormat::kOpenLoris ||
-                        o.format == drivers::LogFormat::kRosbag ||
+                        o.format == drivers::LogFormat::kRosbag || o.format == drivers::LogFormat::kSevenScenes ||
                         (o.format == drivers::LogFormat::kAuto &&
                          (src->format_name() == "eth3d" || src->format_name() == "openloris" ||
-                          src->format_name() == "rosbag"));
+                          src->format_name() == "rosbag" || src->format_name() == "7scenes"));
   if (!a.rig_path.empty() && !rig_used)
     std::fprintf(stderr, "kestrel convert: warning: --rig is ignored for %s input (it carries its own rig)\n",
                  src->format_name().c_str());
@@ -147,15 +147,17 @@ Subcommand add_convert_command(CLI::App& parent) {
       "  kestrel convert d435i.bag --out d435i.klog --rig configs/my_d435i.yaml\n"
       "  kestrel convert sim.klog --to eth3d --out sim_eth3d/ --rig-out sim_rig.yaml\n"
       "Formats, columns, units and frames: docs/datasets.md");
-  app->add_option("input", a->in, "a .klog, ROS bag, or EuRoC / TUM / ETH3D / OpenLORIS folder")->required();
+  app->add_option("input", a->in, "a .klog, ROS bag, or EuRoC / TUM / ETH3D / OpenLORIS / 7-Scenes folder")->required();
   app->add_option("--out", a->out, "output: OUT.klog (default), OUT.bag, or a folder with --to")->required();
   app->add_option("--format", a->format, std::string("input format: ") + drivers::log_format_names())
       ->capture_default_str();
   app->add_option("--to", a->to,
                   "output format: klog, eth3d, openloris, euroc, rosbag (default: from --out)");
   app->add_option("--rig", a->rig_path,
-                  "rig YAML for calibration the dataset lacks (ETH3D, OpenLORIS, rosbag)");
+                  "rig YAML for calibration the dataset lacks (ETH3D, OpenLORIS, 7-Scenes, rosbag)");
   app->add_option("--rig-out", a->rig_out, "also write the resulting rig as YAML here");
+  app->add_option("--fps", a->open.fps, "7-Scenes: the frame rate its time stamps are made from (frame i at i / fps)")
+      ->capture_default_str();
   app->add_option("--rgb-topic", a->open.rgb_topic, "rosbag colour topic (default /camera/color/image_raw)");
   app->add_option("--depth-topic", a->open.depth_topic,
                   "rosbag depth topic (default /camera/aligned_depth_to_color/image_raw)");

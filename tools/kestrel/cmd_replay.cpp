@@ -19,7 +19,7 @@ Subcommand add_replay_command(CLI::App& parent) {
     std::string format = "auto";
     drivers::LogOpenOptions open;
     std::string pace = "lockstep";
-    std::string estimator = "window";
+    std::string estimator = "auto";
     std::string config;
     std::string traj_out;
     std::string metrics_out;
@@ -40,7 +40,9 @@ Subcommand add_replay_command(CLI::App& parent) {
                   "required unless --print-config");
   app->add_option("--format", args->format, std::string("input format: ") + drivers::log_format_names())
       ->capture_default_str();
-  app->add_option("--rig", args->open.rig_path, "rig YAML for calibration the dataset lacks (ETH3D, OpenLORIS, rosbag)");
+  app->add_option("--rig", args->open.rig_path, "rig YAML for calibration the dataset lacks (ETH3D, OpenLORIS, 7-Scenes, rosbag)");
+  app->add_option("--fps", args->open.fps, "7-Scenes: the frame rate its time stamps are made from (frame i at i / fps)")
+      ->capture_default_str();
   app->add_option("--rgb-topic", args->open.rgb_topic, "rosbag colour topic (default /camera/color/image_raw)");
   app->add_option("--depth-topic", args->open.depth_topic,
                   "rosbag depth topic (default /camera/aligned_depth_to_color/image_raw)");
@@ -55,7 +57,9 @@ Subcommand add_replay_command(CLI::App& parent) {
       ->capture_default_str();
   app->add_option("--estimator", args->estimator,
                   std::string("backend: ") + core::estimator_names() +
-                      " (window = front end + sliding-window optimizer, the default; vo = tracking front end + IMU; ekf = EKF SLAM; imu = IMU dead reckoning)")
+                      " (auto, the default: window with an IMU, rgbd without; window = front end + sliding-window optimizer; vo = "
+                      "tracking front end + IMU; ekf = EKF SLAM; imu = IMU dead reckoning; rgbd = RGB-D tracking "
+                      "without an IMU)")
       ->capture_default_str();
   app->add_option("--config", args->config,
                   "a config whose estimator sections (estimator:, frontend:, window:, ekf:; docs/config.md) set every "

@@ -35,6 +35,7 @@ Subcommand add_sim_command(CLI::App& parent) {
       "  kestrel sim --scenario hover --duration 60 --seed 1 --out hover.klog\n"
       "  kestrel sim --trajectory ../shared/data/euroc/V1_02_medium/gt_body_20hz.csv \\\n"
       "              --imu ../shared/data/euroc/V1_02_medium/imu0.csv --out v102.klog\n"
+      "  kestrel sim --images ../shared/data/real-rgbd/7scenes_first500 --out 7scenes_imu.klog\n"
       "Models and numbers: docs/simulator.md");
 
   auto* scen = app->add_option("--scenario", o.scenario, "built-in motion: hover, figure8, aggressive, static, hard")
@@ -42,6 +43,18 @@ Subcommand add_sim_command(CLI::App& parent) {
   auto* traj = app->add_option("--trajectory", o.trajectory_path,
                                "fly a ground-truth file instead (EuRoC gt csv or TUM groundtruth.txt)");
   scen->excludes(traj);
+  auto* images = app->add_option("--images", o.images_path,
+                                 "real images: a recording with ground truth and no IMU (any reader's folder); its "
+                                 "frames are written with an IMU synthesised along its ground truth");
+  images->excludes(scen)->excludes(traj);
+  app->add_option("--images-format", o.images_format,
+                  std::string("--images: the recording's format: ") + drivers::log_format_names())
+      ->needs(images)
+      ->capture_default_str();
+  app->add_option("--position-smoothing", o.position_smoothing,
+                  "--images: second-difference weight of the spline's positions (0: least squares on the knots)")
+      ->needs(images)
+      ->capture_default_str();
   app->add_option("--imu", o.imu_path, "hybrid mode: write this real IMU (EuRoC imu0.csv) instead of a synthetic one")
       ->needs(traj);
   app->add_option("--out", o.out_path, "output .klog")->required();
@@ -54,7 +67,7 @@ Subcommand add_sim_command(CLI::App& parent) {
   args->width_opt = app->add_option("--width", args->width, "image width [px] (intrinsics scale with it)")
                         ->capture_default_str();
   args->height_opt = app->add_option("--height", args->height, "image height [px]")->capture_default_str();
-  args->fps_opt = app->add_option("--fps", args->fps, "camera rate [Hz] (a GT file: default its own sample times)")
+  args->fps_opt = app->add_option("--fps", args->fps, "camera rate [Hz] (a GT file: default its own sample times; --images: 7-Scenes' frame rate)")
                       ->capture_default_str();
   args->imu_rate_opt = app->add_option("--imu-rate", args->imu_rate, "synthetic IMU rate [Hz]")->capture_default_str();
   app->add_option("--time-offset-ms", o.time_offset_ms, "camera-IMU offset: frame stamps = true time - offset")
@@ -78,10 +91,12 @@ Subcommand add_sim_command(CLI::App& parent) {
   app->add_option("--image-noise", o.image_noise_sigma, "colour noise std [8-bit DN]")->capture_default_str();
   app->add_option("--acc-bias-tau", o.acc_bias_tau_s, "accelerometer bias time constant [s] (paper 000 eq. 6)")
       ->capture_default_str();
-  app->add_option("--rig", o.rig_path, "rig YAML (camera, T_BC, depth, imu); default: built-in rig");
+  app->add_option("--rig", o.rig_path, "rig YAML (camera, T_BC, depth, imu); default: built-in rig (--images: the recording's own, with "
+                  "this file's calibration where it lacks one and its IMU noise)");
   app->add_flag("--fixed-yaw", args->fixed_yaw, "figure8: keep the heading fixed instead of along the path");
   app->add_option("--gt-rate", o.gt_rate_hz, "ground-truth record rate [Hz]")->capture_default_str();
-  app->add_option("--knot-spacing", o.knot_spacing_s, "GT spline knot spacing [s] (default: the file's interval)");
+  app->add_option("--knot-spacing", o.knot_spacing_s,
+                  "GT spline knot spacing [s] (default: the file's interval; --images: 0.1)");
   app->add_option("--threads", o.threads, "render threads")->capture_default_str();
 
   Subcommand cmd;
@@ -106,6 +121,10 @@ Subcommand add_sim_command(CLI::App& parent) {
       throw UsageError(e.what());
     }
     std::printf("kestrel sim: wrote %s\n%s", opt.out_path.c_str(), tools::format_summary(s).c_str());
+    for (size_t k = 0; k < s.problems.size() && k < 5; ++k)
+      std::printf("  %s: %s: %s\n", s.problems[k].where.c_str(), s.problems[k].kind.c_str(),
+                  s.problems[k].detail.c_str());
+    if (s.problems.size() > 5) std::printf("  ... %zu more reader problems\n", s.problems.size() - 5);
     if (!args->export_eth3d.empty()) {
       auto src = drivers::open_log(opt.out_path);
       const drivers::ExportStats st = drivers::export_eth3d(*src, args->export_eth3d);

@@ -15,6 +15,9 @@
 
 #include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/core/tracker.hpp"
+#include "kestrel/core/frontend_odometry.hpp"
+#include "kestrel/core/rgbd_estimator.hpp"
+#include "kestrel/core/window_estimator.hpp"
 #include "kestrel/imu_rate_stage.hpp"
 #include "kestrel/map_threads.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"
@@ -146,6 +149,7 @@ class EstimatorStage {
         feed_(feed) {
     frame_period_ns_ = rig.camera_rate_hz > 0 ? static_cast<int64_t>(1e9 / rig.camera_rate_hz) : 0;
     imu_gap_ns_ = rig.imu_rate_hz > 0 ? static_cast<int64_t>(5e9 / rig.imu_rate_hz) : 50'000'000;
+    has_imu_ = rig.imu_rate_hz > 0;
   }
 
   // Processes what the rings hold. `feeder_done` lets a frame go ahead of the
@@ -161,8 +165,13 @@ class EstimatorStage {
       }
       if (f != nullptr) {
         // A frame waits for the IMU up to its time, so the estimator sees
-        // the two streams merged in time order.
-        if (s != nullptr || lockstep || feeder_done || last_imu_t_ns_ >= f->t_ns) {
+        // the two streams merged in time order. The wait ends as soon as a
+        // newer frame is queued (records come in time order: no sample can
+        // still come before this frame; an IMU that stopped in flight must
+        // not hold the camera back), and never starts for a log without an
+        // IMU (the rgbd backend).
+        if (s != nullptr || lockstep || feeder_done || last_imu_t_ns_ >= f->t_ns || !has_imu_ ||
+            rings_.frames.size() > 1) {
           on_frame(*f);
           rings_.frames.pop();
           continue;
@@ -355,6 +364,7 @@ class EstimatorStage {
   int64_t imu_max_since_frame_ns_ = 0;
   int64_t frame_period_ns_ = 0;
   int64_t imu_gap_ns_ = 50'000'000;
+  bool has_imu_ = true;
   int64_t newest_t_ns_ = -1;  // newest record time seen (log time)
   InputFaultCounts faults_;
   uint64_t last_fingerprint_ = 0;
@@ -950,6 +960,9 @@ std::string format_status(const PipelineStatus& s) {
       break;
     case core::TrackingQuality::kLost:
       state = "lost";
+      break;
+    case core::TrackingQuality::kVisionOnly:
+      state = "vision";
       break;
     case core::TrackingQuality::kUninitialized:
       break;

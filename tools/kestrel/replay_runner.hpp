@@ -114,7 +114,7 @@ struct ReplayOptions {
   drivers::LogFormat format = drivers::LogFormat::kAuto;
   drivers::LogOpenOptions open;  // rig for datasets, bag topics (open.format is ignored: `format` rules)
   drivers::ReplayPace pace = drivers::ReplayPace::kLockstep;
-  std::string estimator = "window";  // core::make_estimator name, when `config` is empty
+  std::string estimator = "auto";  // core::make_estimator name, when `config` is empty
   // Every option of the backend (config.backend names it); empty: the
   // defaults of `estimator`.
   std::optional<core::EstimatorConfig> config;

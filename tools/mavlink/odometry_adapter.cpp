@@ -25,6 +25,7 @@ void unknown(float* out21) {
 int8_t mavlink_quality(core::TrackingQuality q, const OdometryAdapterOptions& opt) {
   switch (q) {
     case core::TrackingQuality::kTracking:
+    case core::TrackingQuality::kVisionOnly:
       return opt.quality_tracking;
     case core::TrackingQuality::kImuOnly:
       return opt.quality_coasting;
@@ -73,7 +74,8 @@ bool to_odometry(const OdometryInput& in, const OdometryAdapterOptions& opt, Odo
   out.pitchspeed = static_cast<float>(w_F.y());
   out.yawspeed = static_cast<float>(w_F.z());
 
-  const bool tracking = in.quality == core::TrackingQuality::kTracking;
+  const bool tracking =
+      in.quality == core::TrackingQuality::kTracking || in.quality == core::TrackingQuality::kVisionOnly;
   if (in.quality == core::TrackingQuality::kLost) {
     unknown(out.pose_covariance);
     unknown(out.velocity_covariance);

@@ -24,6 +24,16 @@ void require_file(const std::string& path, const char* what) {
 
 void validate(const SimOptions& o) {
   const bool from_file = !o.trajectory_path.empty();
+  if (!o.images_path.empty()) {
+    require(fs::exists(o.images_path), "--images '" + o.images_path + "': no such file or folder");
+    require(!from_file && o.imu_path.empty(), "--images takes its motion from the recording: no --trajectory or --imu");
+    require(o.knot_spacing_s >= 0.0 && o.knot_spacing_s <= 2.0, "--knot-spacing must be in [0, 2] s");
+    require(o.position_smoothing >= 0.0, "--position-smoothing must be >= 0");
+    if (!o.rig_path.empty()) require_file(o.rig_path, "--rig");
+    if (o.fps) require(*o.fps > 0.0 && *o.fps <= 1000.0, "--fps must be in (0, 1000]");
+    if (o.imu_rate_hz) require(*o.imu_rate_hz > 0.0 && *o.imu_rate_hz <= 10000.0, "--imu-rate must be in (0, 10000]");
+    return;
+  }
   if (!from_file) {
     const auto names = scenario_names();
     require(std::find(names.begin(), names.end(), o.scenario) != names.end(),
@@ -87,6 +97,11 @@ SimSummary run_simulation(const SimOptions& o, SimSink& sink) {
   using Clock = std::chrono::steady_clock;
   const auto wall0 = Clock::now();
   validate(o);
+  if (!o.images_path.empty()) {
+    SimSummary s = run_image_simulation(o, sink);
+    s.real_images = true;
+    return s;
+  }
   const bool from_file = !o.trajectory_path.empty();
   const bool hybrid = !o.imu_path.empty();
 
@@ -361,6 +376,23 @@ SimSummary run_simulation(const SimOptions& o, SimSink& sink) {
 
 std::string format_summary(const SimSummary& s) {
   char buf[1024];
+  if (s.real_images) {
+    std::snprintf(buf, sizeof buf,
+                  "trajectory   %s, %.1f s\n"
+                  "spline       %.1f mm RMS from the ground truth (max %.1f mm, %.2f deg)\n"
+                  "frames       %llu real (%dx%d @ %.1f Hz)\n"
+                  "imu          %llu samples @ %.0f Hz (synthesised), %llu saturated\n"
+                  "ground truth %llu poses, %llu events, %zu reader problems\n"
+                  "total        %.2f s, output %.1f MB\n",
+                  s.trajectory.c_str(), s.duration_s, 1e3 * s.spline_rms_position_residual_m,
+                  1e3 * s.spline_max_position_residual_m, s.spline_max_rotation_residual_rad * 180.0 / M_PI,
+                  static_cast<unsigned long long>(s.frames), s.rig.rgb.width, s.rig.rgb.height, s.rig.camera_rate_hz,
+                  static_cast<unsigned long long>(s.imu_samples), s.rig.imu_rate_hz,
+                  static_cast<unsigned long long>(s.imu_saturated), static_cast<unsigned long long>(s.gt_records),
+                  static_cast<unsigned long long>(s.events), s.problems.size(), s.wall_s,
+                  static_cast<double>(s.output_bytes) / 1e6);
+    return buf;
+  }
   std::snprintf(buf, sizeof buf,
                 "trajectory   %s%s, %.1f s\n"
                 "scene        room %.1f x %.1f x %.1f m, %zu objects\n"

@@ -110,11 +110,24 @@ struct DepthModel {
   double sigma_coeff_per_m = 0.0025;   // structured light: ~1.4 mm at 1 m... 4 cm at 4 m
 };
 
+// A depth sensor that is not the colour camera (Kinect v1's IR camera, a
+// RealSense depth stream over UVC): its own intrinsics and where it sits.
+// Depth as such a sensor delivers it is in this camera; the reader or driver
+// that receives it registers it to the colour camera (drivers/depth), so
+// every depth image past the drivers is registered. A log written after
+// that keeps the entry as a record of where its depth came from.
+struct DepthCamera {
+  bool present = false;
+  CameraIntrinsics intrinsics;
+  Mat4d T_CD = kIdentity4;  // depth camera -> colour camera
+};
+
 // Everything a log or a live rig needs to interpret its sensors.
 struct Rig {
   std::string name;
   CameraIntrinsics rgb;            // depth is registered to this camera
   DepthModel depth;
+  DepthCamera depth_camera;        // present: the raw depth comes from another camera
   Mat4d T_BC = kIdentity4;         // camera -> body (body = IMU frame)
   Mat4d T_BI = kIdentity4;         // IMU -> body; identity unless the body frame is elsewhere
   ImuNoise imu;

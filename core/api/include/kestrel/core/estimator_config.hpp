@@ -15,6 +15,7 @@
 #include "kestrel/core/divergence.hpp"
 #include "kestrel/core/ekf_estimator.hpp"
 #include "kestrel/core/frontend_odometry.hpp"
+#include "kestrel/core/rgbd_estimator.hpp"
 #include "kestrel/core/window_estimator.hpp"
 
 namespace kestrel::core {
@@ -24,7 +25,8 @@ namespace kestrel::core {
 enum class LonscVariant : uint8_t { kTuned = 0, kPaper = 1 };
 
 struct EstimatorConfig {
-  std::string backend = "window";
+  // "auto": window when the rig has an IMU (imu.rate_hz > 0), rgbd when it has none.
+  std::string backend = "auto";
   LonscVariant lonsc_variant = LonscVariant::kTuned;
   // The tracker is shared by every backend that tracks (vo, window, ekf).
   TrackerOptions tracker;
@@ -36,6 +38,7 @@ struct EstimatorConfig {
   EkfEstimatorOptions ekf;
   // Divergence detection, the same for every backend that uses vision.
   DivergenceOptions safety;
+  RgbdEstimatorOptions rgbd;
 
   // The defaults of a backend ("window-embedded" is S = 2, N = 3; "window-ceres"
   // solves with Ceres) with a LONSC variant applied. Throws
@@ -46,7 +49,12 @@ struct EstimatorConfig {
   FrontendOdometryOptions vo_options() const;
   WindowEstimatorOptions window_options() const;
   EkfEstimatorOptions ekf_options() const;
+  RgbdEstimatorOptions rgbd_options() const;
 };
+
+// The backend a config runs on a rig: its own, or for "auto" window with an
+// IMU and rgbd without one.
+std::string resolve_backend(const std::string& backend, const Rig& rig);
 
 // The LONSC options of a variant (kTuned: LonscOptions{}).
 LonscOptions lonsc_options(LonscVariant v);

@@ -9,7 +9,9 @@
 
 namespace kestrel::core {
 
-// The backends by name: "imu" (dead reckoning), "vo" (front end only).
+// The backends by name: "window" (the default with an IMU), "window-embedded",
+// "window-ceres", "vo" (front end only), "ekf", "imu" (dead reckoning),
+// "rgbd" (no IMU), "auto" (window with an IMU, rgbd without).
 // Throws std::invalid_argument listing the names for an unknown one.
 std::unique_ptr<Estimator> make_estimator(const std::string& name, const Rig& rig);
 // A backend with every option from a config (estimator_config.hpp; its

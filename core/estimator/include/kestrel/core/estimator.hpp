@@ -29,6 +29,10 @@ enum class TrackingQuality : uint8_t {
   kImuOnly = 1,     // coasting on the IMU: the covariance grows without bound
   kTracking = 2,
   kLost = 3,
+  // Tracking on the camera alone: a backend without an IMU (rgbd), or the
+  // window backend while its IMU is silent (docs/real-imagery.md). The pose
+  // is as good as tracking; attitude is not tied to gravity meanwhile.
+  kVisionOnly = 4,
 };
 
 // Covariance of a pose estimate, 6x6 in the order [dp_W; dtheta_B]:

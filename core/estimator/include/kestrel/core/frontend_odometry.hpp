@@ -41,6 +41,14 @@ struct FrontendOdometryOptions {
   double pred_sigma_min_px = 4.0;
   // Divergence detection (the config's safety: section, docs/safety.md).
   DivergenceOptions divergence;
+  // IMU failure in flight (unplugged, bus error): a frame this long after the
+  // last IMU sample finds the IMU lost. Tracking then goes on in 6 DoF on the
+  // camera alone (a constant-velocity prediction, quality kVisionOnly); when
+  // samples return the propagation restarts from the camera's pose and
+  // velocity with the biases it had. 0: never (the pose coasts on the last
+  // IMU state and the tracker trusts its stale rotation).
+  int64_t imu_outage_after_ns = 200'000'000;
+  double vision_only_pred_sigma_px = 10.0;  // the constant-velocity prediction's pixel uncertainty at one frame
 };
 
 class FrontendOdometry final : public Estimator {
@@ -76,8 +84,18 @@ class FrontendOdometry final : public Estimator {
   void report_divergence(DivergenceCause why);
   // A back end's map: where W sits in the map frame, carried in the output.
   void set_map_frame(const MapFrameState& m) { out_.map = m; }
+  // The IMU is silent (imu_outage_after_ns): frames are tracked on the camera alone.
+  bool vision_only() const { return vision_only_; }
+  uint64_t imu_outages() const { return outages_; }
 
  private:
+  bool add_frame_vision_only(const RgbdFrame& f);
+  void note_pose(const Eigen::Isometry3d& T_WC, int64_t t_ns);
+  // A frame tracked (the state already corrected) / not tracked: the output's
+  // quality and the lost-frame count that restarts the tracker.
+  bool took_frame(const Eigen::Isometry3d& T_WC, int64_t t_ns, TrackingQuality q, bool fix);
+  bool missed_frame(int64_t t_ns, TrackingQuality q, bool rejected);
+
   FrontendOdometryOptions opt_;
   Eigen::Isometry3d T_BC_ = Eigen::Isometry3d::Identity();
   DeadReckoningEstimator init_and_imu_;   // static initialisation + IMU propagation
@@ -103,7 +121,13 @@ class FrontendOdometry final : public Estimator {
 
   void supervise();
   void reinitialise(DivergenceCause why);
-  void set_quality(bool tracking);
+  // IMU outage: the last sample used, and the last two camera poses for the
+  // constant-velocity prediction while the IMU is silent.
+  int64_t last_imu_t_ns_ = -1;
+  bool vision_only_ = false;
+  uint64_t outages_ = 0;
+  Eigen::Isometry3d T_WC_last_ = Eigen::Isometry3d::Identity(), T_WC_prev_ = Eigen::Isometry3d::Identity();
+  int64_t t_last_ns_ = -1, t_prev_ns_ = -1;
 };
 
 }  // namespace kestrel::core

@@ -24,6 +24,7 @@
 #include "kestrel/core/motion_estimation.hpp"
 #include "kestrel/core/orb.hpp"
 #include "kestrel/core/observation.hpp"
+#include "kestrel/core/rigid_consensus.hpp"
 #include "kestrel/msgs.hpp"
 
 namespace kestrel::core {
@@ -39,6 +40,12 @@ struct TrackerOptions {
   int match_max_level_diff = 1;     // pyramid levels between keyframe and current keypoint
   LonscOptions lonsc;
   CorrespondenceOrder order = CorrespondenceOrder::kByMatchCost;
+  // Without an IMU rotation (track(..., rotation_known = false): the rgbd
+  // backend, the window backend while its IMU is silent): a 3-point rigid
+  // model on the pairs with a current depth, found by LONSC's ordered runs
+  // or RANSAC (rigid_consensus.hpp), then RGB-D Gauss-Newton on its inliers.
+  RigidMethod rigid_method = RigidMethod::kLonsc;
+  RigidOptions rigid;
   PoseRefineOptions refine;
   double keypoint_sigma_px = 1.0;   // at level 0; scales with the level
   int min_inliers = 15;             // below: the frame is not tracked
@@ -103,6 +110,8 @@ struct TrackResult {
   double map_correction_m = 0;
   bool map_corrected = false;
   MotionStatus motion_status = MotionStatus::kOk;
+  bool six_dof = false;      // tracked without a rotation prior (rigid model)
+  int model_estimates = 0;   // six_dof: rigid fits the consensus search made
   bool tracked() const { return status == TrackStatus::kTracked; }
 };
 
@@ -129,8 +138,11 @@ class Tracker {
   // prediction's uncertainty projected into the image (sets the window).
   // depth: registered to `image` (DepthU16), may be absent (then no new
   // keyframe can be made, only tracking against the existing one).
+  // rotation_known = false: T_WC_pred is a motion-model guess (no gyro): its
+  // rotation only places the search windows and the motion is solved in 6
+  // DoF from the pairs with depth (TrackerOptions::rigid_method).
   const TrackResult& track(int64_t t_ns, const ImageView& image, const ImageView& depth,
-                           const Eigen::Isometry3d& T_WC_pred, double pred_sigma_px);
+                           const Eigen::Isometry3d& T_WC_pred, double pred_sigma_px, bool rotation_known = true);
 
   // Drops the keyframe: the next frame with depth starts a new one at its predicted pose.
   void reset();

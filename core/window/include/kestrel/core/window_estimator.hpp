@@ -59,7 +59,14 @@ struct WindowEstimatorOptions {
   double max_correction_m = 0.5;         // optimized vs propagated position beyond this: a failure
   double max_speed_mps = 25.0;           // an optimized speed beyond this: a failure
   int max_consecutive_failures = 3;      // then the window restarts
-  int64_t max_imu_gap_ns = 200'000'000;  // a longer gap cannot be preintegrated: the window restarts
+  int64_t max_imu_gap_ns = 200'000'000;  // a longer gap cannot be preintegrated (see continue_without_imu)
+  // IMU failure in flight: frames go on into the window as vision-only states
+  // (no IMU factor; velocity and biases held) while the front end tracks on
+  // the camera alone, and when samples return the preintegration chain
+  // restarts at the next frame: no window restart, no reset of the world
+  // frame, the biases re-estimated by the new IMU factors from where they
+  // were. false: a gap longer than max_imu_gap_ns restarts the window.
+  bool continue_without_imu = true;
   bool zero_velocity_when_still = true;  // window.zero_velocity_sigma_mps on frames the IMU says are still
   // The IMU test alone also passes smooth flight at near-constant
   // acceleration; a frame counts as still only if the estimated speed agrees.
@@ -93,6 +100,7 @@ struct WindowEstimatorCounters {
   uint64_t imu_gaps = 0;
   uint64_t stationary_frames = 0;  // window frames given the zero-velocity factor
   uint64_t map_poses = 0;          // window frames given the local map's pose
+  uint64_t vision_only_frames = 0; // window frames without an IMU factor (IMU silent)
 };
 
 // Optimizer -> tracking side. Trivially copyable: crosses threads through the mailbox.
@@ -153,6 +161,7 @@ class WindowEstimator final : public Estimator {
     bool stationary = false;
     bool has_pim = false;
     bool keyframe = false;
+    bool vision_only = false;  // no IMU factor from the previous window frame
     bool has_map_pose = false;
     Eigen::Isometry3d T_WB_map = Eigen::Isometry3d::Identity();
     double map_sigma_p_m = 0, map_sigma_rad = 0;
@@ -236,6 +245,7 @@ class WindowEstimator final : public Estimator {
   // the newest state of the map's frame.
   std::unique_ptr<MapSystem> map_;
   KeyframePacket* map_pending_ = nullptr;
+  bool window_started_ = false;  // a frame went in since the last (re)start
 
   // Optimizer side.
   rt::LatencyHistogram opt_latency_;

@@ -49,6 +49,9 @@ class WindowOptimizer {
     uint64_t drops = 0;
   };
 
+  // The pinhole part of the rig's colour camera (observations come undistorted).
+  static PinholeK pinhole_of(const Rig& rig) { return PinholeK{rig.rgb.fx, rig.rgb.fy, rig.rgb.cx, rig.rgb.cy}; }
+
   // Allocates everything. Throws std::invalid_argument when options.validate() fails.
   WindowOptimizer(const PinholeK& K, const Eigen::Isometry3d& T_BC, const WindowOptions& options);
   ~WindowOptimizer();

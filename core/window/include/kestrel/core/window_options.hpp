@@ -43,6 +43,13 @@ struct WindowOptions {
   // Zero-velocity factor on states the front end flags as stationary:
   // r = v_WB / sigma. Soft, so a hovering vehicle (a few cm/s) is not pinned.
   double zero_velocity_sigma_mps = 0.02;
+  // A state that enters without an IMU factor (WindowFrameInput::vision_only)
+  // has nothing to observe its velocity and biases: a soft prior holds them
+  // at the guess (the biases at the last estimate, so when the IMU returns
+  // they are re-estimated from there rather than from nothing).
+  double hold_velocity_sigma_mps = 1.0;
+  double hold_gyro_bias_sigma_rps = 0.01;
+  double hold_acc_bias_sigma_mps2 = 0.1;
   // Convergence (ours): stop when the relative cost decrease of an accepted step or the step's
   // max-norm falls below these.
   double function_tolerance = 1e-10;
@@ -79,6 +86,11 @@ struct WindowFrameInput {
   bool stationary = false;  // the IMU says the vehicle is still: add the zero-velocity factor
   // Image velocity of each observation [px/s] (estimate_time_offset; null: none known).
   const Eigen::Vector2d* uv_vel_pxps = nullptr;
+  // No IMU factor from the previous frame (there is no IMU, or it is silent):
+  // imu_from_prev may be null; velocity and biases get the hold prior, and
+  // while no state of the window has an IMU factor the gauge also pins the
+  // oldest state's roll and pitch (nothing ties them to gravity then).
+  bool vision_only = false;
   // A pose measured against landmarks of earlier keyframes (the tracker's
   // local map): a unary factor r = [p - p_prior; Log(R_prior^T R)] / sigma.
   // It ties the window to the map instead of only to its own oldest state, so

@@ -65,6 +65,9 @@ struct WindowState {
   Eigen::Quaterniond prior_q_WB = Eigen::Quaterniond::Identity();
   double prior_sigma_p_m = 1.0, prior_sigma_rad = 1.0;
   NavState x;
+  // Hold prior on velocity and biases (WindowFrameInput::vision_only), at hold_x's.
+  bool hold = false;
+  NavState hold_x;
   // IMU + bias factor from the previous state in the chain (imu_prev) to this one.
   bool has_imu = false;
   int imu_prev = -1;
@@ -107,6 +110,7 @@ struct WindowProblem {
   bool map_anchored = false;
   Eigen::Vector3d gauge_p = Eigen::Vector3d::Zero();
   double gauge_yaw = 0.0;
+  Eigen::Quaterniond gauge_q = Eigen::Quaterniond::Identity();  // the whole attitude, for vision-only windows
 
   // Marginalisation prior in slot space (15 * max_states + 1 square, t_d last):
   //   cost = prior_c + prior_g' dx + 1/2 dx' prior_H dx,  dx = x [-] x0 per state (td - td0 for t_d),
@@ -126,6 +130,14 @@ struct WindowProblem {
     if (gauge_slot < 0 || map_anchored) return false;
     for (int k = 0; k < n_states; ++k)
       if (states[order[k]].has_pose_prior) return false;
+    return true;
+  }
+  // Without any IMU factor in the window roll and pitch are unobservable:
+  // the gauge then holds the oldest state's whole attitude.
+  bool gauge_rotation_active() const {
+    if (!gauge_active()) return false;
+    for (int k = 0; k < n_states; ++k)
+      if (states[order[k]].has_imu) return false;
     return true;
   }
 };
@@ -169,6 +181,16 @@ double yaw_of(const Eigen::Quaterniond& q_WB);
 // Gauge residual [p - gauge_p; wrap(yaw - gauge_yaw)] / gauge_sigma and its
 // Jacobian w.r.t. [dp, dphi].
 Eigen::Vector4d gauge_residual(const WindowProblem& P, const NavState& x, Eigen::Matrix<double, 4, 6>* J = nullptr);
+
+// Attitude gauge of a window without IMU factors: Log(R_gauge^T R) / gauge_sigma,
+// J = d r / d[dp, dphi].
+Eigen::Vector3d gauge_rotation_residual(const WindowProblem& P, const NavState& x,
+                                        Eigen::Matrix<double, 3, 6>* J = nullptr);
+
+// Hold prior of a vision-only state: [(v - v0) / s_v; (bg - bg0) / s_g; (ba - ba0) / s_a]
+// at st.hold_x; d r / d[dv, dbg, dba] is the diagonal of the inverse sigmas (hold_weights).
+Vector9d hold_residual(const WindowProblem& P, const WindowState& st, const NavState& x);
+Vector9d hold_weights(const WindowProblem& P);
 
 // x [-] x0 in the state tangent: [p - p0, Log(R0^T R), v - v0, bg - bg0, ba - ba0],
 // and d(delta)/d(tangent of x) as the 3x3 block of the rotation part (Jr^-1);

@@ -11,9 +11,11 @@
 
 #include <array>
 #include <cstdint>
+#include <memory>
 #include <string>
 #include <vector>
 
+#include "kestrel/drivers/depth_registration.hpp"
 #include "kestrel/drivers/sensor_rings.hpp"
 #include "kestrel/msgs.hpp"
 
@@ -118,6 +120,13 @@ void yuyv_to_rgb(const uint8_t* src, int width, int height, int src_stride, uint
 void z16_to_depth(const uint8_t* src, int width, int height, int src_stride, double src_scale_m, double dst_scale_m,
                   uint16_t* dst);
 void copy_rows(const uint8_t* src, int row_bytes, int height, int src_stride, uint8_t* dst);
+// Z16 of a separate depth camera -> DepthU16 registered to the colour camera
+// (drivers/depth): converted into `scratch` (the depth camera's size), then
+// forward-projected into dst (the colour camera's size, dst_stride bytes a
+// row). False when the frame does not match the registration's depth camera.
+bool z16_to_registered_depth(const uint8_t* src, int width, int height, int src_stride, double src_scale_m,
+                             double dst_scale_m, const DepthRegistration& reg, uint16_t* scratch, uint16_t* dst,
+                             int dst_stride, RegistrationStats* stats = nullptr);
 
 // ---- transport ---------------------------------------------------------------------------
 
@@ -139,6 +148,11 @@ struct Options {
   int64_t readout_ns = 0;                  // sensor readout time, for end-of-frame stamps
   double depth_scale_m = 0.001;            // device depth unit (Z16)
   double rig_depth_scale_m = 0.001;        // Rig::depth.scale_m_per_unit
+  // A Z16 node of a separate depth camera (a RealSense depth stream is not
+  // registered to its colour stream over UVC): present = its frames are
+  // registered to `colour` (the rig's camera) before they leave the driver.
+  DepthCamera depth_camera;
+  CameraIntrinsics colour;
 };
 
 struct FrameMeta {
@@ -200,6 +214,8 @@ class Camera {
   Counters counters_;
   bool exposure_ctrl_ok_ = true;
   std::vector<uint8_t> decode_scratch_;
+  std::unique_ptr<DepthRegistration> registration_;  // sized at open()
+  std::vector<uint16_t> depth_scratch_;
 };
 
 }  // namespace kestrel::drivers::v4l2

@@ -12,6 +12,7 @@
 #include <string>
 #include <vector>
 
+#include "kestrel/drivers/depth_registration.hpp"
 #include "kestrel/drivers/folder_logs.hpp"
 #include "kestrel/drivers/log_source.hpp"
 
@@ -79,6 +80,43 @@ class RosbagReader final : public LogSource {
   std::unique_ptr<Impl> impl_;
 };
 
+// Microsoft 7-Scenes (Shotton et al., CVPR 2013; also the tsdf-fusion-python
+// layout): frame-NNNNNN.color.{png,jpg}, frame-NNNNNN.depth.png (mm; 0 and
+// 65535 = no reading), frame-NNNNNN.pose.txt (4x4 T_WC of the depth camera,
+// KinectFusion), optional camera-intrinsics.txt (the depth camera's 3x3) and
+// gravity-direction.txt. No time stamps: frame i is at i / fps. No IMU.
+// The depth is registered to colour through the rig's depth camera (without
+// a rig: the assumed Kinect v1 calibration of default_rig()); the world is
+// levelled with gravity-direction.txt (gravity along -z) and the ground truth
+// is the body's (the colour camera without a rig's T_BC). docs/datasets.md.
+class SevenScenesReader final : public FolderLogSource {
+ public:
+  struct Options {
+    double fps = 30.0;  // the recording's frame rate: frame i at i / fps [s]
+  };
+  explicit SevenScenesReader(const std::string& path, const Rig* rig = nullptr);
+  SevenScenesReader(const std::string& path, const Rig* rig, const Options& options);
+  ~SevenScenesReader() override;
+  bool next(LogRecord& out) override;
+  std::string format_name() const override { return "7scenes"; }
+  // Frames whose colour / depth repeated the previous frame's byte for byte (withheld).
+  size_t repeated_colour() const { return repeated_colour_; }
+  size_t repeated_depth() const { return repeated_depth_; }
+  // The last depth image's registration (zeros when the rig has no depth camera).
+  const RegistrationStats& last_registration() const { return last_registration_; }
+  // The rig used without --rig: colour 525 px at the centre, the depth camera
+  // from camera-intrinsics.txt, T_CD of a calibrated Kinect v1.
+  static Rig default_rig(const CameraIntrinsics& depth_intrinsics);
+
+ private:
+  std::unique_ptr<DepthRegistration> registration_;
+  std::vector<uint16_t> registered_;
+  RegistrationStats last_registration_;
+  uint32_t unregistered_reported_until_ = 0;
+  size_t repeated_colour_ = 0, repeated_depth_ = 0;
+};
+
+bool is_sevenscenes_folder(const std::string& path);
 bool is_eth3d_folder(const std::string& path);
 bool is_openloris_folder(const std::string& path);
 bool is_rosbag_file(const std::string& path);  // "#ROSBAG V2.0" magic

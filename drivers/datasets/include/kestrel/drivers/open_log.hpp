@@ -9,7 +9,7 @@
 
 namespace kestrel::drivers {
 
-enum class LogFormat { kAuto, kKlog, kEuroc, kTum, kEth3d, kOpenLoris, kRosbag };
+enum class LogFormat { kAuto, kKlog, kEuroc, kTum, kEth3d, kOpenLoris, kRosbag, kSevenScenes };
 
 // How to open a log beyond its path (docs/datasets.md).
 struct LogOpenOptions {
@@ -17,6 +17,8 @@ struct LogOpenOptions {
   // A rig YAML supplying the calibration a dataset lacks (ETH3D, OpenLORIS,
   // rosbag); the dataset's own calibration wins where it has one. "" = none.
   std::string rig_path;
+  // 7-Scenes has no time stamps: frame i is at i / fps.
+  double fps = 30.0;
   // ROS bag topics ("" = the RealSense D435i defaults of RosbagTopics).
   std::string rgb_topic, depth_topic, imu_topic, camera_info_topic, ground_truth_topic;
 };
@@ -24,14 +26,15 @@ struct LogOpenOptions {
 // Opens `path` as `format` (kAuto: a .klog file, a ROS 1 bag, an EuRoC ASL
 // folder with mav0/ or imu0/, an ETH3D folder (rgb.txt + calibration.txt,
 // associated.txt or imu.txt), an OpenLORIS folder (color.txt,
-// d400_accelerometer.txt, or sensors.yaml + trans_matrix.yaml), or a TUM
-// RGB-D folder with rgb.txt). Throws std::runtime_error naming the path and
+// d400_accelerometer.txt, or sensors.yaml + trans_matrix.yaml), a 7-Scenes
+// folder (frame-000000.pose.txt + frame-000000.color.*), or a TUM RGB-D
+// folder with rgb.txt). Throws std::runtime_error naming the path and
 // what is missing when it cannot.
 std::unique_ptr<LogSource> open_log(const std::string& path, LogFormat format = LogFormat::kAuto);
 std::unique_ptr<LogSource> open_log(const std::string& path, const LogOpenOptions& options);
 
-// "auto", "klog", "euroc", "tum", "eth3d", "openloris", "rosbag"; throws on unknown names.
+// "auto", "klog", "euroc", "tum", "eth3d", "openloris", "rosbag", "7scenes"; throws on unknown names.
 LogFormat parse_log_format(const std::string& name);
-const char* log_format_names();   // "auto, klog, euroc, tum, eth3d, openloris, rosbag"
+const char* log_format_names();   // "auto, klog, euroc, tum, eth3d, openloris, rosbag, 7scenes"
 
 }  // namespace kestrel::drivers

@@ -14,6 +14,7 @@
 #include <optional>
 #include <stdexcept>
 #include <string>
+#include <vector>
 
 #include "kestrel/drivers/log_source.hpp"
 #include "kestrel/msgs.hpp"
@@ -36,6 +37,14 @@ struct SimOptions {
   // Hybrid mode: the real IMU (EuRoC imu0.csv) is written as is, the camera
   // is rendered along the spline of trajectory_path.
   std::string imu_path;
+  // Real images (`--images`): a recording with ground truth and no IMU, read
+  // by any reader (images_format, `auto` detects it; rig_path and fps go to
+  // the reader). Its images and ground truth are written as they are, with
+  // an IMU synthesised along a smoothing spline through the ground truth
+  // (knot_spacing_s, default 0.1 s, and position_smoothing).
+  std::string images_path;
+  std::string images_format = "auto";
+  double position_smoothing = 0.0;      // --images: second-difference weight of the position spline
   std::string out_path;                 // .klog (run_simulation(options) only)
 
   double duration_s = -1.0;             // <= 0: scenario default / whole file
@@ -93,6 +102,13 @@ struct SimSummary {
   Eigen::Vector3d room_size_m = Eigen::Vector3d::Zero();
   size_t clutter_objects = 0;
   Rig rig;                              // as written into the log
+  bool real_images = false;             // --images
+  // --images: how far the spline the IMU follows is from the ground truth the
+  // images were taken at (what the synthetic IMU cannot know about).
+  double spline_rms_position_residual_m = 0.0;
+  double spline_max_position_residual_m = 0.0;
+  double spline_max_rotation_residual_rad = 0.0;
+  std::vector<drivers::LogProblem> problems;  // --images: what the reader reported
 };
 
 // Where the records go, in time order. The .klog sink wraps KlogWriter; tests
@@ -126,6 +142,9 @@ void load_sim_rig_yaml(const std::string& path, Rig& rig, ImuModel& imu);
 // must state all four noise figures).
 bool read_euroc_imu_yaml(const std::string& path, ImuModel& model, double& rate_hz);
 bool read_euroc_T_BS(const std::string& path, Eigen::Isometry3d& T_BS);
+
+// --images: real images, synthesised IMU (called by run_simulation).
+SimSummary run_image_simulation(const SimOptions& options, SimSink& sink);
 
 // Runs the whole simulation into `sink`. Throws SimOptionError for bad
 // options or missing files, std::runtime_error for malformed inputs.
