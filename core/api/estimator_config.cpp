@@ -317,6 +317,7 @@ WindowEstimatorOptions EstimatorConfig::window_options() const {
 RgbdEstimatorOptions EstimatorConfig::rgbd_options() const {
   RgbdEstimatorOptions o = rgbd;
   o.tracker = tracker;
+  o.divergence = safety;
   return o;
 }
 

@@ -45,7 +45,8 @@ RgbdEstimator::RgbdEstimator(const Rig& rig, const RgbdEstimatorOptions& opt)
       }()),
       T_BC_(to_isometry(rig.T_BC)),
       T_CB_(T_BC_.inverse()),
-      tracker_(rig, opt.tracker) {
+      tracker_(rig, opt.tracker),
+      monitor_(opt.divergence) {
   const std::string err = opt_.validate();
   if (!err.empty()) throw std::invalid_argument("RgbdEstimatorOptions:\n" + err);
   if (opt_.use_window) window_ = std::make_unique<WindowOptimizer>(WindowOptimizer::pinhole_of(rig), T_BC_, opt_.window);
@@ -170,6 +171,24 @@ bool RgbdEstimator::add_frame(const RgbdFrame& f) {
   // No covariance: the window's is relative to a gauge without the drift of a
   // vision-only chain's roll and pitch; reporting it would understate the error.
   out_.pose_cov.valid = false;
+  monitor_.on_frame(f.t_ns, r.tracked(), false);
+  const DivergenceCause why = monitor_.check(out_.state, nullptr);
+  if (why != DivergenceCause::kNone) {
+    // A runaway motion model (or a non-finite pose): start over where the
+    // last good pose was, at rest, and say so.
+    restart();
+    monitor_.on_reinitialised(f.t_ns, why);
+    T_WC_prev_ = T_WC_last_;
+    t_prev_ns_ = -1;
+    out_.state.v_WB.setZero();
+    if (!out_.state.p_WB.allFinite() || !out_.state.q_WB.coeffs().allFinite()) {
+      out_.state.p_WB.setZero();
+      out_.state.q_WB.setIdentity();
+      T_WC_last_ = T_BC_;
+    }
+  }
+  if (monitor_.lost()) out_.quality = TrackingQuality::kLost;
+  counters_.divergence = monitor_.counts();
   return true;
 }
 

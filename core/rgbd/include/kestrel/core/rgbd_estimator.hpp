@@ -29,6 +29,7 @@
 #include <memory>
 #include <string>
 
+#include "kestrel/core/divergence.hpp"
 #include "kestrel/core/estimator.hpp"
 #include "kestrel/core/tracker.hpp"
 #include "kestrel/core/window_optimizer.hpp"
@@ -49,6 +50,9 @@ struct RgbdEstimatorOptions {
   double map_pose_sigma_m = 0.02;
   double map_pose_sigma_rad = 0.01;
   double max_correction_m = 0.2;  // window vs tracked pose beyond this: the solve is not taken
+  // Divergence detection (the config's safety: section, docs/safety.md): here
+  // the speed and finiteness bounds and the coast timeout of the motion model.
+  DivergenceOptions divergence;
 
   std::string validate() const;
 };
@@ -99,6 +103,7 @@ class RgbdEstimator final : public Estimator {
   int64_t last_tracked_t_ns_ = -1;
   int lost_frames_ = 0;
   bool window_started_ = false;
+  DivergenceMonitor monitor_;
 };
 
 }  // namespace kestrel::core
