@@ -72,7 +72,7 @@ WindowEstimator::WindowEstimator(const Rig& rig, const WindowEstimatorOptions& o
   set_threaded_optimizer(false);
   if (opt_.map.mapping) {
     MapCamera cam;
-    cam.K = pinhole_of(rig);
+    cam.K = WindowOptimizer::pinhole_of(rig);
     cam.width = rig.rgb.width;
     cam.height = rig.rgb.height;
     cam.depth_sigma_coeff_per_m = rig.depth.sigma_coeff_per_m;

@@ -24,6 +24,7 @@ uint8_t mav_state_of(core::TrackingQuality q) {
   switch (q) {
     case core::TrackingQuality::kUninitialized: return kMavStateStandby;
     case core::TrackingQuality::kImuOnly:
+    case core::TrackingQuality::kVisionOnly:
     case core::TrackingQuality::kTracking: return kMavStateActive;
     case core::TrackingQuality::kLost: return kMavStateCritical;
   }

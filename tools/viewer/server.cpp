@@ -97,6 +97,7 @@ const char* quality_name(core::TrackingQuality q) {
   switch (q) {
     case core::TrackingQuality::kTracking: return "tracking";
     case core::TrackingQuality::kImuOnly: return "imu-only";
+    case core::TrackingQuality::kVisionOnly: return "vision-only";
     case core::TrackingQuality::kLost: return "lost";
     case core::TrackingQuality::kUninitialized: break;
   }
