@@ -146,10 +146,22 @@ void visit_window(EstimatorConfig& c, OptionVisitor& v) {
   v.value("function_tolerance", w.function_tolerance, "stop when the relative cost decrease falls below");
   v.value("step_tolerance", w.step_tolerance, "stop when the step's max-norm falls below");
   v.value("estimate_time_offset", w.estimate_time_offset,
-          "estimate the camera-IMU time offset online on top of the rig's time_offset_cam_imu_ns (VINS-Mono's t_d); "
-          "experimental: does not recover an unstated offset yet (docs/optimizer.md)");
+          "estimate the camera-IMU time offset online on top of the rig's time_offset_cam_imu_ns: a t_d state "
+          "(VINS-Mono's) measured by correlating vision-only rotations with the gyro (docs/optimizer.md)");
   v.value("time_offset_prior_sigma_ms", w.time_offset_prior_sigma_ms,
-          "prior on the estimated offset around the rig's value");
+          "prior on the estimated offset around the rig's value, until the correlation has a measurement");
+  TimeOffsetCalibratorOptions& to = e.time_offset;
+  v.value("time_offset_search_ms", to.search_ms, "offsets the correlation tries: +- this");
+  v.value("time_offset_step_ms", to.step_ms, "grid of the correlation's search (refined by a parabola)");
+  v.value("time_offset_memory_s", to.memory_s, "the correlation's evidence fades with this time constant");
+  v.value("time_offset_min_intervals", to.min_intervals, "frame intervals before the first measurement");
+  v.value("time_offset_max_sigma_ms", to.max_sigma_ms, "a measurement less certain than this is not used");
+  v.value("time_offset_sigma_floor_ms", to.sigma_floor_ms, "the measurement's 1-sigma is at least this");
+  v.value("time_offset_gate_rad", to.gate_rad, "a frame interval no offset explains within this is an outlier");
+  v.value("time_offset_max_interval_s", to.max_interval_s, "a frame further than this from its keyframe is not used");
+  v.value("time_offset_gyro_capacity", to.gyro_capacity, "gyro samples kept by the correlation (fixed memory)");
+  v.value("time_offset_min_matches", e.time_offset_min_matches,
+          "depth-backed matches a frame pair needs for its vision-only rotation");
   v.value("keyframes_only", e.keyframes_only, "only keyframes enter the window (cheaper, less accurate)");
   v.value("imu_noise_inflation", e.imu_noise_inflation,
           "every IMU noise density of the rig is multiplied by this (docs/optimizer.md)");

@@ -27,6 +27,9 @@ std::string WindowEstimatorOptions::validate() const {
   if (!(max_speed_mps > 0)) e << "max_speed_mps: must be > 0\n";
   if (max_consecutive_failures < 1) e << "max_consecutive_failures: at least 1\n";
   if (max_imu_gap_ns <= 0) e << "max_imu_gap_ns: must be > 0\n";
+  if (time_offset_min_matches < 6) e << "time_offset_min_matches: at least 6\n";
+  const std::string to = time_offset.validate();
+  if (!to.empty()) e << "time_offset: " << to << "\n";
   return e.str();
 }
 
@@ -65,8 +68,15 @@ WindowEstimator::WindowEstimator(const Rig& rig, const WindowEstimatorOptions& o
   for (int i = 0; i < kPool; ++i) jobs_[i].pim = Preintegrated(pim_params_);
   obs_pool_.reset(new WindowObservation[static_cast<size_t>(kPool) * max_obs_]);
   vel_pool_.reset(new Eigen::Vector2d[static_cast<size_t>(kPool) * max_obs_]);
+  dvel_pool_.reset(new double[static_cast<size_t>(kPool) * max_obs_]);
   prev_cap_ = std::max(opt.frontend.tracker.orb.n_features, max_obs_);
   prev_obs_.reset(new PrevObs[static_cast<size_t>(prev_cap_)]);
+  K_ = WindowOptimizer::pinhole_of(rig);
+  if (opt_.window.estimate_time_offset) {
+    calib_ = std::make_unique<TimeOffsetCalibrator>(opt_.time_offset, T_BC_.linear());
+    corr_.reset(new Correspondence2D3D[static_cast<size_t>(prev_cap_)]);
+    kf_obs_.reset(new PrevObs[static_cast<size_t>(prev_cap_)]);
+  }
   for (int i = kPool - 1; i >= 0; --i) free_slots_[n_free_++] = i;
   for (auto& c : chain_) c = Preintegrated(pim_params_);
   set_threaded_optimizer(false);
@@ -97,7 +107,13 @@ std::string WindowEstimator::backend_summary() const {
     << wc_.skipped_no_imu << "), stale " << wc_.stale_results << ", imu gaps " << wc_.imu_gaps
     << ", still frames " << wc_.stationary_frames << ", map poses " << wc_.map_poses << ", vision-only frames "
     << wc_.vision_only_frames;
-  if (opt_.window.estimate_time_offset) o << ", time offset " << 1e3 * td_s_ << " ms";
+  if (calib_) {
+    const TimeOffsetEstimate e = calib_->estimate();
+    o << ", time offset " << 1e3 * td_s_ << " ms (rotation correlation: ";
+    if (e.sigma_s > 0.0) o << 1e3 * e.td_s << " +- " << 1e3 * e.sigma_s << " ms, residual " << 1e3 * e.residual_rad << " mrad" << (e.valid ? "" : " (too loose, unused)");
+    else o << "none";
+    o << ", " << calib_->used_intervals() << " intervals, " << calib_->gated_intervals() << " gated)";
+  }
   if (map_) o << "\n" << map_->summary();
   return o.str();
 }
@@ -153,7 +169,22 @@ void WindowEstimator::map_before_tracking() {
   }
   front_.set_map_frame(map_->frame());
   if (map_pending_ != nullptr && tracker.has_keyframe() && tracker.keyframe_t_ns() == map_pending_->t_ns)
-    map_pending_->T_WC = tracker.keyframe_pose();
+    map_pending_->T_WC = at_capture_time(tracker.keyframe_pose());
+}
+
+// The window's poses are at the frames' stamps t; a keyframe's pixels and
+// depths were taken at t + t_d. The map places the keyframe's points with the
+// pose it is given, so it gets the pose at t + t_d (first order, the motion
+// when the keyframe was taken); without it every map point sits v t_d + w t_d
+// x p off, and the map's priors pull the window's t_d back.
+Eigen::Isometry3d WindowEstimator::at_capture_time(const Eigen::Isometry3d& T_WC) const {
+  if (!calib_ || td_s_ == 0.0) return T_WC;
+  Eigen::Isometry3d T_WB = T_WC * T_BC_.inverse();
+  const double a = map_pending_w_B_.norm() * td_s_;
+  if (map_pending_w_B_.norm() > 0.0)
+    T_WB.linear() = T_WB.linear() * Eigen::AngleAxisd(a, map_pending_w_B_.normalized()).toRotationMatrix();
+  T_WB.translation() += map_pending_v_W_ * td_s_;
+  return T_WB * T_BC_;
 }
 
 // After tracking: a new keyframe sends the held one to the map (the window
@@ -166,7 +197,9 @@ void WindowEstimator::map_after_tracking() {
   if (map_pending_ == nullptr) return;
   Tracker& tracker = front_.tracker();
   map_pending_->t_ns = tracker.keyframe_t_ns();
-  map_pending_->T_WC = tracker.keyframe_pose();
+  map_pending_v_W_ = front_.propagated().v_WB;
+  map_pending_w_B_ = last_gyro_rps_ - front_.propagated().bg_rps;
+  map_pending_->T_WC = at_capture_time(tracker.keyframe_pose());
   map_pending_->n = tracker.keyframe_features(map_pending_->features, opt_.frontend.tracker.orb.n_features);
 }
 
@@ -178,17 +211,95 @@ bool WindowEstimator::add_frame(const RgbdFrame& f) {
   if (map_) map_after_tracking();
   const TrackResult& r = front_.last_track();
   if (!(r.tracked() || r.status == TrackStatus::kNewKeyframe)) return changed;
+  if (calib_) measure_camera_rotation(f.t_ns, r);
   queue_job(f, r);
-  if (opt_.window.estimate_time_offset) {
-    // This frame's observations by id, for the next frame's image velocities.
-    const Tracker& tracker = front_.tracker();
-    n_prev_ = std::min(tracker.num_observations(), prev_cap_);
-    for (int k = 0; k < n_prev_; ++k)
-      prev_obs_[k] = PrevObs{tracker.observations()[k].landmark_id, tracker.observations()[k].uv};
-    std::sort(prev_obs_.get(), prev_obs_.get() + n_prev_, [](const PrevObs& a, const PrevObs& b) { return a.id < b.id; });
-    prev_t_ns_ = f.t_ns;
-  }
+  if (opt_.window.estimate_time_offset) remember_observations(f.t_ns);
   return changed;
+}
+
+namespace {
+// Observations by landmark id, sorted, into a fixed array.
+int copy_sorted(const WindowObservation* obs, int n, WindowEstimator::PrevObsView out, int cap) {
+  n = std::min(n, cap);
+  for (int k = 0; k < n; ++k) out[k] = {obs[k].landmark_id, obs[k].uv, obs[k].depth_m};
+  std::sort(out, out + n, [](const auto& a, const auto& b) { return a.id < b.id; });
+  return n;
+}
+}  // namespace
+
+// This frame's observations by id, for the next frame's image velocities.
+void WindowEstimator::remember_observations(int64_t t_ns) {
+  const Tracker& tracker = front_.tracker();
+  n_prev_ = copy_sorted(tracker.observations(), tracker.num_observations(), prev_obs_.get(), prev_cap_);
+  prev_t_ns_ = t_ns;
+}
+
+// The tracker's own pose takes its rotation from the gyro (LONSC with the IMU
+// rotation), so it cannot show the offset between the two; a plain 6-DoF PnP
+// of this frame's pixels on the keyframe's depth can. Against the keyframe
+// rather than the previous frame: the angular velocity differs more between
+// the ends of a longer interval while the PnP's noise stays the same
+// (tests/imu/test_time_offset_calibrator.cpp). The PnP starts from the
+// tracker's relative pose, which only speeds it up.
+void WindowEstimator::measure_camera_rotation(int64_t t_ns, const TrackResult& r) {
+  const Tracker& tracker = front_.tracker();
+  if (r.keyframe) {
+    n_kf_obs_ = copy_sorted(tracker.observations(), tracker.num_observations(), kf_obs_.get(), prev_cap_);
+    kf_t_ns_ = t_ns;
+    kf_T_WC_ = r.T_WC;
+    return;
+  }
+  if (kf_t_ns_ < 0 || t_ns <= kf_t_ns_) return;
+  const int n = std::min(tracker.num_observations(), prev_cap_);
+  const PrevObs* begin = kf_obs_.get();
+  const PrevObs* end = begin + n_kf_obs_;
+  int m = 0;
+  for (int k = 0; k < n; ++k) {
+    const WindowObservation& o = tracker.observations()[k];
+    const PrevObs* p = std::lower_bound(begin, end, o.landmark_id, [](const PrevObs& a, uint32_t id) { return a.id < id; });
+    if (p == end || p->id != o.landmark_id || !(p->depth_m > 0.0)) continue;
+    Correspondence2D3D& c = corr_[m++];
+    c.p_prev = Eigen::Vector3d((p->uv.x() - K_.cx) / K_.fx, (p->uv.y() - K_.cy) / K_.fy, 1.0) * p->depth_m;
+    c.u_cur = o.uv;
+    c.sigma_px = 1.0f;
+    c.id = o.landmark_id;
+  }
+  if (m < opt_.time_offset_min_matches) return;
+  const Eigen::Isometry3d T_cur_kf = r.T_WC.inverse() * kf_T_WC_;
+  Eigen::Matrix3d R = T_cur_kf.linear();
+  Eigen::Vector3d t = T_cur_kf.translation();
+  PoseRefineOptions ro;
+  ro.max_iterations = 6;
+  const PoseRefineResult res =
+      refine_pose_gauss_newton(&R, &t, K_, corr_.get(), static_cast<std::size_t>(m), nullptr, 0, ro);
+  if (!res.ok || !R.allFinite()) return;
+  // R maps the keyframe's camera into the current one: R_CcCk; the calibrator wants R_CkCc.
+  calib_->add_camera_rotation(kf_t_ns_, t_ns, R.transpose());
+}
+
+// Where the time offset moves a depth-backed observation: d p_C / dt for a
+// static point seen by a moving camera (p_B = R_WB^T (l - p_WB) changes by
+// -w x p_B - R_WB^T v_WB), projected: the pixel's and the depth's rates. From
+// the motion rather than from the previous frame's pixel, so a landmark seen
+// for the first time (every new point of a keyframe) moves too. Observations
+// without depth keep the backward difference of image_velocities.
+void WindowEstimator::depth_velocities(const NavState& x, const WindowObservation* obs, int n, Eigen::Vector2d* vel,
+                                       double* dvel) const {
+  const Eigen::Matrix3d R_BC = T_BC_.linear();
+  const Eigen::Vector3d v_B = x.q_WB.conjugate() * x.v_WB;
+  const Eigen::Vector3d w_B = last_gyro_rps_ - x.bg_rps;
+  for (int k = 0; k < n; ++k) {
+    dvel[k] = 0.0;
+    if (!(obs[k].depth_m > 0.0)) continue;
+    const Eigen::Vector3d p_C =
+        Eigen::Vector3d((obs[k].uv.x() - K_.cx) / K_.fx, (obs[k].uv.y() - K_.cy) / K_.fy, 1.0) * obs[k].depth_m;
+    const Eigen::Vector3d p_B = R_BC * p_C + T_BC_.translation();
+    const Eigen::Vector3d pdot_C = R_BC.transpose() * (-w_B.cross(p_B) - v_B);
+    dvel[k] = pdot_C.z();
+    const double iz = 1.0 / p_C.z();
+    vel[k] = Eigen::Vector2d(K_.fx * (pdot_C.x() * p_C.z() - p_C.x() * pdot_C.z()) * iz * iz,
+                             K_.fy * (pdot_C.y() * p_C.z() - p_C.y() * pdot_C.z()) * iz * iz);
+  }
 }
 
 // A tracked frame becomes a job for the optimizer (unless it is left out).
@@ -225,13 +336,28 @@ void WindowEstimator::queue_job(const RgbdFrame& f, const TrackResult& r) {
   job.guess = front_.propagated();
   job.n_obs = std::min(n, max_obs_);
   std::copy(tracker.observations(), tracker.observations() + job.n_obs, obs_of(slot));
-  if (opt_.window.estimate_time_offset) image_velocities(f.t_ns, obs_of(slot), job.n_obs, vel_of(slot));
+  if (opt_.window.estimate_time_offset) {
+    image_velocities(f.t_ns, obs_of(slot), job.n_obs, vel_of(slot));
+    depth_velocities(job.guess, obs_of(slot), job.n_obs, vel_of(slot), dvel_of(slot));
+    const TimeOffsetEstimate e = calib_->estimate();
+    job.td_meas_s = e.valid ? e.td_s : 0.0;
+    job.td_meas_sigma_s = e.valid ? e.sigma_s : 0.0;
+  }
   job.stationary = opt_.zero_velocity_when_still && still_t_ns_ >= 0 && f.t_ns - still_t_ns_ <= 150'000'000 &&
                    front_.propagated().v_WB.norm() < opt_.still_max_speed_mps;
   wc_.stationary_frames += job.stationary ? 1 : 0;
   job.has_map_pose = opt_.use_map_pose && r.keyframe && r.map_pose_valid;
   if (job.has_map_pose) {
     job.T_WB_map = r.T_WC_map * T_BC_.inverse();
+    if (job.td_meas_sigma_s > 0.0) {
+      // The PnP saw the camera at t + t_d: moved back to the state's time.
+      const double td = job.td_meas_s;
+      const Eigen::Vector3d w_B = last_gyro_rps_ - job.guess.bg_rps;
+      job.T_WB_map.translation() -= job.guess.v_WB * td;
+      if (w_B.norm() > 0.0)
+        job.T_WB_map.linear() =
+            job.T_WB_map.linear() * Eigen::AngleAxisd(-td * w_B.norm(), w_B.normalized()).toRotationMatrix();
+    }
     job.map_sigma_p_m = std::max(opt_.map_pose_sigma_m, r.map_sigma_p_m);
     job.map_sigma_rad = std::max(opt_.map_pose_sigma_rad, r.map_sigma_rad);
     ++wc_.map_poses;
@@ -266,6 +392,10 @@ bool WindowEstimator::add_imu(const ImuSample& s) {
     poll_results();
     return changed;
   }
+  last_gyro_rps_ = Eigen::Vector3d(s.gyro_rps[0], s.gyro_rps[1], s.gyro_rps[2]);
+  // The raw rate: the calibrator fits a constant bias itself, which keeps it
+  // independent of the window's bias estimate (itself disturbed by a wrong t_d).
+  if (calib_) calib_->add_gyro(s.t_ns, last_gyro_rps_);
   NavState still_state;
   if (still_.add(s, still_state)) still_t_ns_ = s.t_ns;
   if (have_last_sample_ && s.t_ns - last_sample_.t_ns > opt_.max_imu_gap_ns && (pim_active_ || window_started_)) {
@@ -423,6 +553,9 @@ void WindowEstimator::process(int slot) {
   in.obs = obs_of(slot);
   in.n_obs = job.n_obs;
   in.uv_vel_pxps = opt_.window.estimate_time_offset ? vel_of(slot) : nullptr;
+  in.depth_vel_mps = opt_.window.estimate_time_offset ? dvel_of(slot) : nullptr;
+  in.td_meas_s = job.td_meas_s;
+  in.td_meas_sigma_s = job.td_meas_sigma_s;
   in.keyframe = job.keyframe || window_->num_states() == 0;
   in.stationary = job.stationary;
   in.vision_only = job.vision_only;

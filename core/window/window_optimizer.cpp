@@ -316,6 +316,26 @@ bool WindowOptimizer::add_frame(const WindowFrameInput& in) {
   }
   if (P.n_states >= P.max_states) marginalize_or_drop(P.order[0]);  // defensive: cannot happen
 
+  if (P.estimate_td() && in.td_meas_sigma_s > 0.0 && std::isfinite(in.td_meas_s) && std::isfinite(in.td_meas_sigma_s)) {
+    // The newest measurement stands until the next; the first one also
+    // starts t_d there, which the prior alone would take many solves to reach.
+    if (!(P.td_meas_sigma_s > 0.0)) P.td_s = in.td_meas_s;
+    P.td_meas_s = in.td_meas_s;
+    P.td_meas_sigma_s = in.td_meas_sigma_s;
+  }
+  if (P.estimate_td() && P.td_meas_sigma_s > 0.0 && P.td_in_prior) {
+    // With a measurement, t_d leaves the marginalisation prior (conditioned
+    // on, not marginalised): what marginalised states said of t_d was
+    // linearised where t_d was first guessed, along a direction vision cannot
+    // tell from the poses, and it held t_d there against any evidence - the
+    // reason the state alone never moved (docs/optimizer.md). The measurement
+    // carries the evidence now.
+    const int T = P.td_index();
+    P.prior_H.row(T).setZero();
+    P.prior_H.col(T).setZero();
+    P.prior_g(T) = 0.0;
+    P.td_in_prior = false;
+  }
   int slot = 0;
   while (P.states[slot].used) ++slot;
   WindowState& st = P.states[slot];
@@ -411,6 +431,7 @@ void WindowOptimizer::add_observations(int slot, const WindowFrameInput& in) {
     w.sigma_depth_m = std::max(1e-3, P.opt.depth_sigma_coeff_per_m * o.depth_m * o.depth_m);
     w.uv_vel_pxps = in.uv_vel_pxps != nullptr && in.uv_vel_pxps[k].allFinite() ? in.uv_vel_pxps[k]
                                                                                 : Eigen::Vector2d::Zero();
+    w.depth_vel_mps = in.depth_vel_mps != nullptr && std::isfinite(in.depth_vel_mps[k]) ? in.depth_vel_mps[k] : 0.0;
     const Eigen::Vector3d ray_C((o.uv.x() - P.K.cx) / P.K.fx, (o.uv.y() - P.K.cy) / P.K.fy, 1.0);
     if (!L.initialised && o.depth_m > 0.0) {
       const Eigen::Vector3d p_B = P.R_CB.transpose() * (ray_C * o.depth_m - P.p_CB);

@@ -28,8 +28,11 @@ int visual_residual(const WindowProblem& P, const NavState& x, const Eigen::Vect
   const Eigen::Vector2d uv = o.uv - o.uv_vel_pxps * td_s;
   (*r)(0) = (P.K.fx * p_C.x() * iz + P.K.cx - uv.x()) * isp;
   (*r)(1) = (P.K.fy * p_C.y() * iz + P.K.cy - uv.y()) * isp;
-  (*r)(2) = rows == 3 ? (p_C.z() - o.depth_m) / o.sigma_depth_m : 0.0;
-  if (J_td) *J_td = Eigen::Vector3d(o.uv_vel_pxps.x() * isp, o.uv_vel_pxps.y() * isp, 0.0);
+  // The depth too was measured at t + t_d: moved back along its own rate.
+  (*r)(2) = rows == 3 ? (p_C.z() - (o.depth_m - o.depth_vel_mps * td_s)) / o.sigma_depth_m : 0.0;
+  if (J_td)
+    *J_td = Eigen::Vector3d(o.uv_vel_pxps.x() * isp, o.uv_vel_pxps.y() * isp,
+                            rows == 3 ? o.depth_vel_mps / o.sigma_depth_m : 0.0);
   if (J_pose == nullptr && J_l == nullptr) return rows;
   // d r / d p_C, whitened.
   Eigen::Matrix3d D = Eigen::Matrix3d::Zero();
@@ -49,6 +52,11 @@ int visual_residual(const WindowProblem& P, const NavState& x, const Eigen::Vect
 }
 
 double time_offset_prior_residual(const WindowProblem& P, double td_s, double* J) {
+  if (P.td_meas_sigma_s > 0.0) {
+    const double w = 1.0 / P.td_meas_sigma_s;
+    if (J) *J = w;
+    return w * (td_s - P.td_meas_s);
+  }
   const double w = 1.0 / (1e-3 * P.opt.time_offset_prior_sigma_ms);
   if (J) *J = w;
   return w * td_s;

@@ -244,6 +244,24 @@ TEST(WindowEstimator, NoHeapAllocationInSteadyState) {
   EXPECT_EQ(win.steady_allocs, 0u) << "allocations in add_imu/add_frame (optimizer inline) after warm-up";
 }
 
+TEST(WindowEstimator, NoHeapAllocationWithTheTimeOffsetEstimated) {
+  // The rotation correlation and the vision-only PnP run on the tracking thread.
+  const std::string path = test::simulate("figure8", 5.0, 11);
+  std::unique_ptr<core::Estimator> est;
+  const test::RunResult win = test::run(
+      path,
+      [](const Rig& rig) -> std::unique_ptr<core::Estimator> {
+        core::WindowEstimatorOptions o;
+        o.window.estimate_time_offset = true;
+        return std::make_unique<core::WindowEstimator>(rig, o);
+      },
+      {}, &est);
+  ASSERT_TRUE(rt::alloc_hook_linked());
+  ASSERT_GT(win.frames, 60u);
+  EXPECT_NE(est->backend_summary().find("rotation correlation"), std::string::npos);
+  EXPECT_EQ(win.steady_allocs, 0u) << "allocations with estimate_time_offset after warm-up";
+}
+
 TEST(Tracker, LandmarkIdsPersistWhileTrackedAndAcrossKeyframes) {
   const std::string path = test::simulate("figure8", 4.0, 2);
   auto log = drivers::open_log(path);

@@ -60,6 +60,7 @@ TEST(WindowResiduals, VisualJacobiansWithAndWithoutDepthAndTimeOffset) {
       o.depth_m = depth ? 2.9 : 0.0;
       o.sigma_depth_m = 0.02;
       o.uv_vel_pxps = Eigen::Vector2d(120.0 - 60.0 * trial, 35.0 * trial);  // image motion [px/s]
+      o.depth_vel_mps = 0.4 - 0.2 * trial;                                  // approaching, then receding
       const double td_s = 0.004 * trial - 0.01;
       Vector3d r, Jt;
       Matrix36d Jp;
@@ -89,6 +90,10 @@ TEST(WindowResiduals, VisualJacobiansWithAndWithoutDepthAndTimeOffset) {
       visual_residual(P, x, l, o, 0.0, &r0);
       EXPECT_NEAR(r(0) - r0(0), o.uv_vel_pxps.x() * td_s / o.sigma_px, 1e-9);
       EXPECT_NEAR(r(1) - r0(1), o.uv_vel_pxps.y() * td_s / o.sigma_px, 1e-9);
+      // The depth likewise along its rate.
+      if (depth) {
+        EXPECT_NEAR(r(2) - r0(2), o.depth_vel_mps * td_s / o.sigma_depth_m, 1e-9);
+      }
     }
   }
   double J = 0.0;
@@ -97,6 +102,11 @@ TEST(WindowResiduals, VisualJacobiansWithAndWithoutDepthAndTimeOffset) {
     return VectorXd::Constant(1, time_offset_prior_residual(P, 0.003 + d(0)));
   }));
   EXPECT_NEAR(r, 0.003 / (1e-3 * P.opt.time_offset_prior_sigma_ms), 1e-12);
+  // With a measurement of t_d (the rotation correlation) the prior is centred on it.
+  P.td_meas_s = -0.02;
+  P.td_meas_sigma_s = 0.0005;
+  EXPECT_NEAR(time_offset_prior_residual(P, -0.019, &J), 0.001 / 0.0005, 1e-9);
+  EXPECT_NEAR(J, 1.0 / 0.0005, 1e-9);
 }
 
 TEST(WindowResiduals, BehindTheCameraHasNoRows) {

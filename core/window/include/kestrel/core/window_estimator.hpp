@@ -32,6 +32,7 @@
 #include "kestrel/core/estimator.hpp"
 #include "kestrel/core/frontend_odometry.hpp"
 #include "kestrel/core/map_system.hpp"
+#include "kestrel/core/time_offset_calibrator.hpp"
 #include "kestrel/core/window_optimizer.hpp"
 #include "kestrel/rt/mailbox.hpp"
 #include "kestrel/rt/spsc_ring.hpp"
@@ -83,6 +84,11 @@ struct WindowEstimatorOptions {
   // work runs on threads the caller provides (Estimator::mapping_step /
   // loop_step); without them nothing is mapped.
   MapSystemOptions map;
+  // window.estimate_time_offset: the measurement of t_d that the window's
+  // state follows (rotation correlation of vision against the gyro).
+  TimeOffsetCalibratorOptions time_offset;
+  // A frame pair's vision-only rotation needs this many depth-backed matches.
+  int time_offset_min_matches = 20;
 
   std::string validate() const;
 };
@@ -170,6 +176,7 @@ class WindowEstimator final : public Estimator {
     NavState guess;
     Preintegrated pim;
     int n_obs = 0;
+    double td_meas_s = 0.0, td_meas_sigma_s = 0.0;  // the calibrator's t_d when this frame was queued
   };
 
   void queue_job(const RgbdFrame& f, const TrackResult& r);
@@ -182,8 +189,18 @@ class WindowEstimator final : public Estimator {
   void map_after_tracking();
   WindowObservation* obs_of(int slot) { return obs_pool_.get() + static_cast<size_t>(slot) * max_obs_; }
   Eigen::Vector2d* vel_of(int slot) { return vel_pool_.get() + static_cast<size_t>(slot) * max_obs_; }
+  double* dvel_of(int slot) { return dvel_pool_.get() + static_cast<size_t>(slot) * max_obs_; }
   // Image velocities of a frame's observations from the previous tracked frame (time offset).
   void image_velocities(int64_t t_ns, const WindowObservation* obs, int n, Eigen::Vector2d* vel);
+  // Pixel and depth rates of the depth-backed observations, from the front
+  // end's velocity and the gyro (time offset).
+  void depth_velocities(const NavState& x, const WindowObservation* obs, int n, Eigen::Vector2d* vel,
+                        double* dvel) const;
+  // The camera's rotation since the tracker's keyframe from vision alone
+  // (PnP on the keyframe's depth), handed to the time offset calibrator; a
+  // new keyframe's observations are kept for the frames after it.
+  void measure_camera_rotation(int64_t t_ns, const TrackResult& r);
+  void remember_observations(int64_t t_ns);
 
   WindowEstimatorOptions opt_;
   Eigen::Isometry3d T_BC_;
@@ -202,10 +219,25 @@ class WindowEstimator final : public Estimator {
   struct PrevObs {
     uint32_t id;
     Eigen::Vector2d uv;
+    double depth_m;  // 0: none
   };
+
+ public:
+  using PrevObsView = PrevObs*;
+
+ private:
   std::unique_ptr<PrevObs[]> prev_obs_;
   int prev_cap_ = 0, n_prev_ = 0;
   int64_t prev_t_ns_ = -1;
+  std::unique_ptr<PrevObs[]> kf_obs_;  // the tracker's keyframe's observations by id [prev_cap_]
+  int n_kf_obs_ = 0;
+  int64_t kf_t_ns_ = -1;
+  Eigen::Isometry3d kf_T_WC_ = Eigen::Isometry3d::Identity();
+  PinholeK K_;
+  std::unique_ptr<double[]> dvel_pool_;  // per observation of a job [m/s]
+  std::unique_ptr<TimeOffsetCalibrator> calib_;
+  std::unique_ptr<Correspondence2D3D[]> corr_;  // scratch of measure_camera_rotation [prev_cap_]
+  Eigen::Vector3d last_gyro_rps_ = Eigen::Vector3d::Zero();
   double td_s_ = 0.0;  // the last applied solve's time offset
   rt::SpscRing<uint8_t, 8> todo_;  // front -> optimizer
   rt::SpscRing<uint8_t, 8> done_;  // optimizer -> front (slots to reuse)
@@ -245,6 +277,11 @@ class WindowEstimator final : public Estimator {
   // the newest state of the map's frame.
   std::unique_ptr<MapSystem> map_;
   KeyframePacket* map_pending_ = nullptr;
+  // The held keyframe's motion when it was taken (time offset: its pose is
+  // handed to the map at t + t_d, where its pixels and depths were taken).
+  Eigen::Vector3d map_pending_v_W_ = Eigen::Vector3d::Zero();
+  Eigen::Vector3d map_pending_w_B_ = Eigen::Vector3d::Zero();
+  Eigen::Isometry3d at_capture_time(const Eigen::Isometry3d& T_WC) const;
   bool window_started_ = false;  // a frame went in since the last (re)start
 
   // Optimizer side.

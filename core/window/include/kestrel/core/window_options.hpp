@@ -57,11 +57,11 @@ struct WindowOptions {
   // Online camera-IMU time offset t_d (VINS-Mono's estimate_td): what is left
   // of the offset after the rig's time_offset_cam_imu_ns was applied to the
   // stamps. A frame stamped t was taken at t + t_d; each observation is moved
-  // back to its state's time along its image velocity, r = pi(p_C) - (uv - vel t_d),
-  // and t_d is one more variable of the window (and of the marginalisation
-  // prior), held near 0 by a prior of this sigma. Off by default: on the
-  // simulated flights it does not recover an unstated offset yet (to first
-  // order t_d is a pose shift along (v, w); docs/optimizer.md).
+  // back to its state's time along its pixel and depth rates, and t_d is one
+  // more variable of the window, held near 0 by a prior of this sigma until
+  // a measurement (WindowFrameInput::td_meas_s: the rotation correlation of
+  // WindowEstimator) replaces it. Off by default: it lands within 1 ms over
+  // 30 s but recovers only half the accuracy (docs/optimizer.md).
   bool estimate_time_offset = false;
   double time_offset_prior_sigma_ms = 50.0;
   // Map points (observations with WindowObservation::map_sigma_m > 0) hold
@@ -86,6 +86,12 @@ struct WindowFrameInput {
   bool stationary = false;  // the IMU says the vehicle is still: add the zero-velocity factor
   // Image velocity of each observation [px/s] (estimate_time_offset; null: none known).
   const Eigen::Vector2d* uv_vel_pxps = nullptr;
+  // Rate of change of each observation's depth [m/s] (estimate_time_offset; null: none known).
+  const double* depth_vel_mps = nullptr;
+  // A measurement of the time offset t_d [s] and its 1-sigma (<= 0: none):
+  // replaces the prior around 0 (WindowEstimator: the rotation-correlation calibrator).
+  double td_meas_s = 0.0;
+  double td_meas_sigma_s = 0.0;
   // No IMU factor from the previous frame (there is no IMU, or it is silent):
   // imu_from_prev may be null; velocity and biases get the hold prior, and
   // while no state of the window has an IMU factor the gauge also pins the

@@ -34,6 +34,7 @@ struct WindowObs {
   double sigma_px = 1.0;
   double sigma_depth_m = 0.0;
   Eigen::Vector2d uv_vel_pxps = Eigen::Vector2d::Zero();  // image velocity (time offset)
+  double depth_vel_mps = 0.0;  // rate of change of the depth (time offset)
 };
 
 struct WindowLandmark {
@@ -100,6 +101,10 @@ struct WindowProblem {
   double td_s = 0.0;
   double td0_s = 0.0;
   bool td_in_prior = false;
+  // A measurement of t_d from outside the window (the rotation-correlation
+  // calibrator, time_offset_calibrator.hpp); sigma 0: none, the prior holds t_d near 0.
+  double td_meas_s = 0.0;
+  double td_meas_sigma_s = 0.0;
   bool estimate_td() const { return opt.estimate_time_offset; }
   int td_index() const { return kWindowStateDim * max_states; }
 
@@ -149,7 +154,7 @@ struct WindowProblem {
 double huber_rho(double s, double a, double* rho1);
 
 // Visual residual of one observation, whitened: rows 0-1
-// (pi(K p_C) - (uv - uv_vel td_s)) / sigma_px, row 2 (z_C - depth) / sigma_depth
+// (pi(K p_C) - (uv - uv_vel td_s)) / sigma_px, row 2 (z_C - (depth - depth_vel td_s)) / sigma_depth
 // when the observation has depth. p_C = R_CB R_WB^T (l_W - p_WB) + p_CB;
 // td_s: the time offset (0 when not estimated): the pixel is moved back along
 // its image velocity to the state's time. Returns the number of rows (2 or 3),
@@ -158,7 +163,8 @@ double huber_rho(double s, double a, double* rho1);
 int visual_residual(const WindowProblem& P, const NavState& x, const Eigen::Vector3d& l_W, const WindowObs& o,
                     double td_s, Eigen::Vector3d* r, Matrix36d* J_pose = nullptr, Eigen::Matrix3d* J_l = nullptr,
                     Eigen::Vector3d* J_td = nullptr);
-// The time offset's prior td_s / sigma and its derivative.
+// The time offset's prior (td_s - td_meas) / sigma_meas when a measurement is
+// known, else td_s / time_offset_prior_sigma_ms; and its derivative.
 double time_offset_prior_residual(const WindowProblem& P, double td_s, double* J = nullptr);
 
 // IMU (9, whitened by the preintegration's covariance) and bias (6, whitened
