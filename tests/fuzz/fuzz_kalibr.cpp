@@ -8,14 +8,20 @@
 #include "kestrel/drivers/kalibr.hpp"
 #include "kestrel/drivers/rig_yaml.hpp"
 
-extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
+namespace {
+kestrel::drivers::KalibrImport import(const uint8_t* data, size_t size) {
   const auto parts = kestrel::fuzz::unpack(data, size, 2);
   kestrel::Rig base;
   base.camera_rate_hz = 30;
+  return kestrel::drivers::import_kalibr_text(parts[0], "camchain.yaml", parts.size() > 1 ? parts[1] : "", "imu.yaml",
+                                              "cam0", base);
+}
+}  // namespace
+
+extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   kestrel::drivers::KalibrImport imp;
   try {
-    imp = kestrel::drivers::import_kalibr_text(parts[0], "camchain.yaml", parts.size() > 1 ? parts[1] : "",
-                                               "imu.yaml", "cam0", base);
+    imp = import(data, size);
   } catch (const std::runtime_error&) {
     return 0;
   }
@@ -27,9 +33,12 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
 size_t kestrel::fuzz::write_seeds(const std::string& dir) {
   using kestrel::test::kCamchain;
   using kestrel::test::kImuYaml;
-  write_file(dir + "/radtan.bin", pack({kCamchain, kImuYaml}));
   std::string eq = kCamchain;
   eq.replace(eq.find("radtan"), 6, "equidistant");
-  write_file(dir + "/equidistant.bin", pack({eq, kImuYaml}));
+  for (const auto& [name, camchain] : {std::pair<std::string, std::string>{"radtan", kCamchain}, {"equidistant", eq}}) {
+    const std::string seed = pack({camchain, kImuYaml});
+    write_file(dir + "/" + name + ".bin", seed);
+    import(reinterpret_cast<const uint8_t*>(seed.data()), seed.size());   // a seed the import refuses starts nothing
+  }
   return 2;
 }

@@ -122,6 +122,14 @@ TEST(Kalibr, MissingAndBadFieldsAreNamed) {
             "camchain.yaml: cam0.intrinsics: missing ([fu, fv, pu, pv] in pixels)");
   EXPECT_EQ(error_of(replace(kCamchain, "[612.31, 611.87, 321.42, 238.15]", "[612.31, 611.87, 321.42]"), kImuYaml),
             "camchain.yaml: cam0.intrinsics: expected a list of 4 numbers");
+  // fuzz_kalibr: a resolution past int was cast to int (undefined behaviour).
+  EXPECT_EQ(error_of(replace(kCamchain, "resolution: [640, 480]", "resolution: [4.8e97, 480]"), kImuYaml),
+            "camchain.yaml: cam0.resolution: expected two whole numbers from 1 to 32768");
+  EXPECT_EQ(error_of(replace(kCamchain, "resolution: [640, 480]", "resolution: [0, 480]"), kImuYaml),
+            "camchain.yaml: cam0.resolution: expected two whole numbers from 1 to 32768");
+  // ... and a negative focal length was imported into a rig no rig file accepts.
+  EXPECT_EQ(error_of(replace(kCamchain, "611.87", "-0.0311"), kImuYaml),
+            "camchain.yaml: cam0.intrinsics: focal lengths fu, fv must be > 0");
   EXPECT_EQ(error_of(replace(kCamchain, "612.31,", "abc,"), kImuYaml),
             "camchain.yaml: cam0.intrinsics[0]: expected a finite number, got \"abc\"");
   EXPECT_EQ(error_of(replace(kCamchain, "distortion_model: radtan", "distortion_model: fov"), kImuYaml),
