@@ -77,4 +77,13 @@ void write_folder_seed(const std::string& path, const std::string& target, const
   }
 }
 
+// The seed of a format Kestrel exports: the log fixture through `export_fn`, packed.
+template <class Export, class Open>
+size_t write_exported_seed(const std::string& dir, const std::string& target, const std::vector<std::string>& names,
+                           Export export_fn, Open open) {
+  const std::string out = exported_fixture(target, export_fn);
+  write_folder_seed(dir + "/exported.bin", target, names, pack_folder(out, names), open);
+  return 1;
+}
+
 }  // namespace kestrel::fuzz

@@ -19,7 +19,5 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
 }
 
 size_t kestrel::fuzz::write_seeds(const std::string& dir) {
-  const std::string out = exported_fixture("eth3d", kestrel::drivers::export_eth3d);
-  write_folder_seed(dir + "/exported.bin", "eth3d", kNames, pack_folder(out, kNames), open);
-  return 1;
+  return write_exported_seed(dir, "eth3d", kNames, kestrel::drivers::export_eth3d, open);
 }

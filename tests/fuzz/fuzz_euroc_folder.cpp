@@ -21,7 +21,5 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
 }
 
 size_t kestrel::fuzz::write_seeds(const std::string& dir) {
-  const std::string out = exported_fixture("euroc", kestrel::drivers::export_euroc);
-  write_folder_seed(dir + "/exported.bin", "euroc", kNames, pack_folder(out, kNames), open);
-  return 1;
+  return write_exported_seed(dir, "euroc", kNames, kestrel::drivers::export_euroc, open);
 }

@@ -20,7 +20,5 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
 }
 
 size_t kestrel::fuzz::write_seeds(const std::string& dir) {
-  const std::string out = exported_fixture("openloris", kestrel::drivers::export_openloris);
-  write_folder_seed(dir + "/exported.bin", "openloris", kNames, pack_folder(out, kNames), open);
-  return 1;
+  return write_exported_seed(dir, "openloris", kNames, kestrel::drivers::export_openloris, open);
 }
