@@ -1,16 +1,58 @@
 #!/usr/bin/env bash
-# The README's test command: installs what is missing, builds `release`, runs
-# the default ctest labels (everything but bench and fuzz), then the two-thread
-# stress tests again under ThreadSanitizer.
+# The README's test command and CI's (.ci/run): installs what is missing, then
+#   1. release build + the default ctest labels (everything but bench and fuzz)
+#   2. the ASan + UBSan suite: build target kestrel_asan_suite, `ctest --preset
+#      debug` (label asan, sanitizer-sized flights: KESTREL_TEST_SCALE=small)
+#   3. bounded libFuzzer runs of every parser (clang): `ctest --preset fuzz`,
+#      KESTREL_FUZZ_SECONDS per target (default here 20)
+#   4. the two-thread stress tests under ThreadSanitizer
+# and prints what each part cost. docs/testing.md: the suites, what each
+# covers, local runs, the CPU-hour fuzz command, measured costs.
+# Skips (local use only): KESTREL_SKIP_ASAN=1, KESTREL_SKIP_FUZZ=1, KESTREL_SKIP_TSAN=1.
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
 cd "$root"
-bash tools/install-deps.sh
-bash tools/build.sh release
 jobs=$(nproc 2>/dev/null || echo 2)
-ctest --preset release -j "$jobs"
+costs=()
+t_all=$(date +%s)
+report() {
+  local rc=$?
+  echo "== test.sh: wall time per part =="
+  for c in "${costs[@]}"; do echo "  $c"; done
+  printf '  %-34s %5d s\n' "total" $(( $(date +%s) - t_all ))
+  [ $rc -eq 0 ] || echo "test.sh: FAILED (exit $rc) in the part after the last one listed"
+}
+trap report EXIT
+# part NAME COMMAND...: runs it, records its wall time (a failure ends the run).
+part() {
+  local name=$1 t0
+  shift
+  echo "== $name =="
+  t0=$(date +%s)
+  "$@"
+  costs+=("$(printf '%-34s %5d s' "$name" $(( $(date +%s) - t0 )))")
+}
+
+part "install-deps" bash tools/install-deps.sh
+part "release build" bash tools/build.sh release
+part "release suite" ctest --preset release -j "$jobs"
+if [ "${KESTREL_SKIP_ASAN:-0}" != "1" ]; then
+  part "asan+ubsan build (asan suite)" bash tools/build.sh debug --target kestrel_asan_suite
+  part "asan+ubsan suite" ctest --preset debug -j "$jobs"
+fi
+if [ "${KESTREL_SKIP_FUZZ:-0}" != "1" ]; then
+  part "fuzz build (clang)" bash tools/build.sh fuzz --target kestrel_fuzz_all
+  export KESTREL_FUZZ_SECONDS=${KESTREL_FUZZ_SECONDS:-20}
+  part "fuzz run ($KESTREL_FUZZ_SECONDS s per target)" ctest --preset fuzz -j "$jobs"
+  echo "== fuzz: executions per target =="
+  for log in build/fuzz/tests/fuzz/logs/*.log; do
+    printf '  %-22s %12s execs %8s/s  corpus %s\n' "$(basename "$log" .log)" \
+      "$(sed -n 's/^stat::number_of_executed_units: *//p' "$log")" \
+      "$(sed -n 's/^stat::average_exec_per_sec: *//p' "$log")" \
+      "$(find "build/fuzz/tests/fuzz/corpus/$(basename "$log" .log)" -type f | wc -l)"
+  done
+fi
 if [ "${KESTREL_SKIP_TSAN:-0}" != "1" ]; then
-  echo "== ThreadSanitizer: stress label =="
-  bash tools/build.sh tsan --target rt_stress_test
-  ctest --preset tsan -j "$jobs"
+  part "tsan build" bash tools/build.sh tsan --target rt_stress_test
+  part "tsan stress suite" ctest --preset tsan -j "$jobs"
 fi

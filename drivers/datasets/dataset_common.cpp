@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdlib>
+#include <limits>
 #include <opencv2/imgcodecs.hpp>
 #include <stdexcept>
 
@@ -127,9 +128,16 @@ std::vector<long> associate(const std::vector<Listed>& rgb, const std::vector<Li
   };
   std::vector<Pair> cand;
   size_t lo = 0;
+  // A listed stamp may be any int64 (a sign included): the window's ends saturate.
+  auto shifted = [](int64_t t, int64_t dt) {
+    int64_t v = 0;
+    return __builtin_add_overflow(t, dt, &v) ? (dt < 0 ? std::numeric_limits<int64_t>::min()
+                                                      : std::numeric_limits<int64_t>::max())
+                                             : v;
+  };
   for (size_t r = 0; r < rgb.size(); ++r) {
-    while (lo < depth.size() && depth[lo].t_ns < rgb[r].t_ns - max_dt_ns) ++lo;
-    for (size_t d = lo; d < depth.size() && depth[d].t_ns <= rgb[r].t_ns + max_dt_ns; ++d)
+    while (lo < depth.size() && depth[lo].t_ns < shifted(rgb[r].t_ns, -max_dt_ns)) ++lo;
+    for (size_t d = lo; d < depth.size() && depth[d].t_ns <= shifted(rgb[r].t_ns, max_dt_ns); ++d)
       cand.push_back({std::abs(depth[d].t_ns - rgb[r].t_ns), r, d});
   }
   std::stable_sort(cand.begin(), cand.end(), [](const Pair& a, const Pair& b) { return a.dt < b.dt; });

@@ -1,6 +1,7 @@
 // OpenLORIS-Scene reader (the RealSense D435i streams of a sequence folder).
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <map>
 #include <queue>
 #include <stdexcept>
@@ -135,15 +136,22 @@ std::vector<Vec3Row> read_vec3(const std::string& path, const char* what, Stream
   return u;
 }
 
+// Stamps are any int64 a file can spell (a sign included), so the span of
+// two of them may not fit int64: differences saturate (found by fuzz_openloris_folder).
+int64_t span_ns(int64_t later, int64_t earlier) {
+  int64_t d = 0;
+  return __builtin_sub_overflow(later, earlier, &d) ? std::numeric_limits<int64_t>::max() : d;
+}
+
 double rate_of(const std::vector<Vec3Row>& v) {
   return v.size() > 1 && v.back().t_ns > v.front().t_ns
-             ? static_cast<double>(v.size() - 1) * 1e9 / static_cast<double>(v.back().t_ns - v.front().t_ns)
+             ? static_cast<double>(v.size() - 1) * 1e9 / static_cast<double>(span_ns(v.back().t_ns, v.front().t_ns))
              : 0.0;
 }
 
 int64_t median_dt(const std::vector<Vec3Row>& v) {
   std::vector<int64_t> d;
-  for (size_t i = 1; i < v.size(); ++i) d.push_back(v[i].t_ns - v[i - 1].t_ns);
+  for (size_t i = 1; i < v.size(); ++i) d.push_back(span_ns(v[i].t_ns, v[i - 1].t_ns));
   if (d.empty()) return 0;
   std::nth_element(d.begin(), d.begin() + static_cast<long>(d.size() / 2), d.end());
   return d[d.size() / 2];
@@ -281,7 +289,7 @@ OpenLorisReader::OpenLorisReader(const std::string& path_in, const Rig* rig) {
   ds::add_pairs(path, rgb, color_txt, depth, depth_txt, depth_of, s);
   if (r.camera_rate_hz <= 0 && rgb.size() > 1 && rgb.back().t_ns > rgb.front().t_ns)
     r.camera_rate_hz =
-        static_cast<double>(rgb.size() - 1) * 1e9 / static_cast<double>(rgb.back().t_ns - rgb.front().t_ns);
+        static_cast<double>(rgb.size() - 1) * 1e9 / static_cast<double>(span_ns(rgb.back().t_ns, rgb.front().t_ns));
 
   // ---- IMU: merge the two streams at the faster one's stamps.
   const std::string acc_txt = path + "/d400_accelerometer.txt", gyro_txt = path + "/d400_gyroscope.txt";
@@ -294,7 +302,9 @@ OpenLorisReader::OpenLorisReader(const std::string& path_in, const Rig* rig) {
     const auto& slow = gyro_fast ? acc : gyr;
     imu_file_ = gyro_fast ? gyro_txt : acc_txt;
     // Interpolating across a gap would invent motion: a bracket wider than 4 slow periods is not bridged.
-    const int64_t max_gap = 4 * std::max<int64_t>(median_dt(slow), 1);
+    const int64_t slow_dt = std::max<int64_t>(median_dt(slow), 1);
+    const int64_t max_gap = slow_dt > std::numeric_limits<int64_t>::max() / 4 ? std::numeric_limits<int64_t>::max()
+                                                                              : 4 * slow_dt;
     size_t j = 0, outside = 0, gap = 0;
     uint32_t seq = 0;
     for (const auto& f : fast) {
@@ -309,11 +319,11 @@ OpenLorisReader::OpenLorisReader(const std::string& path_in, const Rig* rig) {
       } else {
         const auto& a = slow[j];
         const auto& b = slow[j + 1];
-        if (b.t_ns - a.t_ns > max_gap) {
+        if (span_ns(b.t_ns, a.t_ns) > max_gap) {
           ++gap;
           continue;
         }
-        const double u = static_cast<double>(f.t_ns - a.t_ns) / static_cast<double>(b.t_ns - a.t_ns);
+        const double u = static_cast<double>(span_ns(f.t_ns, a.t_ns)) / static_cast<double>(span_ns(b.t_ns, a.t_ns));
         for (int k = 0; k < 3; ++k) v[k] = a.v[k] + u * (b.v[k] - a.v[k]);
       }
       ImuSample m;

@@ -9,6 +9,7 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "kestrel/drivers/rig_yaml.hpp"
 #include "kestrel/drivers/text.hpp"
 
 namespace kestrel::drivers {
@@ -144,10 +145,14 @@ KalibrImport import_kalibr_text(const std::string& camchain_yaml, const std::str
   rig.rgb.fy = k[1];
   rig.rgb.cx = k[2];
   rig.rgb.cy = k[3];
+  // The rig file refuses these; an import must not write what cannot be read (found by fuzz_kalibr).
+  if (k[0] <= 0 || k[1] <= 0) cr.fail(c + "intrinsics", "focal lengths fu, fv must be > 0");
   if (!cam["resolution"]) cr.fail(c + "resolution", "missing ([width, height] in pixels)");
   const std::vector<double> res = cr.numbers(cam["resolution"], c + "resolution", 2);
-  if (res[0] < 1 || res[1] < 1 || res[0] != std::floor(res[0]) || res[1] != std::floor(res[1]))
-    cr.fail(c + "resolution", "expected two positive whole numbers");
+  // Bounded before the cast to int, which is undefined past INT_MAX (found by fuzz_kalibr).
+  if (res[0] < 1 || res[1] < 1 || res[0] > 32768 || res[1] > 32768 || res[0] != std::floor(res[0]) ||
+      res[1] != std::floor(res[1]))
+    cr.fail(c + "resolution", "expected two whole numbers from 1 to 32768");
   rig.rgb.width = static_cast<int>(res[0]);
   rig.rgb.height = static_cast<int>(res[1]);
   rig.rgb.dist = {};
@@ -220,6 +225,13 @@ KalibrImport import_kalibr_text(const std::string& camchain_yaml, const std::str
                       fmt(rig.imu.acc_range_mps2) + " m/s^2 from the base rig");
   out.notes.push_back("gravity_mps2: not in Kalibr's files: " + fmt(rig.gravity_mps2) + " from the base rig");
   if (rig.name.empty()) rig.name = "kalibr-" + camera;
+  // Whatever else the rig file checks (the base rig's fields included) is
+  // checked here too, so the rig written by `calib import-kalibr` always loads.
+  try {
+    rig_from_yaml(rig_to_yaml(rig), "the imported rig");
+  } catch (const std::runtime_error& e) {
+    throw std::runtime_error(camchain_name + ", " + imu_name + ": " + e.what());
+  }
   return out;
 }
 

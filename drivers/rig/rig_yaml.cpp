@@ -167,6 +167,9 @@ Rig rig_from_yaml_node(const YAML::Node& root, const std::string& where, const s
   if (root["name"]) {
     if (!root["name"].IsScalar()) p.fail("name", "expected a string");
     rig.name = root["name"].Scalar();
+    // Written back (the .klog header, exports) it must read the same: the
+    // emitter replaces bytes that are not UTF-8 (found by fuzz_rig_yaml).
+    if (!text::is_utf8(rig.name)) p.fail("name", "not valid UTF-8");
   }
 
   const YAML::Node cam = root["camera"];

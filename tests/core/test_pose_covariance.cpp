@@ -16,6 +16,7 @@
 
 #include "kestrel/drivers/open_log.hpp"
 #include "estimator_harness.hpp"
+#include "test_scale.hpp"
 #include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/core/ekf_estimator.hpp"
 #include "kestrel/core/so3.hpp"
@@ -105,13 +106,18 @@ void print(const char* what, const Consistency& c) {
 
 }  // namespace
 
+// 10 s of figure-8, 6 s sanitizer-sized (test_scale.hpp); the frame count
+// asserted scales with the length.
+const double kFlight_s = test::scaled(10.0, 6.0);
+const int kMinFrames = static_cast<int>(20 * kFlight_s);
+
 TEST(PoseCovariance, EkfIsSymmetricPsdAndContainsTheErrorOnFigure8) {
-  const std::string log = test::simulate("figure8", 10.0, 5, "pose_cov");
+  const std::string log = test::simulate("figure8", kFlight_s, 5, "pose_cov");
   auto rig_log = drivers::open_log(log);
   core::EkfEstimator est(rig_log->rig());
   const Consistency c = check(log, est, 1.0);
-  print("ekf figure8 10 s", c);
-  ASSERT_GT(c.frames, 200);
+  print("ekf figure8", c);
+  ASSERT_GT(c.frames, kMinFrames);
   EXPECT_GE(c.valid, c.frames * 95 / 100);
   EXPECT_EQ(c.not_psd, 0);
   EXPECT_GE(c.inside_3sigma, (c.valid - c.not_psd) * 8 / 10);
@@ -121,12 +127,12 @@ TEST(PoseCovariance, EkfIsSymmetricPsdAndContainsTheErrorOnFigure8) {
 }
 
 TEST(PoseCovariance, WindowIsSymmetricPsdAndContainsTheErrorOnFigure8) {
-  const std::string log = test::simulate("figure8", 10.0, 5, "pose_cov");
+  const std::string log = test::simulate("figure8", kFlight_s, 5, "pose_cov");
   auto rig_log = drivers::open_log(log);
   core::WindowEstimator est(rig_log->rig());
   const Consistency c = check(log, est, 1.0);
-  print("window figure8 10 s", c);
-  ASSERT_GT(c.frames, 200);
+  print("window figure8", c);
+  ASSERT_GT(c.frames, kMinFrames);
   EXPECT_GE(c.valid, c.frames * 9 / 10);
   EXPECT_EQ(c.not_psd, 0);
   EXPECT_GE(c.inside_3sigma, (c.valid - c.not_psd) * 8 / 10);

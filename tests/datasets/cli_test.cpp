@@ -12,6 +12,7 @@
 
 #include "run_command.hpp"
 #include "test_data.hpp"
+#include "test_scale.hpp"
 
 namespace {
 
@@ -27,8 +28,10 @@ double ate_of(const CmdResult& e) {
 TEST(DatasetsCli, SimExportedToEth3dReplaysAndScoresLikeTheKlog) {
   const std::string dir = kestrel::test::temp_dir("datasets_cli_" + std::to_string(getpid()));
   const std::string klog = dir + "/sim.klog", eth3d = dir + "/sim_eth3d";
+  // Nine runs of `kestrel` over the flight: 4 s, 3 s sanitizer-sized (test_scale.hpp).
+  const std::string duration = kestrel::test::scaled<std::string>("4", "3");
   const CmdResult sim =
-      run("sim --scenario figure8 --duration 4 --seed 5 --width 160 --height 120 --out " + klog);
+      run("sim --scenario figure8 --duration " + duration + " --seed 5 --width 160 --height 120 --out " + klog);
   ASSERT_EQ(sim.code, 0) << sim.out;
   const CmdResult conv =
       run("convert " + klog + " --to eth3d --out " + eth3d + " --rig-out " + dir + "/rig.yaml");

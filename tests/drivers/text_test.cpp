@@ -40,6 +40,21 @@ TEST(Text, ReadLinesStripsCrlfAndKeepsEmptyLines) {
   EXPECT_EQ(missing.error, ENOENT);
 }
 
+TEST(Text, Utf8IsCheckedByteForByte) {
+  EXPECT_TRUE(is_utf8(""));
+  EXPECT_TRUE(is_utf8("plain ascii\t\n"));
+  EXPECT_TRUE(is_utf8("\xc3\xa9 \xe2\x82\xac \xf0\x9f\x9a\x81 \xf4\x8f\xbf\xbf"));   // e-acute, euro, helicopter, U+10FFFF
+  EXPECT_FALSE(is_utf8("\xca"));               // a lead byte alone (the fuzz_rig_yaml finding)
+  EXPECT_FALSE(is_utf8("\xc3"));               // cut short
+  EXPECT_FALSE(is_utf8("\x80"));               // a continuation byte first
+  EXPECT_FALSE(is_utf8("\xc0\xaf"));           // overlong '/'
+  EXPECT_FALSE(is_utf8("\xe0\x80\xaf"));       // overlong, three bytes
+  EXPECT_FALSE(is_utf8("\xed\xa0\x80"));       // a surrogate
+  EXPECT_FALSE(is_utf8("\xf4\x90\x80\x80"));   // past U+10FFFF
+  EXPECT_FALSE(is_utf8("\xe2\x82"));           // cut short
+  EXPECT_FALSE(is_utf8("\xe2\x28\xa1"));       // a bad continuation
+}
+
 TEST(Text, TrimAndSplit) {
   EXPECT_EQ(trim(" \t x y \r\n"), "x y");
   EXPECT_EQ(trim(" \t\r\n"), "");

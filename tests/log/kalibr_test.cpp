@@ -8,6 +8,7 @@
 #include <fstream>
 #include <string>
 
+#include "kalibr_fixtures.hpp"
 #include "kestrel/drivers/kalibr.hpp"
 #include "kestrel/drivers/rig_yaml.hpp"
 #include "run_command.hpp"
@@ -15,36 +16,6 @@
 
 namespace kestrel::test {
 namespace {
-
-// As kalibr_calibrate_imu_camera writes it: camera looking forward along the
-// IMU's x, 4 cm ahead, 1.5 cm left, 2 cm up, a small extra rotation.
-const char* kCamchain = R"(cam0:
-  T_cam_imu:
-  - [0.01745240643728351, -0.9998476951563913, 0.0, 0.015]
-  - [0.0, 0.0, -1.0, 0.02]
-  - [0.9998476951563913, 0.01745240643728351, 0.0, -0.04]
-  - [0.0, 0.0, 0.0, 1.0]
-  cam_overlaps: []
-  camera_model: pinhole
-  distortion_coeffs: [0.0412, -0.0311, 0.00052, -0.00031]
-  distortion_model: radtan
-  intrinsics: [612.31, 611.87, 321.42, 238.15]
-  resolution: [640, 480]
-  rostopic: /camera/color/image_raw
-  timeshift_cam_imu: 0.0052131
-)";
-
-const char* kImuYaml = R"(#Accelerometers
-accelerometer_noise_density: 1.86e-03   #Noise density (continuous-time)
-accelerometer_random_walk:   4.33e-04   #Bias random walk
-
-#Gyroscopes
-gyroscope_noise_density:     1.87e-04   #Noise density (continuous-time)
-gyroscope_random_walk:       2.66e-05   #Bias random walk
-
-rostopic:                    /camera/imu      #the IMU ROS topic
-update_rate:                 400.0      #Hz (for discretization of the values above)
-)";
 
 Rig base() {
   Rig b;
@@ -151,6 +122,14 @@ TEST(Kalibr, MissingAndBadFieldsAreNamed) {
             "camchain.yaml: cam0.intrinsics: missing ([fu, fv, pu, pv] in pixels)");
   EXPECT_EQ(error_of(replace(kCamchain, "[612.31, 611.87, 321.42, 238.15]", "[612.31, 611.87, 321.42]"), kImuYaml),
             "camchain.yaml: cam0.intrinsics: expected a list of 4 numbers");
+  // fuzz_kalibr: a resolution past int was cast to int (undefined behaviour).
+  EXPECT_EQ(error_of(replace(kCamchain, "resolution: [640, 480]", "resolution: [4.8e97, 480]"), kImuYaml),
+            "camchain.yaml: cam0.resolution: expected two whole numbers from 1 to 32768");
+  EXPECT_EQ(error_of(replace(kCamchain, "resolution: [640, 480]", "resolution: [0, 480]"), kImuYaml),
+            "camchain.yaml: cam0.resolution: expected two whole numbers from 1 to 32768");
+  // ... and a negative focal length was imported into a rig no rig file accepts.
+  EXPECT_EQ(error_of(replace(kCamchain, "611.87", "-0.0311"), kImuYaml),
+            "camchain.yaml: cam0.intrinsics: focal lengths fu, fv must be > 0");
   EXPECT_EQ(error_of(replace(kCamchain, "612.31,", "abc,"), kImuYaml),
             "camchain.yaml: cam0.intrinsics[0]: expected a finite number, got \"abc\"");
   EXPECT_EQ(error_of(replace(kCamchain, "distortion_model: radtan", "distortion_model: fov"), kImuYaml),

@@ -85,6 +85,14 @@ std::string with(const std::string& from, const std::string& to) {
   return y.replace(k, from.size(), to);
 }
 
+// fuzz_rig_yaml found a name with a byte that is not UTF-8: accepted, then
+// written back (the .klog header) as another name. Refused now, saying why.
+TEST(RigYaml, NameThatIsNotUtf8IsRefused) {
+  EXPECT_EQ(error_of(with("name: \"fixture", "name: \"fix\xca" "ture")), "configs/x.yaml: name: not valid UTF-8");
+  const Rig r = rig_from_yaml(with("name: \"fixture", "name: \"fix\xc3\xa9" "ture"), "x");   // UTF-8 e-acute
+  EXPECT_TRUE(drivers::rig_equal(rig_from_yaml(rig_to_yaml(r), "again"), r));
+}
+
 TEST(RigYaml, ErrorsNameTheFileAndTheField) {
   EXPECT_EQ(error_of(with("fx_px: 5.25", "fx_px: abc")), "configs/x.yaml: camera.fx_px: expected a number, got \"abc\"");
   EXPECT_EQ(error_of(with("fx_px: 5.25", "fx_px: [1, 2]")), "configs/x.yaml: camera.fx_px: expected a number");

@@ -10,12 +10,15 @@
 #include <map>
 
 #include "pipeline_fixture.hpp"
+#include "test_scale.hpp"
 
 namespace kestrel::pipeline_test {
 namespace {
 
-constexpr double kDuration_s = 10.0;
-constexpr double kFault_s = 4.0;
+// Sanitizer-sized (test_scale.hpp): 8 s with the fault at 3 s still leaves
+// the longest fault (2 s) its recovery and a second of log after it.
+const double kDuration_s = test::scaled(10.0, 8.0);
+const double kFault_s = test::scaled(4.0, 3.0);
 constexpr double kRecoverWithin_s = 3.0;
 
 std::string log_path(const std::string& name) {
@@ -51,7 +54,7 @@ TEST(PipelineFaults, BaselineIsGood) {
   o.out_path = path;
   tools::run_simulation(o);
   const ReplayRun r = replay(path);
-  ASSERT_GT(r.poses.size(), 200u);
+  ASSERT_GT(static_cast<double>(r.poses.size()), 20.0 * kDuration_s);   // two thirds of the 30 Hz frames
   EXPECT_GT(good_share(r, 1.5), 0.95);
   const auto& f = r.report.input_faults;
   EXPECT_EQ(f.missing + f.out_of_order + f.repeated + f.no_depth + f.imu_gaps, 0u);

@@ -117,7 +117,6 @@ class LoopCloser {
   // Consistency: the last verified match and how many consecutive keyframes agree.
   LoopMatch pending_;
   int pending_count_ = 0;
-  uint32_t last_query_id_ = 0;
   uint32_t last_closure_kf_id_ = 0;
   std::vector<int32_t> kf_scratch_, shared_scratch_, pts_;
 };

@@ -64,6 +64,10 @@ std::string seconds_from_ns(int64_t t_ns);
 // %.17g: a double that reads back bit-identical.
 std::string fmt17(double v);
 
+// Well-formed UTF-8 (RFC 3629: no overlong forms, surrogates or code points
+// past U+10FFFF). YAML text must be UTF-8, and an emitter rewrites what is not.
+bool is_utf8(const std::string& s);
+
 // Path helpers the readers share.
 std::string file_name(const std::string& path);   // after the last '/'
 bool is_file(const std::string& path);
