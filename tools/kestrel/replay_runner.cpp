@@ -20,6 +20,7 @@
 #include "kestrel/core/window_estimator.hpp"
 #include "kestrel/imu_rate_stage.hpp"
 #include "kestrel/map_threads.hpp"
+#include "kestrel/tools/map_files.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"
 #include "kestrel/mavlink/serial_link.hpp"
 #include "kestrel/mavlink/udp_sender.hpp"
@@ -683,6 +684,7 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     }
   }
   map_threads.stop();
+  if (!opt.map_out.empty()) tools::write_map_file(opt.map_out, estimator.save_map());
   report.mapping_cpu_s = map_threads.mapping_cpu_s();
   report.loop_cpu_s = map_threads.loop_cpu_s();
   const int64_t wall1 = rt::now_ns();

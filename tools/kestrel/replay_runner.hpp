@@ -111,6 +111,7 @@ void frame_stats(const core::Estimator& est, int& features, int& inliers);
 
 struct ReplayOptions {
   std::string path;
+  std::string map_out;  // the map file written at the end ("": none; tools/config/map_files.hpp)
   drivers::LogFormat format = drivers::LogFormat::kAuto;
   drivers::LogOpenOptions open;  // rig for datasets, bag topics (open.format is ignored: `format` rules)
   drivers::ReplayPace pace = drivers::ReplayPace::kLockstep;

@@ -143,6 +143,7 @@ class WindowEstimator final : public Estimator {
   bool map_busy() const override { return map_ && map_->busy(); }
   const rt::LatencyHistogram* mapping_latency() const override { return map_ ? &map_->mapping_latency() : nullptr; }
   const rt::LatencyHistogram* loop_latency() const override { return map_ ? &map_->loop_latency() : nullptr; }
+  std::vector<uint8_t> save_map() const override { return map_ ? map_->save() : std::vector<uint8_t>{}; }
   MapSystem* map_system() { return map_.get(); }
 
   const WindowEstimatorCounters& window_counters() const { return wc_; }
@@ -245,6 +246,11 @@ class WindowEstimator final : public Estimator {
   // the newest state of the map's frame.
   std::unique_ptr<MapSystem> map_;
   KeyframePacket* map_pending_ = nullptr;
+  // The odometry's chain for the map (KeyframePacket::chain): steps when the
+  // output turns lost or the front end re-initialises.
+  uint32_t map_chain_ = 0;
+  bool map_chain_lost_ = false;
+  uint64_t map_chain_epoch_ = 0;
   bool window_started_ = false;  // a frame went in since the last (re)start
 
   // Optimizer side.
