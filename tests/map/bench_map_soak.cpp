@@ -6,50 +6,30 @@
 // KESTREL_SOAK_S sets another length (docs/map.md: the 30-minute figure).
 #include <gtest/gtest.h>
 
-#include <unistd.h>
-
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
-#include <fstream>
 #include <vector>
 
 #include "kestrel/replay_runner.hpp"
 #include "kestrel/tools/simulator.hpp"
-#include "kestrel/tools/vocabulary_files.hpp"
+#include "map_pipeline.hpp"
 #include "test_data.hpp"
 
 namespace kestrel::map_test {
 namespace {
 
-double rss_mb() {
-  std::ifstream f("/proc/self/statm");
-  long pages = 0, resident = 0;
-  f >> pages >> resident;
-  return static_cast<double>(resident) * static_cast<double>(sysconf(_SC_PAGESIZE)) / (1024.0 * 1024.0);
-}
-
 TEST(MapSoak, MemoryAndMapStayFlatOverARevisitedCircuit) {
   const char* env = std::getenv("KESTREL_SOAK_S");
   const double flight_s = env != nullptr && std::atof(env) > 0 ? std::atof(env) : 180.0;
   const std::string dir = test::temp_dir("map_soak");
-  tools::SimOptions so;
-  so.scenario = "figure8";
-  so.duration_s = flight_s;
-  so.seed = 9;
-  so.width = 160;
-  so.height = 120;
-  so.threads = 2;
+  tools::SimOptions so = figure8(flight_s, 9, 160, 120);
   so.out_path = dir + "/soak.klog";
   tools::run_simulation(so);
   cli::ReplayOptions ro;
   ro.path = so.out_path;
   ro.pace = drivers::ReplayPace::kFast;
-  core::EstimatorConfig c = core::EstimatorConfig::defaults("window");
-  c.window.map.mapping = true;
-  c.window.map.loop = true;
-  tools::resolve_vocabulary(c);
-  ro.config = c;
+  ro.config = map_config();
   struct Sample {
     double t_s, rss_mb;
     uint32_t keyframes, points;
@@ -63,7 +43,7 @@ TEST(MapSoak, MemoryAndMapStayFlatOverARevisitedCircuit) {
     const double t = 1e-9 * static_cast<double>(p.t_ns - t0);
     if (t < next_s) return;
     next_s = t + 10.0;
-    samples.push_back({t, rss_mb(), p.map.keyframes, p.map.points});
+    samples.push_back({t, test::rss_mb(), p.map.keyframes, p.map.points});
   };
   const cli::ReplayReport r = cli::run_replay(ro);
   ASSERT_GT(samples.size(), 6u);

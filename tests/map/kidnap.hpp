@@ -15,7 +15,7 @@
 #include "kestrel/replay_runner.hpp"
 #include "kestrel/tools/simulator.hpp"
 #include "kestrel/tools/trajectory_eval.hpp"
-#include "kestrel/tools/vocabulary_files.hpp"
+#include "map_pipeline.hpp"
 #include "test_data.hpp"
 
 namespace kestrel::map_test {
@@ -36,13 +36,7 @@ inline KidnapTrial kidnap_trial(uint64_t seed) {
   KidnapTrial k;
   k.seed = seed;
   const std::string dir = test::temp_dir("kidnap_" + std::to_string(seed));
-  tools::SimOptions so;
-  so.scenario = "figure8";
-  so.duration_s = kKidnapFlight_s;
-  so.seed = seed;
-  so.width = 320;
-  so.height = 240;
-  so.threads = 2;
+  tools::SimOptions so = figure8(kKidnapFlight_s, seed, 320, 240);
   so.cover_at_s = kKidnapAt_s;
   so.cover_s = kKidnapLen_s;
   so.out_path = dir + "/kidnap.klog";
@@ -50,12 +44,7 @@ inline KidnapTrial kidnap_trial(uint64_t seed) {
   cli::ReplayOptions ro;
   ro.path = so.out_path;
   ro.pace = drivers::ReplayPace::kLockstep;
-  core::EstimatorConfig c = core::EstimatorConfig::defaults("window");
-  c.window.map.mapping = true;
-  c.window.map.loop = true;
-  tools::resolve_vocabulary(c);
-  EXPECT_TRUE(c.window.map.vocabulary) << "kestrel built without its vocabulary: nothing can relocalise";
-  ro.config = c;
+  ro.config = map_config();
   int64_t t0 = -1;
   uint64_t relocs_before = 0;
   ro.on_pose = [&](const cli::PoseSample& p) {

@@ -18,7 +18,7 @@
 #include "kestrel/tools/map_files.hpp"
 #include "kestrel/tools/simulator.hpp"
 #include "kestrel/tools/trajectory_eval.hpp"
-#include "kestrel/tools/vocabulary_files.hpp"
+#include "map_pipeline.hpp"
 #include "test_data.hpp"
 
 namespace kestrel::map_test {
@@ -54,14 +54,6 @@ class SplitSink final : public tools::SimSink {
   drivers::KlogWriter w_[2];
 };
 
-core::EstimatorConfig map_config() {
-  core::EstimatorConfig c = core::EstimatorConfig::defaults("window");
-  c.window.map.mapping = true;
-  c.window.map.loop = true;
-  tools::resolve_vocabulary(c);
-  return c;
-}
-
 tools::Trajectory transformed(const tools::Sim3& T, const tools::Trajectory& in) {
   tools::Trajectory out = in;
   for (auto& p : out) {
@@ -73,13 +65,7 @@ tools::Trajectory transformed(const tools::Sim3& T, const tools::Trajectory& in)
 
 TEST(MapReuse, ASecondFlightLandsInTheFirstFlightsFrame) {
   const std::string dir = test::temp_dir("map_reuse");
-  tools::SimOptions so;
-  so.scenario = "figure8";
-  so.duration_s = 30;
-  so.seed = 4;
-  so.width = 320;
-  so.height = 240;
-  so.threads = 2;
+  const tools::SimOptions so = figure8(30, 4, 320, 240);
   const std::string first = dir + "/first.klog", second = dir + "/second.klog", map = dir + "/first.kmap";
   SplitSink sink(first, second, 14.0);
   tools::run_simulation(so, sink);
