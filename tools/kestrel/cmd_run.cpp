@@ -290,6 +290,7 @@ Subcommand add_run_command(CLI::App& parent) {
         st.t_s = 1e-9 * static_cast<double>(t_ns - first_t_ns);
         st.quality = est->output().quality;
         st.reset_counter = est->output().reset_counter;
+        st.map = est->output().map;
         frame_stats(*est, st.features, st.inliers);
         st.frames_total = frames_seen.load(std::memory_order_relaxed);
         st.frames_in_window = st.frames_total - frames_at_status;

@@ -213,6 +213,7 @@ class EstimatorStage {
     const core::EstimatorOutput& o = est_.output();
     st.quality = o.quality;
     st.reset_counter = o.reset_counter;
+    st.map = o.map;
     frame_stats(est_, st.features, st.inliers);
     st.frames_total = frames_fed_;
     st.frames_in_window = frames_fed_ - frames_at_last_status_;
@@ -984,7 +985,15 @@ std::string format_status(const PipelineStatus& s) {
       static_cast<unsigned long long>(s.input_faults.out_of_order),
       static_cast<unsigned long long>(s.input_faults.repeated),
       static_cast<unsigned long long>(s.input_faults.no_depth));
-  return buf;
+  std::string line = buf;
+  // The map's state: a lost map (after a loss, or a loaded map not found yet) maps nothing until it relocalises.
+  if (s.map.active) {
+    std::snprintf(buf, sizeof buf, " | map %s, %u kf, loops %llu, relocs %llu", s.map.localized ? "localized" : "LOST",
+                  s.map.keyframes, static_cast<unsigned long long>(s.map.loop_closures),
+                  static_cast<unsigned long long>(s.map.relocalisations));
+    line += buf;
+  }
+  return line;
 }
 
 std::string replay_summary(const ReplayReport& r) {

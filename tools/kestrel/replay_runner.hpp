@@ -87,6 +87,7 @@ struct PipelineStatus {
   uint64_t imu_rejected = 0;  // non-finite + saturated + out of order (cumulative)
   uint64_t imu_gaps = 0;
   InputFaultCounts input_faults;
+  core::MapFrameState map;  // active: the backend has a map (then: localized, relocalisations, loop closures)
 };
 
 std::string format_status(const PipelineStatus& s);
