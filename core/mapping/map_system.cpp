@@ -44,6 +44,8 @@ MapSystem::MapSystem(const MapCamera& cam, int features_per_keyframe, const MapS
   }
   state_.active = true;
   state_.localized = !loaded_unfound_;
+  state_.keyframes = static_cast<uint32_t>(map_->num_keyframes());  // a loaded map's, from the start
+  state_.points = static_cast<uint32_t>(map_->num_points());
   frame_.publish(state_);
 }
 

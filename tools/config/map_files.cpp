@@ -9,7 +9,8 @@ namespace kestrel::tools {
 
 void set_map_in(core::EstimatorConfig& c, const std::string& path) {
   core::MapSystemOptions& m = c.window.map;
-  if (c.backend.rfind("window", 0) != 0 || !m.mapping)
+  // "auto" becomes window when the log has an IMU (the caller checks afterwards that a map ran).
+  if (!may_have_map(c))
     throw std::invalid_argument("--map-in needs the window backend with the map (--mapping on)");
   if (!m.loop)
     throw std::invalid_argument("--map-in: a loaded map is found by relocalisation, which needs --loop on");
@@ -19,6 +20,10 @@ void set_map_in(core::EstimatorConfig& c, const std::string& path) {
                                                       std::istreambuf_iterator<char>());
   m.map_in = std::move(bytes);
   m.map_in_path = path;
+}
+
+bool may_have_map(const core::EstimatorConfig& c) {
+  return (c.backend == "auto" || c.backend.rfind("window", 0) == 0) && c.window.map.mapping;
 }
 
 void write_map_file(const std::string& path, const std::vector<uint8_t>& bytes) {

@@ -111,7 +111,7 @@ Subcommand add_replay_command(CLI::App& parent) {
     try {
       tools::apply_map_switches(*opt.config, args->mapping, args->loop);
       if (!args->map_in.empty()) tools::set_map_in(*opt.config, args->map_in);
-      if (!args->map_out.empty() && !(opt.config->backend.rfind("window", 0) == 0 && opt.config->window.map.mapping))
+      if (!args->map_out.empty() && !tools::may_have_map(*opt.config))
         throw std::invalid_argument("--map-out needs the window backend with the map (--mapping on)");
     } catch (const std::invalid_argument& e) {
       throw UsageError(e.what());
@@ -160,6 +160,8 @@ Subcommand add_replay_command(CLI::App& parent) {
     ReplayReport r = run_replay(opt);
     r.config = tools::estimator_config_entries(*opt.config);
     if (!args->traj_out.empty()) tools::write_tum(args->traj_out, r.trajectory);
+    if (!args->map_in.empty() && !r.has_map)
+      throw UsageError("--map-in: the backend '" + r.estimator + "' runs without a map");
     if (!args->map_traj_out.empty()) {
       if (!r.has_map) throw UsageError("--map-traj-out: the backend '" + r.estimator + "' runs without a map");
       tools::write_tum(args->map_traj_out, r.map_trajectory);

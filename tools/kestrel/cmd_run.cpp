@@ -155,7 +155,7 @@ Subcommand add_run_command(CLI::App& parent) {
     try {
       tools::apply_map_switches(est_cfg, a->mapping, a->loop);
       if (!a->map_in.empty()) tools::set_map_in(est_cfg, a->map_in);
-      if (!a->map_out.empty() && !(est_cfg.backend.rfind("window", 0) == 0 && est_cfg.window.map.mapping))
+      if (!a->map_out.empty() && !tools::may_have_map(est_cfg))
         throw std::invalid_argument("--map-out needs the window backend with the map (--mapping on)");
     } catch (const std::invalid_argument& e) {
       throw UsageError(e.what());
