@@ -244,6 +244,13 @@ void visit_map(MapSystemOptions& m, OptionVisitor& v) {
   v.value("loop_pose_graph_iterations", l.pose_graph_iterations, "4-DoF pose graph iterations");
   v.value("loop_covis_edge_min_shared", l.covis_edge_min_shared, "points shared by a covisibility edge of the pose graph");
   v.value("loop_cooldown_keyframes", l.cooldown_keyframes, "no new loop within this many keyframes of one");
+  v.value("reloc_max_candidates", l.reloc_max_candidates, "best place-recognition candidates verified per lost keyframe");
+  v.value("reloc_min_inliers", l.reloc_min_inliers, "inliers a relocalisation needs (no drift bound after a loss)");
+  v.value("reloc_min_inlier_share", l.reloc_min_inlier_share, "... and this share of the matches");
+  v.value("reloc_consistent_keyframes", l.reloc_consistent_keyframes,
+          "consecutive lost keyframes that must give the same alignment");
+  v.value("reloc_timeout_s", l.reloc_timeout_s,
+          "lost mid-flight and not found again within this: mapping goes on in the odometry's alignment");
   v.end_section();
 }
 

@@ -23,8 +23,15 @@ std::string LoopOptions::validate() const {
   if (!(max_correction_m >= 0 && max_correction_per_m >= 0 && max_yaw_rad >= 0 && max_yaw_per_m >= 0))
     e << "  the loop's drift bounds must be >= 0\n";
   if (pose_graph_iterations < 1) e << "  loop_pose_graph_iterations must be >= 1\n";
+  if (reloc_max_candidates < 1) e << "  reloc_max_candidates must be >= 1\n";
+  if (reloc_min_inliers < 3) e << "  reloc_min_inliers must be >= 3\n";
+  if (!(reloc_min_inlier_share >= 0 && reloc_min_inlier_share <= 1)) e << "  reloc_min_inlier_share must be in [0, 1]\n";
+  if (reloc_consistent_keyframes < 1) e << "  reloc_consistent_keyframes must be >= 1\n";
+  if (!(reloc_timeout_s >= 0)) e << "  reloc_timeout_s must be >= 0\n";
   return e.str();
 }
+
+double yaw_of(const Eigen::Matrix3d& R) { return std::atan2(R(1, 0), R(0, 0)); }
 
 namespace {
 
@@ -34,7 +41,6 @@ namespace {
 // 6 cm of slack against the loop's 2 mm).
 constexpr double kLoopSigma_m = 0.002, kLoopSigma_rad = 0.0005;
 
-double yaw_of(const Eigen::Matrix3d& R) { return std::atan2(R(1, 0), R(0, 0)); }
 
 // 4-DoF least squares of p = Rz(yaw) q + t over the index set (closed form:
 // centroids, then the yaw of the centred xy cross-covariance).
@@ -61,7 +67,8 @@ Eigen::Isometry3d fit_4dof(const std::vector<Eigen::Vector3d>& q, const std::vec
 
 }  // namespace
 
-LoopCloser::LoopCloser(Map& map, const MapCamera& cam, const LoopOptions& opt) : map_(map), cam_(cam), opt_(opt) {
+LoopCloser::LoopCloser(Map& map, const MapCamera& cam, const LoopOptions& opt)
+    : map_(map), cam_(cam), opt_(opt), matcher_(map, cam) {
   const std::string err = opt.validate();
   if (!err.empty()) throw std::invalid_argument("LoopOptions:\n" + err);
   kf_scratch_.resize(static_cast<size_t>(map.max_keyframes()));
@@ -109,11 +116,15 @@ bool LoopCloser::detect(int kf, LoopMatch* out) {
   return found;
 }
 
-bool LoopCloser::verify(int kf, int cand, double score, LoopMatch* out) {
-  const MapKeyframe& K = map_.keyframe(kf);
-  const MapKeyframe& C = map_.keyframe(cand);
+PlaceMatcher::PlaceMatcher(Map& map, const MapCamera& cam) : map_(map), cam_(cam) {
+  kf_scratch_.resize(static_cast<size_t>(map.max_keyframes()));
+  shared_scratch_.resize(static_cast<size_t>(map.max_keyframes()));
+}
+
+PlaceMatcher::Result PlaceMatcher::match(const KeyframeFeature* f, int n, const Eigen::Isometry3d& T_MC, int cand,
+                                         const LoopOptions& opt, uint64_t seed, PlaceFit* out) {
   // The candidate's place: its points and those of its closest covisible keyframes.
-  const int nn = map_.covisible(cand, 1, opt_.candidate_neighbours, kf_scratch_.data(), shared_scratch_.data());
+  const int nn = map_.covisible(cand, 1, opt.candidate_neighbours, kf_scratch_.data(), shared_scratch_.data());
   const uint64_t mark = map_.next_mark();
   pts_.clear();
   for (int i = -1; i < nn; ++i) {
@@ -126,39 +137,35 @@ bool LoopCloser::verify(int kf, int cand, double score, LoopMatch* out) {
       pts_.push_back(p);
     }
   }
-  if (static_cast<int>(pts_.size()) < opt_.min_inliers) return false;
-  // Descriptor matches of the keyframe's depth-backed features, best two with the ratio test.
+  if (static_cast<int>(pts_.size()) < opt.min_inliers) return kFewPoints;
+  // Descriptor matches of the depth-backed features, best two with the ratio test.
   std::vector<Eigen::Vector3d> q, p;
   std::vector<double> thr;
   std::vector<std::pair<int, int>> pairs;
-  for (int j = 0; j < K.n; ++j) {
-    const KeyframeFeature& f = map_.feature(kf, j);
-    if (f.depth_m <= 0) continue;
+  for (int j = 0; j < n; ++j) {
+    if (f[j].depth_m <= 0) continue;
     BestTwoMatches bt;
-    for (int32_t pt : pts_) bt.offer(hamming_distance(f.desc, map_.point(pt).desc), pt);
-    if (bt.best_index < 0 || bt.best > opt_.match_max_hamming || !bt.passes_ratio(static_cast<float>(opt_.match_ratio)))
+    for (int32_t pt : pts_) bt.offer(hamming_distance(f[j].desc, map_.point(pt).desc), pt);
+    if (bt.best_index < 0 || bt.best > opt.match_max_hamming || !bt.passes_ratio(static_cast<float>(opt.match_ratio)))
       continue;
     const int32_t arg = bt.best_index;
-    q.push_back(K.T_MC * cam_.point_C(f));
+    q.push_back(T_MC * cam_.point_C(f[j]));
     p.push_back(map_.point(arg).p_M);
-    thr.push_back(opt_.inlier_m + 3.0 * cam_.sigma_depth_m(f.depth_m));
+    thr.push_back(opt.inlier_m + 3.0 * cam_.sigma_depth_m(f[j].depth_m));
     pairs.emplace_back(j, arg);
   }
   const int m = static_cast<int>(q.size());
-  if (m < opt_.min_inliers) {
-    ++stats_.rejected_inliers;
-    return false;
-  }
-  // 4-DoF RANSAC: two matches fix yaw and translation. Seeded by the
-  // keyframe ids, so a replay closes the same loops.
-  std::mt19937_64 rng(static_cast<uint64_t>(K.id) * 1000003u + C.id);
+  if (m < opt.min_inliers) return kFewInliers;
+  // 4-DoF RANSAC: two matches fix yaw and translation. Seeded by the caller
+  // (keyframe ids), so a replay finds the same places.
+  std::mt19937_64 rng(seed);
   std::vector<int> best_in, in;
   auto inliers_of = [&](const Eigen::Isometry3d& T, std::vector<int>& set) {
     set.clear();
     for (int i = 0; i < m; ++i)
       if ((T * q[i] - p[i]).norm() < thr[i]) set.push_back(i);
   };
-  for (int it = 0; it < opt_.ransac_iterations; ++it) {
+  for (int it = 0; it < opt.ransac_iterations; ++it) {
     const int a = static_cast<int>(rng() % static_cast<uint64_t>(m));
     const int b = static_cast<int>(rng() % static_cast<uint64_t>(m));
     if (a == b || (q[a] - q[b]).head<2>().norm() < 0.1 || (p[a] - p[b]).head<2>().norm() < 0.1) continue;
@@ -166,21 +173,34 @@ bool LoopCloser::verify(int kf, int cand, double score, LoopMatch* out) {
     inliers_of(T, in);
     if (in.size() > best_in.size()) best_in.swap(in);
   }
-  if (static_cast<int>(best_in.size()) < opt_.min_inliers) {
-    ++stats_.rejected_inliers;
-    return false;
-  }
+  if (static_cast<int>(best_in.size()) < opt.min_inliers) return kFewInliers;
   Eigen::Isometry3d T = fit_4dof(q, p, best_in);
   for (int round = 0; round < 2; ++round) {
     inliers_of(T, in);
-    if (static_cast<int>(in.size()) < opt_.min_inliers) break;
+    if (static_cast<int>(in.size()) < opt.min_inliers) break;
     T = fit_4dof(q, p, in);
   }
   inliers_of(T, in);
-  if (static_cast<int>(in.size()) < opt_.min_inliers || in.size() < opt_.min_inlier_share * m) {
-    ++stats_.rejected_inliers;
+  if (static_cast<int>(in.size()) < opt.min_inliers || in.size() < opt.min_inlier_share * m) return kFewInliers;
+  out->correction = T;
+  out->matches = m;
+  out->inliers = static_cast<int>(in.size());
+  out->inlier_pairs.clear();
+  for (int i : in) out->inlier_pairs.push_back(pairs[static_cast<size_t>(i)]);
+  return kOk;
+}
+
+bool LoopCloser::verify(int kf, int cand, double score, LoopMatch* out) {
+  const MapKeyframe& K = map_.keyframe(kf);
+  const MapKeyframe& C = map_.keyframe(cand);
+  PlaceFit fit;
+  const PlaceMatcher::Result r = matcher_.match(&map_.feature(kf, 0), K.n, K.T_MC, cand, opt_,
+                                                static_cast<uint64_t>(K.id) * 1000003u + C.id, &fit);
+  if (r != PlaceMatcher::kOk) {
+    if (r == PlaceMatcher::kFewInliers) ++stats_.rejected_inliers;
     return false;
   }
+  const Eigen::Isometry3d& T = fit.correction;
   // Drift, or an alias? The odometry drifts by a few percent of the path at
   // most; a correction beyond that means another place that looks the same.
   const double path_m = std::max(0.0, K.path_m - C.path_m);
@@ -196,11 +216,10 @@ bool LoopCloser::verify(int kf, int cand, double score, LoopMatch* out) {
   out->query_id = K.id;
   out->candidate_id = C.id;
   out->correction = T;
-  out->matches = m;
-  out->inliers = static_cast<int>(in.size());
+  out->matches = fit.matches;
+  out->inliers = fit.inliers;
   out->score = score;
-  out->inlier_pairs.clear();
-  for (int i : in) out->inlier_pairs.push_back(pairs[static_cast<size_t>(i)]);
+  out->inlier_pairs = std::move(fit.inlier_pairs);
   return true;
 }
 

@@ -3,6 +3,7 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "kestrel/core/map_file.hpp"
 #include "kestrel/core/pose_graph.hpp"
 #include "kestrel/rt/clock.hpp"
 
@@ -10,12 +11,26 @@ namespace kestrel::core {
 
 std::string MapSystemOptions::validate() const { return map.validate() + closing.validate(); }
 
-MapSystem::MapSystem(const MapCamera& cam, int features_per_keyframe, const MapSystemOptions& opt) : opt_(opt) {
+MapSystem::MapSystem(const MapCamera& cam, int features_per_keyframe, const MapSystemOptions& opt)
+    : opt_(opt), cam_(cam) {
   const std::string err = opt.validate();
   if (!err.empty()) throw std::invalid_argument("MapSystemOptions:\n" + err);
   map_ = std::make_unique<Map>(opt.map, features_per_keyframe, opt.loop ? opt.vocabulary : nullptr);
   mapper_ = std::make_unique<LocalMapper>(*map_, cam);
   closer_ = std::make_unique<LoopCloser>(*map_, cam, opt.closing);
+  if (map_->vocabulary() != nullptr) reloc_ = std::make_unique<Relocaliser>(*map_, cam, opt.closing);
+  if (opt.map_in) {
+    const std::string where = opt.map_in_path.empty() ? std::string("the map") : opt.map_in_path;
+    if (!opt.mapping) throw std::runtime_error(where + ": a map to start from needs the map (--mapping on)");
+    MapFileInfo info;
+    const std::string e = decode_map(opt.map_in->data(), opt.map_in->size(), cam, map_.get(), &info);
+    if (!e.empty()) throw std::runtime_error(where + ": not a usable map: " + e);
+    if (reloc_ == nullptr)
+      throw std::runtime_error(where + ": a loaded map is found by relocalisation, which needs the loop on and a "
+                                       "vocabulary (--loop on, map.vocabulary)");
+    last_kf_ = map_->newest_keyframe();
+    loaded_unfound_ = info.keyframes > 0;
+  }
   packets_.reset(new KeyframePacket[kPackets]);
   packet_features_.reset(new KeyframeFeature[static_cast<size_t>(kPackets) * features_per_keyframe]);
   for (int i = 0; i < kPackets; ++i) packets_[i].features = packet_features_.get() + i * features_per_keyframe;
@@ -28,7 +43,9 @@ MapSystem::MapSystem(const MapCamera& cam, int features_per_keyframe, const MapS
     (void)update_free_.try_push(static_cast<uint8_t>(i));
   }
   state_.active = true;
-  state_.localized = true;
+  state_.localized = !loaded_unfound_;
+  state_.keyframes = static_cast<uint32_t>(map_->num_keyframes());  // a loaded map's, from the start
+  state_.points = static_cast<uint32_t>(map_->num_points());
   frame_.publish(state_);
 }
 
@@ -47,7 +64,7 @@ KeyframePacket* MapSystem::begin_keyframe() {
   }
   KeyframePacket* p = &packets_[free_packets_[--n_free_packets_]];
   p->n = 0;
-  p->lost = false;
+  p->chain = 0;
   return p;
 }
 
@@ -93,13 +110,12 @@ bool MapSystem::mapping_step() {
   packet_todo_.pop();
   const int64_t t0 = rt::now_ns();
   KeyframePacket& pk = packets_[slot];
-  const Eigen::Isometry3d T_MW = state_.T_map_odom();
   int kf = -1;
-  if (!pk.lost && opt_.mapping) {
+  if (opt_.mapping && localise(pk)) {
     const int64_t min_dt = static_cast<int64_t>(opt_.map.min_keyframe_interval_s * 1e9);
     const bool too_soon = last_kf_ >= 0 && map_->keyframe_used(last_kf_) &&
                           pk.t_ns - map_->keyframe(last_kf_).t_ns < min_dt;
-    if (!too_soon) kf = mapper_->insert(pk, T_MW, last_kf_);
+    if (!too_soon) kf = mapper_->insert(pk, state_.T_map_odom(), last_kf_);
   }
   if (kf >= 0) {
     last_kf_ = kf;
@@ -114,6 +130,44 @@ bool MapSystem::mapping_step() {
   in_flight_.fetch_sub(1, std::memory_order_acq_rel);
   return true;
 }
+
+bool MapSystem::localise(const KeyframePacket& pk) {
+  if (state_.localized && pk.chain == chain_) return true;
+  if (state_.localized) {
+    // The odometry lost its chain: until the place is found again, where
+    // this keyframe sits in the map is not known.
+    state_.localized = false;
+    lost_since_ns_ = pk.t_ns;
+    if (reloc_) reloc_->reset();
+  }
+  if (lost_since_ns_ < 0) lost_since_ns_ = pk.t_ns;
+  const Eigen::Isometry3d T_MO = state_.T_map_odom();
+  Eigen::Isometry3d correction;
+  if (reloc_ == nullptr || map_->num_keyframes() == 0) {
+    // Nothing to find it in (no vocabulary, or an empty map): go on as before.
+  } else if (reloc_->relocalise(pk.features, pk.n, T_MO * pk.T_WC, pk.seq, &correction)) {
+    // The odometry stays; the map frame moves against it.
+    state_.set_T_map_odom(project_4dof(correction * T_MO));
+    ++state_.alignment;
+    ++state_.relocalisations;
+    realigned_ = true;
+    loaded_unfound_ = false;
+  } else if (loaded_unfound_ || pk.t_ns - lost_since_ns_ < static_cast<int64_t>(opt_.closing.reloc_timeout_s * 1e9)) {
+    ++counters_.keyframes_lost;
+    return false;
+  } else {
+    // Lost mid-flight and not found: the map goes on in the odometry's
+    // current alignment (off by what it drifted while lost; a loop may
+    // correct it later) rather than stop growing.
+    ++counters_.reloc_timeouts;
+  }
+  state_.localized = true;
+  chain_ = pk.chain;
+  lost_since_ns_ = -1;
+  return true;
+}
+
+std::vector<uint8_t> MapSystem::save() const { return encode_map(*map_, cam_); }
 
 void MapSystem::publish_update(int kf, uint64_t seq) {
   const uint8_t* s = update_free_.front();
@@ -173,12 +227,19 @@ std::string MapSystem::summary() const {
     << m.points_fused << ", culled " << m.points_culled << ", observations by projection " << m.observations_added
     << "; local BA " << m.ba_runs << " (failed " << m.ba_failures << ", outliers " << m.ba_outliers
     << "); updates " << counters_.updates_published << " published, " << applied_.load() << " applied, "
-    << counters_.updates_skipped << " skipped";
+    << counters_.updates_skipped << " skipped; lost keyframes " << counters_.keyframes_lost << ", relocalisation timeouts "
+    << counters_.reloc_timeouts;
   const LoopStats& l = closer_->stats();
   o << "; loop: " << l.queries << " queries, " << l.candidates << " candidates, " << l.verified << " verified, rejected "
     << l.rejected_inliers << " inliers / " << l.rejected_drift << " drift / " << l.rejected_consistency
     << " consistency, " << l.closures << " closed (pose graph failed " << l.pose_graph_failures << "), "
     << l.points_merged << " points merged";
+  if (reloc_) {
+    const RelocStats& r = reloc_->stats();
+    o << "; relocalisation: " << r.queries << " queries, " << r.candidates << " candidates, " << r.verified
+      << " verified, rejected " << r.rejected_ambiguous << " ambiguous / " << r.rejected_consistency
+      << " consistency, " << r.relocalisations << " relocalised";
+  }
   return o.str();
 }
 

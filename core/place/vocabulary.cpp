@@ -167,8 +167,11 @@ void Vocabulary::finish() {
   words_ = 0;
   for (Node& n : nodes_) n.word = n.n_children == 0 && (&n != &nodes_[0]) ? words_++ : -1;
   idf_.resize(static_cast<size_t>(words_), 0.0f);
+  // The CRC of everything but the file's own trailing CRC: a CRC over a
+  // message followed by its CRC is the same for every message of a length,
+  // so the whole image's would not tell two vocabularies of one size apart.
   std::vector<uint8_t> b = serialise();
-  checksum_ = crc32(b.data(), b.size());
+  checksum_ = crc32(b.data(), b.size() - 4);
 }
 
 uint32_t Vocabulary::word_of(const OrbDescriptor& d) const {

@@ -190,6 +190,11 @@ Eigen::Isometry3d WindowEstimator::at_capture_time(const Eigen::Isometry3d& T_WC
 // After tracking: a new keyframe sends the held one to the map (the window
 // has refined it for a keyframe's span) and is held in its place.
 void WindowEstimator::map_after_tracking() {
+  // Once per loss: a re-initialisation while already lost is the same gap.
+  const bool lost = front_.output().quality == TrackingQuality::kLost;
+  if ((lost && !map_chain_lost_) || (!lost && front_.divergence_epoch() != map_chain_epoch_)) ++map_chain_;
+  map_chain_lost_ = lost;
+  map_chain_epoch_ = front_.divergence_epoch();
   const TrackResult& r = front_.last_track();
   if (!r.keyframe) return;
   if (map_pending_ != nullptr) map_->submit_keyframe(map_pending_);
@@ -201,6 +206,7 @@ void WindowEstimator::map_after_tracking() {
   map_pending_w_B_ = last_gyro_rps_ - front_.propagated().bg_rps;
   map_pending_->T_WC = at_capture_time(tracker.keyframe_pose());
   map_pending_->n = tracker.keyframe_features(map_pending_->features, opt_.frontend.tracker.orb.n_features);
+  map_pending_->chain = map_chain_;
 }
 
 bool WindowEstimator::add_frame(const RgbdFrame& f) {

@@ -5,6 +5,7 @@
 
 #include <cstdio>
 #include <filesystem>
+#include <fstream>
 #include <string>
 #include <system_error>
 #include <vector>
@@ -12,6 +13,15 @@
 #include <unistd.h>
 
 namespace kestrel::test {
+
+// The process's resident set now [MB] (soak tests).
+inline double rss_mb() {
+  std::ifstream f("/proc/self/statm");
+  long pages_total = 0, pages_rss = 0;
+  f >> pages_total >> pages_rss;
+  return static_cast<double>(pages_rss) * static_cast<double>(sysconf(_SC_PAGESIZE)) / (1024.0 * 1024.0);
+}
+
 
 inline std::string shared_data_dir() {
   if (const char* env = std::getenv("KESTREL_SHARED_DATA")) return env;

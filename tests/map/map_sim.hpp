@@ -123,4 +123,46 @@ inline double pos_err(const Eigen::Isometry3d& a, const Eigen::Isometry3d& b) {
   return (a.translation() - b.translation()).norm();
 }
 
+// The map as drifting odometry builds it: each keyframe at its drifted pose,
+// points placed from its depths; landmark ids live for `id_life` keyframes
+// (the tracker loses them), so a place seen again is new points.
+struct DriftedMap {
+  core::Map map;
+  int last = -1;
+  std::vector<Eigen::Isometry3d> truth;  // by slot
+  explicit DriftedMap(std::shared_ptr<const core::Vocabulary> v)
+      : map(
+            [] {
+              core::MapOptions o;
+              o.max_keyframes = 200;
+              o.max_points = 60000;
+              return o;
+            }(),
+            300, std::move(v)),
+        truth(200) {}
+
+  int add(const SimRoom& room, const Eigen::Isometry3d& T_true, const Eigen::Isometry3d& T_odom, int64_t t_ns,
+          uint32_t id_offset, std::mt19937_64& rng) {
+    SimKeyframe s = room.observe(T_true, rng, id_offset);
+    const int kf = map.add_keyframe(t_ns, T_odom, T_odom, s.features.data(), static_cast<int>(s.features.size()), last);
+    if (kf < 0) return kf;
+    if (last >= 0)
+      map.keyframe(kf).path_m =
+          map.keyframe(last).path_m + (T_odom.translation() - map.keyframe(last).T_WC.translation()).norm();
+    const core::MapCamera cam = sim_camera();
+    for (int j = 0; j < map.keyframe(kf).n; ++j) {
+      const core::KeyframeFeature& f = map.feature(kf, j);
+      const int p = map.find_point(f.landmark_id);
+      if (p >= 0) {
+        map.add_observation(p, kf, j);
+        continue;
+      }
+      map.add_point(f.landmark_id, T_odom * cam.point_C(f), f.desc, 0, kf, j);
+    }
+    truth[static_cast<size_t>(kf)] = T_true;
+    last = kf;
+    return kf;
+  }
+};
+
 }  // namespace kestrel::map_test

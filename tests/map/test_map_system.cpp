@@ -156,6 +156,125 @@ TEST(MapSystem, ALoopMovesTheMapFrameNotTheOdometry) {
   EXPECT_LT(worst_err_map, 0.05);
 }
 
+// One lap mapped, then the odometry loses its chain and comes back in a frame
+// that jumped (a re-initialisation: 0.4 rad and 0.6 m), flying the lap again
+// with new landmark ids. The map stops mapping (not localised), relocalises
+// from two keyframes, moves T_map_odom so that the map frame continues where
+// it was, and maps the new chain's keyframes from then on.
+struct LapFlight {
+  int first_localised_at = -1;  // keyframe of the second lap
+  uint32_t alignment = 0;        // the map frame's alignment the relocalisation gave
+  double worst_err_after_m = 0;  // T_map_odom * T_WC against the truth, from then until the alignment changes
+  double end_err_m = 0;          // the same at the last keyframe, whatever moved the map frame since
+  core::MapFrameState end;
+  int keyframes_before = 0;
+};
+
+void fly_lap(core::MapSystem& sys, const SimRoom& room, std::mt19937_64& rng, const Eigen::Isometry3d& J,
+             uint32_t chain, uint32_t id_base, double phase, LapFlight* out) {
+  const int per_lap = 36;
+  for (int k = 0; k < per_lap; ++k) {
+    const double a = 2 * M_PI * (k + phase) / per_lap;
+    const Eigen::Isometry3d T_true = SimRoom::camera(Eigen::Vector3d(1.5 * std::cos(a), 1.5 * std::sin(a), 1.5), a);
+    const SimKeyframe s = room.observe(T_true, rng, id_base + 10000u * static_cast<uint32_t>(k / 3));
+    core::KeyframePacket* p = sys.begin_keyframe();
+    ASSERT_NE(p, nullptr);
+    fill(p, s, static_cast<int64_t>(k) * 500'000'000 + (id_base > 1 ? 20'000'000'000 : 0));  // the second lap later
+    p->T_WC = J * T_true;
+    p->chain = chain;
+    sys.submit_keyframe(p);
+    while (sys.mapping_step() || sys.loop_step()) {
+    }
+    if (const core::MapUpdate* u = sys.take_update()) sys.release_update(u);
+    if (out == nullptr) continue;
+    const core::MapFrameState f = sys.frame();
+    if (!f.localized) continue;
+    if (out->first_localised_at < 0) {
+      out->first_localised_at = k;
+      out->alignment = f.alignment;
+    }
+    const double e = pos_err(f.T_map_odom() * J * T_true, T_true);
+    // What the relocalisation gave, until something else (a loop) moves the map frame.
+    if (f.alignment == out->alignment) out->worst_err_after_m = std::max(out->worst_err_after_m, e);
+    out->end_err_m = e;
+  }
+  if (out != nullptr) out->end = sys.frame();
+}
+
+core::MapSystemOptions reloc_system(const SimRoom& room) {
+  core::MapSystemOptions o;
+  o.map.max_keyframes = 128;
+  o.map.max_points = 40000;
+  o.vocabulary = room_vocabulary(room);
+  return o;
+}
+
+Eigen::Isometry3d jump() {
+  Eigen::Isometry3d J = Eigen::Isometry3d::Identity();
+  J.linear() = Eigen::AngleAxisd(0.4, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+  J.translation() = Eigen::Vector3d(0.5, -0.3, 0.1);
+  return J;
+}
+
+TEST(MapSystem, ALostChainIsRelocalisedAndTheMapFrameContinues) {
+  SimRoom room(6000, 31);
+  core::MapSystem sys(sim_camera(), 300, reloc_system(room));
+  std::mt19937_64 rng(2);
+  fly_lap(sys, room, rng, Eigen::Isometry3d::Identity(), 0, 1, 0.0, nullptr);
+  const int before = sys.map().num_keyframes();
+  ASSERT_TRUE(sys.frame().localized);
+  LapFlight f;
+  fly_lap(sys, room, rng, jump(), 1, 500001, 0.5, &f);
+  std::printf("lost chain: localised again at keyframe %d, worst %.3f m after, %.3f m at the end (alignment %u -> "
+              "%u); %d -> %d keyframes; %s\n",
+              f.first_localised_at, f.worst_err_after_m, f.end_err_m, f.alignment, f.end.alignment, before,
+              sys.map().num_keyframes(), sys.summary().c_str());
+  EXPECT_EQ(f.end.relocalisations, 1u);
+  EXPECT_TRUE(f.end.localized);
+  EXPECT_EQ(f.first_localised_at, 1) << "two keyframes of the new chain are the evidence";
+  EXPECT_LT(f.worst_err_after_m, 0.05) << "the map frame continues where it was";
+  EXPECT_GT(sys.map().num_keyframes(), before) << "the new chain is mapped once found";
+  EXPECT_GE(sys.counters().keyframes_lost, 1u);
+}
+
+// Map reuse: the first flight's map saved, a second flight (another start,
+// its odometry frame 0.4 rad and 0.6 m from the first's) loads it, starts
+// not localised and lands in the first flight's frame from its second keyframe.
+TEST(MapSystem, ASecondFlightOnASavedMapLandsInTheFirstFlightsFrame) {
+  SimRoom room(6000, 31);
+  std::mt19937_64 rng(3);
+  auto bytes = std::make_shared<std::vector<uint8_t>>();
+  {
+    core::MapSystem first(sim_camera(), 300, reloc_system(room));
+    fly_lap(first, room, rng, Eigen::Isometry3d::Identity(), 0, 1, 0.0, nullptr);
+    *bytes = first.save();
+  }
+  core::MapSystemOptions o = reloc_system(room);
+  o.map_in = bytes;
+  o.map_in_path = "first.kmap";
+  core::MapSystem second(sim_camera(), 300, o);
+  EXPECT_FALSE(second.frame().localized) << "a loaded map is not localised before it is found";
+  LapFlight f;
+  fly_lap(second, room, rng, jump(), 0, 500001, 0.5, &f);
+  std::printf("second flight: localised at keyframe %d, worst %.3f m after, %.3f m at the end; %s\n",
+              f.first_localised_at, f.worst_err_after_m, f.end_err_m, second.summary().c_str());
+  EXPECT_EQ(f.first_localised_at, 1);
+  EXPECT_EQ(f.end.relocalisations, 1u);
+  EXPECT_LT(f.worst_err_after_m, 0.05);
+
+  // A damaged file names itself and the problem.
+  auto bad = std::make_shared<std::vector<uint8_t>>(*bytes);
+  (*bad)[bad->size() / 2] ^= 1;
+  o.map_in = bad;
+  try {
+    core::MapSystem broken(sim_camera(), 300, o);
+    ADD_FAILURE() << "a damaged map was accepted";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("first.kmap: not a usable map: checksum mismatch"), std::string::npos)
+        << e.what();
+  }
+}
+
 // The whole pipeline on a simulated figure-8 (it returns to where it has
 // been): the map runs on its own threads, the tracking thread still
 // allocates nothing, the map holds keyframes and points, and the odometry

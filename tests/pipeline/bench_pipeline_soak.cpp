@@ -18,13 +18,6 @@
 namespace kestrel::pipeline_test {
 namespace {
 
-double rss_mb() {
-  std::ifstream f("/proc/self/statm");
-  long pages_total = 0, pages_rss = 0;
-  f >> pages_total >> pages_rss;
-  return static_cast<double>(pages_rss) * static_cast<double>(sysconf(_SC_PAGESIZE)) / (1024.0 * 1024.0);
-}
-
 double peak_rss_mb() {
   rusage ru{};
   getrusage(RUSAGE_SELF, &ru);
@@ -152,7 +145,7 @@ TEST(PipelineSoak, ThirtyMinutesFastPaceRssFlat) {
     if (t0 < 0) t0 = p.t_ns;
     if (p.t_ns - t0 >= next) {
       const double min = 1e-9 * static_cast<double>(p.t_ns - t0) / 60.0;
-      rss.emplace_back(min, rss_mb());
+      rss.emplace_back(min, test::rss_mb());
       poses_at.push_back(poses);
       peak.emplace_back(min, peak_rss_mb());
       std::printf("SOAK-RSS %5.1f min  rss %7.1f MB  peak %7.1f MB  poses %zu\n", min, rss.back().second,

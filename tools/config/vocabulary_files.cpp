@@ -44,7 +44,9 @@ std::shared_ptr<const core::Vocabulary> default_vocabulary() {
 
 void resolve_vocabulary(core::EstimatorConfig& c) {
   core::MapSystemOptions& m = c.window.map;
-  if (c.backend.rfind("window", 0) != 0 || !m.mapping || !m.loop || m.vocabulary) return;
+  // "auto" is window on any log with an IMU: without this the default
+  // `kestrel replay LOG` ran its map without loop closing or relocalisation.
+  if ((c.backend != "auto" && c.backend.rfind("window", 0) != 0) || !m.mapping || !m.loop || m.vocabulary) return;
   if (!m.vocabulary_path.empty()) {
     m.vocabulary = load_vocabulary(m.vocabulary_path, c.tracker.orb.pattern_seed);
     return;

@@ -10,6 +10,7 @@
 #include "kestrel/replay_runner.hpp"
 #include "kestrel/view_cli.hpp"
 #include "kestrel/tools/estimator_config_yaml.hpp"
+#include "kestrel/tools/map_files.hpp"
 
 namespace kestrel::cli {
 
@@ -32,6 +33,7 @@ Subcommand add_replay_command(CLI::App& parent) {
     bool print_config = false;
     std::string mapping, loop;
     std::string map_traj_out;
+    std::string map_in, map_out;
   };
   auto args = std::make_shared<Args>();
   CLI::App* app = parent.add_subcommand("replay", "play a recorded log through the estimator (HIL harness)");
@@ -75,6 +77,10 @@ Subcommand add_replay_command(CLI::App& parent) {
   app->add_option("--map-traj-out", args->map_traj_out,
                   "write the trajectory in the map frame here, T_map_odom(t) * pose(t) (TUM); --traj-out keeps the "
                   "continuous odometry");
+  app->add_option("--map-in", args->map_in,
+                  "start from this map file (a flight's --map-out): the flight maps nothing until it relocalises in "
+                  "it, then goes on in its frame (docs/map.md)");
+  app->add_option("--map-out", args->map_out, "write the map here at the end (versioned, CRC-checked; docs/map.md)");
   app->add_option("--metrics-out", args->metrics_out,
                   "write latency histograms, drops, counters, CPU, RSS, real-time factor as JSON");
   app->add_option("--warmup", args->warmup_s, "seconds of log before steady-state statistics start")
@@ -104,10 +110,14 @@ Subcommand add_replay_command(CLI::App& parent) {
     opt.config = tools::load_estimator_config(args->config, override_backend);
     try {
       tools::apply_map_switches(*opt.config, args->mapping, args->loop);
+      if (!args->map_in.empty()) tools::set_map_in(*opt.config, args->map_in);
+      if (!args->map_out.empty() && !tools::may_have_map(*opt.config))
+        throw std::invalid_argument("--map-out needs the window backend with the map (--mapping on)");
     } catch (const std::invalid_argument& e) {
       throw UsageError(e.what());
     }
     opt.estimator = opt.config->backend;
+    opt.map_out = args->map_out;
     if (!args->config.empty()) opt.threads = drivers::load_thread_table(args->config);
     try {
       opt.format = drivers::parse_log_format(args->format);
@@ -150,6 +160,8 @@ Subcommand add_replay_command(CLI::App& parent) {
     ReplayReport r = run_replay(opt);
     r.config = tools::estimator_config_entries(*opt.config);
     if (!args->traj_out.empty()) tools::write_tum(args->traj_out, r.trajectory);
+    if (!args->map_in.empty() && !r.has_map)
+      throw UsageError("--map-in: the backend '" + r.estimator + "' runs without a map");
     if (!args->map_traj_out.empty()) {
       if (!r.has_map) throw UsageError("--map-traj-out: the backend '" + r.estimator + "' runs without a map");
       tools::write_tum(args->map_traj_out, r.map_trajectory);
@@ -164,6 +176,7 @@ Subcommand add_replay_command(CLI::App& parent) {
       for (const auto& p : r.problems) std::cerr << "problem: " << p.where << ": " << p.kind << ": " << p.detail << "\n";
       if (!args->traj_out.empty()) std::cout << "trajectory: " << args->traj_out << "\n";
       if (!args->metrics_out.empty()) std::cout << "metrics: " << args->metrics_out << "\n";
+      if (!args->map_out.empty()) std::cout << "map: " << args->map_out << "\n";
     }
     return 0;
   };

@@ -24,6 +24,7 @@
 #include "kestrel/recording.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"
 #include "kestrel/map_threads.hpp"
+#include "kestrel/tools/map_files.hpp"
 #include "kestrel/replay_runner.hpp"
 #include "kestrel/rt/clock.hpp"
 #include "kestrel/rt/mailbox.hpp"
@@ -100,6 +101,7 @@ struct RunArgs {
   double record_buffer_s = 4.0;
   bool print_config = false;
   std::string mapping, loop;
+  std::string map_in, map_out;
 };
 
 
@@ -124,6 +126,9 @@ Subcommand add_run_command(CLI::App& parent) {
   app->add_option("--duration", a->duration_s, "seconds to run (0 = until Ctrl-C)")->capture_default_str();
   app->add_option("--mapping", a->mapping, "on|off: the map beside the window backend (default on; docs/map.md)");
   app->add_option("--loop", a->loop, "on|off: loop closing and relocalisation (default on)");
+  app->add_option("--map-in", a->map_in,
+                  "start from this map file: nothing is mapped until the camera relocalises in it (docs/map.md)");
+  app->add_option("--map-out", a->map_out, "write the map here when the run stops (docs/map.md)");
   app->add_option("--mavlink-udp", a->mavlink_udp,
                   "MAVLink v2 to the flight controller at HOST:PORT: ODOMETRY per pose, HEARTBEAT 1 Hz, TIMESYNC "
                   "(over the config's mavlink: link; docs/px4.md)");
@@ -149,6 +154,9 @@ Subcommand add_run_command(CLI::App& parent) {
     core::EstimatorConfig est_cfg = tools::load_estimator_config(a->config, a->estimator);
     try {
       tools::apply_map_switches(est_cfg, a->mapping, a->loop);
+      if (!a->map_in.empty()) tools::set_map_in(est_cfg, a->map_in);
+      if (!a->map_out.empty() && !tools::may_have_map(est_cfg))
+        throw std::invalid_argument("--map-out needs the window backend with the map (--mapping on)");
     } catch (const std::invalid_argument& e) {
       throw UsageError(e.what());
     }
@@ -282,6 +290,7 @@ Subcommand add_run_command(CLI::App& parent) {
         st.t_s = 1e-9 * static_cast<double>(t_ns - first_t_ns);
         st.quality = est->output().quality;
         st.reset_counter = est->output().reset_counter;
+        st.map = est->output().map;
         frame_stats(*est, st.features, st.inliers);
         st.frames_total = frames_seen.load(std::memory_order_relaxed);
         st.frames_in_window = st.frames_total - frames_at_status;
@@ -433,6 +442,10 @@ Subcommand add_run_command(CLI::App& parent) {
       view->stop();
     }
     map_threads.stop();
+    if (!a->map_out.empty()) {
+      tools::write_map_file(a->map_out, est->save_map());
+      std::printf("map: %s\n", a->map_out.c_str());
+    }
     std::signal(SIGINT, SIG_DFL);
     std::signal(SIGTERM, SIG_DFL);
     std::printf("%s", sensors.report().c_str());

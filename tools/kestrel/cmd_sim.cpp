@@ -85,6 +85,9 @@ Subcommand add_sim_command(CLI::App& parent) {
   app->add_option("--exposure-change", o.exposure_change, "image gain swings by up to +- this share (hard: 0.45)");
   app->add_option("--motion-blur-ms", o.motion_blur_ms, "exposure time rendered as averaged sub-frames (hard: 8)");
   app->add_flag("--bare-wall", o.bare_wall, "the +x wall is bare paint, a low-texture wall (hard: on)");
+  app->add_option("--cover-at", o.cover_at_s, "cover the lens at this time [s] (with --cover-s: a kidnap)");
+  app->add_option("--cover-s", o.cover_s,
+                  "seconds the lens stays covered: near-black noise frames without depth while the flight goes on");
   app->add_flag("--no-noise", args->no_noise, "ideal sensors: no IMU noise or bias, exact depth, clean images");
   app->add_option("--depth-dropout", o.depth_dropout, "share of depth pixels lost in small blobs")
       ->capture_default_str();

@@ -20,6 +20,7 @@
 #include "kestrel/core/window_estimator.hpp"
 #include "kestrel/imu_rate_stage.hpp"
 #include "kestrel/map_threads.hpp"
+#include "kestrel/tools/map_files.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"
 #include "kestrel/mavlink/serial_link.hpp"
 #include "kestrel/mavlink/udp_sender.hpp"
@@ -212,6 +213,7 @@ class EstimatorStage {
     const core::EstimatorOutput& o = est_.output();
     st.quality = o.quality;
     st.reset_counter = o.reset_counter;
+    st.map = o.map;
     frame_stats(est_, st.features, st.inliers);
     st.frames_total = frames_fed_;
     st.frames_in_window = frames_fed_ - frames_at_last_status_;
@@ -683,6 +685,7 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     }
   }
   map_threads.stop();
+  if (!opt.map_out.empty()) tools::write_map_file(opt.map_out, estimator.save_map());
   report.mapping_cpu_s = map_threads.mapping_cpu_s();
   report.loop_cpu_s = map_threads.loop_cpu_s();
   const int64_t wall1 = rt::now_ns();
@@ -982,7 +985,15 @@ std::string format_status(const PipelineStatus& s) {
       static_cast<unsigned long long>(s.input_faults.out_of_order),
       static_cast<unsigned long long>(s.input_faults.repeated),
       static_cast<unsigned long long>(s.input_faults.no_depth));
-  return buf;
+  std::string line = buf;
+  // The map's state: a lost map (after a loss, or a loaded map not found yet) maps nothing until it relocalises.
+  if (s.map.active) {
+    std::snprintf(buf, sizeof buf, " | map %s, %u kf, loops %llu, relocs %llu", s.map.localized ? "localized" : "LOST",
+                  s.map.keyframes, static_cast<unsigned long long>(s.map.loop_closures),
+                  static_cast<unsigned long long>(s.map.relocalisations));
+    line += buf;
+  }
+  return line;
 }
 
 std::string replay_summary(const ReplayReport& r) {

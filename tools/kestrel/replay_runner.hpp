@@ -87,6 +87,7 @@ struct PipelineStatus {
   uint64_t imu_rejected = 0;  // non-finite + saturated + out of order (cumulative)
   uint64_t imu_gaps = 0;
   InputFaultCounts input_faults;
+  core::MapFrameState map;  // active: the backend has a map (then: localized, relocalisations, loop closures)
 };
 
 std::string format_status(const PipelineStatus& s);
@@ -111,6 +112,7 @@ void frame_stats(const core::Estimator& est, int& features, int& inliers);
 
 struct ReplayOptions {
   std::string path;
+  std::string map_out;  // the map file written at the end ("": none; tools/config/map_files.hpp)
   drivers::LogFormat format = drivers::LogFormat::kAuto;
   drivers::LogOpenOptions open;  // rig for datasets, bag topics (open.format is ignored: `format` rules)
   drivers::ReplayPace pace = drivers::ReplayPace::kLockstep;

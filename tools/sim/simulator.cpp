@@ -56,6 +56,7 @@ void validate(const SimOptions& o) {
           "--rig-time-offset-ms must be within +-1000");
   require(o.timestamp_jitter_us >= 0.0 && o.timestamp_jitter_us <= 1e5, "--timestamp-jitter-us must be in [0, 1e5]");
   require(o.frame_drop_rate >= 0.0 && o.frame_drop_rate < 1.0, "--frame-drop-rate must be in [0, 1)");
+  require(o.cover_s <= 0.0 || o.cover_at_s >= 0.0, "--cover-at must be >= 0 seconds");
   require(o.depth_dropout >= 0.0 && o.depth_dropout <= 0.5, "--depth-dropout must be in [0, 0.5]");
   require(o.image_noise_sigma >= 0.0 && o.image_noise_sigma <= 50.0, "image noise sigma must be in [0, 50]");
   require(o.acc_bias_tau_s >= 0.0, "accelerometer bias tau must be >= 0");
@@ -259,6 +260,7 @@ SimSummary run_simulation(const SimOptions& o, SimSink& sink) {
   const int W = rig.rgb.width, H = rig.rgb.height;
   std::vector<uint8_t> rgb(static_cast<size_t>(W) * H * 3);
   std::vector<uint16_t> depth(static_cast<size_t>(W) * H);
+  uint32_t cover_lcg = 12345;  // the covered lens's noise
   // Motion blur: sub-frames across the exposure, averaged; the depth is the
   // middle one's (a structured-light or ToF sensor integrates differently).
   const int blur_subframes = motion_blur_ms > 0.0 ? 4 : 1;
@@ -358,6 +360,11 @@ SimSummary run_simulation(const SimOptions& o, SimSink& sink) {
       if (exposure_change > 0.0) {
         const double g = gain_at(f.t_true_s);
         for (uint8_t& p : rgb) p = static_cast<uint8_t>(std::min(255.0, p * g + 0.5));
+      }
+      if (o.cover_s > 0.0 && f.t_true_s >= o.cover_at_s && f.t_true_s < o.cover_at_s + o.cover_s) {
+        // Noise, not a constant: identical frames would be withheld as repeats.
+        for (uint8_t& p : rgb) p = static_cast<uint8_t>((cover_lcg = cover_lcg * 1664525u + 1013904223u) >> 30);
+        std::fill(depth.begin(), depth.end(), 0);
       }
       render_s += std::chrono::duration<double>(Clock::now() - r0).count();
       sink.image(drivers::RecordType::kRgb, f.stamp_ns, f.seq, ImageView{W, H, W * 3, PixelFormat::kRgb8, rgb.data()});

@@ -7,6 +7,7 @@
 #include <array>
 #include <Eigen/Geometry>
 #include <cstdint>
+#include <vector>
 #include <string>
 
 #include "kestrel/core/imu_propagator.hpp"
@@ -165,6 +166,9 @@ class Estimator {
   // Per keyframe [ns], for the two threads; read after they stopped.
   virtual const rt::LatencyHistogram* mapping_latency() const { return nullptr; }
   virtual const rt::LatencyHistogram* loop_latency() const { return nullptr; }
+  // The map file's bytes (`--map-out`, map_file.hpp); empty without a map.
+  // After the map threads stopped.
+  virtual std::vector<uint8_t> save_map() const { return {}; }
 };
 
 // IMU-only dead reckoning after a static initialisation. Named as what it is:

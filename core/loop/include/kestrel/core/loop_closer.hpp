@@ -49,6 +49,16 @@ struct LoopOptions {
   int pose_graph_iterations = 30;
   int covis_edge_min_shared = 50;  // covisibility edges of the pose graph
   int cooldown_keyframes = 10;     // no new loop this soon after one
+  // Relocalisation (relocaliser.hpp): no drift bound to lean on after a loss,
+  // so stronger evidence, and a place that fits two poses is no evidence.
+  int reloc_max_candidates = 8;        // best BoW candidates verified per lost keyframe
+  int reloc_min_inliers = 50;
+  double reloc_min_inlier_share = 0.4;
+  int reloc_consistent_keyframes = 2;  // consecutive lost keyframes giving the same T_map_odom
+  // Lost mid-flight and not found again within this: the map goes on in the
+  // odometry's current alignment (a loop can still correct it). A loaded map
+  // is waited for however long it takes.
+  double reloc_timeout_s = 10.0;
 
   [[nodiscard]] std::string validate() const;
 };
@@ -64,6 +74,36 @@ struct LoopStats {
   uint64_t pose_graph_failures = 0;
   uint64_t points_merged = 0;
 };
+
+// A keyframe's features matched to a place of the map: T_MC_true =
+// correction * T_MC (4 DoF) and the inliers behind it.
+struct PlaceFit {
+  Eigen::Isometry3d correction = Eigen::Isometry3d::Identity();
+  int matches = 0, inliers = 0;
+  std::vector<std::pair<int, int>> inlier_pairs;  // (feature, map point)
+};
+
+// Geometric verification, shared by loop closing and relocalisation: the
+// depth-backed features (seen from T_MC) matched by descriptor to the points
+// of a candidate keyframe and its closest covisible keyframes, then the 4-DoF
+// RANSAC on the 3D-3D matches and a closed-form refit on the inliers.
+// Thresholds: LoopOptions' match_*, ransac_iterations, inlier_m, min_inliers,
+// min_inlier_share, candidate_neighbours.
+class PlaceMatcher {
+ public:
+  enum Result { kOk, kFewPoints, kFewInliers };
+  PlaceMatcher(Map& map, const MapCamera& cam);
+  Result match(const KeyframeFeature* f, int n, const Eigen::Isometry3d& T_MC, int candidate, const LoopOptions& opt,
+               uint64_t seed, PlaceFit* out);
+
+ private:
+  Map& map_;
+  MapCamera cam_;
+  std::vector<int32_t> kf_scratch_, shared_scratch_, pts_;
+};
+
+// Yaw of a rotation about W's (or M's) z axis [rad].
+double yaw_of(const Eigen::Matrix3d& R);
 
 // A verified match of a keyframe against an older place.
 struct LoopMatch {
@@ -112,13 +152,14 @@ class LoopCloser {
   Map& map_;
   MapCamera cam_;
   LoopOptions opt_;
+  PlaceMatcher matcher_;
   LoopStats stats_;
   std::vector<LoopEdge> loop_edges_;
   // Consistency: the last verified match and how many consecutive keyframes agree.
   LoopMatch pending_;
   int pending_count_ = 0;
   uint32_t last_closure_kf_id_ = 0;
-  std::vector<int32_t> kf_scratch_, shared_scratch_, pts_;
+  std::vector<int32_t> kf_scratch_, shared_scratch_;
 };
 
 }  // namespace kestrel::core

@@ -64,10 +64,11 @@ struct KeyframePacket {
   uint64_t seq = 0;
   int64_t t_ns = 0;
   Eigen::Isometry3d T_WC = Eigen::Isometry3d::Identity();  // camera in W (odometry), refined by the window
-  // Taken while the tracker had lost its chain (first keyframes after a
-  // reset, or the first of a flight on a loaded map): where it is in the map
-  // is unknown until a relocalisation finds it.
-  bool lost = false;
+  // The odometry's chain: steps whenever the odometry lost continuity (vision
+  // gone past safety.max_coast_s, a re-initialisation). A keyframe of another
+  // chain than the map is localised in may sit anywhere in the map until a
+  // relocalisation finds it (MapSystem).
+  uint32_t chain = 0;
   int n = 0;
   KeyframeFeature* features = nullptr;  // capacity: the tracker's feature budget
 };

@@ -23,11 +23,13 @@
 #include <cstdint>
 #include <memory>
 #include <string>
+#include <vector>
 
 #include "kestrel/core/estimator.hpp"
 #include "kestrel/core/local_mapper.hpp"
 #include "kestrel/core/loop_closer.hpp"
 #include "kestrel/core/map.hpp"
+#include "kestrel/core/relocaliser.hpp"
 #include "kestrel/rt/latency_histogram.hpp"
 #include "kestrel/rt/mailbox.hpp"
 #include "kestrel/rt/spsc_ring.hpp"
@@ -44,6 +46,11 @@ struct MapSystemOptions {
   // without one, loop closing and relocalisation are off.
   std::string vocabulary_path;
   std::shared_ptr<const Vocabulary> vocabulary;
+  // A map to start from (`--map-in`): the bytes of a map file (map_file.hpp),
+  // read by tools; map_in_path names it in errors. The flight then starts
+  // not localised and maps nothing until a relocalisation finds it there.
+  std::shared_ptr<const std::vector<uint8_t>> map_in;
+  std::string map_in_path;
 
   [[nodiscard]] std::string validate() const;
 };
@@ -67,6 +74,8 @@ struct MapSystemCounters {
   uint64_t updates_published = 0;
   uint64_t updates_applied = 0;
   uint64_t updates_skipped = 0;  // no free update slot on the mapping side
+  uint64_t keyframes_lost = 0;   // not mapped: taken while the map was not localised
+  uint64_t reloc_timeouts = 0;   // lost past reloc_timeout_s: mapping went on in the odometry's alignment
 };
 
 class MapSystem {
@@ -95,10 +104,13 @@ class MapSystem {
   bool loop_step();
 
   // ---- after the threads stopped (or from the mapping/loop threads) ----
+  // The map file's bytes (map_file.hpp).
+  std::vector<uint8_t> save() const;
   Map& map() { return *map_; }
   const Map& map() const { return *map_; }
   const LocalMapper& mapper() const { return *mapper_; }
   const LoopCloser& loop_closer() const { return *closer_; }
+  const Relocaliser* relocaliser() const { return reloc_.get(); }
   const MapSystemCounters& counters() const { return counters_; }
   const rt::LatencyHistogram& mapping_latency() const { return mapping_latency_; }
   const rt::LatencyHistogram& loop_latency() const { return loop_latency_; }
@@ -110,11 +122,16 @@ class MapSystem {
   static constexpr int kUpdates = 3;
   void publish_update(int kf, uint64_t seq);
   void publish_frame();
+  // A keyframe of another chain than the map's (or any, on a loaded map not
+  // found yet): try to find it; true when the map is localised afterwards.
+  bool localise(const KeyframePacket& pk);
 
   MapSystemOptions opt_;
   std::unique_ptr<Map> map_;
   std::unique_ptr<LocalMapper> mapper_;
   std::unique_ptr<LoopCloser> closer_;
+  std::unique_ptr<Relocaliser> reloc_;  // with a vocabulary and the loop on
+  MapCamera cam_;
   // Packets: slot indices tracking -> mapping (todo), mapping -> tracking (free).
   std::unique_ptr<KeyframePacket[]> packets_;
   std::unique_ptr<KeyframeFeature[]> packet_features_;
@@ -134,6 +151,9 @@ class MapSystem {
   MapFrameState state_;
   bool realigned_ = false;
   int32_t last_kf_ = -1;
+  uint32_t chain_ = 0;            // the odometry chain the map is localised in
+  bool loaded_unfound_ = false;   // a loaded map this flight has not found yet
+  int64_t lost_since_ns_ = -1;
   rt::LatencyHistogram mapping_latency_, loop_latency_;
   MapSystemCounters counters_;
   std::atomic<uint64_t> overrun_{0}, applied_{0};

@@ -149,6 +149,7 @@ class WindowEstimator final : public Estimator {
   bool map_busy() const override { return map_ && map_->busy(); }
   const rt::LatencyHistogram* mapping_latency() const override { return map_ ? &map_->mapping_latency() : nullptr; }
   const rt::LatencyHistogram* loop_latency() const override { return map_ ? &map_->loop_latency() : nullptr; }
+  std::vector<uint8_t> save_map() const override { return map_ ? map_->save() : std::vector<uint8_t>{}; }
   MapSystem* map_system() { return map_.get(); }
 
   const WindowEstimatorCounters& window_counters() const { return wc_; }
@@ -282,6 +283,11 @@ class WindowEstimator final : public Estimator {
   Eigen::Vector3d map_pending_v_W_ = Eigen::Vector3d::Zero();
   Eigen::Vector3d map_pending_w_B_ = Eigen::Vector3d::Zero();
   Eigen::Isometry3d at_capture_time(const Eigen::Isometry3d& T_WC) const;
+  // The odometry's chain for the map (KeyframePacket::chain): steps when the
+  // output turns lost or the front end re-initialises.
+  uint32_t map_chain_ = 0;
+  bool map_chain_lost_ = false;
+  uint64_t map_chain_epoch_ = 0;
   bool window_started_ = false;  // a frame went in since the last (re)start
 
   // Optimizer side.

@@ -16,7 +16,7 @@ namespace kestrel::tools {
 std::shared_ptr<const core::Vocabulary> load_vocabulary(const std::string& path, uint64_t pattern_seed);
 // The vocabulary compiled into kestrel; nullptr when it was built without one.
 std::shared_ptr<const core::Vocabulary> default_vocabulary();
-// Gives a window backend with the map and the loop its vocabulary
+// Gives a window (or auto) backend with the map and the loop its vocabulary
 // (map.vocabulary, or the default). Without any it says so on stderr and
 // turns the loop off: the map still runs, without loop closing.
 void resolve_vocabulary(core::EstimatorConfig& c);

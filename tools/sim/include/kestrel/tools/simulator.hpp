@@ -79,6 +79,11 @@ struct SimOptions {
   double exposure_change = 0.0;         // image gain swings by up to +- this share (drift and sudden steps)
   double motion_blur_ms = 0.0;          // exposure time, rendered as sub-frames averaged
   bool bare_wall = false;               // the +x wall is bare paint (low texture)
+  // A lens covered (a kidnap: the camera sees nothing while the vehicle
+  // moves on): frames in [cover_at_s, cover_at_s + cover_s) are near-black
+  // sensor noise with no depth. cover_s <= 0: never.
+  double cover_at_s = 0.0;
+  double cover_s = 0.0;
   bool yaw_follows_path = true;         // figure8
   double gt_rate_hz = 200.0;            // ground truth records (plus one at every frame)
   double knot_spacing_s = 0.0;          // GT spline; <= 0: the file's sample interval
