@@ -2,9 +2,12 @@
 #include "kestrel/tools/vocabulary_files.hpp"
 
 #include "kestrel/core/estimator_factory.hpp"
+#include "kestrel/drivers/text.hpp"
 
 #include <yaml-cpp/yaml.h>
 
+#include <algorithm>
+#include <cctype>
 #include <charconv>
 #include <cmath>
 #include <fstream>
@@ -31,6 +34,22 @@ std::string num(F v) {
   return s;
 }
 
+// A string as YAML that reads back to the same string: bare when it is a
+// plain word or path (what every default is, so the printed config and
+// docs/config.md stay unquoted), else double-quoted with escapes. Bare text
+// with ": ", " #" or a leading indicator would change the document's
+// structure (found by fuzzing); an empty string bare would read back as null.
+std::string yaml_string(const std::string& v) {
+  bool plain = !v.empty() && (std::isalnum(static_cast<unsigned char>(v[0])) || v[0] == '/' || v[0] == '_');
+  for (const char ch : v)
+    if (!std::isalnum(static_cast<unsigned char>(ch)) && std::string("_./+-").find(ch) == std::string::npos)
+      plain = false;
+  if (plain) return v;
+  YAML::Emitter e;
+  e << YAML::DoubleQuoted << v;
+  return e.c_str();
+}
+
 // Walks the table and calls one function per key with its dotted path: the
 // base of every visitor below except the loader.
 class PathVisitor : public core::OptionVisitor {
@@ -49,8 +68,7 @@ class PathVisitor : public core::OptionVisitor {
   void value(const char* k, int64_t& v, const char* d) override { key(k, std::to_string(v), d); }
   void value(const char* k, uint64_t& v, const char* d) override { key(k, std::to_string(v), d); }
   void value(const char* k, bool& v, const char* d) override { key(k, v ? "true" : "false", d); }
-  // An empty string printed bare would read back as YAML null.
-  void value(const char* k, std::string& v, const char* d) override { key(k, v.empty() ? "\"\"" : v, d); }
+  void value(const char* k, std::string& v, const char* d) override { key(k, yaml_string(v), d); }
   void choice(const char* k, int& i, const std::vector<const char*>& names, const char* d) override {
     std::string doc = d;
     doc += " (";
@@ -195,6 +213,11 @@ class YamlLoader final : public core::OptionVisitor {
       const YAML::Node& n = *o;
       // Empty is a value only where it is the default (a file name meaning "the built-in one").
       if (n.Scalar().empty() && !v.empty()) fail(n, k, "expected a non-empty name");
+      // Names and paths: a control character or a byte that is not UTF-8 is
+      // a damaged file, and could not be printed back as the same text.
+      if (!drivers::text::is_utf8(n.Scalar()) ||
+          std::any_of(n.Scalar().begin(), n.Scalar().end(), [](char ch) { return static_cast<unsigned char>(ch) < 0x20; }))
+        fail(n, k, "expected printable UTF-8 text");
       v = n.Scalar();
     }
   }
