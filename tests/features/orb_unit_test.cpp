@@ -4,6 +4,7 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <bitset>
 #include <cmath>
 #include <cstring>
 #include <random>
@@ -406,6 +407,17 @@ TEST(OrbBrief, BitsAreBalancedOnTexture) {
   std::printf("bits with mean outside [0.3, 0.7]: %d of 256; outside [0.05, 0.95]: %d\n", extreme, constant);
   EXPECT_EQ(constant, 0);
   EXPECT_LT(extreme, 26);
+}
+
+// The inline bit-slicing popcount the portable x86-64 build uses must agree
+// with the library's count on every kind of word, not only random ones.
+TEST(OrbMatch, Popcount64AgreesWithBitset) {
+  std::mt19937_64 rng(11);
+  std::vector<std::uint64_t> words{0, ~0ULL, 1, 1ULL << 63, 0x5555555555555555ULL, 0xAAAAAAAAAAAAAAAAULL};
+  for (int i = 0; i < 64; ++i) words.push_back(~0ULL >> i);
+  for (int i = 0; i < 20000; ++i) words.push_back(rng() & rng());  // sparse words too
+  for (int i = 0; i < 20000; ++i) words.push_back(rng());
+  for (const std::uint64_t w : words) ASSERT_EQ(popcount64(w), int(std::bitset<64>(w).count())) << std::hex << w;
 }
 
 TEST(OrbMatch, HammingAndRatioTest) {
