@@ -144,6 +144,9 @@ bool refine_pose_rgbd(Eigen::Matrix3d* R, Eigen::Vector3d* t, const PinholeK& K,
 
 }  // namespace
 
+// The stage methods below are kept out of line ([[gnu::noinline]]): one call
+// per frame costs nothing, and `kestrel bench --cpu-budget` can then charge
+// each stage its own instructions instead of folding them into track().
 struct Tracker::Impl {
   Impl(const Rig& rig, const TrackerOptions& opt)
       : cam(rig.rgb),
@@ -214,7 +217,7 @@ struct Tracker::Impl {
     return zc;
   }
 
-  void back_project(FrameData& f, const ImageView& d, double edge_rel) {
+  [[gnu::noinline]] void back_project(FrameData& f, const ImageView& d, double edge_rel) {
     f.with_depth = 0;
     const bool have = d.data != nullptr && d.format == PixelFormat::kDepthU16;
     for (int i = 0; i < f.feats.size(); ++i) {
@@ -315,7 +318,7 @@ struct Tracker::Impl {
   // matches give a pose good to a centimetre or two, noisier than tracking's
   // chained one, so it only replaces *T_WC when apply (a restart with no
   // chain); otherwise the window weighs it against the chain. Allocation-free.
-  void search_map(const TrackerOptions& opt, Eigen::Isometry3d* T_WC, bool apply, TrackResult& res) {
+  [[gnu::noinline]] void search_map(const TrackerOptions& opt, Eigen::Isometry3d* T_WC, bool apply, TrackResult& res) {
     if (map_size == 0) return;
     const int n = match_map_points(opt, T_WC->inverse());
     res.map_matched = n;
@@ -466,7 +469,7 @@ struct Tracker::Impl {
   // Projects the keyframe's depth-backed points into cur with the IMU-predicted
   // motion (R_pred, t_pred: keyframe camera -> current camera) and matches each
   // in a circle of `radius`; fills corr / corr_cur and returns how many matched.
-  int match_keyframe(const TrackerOptions& opt, const Eigen::Matrix3d& R_pred, const Eigen::Vector3d& t_pred,
+  [[gnu::noinline]] int match_keyframe(const TrackerOptions& opt, const Eigen::Matrix3d& R_pred, const Eigen::Vector3d& t_pred,
                      double radius, TrackResult& res) {
     build_grid(cur);
     const int n_cur = cur.feats.size();
@@ -520,7 +523,7 @@ struct Tracker::Impl {
   // cur becomes the keyframe at T_WC (after the local map had its say):
   // features that matched a keyframe point keep its id; the others with a
   // depth start new landmarks, observed here for the first time, and enter the map.
-  void make_keyframe(const TrackerOptions& opt, Eigen::Isometry3d T_WC, TrackResult& res) {
+  [[gnu::noinline]] void make_keyframe(const TrackerOptions& opt, Eigen::Isometry3d T_WC, TrackResult& res) {
     if (map_capacity > 0) search_map(opt, &T_WC, !kf.valid, res);
     cur.T_WC = T_WC;
     for (int j = 0; j < cur.feats.size(); ++j) {

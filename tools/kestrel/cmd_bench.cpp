@@ -23,6 +23,7 @@
 #include "kestrel/commands.hpp"
 #include "kestrel/replay_runner.hpp"
 #include "kestrel/tools/report_json.hpp"
+#include "kestrel/tools/cpu_budget.hpp"
 #include "kestrel/tools/simulator.hpp"
 #include "kestrel/tools/trajectory_eval.hpp"
 
@@ -398,6 +399,61 @@ std::string rows_json(const std::vector<BenchRow>& rows, double duration_s) {
   return tools::json_text(j);
 }
 
+// ---- --cpu-budget ------------------------------------------------------------
+// One stage of the budget: a function callgrind charges, and what its count is
+// divided by (frames tracked, optimizer solves or IMU samples).
+struct BudgetStage {
+  const char* label;
+  const char* needle;   // substring of the demangled name
+  const char* per;      // "frame", "solve", "sample"
+};
+
+const std::vector<BudgetStage>& budget_stages() {
+  static const std::vector<BudgetStage> st{
+      {"tracking, whole frame", "kestrel::core::Tracker::track(", "frame"},
+      {"  ORB extraction", "kestrel::core::OrbExtractor::extract(", "frame"},
+      {"  depth back-projection", "kestrel::core::Tracker::Impl::back_project(", "frame"},
+      {"  IMU-predicted matching", "kestrel::core::Tracker::Impl::match_keyframe(", "frame"},
+      {"  LONSC", "kestrel::core::LonscEstimator::estimate(", "frame"},
+      {"  pose refinement", "kestrel::core::refine_pose_gauss_newton(", "frame"},
+      {"  keyframe", "kestrel::core::Tracker::Impl::make_keyframe(", "frame"},
+      {"  map-point search", "kestrel::core::Tracker::Impl::search_map(", "frame"},
+      {"optimizer solve", "kestrel::core::WindowOptimizer::optimize()", "solve"},
+      {"IMU propagation", "kestrel::core::WindowEstimator::add_imu(", "sample"},
+  };
+  return st;
+}
+
+// Runs `kestrel replay` (this very binary) under callgrind; stdout and stderr
+// go to `console`. Returns the exit status text, empty when it succeeded.
+std::string run_under_callgrind(const std::vector<std::string>& replay_args, const std::string& out_file,
+                                const std::string& console) {
+  const std::string self = fs::read_symlink("/proc/self/exe").string();
+  std::vector<std::string> argv{"valgrind", "--tool=callgrind", "--compress-strings=no", "--compress-pos=no",
+                                "--dump-instr=no", "--callgrind-out-file=" + out_file, self};
+  argv.insert(argv.end(), replay_args.begin(), replay_args.end());
+  std::fflush(nullptr);
+  const pid_t pid = fork();
+  if (pid < 0) throw std::runtime_error("fork failed");
+  if (pid == 0) {
+    FILE* f = std::freopen(console.c_str(), "w", stdout);
+    if (f == nullptr) _exit(126);
+    dup2(fileno(stdout), 2);
+    std::vector<char*> a;
+    for (auto& s : argv) a.push_back(s.data());
+    a.push_back(nullptr);
+    execvp("valgrind", a.data());
+    _exit(127);
+  }
+  int status = 0;
+  waitpid(pid, &status, 0);
+  if (WIFEXITED(status) && WEXITSTATUS(status) == 127)
+    return "valgrind not found (tools/install-deps.sh installs it)";
+  if (!WIFEXITED(status) || WEXITSTATUS(status) != 0)
+    return "replay under callgrind failed (status " + std::to_string(status) + "; its output: " + console + ")";
+  return {};
+}
+
 bool selected(const std::string& name, const std::vector<std::string>& only) {
   if (only.empty()) return true;
   for (const auto& o : only)
@@ -423,12 +479,15 @@ Subcommand add_bench_command(CLI::App& parent) {
     bool keep_logs = false;
     bool list = false;
     bool strict = false;
+    bool cpu_budget = false;
+    CLI::Option* duration_opt = nullptr;
+    std::string cpu_budget_log;
   };
   auto args = std::make_shared<Args>();
   CLI::App* app = parent.add_subcommand("bench", "run the benchmark suite and print one table");
   app->add_option("--json", args->json_out, "also write the table as JSON to this file");
   app->add_option("--cases", args->cases, "only the cases whose name contains one of these")->delimiter(',');
-  app->add_option("--duration", args->duration,
+  args->duration_opt = app->add_option("--duration", args->duration,
                   "seconds of flight per case, or `full`: every hybrid flight over its whole length (scenarios: "
                   "their default length)")
       ->capture_default_str();
@@ -454,6 +513,12 @@ Subcommand add_bench_command(CLI::App& parent) {
   app->add_option("--height", args->height, "rendered image height")->capture_default_str();
   app->add_flag("--keep-logs", args->keep_logs, "keep the generated .klog files (several GB at VGA)");
   app->add_flag("--list", args->list, "list the cases and whether their data is present, then exit");
+  app->add_flag("--cpu-budget", args->cpu_budget,
+                "instead of the table: instructions per frame for each tracking stage and per optimizer solve, "
+                "counted by valgrind's callgrind on a fixed simulated flight (figure8, seed 1, --width x --height, "
+                "--duration default 4 s here), with estimates for ARM cores (docs/embedded.md)");
+  app->add_option("--cpu-budget-log", args->cpu_budget_log,
+                  "--cpu-budget on this log instead of the simulated flight (it needs ground truth)");
   app->add_flag("--strict", args->strict,
                 "exit non-zero when a row FAILs (ATE over 1 m or pose share under 99 %) or a case fails to run");
 
@@ -481,6 +546,123 @@ Subcommand add_bench_command(CLI::App& parent) {
         throw UsageError("unknown --estimator '" + e + "' (expected one of: " + core::estimator_names() + ")");
     for (const std::string& v : args->lonsc_variants)
       if (v != "tuned" && v != "paper") throw UsageError("unknown --lonsc-variant '" + v + "' (expected tuned, paper)");
+    if (args->cpu_budget) {
+      const std::string backend = args->estimators.front();
+      const std::string mapping = args->mapping.front();
+      const double budget_s = args->duration_opt->count() > 0 ? duration_s : 4.0;
+      if (!(budget_s > 0)) throw UsageError("--cpu-budget needs a --duration in seconds, not `full`");
+      fs::create_directories(args->workdir);
+      std::string log = args->cpu_budget_log;
+      std::string what;
+      if (log.empty()) {
+        tools::SimOptions so;
+        so.seed = 1;
+        so.scenario = "figure8";
+        so.duration_s = budget_s;
+        so.width = args->width;
+        so.height = args->height;
+        log = (fs::path(args->workdir) / "cpu_budget.klog").string();
+        so.out_path = log;
+        std::fprintf(stderr, "bench: simulating the budget flight (figure8, %.0f s, %dx%d, seed 1)\n", budget_s,
+                     args->width, args->height);
+        tools::run_simulation(so);
+        char buf[96];
+        std::snprintf(buf, sizeof buf, "figure8 %.0f s %dx%d seed 1", budget_s, args->width, args->height);
+        what = buf;
+      } else {
+        if (!fs::exists(log)) throw UsageError("--cpu-budget-log: no such file: " + log);
+        what = log;
+      }
+      core::EstimatorConfig cfg = tools::load_estimator_config(args->config, backend);
+      tools::apply_map_switches(cfg, mapping, "");
+      std::fprintf(stderr, "bench: native replay (lockstep) for the time per frame here\n");
+      std::string est_name, error;
+      const auto native = replay_in_child(log, log, drivers::ReplayPace::kLockstep, cfg, "", est_name, error);
+      if (!error.empty()) throw std::runtime_error("native replay: " + error);
+      const std::string cg_out = (fs::path(args->workdir) / "cpu_budget.callgrind").string();
+      const std::string console = (fs::path(args->workdir) / "cpu_budget.replay.txt").string();
+      std::vector<std::string> rargs{"replay", log, "--estimator", backend, "--pace", "lockstep", "--mapping", mapping,
+                                     "--quiet"};
+      if (!args->config.empty()) {
+        rargs.push_back("--config");
+        rargs.push_back(args->config);
+      }
+      std::fprintf(stderr, "bench: the same replay under callgrind (about 50x slower) -> %s\n", cg_out.c_str());
+      const std::string cg_error = run_under_callgrind(rargs, cg_out, console);
+      if (!cg_error.empty()) throw std::runtime_error(cg_error);
+      std::vector<std::string> needles;
+      for (const auto& st : budget_stages()) needles.push_back(st.needle);
+      const auto costs = tools::callgrind_inclusive(cg_out, needles);
+      const double frames = static_cast<double>(costs.at(budget_stages()[0].needle).calls);
+      if (frames <= 0) throw std::runtime_error(cg_out + ": no call of Tracker::track: the backend '" + backend +
+                                                "' has no tracker, or the binary's symbols are stripped");
+      auto count_of = [&](const char* per) {
+        for (const auto& st : budget_stages())
+          if (std::strcmp(st.per, per) == 0) return static_cast<double>(costs.at(st.needle).calls);
+        return 0.0;
+      };
+      const double solves = count_of("solve"), samples = count_of("sample");
+      const auto& cores = tools::arm_core_models();
+      std::printf("cpu budget: %s, %s (mapping %s) — %.0f frames, %.0f optimizer solves, %.0f IMU samples; "
+                  "instructions counted by callgrind (x86-64, this build)\n",
+                  backend.c_str(), what.c_str(), mapping.c_str(), frames, solves, samples);
+      std::printf("%-26s %8s %12s %10s", "stage", "calls", "Minstr/call", "Minstr/per");
+      for (const auto& c : cores) std::printf(" %14s", (std::string(c.name) + " ms").c_str());
+      std::printf("\n");
+      tools::Json j;
+      j["backend"] = backend;
+      j["flight"] = what;
+      j["frames"] = frames;
+      j["optimizer_solves"] = solves;
+      j["imu_samples"] = samples;
+      tools::Json jstages = tools::Json::array();
+      for (const auto& st : budget_stages()) {
+        const tools::CallgrindCost& c = costs.at(st.needle);
+        const double denom = std::strcmp(st.per, "frame") == 0 ? frames : std::strcmp(st.per, "solve") == 0 ? solves : samples;
+        const double per = denom > 0 ? static_cast<double>(c.inclusive_ir) / denom : kNaN;
+        const double per_call = c.calls > 0 ? static_cast<double>(c.inclusive_ir) / static_cast<double>(c.calls) : kNaN;
+        std::printf("%-26s %8llu %12s %10s", st.label, static_cast<unsigned long long>(c.calls),
+                    fmt(per_call * 1e-6, "%.3f").c_str(), (fmt(per * 1e-6, "%.3f") + "/" + st.per).c_str());
+        tools::Json js;
+        js["stage"] = std::string(st.label).substr(std::string(st.label).find_first_not_of(' '));
+        js["function"] = st.needle;
+        js["per"] = st.per;
+        js["calls"] = c.calls;
+        js["instructions_per_call"] = tools::json_figure(per_call);
+        js["instructions_per_unit"] = tools::json_figure(per);
+        for (const auto& core_m : cores) {
+          const double ms = tools::estimated_ms(per, core_m);
+          std::printf(" %14s", fmt(ms, "%.2f").c_str());
+          js[std::string("ms_") + core_m.name] = tools::json_figure(ms);
+        }
+        std::printf("\n");
+        jstages.push_back(js);
+      }
+      j["stages"] = jstages;
+      const double track_ms_p50 = get(native, "tracking_ms_p50"), track_ms_p99 = get(native, "tracking_ms_p99");
+      const double opt_ms_p50 = get(native, "optimizer_ms_p50"), opt_ms_p99 = get(native, "optimizer_ms_p99");
+      const double track_ir = static_cast<double>(costs.at(budget_stages()[0].needle).inclusive_ir) / frames;
+      std::printf("here (wall clock, lockstep): tracking p50 %s ms p99 %s ms; optimizer p50 %s ms p99 %s ms; "
+                  "%s instructions per ns of tracking p50\n",
+                  fmt(track_ms_p50, "%.2f").c_str(), fmt(track_ms_p99, "%.2f").c_str(), fmt(opt_ms_p50, "%.2f").c_str(),
+                  fmt(opt_ms_p99, "%.2f").c_str(), fmt(track_ir / (track_ms_p50 * 1e6), "%.2f").c_str());
+      std::printf("ARM estimate = instructions / (IPC x clock), same instruction count as x86-64 assumed:");
+      for (const auto& c : cores) std::printf(" %s (%s) %.1f GHz IPC %.1f;", c.name, c.example, c.clock_ghz, c.ipc);
+      std::printf("\n");
+      j["here"] = {{"tracking_ms_p50", tools::json_figure(track_ms_p50)}, {"tracking_ms_p99", tools::json_figure(track_ms_p99)},
+                   {"optimizer_ms_p50", tools::json_figure(opt_ms_p50)}, {"optimizer_ms_p99", tools::json_figure(opt_ms_p99)}};
+      tools::Json jc = tools::Json::array();
+      for (const auto& c : cores) jc.push_back({{"core", c.name}, {"example", c.example}, {"clock_ghz", c.clock_ghz}, {"ipc", c.ipc}});
+      j["core_models"] = jc;
+      if (!args->json_out.empty()) {
+        std::ofstream f(args->json_out);
+        if (!f) throw std::runtime_error("cannot write " + args->json_out);
+        f << tools::json_text(j);
+        std::printf("json: %s\n", args->json_out.c_str());
+      }
+      if (args->cpu_budget_log.empty() && !args->keep_logs) fs::remove(log);
+      return 0;
+    }
     std::vector<BenchCase> cases = discover_cases(args->data_dir);
     if (args->list) {
       for (const auto& c : cases)
