@@ -419,7 +419,7 @@ const std::vector<BudgetStage>& budget_stages() {
       {"  keyframe", "kestrel::core::Tracker::Impl::make_keyframe(", "frame"},
       {"  map-point search", "kestrel::core::Tracker::Impl::search_map(", "frame"},
       {"optimizer solve", "kestrel::core::WindowOptimizer::optimize()", "solve"},
-      {"IMU propagation", "kestrel::core::WindowEstimator::add_imu(", "sample"},
+      {"IMU propagation", "kestrel::core::ImuPropagator::propagate(", "sample"},
   };
   return st;
 }
@@ -622,7 +622,7 @@ Subcommand add_bench_command(CLI::App& parent) {
         const double per = denom > 0 ? static_cast<double>(c.inclusive_ir) / denom : kNaN;
         const double per_call = c.calls > 0 ? static_cast<double>(c.inclusive_ir) / static_cast<double>(c.calls) : kNaN;
         std::printf("%-26s %8llu %12s %10s", st.label, static_cast<unsigned long long>(c.calls),
-                    fmt(per_call * 1e-6, "%.3f").c_str(), (fmt(per * 1e-6, "%.3f") + "/" + st.per).c_str());
+                    fmt(per_call * 1e-6, "%.4g").c_str(), (fmt(per * 1e-6, "%.4g") + "/" + st.per).c_str());
         tools::Json js;
         js["stage"] = std::string(st.label).substr(std::string(st.label).find_first_not_of(' '));
         js["function"] = st.needle;
@@ -632,7 +632,7 @@ Subcommand add_bench_command(CLI::App& parent) {
         js["instructions_per_unit"] = tools::json_figure(per);
         for (const auto& core_m : cores) {
           const double ms = tools::estimated_ms(per, core_m);
-          std::printf(" %14s", fmt(ms, "%.2f").c_str());
+          std::printf(" %14s", fmt(ms, ms < 0.1 ? "%.2g" : "%.2f").c_str());
           js[std::string("ms_") + core_m.name] = tools::json_figure(ms);
         }
         std::printf("\n");
