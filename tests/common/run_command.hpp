@@ -28,10 +28,21 @@ inline CmdResult run_command(const std::string& cmd) {
 }
 
 #ifdef KESTREL_BIN_DIR
-// `kestrel ARGS` from this build.
-inline CmdResult run_kestrel(const std::string& args) {
-  return run_command(std::string(KESTREL_BIN_DIR) + "/kestrel " + args);
+#ifndef KESTREL_RUN_PREFIX
+#define KESTREL_RUN_PREFIX ""
+#endif
+// The command line that starts PROGRAM of this build: through the emulator
+// (with a trailing space) in a cross build, directly otherwise.
+inline std::string built_program(const std::string& program) {
+  return std::string(KESTREL_RUN_PREFIX) + KESTREL_BIN_DIR + "/" + program;
 }
+
+// `kestrel ARGS` from this build.
+inline CmdResult run_kestrel(const std::string& args) { return run_command(built_program("kestrel") + " " + args); }
+
+// True in a cross build whose tests run under an emulator: tools that inspect
+// our binaries from the host (valgrind) cannot run them.
+inline bool cross_emulated() { return std::string(KESTREL_RUN_PREFIX).size() > 0; }
 #endif
 
 }  // namespace kestrel::test

@@ -18,7 +18,7 @@ const std::string kBin = std::string(KESTREL_BIN_DIR) + "/kestrel";
 const std::string kSrc = KESTREL_SOURCE_DIR;
 
 int run(const std::string& args, std::string& out) {
-  const kestrel::test::CmdResult r = kestrel::test::run_command(kBin + " " + args);
+  const kestrel::test::CmdResult r = kestrel::test::run_kestrel(args);
   out = r.out;
   return r.code;
 }

@@ -10,6 +10,7 @@
 
 #include "kestrel/tools/simulator.hpp"
 #include "kestrel/tools/trajectory_eval.hpp"
+#include "run_command.hpp"
 #include "test_data.hpp"
 
 TEST(ApiExample, TracksTheSimulatedFlight) {
@@ -25,7 +26,7 @@ TEST(ApiExample, TracksTheSimulatedFlight) {
   kestrel::tools::run_simulation(o);
 
   const std::string cmd =
-      std::string(KESTREL_BIN_DIR) + "/api_example " + o.out_path + " vo 2>" + dir + "/err.txt";
+      kestrel::test::built_program("api_example") + " " + o.out_path + " vo 2>" + dir + "/err.txt";
   FILE* p = popen(cmd.c_str(), "r");
   ASSERT_NE(p, nullptr);
   std::string out;

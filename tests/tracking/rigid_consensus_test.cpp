@@ -119,14 +119,21 @@ double median(std::vector<double> v) {
 }
 
 TEST(RigidConsensus, LonscRunsAndRansacRecoverTheMotionThroughOutliers) {
-  const int trials = 100;
   for (double out : {0.3, 0.5, 0.7}) {
+    // At 70 % outliers LONSC is right about 92-93 % of the time (300 seeds:
+    // x86 278, the aarch64 build 276 - its compiler fuses multiply-adds and
+    // so picks other hypotheses; the first 100 seeds gave 95 and 93, and a
+    // bound of 95/100 had been set to x86's own count). The
+    // bound is a rate with a margin (88 % of 300 is ~3 sigma under 93 %), not
+    // one machine's count.
+    const int trials = out < 0.6 ? 100 : 300;
+    const int lonsc_min = out < 0.6 ? trials * 95 / 100 : trials * 88 / 100;
     const Outcome l = run(RigidMethod::kLonsc, out, trials), r = run(RigidMethod::kRansac, out, trials);
     std::printf("outliers %.0f %%: lonsc %d/%d right, %.0f fits, %.0f pair checks (medians), inliers %.3f correct; "
                 "ransac %d/%d right, %.0f fits, %.0f checks, %.3f\n",
                 100 * out, l.correct, trials, median(l.fits), median(l.checks), median(l.inlier_share), r.correct,
                 trials, median(r.fits), median(r.checks), median(r.inlier_share));
-    EXPECT_GE(l.correct, trials * 95 / 100) << "lonsc at " << out;
+    EXPECT_GE(l.correct, lonsc_min) << "lonsc at " << out;
     EXPECT_GE(r.correct, trials * 90 / 100) << "ransac at " << out;
     EXPECT_GT(median(l.inlier_share), 0.97);
     // Ordered by match cost, the reliable matches come first: the walk tests
