@@ -1,0 +1,165 @@
+#!/usr/bin/env bash
+# AArch64 build and tests, on this x86-64 machine (docs/embedded.md):
+#   1. host tools: crossbuild-essential-arm64 (aarch64-linux-gnu-g++) and qemu-user-static
+#   2. a sysroot: our dependencies' Debian 12 arm64 packages and everything they need,
+#      downloaded with a private apt state and unpacked (never installed: see below)
+#   3. the `aarch64` preset built against it (tools/cross/aarch64-linux-gnu.cmake)
+#   4. `ctest --preset aarch64` under qemu: every unit-labelled test at sanitizer-sized
+#      flights (KESTREL_TEST_SCALE=small)
+#   5. a replay smoke test: the cross-built `kestrel` simulates a short flight, replays it
+#      through `window` and evaluates it, all under qemu; the ATE must stay under 5 cm
+#      (1.3 cm natively) with at least 95 % of the frames posed (the rest is start-up)
+# and prints what each part cost.
+#
+# Why a sysroot and not `apt-get install libopencv-dev:arm64 …` (multiarch): on Debian 12
+# that install removes the amd64 OpenCV, Ceres, glog and yaml-cpp development packages
+# (measured here; their -dev packages are not co-installable across architectures), i.e.
+# it breaks the host build. The sysroot leaves the host's dpkg untouched.
+#
+# Environment: KESTREL_AARCH64_SYSROOT (default ~/.cache/kestrel/aarch64-sysroot; kept
+# between runs and rebuilt when the package list below changes), KESTREL_CROSS_SKIP_TESTS=1
+# (build only).
+set -euo pipefail
+root=$(cd "$(dirname "$0")/.." && pwd)
+cd "$root"
+jobs=$(nproc 2>/dev/null || echo 2)
+export KESTREL_AARCH64_SYSROOT=${KESTREL_AARCH64_SYSROOT:-$HOME/.cache/kestrel/aarch64-sysroot}
+sysroot=$KESTREL_AARCH64_SYSROOT
+
+# Our dependencies as arm64 development packages: install-deps.sh's libraries, minus the
+# host-only tools (compilers, valgrind, node) and with the C/C++ runtime made explicit.
+packages=(
+  libc6-dev libstdc++-12-dev linux-libc-dev
+  libeigen3-dev libopencv-dev libceres-dev libcli11-dev libyaml-cpp-dev zlib1g-dev libzip-dev nlohmann-json3-dev
+  libgtest-dev libgmock-dev libboost-dev libwebsocketpp-dev
+  libusb-1.0-0-dev libopenni2-dev
+  librosbag-dev libsensor-msgs-dev libgeometry-msgs-dev
+)
+
+costs=()
+t_all=$(date +%s)
+report() {
+  local rc=$?
+  echo "== cross-aarch64.sh: wall time per part =="
+  for c in "${costs[@]}"; do echo "  $c"; done
+  printf '  %-34s %5d s\n' "total" $(( $(date +%s) - t_all ))
+  [ $rc -eq 0 ] || echo "cross-aarch64.sh: FAILED (exit $rc) in the part after the last one listed"
+}
+trap report EXIT
+part() {
+  local name=$1 t0
+  shift
+  echo "== $name =="
+  t0=$(date +%s)
+  "$@"
+  costs+=("$(printf '%-34s %5d s' "$name" $(( $(date +%s) - t0 )))")
+}
+
+SUDO=""
+if [ "$(id -u)" -ne 0 ] && command -v sudo >/dev/null 2>&1; then SUDO=sudo; fi
+
+host_tools() {
+  local missing=()
+  for p in crossbuild-essential-arm64 qemu-user-static; do
+    dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
+  done
+  if [ ${#missing[@]} -eq 0 ]; then echo "host tools present"; return; fi
+  echo "installing ${missing[*]}"
+  export DEBIAN_FRONTEND=noninteractive
+  $SUDO apt-get update -qq
+  $SUDO apt-get install -y -qq --no-install-recommends "${missing[@]}"
+}
+
+# apt with its own state: arm64 is its only architecture and nothing counts as installed,
+# so --download-only fetches the whole dependency closure. The host's sources and keys are
+# used; the host's package state and caches are not touched.
+private_apt() {
+  local state=$1 sandbox=()
+  shift
+  # As root apt drops to the _apt user to download, which cannot write into root's home.
+  [ "$(id -u)" -eq 0 ] && sandbox=(-o APT::Sandbox::User=root)
+  apt-get -q "${sandbox[@]}" -o Dir::State="$state/state" -o Dir::State::status="$state/state/status" \
+    -o Dir::Cache="$state/cache" -o APT::Architecture=arm64 -o APT::Architectures::=arm64 \
+    -o APT::Install-Recommends=false "$@"
+}
+
+build_sysroot() {
+  local want
+  want=$(printf '%s\n' "${packages[@]}" | sha256sum | cut -c1-16)
+  if [ -f "$sysroot/.kestrel-sysroot" ] && [ "$(cat "$sysroot/.kestrel-sysroot")" = "$want" ]; then
+    echo "sysroot up to date: $sysroot"
+    return
+  fi
+  local state="$sysroot.apt" new="$sysroot.new"
+  mkdir -p "$state/state/lists/partial" "$state/cache/archives/partial"
+  : > "$state/state/status"
+  private_apt "$state" update
+  private_apt "$state" -y --download-only install "${packages[@]}" > "$state/download.txt"
+  tail -n 2 "$state/download.txt"
+  rm -rf "$new"
+  mkdir -p "$new"
+  local n=0 d
+  for d in "$state"/cache/archives/*.deb; do
+    dpkg-deb -x "$d" "$new"
+    n=$((n + 1))
+  done
+  echo "unpacked $n packages into $new"
+  # Absolute symlinks (libz.so -> /lib/...) would point into the host: make them relative.
+  local link target
+  while IFS= read -r -d '' link; do
+    target=$(readlink "$link")
+    ln -sfn "$(realpath -m --relative-to="$(dirname "$link")" "$new$target")" "$link"
+  done < <(find "$new" -type l -lname '/*' -print0)
+  # libblas/liblapack are chosen by update-alternatives in a package script, which
+  # unpacking does not run: pick an implementation as its priorities would (ATLAS first).
+  local lib=$new/usr/lib/aarch64-linux-gnu name dir
+  for name in libblas.so.3 libblas.so liblapack.so.3 liblapack.so; do
+    [ -e "$lib/$name" ] && continue
+    for dir in atlas openblas-pthread blas lapack; do
+      if [ -e "$lib/$dir/$name" ]; then ln -sfn "$dir/$name" "$lib/$name"; break; fi
+    done
+    [ -e "$lib/$name" ] || { echo "sysroot: no implementation of $name in $lib" >&2; exit 1; }
+  done
+  echo "$want" > "$new/.kestrel-sysroot"
+  rm -rf "$sysroot"
+  mv "$new" "$sysroot"
+  du -sh "$sysroot"
+}
+
+# The cross-built `kestrel` end to end under qemu: simulate, replay through the default
+# backend, evaluate. A short, small flight: qemu runs it some 10x slower than native.
+smoke() {
+  local dir=build/aarch64/smoke qemu=(qemu-aarch64-static -L "$sysroot") bin=build/aarch64/bin/kestrel
+  rm -rf "$dir"
+  mkdir -p "$dir"
+  file -L "$bin"
+  "${qemu[@]}" "$bin" version
+  "${qemu[@]}" "$bin" sim --scenario figure8 --duration 8 --width 320 --height 240 --seed 3 --out "$dir/f8.klog"
+  "${qemu[@]}" "$bin" replay "$dir/f8.klog" --estimator window --traj-out "$dir/window.tum" \
+    --metrics-out "$dir/metrics.json" -q
+  "${qemu[@]}" "$bin" eval --gt "$dir/f8.klog" --est "$dir/window.tum" --align se3 --json > "$dir/eval.json"
+  python3 - "$dir" <<'EOF'
+import json, sys
+d = sys.argv[1]
+e = json.load(open(d + "/eval.json"))
+m = json.load(open(d + "/metrics.json"))
+ate = e["ate_rmse_m"]
+frames_in = m["estimator_counters"]["frames_in"]
+share = e["matched"] / max(frames_in, 1)
+print(f"aarch64 smoke: window, figure8 8 s 320x240 seed 3: ATE {ate*100:.2f} cm, "
+      f"{e['matched']} of {frames_in} frames posed ({share:.1%}), problems: {m['problems'] or 'none'}")
+if not ate < 0.05:
+    sys.exit(f"aarch64 smoke: ATE {ate} m is not under 0.05 m")
+if share < 0.95:   # the first frames go to initialisation
+    sys.exit(f"aarch64 smoke: only {share:.1%} of frames posed")
+EOF
+}
+
+part "host tools" host_tools
+part "sysroot" build_sysroot
+# The tests the preset runs (kestrel_asan_suite) and the program the smoke test drives.
+part "aarch64 build" bash tools/build.sh aarch64 --target kestrel_asan_suite kestrel
+if [ "${KESTREL_CROSS_SKIP_TESTS:-0}" != "1" ]; then
+  part "aarch64 unit tests (qemu)" ctest --preset aarch64 -j "$jobs"
+  part "aarch64 replay smoke (qemu)" smoke
+fi
