@@ -10,10 +10,7 @@
 #include <stdexcept>
 
 #include "kestrel/core/orb_detail.hpp"
-
-#if defined(__SSE2__)
-#include <emmintrin.h>
-#endif
+#include "simd.hpp"
 
 namespace kestrel::core {
 
@@ -259,16 +256,16 @@ inline bool fast_segment_test(const uint8_t* p, const std::array<int, 16>& off, 
   return has_arc9(bright) || has_arc9(dark);
 }
 
-#if defined(__SSE2__)
+#if KESTREL_ORB_SIMD
 // Lanes with 9 contiguous non-zero entries among the 16 circle positions
 // (non-zero = beyond the threshold): runs of 2, 4, 8, then 9, by min as AND.
-inline __m128i arc9(const __m128i* v) {
-  __m128i a2[16], a4[16], any = _mm_setzero_si128();
-  for (int k = 0; k < 16; ++k) a2[k] = _mm_min_epu8(v[k], v[(k + 1) & 15]);
-  for (int k = 0; k < 16; ++k) a4[k] = _mm_min_epu8(a2[k], a2[(k + 2) & 15]);
+inline cv::v_uint8x16 arc9(const cv::v_uint8x16* v) {
+  cv::v_uint8x16 a2[16], a4[16], any = cv::v_setzero_u8();
+  for (int k = 0; k < 16; ++k) a2[k] = cv::v_min(v[k], v[(k + 1) & 15]);
+  for (int k = 0; k < 16; ++k) a4[k] = cv::v_min(a2[k], a2[(k + 2) & 15]);
   for (int k = 0; k < 16; ++k) {
-    const __m128i a8 = _mm_min_epu8(a4[k], a4[(k + 4) & 15]);
-    any = _mm_or_si128(any, _mm_min_epu8(a8, v[(k + 8) & 15]));
+    const cv::v_uint8x16 a8 = cv::v_min(a4[k], a4[(k + 4) & 15]);
+    any = any | cv::v_min(a8, v[(k + 8) & 15]);
   }
   return any;
 }
@@ -293,9 +290,9 @@ int OrbExtractor::Impl::detect(Plane img, int kx0, int kx1, int ky0, int ky1, in
     uint8_t* srow = score_rows.get() + static_cast<std::size_t>(ring) * w;
     uint16_t* ccols = corner_cols.get() + static_cast<std::size_t>(ring) * w;
     int nc = 0;
-#if defined(__SSE2__)
-    const __m128i tv = _mm_set1_epi8(static_cast<char>(t));
-    const __m128i zero = _mm_setzero_si128();
+#if KESTREL_ORB_SIMD
+    const cv::v_uint8x16 tv = cv::v_setall_u8(static_cast<uint8_t>(t));
+    const cv::v_uint8x16 zero = cv::v_setzero_u8();
 #endif
     std::memset(srow + x0, 0, static_cast<std::size_t>(x1 - x0 + 1));
     const uint8_t* row = img.at(0, y);
@@ -312,29 +309,29 @@ int OrbExtractor::Impl::detect(Plane img, int kx0, int kx1, int ky0, int ky1, in
     };
 
     int x = x0;
-#if defined(__SSE2__)
+#if KESTREL_ORB_SIMD
     // Prefilter 16 pixels at once. A 9-pixel arc contains at least one pixel
     // of every opposite pair (k, k+8), so a corner needs, for all 8 pairs, one
     // of the two beyond the threshold on the same side. Tested in three
     // stages; nearly all pixels drop out in the first. A lane is "set" while
-    // its byte is non-zero: saturating differences OR as "either", min as "both".
+    // its byte is non-zero: saturating differences (u8 - and + saturate in
+    // the universal intrinsics) OR as "either", min as "both".
     auto block = [&](int xb, unsigned lanes) {
       const uint8_t* p = row + xb;
-      const __m128i v = _mm_loadu_si128(reinterpret_cast<const __m128i*>(p));
-      const __m128i hi = _mm_adds_epu8(v, tv);
-      const __m128i lo = _mm_subs_epu8(v, tv);
-      auto pair = [&](int k, __m128i& b, __m128i& d) {
-        const __m128i c0 = _mm_loadu_si128(reinterpret_cast<const __m128i*>(p + off[k]));
-        const __m128i c1 = _mm_loadu_si128(reinterpret_cast<const __m128i*>(p + off[k + 8]));
-        b = _mm_min_epu8(b, _mm_or_si128(_mm_subs_epu8(c0, hi), _mm_subs_epu8(c1, hi)));
-        d = _mm_min_epu8(d, _mm_or_si128(_mm_subs_epu8(lo, c0), _mm_subs_epu8(lo, c1)));
+      const cv::v_uint8x16 v = cv::v_load(p);
+      const cv::v_uint8x16 hi = v + tv;
+      const cv::v_uint8x16 lo = v - tv;
+      auto pair = [&](int k, cv::v_uint8x16& b, cv::v_uint8x16& d) {
+        const cv::v_uint8x16 c0 = cv::v_load(p + off[k]);
+        const cv::v_uint8x16 c1 = cv::v_load(p + off[k + 8]);
+        b = cv::v_min(b, (c0 - hi) | (c1 - hi));
+        d = cv::v_min(d, (lo - c0) | (lo - c1));
       };
-      auto any = [&](__m128i b, __m128i d) {
-        return (static_cast<unsigned>(_mm_movemask_epi8(_mm_cmpeq_epi8(_mm_or_si128(b, d), zero))) ^ 0xffffu) &
-               lanes;
+      auto any = [&](const cv::v_uint8x16& b, const cv::v_uint8x16& d) {
+        return (static_cast<unsigned>(cv::v_signmask((b | d) == zero)) ^ 0xffffu) & lanes;
       };
-      __m128i b = _mm_set1_epi8(-1);
-      __m128i d = b;
+      cv::v_uint8x16 b = cv::v_setall_u8(0xff);
+      cv::v_uint8x16 d = b;
       pair(0, b, d);
       pair(4, b, d);
       if (any(b, d) == 0) return;
@@ -347,11 +344,11 @@ int OrbExtractor::Impl::detect(Plane img, int kx0, int kx1, int ky0, int ky1, in
       pair(7, b, d);
       if (any(b, d) == 0) return;
       // Full segment test for the survivors, still 16 lanes at a time.
-      __m128i cb[16], cd[16];
+      cv::v_uint8x16 cb[16], cd[16];
       for (int k = 0; k < 16; ++k) {
-        const __m128i c = _mm_loadu_si128(reinterpret_cast<const __m128i*>(p + off[k]));
-        cb[k] = _mm_subs_epu8(c, hi);
-        cd[k] = _mm_subs_epu8(lo, c);
+        const cv::v_uint8x16 c = cv::v_load(p + off[k]);
+        cb[k] = c - hi;
+        cd[k] = lo - c;
       }
       unsigned mask = any(arc9(cb), arc9(cd));
       while (mask != 0) {
@@ -360,14 +357,16 @@ int OrbExtractor::Impl::detect(Plane img, int kx0, int kx1, int ky0, int ky1, in
         corner(xb + bit);
       }
     };
-    for (; x + 15 <= x1; x += 16) block(x, 0xffffu);
-    // The ragged end as one more block overlapping the last, with the lanes
-    // already done masked off (small grid cells would otherwise spend most of
-    // their time in the scalar loop).
-    if (x <= x1 && x1 - x0 + 1 >= 16) {
-      const int xb = x1 - 15;
-      block(xb, (0xffffu << (x - xb)) & 0xffffu);
-      x = x1 + 1;
+    if (orb_detail::vector_paths()) {
+      for (; x + 15 <= x1; x += 16) block(x, 0xffffu);
+      // The ragged end as one more block overlapping the last, with the lanes
+      // already done masked off (small grid cells would otherwise spend most
+      // of their time in the scalar loop).
+      if (x <= x1 && x1 - x0 + 1 >= 16) {
+        const int xb = x1 - 15;
+        block(xb, (0xffffu << (x - xb)) & 0xffffu);
+        x = x1 + 1;
+      }
     }
 #endif
     for (; x <= x1; ++x) check(x);

@@ -4,18 +4,32 @@
 #include "kestrel/core/orb_detail.hpp"
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 
-#if defined(__SSE2__)
-#include <emmintrin.h>
-#endif
+#include "simd.hpp"
 
 namespace kestrel::core::orb_detail {
 
 namespace {
 constexpr double kPi = 3.14159265358979323846;
 constexpr float kPiF = static_cast<float>(kPi);
+std::atomic<bool> g_vector_paths{true};
 }  // namespace
+
+bool vector_paths() { return KESTREL_ORB_SIMD && g_vector_paths.load(std::memory_order_relaxed); }
+void set_vector_paths(bool on) { g_vector_paths.store(on, std::memory_order_relaxed); }
+const char* vector_isa() {
+#if KESTREL_ORB_SIMD && CV_NEON
+  return "NEON";
+#elif KESTREL_ORB_SIMD && CV_SSE2
+  return "SSE2";
+#elif KESTREL_ORB_SIMD
+  return "128-bit";
+#else
+  return "none";
+#endif
+}
 
 std::array<int, 16> fast_circle_offsets(int stride) {
   static constexpr int kCircle[16][2] = {{0, -3}, {1, -3}, {2, -2}, {3, -1}, {3, 0},  {3, 1},  {2, 2},  {1, 3},
@@ -90,26 +104,27 @@ void make_area_taps(int n_src, int n_dst, AreaTap* tab) {
 namespace {
 
 // out[x] = (sum_i w[i] * rows[i][x] + 128) >> 8 over n rows, weights summing
-// to 256: every partial sum fits 16 bits, so SSE2 runs 16 pixels per step and
-// the scalar tail gives bit-identical results.
+// to 256: every partial sum fits 16 bits, so the vector path runs 16 pixels
+// per step and the scalar tail gives bit-identical results.
 template <int N>
 void weighted_rows(const uint8_t* const* rows, const uint16_t* w, uint8_t* out, int n) {
   int x = 0;
-#if defined(__SSE2__)
-  const __m128i zero = _mm_setzero_si128();
-  const __m128i half = _mm_set1_epi16(128);
-  __m128i wv[N];
-  for (int i = 0; i < N; ++i) wv[i] = _mm_set1_epi16(static_cast<short>(w[i]));
-  for (; x + 16 <= n; x += 16) {
-    __m128i lo = half;
-    __m128i hi = half;
-    for (int i = 0; i < N; ++i) {
-      const __m128i v = _mm_loadu_si128(reinterpret_cast<const __m128i*>(rows[i] + x));
-      lo = _mm_add_epi16(lo, _mm_mullo_epi16(_mm_unpacklo_epi8(v, zero), wv[i]));
-      hi = _mm_add_epi16(hi, _mm_mullo_epi16(_mm_unpackhi_epi8(v, zero), wv[i]));
+#if KESTREL_ORB_SIMD
+  if (vector_paths()) {
+    const cv::v_uint16x8 half = cv::v_setall_u16(128);
+    cv::v_uint16x8 wv[N];
+    for (int i = 0; i < N; ++i) wv[i] = cv::v_setall_u16(w[i]);
+    for (; x + 16 <= n; x += 16) {
+      cv::v_uint16x8 lo = half;
+      cv::v_uint16x8 hi = half;
+      for (int i = 0; i < N; ++i) {
+        cv::v_uint16x8 a, b;
+        cv::v_expand(cv::v_load(rows[i] + x), a, b);
+        lo = cv::v_add_wrap(lo, cv::v_mul_wrap(a, wv[i]));
+        hi = cv::v_add_wrap(hi, cv::v_mul_wrap(b, wv[i]));
+      }
+      cv::v_store(out + x, cv::v_pack(lo >> 8, hi >> 8));
     }
-    _mm_storeu_si128(reinterpret_cast<__m128i*>(out + x),
-                     _mm_packus_epi16(_mm_srli_epi16(lo, 8), _mm_srli_epi16(hi, 8)));
   }
 #endif
   for (; x < n; ++x) {
@@ -292,23 +307,25 @@ OrbDescriptor brief_describe(Plane blurred, int x, int y, float angle_rad, const
   const int stride = blurred.stride;
   // Byte offsets of the rotated test points. Rotation by the keypoint angle in
   // image axes: the same rotation that carries the patch content, so the
-  // tests follow the content. Rounded to nearest (ties to even, as the SSE
+  // tests follow the content. Rounded to nearest (ties to even, as the vector
   // conversion does; the scalar path matches it).
   alignas(16) int32_t off[2 * kBriefPairs];
   int i = 0;
-#if defined(__SSE2__)
-  const __m128 cv = _mm_set1_ps(c), sv = _mm_set1_ps(s), stv = _mm_set1_ps(static_cast<float>(stride));
-  for (; i + 4 <= 2 * kBriefPairs; i += 4) {
-    // Points i..i+3 alternate a, b of two pairs: (ax ay bx by)(ax ay bx by).
-    const auto& p0 = pattern[i / 2];
-    const auto& p1 = pattern[i / 2 + 1];
-    const __m128 px = _mm_setr_ps(p0[0], p0[2], p1[0], p1[2]);
-    const __m128 py = _mm_setr_ps(p0[1], p0[3], p1[1], p1[3]);
-    const __m128i rx = _mm_cvtps_epi32(_mm_sub_ps(_mm_mul_ps(cv, px), _mm_mul_ps(sv, py)));
-    const __m128i ry = _mm_cvtps_epi32(_mm_add_ps(_mm_mul_ps(sv, px), _mm_mul_ps(cv, py)));
-    // ry * stride + rx, exactly, in float (|values| << 2^24).
-    const __m128 o = _mm_add_ps(_mm_mul_ps(_mm_cvtepi32_ps(ry), stv), _mm_cvtepi32_ps(rx));
-    _mm_store_si128(reinterpret_cast<__m128i*>(off + i), _mm_cvtps_epi32(o));
+#if KESTREL_ORB_SIMD
+  if (vector_paths()) {
+    const cv::v_float32x4 cv4 = cv::v_setall_f32(c), sv4 = cv::v_setall_f32(s),
+                          stv = cv::v_setall_f32(static_cast<float>(stride));
+    for (; i + 4 <= 2 * kBriefPairs; i += 4) {
+      // Points i..i+3 alternate a, b of two pairs: (ax ay bx by)(ax ay bx by).
+      const auto& p0 = pattern[i / 2];
+      const auto& p1 = pattern[i / 2 + 1];
+      const cv::v_float32x4 px(p0[0], p0[2], p1[0], p1[2]);
+      const cv::v_float32x4 py(p0[1], p0[3], p1[1], p1[3]);
+      const cv::v_int32x4 rx = cv::v_round(cv4 * px - sv4 * py);
+      const cv::v_int32x4 ry = cv::v_round(sv4 * px + cv4 * py);
+      // ry * stride + rx, exactly, in float (|values| << 2^24).
+      cv::v_store_aligned(off + i, cv::v_round(cv::v_cvt_f32(ry) * stv + cv::v_cvt_f32(rx)));
+    }
   }
 #endif
   for (; i < 2 * kBriefPairs; i += 2) {

@@ -76,4 +76,12 @@ BriefPattern make_brief_pattern(uint64_t seed);
 // (x, y) must be at least kPatternRadius + 1 pixels inside the image.
 OrbDescriptor brief_describe(Plane blurred, int x, int y, float angle_rad, const BriefPattern& pattern);
 
+// The vector paths (SSE2 on x86-64, NEON on AArch64; core/features simd.hpp).
+// On by default where the target has them; tests switch them off to hold them
+// to the scalar reference, which must give bit-identical features. Process-wide:
+// a test hook, not a tunable.
+bool vector_paths();
+void set_vector_paths(bool on);
+const char* vector_isa();  // "SSE2", "NEON", or "none" (scalar only)
+
 }  // namespace kestrel::core::orb_detail
