@@ -237,6 +237,9 @@ void visit_map(MapSystemOptions& m, OptionVisitor& v) {
   v.value("loop_max_correction_per_m", l.max_correction_per_m, "drift per metre flown (beyond: an alias)");
   v.value("loop_max_yaw_rad", l.max_yaw_rad, "yaw correction at most this + loop_max_yaw_per_m x path");
   v.value("loop_max_yaw_per_m", l.max_yaw_per_m, "yaw drift per metre flown [rad/m]");
+  v.value("loop_min_out_of_plane_m", l.min_out_of_plane_m,
+          "a loop's inliers spread at least this far (RMS) off their best-fit plane: one wall fixes the "
+          "correction along it by appearance alone");
   v.value("loop_consistent_keyframes", l.consistent_keyframes,
           "consecutive keyframes that must verify the same correction");
   v.value("loop_consistency_m", l.consistency_m, "their corrections agree within this at the keyframe");

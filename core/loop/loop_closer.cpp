@@ -6,6 +6,8 @@
 #include <sstream>
 #include <unordered_map>
 
+#include <Eigen/Eigenvalues>
+
 #include "kestrel/core/pose_graph.hpp"
 #include "kestrel/core/vocabulary.hpp"
 
@@ -18,6 +20,7 @@ std::string LoopOptions::validate() const {
   if (min_inliers < 3) e << "  loop_min_inliers must be >= 3\n";
   if (!(min_inlier_share >= 0 && min_inlier_share <= 1)) e << "  loop_min_inlier_share must be in [0, 1]\n";
   if (ransac_iterations < 1) e << "  loop_ransac_iterations must be >= 1\n";
+  if (!(min_out_of_plane_m >= 0)) e << "  loop_min_out_of_plane_m must be >= 0\n";
   if (!(inlier_m > 0)) e << "  loop_inlier_m must be > 0\n";
   if (consistent_keyframes < 1) e << "  loop_consistent_keyframes must be >= 1\n";
   if (!(max_correction_m >= 0 && max_correction_per_m >= 0 && max_yaw_rad >= 0 && max_yaw_per_m >= 0))
@@ -185,6 +188,17 @@ PlaceMatcher::Result PlaceMatcher::match(const KeyframeFeature* f, int n, const 
   out->correction = T;
   out->matches = m;
   out->inliers = static_cast<int>(in.size());
+  Eigen::Vector3d mean = Eigen::Vector3d::Zero();
+  for (int i : in) mean += p[static_cast<size_t>(i)];
+  mean /= static_cast<double>(in.size());
+  Eigen::Matrix3d scatter = Eigen::Matrix3d::Zero();
+  for (int i : in) {
+    const Eigen::Vector3d d = p[static_cast<size_t>(i)] - mean;
+    scatter += d * d.transpose();
+  }
+  scatter /= static_cast<double>(in.size());
+  const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eig(scatter, Eigen::EigenvaluesOnly);
+  out->out_of_plane_m = std::sqrt(std::max(0.0, eig.eigenvalues()(0)));
   out->inlier_pairs.clear();
   for (int i : in) out->inlier_pairs.push_back(pairs[static_cast<size_t>(i)]);
   return kOk;
@@ -198,6 +212,10 @@ bool LoopCloser::verify(int kf, int cand, double score, LoopMatch* out) {
                                                 static_cast<uint64_t>(K.id) * 1000003u + C.id, &fit);
   if (r != PlaceMatcher::kOk) {
     if (r == PlaceMatcher::kFewInliers) ++stats_.rejected_inliers;
+    return false;
+  }
+  if (fit.out_of_plane_m < opt_.min_out_of_plane_m) {
+    ++stats_.rejected_planar;
     return false;
   }
   const Eigen::Isometry3d& T = fit.correction;

@@ -231,7 +231,8 @@ std::string MapSystem::summary() const {
     << counters_.reloc_timeouts;
   const LoopStats& l = closer_->stats();
   o << "; loop: " << l.queries << " queries, " << l.candidates << " candidates, " << l.verified << " verified, rejected "
-    << l.rejected_inliers << " inliers / " << l.rejected_drift << " drift / " << l.rejected_consistency
+    << l.rejected_inliers << " inliers / " << l.rejected_planar << " planar / " << l.rejected_drift << " drift / "
+    << l.rejected_consistency
     << " consistency, " << l.closures << " closed (pose graph failed " << l.pose_graph_failures << "), "
     << l.points_merged << " points merged";
   if (reloc_) {

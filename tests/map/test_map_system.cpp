@@ -151,7 +151,11 @@ TEST(MapSystem, ALoopMovesTheMapFrameNotTheOdometry) {
   ASSERT_GE(f.loop_closures, 1u);
   EXPECT_GE(f.alignment, 1u);
   EXPECT_TRUE(realigned_seen) << "the tracker was not told to refill its local map";
-  EXPECT_GT(first_err_odom, 0.3);
+  // The loop must have something to correct: 0.3 m of drift where it closes,
+  // several times the 5 cm the map frame has to reach. It closes at keyframe
+  // 40 (0.30 m off); before one-wall candidates were refused it closed at 36
+  // (0.38 m off), on the first views back, which see one wall of this room.
+  EXPECT_GT(first_err_odom, 0.2);
   EXPECT_LT(first_err_map, 0.05) << "the first loop brings the keyframe back to where it is";
   EXPECT_LT(worst_err_map, 0.05);
 }
@@ -233,6 +237,11 @@ TEST(MapSystem, ALostChainIsRelocalisedAndTheMapFrameContinues) {
   EXPECT_TRUE(f.end.localized);
   EXPECT_EQ(f.first_localised_at, 1) << "two keyframes of the new chain are the evidence";
   EXPECT_LT(f.worst_err_after_m, 0.05) << "the map frame continues where it was";
+  // Until loop_min_out_of_plane_m, a later loop between the two laps on one
+  // wall 4 m away (53 of 53 inliers, all on that plane) applied a 7 cm /
+  // 0.04 rad correction that was not there. Such candidates are now refused.
+  EXPECT_LT(f.end_err_m, 0.05) << "no false loop moved the map frame after the relocalisation";
+  EXPECT_GT(sys.loop_closer().stats().rejected_planar, 0u) << "the one-wall candidates were seen and refused";
   EXPECT_GT(sys.map().num_keyframes(), before) << "the new chain is mapped once found";
   EXPECT_GE(sys.counters().keyframes_lost, 1u);
 }

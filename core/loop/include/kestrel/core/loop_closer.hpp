@@ -43,6 +43,12 @@ struct LoopOptions {
   double max_correction_per_m = 0.05;
   double max_yaw_rad = 0.1;
   double max_yaw_per_m = 0.005;
+  // The inliers must not all lie on one plane: on a single wall, translation
+  // along the wall is fixed by the descriptor matches alone, and a repeated
+  // texture shifts them all alike - a consistent, bounded, false correction
+  // the drift bound lets through. RMS distance of the inliers' map points from
+  // their best-fit plane (sqrt of the scatter's smallest eigenvalue).
+  double min_out_of_plane_m = 0.10;
   int consistent_keyframes = 2;  // consecutive keyframes verifying the same correction
   double consistency_m = 0.1;    // their corrections agree within (at the keyframe's position)
   double consistency_rad = 0.05;
@@ -69,6 +75,7 @@ struct LoopStats {
   uint64_t verified = 0;          // passed geometry and the drift bound
   uint64_t rejected_inliers = 0;  // too few 3D-3D inliers
   uint64_t rejected_drift = 0;    // a correction the odometry could not have drifted (an alias)
+  uint64_t rejected_planar = 0;   // every inlier on one plane: the correction along it is appearance only
   uint64_t rejected_consistency = 0;
   uint64_t closures = 0;
   uint64_t pose_graph_failures = 0;
@@ -80,6 +87,7 @@ struct LoopStats {
 struct PlaceFit {
   Eigen::Isometry3d correction = Eigen::Isometry3d::Identity();
   int matches = 0, inliers = 0;
+  double out_of_plane_m = 0;  // RMS distance of the inliers' map points from their best-fit plane
   std::vector<std::pair<int, int>> inlier_pairs;  // (feature, map point)
 };
 
