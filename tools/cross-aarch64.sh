@@ -36,24 +36,9 @@ packages=(
   librosbag-dev libsensor-msgs-dev libgeometry-msgs-dev
 )
 
-costs=()
-t_all=$(date +%s)
-report() {
-  local rc=$?
-  echo "== cross-aarch64.sh: wall time per part =="
-  for c in "${costs[@]}"; do echo "  $c"; done
-  printf '  %-34s %5d s\n' "total" $(( $(date +%s) - t_all ))
-  [ $rc -eq 0 ] || echo "cross-aarch64.sh: FAILED (exit $rc) in the part after the last one listed"
-}
-trap report EXIT
-part() {
-  local name=$1 t0
-  shift
-  echo "== $name =="
-  t0=$(date +%s)
-  "$@"
-  costs+=("$(printf '%-34s %5d s' "$name" $(( $(date +%s) - t0 )))")
-}
+script_name=cross-aarch64.sh
+# shellcheck source=tools/timed_parts.sh
+source "$root/tools/timed_parts.sh"
 
 SUDO=""
 if [ "$(id -u)" -ne 0 ] && command -v sudo >/dev/null 2>&1; then SUDO=sudo; fi

@@ -13,25 +13,9 @@ set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
 cd "$root"
 jobs=$(nproc 2>/dev/null || echo 2)
-costs=()
-t_all=$(date +%s)
-report() {
-  local rc=$?
-  echo "== test.sh: wall time per part =="
-  for c in "${costs[@]}"; do echo "  $c"; done
-  printf '  %-34s %5d s\n' "total" $(( $(date +%s) - t_all ))
-  [ $rc -eq 0 ] || echo "test.sh: FAILED (exit $rc) in the part after the last one listed"
-}
-trap report EXIT
-# part NAME COMMAND...: runs it, records its wall time (a failure ends the run).
-part() {
-  local name=$1 t0
-  shift
-  echo "== $name =="
-  t0=$(date +%s)
-  "$@"
-  costs+=("$(printf '%-34s %5d s' "$name" $(( $(date +%s) - t0 )))")
-}
+script_name=test.sh
+# shellcheck source=tools/timed_parts.sh
+source "$root/tools/timed_parts.sh"
 
 part "install-deps" bash tools/install-deps.sh
 part "release build" bash tools/build.sh release

@@ -26,25 +26,38 @@ int env_int(const char* name, int def) {
   return v != nullptr && *v != '\0' ? std::atoi(v) : def;
 }
 
+// Renders the flight both tests replay (two render threads, into `dir`) and
+// says what it cost.
+tools::SimSummary render(tools::SimOptions& o, const std::string& dir, const std::string& name) {
+  o.height = *o.width * 3 / 4;
+  o.threads = 2;
+  o.out_path = dir + "/" + name;
+  const tools::SimSummary sim = tools::run_simulation(o);
+  std::printf("log: %.0f s, %dx%d, %llu frames, %.0f MB, rendered in %.1f s\n", sim.duration_s, *o.width,
+              *o.height, static_cast<unsigned long long>(sim.frames),
+              1e-6 * static_cast<double>(sim.output_bytes), sim.wall_s);
+  return sim;
+}
+
+// Realtime pace through the real harness, statistics after 2 s of warm-up.
+cli::ReplayOptions realtime_replay(const tools::SimOptions& o, const std::string& estimator) {
+  cli::ReplayOptions ro;
+  ro.path = o.out_path;
+  ro.pace = drivers::ReplayPace::kRealtime;
+  ro.estimator = estimator;
+  ro.warmup_ns = 2'000'000'000;
+  return ro;
+}
+
 TEST(PipelineTiming, RealtimeBudgetsAtVga) {
   ASSERT_TRUE(rt::alloc_hook_linked())
       << "the allocation hook is not linked: steady_allocs cannot be checked";
   const std::string dir = test::temp_dir("pipeline_timing");
   tools::SimOptions o = small_sim(env_int("KESTREL_TIMING_SECONDS", 30), 21);
   o.width = env_int("KESTREL_TIMING_WIDTH", 640);
-  o.height = *o.width * 3 / 4;
-  o.threads = 2;
-  o.out_path = dir + "/hover.klog";
-  const tools::SimSummary sim = tools::run_simulation(o);
-  std::printf("log: %.0f s, %dx%d, %llu frames, %.0f MB, rendered in %.1f s\n", sim.duration_s, *o.width,
-              *o.height, static_cast<unsigned long long>(sim.frames),
-              1e-6 * static_cast<double>(sim.output_bytes), sim.wall_s);
+  const tools::SimSummary sim = render(o, dir, "hover.klog");
 
-  cli::ReplayOptions ro;
-  ro.path = o.out_path;
-  ro.pace = drivers::ReplayPace::kRealtime;
-  ro.estimator = backend();
-  ro.warmup_ns = 2'000'000'000;
+  cli::ReplayOptions ro = realtime_replay(o, backend());
   uint64_t imu_poses_seen = 0;
   int64_t last_imu_pose_t_ns = -1;
   bool imu_poses_in_order = true;
@@ -144,19 +157,9 @@ TEST(PipelineTiming, OneCoreVgaEmbeddedProfile) {
   tools::SimOptions o = small_sim(env_int("KESTREL_TIMING_SECONDS", 20), 23);
   o.scenario = "figure8";
   o.width = 640;
-  o.height = 480;
-  o.threads = 2;
-  o.out_path = dir + "/figure8_vga.klog";
-  const tools::SimSummary sim = tools::run_simulation(o);
-  std::printf("log: %.0f s, %dx%d, %llu frames, %.0f MB, rendered in %.1f s\n", sim.duration_s, *o.width,
-              *o.height, static_cast<unsigned long long>(sim.frames),
-              1e-6 * static_cast<double>(sim.output_bytes), sim.wall_s);
+  const tools::SimSummary sim = render(o, dir, "figure8_vga.klog");
 
-  cli::ReplayOptions ro;
-  ro.path = o.out_path;
-  ro.pace = drivers::ReplayPace::kRealtime;
-  ro.estimator = "window-embedded";
-  ro.warmup_ns = 2'000'000'000;
+  cli::ReplayOptions ro = realtime_replay(o, "window-embedded");
   drivers::ThreadTable& t = ro.threads;
   for (rt::ThreadSpec& spec : t.spec) spec.cpu = cpu;
   t[drivers::PipelineThread::kPropagate].priority = 65;
