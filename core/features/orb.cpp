@@ -14,6 +14,9 @@
 
 namespace kestrel::core {
 
+static_assert(OrbOptions::kMinEdgeMargin >= orb_detail::kBriefPatchMargin,
+              "a keypoint's blurred BRIEF patch must fit inside the level");
+
 using orb_detail::MutPlane;
 using orb_detail::Plane;
 
@@ -138,8 +141,10 @@ struct OrbExtractor::Impl {
   // Level 0 grey (used only for colour input; grey input is read in place).
   std::unique_ptr<uint8_t[]> gray0;
   std::array<std::unique_ptr<uint8_t[]>, OrbOptions::kMaxLevels> level_buf;  // levels >= 1
-  std::unique_ptr<uint8_t[]> blurred;   // one level at a time
-  std::unique_ptr<uint8_t[]> tmp8;      // separable-filter intermediate
+  std::array<uint8_t, orb_detail::kBriefPatchSide * orb_detail::kBriefPatchSide> brief_patch{};
+  std::array<uint8_t, orb_detail::kBriefPatchSide*(orb_detail::kBriefPatchSide + 2 * orb_detail::kBlurRadius)>
+      brief_tmp{};
+  std::unique_ptr<uint8_t[]> tmp8;      // area resampling's row and weights
   std::unique_ptr<orb_detail::AreaTap[]> xtab, ytab;
   std::unique_ptr<uint8_t[]> score_rows;    // 3-row ring for NMS
   std::unique_ptr<uint16_t[]> corner_cols;  // corners per ring row (x positions)
@@ -195,16 +200,15 @@ OrbExtractor::OrbExtractor(const OrbOptions& opt, int max_width, int max_height)
     m.level_buf[l] = alloc<uint8_t>(a);
     m.bytes += a;
   }
-  m.blurred = alloc<uint8_t>(area0);
-  m.tmp8 = alloc<uint8_t>(area0);
+  const std::size_t tmp_bytes = orb_detail::area_resize_tmp_bytes(max_width, max_width);
+  m.tmp8 = alloc<uint8_t>(tmp_bytes);
   m.xtab = alloc<orb_detail::AreaTap>(max_width);
   m.ytab = alloc<orb_detail::AreaTap>(max_height);
   m.score_rows = alloc<uint8_t>(3 * static_cast<std::size_t>(max_width));
   m.corner_cols = alloc<uint16_t>(3 * static_cast<std::size_t>(max_width));
   // 3x3 NMS with a strict tie-break keeps no two 8-neighbours, so at most one
-  // candidate per 2x2 block of each searched area (the whole keypoint area,
-  // then empty cells again); the margins leave far more room than the few
-  // blocks cut by cell borders, so this is the worst case, not a guess.
+  // candidate per 2x2 block of the keypoint area, searched once: this is the
+  // worst case, not a guess.
   m.cand_capacity = static_cast<std::size_t>((max_width + 1) / 2) * static_cast<std::size_t>((max_height + 1) / 2);
   m.cand = alloc<Cand>(m.cand_capacity);
   m.cand_sorted = alloc<Cand>(m.cand_capacity);
@@ -219,7 +223,7 @@ OrbExtractor::OrbExtractor(const OrbOptions& opt, int max_width, int max_height)
   m.cell_take = alloc<int32_t>(m.max_cells);
   m.qth = alloc<Cand>(m.max_cells);
   m.selected = alloc<Cand>(static_cast<std::size_t>(opt.n_features));
-  m.bytes += area0 * 2 + (max_width + max_height) * sizeof(orb_detail::AreaTap) +
+  m.bytes += tmp_bytes + sizeof(m.brief_patch) + sizeof(m.brief_tmp) + (max_width + max_height) * sizeof(orb_detail::AreaTap) +
              3 * static_cast<std::size_t>(max_width) * (1 + sizeof(uint16_t)) + 2 * m.cand_capacity * sizeof(Cand) +
              m.max_cells * (4 * sizeof(int32_t) + sizeof(Cand)) + opt.n_features * sizeof(Cand);
   m.pattern = orb_detail::make_brief_pattern(opt.pattern_seed);
@@ -257,17 +261,59 @@ inline bool fast_segment_test(const uint8_t* p, const std::array<int, 16>& off, 
 }
 
 #if KESTREL_ORB_SIMD
-// Lanes with 9 contiguous non-zero entries among the 16 circle positions
-// (non-zero = beyond the threshold): runs of 2, 4, 8, then 9, by min as AND.
-inline cv::v_uint8x16 arc9(const cv::v_uint8x16* v) {
-  cv::v_uint8x16 a2[16], a4[16], any = cv::v_setzero_u8();
-  for (int k = 0; k < 16; ++k) a2[k] = cv::v_min(v[k], v[(k + 1) & 15]);
-  for (int k = 0; k < 16; ++k) a4[k] = cv::v_min(a2[k], a2[(k + 2) & 15]);
-  for (int k = 0; k < 16; ++k) {
-    const cv::v_uint8x16 a8 = cv::v_min(a4[k], a4[(k + 4) & 15]);
-    any = any | cv::v_min(a8, v[(k + 8) & 15]);
+// Per lane, the best 9-pixel arc's smallest entry among the 16 circle
+// differences d (saturated, so >= 0). Two arcs share their middle eight
+// (k+1 .. k+8), which keeps the live registers few enough not to spill on
+// SSE2's sixteen.
+inline cv::v_uint8x16 best_arc9(const cv::v_uint8x16* d) {
+  cv::v_uint8x16 best = cv::v_setzero_u8();
+  // Unrolled so the circular indices are constants, not arithmetic.
+#pragma GCC unroll 8
+  for (int k = 0; k < 16; k += 2) {
+    cv::v_uint8x16 mid = cv::v_min(d[(k + 1) & 15], d[(k + 2) & 15]);
+#pragma GCC unroll 6
+    for (int j = 3; j <= 8; ++j) mid = cv::v_min(mid, d[(k + j) & 15]);
+    best = cv::v_max(best, cv::v_max(cv::v_min(mid, d[k]), cv::v_min(mid, d[(k + 9) & 15])));
   }
-  return any;
+  return best;
+}
+
+// FAST scores + 1 of 16 pixels at p (0 where the prefilter already rules a
+// corner out), for pixels that passed the first prefilter stage. On
+// saturated differences the best arc's smallest entry is fast_score + 1, so
+// one computation gives both the segment test (> t) and the score, with no
+// scalar scoring of the corners. Out of line: it runs for a minority of
+// blocks and its register use would slow the prefilter loop.
+__attribute__((noinline)) cv::v_uint8x16 fast_scores16(const uint8_t* p, const std::array<int, 16>& off,
+                                                      cv::v_uint8x16 tv) {
+  const cv::v_uint8x16 v = cv::v_load(p);
+  const cv::v_uint8x16 hi = v + tv;
+  const cv::v_uint8x16 lo = v - tv;
+  const cv::v_uint8x16 zero = cv::v_setzero_u8();
+  cv::v_uint8x16 b = cv::v_setall_u8(0xff);
+  cv::v_uint8x16 dk = b;
+  auto pair = [&](int k) {
+    const cv::v_uint8x16 c0 = cv::v_load(p + off[k]);
+    const cv::v_uint8x16 c1 = cv::v_load(p + off[k + 8]);
+    b = cv::v_min(b, (c0 - hi) | (c1 - hi));
+    dk = cv::v_min(dk, (lo - c0) | (lo - c1));
+  };
+  auto none = [&] { return cv::v_check_all((b | dk) == zero); };
+  pair(2);
+  pair(6);
+  if (none()) return zero;
+  pair(1);
+  pair(3);
+  pair(5);
+  pair(7);
+  if (none()) return zero;
+  cv::v_uint8x16 d[16];
+#pragma GCC unroll 16
+  for (int k = 0; k < 16; ++k) d[k] = cv::v_load(p + off[k]) - v;
+  const cv::v_uint8x16 bright = best_arc9(d);
+#pragma GCC unroll 16
+  for (int k = 0; k < 16; ++k) d[k] = v - cv::v_load(p + off[k]);
+  return cv::v_max(bright, best_arc9(d));
 }
 #endif
 
@@ -293,6 +339,15 @@ int OrbExtractor::Impl::detect(Plane img, int kx0, int kx1, int ky0, int ky1, in
 #if KESTREL_ORB_SIMD
     const cv::v_uint8x16 tv = cv::v_setall_u8(static_cast<uint8_t>(t));
     const cv::v_uint8x16 zero = cv::v_setzero_u8();
+    const cv::v_uint8x16 one = cv::v_setall_u8(1);
+    // Lanes of the block at xb whose pixel may become a keypoint (the rim
+    // columns x0 and x1 are scored for NMS only).
+    auto area_lanes = [&](int xb) {
+      unsigned m = 0xffffu;
+      if (xb < kx0) m &= 0xffffu << (kx0 - xb);
+      if (xb + 15 > kx1) m &= 0xffffu >> (xb + 15 - kx1);
+      return m & 0xffffu;
+    };
 #endif
     std::memset(srow + x0, 0, static_cast<std::size_t>(x1 - x0 + 1));
     const uint8_t* row = img.at(0, y);
@@ -316,46 +371,27 @@ int OrbExtractor::Impl::detect(Plane img, int kx0, int kx1, int ky0, int ky1, in
     // stages; nearly all pixels drop out in the first. A lane is "set" while
     // its byte is non-zero: saturating differences (u8 - and + saturate in
     // the universal intrinsics) OR as "either", min as "both".
+    // Stage one inline (pairs (0, 8) and (4, 12)), the rest out of line.
+    const int o0 = off[0], o4 = off[4], o8 = off[8], o12 = off[12];
     auto block = [&](int xb, unsigned lanes) {
       const uint8_t* p = row + xb;
       const cv::v_uint8x16 v = cv::v_load(p);
       const cv::v_uint8x16 hi = v + tv;
       const cv::v_uint8x16 lo = v - tv;
-      auto pair = [&](int k, cv::v_uint8x16& b, cv::v_uint8x16& d) {
-        const cv::v_uint8x16 c0 = cv::v_load(p + off[k]);
-        const cv::v_uint8x16 c1 = cv::v_load(p + off[k + 8]);
-        b = cv::v_min(b, (c0 - hi) | (c1 - hi));
-        d = cv::v_min(d, (lo - c0) | (lo - c1));
-      };
-      auto any = [&](const cv::v_uint8x16& b, const cv::v_uint8x16& d) {
-        return (static_cast<unsigned>(cv::v_signmask((b | d) == zero)) ^ 0xffffu) & lanes;
-      };
-      cv::v_uint8x16 b = cv::v_setall_u8(0xff);
-      cv::v_uint8x16 d = b;
-      pair(0, b, d);
-      pair(4, b, d);
-      if (any(b, d) == 0) return;
-      pair(2, b, d);
-      pair(6, b, d);
-      if (any(b, d) == 0) return;
-      pair(1, b, d);
-      pair(3, b, d);
-      pair(5, b, d);
-      pair(7, b, d);
-      if (any(b, d) == 0) return;
-      // Full segment test for the survivors, still 16 lanes at a time.
-      cv::v_uint8x16 cb[16], cd[16];
-      for (int k = 0; k < 16; ++k) {
-        const cv::v_uint8x16 c = cv::v_load(p + off[k]);
-        cb[k] = c - hi;
-        cd[k] = lo - c;
-      }
-      unsigned mask = any(arc9(cb), arc9(cd));
-      while (mask != 0) {
-        const int bit = __builtin_ctz(mask);
-        mask &= mask - 1;
-        corner(xb + bit);
-      }
+      const cv::v_uint8x16 c0 = cv::v_load(p + o0), c4 = cv::v_load(p + o4);
+      const cv::v_uint8x16 c8 = cv::v_load(p + o8), c12 = cv::v_load(p + o12);
+      const cv::v_uint8x16 b = cv::v_min((c0 - hi) | (c8 - hi), (c4 - hi) | (c12 - hi));
+      const cv::v_uint8x16 d = cv::v_min((lo - c0) | (lo - c8), (lo - c4) | (lo - c12));
+      if (cv::v_check_all((b | d) == zero)) return;
+      const cv::v_uint8x16 best = fast_scores16(p, off, tv);
+      const cv::v_uint8x16 is_corner = best > tv;
+      // Overlapping lanes of a ragged end are rewritten with the same values.
+      cv::v_store(srow + xb, (best - one) & is_corner);
+      const unsigned mask = static_cast<unsigned>(cv::v_signmask(is_corner)) & lanes;
+      if (mask == 0) return;
+      corners += popcount64(mask);
+      for (unsigned m = mask & area_lanes(xb); m != 0; m &= m - 1)
+        ccols[nc++] = static_cast<uint16_t>(xb + __builtin_ctz(m));
     };
     if (orb_detail::vector_paths()) {
       for (; x + 15 <= x1; x += 16) block(x, 0xffffu);
@@ -557,8 +593,6 @@ OrbStatus OrbExtractor::extract(const ImageView& image, OrbFeatures& out) noexce
     if (n_sel == 0) continue;
 
     // ---- orientation and descriptor ----
-    MutPlane blurred{m.blurred.get(), wl, hl, wl};
-    orb_detail::gaussian_blur7(level, blurred, m.tmp8.get());
     for (int i = 0; i < n_sel; ++i) {
       const Cand& c = sel[i];
       OrbKeypoint kp;
@@ -570,7 +604,13 @@ OrbStatus OrbExtractor::extract(const ImageView& image, OrbFeatures& out) noexce
       kp.response = c.score;
       kp.size = orb_detail::kPatchDiameter * level_scale_[l];
       kp.angle_rad = orb_detail::ic_angle(level, c.x, c.y, m.umax);
-      const OrbDescriptor d = orb_detail::brief_describe(blurred.view(), c.x, c.y, kp.angle_rad, m.pattern);
+      // Only the patch BRIEF reads is blurred: a few hundred keypoints cover a
+      // small part of a level (docs/orb.md, "Time per frame").
+      orb_detail::gaussian_blur7_patch(level, c.x, c.y, m.brief_patch.data(), m.brief_tmp.data());
+      constexpr int kSide = orb_detail::kBriefPatchSide;
+      const Plane patch{m.brief_patch.data(), kSide, kSide, kSide};
+      const OrbDescriptor d =
+          orb_detail::brief_describe(patch, orb_detail::kPatternRadius, orb_detail::kPatternRadius, kp.angle_rad, m.pattern);
       if (!out.push_back(kp, d)) break;  // cannot happen: capacity >= n_features checked above
     }
   }

@@ -136,9 +136,91 @@ void weighted_rows(const uint8_t* const* rows, const uint16_t* w, uint8_t* out, 
 
 }  // namespace
 
+std::size_t area_resize_tmp_bytes(int src_width, int dst_width) {
+  // Scalar: one row. Vector: 16 rows, their transpose, and the transposed output.
+  return 16 * (2 * static_cast<std::size_t>(src_width) + static_cast<std::size_t>(dst_width));
+}
+
+namespace {
+
+#if KESTREL_ORB_SIMD
+// A 16x16 byte block transposed: four rounds of interleaving row i with row
+// i + 8 (SSE2's unpack, NEON's zip) carry element (r, c) to (c, r).
+inline void transpose16x16(const uint8_t* src, int src_stride, uint8_t* dst, int dst_stride) {
+  cv::v_uint8x16 r[16], a[16];
+  auto round = [](const cv::v_uint8x16* in, cv::v_uint8x16* out) {
+#pragma GCC unroll 8
+    for (int i = 0; i < 8; ++i) cv::v_zip(in[i], in[i + 8], out[2 * i], out[2 * i + 1]);
+  };
+#pragma GCC unroll 16
+  for (int i = 0; i < 16; ++i) r[i] = cv::v_load(src + i * src_stride);
+  round(r, a);
+  round(a, r);
+  round(r, a);
+  round(a, r);
+#pragma GCC unroll 16
+  for (int i = 0; i < 16; ++i) cv::v_store(dst + i * dst_stride, r[i]);
+}
+
+// rows x cols bytes (both >= 16), the ragged edges as blocks overlapping the
+// previous ones (rewriting identical values).
+void transpose(const uint8_t* src, int src_stride, int rows, int cols, uint8_t* dst, int dst_stride) {
+  for (int y0 = 0; y0 < rows; y0 += 16) {
+    const int y = std::min(y0, rows - 16);
+    for (int x0 = 0; x0 < cols; x0 += 16) {
+      const int x = std::min(x0, cols - 16);
+      transpose16x16(src + y * src_stride + x, src_stride, dst + x * dst_stride + y, dst_stride);
+    }
+  }
+}
+
+// area_resize 16 output rows at a time. The horizontal taps read scattered
+// pixels, which SSE2 cannot gather; transposed, 16 rows' worth of one column
+// is a vector, so the horizontal pass becomes the same contiguous weighted sum
+// as the vertical one, with the same rounding (bit for bit the scalar result).
+void area_resize_vector(Plane src, MutPlane dst, uint8_t* tmp, const AreaTap* xtab, const AreaTap* ytab) {
+  const int sw = src.width;
+  uint8_t* rows16 = tmp;         // 16 x sw: vertically resampled
+  uint8_t* cols16 = tmp + 16 * sw;  // sw x 16: the same, transposed
+  uint8_t* out16 = cols16 + 16 * sw;  // dst.width x 16: resampled, transposed
+  const cv::v_uint16x8 half = cv::v_setall_u16(128);
+  for (int j0 = 0; j0 < dst.height; j0 += 16) {
+    const int j = std::min(j0, dst.height - 16);
+    for (int r = 0; r < 16; ++r) {
+      const AreaTap& tp = ytab[j + r];
+      const uint8_t* rows[3] = {src.at(0, tp.first), src.at(0, tp.first + 1), src.at(0, tp.first + 2)};
+      weighted_rows<3>(rows, tp.w.data(), rows16 + r * sw, sw);
+    }
+    transpose(rows16, sw, 16, sw, cols16, 16);
+    for (int i = 0; i < dst.width; ++i) {
+      const AreaTap& t = xtab[i];
+      const uint8_t* c = cols16 + t.first * 16;
+      cv::v_uint16x8 lo = half, hi = half;
+      for (int k = 0; k < 3; ++k) {
+        cv::v_uint16x8 a, b;
+        cv::v_expand(cv::v_load(c + 16 * k), a, b);
+        const cv::v_uint16x8 w = cv::v_setall_u16(t.w[k]);
+        lo = cv::v_add_wrap(lo, cv::v_mul_wrap(a, w));
+        hi = cv::v_add_wrap(hi, cv::v_mul_wrap(b, w));
+      }
+      cv::v_store(out16 + i * 16, cv::v_pack(lo >> 8, hi >> 8));
+    }
+    transpose(out16, 16, dst.width, 16, dst.at(0, j), dst.stride);
+  }
+}
+#endif
+
+}  // namespace
+
 void area_resize(Plane src, MutPlane dst, uint8_t* tmp, AreaTap* xtab, AreaTap* ytab) {
   make_area_taps(src.width, dst.width, xtab);
   make_area_taps(src.height, dst.height, ytab);
+#if KESTREL_ORB_SIMD
+  if (vector_paths() && src.width >= 16 && dst.width >= 16 && dst.height >= 16) {
+    area_resize_vector(src, dst, tmp, xtab, ytab);
+    return;
+  }
+#endif
   // Vertical first: contiguous in x (SIMD), then the horizontal 3-tap gather
   // on the already shorter set of rows.
   for (int j = 0; j < dst.height; ++j) {
@@ -207,6 +289,84 @@ void gaussian_blur7(Plane src, MutPlane dst, uint8_t* tmp) {
     }
     for (int x = hi; x < w; ++x) d[x] = clamped(x);
   }
+}
+
+namespace {
+
+// (k3 * c + k2 * (a2 + b2) + k1 * (a1 + b1) + k0 * (a0 + b0) + 128) >> 8 on
+// 16-bit lanes: the kernel is symmetric, so three of its seven products are
+// folded away. Sums of two pixels times a weight can exceed 16 bits, but the
+// whole sum cannot (weights sum to 256), so wrapping arithmetic is exact.
+#if KESTREL_ORB_SIMD
+inline cv::v_uint16x8 blur_taps(const cv::v_uint16x8* r, const cv::v_uint16x8* k) {
+  cv::v_uint16x8 acc = cv::v_mul_wrap(r[3], k[3]) + cv::v_setall_u16(128);
+  acc = cv::v_add_wrap(acc, cv::v_mul_wrap(cv::v_add_wrap(r[2], r[4]), k[2]));
+  acc = cv::v_add_wrap(acc, cv::v_mul_wrap(cv::v_add_wrap(r[1], r[5]), k[1]));
+  acc = cv::v_add_wrap(acc, cv::v_mul_wrap(cv::v_add_wrap(r[0], r[6]), k[0]));
+  return acc >> 8;
+}
+#endif
+
+}  // namespace
+
+void gaussian_blur7_patch(Plane src, int cx, int cy, uint8_t* out, uint8_t* tmp) {
+  static const std::array<uint16_t, 2 * kBlurRadius + 1> k = gaussian_kernel7();
+  constexpr int R = kBlurRadius;
+  constexpr int P = kPatternRadius;
+  constexpr int kOut = kBriefPatchSide;
+  constexpr int kIn = kOut + 2 * R;  // columns the horizontal pass reads
+  const int h = src.height;
+  // Vertical pass over the patch's columns plus the horizontal support, rows
+  // clamped as gaussian_blur7 clamps them; the columns need no clamping
+  // (the caller keeps the patch kBriefPatchMargin inside the image), so every
+  // value is the one gaussian_blur7 computes.
+  const uint8_t* rows[kOut + 2 * R];
+  for (int i = 0; i < kOut + 2 * R; ++i) rows[i] = src.at(cx - P - R, std::clamp(cy - P - R + i, 0, h - 1));
+#if KESTREL_ORB_SIMD
+  static_assert(kIn > 16 && kOut > 16 && kIn <= 48 && kOut <= 32, "the column blocks below assume these sizes");
+  if (vector_paths()) {
+    static_assert(kBlurRadius == 3, "blur_taps is the 7-tap kernel");
+    cv::v_uint16x8 kv[2 * R + 1];
+    for (int i = 0; i <= 2 * R; ++i) kv[i] = cv::v_setall_u16(k[i]);
+    // Down each 16-column block, every source row is widened once and used
+    // by the seven output rows it reaches; the last block overlaps the one
+    // before it and rewrites identical values.
+    for (const int x : {0, 16, kIn - 16}) {
+      cv::v_uint16x8 lo[2 * R + 1], hi[2 * R + 1];
+      for (int i = 0; i < 2 * R; ++i) cv::v_expand(cv::v_load(rows[i] + x), lo[i + 1], hi[i + 1]);
+      for (int j = 0; j < kOut; ++j) {
+#pragma GCC unroll 6
+        for (int i = 0; i < 2 * R; ++i) {
+          lo[i] = lo[i + 1];
+          hi[i] = hi[i + 1];
+        }
+        cv::v_expand(cv::v_load(rows[j + 2 * R] + x), lo[2 * R], hi[2 * R]);
+        cv::v_store(tmp + j * kIn + x, cv::v_pack(blur_taps(lo, kv), blur_taps(hi, kv)));
+      }
+    }
+    for (int j = 0; j < kOut; ++j) {
+      const uint8_t* t = tmp + j * kIn;
+      for (const int x : {0, kOut - 16}) {
+        cv::v_uint16x8 lo[2 * R + 1], hi[2 * R + 1];
+        for (int i = 0; i <= 2 * R; ++i) cv::v_expand(cv::v_load(t + x + i), lo[i], hi[i]);
+        cv::v_store(out + j * kOut + x, cv::v_pack(blur_taps(lo, kv), blur_taps(hi, kv)));
+      }
+    }
+    return;
+  }
+#endif
+  for (int j = 0; j < kOut; ++j)
+    for (int x = 0; x < kIn; ++x) {
+      uint32_t acc = 128;
+      for (int i = 0; i <= 2 * R; ++i) acc += k[i] * rows[j + i][x];
+      tmp[j * kIn + x] = static_cast<uint8_t>(acc >> 8);
+    }
+  for (int j = 0; j < kOut; ++j)
+    for (int x = 0; x < kOut; ++x) {
+      uint32_t acc = 128;
+      for (int i = 0; i <= 2 * R; ++i) acc += k[i] * tmp[j * kIn + x + i];
+      out[j * kOut + x] = static_cast<uint8_t>(acc >> 8);
+    }
 }
 
 // ---- orientation ---------------------------------------------------------------------

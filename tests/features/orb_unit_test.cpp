@@ -4,10 +4,12 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <array>
 #include <bitset>
 #include <cmath>
 #include <cstring>
 #include <random>
+#include <utility>
 #include <vector>
 
 #include "kestrel/core/orb.hpp"
@@ -236,7 +238,7 @@ TEST(OrbPyramid, AreaResizeKeepsConstantsAndRamps) {
   for (int y = 0; y < src.h; ++y)
     for (int x = 0; x < src.w; ++x) src.at(x, y) = static_cast<uint8_t>(x / 2 + y / 4);
   Image dst(251, 172);
-  std::vector<uint8_t> tmp(static_cast<std::size_t>(dst.w) * src.h);
+  std::vector<uint8_t> tmp(orb_detail::area_resize_tmp_bytes(src.w, dst.w));
   std::vector<orb_detail::AreaTap> xt(dst.w), yt(dst.h);
   orb_detail::area_resize(src.plane(), orb_detail::MutPlane{dst.px.data(), dst.w, dst.h, dst.stride}, tmp.data(),
                           xt.data(), yt.data());
@@ -641,17 +643,23 @@ TEST(OrbExtractor, VectorPathsGiveTheScalarReferenceBitForBit) {
                 vec.descriptor(i) != ref.descriptor(i);
     EXPECT_EQ(differ, 0) << c.w << "x" << c.h << ": features that differ from the scalar reference";
   }
-  // The stages one by one, on sizes with ragged ends.
+  // The stages one by one, on sizes with ragged ends (area resampling works
+  // in blocks of 16 rows and columns; 64 rows is a whole number of them, 61
+  // is not, and 16 is the smallest the vector path takes).
   const Image src = noise_image(203, 77, 59);
   auto run_stages = [&](std::vector<uint8_t>& blurred, std::vector<uint8_t>& resized) {
     std::vector<uint8_t> tmp(static_cast<std::size_t>(src.w) * src.h);
     blurred.assign(tmp.size(), 0);
     orb_detail::gaussian_blur7(src.plane(), orb_detail::MutPlane{blurred.data(), src.w, src.h, src.w}, tmp.data());
-    const int dw = 169, dh = 64;
-    std::vector<orb_detail::AreaTap> xt(static_cast<std::size_t>(dw)), yt(static_cast<std::size_t>(dh));
-    resized.assign(static_cast<std::size_t>(dw) * dh, 0);
-    orb_detail::area_resize(src.plane(), orb_detail::MutPlane{resized.data(), dw, dh, dw}, tmp.data(), xt.data(),
-                            yt.data());
+    resized.clear();
+    for (const auto& [dw, dh] : {std::pair{169, 64}, std::pair{170, 61}, std::pair{16, 16}, std::pair{101, 40}}) {
+      std::vector<orb_detail::AreaTap> xt(static_cast<std::size_t>(dw)), yt(static_cast<std::size_t>(dh));
+      std::vector<uint8_t> rtmp(orb_detail::area_resize_tmp_bytes(src.w, dw));
+      std::vector<uint8_t> out(static_cast<std::size_t>(dw) * dh, 0);
+      orb_detail::area_resize(src.plane(), orb_detail::MutPlane{out.data(), dw, dh, dw}, rtmp.data(), xt.data(),
+                              yt.data());
+      resized.insert(resized.end(), out.begin(), out.end());
+    }
   };
   std::vector<uint8_t> bv, rv, bs, rs;
   run_stages(bv, rv);
@@ -660,6 +668,27 @@ TEST(OrbExtractor, VectorPathsGiveTheScalarReferenceBitForBit) {
   orb_detail::set_vector_paths(true);
   EXPECT_EQ(bv, bs) << "blur";
   EXPECT_EQ(rv, rs) << "area resampling";
+  // BRIEF's patch blur is the whole-image blur, cut out, on both paths; the
+  // centres include the closest the extractor allows to every border.
+  constexpr int kSide = orb_detail::kBriefPatchSide;
+  constexpr int kM = orb_detail::kBriefPatchMargin;
+  constexpr int kP = orb_detail::kPatternRadius;
+  for (const bool vector : {true, false}) {
+    orb_detail::set_vector_paths(vector);
+    std::array<uint8_t, kSide * kSide> patch{};
+    std::array<uint8_t, kSide*(kSide + 2 * orb_detail::kBlurRadius)> ptmp{};
+    int differ = 0;
+    for (const auto& [cx, cy] : {std::pair{kM, kM}, std::pair{src.w - 1 - kM, src.h - 1 - kM}, std::pair{kM, 40},
+                                 std::pair{101, kM}, std::pair{77, 38}, std::pair{src.w - 1 - kM, 20}}) {
+      orb_detail::gaussian_blur7_patch(src.plane(), cx, cy, patch.data(), ptmp.data());
+      for (int v = -kP; v <= kP; ++v)
+        for (int u = -kP; u <= kP; ++u)
+          differ += patch[static_cast<std::size_t>((v + kP) * kSide + u + kP)] !=
+                    bs[static_cast<std::size_t>((cy + v) * src.w + cx + u)];
+    }
+    EXPECT_EQ(differ, 0) << (vector ? "vector" : "scalar") << " patch blur against the whole-image blur";
+  }
+  orb_detail::set_vector_paths(true);
 }
 
 TEST(OrbExtractor, ExtractNeverAllocates) {

@@ -105,7 +105,7 @@ const char* to_string(OrbStatus s);
 struct OrbExtractStats {
   int n_levels_used = 0;                                 // levels large enough to search
   std::array<int, OrbOptions::kMaxLevels> budget{};      // target after carry-over
-  std::array<int, OrbOptions::kMaxLevels> corners{};     // FAST corners found, both passes (before NMS)
+  std::array<int, OrbOptions::kMaxLevels> corners{};     // FAST corners at fast_threshold_min, before NMS
   std::array<int, OrbOptions::kMaxLevels> candidates{};  // after 3x3 non-maximal suppression
   std::array<int, OrbOptions::kMaxLevels> selected{};
   std::array<int, OrbOptions::kMaxLevels> weak_cells{};  // cells served at fast_threshold_min

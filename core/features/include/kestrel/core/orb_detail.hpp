@@ -51,12 +51,24 @@ struct AreaTap {
   int32_t first = 0;             // first input index
   std::array<uint16_t, 3> w{};   // weights of first, first+1, first+2 (sum 256)
 };
+// tmp: area_resize_tmp_bytes(src.width, dst.width) bytes (a row and the
+// horizontal weights); xtab: dst.width entries, ytab: dst.height.
 void area_resize(Plane src, MutPlane dst, uint8_t* tmp, AreaTap* xtab, AreaTap* ytab);
+std::size_t area_resize_tmp_bytes(int src_width, int dst_width);
 
 // 7x7 Gaussian, sigma 2, separable, 8-bit fixed point, borders replicated.
 // tmp: src.width * src.height bytes.
 void gaussian_blur7(Plane src, MutPlane dst, uint8_t* tmp);
 std::array<uint16_t, 2 * kBlurRadius + 1> gaussian_kernel7();  // integer weights, sum 256
+// The blurred square BRIEF reads around (cx, cy): gaussian_blur7's values on
+// [cx - kPatternRadius, cx + kPatternRadius] x [cy - kPatternRadius, cy + kPatternRadius],
+// into out (kBriefPatchSide^2 bytes, row-major), bit for bit. With a few hundred
+// keypoints this is a fraction of blurring the whole level. (cx, cy) must be
+// at least kBriefPatchMargin pixels inside the image; tmp: kBriefPatchSide *
+// (kBriefPatchSide + 2 * kBlurRadius) bytes.
+constexpr int kBriefPatchSide = 2 * kPatternRadius + 1;
+constexpr int kBriefPatchMargin = kPatternRadius + kBlurRadius;
+void gaussian_blur7_patch(Plane src, int cx, int cy, uint8_t* out, uint8_t* tmp);
 
 // ---- orientation ---------------------------------------------------------------
 // umax[v] = half-width of the circular patch at row offset v (0..15); the disc
