@@ -279,19 +279,18 @@ inline cv::v_uint8x16 best_arc9(const cv::v_uint8x16* d) {
 }
 
 // FAST scores + 1 of 16 pixels at p (0 where the prefilter already rules a
-// corner out), for pixels that passed the first prefilter stage. On
+// corner out), for blocks with a pixel through the first prefilter stage. On
 // saturated differences the best arc's smallest entry is fast_score + 1, so
 // one computation gives both the segment test (> t) and the score, with no
 // scalar scoring of the corners. Out of line: it runs for a minority of
 // blocks and its register use would slow the prefilter loop.
+// b, dk: stage one's bright and dark survivors (non-zero lanes), narrowed here.
 __attribute__((noinline)) cv::v_uint8x16 fast_scores16(const uint8_t* p, const std::array<int, 16>& off,
-                                                      cv::v_uint8x16 tv) {
+                                                      cv::v_uint8x16 tv, cv::v_uint8x16 b, cv::v_uint8x16 dk) {
   const cv::v_uint8x16 v = cv::v_load(p);
   const cv::v_uint8x16 hi = v + tv;
   const cv::v_uint8x16 lo = v - tv;
   const cv::v_uint8x16 zero = cv::v_setzero_u8();
-  cv::v_uint8x16 b = cv::v_setall_u8(0xff);
-  cv::v_uint8x16 dk = b;
   auto pair = [&](int k) {
     const cv::v_uint8x16 c0 = cv::v_load(p + off[k]);
     const cv::v_uint8x16 c1 = cv::v_load(p + off[k + 8]);
@@ -307,13 +306,21 @@ __attribute__((noinline)) cv::v_uint8x16 fast_scores16(const uint8_t* p, const s
   pair(5);
   pair(7);
   if (none()) return zero;
+  // A lane can pass the test on one side only (two 9-arcs of 16 overlap), so
+  // a side no lane is still a candidate for cannot change a corner's score.
+  cv::v_uint8x16 best = zero;
   cv::v_uint8x16 d[16];
+  if (!cv::v_check_all(b == zero)) {
 #pragma GCC unroll 16
-  for (int k = 0; k < 16; ++k) d[k] = cv::v_load(p + off[k]) - v;
-  const cv::v_uint8x16 bright = best_arc9(d);
+    for (int k = 0; k < 16; ++k) d[k] = cv::v_load(p + off[k]) - v;
+    best = best_arc9(d);
+  }
+  if (!cv::v_check_all(dk == zero)) {
 #pragma GCC unroll 16
-  for (int k = 0; k < 16; ++k) d[k] = v - cv::v_load(p + off[k]);
-  return cv::v_max(bright, best_arc9(d));
+    for (int k = 0; k < 16; ++k) d[k] = v - cv::v_load(p + off[k]);
+    best = cv::v_max(best, best_arc9(d));
+  }
+  return best;
 }
 #endif
 
@@ -373,7 +380,7 @@ int OrbExtractor::Impl::detect(Plane img, int kx0, int kx1, int ky0, int ky1, in
     // the universal intrinsics) OR as "either", min as "both".
     // Stage one inline (pairs (0, 8) and (4, 12)), the rest out of line.
     const int o0 = off[0], o4 = off[4], o8 = off[8], o12 = off[12];
-    auto block = [&](int xb, unsigned lanes) {
+    auto block = [&](int xb, unsigned lanes) __attribute__((always_inline)) {
       const uint8_t* p = row + xb;
       const cv::v_uint8x16 v = cv::v_load(p);
       const cv::v_uint8x16 hi = v + tv;
@@ -383,7 +390,7 @@ int OrbExtractor::Impl::detect(Plane img, int kx0, int kx1, int ky0, int ky1, in
       const cv::v_uint8x16 b = cv::v_min((c0 - hi) | (c8 - hi), (c4 - hi) | (c12 - hi));
       const cv::v_uint8x16 d = cv::v_min((lo - c0) | (lo - c8), (lo - c4) | (lo - c12));
       if (cv::v_check_all((b | d) == zero)) return;
-      const cv::v_uint8x16 best = fast_scores16(p, off, tv);
+      const cv::v_uint8x16 best = fast_scores16(p, off, tv, b, d);
       const cv::v_uint8x16 is_corner = best > tv;
       // Overlapping lanes of a ragged end are rewritten with the same values.
       cv::v_store(srow + xb, (best - one) & is_corner);
