@@ -155,7 +155,7 @@ struct OrbExtractor::Impl {
   std::unique_ptr<Cand[]> qth;  // the q-th best of each cell, for the remainder
   std::size_t max_cells = 0;
   std::unique_ptr<Cand[]> selected;
-  orb_detail::BriefPattern pattern{};
+  orb_detail::BriefPoints pattern{};
   std::array<int, orb_detail::kPatchRadius + 1> umax{};
   std::size_t bytes = 0;
 
@@ -226,7 +226,7 @@ OrbExtractor::OrbExtractor(const OrbOptions& opt, int max_width, int max_height)
   m.bytes += tmp_bytes + sizeof(m.brief_patch) + sizeof(m.brief_tmp) + (max_width + max_height) * sizeof(orb_detail::AreaTap) +
              3 * static_cast<std::size_t>(max_width) * (1 + sizeof(uint16_t)) + 2 * m.cand_capacity * sizeof(Cand) +
              m.max_cells * (4 * sizeof(int32_t) + sizeof(Cand)) + opt.n_features * sizeof(Cand);
-  m.pattern = orb_detail::make_brief_pattern(opt.pattern_seed);
+  m.pattern = orb_detail::brief_points(orb_detail::make_brief_pattern(opt.pattern_seed));
   m.umax = orb_detail::patch_umax();
 }
 

@@ -460,7 +460,20 @@ BriefPattern make_brief_pattern(uint64_t seed) {
 }
 
 
+BriefPoints brief_points(const BriefPattern& pattern) {
+  BriefPoints p;
+  for (int i = 0; i < 2 * kBriefPairs; ++i) {
+    p.x[i] = pattern[i / 2][2 * (i % 2)];
+    p.y[i] = pattern[i / 2][2 * (i % 2) + 1];
+  }
+  return p;
+}
+
 OrbDescriptor brief_describe(Plane blurred, int x, int y, float angle_rad, const BriefPattern& pattern) {
+  return brief_describe(blurred, x, y, angle_rad, brief_points(pattern));
+}
+
+OrbDescriptor brief_describe(Plane blurred, int x, int y, float angle_rad, const BriefPoints& points) {
   const float c = std::cos(angle_rad);
   const float s = std::sin(angle_rad);
   const uint8_t* center = blurred.at(x, y);
@@ -476,11 +489,8 @@ OrbDescriptor brief_describe(Plane blurred, int x, int y, float angle_rad, const
     const cv::v_float32x4 cv4 = cv::v_setall_f32(c), sv4 = cv::v_setall_f32(s),
                           stv = cv::v_setall_f32(static_cast<float>(stride));
     for (; i + 4 <= 2 * kBriefPairs; i += 4) {
-      // Points i..i+3 alternate a, b of two pairs: (ax ay bx by)(ax ay bx by).
-      const auto& p0 = pattern[i / 2];
-      const auto& p1 = pattern[i / 2 + 1];
-      const cv::v_float32x4 px(p0[0], p0[2], p1[0], p1[2]);
-      const cv::v_float32x4 py(p0[1], p0[3], p1[1], p1[3]);
+      const cv::v_float32x4 px = cv::v_load_aligned(points.x.data() + i);
+      const cv::v_float32x4 py = cv::v_load_aligned(points.y.data() + i);
       const cv::v_int32x4 rx = cv::v_round(cv4 * px - sv4 * py);
       const cv::v_int32x4 ry = cv::v_round(sv4 * px + cv4 * py);
       // ry * stride + rx, exactly, in float (|values| << 2^24).
@@ -488,14 +498,11 @@ OrbDescriptor brief_describe(Plane blurred, int x, int y, float angle_rad, const
     }
   }
 #endif
-  for (; i < 2 * kBriefPairs; i += 2) {
-    const auto& p = pattern[i / 2];
-    for (int k = 0; k < 2; ++k) {
-      const float px = p[2 * k], py = p[2 * k + 1];
-      const int rx = static_cast<int>(std::nearbyint(c * px - s * py));
-      const int ry = static_cast<int>(std::nearbyint(s * px + c * py));
-      off[i + k] = ry * stride + rx;
-    }
+  for (; i < 2 * kBriefPairs; ++i) {
+    const float px = points.x[i], py = points.y[i];
+    const int rx = static_cast<int>(std::nearbyint(c * px - s * py));
+    const int ry = static_cast<int>(std::nearbyint(s * px + c * py));
+    off[i] = ry * stride + rx;
   }
   OrbDescriptor d{};
   for (int w = 0; w < 4; ++w) {

@@ -87,6 +87,15 @@ BriefPattern make_brief_pattern(uint64_t seed);
 // Descriptor at (x, y) of the blurred image with the pattern rotated by angle.
 // (x, y) must be at least kPatternRadius + 1 pixels inside the image.
 OrbDescriptor brief_describe(Plane blurred, int x, int y, float angle_rad, const BriefPattern& pattern);
+// The pattern's test points as floats, in the order brief_describe rotates
+// them (a and b of pair 0, of pair 1, ...): made once per extractor, so each
+// keypoint loads them as vectors instead of converting 512 bytes.
+struct BriefPoints {
+  alignas(16) std::array<float, 2 * kBriefPairs> x{};
+  alignas(16) std::array<float, 2 * kBriefPairs> y{};
+};
+BriefPoints brief_points(const BriefPattern& pattern);
+OrbDescriptor brief_describe(Plane blurred, int x, int y, float angle_rad, const BriefPoints& points);
 
 // The vector paths (SSE2 on x86-64, NEON on AArch64; core/features simd.hpp).
 // On by default where the target has them; tests switch them off to hold them
