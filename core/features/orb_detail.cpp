@@ -387,6 +387,55 @@ float ic_angle(Plane img, int x, int y, const std::array<int, kPatchRadius + 1>&
   const int stride = img.stride;
   int m10 = 0;
   int m01 = 0;
+#if KESTREL_ORB_SIMD
+  if (vector_paths()) {
+    static_assert(kPatchRadius == 15, "the 32 lanes below cover u = -15 .. 16");
+    // u = -15 .. 16 as four 8-lane vectors; each row pair is masked to |u| <=
+    // umax[v]. Products fit 16 bits (16 * 510), and pmaddwd-style dot
+    // products sum them in 32: the same integers as the scalar loop, so the
+    // same angle. Reads c - 15 .. c + 16, inside the image for a keypoint at
+    // least kMinEdgeMargin (16) from the border.
+    cv::v_int16x8 uv[4];
+    for (int q = 0; q < 4; ++q)
+      uv[q] = cv::v_int16x8(static_cast<int16_t>(8 * q - 15), static_cast<int16_t>(8 * q - 14),
+                            static_cast<int16_t>(8 * q - 13), static_cast<int16_t>(8 * q - 12),
+                            static_cast<int16_t>(8 * q - 11), static_cast<int16_t>(8 * q - 10),
+                            static_cast<int16_t>(8 * q - 9), static_cast<int16_t>(8 * q - 8));
+    auto widen = [](const uint8_t* p, cv::v_int16x8* out) {
+      cv::v_uint16x8 a, b, e, f;
+      cv::v_expand(cv::v_load(p), a, b);
+      cv::v_expand(cv::v_load(p + 16), e, f);
+      out[0] = cv::v_reinterpret_as_s16(a);
+      out[1] = cv::v_reinterpret_as_s16(b);
+      out[2] = cv::v_reinterpret_as_s16(e);
+      out[3] = cv::v_reinterpret_as_s16(f);
+    };
+    cv::v_int32x4 acc10 = cv::v_setzero_s32(), acc01 = cv::v_setzero_s32();
+    for (int v = 0; v <= kPatchRadius; ++v) {
+      const cv::v_int16x8 d = cv::v_setall_s16(static_cast<int16_t>(umax[v]));
+      const cv::v_int16x8 nd = cv::v_setall_s16(static_cast<int16_t>(-umax[v]));
+      const cv::v_int16x8 vv = cv::v_setall_s16(static_cast<int16_t>(v));
+      cv::v_int16x8 below[4], above[4];
+      widen(c + v * stride - kPatchRadius, below);
+      if (v == 0) {
+        for (int q = 0; q < 4; ++q) above[q] = cv::v_setzero_s16();
+      } else {
+        widen(c - v * stride - kPatchRadius, above);
+      }
+      for (int q = 0; q < 4; ++q) {
+        const cv::v_int16x8 inside = ~((uv[q] > d) | (uv[q] < nd));
+        acc10 += cv::v_dotprod((below[q] + above[q]) & inside, uv[q]);
+        acc01 += cv::v_dotprod((below[q] - above[q]) & inside, vv);
+      }
+    }
+    m10 = cv::v_reduce_sum(acc10);
+    m01 = cv::v_reduce_sum(acc01);
+    float ang = std::atan2(static_cast<float>(m01), static_cast<float>(m10));
+    if (ang < 0) ang += 2.0f * kPiF;
+    if (ang >= 2.0f * kPiF) ang = 0.0f;
+    return ang;
+  }
+#endif
   for (int u = -kPatchRadius; u <= kPatchRadius; ++u) m10 += u * c[u];
   for (int v = 1; v <= kPatchRadius; ++v) {
     int v_sum = 0;

@@ -76,6 +76,8 @@ void gaussian_blur7_patch(Plane src, int cx, int cy, uint8_t* out, uint8_t* tmp)
 // the image maps the patch onto itself exactly.
 std::array<int, kPatchRadius + 1> patch_umax();
 // Intensity-centroid angle (Rosin) around (x, y): atan2(m01, m10) in [0, 2pi).
+// (x, y) must be at least kPatchRadius + 1 pixels inside the image (the vector
+// path reads one column beyond the disc on the right).
 float ic_angle(Plane img, int x, int y, const std::array<int, kPatchRadius + 1>& umax);
 
 // ---- steered BRIEF --------------------------------------------------------------
