@@ -144,7 +144,7 @@ struct OrbExtractor::Impl {
   std::array<uint8_t, orb_detail::kBriefPatchSide * orb_detail::kBriefPatchSide> brief_patch{};
   std::array<uint8_t, orb_detail::kBriefPatchSide*(orb_detail::kBriefPatchSide + 2 * orb_detail::kBlurRadius)>
       brief_tmp{};
-  std::unique_ptr<uint8_t[]> tmp8;      // area resampling's row and weights
+  std::unique_ptr<uint8_t[]> tmp8;  // area resampling's work space (area_resize_tmp_bytes)
   std::unique_ptr<orb_detail::AreaTap[]> xtab, ytab;
   std::unique_ptr<uint8_t[]> score_rows;    // 3-row ring for NMS
   std::unique_ptr<uint16_t[]> corner_cols;  // corners per ring row (x positions)
@@ -223,9 +223,11 @@ OrbExtractor::OrbExtractor(const OrbOptions& opt, int max_width, int max_height)
   m.cell_take = alloc<int32_t>(m.max_cells);
   m.qth = alloc<Cand>(m.max_cells);
   m.selected = alloc<Cand>(static_cast<std::size_t>(opt.n_features));
-  m.bytes += tmp_bytes + sizeof(m.brief_patch) + sizeof(m.brief_tmp) + (max_width + max_height) * sizeof(orb_detail::AreaTap) +
-             3 * static_cast<std::size_t>(max_width) * (1 + sizeof(uint16_t)) + 2 * m.cand_capacity * sizeof(Cand) +
-             m.max_cells * (4 * sizeof(int32_t) + sizeof(Cand)) + opt.n_features * sizeof(Cand);
+  m.bytes += tmp_bytes + sizeof(m.brief_patch) + sizeof(m.brief_tmp) +
+             (max_width + max_height) * sizeof(orb_detail::AreaTap) +
+             3 * static_cast<std::size_t>(max_width) * (1 + sizeof(uint16_t)) +
+             2 * m.cand_capacity * sizeof(Cand) + m.max_cells * (4 * sizeof(int32_t) + sizeof(Cand)) +
+             opt.n_features * sizeof(Cand);
   m.pattern = orb_detail::brief_points(orb_detail::make_brief_pattern(opt.pattern_seed));
   m.umax = orb_detail::patch_umax();
 }
@@ -286,7 +288,8 @@ inline cv::v_uint8x16 best_arc9(const cv::v_uint8x16* d) {
 // blocks and its register use would slow the prefilter loop.
 // b, dk: stage one's bright and dark survivors (non-zero lanes), narrowed here.
 __attribute__((noinline)) cv::v_uint8x16 fast_scores16(const uint8_t* p, const std::array<int, 16>& off,
-                                                      cv::v_uint8x16 tv, cv::v_uint8x16 b, cv::v_uint8x16 dk) {
+                                                       cv::v_uint8x16 tv, cv::v_uint8x16 b,
+                                                       cv::v_uint8x16 dk) {
   const cv::v_uint8x16 v = cv::v_load(p);
   const cv::v_uint8x16 hi = v + tv;
   const cv::v_uint8x16 lo = v - tv;
@@ -616,8 +619,8 @@ OrbStatus OrbExtractor::extract(const ImageView& image, OrbFeatures& out) noexce
       orb_detail::gaussian_blur7_patch(level, c.x, c.y, m.brief_patch.data(), m.brief_tmp.data());
       constexpr int kSide = orb_detail::kBriefPatchSide;
       const Plane patch{m.brief_patch.data(), kSide, kSide, kSide};
-      const OrbDescriptor d =
-          orb_detail::brief_describe(patch, orb_detail::kPatternRadius, orb_detail::kPatternRadius, kp.angle_rad, m.pattern);
+      const OrbDescriptor d = orb_detail::brief_describe(patch, orb_detail::kPatternRadius,
+                                                         orb_detail::kPatternRadius, kp.angle_rad, m.pattern);
       if (!out.push_back(kp, d)) break;  // cannot happen: capacity >= n_features checked above
     }
   }

@@ -180,8 +180,8 @@ void transpose(const uint8_t* src, int src_stride, int rows, int cols, uint8_t* 
 // as the vertical one, with the same rounding (bit for bit the scalar result).
 void area_resize_vector(Plane src, MutPlane dst, uint8_t* tmp, const AreaTap* xtab, const AreaTap* ytab) {
   const int sw = src.width;
-  uint8_t* rows16 = tmp;         // 16 x sw: vertically resampled
-  uint8_t* cols16 = tmp + 16 * sw;  // sw x 16: the same, transposed
+  uint8_t* rows16 = tmp;              // 16 x sw: vertically resampled
+  uint8_t* cols16 = tmp + 16 * sw;    // sw x 16: the same, transposed
   uint8_t* out16 = cols16 + 16 * sw;  // dst.width x 16: resampled, transposed
   const cv::v_uint16x8 half = cv::v_setall_u16(128);
   for (int j0 = 0; j0 < dst.height; j0 += 16) {
@@ -323,7 +323,8 @@ void gaussian_blur7_patch(Plane src, int cx, int cy, uint8_t* out, uint8_t* tmp)
   const uint8_t* rows[kOut + 2 * R];
   for (int i = 0; i < kOut + 2 * R; ++i) rows[i] = src.at(cx - P - R, std::clamp(cy - P - R + i, 0, h - 1));
 #if KESTREL_ORB_SIMD
-  static_assert(kIn > 16 && kOut > 16 && kIn <= 48 && kOut <= 32, "the column blocks below assume these sizes");
+  static_assert(kIn > 16 && kOut > 16 && kIn <= 48 && kOut <= 32,
+                "the column blocks below assume these sizes");
   if (vector_paths()) {
     static_assert(kBlurRadius == 3, "blur_taps is the 7-tap kernel");
     cv::v_uint16x8 kv[2 * R + 1];
@@ -382,6 +383,18 @@ std::array<int, kPatchRadius + 1> patch_umax() {
   return umax;
 }
 
+namespace {
+
+// atan2(m01, m10) in [0, 2pi).
+float moments_angle(int m10, int m01) {
+  float ang = std::atan2(static_cast<float>(m01), static_cast<float>(m10));
+  if (ang < 0) ang += 2.0f * kPiF;
+  if (ang >= 2.0f * kPiF) ang = 0.0f;  // float rounding of -tiny + 2pi
+  return ang;
+}
+
+}  // namespace
+
 float ic_angle(Plane img, int x, int y, const std::array<int, kPatchRadius + 1>& umax) {
   const uint8_t* c = img.at(x, y);
   const int stride = img.stride;
@@ -430,10 +443,7 @@ float ic_angle(Plane img, int x, int y, const std::array<int, kPatchRadius + 1>&
     }
     m10 = cv::v_reduce_sum(acc10);
     m01 = cv::v_reduce_sum(acc01);
-    float ang = std::atan2(static_cast<float>(m01), static_cast<float>(m10));
-    if (ang < 0) ang += 2.0f * kPiF;
-    if (ang >= 2.0f * kPiF) ang = 0.0f;
-    return ang;
+    return moments_angle(m10, m01);
   }
 #endif
   for (int u = -kPatchRadius; u <= kPatchRadius; ++u) m10 += u * c[u];
@@ -450,10 +460,7 @@ float ic_angle(Plane img, int x, int y, const std::array<int, kPatchRadius + 1>&
     }
     m01 += v * v_sum;
   }
-  float ang = std::atan2(static_cast<float>(m01), static_cast<float>(m10));
-  if (ang < 0) ang += 2.0f * kPiF;
-  if (ang >= 2.0f * kPiF) ang = 0.0f;  // float rounding of -tiny + 2pi
-  return ang;
+  return moments_angle(m10, m01);
 }
 
 // ---- BRIEF ------------------------------------------------------------------------------
@@ -507,7 +514,6 @@ BriefPattern make_brief_pattern(uint64_t seed) {
   }
   return pat;
 }
-
 
 BriefPoints brief_points(const BriefPattern& pattern) {
   BriefPoints p;

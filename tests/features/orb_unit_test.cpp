@@ -652,12 +652,13 @@ TEST(OrbExtractor, VectorPathsGiveTheScalarReferenceBitForBit) {
     blurred.assign(tmp.size(), 0);
     orb_detail::gaussian_blur7(src.plane(), orb_detail::MutPlane{blurred.data(), src.w, src.h, src.w}, tmp.data());
     resized.clear();
-    for (const auto& [dw, dh] : {std::pair{169, 64}, std::pair{170, 61}, std::pair{16, 16}, std::pair{101, 40}}) {
+    for (const auto& [dw, dh] :
+         {std::pair{169, 64}, std::pair{170, 61}, std::pair{16, 16}, std::pair{101, 40}}) {
       std::vector<orb_detail::AreaTap> xt(static_cast<std::size_t>(dw)), yt(static_cast<std::size_t>(dh));
       std::vector<uint8_t> rtmp(orb_detail::area_resize_tmp_bytes(src.w, dw));
       std::vector<uint8_t> out(static_cast<std::size_t>(dw) * dh, 0);
-      orb_detail::area_resize(src.plane(), orb_detail::MutPlane{out.data(), dw, dh, dw}, rtmp.data(), xt.data(),
-                              yt.data());
+      orb_detail::area_resize(src.plane(), orb_detail::MutPlane{out.data(), dw, dh, dw}, rtmp.data(),
+                              xt.data(), yt.data());
       resized.insert(resized.end(), out.begin(), out.end());
     }
   };
@@ -678,8 +679,9 @@ TEST(OrbExtractor, VectorPathsGiveTheScalarReferenceBitForBit) {
     std::array<uint8_t, kSide * kSide> patch{};
     std::array<uint8_t, kSide*(kSide + 2 * orb_detail::kBlurRadius)> ptmp{};
     int differ = 0;
-    for (const auto& [cx, cy] : {std::pair{kM, kM}, std::pair{src.w - 1 - kM, src.h - 1 - kM}, std::pair{kM, 40},
-                                 std::pair{101, kM}, std::pair{77, 38}, std::pair{src.w - 1 - kM, 20}}) {
+    for (const auto& [cx, cy] :
+         {std::pair{kM, kM}, std::pair{src.w - 1 - kM, src.h - 1 - kM}, std::pair{kM, 40}, std::pair{101, kM},
+          std::pair{77, 38}, std::pair{src.w - 1 - kM, 20}}) {
       orb_detail::gaussian_blur7_patch(src.plane(), cx, cy, patch.data(), ptmp.data());
       for (int v = -kP; v <= kP; ++v)
         for (int u = -kP; u <= kP; ++u)

@@ -51,8 +51,9 @@ struct AreaTap {
   int32_t first = 0;             // first input index
   std::array<uint16_t, 3> w{};   // weights of first, first+1, first+2 (sum 256)
 };
-// tmp: area_resize_tmp_bytes(src.width, dst.width) bytes (a row and the
-// horizontal weights); xtab: dst.width entries, ytab: dst.height.
+// tmp: area_resize_tmp_bytes(src.width, dst.width) bytes (the vector path's
+// 16-row block, its transpose and the transposed output); xtab: dst.width
+// entries, ytab: dst.height.
 void area_resize(Plane src, MutPlane dst, uint8_t* tmp, AreaTap* xtab, AreaTap* ytab);
 std::size_t area_resize_tmp_bytes(int src_width, int dst_width);
 
