@@ -297,6 +297,8 @@ void visit_ekf(EkfEstimatorOptions& o, OptionVisitor& v) {
   v.value("default_acc_noise_density_mps2_sqrthz", o.default_acc_noise_density, "when the rig gives none");
   v.value("default_gyro_random_walk_rad_s2_sqrthz", o.default_gyro_random_walk, "when the rig gives none");
   v.value("default_acc_random_walk_mps3_sqrthz", o.default_acc_random_walk, "when the rig gives none");
+  v.value("imu_noise_inflation", o.imu_noise_inflation,
+          "every IMU noise density (the rig's or the defaults) is multiplied by this (docs/ekf.md)");
   v.value("pred_sigma_px_per_s", o.pred_sigma_px_per_s, "search window growth per second since the last update");
   v.value("pred_sigma_min_px", o.pred_sigma_min_px, "search window pixel uncertainty, lower bound");
   v.value("max_lost_frames", o.max_lost_frames, "untracked frames before the tracker takes a new keyframe");

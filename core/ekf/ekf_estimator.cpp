@@ -33,6 +33,7 @@ std::string EkfEstimatorOptions::validate() const {
   if (!t.empty()) e << t;
   if (landmark_capacity < 4 || landmark_capacity > 512) e << "landmark_capacity: in [4, 512]\n";
   if (!(pixel_sigma_px > 0)) e << "pixel_sigma_px: must be > 0\n";
+  if (!(imu_noise_inflation > 0)) e << "imu_noise_inflation: must be > 0\n";
   if (max_missed_frames < 0) e << "max_missed_frames: must be >= 0\n";
   if (!(gate_chi2 > 0)) e << "gate_chi2: must be > 0\n";
   if (!(init_position_sigma_m > 0 && init_attitude_sigma_rad > 0 && init_velocity_sigma_mps > 0 &&
@@ -100,6 +101,20 @@ EkfEstimator::EkfEstimator(const Rig& rig, const EkfEstimatorOptions& opt)
   max_gap_ns_ = p.max_gap_ns;
   max_step_ns_ = p.max_integration_step_ns;
   obs_.resize(static_cast<size_t>(std::max(1, opt_.tracker.orb.n_features)));
+  ekf_.set_imu_noise_scale(opt_.imu_noise_inflation);
+}
+
+// The update's consistency, for the summary: a filter whose noise models fit
+// shows NIS / dof near 1 and a pose NIS near 6 (EkfUpdateStats).
+void EkfEstimator::record_consistency(const EkfUpdateStats& st) {
+  if (st.nis_dof > 0 && std::isfinite(st.nis)) {
+    ekf_counters_.nis_sum += st.nis;
+    ekf_counters_.nis_dof_sum += st.nis_dof;
+  }
+  if (st.pose_nis > 0 && std::isfinite(st.pose_nis)) {
+    ekf_counters_.pose_nis_sum += st.pose_nis;
+    ++ekf_counters_.pose_nis_n;
+  }
 }
 
 void EkfEstimator::start(const NavState& s0, bool moving) {
@@ -291,6 +306,7 @@ bool EkfEstimator::add_frame(const RgbdFrame& f) {
     update_latency_.record(rt::now_ns() - t0);
     used = st.used;
     ++ekf_counters_.frames_updated;
+    record_consistency(st);
   } else if (r.status != TrackStatus::kNoImage && r.status != TrackStatus::kFeatureError) {
     // An empty update still counts the miss of every active landmark.
     ekf_.update(nullptr, 0);
@@ -338,7 +354,7 @@ bool EkfEstimator::add_frame(const RgbdFrame& f) {
 std::string EkfEstimator::backend_summary() const {
   const EkfCounters& c = ekf_.counters();
   const EkfEstimatorCounters& e = ekf_counters_;
-  char buf[640];
+  char buf[800];
   auto ms = [this](double p) {
     return update_latency_.count() > 0 ? 1e-6 * static_cast<double>(update_latency_.percentile(p)) : 0.0;
   };
@@ -346,14 +362,17 @@ std::string EkfEstimator::backend_summary() const {
       buf, sizeof buf,
       "ekf: %d of %d landmarks active; initialised %llu, frozen %llu, dropped %llu, capacity full %llu; "
       "observations %llu in, %llu used, %llu gated, %llu without depth; tracker resets %llu, filter "
-      "resets %llu; update p50 %.2f ms, p99 %.2f ms, max %.2f ms",
+      "resets %llu; update p50 %.2f ms, p99 %.2f ms, max %.2f ms; IMU noise x%.1f; NIS / dof %.2f, pose NIS %.1f (consistent: 1 and 6)",
       ekf_.num_active(), ekf_.options().landmark_capacity, (unsigned long long)c.landmarks_initialised,
       (unsigned long long)c.landmarks_frozen, (unsigned long long)c.landmarks_dropped,
       (unsigned long long)c.capacity_full, (unsigned long long)e.observations_in,
       (unsigned long long)c.observations_used, (unsigned long long)c.observations_gated,
       (unsigned long long)e.observations_no_depth, (unsigned long long)e.tracker_resets,
       (unsigned long long)e.filter_resets, ms(50), ms(99),
-      update_latency_.count() > 0 ? 1e-6 * static_cast<double>(update_latency_.max()) : 0.0);
+      update_latency_.count() > 0 ? 1e-6 * static_cast<double>(update_latency_.max()) : 0.0,
+      ekf_.imu_noise_scale(),
+      e.nis_dof_sum > 0 ? e.nis_sum / e.nis_dof_sum : 0.0,
+      e.pose_nis_n > 0 ? e.pose_nis_sum / static_cast<double>(e.pose_nis_n) : 0.0);
   return buf;
 }
 

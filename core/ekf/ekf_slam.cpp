@@ -214,6 +214,7 @@ void EkfSlam::propagate_imu(const Vec3& gyro_rps, const Vec3& acc_mps2, double d
       Vec3::Constant(opt_.acc_noise_density * opt_.acc_noise_density / dt_s),
       Vec3::Constant(opt_.gyro_random_walk * opt_.gyro_random_walk / dt_s),
       Vec3::Constant(opt_.acc_random_walk * opt_.acc_random_walk / dt_s);
+  qn *= imu_noise_k2_;
   const Mat15 Qd = G * qn.asDiagonal() * G.transpose();
   propagate_pose_block(Phi, Qd);
 }
@@ -432,6 +433,10 @@ void EkfSlam::update_chunk(const int* slots, int count, EkfUpdateStats& stats) {
     llt.matrixU().solveInPlace<Eigen::OnTheRight>(U_.block(r0, 0, rb, m));
   }
   llt.matrixL().solveInPlace(nu_.head(m));
+  if (stats.chunks == 0) {
+    stats.nis = nu_.head(m).squaredNorm();
+    stats.nis_dof = m;
+  }
   dx_vec_.head(n).noalias() = U_.topLeftCorner(n, m) * nu_.head(m);
   symmetric_downdate(n, m);
   apply_correction(n);
@@ -502,8 +507,16 @@ EkfUpdateStats EkfSlam::update(const StereoObservation* obs, int count) {
   int nacc = 0;
   for (int s = 0; s < num_active_; ++s)
     if (lm_gate_[static_cast<size_t>(s)] == 1) slot_list_[static_cast<size_t>(nacc++)] = s;
+  const Pose T_prior = T_WB_;
+  P_pose_prior_ = P_.topLeftCorner<6, 6>();
   for (int c0 = 0; c0 < nacc; c0 += chunk_) {
     update_chunk(slot_list_.data() + c0, std::min(chunk_, nacc - c0), st);
+  }
+  if (st.used > 0) {
+    const Vec6 xi = ekf::se3_log(T_prior.inverse() * T_WB_);
+    const ekf::Mat6 D = P_pose_prior_ - P_.topLeftCorner<6, 6>();
+    const Eigen::LDLT<ekf::Mat6> ldlt(0.5 * (D + D.transpose()));
+    if (ldlt.info() == Eigen::Success && ldlt.isPositive()) st.pose_nis = xi.dot(ldlt.solve(xi));
   }
   counters_.observations_used += static_cast<uint64_t>(st.used);
 

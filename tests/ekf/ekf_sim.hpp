@@ -92,6 +92,7 @@ inline core::ekf::Vec6 pose_error(const Pose& T_est, const Pose& T_true) {
 
 struct SimRunResult {
   double mean_nees = 0.0;     // pose, 6 dof
+  double mean_pose_nis = 0.0; // EkfUpdateStats::pose_nis over the updates (6 dof)
   double ate_rmse_m = 0.0;    // position, no alignment (the start is known)
   double rot_rmse_deg = 0.0;
   int frames = 0;
@@ -109,6 +110,8 @@ struct SimRunConfig {
   double input_rate_hz = 200.0;
   double vel_sigma = 0.05, gyro_vel_sigma = 0.01;   // velocity mode input noise (true)
   double filter_input_noise_scale = 1.0;            // the filter assumes this times the true input noise
+  double imu_noise_scale = 1.0;                     // EkfSlam::set_imu_noise_scale on top of that
+  double true_imu_noise_scale = 1.0;                // the simulated IMU's white noise is this times the BMX055's
   int capacity = 48;
   // > 0: RGB-D observations with depth noise k z^2 (observe_rgbd) and the
   // filter's exact RGB-D noise model (rgbd_disparity_sigma_px = fx b k).
@@ -124,7 +127,10 @@ inline SimRunResult run_ekf_sim(const SimRunConfig& c) {
   tools::SimRng cam_rng(c.seed, tools::RngStream::kCamera);
   tools::SimRng in_rng(c.seed, tools::RngStream::kImu);
   const tools::ImuModel model = tools::ImuModel::bmx055(0.0);
-  tools::ImuSynth synth(model, c.input_rate_hz, 9.81, c.seed);
+  tools::ImuModel true_model = model;
+  true_model.gyro_noise_density_rad_s_sqrthz *= c.true_imu_noise_scale;
+  true_model.acc_noise_density_mps2_sqrthz *= c.true_imu_noise_scale;
+  tools::ImuSynth synth(true_model, c.input_rate_hz, 9.81, c.seed);
 
   core::EkfSlamOptions opt;
   opt.motion = c.motion;
@@ -145,6 +151,7 @@ inline SimRunResult run_ekf_sim(const SimRunConfig& c) {
     opt.rgbd_disparity_sigma_px = world.cam.fsu * world.cam.baseline_m * c.rgbd_depth_coeff_per_m *
                                   c.sigma_px_filter / c.sigma_px_true;
   core::EkfSlam ekf(opt, world.cam);
+  ekf.set_imu_noise_scale(c.imu_noise_scale);
   const tools::TrajectoryState s0 = traj->state(0.0);
   const core::ekf::Mat6 P0 = core::ekf::Mat6::Identity() * 1e-10;
   if (c.motion == core::EkfMotionModel::kImu) {
@@ -159,7 +166,8 @@ inline SimRunResult run_ekf_sim(const SimRunConfig& c) {
   const int n_steps = static_cast<int>(c.duration_s / dt) - 1;
   std::vector<core::StereoObservation> obs;
   SimRunResult r;
-  double nees_sum = 0.0, pos2 = 0.0, rot2 = 0.0;
+  double nees_sum = 0.0, pos2 = 0.0, rot2 = 0.0, nis_sum = 0.0;
+  int nis_n = 0;
   long active_sum = 0;
   for (int k = 0; k < n_steps; ++k) {
     // The input at the middle of the step: the zero-order hold then errs by
@@ -181,10 +189,14 @@ inline SimRunResult run_ekf_sim(const SimRunConfig& c) {
       observe_rgbd(world, T_true, c.sigma_px_true, c.rgbd_depth_coeff_per_m, cam_rng, obs);
     else
       observe(world, T_true, c.sigma_px_true, cam_rng, obs);
-    ekf.update(obs.data(), static_cast<int>(obs.size()));
+    const core::EkfUpdateStats st = ekf.update(obs.data(), static_cast<int>(obs.size()));
     r.landmarks_mapped += static_cast<uint64_t>(ekf.frozen_count());
     ekf.clear_frozen();
     if (t < c.skip_s) continue;
+    if (st.pose_nis > 0) {
+      nis_sum += st.pose_nis;
+      ++nis_n;
+    }
     const core::ekf::Vec6 e = pose_error(ekf.pose(), T_true);
     const core::ekf::Mat6 P = ekf.pose_covariance();
     nees_sum += e.dot(P.ldlt().solve(e));
@@ -195,6 +207,7 @@ inline SimRunResult run_ekf_sim(const SimRunConfig& c) {
   }
   if (r.frames > 0) {
     r.mean_nees = nees_sum / r.frames;
+    r.mean_pose_nis = nis_n > 0 ? nis_sum / nis_n : 0.0;
     r.ate_rmse_m = std::sqrt(pos2 / r.frames);
     r.rot_rmse_deg = std::sqrt(rot2 / r.frames) * 180.0 / M_PI;
     r.mean_active = static_cast<int>(active_sum / r.frames);

@@ -21,6 +21,7 @@
 #include <Eigen/Core>
 #include <Eigen/Geometry>
 
+#include <cmath>
 #include <cstddef>
 #include <cstdint>
 #include <string>
@@ -101,6 +102,17 @@ struct EkfUpdateStats {
   int frozen = 0;          // left the filter into the map
   int dropped = 0;         // removed as outliers
   int chunks = 0;          // sequential Cholesky updates
+  // Normalised innovation squared of the first chunk, linearised at the
+  // prior (before any of this update's corrections), and its degrees of
+  // freedom (3 per observation): about nis_dof when the filter's predicted
+  // uncertainty matches its actual errors.
+  double nis = 0.0;
+  int nis_dof = 0;
+  // The pose correction the whole update made, xi = log(T_prior^-1 T_post),
+  // against the covariance it should have, P_prior - P_post (pose block):
+  // about 6 in a consistent filter, larger when the prediction was worse
+  // than the propagated covariance claimed. 0 without an update.
+  double pose_nis = 0.0;
 };
 
 struct EkfCounters {
@@ -133,6 +145,11 @@ class EkfSlam {
   void predict_velocity(const Eigen::Vector3d& v_B_mps, const Eigen::Vector3d& w_B_rps, double dt_s);
   // IMU mode: one strapdown step with the sample held over dt.
   void propagate_imu(const Eigen::Vector3d& gyro_rps, const Eigen::Vector3d& acc_mps2, double dt_s);
+
+  // Every IMU noise density is multiplied by k from the next propagation on
+  // (adaptive process noise, EkfEstimator); 1 at construction.
+  void set_imu_noise_scale(double k) { imu_noise_k2_ = k * k; }
+  double imu_noise_scale() const { return std::sqrt(imu_noise_k2_); }
 
   // Updates with the landmarks already in the filter, freezes those no longer
   // seen, then initialises new tracks from their first observation.
@@ -188,6 +205,7 @@ class EkfSlam {
   int chunk_ = 32;      // landmarks per sequential update
   Eigen::Matrix3d R_;       // noise of the compressed measurement [uL, v, uR]
   double s2_ = 1.0;         // pixel variance
+  double imu_noise_k2_ = 1.0;  // IMU noise variance scale (set_imu_noise_scale)
 
   // Mean.
   ekf::Pose T_WB_;
@@ -209,6 +227,7 @@ class EkfSlam {
 
   // Workspace, allocated once.
   Eigen::MatrixXd pose_tmp_;    // 15 x 15
+  ekf::Mat6 P_pose_prior_;
   Eigen::MatrixXd cross_tmp_;   // 15 x nmax
   Eigen::MatrixXd U_;           // nmax x 3 chunk: P H^T, then P H^T L^-T
   Eigen::MatrixXd S_;           // 3 chunk square: innovation covariance, then its Cholesky factor
