@@ -301,6 +301,12 @@ void visit_ekf(EkfEstimatorOptions& o, OptionVisitor& v) {
           "every IMU noise density (the rig's or the defaults) is multiplied by this (docs/ekf.md)");
   v.value("pred_sigma_px_per_s", o.pred_sigma_px_per_s, "search window growth per second since the last update");
   v.value("pred_sigma_min_px", o.pred_sigma_min_px, "search window pixel uncertainty, lower bound");
+  v.value("use_map_pose", o.use_map_pose, "keyframes re-located on the tracker's local map update the filter with that pose");
+  v.value("map_pose_sigma_m", o.map_pose_sigma_m, "map pose measurement sigma, lower bound");
+  v.value("map_pose_sigma_rad", o.map_pose_sigma_rad, "map pose measurement sigma, lower bound");
+  v.value("map_pose_gate_chi2", o.map_pose_gate_chi2, "map pose innovation gate (chi2, 6 dof; 16.81 = 99 %)");
+  v.value("map_pose_min_interval_s", o.map_pose_min_interval_s,
+          "at most one map pose per this interval (the map is not independent of the filter)");
   v.value("max_lost_frames", o.max_lost_frames, "untracked frames before the tracker takes a new keyframe");
   v.value("min_used_for_tracking", o.min_used_for_tracking, "observations used for the frame to count as tracked");
   v.end_section();

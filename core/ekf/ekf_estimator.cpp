@@ -40,6 +40,9 @@ std::string EkfEstimatorOptions::validate() const {
         init_gyro_bias_sigma_rps > 0 && init_acc_bias_sigma_mps2 > 0))
     e << "init_*_sigma: must be > 0\n";
   if (!(pred_sigma_min_px > 0 && pred_sigma_px_per_s >= 0)) e << "pred_sigma_*: min > 0, rate >= 0\n";
+  if (!(map_pose_sigma_m > 0 && map_pose_sigma_rad > 0)) e << "map_pose_sigma_m/rad: must be > 0\n";
+  if (!(map_pose_gate_chi2 > 0)) e << "map_pose_gate_chi2: must be > 0\n";
+  if (!(map_pose_min_interval_s >= 0)) e << "map_pose_min_interval_s: must be >= 0\n";
   if (max_lost_frames < 1) e << "max_lost_frames: at least 1\n";
   return e.str();
 }
@@ -311,6 +314,29 @@ bool EkfEstimator::add_frame(const RgbdFrame& f) {
     // An empty update still counts the miss of every active landmark.
     ekf_.update(nullptr, 0);
   }
+  const bool map_pose_due =
+      last_map_pose_t_ns_ < 0 || 1e-9 * static_cast<double>(f.t_ns - last_map_pose_t_ns_) >= opt_.map_pose_min_interval_s;
+  if (opt_.use_map_pose && r.keyframe && r.map_pose_valid && map_pose_due) {
+    const Eigen::Isometry3d T_WB_map = r.T_WC_map * T_BC_.inverse();
+    const double sp = std::max(opt_.map_pose_sigma_m, r.map_sigma_p_m);
+    const double sr = std::max(opt_.map_pose_sigma_rad, r.map_sigma_rad);
+    ekf::Mat6 R = ekf::Mat6::Zero();
+    R.diagonal() << sp * sp, sp * sp, sp * sp, sr * sr, sr * sr, sr * sr;
+    if (ekf_.update_pose(ekf::Pose(T_WB_map.linear(), T_WB_map.translation()), R, opt_.map_pose_gate_chi2)) {
+      ++ekf_counters_.map_poses_used;
+      last_map_pose_t_ns_ = f.t_ns;
+    } else {
+      ++ekf_counters_.map_poses_gated;
+    }
+  }
+  if (r.keyframe && tracker_.has_keyframe()) {
+    // The keyframe was made at the filter's prediction; its points enter the
+    // local map (and are tracked against) at the updated pose instead.
+    Eigen::Isometry3d T_WB_post = Eigen::Isometry3d::Identity();
+    T_WB_post.linear() = ekf_.pose().R;
+    T_WB_post.translation() = ekf_.pose().p;
+    tracker_.set_keyframe_pose(tracker_.keyframe_t_ns(), T_WB_post * T_BC_);
+  }
   // The estimator keeps no map: frozen landmarks are dropped here.
   ekf_.clear_frozen();
   if (!finite_state(ekf_)) {
@@ -362,13 +388,14 @@ std::string EkfEstimator::backend_summary() const {
       buf, sizeof buf,
       "ekf: %d of %d landmarks active; initialised %llu, frozen %llu, dropped %llu, capacity full %llu; "
       "observations %llu in, %llu used, %llu gated, %llu without depth; tracker resets %llu, filter "
-      "resets %llu; update p50 %.2f ms, p99 %.2f ms, max %.2f ms; IMU noise x%.1f; NIS / dof %.2f, pose NIS %.1f (consistent: 1 and 6)",
+      "resets %llu; map poses %llu used, %llu gated; update p50 %.2f ms, p99 %.2f ms, max %.2f ms; IMU noise x%.1f; NIS / dof %.2f, pose NIS %.1f (consistent: 1 and 6)",
       ekf_.num_active(), ekf_.options().landmark_capacity, (unsigned long long)c.landmarks_initialised,
       (unsigned long long)c.landmarks_frozen, (unsigned long long)c.landmarks_dropped,
       (unsigned long long)c.capacity_full, (unsigned long long)e.observations_in,
       (unsigned long long)c.observations_used, (unsigned long long)c.observations_gated,
       (unsigned long long)e.observations_no_depth, (unsigned long long)e.tracker_resets,
-      (unsigned long long)e.filter_resets, ms(50), ms(99),
+      (unsigned long long)e.filter_resets, (unsigned long long)e.map_poses_used,
+      (unsigned long long)e.map_poses_gated, ms(50), ms(99),
       update_latency_.count() > 0 ? 1e-6 * static_cast<double>(update_latency_.max()) : 0.0,
       ekf_.imu_noise_scale(),
       e.nis_dof_sum > 0 ? e.nis_sum / e.nis_dof_sum : 0.0,

@@ -386,6 +386,37 @@ void EkfSlam::apply_correction(int n) {
   for (int s = 0; 3 * s + dx_ < n; ++s) lm_p_.col(s) += dx_vec_.segment<3>(dx_ + 3 * s);
 }
 
+bool EkfSlam::update_pose(const Pose& T_meas, const ekf::Mat6& R, double gate_chi2, double* nis) {
+  flush_cross_covariance();
+  const int n = dim();
+  // r = log(T_hat^-1 T_meas) = xi + n to first order: H = [I6 0].
+  const Vec6 r = ekf::se3_log(T_WB_.inverse() * T_meas);
+  ekf::Mat6 S6 = P_.topLeftCorner<6, 6>() + R;
+  S6 = (0.5 * (S6 + S6.transpose())).eval();  // fixed size: no heap temporary
+  Eigen::Ref<Eigen::MatrixXd> S(S_.topLeftCorner(6, 6));
+  S = S6;
+  Eigen::LLT<Eigen::Ref<Eigen::MatrixXd>> llt(S);
+  if (llt.info() != Eigen::Success) {
+    ++counters_.cholesky_failures;
+    return false;
+  }
+  nu_.head<6>() = r;
+  llt.matrixL().solveInPlace(nu_.head(6));
+  const double d2 = nu_.head<6>().squaredNorm();
+  if (nis != nullptr) *nis = d2;
+  if (!(d2 <= gate_chi2)) return false;
+  // U = P H^T = the pose columns; W = U L^-T; dx = W L^-1 r; P -= W W^T.
+  U_.topLeftCorner(n, 6) = P_.leftCols<6>().topRows(n);
+  for (int r0 = 0; r0 < n; r0 += kPanel) {
+    const int rb = std::min(kPanel, n - r0);
+    llt.matrixU().solveInPlace<Eigen::OnTheRight>(U_.block(r0, 0, rb, 6));
+  }
+  dx_vec_.head(n).noalias() = U_.topLeftCorner(n, 6) * nu_.head(6);
+  symmetric_downdate(n, 6);
+  apply_correction(n);
+  return true;
+}
+
 void EkfSlam::update_chunk(const int* slots, int count, EkfUpdateStats& stats) {
   const int n = dim();
   // Linearise every observation of the chunk at the current mean.

@@ -7,7 +7,6 @@
 
 #include "kestrel/drivers/devices.hpp"
 #include "kestrel/drivers/rig_yaml.hpp"
-#include "kestrel/tools/estimator_config_yaml.hpp"
 
 namespace kestrel::drivers {
 namespace {
@@ -15,15 +14,14 @@ namespace {
 const std::string kConfigs = std::string(KESTREL_SOURCE_DIR) + "/configs/";
 
 TEST(LiveConfig, ShippedConfigsParse) {
-  // As `kestrel run` reads them: the estimator's sections are allowed beside the live ones.
-  const LiveConfig a = load_live_config(kConfigs + "openni2_bmx055_i2c.yaml", tools::estimator_config_sections());
+  const LiveConfig a = load_live_config(kConfigs + "openni2_bmx055_i2c.yaml");
   EXPECT_EQ(a.drivers.camera.type, CameraType::kOpenNi2);
   EXPECT_EQ(a.drivers.imu.type, ImuType::kBmx055I2c);
   EXPECT_EQ(a.drivers.imu.bmx055.drdy, bmx055::DataReadyMode::kGpio);
   EXPECT_EQ(a.drivers.imu.gpio_line, 17);
   EXPECT_EQ(a.drivers.imu.bmx055.gyro_bw, bmx055::gyro::Bandwidth::k400Hz_47Hz);
   EXPECT_EQ(a.rig.imu_rate_hz, 400);
-  const LiveConfig b = load_live_config(kConfigs + "realsense_v4l2_bmx055_usb.yaml", tools::estimator_config_sections());
+  const LiveConfig b = load_live_config(kConfigs + "realsense_v4l2_bmx055_usb.yaml");
   EXPECT_EQ(b.drivers.camera.type, CameraType::kV4l2);
   EXPECT_EQ(b.drivers.camera.v4l2_depth_format, "z16");
   EXPECT_EQ(b.drivers.imu.type, ImuType::kBmx055Usb);
@@ -34,8 +32,6 @@ TEST(LiveConfig, ShippedConfigsParse) {
   // The shipped live rigs name their backend: one each of the small-board EKF and the window optimizer.
   EXPECT_EQ(a.estimator.backend, "ekf");
   EXPECT_EQ(b.estimator.backend, "window");
-  // The small board's EKF is told its IMU is a real, vibrating one (docs/ekf.md).
-  EXPECT_EQ(tools::load_estimator_config(kConfigs + "openni2_bmx055_i2c.yaml").ekf.imu_noise_inflation, 30.0);
 }
 
 std::string with_drivers(const std::string& drivers) {

@@ -174,6 +174,60 @@ TEST(EkfSlam, JointUpdateEqualsDenseFourRowEkf) {
   EXPECT_LT(ekf.pose_covariance().trace(), P.topLeftCorner(6, 6).trace());
 }
 
+// update_pose (the keyframe's pose from the tracker's local map) against the
+// dense Kalman update with H = [I6 0] and r = log(T_hat^-1 T_meas): mean of
+// pose and landmarks, covariance, and the 6-dof gate.
+TEST(EkfSlam, PoseUpdateEqualsDenseKalmanUpdate) {
+  test::EkfSimWorld w = test::make_ekf_world(1, 1);
+  EkfSlamOptions opt;
+  opt.max_init_depth_m = 30.0;
+  EkfSlam ekf(opt, w.cam);
+  std::mt19937_64 g(9);
+  const Pose T0(core::ekf::so3_exp(Vec3(0.1, 0.0, 0.3)), Vec3(0.5, -0.2, 1.0));
+  ekf.reset(T0, random_spd6(g) * 1e-2);
+  const std::vector<Vec3> pts_C = {Vec3(-1.0, 0.3, 6.0), Vec3(1.5, -0.4, 8.0)};
+  std::vector<StereoObservation> obs;
+  for (size_t i = 0; i < pts_C.size(); ++i) {
+    const Vec3 m_W = T0 * (w.cam.T_CB.inverse() * pts_C[i]);
+    core::ekf::StereoMeas z;
+    ASSERT_TRUE(core::ekf::stereo_project(w.cam, T0, m_W, 0.1, z));
+    obs.push_back({static_cast<uint32_t>(10 + i), z(0), z(1), z(2), z(1)});
+  }
+  ekf.update(obs.data(), 2);  // the landmarks inherit the pose uncertainty: cross terms
+  ASSERT_EQ(ekf.num_active(), 2);
+  const int n = ekf.dim();
+  const Eigen::MatrixXd P = ekf.covariance();
+  const Pose T_prior = ekf.pose();
+  const Vec3 m0 = ekf.active_position(0), m1 = ekf.active_position(1);
+
+  const Pose T_meas = T_prior * core::ekf::se3_exp((Vec6() << 0.03, -0.02, 0.01, 0.004, -0.002, 0.006).finished());
+  core::ekf::Mat6 R = core::ekf::Mat6::Zero();
+  R.diagonal() << 4e-4, 4e-4, 4e-4, 1e-4, 1e-4, 1e-4;
+  const Vec6 r = core::ekf::se3_log(T_prior.inverse() * T_meas);
+  Eigen::MatrixXd H = Eigen::MatrixXd::Zero(6, n);
+  H.leftCols<6>().setIdentity();
+  const Eigen::MatrixXd S = H * P * H.transpose() + R;
+  const Eigen::MatrixXd K = S.ldlt().solve(H * P).transpose();
+  const Eigen::VectorXd dx = K * r;
+  const Eigen::MatrixXd P_post = (Eigen::MatrixXd::Identity(n, n) - K * H) * P;
+  const double nis_expect = r.dot(S.ldlt().solve(r));
+
+  double nis = 0;
+  ASSERT_TRUE(ekf.update_pose(T_meas, R, 1e9, &nis));
+  EXPECT_NEAR(nis, nis_expect, 1e-9 * nis_expect);
+  const Pose T_expect = T_prior * core::ekf::se3_exp(dx.head<6>());
+  EXPECT_LT((ekf.pose().p - T_expect.p).norm(), 1e-9);
+  EXPECT_LT((ekf.pose().R - T_expect.R).norm(), 1e-9);
+  EXPECT_LT((ekf.active_position(0) - (m0 + dx.segment<3>(6))).norm(), 1e-9);
+  EXPECT_LT((ekf.active_position(1) - (m1 + dx.segment<3>(9))).norm(), 1e-9);
+  EXPECT_LT((ekf.covariance() - P_post).norm(), 1e-9 * P_post.norm());
+  // A measurement beyond the gate changes nothing.
+  const Pose T_before = ekf.pose();
+  const Pose T_far = T_before * core::ekf::se3_exp((Vec6() << 2.0, 0, 0, 0, 0, 0).finished());
+  EXPECT_FALSE(ekf.update_pose(T_far, R, 16.81));
+  EXPECT_LT((ekf.pose().p - T_before.p).norm(), 1e-15);
+}
+
 TEST(EkfSlam, UpdateReducesUncertaintyAndManagesLandmarks) {
   const test::EkfSimWorld w = test::make_ekf_world(3);
   EkfSlamOptions opt;

@@ -150,7 +150,12 @@ TEST_P(Divergence, CameraCoveredSevenSecondsRestarts) {
   const ReplayRun r = replay_with(path, backend);
   const core::DivergenceCounts& d = r.report.estimator_counters.divergence;
   EXPECT_GE(d.divergences, 1u);
-  EXPECT_GE(d.by_cause[static_cast<size_t>(core::DivergenceCause::kCoastTimeout)], 1u);
+  // Coasting too long is caught by the timeout or, in a filter whose IMU noise
+  // is inflated for a real airframe (the ekf), by its position sigma passing
+  // max_position_sigma_m first: either restart is the right answer.
+  const uint64_t coast = d.by_cause[static_cast<size_t>(core::DivergenceCause::kCoastTimeout)];
+  const uint64_t cov = d.by_cause[static_cast<size_t>(core::DivergenceCause::kCovariance)];
+  EXPECT_GE(coast + cov, 1u) << "restarts by timeout " << coast << ", by covariance " << cov;
   uint32_t reset_before = 0, reset_after = 0;
   for (const auto& p : r.poses) {
     const double t = rel_s(r, p.t_ns);

@@ -7,8 +7,9 @@
 // Per frame: the filter is propagated to the frame time, its pose predicts the
 // tracker's search, and the tracker's observations (keyframe points with
 // persistent ids and the current frame's registered depth) update pose and
-// landmarks together. The tracker's own pose is not used: the filter is the
-// estimate. Start-up: the static initialiser of the dead-reckoning backend.
+// landmarks together; a keyframe the tracker re-located on its local map
+// adds that pose as a measurement. The tracker's chained pose is not used:
+// the filter is the estimate. Start-up: the static initialiser of the dead-reckoning backend.
 //
 // Fixed memory: every buffer is sized in the constructor; add_imu and
 // add_frame make no heap allocation in steady state (tests/ekf). The update
@@ -55,17 +56,34 @@ struct EkfEstimatorOptions {
   double default_gyro_random_walk = 2.0e-5;
   double default_acc_random_walk = 3.0e-3;
   // Every IMU noise density (the rig's or the defaults above) is multiplied
-  // by this. 1 keeps the filter consistent with a datasheet IMU (the
-  // simulator's); a real airframe's vibration and any mismatch between the
-  // motion the IMU felt and the one the camera saw need more: x30 is best on
-  // the hybrid EuRoC flights with their real IMU, as for the window, and
-  // configs/openni2_bmx055_i2c.yaml sets it (docs/ekf.md, the sweep). The
-  // summary's NIS figures say whether a rig's value fits.
-  double imu_noise_inflation = 1.0;
+  // by this, as window.imu_noise_inflation: datasheet densities leave out an
+  // airframe's vibration and any mismatch between the motion the IMU felt and
+  // the one the camera saw. x30 is best on the hybrid EuRoC flights with their
+  // real IMU (2-10x lower error); with the map poses below it costs little
+  // on the simulator's datasheet IMU (docs/ekf.md, the sweep). The summary's
+  // NIS figures say whether a rig's value fits.
+  double imu_noise_inflation = 30.0;
   // Tracker search window: the prediction's pixel uncertainty grows with the
   // time since the last update that used observations.
   double pred_sigma_px_per_s = 60.0;
   double pred_sigma_min_px = 4.0;
+  // A keyframe the tracker re-located on its local map (the depth-backed
+  // points of past keyframes, docs/tracking.md) gives the filter that pose as
+  // a measurement, as the window's map pose factor does: the filter forgets a
+  // landmark 3 frames after it leaves the view, the local map remembers 8192,
+  // so drift stops growing where the vehicle returns. Sigmas are lower bounds
+  // on the PnP's own; the gate is chi2(6 dof, 99 %).
+  bool use_map_pose = true;
+  double map_pose_sigma_m = 0.02;
+  double map_pose_sigma_rad = 0.01;
+  double map_pose_gate_chi2 = 16.81;
+  // The local map's points were placed at the filter's own earlier poses, so
+  // a map pose is not independent of the state: taken at every keyframe it
+  // counts the same information again and again, the filter turns
+  // over-confident and gates its own landmarks (on `hard` at x1 IMU noise:
+  // 232 gated instead of 7, 96 cm instead of 4.7). At most one per this
+  // interval (docs/ekf.md: 0.25 s keeps most of the gain elsewhere).
+  double map_pose_min_interval_s = 0.25;
   int max_lost_frames = 3;        // untracked frames before the tracker takes a new keyframe
   int min_used_for_tracking = 5;  // observations in the update for the frame to count as tracked
   // Divergence detection (the config's safety: section, docs/safety.md).
@@ -83,6 +101,8 @@ struct EkfEstimatorCounters {
   uint64_t frames_updated = 0;
   uint64_t tracker_resets = 0;
   uint64_t filter_resets = 0;  // non-finite state: restarted from the IMU state
+  uint64_t map_poses_used = 0;       // keyframe poses from the tracker's local map taken as a measurement
+  uint64_t map_poses_gated = 0;      // ... refused by the gate
   double nis_sum = 0;                // first-chunk NIS and its degrees of freedom, summed
   double nis_dof_sum = 0;
   double pose_nis_sum = 0;           // EkfUpdateStats::pose_nis, summed over pose_nis_n updates
@@ -152,6 +172,7 @@ class EkfEstimator final : public Estimator {
   DivergenceMonitor monitor_;
   NavState last_fix_state_;
   bool have_fix_state_ = false;
+  int64_t last_map_pose_t_ns_ = -1;
 };
 
 // The filter options the estimator derives from a rig: camera model and

@@ -155,6 +155,13 @@ class EkfSlam {
   // seen, then initialises new tracks from their first observation.
   EkfUpdateStats update(const StereoObservation* obs, int count);
 
+  // A direct measurement of the body pose, T_meas = T_WB exp(n), n ~ N(0, R)
+  // in the filter's [rho, theta] order (e.g. a PnP on mapped points). Gated
+  // at gate_chi2 (6 dof); false when refused or not positive definite.
+  // Corrects pose, velocity, biases and every active landmark through their
+  // correlations. Allocation-free.
+  bool update_pose(const ekf::Pose& T_meas, const ekf::Mat6& R, double gate_chi2, double* nis = nullptr);
+
   // Moves every active landmark into the frozen buffer (end of a run).
   void freeze_all();
 
