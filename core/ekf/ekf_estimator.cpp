@@ -132,6 +132,7 @@ void EkfEstimator::start(const NavState& s0, bool moving) {
   started_ = true;
   tracker_.reset();
   last_tracked_t_ns_ = -1;
+  last_map_pose_t_ns_ = -1;
   lost_frames_ = 0;
   ++counters_.resets;
   out_.reset_counter = static_cast<uint32_t>(counters_.resets);
@@ -329,14 +330,6 @@ bool EkfEstimator::add_frame(const RgbdFrame& f) {
       ++ekf_counters_.map_poses_gated;
     }
   }
-  if (r.keyframe && tracker_.has_keyframe()) {
-    // The keyframe was made at the filter's prediction; its points enter the
-    // local map (and are tracked against) at the updated pose instead.
-    Eigen::Isometry3d T_WB_post = Eigen::Isometry3d::Identity();
-    T_WB_post.linear() = ekf_.pose().R;
-    T_WB_post.translation() = ekf_.pose().p;
-    tracker_.set_keyframe_pose(tracker_.keyframe_t_ns(), T_WB_post * T_BC_);
-  }
   // The estimator keeps no map: frozen landmarks are dropped here.
   ekf_.clear_frozen();
   if (!finite_state(ekf_)) {
@@ -345,6 +338,16 @@ bool EkfEstimator::add_frame(const RgbdFrame& f) {
     s0.t_ns = f.t_ns;
     start(s0, false);
     return false;
+  }
+  if (r.keyframe && tracker_.has_keyframe()) {
+    // The keyframe was made at the tracker's own pose for it (chained from
+    // the previous keyframe, or the filter's prediction after a reset); its
+    // points enter the local map, and are tracked against, at the filter's
+    // updated pose instead. After the finite check: never a NaN into the map.
+    Eigen::Isometry3d T_WB_post = Eigen::Isometry3d::Identity();
+    T_WB_post.linear() = ekf_.pose().R;
+    T_WB_post.translation() = ekf_.pose().p;
+    tracker_.set_keyframe_pose(tracker_.keyframe_t_ns(), T_WB_post * T_BC_);
   }
   publish(f.t_ns);
 

@@ -128,9 +128,11 @@ EkfSlam::EkfSlam(const EkfSlamOptions& options, const ekf::StereoCamera& camera)
   P_.setZero(nmax_, nmax_);
   pose_tmp_.setZero(15, 15);
   cross_tmp_.setZero(15, nmax_);
-  U_.setZero(nmax_, 3 * chunk_);
-  S_.setZero(3 * chunk_, 3 * chunk_);
-  nu_.setZero(3 * chunk_);
+  // update_pose needs 6 columns whatever the chunk size.
+  const int work_cols = std::max(3 * chunk_, 6);
+  U_.setZero(nmax_, work_cols);
+  S_.setZero(work_cols, work_cols);
+  nu_.setZero(work_cols);
   dx_vec_.setZero(nmax_);
   Hp_.resize(static_cast<size_t>(chunk_));
   Hm_.resize(static_cast<size_t>(chunk_));
@@ -543,7 +545,7 @@ EkfUpdateStats EkfSlam::update(const StereoObservation* obs, int count) {
   for (int c0 = 0; c0 < nacc; c0 += chunk_) {
     update_chunk(slot_list_.data() + c0, std::min(chunk_, nacc - c0), st);
   }
-  if (st.used > 0) {
+  if (st.used >= 2) {  // one landmark's 3 rows leave P_prior - P_post rank-deficient
     const Vec6 xi = ekf::se3_log(T_prior.inverse() * T_WB_);
     const ekf::Mat6 D = P_pose_prior_ - P_.topLeftCorner<6, 6>();
     const Eigen::LDLT<ekf::Mat6> ldlt(0.5 * (D + D.transpose()));

@@ -55,7 +55,7 @@ void run_and_count(core::EkfMotionModel motion, int capacity) {
     test::observe(world, test::pose_of(traj->state((f + 1) * 10 * dt)), 0.5, rng, obs[static_cast<size_t>(f)], 200);
   }
   unsigned long new_count = 0, malloc_count = 0;
-  int max_active = 0, frozen_total = 0, init_total = 0;
+  int max_active = 0, frozen_total = 0, init_total = 0, pose_updates = 0;
   for (int f = 0; f < frames; ++f) {
     const bool measure = f >= 20;  // warm-up: first frames fill the active set
     rt::AllocCountScope scope;
@@ -69,6 +69,11 @@ void run_and_count(core::EkfMotionModel motion, int capacity) {
     }
     const auto& o = obs[static_cast<size_t>(f)];
     const core::EkfUpdateStats st = ekf.update(o.data(), static_cast<int>(o.size()));
+    if (f % 3 == 0) {
+      // The map pose measurement (EkfEstimator, docs/ekf.md) on every third frame, at the truth.
+      core::ekf::Mat6 R = core::ekf::Mat6::Identity() * 4e-4;
+      pose_updates += ekf.update_pose(test::pose_of(traj->state((f + 1) * 10 * dt)), R, 1e9) ? 1 : 0;
+    }
     frozen_total += ekf.frozen_count();
     init_total += st.initialised;
     ekf.clear_frozen();
@@ -84,6 +89,7 @@ void run_and_count(core::EkfMotionModel motion, int capacity) {
   EXPECT_EQ(max_active, capacity);
   EXPECT_GT(frozen_total, 50);
   EXPECT_GT(init_total, 50);
+  EXPECT_GT(pose_updates, 30);
 }
 
 TEST(EkfAlloc, ImuModeStepsAllocateNothing) { run_and_count(core::EkfMotionModel::kImu, 96); }

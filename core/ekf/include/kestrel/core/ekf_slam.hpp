@@ -147,7 +147,7 @@ class EkfSlam {
   void propagate_imu(const Eigen::Vector3d& gyro_rps, const Eigen::Vector3d& acc_mps2, double dt_s);
 
   // Every IMU noise density is multiplied by k from the next propagation on
-  // (adaptive process noise, EkfEstimator); 1 at construction.
+  // (EkfEstimator's imu_noise_inflation); 1 at construction.
   void set_imu_noise_scale(double k) { imu_noise_k2_ = k * k; }
   double imu_noise_scale() const { return std::sqrt(imu_noise_k2_); }
 
