@@ -33,6 +33,19 @@ Mat6 random_spd6(std::mt19937_64& g) {
   return 1e-3 * (A * A.transpose() + Mat6::Identity());
 }
 
+// Noise-free stereo observations, ids 10, 11, ..., of points given in the
+// camera frame of the body pose T_WB.
+void exact_observations(const test::EkfSimWorld& w, const Pose& T_WB, const std::vector<Vec3>& pts_C,
+                        std::vector<StereoObservation>& obs) {
+  obs.clear();
+  for (size_t i = 0; i < pts_C.size(); ++i) {
+    const Vec3 m_W = T_WB * (w.cam.T_CB.inverse() * pts_C[i]);
+    core::ekf::StereoMeas z;
+    ASSERT_TRUE(core::ekf::stereo_project(w.cam, T_WB, m_W, 0.1, z));
+    obs.push_back({static_cast<uint32_t>(10 + i), z(0), z(1), z(2), z(1)});
+  }
+}
+
 TEST(EkfSlam, ConstantTwistPredictionIsExact) {
   test::EkfSimWorld w = test::make_ekf_world(1, 1);
   EkfSlamOptions opt;
@@ -101,12 +114,7 @@ TEST(EkfSlam, JointUpdateEqualsDenseFourRowEkf) {
   // Three landmarks in front of the camera, initialised from one observation each.
   const std::vector<Vec3> pts_C = {Vec3(-1.0, 0.3, 6.0), Vec3(1.5, -0.4, 8.0), Vec3(0.2, 0.8, 4.0)};
   std::vector<StereoObservation> obs;
-  for (size_t i = 0; i < pts_C.size(); ++i) {
-    const Vec3 m_W = T0 * (w.cam.T_CB.inverse() * pts_C[i]);
-    core::ekf::StereoMeas z;
-    ASSERT_TRUE(core::ekf::stereo_project(w.cam, T0, m_W, 0.1, z));
-    obs.push_back({static_cast<uint32_t>(10 + i), z(0), z(1), z(2), z(1)});
-  }
+  ASSERT_NO_FATAL_FAILURE(exact_observations(w, T0, pts_C, obs));
   ekf.update(obs.data(), 3);
   ASSERT_EQ(ekf.num_active(), 3);
   const int n = ekf.dim();
@@ -187,12 +195,7 @@ TEST(EkfSlam, PoseUpdateEqualsDenseKalmanUpdate) {
   ekf.reset(T0, random_spd6(g) * 1e-2);
   const std::vector<Vec3> pts_C = {Vec3(-1.0, 0.3, 6.0), Vec3(1.5, -0.4, 8.0)};
   std::vector<StereoObservation> obs;
-  for (size_t i = 0; i < pts_C.size(); ++i) {
-    const Vec3 m_W = T0 * (w.cam.T_CB.inverse() * pts_C[i]);
-    core::ekf::StereoMeas z;
-    ASSERT_TRUE(core::ekf::stereo_project(w.cam, T0, m_W, 0.1, z));
-    obs.push_back({static_cast<uint32_t>(10 + i), z(0), z(1), z(2), z(1)});
-  }
+  ASSERT_NO_FATAL_FAILURE(exact_observations(w, T0, pts_C, obs));
   ekf.update(obs.data(), 2);  // the landmarks inherit the pose uncertainty: cross terms
   ASSERT_EQ(ekf.num_active(), 2);
   const int n = ekf.dim();
