@@ -291,6 +291,8 @@ void visit_ekf(EkfEstimatorOptions& o, OptionVisitor& v) {
   v.value("init_velocity_sigma_mps", o.init_velocity_sigma_mps, "start-up covariance");
   v.value("init_gyro_bias_sigma_rps", o.init_gyro_bias_sigma_rps, "start-up covariance");
   v.value("init_acc_bias_sigma_mps2", o.init_acc_bias_sigma_mps2, "start-up covariance");
+  v.value("moving_start_after_ns", o.moving_start_after_ns,
+          "no still window by then: start moving, tilt from the mean specific force");
   v.value("moving_init_attitude_sigma_rad", o.moving_init_attitude_sigma_rad, "after a moving start");
   v.value("moving_init_velocity_sigma_mps", o.moving_init_velocity_sigma_mps, "after a moving start");
   v.value("default_gyro_noise_density_rad_s_sqrthz", o.default_gyro_noise_density, "when the rig gives none");

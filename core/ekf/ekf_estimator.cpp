@@ -43,6 +43,7 @@ std::string EkfEstimatorOptions::validate() const {
   if (!(map_pose_sigma_m > 0 && map_pose_sigma_rad > 0)) e << "map_pose_sigma_m/rad: must be > 0\n";
   if (!(map_pose_gate_chi2 > 0)) e << "map_pose_gate_chi2: must be > 0\n";
   if (!(map_pose_min_interval_s >= 0)) e << "map_pose_min_interval_s: must be >= 0\n";
+  if (moving_start_after_ns < 0) e << "moving_start_after_ns: must be >= 0\n";
   if (max_lost_frames < 1) e << "max_lost_frames: at least 1\n";
   return e.str();
 }
@@ -95,7 +96,7 @@ EkfEstimator::EkfEstimator(const Rig& rig, const EkfEstimatorOptions& opt)
     : opt_(opt),
       T_BC_(to_isometry(rig.T_BC)),
       fx_(rig.rgb.fx),
-      init_(rig),
+      init_(rig, opt.moving_start_after_ns),
       tracker_(rig, opt.tracker),
       ekf_(make_filter(rig, opt)),
       monitor_(opt.divergence) {
@@ -171,16 +172,13 @@ void EkfEstimator::propagate_to(int64_t t_ns) {
 
 bool EkfEstimator::add_imu(const ImuSample& s) {
   ++counters_.imu_in;
-  if (first_imu_t_ns_ < 0) first_imu_t_ns_ = s.t_ns;
   if (!started_) {
     // The dead-reckoning backend's static initialiser gives the first state.
     if (!init_.add_imu(s)) {
       counters_.imu_rejects = init_.counters().imu_rejects;
       return false;
     }
-    // A start later than the initialiser's forced-start delay had no still window.
-    const NavState& s0 = init_.output().state;
-    start(s0, first_imu_t_ns_ >= 0 && s0.t_ns - first_imu_t_ns_ >= 2'000'000'000);
+    start(init_.output().state, init_.started_moving());
   }
   if (!imu_sample_usable(s)) {
     bool finite = true;

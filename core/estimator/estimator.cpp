@@ -43,6 +43,7 @@ bool DeadReckoningEstimator::add_imu(const ImuSample& s) {
       // The mean rate of a moving window is motion, not bias.
       s0.bg_rps.setZero();
       prop_.reset(s0);
+      started_moving_ = true;
     } else {
       return false;
     }

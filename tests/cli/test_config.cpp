@@ -96,7 +96,8 @@ TEST(ConfigFile, NamesWithYamlSyntaxReadBackAndDamagedOnesAreRefused) {
 TEST(ConfigFile, KeysOverrideWhateverTheirPlace) {
   const EstimatorConfig c = estimator_config_from_yaml(
       "window:\n  imu_noise_inflation: 10\n  solver: ceres\nfrontend:\n  orb: {n_features: 450}\n"
-      "  lonsc: {candidate_runs: 2}\n  min_inliers: 12\nekf: {landmark_capacity: 96}\n",
+      "  lonsc: {candidate_runs: 2}\n  min_inliers: 12\n  moving_start_after_ns: 1000000000\n"
+      "ekf: {landmark_capacity: 96, moving_start_after_ns: 500000000}\n",
       "x.yaml");
   EXPECT_EQ(c.window.imu_noise_inflation, 10.0);
   EXPECT_EQ(c.window.window.solver, kestrel::core::WindowOptions::Solver::kCeres);
@@ -107,8 +108,10 @@ TEST(ConfigFile, KeysOverrideWhateverTheirPlace) {
   // The backends are built with the shared tracker.
   EXPECT_EQ(c.window_options().frontend.tracker.orb.n_features, 450);
   EXPECT_EQ(c.ekf_options().tracker.orb.n_features, 450);
+  // frontend's moving start is vo's; the window keeps its own.
   EXPECT_EQ(c.window_options().frontend.moving_start_after_ns, 250'000'000);
-  EXPECT_EQ(c.vo_options().moving_start_after_ns, 2'000'000'000);
+  EXPECT_EQ(c.vo_options().moving_start_after_ns, 1'000'000'000);
+  EXPECT_EQ(c.ekf_options().moving_start_after_ns, 500'000'000);
 }
 
 TEST(ConfigFile, LonscVariantSelectsThePapersAlgorithmAndKeysStillOverride) {

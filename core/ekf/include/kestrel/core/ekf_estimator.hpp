@@ -46,8 +46,11 @@ struct EkfEstimatorOptions {
   double init_velocity_sigma_mps = 0.2;
   double init_gyro_bias_sigma_rps = 0.005;
   double init_acc_bias_sigma_mps2 = 0.1;
-  // Without a still window the initialiser takes gravity from a moving
-  // window after 2 s (estimator.hpp): tilt and velocity are then guesses.
+  // Without a still window by moving_start_after_ns the initialiser takes
+  // gravity from a moving window (estimator.hpp): tilt and velocity are then
+  // guesses, with these sigmas, which the filter corrects from vision.
+  // 0.25 s, as vo and window (frontend_odometry.hpp).
+  int64_t moving_start_after_ns = 250'000'000;
   double moving_init_attitude_sigma_rad = 0.1;
   double moving_init_velocity_sigma_mps = 1.0;
   // IMU noise used when the rig gives none (EuRoC-class MEMS).
@@ -159,7 +162,6 @@ class EkfEstimator final : public Estimator {
   bool started_ = false;
   int64_t t_state_ns_ = -1;  // time of the filter's mean
   int64_t last_imu_t_ns_ = -1;
-  int64_t first_imu_t_ns_ = -1;
   Eigen::Vector3d last_gyro_ = Eigen::Vector3d::Zero();
   Eigen::Vector3d last_acc_ = Eigen::Vector3d::Zero();
   bool have_last_ = false;

@@ -183,6 +183,8 @@ class DeadReckoningEstimator final : public Estimator {
   bool add_frame(const RgbdFrame& f) override;
   const EstimatorOutput& output() const override { return out_; }
   const EstimatorCounters& counters() const override;
+  // The state came from a moving window, not a still one (tilt and velocity are guesses).
+  bool started_moving() const { return started_moving_; }
 
  private:
   StaticInitializer init_;
@@ -191,6 +193,7 @@ class DeadReckoningEstimator final : public Estimator {
   mutable EstimatorCounters counters_;
   int64_t first_t_ns_ = -1;
   int64_t moving_start_after_ns_;
+  bool started_moving_ = false;
 };
 
 }  // namespace kestrel::core
