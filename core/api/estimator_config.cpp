@@ -295,6 +295,8 @@ void visit_ekf(EkfEstimatorOptions& o, OptionVisitor& v) {
           "no still window by then: start moving, tilt from the mean specific force");
   v.value("moving_init_attitude_sigma_rad", o.moving_init_attitude_sigma_rad, "after a moving start");
   v.value("moving_init_velocity_sigma_mps", o.moving_init_velocity_sigma_mps, "after a moving start");
+  v.value("restart_position_sigma_m", o.restart_position_sigma_m,
+          "position sigma after a re-initialisation (the coasted position is a guess)");
   v.value("default_gyro_noise_density_rad_s_sqrthz", o.default_gyro_noise_density, "when the rig gives none");
   v.value("default_acc_noise_density_mps2_sqrthz", o.default_acc_noise_density, "when the rig gives none");
   v.value("default_gyro_random_walk_rad_s2_sqrthz", o.default_gyro_random_walk, "when the rig gives none");

@@ -44,6 +44,7 @@ std::string EkfEstimatorOptions::validate() const {
   if (!(map_pose_gate_chi2 > 0)) e << "map_pose_gate_chi2: must be > 0\n";
   if (!(map_pose_min_interval_s >= 0)) e << "map_pose_min_interval_s: must be >= 0\n";
   if (moving_start_after_ns < 0) e << "moving_start_after_ns: must be >= 0\n";
+  if (!(restart_position_sigma_m > 0)) e << "restart_position_sigma_m: must be > 0\n";
   if (max_lost_frames < 1) e << "max_lost_frames: at least 1\n";
   return e.str();
 }
@@ -121,10 +122,12 @@ void EkfEstimator::record_consistency(const EkfUpdateStats& st) {
   }
 }
 
-void EkfEstimator::start(const NavState& s0, bool moving) {
+void EkfEstimator::start(const NavState& s0, bool moving, bool restart) {
   const double att = moving ? opt_.moving_init_attitude_sigma_rad : opt_.init_attitude_sigma_rad;
+  const double pos = restart ? std::max(opt_.init_position_sigma_m, opt_.restart_position_sigma_m)
+                             : opt_.init_position_sigma_m;
   ekf::Mat6 P0 = ekf::Mat6::Zero();
-  P0.diagonal().head<3>().setConstant(opt_.init_position_sigma_m * opt_.init_position_sigma_m);
+  P0.diagonal().head<3>().setConstant(pos * pos);
   P0.diagonal().tail<3>().setConstant(att * att);
   ekf_.reset_imu(ekf::Pose(s0.q_WB.normalized().toRotationMatrix(), s0.p_WB), s0.v_WB, s0.bg_rps, s0.ba_mps2,
                  P0, moving ? opt_.moving_init_velocity_sigma_mps : opt_.init_velocity_sigma_mps,
@@ -134,6 +137,7 @@ void EkfEstimator::start(const NavState& s0, bool moving) {
   tracker_.reset();
   last_tracked_t_ns_ = -1;
   last_map_pose_t_ns_ = -1;
+  reanchor_pending_ = restart;
   lost_frames_ = 0;
   ++counters_.resets;
   out_.reset_counter = static_cast<uint32_t>(counters_.resets);
@@ -217,7 +221,7 @@ bool EkfEstimator::add_imu(const ImuSample& s) {
     ++ekf_counters_.filter_resets;
     NavState s0 = out_.state;
     s0.t_ns = s.t_ns;
-    start(s0, false);
+    start(s0, false, true);
   }
   publish(t_state_ns_);
   if (out_.quality == TrackingQuality::kUninitialized) out_.quality = TrackingQuality::kImuOnly;
@@ -258,7 +262,7 @@ void EkfEstimator::supervise() {
   const DivergenceOptions& d = opt_.divergence;
   if (!finite || why == DivergenceCause::kAccBias || !(s0.ba_mps2.norm() <= d.max_acc_bias_mps2)) s0.ba_mps2.setZero();
   if (!finite || why == DivergenceCause::kGyroBias || !(s0.bg_rps.norm() <= d.max_gyro_bias_rps)) s0.bg_rps.setZero();
-  start(s0, true);
+  start(s0, true, true);
   publish(s0.t_ns);
   monitor_.on_reinitialised(s0.t_ns, why);
   out_.quality = TrackingQuality::kLost;
@@ -300,12 +304,14 @@ bool EkfEstimator::add_frame(const RgbdFrame& f) {
   ekf_counters_.observations_in += static_cast<uint64_t>(n_in);
 
   int used = 0;
+  // The frame's filter time: the visual update and the map pose's, together.
+  const int64_t t0 = rt::now_ns();
+  bool updated = false;
   if (n > 0) {
     // Also freezes the landmarks the tracker no longer sees (none of their
     // ids in this frame's list) after max_missed_frames.
-    const int64_t t0 = rt::now_ns();
     const EkfUpdateStats st = ekf_.update(obs_.data(), n);
-    update_latency_.record(rt::now_ns() - t0);
+    updated = true;
     used = st.used;
     ++ekf_counters_.frames_updated;
     record_consistency(st);
@@ -321,20 +327,31 @@ bool EkfEstimator::add_frame(const RgbdFrame& f) {
     const double sr = std::max(opt_.map_pose_sigma_rad, r.map_sigma_rad);
     ekf::Mat6 R = ekf::Mat6::Zero();
     R.diagonal() << sp * sp, sp * sp, sp * sp, sr * sr, sr * sr, sr * sr;
+    updated = true;
     if (ekf_.update_pose(ekf::Pose(T_WB_map.linear(), T_WB_map.translation()), R, opt_.map_pose_gate_chi2)) {
       ++ekf_counters_.map_poses_used;
       last_map_pose_t_ns_ = f.t_ns;
+      if (reanchor_pending_) {
+        // The first map pose after a restart moves the coasted position
+        // back onto the map by up to restart_position_sigma_m's worth: a
+        // step in the output, announced as PX4 announces its resets.
+        reanchor_pending_ = false;
+        ++ekf_counters_.map_reanchors;
+        ++counters_.resets;
+        out_.reset_counter = static_cast<uint32_t>(counters_.resets);
+      }
     } else {
       ++ekf_counters_.map_poses_gated;
     }
   }
+  if (updated) update_latency_.record(rt::now_ns() - t0);
   // The estimator keeps no map: frozen landmarks are dropped here.
   ekf_.clear_frozen();
   if (!finite_state(ekf_)) {
     ++ekf_counters_.filter_resets;
     NavState s0 = out_.state;
     s0.t_ns = f.t_ns;
-    start(s0, false);
+    start(s0, false, true);
     return false;
   }
   if (r.keyframe && tracker_.has_keyframe()) {
@@ -381,7 +398,7 @@ bool EkfEstimator::add_frame(const RgbdFrame& f) {
 std::string EkfEstimator::backend_summary() const {
   const EkfCounters& c = ekf_.counters();
   const EkfEstimatorCounters& e = ekf_counters_;
-  char buf[800];
+  char buf[900];
   auto ms = [this](double p) {
     return update_latency_.count() > 0 ? 1e-6 * static_cast<double>(update_latency_.percentile(p)) : 0.0;
   };
@@ -389,14 +406,14 @@ std::string EkfEstimator::backend_summary() const {
       buf, sizeof buf,
       "ekf: %d of %d landmarks active; initialised %llu, frozen %llu, dropped %llu, capacity full %llu; "
       "observations %llu in, %llu used, %llu gated, %llu without depth; tracker resets %llu, filter "
-      "resets %llu; map poses %llu used, %llu gated; update p50 %.2f ms, p99 %.2f ms, max %.2f ms; IMU noise x%.1f; NIS / dof %.2f, pose NIS %.1f (consistent: 1 and 6)",
+      "resets %llu; map poses %llu used, %llu gated, %llu re-anchoring a restart; update p50 %.2f ms, p99 %.2f ms, max %.2f ms; IMU noise x%.1f; NIS / dof %.2f, pose NIS %.1f (consistent: 1 and 6)",
       ekf_.num_active(), ekf_.options().landmark_capacity, (unsigned long long)c.landmarks_initialised,
       (unsigned long long)c.landmarks_frozen, (unsigned long long)c.landmarks_dropped,
       (unsigned long long)c.capacity_full, (unsigned long long)e.observations_in,
       (unsigned long long)c.observations_used, (unsigned long long)c.observations_gated,
       (unsigned long long)e.observations_no_depth, (unsigned long long)e.tracker_resets,
       (unsigned long long)e.filter_resets, (unsigned long long)e.map_poses_used,
-      (unsigned long long)e.map_poses_gated, ms(50), ms(99),
+      (unsigned long long)e.map_poses_gated, (unsigned long long)e.map_reanchors, ms(50), ms(99),
       update_latency_.count() > 0 ? 1e-6 * static_cast<double>(update_latency_.max()) : 0.0,
       ekf_.imu_noise_scale(),
       e.nis_dof_sum > 0 ? e.nis_sum / e.nis_dof_sum : 0.0,

@@ -131,6 +131,46 @@ TEST(EkfEstimator, EveryImuBackendStartsWithinAQuarterSecondWithoutAStillWindow)
   }
 }
 
+// After a divergence the filter restarts from its coasted position, which is
+// a guess: its position sigma says so (ekf.restart_position_sigma_m), where a
+// 1 mm sigma made it refuse every local-map pose more than ~8 cm away.
+TEST(EkfEstimator, ARestartKeepsThePositionAsAGuessNotAsTheOrigin) {
+  auto log = drivers::open_log(simulate("static", 1.0, 3));
+  const Rig& rig = log->rig();
+  auto est = core::make_estimator("ekf", rig);
+  auto position_sigma_m = [&] {
+    const core::PoseCovariance& c = est->output().pose_cov;
+    return c.valid ? std::sqrt(c.cov.topLeftCorner<3, 3>().diagonal().maxCoeff()) : -1.0;
+  };
+  int64_t t_ns = 1'000'000'000;
+  auto feed = [&](double seconds, double push_mps2) {
+    for (int i = 0; i < static_cast<int>(seconds * 400); ++i, t_ns += 2'500'000) {
+      ImuSample s;
+      s.t_ns = t_ns;
+      s.acc_mps2 = {push_mps2, 0.0, rig.gravity_mps2};
+      est->add_imu(s);
+    }
+  };
+  // A still start defines W: its position sigma is init_position_sigma_m.
+  while (est->output().quality == core::TrackingQuality::kUninitialized && t_ns < 2'000'000'000) feed(0.0025, 0.0);
+  const double sigma_before = position_sigma_m();
+  ASSERT_GT(sigma_before, 0.0);
+  EXPECT_LT(sigma_before, 0.005);
+  feed(0.3, 0.0);
+  const uint32_t resets_before = est->output().reset_counter;
+  // A push no airframe survives: past max_speed_mps (25 m/s) within 0.3 s.
+  int64_t restart_t_ns = -1;
+  for (int i = 0; i < 160 && restart_t_ns < 0; ++i) {
+    feed(0.0025, 100.0);
+    if (est->output().reset_counter != resets_before) restart_t_ns = t_ns;
+  }
+  ASSERT_GT(restart_t_ns, 0) << "the speed check never fired";
+  const double sigma_after = position_sigma_m();
+  std::printf("position sigma %.4f m at the start, %.4f m right after the restart\n", sigma_before, sigma_after);
+  EXPECT_GE(sigma_after, 0.045);
+  EXPECT_LT(sigma_after, 0.2);
+}
+
 TEST(EkfEstimator, HoverBeatsDeadReckoningWithinCentimetres) {
   const std::string path = simulate("hover", 8.0, 7);
   auto log = drivers::open_log(path);

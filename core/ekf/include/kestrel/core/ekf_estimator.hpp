@@ -53,6 +53,14 @@ struct EkfEstimatorOptions {
   int64_t moving_start_after_ns = 250'000'000;
   double moving_init_attitude_sigma_rad = 0.1;
   double moving_init_velocity_sigma_mps = 1.0;
+  // Position sigma after a re-initialisation. The first start defines W
+  // (init_position_sigma_m, 1 mm); a restart keeps the coasted position,
+  // which is a guess: at 1 mm the filter refused every map pose more than
+  // ~8 cm away (the 99 % gate with a 2 cm map pose), so the tracker's local
+  // map, which takes poses up to frontend.map_max_correction_m (0.15 m)
+  // away, could never pull it back. At 5 cm such a pose passes the gate
+  // (NIS 7.8 at 0.15 m against 16.81).
+  double restart_position_sigma_m = 0.05;
   // IMU noise used when the rig gives none (EuRoC-class MEMS).
   double default_gyro_noise_density = 1.7e-4;
   double default_acc_noise_density = 2.0e-3;
@@ -105,6 +113,7 @@ struct EkfEstimatorCounters {
   uint64_t tracker_resets = 0;
   uint64_t filter_resets = 0;  // non-finite state: restarted from the IMU state
   uint64_t map_poses_used = 0;       // keyframe poses from the tracker's local map taken as a measurement
+  uint64_t map_reanchors = 0;        // of those, the first after a restart (a step, counted in reset_counter)
   uint64_t map_poses_gated = 0;      // ... refused by the gate
   double nis_sum = 0;                // first-chunk NIS and its degrees of freedom, summed
   double nis_dof_sum = 0;
@@ -142,7 +151,9 @@ class EkfEstimator final : public Estimator {
  private:
   // moving: the velocity and tilt are guesses (a moving start, or a restart
   // after a divergence), with the wider start-up covariance.
-  void start(const NavState& s0, bool moving);
+  // restart: after a divergence or a numerical failure, whose position is a
+  // coasted guess (restart_position_sigma_m), not the origin it defines.
+  void start(const NavState& s0, bool moving, bool restart = false);
   void supervise();
   void set_quality(bool tracking);
   void propagate_to(int64_t t_ns);
@@ -174,6 +185,7 @@ class EkfEstimator final : public Estimator {
   DivergenceMonitor monitor_;
   NavState last_fix_state_;
   bool have_fix_state_ = false;
+  bool reanchor_pending_ = false;  // restarted, no map pose taken since
   int64_t last_map_pose_t_ns_ = -1;
 };
 
