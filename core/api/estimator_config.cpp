@@ -415,6 +415,9 @@ std::string validate(const EstimatorConfig& c) {
   if (!estimator_known(c.backend)) e << "estimator.backend: unknown '" << c.backend << "'\n";
   std::string s = c.tracker.validate();
   if (!s.empty()) e << "frontend: " << s << "\n";
+  // Negative would start moving at the first sample, before any still window could be seen.
+  if (c.vo.moving_start_after_ns < 0) e << "frontend: moving_start_after_ns: must be >= 0\n";
+  if (c.window_moving_start_after_ns < 0) e << "window: moving_start_after_ns: must be >= 0\n";
   // The window's IMU noise comes from the rig at construction: validate the
   // rest with a nominal one.
   WindowEstimatorOptions w = c.window_options();

@@ -148,6 +148,14 @@ TEST(ConfigFile, BadInputNamesFileLineAndKey) {
   EXPECT_NE(error_of("frontend: {lonsc_variant: ransac}\n").find("frontend.lonsc_variant: expected one of"),
             std::string::npos);
   EXPECT_NE(error_of("window: {recent_frames: 0}\n").find("S must be >= 1"), std::string::npos);
+  EXPECT_NE(error_of("frontend: {moving_start_after_ns: -1}\n").find("frontend: moving_start_after_ns: must be >= 0"),
+            std::string::npos);
+  EXPECT_NE(error_of("window: {moving_start_after_ns: -1}\n").find("window: moving_start_after_ns: must be >= 0"),
+            std::string::npos);
+  EXPECT_NE(error_of("ekf: {moving_start_after_ns: -1}\n").find("ekf: moving_start_after_ns: must be >= 0"),
+            std::string::npos);
+  EXPECT_NE(error_of("ekf: {restart_position_sigma_m: 0}\n").find("ekf: restart_position_sigma_m: must be > 0"),
+            std::string::npos);
   EXPECT_NE(error_of("window: {recent_frames: 99999999999}\n").find("window.recent_frames: out of range"),
             std::string::npos);
   EXPECT_NE(error_of("window:\n  recent_frames: 3\n bad indent: [\n").find("x.yaml:"), std::string::npos);

@@ -113,8 +113,8 @@ struct EkfEstimatorCounters {
   uint64_t tracker_resets = 0;
   uint64_t filter_resets = 0;  // non-finite state: restarted from the IMU state
   uint64_t map_poses_used = 0;       // keyframe poses from the tracker's local map taken as a measurement
-  uint64_t map_reanchors = 0;        // of those, the first after a restart (a step, counted in reset_counter)
   uint64_t map_poses_gated = 0;      // ... refused by the gate
+  uint64_t map_reanchors = 0;        // of the used, the first after a restart (a step, counted in reset_counter)
   double nis_sum = 0;                // first-chunk NIS and its degrees of freedom, summed
   double nis_dof_sum = 0;
   double pose_nis_sum = 0;           // EkfUpdateStats::pose_nis, summed over pose_nis_n updates

@@ -176,8 +176,9 @@ class Estimator {
 class DeadReckoningEstimator final : public Estimator {
  public:
   // moving_start_after_ns: with no still window by then, start anyway with
-  // gravity from the mean specific force (a moving start).
-  explicit DeadReckoningEstimator(const Rig& rig, int64_t moving_start_after_ns = 2'000'000'000);
+  // gravity from the mean specific force (a moving start). No default: each
+  // backend passes its own config value (vo, ekf, window: 0.25 s).
+  explicit DeadReckoningEstimator(const Rig& rig, int64_t moving_start_after_ns);
   const char* name() const override { return "imu-dead-reckoning"; }
   bool add_imu(const ImuSample& s) override;
   bool add_frame(const RgbdFrame& f) override;
