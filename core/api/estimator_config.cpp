@@ -410,13 +410,24 @@ void visit_options(EstimatorConfig& c, OptionVisitor& v) {
   visit_safety(c.safety, v);
 }
 
+// Every line of a section's errors carries the section, so each names its key.
+// The frontend: section's keys reach every backend's options: a bad one is
+// named once, under frontend:, not again for the window, ekf and rgbd.
+static void add_section_errors(std::ostringstream& e, const char* section, const std::string& errors,
+                               const std::string& skip = {}) {
+  std::istringstream in(errors);
+  for (std::string line; std::getline(in, line);)
+    if (!line.empty() && skip.find(line + "\n") == std::string::npos) e << section << ": " << line << "\n";
+}
+
 std::string validate(const EstimatorConfig& c) {
   std::ostringstream e;
   if (!estimator_known(c.backend)) e << "estimator.backend: unknown '" << c.backend << "'\n";
-  std::string s = c.tracker.validate();
-  if (!s.empty()) e << "frontend: " << s << "\n";
-  // Negative would start moving at the first sample, before any still window could be seen.
-  if (c.vo.moving_start_after_ns < 0) e << "frontend: moving_start_after_ns: must be >= 0\n";
+  // vo's own keys and the tracker's; safety's are named once, below.
+  FrontendOdometryOptions vo = c.vo_options();
+  vo.divergence = DivergenceOptions{};
+  const std::string tracker_errors = c.tracker.validate();
+  add_section_errors(e, "frontend", vo.validate());
   if (c.window_moving_start_after_ns < 0) e << "window: moving_start_after_ns: must be >= 0\n";
   // The window's IMU noise comes from the rig at construction: validate the
   // rest with a nominal one.
@@ -427,16 +438,12 @@ std::string validate(const EstimatorConfig& c) {
   nominal.gyro_random_walk_rad_s2_sqrthz = 1e-5;
   nominal.acc_random_walk_mps3_sqrthz = 1e-4;
   w.window.imu = ImuNoiseParams::from_imu_noise(nominal, 200.0);
-  s = w.validate();
-  if (!s.empty()) e << "window: " << s;
-  s = c.ekf_options().validate();
-  if (!s.empty()) e << "ekf: " << s << "\n";
-  s = c.safety.validate();
-  if (!s.empty()) e << "safety: " << s;
+  add_section_errors(e, "window", w.validate(), tracker_errors);
+  add_section_errors(e, "ekf", c.ekf_options().validate(), tracker_errors);
+  add_section_errors(e, "safety", c.safety.validate());
   RgbdEstimatorOptions r = c.rgbd_options();
   r.window.imu = w.window.imu;
-  s = r.validate();
-  if (!s.empty()) e << "rgbd: " << s;
+  add_section_errors(e, "rgbd", r.validate(), tracker_errors);
   return e.str();
 }
 

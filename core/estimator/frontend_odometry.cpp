@@ -2,18 +2,45 @@
 
 #include <algorithm>
 #include <cmath>
+#include <stdexcept>
+#include <string>
 
 #include "kestrel/core/rig_transforms.hpp"
 #include "kestrel/core/so3.hpp"
 
 namespace kestrel::core {
+std::string FrontendOdometryOptions::validate() const {
+  std::string e;
+  const std::string t = tracker.validate();
+  if (!t.empty()) e += t;
+  if (!(accel_noise_mps2_sqrthz > 0)) e += "accel_noise_mps2_sqrthz: must be > 0\n";
+  if (!(position_sigma_m > 0)) e += "position_sigma_m: must be > 0\n";
+  if (!(initial_velocity_sigma_mps > 0)) e += "initial_velocity_sigma_mps: must be > 0\n";
+  // Gains are shares of the way to the tracked value: above 1 overshoots
+  // every frame and the attitude oscillates.
+  if (!(attitude_gain >= 0 && attitude_gain <= 1)) e += "attitude_gain: in [0, 1]\n";
+  if (!(gyro_bias_gain >= 0 && gyro_bias_gain <= 1)) e += "gyro_bias_gain: in [0, 1]\n";
+  if (!(gate_sigma > 0)) e += "gate_sigma: must be > 0\n";
+  if (max_lost_frames < 1) e += "max_lost_frames: at least 1\n";
+  if (moving_start_after_ns < 0) e += "moving_start_after_ns: must be >= 0\n";
+  if (!(pred_sigma_min_px > 0 && pred_sigma_px_per_s >= 0)) e += "pred_sigma_*: min > 0, rate >= 0\n";
+  if (imu_outage_after_ns < 0) e += "imu_outage_after_ns: must be >= 0 (0: never)\n";
+  if (!(vision_only_pred_sigma_px > 0)) e += "vision_only_pred_sigma_px: must be > 0\n";
+  const std::string d = divergence.validate();
+  if (!d.empty()) e += d;
+  return e;
+}
+
 FrontendOdometry::FrontendOdometry(const Rig& rig, const FrontendOdometryOptions& opt)
     : opt_(opt),
       T_BC_(to_isometry(rig.T_BC)),
       init_and_imu_(rig, opt.moving_start_after_ns),
       tracker_(rig, opt.tracker),
       prop_(imu_propagator_options(rig)),
-      monitor_(opt.divergence) {}
+      monitor_(opt.divergence) {
+  const std::string err = opt.validate();
+  if (!err.empty()) throw std::invalid_argument("FrontendOdometryOptions:\n" + err);
+}
 
 bool FrontendOdometry::add_imu(const ImuSample& s) {
   ++counters_.imu_in;

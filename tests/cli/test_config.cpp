@@ -150,6 +150,20 @@ TEST(ConfigFile, BadInputNamesFileLineAndKey) {
   EXPECT_NE(error_of("window: {recent_frames: 0}\n").find("S must be >= 1"), std::string::npos);
   EXPECT_NE(error_of("frontend: {moving_start_after_ns: -1}\n").find("frontend: moving_start_after_ns: must be >= 0"),
             std::string::npos);
+  // vo's own keys are checked like every backend's (they used to take any value).
+  EXPECT_NE(error_of("frontend: {gate_sigma: -1}\n").find("frontend: gate_sigma: must be > 0"), std::string::npos);
+  EXPECT_NE(error_of("frontend: {max_lost_frames: -3}\n").find("frontend: max_lost_frames: at least 1"),
+            std::string::npos);
+  EXPECT_NE(error_of("frontend: {attitude_gain: 1.5}\n").find("frontend: attitude_gain: in [0, 1]"),
+            std::string::npos);
+  // Two bad keys: each line names its section and key.
+  const std::string two = error_of("frontend: {position_sigma_m: 0, imu_outage_after_ns: -1}\n");
+  EXPECT_NE(two.find("frontend: position_sigma_m: must be > 0\n"), std::string::npos) << two;
+  EXPECT_NE(two.find("frontend: imu_outage_after_ns: must be >= 0"), std::string::npos) << two;
+  // A tracker key reaches every backend: it is named once, under frontend.
+  const std::string tracker = error_of("frontend: {match_ratio: 2}\n");
+  EXPECT_NE(tracker.find("frontend: match_ratio: in (0, 1]"), std::string::npos) << tracker;
+  EXPECT_EQ(tracker.find("match_ratio", tracker.find("match_ratio") + 1), std::string::npos) << tracker;
   EXPECT_NE(error_of("window: {moving_start_after_ns: -1}\n").find("window: moving_start_after_ns: must be >= 0"),
             std::string::npos);
   EXPECT_NE(error_of("ekf: {moving_start_after_ns: -1}\n").find("ekf: moving_start_after_ns: must be >= 0"),

@@ -53,6 +53,9 @@ struct FrontendOdometryOptions {
   // IMU state and the tracker trusts its stale rotation).
   int64_t imu_outage_after_ns = 200'000'000;
   double vision_only_pred_sigma_px = 10.0;  // the constant-velocity prediction's pixel uncertainty at one frame
+
+  // One line per bad key ("gate_sigma: must be > 0"); empty when all are usable.
+  [[nodiscard]] std::string validate() const;
 };
 
 class FrontendOdometry final : public Estimator {
