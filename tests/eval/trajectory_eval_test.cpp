@@ -421,5 +421,79 @@ TEST(EvalRealData, TumFr1XyzAssociatesWithItselfShiftedBy5ms) {
   EXPECT_EQ(self.ate_m.max, 0.0);
 }
 
+// ---- anchor_to_keyframes: the odometry through the map's final keyframes ----
+
+Eigen::Isometry3d iso_of(const TimedPose& p) {
+  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+  T.linear() = p.q.toRotationMatrix();
+  T.translation() = p.p;
+  return T;
+}
+
+Eigen::Isometry3d correction(double x, double yaw) {
+  Eigen::Isometry3d C = Eigen::Isometry3d::Identity();
+  C.linear() = Eigen::AngleAxisd(yaw, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+  C.translation() = Eigen::Vector3d(x, 0.3, -0.1);
+  return C;
+}
+
+KeyframeAnchor anchor(const Trajectory& odom, size_t i, const Eigen::Isometry3d& C) {
+  return {odom[i].t_ns, C * iso_of(odom[i]), iso_of(odom[i])};
+}
+
+TEST(EvalKeyframeAnchors, OneCorrectionEverywhereMovesEveryPoseByIt) {
+  const Trajectory odom = lissajous();
+  ASSERT_GT(odom.size(), 100u);
+  const Eigen::Isometry3d C = correction(1.0, 0.4);
+  const std::vector<KeyframeAnchor> kfs{anchor(odom, 10, C), anchor(odom, 50, C), anchor(odom, 90, C)};
+  const Trajectory out = anchor_to_keyframes(odom, kfs);
+  ASSERT_EQ(out.size(), odom.size());
+  for (size_t i = 0; i < odom.size(); ++i) {
+    const Eigen::Isometry3d want = C * iso_of(odom[i]);
+    EXPECT_EQ(out[i].t_ns, odom[i].t_ns);
+    EXPECT_NEAR((out[i].p - want.translation()).norm(), 0.0, 1e-9) << i;
+    EXPECT_NEAR(out[i].q.angularDistance(Eigen::Quaterniond(want.linear())), 0.0, 1e-9) << i;
+  }
+  EXPECT_EQ(anchor_to_keyframes(odom, {}).size(), odom.size());
+  EXPECT_NEAR((anchor_to_keyframes(odom, {})[7].p - odom[7].p).norm(), 0.0, 0.0);
+}
+
+TEST(EvalKeyframeAnchors, KeyframesLandOnTheirMapPosesAndTheDriftBetweenIsShared) {
+  const Trajectory odom = lissajous();
+  // The map moved the second keyframe 4 cm and 0.02 rad against the first.
+  const Eigen::Isometry3d Ca = correction(0.0, 0.0), Cb = correction(0.04, 0.02);
+  const std::vector<KeyframeAnchor> kfs{anchor(odom, 20, Ca), anchor(odom, 60, Cb)};
+  const Trajectory out = anchor_to_keyframes(odom, kfs);
+  EXPECT_NEAR((out[20].p - kfs[0].T_MB.translation()).norm(), 0.0, 1e-9);
+  EXPECT_NEAR((out[60].p - kfs[1].T_MB.translation()).norm(), 0.0, 1e-9);
+  // Before the first and after the last keyframe: that keyframe's correction.
+  EXPECT_NEAR((out[5].p - (Ca * iso_of(odom[5])).translation()).norm(), 0.0, 1e-9);
+  EXPECT_NEAR((out[90].p - (Cb * iso_of(odom[90])).translation()).norm(), 0.0, 1e-9);
+  // Halfway in time: half the relative correction.
+  const size_t mid = 40;
+  ASSERT_EQ(odom[mid].t_ns - odom[20].t_ns, odom[60].t_ns - odom[mid].t_ns);
+  Eigen::Isometry3d half = Eigen::Isometry3d::Identity();
+  const Eigen::Isometry3d D = Ca.inverse() * Cb;
+  const Eigen::AngleAxisd aa(D.linear());
+  half.linear() = Eigen::AngleAxisd(0.5 * aa.angle(), aa.axis()).toRotationMatrix();
+  half.translation() = 0.5 * D.translation();
+  EXPECT_NEAR((out[mid].p - (Ca * half * iso_of(odom[mid])).translation()).norm(), 0.0, 1e-9);
+  // A keyframe stamp the odometry has no pose at: the keyframe's own odometry pose anchors it.
+  KeyframeAnchor off = kfs[1];
+  off.t_ns += 1;
+  const Trajectory out2 = anchor_to_keyframes(odom, {kfs[0], off});
+  EXPECT_NEAR((out2[90].p - (Cb * iso_of(odom[90])).translation()).norm(), 0.0, 1e-9);
+}
+
+TEST(EvalKeyframeAnchors, AJumpBetweenTwoKeyframesIsNotSpreadOverThePosesBetween) {
+  const Trajectory odom = lissajous();
+  // 1 m apart: a relocalisation or an odometry reset, not drift.
+  const Eigen::Isometry3d Ca = correction(0.0, 0.0), Cb = correction(1.0, 0.0);
+  const Trajectory out = anchor_to_keyframes(odom, {anchor(odom, 20, Ca), anchor(odom, 60, Cb)});
+  for (size_t i = 20; i < 60; ++i)
+    EXPECT_NEAR((out[i].p - (Ca * iso_of(odom[i])).translation()).norm(), 0.0, 1e-9) << i;
+  EXPECT_NEAR((out[60].p - (Cb * iso_of(odom[60])).translation()).norm(), 0.0, 1e-9);
+}
+
 }  // namespace
 }  // namespace kestrel::tools

@@ -323,6 +323,14 @@ TEST(MapPipeline, FigureEightWithAndWithoutTheMap) {
       EXPECT_GT(r.map.points, 500u);
       EXPECT_GT(r.mapping.count(), 10u);
       EXPECT_EQ(r.map_trajectory.size(), r.trajectory.size());
+      // The map's final word: every pose through the keyframes as the flight
+      // left them. Bundle adjustment refines them, so it must not be worse
+      // than the odometry it started from beyond noise.
+      EXPECT_GT(r.map_final_keyframes, 10);
+      ASSERT_EQ(r.map_final_trajectory.size(), r.trajectory.size());
+      const double final_ate = tools::evaluate(gt, r.map_final_trajectory, eo).ate_m.rmse;
+      std::printf("map's final keyframes: se3 ATE %.2f mm over %d keyframes\n", 1e3 * final_ate, r.map_final_keyframes);
+      EXPECT_LT(final_ate, 1.5 * ate[on] + 0.002);
       const std::string json = cli::replay_metrics_json(r);
       for (const char* k : {"\"loop_closures\"", "\"relocalisations\"", "\"keyframes_in_map\"", "\"map_points\"",
                             "\"map_correction_m\""})

@@ -192,6 +192,58 @@ std::optional<TimedPose> pose_at(const Trajectory& trajectory, int64_t t_ns, int
   return std::nullopt;
 }
 
+Trajectory anchor_to_keyframes(const Trajectory& odometry, const std::vector<KeyframeAnchor>& keyframes,
+                               double max_step_m, double max_step_rad) {
+  if (keyframes.empty()) return odometry;
+  auto iso = [](const TimedPose& p) {
+    Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+    T.linear() = p.q.normalized().toRotationMatrix();
+    T.translation() = p.p;
+    return T;
+  };
+  std::vector<Eigen::Isometry3d> C(keyframes.size());
+  for (size_t k = 0; k < keyframes.size(); ++k) {
+    const auto at = std::lower_bound(odometry.begin(), odometry.end(), keyframes[k].t_ns,
+                                     [](const TimedPose& p, int64_t t) { return p.t_ns < t; });
+    const bool own = at != odometry.end() && at->t_ns == keyframes[k].t_ns;
+    C[k] = keyframes[k].T_MB * (own ? iso(*at) : keyframes[k].T_WB).inverse();
+  }
+  Trajectory out;
+  out.reserve(odometry.size());
+  for (const TimedPose& p : odometry) {
+    const auto hi = std::upper_bound(keyframes.begin(), keyframes.end(), p.t_ns,
+                                     [](int64_t t, const KeyframeAnchor& k) { return t < k.t_ns; });
+    const size_t b = static_cast<size_t>(hi - keyframes.begin());
+    Eigen::Isometry3d Ct;
+    if (b == 0) {
+      Ct = C.front();
+    } else if (b == keyframes.size()) {
+      Ct = C.back();
+    } else {
+      const size_t a = b - 1;
+      const Eigen::Isometry3d D = C[a].inverse() * C[b];
+      const Eigen::AngleAxisd aa(D.linear());
+      if (D.translation().norm() > max_step_m || std::abs(aa.angle()) > max_step_rad) {
+        Ct = C[a];
+      } else {
+        const double s = static_cast<double>(p.t_ns - keyframes[a].t_ns) /
+                         static_cast<double>(keyframes[b].t_ns - keyframes[a].t_ns);
+        Eigen::Isometry3d Ds = Eigen::Isometry3d::Identity();
+        Ds.linear() = Eigen::AngleAxisd(s * aa.angle(), aa.axis()).toRotationMatrix();
+        Ds.translation() = s * D.translation();
+        Ct = C[a] * Ds;
+      }
+    }
+    const Eigen::Isometry3d T = Ct * iso(p);
+    TimedPose q;
+    q.t_ns = p.t_ns;
+    q.p = T.translation();
+    q.q = Eigen::Quaterniond(T.linear()).normalized();
+    out.push_back(q);
+  }
+  return out;
+}
+
 RpeStats relative_pose_error(const EvalResult& r, double delta_s, double max_gap_ms) {
   if (!(delta_s > 0) || !std::isfinite(delta_s)) throw std::invalid_argument("RPE delta must be > 0 s");
   RpeStats out;

@@ -32,7 +32,7 @@ Subcommand add_replay_command(CLI::App& parent) {
     ViewArgs view;
     bool print_config = false;
     std::string mapping, loop;
-    std::string map_traj_out;
+    std::string map_traj_out, map_final_traj_out;
     std::string map_in, map_out;
   };
   auto args = std::make_shared<Args>();
@@ -77,6 +77,9 @@ Subcommand add_replay_command(CLI::App& parent) {
   app->add_option("--map-traj-out", args->map_traj_out,
                   "write the trajectory in the map frame here, T_map_odom(t) * pose(t) (TUM); --traj-out keeps the "
                   "continuous odometry");
+  app->add_option("--map-final-traj-out", args->map_final_traj_out,
+                  "write the trajectory through the map's keyframes as they ended the flight (TUM; after every "
+                  "bundle adjustment and loop correction: what SLAM benchmarks score, not what flew; docs/map.md)");
   app->add_option("--map-in", args->map_in,
                   "start from this map file (a flight's --map-out): the flight maps nothing until it relocalises in "
                   "it, then goes on in its frame (docs/map.md)");
@@ -165,6 +168,13 @@ Subcommand add_replay_command(CLI::App& parent) {
     if (!args->map_traj_out.empty()) {
       if (!r.has_map) throw UsageError("--map-traj-out: the backend '" + r.estimator + "' runs without a map");
       tools::write_tum(args->map_traj_out, r.map_trajectory);
+    }
+    if (!args->map_final_traj_out.empty()) {
+      if (!r.has_map) throw UsageError("--map-final-traj-out: the backend '" + r.estimator + "' runs without a map");
+      if (r.map_final_trajectory.empty())
+        throw std::runtime_error("--map-final-traj-out: the map holds no keyframe of this flight; nothing written to " +
+                                 args->map_final_traj_out);
+      tools::write_tum(args->map_final_traj_out, r.map_final_trajectory);
     }
     if (!args->metrics_out.empty()) {
       std::ofstream f(args->metrics_out);

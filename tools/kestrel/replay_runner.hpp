@@ -169,6 +169,10 @@ struct ReplayReport {
   tools::Trajectory trajectory;  // body pose in W at each camera frame the backend did not call lost
   uint64_t lost_poses_withheld = 0;  // poses flagged kLost: sent on (flagged), not in the trajectory
   tools::Trajectory map_trajectory;  // the same poses in the map frame, T_map_odom(t) * T_WB(t)
+  // The same poses through the map's keyframes as they ended the flight
+  // (tools::anchor_to_keyframes): the map's final word, not available in flight.
+  tools::Trajectory map_final_trajectory;
+  int map_final_keyframes = 0;
   // The map (backends with one): its frame at the end, per keyframe cost of
   // the mapping and loop threads, and their CPU time.
   bool has_map = false;

@@ -124,6 +124,13 @@ struct EstimatorCounters {
   DivergenceCounts divergence;  // zero for backends without divergence detection (imu)
 };
 
+// One keyframe of the map at the end of a flight (Estimator::map_keyframe_poses).
+struct MapKeyframePose {
+  int64_t t_ns = 0;
+  Eigen::Isometry3d T_MB = Eigen::Isometry3d::Identity();  // refined, in the map frame
+  Eigen::Isometry3d T_WB = Eigen::Isometry3d::Identity();  // odometry frame, when it was taken
+};
+
 class Estimator {
  public:
   virtual ~Estimator() = default;
@@ -169,6 +176,11 @@ class Estimator {
   // The map file's bytes (`--map-out`, map_file.hpp); empty without a map.
   // After the map threads stopped.
   virtual std::vector<uint8_t> save_map() const { return {}; }
+  // This flight's keyframes as the map holds them now, oldest first: the
+  // body pose in the map frame after every bundle adjustment and loop
+  // correction, beside the odometry pose the keyframe was taken at. Empty
+  // without a map. After the map threads stopped (it allocates).
+  virtual std::vector<MapKeyframePose> map_keyframe_poses() const { return {}; }
 };
 
 // IMU-only dead reckoning after a static initialisation. Named as what it is:

@@ -150,6 +150,7 @@ class WindowEstimator final : public Estimator {
   const rt::LatencyHistogram* mapping_latency() const override { return map_ ? &map_->mapping_latency() : nullptr; }
   const rt::LatencyHistogram* loop_latency() const override { return map_ ? &map_->loop_latency() : nullptr; }
   std::vector<uint8_t> save_map() const override { return map_ ? map_->save() : std::vector<uint8_t>{}; }
+  std::vector<MapKeyframePose> map_keyframe_poses() const override;
   MapSystem* map_system() { return map_.get(); }
 
   const WindowEstimatorCounters& window_counters() const { return wc_; }

@@ -70,6 +70,29 @@ Sim3 align_positions(const std::vector<Eigen::Vector3d>& est, const std::vector<
 std::optional<TimedPose> pose_at(const Trajectory& trajectory, int64_t t_ns, int64_t max_gap_ns,
                                  bool* interpolated = nullptr);
 
+// A keyframe as the map holds it at the end of a flight: its body pose in the
+// map frame M (after every bundle adjustment and loop correction) and the
+// odometry pose T_WB it was taken at.
+struct KeyframeAnchor {
+  int64_t t_ns = 0;
+  Eigen::Isometry3d T_MB = Eigen::Isometry3d::Identity();
+  Eigen::Isometry3d T_WB = Eigen::Isometry3d::Identity();
+};
+
+// The odometry re-expressed through the map's final keyframes: what a SLAM
+// system reports once the flight is over (ORB-SLAM's saved trajectory), not
+// what a flight controller could have had at the time. Each keyframe k
+// defines a correction C_k = T_MB_k * T_WB(t_k)^-1 (T_WB(t_k): the odometry's
+// own pose at the keyframe's stamp when it has one, else the keyframe's), and a
+// pose between two keyframes takes the correction interpolated between theirs,
+// so every keyframe lands exactly on its map pose and the poses in between
+// keep their odometry motion relative to it. Two neighbouring corrections
+// further apart than max_step_m / max_step_rad are not one drift (a reset or a
+// relocalisation between them): poses there take the earlier keyframe's alone.
+// `keyframes` sorted by time; empty: the odometry unchanged.
+Trajectory anchor_to_keyframes(const Trajectory& odometry, const std::vector<KeyframeAnchor>& keyframes,
+                               double max_step_m = 0.2, double max_step_rad = 0.1);
+
 struct EvalOptions {
   Alignment align = Alignment::kPosYaw;
   double max_gap_ms = 20.0;      // association tolerance
