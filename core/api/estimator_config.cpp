@@ -285,6 +285,9 @@ void visit_ekf(EkfEstimatorOptions& o, OptionVisitor& v) {
   v.value("landmark_capacity", o.landmark_capacity, "active landmarks in the filter; cost ~ (15 + 3C)^2");
   v.value("pixel_sigma_px", o.pixel_sigma_px, "pixel noise of every observation");
   v.value("max_missed_frames", o.max_missed_frames, "then a landmark leaves the filter into the map");
+  v.value("spread_grid_cols", o.spread_grid_cols,
+          "new tracks take free slots in the emptiest cells of this image grid first (0: tracker's order)");
+  v.value("spread_grid_rows", o.spread_grid_rows, "rows of that grid (0 with cols 0)");
   v.value("gate_chi2", o.gate_chi2, "innovation gate (chi2, 4 dof; 13.28 = 99 %)");
   v.value("init_position_sigma_m", o.init_position_sigma_m, "start-up covariance");
   v.value("init_attitude_sigma_rad", o.init_attitude_sigma_rad, "start-up covariance");

@@ -35,6 +35,9 @@ std::string EkfEstimatorOptions::validate() const {
   if (!(pixel_sigma_px > 0)) e << "pixel_sigma_px: must be > 0\n";
   if (!(imu_noise_inflation > 0)) e << "imu_noise_inflation: must be > 0\n";
   if (max_missed_frames < 0) e << "max_missed_frames: must be >= 0\n";
+  if (spread_grid_cols < 0 || spread_grid_cols > 32 || spread_grid_rows < 0 || spread_grid_rows > 32 ||
+      (spread_grid_cols > 0) != (spread_grid_rows > 0))
+    e << "spread_grid_cols/rows: both 0 (off) or both in [1, 32]\n";
   if (!(gate_chi2 > 0)) e << "gate_chi2: must be > 0\n";
   if (!(init_position_sigma_m > 0 && init_attitude_sigma_rad > 0 && init_velocity_sigma_mps > 0 &&
         init_gyro_bias_sigma_rps > 0 && init_acc_bias_sigma_mps2 > 0))
@@ -60,6 +63,10 @@ EkfSlamOptions ekf_slam_options_for(const Rig& rig, const EkfEstimatorOptions& o
   o.min_depth_m = positive_or(rig.depth.min_range_m, 0.1);
   o.max_init_depth_m = std::max(positive_or(rig.depth.max_range_m, 8.0), o.min_depth_m + 0.1);
   o.max_missed_frames = opt.max_missed_frames;
+  o.spread_grid_cols = rig.rgb.width > 0 && rig.rgb.height > 0 ? opt.spread_grid_cols : 0;
+  o.spread_grid_rows = o.spread_grid_cols > 0 ? opt.spread_grid_rows : 0;
+  o.image_width_px = rig.rgb.width;
+  o.image_height_px = rig.rgb.height;
   o.gyro_noise_density = positive_or(rig.imu.gyro_noise_density_rad_s_sqrthz, opt.default_gyro_noise_density);
   o.acc_noise_density = positive_or(rig.imu.acc_noise_density_mps2_sqrthz, opt.default_acc_noise_density);
   o.gyro_random_walk = positive_or(rig.imu.gyro_random_walk_rad_s2_sqrthz, opt.default_gyro_random_walk);

@@ -59,6 +59,10 @@ void EkfSlamOptions::validate() const {
     fail("imu noise", "densities must be >= 0");
   if (!(gravity_mps2 > 0.0)) fail("gravity_mps2", "must be > 0");
   if (!(rgbd_disparity_sigma_px >= 0.0)) fail("rgbd_disparity_sigma_px", "must be >= 0");
+  if (spread_grid_cols < 0 || spread_grid_cols > 32 || spread_grid_rows < 0 || spread_grid_rows > 32)
+    fail("spread_grid_cols/rows", "must be in [0, 32]");
+  if (spread_grid_cols > 0 && !(spread_grid_rows > 0 && image_width_px > 0.0 && image_height_px > 0.0))
+    fail("spread_grid_rows/image_width_px/image_height_px", "must be > 0 with spread_grid_cols > 0");
 }
 
 std::string EkfSlamOptions::describe() const {
@@ -137,6 +141,7 @@ EkfSlam::EkfSlam(const EkfSlamOptions& options, const ekf::StereoCamera& camera)
   Hp_.resize(static_cast<size_t>(chunk_));
   Hm_.resize(static_cast<size_t>(chunk_));
   obs_slot_.assign(static_cast<size_t>(opt_.max_observations), -1);
+  cell_count_.assign(static_cast<size_t>(std::max(1, opt_.spread_grid_cols * opt_.spread_grid_rows)), 0);
   upd_slots_.assign(cap, 0);
   slot_list_.assign(cap, 0);
   frozen_.resize(2 * cap);
@@ -553,21 +558,60 @@ EkfUpdateStats EkfSlam::update(const StereoObservation* obs, int count) {
   }
   counters_.observations_used += static_cast<uint64_t>(st.used);
 
-  // New tracks, initialised from the updated pose.
-  for (int i = 0; i < count; ++i) {
-    if (obs_slot_[static_cast<size_t>(i)] != -1) continue;
-    if (find_slot(obs[i].id) >= 0) {  // the same new id twice in one call
+  initialise_new_tracks(obs, count, st);
+  obs_cache_ = nullptr;
+  return st;
+}
+
+int EkfSlam::cell_of(const StereoObservation& o) const {
+  const int cx = static_cast<int>(std::floor(o.uL * opt_.spread_grid_cols / opt_.image_width_px));
+  const int cy = static_cast<int>(std::floor(o.vL * opt_.spread_grid_rows / opt_.image_height_px));
+  return std::clamp(cy, 0, opt_.spread_grid_rows - 1) * opt_.spread_grid_cols +
+         std::clamp(cx, 0, opt_.spread_grid_cols - 1);
+}
+
+// New tracks, initialised from the updated pose.
+void EkfSlam::initialise_new_tracks(const StereoObservation* obs, int count, EkfUpdateStats& st) {
+  auto try_one = [&](int i) {
+    obs_slot_[static_cast<size_t>(i)] = -3;  // tried
+    if (find_slot(obs[i].id) >= 0) {         // the same new id twice in one call
       ++counters_.observations_ignored;
-      continue;
+      return;
     }
     if (initialise_landmark(obs[i])) {
       ++st.initialised;
     } else {
       ++st.not_initialised;
     }
+  };
+  int n_new = 0;
+  for (int i = 0; i < count; ++i) n_new += obs_slot_[static_cast<size_t>(i)] == -1;
+  if (opt_.spread_grid_cols > 0 && n_new > cap_ - num_active_) {
+    // Round by round, a cell with at most `level` landmarks takes one more,
+    // until the slots are full: the emptiest parts of the image first.
+    std::fill(cell_count_.begin(), cell_count_.end(), 0);
+    for (int s = 0; s < num_active_; ++s) {
+      const int oi = lm_this_obs_[static_cast<size_t>(s)];
+      if (oi >= 0) ++cell_count_[static_cast<size_t>(cell_of(obs[oi]))];
+    }
+    for (int level = 0; num_active_ < cap_ && level < cap_; ++level) {
+      bool any = false;
+      for (int i = 0; i < count && num_active_ < cap_; ++i) {
+        if (obs_slot_[static_cast<size_t>(i)] != -1) continue;
+        any = true;
+        int& c = cell_count_[static_cast<size_t>(cell_of(obs[i]))];
+        if (c > level) continue;
+        const int before = num_active_;
+        try_one(i);
+        if (num_active_ > before) ++c;
+      }
+      if (!any) break;
+    }
   }
-  obs_cache_ = nullptr;
-  return st;
+  // The rest in the front end's order (with no grid: all of them); once the
+  // slots are full they are counted as refused for capacity.
+  for (int i = 0; i < count; ++i)
+    if (obs_slot_[static_cast<size_t>(i)] == -1) try_one(i);
 }
 
 }  // namespace kestrel::core

@@ -4,6 +4,7 @@
 // consistency on simulated flights (fixed seeds).
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cstdio>
 #include <map>
 #include <random>
@@ -290,6 +291,51 @@ TEST(EkfSlam, UpdateReducesUncertaintyAndManagesLandmarks) {
   st = ekf.update(obs.data(), 10);
   EXPECT_EQ(st.dropped, 1);
   EXPECT_EQ(ekf.num_active(), 9);
+}
+
+// With more new tracks than free slots, the spread grid gives the slots to
+// the empty parts of the image first; without it the front end's order wins.
+TEST(EkfSlam, NewTracksSpreadOverTheImageWhenSlotsAreScarce) {
+  const test::EkfSimWorld w = test::make_ekf_world(1, 1);
+  const double W = 2.0 * w.cam.cu, H = 2.0 * w.cam.cv;
+  // 12 points crowded into the top-left corner come first, then one in each
+  // of the three other quadrants.
+  std::vector<Vec3> pts_C;
+  auto at_pixel = [&](double u, double v, double z) {
+    return Vec3((u - w.cam.cu) / w.cam.fsu * z, (v - w.cam.cv) / w.cam.fsv * z, z);
+  };
+  for (int i = 0; i < 12; ++i) pts_C.push_back(at_pixel(0.05 * W + 3.0 * i, 0.05 * H + 2.0 * i, 3.0));
+  pts_C.push_back(at_pixel(0.8 * W, 0.2 * H, 3.0));
+  pts_C.push_back(at_pixel(0.2 * W, 0.8 * H, 3.0));
+  pts_C.push_back(at_pixel(0.8 * W, 0.8 * H, 3.0));
+  const Pose T_WB(Eigen::Matrix3d::Identity(), Vec3(0, 0, 1.5));
+  std::vector<StereoObservation> obs;
+  exact_observations(w, T_WB, pts_C, obs);
+  auto initialised_ids = [&](int cols, int rows) {
+    EkfSlamOptions opt;
+    opt.landmark_capacity = 6;
+    opt.spread_grid_cols = cols;
+    opt.spread_grid_rows = rows;
+    opt.image_width_px = W;
+    opt.image_height_px = H;
+    EkfSlam ekf(opt, w.cam);
+    ekf.reset(T_WB, Mat6::Identity() * 1e-8);
+    const core::EkfUpdateStats st = ekf.update(obs.data(), static_cast<int>(obs.size()));
+    EXPECT_EQ(st.initialised, 6);
+    EXPECT_EQ(ekf.counters().capacity_full, obs.size() - 6);
+    std::vector<uint32_t> ids;
+    for (int s = 0; s < ekf.num_active(); ++s) ids.push_back(ekf.active_id(s));
+    std::sort(ids.begin(), ids.end());
+    return ids;
+  };
+  // Tracker order: the first six, all in the corner.
+  EXPECT_EQ(initialised_ids(0, 0), (std::vector<uint32_t>{10, 11, 12, 13, 14, 15}));
+  // Spread: the three lone points (ids 22-24) get slots, the corner the rest.
+  const std::vector<uint32_t> spread = initialised_ids(4, 4);
+  for (uint32_t id : {22u, 23u, 24u}) EXPECT_NE(std::find(spread.begin(), spread.end(), id), spread.end()) << id;
+  EkfSlamOptions bad;
+  bad.spread_grid_cols = 4;
+  EXPECT_THROW(EkfSlam(bad, w.cam), std::invalid_argument);  // rows and the image size missing
 }
 
 TEST(EkfSlam, OptionsAreValidated) {

@@ -38,6 +38,11 @@ struct EkfEstimatorOptions {
   // level 0 and grow with the pyramid level; one value covers the mix.
   double pixel_sigma_px = 1.5;
   int max_missed_frames = 3;  // then a landmark leaves the filter into the map
+  // With more new tracks than free slots, the slots go to the emptiest cells
+  // of this grid over the image first (EkfSlamOptions::spread_grid_cols).
+  // 0 columns: the tracker's order.
+  int spread_grid_cols = 0;
+  int spread_grid_rows = 0;
   double gate_chi2 = 13.28;   // 4 dof, 99 %
   // Start-up covariance (the static initialiser fixes position and yaw by
   // definition; roll/pitch and gyro bias come from a short still window).

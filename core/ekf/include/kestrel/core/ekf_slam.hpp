@@ -68,6 +68,16 @@ struct EkfSlamOptions {
   // disparity noise is fx b k whatever the depth. 0: a real stereo pair.
   double rgbd_disparity_sigma_px = 0.0;
 
+  // New tracks take the free slots spread over the image: with more
+  // candidates than slots, a cell of this grid over [0, image_width_px) x
+  // [0, image_height_px) (in uL, vL) with fewer landmarks seen this frame is
+  // served first. Landmarks bunched in one corner constrain the pose far
+  // worse than as many spread out. 0 columns: the front end's order.
+  int spread_grid_cols = 0;
+  int spread_grid_rows = 0;
+  double image_width_px = 0.0;
+  double image_height_px = 0.0;
+
   // Throws std::invalid_argument naming the field.
   void validate() const;
   // Every effective setting, one per line.
@@ -243,6 +253,9 @@ class EkfSlam {
   std::vector<Eigen::Matrix<double, 3, 6>> Hp_;
   std::vector<Eigen::Matrix3d> Hm_;
   std::vector<int> obs_slot_, slot_list_, upd_slots_;
+  std::vector<int> cell_count_;  // spread_grid_cols x rows: landmarks seen this frame per cell
+  int cell_of(const StereoObservation& o) const;
+  void initialise_new_tracks(const StereoObservation* obs, int count, EkfUpdateStats& st);
   const StereoObservation* obs_cache_ = nullptr;   // the observations of the update in progress
   std::vector<FrozenLandmark> frozen_;
   int frozen_count_ = 0;
