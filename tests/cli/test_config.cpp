@@ -156,6 +156,8 @@ TEST(ConfigFile, BadInputNamesFileLineAndKey) {
             std::string::npos);
   EXPECT_NE(error_of("frontend: {attitude_gain: 1.5}\n").find("frontend: attitude_gain: in [0, 1]"),
             std::string::npos);
+  EXPECT_NE(error_of("ekf: {spread_grid_cols: 4}\n").find("ekf: spread_grid_cols/rows: both 0 (off) or both in [1, 32]"),
+            std::string::npos);
   // Two bad keys: each line names its section and key.
   const std::string two = error_of("frontend: {position_sigma_m: 0, imu_outage_after_ns: -1}\n");
   EXPECT_NE(two.find("frontend: position_sigma_m: must be > 0\n"), std::string::npos) << two;
