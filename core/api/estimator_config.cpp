@@ -418,9 +418,14 @@ void visit_options(EstimatorConfig& c, OptionVisitor& v) {
 // named once, under frontend:, not again for the window, ekf and rgbd.
 static void add_section_errors(std::ostringstream& e, const char* section, const std::string& errors,
                                const std::string& skip = {}) {
-  std::istringstream in(errors);
+  // Some validators join their messages with "; " instead of newlines.
+  std::string text = errors;
+  for (size_t at = 0; (at = text.find("; ", at)) != std::string::npos;) text.replace(at, 2, "\n");
+  const std::string skip_lines = "\n" + skip;
+  std::istringstream in(text);
   for (std::string line; std::getline(in, line);)
-    if (!line.empty() && skip.find(line + "\n") == std::string::npos) e << section << ": " << line << "\n";
+    if (!line.empty() && skip_lines.find("\n" + line + "\n") == std::string::npos)
+      e << section << ": " << line << "\n";
 }
 
 std::string validate(const EstimatorConfig& c) {

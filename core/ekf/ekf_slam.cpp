@@ -3,6 +3,7 @@
 #include <Eigen/Cholesky>
 
 #include <algorithm>
+#include <limits>
 #include <cmath>
 #include <sstream>
 #include <stdexcept>
@@ -69,6 +70,7 @@ std::string EkfSlamOptions::describe() const {
   std::ostringstream s;
   s << "motion_model: " << motion_model_name(motion) << "\n"
     << "landmark_capacity: " << landmark_capacity << "\n"
+    << "spread_grid: " << spread_grid_cols << " x " << spread_grid_rows << "\n"
     << "max_observations: " << max_observations << "\n"
     << "update_chunk_landmarks: " << update_chunk_landmarks << "\n"
     << "pixel_sigma_px: " << pixel_sigma_px << "\n"
@@ -594,18 +596,22 @@ void EkfSlam::initialise_new_tracks(const StereoObservation* obs, int count, Ekf
       const int oi = lm_this_obs_[static_cast<size_t>(s)];
       if (oi >= 0) ++cell_count_[static_cast<size_t>(cell_of(obs[oi]))];
     }
-    for (int level = 0; num_active_ < cap_ && level < cap_; ++level) {
-      bool any = false;
+    // Each round starts at the emptiest cell any candidate is in, so the
+    // rounds are bounded by the free slots, not by the fullest cell.
+    while (num_active_ < cap_) {
+      int level = std::numeric_limits<int>::max();
+      for (int i = 0; i < count; ++i)
+        if (obs_slot_[static_cast<size_t>(i)] == -1)
+          level = std::min(level, cell_count_[static_cast<size_t>(cell_of(obs[i]))]);
+      if (level == std::numeric_limits<int>::max()) break;
       for (int i = 0; i < count && num_active_ < cap_; ++i) {
         if (obs_slot_[static_cast<size_t>(i)] != -1) continue;
-        any = true;
         int& c = cell_count_[static_cast<size_t>(cell_of(obs[i]))];
         if (c > level) continue;
         const int before = num_active_;
         try_one(i);
         if (num_active_ > before) ++c;
       }
-      if (!any) break;
     }
   }
   // The rest in the front end's order (with no grid: all of them); once the

@@ -23,7 +23,7 @@ std::string FrontendOdometryOptions::validate() const {
   if (!(gate_sigma > 0)) e += "gate_sigma: must be > 0\n";
   if (max_lost_frames < 1) e += "max_lost_frames: at least 1\n";
   if (moving_start_after_ns < 0) e += "moving_start_after_ns: must be >= 0\n";
-  if (!(pred_sigma_min_px > 0 && pred_sigma_px_per_s >= 0)) e += "pred_sigma_*: min > 0, rate >= 0\n";
+  if (!(pred_sigma_min_px >= 0 && pred_sigma_px_per_s >= 0)) e += "pred_sigma_*: min >= 0, rate >= 0\n";
   if (imu_outage_after_ns < 0) e += "imu_outage_after_ns: must be >= 0 (0: never)\n";
   if (!(vision_only_pred_sigma_px > 0)) e += "vision_only_pred_sigma_px: must be > 0\n";
   const std::string d = divergence.validate();

@@ -166,6 +166,10 @@ TEST(ConfigFile, BadInputNamesFileLineAndKey) {
   const std::string tracker = error_of("frontend: {match_ratio: 2}\n");
   EXPECT_NE(tracker.find("frontend: match_ratio: in (0, 1]"), std::string::npos) << tracker;
   EXPECT_EQ(tracker.find("match_ratio", tracker.find("match_ratio") + 1), std::string::npos) << tracker;
+  // ... also beside a window error, whose validator joins its messages with "; ".
+  const std::string both = error_of("frontend: {match_ratio: 2}\nwindow: {recent_frames: 0}\n");
+  EXPECT_NE(both.find("window: S must be >= 1"), std::string::npos) << both;
+  EXPECT_EQ(both.find("match_ratio", both.find("match_ratio") + 1), std::string::npos) << both;
   EXPECT_NE(error_of("window: {moving_start_after_ns: -1}\n").find("window: moving_start_after_ns: must be >= 0"),
             std::string::npos);
   EXPECT_NE(error_of("ekf: {moving_start_after_ns: -1}\n").find("ekf: moving_start_after_ns: must be >= 0"),

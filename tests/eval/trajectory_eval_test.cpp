@@ -460,24 +460,26 @@ TEST(EvalKeyframeAnchors, OneCorrectionEverywhereMovesEveryPoseByIt) {
 
 TEST(EvalKeyframeAnchors, KeyframesLandOnTheirMapPosesAndTheDriftBetweenIsShared) {
   const Trajectory odom = lissajous();
-  // The map moved the second keyframe 4 cm and 0.02 rad against the first.
-  const Eigen::Isometry3d Ca = correction(0.0, 0.0), Cb = correction(0.04, 0.02);
-  const std::vector<KeyframeAnchor> kfs{anchor(odom, 20, Ca), anchor(odom, 60, Cb)};
+  // The map moved the second keyframe 4 cm along W's x against the first.
+  const Eigen::Isometry3d Ca = correction(0.0, 0.3);
+  const Eigen::Isometry3d Cb = Ca * Eigen::Translation3d(0.04, 0.0, 0.0);
+  std::vector<KeyframeAnchor> kfs{anchor(odom, 20, Ca), anchor(odom, 60, Cb)};
+  // The keyframe's own odometry pose was refined after the output went out:
+  // the output's pose at its stamp is what lands on the map pose.
+  kfs[0].T_WB.translation() += Eigen::Vector3d(0.005, -0.003, 0.002);
   const Trajectory out = anchor_to_keyframes(odom, kfs);
   EXPECT_NEAR((out[20].p - kfs[0].T_MB.translation()).norm(), 0.0, 1e-9);
   EXPECT_NEAR((out[60].p - kfs[1].T_MB.translation()).norm(), 0.0, 1e-9);
+  EXPECT_NEAR(out[60].q.angularDistance(Eigen::Quaterniond(kfs[1].T_MB.linear())), 0.0, 1e-9);
   // Before the first and after the last keyframe: that keyframe's correction.
   EXPECT_NEAR((out[5].p - (Ca * iso_of(odom[5])).translation()).norm(), 0.0, 1e-9);
   EXPECT_NEAR((out[90].p - (Cb * iso_of(odom[90])).translation()).norm(), 0.0, 1e-9);
-  // Halfway in time: half the relative correction.
+  // Halfway in time: half the 4 cm, along the same axis.
   const size_t mid = 40;
   ASSERT_EQ(odom[mid].t_ns - odom[20].t_ns, odom[60].t_ns - odom[mid].t_ns);
-  Eigen::Isometry3d half = Eigen::Isometry3d::Identity();
-  const Eigen::Isometry3d D = Ca.inverse() * Cb;
-  const Eigen::AngleAxisd aa(D.linear());
-  half.linear() = Eigen::AngleAxisd(0.5 * aa.angle(), aa.axis()).toRotationMatrix();
-  half.translation() = 0.5 * D.translation();
-  EXPECT_NEAR((out[mid].p - (Ca * half * iso_of(odom[mid])).translation()).norm(), 0.0, 1e-9);
+  const Eigen::Vector3d want = Ca * (odom[mid].p + Eigen::Vector3d(0.02, 0.0, 0.0));
+  EXPECT_NEAR((out[mid].p - want).norm(), 0.0, 1e-9);
+  EXPECT_NEAR(out[mid].q.angularDistance(Eigen::Quaterniond(Ca.linear()) * odom[mid].q), 0.0, 1e-9);
   // A keyframe stamp the odometry has no pose at: the keyframe's own odometry pose anchors it.
   KeyframeAnchor off = kfs[1];
   off.t_ns += 1;
@@ -487,12 +489,26 @@ TEST(EvalKeyframeAnchors, KeyframesLandOnTheirMapPosesAndTheDriftBetweenIsShared
 
 TEST(EvalKeyframeAnchors, AJumpBetweenTwoKeyframesIsNotSpreadOverThePosesBetween) {
   const Trajectory odom = lissajous();
-  // 1 m apart: a relocalisation or an odometry reset, not drift.
-  const Eigen::Isometry3d Ca = correction(0.0, 0.0), Cb = correction(1.0, 0.0);
-  const Trajectory out = anchor_to_keyframes(odom, {anchor(odom, 20, Ca), anchor(odom, 60, Cb)});
-  for (size_t i = 20; i < 60; ++i)
-    EXPECT_NEAR((out[i].p - (Ca * iso_of(odom[i])).translation()).norm(), 0.0, 1e-9) << i;
-  EXPECT_NEAR((out[60].p - (Cb * iso_of(odom[60])).translation()).norm(), 0.0, 1e-9);
+  // 1 m or 0.3 rad apart: a relocalisation or an odometry reset, not drift.
+  for (const Eigen::Isometry3d& Cb : {correction(1.0, 0.0), correction(0.0, 0.3)}) {
+    const Eigen::Isometry3d Ca = correction(0.0, 0.0);
+    const Trajectory out = anchor_to_keyframes(odom, {anchor(odom, 20, Ca), anchor(odom, 60, Cb)});
+    for (size_t i = 20; i < 60; ++i)
+      EXPECT_NEAR((out[i].p - (Ca * iso_of(odom[i])).translation()).norm(), 0.0, 1e-9) << i;
+    EXPECT_NEAR((out[60].p - (Cb * iso_of(odom[60])).translation()).norm(), 0.0, 1e-9);
+  }
+  // The gate sees the step at the body, not at W's origin: 0.01 rad of yaw
+  // between the corrections is drift even 30 m from the origin.
+  Trajectory far = odom;
+  for (TimedPose& p : far) p.p += Eigen::Vector3d(30.0, 0.0, 0.0);
+  const Eigen::Isometry3d Ca = Eigen::Isometry3d::Identity();
+  Eigen::Isometry3d Cb = Eigen::Isometry3d::Identity();
+  Cb.linear() = Eigen::AngleAxisd(0.01, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+  // About the keyframe's own position, as drift acts.
+  const Eigen::Vector3d c = far[60].p;
+  Cb.translation() = c - Cb.linear() * c;
+  const Trajectory out = anchor_to_keyframes(far, {anchor(far, 20, Ca), anchor(far, 60, Cb)});
+  EXPECT_GT((out[40].p - far[40].p).norm(), 1e-4) << "0.01 rad of drift was taken for a jump";
 }
 
 }  // namespace

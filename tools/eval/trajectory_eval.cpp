@@ -220,18 +220,22 @@ Trajectory anchor_to_keyframes(const Trajectory& odometry, const std::vector<Key
     } else if (b == keyframes.size()) {
       Ct = C.back();
     } else {
+      // The two corrections differ by D = C_a^-1 C_b; seen at this body pose
+      // that is E = T^-1 D T, a step of the body itself, whatever the
+      // distance to W's origin (there a small yaw of D is a large translation).
       const size_t a = b - 1;
-      const Eigen::Isometry3d D = C[a].inverse() * C[b];
-      const Eigen::AngleAxisd aa(D.linear());
-      if (D.translation().norm() > max_step_m || std::abs(aa.angle()) > max_step_rad) {
+      const Eigen::Isometry3d T = iso(p);
+      const Eigen::Isometry3d E = T.inverse() * C[a].inverse() * C[b] * T;
+      const Eigen::AngleAxisd aa(E.linear());
+      if (E.translation().norm() > max_step_m || std::abs(aa.angle()) > max_step_rad) {
         Ct = C[a];
       } else {
         const double s = static_cast<double>(p.t_ns - keyframes[a].t_ns) /
                          static_cast<double>(keyframes[b].t_ns - keyframes[a].t_ns);
-        Eigen::Isometry3d Ds = Eigen::Isometry3d::Identity();
-        Ds.linear() = Eigen::AngleAxisd(s * aa.angle(), aa.axis()).toRotationMatrix();
-        Ds.translation() = s * D.translation();
-        Ct = C[a] * Ds;
+        Eigen::Isometry3d Es = Eigen::Isometry3d::Identity();
+        Es.linear() = Eigen::AngleAxisd(s * aa.angle(), aa.axis()).toRotationMatrix();
+        Es.translation() = s * E.translation();
+        Ct = C[a] * T * Es * T.inverse();
       }
     }
     const Eigen::Isometry3d T = Ct * iso(p);

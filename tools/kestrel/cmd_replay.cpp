@@ -169,17 +169,17 @@ Subcommand add_replay_command(CLI::App& parent) {
       if (!r.has_map) throw UsageError("--map-traj-out: the backend '" + r.estimator + "' runs without a map");
       tools::write_tum(args->map_traj_out, r.map_trajectory);
     }
+    if (!args->metrics_out.empty()) {
+      std::ofstream f(args->metrics_out);
+      if (!f) throw std::runtime_error("cannot write " + args->metrics_out);
+      f << replay_metrics_json(r);
+    }
     if (!args->map_final_traj_out.empty()) {
       if (!r.has_map) throw UsageError("--map-final-traj-out: the backend '" + r.estimator + "' runs without a map");
       if (r.map_final_trajectory.empty())
         throw std::runtime_error("--map-final-traj-out: the map holds no keyframe of this flight; nothing written to " +
                                  args->map_final_traj_out);
       tools::write_tum(args->map_final_traj_out, r.map_final_trajectory);
-    }
-    if (!args->metrics_out.empty()) {
-      std::ofstream f(args->metrics_out);
-      if (!f) throw std::runtime_error("cannot write " + args->metrics_out);
-      f << replay_metrics_json(r);
     }
     if (!args->quiet) {
       std::cout << replay_summary(r);

@@ -687,9 +687,8 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   map_threads.stop();
   if (!opt.map_out.empty()) tools::write_map_file(opt.map_out, estimator.save_map());
   if (report.has_map) {
-    std::vector<tools::KeyframeAnchor> anchors;
+    std::vector<tools::KeyframeAnchor>& anchors = report.map_final_keyframes;
     for (const core::MapKeyframePose& k : estimator.map_keyframe_poses()) anchors.push_back({k.t_ns, k.T_MB, k.T_WB});
-    report.map_final_keyframes = static_cast<int>(anchors.size());
     if (!anchors.empty()) report.map_final_trajectory = tools::anchor_to_keyframes(report.trajectory, anchors);
   }
   report.mapping_cpu_s = map_threads.mapping_cpu_s();

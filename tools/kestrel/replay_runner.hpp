@@ -172,7 +172,7 @@ struct ReplayReport {
   // The same poses through the map's keyframes as they ended the flight
   // (tools::anchor_to_keyframes): the map's final word, not available in flight.
   tools::Trajectory map_final_trajectory;
-  int map_final_keyframes = 0;
+  std::vector<tools::KeyframeAnchor> map_final_keyframes;  // what it was anchored to
   // The map (backends with one): its frame at the end, per keyframe cost of
   // the mapping and loop threads, and their CPU time.
   bool has_map = false;
