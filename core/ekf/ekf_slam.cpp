@@ -3,8 +3,8 @@
 #include <Eigen/Cholesky>
 
 #include <algorithm>
-#include <limits>
 #include <cmath>
+#include <limits>
 #include <sstream>
 #include <stdexcept>
 

@@ -214,6 +214,7 @@ Trajectory anchor_to_keyframes(const Trajectory& odometry, const std::vector<Key
     const auto hi = std::upper_bound(keyframes.begin(), keyframes.end(), p.t_ns,
                                      [](int64_t t, const KeyframeAnchor& k) { return t < k.t_ns; });
     const size_t b = static_cast<size_t>(hi - keyframes.begin());
+    const Eigen::Isometry3d T = iso(p);
     Eigen::Isometry3d Ct;
     if (b == 0) {
       Ct = C.front();
@@ -224,7 +225,6 @@ Trajectory anchor_to_keyframes(const Trajectory& odometry, const std::vector<Key
       // that is E = T^-1 D T, a step of the body itself, whatever the
       // distance to W's origin (there a small yaw of D is a large translation).
       const size_t a = b - 1;
-      const Eigen::Isometry3d T = iso(p);
       const Eigen::Isometry3d E = T.inverse() * C[a].inverse() * C[b] * T;
       const Eigen::AngleAxisd aa(E.linear());
       if (E.translation().norm() > max_step_m || std::abs(aa.angle()) > max_step_rad) {
@@ -238,11 +238,11 @@ Trajectory anchor_to_keyframes(const Trajectory& odometry, const std::vector<Key
         Ct = C[a] * T * Es * T.inverse();
       }
     }
-    const Eigen::Isometry3d T = Ct * iso(p);
+    const Eigen::Isometry3d T_MB = Ct * T;
     TimedPose q;
     q.t_ns = p.t_ns;
-    q.p = T.translation();
-    q.q = Eigen::Quaterniond(T.linear()).normalized();
+    q.p = T_MB.translation();
+    q.q = Eigen::Quaterniond(T_MB.linear()).normalized();
     out.push_back(q);
   }
   return out;

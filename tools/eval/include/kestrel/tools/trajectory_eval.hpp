@@ -86,9 +86,11 @@ struct KeyframeAnchor {
 // own pose at the keyframe's stamp when it has one, else the keyframe's), and a
 // pose between two keyframes takes the correction interpolated between theirs,
 // so every keyframe lands exactly on its map pose and the poses in between
-// keep their odometry motion relative to it. Two neighbouring corrections
-// further apart than max_step_m / max_step_rad are not one drift (a reset or a
-// relocalisation between them): poses there take the earlier keyframe's alone.
+// keep their odometry motion relative to it. The difference of two
+// neighbouring corrections is taken and interpolated at each pose's body
+// (T^-1 C_a^-1 C_b T), so it does not grow with the distance to W's origin;
+// one larger than max_step_m / max_step_rad there is not drift (a reset or a
+// relocalisation between them): such poses take the earlier keyframe's alone.
 // `keyframes` sorted by time; empty: the odometry unchanged.
 Trajectory anchor_to_keyframes(const Trajectory& odometry, const std::vector<KeyframeAnchor>& keyframes,
                                double max_step_m = 0.2, double max_step_rad = 0.1);
