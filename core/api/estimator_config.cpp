@@ -222,10 +222,14 @@ void visit_map(MapSystemOptions& m, OptionVisitor& v) {
   v.value("min_keyframe_interval_s", o.min_keyframe_interval_s, "keyframes closer in time are not mapped");
   LoopOptions& l = m.closing;
   v.value("loop_min_age_s", l.min_age_s, "loop candidates are at least this much older than the keyframe");
+  v.value(
+      "loop_connected_min_shared", l.connected_min_shared,
+      "keyframes sharing at least this many points are connected: a keyframe's connected ones are not its "
+      "loop candidates, and a candidate's are matched with it (1: any shared point; docs/map.md)");
   v.value("loop_max_candidates", l.max_candidates, "best place-recognition candidates verified per keyframe");
   v.value("loop_min_score", l.min_score, "BoW score floor of a candidate");
   v.value("loop_candidate_neighbours", l.candidate_neighbours,
-          "covisible keyframes of a candidate whose points are matched too");
+          "connected keyframes of a candidate whose points are matched too");
   v.value("loop_match_max_hamming", l.match_max_hamming, "largest Hamming distance of a loop match");
   v.value("loop_match_ratio", l.match_ratio, "best / second-best Hamming ratio of a loop match");
   v.value("loop_ransac_iterations", l.ransac_iterations, "4-DoF RANSAC iterations on the 3D-3D matches");

@@ -16,6 +16,7 @@ namespace kestrel::core {
 std::string LoopOptions::validate() const {
   std::ostringstream e;
   if (min_age_s < 0) e << "  loop_min_age_s must be >= 0\n";
+  if (connected_min_shared < 1) e << "  loop_connected_min_shared must be >= 1\n";
   if (max_candidates < 1) e << "  loop_max_candidates must be >= 1\n";
   if (min_inliers < 3) e << "  loop_min_inliers must be >= 3\n";
   if (!(min_inlier_share >= 0 && min_inlier_share <= 1)) e << "  loop_min_inlier_share must be in [0, 1]\n";
@@ -83,9 +84,14 @@ bool LoopCloser::detect(int kf, LoopMatch* out) {
   if (db == nullptr || !map_.keyframe_used(kf)) return false;
   MapKeyframe& K = map_.keyframe(kf);
   if (K.n_bow == 0) return false;
-  // The keyframe's covisible neighbours are not loops; the lowest score among
-  // the closest of them says how alike "the same place" looks here.
-  const int nc = map_.covisible(kf, 1, map_.max_keyframes(), kf_scratch_.data(), shared_scratch_.data());
+  // The keyframe's connected neighbours are not loops; the lowest score among
+  // its closest neighbours sharing at least 15 points (ORB-SLAM's
+  // covisibility edge) says how alike "the same place" looks here.
+  // connected_min_shared > 1 keeps a revisit that fusing linked by a point or
+  // two per keyframe a candidate (docs/map.md, "Weakly linked revisits": it
+  // closes such loops, and on two Vicon flights also bad ones, so it is off).
+  const int nc = map_.covisible(kf, opt_.connected_min_shared, map_.max_keyframes(), kf_scratch_.data(),
+                                shared_scratch_.data());
   const uint64_t mark = map_.next_mark();
   K.mark = mark;
   double min_covis = 1.0;
@@ -126,8 +132,13 @@ PlaceMatcher::PlaceMatcher(Map& map, const MapCamera& cam) : map_(map), cam_(cam
 
 PlaceMatcher::Result PlaceMatcher::match(const KeyframeFeature* f, int n, const Eigen::Isometry3d& T_MC, int cand,
                                          const LoopOptions& opt, uint64_t seed, PlaceFit* out) {
-  // The candidate's place: its points and those of its closest covisible keyframes.
-  const int nn = map_.covisible(cand, 1, opt.candidate_neighbours, kf_scratch_.data(), shared_scratch_.data());
+  // The candidate's place: its points and those of its closest connected
+  // keyframes. With connected_min_shared > 1 not any covisible one: fusing
+  // links the place to the keyframes flown since by a point or two, and their
+  // own points - the same texture, placed by the drifted odometry - would take
+  // the matches (or fail the ratio test against the old copies).
+  const int nn = map_.covisible(cand, opt.connected_min_shared, opt.candidate_neighbours, kf_scratch_.data(),
+                                shared_scratch_.data());
   const uint64_t mark = map_.next_mark();
   pts_.clear();
   for (int i = -1; i < nn; ++i) {

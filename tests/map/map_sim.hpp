@@ -7,6 +7,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <random>
 #include <vector>
@@ -141,9 +142,12 @@ struct DriftedMap {
             300, std::move(v)),
         truth(200) {}
 
+  // edit: changes the keyframe's features before they are linked (a test
+  // links some to older points, as the mapping thread's fusing does).
   int add(const SimRoom& room, const Eigen::Isometry3d& T_true, const Eigen::Isometry3d& T_odom, int64_t t_ns,
-          uint32_t id_offset, std::mt19937_64& rng) {
+          uint32_t id_offset, std::mt19937_64& rng, const std::function<void(SimKeyframe&)>& edit = {}) {
     SimKeyframe s = room.observe(T_true, rng, id_offset);
+    if (edit) edit(s);
     const int kf = map.add_keyframe(t_ns, T_odom, T_odom, s.features.data(), static_cast<int>(s.features.size()), last);
     if (kf < 0) return kf;
     if (last >= 0)

@@ -29,9 +29,15 @@ namespace kestrel::core {
 
 struct LoopOptions {
   double min_age_s = 10.0;   // candidates at least this much older than the query
+  // Keyframes sharing at least this many points are connected: the query's
+  // connected keyframes are not loop candidates, and a candidate's are
+  // matched with it. 1 (any shared point) by default; ORB-SLAM's 15 closes
+  // weakly linked revisits but let bad loops through on two Vicon flights
+  // (docs/map.md, "Weakly linked revisits").
+  int connected_min_shared = 1;
   int max_candidates = 3;    // best BoW candidates verified per keyframe
   double min_score = 0.01;   // BoW score floor
-  int candidate_neighbours = 5;  // covisible keyframes of a candidate whose points are matched too
+  int candidate_neighbours = 5;  // connected keyframes of a candidate whose points are matched too
   int match_max_hamming = 50;
   double match_ratio = 0.8;
   int ransac_iterations = 300;
