@@ -427,9 +427,12 @@ static void add_section_errors(std::ostringstream& e, const char* section, const
   for (size_t at = 0; (at = text.find("; ", at)) != std::string::npos;) text.replace(at, 2, "\n");
   const std::string skip_lines = "\n" + skip;
   std::istringstream in(text);
-  for (std::string line; std::getline(in, line);)
-    if (!line.empty() && skip_lines.find("\n" + line + "\n") == std::string::npos)
-      e << section << ": " << line << "\n";
+  for (std::string line; std::getline(in, line);) {
+    // Some validators indent their lines for a message of their own.
+    const size_t text_at = line.find_first_not_of(' ');
+    if (text_at == std::string::npos || skip_lines.find("\n" + line + "\n") != std::string::npos) continue;
+    e << section << ": " << line.substr(text_at) << "\n";
+  }
 }
 
 std::string validate(const EstimatorConfig& c) {
@@ -450,7 +453,11 @@ std::string validate(const EstimatorConfig& c) {
   nominal.gyro_random_walk_rad_s2_sqrthz = 1e-5;
   nominal.acc_random_walk_mps3_sqrthz = 1e-4;
   w.window.imu = ImuNoiseParams::from_imu_noise(nominal, 200.0);
-  add_section_errors(e, "window", w.validate(), tracker_errors);
+  // The map's keys live in their own section but are validated with the
+  // window's options: named once, under map.
+  const std::string map_errors = c.window.map.validate();
+  add_section_errors(e, "map", map_errors);
+  add_section_errors(e, "window", w.validate(), tracker_errors + map_errors);
   add_section_errors(e, "ekf", c.ekf_options().validate(), tracker_errors);
   add_section_errors(e, "safety", c.safety.validate());
   RgbdEstimatorOptions r = c.rgbd_options();

@@ -158,6 +158,11 @@ TEST(ConfigFile, BadInputNamesFileLineAndKey) {
             std::string::npos);
   EXPECT_NE(error_of("ekf: {spread_grid_cols: 4}\n").find("ekf: spread_grid_cols/rows: both 0 (off) or both in [1, 32]"),
             std::string::npos);
+  // The map's keys are named under map, once, without the loop closer's indentation.
+  const std::string map_err = error_of("map: {loop_connected_min_shared: 0, max_points: 1}\n");
+  EXPECT_NE(map_err.find("map: loop_connected_min_shared must be >= 1\n"), std::string::npos) << map_err;
+  EXPECT_NE(map_err.find("map: max_points: at least 16\n"), std::string::npos) << map_err;
+  EXPECT_EQ(map_err.find("window: "), std::string::npos) << map_err;
   // Two bad keys: each line names its section and key.
   const std::string two = error_of("frontend: {position_sigma_m: 0, imu_outage_after_ns: -1}\n");
   EXPECT_NE(two.find("frontend: position_sigma_m: must be > 0\n"), std::string::npos) << two;
