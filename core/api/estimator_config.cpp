@@ -236,6 +236,10 @@ void visit_map(MapSystemOptions& m, OptionVisitor& v) {
   v.value("loop_inlier_m", l.inlier_m, "3D-3D inlier distance, plus 3 sigma of the depth");
   v.value("loop_min_inliers", l.min_inliers, "inliers a loop needs");
   v.value("loop_min_inlier_share", l.min_inlier_share, "... and this share of the matches");
+  v.value(
+      "loop_refine_chi2", l.refine_chi2,
+      "after the 3D fit, a 4-DoF refit on pixels and depths with their noise; its inliers (whitened error "
+      "below this, 3 DoF) must meet the two bounds above (0: no refit; relocalisation too)");
   v.value("loop_max_correction_m", l.max_correction_m,
           "a loop's correction is drift: at most this + loop_max_correction_per_m x path since the candidate");
   v.value("loop_max_correction_per_m", l.max_correction_per_m, "drift per metre flown (beyond: an alias)");

@@ -7,6 +7,7 @@
 #include <unordered_map>
 
 #include <Eigen/Eigenvalues>
+#include <ceres/ceres.h>
 
 #include "kestrel/core/pose_graph.hpp"
 #include "kestrel/core/vocabulary.hpp"
@@ -23,9 +24,12 @@ std::string LoopOptions::validate() const {
   if (ransac_iterations < 1) e << "  loop_ransac_iterations must be >= 1\n";
   if (!(min_out_of_plane_m >= 0)) e << "  loop_min_out_of_plane_m must be >= 0\n";
   if (!(inlier_m > 0)) e << "  loop_inlier_m must be > 0\n";
+  if (!(refine_chi2 >= 0)) e << "  loop_refine_chi2 must be >= 0\n";
   if (consistent_keyframes < 1) e << "  loop_consistent_keyframes must be >= 1\n";
-  if (!(max_correction_m >= 0 && max_correction_per_m >= 0 && max_yaw_rad >= 0 && max_yaw_per_m >= 0))
-    e << "  the loop's drift bounds must be >= 0\n";
+  if (!(max_correction_m >= 0)) e << "  loop_max_correction_m must be >= 0\n";
+  if (!(max_correction_per_m >= 0)) e << "  loop_max_correction_per_m must be >= 0\n";
+  if (!(max_yaw_rad >= 0)) e << "  loop_max_yaw_rad must be >= 0\n";
+  if (!(max_yaw_per_m >= 0)) e << "  loop_max_yaw_per_m must be >= 0\n";
   if (pose_graph_iterations < 1) e << "  loop_pose_graph_iterations must be >= 1\n";
   if (reloc_max_candidates < 1) e << "  reloc_max_candidates must be >= 1\n";
   if (reloc_min_inliers < 3) e << "  reloc_min_inliers must be >= 3\n";
@@ -196,6 +200,20 @@ PlaceMatcher::Result PlaceMatcher::match(const KeyframeFeature* f, int n, const 
   }
   inliers_of(T, in);
   if (static_cast<int>(in.size()) < opt.min_inliers || in.size() < opt.min_inlier_share * m) return kFewInliers;
+  if (opt.refine_chi2 > 0) {
+    // The 3D fit weighs every point alike and its gate admits several cm at
+    // range, where the depth is poor: refit on what the camera measures well
+    // (pixels) and what it measures poorly (depth), each with its noise, and
+    // keep the matches the refit explains.
+    std::vector<int> cand_in = in;
+    for (int round = 0; round < 2; ++round) {
+      T = refine_4dof(T, T_MC, f, pairs, cand_in);
+      chi2_inliers(T, T_MC, f, pairs, opt.refine_chi2, in);
+      if (static_cast<int>(in.size()) < opt.min_inliers) return kFewInliers;
+      cand_in = in;
+    }
+    if (in.size() < opt.min_inlier_share * m) return kFewInliers;
+  }
   out->correction = T;
   out->matches = m;
   out->inliers = static_cast<int>(in.size());
@@ -213,6 +231,103 @@ PlaceMatcher::Result PlaceMatcher::match(const KeyframeFeature* f, int n, const 
   out->inlier_pairs.clear();
   for (int i : in) out->inlier_pairs.push_back(pairs[static_cast<size_t>(i)]);
   return kOk;
+}
+
+namespace {
+
+// A map point seen from the corrected query camera: p_C = T_CM (T^-1 p_M),
+// T = (yaw, t) in M. Pixel and depth residuals, whitened.
+struct PlaceCost {
+  PlaceCost(const Eigen::Isometry3d& T_CM, const Eigen::Vector3d& p_M, const PinholeK& K, double u, double v,
+            double z, double inv_sigma_px, double inv_sigma_z)
+      : R_(T_CM.linear()),
+        t_(T_CM.translation()),
+        p_(p_M),
+        K_(K),
+        u_(u),
+        v_(v),
+        z_(z),
+        isp_(inv_sigma_px),
+        isz_(inv_sigma_z) {}
+  template <typename T>
+  bool operator()(const T* x, T* r) const {
+    const T c = ceres::cos(x[0]), s = ceres::sin(x[0]);
+    const T dx = T(p_.x()) - x[1], dy = T(p_.y()) - x[2], dz = T(p_.z()) - x[3];
+    const Eigen::Matrix<T, 3, 1> q(c * dx + s * dy, -s * dx + c * dy, dz);
+    const Eigen::Matrix<T, 3, 1> pc = R_.cast<T>() * q + t_.cast<T>();
+    const T zc = pc.z() < T(1e-3) ? T(1e-3) : pc.z();
+    r[0] = (T(K_.fx) * pc.x() / zc + T(K_.cx) - T(u_)) * T(isp_);
+    r[1] = (T(K_.fy) * pc.y() / zc + T(K_.cy) - T(v_)) * T(isp_);
+    r[2] = (pc.z() - T(z_)) * T(isz_);
+    return true;
+  }
+  Eigen::Matrix3d R_;
+  Eigen::Vector3d t_, p_;
+  PinholeK K_;
+  double u_, v_, z_, isp_, isz_;
+};
+
+}  // namespace
+
+void PlaceMatcher::pair_sigmas(const KeyframeFeature& f, int32_t pt, double* sigma_px,
+                               double* sigma_z_m) const {
+  const MapPoint& P = map_.point(pt);
+  const double zp = P.min_depth_m > 0 ? P.min_depth_m : f.depth_m;
+  const double sp = std::max(map_.options().point_sigma_floor_m,
+                             cam_.sigma_depth_m(zp) / std::sqrt(std::max<double>(1, P.n_obs)));
+  const double spx = cam_.sigma_px(f.level), sz = cam_.sigma_depth_m(f.depth_m);
+  const double lever = cam_.K.fx * sp / std::max(0.1, static_cast<double>(f.depth_m));
+  *sigma_px = std::sqrt(spx * spx + lever * lever);
+  *sigma_z_m = std::sqrt(sz * sz + sp * sp);
+}
+
+Eigen::Isometry3d PlaceMatcher::refine_4dof(const Eigen::Isometry3d& T, const Eigen::Isometry3d& T_MC,
+                                            const KeyframeFeature* f, const Pairs& pairs,
+                                            const std::vector<int>& idx) const {
+  double x[4] = {yaw_of(T.linear()), T.translation().x(), T.translation().y(), T.translation().z()};
+  ceres::Problem::Options po;
+  po.loss_function_ownership = ceres::DO_NOT_TAKE_OWNERSHIP;
+  ceres::Problem problem(po);
+  ceres::HuberLoss huber(std::sqrt(7.815));
+  const Eigen::Isometry3d T_CM = T_MC.inverse();
+  for (int i : idx) {
+    const auto& [j, pt] = pairs[static_cast<size_t>(i)];
+    double spx = 1, sz = 1;
+    pair_sigmas(f[j], pt, &spx, &sz);
+    problem.AddResidualBlock(
+        new ceres::AutoDiffCostFunction<PlaceCost, 3, 4>(new PlaceCost(
+            T_CM, map_.point(pt).p_M, cam_.K, f[j].u_px, f[j].v_px, f[j].depth_m, 1.0 / spx, 1.0 / sz)),
+        &huber, x);
+  }
+  ceres::Solver::Options so;
+  so.linear_solver_type = ceres::DENSE_QR;
+  so.max_num_iterations = 10;
+  so.num_threads = 1;
+  ceres::Solver::Summary sum;
+  ceres::Solve(so, &problem, &sum);
+  if (!sum.IsSolutionUsable()) return T;
+  Eigen::Isometry3d R = Eigen::Isometry3d::Identity();
+  R.linear() = rot_z(x[0]);
+  R.translation() = Eigen::Vector3d(x[1], x[2], x[3]);
+  return R;
+}
+
+void PlaceMatcher::chi2_inliers(const Eigen::Isometry3d& T, const Eigen::Isometry3d& T_MC,
+                                const KeyframeFeature* f, const Pairs& pairs, double chi2,
+                                std::vector<int>& out) const {
+  out.clear();
+  const Eigen::Isometry3d T_CM = (T * T_MC).inverse();
+  for (size_t i = 0; i < pairs.size(); ++i) {
+    const auto& [j, pt] = pairs[i];
+    const Eigen::Vector3d c = T_CM * map_.point(pt).p_M;
+    if (c.z() < 1e-3) continue;
+    double spx = 1, sz = 1;
+    pair_sigmas(f[j], pt, &spx, &sz);
+    const double eu = (cam_.K.fx * c.x() / c.z() + cam_.K.cx - f[j].u_px) / spx;
+    const double ev = (cam_.K.fy * c.y() / c.z() + cam_.K.cy - f[j].v_px) / spx;
+    const double ez = (c.z() - f[j].depth_m) / sz;
+    if (eu * eu + ev * ev + ez * ez < chi2) out.push_back(static_cast<int>(i));
+  }
 }
 
 bool LoopCloser::verify(int kf, int cand, double score, LoopMatch* out) {

@@ -44,6 +44,8 @@ struct LoopOptions {
   double inlier_m = 0.05;    // 3D-3D inlier: this + 3 sigma of the depth
   int min_inliers = 40;
   double min_inlier_share = 0.3;  // of the matches
+  // After the 3D fit: refit on pixels and depths, inliers below this chi2 (3 DoF); 0: off
+  double refine_chi2 = 7.815;
   // The correction must be drift: at most base + per_m x path flown since the candidate.
   double max_correction_m = 0.3;
   double max_correction_per_m = 0.05;
@@ -111,6 +113,18 @@ class PlaceMatcher {
                uint64_t seed, PlaceFit* out);
 
  private:
+  using Pairs = std::vector<std::pair<int, int>>;
+  // The 4-DoF correction that best explains the chosen pairs' pixels and
+  // depths, from T (Huber-robust Gauss-Newton).
+  Eigen::Isometry3d refine_4dof(const Eigen::Isometry3d& T, const Eigen::Isometry3d& T_MC,
+                                const KeyframeFeature* f, const Pairs& pairs,
+                                const std::vector<int>& idx) const;
+  // The pairs whose whitened pixel and depth error under T is below chi2.
+  void chi2_inliers(const Eigen::Isometry3d& T, const Eigen::Isometry3d& T_MC, const KeyframeFeature* f,
+                    const Pairs& pairs, double chi2, std::vector<int>& out) const;
+  // A pair's pixel and depth noise, the map point's own included.
+  void pair_sigmas(const KeyframeFeature& f, int32_t pt, double* sigma_px, double* sigma_z_m) const;
+
   Map& map_;
   MapCamera cam_;
   std::vector<int32_t> kf_scratch_, shared_scratch_, pts_;
