@@ -207,7 +207,7 @@ PlaceMatcher::Result PlaceMatcher::match(const KeyframeFeature* f, int n, const 
     // keep the matches the refit explains.
     std::vector<int> cand_in = in;
     for (int round = 0; round < 2; ++round) {
-      T = refine_4dof(T, T_MC, f, pairs, cand_in);
+      T = refine_4dof(T, T_MC, f, pairs, cand_in, opt.refine_chi2);
       chi2_inliers(T, T_MC, f, pairs, opt.refine_chi2, in);
       if (static_cast<int>(in.size()) < opt.min_inliers) return kFewInliers;
       cand_in = in;
@@ -271,10 +271,7 @@ struct PlaceCost {
 
 void PlaceMatcher::pair_sigmas(const KeyframeFeature& f, int32_t pt, double* sigma_px,
                                double* sigma_z_m) const {
-  const MapPoint& P = map_.point(pt);
-  const double zp = P.min_depth_m > 0 ? P.min_depth_m : f.depth_m;
-  const double sp = std::max(map_.options().point_sigma_floor_m,
-                             cam_.sigma_depth_m(zp) / std::sqrt(std::max<double>(1, P.n_obs)));
+  const double sp = point_sigma_m(cam_, map_.point(pt), map_.options().point_sigma_floor_m);
   const double spx = cam_.sigma_px(f.level), sz = cam_.sigma_depth_m(f.depth_m);
   const double lever = cam_.K.fx * sp / std::max(0.1, static_cast<double>(f.depth_m));
   *sigma_px = std::sqrt(spx * spx + lever * lever);
@@ -283,12 +280,13 @@ void PlaceMatcher::pair_sigmas(const KeyframeFeature& f, int32_t pt, double* sig
 
 Eigen::Isometry3d PlaceMatcher::refine_4dof(const Eigen::Isometry3d& T, const Eigen::Isometry3d& T_MC,
                                             const KeyframeFeature* f, const Pairs& pairs,
-                                            const std::vector<int>& idx) const {
+                                            const std::vector<int>& idx, double chi2) const {
   double x[4] = {yaw_of(T.linear()), T.translation().x(), T.translation().y(), T.translation().z()};
   ceres::Problem::Options po;
   po.loss_function_ownership = ceres::DO_NOT_TAKE_OWNERSHIP;
   ceres::Problem problem(po);
-  ceres::HuberLoss huber(std::sqrt(7.815));
+  // Robust from where the inlier gate ends: beyond it a match counts less.
+  ceres::HuberLoss huber(std::sqrt(chi2));
   const Eigen::Isometry3d T_CM = T_MC.inverse();
   for (int i : idx) {
     const auto& [j, pt] = pairs[static_cast<size_t>(i)];

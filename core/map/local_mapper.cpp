@@ -75,10 +75,13 @@ LocalMapper::LocalMapper(Map& map, const MapCamera& cam) : map_(map), cam_(cam) 
   shared_scratch_.resize(static_cast<size_t>(map.max_keyframes()));
 }
 
-double LocalMapper::point_sigma_m(const MapPoint& p) const {
+double point_sigma_m(const MapCamera& cam, const MapPoint& p, double floor_m) {
   const double z = p.min_depth_m > 0 ? p.min_depth_m : 3.0;
-  const double s = cam_.sigma_depth_m(z) / std::sqrt(std::max<double>(1, p.n_obs));
-  return std::max(map_.options().point_sigma_floor_m, s);
+  return std::max(floor_m, cam.sigma_depth_m(z) / std::sqrt(std::max<double>(1, p.n_obs)));
+}
+
+double LocalMapper::point_sigma_m(const MapPoint& p) const {
+  return core::point_sigma_m(cam_, p, map_.options().point_sigma_floor_m);
 }
 
 int LocalMapper::insert(const KeyframePacket& pk, const Eigen::Isometry3d& T_MW, int32_t parent) {

@@ -115,10 +115,10 @@ class PlaceMatcher {
  private:
   using Pairs = std::vector<std::pair<int, int>>;
   // The 4-DoF correction that best explains the chosen pairs' pixels and
-  // depths, from T (Huber-robust Gauss-Newton).
+  // depths, from T (Huber at sqrt(chi2), Ceres).
   Eigen::Isometry3d refine_4dof(const Eigen::Isometry3d& T, const Eigen::Isometry3d& T_MC,
-                                const KeyframeFeature* f, const Pairs& pairs,
-                                const std::vector<int>& idx) const;
+                                const KeyframeFeature* f, const Pairs& pairs, const std::vector<int>& idx,
+                                double chi2) const;
   // The pairs whose whitened pixel and depth error under T is below chi2.
   void chi2_inliers(const Eigen::Isometry3d& T, const Eigen::Isometry3d& T_MC, const KeyframeFeature* f,
                     const Pairs& pairs, double chi2, std::vector<int>& out) const;

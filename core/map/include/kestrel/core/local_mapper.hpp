@@ -34,6 +34,11 @@ struct MapCamera {
   Eigen::Vector3d point_C(const KeyframeFeature& f) const;
 };
 
+// A map point's 1-sigma [m]: the depth noise at its nearest measured depth
+// (3 m without one) over the square root of its observations, at least
+// floor_m. The window's prior and the loop's refit use the same model.
+double point_sigma_m(const MapCamera& cam, const MapPoint& p, double floor_m);
+
 struct LocalMapperStats {
   uint64_t keyframes = 0;        // inserted
   uint64_t refused_full = 0;     // not inserted: the map was full even after culling
