@@ -324,6 +324,11 @@ void visit_ekf(EkfEstimatorOptions& o, OptionVisitor& v) {
           "at most one map pose per this interval (the map is not independent of the filter)");
   v.value("max_lost_frames", o.max_lost_frames, "untracked frames before the tracker takes a new keyframe");
   v.value("min_used_for_tracking", o.min_used_for_tracking, "observations used for the frame to count as tracked");
+  v.value("mapping", o.mapping,
+          "run the map: section's local mapping and loop closing beside the filter "
+          "(costs the mapping thread's CPU; set by --mapping on or off)");
+  v.value("map_point_landmarks", o.map_point_landmarks,
+          "with the map: a new landmark that is a map point starts at the map's position and sigma");
   v.end_section();
 }
 
@@ -375,6 +380,8 @@ EkfEstimatorOptions EstimatorConfig::ekf_options() const {
   EkfEstimatorOptions o = ekf;
   o.tracker = tracker;
   o.divergence = safety;
+  // One map: section for every backend that can run it.
+  o.map = window.map;
   return o;
 }
 

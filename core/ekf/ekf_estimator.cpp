@@ -114,6 +114,49 @@ EkfEstimator::EkfEstimator(const Rig& rig, const EkfEstimatorOptions& opt)
   max_step_ns_ = p.max_integration_step_ns;
   obs_.resize(static_cast<size_t>(std::max(1, opt_.tracker.orb.n_features)));
   ekf_.set_imu_noise_scale(opt_.imu_noise_inflation);
+  if (opt_.mapping && opt_.map.mapping) {
+    MapCamera cam;
+    cam.K = PinholeK{rig.rgb.fx, rig.rgb.fy, rig.rgb.cx, rig.rgb.cy};
+    cam.width = rig.rgb.width;
+    cam.height = rig.rgb.height;
+    cam.depth_sigma_coeff_per_m = positive_or(rig.depth.sigma_coeff_per_m, kDefaultDepthCoeffPerM);
+    cam.keypoint_sigma_px = opt_.tracker.keypoint_sigma_px;
+    cam.level_scale = opt_.tracker.orb.scale_factor;
+    map_ = std::make_unique<MapSystem>(cam, opt_.tracker.orb.n_features, opt_.map);
+  }
+}
+
+EkfEstimator::~EkfEstimator() = default;
+
+// Before tracking: the newest refined points go into the tracker's local map
+// (emptied first when the map's frame moved), and the output carries the
+// map's frame.
+void EkfEstimator::map_before_tracking() {
+  if (const MapUpdate* u = map_->take_update()) {
+    if (u->realigned) tracker_.clear_map();
+    tracker_.apply_map_points(u->points, u->n);
+    map_->release_update(u);
+  }
+  out_.map = map_->frame();
+}
+
+// After the update: a new keyframe goes to the map at once, at the filter's
+// updated pose. The window holds its keyframe until its solve has refined it;
+// the filter never revisits a past pose, so there is nothing to wait for.
+void EkfEstimator::map_after_update(const TrackResult& r) {
+  // Once per loss: a restart while already lost is the same gap.
+  const bool lost = out_.quality == TrackingQuality::kLost;
+  if ((lost && !map_chain_lost_) || (!lost && starts_ != map_chain_starts_)) ++map_chain_;
+  map_chain_lost_ = lost;
+  map_chain_starts_ = starts_;
+  if (!r.keyframe || !tracker_.has_keyframe()) return;
+  KeyframePacket* p = map_->begin_keyframe();
+  if (p == nullptr) return;  // every packet in flight: counted by the map
+  p->t_ns = tracker_.keyframe_t_ns();
+  p->T_WC = tracker_.keyframe_pose();
+  p->n = tracker_.keyframe_features(p->features, opt_.tracker.orb.n_features);
+  p->chain = map_chain_;
+  map_->submit_keyframe(p);
 }
 
 // The update's consistency, for the summary: a filter whose noise models fit
@@ -141,6 +184,7 @@ void EkfEstimator::start(const NavState& s0, bool moving, bool restart) {
                  opt_.init_gyro_bias_sigma_rps, opt_.init_acc_bias_sigma_mps2);
   t_state_ns_ = s0.t_ns;
   started_ = true;
+  ++starts_;
   tracker_.reset();
   last_tracked_t_ns_ = -1;
   last_map_pose_t_ns_ = -1;
@@ -278,6 +322,7 @@ void EkfEstimator::supervise() {
 bool EkfEstimator::add_frame(const RgbdFrame& f) {
   ++counters_.frames_in;
   if (!started_) return false;
+  if (map_) map_before_tracking();
   // The mean is at the last IMU sample, up to one IMU period before the
   // frame: carry it to the frame time with that sample, so the update and
   // the tracker's prediction refer to the exposure.
@@ -305,8 +350,12 @@ bool EkfEstimator::add_frame(const RgbdFrame& f) {
       ++ekf_counters_.observations_dropped;
       continue;
     }
-    obs_[static_cast<size_t>(n++)] =
-        virtual_stereo(o.landmark_id, o.uv.x(), o.uv.y(), o.depth_m, fx_, baseline_m_);
+    StereoObservation& so = obs_[static_cast<size_t>(n++)];
+    so = virtual_stereo(o.landmark_id, o.uv.x(), o.uv.y(), o.depth_m, fx_, baseline_m_);
+    if (opt_.map_point_landmarks && o.map_sigma_m > 0.0f) {
+      so.prior_p_W = o.map_p_W;
+      so.prior_sigma_m = o.map_sigma_m;
+    }
   }
   ekf_counters_.observations_in += static_cast<uint64_t>(n_in);
 
@@ -387,6 +436,7 @@ bool EkfEstimator::add_frame(const RgbdFrame& f) {
     lost_frames_ = 0;
     ++counters_.frames_used;
     supervise();
+    if (map_) map_after_update(r);
     return true;
   }
   // Not tracked: coast on the IMU; after a few frames take a new keyframe at
@@ -399,6 +449,7 @@ bool EkfEstimator::add_frame(const RgbdFrame& f) {
     ++ekf_counters_.tracker_resets;
     lost_frames_ = 0;
   }
+  if (map_) map_after_update(r);
   return true;
 }
 
@@ -411,20 +462,23 @@ std::string EkfEstimator::backend_summary() const {
   };
   std::snprintf(
       buf, sizeof buf,
-      "ekf: %d of %d landmarks active; initialised %llu, frozen %llu, dropped %llu, capacity full %llu; "
+      "ekf: %d of %d landmarks active; initialised %llu (%llu at map points), frozen %llu, dropped %llu, "
+      "capacity full %llu; "
       "observations %llu in, %llu used, %llu gated, %llu without depth; tracker resets %llu, filter "
-      "resets %llu; map poses %llu used, %llu gated, %llu re-anchoring a restart; update p50 %.2f ms, p99 %.2f ms, max %.2f ms; IMU noise x%.1f; NIS / dof %.2f, pose NIS %.1f (consistent: 1 and 6)",
+      "resets %llu; map poses %llu used, %llu gated, %llu re-anchoring a restart; update p50 %.2f ms, p99 "
+      "%.2f ms, max %.2f ms; IMU noise x%.1f; NIS / dof %.2f, pose NIS %.1f (consistent: 1 and 6)",
       ekf_.num_active(), ekf_.options().landmark_capacity, (unsigned long long)c.landmarks_initialised,
-      (unsigned long long)c.landmarks_frozen, (unsigned long long)c.landmarks_dropped,
-      (unsigned long long)c.capacity_full, (unsigned long long)e.observations_in,
-      (unsigned long long)c.observations_used, (unsigned long long)c.observations_gated,
-      (unsigned long long)e.observations_no_depth, (unsigned long long)e.tracker_resets,
-      (unsigned long long)e.filter_resets, (unsigned long long)e.map_poses_used,
-      (unsigned long long)e.map_poses_gated, (unsigned long long)e.map_reanchors, ms(50), ms(99),
+      (unsigned long long)c.landmarks_from_prior, (unsigned long long)c.landmarks_frozen,
+      (unsigned long long)c.landmarks_dropped, (unsigned long long)c.capacity_full,
+      (unsigned long long)e.observations_in, (unsigned long long)c.observations_used,
+      (unsigned long long)c.observations_gated, (unsigned long long)e.observations_no_depth,
+      (unsigned long long)e.tracker_resets, (unsigned long long)e.filter_resets,
+      (unsigned long long)e.map_poses_used, (unsigned long long)e.map_poses_gated,
+      (unsigned long long)e.map_reanchors, ms(50), ms(99),
       update_latency_.count() > 0 ? 1e-6 * static_cast<double>(update_latency_.max()) : 0.0,
-      ekf_.imu_noise_scale(),
-      e.nis_dof_sum > 0 ? e.nis_sum / e.nis_dof_sum : 0.0,
+      ekf_.imu_noise_scale(), e.nis_dof_sum > 0 ? e.nis_sum / e.nis_dof_sum : 0.0,
       e.pose_nis_n > 0 ? e.pose_nis_sum / static_cast<double>(e.pose_nis_n) : 0.0);
+  if (map_) return std::string(buf) + "\n" + map_->summary();
   return buf;
 }
 

@@ -1,5 +1,6 @@
 #include "kestrel/core/map_system.hpp"
 
+#include <algorithm>
 #include <sstream>
 #include <stdexcept>
 
@@ -216,6 +217,19 @@ bool MapSystem::loop_step() {
   loop_latency_.record(rt::now_ns() - t0);
   in_flight_.fetch_sub(1, std::memory_order_acq_rel);
   return true;
+}
+
+std::vector<MapKeyframePose> MapSystem::keyframe_poses(const Eigen::Isometry3d& T_CB) const {
+  std::vector<MapKeyframePose> out;
+  const Map& m = *map_;
+  // A loaded map's keyframes (session > 0) were taken in another flight's odometry frame.
+  m.for_each_keyframe([&](int k) {
+    const MapKeyframe& K = m.keyframe(k);
+    if (K.session == 0) out.push_back({K.t_ns, K.T_MC * T_CB, K.T_WC * T_CB});
+  });
+  std::sort(out.begin(), out.end(),
+            [](const MapKeyframePose& a, const MapKeyframePose& b) { return a.t_ns < b.t_ns; });
+  return out;
 }
 
 std::string MapSystem::summary() const {

@@ -617,17 +617,7 @@ void WindowEstimator::process(int slot) {
 }
 
 std::vector<MapKeyframePose> WindowEstimator::map_keyframe_poses() const {
-  std::vector<MapKeyframePose> out;
-  if (!map_) return out;
-  const Map& m = map_->map();
-  const Eigen::Isometry3d T_CB = T_BC_.inverse();
-  // A loaded map's keyframes (session > 0) were taken in another flight's odometry frame.
-  m.for_each_keyframe([&](int k) {
-    const MapKeyframe& K = m.keyframe(k);
-    if (K.session == 0) out.push_back({K.t_ns, K.T_MC * T_CB, K.T_WC * T_CB});
-  });
-  std::sort(out.begin(), out.end(), [](const MapKeyframePose& a, const MapKeyframePose& b) { return a.t_ns < b.t_ns; });
-  return out;
+  return map_ ? map_->keyframe_poses(T_BC_.inverse()) : std::vector<MapKeyframePose>{};
 }
 
 }  // namespace kestrel::core

@@ -112,6 +112,20 @@ TEST(ConfigFile, KeysOverrideWhateverTheirPlace) {
   EXPECT_EQ(c.window_options().frontend.moving_start_after_ns, 250'000'000);
   EXPECT_EQ(c.vo_options().moving_start_after_ns, 1'000'000'000);
   EXPECT_EQ(c.ekf_options().moving_start_after_ns, 500'000'000);
+  // The ekf runs the map only when asked; it shares the map: section.
+  EXPECT_FALSE(c.ekf_options().mapping);
+  const EstimatorConfig m = estimator_config_from_yaml(
+      "estimator: {backend: ekf}\nekf: {mapping: true}\nmap: {max_keyframes: 500}\n", "x.yaml");
+  EXPECT_TRUE(m.ekf_options().mapping);
+  EXPECT_EQ(m.ekf_options().map.map.max_keyframes, 500);
+  // --mapping on|off reaches the ekf as it reaches the window.
+  EstimatorConfig e = EstimatorConfig::defaults("ekf");
+  kestrel::tools::apply_map_switches(e, "on", "off");
+  EXPECT_TRUE(e.ekf_options().mapping);
+  EXPECT_FALSE(e.ekf_options().map.loop);
+  kestrel::tools::apply_map_switches(e, "off", "");
+  EXPECT_FALSE(e.ekf_options().mapping);
+  EXPECT_FALSE(e.window.map.mapping);
 }
 
 TEST(ConfigFile, LonscVariantSelectsThePapersAlgorithmAndKeysStillOverride) {

@@ -338,6 +338,58 @@ TEST(EkfSlam, NewTracksSpreadOverTheImageWhenSlotsAreScarce) {
   EXPECT_THROW(EkfSlam(bad, w.cam), std::invalid_argument);  // rows and the image size missing
 }
 
+// A track that is a known map point starts at the map's position with the
+// map's sigma, uncorrelated with the pose; the others start from their
+// observation at the pose, inheriting its uncertainty. Then both are updated
+// alike.
+TEST(EkfSlam, AKnownPointStartsAtItsPriorNotAtTheObservation) {
+  const test::EkfSimWorld w = test::make_ekf_world(1, 1);
+  const std::vector<Vec3> pts_C{Vec3(0.3, -0.2, 3.0), Vec3(-0.4, 0.1, 2.5)};
+  const Pose T_WB(Eigen::Matrix3d::Identity(), Vec3(0, 0, 1.5));
+  std::vector<StereoObservation> obs;
+  exact_observations(w, T_WB, pts_C, obs);
+  const Vec3 seen_W = T_WB * (w.cam.T_CB.inverse() * pts_C[0]);
+  // The map holds the first point 2 cm across the view from where this frame
+  // puts it (across: depth from disparity would see little of it).
+  const Vec3 prior_W = T_WB * (w.cam.T_CB.inverse() * (pts_C[0] + Vec3(0.02, -0.005, 0.0)));
+  obs[0].prior_p_W = prior_W;
+  obs[0].prior_sigma_m = 0.01;
+  EkfSlamOptions opt;
+  EkfSlam ekf(opt, w.cam);
+  // 1 cm of position, 0.1 mrad of attitude: the prior's offset shows as a
+  // position error, not one a rotation could explain.
+  Mat6 P0 = Mat6::Zero();
+  P0.diagonal() << 1e-4, 1e-4, 1e-4, 1e-8, 1e-8, 1e-8;
+  ekf.reset(T_WB, P0);
+  const core::EkfUpdateStats st = ekf.update(obs.data(), static_cast<int>(obs.size()));
+  ASSERT_EQ(st.initialised, 2);
+  EXPECT_EQ(ekf.counters().landmarks_from_prior, 1u);
+  const int known = ekf.active_id(0) == obs[0].id ? 0 : 1;
+  const int seen = 1 - known;
+  EXPECT_LT((ekf.active_position(known) - prior_W).norm(), 1e-12);
+  const Vec3 seen_other_W = T_WB * (w.cam.T_CB.inverse() * pts_C[1]);
+  EXPECT_LT((ekf.active_position(seen) - seen_other_W).norm(), 1e-6);
+  const Eigen::MatrixXd P = ekf.covariance();
+  const int a = ekf.pose_dim() + 3 * known, b = ekf.pose_dim() + 3 * seen;
+  EXPECT_LT((P.block<3, 3>(a, a) - core::ekf::Mat3::Identity() * 1e-4).norm(), 1e-15);
+  EXPECT_EQ(P.block(a, 0, 3, ekf.pose_dim()).norm(), 0.0) << "a map point is not correlated with the pose";
+  EXPECT_GT(P.block(b, 0, 3, ekf.pose_dim()).norm(), 1e-6) << "a seen point inherits the pose's uncertainty";
+  // The next frame sees the point where the depth put it. The two 1 cm
+  // sigmas share the 2 cm between them: the landmark moves toward the
+  // observation, the pose toward the map (the other landmark moves with the
+  // pose it was made from, so it cannot hold it).
+  const core::EkfUpdateStats st2 = ekf.update(obs.data(), static_cast<int>(obs.size()));
+  EXPECT_EQ(st2.used, 2);
+  const Vec3 offset = prior_W - seen_W;
+  const double landmark_share = (prior_W - ekf.active_position(known)).dot(offset) / offset.squaredNorm();
+  const double pose_share = (ekf.pose().p - T_WB.p).dot(offset) / offset.squaredNorm();
+  std::printf("of the prior's offset: landmark moved %.2f, pose %.2f\n", landmark_share, pose_share);
+  EXPECT_GT(landmark_share, 0.25);
+  EXPECT_LT(landmark_share, 0.75);
+  EXPECT_GT(pose_share, 0.25);
+  EXPECT_LT(pose_share, 0.75);
+}
+
 TEST(EkfSlam, OptionsAreValidated) {
   const test::EkfSimWorld w = test::make_ekf_world(1, 1);
   EkfSlamOptions opt;

@@ -356,5 +356,56 @@ TEST(MapPipeline, FigureEightWithAndWithoutTheMap) {
   std::filesystem::remove_all(dir);
 }
 
+// The EKF with the window's map (ekf.mapping): its keyframes go to the
+// mapping thread at the filter's pose, the refined points come back into the
+// tracker's local map, and new landmarks that are map points start at the
+// map's position. The tracking thread still allocates nothing, and the
+// filter is no worse than without the map.
+TEST(MapPipeline, TheEkfRunsTheMapToo) {
+  const std::string dir = test::temp_dir("map_pipeline_ekf");
+  tools::SimOptions so;
+  so.scenario = "figure8";
+  so.duration_s = 25;
+  so.seed = 4;
+  so.width = 320;
+  so.height = 240;
+  so.threads = 2;
+  so.out_path = dir + "/f8.klog";
+  tools::run_simulation(so);
+  std::vector<std::string> w;
+  const tools::Trajectory gt = tools::load_trajectory(so.out_path, &w);
+  tools::EvalOptions eo;
+  eo.align = tools::Alignment::kSe3;
+  double ate[2] = {0, 0};
+  for (int on = 0; on < 2; ++on) {
+    cli::ReplayOptions ro;
+    ro.path = so.out_path;
+    ro.pace = drivers::ReplayPace::kLockstep;
+    core::EstimatorConfig c = core::EstimatorConfig::defaults("ekf");
+    c.ekf.mapping = on == 1;
+    c.window.map.loop = false;
+    ro.config = c;
+    const cli::ReplayReport r = cli::run_replay(ro);
+    ate[on] = tools::evaluate(gt, r.trajectory, eo).ate_m.rmse;
+    std::printf("ekf, mapping %s: se3 ATE %.2f mm, %zu poses; %s\n", on ? "on" : "off", 1e3 * ate[on],
+                r.trajectory.size(), r.backend_summary.c_str());
+    EXPECT_EQ(r.steady_allocs, 0) << "tracking-thread allocations";
+    EXPECT_EQ(r.has_map, on == 1);
+    EXPECT_EQ(r.backend_summary.find("keyframes mapped") != std::string::npos, on == 1) << r.backend_summary;
+    if (on == 1) {
+      EXPECT_GT(r.map.keyframes, 10u);
+      EXPECT_GT(r.map.points, 500u);
+      EXPECT_GT(r.map_final_keyframes.size(), 10u);
+      // Landmarks started at map points: "initialised N (M at map points)".
+      const size_t at = r.backend_summary.find(" at map points)");
+      ASSERT_NE(at, std::string::npos) << r.backend_summary;
+      const size_t open = r.backend_summary.rfind('(', at);
+      EXPECT_GT(std::stoul(r.backend_summary.substr(open + 1, at - open - 1)), 10u) << r.backend_summary;
+    }
+  }
+  EXPECT_LT(ate[1], 1.1 * ate[0] + 0.001) << "the map made the ekf worse";
+  std::filesystem::remove_all(dir);
+}
+
 }  // namespace
 }  // namespace kestrel::map_test

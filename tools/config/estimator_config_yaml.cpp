@@ -386,7 +386,7 @@ void apply_map_switches(core::EstimatorConfig& c, const std::string& mapping, co
     if (v == "off") return false;
     throw std::invalid_argument(std::string(opt) + " '" + v + "': expected on or off");
   };
-  if (!mapping.empty()) c.window.map.mapping = parse(mapping, "--mapping");
+  if (!mapping.empty()) c.window.map.mapping = c.ekf.mapping = parse(mapping, "--mapping");
   if (!loop.empty()) c.window.map.loop = parse(loop, "--loop");
   if (loop == "on" && !c.window.map.mapping) throw std::invalid_argument("--loop on needs the map (--mapping on)");
   resolve_vocabulary(c);

@@ -11,7 +11,7 @@ void set_map_in(core::EstimatorConfig& c, const std::string& path) {
   core::MapSystemOptions& m = c.window.map;
   // "auto" becomes window when the log has an IMU (the caller checks afterwards that a map ran).
   if (!may_have_map(c))
-    throw std::invalid_argument("--map-in needs the window backend with the map (--mapping on)");
+    throw std::invalid_argument("--map-in needs a backend with the map (window, or ekf with --mapping on)");
   if (!m.loop)
     throw std::invalid_argument("--map-in: a loaded map is found by relocalisation, which needs --loop on");
   std::ifstream f(path, std::ios::binary);
@@ -23,7 +23,9 @@ void set_map_in(core::EstimatorConfig& c, const std::string& path) {
 }
 
 bool may_have_map(const core::EstimatorConfig& c) {
-  return (c.backend == "auto" || c.backend.rfind("window", 0) == 0) && c.window.map.mapping;
+  return (c.backend == "auto" || c.backend.rfind("window", 0) == 0 ||
+          (c.backend == "ekf" && c.ekf.mapping)) &&
+         c.window.map.mapping;
 }
 
 void write_map_file(const std::string& path, const std::vector<uint8_t>& bytes) {

@@ -46,7 +46,8 @@ void resolve_vocabulary(core::EstimatorConfig& c) {
   core::MapSystemOptions& m = c.window.map;
   // "auto" is window on any log with an IMU: without this the default
   // `kestrel replay LOG` ran its map without loop closing or relocalisation.
-  if ((c.backend != "auto" && c.backend.rfind("window", 0) != 0) || !m.mapping || !m.loop || m.vocabulary) return;
+  const bool windowed = c.backend == "auto" || c.backend.rfind("window", 0) == 0;
+  if (!(windowed || (c.backend == "ekf" && c.ekf.mapping)) || !m.mapping || !m.loop || m.vocabulary) return;
   if (!m.vocabulary_path.empty()) {
     m.vocabulary = load_vocabulary(m.vocabulary_path, c.tracker.orb.pattern_seed);
     return;

@@ -486,6 +486,7 @@ Subcommand add_bench_command(CLI::App& parent) {
     bool strict = false;
     bool cpu_budget = false;
     CLI::Option* duration_opt = nullptr;
+    CLI::Option* mapping_opt = nullptr;
     std::string cpu_budget_log;
   };
   auto args = std::make_shared<Args>();
@@ -496,10 +497,13 @@ Subcommand add_bench_command(CLI::App& parent) {
                   "seconds of flight per case, or `full`: every hybrid flight over its whole length (scenarios: "
                   "their default length)")
       ->capture_default_str();
-  app->add_option("--mapping", args->mapping,
-                  "on, off or both (on,off): the window backend with and without the map threads, one row each")
-      ->delimiter(',')
-      ->capture_default_str();
+  args->mapping_opt =
+      app->add_option(
+             "--mapping", args->mapping,
+             "on, off or both (on,off): the window backend with and without the map threads, one row each; "
+             "the ekf runs the map only when asked (ekf.mapping, or --mapping on: a row `ekf-map`)")
+          ->delimiter(',')
+          ->capture_default_str();
   app->add_option("--workdir", args->workdir, "where generated logs and trajectories go")->capture_default_str();
   app->add_option("--data", args->data_dir, "the shared data folder (EuRoC sequences, real-rgbd/)")->capture_default_str();
   app->add_option("--pace", args->pace, "replay pace: fast or lockstep (realtime is for timing tests)")
@@ -579,15 +583,20 @@ Subcommand add_bench_command(CLI::App& parent) {
         what = log;
       }
       core::EstimatorConfig cfg = tools::load_estimator_config(args->config, backend);
-      tools::apply_map_switches(cfg, mapping, "");
+      // The ekf's map is off unless asked for (ekf.mapping): the bench's default "on" is the window's.
+      const bool given = args->mapping_opt->count() > 0 || backend != "ekf";
+      tools::apply_map_switches(cfg, given ? mapping : "", "");
       std::fprintf(stderr, "bench: native replay (lockstep) for the time per frame here\n");
       std::string est_name, error;
       const auto native = replay_in_child(log, log, drivers::ReplayPace::kLockstep, cfg, "", est_name, error);
       if (!error.empty()) throw std::runtime_error("native replay: " + error);
       const std::string cg_out = (fs::path(args->workdir) / "cpu_budget.callgrind").string();
       const std::string console = (fs::path(args->workdir) / "cpu_budget.replay.txt").string();
-      std::vector<std::string> rargs{"replay", log, "--estimator", backend, "--pace", "lockstep", "--mapping", mapping,
-                                     "--quiet"};
+      std::vector<std::string> rargs{"replay", log, "--estimator", backend, "--pace", "lockstep", "--quiet"};
+      if (given) {
+        rargs.push_back("--mapping");
+        rargs.push_back(mapping);
+      }
       if (!args->config.empty()) {
         rargs.push_back("--config");
         rargs.push_back(args->config);
@@ -731,13 +740,20 @@ Subcommand add_bench_command(CLI::App& parent) {
       for (const std::string& variant : args->lonsc_variants)
       for (const std::string& mapping : args->mapping) {
         const bool windowed = backend.rfind("window", 0) == 0;
-        if (!windowed && mapping == "off" && args->mapping.size() > 1) continue;  // no map to switch off
-        // A row's name: the backend, the LONSC variant when it is not the
-        // default, and "-nomap" for the window without its map.
-        const std::string map_tag = windowed && mapping == "off" ? "-nomap" : "";
-        const std::string est_name = (variant == "tuned" ? backend : backend + "+lonsc-" + variant) + map_tag;
+        const bool ekf = backend == "ekf";
+        if (!windowed && !ekf && mapping == "off" && args->mapping.size() > 1)
+          continue;  // no map to switch off
         core::EstimatorConfig cfg = tools::load_estimator_config(args->config, backend);
-        tools::apply_map_switches(cfg, mapping, "");
+        // The ekf's map is off unless asked for (ekf.mapping, or --mapping
+        // given): the bench's default "on" is the window's.
+        tools::apply_map_switches(cfg, windowed || args->mapping_opt->count() > 0 ? mapping : "", "");
+        // A row's name: the backend, the LONSC variant when it is not the
+        // default, "-nomap" for the window without its map and "-map" for the
+        // ekf with one.
+        const std::string map_tag = windowed && mapping == "off" ? "-nomap"
+                                    : ekf && cfg.ekf.mapping     ? "-map"
+                                                                 : "";
+        const std::string est_name = (variant == "tuned" ? backend : backend + "+lonsc-" + variant) + map_tag;
         if (variant != to_string(cfg.lonsc_variant)) {
           cfg.lonsc_variant = variant == "paper" ? core::LonscVariant::kPaper : core::LonscVariant::kTuned;
           cfg.tracker.lonsc = core::lonsc_options(cfg.lonsc_variant);

@@ -71,8 +71,8 @@ Subcommand add_replay_command(CLI::App& parent) {
                 "print the effective estimator settings as YAML and exit (with a log: after opening it)");
   app->add_option("--traj-out", args->traj_out, "write the trajectory here (TUM: t[s] x y z qx qy qz qw)");
   app->add_option("--mapping", args->mapping,
-                  "on|off: the map beside the window backend (local mapping thread, tracking against the refined "
-                  "map; default on for window; docs/map.md)");
+                  "on|off: the map beside the backend (local mapping thread, tracking against the refined "
+                  "map; default on for window, off for ekf; docs/map.md)");
   app->add_option("--loop", args->loop, "on|off: loop closing and relocalisation on the map (default on)");
   app->add_option("--map-traj-out", args->map_traj_out,
                   "write the trajectory in the map frame here, T_map_odom(t) * pose(t) (TUM); --traj-out keeps the "
@@ -115,7 +115,8 @@ Subcommand add_replay_command(CLI::App& parent) {
       tools::apply_map_switches(*opt.config, args->mapping, args->loop);
       if (!args->map_in.empty()) tools::set_map_in(*opt.config, args->map_in);
       if (!args->map_out.empty() && !tools::may_have_map(*opt.config))
-        throw std::invalid_argument("--map-out needs the window backend with the map (--mapping on)");
+        throw std::invalid_argument(
+            "--map-out needs a backend with the map (window, or ekf with --mapping on)");
     } catch (const std::invalid_argument& e) {
       throw UsageError(e.what());
     }

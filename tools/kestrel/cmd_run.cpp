@@ -124,7 +124,8 @@ Subcommand add_run_command(CLI::App& parent) {
                 "print the effective estimator settings as YAML (the config's estimator sections on the backend's "
                 "defaults, docs/config.md) and exit");
   app->add_option("--duration", a->duration_s, "seconds to run (0 = until Ctrl-C)")->capture_default_str();
-  app->add_option("--mapping", a->mapping, "on|off: the map beside the window backend (default on; docs/map.md)");
+  app->add_option("--mapping", a->mapping,
+                  "on|off: the map beside the backend (default on for window, off for ekf; docs/map.md)");
   app->add_option("--loop", a->loop, "on|off: loop closing and relocalisation (default on)");
   app->add_option("--map-in", a->map_in,
                   "start from this map file: nothing is mapped until the camera relocalises in it (docs/map.md)");
@@ -156,7 +157,8 @@ Subcommand add_run_command(CLI::App& parent) {
       tools::apply_map_switches(est_cfg, a->mapping, a->loop);
       if (!a->map_in.empty()) tools::set_map_in(est_cfg, a->map_in);
       if (!a->map_out.empty() && !tools::may_have_map(est_cfg))
-        throw std::invalid_argument("--map-out needs the window backend with the map (--mapping on)");
+        throw std::invalid_argument(
+            "--map-out needs a backend with the map (window, or ekf with --mapping on)");
     } catch (const std::invalid_argument& e) {
       throw UsageError(e.what());
     }

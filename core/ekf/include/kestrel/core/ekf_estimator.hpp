@@ -18,12 +18,14 @@
 
 #include <Eigen/Geometry>
 #include <cstdint>
+#include <memory>
 #include <string>
 #include <vector>
 
+#include "kestrel/core/divergence.hpp"
 #include "kestrel/core/ekf_slam.hpp"
 #include "kestrel/core/estimator.hpp"
-#include "kestrel/core/divergence.hpp"
+#include "kestrel/core/map_system.hpp"
 #include "kestrel/core/tracker.hpp"
 #include "kestrel/rt/latency_histogram.hpp"
 
@@ -102,6 +104,18 @@ struct EkfEstimatorOptions {
   double map_pose_min_interval_s = 0.25;
   int max_lost_frames = 3;        // untracked frames before the tracker takes a new keyframe
   int min_used_for_tracking = 5;  // observations in the update for the frame to count as tracked
+  // The window's map beside the filter (docs/ekf.md, "The map"): each
+  // keyframe goes to the local mapping thread at the filter's pose, and the
+  // refined points come back into the tracker's local map, so the map poses
+  // above come from bundle-adjusted points. Off by default: the EKF is for
+  // boards without the CPU for local bundle adjustment. Needs the caller's
+  // map threads (Estimator::mapping_step / loop_step), as the window's.
+  bool mapping = false;
+  MapSystemOptions map;  // the config's map: section (EstimatorConfig::ekf_options)
+  // With the map: a new landmark that is a map point starts at the map's
+  // refined position and sigma, not at this frame's depth and pose (the
+  // window's map-point prior, as a filter takes it).
+  bool map_point_landmarks = true;
   // Divergence detection (the config's safety: section, docs/safety.md).
   DivergenceOptions divergence;
 
@@ -129,6 +143,7 @@ struct EkfEstimatorCounters {
 class EkfEstimator final : public Estimator {
  public:
   EkfEstimator(const Rig& rig, const EkfEstimatorOptions& opt = {});
+  ~EkfEstimator() override;
   const char* name() const override { return "ekf"; }
   bool add_imu(const ImuSample& s) override;
   bool add_frame(const RgbdFrame& f) override;
@@ -153,6 +168,19 @@ class EkfEstimator final : public Estimator {
   const rt::LatencyHistogram& update_latency() const { return update_latency_; }
   const DivergenceMonitor& divergence() const { return monitor_; }
 
+  bool has_map() const override { return map_ != nullptr; }
+  bool mapping_step() override { return map_ && map_->mapping_step(); }
+  bool loop_step() override { return map_ && map_->loop_step(); }
+  bool map_busy() const override { return map_ && map_->busy(); }
+  const rt::LatencyHistogram* mapping_latency() const override {
+    return map_ ? &map_->mapping_latency() : nullptr;
+  }
+  const rt::LatencyHistogram* loop_latency() const override { return map_ ? &map_->loop_latency() : nullptr; }
+  std::vector<uint8_t> save_map() const override { return map_ ? map_->save() : std::vector<uint8_t>{}; }
+  std::vector<MapKeyframePose> map_keyframe_poses() const override {
+    return map_ ? map_->keyframe_poses(T_BC_.inverse()) : std::vector<MapKeyframePose>{};
+  }
+
  private:
   // moving: the velocity and tilt are guesses (a moving start, or a restart
   // after a divergence), with the wider start-up covariance.
@@ -164,6 +192,8 @@ class EkfEstimator final : public Estimator {
   void propagate_to(int64_t t_ns);
   void publish(int64_t t_ns);
   void record_consistency(const EkfUpdateStats& st);
+  void map_before_tracking();
+  void map_after_update(const TrackResult& r);
 
   EkfEstimatorOptions opt_;
   Eigen::Isometry3d T_BC_ = Eigen::Isometry3d::Identity();
@@ -192,6 +222,13 @@ class EkfEstimator final : public Estimator {
   bool have_fix_state_ = false;
   bool reanchor_pending_ = false;  // restarted, no map pose taken since
   int64_t last_map_pose_t_ns_ = -1;
+  // The map (mapping on): the odometry's chain for it (KeyframePacket::chain)
+  // steps on a loss of vision and on every restart.
+  std::unique_ptr<MapSystem> map_;
+  uint32_t map_chain_ = 0;
+  bool map_chain_lost_ = false;
+  uint64_t starts_ = 0;
+  uint64_t map_chain_starts_ = 1;  // the first start opens chain 0
 };
 
 // The filter options the estimator derives from a rig: camera model and

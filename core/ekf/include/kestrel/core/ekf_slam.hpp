@@ -89,6 +89,11 @@ struct EkfSlamOptions {
 struct StereoObservation {
   uint32_t id = 0;
   double uL = 0.0, vL = 0.0, uR = 0.0, vR = 0.0;
+  // The point is known already (a bundle-adjusted map point, in W, with an
+  // isotropic 1-sigma): a new landmark starts there, independent of the
+  // pose, instead of from this observation. 0: unknown.
+  double prior_sigma_m = 0.0;
+  Eigen::Vector3d prior_p_W = Eigen::Vector3d::Zero();
 };
 
 // An RGB-D pixel with registered depth as a virtual stereo observation:
@@ -132,6 +137,7 @@ struct EkfCounters {
   uint64_t observations_gated = 0;
   uint64_t observations_ignored = 0;    // beyond max_observations, or duplicates in one call
   uint64_t landmarks_initialised = 0;
+  uint64_t landmarks_from_prior = 0;  // of those, started at a known point (StereoObservation::prior_sigma_m)
   uint64_t landmarks_frozen = 0;
   uint64_t landmarks_dropped = 0;
   uint64_t capacity_full = 0;           // new tracks not taken because the active set was full
@@ -208,6 +214,7 @@ class EkfSlam {
   void propagate_pose_block(const Mat15& Phi, const Mat15& Qd);
   void remove_slot(int slot, bool to_map);
   bool initialise_landmark(const StereoObservation& o);
+  bool initialise_known_landmark(const StereoObservation& o);
   void apply_correction(int n);
   int find_slot(uint32_t id) const;
   bool gate(int slot, const StereoObservation& o) const;

@@ -106,6 +106,9 @@ class MapSystem {
   // ---- after the threads stopped (or from the mapping/loop threads) ----
   // The map file's bytes (map_file.hpp).
   std::vector<uint8_t> save() const;
+  // This flight's keyframes as the map holds them now, body poses by time
+  // (Estimator::map_keyframe_poses); T_CB: camera to body. Allocates.
+  std::vector<MapKeyframePose> keyframe_poses(const Eigen::Isometry3d& T_CB) const;
   Map& map() { return *map_; }
   const Map& map() const { return *map_; }
   const LocalMapper& mapper() const { return *mapper_; }
