@@ -301,59 +301,43 @@ bool EkfSlam::initialise_landmark(const StereoObservation& o) {
     ++counters_.capacity_full;
     return false;
   }
-  if (o.prior_sigma_m > 0.0) return initialise_known_landmark(o);
-  const Pose T_BC = cam_.T_CB.inverse();
-  const Vec3 p_B = T_BC * p_C;
-  const Vec3 m_W = T_WB_ * p_B;
-  // m(xi, z) = T_WB exp(xi^) T_BC p_C(z): Jacobians for the correlated
-  // initialisation (the new landmark inherits the pose uncertainty).
-  Eigen::Matrix<double, 3, 6> Jx;
-  Jx.leftCols<3>() = T_WB_.R;
-  Jx.rightCols<3>() = -T_WB_.R * skew(p_B);
-  const Mat3 Jz = T_WB_.R * T_BC.R * J_z;
-
   const int n = dim();
-  const int a = n;
   const int slot = num_active_;
+  if (o.prior_sigma_m > 0.0) {
+    // A point the map knows: its position and sigma, uncorrelated with the
+    // state (the window's map-point prior, as a filter takes it). The
+    // observation that brought it was checked above like any new track's.
+    lm_p_.col(slot) = o.prior_p_W;
+    P_.block(n, 0, 3, n).setZero();
+    P_.block(0, n, n, 3).setZero();
+    P_.block<3, 3>(n, n) = Mat3::Identity() * (o.prior_sigma_m * o.prior_sigma_m);
+    ++counters_.landmarks_from_prior;
+  } else {
+    const Pose T_BC = cam_.T_CB.inverse();
+    const Vec3 p_B = T_BC * p_C;
+    // m(xi, z) = T_WB exp(xi^) T_BC p_C(z): Jacobians for the correlated
+    // initialisation (the new landmark inherits the pose uncertainty).
+    Eigen::Matrix<double, 3, 6> Jx;
+    Jx.leftCols<3>() = T_WB_.R;
+    Jx.rightCols<3>() = -T_WB_.R * skew(p_B);
+    const Mat3 Jz = T_WB_.R * T_BC.R * J_z;
+    lm_p_.col(slot) = T_WB_ * p_B;
+    // Row block: P(m, :) = Jx P(pose, :).
+    cross_tmp_.topLeftCorner(3, n).noalias() = Jx * P_.topLeftCorner(kPoseDim, n);
+    P_.block(n, 0, 3, n) = cross_tmp_.topLeftCorner(3, n);
+    P_.block(0, n, n, 3) = cross_tmp_.topLeftCorner(3, n).transpose();
+    const Mat3 Pmm = Jx * P_.topLeftCorner<6, 6>() * Jx.transpose() + Jz * R_ * Jz.transpose();
+    P_.block<3, 3>(n, n) = 0.5 * (Pmm + Pmm.transpose());
+  }
   const auto s = static_cast<size_t>(slot);
-  lm_p_.col(slot) = m_W;
   lm_id_[s] = o.id;
   lm_missed_[s] = 0;
   lm_rejects_[s] = 0;
   lm_obs_count_[s] = 1;
   lm_this_obs_[s] = -1;
   lm_gate_[s] = 0;
-  // Row block: P(m, :) = Jx P(pose, :).
-  cross_tmp_.topLeftCorner(3, n).noalias() = Jx * P_.topLeftCorner(kPoseDim, n);
-  P_.block(a, 0, 3, n) = cross_tmp_.topLeftCorner(3, n);
-  P_.block(0, a, n, 3) = cross_tmp_.topLeftCorner(3, n).transpose();
-  const Mat3 Pmm = Jx * P_.topLeftCorner<6, 6>() * Jx.transpose() + Jz * R_ * Jz.transpose();
-  P_.block<3, 3>(a, a) = 0.5 * (Pmm + Pmm.transpose());
   ++num_active_;
   ++counters_.landmarks_initialised;
-  return true;
-}
-
-// A point the map knows: its position and sigma, uncorrelated with the
-// state (the window's map-point prior, as a filter sees it). The observation
-// that brought it was checked above like any new track's.
-bool EkfSlam::initialise_known_landmark(const StereoObservation& o) {
-  const int n = dim();
-  const int slot = num_active_;
-  const auto s = static_cast<size_t>(slot);
-  lm_p_.col(slot) = o.prior_p_W;
-  lm_id_[s] = o.id;
-  lm_missed_[s] = 0;
-  lm_rejects_[s] = 0;
-  lm_obs_count_[s] = 1;
-  lm_this_obs_[s] = -1;
-  lm_gate_[s] = 0;
-  P_.block(n, 0, 3, n).setZero();
-  P_.block(0, n, n, 3).setZero();
-  P_.block<3, 3>(n, n) = Mat3::Identity() * (o.prior_sigma_m * o.prior_sigma_m);
-  ++num_active_;
-  ++counters_.landmarks_initialised;
-  ++counters_.landmarks_from_prior;
   return true;
 }
 

@@ -286,12 +286,8 @@ TEST(MapSystem, ASecondFlightOnASavedMapLandsInTheFirstFlightsFrame) {
   }
 }
 
-// The whole pipeline on a simulated figure-8 (it returns to where it has
-// been): the map runs on its own threads, the tracking thread still
-// allocates nothing, the map holds keyframes and points, and the odometry
-// tracking against the refined map is no worse than without it.
-TEST(MapPipeline, FigureEightWithAndWithoutTheMap) {
-  const std::string dir = test::temp_dir("map_pipeline");
+// A simulated figure-8 (it returns to where it has been), 25 s at 320x240.
+std::string simulate_figure8(const std::string& dir) {
   tools::SimOptions so;
   so.scenario = "figure8";
   so.duration_s = 25;
@@ -301,18 +297,33 @@ TEST(MapPipeline, FigureEightWithAndWithoutTheMap) {
   so.threads = 2;
   so.out_path = dir + "/f8.klog";
   tools::run_simulation(so);
+  return so.out_path;
+}
+
+// The whole replay harness on it, lockstep, with the map threads if the config has them.
+cli::ReplayReport replay(const std::string& log, const core::EstimatorConfig& c) {
+  cli::ReplayOptions ro;
+  ro.path = log;
+  ro.pace = drivers::ReplayPace::kLockstep;
+  ro.config = c;
+  return cli::run_replay(ro);
+}
+
+// The whole pipeline on a simulated figure-8 (it returns to where it has
+// been): the map runs on its own threads, the tracking thread still
+// allocates nothing, the map holds keyframes and points, and the odometry
+// tracking against the refined map is no worse than without it.
+TEST(MapPipeline, FigureEightWithAndWithoutTheMap) {
+  const std::string dir = test::temp_dir("map_pipeline");
+  const std::string log = simulate_figure8(dir);
   double ate[2] = {0, 0};
   for (int on = 0; on < 2; ++on) {
-    cli::ReplayOptions ro;
-    ro.path = so.out_path;
-    ro.pace = drivers::ReplayPace::kLockstep;
     core::EstimatorConfig c = core::EstimatorConfig::defaults("window");
     c.window.map.mapping = on == 1;
     c.window.map.loop = false;
-    ro.config = c;
-    const cli::ReplayReport r = cli::run_replay(ro);
+    const cli::ReplayReport r = replay(log, c);
     std::vector<std::string> w;
-    const tools::Trajectory gt = tools::load_trajectory(so.out_path, &w);
+    const tools::Trajectory gt = tools::load_trajectory(log, &w);
     tools::EvalOptions eo;
     eo.align = tools::Alignment::kSe3;
     ate[on] = tools::evaluate(gt, r.trajectory, eo).ate_m.rmse;
@@ -363,29 +374,17 @@ TEST(MapPipeline, FigureEightWithAndWithoutTheMap) {
 // filter is no worse than without the map.
 TEST(MapPipeline, TheEkfRunsTheMapToo) {
   const std::string dir = test::temp_dir("map_pipeline_ekf");
-  tools::SimOptions so;
-  so.scenario = "figure8";
-  so.duration_s = 25;
-  so.seed = 4;
-  so.width = 320;
-  so.height = 240;
-  so.threads = 2;
-  so.out_path = dir + "/f8.klog";
-  tools::run_simulation(so);
+  const std::string log = simulate_figure8(dir);
   std::vector<std::string> w;
-  const tools::Trajectory gt = tools::load_trajectory(so.out_path, &w);
+  const tools::Trajectory gt = tools::load_trajectory(log, &w);
   tools::EvalOptions eo;
   eo.align = tools::Alignment::kSe3;
   double ate[2] = {0, 0};
   for (int on = 0; on < 2; ++on) {
-    cli::ReplayOptions ro;
-    ro.path = so.out_path;
-    ro.pace = drivers::ReplayPace::kLockstep;
     core::EstimatorConfig c = core::EstimatorConfig::defaults("ekf");
     c.ekf.mapping = on == 1;
     c.window.map.loop = false;
-    ro.config = c;
-    const cli::ReplayReport r = cli::run_replay(ro);
+    const cli::ReplayReport r = replay(log, c);
     ate[on] = tools::evaluate(gt, r.trajectory, eo).ate_m.rmse;
     std::printf("ekf, mapping %s: se3 ATE %.2f mm, %zu poses; %s\n", on ? "on" : "off", 1e3 * ate[on],
                 r.trajectory.size(), r.backend_summary.c_str());

@@ -214,7 +214,6 @@ class EkfSlam {
   void propagate_pose_block(const Mat15& Phi, const Mat15& Qd);
   void remove_slot(int slot, bool to_map);
   bool initialise_landmark(const StereoObservation& o);
-  bool initialise_known_landmark(const StereoObservation& o);
   void apply_correction(int n);
   int find_slot(uint32_t id) const;
   bool gate(int slot, const StereoObservation& o) const;
