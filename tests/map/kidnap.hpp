@@ -32,7 +32,7 @@ struct KidnapTrial {
 
 constexpr double kKidnapAt_s = 16.0, kKidnapLen_s = 2.0, kKidnapFlight_s = 26.0;
 
-inline KidnapTrial kidnap_trial(uint64_t seed) {
+inline KidnapTrial kidnap_trial(uint64_t seed, const std::string& backend = "window") {
   KidnapTrial k;
   k.seed = seed;
   const std::string dir = test::temp_dir("kidnap_" + std::to_string(seed));
@@ -44,7 +44,7 @@ inline KidnapTrial kidnap_trial(uint64_t seed) {
   cli::ReplayOptions ro;
   ro.path = so.out_path;
   ro.pace = drivers::ReplayPace::kLockstep;
-  ro.config = map_config();
+  ro.config = map_config(backend);
   int64_t t0 = -1;
   uint64_t relocs_before = 0;
   ro.on_pose = [&](const cli::PoseSample& p) {
@@ -69,11 +69,13 @@ inline KidnapTrial kidnap_trial(uint64_t seed) {
   k.ate_odom_m = tools::evaluate(gt, r.trajectory, eo).ate_m.rmse;
   k.ate_map_m = tools::evaluate(gt, r.map_trajectory, eo).ate_m.rmse;
   k.summary = r.backend_summary;
-  std::printf("KIDNAP seed %llu: lost %s, relocalised %s (%.2f s after the camera returned), %llu relocalisations; se3 "
-              "ATE odometry %.1f mm, map frame %.1f mm\n",
-              static_cast<unsigned long long>(seed), k.lost ? "yes" : "no", k.relocalised ? "yes" : "no",
-              k.reloc_after_s, static_cast<unsigned long long>(k.relocalisations), 1e3 * k.ate_odom_m,
-              1e3 * k.ate_map_m);
+  std::printf(
+      "KIDNAP %s seed %llu: lost %s, relocalised %s (%.2f s after the camera returned), %llu "
+      "relocalisations; se3 "
+      "ATE odometry %.1f mm, map frame %.1f mm\n",
+      backend.c_str(), static_cast<unsigned long long>(seed), k.lost ? "yes" : "no",
+      k.relocalised ? "yes" : "no", k.reloc_after_s, static_cast<unsigned long long>(k.relocalisations),
+      1e3 * k.ate_odom_m, 1e3 * k.ate_map_m);
   std::filesystem::remove_all(dir);
   return k;
 }

@@ -25,10 +25,12 @@ inline tools::SimOptions figure8(double duration_s, uint64_t seed, int width, in
   return so;
 }
 
-inline core::EstimatorConfig map_config() {
-  core::EstimatorConfig c = core::EstimatorConfig::defaults("window");
+// `backend` "ekf": the filter with the same map (ekf.mapping).
+inline core::EstimatorConfig map_config(const std::string& backend = "window") {
+  core::EstimatorConfig c = core::EstimatorConfig::defaults(backend);
   c.window.map.mapping = true;
   c.window.map.loop = true;
+  c.ekf.mapping = backend == "ekf";
   tools::resolve_vocabulary(c);
   EXPECT_TRUE(c.window.map.vocabulary) << "kestrel built without its vocabulary: nothing can relocalise";
   return c;
