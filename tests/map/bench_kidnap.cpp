@@ -32,8 +32,8 @@ TEST(KidnapBench, RelocalisedWithinASecondInMostTrials) {
   }
   std::sort(after.begin(), after.end());
   std::printf(
-      "KIDNAP-TABLE %s | %d trials | relocalised %d | within 1 s %d (%.0f %%) | median %.2f s | worst %.2f s "
-      "|\n",
+      "KIDNAP-TABLE %s | %d trials | relocalised %d | within 1 s %d (%.0f %%) | median %.2f s | "
+      "worst %.2f s |\n",
       backend.c_str(), trials, relocalised, within, 100.0 * within / trials,
       after.empty() ? NAN : after[after.size() / 2], after.empty() ? NAN : after.back());
   EXPECT_GE(within, static_cast<int>(std::ceil(0.95 * trials)));

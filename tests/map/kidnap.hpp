@@ -71,8 +71,7 @@ inline KidnapTrial kidnap_trial(uint64_t seed, const std::string& backend = "win
   k.summary = r.backend_summary;
   std::printf(
       "KIDNAP %s seed %llu: lost %s, relocalised %s (%.2f s after the camera returned), %llu "
-      "relocalisations; se3 "
-      "ATE odometry %.1f mm, map frame %.1f mm\n",
+      "relocalisations; se3 ATE odometry %.1f mm, map frame %.1f mm\n",
       backend.c_str(), static_cast<unsigned long long>(seed), k.lost ? "yes" : "no",
       k.relocalised ? "yes" : "no", k.reloc_after_s, static_cast<unsigned long long>(k.relocalisations),
       1e3 * k.ate_odom_m, 1e3 * k.ate_map_m);

@@ -270,12 +270,13 @@ class EstimatorStage {
     // one would, so latency counts from the push. In fast and lockstep pace
     // the feeder runs ahead on purpose; there only the estimator's own time
     // from taking the sample to its pose means anything.
-    const int64_t t_start = opt_.pace == drivers::ReplayPace::kRealtime ? s.t_recv_ns : rt::now_ns();
+    // The CPU clock is a system call: read outside the latency's span.
     const double cpu0 = thread_cpu_s();
+    const int64_t t_start = opt_.pace == drivers::ReplayPace::kRealtime ? s.t_recv_ns : rt::now_ns();
     const bool posed = est_.add_imu(s);
+    const int64_t latency = rt::now_ns() - t_start;
     work_cpu_s_ += thread_cpu_s() - cpu0;
     if (!posed) return;
-    const int64_t latency = rt::now_ns() - t_start;
     if (anchor_ != nullptr) {
       anchor_->publish(to_anchor(est_.output()));
       if (counting_) report_.estimator_imu_latency.record(latency);
