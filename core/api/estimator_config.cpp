@@ -200,6 +200,8 @@ void visit_map(MapSystemOptions& m, OptionVisitor& v) {
   v.value("ba_keyframes", o.ba_keyframes, "covisible keyframes bundle-adjusted with each new one");
   v.value("ba_fixed_keyframes", o.ba_fixed_keyframes, "other keyframes seeing the same points, held fixed");
   v.value("ba_iterations", o.ba_iterations, "Levenberg-Marquardt iterations per round (two rounds)");
+  enum_choice(v, "ba_solver", o.ba_solver, {"ours", "ceres"},
+              "our Schur + analytic-Jacobian solver, or Ceres (the reference it is tested against)");
   v.value("ba_huber", o.ba_huber, "Huber threshold on the whitened observation error");
   v.value("ba_outlier_chi2", o.ba_outlier_chi2, "observations above this whitened squared error are dropped");
   v.value("ba_gravity_sigma_rad", o.ba_gravity_sigma_rad,

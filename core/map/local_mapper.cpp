@@ -1,7 +1,5 @@
 #include "kestrel/core/local_mapper.hpp"
 
-#include <ceres/ceres.h>
-
 #include <algorithm>
 #include <cmath>
 
@@ -12,63 +10,6 @@ double MapCamera::sigma_depth_m(double z) const { return std::max(1e-3, depth_si
 Eigen::Vector3d MapCamera::point_C(const KeyframeFeature& f) const {
   return Eigen::Vector3d((f.u_px - K.cx) / K.fx * f.depth_m, (f.v_px - K.cy) / K.fy * f.depth_m, f.depth_m);
 }
-
-namespace {
-
-// One observation: reprojection (undistorted pixels) and, with a depth, the
-// camera-frame z; whitened. Pose block: q_CM (x, y, z, w) and t_CM, so that
-// p_C = R_CM p_M + t_CM.
-template <int kRows>
-struct ObservationCost {
-  ObservationCost(const PinholeK& K, double u, double v, double z, double inv_sigma_px, double inv_sigma_z)
-      : K_(K), u_(u), v_(v), z_(z), isp_(inv_sigma_px), isz_(inv_sigma_z) {}
-  template <typename T>
-  bool operator()(const T* q, const T* t, const T* p, T* r) const {
-    const Eigen::Quaternion<T> Q(q[3], q[0], q[1], q[2]);
-    const Eigen::Matrix<T, 3, 1> P(p[0], p[1], p[2]);
-    const Eigen::Matrix<T, 3, 1> c = Q * P + Eigen::Matrix<T, 3, 1>(t[0], t[1], t[2]);
-    const T z = c.z() < T(1e-3) ? T(1e-3) : c.z();
-    r[0] = (T(K_.fx) * c.x() / z + T(K_.cx) - T(u_)) * T(isp_);
-    r[1] = (T(K_.fy) * c.y() / z + T(K_.cy) - T(v_)) * T(isp_);
-    if (kRows == 3) r[2] = (c.z() - T(z_)) * T(isz_);
-    return true;
-  }
-  PinholeK K_;
-  double u_, v_, z_, isp_, isz_;
-};
-
-// Roll and pitch from the odometry: R_CM's view of M's down axis against the
-// gravity direction the odometry had in C, whitened.
-struct GravityCost {
-  GravityCost(const Eigen::Vector3d& g_C, double inv_sigma) : g_(g_C), is_(inv_sigma) {}
-  template <typename T>
-  bool operator()(const T* q, T* r) const {
-    const Eigen::Quaternion<T> Q(q[3], q[0], q[1], q[2]);
-    const Eigen::Matrix<T, 3, 1> d = Q * Eigen::Matrix<T, 3, 1>(T(0), T(0), T(-1));
-    for (int i = 0; i < 3; ++i) r[i] = (d[i] - T(g_[i])) * T(is_);
-    return true;
-  }
-  Eigen::Vector3d g_;
-  double is_;
-};
-
-// Whitened squared error of an observation at the current estimates.
-double observation_chi2(const MapCamera& cam, const Eigen::Isometry3d& T_CM, const Eigen::Vector3d& p_M,
-                        const KeyframeFeature& f) {
-  const Eigen::Vector3d c = T_CM * p_M;
-  if (c.z() < 1e-3) return 1e30;
-  const double isp = 1.0 / cam.sigma_px(f.level);
-  const double eu = (cam.K.fx * c.x() / c.z() + cam.K.cx - f.u_px) * isp;
-  const double ev = (cam.K.fy * c.y() / c.z() + cam.K.cy - f.v_px) * isp;
-  double e = eu * eu + ev * ev;
-  if (f.depth_m > 0) {
-    const double ez = (c.z() - f.depth_m) / cam.sigma_depth_m(f.depth_m);
-    e += ez * ez;
-  }
-  return e;
-}
-
-}  // namespace
 
 LocalMapper::LocalMapper(Map& map, const MapCamera& cam) : map_(map), cam_(cam) {
   kf_scratch_.resize(static_cast<size_t>(map.max_keyframes()));
@@ -146,6 +87,12 @@ void LocalMapper::fuse(int kf) {
     const int32_t p = map_.point_of(kf, j);
     if (p >= 0) map_.point(p).mark = pt_mark;
   }
+  // The search radius per pyramid level, once: pow() in the inner loop was
+  // a tenth of the mapping thread.
+  constexpr int kLevels = 32;
+  double radius_px[kLevels];
+  for (int l = 0; l < kLevels; ++l)
+    radius_px[l] = map_.options().fuse_radius_px * std::pow(cam_.level_scale, l);
   for (const int32_t k : set) {
     const MapKeyframe& N = map_.keyframe(k);
     for (int jj = 0; jj < N.n; ++jj) {
@@ -162,7 +109,7 @@ void LocalMapper::fuse(int kf) {
       for (int j = 0; j < K.n; ++j) {
         const KeyframeFeature& f = map_.feature(kf, j);
         if (std::abs(f.level - P.level) > 1) continue;
-        const double r = map_.options().fuse_radius_px * std::pow(cam_.level_scale, f.level);
+        const double r = radius_px[std::clamp<int>(f.level, 0, kLevels - 1)];
         const double du = f.u_px - u, dv = f.v_px - v;
         if (du * du + dv * dv > r * r) continue;
         if (f.depth_m > 0 && std::abs(f.depth_m - c.z()) > map_.options().fuse_depth_tol_rel * c.z() + 0.03) continue;
@@ -236,28 +183,26 @@ bool LocalMapper::bundle_adjust(int kf) {
   for (const int32_t k : fixed_cand) map_.keyframe(k).mark2 = in_mark;
   if (points.empty()) return false;
 
-  // Parameters: T_CM per keyframe as (q x y z w, t), points in M.
+  // The problem: local keyframes free (the gravity prior on each), the others
+  // fixed, every observation of the points by any of them.
+  BaProblem& pb = ba_;
+  pb.K = cam_.K;
+  pb.huber = o.ba_huber;
+  pb.gravity_inv_sigma = o.ba_gravity_sigma_rad > 0 ? 1.0 / o.ba_gravity_sigma_rad : 0.0;
   const size_t nk = local.size() + fixed_cand.size();
-  std::vector<std::array<double, 7>> pose(nk);
-  std::vector<int32_t> kf_of(nk);
-  auto slot_pose = [&](int32_t k) -> double* {
-    for (size_t i = 0; i < nk; ++i)
-      if (kf_of[i] == k) return pose[i].data();
-    return nullptr;
-  };
-  ceres::Problem::Options po;
-  po.loss_function_ownership = ceres::DO_NOT_TAKE_OWNERSHIP;
-  po.manifold_ownership = ceres::DO_NOT_TAKE_OWNERSHIP;
-  ceres::Problem problem(po);
-  ceres::EigenQuaternionManifold qm;
-  ceres::HuberLoss huber(o.ba_huber);
+  pb.poses.resize(nk);
+  ba_kf_.resize(nk);
   for (size_t i = 0; i < nk; ++i) {
-    kf_of[i] = i < local.size() ? local[i] : fixed_cand[i - local.size()];
-    const Eigen::Isometry3d T_CM = map_.keyframe(kf_of[i]).T_MC.inverse();
-    const Eigen::Quaterniond q(T_CM.linear());
-    pose[i] = {q.x(), q.y(), q.z(), q.w(), T_CM.translation().x(), T_CM.translation().y(), T_CM.translation().z()};
-    problem.AddParameterBlock(pose[i].data(), 4, &qm);
-    problem.AddParameterBlock(pose[i].data() + 4, 3);
+    const int32_t k = i < local.size() ? local[i] : fixed_cand[i - local.size()];
+    ba_kf_[i] = k;
+    shared_scratch_[static_cast<size_t>(k)] = static_cast<int32_t>(i);  // the counts are spent
+    const Eigen::Isometry3d T_CM = map_.keyframe(k).T_MC.inverse();
+    BaPose& P = pb.poses[i];
+    P.R_CM = T_CM.linear();
+    P.t_CM = T_CM.translation();
+    P.fixed = i >= local.size();
+    P.has_gravity = !P.fixed;
+    P.g_C = map_.keyframe(k).g_C;
   }
   // Gauge: without fixed keyframes the oldest local one holds the frame.
   if (fixed_cand.empty()) {
@@ -265,86 +210,54 @@ bool LocalMapper::bundle_adjust(int kf) {
     size_t oldest = 0;
     for (size_t i = 1; i < local.size(); ++i)
       if (map_.keyframe(local[i]).id < map_.keyframe(local[oldest]).id) oldest = i;
-    problem.SetParameterBlockConstant(pose[oldest].data());
-    problem.SetParameterBlockConstant(pose[oldest].data() + 4);
+    pb.poses[oldest].fixed = true;
   }
-  if (o.ba_gravity_sigma_rad > 0)
-    for (size_t i = 0; i < local.size(); ++i)
-      problem.AddResidualBlock(new ceres::AutoDiffCostFunction<GravityCost, 3, 4>(
-                                   new GravityCost(map_.keyframe(local[i]).g_C, 1.0 / o.ba_gravity_sigma_rad)),
-                               nullptr, pose[i].data());
-  for (size_t i = local.size(); i < nk; ++i) {
-    problem.SetParameterBlockConstant(pose[i].data());
-    problem.SetParameterBlockConstant(pose[i].data() + 4);
-  }
-  std::vector<std::array<double, 3>> pt(points.size());
-  struct Res {
-    ceres::ResidualBlockId id;
-    int32_t p, kf;
-    int16_t feat;
-    size_t a;  // index into points / pt
-  };
-  std::vector<Res> res;
+  pb.points_M.resize(points.size());
+  pb.obs.clear();
   for (size_t a = 0; a < points.size(); ++a) {
     const MapPoint& P = map_.point(points[a]);
-    pt[a] = {P.p_M.x(), P.p_M.y(), P.p_M.z()};
+    pb.points_M[a] = P.p_M;
     for (int i = 0; i < P.n_obs; ++i) {
-      const int32_t k = P.obs_kf[i];
-      if (map_.keyframe(k).mark2 != in_mark) continue;
-      double* q = slot_pose(k);
-      const KeyframeFeature& f = map_.feature(k, P.obs_feat[i]);
-      const double isp = 1.0 / cam_.sigma_px(f.level);
-      ceres::CostFunction* cf;
-      if (f.depth_m > 0) {
-        cf = new ceres::AutoDiffCostFunction<ObservationCost<3>, 3, 4, 3, 3>(new ObservationCost<3>(
-            cam_.K, f.u_px, f.v_px, f.depth_m, isp, 1.0 / cam_.sigma_depth_m(f.depth_m)));
-      } else {
-        cf = new ceres::AutoDiffCostFunction<ObservationCost<2>, 2, 4, 3, 3>(
-            new ObservationCost<2>(cam_.K, f.u_px, f.v_px, 0.0, isp, 0.0));
-      }
-      res.push_back({problem.AddResidualBlock(cf, &huber, q, q + 4, pt[a].data()), points[a], k, P.obs_feat[i], a});
+      if (map_.keyframe(P.obs_kf[i]).mark2 != in_mark) continue;
+      const KeyframeFeature& f = map_.feature(P.obs_kf[i], P.obs_feat[i]);
+      BaObservation ob;
+      ob.pose = shared_scratch_[static_cast<size_t>(P.obs_kf[i])];
+      ob.point = static_cast<int32_t>(a);
+      ob.u_px = f.u_px;
+      ob.v_px = f.v_px;
+      ob.depth_m = f.depth_m > 0 ? f.depth_m : 0.0;
+      ob.inv_sigma_px = 1.0 / cam_.sigma_px(f.level);
+      ob.inv_sigma_z = f.depth_m > 0 ? 1.0 / cam_.sigma_depth_m(f.depth_m) : 0.0;
+      pb.obs.push_back(ob);
     }
   }
-  ceres::Solver::Options so;
-  so.linear_solver_type = ceres::DENSE_SCHUR;
-  so.max_num_iterations = o.ba_iterations;
-  so.num_threads = 1;
-  so.logging_type = ceres::SILENT;
-  ceres::Solver::Summary sum;
   ++stats_.ba_runs;
-  auto chi2_of = [&](const Res& r) {
-    const double* q = slot_pose(r.kf);
-    Eigen::Isometry3d T_CM = Eigen::Isometry3d::Identity();
-    T_CM.linear() = Eigen::Quaterniond(q[3], q[0], q[1], q[2]).normalized().toRotationMatrix();
-    T_CM.translation() = Eigen::Vector3d(q[4], q[5], q[6]);
-    return observation_chi2(cam_, T_CM, Eigen::Vector3d(pt[r.a].data()), map_.feature(r.kf, r.feat));
-  };
+  // Two rounds: observations still far off after the first are left out of the second.
   for (int round = 0; round < 2; ++round) {
-    ceres::Solve(so, &problem, &sum);
-    if (!sum.IsSolutionUsable()) {
+    const BaResult r = o.ba_solver == MapOptions::BaSolver::kCeres
+                           ? solve_bundle_adjustment_ceres(pb, o.ba_iterations)
+                           : solve_bundle_adjustment(pb, o.ba_iterations, ba_scratch_);
+    if (!r.usable) {
       ++stats_.ba_failures;
       return false;
     }
-    if (round == 0) {
-      for (size_t r = 0; r < res.size(); ++r) {
-        if (res[r].id != nullptr && chi2_of(res[r]) > o.ba_outlier_chi2) {
-          problem.RemoveResidualBlock(res[r].id);
-          res[r].id = nullptr;
-        }
-      }
-    }
+    if (round == 0)
+      for (BaObservation& ob : pb.obs)
+        if (ba_chi2(pb, ob) > o.ba_outlier_chi2) ob.enabled = false;
   }
   for (size_t i = 0; i < local.size(); ++i) {
     Eigen::Isometry3d T_CM = Eigen::Isometry3d::Identity();
-    T_CM.linear() = Eigen::Quaterniond(pose[i][3], pose[i][0], pose[i][1], pose[i][2]).normalized().toRotationMatrix();
-    T_CM.translation() = Eigen::Vector3d(pose[i][4], pose[i][5], pose[i][6]);
+    T_CM.linear() = Eigen::Quaterniond(pb.poses[i].R_CM).normalized().toRotationMatrix();
+    T_CM.translation() = pb.poses[i].t_CM;
     map_.keyframe(local[i]).T_MC = T_CM.inverse();
   }
-  for (size_t a = 0; a < points.size(); ++a) map_.point(points[a]).p_M = Eigen::Vector3d(pt[a].data());
-  for (size_t r = 0; r < res.size(); ++r) {
-    if (res[r].id != nullptr && chi2_of(res[r]) <= o.ba_outlier_chi2) continue;
-    if (!map_.point_used(res[r].p)) continue;
-    map_.erase_observation(res[r].p, res[r].kf);
+  for (size_t a = 0; a < points.size(); ++a) map_.point(points[a]).p_M = pb.points_M[a];
+  for (size_t r = 0; r < pb.obs.size(); ++r) {
+    const BaObservation& ob = pb.obs[r];
+    if (ob.enabled && ba_chi2(pb, ob) <= o.ba_outlier_chi2) continue;
+    const int32_t p = points[static_cast<size_t>(ob.point)];
+    if (!map_.point_used(p)) continue;
+    map_.erase_observation(p, ba_kf_[static_cast<size_t>(ob.pose)]);
     ++stats_.ba_outliers;
   }
   return true;

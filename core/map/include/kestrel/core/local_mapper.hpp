@@ -15,6 +15,7 @@
 #include <cstdint>
 #include <vector>
 
+#include "kestrel/core/bundle_adjustment.hpp"
 #include "kestrel/core/map.hpp"
 #include "kestrel/core/motion_estimation.hpp"
 
@@ -83,6 +84,9 @@ class LocalMapper {
   MapCamera cam_;
   LocalMapperStats stats_;
   std::vector<int32_t> kf_scratch_, shared_scratch_, pt_scratch_;
+  BaProblem ba_;  // reused: its vectors keep their capacity
+  BaScratch ba_scratch_;
+  std::vector<int32_t> ba_kf_;
   // The odometry path flown (MapKeyframe::path_m).
   double path_m_ = 0.0;
   bool have_last_ = false;

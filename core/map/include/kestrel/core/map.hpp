@@ -34,6 +34,7 @@ struct MapOptions {
   int ba_keyframes = 8;           // covisible keyframes optimised with the new one
   int ba_fixed_keyframes = 16;    // other keyframes seeing the same points, held fixed
   int ba_iterations = 5;          // per round; two rounds with outliers dropped in between
+  enum class BaSolver { kOurs, kCeres } ba_solver = BaSolver::kOurs;  // bundle_adjustment.hpp
   double ba_huber = 2.8;          // Huber on the whitened error (sqrt of chi2 95 % for 3 dof: 2.80)
   double ba_outlier_chi2 = 7.815; // an observation above this after round 1 is dropped (chi2 95 %, 3 dof)
   // The odometry's gravity direction holds each keyframe's roll and pitch:

@@ -1,0 +1,277 @@
+#include "kestrel/core/bundle_adjustment.hpp"
+
+#include <Eigen/Cholesky>
+#include <algorithm>
+#include <cmath>
+
+#include "kestrel/core/so3.hpp"
+
+namespace kestrel::core {
+
+namespace {
+
+constexpr double kMinZ_m = 1e-3;  // the same clamp as the Ceres cost: a point behind the camera stays finite
+
+struct Linearised {
+  bool depth = false;
+  Eigen::Vector3d r = Eigen::Vector3d::Zero();
+  Eigen::Matrix<double, 3, 6> J_pose = Eigen::Matrix<double, 3, 6>::Zero();
+  Eigen::Matrix3d J_point = Eigen::Matrix3d::Zero();
+};
+
+// Residual and Jacobians under the left perturbation R <- Exp(dtheta) R,
+// t <- t + dt, p <- p + dp (Ceres' quaternion manifold perturbs on the left
+// too, so both solvers take the same steps up to the step control).
+void linearise(const BaProblem& pb, const BaObservation& o, Linearised& L) {
+  const BaPose& P = pb.poses[static_cast<size_t>(o.pose)];
+  const Eigen::Vector3d Rp = P.R_CM * pb.points_M[static_cast<size_t>(o.point)];
+  const Eigen::Vector3d c = Rp + P.t_CM;
+  const bool clamped = c.z() < kMinZ_m;
+  const double z = clamped ? kMinZ_m : c.z();
+  const double iz = 1.0 / z;
+  L.depth = o.depth_m > 0;
+  L.r.x() = (pb.K.fx * c.x() * iz + pb.K.cx - o.u_px) * o.inv_sigma_px;
+  L.r.y() = (pb.K.fy * c.y() * iz + pb.K.cy - o.v_px) * o.inv_sigma_px;
+  L.r.z() = L.depth ? (c.z() - o.depth_m) * o.inv_sigma_z : 0.0;  // no depth: a zero row
+  Eigen::Matrix3d dr_dc = Eigen::Matrix3d::Zero();
+  dr_dc(0, 0) = pb.K.fx * iz * o.inv_sigma_px;
+  dr_dc(1, 1) = pb.K.fy * iz * o.inv_sigma_px;
+  if (!clamped) {
+    dr_dc(0, 2) = -pb.K.fx * c.x() * iz * iz * o.inv_sigma_px;
+    dr_dc(1, 2) = -pb.K.fy * c.y() * iz * iz * o.inv_sigma_px;
+  }
+  if (L.depth) dr_dc(2, 2) = o.inv_sigma_z;
+  L.J_pose.leftCols<3>() = -dr_dc * so3::hat(Rp);
+  L.J_pose.rightCols<3>() = dr_dc;
+  L.J_point = dr_dc * P.R_CM;
+}
+
+// Huber on the squared whitened error s, as ceres::HuberLoss: rho(s) = s
+// inside a^2, 2 a sqrt(s) - a^2 outside; rho'(s) is the IRLS weight.
+double huber_rho(double s, double a) { return s <= a * a ? s : 2.0 * a * std::sqrt(s) - a * a; }
+double huber_weight(double s, double a) { return s <= a * a ? 1.0 : a / std::sqrt(s); }
+
+Eigen::Vector3d gravity_residual(const BaProblem& pb, const BaPose& P) {
+  return (-P.R_CM.col(2) - P.g_C) * pb.gravity_inv_sigma;
+}
+
+bool gravity_on(const BaProblem& pb, const BaPose& P) {
+  return pb.gravity_inv_sigma > 0 && P.has_gravity && !P.fixed;
+}
+
+}  // namespace
+
+double ba_chi2(const BaProblem& pb, const BaObservation& o) {
+  const BaPose& P = pb.poses[static_cast<size_t>(o.pose)];
+  const Eigen::Vector3d c = P.R_CM * pb.points_M[static_cast<size_t>(o.point)] + P.t_CM;
+  if (c.z() < kMinZ_m) return 1e30;
+  const double eu = (pb.K.fx * c.x() / c.z() + pb.K.cx - o.u_px) * o.inv_sigma_px;
+  const double ev = (pb.K.fy * c.y() / c.z() + pb.K.cy - o.v_px) * o.inv_sigma_px;
+  double e = eu * eu + ev * ev;
+  if (o.depth_m > 0) {
+    const double ez = (c.z() - o.depth_m) * o.inv_sigma_z;
+    e += ez * ez;
+  }
+  return e;
+}
+
+double ba_cost(const BaProblem& pb) {
+  double cost = 0;
+  for (const BaObservation& o : pb.obs) {
+    if (!o.enabled) continue;
+    const BaPose& P = pb.poses[static_cast<size_t>(o.pose)];
+    const Eigen::Vector3d c = P.R_CM * pb.points_M[static_cast<size_t>(o.point)] + P.t_CM;
+    const double iz = 1.0 / std::max(c.z(), kMinZ_m);
+    const double eu = (pb.K.fx * c.x() * iz + pb.K.cx - o.u_px) * o.inv_sigma_px;
+    const double ev = (pb.K.fy * c.y() * iz + pb.K.cy - o.v_px) * o.inv_sigma_px;
+    const double ez = o.depth_m > 0 ? (c.z() - o.depth_m) * o.inv_sigma_z : 0.0;
+    cost += huber_rho(eu * eu + ev * ev + ez * ez, pb.huber);
+  }
+  for (const BaPose& P : pb.poses)
+    if (gravity_on(pb, P)) cost += gravity_residual(pb, P).squaredNorm();
+  return 0.5 * cost;
+}
+
+BaResult solve_bundle_adjustment(BaProblem& pb, int max_iterations, BaScratch& s) {
+  BaResult res;
+  const size_t np = pb.poses.size(), nq = pb.points_M.size(), no = pb.obs.size();
+  s.free_index.assign(np, -1);
+  int nf = 0;
+  for (size_t i = 0; i < np; ++i)
+    if (!pb.poses[i].fixed) s.free_index[i] = nf++;
+  const int dim = 6 * nf;
+
+  // Observations grouped by point (counting sort): the Schur complement is a
+  // sum over each point's observation pairs.
+  s.point_begin.assign(nq + 1, 0);
+  for (const BaObservation& o : pb.obs)
+    if (o.enabled) ++s.point_begin[static_cast<size_t>(o.point) + 1];
+  for (size_t a = 0; a < nq; ++a) s.point_begin[a + 1] += s.point_begin[a];
+  s.by_point.resize(static_cast<size_t>(s.point_begin[nq]));
+  s.cursor.assign(s.point_begin.begin(), s.point_begin.end() - 1);
+  for (size_t k = 0; k < no; ++k) {
+    const BaObservation& o = pb.obs[k];
+    if (o.enabled)
+      s.by_point[static_cast<size_t>(s.cursor[static_cast<size_t>(o.point)]++)] = static_cast<int32_t>(k);
+  }
+  s.free_of.resize(s.by_point.size());
+  for (size_t e = 0; e < s.by_point.size(); ++e)
+    s.free_of[e] = s.free_index[static_cast<size_t>(pb.obs[static_cast<size_t>(s.by_point[e])].pose)];
+  s.W.resize(s.by_point.size());
+  s.V.resize(nq);
+  s.V_inv.resize(nq);
+  s.g_point.resize(nq);
+  s.d_point.resize(nq);
+  s.points_old.resize(nq);
+  s.R_old.resize(np);
+  s.t_old.resize(np);
+  s.H.resize(dim, dim);
+  s.S.resize(dim, dim);
+  s.g.resize(dim);
+  s.b.resize(dim);
+  s.dx.resize(dim);
+
+  double cost = ba_cost(pb);
+  res.initial_cost = res.final_cost = cost;
+  if (!std::isfinite(cost)) return res;
+  res.usable = true;
+
+  // Levenberg-Marquardt with Ceres' defaults: the diagonal scaled by mu =
+  // 1/trust radius (1e4 at the start) and clamped to [1e-6, 1e32]; Nielsen's
+  // update; stop when an accepted step changes the cost by less than 1e-6.
+  double mu = 1e-4, nu = 2.0;
+  bool linearise_again = true;
+  Linearised L;
+  while (res.iterations < max_iterations) {
+    if (linearise_again) {
+      s.H.setZero();
+      s.g.setZero();
+      for (size_t a = 0; a < nq; ++a) {
+        Eigen::Matrix3d& V = s.V[a];
+        Eigen::Vector3d& ga = s.g_point[a];
+        V.setZero();
+        ga.setZero();
+        for (int32_t e = s.point_begin[a]; e < s.point_begin[a + 1]; ++e) {
+          const BaObservation& o = pb.obs[static_cast<size_t>(s.by_point[static_cast<size_t>(e)])];
+          linearise(pb, o, L);
+          // Fixed 3-row blocks (a depth-less row is zero) keep Eigen's
+          // products fixed-size: dynamic row counts cost twice the time.
+          const Eigen::Vector3d& r = L.r;
+          const double w = huber_weight(r.squaredNorm(), pb.huber);
+          const Eigen::Matrix3d& Jp = L.J_point;
+          V.noalias() += w * Jp.transpose() * Jp;
+          ga.noalias() += w * Jp.transpose() * r;
+          const int f = s.free_of[static_cast<size_t>(e)];
+          if (f < 0) continue;
+          const Eigen::Matrix<double, 3, 6>& Jc = L.J_pose;
+          s.H.block<6, 6>(6 * f, 6 * f).noalias() += w * Jc.transpose() * Jc;
+          s.g.segment<6>(6 * f).noalias() += w * Jc.transpose() * r;
+          s.W[static_cast<size_t>(e)].noalias() = w * Jc.transpose() * Jp;
+        }
+      }
+      for (size_t i = 0; i < np; ++i) {
+        const BaPose& P = pb.poses[i];
+        if (!gravity_on(pb, P)) continue;
+        const int f = s.free_index[i];
+        const Eigen::Matrix3d J = -so3::hat(-P.R_CM.col(2)) * pb.gravity_inv_sigma;
+        s.H.block<3, 3>(6 * f, 6 * f).noalias() += J.transpose() * J;
+        s.g.segment<3>(6 * f).noalias() += J.transpose() * gravity_residual(pb, P);
+      }
+      linearise_again = false;
+    }
+    ++res.iterations;
+
+    // Damped reduced camera system S dx = -b.
+    s.S = s.H;
+    for (int d = 0; d < dim; ++d) s.S(d, d) += mu * std::clamp(s.H(d, d), 1e-6, 1e32);
+    s.b = s.g;
+    for (size_t a = 0; a < nq; ++a) {
+      Eigen::Matrix3d Vd = s.V[a];
+      for (int d = 0; d < 3; ++d) Vd(d, d) += mu * std::clamp(s.V[a](d, d), 1e-6, 1e32);
+      s.V_inv[a] = Vd.inverse();
+      for (int32_t e = s.point_begin[a]; e < s.point_begin[a + 1]; ++e) {
+        const int fi = s.free_of[static_cast<size_t>(e)];
+        if (fi < 0) continue;
+        const Eigen::Matrix<double, 6, 3> WV = s.W[static_cast<size_t>(e)] * s.V_inv[a];
+        s.b.segment<6>(6 * fi).noalias() -= WV * s.g_point[a];
+        // Only the lower triangle: the LDLT below reads nothing else.
+        for (int32_t e2 = s.point_begin[a]; e2 <= e; ++e2) {
+          const int fj = s.free_of[static_cast<size_t>(e2)];
+          if (fj < 0) continue;
+          const Eigen::Matrix<double, 6, 6> B = WV * s.W[static_cast<size_t>(e2)].transpose();
+          if (fi > fj) {
+            s.S.block<6, 6>(6 * fi, 6 * fj) -= B;
+          } else if (fi < fj) {
+            s.S.block<6, 6>(6 * fj, 6 * fi) -= B.transpose();
+          } else {
+            s.S.block<6, 6>(6 * fi, 6 * fi) -= B;
+            if (e2 != e) s.S.block<6, 6>(6 * fi, 6 * fi) -= B.transpose();  // one keyframe, two observations
+          }
+        }
+      }
+    }
+    bool solved = true;
+    if (dim > 0) {
+      Eigen::LDLT<Eigen::MatrixXd, Eigen::Lower> ldlt(s.S);
+      s.dx = ldlt.solve(-s.b);
+      solved = ldlt.info() == Eigen::Success && s.dx.allFinite();
+    }
+    // Back-substitution, and the model's decrease: with (A + mu D) x = -g it
+    // is -g'x - x'Ax/2 = (-g'x + mu x'Dx) / 2.
+    double gx = dim > 0 ? s.g.dot(s.dx) : 0.0, xDx = 0;
+    for (int d = 0; d < dim; ++d) xDx += std::clamp(s.H(d, d), 1e-6, 1e32) * s.dx[d] * s.dx[d];
+    for (size_t a = 0; a < nq && solved; ++a) {
+      Eigen::Vector3d rhs = s.g_point[a];
+      for (int32_t e = s.point_begin[a]; e < s.point_begin[a + 1]; ++e) {
+        const int fi = s.free_of[static_cast<size_t>(e)];
+        if (fi >= 0) rhs.noalias() += s.W[static_cast<size_t>(e)].transpose() * s.dx.segment<6>(6 * fi);
+      }
+      s.d_point[a] = -s.V_inv[a] * rhs;
+      if (!s.d_point[a].allFinite()) solved = false;
+      gx += s.g_point[a].dot(s.d_point[a]);
+      for (int d = 0; d < 3; ++d)
+        xDx += std::clamp(s.V[a](d, d), 1e-6, 1e32) * s.d_point[a][d] * s.d_point[a][d];
+    }
+    const double predicted = 0.5 * (-gx + mu * xDx);
+    if (!solved || !(predicted > 0)) {
+      if (solved && predicted <= 0 && predicted > -1e-15) break;  // at the minimum already
+      mu *= nu;
+      nu *= 2;
+      continue;
+    }
+    for (size_t i = 0; i < np; ++i) {
+      s.R_old[i] = pb.poses[i].R_CM;
+      s.t_old[i] = pb.poses[i].t_CM;
+      const int f = s.free_index[i];
+      if (f < 0) continue;
+      pb.poses[i].R_CM = so3::Exp(s.dx.segment<3>(6 * f)) * pb.poses[i].R_CM;
+      pb.poses[i].t_CM += s.dx.segment<3>(6 * f + 3);
+    }
+    for (size_t a = 0; a < nq; ++a) {
+      s.points_old[a] = pb.points_M[a];
+      pb.points_M[a] += s.d_point[a];
+    }
+    const double new_cost = ba_cost(pb);
+    const double rho = (cost - new_cost) / predicted;
+    if (std::isfinite(new_cost) && new_cost < cost && rho > 1e-3) {
+      const double decrease = (cost - new_cost) / cost;
+      cost = new_cost;
+      mu *= std::max(1.0 / 3.0, 1.0 - std::pow(2.0 * rho - 1.0, 3));
+      nu = 2.0;
+      linearise_again = true;
+      if (decrease < 1e-6) break;
+    } else {
+      for (size_t i = 0; i < np; ++i) {
+        pb.poses[i].R_CM = s.R_old[i];
+        pb.poses[i].t_CM = s.t_old[i];
+      }
+      for (size_t a = 0; a < nq; ++a) pb.points_M[a] = s.points_old[a];
+      mu *= nu;
+      nu *= 2;
+    }
+  }
+  res.final_cost = cost;
+  return res;
+}
+
+}  // namespace kestrel::core

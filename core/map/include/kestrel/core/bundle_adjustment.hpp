@@ -1,0 +1,71 @@
+// Local bundle adjustment of keyframe poses and map points: reprojection plus
+// measured depth per observation (Huber), and a gravity prior on roll and
+// pitch. Two solvers of one problem: ours (Levenberg-Marquardt with the points
+// eliminated by a Schur complement and analytic Jacobians) and Ceres, kept as
+// the reference that tests/map/test_bundle_adjustment.cpp checks ours against.
+// Ours exists because the mapping thread spent ~95 % of its time in Ceres,
+// most of it building the problem, differentiating with jets and a dynamic-size
+// Schur eliminator: the same work is a few fixed-size loops here.
+#pragma once
+
+#include <Eigen/Core>
+#include <cstdint>
+#include <vector>
+
+#include "kestrel/core/motion_estimation.hpp"
+
+namespace kestrel::core {
+
+struct BaPose {
+  Eigen::Matrix3d R_CM = Eigen::Matrix3d::Identity();  // p_C = R_CM p_M + t_CM
+  Eigen::Vector3d t_CM = Eigen::Vector3d::Zero();
+  bool fixed = false;
+  bool has_gravity = false;
+  Eigen::Vector3d g_C = Eigen::Vector3d::Zero();  // M's down axis (0, 0, -1) as the odometry saw it in C
+};
+
+struct BaObservation {
+  int32_t pose = 0, point = 0;
+  double u_px = 0, v_px = 0;
+  double depth_m = 0;  // <= 0: no depth, reprojection only
+  double inv_sigma_px = 1, inv_sigma_z = 0;
+  bool enabled = true;  // false: left out of the solve (an outlier)
+};
+
+struct BaProblem {
+  PinholeK K;
+  double huber = 2.8;            // on the whitened error of one observation
+  double gravity_inv_sigma = 0;  // 1 / sigma [1/rad]; 0: no gravity prior
+  std::vector<BaPose> poses;
+  std::vector<Eigen::Vector3d> points_M;
+  std::vector<BaObservation> obs;
+};
+
+struct BaResult {
+  bool usable = false;
+  int iterations = 0;                       // solver iterations, accepted and rejected steps alike
+  double initial_cost = 0, final_cost = 0;  // 1/2 sum of Huber(chi2) + gravity terms
+};
+
+// Reusable work space: the mapping thread keeps one, so that a bundle
+// adjustment does not allocate once the largest problem has been seen.
+struct BaScratch {
+  std::vector<int32_t> free_index, by_point, point_begin, cursor, free_of;
+  std::vector<Eigen::Matrix<double, 6, 3>> W;
+  std::vector<Eigen::Matrix3d> V, V_inv;
+  std::vector<Eigen::Vector3d> g_point, d_point, points_old;
+  Eigen::MatrixXd H, S;
+  Eigen::VectorXd g, b, dx;
+  std::vector<Eigen::Matrix3d> R_old;
+  std::vector<Eigen::Vector3d> t_old;
+};
+
+// Whitened squared error of one observation at the problem's current values.
+double ba_chi2(const BaProblem& p, const BaObservation& o);
+// 1/2 sum of the robust costs, as Ceres counts it.
+double ba_cost(const BaProblem& p);
+
+BaResult solve_bundle_adjustment(BaProblem& p, int max_iterations, BaScratch& scratch);
+BaResult solve_bundle_adjustment_ceres(BaProblem& p, int max_iterations);
+
+}  // namespace kestrel::core
