@@ -11,6 +11,9 @@ namespace kestrel::core {
 namespace {
 
 constexpr double kMinZ_m = 1e-3;  // the same clamp as the Ceres cost: a point behind the camera stays finite
+// Ceres' trust radius bounds (1e16 and 1e-32) as damping bounds: mu never
+// reaches 0 (a point without observations would give inf x 0) nor infinity.
+constexpr double kMinMu = 1e-16, kMaxMu = 1e32;
 
 struct Linearised {
   bool depth = false;
@@ -233,10 +236,23 @@ BaResult solve_bundle_adjustment(BaProblem& pb, int max_iterations, BaScratch& s
         xDx += std::clamp(s.V[a](d, d), 1e-6, 1e32) * s.d_point[a][d] * s.d_point[a][d];
     }
     const double predicted = 0.5 * (-gx + mu * xDx);
+    // Ceres' other stops: a step too small to change the parameters
+    // (parameter_tolerance 1e-8), a model with nothing left to gain.
+    if (solved) {
+      double step2 = dim > 0 ? s.dx.squaredNorm() : 0.0, x2 = 0;
+      for (size_t a = 0; a < nq; ++a) {
+        step2 += s.d_point[a].squaredNorm();
+        x2 += pb.points_M[a].squaredNorm();
+      }
+      for (size_t i = 0; i < np; ++i)
+        if (s.free_index[i] >= 0) x2 += pb.poses[i].t_CM.squaredNorm() + 3.0;  // + the rotation's own size
+      if (std::sqrt(step2) <= 1e-8 * (std::sqrt(x2) + 1e-8)) break;
+      if (std::abs(predicted) <= 1e-12 * cost) break;
+    }
     if (!solved || !(predicted > 0)) {
-      if (solved && predicted <= 0 && predicted > -1e-15) break;  // at the minimum already
       mu *= nu;
       nu *= 2;
+      if (mu > kMaxMu) break;  // Ceres' smallest trust radius, 1e-32
       continue;
     }
     for (size_t i = 0; i < np; ++i) {
@@ -253,13 +269,13 @@ BaResult solve_bundle_adjustment(BaProblem& pb, int max_iterations, BaScratch& s
     }
     const double new_cost = ba_cost(pb);
     const double rho = (cost - new_cost) / predicted;
+    // Ceres' function tolerance holds for every step tried, taken or not.
+    const bool converged = std::isfinite(new_cost) && std::abs(cost - new_cost) <= 1e-6 * cost;
     if (std::isfinite(new_cost) && new_cost < cost && rho > 1e-3) {
-      const double decrease = (cost - new_cost) / cost;
       cost = new_cost;
-      mu *= std::max(1.0 / 3.0, 1.0 - std::pow(2.0 * rho - 1.0, 3));
+      mu = std::max(kMinMu, mu * std::max(1.0 / 3.0, 1.0 - std::pow(2.0 * rho - 1.0, 3)));
       nu = 2.0;
       linearise_again = true;
-      if (decrease < 1e-6) break;
     } else {
       for (size_t i = 0; i < np; ++i) {
         pb.poses[i].R_CM = s.R_old[i];
@@ -268,7 +284,9 @@ BaResult solve_bundle_adjustment(BaProblem& pb, int max_iterations, BaScratch& s
       for (size_t a = 0; a < nq; ++a) pb.points_M[a] = s.points_old[a];
       mu *= nu;
       nu *= 2;
+      if (mu > kMaxMu) break;
     }
+    if (converged) break;
   }
   res.final_cost = cost;
   return res;

@@ -47,8 +47,10 @@ struct BaResult {
   double initial_cost = 0, final_cost = 0;  // 1/2 sum of Huber(chi2) + gravity terms
 };
 
-// Reusable work space: the mapping thread keeps one, so that a bundle
-// adjustment does not allocate once the largest problem has been seen.
+// Reusable work space: the mapping thread keeps one so that its vectors keep
+// their capacity from keyframe to keyframe. The solver still allocates a
+// little (the LDLT, the reduced system when its size changes): the mapping
+// thread is not real time.
 struct BaScratch {
   std::vector<int32_t> free_index, by_point, point_begin, cursor, free_of;
   std::vector<Eigen::Matrix<double, 6, 3>> W;
