@@ -49,6 +49,9 @@ void linearise(const BaProblem& pb, const BaObservation& o, Linearised& L) {
   L.J_point = dr_dc * P.R_CM;
 }
 
+// The LM diagonal D of one parameter, from its diag(J'J), in Ceres' bounds.
+double damping(double jtj) { return std::clamp(jtj, 1e-6, 1e32); }
+
 // Huber on the squared whitened error s, as ceres::HuberLoss: rho(s) = s
 // inside a^2, 2 a sqrt(s) - a^2 outside; rho'(s) is the IRLS weight.
 double huber_rho(double s, double a) { return s <= a * a ? s : 2.0 * a * std::sqrt(s) - a * a; }
@@ -141,7 +144,7 @@ BaResult solve_bundle_adjustment(BaProblem& pb, int max_iterations, BaScratch& s
 
   // Levenberg-Marquardt with Ceres' defaults: the diagonal scaled by mu =
   // 1/trust radius (1e4 at the start) and clamped to [1e-6, 1e32]; Nielsen's
-  // update; stop when an accepted step changes the cost by less than 1e-6.
+  // update; the stops below.
   double mu = 1e-4, nu = 2.0;
   bool linearise_again = true;
   Linearised L;
@@ -186,11 +189,11 @@ BaResult solve_bundle_adjustment(BaProblem& pb, int max_iterations, BaScratch& s
 
     // Damped reduced camera system S dx = -b.
     s.S = s.H;
-    for (int d = 0; d < dim; ++d) s.S(d, d) += mu * std::clamp(s.H(d, d), 1e-6, 1e32);
+    for (int d = 0; d < dim; ++d) s.S(d, d) += mu * damping(s.H(d, d));
     s.b = s.g;
     for (size_t a = 0; a < nq; ++a) {
       Eigen::Matrix3d Vd = s.V[a];
-      for (int d = 0; d < 3; ++d) Vd(d, d) += mu * std::clamp(s.V[a](d, d), 1e-6, 1e32);
+      for (int d = 0; d < 3; ++d) Vd(d, d) += mu * damping(s.V[a](d, d));
       s.V_inv[a] = Vd.inverse();
       for (int32_t e = s.point_begin[a]; e < s.point_begin[a + 1]; ++e) {
         const int fi = s.free_of[static_cast<size_t>(e)];
@@ -222,7 +225,7 @@ BaResult solve_bundle_adjustment(BaProblem& pb, int max_iterations, BaScratch& s
     // Back-substitution, and the model's decrease: with (A + mu D) x = -g it
     // is -g'x - x'Ax/2 = (-g'x + mu x'Dx) / 2.
     double gx = dim > 0 ? s.g.dot(s.dx) : 0.0, xDx = 0;
-    for (int d = 0; d < dim; ++d) xDx += std::clamp(s.H(d, d), 1e-6, 1e32) * s.dx[d] * s.dx[d];
+    for (int d = 0; d < dim; ++d) xDx += damping(s.H(d, d)) * s.dx[d] * s.dx[d];
     for (size_t a = 0; a < nq && solved; ++a) {
       Eigen::Vector3d rhs = s.g_point[a];
       for (int32_t e = s.point_begin[a]; e < s.point_begin[a + 1]; ++e) {
@@ -233,7 +236,7 @@ BaResult solve_bundle_adjustment(BaProblem& pb, int max_iterations, BaScratch& s
       if (!s.d_point[a].allFinite()) solved = false;
       gx += s.g_point[a].dot(s.d_point[a]);
       for (int d = 0; d < 3; ++d)
-        xDx += std::clamp(s.V[a](d, d), 1e-6, 1e32) * s.d_point[a][d] * s.d_point[a][d];
+        xDx += damping(s.V[a](d, d)) * s.d_point[a][d] * s.d_point[a][d];
     }
     const double predicted = 0.5 * (-gx + mu * xDx);
     // Ceres' other stops: a step too small to change the parameters
