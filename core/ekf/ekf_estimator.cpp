@@ -34,6 +34,8 @@ std::string EkfEstimatorOptions::validate() const {
   if (landmark_capacity < 4 || landmark_capacity > 512) e << "landmark_capacity: in [4, 512]\n";
   if (!(pixel_sigma_px > 0)) e << "pixel_sigma_px: must be > 0\n";
   if (!(imu_noise_inflation > 0)) e << "imu_noise_inflation: must be > 0\n";
+  if (!(min_frame_interval_ms <= 1000))
+    e << "min_frame_interval_ms: at most 1000 (0: every frame; < 0: the default)\n";
   if (max_missed_frames < 0) e << "max_missed_frames: must be >= 0\n";
   if (spread_grid_cols < 0 || spread_grid_cols > 32 || spread_grid_rows < 0 || spread_grid_rows > 32 ||
       (spread_grid_cols > 0) != (spread_grid_rows > 0))
@@ -187,6 +189,7 @@ void EkfEstimator::start(const NavState& s0, bool moving, bool restart) {
   ++starts_;
   tracker_.reset();
   last_tracked_t_ns_ = -1;
+  last_frame_t_ns_ = -1;
   last_map_pose_t_ns_ = -1;
   reanchor_pending_ = restart;
   lost_frames_ = 0;
@@ -322,6 +325,14 @@ void EkfEstimator::supervise() {
 bool EkfEstimator::add_frame(const RgbdFrame& f) {
   ++counters_.frames_in;
   if (!started_) return false;
+  // An out-of-order stamp is not skipped here: the tracker and the filter
+  // have their own handling of it.
+  const int64_t min_interval_ns = static_cast<int64_t>(opt_.frame_interval_ms() * 1e6);
+  if (last_frame_t_ns_ >= 0 && f.t_ns > last_frame_t_ns_ && f.t_ns - last_frame_t_ns_ < min_interval_ns) {
+    ++ekf_counters_.frames_skipped;
+    return false;
+  }
+  last_frame_t_ns_ = f.t_ns;
   if (map_) map_before_tracking();
   // The mean is at the last IMU sample, up to one IMU period before the
   // frame: carry it to the frame time with that sample, so the update and
@@ -456,7 +467,7 @@ bool EkfEstimator::add_frame(const RgbdFrame& f) {
 std::string EkfEstimator::backend_summary() const {
   const EkfCounters& c = ekf_.counters();
   const EkfEstimatorCounters& e = ekf_counters_;
-  char buf[900];
+  char buf[1200];
   auto ms = [this](double p) {
     return update_latency_.count() > 0 ? 1e-6 * static_cast<double>(update_latency_.percentile(p)) : 0.0;
   };
@@ -465,7 +476,8 @@ std::string EkfEstimator::backend_summary() const {
       "ekf: %d of %d landmarks active; initialised %llu (%llu at map points), frozen %llu, dropped %llu, "
       "capacity full %llu; "
       "observations %llu in, %llu used, %llu gated, %llu without depth; tracker resets %llu, filter "
-      "resets %llu; map poses %llu used, %llu gated, %llu re-anchoring a restart; update p50 %.2f ms, p99 "
+      "resets %llu; frames skipped %llu (closer than %.0f ms); map poses %llu used, %llu gated, %llu "
+      "re-anchoring a restart; update p50 %.2f ms, p99 "
       "%.2f ms, max %.2f ms; IMU noise x%.1f; NIS / dof %.2f, pose NIS %.1f (consistent: 1 and 6)",
       ekf_.num_active(), ekf_.options().landmark_capacity, (unsigned long long)c.landmarks_initialised,
       (unsigned long long)c.landmarks_from_prior, (unsigned long long)c.landmarks_frozen,
@@ -473,8 +485,8 @@ std::string EkfEstimator::backend_summary() const {
       (unsigned long long)e.observations_in, (unsigned long long)c.observations_used,
       (unsigned long long)c.observations_gated, (unsigned long long)e.observations_no_depth,
       (unsigned long long)e.tracker_resets, (unsigned long long)e.filter_resets,
-      (unsigned long long)e.map_poses_used, (unsigned long long)e.map_poses_gated,
-      (unsigned long long)e.map_reanchors, ms(50), ms(99),
+      (unsigned long long)e.frames_skipped, opt_.frame_interval_ms(), (unsigned long long)e.map_poses_used,
+      (unsigned long long)e.map_poses_gated, (unsigned long long)e.map_reanchors, ms(50), ms(99),
       update_latency_.count() > 0 ? 1e-6 * static_cast<double>(update_latency_.max()) : 0.0,
       ekf_.imu_noise_scale(), e.nis_dof_sum > 0 ? e.nis_sum / e.nis_dof_sum : 0.0,
       e.pose_nis_n > 0 ? e.pose_nis_sum / static_cast<double>(e.pose_nis_n) : 0.0);

@@ -190,9 +190,51 @@ TEST(EkfEstimator, HoverBeatsDeadReckoningWithinCentimetres) {
       (unsigned long long)ekf.filter().counters().capacity_full);
   EXPECT_LT(ate_ekf, 0.02);
   EXPECT_LT(ate_ekf, 0.2 * ate_imu);
-  EXPECT_GT(r.counters.frames_used, r.counters.frames_in * 9 / 10);
+  // Of the frames it takes (min_frame_interval_ms skips the others).
+  EXPECT_GT(r.counters.frames_used, (r.counters.frames_in - c.frames_skipped) * 9 / 10);
   EXPECT_GT(ekf.filter().counters().observations_used, 1000u);
   EXPECT_EQ(c.filter_resets, 0u);
+}
+
+// min_frame_interval_ms: at 50 ms a 30 Hz camera is taken at 15 Hz, at 0
+// every frame; the output keeps a pose for every frame either way, and the
+// skipped frames cost no tracking. The default is 0 without the map, 50 with.
+TEST(EkfEstimator, FramesCloserThanTheIntervalAreSkippedAndTheIMUCarriesTheState) {
+  const std::string path = simulate("figure8", 6.0, 21);
+  auto log = drivers::open_log(path);
+  const double frame_rate_hz = log->rig().camera_rate_hz;
+  ASSERT_GT(frame_rate_hz, 25.0) << "the test needs a camera faster than 1 / 50 ms";
+
+  core::EkfEstimatorOptions every;
+  every.min_frame_interval_ms = 0.0;
+  core::EkfEstimator all(log->rig(), every);
+  const RunResult ra = run(path, all);
+  core::EkfEstimatorOptions fifty;
+  fifty.min_frame_interval_ms = 50.0;
+  core::EkfEstimator half(log->rig(), fifty);
+  const RunResult rh = run(path, half);
+  core::EkfEstimatorOptions defaults;
+  EXPECT_EQ(defaults.frame_interval_ms(), 0.0);
+  defaults.mapping = true;
+  EXPECT_EQ(defaults.frame_interval_ms(), 50.0);
+
+  const auto& ca = all.ekf_counters();
+  const auto& ch = half.ekf_counters();
+  std::printf(
+      "[ figure ] figure8 6 s %.0f Hz: every frame: ATE %.4f m, %llu frames used; 50 ms: ATE %.4f m, %llu "
+      "used, "
+      "%llu skipped\n",
+      frame_rate_hz, ate(ra), (unsigned long long)ra.counters.frames_used, ate(rh),
+      (unsigned long long)rh.counters.frames_used, (unsigned long long)ch.frames_skipped);
+  EXPECT_EQ(ca.frames_skipped, 0u);
+  // Every other frame of a camera faster than 20 Hz, once started (the
+  // frames before the IMU start are neither taken nor skipped).
+  EXPECT_GE(ch.frames_skipped, rh.counters.frames_in * 45 / 100);
+  EXPECT_LE(ch.frames_skipped, rh.counters.frames_in / 2 + 1);
+  EXPECT_LE(rh.counters.frames_used, ra.counters.frames_used / 2 + 2);
+  EXPECT_EQ(rh.est.size(), ra.est.size()) << "a skipped frame still gets the propagated pose";
+  EXPECT_LT(ate(rh), 0.05);
+  EXPECT_LT(ate(ra), 0.05);
 }
 
 TEST(EkfEstimator, PoseNeesIsConsistentOnFigure8) {

@@ -104,6 +104,20 @@ struct EkfEstimatorOptions {
   double map_pose_min_interval_s = 0.25;
   int max_lost_frames = 3;        // untracked frames before the tracker takes a new keyframe
   int min_used_for_tracking = 5;  // observations in the update for the frame to count as tracked
+  // A frame closer than this to the last one the filter took is skipped (the
+  // IMU carries the state across; the output keeps its rate). Feature
+  // extraction is ~3/4 of the filter's CPU and costs the same on every frame,
+  // so the camera rate is the lever. 50 ms takes every other frame of a 30 Hz
+  // RGB-D camera (Kinect, OpenNI2) and every frame of a 20 Hz one; 0 takes
+  // every frame. Negative (the default) is 50 with the map (mapping) and 0
+  // without: with the map, its points hold the accuracy and its thread takes a
+  // share of the CPU; without, each frame's observations are all the filter
+  // has (docs/ekf.md, "Frame rate", the bench both ways).
+  double min_frame_interval_ms = -1.0;
+  // The interval in effect (min_frame_interval_ms with the default resolved).
+  double frame_interval_ms() const {
+    return min_frame_interval_ms >= 0 ? min_frame_interval_ms : mapping ? 50.0 : 0.0;
+  }
   // The window's map beside the filter (docs/ekf.md, "The map"): each
   // keyframe goes to the local mapping thread at the filter's pose, and the
   // refined points come back into the tracker's local map, so the map poses
@@ -129,6 +143,7 @@ struct EkfEstimatorCounters {
   uint64_t observations_no_depth = 0;  // not usable: the EKF's model needs depth
   uint64_t observations_dropped = 0;   // beyond the per-frame buffer
   uint64_t frames_updated = 0;
+  uint64_t frames_skipped = 0;  // closer than min_frame_interval_ms to the last frame taken
   uint64_t tracker_resets = 0;
   uint64_t filter_resets = 0;  // non-finite state: restarted from the IMU state
   uint64_t map_poses_used = 0;       // keyframe poses from the tracker's local map taken as a measurement
@@ -212,6 +227,7 @@ class EkfEstimator final : public Estimator {
   Eigen::Vector3d last_acc_ = Eigen::Vector3d::Zero();
   bool have_last_ = false;
   int64_t last_tracked_t_ns_ = -1;
+  int64_t last_frame_t_ns_ = -1;  // the last frame taken (min_frame_interval_ms)
   int lost_frames_ = 0;
   EstimatorOutput out_;
   mutable EstimatorCounters counters_;
