@@ -35,7 +35,7 @@ std::string EkfEstimatorOptions::validate() const {
   if (!(pixel_sigma_px > 0)) e << "pixel_sigma_px: must be > 0\n";
   if (!(imu_noise_inflation > 0)) e << "imu_noise_inflation: must be > 0\n";
   if (!(min_frame_interval_ms <= 1000))
-    e << "min_frame_interval_ms: at most 1000 (0: every frame; < 0: the default)\n";
+    e << "min_frame_interval_ms: at most 1000 (0: every frame, below 0: the default)\n";
   if (max_missed_frames < 0) e << "max_missed_frames: must be >= 0\n";
   if (spread_grid_cols < 0 || spread_grid_cols > 32 || spread_grid_rows < 0 || spread_grid_rows > 32 ||
       (spread_grid_cols > 0) != (spread_grid_rows > 0))

@@ -195,6 +195,13 @@ TEST(ConfigFile, BadInputNamesFileLineAndKey) {
             std::string::npos);
   EXPECT_NE(error_of("ekf: {restart_position_sigma_m: 0}\n").find("ekf: restart_position_sigma_m: must be > 0"),
             std::string::npos);
+  // The whole message on one line (the table splits on "; ").
+  EXPECT_NE(error_of("ekf: {min_frame_interval_ms: 5000}\n")
+                .find("ekf: min_frame_interval_ms: at most 1000 (0: every frame, below 0: the default)\n"),
+            std::string::npos);
+  EXPECT_NE(error_of("ekf: {min_frame_interval_ms: .nan}\n")
+                .find("ekf.min_frame_interval_ms: expected a finite number"),
+            std::string::npos);
   EXPECT_NE(error_of("window: {recent_frames: 99999999999}\n").find("window.recent_frames: out of range"),
             std::string::npos);
   EXPECT_NE(error_of("window:\n  recent_frames: 3\n bad indent: [\n").find("x.yaml:"), std::string::npos);
