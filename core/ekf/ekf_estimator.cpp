@@ -190,6 +190,7 @@ void EkfEstimator::start(const NavState& s0, bool moving, bool restart) {
   tracker_.reset();
   last_tracked_t_ns_ = -1;
   last_frame_t_ns_ = -1;
+  last_frame_fixed_ = false;
   last_map_pose_t_ns_ = -1;
   reanchor_pending_ = restart;
   lost_frames_ = 0;
@@ -328,7 +329,10 @@ bool EkfEstimator::add_frame(const RgbdFrame& f) {
   // An out-of-order stamp is not skipped here: the tracker and the filter
   // have their own handling of it.
   const int64_t min_interval_ns = static_cast<int64_t>(opt_.frame_interval_ms() * 1e6);
-  if (last_frame_t_ns_ >= 0 && f.t_ns > last_frame_t_ns_ && f.t_ns - last_frame_t_ns_ < min_interval_ns) {
+  // Only after a fix: a frame that did not track is followed by every frame
+  // until one does, so a loss (a fast yaw, a blurred pass) lasts as long as
+  // at the camera's full rate instead of twice as long.
+  if (last_frame_fixed_ && f.t_ns > last_frame_t_ns_ && f.t_ns - last_frame_t_ns_ < min_interval_ns) {
     ++ekf_counters_.frames_skipped;
     return false;
   }
@@ -434,6 +438,7 @@ bool EkfEstimator::add_frame(const RgbdFrame& f) {
   publish(f.t_ns);
 
   const bool tracked = r.tracked() && used >= opt_.min_used_for_tracking;
+  last_frame_fixed_ = tracked;
   // The tracker found a motion the filter would not take: IMU and vision disagree.
   monitor_.on_frame(f.t_ns, tracked, r.tracked() && !tracked);
   if (tracked) {

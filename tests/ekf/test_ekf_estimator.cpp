@@ -237,6 +237,46 @@ TEST(EkfEstimator, FramesCloserThanTheIntervalAreSkippedAndTheIMUCarriesTheState
   EXPECT_LT(ate(ra), 0.05);
 }
 
+TEST(EkfEstimator, AfterAFrameThatDidNotTrackEveryFrameIsTakenUntilOneDoes) {
+  // A loss at half the frame rate would last twice as long in frames of
+  // the camera (on `hard` at 50 ms: 8.4 % of the flight lost instead of 4.1 %).
+  const std::string dir = test::temp_dir("ekf_estimator_skip_cover");
+  tools::SimOptions o;
+  o.scenario = "figure8";
+  o.duration_s = 6.0;
+  o.seed = 23;
+  o.width = 320;
+  o.height = 240;
+  o.cover_at_s = 2.5;
+  o.cover_s = 1.0;
+  o.out_path = dir + "/log.klog";
+  tools::run_simulation(o);
+
+  auto log = drivers::open_log(o.out_path);
+  core::EkfEstimatorOptions fifty;
+  fifty.min_frame_interval_ms = 50.0;
+  core::EkfEstimator est(log->rig(), fifty);
+  bool prev_tracking = false;
+  uint64_t prev_skipped = 0;
+  int after_loss = 0, skipped_after_loss = 0, after_fix = 0, skipped_after_fix = 0;
+  test::run(o.out_path, est, [&](const tools::TimedPose&) {
+    const uint64_t skipped = est.ekf_counters().frames_skipped;
+    const bool skipped_now = skipped > prev_skipped;
+    (prev_tracking ? after_fix : after_loss) += 1;
+    (prev_tracking ? skipped_after_fix : skipped_after_loss) += skipped_now ? 1 : 0;
+    prev_skipped = skipped;
+    prev_tracking = est.output().quality == core::TrackingQuality::kTracking;
+  });
+  std::printf(
+      "[ figure ] figure8 6 s, lens covered 1 s, 50 ms: %d frames after a fix (%d skipped), %d after a frame "
+      "that "
+      "did not track (%d skipped)\n",
+      after_fix, skipped_after_fix, after_loss, skipped_after_loss);
+  ASSERT_GE(after_loss, 25) << "the covered second must lose tracking";
+  EXPECT_EQ(skipped_after_loss, 0);
+  EXPECT_GE(skipped_after_fix, after_fix * 40 / 100) << "every other frame while tracking";
+}
+
 TEST(EkfEstimator, PoseNeesIsConsistentOnFigure8) {
   // Mean NEES of a consistent 6-dof pose estimate is 6. EKF-SLAM is known to
   // be mildly over-confident (docs/ekf.md); the band admits up to 3x.

@@ -112,7 +112,9 @@ struct EkfEstimatorOptions {
   // every frame. Negative (the default) is 50 with the map (mapping) and 0
   // without: with the map, its points hold the accuracy and its thread takes a
   // share of the CPU; without, each frame's observations are all the filter
-  // has (docs/ekf.md, "Frame rate", the bench both ways).
+  // has (docs/ekf.md, "Frame rate", the bench both ways). Only a frame after
+  // a fix is skipped: after a frame that did not track, every frame is taken
+  // until one does, so a loss is not stretched to twice its frames.
   double min_frame_interval_ms = -1.0;
   // The interval in effect (min_frame_interval_ms with the default resolved).
   double frame_interval_ms() const {
@@ -228,6 +230,7 @@ class EkfEstimator final : public Estimator {
   bool have_last_ = false;
   int64_t last_tracked_t_ns_ = -1;
   int64_t last_frame_t_ns_ = -1;  // the last frame taken (min_frame_interval_ms)
+  bool last_frame_fixed_ = false;  // and whether it was a fix
   int lost_frames_ = 0;
   EstimatorOutput out_;
   mutable EstimatorCounters counters_;
