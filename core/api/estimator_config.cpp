@@ -326,11 +326,10 @@ void visit_ekf(EkfEstimatorOptions& o, OptionVisitor& v) {
           "at most one map pose per this interval (the map is not independent of the filter)");
   v.value("max_lost_frames", o.max_lost_frames, "untracked frames before the tracker takes a new keyframe");
   v.value("min_used_for_tracking", o.min_used_for_tracking, "observations used for the frame to count as tracked");
-  v.value(
-      "min_frame_interval_ms", o.min_frame_interval_ms,
-      "a frame closer than this to the last one taken is skipped if that one tracked (the IMU carries the "
-      "state; "
-      "50: every other frame of a 30 Hz camera; 0: every frame; negative: 50 with ekf.mapping, 0 without)");
+  v.value("min_frame_interval_ms", o.min_frame_interval_ms,
+          "a frame closer than this to the last one taken is skipped if that one tracked "
+          "(the IMU carries the state; 50: every other frame of a 30 Hz camera; 0: every frame; "
+          "negative: 50 with ekf.mapping, 0 without)");
   v.value("mapping", o.mapping,
           "run the map: section's local mapping and loop closing beside the filter "
           "(costs the mapping thread's CPU; set by --mapping on or off)");
