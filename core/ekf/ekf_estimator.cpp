@@ -326,12 +326,11 @@ void EkfEstimator::supervise() {
 bool EkfEstimator::add_frame(const RgbdFrame& f) {
   ++counters_.frames_in;
   if (!started_) return false;
-  // An out-of-order stamp is not skipped here: the tracker and the filter
-  // have their own handling of it.
-  const int64_t min_interval_ns = static_cast<int64_t>(opt_.frame_interval_ms() * 1e6);
   // Only after a fix: a frame that did not track is followed by every frame
   // until one does, so a loss (a fast yaw, a blurred pass) lasts as long as
-  // at the camera's full rate instead of twice as long.
+  // at the camera's full rate instead of twice as long. An out-of-order stamp
+  // is not skipped here: the tracker and the filter have their own handling.
+  const int64_t min_interval_ns = static_cast<int64_t>(opt_.frame_interval_ms() * 1e6);
   if (last_frame_fixed_ && f.t_ns > last_frame_t_ns_ && f.t_ns - last_frame_t_ns_ < min_interval_ns) {
     ++ekf_counters_.frames_skipped;
     return false;

@@ -18,8 +18,11 @@
 
 namespace kestrel::test {
 
+// `more`, when given, sets further options (a covered lens, a time offset);
+// a caller that passes it names its own `prefix`, which names the folder.
 inline std::string simulate(const std::string& scenario, double duration_s, uint64_t seed = 7,
-                            const std::string& prefix = "estimator") {
+                            const std::string& prefix = "estimator",
+                            const std::function<void(tools::SimOptions&)>& more = {}) {
   // One log per (scenario, duration, seed) in a folder of this process's own
   // (temp_dir): a test that asks twice gets the same log rebuilt.
   const std::string dir = test::temp_dir(prefix + "_" + scenario + "_" + std::to_string(seed) + "_" +
@@ -31,6 +34,7 @@ inline std::string simulate(const std::string& scenario, double duration_s, uint
   o.width = 320;
   o.height = 240;
   o.out_path = dir + "/log.klog";
+  if (more) more(o);
   tools::run_simulation(o);
   return o.out_path;
 }

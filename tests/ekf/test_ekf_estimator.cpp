@@ -221,9 +221,8 @@ TEST(EkfEstimator, FramesCloserThanTheIntervalAreSkippedAndTheIMUCarriesTheState
   const auto& ca = all.ekf_counters();
   const auto& ch = half.ekf_counters();
   std::printf(
-      "[ figure ] figure8 6 s %.0f Hz: every frame: ATE %.4f m, %llu frames used; 50 ms: ATE %.4f m, %llu "
-      "used, "
-      "%llu skipped\n",
+      "[ figure ] figure8 6 s %.0f Hz: every frame: ATE %.4f m, %llu frames used; "
+      "50 ms: ATE %.4f m, %llu used, %llu skipped\n",
       frame_rate_hz, ate(ra), (unsigned long long)ra.counters.frames_used, ate(rh),
       (unsigned long long)rh.counters.frames_used, (unsigned long long)ch.frames_skipped);
   EXPECT_EQ(ca.frames_skipped, 0u);
@@ -240,26 +239,19 @@ TEST(EkfEstimator, FramesCloserThanTheIntervalAreSkippedAndTheIMUCarriesTheState
 TEST(EkfEstimator, AfterAFrameThatDidNotTrackEveryFrameIsTakenUntilOneDoes) {
   // A loss at half the frame rate would last twice as long in frames of
   // the camera (on `hard` at 50 ms: 8.4 % of the flight lost instead of 4.1 %).
-  const std::string dir = test::temp_dir("ekf_estimator_skip_cover");
-  tools::SimOptions o;
-  o.scenario = "figure8";
-  o.duration_s = 6.0;
-  o.seed = 23;
-  o.width = 320;
-  o.height = 240;
-  o.cover_at_s = 2.5;
-  o.cover_s = 1.0;
-  o.out_path = dir + "/log.klog";
-  tools::run_simulation(o);
-
-  auto log = drivers::open_log(o.out_path);
+  const std::string path =
+      test::simulate("figure8", 6.0, 23, "ekf_estimator_cover", [](tools::SimOptions& o) {
+        o.cover_at_s = 2.5;
+        o.cover_s = 1.0;
+      });
+  auto log = drivers::open_log(path);
   core::EkfEstimatorOptions fifty;
   fifty.min_frame_interval_ms = 50.0;
   core::EkfEstimator est(log->rig(), fifty);
   bool prev_tracking = false;
   uint64_t prev_skipped = 0;
   int after_loss = 0, skipped_after_loss = 0, after_fix = 0, skipped_after_fix = 0;
-  test::run(o.out_path, est, [&](const tools::TimedPose&) {
+  test::run(path, est, [&](const tools::TimedPose&) {
     const uint64_t skipped = est.ekf_counters().frames_skipped;
     const bool skipped_now = skipped > prev_skipped;
     (prev_tracking ? after_fix : after_loss) += 1;
@@ -268,9 +260,8 @@ TEST(EkfEstimator, AfterAFrameThatDidNotTrackEveryFrameIsTakenUntilOneDoes) {
     prev_tracking = est.output().quality == core::TrackingQuality::kTracking;
   });
   std::printf(
-      "[ figure ] figure8 6 s, lens covered 1 s, 50 ms: %d frames after a fix (%d skipped), %d after a frame "
-      "that "
-      "did not track (%d skipped)\n",
+      "[ figure ] figure8 6 s, lens covered 1 s, 50 ms: %d frames after a fix (%d skipped), "
+      "%d after a frame that did not track (%d skipped)\n",
       after_fix, skipped_after_fix, after_loss, skipped_after_loss);
   ASSERT_GE(after_loss, 25) << "the covered second must lose tracking";
   EXPECT_EQ(skipped_after_loss, 0);
