@@ -250,6 +250,11 @@ void visit_map(MapSystemOptions& m, OptionVisitor& v) {
   v.value("loop_min_out_of_plane_m", l.min_out_of_plane_m,
           "a loop's inliers spread at least this far (RMS) off their best-fit plane: one wall fixes the "
           "correction along it by appearance alone");
+  v.value(
+      "loop_min_correction_chi2", l.min_correction_chi2,
+      "a verified loop is closed only if its correction (yaw, position at the keyframe) is at least this far "
+      "outside its own uncertainty: squared Mahalanobis length under the refit's covariance plus the loop "
+      "edge's floor, 4 DoF (9.488: chi2 95 %; 0: close every verified loop)");
   v.value("loop_consistent_keyframes", l.consistent_keyframes,
           "consecutive keyframes that must verify the same correction");
   v.value("loop_consistency_m", l.consistency_m, "their corrections agree within this at the keyframe");

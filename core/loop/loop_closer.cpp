@@ -23,6 +23,7 @@ std::string LoopOptions::validate() const {
   if (!(min_inlier_share >= 0 && min_inlier_share <= 1)) e << "  loop_min_inlier_share must be in [0, 1]\n";
   if (ransac_iterations < 1) e << "  loop_ransac_iterations must be >= 1\n";
   if (!(min_out_of_plane_m >= 0)) e << "  loop_min_out_of_plane_m must be >= 0\n";
+  if (!(min_correction_chi2 >= 0)) e << "  loop_min_correction_chi2 must be >= 0\n";
   if (!(inlier_m > 0)) e << "  loop_inlier_m must be > 0\n";
   if (!(refine_chi2 >= 0)) e << "  loop_refine_chi2 must be >= 0\n";
   if (consistent_keyframes < 1) e << "  loop_consistent_keyframes must be >= 1\n";
@@ -46,7 +47,9 @@ namespace {
 // A verified loop edge is stiffer than the odometry's chain: the chain's
 // edges carry the drift the loop corrects, and over tens of keyframes their
 // sum would otherwise hold the loop back (a 1 cm chain edge x 36 keyframes is
-// 6 cm of slack against the loop's 2 mm).
+// 6 cm of slack against the loop's 2 mm). A floor under the refit's own
+// covariance, which sees the pixels' and depths' noise but not the error the
+// candidate place's keyframes share.
 constexpr double kLoopSigma_m = 0.002, kLoopSigma_rad = 0.0005;
 
 
@@ -213,6 +216,9 @@ PlaceMatcher::Result PlaceMatcher::match(const KeyframeFeature* f, int n, const 
       cand_in = in;
     }
     if (in.size() < opt.min_inlier_share * m) return kFewInliers;
+    out->cov = refit_covariance(T, T_MC, f, pairs, in);
+  } else {
+    out->cov.setZero();
   }
   out->correction = T;
   out->matches = m;
@@ -310,6 +316,30 @@ Eigen::Isometry3d PlaceMatcher::refine_4dof(const Eigen::Isometry3d& T, const Ei
   return R;
 }
 
+Eigen::Matrix4d PlaceMatcher::refit_covariance(const Eigen::Isometry3d& T, const Eigen::Isometry3d& T_MC,
+                                               const KeyframeFeature* f, const Pairs& pairs,
+                                               const std::vector<int>& idx) const {
+  const double x[4] = {yaw_of(T.linear()), T.translation().x(), T.translation().y(), T.translation().z()};
+  const double* params[1] = {x};
+  const Eigen::Isometry3d T_CM = T_MC.inverse();
+  Eigen::Matrix4d info = Eigen::Matrix4d::Zero();
+  for (int i : idx) {
+    const auto& [j, pt] = pairs[static_cast<size_t>(i)];
+    double spx = 1, sz = 1;
+    pair_sigmas(f[j], pt, &spx, &sz);
+    const ceres::AutoDiffCostFunction<PlaceCost, 3, 4> cost(new PlaceCost(
+        T_CM, map_.point(pt).p_M, cam_.K, f[j].u_px, f[j].v_px, f[j].depth_m, 1.0 / spx, 1.0 / sz));
+    double r[3];
+    Eigen::Matrix<double, 3, 4, Eigen::RowMajor> J;
+    double* jac[1] = {J.data()};
+    if (!cost.Evaluate(params, r, jac) || !J.allFinite()) continue;
+    info += J.transpose() * J;
+  }
+  const Eigen::LDLT<Eigen::Matrix4d> ldlt(info);
+  if (ldlt.info() != Eigen::Success || !(ldlt.vectorD().minCoeff() > 0)) return Eigen::Matrix4d::Zero();
+  return ldlt.solve(Eigen::Matrix4d::Identity());
+}
+
 void PlaceMatcher::chi2_inliers(const Eigen::Isometry3d& T, const Eigen::Isometry3d& T_MC,
                                 const KeyframeFeature* f, const Pairs& pairs, double chi2,
                                 std::vector<int>& out) const {
@@ -353,6 +383,25 @@ bool LoopCloser::verify(int kf, int cand, double score, LoopMatch* out) {
     ++stats_.rejected_drift;
     return false;
   }
+  // The correction's uncertainty where it acts, at the query: p' = Rz(yaw) p + t.
+  const double c = std::cos(yaw_of(T.linear())), s = std::sin(yaw_of(T.linear()));
+  Eigen::Matrix4d A = Eigen::Matrix4d::Identity();
+  A.block<3, 1>(1, 0) = Eigen::Vector3d(-s * pos.x() - c * pos.y(), c * pos.x() - s * pos.y(), 0.0);
+  Eigen::Matrix4d S = A * fit.cov * A.transpose();
+  S(0, 0) += kLoopSigma_rad * kLoopSigma_rad;
+  S.block<3, 3>(1, 1) += kLoopSigma_m * kLoopSigma_m * Eigen::Matrix3d::Identity();
+  if (opt_.min_correction_chi2 > 0) {
+    Eigen::Vector4d d;
+    d << yaw_of(T.linear()), T * pos - pos;
+    if (d.dot(S.ldlt().solve(d)) < opt_.min_correction_chi2) {
+      ++stats_.skipped_insignificant;
+      return false;
+    }
+  }
+  const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eig(S.block<3, 3>(1, 1), Eigen::EigenvaluesOnly);
+  out->sigma_m = std::sqrt(std::max(0.0, eig.eigenvalues()(2)));
+  out->sigma_rad = std::sqrt(S(0, 0));
+  out->cov = fit.cov;
   out->query = kf;
   out->candidate = cand;
   out->query_id = K.id;
@@ -406,15 +455,19 @@ bool LoopCloser::close(const LoopMatch& lm, LoopClosure* out) {
     // Its yaw on top of the rotations the two keyframes have now.
     const Eigen::Matrix3d R = g.T[static_cast<size_t>(ia->second)].linear() * e.R_ab *
                               g.T[static_cast<size_t>(ib->second)].linear().transpose();
-    g.add_edge(ia->second, ib->second, e.t_ab, yaw_of(R), kLoopSigma_m, kLoopSigma_rad);
+    g.add_edge(ia->second, ib->second, e.t_ab, yaw_of(R), e.sigma_m, e.sigma_rad);
   }
   // The new loop: where the query keyframe really is, seen from the candidate.
   const int ic = node_of[static_cast<size_t>(lm.candidate)], iq = node_of[static_cast<size_t>(lm.query)];
   const Eigen::Isometry3d T_q_true = lm.correction * g.T[static_cast<size_t>(iq)];
   const Eigen::Isometry3d& T_c = g.T[static_cast<size_t>(ic)];
-  LoopEdge le{lm.candidate_id, lm.query_id, T_c.linear().transpose() * (T_q_true.translation() - T_c.translation()),
-              T_c.linear().transpose() * T_q_true.linear()};
-  g.add_edge(ic, iq, le.t_ab, yaw_of(lm.correction.linear()), kLoopSigma_m, kLoopSigma_rad);
+  LoopEdge le{lm.candidate_id,
+              lm.query_id,
+              T_c.linear().transpose() * (T_q_true.translation() - T_c.translation()),
+              T_c.linear().transpose() * T_q_true.linear(),
+              lm.sigma_m,
+              lm.sigma_rad};
+  g.add_edge(ic, iq, le.t_ab, yaw_of(lm.correction.linear()), lm.sigma_m, lm.sigma_rad);
   // Start the keyframes flown since the query where the loop says they are.
   for (size_t a = 0; a < n_nodes; ++a)
     if (!g.fixed[a] && map_.keyframe(slot_of[a]).id >= query_id) g.move_node(static_cast<int>(a), lm.correction);

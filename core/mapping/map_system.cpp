@@ -244,11 +244,11 @@ std::string MapSystem::summary() const {
     << counters_.updates_skipped << " skipped; lost keyframes " << counters_.keyframes_lost << ", relocalisation timeouts "
     << counters_.reloc_timeouts;
   const LoopStats& l = closer_->stats();
-  o << "; loop: " << l.queries << " queries, " << l.candidates << " candidates, " << l.verified << " verified, rejected "
-    << l.rejected_inliers << " inliers / " << l.rejected_planar << " planar / " << l.rejected_drift << " drift / "
-    << l.rejected_consistency
-    << " consistency, " << l.closures << " closed (pose graph failed " << l.pose_graph_failures << "), "
-    << l.points_merged << " points merged";
+  o << "; loop: " << l.queries << " queries, " << l.candidates << " candidates, " << l.verified
+    << " verified, rejected " << l.rejected_inliers << " inliers / " << l.rejected_planar << " planar / "
+    << l.rejected_drift << " drift / " << l.rejected_consistency << " consistency, "
+    << l.skipped_insignificant << " within their uncertainty, " << l.closures << " closed (pose graph failed "
+    << l.pose_graph_failures << "), " << l.points_merged << " points merged";
   if (reloc_) {
     const RelocStats& r = reloc_->stats();
     o << "; relocalisation: " << r.queries << " queries, " << r.candidates << " candidates, " << r.verified

@@ -199,6 +199,58 @@ TEST(PlaceMatcher, TheRefitOnPixelsAndDepthsFindsTheCorrectionTheDepthsBlur) {
   EXPECT_LT(yb, ya);
 }
 
+// The refit's covariance is what weighs a loop edge and decides whether a
+// correction is worth closing, so it must describe the fit's real error. The
+// same twenty revisits without the mixed pixels: the normalised error of the
+// correction (4 DoF) should average 4 if the covariance is right.
+TEST(PlaceMatcher, TheRefitCovarianceDescribesTheCorrectionsError) {
+  SimRoom room(6000, 21);
+  const auto voc = room_vocabulary(room);
+  std::vector<double> nees;
+  double sigma_yaw = 0, sigma_m = 0;
+  for (int trial = 0; trial < 20; ++trial) {
+    std::mt19937_64 rng(300 + static_cast<uint64_t>(trial));
+    std::uniform_real_distribution<double> U(-1.0, 1.0);
+    DriftedMap dm(voc);
+    const double a = M_PI * U(rng);
+    const Eigen::Isometry3d T_cand =
+        SimRoom::camera(Eigen::Vector3d(1.5 * std::cos(a), 1.5 * std::sin(a), 1.5), a);
+    const int cand = dm.add(room, T_cand, T_cand, 0, 1, rng);
+    const Eigen::Isometry3d T_true = SimRoom::camera(
+        T_cand.translation() + Eigen::Vector3d(0.2 * U(rng), 0.2 * U(rng), 0.1 * U(rng)), a + 0.2 * U(rng));
+    Eigen::Isometry3d D = Eigen::Isometry3d::Identity();
+    D.linear() = core::rot_z(0.01 * U(rng));
+    D.translation() = Eigen::Vector3d(0.03 * U(rng), 0.03 * U(rng), 0.03 * U(rng));
+    const SimKeyframe q = room.observe(T_true, rng, 1);
+    core::PlaceMatcher matcher(dm.map, sim_camera());
+    core::PlaceFit fit;
+    if (matcher.match(q.features.data(), static_cast<int>(q.features.size()), D * T_true, cand, LoopOptions{},
+                      7, &fit) != core::PlaceMatcher::kOk)
+      continue;
+    // The true correction undoes the drift: T_true = D^-1 (D T_true).
+    const Eigen::Isometry3d C_true = D.inverse();
+    Eigen::Vector4d e;
+    e << core::yaw_of(fit.correction.linear() * C_true.linear().transpose()),
+        fit.correction.translation() - C_true.translation();
+    ASSERT_GT(fit.cov.trace(), 0.0) << "the refit gives a covariance";
+    nees.push_back(e.dot(fit.cov.ldlt().solve(e)));
+    sigma_yaw += std::sqrt(fit.cov(0, 0));
+    sigma_m += std::sqrt(fit.cov.block<3, 3>(1, 1).trace() / 3);
+  }
+  ASSERT_GE(nees.size(), 18u);
+  double mean = 0;
+  for (double v : nees) mean += v;
+  mean /= static_cast<double>(nees.size());
+  std::printf(
+      "refit covariance over %zu revisits: mean NEES %.2f (4 if right), median %.2f; sigma %.2g rad, %.2g "
+      "m\n",
+      nees.size(), mean, median_of(nees), sigma_yaw / static_cast<double>(nees.size()),
+      sigma_m / static_cast<double>(nees.size()));
+  // A covariance 2x off in sigma puts the mean at 1 or 16.
+  EXPECT_GT(mean, 1.5);
+  EXPECT_LT(mean, 10.0);
+}
+
 // The mapping thread's fusing links a revisited place long before a loop is
 // verified, but only by a point or two per keyframe (the drifted odometry
 // puts the old points a little off, so few fall within the fusing radius).
@@ -353,6 +405,56 @@ TEST(LoopCloser, AliasedWallsGiveNoFalseLoop) {
   EXPECT_GT(u.false_loops, 0) << "without the drift bound the alias should close: is the room aliased at all?";
 }
 
+// Two laps without drift: every revisit verifies, and every correction is
+// the fit's noise. Closed as stiff edges those would move the map by that
+// noise; loop_min_correction_chi2 refuses them and counts them instead. With
+// it at 0 the same flight closes loops, so the revisits do verify.
+struct DriftFreeRun {
+  int closures = 0;
+  double worst_m = 0;
+  core::LoopStats stats;
+};
+
+DriftFreeRun fly_without_drift(const LoopOptions& opt) {
+  SimRoom room(6000, 21);
+  DriftedMap dm(room_vocabulary(room));
+  LoopCloser closer(dm.map, sim_camera(), opt);
+  std::mt19937_64 rng(5);
+  const int per_lap = 36;
+  DriftFreeRun r;
+  for (int k = 0; k < per_lap + 12; ++k) {
+    const double a = 2 * M_PI * k / per_lap;
+    const Eigen::Isometry3d T =
+        SimRoom::camera(Eigen::Vector3d(1.5 * std::cos(a), 1.5 * std::sin(a), 1.5), a);
+    const int kf = dm.add(room, T, T, static_cast<int64_t>(k) * 500'000'000,
+                          1 + 10000u * static_cast<uint32_t>(k / 3), rng);
+    if (kf < 0) break;
+    if (closer.process(kf).closed) ++r.closures;
+  }
+  dm.map.for_each_keyframe([&](int kf) {
+    r.worst_m = std::max(r.worst_m, pos_err(dm.map.keyframe(kf).T_MC, dm.truth[static_cast<size_t>(kf)]));
+  });
+  r.stats = closer.stats();
+  return r;
+}
+
+TEST(LoopCloser, ACorrectionWithinItsOwnUncertaintyIsNotClosed) {
+  const DriftFreeRun gated = fly_without_drift(LoopOptions{});
+  LoopOptions every;
+  every.min_correction_chi2 = 0;
+  const DriftFreeRun closed = fly_without_drift(every);
+  std::printf(
+      "no drift: default %d closures, %llu verified, %llu skipped as within their uncertainty, worst "
+      "keyframe "
+      "%.4f m; every verified loop closed: %d closures, worst %.4f m\n",
+      gated.closures, static_cast<unsigned long long>(gated.stats.verified),
+      static_cast<unsigned long long>(gated.stats.skipped_insignificant), gated.worst_m, closed.closures,
+      closed.worst_m);
+  ASSERT_GE(closed.closures, 1) << "the revisits verify: otherwise this test tests nothing";
+  EXPECT_EQ(gated.closures, 0);
+  EXPECT_GT(gated.stats.skipped_insignificant, 0u);
+  EXPECT_LE(gated.worst_m, closed.worst_m + 1e-9) << "a map left alone is no worse than one moved by noise";
+}
 
 // Relocalisation after a reset: one lap is mapped; then the odometry restarts
 // somewhere else (its frame off by a large yaw and translation, as after a

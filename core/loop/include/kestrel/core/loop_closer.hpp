@@ -57,6 +57,12 @@ struct LoopOptions {
   // the drift bound lets through. RMS distance of the inliers' map points from
   // their best-fit plane (sqrt of the scatter's smallest eigenvalue).
   double min_out_of_plane_m = 0.10;
+  // A verified correction no larger than its own uncertainty is not closed:
+  // applied as a stiff edge it moves the map by the fit's noise, not by drift.
+  // The squared Mahalanobis length of (yaw, position at the query) under the
+  // refit's covariance plus the loop edge's floor (4 DoF); 0: close every
+  // verified loop. 9.488 is chi2(4) at 95 %.
+  double min_correction_chi2 = 9.488;
   int consistent_keyframes = 2;  // consecutive keyframes verifying the same correction
   double consistency_m = 0.1;    // their corrections agree within (at the keyframe's position)
   double consistency_rad = 0.05;
@@ -85,6 +91,7 @@ struct LoopStats {
   uint64_t rejected_drift = 0;    // a correction the odometry could not have drifted (an alias)
   uint64_t rejected_planar = 0;   // every inlier on one plane: the correction along it is appearance only
   uint64_t rejected_consistency = 0;
+  uint64_t skipped_insignificant = 0;  // verified, but the correction is within its own uncertainty
   uint64_t closures = 0;
   uint64_t pose_graph_failures = 0;
   uint64_t points_merged = 0;
@@ -96,6 +103,9 @@ struct PlaceFit {
   Eigen::Isometry3d correction = Eigen::Isometry3d::Identity();
   int matches = 0, inliers = 0;
   double out_of_plane_m = 0;  // RMS distance of the inliers' map points from their best-fit plane
+  // Covariance of (yaw [rad], t [m]) of the correction from the refit's pixels
+  // and depths; zero without the refit (refine_chi2 = 0).
+  Eigen::Matrix4d cov = Eigen::Matrix4d::Zero();
   std::vector<std::pair<int, int>> inlier_pairs;  // (feature, map point)
 };
 
@@ -119,6 +129,11 @@ class PlaceMatcher {
   Eigen::Isometry3d refine_4dof(const Eigen::Isometry3d& T, const Eigen::Isometry3d& T_MC,
                                 const KeyframeFeature* f, const Pairs& pairs, const std::vector<int>& idx,
                                 double chi2) const;
+  // Inverse of the Gauss-Newton information of the refit at T over the chosen
+  // pairs: (yaw, t)'s covariance if the pairs' noise is independent.
+  Eigen::Matrix4d refit_covariance(const Eigen::Isometry3d& T, const Eigen::Isometry3d& T_MC,
+                                   const KeyframeFeature* f, const Pairs& pairs,
+                                   const std::vector<int>& idx) const;
   // The pairs whose whitened pixel and depth error under T is below chi2.
   void chi2_inliers(const Eigen::Isometry3d& T, const Eigen::Isometry3d& T_MC, const KeyframeFeature* f,
                     const Pairs& pairs, double chi2, std::vector<int>& out) const;
@@ -141,6 +156,9 @@ struct LoopMatch {
   Eigen::Isometry3d correction = Eigen::Isometry3d::Identity();
   int matches = 0, inliers = 0;
   double score = 0.0;
+  Eigen::Matrix4d cov = Eigen::Matrix4d::Zero();  // PlaceFit::cov
+  // The loop edge's sigmas: the fit's, with the stiff floor under them.
+  double sigma_m = 0.0, sigma_rad = 0.0;
   std::vector<std::pair<int, int>> inlier_pairs;  // (query feature, map point)
 };
 
@@ -176,6 +194,7 @@ class LoopCloser {
     uint32_t id_a, id_b;
     Eigen::Vector3d t_ab;
     Eigen::Matrix3d R_ab;
+    double sigma_m, sigma_rad;
   };
   Map& map_;
   MapCamera cam_;
