@@ -377,14 +377,15 @@ bool LoopCloser::verify(int kf, int cand, double score, LoopMatch* out) {
   // most; a correction beyond that means another place that looks the same.
   const double path_m = std::max(0.0, K.path_m - C.path_m);
   const Eigen::Vector3d pos = K.T_MC.translation();
-  const double dp = (T * pos - pos).norm(), dyaw = std::abs(yaw_of(T.linear()));
+  const double yaw = yaw_of(T.linear());
+  const double dp = (T * pos - pos).norm(), dyaw = std::abs(yaw);
   if (dp > opt_.max_correction_m + opt_.max_correction_per_m * path_m ||
       dyaw > opt_.max_yaw_rad + opt_.max_yaw_per_m * path_m) {
     ++stats_.rejected_drift;
     return false;
   }
   // The correction's uncertainty where it acts, at the query: p' = Rz(yaw) p + t.
-  const double c = std::cos(yaw_of(T.linear())), s = std::sin(yaw_of(T.linear()));
+  const double c = std::cos(yaw), s = std::sin(yaw);
   Eigen::Matrix4d A = Eigen::Matrix4d::Identity();
   A.block<3, 1>(1, 0) = Eigen::Vector3d(-s * pos.x() - c * pos.y(), c * pos.x() - s * pos.y(), 0.0);
   Eigen::Matrix4d S = A * fit.cov * A.transpose();
@@ -392,7 +393,7 @@ bool LoopCloser::verify(int kf, int cand, double score, LoopMatch* out) {
   S.block<3, 3>(1, 1) += kLoopSigma_m * kLoopSigma_m * Eigen::Matrix3d::Identity();
   if (opt_.min_correction_chi2 > 0) {
     Eigen::Vector4d d;
-    d << yaw_of(T.linear()), T * pos - pos;
+    d << yaw, T * pos - pos;
     if (d.dot(S.ldlt().solve(d)) < opt_.min_correction_chi2) {
       ++stats_.skipped_insignificant;
       return false;
@@ -401,7 +402,6 @@ bool LoopCloser::verify(int kf, int cand, double score, LoopMatch* out) {
   const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eig(S.block<3, 3>(1, 1), Eigen::EigenvaluesOnly);
   out->sigma_m = std::sqrt(std::max(0.0, eig.eigenvalues()(2)));
   out->sigma_rad = std::sqrt(S(0, 0));
-  out->cov = fit.cov;
   out->query = kf;
   out->candidate = cand;
   out->query_id = K.id;
@@ -465,9 +465,9 @@ bool LoopCloser::close(const LoopMatch& lm, LoopClosure* out) {
               lm.query_id,
               T_c.linear().transpose() * (T_q_true.translation() - T_c.translation()),
               T_c.linear().transpose() * T_q_true.linear(),
-              lm.sigma_m,
-              lm.sigma_rad};
-  g.add_edge(ic, iq, le.t_ab, yaw_of(lm.correction.linear()), lm.sigma_m, lm.sigma_rad);
+              std::max(lm.sigma_m, kLoopSigma_m),
+              std::max(lm.sigma_rad, kLoopSigma_rad)};
+  g.add_edge(ic, iq, le.t_ab, yaw_of(lm.correction.linear()), le.sigma_m, le.sigma_rad);
   // Start the keyframes flown since the query where the loop says they are.
   for (size_t a = 0; a < n_nodes; ++a)
     if (!g.fixed[a] && map_.keyframe(slot_of[a]).id >= query_id) g.move_node(static_cast<int>(a), lm.correction);

@@ -139,12 +139,18 @@ struct PlaceFitErrors {
   int fits = 0;
 };
 
-PlaceFitErrors fit_revisits(const LoopOptions& opt) {
+// One revisit of a random place per trial (seeds seed0, seed0 + 1, ...): the
+// candidate keyframe mapped at its true pose, the query seen from near it with
+// a known 4-DoF drift D (T_odom = D T_true), matched by a PlaceMatcher; each
+// fit goes to on_fit(fit, D, T_true). With mixed_pixels one depth in five reads
+// 5-30 cm too far. Returns the number of fits.
+template <typename OnFit>
+int fit_revisits(const LoopOptions& opt, uint64_t seed0, bool mixed_pixels, OnFit on_fit) {
   SimRoom room(6000, 21);
   const auto voc = room_vocabulary(room);
-  PlaceFitErrors e;
+  int fits = 0;
   for (int trial = 0; trial < 20; ++trial) {
-    std::mt19937_64 rng(100 + static_cast<uint64_t>(trial));
+    std::mt19937_64 rng(seed0 + static_cast<uint64_t>(trial));
     std::uniform_real_distribution<double> U(-1.0, 1.0);
     DriftedMap dm(voc);
     const double a = M_PI * U(rng);
@@ -157,22 +163,32 @@ PlaceFitErrors fit_revisits(const LoopOptions& opt) {
     Eigen::Isometry3d D = Eigen::Isometry3d::Identity();
     D.linear() = core::rot_z(0.01 * U(rng));
     D.translation() = Eigen::Vector3d(0.03 * U(rng), 0.03 * U(rng), 0.03 * U(rng));
-    const Eigen::Isometry3d T_odom = D * T_true;
     SimKeyframe q = room.observe(T_true, rng, 1);
     // Mixed pixels: at depth edges a structured-light camera reads part of
-    // the background, so one feature in five lies farther than it is.
-    for (core::KeyframeFeature& f : q.features)
-      if (rng() % 5 == 0) f.depth_m += static_cast<float>(0.05 + 0.25 * (0.5 + 0.5 * U(rng)));
+    // the background.
+    if (mixed_pixels)
+      for (core::KeyframeFeature& f : q.features)
+        if (rng() % 5 == 0) f.depth_m += static_cast<float>(0.05 + 0.25 * (0.5 + 0.5 * U(rng)));
     core::PlaceMatcher matcher(dm.map, sim_camera());
     core::PlaceFit fit;
-    if (matcher.match(q.features.data(), static_cast<int>(q.features.size()), T_odom, cand, opt, 7, &fit) !=
-        core::PlaceMatcher::kOk)
+    if (matcher.match(q.features.data(), static_cast<int>(q.features.size()), D * T_true, cand, opt, 7,
+                      &fit) != core::PlaceMatcher::kOk)
       continue;
-    ++e.fits;
-    const Eigen::Isometry3d T_fit = fit.correction * T_odom;
-    e.pos_m.push_back(pos_err(T_fit, T_true));
-    e.yaw_rad.push_back(std::abs(core::yaw_of(T_fit.linear() * T_true.linear().transpose())));
+    ++fits;
+    on_fit(fit, D, T_true);
   }
+  return fits;
+}
+
+PlaceFitErrors fit_revisits(const LoopOptions& opt) {
+  PlaceFitErrors e;
+  e.fits = fit_revisits(
+      opt, 100, true,
+      [&](const core::PlaceFit& fit, const Eigen::Isometry3d& D, const Eigen::Isometry3d& T_true) {
+        const Eigen::Isometry3d T_fit = fit.correction * D * T_true;
+        e.pos_m.push_back(pos_err(T_fit, T_true));
+        e.yaw_rad.push_back(std::abs(core::yaw_of(T_fit.linear() * T_true.linear().transpose())));
+      });
   return e;
 }
 
@@ -204,39 +220,20 @@ TEST(PlaceMatcher, TheRefitOnPixelsAndDepthsFindsTheCorrectionTheDepthsBlur) {
 // same twenty revisits without the mixed pixels: the normalised error of the
 // correction (4 DoF) should average 4 if the covariance is right.
 TEST(PlaceMatcher, TheRefitCovarianceDescribesTheCorrectionsError) {
-  SimRoom room(6000, 21);
-  const auto voc = room_vocabulary(room);
   std::vector<double> nees;
   double sigma_yaw = 0, sigma_m = 0;
-  for (int trial = 0; trial < 20; ++trial) {
-    std::mt19937_64 rng(300 + static_cast<uint64_t>(trial));
-    std::uniform_real_distribution<double> U(-1.0, 1.0);
-    DriftedMap dm(voc);
-    const double a = M_PI * U(rng);
-    const Eigen::Isometry3d T_cand =
-        SimRoom::camera(Eigen::Vector3d(1.5 * std::cos(a), 1.5 * std::sin(a), 1.5), a);
-    const int cand = dm.add(room, T_cand, T_cand, 0, 1, rng);
-    const Eigen::Isometry3d T_true = SimRoom::camera(
-        T_cand.translation() + Eigen::Vector3d(0.2 * U(rng), 0.2 * U(rng), 0.1 * U(rng)), a + 0.2 * U(rng));
-    Eigen::Isometry3d D = Eigen::Isometry3d::Identity();
-    D.linear() = core::rot_z(0.01 * U(rng));
-    D.translation() = Eigen::Vector3d(0.03 * U(rng), 0.03 * U(rng), 0.03 * U(rng));
-    const SimKeyframe q = room.observe(T_true, rng, 1);
-    core::PlaceMatcher matcher(dm.map, sim_camera());
-    core::PlaceFit fit;
-    if (matcher.match(q.features.data(), static_cast<int>(q.features.size()), D * T_true, cand, LoopOptions{},
-                      7, &fit) != core::PlaceMatcher::kOk)
-      continue;
-    // The true correction undoes the drift: T_true = D^-1 (D T_true).
-    const Eigen::Isometry3d C_true = D.inverse();
-    Eigen::Vector4d e;
-    e << core::yaw_of(fit.correction.linear() * C_true.linear().transpose()),
-        fit.correction.translation() - C_true.translation();
-    ASSERT_GT(fit.cov.trace(), 0.0) << "the refit gives a covariance";
-    nees.push_back(e.dot(fit.cov.ldlt().solve(e)));
-    sigma_yaw += std::sqrt(fit.cov(0, 0));
-    sigma_m += std::sqrt(fit.cov.block<3, 3>(1, 1).trace() / 3);
-  }
+  fit_revisits(LoopOptions{}, 300, false,
+               [&](const core::PlaceFit& fit, const Eigen::Isometry3d& D, const Eigen::Isometry3d&) {
+                 // The true correction undoes the drift: T_true = D^-1 (D T_true).
+                 const Eigen::Isometry3d C_true = D.inverse();
+                 Eigen::Vector4d e;
+                 e << core::yaw_of(fit.correction.linear() * C_true.linear().transpose()),
+                     fit.correction.translation() - C_true.translation();
+                 ASSERT_GT(fit.cov.trace(), 0.0) << "the refit gives a covariance";
+                 nees.push_back(e.dot(fit.cov.ldlt().solve(e)));
+                 sigma_yaw += std::sqrt(fit.cov(0, 0));
+                 sigma_m += std::sqrt(fit.cov.block<3, 3>(1, 1).trace() / 3);
+               });
   ASSERT_GE(nees.size(), 18u);
   double mean = 0;
   for (double v : nees) mean += v;

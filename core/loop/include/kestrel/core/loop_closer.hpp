@@ -156,7 +156,6 @@ struct LoopMatch {
   Eigen::Isometry3d correction = Eigen::Isometry3d::Identity();
   int matches = 0, inliers = 0;
   double score = 0.0;
-  Eigen::Matrix4d cov = Eigen::Matrix4d::Zero();  // PlaceFit::cov
   // The loop edge's sigmas: the fit's, with the stiff floor under them.
   double sigma_m = 0.0, sigma_rad = 0.0;
   std::vector<std::pair<int, int>> inlier_pairs;  // (query feature, map point)
