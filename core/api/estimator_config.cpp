@@ -304,6 +304,9 @@ void visit_ekf(EkfEstimatorOptions& o, OptionVisitor& v) {
           "new tracks take free slots in the emptiest cells of this image grid first (0: tracker's order)");
   v.value("spread_grid_rows", o.spread_grid_rows, "rows of that grid (0 with cols 0)");
   v.value("gate_chi2", o.gate_chi2, "innovation gate (chi2, 4 dof; 13.28 = 99 %)");
+  v.value("depthless_observations", o.depthless_observations,
+          "a tracked pixel without depth updates its landmark with 2 rows (and brings in a map point)");
+  v.value("mono_gate_chi2", o.mono_gate_chi2, "innovation gate for those (chi2, 2 dof; 9.21 = 99 %)");
   v.value("init_position_sigma_m", o.init_position_sigma_m, "start-up covariance");
   v.value("init_attitude_sigma_rad", o.init_attitude_sigma_rad, "start-up covariance");
   v.value("init_velocity_sigma_mps", o.init_velocity_sigma_mps, "start-up covariance");

@@ -41,6 +41,7 @@ std::string EkfEstimatorOptions::validate() const {
       (spread_grid_cols > 0) != (spread_grid_rows > 0))
     e << "spread_grid_cols/rows: both 0 (off) or both in [1, 32]\n";
   if (!(gate_chi2 > 0)) e << "gate_chi2: must be > 0\n";
+  if (!(mono_gate_chi2 > 0)) e << "mono_gate_chi2: must be > 0\n";
   if (!(init_position_sigma_m > 0 && init_attitude_sigma_rad > 0 && init_velocity_sigma_mps > 0 &&
         init_gyro_bias_sigma_rps > 0 && init_acc_bias_sigma_mps2 > 0))
     e << "init_*_sigma: must be > 0\n";
@@ -62,6 +63,7 @@ EkfSlamOptions ekf_slam_options_for(const Rig& rig, const EkfEstimatorOptions& o
   o.max_observations = std::max(1, opt.tracker.orb.n_features);
   o.pixel_sigma_px = opt.pixel_sigma_px;
   o.gate_chi2 = opt.gate_chi2;
+  o.mono_gate_chi2 = opt.mono_gate_chi2;
   o.min_depth_m = positive_or(rig.depth.min_range_m, 0.1);
   o.max_init_depth_m = std::max(positive_or(rig.depth.max_range_m, 8.0), o.min_depth_m + 0.1);
   o.max_missed_frames = opt.max_missed_frames;
@@ -356,16 +358,18 @@ bool EkfEstimator::add_frame(const RgbdFrame& f) {
   int n = 0;
   for (int i = 0; i < n_in; ++i) {
     const WindowObservation& o = in[i];
-    if (!(o.depth_m > 0.0)) {
+    const bool has_depth = o.depth_m > 0.0;
+    if (!has_depth) {
       ++ekf_counters_.observations_no_depth;
-      continue;
+      if (!opt_.depthless_observations) continue;
     }
     if (n >= static_cast<int>(obs_.size())) {
       ++ekf_counters_.observations_dropped;
       continue;
     }
     StereoObservation& so = obs_[static_cast<size_t>(n++)];
-    so = virtual_stereo(o.landmark_id, o.uv.x(), o.uv.y(), o.depth_m, fx_, baseline_m_);
+    so = has_depth ? virtual_stereo(o.landmark_id, o.uv.x(), o.uv.y(), o.depth_m, fx_, baseline_m_)
+                   : pixel_only(o.landmark_id, o.uv.x(), o.uv.y());
     if (opt_.map_point_landmarks && o.map_sigma_m > 0.0f) {
       so.prior_p_W = o.map_p_W;
       so.prior_sigma_m = o.map_sigma_m;
@@ -479,18 +483,20 @@ std::string EkfEstimator::backend_summary() const {
       buf, sizeof buf,
       "ekf: %d of %d landmarks active; initialised %llu (%llu at map points), frozen %llu, dropped %llu, "
       "capacity full %llu; "
-      "observations %llu in, %llu used, %llu gated, %llu without depth; tracker resets %llu, filter "
+      "observations %llu in (%llu without depth), %llu used (%llu without depth), %llu gated; tracker resets "
+      "%llu, filter "
       "resets %llu; frames skipped %llu (closer than %.0f ms); map poses %llu used, %llu gated, %llu "
       "re-anchoring a restart; update p50 %.2f ms, p99 "
       "%.2f ms, max %.2f ms; IMU noise x%.1f; NIS / dof %.2f, pose NIS %.1f (consistent: 1 and 6)",
       ekf_.num_active(), ekf_.options().landmark_capacity, (unsigned long long)c.landmarks_initialised,
       (unsigned long long)c.landmarks_from_prior, (unsigned long long)c.landmarks_frozen,
       (unsigned long long)c.landmarks_dropped, (unsigned long long)c.capacity_full,
-      (unsigned long long)e.observations_in, (unsigned long long)c.observations_used,
-      (unsigned long long)c.observations_gated, (unsigned long long)e.observations_no_depth,
-      (unsigned long long)e.tracker_resets, (unsigned long long)e.filter_resets,
-      (unsigned long long)e.frames_skipped, opt_.frame_interval_ms(), (unsigned long long)e.map_poses_used,
-      (unsigned long long)e.map_poses_gated, (unsigned long long)e.map_reanchors, ms(50), ms(99),
+      (unsigned long long)e.observations_in, (unsigned long long)e.observations_no_depth,
+      (unsigned long long)c.observations_used, (unsigned long long)c.observations_used_without_depth,
+      (unsigned long long)c.observations_gated, (unsigned long long)e.tracker_resets,
+      (unsigned long long)e.filter_resets, (unsigned long long)e.frames_skipped, opt_.frame_interval_ms(),
+      (unsigned long long)e.map_poses_used, (unsigned long long)e.map_poses_gated,
+      (unsigned long long)e.map_reanchors, ms(50), ms(99),
       update_latency_.count() > 0 ? 1e-6 * static_cast<double>(update_latency_.max()) : 0.0,
       ekf_.imu_noise_scale(), e.nis_dof_sum > 0 ? e.nis_sum / e.nis_dof_sum : 0.0,
       e.pose_nis_n > 0 ? e.pose_nis_sum / static_cast<double>(e.pose_nis_n) : 0.0);

@@ -50,6 +50,7 @@ void EkfSlamOptions::validate() const {
     fail("update_chunk_landmarks", "must be in [1, 32]");
   if (!(pixel_sigma_px > 0.0)) fail("pixel_sigma_px", "must be > 0");
   if (!(gate_chi2 > 0.0)) fail("gate_chi2", "must be > 0");
+  if (!(mono_gate_chi2 > 0.0)) fail("mono_gate_chi2", "must be > 0");
   if (!(min_depth_m > 0.0)) fail("min_depth_m", "must be > 0");
   if (!(max_init_depth_m > min_depth_m)) fail("max_init_depth_m", "must be > min_depth_m");
   if (max_missed_frames < 0) fail("max_missed_frames", "must be >= 0");
@@ -75,6 +76,7 @@ std::string EkfSlamOptions::describe() const {
     << "update_chunk_landmarks: " << update_chunk_landmarks << "\n"
     << "pixel_sigma_px: " << pixel_sigma_px << "\n"
     << "gate_chi2: " << gate_chi2 << "\n"
+    << "mono_gate_chi2: " << mono_gate_chi2 << "\n"
     << "min_depth_m: " << min_depth_m << "\n"
     << "max_init_depth_m: " << max_init_depth_m << "\n"
     << "max_missed_frames: " << max_missed_frames << "\n"
@@ -100,6 +102,15 @@ StereoObservation virtual_stereo(uint32_t id, double u, double v, double depth_m
   o.vL = v;
   o.uR = u - fx * baseline_m / depth_m;
   o.vR = v;
+  return o;
+}
+
+StereoObservation pixel_only(uint32_t id, double u, double v) {
+  StereoObservation o;
+  o.id = id;
+  o.uL = o.uR = u;
+  o.vL = o.vR = v;
+  o.has_depth = false;
   return o;
 }
 
@@ -142,6 +153,8 @@ EkfSlam::EkfSlam(const EkfSlamOptions& options, const ekf::StereoCamera& camera)
   dx_vec_.setZero(nmax_);
   Hp_.resize(static_cast<size_t>(chunk_));
   Hm_.resize(static_cast<size_t>(chunk_));
+  rows_.assign(static_cast<size_t>(chunk_), 3);
+  row0_.assign(static_cast<size_t>(chunk_), 0);
   obs_slot_.assign(static_cast<size_t>(opt_.max_observations), -1);
   cell_count_.assign(static_cast<size_t>(std::max(1, opt_.spread_grid_cols * opt_.spread_grid_rows)), 0);
   upd_slots_.assign(cap, 0);
@@ -289,6 +302,33 @@ void EkfSlam::remove_slot(int slot, bool to_map) {
 }
 
 bool EkfSlam::initialise_landmark(const StereoObservation& o) {
+  if (!o.has_depth) {
+    // One pixel does not place a point; a known one it may bring in, if the
+    // map's position is in front of the camera where the pixel says it is.
+    if (!(o.prior_sigma_m > 0.0)) return false;
+    ekf::StereoMeas zh;
+    if (!ekf::stereo_project(cam_, T_WB_, o.prior_p_W, opt_.min_depth_m, zh)) return false;
+    if (num_active_ >= cap_) {
+      ++counters_.capacity_full;
+      return false;
+    }
+    const int n = dim();
+    lm_p_.col(num_active_) = o.prior_p_W;
+    P_.block(n, 0, 3, n).setZero();
+    P_.block(0, n, n, 3).setZero();
+    P_.block<3, 3>(n, n) = Mat3::Identity() * (o.prior_sigma_m * o.prior_sigma_m);
+    ++counters_.landmarks_from_prior;
+    const auto s = static_cast<size_t>(num_active_);
+    lm_id_[s] = o.id;
+    lm_missed_[s] = 0;
+    lm_rejects_[s] = 0;
+    lm_obs_count_[s] = 1;
+    lm_this_obs_[s] = -1;
+    lm_gate_[s] = 0;
+    ++num_active_;
+    ++counters_.landmarks_initialised;
+    return true;
+  }
   const ekf::StereoMeas z(o.uL, 0.5 * (o.vL + o.vR), o.uR);
   const double s2 = opt_.pixel_sigma_px * opt_.pixel_sigma_px;
   // vL - vR is pure noise for a rectified pair: a large one is a bad match.
@@ -365,6 +405,15 @@ bool EkfSlam::gate(int slot, const StereoObservation& o) const {
   Eigen::Matrix<double, 3, 9> H;
   H << Hp, Hm;
   Mat3 S = H * Ps * H.transpose();
+  if (!o.has_depth) {
+    // The pixel's two rows, each with the pixel noise (vL alone, not the
+    // mean of a pair).
+    const Eigen::Matrix2d S2 = S.topLeftCorner<2, 2>() + s2_ * Eigen::Matrix2d::Identity();
+    const Eigen::Vector2d nu2(o.uL - zh(0), o.vL - zh(1));
+    const Eigen::LLT<Eigen::Matrix2d> llt2(S2);
+    if (llt2.info() != Eigen::Success) return false;
+    return nu2.dot(llt2.solve(nu2)) <= opt_.mono_gate_chi2;
+  }
   S += R_;
   const Vec3 nu(o.uL - zh(0), 0.5 * (o.vL + o.vR) - zh(1), o.uR - zh(2));
   const Eigen::LLT<Mat3> llt(S);
@@ -434,10 +483,33 @@ bool EkfSlam::update_pose(const Pose& T_meas, const ekf::Mat6& R, double gate_ch
   return true;
 }
 
+namespace {
+
+// The chunk's products for one observation of R rows (3 with depth, 2
+// without), at fixed size so that nothing is sized at run time.
+template <int R>
+void chunk_gain_columns(const Eigen::MatrixXd& P, int n, int a, const Eigen::Matrix<double, 3, 6>& Hp,
+                        const Mat3& Hm, Eigen::MatrixXd& U, int c) {
+  auto Ui = U.middleCols<R>(c).topRows(n);
+  Ui.noalias() = P.leftCols<6>().topRows(n) * Hp.topRows<R>().transpose();
+  Ui.noalias() += P.middleCols<3>(a).topRows(n) * Hm.topRows<R>().transpose();
+}
+
+template <int R>
+void chunk_innovation_rows(const Eigen::MatrixXd& U, int m, int a, const Eigen::Matrix<double, 3, 6>& Hp,
+                           const Mat3& Hm, Eigen::MatrixXd& S, int r) {
+  auto Si = S.middleRows<R>(r).leftCols(m);
+  Si.noalias() = Hp.topRows<R>() * U.topRows<6>().leftCols(m);
+  Si.noalias() += Hm.topRows<R>() * U.middleRows<3>(a).leftCols(m);
+}
+
+}  // namespace
+
 void EkfSlam::update_chunk(const int* slots, int count, EkfUpdateStats& stats) {
   const int n = dim();
-  // Linearise every observation of the chunk at the current mean.
-  int k = 0;
+  // Linearise every observation of the chunk at the current mean: 3 rows
+  // [uL, v, uR] with depth, the first 2 without.
+  int k = 0, m = 0, k_mono = 0;
   for (int i = 0; i < count; ++i) {
     const int slot = slots[i];
     const auto ki = static_cast<size_t>(k);
@@ -445,29 +517,45 @@ void EkfSlam::update_chunk(const int* slots, int count, EkfUpdateStats& stats) {
     if (!ekf::stereo_project(cam_, T_WB_, lm_p_.col(slot), opt_.min_depth_m, zh, &Hp_[ki], &Hm_[ki])) continue;
     const int oi = lm_this_obs_[static_cast<size_t>(slot)];
     const StereoObservation& ob = obs_cache_[static_cast<size_t>(oi)];
-    nu_.segment<3>(3 * k) = Vec3(ob.uL - zh(0), 0.5 * (ob.vL + ob.vR) - zh(1), ob.uR - zh(2));
+    row0_[ki] = m;
+    if (ob.has_depth) {
+      nu_.segment<3>(m) = Vec3(ob.uL - zh(0), 0.5 * (ob.vL + ob.vR) - zh(1), ob.uR - zh(2));
+      rows_[ki] = 3;
+    } else {
+      nu_.segment<2>(m) = Eigen::Vector2d(ob.uL - zh(0), ob.vL - zh(1));
+      rows_[ki] = 2;
+      ++k_mono;
+    }
+    m += rows_[ki];
     upd_slots_[ki] = slot;  // compacted in place: slots[] is read ahead of k
     ++k;
   }
   if (k == 0) return;
-  const int m = 3 * k;
   // U = P H^T, using the sparsity of H (pose columns + one landmark).
   for (int i = 0; i < k; ++i) {
     const auto ii = static_cast<size_t>(i);
     const int a = dx_ + 3 * upd_slots_[ii];
-    auto Ui = U_.middleCols<3>(3 * i).topRows(n);
-    Ui.noalias() = P_.leftCols<6>().topRows(n) * Hp_[ii].transpose();
-    Ui.noalias() += P_.middleCols<3>(a).topRows(n) * Hm_[ii].transpose();
+    if (rows_[ii] == 3) {
+      chunk_gain_columns<3>(P_, n, a, Hp_[ii], Hm_[ii], U_, row0_[ii]);
+    } else {
+      chunk_gain_columns<2>(P_, n, a, Hp_[ii], Hm_[ii], U_, row0_[ii]);
+    }
   }
   // S = H P H^T + R.
   for (int i = 0; i < k; ++i) {
     const auto ii = static_cast<size_t>(i);
     const int a = dx_ + 3 * upd_slots_[ii];
-    auto Si = S_.middleRows<3>(3 * i).leftCols(m);
-    Si.noalias() = Hp_[ii] * U_.topRows<6>().leftCols(m);
-    Si.noalias() += Hm_[ii] * U_.middleRows<3>(a).leftCols(m);
+    const int r = row0_[ii];
+    if (rows_[ii] == 3) {
+      chunk_innovation_rows<3>(U_, m, a, Hp_[ii], Hm_[ii], S_, r);
+      S_.block<3, 3>(r, r) += R_;
+    } else {
+      // A pixel alone: u and v each with the pixel noise (vL, not a pair's mean).
+      chunk_innovation_rows<2>(U_, m, a, Hp_[ii], Hm_[ii], S_, r);
+      S_(r, r) += s2_;
+      S_(r + 1, r + 1) += s2_;
+    }
   }
-  for (int i = 0; i < k; ++i) S_.block<3, 3>(3 * i, 3 * i) += R_;
   // S = L L^T in place; K = U S^-1 is never formed: W = U L^-T gives both the
   // correction W (L^-1 nu) and the covariance downdate W W^T.
   Eigen::Ref<Eigen::MatrixXd> S_ref(S_.topLeftCorner(m, m));
@@ -489,6 +577,7 @@ void EkfSlam::update_chunk(const int* slots, int count, EkfUpdateStats& stats) {
   symmetric_downdate(n, m);
   apply_correction(n);
   stats.used += k;
+  stats.used_without_depth += k_mono;
   ++stats.chunks;
 }
 
@@ -567,6 +656,7 @@ EkfUpdateStats EkfSlam::update(const StereoObservation* obs, int count) {
     if (ldlt.info() == Eigen::Success && ldlt.isPositive()) st.pose_nis = xi.dot(ldlt.solve(xi));
   }
   counters_.observations_used += static_cast<uint64_t>(st.used);
+  counters_.observations_used_without_depth += static_cast<uint64_t>(st.used_without_depth);
 
   initialise_new_tracks(obs, count, st);
   obs_cache_ = nullptr;

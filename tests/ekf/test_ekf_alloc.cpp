@@ -1,5 +1,6 @@
 // Fixed memory: after warm-up, prediction, IMU propagation and the update
-// (association, gating, chunked Cholesky updates, freezing, initialisation)
+// (association, gating, chunked Cholesky updates with and without depth,
+// freezing, initialisation)
 // make no heap allocation at all.
 //
 // rt's allocation hook counts operator new and, outside sanitizer builds,
@@ -52,10 +53,15 @@ void run_and_count(core::EkfMotionModel motion, int capacity) {
       if (motion == core::EkfMotionModel::kVelocity) acc = s.q_WB.conjugate() * s.v_WB;  // the body velocity
       inputs.push_back({gyro, acc});
     }
-    test::observe(world, test::pose_of(traj->state((f + 1) * 10 * dt)), 0.5, rng, obs[static_cast<size_t>(f)], 200);
+    auto& of = obs[static_cast<size_t>(f)];
+    test::observe(world, test::pose_of(traj->state((f + 1) * 10 * dt)), 0.5, rng, of, 200);
+    // Every fourth observation of every other frame without depth: the
+    // chunks then mix 3-row and 2-row observations.
+    if (f % 2 == 1)
+      for (size_t i = 1; i < of.size(); i += 4) of[i] = core::pixel_only(of[i].id, of[i].uL, of[i].vL);
   }
   unsigned long new_count = 0, malloc_count = 0;
-  int max_active = 0, frozen_total = 0, init_total = 0, pose_updates = 0;
+  int max_active = 0, frozen_total = 0, init_total = 0, pose_updates = 0, without_depth_total = 0;
   for (int f = 0; f < frames; ++f) {
     const bool measure = f >= 20;  // warm-up: first frames fill the active set
     rt::AllocCountScope scope;
@@ -76,6 +82,7 @@ void run_and_count(core::EkfMotionModel motion, int capacity) {
     }
     frozen_total += ekf.frozen_count();
     init_total += st.initialised;
+    without_depth_total += st.used_without_depth;
     ekf.clear_frozen();
     if (measure) {
       new_count += scope.count();
@@ -90,6 +97,7 @@ void run_and_count(core::EkfMotionModel motion, int capacity) {
   EXPECT_GT(frozen_total, 50);
   EXPECT_GT(init_total, 50);
   EXPECT_GT(pose_updates, 30);
+  EXPECT_GT(without_depth_total, 200);
 }
 
 TEST(EkfAlloc, ImuModeStepsAllocateNothing) { run_and_count(core::EkfMotionModel::kImu, 96); }

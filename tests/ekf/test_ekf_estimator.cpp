@@ -291,4 +291,17 @@ TEST(EkfEstimator, NoHeapAllocationPerFrameInSteadyState) {
   ASSERT_GT(r.frames, 50u);
   ASSERT_GT(ekf.filter().counters().observations_used, 1000u) << "the run must exercise the update";
   EXPECT_EQ(r.steady_allocs, 0u) << "allocations in add_imu/add_frame after warm-up";
+  EXPECT_EQ(ekf.filter().counters().observations_used_without_depth, 0u) << "off by default";
+  // With the pixels without depth in the update (2-row observations mixed
+  // into the chunks) the frame stays allocation-free, and they are used.
+  core::EkfEstimatorOptions with_pixels;
+  with_pixels.depthless_observations = true;
+  core::EkfEstimator ekf2(log->rig(), with_pixels);
+  const RunResult r2 = run(path, ekf2);
+  std::printf("[ figure ] figure8 4 s: observations without depth %llu, used %llu\n",
+              (unsigned long long)ekf2.ekf_counters().observations_no_depth,
+              (unsigned long long)ekf2.filter().counters().observations_used_without_depth);
+  ASSERT_GT(ekf2.ekf_counters().observations_no_depth, 0u) << "the flight must have pixels without depth";
+  EXPECT_GT(ekf2.filter().counters().observations_used_without_depth, 0u);
+  EXPECT_EQ(r2.steady_allocs, 0u) << "allocations with pixels without depth";
 }

@@ -101,7 +101,9 @@ TEST(EkfSlam, AdjointCovariancePropagationMatchesNumericLinearisation) {
 // The filter's compressed 3-row update must equal paper 003's dense 4-row
 // EKF update (one chunk, one linearisation), including the lazily propagated
 // pose x landmark cross covariance.
-TEST(EkfSlam, JointUpdateEqualsDenseFourRowEkf) {
+// `without_depth[s]`: landmark s is seen as a pixel alone (its 2 rows uL, vL)
+// in the update that is checked.
+void check_against_dense_ekf(const std::vector<bool>& without_depth) {
   test::EkfSimWorld w = test::make_ekf_world(1, 1);
   EkfSlamOptions opt;
   opt.pixel_sigma_px = 0.7;
@@ -142,10 +144,14 @@ TEST(EkfSlam, JointUpdateEqualsDenseFourRowEkf) {
     core::ekf::StereoMeas z;
     ASSERT_TRUE(core::ekf::stereo_project(w.cam, T_true, m_prior[static_cast<size_t>(s)] + Vec3(0.01, -0.02, 0.03), 0.1, z));
     obs.push_back({ekf.active_id(s), z(0) + 0.3, z(1) - 0.4, z(2) - 0.2, z(1) + 0.5});
+    if (without_depth[static_cast<size_t>(s)])
+      obs.back() = core::pixel_only(ekf.active_id(s), z(0) + 0.3, z(1) - 0.4);
   }
-  // Dense reference with 4 rows per landmark and an explicit solve.
+  // Dense reference with 4 rows per landmark (2 for a pixel alone) and an
+  // explicit solve.
   Eigen::MatrixXd H = Eigen::MatrixXd::Zero(12, n);
   Eigen::VectorXd nu(12);
+  int row = 0;
   for (int s = 0; s < 3; ++s) {
     core::ekf::StereoMeas zh;
     Eigen::Matrix<double, 3, 6> Hp;
@@ -154,13 +160,16 @@ TEST(EkfSlam, JointUpdateEqualsDenseFourRowEkf) {
     const int rows[4] = {0, 1, 2, 1};  // uL, vL, uR, vR from the compressed model's rows
     const double zobs[4] = {obs[static_cast<size_t>(s)].uL, obs[static_cast<size_t>(s)].vL,
                             obs[static_cast<size_t>(s)].uR, obs[static_cast<size_t>(s)].vR};
-    for (int r = 0; r < 4; ++r) {
-      H.block<1, 6>(4 * s + r, 0) = Hp.row(rows[r]);
-      H.block<1, 3>(4 * s + r, 6 + 3 * s) = Hm.row(rows[r]);
-      nu(4 * s + r) = zobs[r] - zh(rows[r]);
+    const int nrows = without_depth[static_cast<size_t>(s)] ? 2 : 4;
+    for (int r = 0; r < nrows; ++r, ++row) {
+      H.block<1, 6>(row, 0) = Hp.row(rows[r]);
+      H.block<1, 3>(row, 6 + 3 * s) = Hm.row(rows[r]);
+      nu(row) = zobs[r] - zh(rows[r]);
     }
   }
-  const Eigen::MatrixXd R = Eigen::MatrixXd::Identity(12, 12) * opt.pixel_sigma_px * opt.pixel_sigma_px;
+  H.conservativeResize(row, n);
+  nu.conservativeResize(row);
+  const Eigen::MatrixXd R = Eigen::MatrixXd::Identity(row, row) * opt.pixel_sigma_px * opt.pixel_sigma_px;
   const Eigen::MatrixXd S = H * P * H.transpose() + R;
   const Eigen::MatrixXd K = S.ldlt().solve(H * P).transpose();
   const Eigen::VectorXd dx = K * nu;
@@ -168,7 +177,11 @@ TEST(EkfSlam, JointUpdateEqualsDenseFourRowEkf) {
 
   const core::EkfUpdateStats st = ekf.update(obs.data(), 3);
   EXPECT_EQ(st.used, 3);
+  EXPECT_EQ(st.used_without_depth,
+            static_cast<int>(std::count(without_depth.begin(), without_depth.end(), true)));
   EXPECT_EQ(st.chunks, 1);
+  EXPECT_EQ(st.nis_dof,
+            row - static_cast<int>(std::count(without_depth.begin(), without_depth.end(), false)));
   const Pose T_expect = T_prior * core::ekf::se3_exp(dx.head<6>());
   EXPECT_LT((ekf.pose().p - T_expect.p).norm(), 1e-9);
   EXPECT_LT((ekf.pose().R - T_expect.R).norm(), 1e-9);
@@ -181,6 +194,15 @@ TEST(EkfSlam, JointUpdateEqualsDenseFourRowEkf) {
   EXPECT_GT(min_eig,
             -1e-12 * P.norm());
   EXPECT_LT(ekf.pose_covariance().trace(), P.topLeftCorner(6, 6).trace());
+}
+
+TEST(EkfSlam, JointUpdateEqualsDenseFourRowEkf) { check_against_dense_ekf({false, false, false}); }
+
+// A pixel without depth (beyond the sensor's range) is the same update with
+// its two rows: here the middle landmark, and then all three.
+TEST(EkfSlam, PixelsWithoutDepthUpdateAsTheDenseTwoRowEkf) {
+  check_against_dense_ekf({false, true, false});
+  check_against_dense_ekf({true, true, true});
 }
 
 // update_pose (the keyframe's pose from the tracker's local map) against the
@@ -390,6 +412,53 @@ TEST(EkfSlam, AKnownPointStartsAtItsPriorNotAtTheObservation) {
   EXPECT_LT(pose_share, 0.75);
 }
 
+// One pixel does not place a point: without depth a new track starts a
+// landmark only at a known (map) point in front of the camera. A landmark
+// already held is kept by its pixels, and a pixel far from its prediction is
+// gated on the 2-row test.
+TEST(EkfSlam, APixelWithoutDepthStartsOnlyAKnownPointAndIsGated) {
+  const test::EkfSimWorld w = test::make_ekf_world(1, 1);
+  const std::vector<Vec3> pts_C{Vec3(0.3, -0.2, 3.0), Vec3(-0.4, 0.1, 2.5), Vec3(0.1, 0.4, 4.0)};
+  const Pose T_WB(Eigen::Matrix3d::Identity(), Vec3(0, 0, 1.5));
+  std::vector<StereoObservation> obs;
+  exact_observations(w, T_WB, pts_C, obs);
+  auto pixel = [](const StereoObservation& o) { return core::pixel_only(o.id, o.uL, o.vL); };
+  EkfSlamOptions opt;
+  opt.max_missed_frames = 0;
+  EkfSlam ekf(opt, w.cam);
+  Mat6 P0 = Mat6::Zero();
+  P0.diagonal() << 1e-4, 1e-4, 1e-4, 1e-6, 1e-6, 1e-6;
+  ekf.reset(T_WB, P0);
+  std::vector<StereoObservation> first{pixel(obs[0]), pixel(obs[1]), obs[2]};
+  first[1].prior_p_W = T_WB * (w.cam.T_CB.inverse() * pts_C[1]);
+  first[1].prior_sigma_m = 0.01;
+  core::EkfUpdateStats st = ekf.update(first.data(), 3);
+  EXPECT_EQ(st.initialised, 2) << "the known point and the one with depth";
+  EXPECT_EQ(st.not_initialised, 1) << "a pixel alone";
+  EXPECT_EQ(ekf.counters().landmarks_from_prior, 1u);
+  // A behind-the-camera "known" point is not taken.
+  StereoObservation behind = pixel(obs[0]);
+  behind.id = 99;
+  behind.prior_p_W = T_WB * (w.cam.T_CB.inverse() * Vec3(0.3, -0.2, -3.0));
+  behind.prior_sigma_m = 0.01;
+  // The next frame sees both landmarks as pixels only: both stay (no miss
+  // with max_missed_frames 0) and both update the pose.
+  std::vector<StereoObservation> second{pixel(obs[1]), pixel(obs[2]), behind};
+  const double trace_before = ekf.pose_covariance().trace();
+  st = ekf.update(second.data(), 3);
+  EXPECT_EQ(st.used, 2);
+  EXPECT_EQ(st.used_without_depth, 2);
+  EXPECT_EQ(st.frozen, 0);
+  EXPECT_EQ(st.not_initialised, 1) << "behind the camera";
+  EXPECT_EQ(ekf.num_active(), 2);
+  EXPECT_LT(ekf.pose_covariance().trace(), trace_before);
+  // 25 px off its prediction: gated (the 2-dof gate, 9.21), counted, not used.
+  second[1].uL += 25.0;
+  st = ekf.update(second.data(), 2);
+  EXPECT_EQ(st.gated, 1);
+  EXPECT_EQ(st.used, 1);
+}
+
 TEST(EkfSlam, OptionsAreValidated) {
   const test::EkfSimWorld w = test::make_ekf_world(1, 1);
   EkfSlamOptions opt;
@@ -397,6 +466,9 @@ TEST(EkfSlam, OptionsAreValidated) {
   EXPECT_THROW(EkfSlam(opt, w.cam), std::invalid_argument);
   opt = EkfSlamOptions();
   opt.pixel_sigma_px = 0.0;
+  EXPECT_THROW(EkfSlam(opt, w.cam), std::invalid_argument);
+  opt = EkfSlamOptions();
+  opt.mono_gate_chi2 = 0.0;
   EXPECT_THROW(EkfSlam(opt, w.cam), std::invalid_argument);
   EXPECT_NE(EkfSlamOptions().describe().find("landmark_capacity"), std::string::npos);
 }

@@ -44,6 +44,7 @@ struct EkfSlamOptions {
 
   double pixel_sigma_px = 1.0;        // std of each of uL, vL, uR, vR
   double gate_chi2 = 13.28;           // Mahalanobis gate on the 4 stereo rows (chi2, 4 dof, 99 %)
+  double mono_gate_chi2 = 9.21;       // the same gate on a pixel without depth (chi2, 2 dof, 99 %)
   double min_depth_m = 0.5;           // points closer than this are neither used nor initialised
   double max_init_depth_m = 60.0;     // far points triangulate badly: not initialised
   int max_missed_frames = 0;          // an active landmark unobserved for more frames is frozen into the map
@@ -94,7 +95,15 @@ struct StereoObservation {
   // pose, instead of from this observation. 0: unknown.
   double prior_sigma_m = 0.0;
   Eigen::Vector3d prior_p_W = Eigen::Vector3d::Zero();
+  // false: only (uL, vL) was measured, a pixel without depth (beyond the
+  // sensor's range, a hole in the depth image). It updates a landmark already
+  // in the filter with its 2 rows, and starts a new one only at a known
+  // point (prior_sigma_m > 0): one pixel does not place a point.
+  bool has_depth = true;
 };
+
+// A pixel without depth (StereoObservation::has_depth false).
+StereoObservation pixel_only(uint32_t id, double u, double v);
 
 // An RGB-D pixel with registered depth as a virtual stereo observation:
 // uR = u - fx * b / depth (docs/ekf.md, "RGB-D").
@@ -111,6 +120,7 @@ struct FrozenLandmark {
 struct EkfUpdateStats {
   int observations = 0;    // given to update()
   int used = 0;            // in the Kalman update
+  int used_without_depth = 0;  // of those, 2-row updates from a pixel without depth
   int gated = 0;           // rejected by the chi2 gate
   int initialised = 0;     // new landmarks
   int not_initialised = 0; // new tracks not taken (bad disparity, too far, capacity full)
@@ -119,7 +129,7 @@ struct EkfUpdateStats {
   int chunks = 0;          // sequential Cholesky updates
   // Normalised innovation squared of the first chunk, linearised at the
   // prior (before any of this update's corrections), and its degrees of
-  // freedom (3 per observation): about nis_dof when the filter's predicted
+  // freedom (3 per observation, 2 without depth): about nis_dof when the filter's predicted
   // uncertainty matches its actual errors.
   double nis = 0.0;
   int nis_dof = 0;
@@ -134,6 +144,7 @@ struct EkfCounters {
   uint64_t predictions = 0;
   uint64_t updates = 0;
   uint64_t observations_used = 0;
+  uint64_t observations_used_without_depth = 0;  // of those, pixels without depth (2 rows)
   uint64_t observations_gated = 0;
   uint64_t observations_ignored = 0;    // beyond max_observations, or duplicates in one call
   uint64_t landmarks_initialised = 0;
@@ -258,6 +269,7 @@ class EkfSlam {
   Eigen::VectorXd dx_vec_;      // nmax
   std::vector<Eigen::Matrix<double, 3, 6>> Hp_;
   std::vector<Eigen::Matrix3d> Hm_;
+  std::vector<int> rows_, row0_;  // per observation of a chunk: 3 (with depth) or 2 rows, from row row0
   std::vector<int> obs_slot_, slot_list_, upd_slots_;
   std::vector<int> cell_count_;  // spread_grid_cols x rows: landmarks seen this frame per cell
   int cell_of(const StereoObservation& o) const;
