@@ -302,41 +302,22 @@ void EkfSlam::remove_slot(int slot, bool to_map) {
 }
 
 bool EkfSlam::initialise_landmark(const StereoObservation& o) {
-  if (!o.has_depth) {
-    // One pixel does not place a point; a known one it may bring in, if the
-    // map's position is in front of the camera where the pixel says it is.
-    if (!(o.prior_sigma_m > 0.0)) return false;
-    ekf::StereoMeas zh;
-    if (!ekf::stereo_project(cam_, T_WB_, o.prior_p_W, opt_.min_depth_m, zh)) return false;
-    if (num_active_ >= cap_) {
-      ++counters_.capacity_full;
-      return false;
-    }
-    const int n = dim();
-    lm_p_.col(num_active_) = o.prior_p_W;
-    P_.block(n, 0, 3, n).setZero();
-    P_.block(0, n, n, 3).setZero();
-    P_.block<3, 3>(n, n) = Mat3::Identity() * (o.prior_sigma_m * o.prior_sigma_m);
-    ++counters_.landmarks_from_prior;
-    const auto s = static_cast<size_t>(num_active_);
-    lm_id_[s] = o.id;
-    lm_missed_[s] = 0;
-    lm_rejects_[s] = 0;
-    lm_obs_count_[s] = 1;
-    lm_this_obs_[s] = -1;
-    lm_gate_[s] = 0;
-    ++num_active_;
-    ++counters_.landmarks_initialised;
-    return true;
-  }
-  const ekf::StereoMeas z(o.uL, 0.5 * (o.vL + o.vR), o.uR);
-  const double s2 = opt_.pixel_sigma_px * opt_.pixel_sigma_px;
-  // vL - vR is pure noise for a rectified pair: a large one is a bad match.
-  if ((o.vL - o.vR) * (o.vL - o.vR) > 2.0 * s2 * 6.63) return false;
   Vec3 p_C;
   Mat3 J_z;
-  if (!ekf::stereo_triangulate(cam_, z, p_C, &J_z)) return false;
-  if (!(p_C.z() >= opt_.min_depth_m && p_C.z() <= opt_.max_init_depth_m)) return false;
+  if (o.has_depth) {
+    const ekf::StereoMeas z(o.uL, 0.5 * (o.vL + o.vR), o.uR);
+    const double s2 = opt_.pixel_sigma_px * opt_.pixel_sigma_px;
+    // vL - vR is pure noise for a rectified pair: a large one is a bad match.
+    if ((o.vL - o.vR) * (o.vL - o.vR) > 2.0 * s2 * 6.63) return false;
+    if (!ekf::stereo_triangulate(cam_, z, p_C, &J_z)) return false;
+    if (!(p_C.z() >= opt_.min_depth_m && p_C.z() <= opt_.max_init_depth_m)) return false;
+  } else {
+    // One pixel does not place a point; a known one it may bring in, if the
+    // map's position is in front of the camera.
+    ekf::StereoMeas zh;
+    if (!(o.prior_sigma_m > 0.0) || !ekf::stereo_project(cam_, T_WB_, o.prior_p_W, opt_.min_depth_m, zh))
+      return false;
+  }
   if (num_active_ >= cap_) {
     ++counters_.capacity_full;
     return false;
