@@ -53,8 +53,8 @@ struct EkfEstimatorOptions {
   // unseen. Off by default: the tracker only follows points a keyframe saw
   // with depth, so these are 2-3 % of its observations, and on the seven
   // whole-length EuRoC flights they left the error equal or up to 13 % worse
-  // (docs/ekf.md, "Pixels without depth"); on the real 7-Scenes frames, 3 %
-  // better.
+  // (docs/ekf.md, "Pixels without depth"); on the real 7-Scenes frames,
+  // 3-9 % better.
   bool depthless_observations = false;
   double mono_gate_chi2 = 9.21;  // the gate for those: 2 dof, 99 %
   // Start-up covariance (the static initialiser fixes position and yaw by
