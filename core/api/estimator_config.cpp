@@ -77,6 +77,11 @@ void visit_tracker(TrackerOptions& o, OptionVisitor& v) {
   v.value("map_max_correction_m", o.map_max_correction_m, "a larger map correction is taken for false matches");
   v.value("map_max_correction_rad", o.map_max_correction_rad, "a larger map correction is taken for false matches");
   v.value("map_max_sigma_m", o.map_max_sigma_m, "a less certain map pose is not reported");
+  v.value("far_tracks", o.far_tracks,
+          "follow keyframe features without depth along their epipolar segment beyond the depth range");
+  v.value("far_search_radius_px", o.far_search_radius_px, "far tracks: distance from the segment at level 0");
+  v.value("far_max_segment_px", o.far_max_segment_px,
+          "far tracks: a longer epipolar segment is not searched");
   visit_orb(o.orb, v);
   visit_lonsc(o.lonsc, v);
   v.begin_section("rigid", "6-DoF tracking without an IMU rotation (rgbd backend, IMU outage; docs/real-imagery.md)");

@@ -43,6 +43,8 @@ std::string TrackerOptions::validate() const {
   if (map_capacity > 0 && !(map_search_radius_px > 0 && map_min_inliers >= 6 && map_match_ratio > 0 &&
                             map_match_ratio <= 1 && map_max_correction_m > 0 && map_max_correction_rad > 0))
     e << "map_*: radius > 0, min_inliers >= 6, ratio in (0, 1], max corrections > 0\n";
+  if (far_tracks && !(far_search_radius_px > 0 && far_max_segment_px > 0))
+    e << "far_search_radius_px, far_max_segment_px: > 0\n";
   return e.str();
 }
 
@@ -520,6 +522,60 @@ struct Tracker::Impl {
     }
   }
 
+  // ---- Far tracks ---------------------------------------------------------------
+  // A keyframe feature without depth lies on its ray, and (holes and depth
+  // edges aside) beyond the sensor's range: with the frame's motion known (R,
+  // t: keyframe camera -> current camera) it is between the ray's projections
+  // at max_range_m and at infinity. A short segment: a few pixels for a
+  // camera moving centimetres past a wall metres away. The motion comes from
+  // the depth-backed points before this runs, so these matches cannot bend
+  // it; a wrong one costs the window a 2-row outlier, which its robust cost
+  // and triangulation's parallax test meet first. Allocation-free.
+  [[gnu::noinline]] void track_far_points(const TrackerOptions& opt, const Eigen::Matrix3d& R,
+                                          const Eigen::Vector3d& t, TrackResult& res) {
+    const int n_cur = cur.feats.size();
+    reset_best(n_cur);
+    const double near_m = depth.max_range_m > 0 ? depth.max_range_m : 4.0;
+    for (int i = 0; i < kf.feats.size(); ++i) {
+      if (kf.has_depth[i] || kf.lm_id[i] == 0) continue;
+      const Eigen::Vector3d q_inf = R * kf.p_C[i];  // p_C: the ray at unit depth
+      if (q_inf.z() < 0.1) continue;
+      const Eigen::Vector3d q_near = near_m * q_inf + t;
+      if (q_near.z() < 0.1) continue;
+      const Eigen::Vector2d a = cam.distort_normalized_to_pixel(q_inf.head<2>() / q_inf.z());
+      const Eigen::Vector2d b = cam.distort_normalized_to_pixel(q_near.head<2>() / q_near.z());
+      if (!cam.in_image(a) && !cam.in_image(b)) continue;
+      const Eigen::Vector2d ab = b - a;
+      const double len2 = ab.squaredNorm();
+      if (len2 > opt.far_max_segment_px * opt.far_max_segment_px) continue;
+      ++res.far_predicted;
+      const OrbKeypoint& kp = kf.feats.keypoint(i);
+      const double r = opt.far_search_radius_px * extractor.level_scale(kp.level);
+      const BestTwoMatches bt =
+          search_circle(0.5 * (a + b), 0.5 * std::sqrt(len2) + r, kf.feats.descriptor(i),
+                        [&](int j, const OrbKeypoint& ckp) {
+                          if (cur.lm_id[j] != 0 || std::abs(ckp.level - kp.level) > opt.match_max_level_diff)
+                            return false;
+                          const Eigen::Vector2d ap(ckp.x - a.x(), ckp.y - a.y());
+                          const double s = len2 > 0 ? std::clamp(ap.dot(ab) / len2, 0.0, 1.0) : 0.0;
+                          return (ap - s * ab).squaredNorm() <= r * r;
+                        });
+      if (bt.best_index < 0 || bt.best > opt.match_max_hamming || !bt.passes_ratio(opt.match_ratio)) continue;
+      keep_best(bt, i);
+    }
+    for (int j = 0; j < n_cur; ++j) {
+      if (best_kf[j] < 0) continue;
+      const OrbKeypoint& ckp = cur.feats.keypoint(j);
+      cur.lm_id[j] = kf.lm_id[best_kf[j]];
+      cur.map_idx[j] = -1;
+      mark[j] |= FeatureMark::kFar;
+      add_observation(cur.lm_id[j], cam.undistort_pixel(Eigen::Vector2d(ckp.x, ckp.y)),
+                      cur.has_depth[j] ? cur.p_C[j].z() : 0.0,
+                      static_cast<float>(opt.keypoint_sigma_px * extractor.level_scale(ckp.level)), -1);
+      ++res.far_tracked;
+    }
+  }
+
   // cur becomes the keyframe at T_WC (after the local map had its say):
   // features that matched a keyframe point keep its id; the others with a
   // depth start new landmarks, observed here for the first time, and enter the map.
@@ -534,6 +590,21 @@ struct Tracker::Impl {
       add_observation(cur.lm_id[j], cam.undistort_pixel(Eigen::Vector2d(kp.x, kp.y)), cur.p_C[j].z(),
                       static_cast<float>(opt.keypoint_sigma_px * extractor.level_scale(kp.level)), -1);
       add_to_map(cur, j);
+    }
+    // Far tracks: the features without depth keep (or start) a landmark seen
+    // here without depth, after every depth-backed one, so that a window short
+    // of landmark slots drops these first. p_C holds their ray at unit depth.
+    if (opt.far_tracks) {
+      for (int j = 0; j < cur.feats.size(); ++j) {
+        if (cur.has_depth[j]) continue;
+        const OrbKeypoint& kp = cur.feats.keypoint(j);
+        cur.p_C[j] = cam.back_project(Eigen::Vector2d(kp.x, kp.y), 1.0);
+        if (cur.lm_id[j] != 0) continue;
+        cur.lm_id[j] = next_lm_id++;
+        if (next_lm_id == 0) next_lm_id = 1;
+        add_observation(cur.lm_id[j], cam.undistort_pixel(Eigen::Vector2d(kp.x, kp.y)), 0.0,
+                        static_cast<float>(opt.keypoint_sigma_px * extractor.level_scale(kp.level)), -1);
+      }
     }
     cur.valid = true;
     kf.swap(cur);
@@ -827,6 +898,7 @@ const TrackResult& Tracker::track(int64_t t_ns, const ImageView& image, const Im
   result_.area_ratio = m.area_ratio(opt_, inl, n_inl);
   result_.status = TrackStatus::kTracked;
   m.adopt_tracked_inliers(inl, n_inl);
+  if (opt_.far_tracks) m.track_far_points(opt_, R, t, result_);
 
   const bool stale = 1e-9 * static_cast<double>(t_ns - m.kf.t_ns) > opt_.keyframe_max_interval_s;
   const bool new_kf =

@@ -107,6 +107,10 @@ std::string WindowEstimator::backend_summary() const {
     << wc_.skipped_no_imu << "), stale " << wc_.stale_results << ", imu gaps " << wc_.imu_gaps
     << ", still frames " << wc_.stationary_frames << ", map poses " << wc_.map_poses << ", vision-only frames "
     << wc_.vision_only_frames;
+  const WindowOptimizer::Counters& oc = window_->counters();
+  o << "; landmarks from depth " << oc.landmarks_from_depth << ", triangulated " << oc.landmarks_triangulated
+    << ", observations skipped (budget " << oc.obs_skipped_budget << ", invalid " << oc.obs_skipped_invalid
+    << "), far tracks " << wc_.far_observations;
   if (calib_) {
     const TimeOffsetEstimate e = calib_->estimate();
     o << ", time offset " << 1e3 * td_s_ << " ms (rotation correlation: ";
@@ -216,6 +220,7 @@ bool WindowEstimator::add_frame(const RgbdFrame& f) {
   if (!front_.started()) return changed;
   if (map_) map_after_tracking();
   const TrackResult& r = front_.last_track();
+  wc_.far_observations += static_cast<uint64_t>(r.far_tracked);
   if (!(r.tracked() || r.status == TrackStatus::kNewKeyframe)) return changed;
   if (calib_) measure_camera_rotation(f.t_ns, r);
   queue_job(f, r);

@@ -72,6 +72,14 @@ struct TrackerOptions {
   double map_max_correction_m = 0.15;   // a larger jump is taken for a false match set
   double map_max_correction_rad = 0.05;
   double map_max_sigma_m = 0.03;        // a PnP less certain than this (clustered points) is not reported
+  // Far tracks: keyframe features without depth (beyond the depth sensor's
+  // range, mostly) are followed too, once the frame's motion is known, along
+  // their epipolar segment between the sensor's max range and infinity. They
+  // go out as observations without depth (the window triangulates them); the
+  // motion itself still comes from the depth-backed points alone.
+  bool far_tracks = false;
+  double far_search_radius_px = 3.0;  // distance from the segment, at level 0 (scales with the level)
+  double far_max_segment_px = 40.0;   // a longer segment is too ambiguous to search
 
   [[nodiscard]] std::string validate() const;
 };
@@ -95,6 +103,8 @@ struct TrackResult {
   int predicted = 0;            // keyframe points that projected into the image
   int matched = 0;              // correspondences handed to LONSC
   int inliers = 0;
+  int far_predicted = 0;        // far tracks: keyframe features without depth searched
+  int far_tracked = 0;          // ... and found again (observations without depth)
   double area_ratio = 0;        // matched / detected cells of the area grid
   double search_radius_px = 0;
   double inlier_rms_px = 0;
@@ -122,6 +132,7 @@ struct FeatureMark {
   static constexpr uint8_t kMatched = 2;   // matched to a keyframe point (handed to LONSC)
   static constexpr uint8_t kInlier = 4;    // a LONSC inlier: it moved the pose
   static constexpr uint8_t kMapPoint = 8;  // re-found in the local map (keyframes only)
+  static constexpr uint8_t kFar = 16;      // a far track: a keyframe feature without depth, found again
   float x_px = 0, y_px = 0;                // as detected (distorted pixel, level 0)
   uint8_t flags = 0;
 };
