@@ -533,9 +533,10 @@ struct Tracker::Impl {
   // and triangulation's parallax test meet first. Allocation-free.
   [[gnu::noinline]] void track_far_points(const TrackerOptions& opt, const Eigen::Matrix3d& R,
                                           const Eigen::Vector3d& t, TrackResult& res) {
+    const double near_m = depth.max_range_m;
+    if (!(near_m > 0)) return;  // no range: nothing is known to be beyond it
     const int n_cur = cur.feats.size();
     reset_best(n_cur);
-    const double near_m = depth.max_range_m > 0 ? depth.max_range_m : 4.0;
     for (int i = 0; i < kf.feats.size(); ++i) {
       if (kf.has_depth[i] || kf.lm_id[i] == 0) continue;
       const Eigen::Vector3d q_inf = R * kf.p_C[i];  // p_C: the ray at unit depth

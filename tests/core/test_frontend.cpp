@@ -171,6 +171,31 @@ TEST(FrontendOdometry, NoHeapAllocationPerFrameInSteadyState) {
   EXPECT_EQ(vo.steady_allocs, 0u) << "allocations in add_imu/add_frame after warm-up";
 }
 
+namespace {
+
+// Walks a simulated log frame by frame: fn(t_ns, rgb, depth, true T_WC).
+template <typename Fn>
+void for_each_true_frame(const std::string& path, Fn fn) {
+  auto log = drivers::open_log(path);
+  const Eigen::Isometry3d T_BC = to_iso(log->rig().T_BC);
+  Eigen::Isometry3d T_gt = Eigen::Isometry3d::Identity();
+  drivers::LogRecord rec;
+  drivers::LogImage rgb;
+  while (log->next(rec)) {
+    if (rec.type == drivers::RecordType::kGroundTruth) {
+      T_gt.linear() = Eigen::Quaterniond(rec.gt.q_WB[0], rec.gt.q_WB[1], rec.gt.q_WB[2], rec.gt.q_WB[3])
+                          .toRotationMatrix();
+      T_gt.translation() = Eigen::Vector3d(rec.gt.p_WB.data());
+    } else if (rec.type == drivers::RecordType::kRgb) {
+      rgb = rec.image;
+    } else if (rec.type == drivers::RecordType::kDepth) {
+      fn(rec.image.t_ns, rgb.view(), rec.image.view(), T_gt * T_BC);
+    }
+  }
+}
+
+}  // namespace
+
 TEST(Tracker, FarTracksFollowFeaturesWithoutDepthOnTheirEpipolarSegment) {
   // The tracker is told its depth sensor stops at 2 m, so most of the rendered
   // room is "beyond range" to it; the log's depth (rendered to 6 m) is the
@@ -178,9 +203,7 @@ TEST(Tracker, FarTracksFollowFeaturesWithoutDepthOnTheirEpipolarSegment) {
   // on the epipolar line of its keyframe view under the true motion, and a
   // far landmark must keep its id across frames and keyframes.
   const std::string path = simulate("figure8", 4.0);
-  auto log = drivers::open_log(path);
-  const Eigen::Isometry3d T_BC = to_iso(log->rig().T_BC);
-  Rig rig = log->rig();
+  Rig rig = drivers::open_log(path)->rig();
   rig.depth.max_range_m = 2.0;
   core::TrackerOptions o;
   o.far_tracks = true;
@@ -192,44 +215,33 @@ TEST(Tracker, FarTracksFollowFeaturesWithoutDepthOnTheirEpipolarSegment) {
     int frames = 0;
   };
   std::map<uint32_t, First> first;
-  Eigen::Isometry3d T_gt = Eigen::Isometry3d::Identity();
-  drivers::LogRecord rec;
-  drivers::LogImage rgb;
   int frames = 0, far_obs = 0, far_good = 0, far_tracked = 0;
   uint64_t steady_allocs = 0;
-  while (log->next(rec)) {
-    if (rec.type == drivers::RecordType::kGroundTruth) {
-      T_gt.linear() = Eigen::Quaterniond(rec.gt.q_WB[0], rec.gt.q_WB[1], rec.gt.q_WB[2], rec.gt.q_WB[3])
-                          .toRotationMatrix();
-      T_gt.translation() = Eigen::Vector3d(rec.gt.p_WB.data());
-    } else if (rec.type == drivers::RecordType::kRgb) {
-      rgb = rec.image;
-    } else if (rec.type == drivers::RecordType::kDepth) {
-      const Eigen::Isometry3d T_WC = T_gt * T_BC;
-      const uint64_t a0 = rt::alloc_count_this_thread();
-      const core::TrackResult& r = tracker.track(rec.image.t_ns, rgb.view(), rec.image.view(), T_WC, 2.0);
-      if (++frames > 10) steady_allocs += rt::alloc_count_this_thread() - a0;
-      far_tracked += r.far_tracked;
-      for (int k = 0; k < tracker.num_observations(); ++k) {
-        const core::WindowObservation& ob = tracker.observations()[k];
-        if (ob.depth_m > 0) continue;
-        const Eigen::Vector3d ray_W = T_WC.linear() * Eigen::Vector3d((ob.uv.x() - cam.cx()) / cam.fx(),
-                                                                      (ob.uv.y() - cam.cy()) / cam.fy(), 1.0);
-        auto it = first.find(ob.landmark_id);
-        if (it == first.end()) {
-          first[ob.landmark_id] = First{ray_W.normalized(), T_WC.translation(), 1};
-          continue;
-        }
-        ++it->second.frames;
-        ++far_obs;
-        // Distance [px] of the pixel from the plane through both centres and the first ray.
-        const Eigen::Vector3d n = it->second.ray_W.cross(T_WC.translation() - it->second.c_W);
-        const Eigen::Vector3d ray_C = T_WC.linear().transpose() * ray_W;
-        const double sin_off = n.norm() > 1e-6 ? std::abs(n.normalized().dot(ray_W.normalized())) : 0.0;
-        if (sin_off * cam.fx() * ray_W.norm() / std::max(ray_C.z(), 1e-6) < 3.0) ++far_good;
+  for_each_true_frame(path, [&](int64_t t_ns, const ImageView& rgb, const ImageView& depth,
+                                const Eigen::Isometry3d& T_WC) {
+    const uint64_t a0 = rt::alloc_count_this_thread();
+    const core::TrackResult& r = tracker.track(t_ns, rgb, depth, T_WC, 2.0);
+    if (++frames > 10) steady_allocs += rt::alloc_count_this_thread() - a0;
+    far_tracked += r.far_tracked;
+    for (int k = 0; k < tracker.num_observations(); ++k) {
+      const core::WindowObservation& ob = tracker.observations()[k];
+      if (ob.depth_m > 0) continue;
+      const Eigen::Vector3d ray_W = T_WC.linear() * Eigen::Vector3d((ob.uv.x() - cam.cx()) / cam.fx(),
+                                                                    (ob.uv.y() - cam.cy()) / cam.fy(), 1.0);
+      auto it = first.find(ob.landmark_id);
+      if (it == first.end()) {
+        first[ob.landmark_id] = First{ray_W.normalized(), T_WC.translation(), 1};
+        continue;
       }
+      ++it->second.frames;
+      ++far_obs;
+      // Distance [px] of the pixel from the plane through both centres and the first ray.
+      const Eigen::Vector3d n = it->second.ray_W.cross(T_WC.translation() - it->second.c_W);
+      const Eigen::Vector3d ray_C = T_WC.linear().transpose() * ray_W;
+      const double sin_off = n.norm() > 1e-6 ? std::abs(n.normalized().dot(ray_W.normalized())) : 0.0;
+      if (sin_off * cam.fx() * ray_W.norm() / std::max(ray_C.z(), 1e-6) < 3.0) ++far_good;
     }
-  }
+  });
   int long_lived = 0;
   for (const auto& [id, f] : first) long_lived += f.frames >= 10;
   std::printf(
@@ -244,24 +256,14 @@ TEST(Tracker, FarTracksFollowFeaturesWithoutDepthOnTheirEpipolarSegment) {
 
   // Off (the default): no far track, and observations without depth are only
   // the few depth-backed keyframe points that land in a hole of this frame.
-  auto log2 = drivers::open_log(path);
   core::Tracker plain(rig);
   int plain_far = 0, plain_without_depth = 0;
-  while (log2->next(rec)) {
-    if (rec.type == drivers::RecordType::kGroundTruth) {
-      T_gt.linear() = Eigen::Quaterniond(rec.gt.q_WB[0], rec.gt.q_WB[1], rec.gt.q_WB[2], rec.gt.q_WB[3])
-                          .toRotationMatrix();
-      T_gt.translation() = Eigen::Vector3d(rec.gt.p_WB.data());
-    } else if (rec.type == drivers::RecordType::kRgb) {
-      rgb = rec.image;
-    } else if (rec.type == drivers::RecordType::kDepth) {
-      const core::TrackResult& r =
-          plain.track(rec.image.t_ns, rgb.view(), rec.image.view(), T_gt * T_BC, 2.0);
-      plain_far += r.far_tracked;
-      for (int k = 0; k < plain.num_observations(); ++k)
-        plain_without_depth += plain.observations()[k].depth_m > 0 ? 0 : 1;
-    }
-  }
+  for_each_true_frame(
+      path, [&](int64_t t_ns, const ImageView& rgb, const ImageView& depth, const Eigen::Isometry3d& T_WC) {
+        plain_far += plain.track(t_ns, rgb, depth, T_WC, 2.0).far_tracked;
+        for (int k = 0; k < plain.num_observations(); ++k)
+          plain_without_depth += plain.observations()[k].depth_m > 0 ? 0 : 1;
+      });
   EXPECT_EQ(plain_far, 0);
   EXPECT_LT(20 * plain_without_depth, far_obs);
 }

@@ -107,8 +107,8 @@ struct WindowEstimatorCounters {
   uint64_t stationary_frames = 0;  // window frames given the zero-velocity factor
   uint64_t map_poses = 0;          // window frames given the local map's pose
   uint64_t vision_only_frames = 0; // window frames without an IMU factor (IMU silent)
-  uint64_t far_observations =
-      0;  // the tracker's far tracks (frontend.far_tracks): observations without depth
+  // The tracker's far tracks (frontend.far_tracks): observations without depth.
+  uint64_t far_observations = 0;
 };
 
 // Optimizer -> tracking side. Trivially copyable: crosses threads through the mailbox.
