@@ -72,6 +72,31 @@ TEST(Cli, VersionPrints) {
   EXPECT_EQ(r.out.rfind("kestrel ", 0), 0u) << r.out;
 }
 
+// The revision is read when the binary is built, not when its folder was
+// configured: a build folder configured once used to print its first commit forever.
+TEST(Cli, VersionNamesTheRevisionThatWasBuilt) {
+  std::string head;
+  if (FILE* p = popen(
+          ("git -C \"" + std::string(KESTREL_SOURCE_DIR) + "\" rev-parse --short HEAD 2>/dev/null").c_str(),
+          "r")) {
+    char buf[64] = {};
+    if (std::fgets(buf, sizeof buf, p) != nullptr) head = buf;
+    if (pclose(p) != 0) head.clear();
+  }
+  while (!head.empty() && (head.back() == '\n' || head.back() == '\r')) head.pop_back();
+  const CmdResult r = run("version");
+  ASSERT_EQ(r.code, 0);
+  const std::string first_line = r.out.substr(0, r.out.find('\n'));
+  if (head.empty()) {
+    EXPECT_NE(first_line.find("(unknown)"), std::string::npos) << "no git checkout, yet: " << first_line;
+    return;
+  }
+  // "(rev)" or "(rev-dirty)"; a mismatch means the binary is older than the checkout: rebuild.
+  EXPECT_TRUE(first_line.find("(" + head + ")") != std::string::npos ||
+              first_line.find("(" + head + "-dirty)") != std::string::npos)
+      << "HEAD is " << head << ", the binary says: " << first_line;
+}
+
 TEST(Cli, MissingLogIsAClearError) {
   const CmdResult r = run("replay /nonexistent/flight.klog");
   EXPECT_EQ(r.code, 1) << r.out;

@@ -1,13 +1,14 @@
 // `kestrel`: one command line, git-style subcommands.
 #include <cstdio>
 #include <exception>
-#include <string>
 #include <iostream>
+#include <string>
 #include <vector>
 
 #include "kestrel/commands.hpp"
 #include "kestrel/drivers/dataset_logs.hpp"
 #include "kestrel/drivers/devices.hpp"
+#include "kestrel_git_rev.h"
 
 namespace {
 
