@@ -41,6 +41,31 @@ inline std::string simulate(const std::string& scenario, double duration_s, uint
 
 inline Eigen::Isometry3d to_iso(const Mat4d& T) { return core::to_isometry(T); }
 
+// Walks a simulated log frame by frame (a colour image followed by its depth):
+// fn(t_ns, rgb, depth, true T_WC). For tests that drive the tracker on the truth.
+template <typename Fn>
+void for_each_true_frame(const std::string& path, Fn fn) {
+  auto log = drivers::open_log(path);
+  const Eigen::Isometry3d T_BC = to_iso(log->rig().T_BC);
+  Eigen::Isometry3d T_WB = Eigen::Isometry3d::Identity();
+  drivers::LogRecord rec;
+  drivers::LogImage rgb;
+  bool have_rgb = false;
+  while (log->next(rec)) {
+    if (rec.type == drivers::RecordType::kGroundTruth) {
+      T_WB.linear() = Eigen::Quaterniond(rec.gt.q_WB[0], rec.gt.q_WB[1], rec.gt.q_WB[2], rec.gt.q_WB[3])
+                          .toRotationMatrix();
+      T_WB.translation() = Eigen::Vector3d(rec.gt.p_WB.data());
+    } else if (rec.type == drivers::RecordType::kRgb) {
+      rgb = rec.image;
+      have_rgb = true;
+    } else if (rec.type == drivers::RecordType::kDepth && have_rgb) {
+      have_rgb = false;
+      fn(rgb.t_ns, rgb.view(), rec.image.view(), T_WB * T_BC);
+    }
+  }
+}
+
 struct RunResult {
   tools::Trajectory est, gt;
   uint64_t steady_allocs = 0;

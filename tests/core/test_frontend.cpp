@@ -171,31 +171,6 @@ TEST(FrontendOdometry, NoHeapAllocationPerFrameInSteadyState) {
   EXPECT_EQ(vo.steady_allocs, 0u) << "allocations in add_imu/add_frame after warm-up";
 }
 
-namespace {
-
-// Walks a simulated log frame by frame: fn(t_ns, rgb, depth, true T_WC).
-template <typename Fn>
-void for_each_true_frame(const std::string& path, Fn fn) {
-  auto log = drivers::open_log(path);
-  const Eigen::Isometry3d T_BC = to_iso(log->rig().T_BC);
-  Eigen::Isometry3d T_gt = Eigen::Isometry3d::Identity();
-  drivers::LogRecord rec;
-  drivers::LogImage rgb;
-  while (log->next(rec)) {
-    if (rec.type == drivers::RecordType::kGroundTruth) {
-      T_gt.linear() = Eigen::Quaterniond(rec.gt.q_WB[0], rec.gt.q_WB[1], rec.gt.q_WB[2], rec.gt.q_WB[3])
-                          .toRotationMatrix();
-      T_gt.translation() = Eigen::Vector3d(rec.gt.p_WB.data());
-    } else if (rec.type == drivers::RecordType::kRgb) {
-      rgb = rec.image;
-    } else if (rec.type == drivers::RecordType::kDepth) {
-      fn(rec.image.t_ns, rgb.view(), rec.image.view(), T_gt * T_BC);
-    }
-  }
-}
-
-}  // namespace
-
 TEST(Tracker, FarTracksFollowFeaturesWithoutDepthOnTheirEpipolarSegment) {
   // The tracker is told its depth sensor stops at 2 m, so most of the rendered
   // room is "beyond range" to it; the log's depth (rendered to 6 m) is the
@@ -217,8 +192,8 @@ TEST(Tracker, FarTracksFollowFeaturesWithoutDepthOnTheirEpipolarSegment) {
   std::map<uint32_t, First> first;
   int frames = 0, far_obs = 0, far_good = 0, far_tracked = 0;
   uint64_t steady_allocs = 0;
-  for_each_true_frame(path, [&](int64_t t_ns, const ImageView& rgb, const ImageView& depth,
-                                const Eigen::Isometry3d& T_WC) {
+  test::for_each_true_frame(path, [&](int64_t t_ns, const ImageView& rgb, const ImageView& depth,
+                                      const Eigen::Isometry3d& T_WC) {
     const uint64_t a0 = rt::alloc_count_this_thread();
     const core::TrackResult& r = tracker.track(t_ns, rgb, depth, T_WC, 2.0);
     if (++frames > 10) steady_allocs += rt::alloc_count_this_thread() - a0;
@@ -258,7 +233,7 @@ TEST(Tracker, FarTracksFollowFeaturesWithoutDepthOnTheirEpipolarSegment) {
   // the few depth-backed keyframe points that land in a hole of this frame.
   core::Tracker plain(rig);
   int plain_far = 0, plain_without_depth = 0;
-  for_each_true_frame(
+  test::for_each_true_frame(
       path, [&](int64_t t_ns, const ImageView& rgb, const ImageView& depth, const Eigen::Isometry3d& T_WC) {
         plain_far += plain.track(t_ns, rgb, depth, T_WC, 2.0).far_tracked;
         for (int k = 0; k < plain.num_observations(); ++k)

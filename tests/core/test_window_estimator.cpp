@@ -265,50 +265,35 @@ TEST(WindowEstimator, NoHeapAllocationWithTheTimeOffsetEstimated) {
 
 TEST(Tracker, LandmarkIdsPersistWhileTrackedAndAcrossKeyframes) {
   const std::string path = test::simulate("figure8", 4.0, 2);
-  auto log = drivers::open_log(path);
-  const Eigen::Isometry3d T_BC = test::to_iso(log->rig().T_BC);
-  core::Tracker tracker(log->rig());
-  drivers::LogRecord rec;
-  drivers::LogImage rgb;
-  bool have_rgb = false;
-  Eigen::Isometry3d T_WB = Eigen::Isometry3d::Identity();
+  core::Tracker tracker(drivers::open_log(path)->rig());
   std::set<uint32_t> kf_ids, seen_before;
   int keyframes = 0, tracked = 0, inherited = 0, kf_new_total = 0;
   uint64_t obs_not_in_kf = 0;
-  while (log->next(rec)) {
-    if (rec.type == drivers::RecordType::kGroundTruth) {
-      T_WB.linear() = Eigen::Quaterniond(rec.gt.q_WB[0], rec.gt.q_WB[1], rec.gt.q_WB[2], rec.gt.q_WB[3])
-                          .toRotationMatrix();
-      T_WB.translation() = Eigen::Vector3d(rec.gt.p_WB.data());
-    } else if (rec.type == drivers::RecordType::kRgb) {
-      rgb = rec.image;
-      have_rgb = true;
-    } else if (rec.type == drivers::RecordType::kDepth && have_rgb) {
-      have_rgb = false;
-      const core::TrackResult& r = tracker.track(rgb.t_ns, rgb.view(), rec.image.view(), T_WB * T_BC, 2.0);
-      const core::WindowObservation* obs = tracker.observations();
-      const int n = tracker.num_observations();
-      if (r.tracked()) {
-        ++tracked;
-        EXPECT_GE(n, r.inliers);
-        for (int i = 0; i < r.inliers; ++i) obs_not_in_kf += kf_ids.count(obs[i].landmark_id) == 0;
-      }
-      if (r.keyframe) {
-        ++keyframes;
-        std::set<uint32_t> ids;
-        for (int i = 0; i < n; ++i) {
-          EXPECT_NE(obs[i].landmark_id, 0u);
-          EXPECT_TRUE(ids.insert(obs[i].landmark_id).second) << "duplicate id in one frame";
-          if (seen_before.count(obs[i].landmark_id))
-            ++inherited;
-          else
-            ++kf_new_total;
+  test::for_each_true_frame(
+      path, [&](int64_t t_ns, const ImageView& rgb, const ImageView& depth, const Eigen::Isometry3d& T_WC) {
+        const core::TrackResult& r = tracker.track(t_ns, rgb, depth, T_WC, 2.0);
+        const core::WindowObservation* obs = tracker.observations();
+        const int n = tracker.num_observations();
+        if (r.tracked()) {
+          ++tracked;
+          EXPECT_GE(n, r.inliers);
+          for (int i = 0; i < r.inliers; ++i) obs_not_in_kf += kf_ids.count(obs[i].landmark_id) == 0;
         }
-        seen_before.insert(ids.begin(), ids.end());
-        kf_ids = ids;
-      }
-    }
-  }
+        if (r.keyframe) {
+          ++keyframes;
+          std::set<uint32_t> ids;
+          for (int i = 0; i < n; ++i) {
+            EXPECT_NE(obs[i].landmark_id, 0u);
+            EXPECT_TRUE(ids.insert(obs[i].landmark_id).second) << "duplicate id in one frame";
+            if (seen_before.count(obs[i].landmark_id))
+              ++inherited;
+            else
+              ++kf_new_total;
+          }
+          seen_before.insert(ids.begin(), ids.end());
+          kf_ids = ids;
+        }
+      });
   std::printf("%d keyframes, %d tracked frames; keyframe observations: %d inherited ids, %d new\n", keyframes,
               tracked, inherited, kf_new_total);
   EXPECT_GT(tracked, 60);
