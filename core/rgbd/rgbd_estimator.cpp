@@ -146,6 +146,7 @@ bool RgbdEstimator::add_frame(const RgbdFrame& f) {
     }
     last_tracked_t_ns_ = f.t_ns;
     lost_frames_ = 0;
+    hold_ = false;
     ++counters_.frames_used;
     out_.quality = TrackingQuality::kVisionOnly;
   } else {
@@ -153,7 +154,14 @@ bool RgbdEstimator::add_frame(const RgbdFrame& f) {
     rc_.lost_few_matches += r.status == TrackStatus::kTooFewMatches ? 1 : 0;
     rc_.lost_no_motion += r.status == TrackStatus::kMotionFailed ? 1 : 0;
     out_.quality = TrackingQuality::kLost;
-    if (++lost_frames_ >= opt_.max_lost_frames) restart();
+    if (++lost_frames_ >= opt_.max_lost_frames) {
+      restart();
+      hold_ = true;
+    }
+    // Past the restart nothing measures the motion: the pose holds where the
+    // last frames put it instead of running on at the last velocity (2 s of
+    // a covered lens at 1 m/s would publish a pose 2 m away).
+    if (hold_) T_WC = T_WC_last_;
   }
   // The motion model follows the output; a lost frame coasts on it.
   const double dt_s = t_last_ns_ < 0 ? 0.0 : 1e-9 * static_cast<double>(f.t_ns - t_last_ns_);

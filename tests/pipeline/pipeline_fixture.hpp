@@ -101,6 +101,12 @@ inline ReplayRun replay(const std::string& path, drivers::ReplayPace pace = driv
 
 inline double rel_s(const ReplayRun& r, int64_t t_ns) { return 1e-9 * static_cast<double>(t_ns - r.t0_ns); }
 
+// A pose that claims to be right: tracking, or (a backend without an IMU, or
+// one whose IMU has gone silent) tracking by vision alone.
+inline bool claims_tracking(core::TrackingQuality q) {
+  return q == core::TrackingQuality::kTracking || q == core::TrackingQuality::kVisionOnly;
+}
+
 // Relative translation error over the last `span_s` before pose i, in the
 // body frame of the earlier pose: independent of the world frames' yaw and
 // origin, and of error accumulated before the span (odometry keeps that).
@@ -145,14 +151,14 @@ inline Recovery measure_recovery(const ReplayRun& r, double fault_start_s, doubl
       have_before = true;
     }
     if (t >= fault_start_s && t <= fault_end_s + 0.5) {
-      if (r.poses[i].quality != core::TrackingQuality::kTracking) rec.said_so = true;
+      if (!claims_tracking(r.poses[i].quality)) rec.said_so = true;
       if (have_before && r.poses[i].reset_counter != reset_before) {
         rec.said_so = true;
         rec.resets_in_fault = r.poses[i].reset_counter - reset_before;
       }
     }
     const double e = local_error_m(r, i, 0.5);
-    good[i] = r.poses[i].quality == core::TrackingQuality::kTracking && std::isfinite(e) && e < bound_m;
+    good[i] = claims_tracking(r.poses[i].quality) && std::isfinite(e) && e < bound_m;
   }
   for (size_t i = 0; i < r.poses.size(); ++i) {
     const double t = rel_s(r, r.poses[i].t_ns);

@@ -18,7 +18,8 @@
 //
 // Quality: kVisionOnly while frames are tracked; kLost when one is not (the
 // pose then coasts on the motion model); after max_lost_frames the tracker and
-// the window restart (reset counter) and the local map may re-locate them.
+// the window restart (reset counter), the pose holds still until a frame
+// tracks again, and the local map may re-locate them.
 //
 // IMU samples are counted and ignored. Fixed memory: every buffer is sized at
 // construction; add_frame() makes no heap allocation; the window is solved
@@ -102,6 +103,7 @@ class RgbdEstimator final : public Estimator {
   int64_t t_last_ns_ = -1, t_prev_ns_ = -1;
   int64_t last_tracked_t_ns_ = -1;
   int lost_frames_ = 0;
+  bool hold_ = false;  // lost past max_lost_frames: the pose stays put until a frame tracks
   bool window_started_ = false;
   DivergenceMonitor monitor_;
 };
