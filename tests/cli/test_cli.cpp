@@ -10,6 +10,8 @@
 #include <string>
 #include <vector>
 
+#include <nlohmann/json.hpp>
+
 #include "run_command.hpp"
 #include "test_data.hpp"
 
@@ -254,6 +256,33 @@ TEST(Replay, RealtimeReplayAppliesTheConfigsThreadTableAndReportsIt) {
   const CmdResult bad = run("replay " + small_log() + " --pace realtime --config " + cfg);
   EXPECT_EQ(bad.code, 1) << bad.out;
   EXPECT_NE(bad.out.find(cfg + ": threads.kst-optimizer.priority: expected 1..99"), std::string::npos) << bad.out;
+}
+
+// A backend without an IMU (rgbd) starts W at its first body pose, tilted as
+// that pose was: a yaw alignment cannot take the tilt out, so the bench scores
+// it after SE(3) in both ATE columns (and its FAIL rule with them); backends
+// with an IMU keep the posyaw figure, which differs from the se3 one.
+TEST(Cli, BenchScoresABackendWithoutGravityAfterSe3) {
+  const std::string dir = kestrel::test::temp_dir("cli_bench_rgbd_" + std::to_string(getpid()));
+  const CmdResult r = run("bench --cases hover --duration 4 --width 160 --height 120 --estimator rgbd,window "
+                          "--mapping off --workdir " + dir + " --json " + dir + "/b.json");
+  ASSERT_EQ(r.code, 0) << r.out;
+  const nlohmann::json j = nlohmann::json::parse(slurp(dir + "/b.json"));
+  int seen = 0;
+  for (const nlohmann::json& row : j.at("cases")) {
+    const std::string est = row.at("estimator").get<std::string>();
+    ASSERT_TRUE(row.at("ate_rmse_m").is_number()) << row.dump();
+    const double ate = row.at("ate_rmse_m").get<double>();
+    const double se3 = row.at("ate_se3_rmse_m").get<double>();
+    if (est == "rgbd") {
+      EXPECT_EQ(ate, se3) << "rgbd scored after posyaw";
+      ++seen;
+    } else if (est.rfind("window", 0) == 0) {
+      EXPECT_NE(ate, se3) << "the window is no longer scored after posyaw";
+      ++seen;
+    }
+  }
+  EXPECT_EQ(seen, 2) << j.dump();
 }
 
 // The JSON keys other checks read (issues 5 and 7): accuracy under both

@@ -546,6 +546,7 @@ ReplayReport run_replay(const ReplayOptions& opt) {
                                                                        : core::make_estimator(opt.estimator, log->rig());
   core::Estimator& estimator = *estimator_ptr;
   report.estimator = estimator.name();
+  report.world_levelled = estimator.world_levelled();
   report.trajectory.reserve(1 << 16);
   report.has_map = estimator.has_map();
   if (report.has_map) report.map_trajectory.reserve(1 << 16);

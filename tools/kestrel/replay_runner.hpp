@@ -161,6 +161,7 @@ struct ReplayOptions {
 
 struct ReplayReport {
   std::string estimator;
+  bool world_levelled = true;  // Estimator::world_levelled(): posyaw alignment is meaningful
   // The effective settings ("section.key", YAML value), for the metrics JSON.
   std::vector<std::pair<std::string, std::string>> config;
   std::string log_path;

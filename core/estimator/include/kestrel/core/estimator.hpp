@@ -158,6 +158,10 @@ class Estimator {
   // rig's time_offset_cam_imu_ns [s] (a frame stamped t was taken at t + it);
   // false when it does not estimate one. Read it from the thread that feeds.
   virtual bool estimated_time_offset_s(double* /*td_s*/) const { return false; }
+  // W's z axis is up (gravity along -z): true for every backend with an IMU.
+  // A backend without one (rgbd) starts W at its first body pose, tilted as
+  // that pose was, so only a full SE(3) alignment compares it with the truth.
+  virtual bool world_levelled() const { return true; }
 
   // Backends with a map (window with mapping on, docs/map.md). Keyframes go
   // to the map through a lock-free ring the tracking side may overrun;

@@ -81,6 +81,7 @@ class RgbdEstimator final : public Estimator {
   const EstimatorOutput& output() const override { return out_; }
   const EstimatorCounters& counters() const override { return counters_; }
   std::string backend_summary() const override;
+  bool world_levelled() const override { return false; }
 
   const RgbdCounters& rgbd_counters() const { return rc_; }
   const TrackResult& last_track() const { return tracker_.last(); }
