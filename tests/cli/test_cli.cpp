@@ -105,6 +105,17 @@ TEST(Cli, MissingLogIsAClearError) {
   EXPECT_NE(r.out.find("/nonexistent/flight.klog"), std::string::npos) << r.out;
 }
 
+// rgbd's world is its first camera pose (no IMU, no gravity): fed to a flight
+// controller as LOCAL_FRD its forward axis would be taken for down. Refused
+// before anything is sent; a backend with an IMU streams on the same command.
+TEST(Cli, MavlinkRefusesABackendWhoseWorldIsNotLevelled) {
+  const CmdResult r = run("replay " + small_log() + " --estimator rgbd --mavlink-udp 127.0.0.1:14599");
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_NE(r.out.find("rgbd backend has no IMU"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("not levelled"), std::string::npos) << r.out;
+  EXPECT_EQ(run("replay " + small_log() + " --estimator vo --mavlink-udp 127.0.0.1:14599").code, 0);
+}
+
 TEST(Replay, LockstepIsBitIdenticalRunAfterRun) {
   const std::string dir = kestrel::test::temp_dir("cli_lockstep");
   ASSERT_TRUE(fs::exists(small_log()));

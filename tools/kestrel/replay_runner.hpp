@@ -34,6 +34,10 @@ namespace kestrel::cli {
 // is named. Throws std::invalid_argument naming the bad value.
 std::optional<mavlink::OdometryStreamOptions> mavlink_options(const drivers::MavlinkSettings& cfg,
                                                               const std::string& udp, const std::string& serial);
+// Why a backend whose world is not levelled (Estimator::world_levelled()
+// false: rgbd) may not feed a flight controller: ODOMETRY's LOCAL_FRD frame
+// has its z along gravity, and this backend's W is its first camera pose.
+std::string mavlink_needs_levelled_world(const std::string& backend);
 
 // One pose of the output stream as the output (writer) thread receives it.
 struct PoseSample {
