@@ -6,11 +6,10 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <nlohmann/json.hpp>
 #include <sstream>
 #include <string>
 #include <vector>
-
-#include <nlohmann/json.hpp>
 
 #include "run_command.hpp"
 #include "test_data.hpp"
@@ -275,8 +274,10 @@ TEST(Replay, RealtimeReplayAppliesTheConfigsThreadTableAndReportsIt) {
 // with an IMU keep the posyaw figure, which differs from the se3 one.
 TEST(Cli, BenchScoresABackendWithoutGravityAfterSe3) {
   const std::string dir = kestrel::test::temp_dir("cli_bench_rgbd_" + std::to_string(getpid()));
-  const CmdResult r = run("bench --cases hover --duration 4 --width 160 --height 120 --estimator rgbd,window "
-                          "--mapping off --workdir " + dir + " --json " + dir + "/b.json");
+  const CmdResult r =
+      run("bench --cases hover --duration 4 --width 160 --height 120 --estimator rgbd,window "
+          "--mapping off --workdir " +
+          dir + " --json " + dir + "/b.json");
   ASSERT_EQ(r.code, 0) << r.out;
   const nlohmann::json j = nlohmann::json::parse(slurp(dir + "/b.json"));
   int seen = 0;

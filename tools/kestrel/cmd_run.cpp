@@ -184,7 +184,7 @@ Subcommand add_run_command(CLI::App& parent) {
     drivers::RingImuSink<decltype(rings->imu)> imu(rings->imu);
     RingFrameSink frames(*rings, cfg.rig);
     std::unique_ptr<core::Estimator> est = core::make_estimator(est_cfg, cfg.rig);
-  if (odometry && !est->world_levelled()) throw UsageError(mavlink_needs_levelled_world(est->name()));
+    if (odometry && !est->world_levelled()) throw UsageError(mavlink_needs_levelled_world(est->name()));
     // Live, the optimizer always has its own thread: a solve must never hold
     // up the IMU-rate pose (docs/threads.md).
     est->set_threaded_optimizer(est->has_optimizer());

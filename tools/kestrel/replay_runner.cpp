@@ -547,7 +547,8 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   core::Estimator& estimator = *estimator_ptr;
   report.estimator = estimator.name();
   report.world_levelled = estimator.world_levelled();
-  if (opt.mavlink && !report.world_levelled) throw std::invalid_argument(mavlink_needs_levelled_world(estimator.name()));
+  if (opt.mavlink && !report.world_levelled)
+    throw std::invalid_argument(mavlink_needs_levelled_world(estimator.name()));
   report.trajectory.reserve(1 << 16);
   report.has_map = estimator.has_map();
   if (report.has_map) report.map_trajectory.reserve(1 << 16);
@@ -796,7 +797,8 @@ Json config_value_json(const std::string& v) {
 
 std::string mavlink_needs_levelled_world(const std::string& backend) {
   return "--mavlink-udp/--mavlink-serial: the " + backend +
-         " backend has no IMU, so its world frame is its first camera pose, not levelled; a flight controller "
+         " backend has no IMU, so its world frame is its first camera pose, not levelled; a flight "
+         "controller "
          "takes ODOMETRY's z for down (docs/px4.md). Use a backend with an IMU (window, ekf, vo)";
 }
 
