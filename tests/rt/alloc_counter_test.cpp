@@ -10,6 +10,7 @@
 #include <thread>
 #include <vector>
 
+#include "kestrel/rt/doorbell.hpp"
 #include "kestrel/rt/fixed_vector.hpp"
 #include "kestrel/rt/history_ring.hpp"
 #include "kestrel/rt/latency_histogram.hpp"
@@ -80,6 +81,7 @@ TEST(AllocCounter, RtPathsDoNotAllocate) {
   PerfCounter* count = reg.register_counter("n", PerfKind::kCount);
   PerfCounter* elapsed = reg.register_counter("e", PerfKind::kElapsed);
   PerfCounter* interval = reg.register_counter("i", PerfKind::kInterval);
+  Doorbell bell;
 
   AllocCountScope scope;
   for (std::int64_t i = 0; i < 1000; ++i) {
@@ -100,6 +102,8 @@ TEST(AllocCounter, RtPathsDoNotAllocate) {
       ScopedTimer t(elapsed);
     }
     interval->tick();
+    bell.ring();
+    (void)bell.wait_for_ns(0);
   }
   EXPECT_EQ(scope.count(), 0u);
   EXPECT_GT(ring->drops(), 0u);

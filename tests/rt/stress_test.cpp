@@ -10,6 +10,7 @@
 #include <vector>
 
 #include "kestrel/rt/clock.hpp"
+#include "kestrel/rt/doorbell.hpp"
 #include "kestrel/rt/mailbox.hpp"
 #include "kestrel/rt/object_pool.hpp"
 #include "kestrel/rt/spsc_ring.hpp"
@@ -74,6 +75,47 @@ void spsc_sequence_stress(std::uint64_t max_items) {
 TEST(SpscRingStress, SequenceCapacity1024) { spsc_sequence_stress<1024>(5'000'000); }
 TEST(SpscRingStress, SequenceCapacity1) { spsc_sequence_stress<1>(500'000); }
 TEST(SpscRingStress, SequenceCapacity3) { spsc_sequence_stress<3>(1'000'000); }
+
+// A consumer that sleeps on a doorbell between drains, with a timeout far
+// longer than the test: a ring lost between its last look and its wait would
+// show as a timed-out wait (and a stalled test), so every wait must be rung.
+TEST(DoorbellStress, NoRingIsSleptThrough) {
+  auto q = std::make_unique<SpscRing<std::uint64_t, 8>>();
+  Doorbell bell;
+  std::atomic<bool> done{false};
+  constexpr std::uint64_t kItems = 200'000;
+  std::thread producer([&] {
+    Budget budget;
+    std::uint64_t seq = 0;
+    while (seq < kItems && !budget.exhausted(seq)) {
+      if (q->try_push(seq)) {
+        ++seq;
+        bell.ring();
+      } else {
+        std::this_thread::yield();
+      }
+    }
+    done.store(true, std::memory_order_release);
+    bell.ring();
+  });
+  std::uint64_t expected = 0;
+  std::uint64_t errors = 0;
+  std::uint64_t timeouts = 0;
+  for (;;) {
+    while (std::uint64_t* v = q->front()) {
+      if (*v != expected) ++errors;
+      expected = *v + 1;
+      q->pop();
+    }
+    if (done.load(std::memory_order_acquire) && q->empty()) break;
+    const int64_t t0 = now_ns();
+    if (!bell.wait_for_ns(10 * kNsPerS) && now_ns() - t0 >= 10 * kNsPerS) ++timeouts;
+  }
+  producer.join();
+  EXPECT_EQ(errors, 0u);
+  EXPECT_EQ(timeouts, 0u);
+  EXPECT_GT(expected, 0u);
+}
 
 // Every field equals the publish counter; a reader must never see a mix.
 template <std::size_t Words, class Word>
