@@ -2,7 +2,6 @@
 
 #include <cstring>
 #include <stdexcept>
-#include <thread>
 
 #include "kestrel/rt/clock.hpp"
 
@@ -32,21 +31,31 @@ ReplaySource::ReplaySource(LogSource& log, SensorRings& rings, ReplayPace pace)
     : log_(log), rings_(rings), pace_(pace) {}
 
 template <class Ring, class T>
-bool ReplaySource::push(Ring& ring, const T& value, uint64_t& dropped) {
-  if (ring.try_push(value)) return true;
-  if (pace_ == ReplayPace::kFast) {
-    // Back-pressure: in fast pace the point is to drain the log, so wait for
-    // the consumer instead of dropping.
-    while (!ring.try_push(value)) {
-      if (stop_ != nullptr && stop_->load(std::memory_order_relaxed)) return false;
-      std::this_thread::yield();
+bool ReplaySource::push(Ring& ring, rt::Doorbell* bell, const T& value, uint64_t& dropped) {
+  for (;;) {
+    if (ring.try_push(value)) {
+      if (bell != nullptr) bell->ring();
+      return true;
     }
-    return true;
+    if (pace_ != ReplayPace::kFast) break;
+    // Back-pressure: in fast pace the point is to drain the log, so sleep
+    // until the consumer pops (it rings space_bell) instead of dropping. The
+    // bound only lets `stop` be seen without a ring.
+    if (stop_ != nullptr && stop_->load(std::memory_order_relaxed)) return false;
+    rings_.space_bell.wait_for_ns(kFullRingWaitNs);
   }
   // Realtime (and a lockstep caller that forgot to drain): drop, as a live
   // driver must. SpscRing counted it already.
   ++dropped;
   return false;
+}
+
+void ReplaySource::finish() {
+  emit_pending();
+  finished_.store(true, std::memory_order_release);
+  // Consumers that sleep until the next record must also wake for "no more".
+  if (rings_.imu_bell != nullptr) rings_.imu_bell->ring();
+  if (rings_.frame_bell != nullptr) rings_.frame_bell->ring();
 }
 
 void ReplaySource::wait_until_due(int64_t t_ns) {
@@ -85,7 +94,7 @@ void ReplaySource::emit_pending() {
   if (!have_pending_) return;
   have_pending_ = false;
   pending_.t_recv_ns = rt::now_ns();
-  if (push(rings_.frames, pending_, stats_.frames_dropped)) {
+  if (push(rings_.frames, rings_.frame_bell, pending_, stats_.frames_dropped)) {
     ++stats_.frames_pushed;
     return;
   }
@@ -97,8 +106,7 @@ void ReplaySource::emit_pending() {
 bool ReplaySource::step() {
   if (finished_.load(std::memory_order_relaxed)) return false;
   if (!log_.next(rec_)) {
-    emit_pending();
-    finished_.store(true, std::memory_order_release);
+    finish();
     return false;
   }
   switch (rec_.type) {
@@ -109,7 +117,7 @@ bool ReplaySource::step() {
       // A live driver stamps arrival on the host clock; so does replay, which
       // is what the latency figures measure from.
       s.t_recv_ns = rt::now_ns();
-      if (push(rings_.imu, s, stats_.imu_dropped)) ++stats_.imu_pushed;
+      if (push(rings_.imu, rings_.imu_bell, s, stats_.imu_dropped)) ++stats_.imu_pushed;
       if (stats_.first_t_ns < 0) stats_.first_t_ns = s.t_ns;
       stats_.last_t_ns = s.t_ns;
       break;
@@ -161,10 +169,7 @@ void ReplaySource::run(const std::atomic<bool>& stop) {
   stop_ = &stop;
   while (!stop.load(std::memory_order_relaxed) && step()) {
   }
-  if (!finished()) {
-    emit_pending();
-    finished_.store(true, std::memory_order_release);
-  }
+  if (!finished()) finish();
 }
 
 }  // namespace kestrel::drivers

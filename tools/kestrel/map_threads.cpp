@@ -6,6 +6,11 @@
 #include "kestrel/rt/thread_setup.hpp"
 
 namespace kestrel::cli {
+namespace {
+// The bound on a sleep nobody rang for (stop, or work that appeared without a
+// wake()): a few wake-ups a second, where the 200 us sleep loop took 5 000.
+constexpr int64_t kIdleWaitNs = 50'000'000;
+}  // namespace
 
 MapThreads::MapThreads(core::Estimator& est, const drivers::ThreadTable& table, std::vector<AppliedThread>& applied)
     : est_(est) {
@@ -23,9 +28,13 @@ MapThreads::MapThreads(core::Estimator& est, const drivers::ThreadTable& table, 
               std::lock_guard<std::mutex> lock(mutex_);
               worked = t == 0 ? est_.mapping_step() : est_.loop_step();
             }
-            if (!worked) {
+            if (worked) {
+              // A mapped keyframe is new work for the loop thread.
+              if (t == 0) bells_[1].ring();
+              idle_bell_.ring();
+            } else {
               if (stop_.load(std::memory_order_acquire)) break;
-              rt::sleep_for_ns(200'000);
+              bells_[t].wait_for_ns(kIdleWaitNs);
             }
           }
           timespec ts{};
@@ -39,10 +48,16 @@ MapThreads::MapThreads(core::Estimator& est, const drivers::ThreadTable& table, 
 
 MapThreads::~MapThreads() { stop(); }
 
+void MapThreads::wait_idle() {
+  while (est_.map_busy()) idle_bell_.wait_for_ns(kIdleWaitNs);
+}
+
 void MapThreads::stop() {
   if (!started_) return;
-  while (est_.map_busy()) rt::sleep_for_ns(1'000'000);
+  wake();
+  wait_idle();
   stop_.store(true, std::memory_order_release);
+  wake();
   for (std::thread& t : threads_)
     if (t.joinable()) t.join();
   started_ = false;

@@ -14,6 +14,7 @@
 #include "kestrel/core/estimator.hpp"
 #include "kestrel/drivers/devices.hpp"
 #include "kestrel/replay_runner.hpp"
+#include "kestrel/rt/doorbell.hpp"
 
 namespace kestrel::cli {
 
@@ -26,6 +27,15 @@ class MapThreads {
   MapThreads(const MapThreads&) = delete;
   MapThreads& operator=(const MapThreads&) = delete;
 
+  // The tracking side calls this after handing a frame over: both threads
+  // sleep on a doorbell until then. Lock-free and allocation-free.
+  void wake() noexcept {
+    bells_[0].ring();
+    bells_[1].ring();
+  }
+  // Returns once the map has taken all that was handed over (the
+  // deterministic paces call it per frame, from one thread).
+  void wait_idle();
   // Lets the work handed over finish, then joins. Idempotent.
   void stop();
   bool running() const { return started_; }
@@ -39,6 +49,8 @@ class MapThreads {
   std::atomic<bool> stop_{false};
   std::mutex mutex_;
   std::thread threads_[2];
+  rt::Doorbell bells_[2];
+  rt::Doorbell idle_bell_;
   double cpu_s_[2] = {0, 0};
 };
 

@@ -25,6 +25,7 @@
 #include "kestrel/drivers/clock_sync.hpp"
 #include "kestrel/drivers/i2c_bus.hpp"
 #include "kestrel/msgs.hpp"
+#include "kestrel/rt/doorbell.hpp"
 #include "kestrel/rt/spsc_ring.hpp"
 
 namespace kestrel::drivers {
@@ -38,15 +39,21 @@ class ImuSink {
   virtual void event(int64_t /*t_ns*/, EventCode /*code*/, const char* /*text*/) noexcept {}
 };
 
-// Into an SpscRing (SensorRings::imu): try_push, the ring counts drops.
+// Into an SpscRing (SensorRings::imu): try_push, the ring counts drops; then
+// wakes the consumer that sleeps on `bell` (none: nobody sleeps on the ring).
 template <class Ring>
 class RingImuSink final : public ImuSink {
  public:
-  explicit RingImuSink(Ring& r) : ring_(r) {}
-  bool push(const ImuSample& s) noexcept override { return ring_.try_push(s); }
+  explicit RingImuSink(Ring& r, rt::Doorbell* bell = nullptr) : ring_(r), bell_(bell) {}
+  bool push(const ImuSample& s) noexcept override {
+    if (!ring_.try_push(s)) return false;
+    if (bell_ != nullptr) bell_->ring();
+    return true;
+  }
 
  private:
   Ring& ring_;
+  rt::Doorbell* bell_;
 };
 
 namespace bmx055 {

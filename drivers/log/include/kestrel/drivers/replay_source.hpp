@@ -39,6 +39,9 @@ class ReplaySource {
   // Depth pairs with the colour image it follows when their times differ by
   // at most this much (registered RGB-D cameras stamp both alike).
   static constexpr int64_t kDepthPairingNs = 5'000'000;
+  // How long `--pace fast` sleeps on a full ring before it looks at `stop`
+  // again; the consumer's pop wakes it sooner.
+  static constexpr int64_t kFullRingWaitNs = 20'000'000;
 
   ReplaySource(LogSource& log, SensorRings& rings, ReplayPace pace);
 
@@ -63,7 +66,8 @@ class ReplaySource {
   void emit_pending();
   bool copy_image(const LogImage& img, uint32_t& handle);
   template <class Ring, class T>
-  bool push(Ring& ring, const T& value, uint64_t& dropped);
+  bool push(Ring& ring, rt::Doorbell* bell, const T& value, uint64_t& dropped);
+  void finish();
   void wait_until_due(int64_t t_ns);
 
   LogSource& log_;

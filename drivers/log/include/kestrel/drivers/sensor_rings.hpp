@@ -12,6 +12,7 @@
 
 #include "kestrel/drivers/log_source.hpp"
 #include "kestrel/msgs.hpp"
+#include "kestrel/rt/doorbell.hpp"
 #include "kestrel/rt/object_pool.hpp"
 #include "kestrel/rt/spsc_ring.hpp"
 
@@ -39,6 +40,28 @@ struct SensorRings {
   rt::SpscRing<RgbdFrameMsg, kFrameRingCapacity> frames;
   ImagePool images;
   std::size_t max_image_bytes = 0;
+
+  // Consumers sleep on a doorbell instead of polling (issue 45): a producer
+  // rings the bell of the ring it pushed into. Set before any producer starts;
+  // null = nobody sleeps on that ring. Two rings may share one bell (a consumer
+  // of both); a bell has one sleeper.
+  rt::Doorbell* imu_bell = nullptr;
+  rt::Doorbell* frame_bell = nullptr;
+  // Rung by the consumer after it pops; only a producer that waits on a full
+  // ring (`--pace fast` replay) sleeps on it.
+  rt::Doorbell space_bell;
+
+  // try_push, then wake the ring's consumer. False: full (the ring counted it).
+  bool push_imu(const ImuSample& s) noexcept {
+    if (!imu.try_push(s)) return false;
+    if (imu_bell != nullptr) imu_bell->ring();
+    return true;
+  }
+  bool push_frame(const RgbdFrameMsg& m) noexcept {
+    if (!frames.try_push(m)) return false;
+    if (frame_bell != nullptr) frame_bell->ring();
+    return true;
+  }
 };
 
 }  // namespace kestrel::drivers
