@@ -248,8 +248,12 @@ DriverSettings driver_settings_from_yaml_node(const YAML::Node& root, const std:
     d.strobe.tolerance_ns = 1000 * p.integer(s, "tolerance_us", sp, 8000, 1, 1'000'000);
   }
   if (const YAML::Node l = root["log"]) {
-    p.only(l, "drivers.log", {"path"});
+    p.only(l, "drivers.log", {"path", "pace"});
     d.log_path = p.str(l, "path", "drivers.log", "");
+    d.log_pace = p.choice<ReplayPace>(l, "pace", "drivers.log", ReplayPace::kRealtime,
+                                      {{"realtime", ReplayPace::kRealtime},
+                                       {"fast", ReplayPace::kFast},
+                                       {"lockstep", ReplayPace::kLockstep}});
     const auto slash = where.rfind('/');
     if (!d.log_path.empty() && d.log_path[0] != '/' && slash != std::string::npos)
       d.log_path = where.substr(0, slash + 1) + d.log_path;
@@ -438,11 +442,16 @@ LiveConfig live_config_from_yaml(const std::string& text, const std::string& whe
       throw std::runtime_error(where + ": " + k + ": unknown key (expected " + expected + ")");
     }
   }
-  if (!root["rig"]) throw std::runtime_error(where + ": rig: missing (required)");
   LiveConfig c;
   c.path = where;
   try {
-    if (root["rig"].IsScalar()) {
+    if (!root["rig"]) {
+      // A log plays with its own rig; live sensors need one.
+      c.drivers = driver_settings_from_yaml_node(root["drivers"], where);
+      if (c.drivers.camera.type != CameraType::kLog)
+        throw std::runtime_error(where + ": rig: missing (required unless the sensors are a log)");
+      c.rig = KlogReader(c.drivers.log_path).rig();
+    } else if (root["rig"].IsScalar()) {
       // A rig file of its own (what `kestrel calib import-kalibr` writes), relative to this config.
       std::string file = root["rig"].Scalar();
       const auto slash = where.rfind('/');
@@ -452,6 +461,14 @@ LiveConfig live_config_from_yaml(const std::string& text, const std::string& whe
       c.rig = rig_from_yaml_node(root["rig"], where, "rig.");
     }
     c.drivers = driver_settings_from_yaml_node(root["drivers"], where);
+    if (c.drivers.camera.type == CameraType::kLog) {
+      // The log's camera size and rate unless the config names them.
+      const YAML::Node cam = root["drivers"]["camera"];
+      CameraSettings& cs = c.drivers.camera;
+      if (!cam["width_px"] && c.rig.rgb.width > 0) cs.width_px = c.rig.rgb.width;
+      if (!cam["height_px"] && c.rig.rgb.height > 0) cs.height_px = c.rig.rgb.height;
+      if (!cam["rate_hz"] && c.rig.camera_rate_hz > 0) cs.rate_hz = c.rig.camera_rate_hz;
+    }
     c.estimator = estimator_settings_from_yaml_node(root["estimator"], where);
     c.threads = thread_table_from_yaml_node(root["threads"], where);
     c.mavlink = mavlink_settings_from_yaml_node(root["mavlink"], where);

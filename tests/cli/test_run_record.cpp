@@ -133,5 +133,64 @@ TEST(RunRecord, BadLogSensorConfigsAreNamed) {
   EXPECT_EQ(run_kestrel("run --config " + dir + "/b.yaml --record " + dir + "/x.klog --record-buffer-s 0").code, 2);
 }
 
+std::string file_bytes(const std::string& path) {
+  std::ifstream f(path, std::ios::binary);
+  return std::string((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
+}
+
+// Issue 45's contract: a live config whose sensors are a log at lockstep pace
+// (no rig: the log's) runs through replay's pipeline, so `kestrel run` writes
+// the very bytes `kestrel replay --pace lockstep` writes.
+TEST(RunRecord, LockstepLogRunWritesTheReplaysTrajectoryByteForByte) {
+  const std::string dir = temp_dir("run_lockstep");
+  const std::string src = dir + "/src.klog";
+  CmdResult r =
+      run_kestrel("sim --scenario figure8 --duration 5 --seed 6 --width 160 --height 120 --out " + src);
+  ASSERT_EQ(r.code, 0) << r.out;
+  std::ofstream(dir + "/live.yaml")
+      << "drivers: {camera: {type: log}, imu: {type: log}, log: {path: src.klog, pace: "
+         "lockstep}}\nestimator: {backend: window}\n";
+  r = run_kestrel("run --config " + dir + "/live.yaml --traj-out " + dir + "/run.txt");
+  ASSERT_EQ(r.code, 0) << r.out;
+  EXPECT_NE(r.out.find("through the replay pipeline"), std::string::npos) << r.out;
+  r = run_kestrel("replay " + src + " --pace lockstep --traj-out " + dir + "/replay.txt");
+  ASSERT_EQ(r.code, 0) << r.out;
+  const std::string a = file_bytes(dir + "/run.txt"), b = file_bytes(dir + "/replay.txt");
+  EXPECT_GT(a.size(), 1000u);
+  EXPECT_TRUE(a == b) << "run and replay trajectories differ";
+
+  // A pace it does not know, and options a log at lockstep pace cannot honour, are named.
+  std::ofstream(dir + "/bad.yaml")
+      << "drivers: {camera: {type: log}, imu: {type: log}, log: {path: src.klog, pace: "
+         "slow}}\n";
+  r = run_kestrel("run --config " + dir + "/bad.yaml");
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_NE(r.out.find("drivers.log.pace"), std::string::npos) << r.out;
+  r = run_kestrel("run --config " + dir + "/live.yaml --record " + dir + "/x.klog");
+  EXPECT_EQ(r.code, 2) << r.out;
+  EXPECT_NE(r.out.find("already a recording"), std::string::npos) << r.out;
+  // Live sensors still need a rig.
+  std::ofstream(dir + "/norig.yaml")
+      << "drivers: {camera: {type: v4l2, v4l2: {color_device: /dev/video0}}, imu: {type: none}}\n";
+  r = run_kestrel("run --config " + dir + "/norig.yaml");
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_NE(r.out.find("rig: missing"), std::string::npos) << r.out;
+}
+
+// Options that depend on the backend are refused before the replay runs.
+TEST(RunRecord, AMapOutputForABackendWithoutAMapIsRefusedBeforeTheReplay) {
+  const std::string dir = temp_dir("replay_map_check");
+  const std::string src = dir + "/src.klog";
+  CmdResult r =
+      run_kestrel("sim --scenario hover --duration 3 --seed 2 --width 160 --height 120 --out " + src);
+  ASSERT_EQ(r.code, 0) << r.out;
+  r = run_kestrel("replay " + src + " --estimator rgbd --map-traj-out " + dir + "/m.txt --traj-out " + dir +
+                  "/t.txt");
+  EXPECT_EQ(r.code, 2) << r.out;
+  EXPECT_NE(r.out.find("--map-traj-out: the backend 'rgbd' runs without a map"), std::string::npos) << r.out;
+  EXPECT_EQ(r.out.find("poses out:"), std::string::npos) << "the replay ran: " << r.out;
+  EXPECT_FALSE(std::ifstream(dir + "/t.txt").good()) << "the replay ran and wrote its trajectory";
+}
+
 }  // namespace
 }  // namespace kestrel::test

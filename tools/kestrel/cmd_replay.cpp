@@ -161,13 +161,19 @@ Subcommand add_replay_command(CLI::App& parent) {
       return 0;
     }
     if (args->path.empty()) throw UsageError("replay: the log is required (unless --print-config)");
+    // The map's outputs need a backend with a map: said before the replay, not after it.
+    opt.check_before_start = [args](const core::Estimator& est) {
+      if (est.has_map()) return;
+      const std::string flag = !args->map_in.empty()               ? "--map-in"
+                               : !args->map_traj_out.empty()       ? "--map-traj-out"
+                               : !args->map_final_traj_out.empty() ? "--map-final-traj-out"
+                                                                   : "";
+      if (!flag.empty()) throw UsageError(flag + ": the backend '" + est.name() + "' runs without a map");
+    };
     ReplayReport r = run_replay(opt);
     r.config = tools::estimator_config_entries(*opt.config);
     if (!args->traj_out.empty()) tools::write_tum(args->traj_out, r.trajectory);
-    if (!args->map_in.empty() && !r.has_map)
-      throw UsageError("--map-in: the backend '" + r.estimator + "' runs without a map");
     if (!args->map_traj_out.empty()) {
-      if (!r.has_map) throw UsageError("--map-traj-out: the backend '" + r.estimator + "' runs without a map");
       tools::write_tum(args->map_traj_out, r.map_trajectory);
     }
     if (!args->metrics_out.empty()) {
@@ -176,7 +182,6 @@ Subcommand add_replay_command(CLI::App& parent) {
       f << replay_metrics_json(r);
     }
     if (!args->map_final_traj_out.empty()) {
-      if (!r.has_map) throw UsageError("--map-final-traj-out: the backend '" + r.estimator + "' runs without a map");
       if (r.map_final_trajectory.empty())
         throw std::runtime_error("--map-final-traj-out: the map holds no keyframe of this flight; nothing written to " +
                                  args->map_final_traj_out);

@@ -57,7 +57,7 @@ class RingFrameSink final : public drivers::FrameSink {
       rings_.images.release(m.rgb_handle);
       return drop();
     }
-    if (rings_.frames.try_push(m)) return true;
+    if (rings_.push_frame(m)) return true;
     rings_.images.release(m.rgb_handle);
     if (m.depth_handle != rt::kInvalidHandle) rings_.images.release(m.depth_handle);
     return false;
@@ -108,8 +108,58 @@ struct RunArgs {
 // A frame waits for the IMU up to its time at most this long (wall clock):
 // an IMU that stopped must not stall the camera.
 constexpr int64_t kFrameWaitForImuNs = 50'000'000;
+// The bound on a doorbell sleep nobody rang for: a stop flag, or a frame whose
+// IMU wait (above) runs out. 100 wake-ups a second per idle thread.
+constexpr int64_t kIdleWaitNs = 10'000'000;
+// The main thread's longest sleep between MAVLink services (HEARTBEAT, TIMESYNC).
+constexpr int64_t kOutputServiceNs = 20'000'000;
 // Latency statistics start after this much sample time (start-up is not steady state).
 constexpr int64_t kWarmupNs = 2'000'000'000;
+
+// `drivers.log.pace: fast|lockstep`: the log goes through replay's pipeline
+// (run_replay), so `kestrel run` writes byte for byte what `kestrel replay
+// LOG --pace P` writes. Realtime pace keeps the live sensor threads.
+int run_log_through_replay(const RunArgs& a, const drivers::LiveConfig& cfg,
+                           const core::EstimatorConfig& est_cfg,
+                           const std::optional<mavlink::OdometryStreamOptions>& mavlink,
+                           const viewer::ServerOptions& view_options) {
+  if (!a.record.empty())
+    throw UsageError(std::string("--record: the sensors are a log played at ") +
+                     drivers::to_string(cfg.drivers.log_pace) + " pace, already a recording (" +
+                     cfg.drivers.log_path + ")");
+  if (a.duration_s > 0)
+    throw UsageError(std::string("--duration: a log at ") + drivers::to_string(cfg.drivers.log_pace) +
+                     " pace runs to its end");
+  ReplayOptions opt;
+  opt.path = cfg.drivers.log_path;
+  opt.format = drivers::LogFormat::kKlog;
+  opt.pace = cfg.drivers.log_pace;
+  opt.config = est_cfg;
+  opt.estimator = est_cfg.backend;
+  opt.threads = cfg.threads;
+  opt.mavlink = mavlink;
+  opt.map_out = a.map_out;
+  if (!a.view.endpoint.empty()) {
+    opt.view = true;
+    opt.view_options = view_options;
+    opt.view_wait_s = a.view.wait_s;
+    opt.on_view_ready = [&a](const viewer::Server& s) { print_view_ready(s, a.view); };
+  }
+  std::printf("running %s at %s pace through the replay pipeline -> estimator '%s'\n",
+              cfg.drivers.log_path.c_str(), drivers::to_string(cfg.drivers.log_pace),
+              est_cfg.backend.c_str());
+  ReplayReport r = run_replay(opt);
+  r.config = tools::estimator_config_entries(est_cfg);
+  std::printf("%s", replay_summary(r).c_str());
+  for (const auto& p : r.problems)
+    std::fprintf(stderr, "problem: %s: %s: %s\n", p.where.c_str(), p.kind.c_str(), p.detail.c_str());
+  if (!a.traj_out.empty()) {
+    tools::write_tum(a.traj_out, r.trajectory);
+    std::printf("trajectory: %s (%zu poses)\n", a.traj_out.c_str(), r.trajectory.size());
+  }
+  if (!a.map_out.empty()) std::printf("map: %s\n", a.map_out.c_str());
+  return 0;
+}
 
 }  // namespace
 
@@ -176,12 +226,21 @@ Subcommand add_run_command(CLI::App& parent) {
     if (!a->view.endpoint.empty()) view_options = view_server_options(a->view, "run " + a->config);
     if (!a->record.empty() && !(a->record_buffer_s > 0 && a->record_buffer_s <= 60))
       throw UsageError("--record-buffer-s must be in (0, 60] seconds");
+    if (cfg.drivers.camera.type == drivers::CameraType::kLog &&
+        cfg.drivers.log_pace != drivers::ReplayPace::kRealtime)
+      return run_log_through_replay(*a, cfg, est_cfg, mo, view_options);
     drivers::LiveSensors sensors(cfg);  // missing sensors are named first
     std::unique_ptr<mavlink::OdometryStream> odometry;
     if (mo) odometry = std::make_unique<mavlink::OdometryStream>(*mo);
     const size_t max_image = static_cast<size_t>(cfg.drivers.camera.width_px) * cfg.drivers.camera.height_px * 3;
     auto rings = std::make_unique<drivers::SensorRings>(max_image);
-    drivers::RingImuSink<decltype(rings->imu)> imu(rings->imu);
+    // Who sleeps on what: the drivers wake kst-propagate (IMU) and the
+    // estimator (frames); kst-propagate wakes the estimator for what it
+    // forwarded; the estimator wakes the optimizer, the map and the output.
+    rt::Doorbell est_bell, prop_bell, opt_bell, out_bell;
+    rings->imu_bell = &prop_bell;
+    rings->frame_bell = &est_bell;
+    drivers::RingImuSink<decltype(rings->imu)> imu(rings->imu, rings->imu_bell);
     RingFrameSink frames(*rings, cfg.rig);
     std::unique_ptr<core::Estimator> est = core::make_estimator(est_cfg, cfg.rig);
     if (odometry && !est->world_levelled()) throw UsageError(mavlink_needs_levelled_world(est->name()));
@@ -244,7 +303,7 @@ Subcommand add_run_command(CLI::App& parent) {
           cfg.threads[PipelineThread::kOptimizer],
           [&] {
             while (!consumer_stop.load(std::memory_order_relaxed))
-              if (!est->optimizer_step()) rt::sleep_for_ns(500'000);
+              if (!est->optimizer_step()) opt_bell.wait_for_ns(kIdleWaitNs);
           },
           &sched);
       applied.push_back(applied_thread(cfg.threads[PipelineThread::kOptimizer], sched));
@@ -360,6 +419,7 @@ Subcommand add_run_command(CLI::App& parent) {
             feed->on_frame(f, vi);
           }
           last_frame_t_ns = m->t_ns;
+          map_threads.wake();
           emit(m->t_ns);
           rings->images.release(m->rgb_handle);
           if (m->depth_handle != rt::kInvalidHandle) rings->images.release(m->depth_handle);
@@ -367,16 +427,27 @@ Subcommand add_run_command(CLI::App& parent) {
           frames_seen.fetch_add(1, std::memory_order_relaxed);
           any = true;
         }
-        if (!any) rt::sleep_for_ns(1'000'000);
+        if (any) {
+          opt_bell.ring();
+          out_bell.ring();
+        } else {
+          est_bell.wait_for_ns(kIdleWaitNs);
+        }
       }
     }, &sched);
     applied.push_back(applied_thread(cfg.threads[PipelineThread::kEstimator], sched));
     std::thread propagator = rt::start_thread(
         cfg.threads[PipelineThread::kPropagate],
         [&] {
-          // Sleeps 100 us when idle rather than spinning (docs/threads.md).
-          while (!propagation_stop.load(std::memory_order_relaxed))
-            if (!propagation.step()) rt::sleep_for_ns(100'000);
+          // Sleeps on its doorbell until a driver pushes (docs/threads.md).
+          while (!propagation_stop.load(std::memory_order_relaxed)) {
+            if (propagation.step()) {
+              est_bell.ring();
+              out_bell.ring();
+            } else {
+              prop_bell.wait_for_ns(kIdleWaitNs);
+            }
+          }
           propagation.finish();
         },
         &sched);
@@ -395,7 +466,9 @@ Subcommand add_run_command(CLI::App& parent) {
     int64_t next_print = t0 + 1'000'000'000;
     uint64_t status_version = 0;
     while (!g_run_stop.load() && (a->duration_s <= 0 || rt::now_ns() - t0 < static_cast<int64_t>(a->duration_s * 1e9))) {
-      rt::sleep_for_ns(2'000'000);
+      // Woken by new poses; the bound keeps MAVLink's HEARTBEAT / TIMESYNC
+      // service and the 1 Hz status going when none come.
+      out_bell.wait_for_ns(kOutputServiceNs);
       if (imu_pose->version() != imu_pose_version) {
         OutPose o{};
         if (imu_pose->read(o, &imu_pose_version)) ++imu_rate_poses;
@@ -436,8 +509,11 @@ Subcommand add_run_command(CLI::App& parent) {
       applied.push_back(applied_thread(recorder->thread_spec(), recorder->thread_report()));
     }
     propagation_stop.store(true);
+    prop_bell.ring();
     propagator.join();
     consumer_stop.store(true);
+    est_bell.ring();
+    opt_bell.ring();
     consumer.join();
     if (optimizer.joinable()) optimizer.join();
     if (view) {

@@ -72,6 +72,10 @@ mavlink::OdometryInput odometry_input_of(const PoseSample& s) {
 namespace {
 
 constexpr std::size_t kOutRingCapacity = 16384;
+// Threads with nothing to do sleep on a doorbell that their producer rings;
+// this bound only lets them see a stop flag nobody rang for (a few wake-ups a
+// second per thread, against 10 000 for the 100 us sleep loops it replaced).
+constexpr int64_t kIdleWaitNs = 50'000'000;
 
 double thread_cpu_s() {
   timespec ts{};
@@ -153,15 +157,17 @@ class EstimatorStage {
     has_imu_ = rig.imu_rate_hz > 0;
   }
 
-  // Processes what the rings hold. `feeder_done` lets a frame go ahead of the
-  // IMU samples that would normally follow it.
-  void drain(bool feeder_done, bool lockstep) {
+  // Processes what the rings hold; true when it took anything. `feeder_done`
+  // lets a frame go ahead of the IMU samples that would normally follow it.
+  bool drain(bool feeder_done, bool lockstep) {
+    bool took = false;
     for (;;) {
       ImuSample* s = imu_.front();
       RgbdFrameMsg* f = rings_.frames.front();
       if (s != nullptr && (f == nullptr || s->t_ns <= f->t_ns)) {
         on_imu(*s);
         imu_.pop();
+        took = true;
         continue;
       }
       if (f != nullptr) {
@@ -175,10 +181,13 @@ class EstimatorStage {
             rings_.frames.size() > 1) {
           on_frame(*f);
           rings_.frames.pop();
+          took = true;
           continue;
         }
       }
-      return;
+      // A fast-pace feeder may be asleep on a full ring.
+      if (took) rings_.space_bell.ring();
+      return took;
     }
   }
 
@@ -189,6 +198,8 @@ class EstimatorStage {
   }
 
   uint64_t frames_fed() const { return frames_fed_; }
+  // The map's threads, woken after each frame (set before any frame).
+  void set_map_threads(MapThreads* m) { map_ = m; }
   // CPU the backend's own calls took on this thread. The thread's total also
   // holds the harness: the fast pace's busy-yield while the feeder decodes,
   // the deterministic paces' wait for the map, the lockstep's log reading.
@@ -310,8 +321,10 @@ class EstimatorStage {
       // Deterministic paces let the map finish the keyframe just handed over
       // (the mapping and loop threads run it), so the next frame sees its
       // result at the same point on every run; realtime never waits.
-      if (opt_.pace != drivers::ReplayPace::kRealtime)
-        while (est_.map_busy()) rt::sleep_for_ns(20'000);
+      if (map_ != nullptr) {
+        map_->wake();
+        if (opt_.pace != drivers::ReplayPace::kRealtime) map_->wait_idle();
+      }
       if (anchor_ != nullptr)
         anchor_->publish(to_anchor(est_.output()));
       ++frames_fed_;
@@ -373,6 +386,7 @@ class EstimatorStage {
   const ReplayOptions& opt_;
   ReplayReport& report_;
   viewer::ViewerFeed* feed_;
+  MapThreads* map_ = nullptr;
   int64_t imu_max_since_frame_ns_ = 0;
   int64_t frame_period_ns_ = 0;
   int64_t imu_gap_ns_ = 50'000'000;
@@ -549,6 +563,7 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   report.world_levelled = estimator.world_levelled();
   if (opt.mavlink && !report.world_levelled)
     throw std::invalid_argument(mavlink_needs_levelled_world(estimator.name()));
+  if (opt.check_before_start) opt.check_before_start(estimator);
   report.trajectory.reserve(1 << 16);
   report.has_map = estimator.has_map();
   if (report.has_map) report.map_trajectory.reserve(1 << 16);
@@ -590,6 +605,7 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   MapThreads map_threads(estimator,
                          opt.pace == drivers::ReplayPace::kRealtime ? opt.threads : drivers::default_thread_table(),
                          report.threads);
+  stage.set_map_threads(&map_threads);
 
   const int64_t wall0 = rt::now_ns();
   const double cpu0 = process_cpu_s();
@@ -615,6 +631,13 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     std::atomic<bool> estimator_done{false};
     std::atomic<bool> imu_forwarded{!realtime};
     double est_cpu = 0, opt_cpu = 0;
+    // Who sleeps on what (issue 45: no thread polls). Realtime: the feeder wakes
+    // kst-propagate for IMU and the estimator for frames, kst-propagate wakes
+    // the estimator for the IMU it forwarded. Fast: the estimator takes both
+    // rings. The estimator wakes the optimizer and the output after its work.
+    rt::Doorbell est_bell, prop_bell, opt_bell, out_bell;
+    rings->imu_bell = realtime ? &prop_bell : &est_bell;
+    rings->frame_bell = &est_bell;
     // The config's table in realtime pace (as it will fly); fast pace is a
     // throughput run and keeps the defaults.
     const drivers::ThreadTable table = realtime ? opt.threads : drivers::default_thread_table();
@@ -631,42 +654,41 @@ ReplayReport run_replay(const ReplayOptions& opt) {
           [&] {
             for (;;) {
               const bool done = source.finished();
-              // Sleeps 100 us when idle rather than spinning: on a 2-core machine a
-              // second spinning thread would take the estimator's CPU.
-              if (!propagator.step()) {
+              if (propagator.step()) {
+                est_bell.ring();
+                out_bell.ring();
+              } else {
                 if (done && rings->imu.empty()) break;
-                rt::sleep_for_ns(100'000);
+                prop_bell.wait_for_ns(kIdleWaitNs);
               }
             }
             propagator.finish();
             imu_forwarded.store(true, std::memory_order_release);
+            est_bell.ring();
           },
           &prop_sched);
       report.propagator_thread = rt::to_string(prop_sched);
       report.threads.push_back(applied_thread(table[PipelineThread::kPropagate], prop_sched));
     }
     ImuRing& est_in = realtime ? *est_imu : rings->imu;
-    const bool est_fifo = table[PipelineThread::kEstimator].priority > 0;
     std::thread est_thread = rt::start_thread(
         table[PipelineThread::kEstimator],
         [&] {
           for (;;) {
             const bool done = source.finished() && imu_forwarded.load(std::memory_order_acquire);
-            stage.drain(done, false);
-            if (done && est_in.empty() && rings->frames.empty()) break;
-            // Busy-yield: the lowest latency a non-RT process can get without a
-            // wake-up primitive; a live build blocks on the driver's eventfd.
-            // Under SCHED_FIFO yield() gives way to nothing of lower priority,
-            // so the thread sleeps instead of holding a CPU.
-            if (est_fifo) {
-              rt::sleep_for_ns(100'000);
-            } else {
-              std::this_thread::yield();
+            if (stage.drain(done, false)) {
+              opt_bell.ring();
+              out_bell.ring();
+              continue;
             }
+            if (done && est_in.empty() && rings->frames.empty()) break;
+            est_bell.wait_for_ns(kIdleWaitNs);
           }
           stage.finish();
           est_cpu = thread_cpu_s();
           estimator_done.store(true, std::memory_order_release);
+          opt_bell.ring();
+          out_bell.ring();
         },
         &sched);
     report.threads.push_back(applied_thread(table[PipelineThread::kEstimator], sched));
@@ -676,8 +698,9 @@ ReplayReport run_replay(const ReplayOptions& opt) {
           table[PipelineThread::kOptimizer],
           [&] {
             while (!estimator_done.load(std::memory_order_acquire)) {
-              // Polling keeps the hand-off lock-free; 0.5 ms is small beside a solve.
-              if (!estimator.optimizer_step()) rt::sleep_for_ns(500'000);
+              // A job is handed over only while the estimator works, and it
+              // rings after each piece of work: a spurious wake costs one look.
+              if (!estimator.optimizer_step()) opt_bell.wait_for_ns(kIdleWaitNs);
             }
             opt_cpu = thread_cpu_s();
           },
@@ -686,7 +709,7 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     }
     while (!estimator_done.load(std::memory_order_acquire)) {
       output.drain();
-      rt::sleep_for_ns(1'000'000);
+      out_bell.wait_for_ns(kIdleWaitNs);
     }
     feeder.join();
     if (prop_thread.joinable()) prop_thread.join();
@@ -694,6 +717,7 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     if (opt_thread.joinable()) opt_thread.join();
     output.finish();
     report.estimator_thread_cpu_s = est_cpu;
+    report.estimator_thread_overhead_cpu_s = est_cpu - stage.work_cpu_s();
     // The solve is the backend's work wherever it runs; its thread's polling
     // between solves is a few wake-ups a second.
     report.estimator_cpu_s = stage.work_cpu_s() + opt_cpu;
@@ -847,6 +871,7 @@ std::string replay_metrics_json(const ReplayReport& r) {
   j["cpu_s"] = json_figure(r.cpu_s);
   j["estimator_cpu_s"] = json_figure(r.estimator_cpu_s);
   j["estimator_thread_cpu_s"] = json_figure(r.estimator_thread_cpu_s);
+  j["estimator_thread_overhead_cpu_s"] = json_figure(r.estimator_thread_overhead_cpu_s);
   j["peak_rss_mb"] = json_figure(r.peak_rss_mb);
   j["poses_out"] = static_cast<uint64_t>(r.trajectory.size());
   if (!r.config.empty()) {

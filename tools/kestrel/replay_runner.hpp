@@ -146,6 +146,10 @@ struct ReplayOptions {
   // relocalisation, a loaded map found): the correction, published apart
   // from the continuous odometry (docs/map.md).
   std::function<void(const PoseSample&)> on_map_correction;
+  // Called with the backend once it is built, before any record is read or
+  // thread started: the command checks the options that depend on it (a map
+  // output for a backend without a map) and throws, so nothing runs in vain.
+  std::function<void(const core::Estimator&)> check_before_start;
   // Instead of opening `path`: a source made by the caller (a generator that
   // streams a simulation, tests that build logs in memory).
   std::function<std::unique_ptr<drivers::LogSource>()> open_source;
@@ -195,6 +199,9 @@ struct ReplayReport {
   // not in it; it is in estimator_thread_cpu_s, the estimator thread's total.
   double estimator_cpu_s = 0;
   double estimator_thread_cpu_s = 0;
+  // The estimator thread's CPU outside the backend's calls: draining the
+  // rings, waking, waiting (a busy-yield showed here as most of the wall time).
+  double estimator_thread_overhead_cpu_s = 0;
   double peak_rss_mb = 0;
   // Realtime pace: ring push of a sample -> its IMU-rate pose available on the
   // propagation thread (end to end, what a flight controller would wait).

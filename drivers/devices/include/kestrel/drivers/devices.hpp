@@ -9,6 +9,8 @@
 //    FrameSink. Used by `kestrel record` and `kestrel run`.
 #pragma once
 
+#include <yaml-cpp/yaml.h>
+
 #include <array>
 #include <atomic>
 #include <cstdint>
@@ -18,10 +20,9 @@
 #include <utility>
 #include <vector>
 
-#include <yaml-cpp/yaml.h>
-
 #include "kestrel/drivers/bmx055.hpp"
 #include "kestrel/drivers/clock_sync.hpp"
+#include "kestrel/drivers/replay_source.hpp"
 #include "kestrel/drivers/sensor_rings.hpp"
 #include "kestrel/drivers/usb_bridge.hpp"
 #include "kestrel/msgs.hpp"
@@ -76,6 +77,10 @@ struct DriverSettings {
   ImuSettings imu;
   StrobeSettings strobe;
   std::string log_path;  // drivers.log.path: the .klog both `log` sensors play (relative to the config)
+  // drivers.log.pace: realtime plays the log through the live sensor threads
+  // at its own rate (as a flight); fast and lockstep run it through the replay
+  // pipeline (`kestrel run` then writes what `kestrel replay --pace P` writes).
+  ReplayPace log_pace = ReplayPace::kRealtime;
 };
 
 // `estimator:` section (optional). The names are core's (drivers never
