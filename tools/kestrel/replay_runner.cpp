@@ -1,12 +1,11 @@
-#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/replay_runner.hpp"
 
 #include <sys/resource.h>
 #include <time.h>
 
 #include <algorithm>
-#include <cerrno>
 #include <atomic>
+#include <cerrno>
 #include <cmath>
 #include <cstdio>
 #include <memory>
@@ -14,13 +13,14 @@
 #include <thread>
 
 #include "kestrel/core/estimator_factory.hpp"
-#include "kestrel/core/tracker.hpp"
 #include "kestrel/core/frontend_odometry.hpp"
 #include "kestrel/core/rgbd_estimator.hpp"
+#include "kestrel/core/tracker.hpp"
 #include "kestrel/core/window_estimator.hpp"
+#include "kestrel/drivers/camera_time_shift.hpp"
+#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/imu_rate_stage.hpp"
 #include "kestrel/map_threads.hpp"
-#include "kestrel/tools/map_files.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"
 #include "kestrel/mavlink/serial_link.hpp"
 #include "kestrel/mavlink/udp_sender.hpp"
@@ -30,6 +30,7 @@
 #include "kestrel/rt/mailbox.hpp"
 #include "kestrel/rt/spsc_ring.hpp"
 #include "kestrel/rt/thread_setup.hpp"
+#include "kestrel/tools/map_files.hpp"
 #include "kestrel/tools/report_json.hpp"
 
 namespace kestrel::cli {
@@ -76,6 +77,9 @@ constexpr std::size_t kOutRingCapacity = 16384;
 // this bound only lets them see a stop flag nobody rang for (a few wake-ups a
 // second per thread, against 10 000 for the 100 us sleep loops it replaced).
 constexpr int64_t kIdleWaitNs = 50'000'000;
+// Live, the output thread also services MAVLink (HEARTBEAT, TIMESYNC) and
+// watches for the stop: it sleeps at most this long.
+constexpr int64_t kLiveOutputWaitNs = 20'000'000;
 
 double thread_cpu_s() {
   timespec ts{};
@@ -419,7 +423,7 @@ class OutputStage {
       : out_(out), status_(status), opt_(opt), report_(report), imu_pose_(imu_pose), view_(view) {
     if (opt.mavlink) {
       mavlink::OdometryStreamOptions mo = *opt.mavlink;
-      mo.stamps_on_host_clock = false;  // log time, not CLOCK_MONOTONIC
+      mo.stamps_on_host_clock = opt.live != nullptr;  // a log's time is not CLOCK_MONOTONIC
       mavlink_ = std::make_unique<mavlink::OdometryStream>(mo);
     }
   }
@@ -538,26 +542,89 @@ std::string threads_summary(const std::vector<AppliedThread>& t) {
   return s;
 }
 
+namespace {
+
+// Frames into the estimator's rings, their stamps moved onto the IMU's clock
+// (the rig's time_offset_cam_imu_ns) as every log reader does; a recording
+// keeps them as the driver stamped them, beside the rig that says the offset.
+class RingFrameSink final : public drivers::FrameSink {
+ public:
+  RingFrameSink(drivers::SensorRings& r, const Rig& rig) : rings_(r), rig_(rig) {}
+  bool push_frame(const drivers::CameraFrame& f) noexcept override {
+    RgbdFrameMsg m;
+    m.t_ns = drivers::camera_stamp_on_imu_clock(rig_, f.t_ns);
+    m.t_recv_ns = f.t_recv_ns;
+    m.seq = f.seq;
+    m.exposure_us = f.exposure_us;
+    if (!copy(*f.rgb, m.rgb_handle)) return drop();
+    if (f.depth != nullptr && !copy(*f.depth, m.depth_handle)) {
+      rings_.images.release(m.rgb_handle);
+      return drop();
+    }
+    if (rings_.push_frame(m)) return true;
+    rings_.images.release(m.rgb_handle);
+    if (m.depth_handle != rt::kInvalidHandle) rings_.images.release(m.depth_handle);
+    return false;
+  }
+  uint64_t drops = 0;
+
+ private:
+  bool drop() {
+    ++drops;
+    return false;
+  }
+  bool copy(const drivers::ImageBuffer& src, uint32_t& handle) {
+    handle = rings_.images.acquire();
+    if (handle == rt::kInvalidHandle) return false;
+    drivers::ImageBuffer* dst = rings_.images.get(handle);
+    if (dst == nullptr || src.pixels.size() > dst->pixels.capacity()) {
+      rings_.images.release(handle);
+      handle = rt::kInvalidHandle;
+      return false;
+    }
+    dst->t_ns = drivers::camera_stamp_on_imu_clock(rig_, src.t_ns);
+    dst->width = src.width;
+    dst->height = src.height;
+    dst->format = src.format;
+    dst->pixels.assign(src.pixels.begin(), src.pixels.end());  // within capacity: no allocation
+    return true;
+  }
+  drivers::SensorRings& rings_;
+  const Rig& rig_;
+};
+
+}  // namespace
+
 ReplayReport run_replay(const ReplayOptions& opt) {
   ReplayReport report;
-  drivers::LogOpenOptions open = opt.open;
-  open.format = opt.format;
-  std::unique_ptr<drivers::LogSource> log =
-      opt.open_source ? opt.open_source() : drivers::open_log(opt.path, open);
-  report.log_path = opt.path;
-  report.log_format = log->format_name();
+  // The input: a log (read by kst-replay, or stepped in lockstep) or live sensors.
+  std::unique_ptr<drivers::LogSource> log;
+  if (opt.live) {
+    if (opt.pace != drivers::ReplayPace::kRealtime)
+      throw std::invalid_argument("live sensors run at realtime pace only");
+    report.log_path = opt.live->description;
+    report.log_format = "live";
+  } else {
+    drivers::LogOpenOptions open = opt.open;
+    open.format = opt.format;
+    log = opt.open_source ? opt.open_source() : drivers::open_log(opt.path, open);
+    report.log_path = opt.path;
+    report.log_format = log->format_name();
+  }
+  const Rig& rig = log ? log->rig() : opt.live->rig;
   report.pace = opt.pace;
   report.alloc_counting = rt::alloc_hook_linked();
 
   // Everything sized here, before any thread starts.
-  auto rings = std::make_unique<drivers::SensorRings>(max_image_bytes_for(log->rig()));
+  auto rings = std::make_unique<drivers::SensorRings>(
+      opt.live && opt.live->max_image_bytes > 0 ? opt.live->max_image_bytes : max_image_bytes_for(rig));
   auto out = std::make_unique<rt::SpscRing<OutPose, kOutRingCapacity>>();
   auto status = std::make_unique<rt::Mailbox<PipelineStatus>>();
   const bool realtime = opt.pace == drivers::ReplayPace::kRealtime;
   auto est_imu = std::make_unique<ImuRing>();
   auto anchor = std::make_unique<rt::Mailbox<Anchor>>();
-  std::unique_ptr<core::Estimator> estimator_ptr = opt.config ? core::make_estimator(*opt.config, log->rig())
-                                                                       : core::make_estimator(opt.estimator, log->rig());
+  std::unique_ptr<core::Estimator> estimator_ptr =
+      opt.config ? core::make_estimator(*opt.config, rig) : core::make_estimator(opt.estimator, rig);
   core::Estimator& estimator = *estimator_ptr;
   report.estimator = estimator.name();
   report.world_levelled = estimator.world_levelled();
@@ -574,21 +641,29 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   const bool optimizer_thread = opt.pace == drivers::ReplayPace::kRealtime && estimator.has_optimizer();
   estimator.set_threaded_optimizer(optimizer_thread);
 
-  drivers::ReplaySource source(*log, *rings, opt.pace);
+  std::unique_ptr<drivers::ReplaySource> source;
+  if (log) source = std::make_unique<drivers::ReplaySource>(*log, *rings, opt.pace);
+  // Live: the drivers push through these sinks; set when the sensors stop.
+  std::unique_ptr<drivers::ImuSink> live_imu;
+  std::unique_ptr<RingFrameSink> live_frames;
+  std::atomic<bool> live_done{false};
+  auto input_finished = [&] {
+    return source ? source->finished() : live_done.load(std::memory_order_acquire);
+  };
   // The live viewer: its snapshot pool is sized here with the rest.
   std::unique_ptr<viewer::ViewerFeed> feed;
   std::unique_ptr<viewer::PlaybackControl> control;
   std::unique_ptr<viewer::Server> view;
   if (opt.view) {
-    feed = std::make_unique<viewer::ViewerFeed>(estimator, log->rig());
+    feed = std::make_unique<viewer::ViewerFeed>(estimator, rig);
     control = std::make_unique<viewer::PlaybackControl>(opt.pace == drivers::ReplayPace::kLockstep, feed.get());
     view = std::make_unique<viewer::Server>(opt.view_options, *feed, control.get());
-    source.set_ground_truth_ring(&feed->ground_truth_ring());
+    if (source) source->set_ground_truth_ring(&feed->ground_truth_ring());
   }
   EstimatorStage stage(estimator, *rings, realtime ? *est_imu : rings->imu, *out, *status,
-                       realtime ? anchor.get() : nullptr, opt, log->rig(), report, feed.get());
+                       realtime ? anchor.get() : nullptr, opt, rig, report, feed.get());
   auto imu_pose = std::make_unique<rt::Mailbox<OutPose>>();
-  ImuRateStage propagator(rings->imu, *est_imu, *anchor, log->rig(), opt.warmup_ns, *imu_pose);
+  ImuRateStage propagator(rings->imu, *est_imu, *anchor, rig, opt.warmup_ns, *imu_pose);
   OutputStage output(*out, *status, opt, report, imu_pose.get(), view.get());
   if (view) {
     // In realtime pace kst-propagate owns the IMU -> pose figure.
@@ -617,7 +692,7 @@ ReplayReport run_replay(const ReplayOptions& opt) {
         output.drain();
         rt::sleep_for_ns(5'000'000);
       }
-      if (!source.step()) break;
+      if (!source->step()) break;
       stage.drain(false, true);
       output.drain();
     }
@@ -643,9 +718,12 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     const drivers::ThreadTable table = realtime ? opt.threads : drivers::default_thread_table();
     using drivers::PipelineThread;
     rt::ThreadSetupReport sched;
-    std::thread feeder =
-        rt::start_thread(table[PipelineThread::kReplay], [&] { source.run(stop); }, &sched);
-    report.threads.push_back(applied_thread(table[PipelineThread::kReplay], sched));
+    std::thread feeder;
+    if (source) {
+      feeder = rt::start_thread(
+          table[PipelineThread::kReplay], [&] { source->run(stop); }, &sched);
+      report.threads.push_back(applied_thread(table[PipelineThread::kReplay], sched));
+    }
     std::thread prop_thread;
     if (realtime) {
       rt::ThreadSetupReport prop_sched;
@@ -653,7 +731,7 @@ ReplayReport run_replay(const ReplayOptions& opt) {
           table[PipelineThread::kPropagate],
           [&] {
             for (;;) {
-              const bool done = source.finished();
+              const bool done = input_finished();
               if (propagator.step()) {
                 est_bell.ring();
                 out_bell.ring();
@@ -675,7 +753,7 @@ ReplayReport run_replay(const ReplayOptions& opt) {
         table[PipelineThread::kEstimator],
         [&] {
           for (;;) {
-            const bool done = source.finished() && imu_forwarded.load(std::memory_order_acquire);
+            const bool done = input_finished() && imu_forwarded.load(std::memory_order_acquire);
             if (stage.drain(done, false)) {
               opt_bell.ring();
               out_bell.ring();
@@ -707,11 +785,23 @@ ReplayReport run_replay(const ReplayOptions& opt) {
           &sched);
       report.threads.push_back(applied_thread(table[PipelineThread::kOptimizer], sched));
     }
+    if (opt.live) {
+      // The sensors start last: every consumer is waiting for them.
+      live_imu = std::make_unique<drivers::RingImuSink<ImuRing>>(rings->imu, rings->imu_bell);
+      live_frames = std::make_unique<RingFrameSink>(*rings, rig);
+      opt.live->start(*live_imu, *live_frames, report.threads);
+    }
     while (!estimator_done.load(std::memory_order_acquire)) {
       output.drain();
-      out_bell.wait_for_ns(kIdleWaitNs);
+      if (opt.live && !live_done.load(std::memory_order_relaxed) && opt.live->should_stop()) {
+        opt.live->stop();
+        live_done.store(true, std::memory_order_release);
+        prop_bell.ring();
+        est_bell.ring();
+      }
+      out_bell.wait_for_ns(opt.live ? kLiveOutputWaitNs : kIdleWaitNs);
     }
-    feeder.join();
+    if (feeder.joinable()) feeder.join();
     if (prop_thread.joinable()) prop_thread.join();
     est_thread.join();
     if (opt_thread.joinable()) opt_thread.join();
@@ -738,26 +828,34 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   report.loop_cpu_s = map_threads.loop_cpu_s();
   const int64_t wall1 = rt::now_ns();
 
-  report.replay = source.stats();
+  if (source) report.replay = source->stats();
   if (const rt::LatencyHistogram* h = estimator.mapping_latency()) report.mapping = *h;
   if (const rt::LatencyHistogram* h = estimator.loop_latency()) report.loop = *h;
   report.estimator_counters = estimator.counters();
   report.backend_summary = estimator.backend_summary();
   double td_s = 0.0;
   report.time_offset_estimated = estimator.estimated_time_offset_s(&td_s);
-  report.time_offset_ms = 1e-6 * static_cast<double>(log->rig().time_offset_cam_imu_ns) + 1e3 * td_s;
+  report.time_offset_ms = 1e-6 * static_cast<double>(rig.time_offset_cam_imu_ns) + 1e3 * td_s;
   report.optimizer_threaded = optimizer_thread;
   if (const rt::LatencyHistogram* h = estimator.optimizer_latency()) report.optimizer = *h;
   // What the feeder lost, not the rings' refused pushes: in fast pace the
   // feeder retries a full ring (back-pressure), and every retry is a refusal.
   report.imu_ring_drops = report.replay.imu_dropped;
   report.frame_ring_drops = report.replay.frames_dropped;
+  if (opt.live) {
+    // Live there is no back-pressure: every refused push is a lost sample.
+    report.imu_ring_drops = rings->imu.drops();
+    report.frame_ring_drops = rings->frames.drops() + live_frames->drops;
+  }
   report.image_pool_exhausted = rings->images.failed_acquires();
-  report.problems = log->problems();
+  if (log) report.problems = log->problems();
   report.wall_s = 1e-9 * static_cast<double>(wall1 - wall0);
   report.cpu_s = process_cpu_s() - cpu0;
   if (report.replay.first_t_ns >= 0)
     report.log_duration_s = 1e-9 * static_cast<double>(report.replay.last_t_ns - report.replay.first_t_ns);
+  else if (report.trajectory.size() > 1)
+    report.log_duration_s =
+        1e-9 * static_cast<double>(report.trajectory.back().t_ns - report.trajectory.front().t_ns);
   report.realtime_factor = report.wall_s > 0 ? report.log_duration_s / report.wall_s : 0;
   report.peak_rss_mb = peak_rss_mb();
   if (view) {

@@ -114,8 +114,26 @@ std::string threads_summary(const std::vector<AppliedThread>& t);
 // (the front end and backends built on it), else -1: for status lines only.
 void frame_stats(const core::Estimator& est, int& features, int& inliers);
 
+// Live sensors in place of a log (`kestrel run`): the pipeline starts them
+// with sinks into its rings and runs in realtime pace until should_stop() says
+// so; everything after the rings is the same code a replay runs.
+struct LiveInput {
+  Rig rig;
+  std::string description;          // what runs, for the report
+  std::size_t max_image_bytes = 0;  // the largest image the drivers deliver (0: the rig's size)
+  // Starts the sensor threads delivering into the sinks (which outlive stop());
+  // appends the threads it started, as granted.
+  std::function<void(drivers::ImuSink&, drivers::FrameSink&, std::vector<AppliedThread>&)> start;
+  // Stops and joins them: no push after it returns.
+  std::function<void()> stop;
+  // Asked by the output thread between drains (Ctrl-C, --duration).
+  std::function<bool()> should_stop;
+};
+
 struct ReplayOptions {
   std::string path;
+  // Live sensors instead of `path` (pace must be realtime).
+  std::shared_ptr<LiveInput> live;
   std::string map_out;  // the map file written at the end ("": none; tools/config/map_files.hpp)
   drivers::LogFormat format = drivers::LogFormat::kAuto;
   drivers::LogOpenOptions open;  // rig for datasets, bag topics (open.format is ignored: `format` rules)
