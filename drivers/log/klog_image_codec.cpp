@@ -14,6 +14,7 @@
 #include <algorithm>
 #include <climits>
 #include <cstring>
+#include <new>
 
 namespace kestrel::drivers::klog {
 namespace {
@@ -168,8 +169,9 @@ bool parse_codec(const std::string& name, ImageCodec& out) {
 }
 
 std::string describe(const ImageCompression& c) {
-  if (c.codec == ImageCodec::kZstd) return "zstd level " + std::to_string(c.zstd_level);
-  return codec_name(c.codec);
+  const std::string plain = c.prefilter || c.codec == ImageCodec::kRaw ? "" : " without pre-filter";
+  if (c.codec == ImageCodec::kZstd) return "zstd level " + std::to_string(c.zstd_level) + plain;
+  return codec_name(c.codec) + plain;
 }
 
 int zstd_min_level() { return ZSTD_minCLevel(); }
@@ -240,22 +242,7 @@ void filter_inverse(ImageFilter filter, PixelFormat f, int width, int height, ui
 
 ImageEncoder::~ImageEncoder() { ZSTD_freeCCtx(static_cast<ZSTD_CCtx*>(zstd_)); }
 
-void ImageEncoder::encode(const ImageView& view, std::string& out, ImageCodec& codec, ImageFilter& filter) {
-  const size_t raw = pixel_bytes(view.format, view.width, view.height);
-  codec = ImageCodec::kRaw;
-  filter = ImageFilter::kNone;
-  if (compression_.codec == ImageCodec::kRaw || raw == 0) {
-    append_rows(view, out);
-    return;
-  }
-  const ImageFilter f = filter_for(view.format);
-  const size_t scratch = filter_scratch_bytes(view.width);
-  if (filtered_.size() < raw + scratch) filtered_.resize(raw + scratch);
-  filter_forward(f, view, filtered_.data(), filtered_.data() + raw);
-
-  const size_t at = out.size();
-  size_t z = 0;
-  bool ok = false;
+size_t ImageEncoder::compress(const uint8_t* src, size_t n, std::string& out, size_t at) {
   if (compression_.codec == ImageCodec::kZstd) {
     if (!zstd_) {
       zstd_ = ZSTD_createCCtx();
@@ -266,20 +253,51 @@ void ImageEncoder::encode(const ImageView& view, std::string& out, ImageCodec& c
     // A content checksum (4 bytes, xxh64) lets the reader tell a damaged
     // stream from a good one even when the record CRC was resealed over it.
     ZSTD_CCtx_setParameter(cctx, ZSTD_c_checksumFlag, 1);
-    out.resize(at + ZSTD_compressBound(raw));
-    z = ZSTD_compress2(cctx, &out[at], out.size() - at, filtered_.data(), raw);
-    ok = !ZSTD_isError(z);
-  } else if (raw <= static_cast<size_t>(LZ4_MAX_INPUT_SIZE)) {
+    out.resize(at + ZSTD_compressBound(n));
+    const size_t z = ZSTD_compress2(cctx, &out[at], out.size() - at, src, n);
+    return ZSTD_isError(z) ? 0 : z;
+  }
+  if (compression_.codec == ImageCodec::kLz4 && n <= static_cast<size_t>(LZ4_MAX_INPUT_SIZE)) {
     if (lz4_state_.size() < static_cast<size_t>(LZ4_sizeofState()))
       lz4_state_.resize(static_cast<size_t>(LZ4_sizeofState()));
-    const int bound = LZ4_compressBound(static_cast<int>(raw));
+    const int bound = LZ4_compressBound(static_cast<int>(n));
     out.resize(at + static_cast<size_t>(bound));
-    const int got = LZ4_compress_fast_extState(lz4_state_.data(), reinterpret_cast<const char*>(filtered_.data()),
-                                               &out[at], static_cast<int>(raw), bound, 1);
-    ok = got > 0;
-    z = ok ? static_cast<size_t>(got) : 0;
+    const int got = LZ4_compress_fast_extState(lz4_state_.data(), reinterpret_cast<const char*>(src), &out[at],
+                                               static_cast<int>(n), bound, 1);
+    return got > 0 ? static_cast<size_t>(got) : 0;
   }
-  if (!ok || z >= raw) {
+  return 0;
+}
+
+void ImageEncoder::encode(const ImageView& view, std::string& out, ImageCodec& codec, ImageFilter& filter) {
+  const size_t raw = pixel_bytes(view.format, view.width, view.height);
+  codec = ImageCodec::kRaw;
+  filter = ImageFilter::kNone;
+  if (compression_.codec == ImageCodec::kRaw || raw == 0) {
+    append_rows(view, out);
+    return;
+  }
+  ImageFilter f = compression_.prefilter ? filter_for(view.format) : ImageFilter::kNone;
+  const size_t scratch = filter_scratch_bytes(view.width);
+  if (filtered_.size() < raw + scratch) filtered_.resize(raw + scratch);
+  filter_forward(f, view, filtered_.data(), filtered_.data() + raw);
+  const size_t at = out.size();
+  size_t z = compress(filtered_.data(), raw, out, at);
+  // Depth is tried both ways, and the smaller kept: a structured-light
+  // sensor's depth (quantised disparity, long equal runs) compresses better
+  // as it is, a time-of-flight or simulated one with noise after the
+  // predictor (docs/log-format.md "Compressed images").
+  if (f != ImageFilter::kNone && view.format == PixelFormat::kDepthU16) {
+    filter_forward(ImageFilter::kNone, view, filtered_.data(), nullptr);
+    const size_t plain = compress(filtered_.data(), raw, alternative_, 0);
+    if (plain > 0 && (z == 0 || plain < z)) {
+      out.resize(at);
+      out.append(alternative_.data(), plain);
+      z = plain;
+      f = ImageFilter::kNone;
+    }
+  }
+  if (z == 0 || z >= raw) {
     out.resize(at);
     append_rows(view, out);
     return;

@@ -57,6 +57,9 @@ void filter_inverse(ImageFilter filter, PixelFormat f, int width, int height, ui
 struct ImageCompression {
   ImageCodec codec = ImageCodec::kZstd;
   int zstd_level = 1;
+  // Off only to measure what the pre-filter buys (bench_log_klog_compression);
+  // not a config key.
+  bool prefilter = true;
 };
 // "zstd level 1", "lz4", "none".
 std::string describe(const ImageCompression& c);
@@ -78,14 +81,19 @@ class ImageEncoder {
 
   // Appends the record's pixel section to `out` and says how it is encoded.
   // When compression does not make the pixels smaller they are stored raw
-  // (codec kRaw, filter kNone), so a record is never larger than raw.
+  // (codec kRaw, filter kNone), so a record is never larger than raw. Depth
+  // is compressed with and without its pre-filter and the smaller kept.
   void encode(const ImageView& view, std::string& out, ImageCodec& codec, ImageFilter& filter);
 
  private:
+  // Compresses n bytes at src into out from offset `at`; the compressed
+  // size, 0 on failure (out is left resized to at + bound).
+  size_t compress(const uint8_t* src, size_t n, std::string& out, size_t at);
   ImageCompression compression_;
   void* zstd_ = nullptr;   // ZSTD_CCtx
   std::vector<uint8_t> lz4_state_;
   std::vector<uint8_t> filtered_;
+  std::string alternative_;
 };
 
 // Decompresses image pixels; the contexts and residual buffer are reused.
