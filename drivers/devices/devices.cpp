@@ -445,7 +445,8 @@ LiveConfig live_config_from_yaml(const std::string& text, const std::string& whe
     const std::string k = kv.first.Scalar();
     bool estimator_section = k == "estimator";
     for (const std::string& e : estimator_sections) estimator_section = estimator_section || k == e;
-    if (k != "rig" && k != "drivers" && k != "threads" && k != "mavlink" && k != "record" && !estimator_section) {
+    if (k != "rig" && k != "drivers" && k != "threads" && k != "mavlink" && k != "record" &&
+        !estimator_section) {
       std::string expected = "rig, drivers, threads, mavlink, record, estimator";
       for (const std::string& e : estimator_sections)
         if (e != "estimator") expected += ", " + e;

@@ -39,7 +39,8 @@ void encode_imu(const ImuSample& s, std::string& out) {
 }
 
 void encode_image_header(int64_t t_ns, int64_t t_recv_ns, uint32_t seq, int32_t exposure_us, int width,
-                         int height, PixelFormat format, std::string& out, ImageCodec codec, ImageFilter filter) {
+                         int height, PixelFormat format, std::string& out, ImageCodec codec,
+                         ImageFilter filter) {
   ByteWriter w(out);
   w.i64(t_ns);
   w.i64(t_recv_ns);
@@ -138,14 +139,14 @@ bool decode_image(const uint8_t* p, size_t n, LogImage& img, std::string& why, I
   const uint8_t* px = r.skip(r.remaining());
   const size_t px_bytes = n - kImageHeaderBytes;
   if (static_cast<ImageCodec>(codec) == ImageCodec::kRaw && bytes != px_bytes) {
-    why = "image " + std::to_string(width) + "x" + std::to_string(height) + " needs " + std::to_string(bytes) +
-          " pixel bytes, payload has " + std::to_string(px_bytes);
+    why = "image " + std::to_string(width) + "x" + std::to_string(height) + " needs " +
+          std::to_string(bytes) + " pixel bytes, payload has " + std::to_string(px_bytes);
     return false;
   }
   if (bytes > ImageDecoder::max_decoded_bytes(static_cast<ImageCodec>(codec), px_bytes)) {
     why = std::string(codec_name(static_cast<ImageCodec>(codec))) + " image " + std::to_string(width) + "x" +
-          std::to_string(height) + " claims " + std::to_string(bytes) + " bytes from " + std::to_string(px_bytes) +
-          " compressed bytes, more than the codec can produce";
+          std::to_string(height) + " claims " + std::to_string(bytes) + " bytes from " +
+          std::to_string(px_bytes) + " compressed bytes, more than the codec can produce";
     return false;
   }
   img.pixels.resize(static_cast<size_t>(bytes));

@@ -51,7 +51,8 @@ void restore_plane_u8(uint8_t* p, int w, int h) {
     }
     const uint8_t* up = row - w;
     row[0] = static_cast<uint8_t>(row[0] + up[0]);
-    for (int x = 1; x < w; ++x) row[x] = static_cast<uint8_t>(row[x] + med_predict<uint8_t>(row[x - 1], up[x], up[x - 1]));
+    for (int x = 1; x < w; ++x)
+      row[x] = static_cast<uint8_t>(row[x] + med_predict<uint8_t>(row[x - 1], up[x], up[x - 1]));
   }
 }
 
@@ -60,7 +61,7 @@ inline uint16_t load_le16(const uint8_t* p) { return static_cast<uint16_t>(p[0] 
 void forward_rgb(const ImageView& in, uint8_t* out, uint8_t* scratch) {
   const int w = in.width;
   const size_t n = static_cast<size_t>(w) * in.height;
-  uint8_t* cur = scratch;            // 3 planes of one row: c0 - c1, c1, c2 - c1
+  uint8_t* cur = scratch;  // 3 planes of one row: c0 - c1, c1, c2 - c1
   uint8_t* prev = scratch + 3 * static_cast<size_t>(w);
   for (int y = 0; y < in.height; ++y) {
     const uint8_t* s = in.data + static_cast<size_t>(y) * in.stride_bytes;
@@ -71,7 +72,8 @@ void forward_rgb(const ImageView& in, uint8_t* out, uint8_t* scratch) {
       cur[2 * w + x] = static_cast<uint8_t>(s[3 * x + 2] - g);
     }
     for (int c = 0; c < 3; ++c)
-      residual_row<uint8_t>(cur + static_cast<size_t>(c) * w, y > 0 ? prev + static_cast<size_t>(c) * w : nullptr, w,
+      residual_row<uint8_t>(cur + static_cast<size_t>(c) * w,
+                            y > 0 ? prev + static_cast<size_t>(c) * w : nullptr, w,
                             out + c * n + static_cast<size_t>(y) * w);
     std::swap(cur, prev);
   }
@@ -119,7 +121,7 @@ void inverse_depth(int w, int h, const uint8_t* residuals, uint8_t* out) {
       const auto r = static_cast<uint16_t>(lo[i0 + x] | (hi[i0 + x] << 8));
       uint16_t pred = 0;
       if (!up)
-        pred = left;   // first row: left (0 for the first sample)
+        pred = left;  // first row: left (0 for the first sample)
       else if (x == 0)
         pred = load_le16(up);
       else
@@ -153,18 +155,25 @@ bool is_valid_filter(uint8_t filter) { return filter <= static_cast<uint8_t>(Ima
 
 const char* codec_name(ImageCodec c) {
   switch (c) {
-    case ImageCodec::kRaw: return "none";
-    case ImageCodec::kZstd: return "zstd";
-    case ImageCodec::kLz4: return "lz4";
+    case ImageCodec::kRaw:
+      return "none";
+    case ImageCodec::kZstd:
+      return "zstd";
+    case ImageCodec::kLz4:
+      return "lz4";
   }
   return "?";
 }
 
 bool parse_codec(const std::string& name, ImageCodec& out) {
-  if (name == "zstd") out = ImageCodec::kZstd;
-  else if (name == "lz4") out = ImageCodec::kLz4;
-  else if (name == "none") out = ImageCodec::kRaw;
-  else return false;
+  if (name == "zstd")
+    out = ImageCodec::kZstd;
+  else if (name == "lz4")
+    out = ImageCodec::kLz4;
+  else if (name == "none")
+    out = ImageCodec::kRaw;
+  else
+    return false;
   return true;
 }
 
@@ -197,16 +206,24 @@ void filter_forward(ImageFilter filter, const ImageView& in, uint8_t* out, uint8
   }
   switch (in.format) {
     case PixelFormat::kRgb8:
-    case PixelFormat::kBgr8: forward_rgb(in, out, scratch); break;
-    case PixelFormat::kGray8: forward_gray(in, out); break;
-    case PixelFormat::kDepthU16: forward_depth(in, out, scratch); break;
-    case PixelFormat::kYuyv: break;   // never chosen (filter_applies)
+    case PixelFormat::kBgr8:
+      forward_rgb(in, out, scratch);
+      break;
+    case PixelFormat::kGray8:
+      forward_gray(in, out);
+      break;
+    case PixelFormat::kDepthU16:
+      forward_depth(in, out, scratch);
+      break;
+    case PixelFormat::kYuyv:
+      break;  // never chosen (filter_applies)
   }
 }
 
 size_t filter_scratch_bytes(int width) { return 6 * static_cast<size_t>(std::max(width, 0)); }
 
-void filter_inverse(ImageFilter filter, PixelFormat f, int width, int height, uint8_t* residuals, uint8_t* out) {
+void filter_inverse(ImageFilter filter, PixelFormat f, int width, int height, uint8_t* residuals,
+                    uint8_t* out) {
   const size_t bytes = pixel_bytes(f, width, height);
   if (bytes == 0) return;
   if (filter == ImageFilter::kNone) {
@@ -233,8 +250,11 @@ void filter_inverse(ImageFilter filter, PixelFormat f, int width, int height, ui
       restore_plane_u8(residuals, width, height);
       std::memcpy(out, residuals, n);
       break;
-    case PixelFormat::kDepthU16: inverse_depth(width, height, residuals, out); break;
-    case PixelFormat::kYuyv: break;
+    case PixelFormat::kDepthU16:
+      inverse_depth(width, height, residuals, out);
+      break;
+    case PixelFormat::kYuyv:
+      break;
   }
 }
 
@@ -262,8 +282,8 @@ size_t ImageEncoder::compress(const uint8_t* src, size_t n, std::string& out, si
       lz4_state_.resize(static_cast<size_t>(LZ4_sizeofState()));
     const int bound = LZ4_compressBound(static_cast<int>(n));
     out.resize(at + static_cast<size_t>(bound));
-    const int got = LZ4_compress_fast_extState(lz4_state_.data(), reinterpret_cast<const char*>(src), &out[at],
-                                               static_cast<int>(n), bound, 1);
+    const int got = LZ4_compress_fast_extState(lz4_state_.data(), reinterpret_cast<const char*>(src),
+                                               &out[at], static_cast<int>(n), bound, 1);
     return got > 0 ? static_cast<size_t>(got) : 0;
   }
   return 0;
@@ -309,9 +329,12 @@ void ImageEncoder::encode(const ImageView& view, std::string& out, ImageCodec& c
 
 uint64_t ImageDecoder::max_decoded_bytes(ImageCodec codec, size_t n) {
   switch (codec) {
-    case ImageCodec::kRaw: return n;
-    case ImageCodec::kZstd: return (uint64_t{n} / 4 + 1) * ZSTD_BLOCKSIZE_MAX;
-    case ImageCodec::kLz4: return uint64_t{n} * 256 + 64;
+    case ImageCodec::kRaw:
+      return n;
+    case ImageCodec::kZstd:
+      return (uint64_t{n} / 4 + 1) * ZSTD_BLOCKSIZE_MAX;
+    case ImageCodec::kLz4:
+      return uint64_t{n} * 256 + 64;
   }
   return 0;
 }
@@ -334,8 +357,8 @@ bool ImageDecoder::decode(ImageCodec codec, ImageFilter filter, PixelFormat f, i
       return false;
     }
     if (n != expected) {
-      why = "image " + std::to_string(width) + "x" + std::to_string(height) + " needs " + std::to_string(expected) +
-            " pixel bytes, payload has " + std::to_string(n);
+      why = "image " + std::to_string(width) + "x" + std::to_string(height) + " needs " +
+            std::to_string(expected) + " pixel bytes, payload has " + std::to_string(n);
       return false;
     }
     if (n > 0) std::memcpy(dst, src, n);
@@ -369,7 +392,8 @@ bool ImageDecoder::decode(ImageCodec codec, ImageFilter filter, PixelFormat f, i
       return false;
     }
     if (got != expected) {
-      why = "zstd stream decodes to " + std::to_string(got) + " bytes, the image has " + std::to_string(expected);
+      why = "zstd stream decodes to " + std::to_string(got) + " bytes, the image has " +
+            std::to_string(expected);
       return false;
     }
   } else if (codec == ImageCodec::kLz4) {
@@ -384,7 +408,8 @@ bool ImageDecoder::decode(ImageCodec codec, ImageFilter filter, PixelFormat f, i
       return false;
     }
     if (static_cast<size_t>(got) != expected) {
-      why = "lz4 block decodes to " + std::to_string(got) + " bytes, the image has " + std::to_string(expected);
+      why =
+          "lz4 block decodes to " + std::to_string(got) + " bytes, the image has " + std::to_string(expected);
       return false;
     }
   } else {

@@ -61,8 +61,12 @@ void expect_same_records(const std::string& a_path, const std::string& b_path, s
         EXPECT_EQ(ra.image.format, rb.image.format);
         EXPECT_TRUE(ra.image.pixels == rb.image.pixels) << "image record " << n << " differs";
         break;
-      case drivers::RecordType::kGroundTruth: EXPECT_EQ(ra.gt.t_ns, rb.gt.t_ns); break;
-      case drivers::RecordType::kEvent: EXPECT_EQ(ra.event.text, rb.event.text); break;
+      case drivers::RecordType::kGroundTruth:
+        EXPECT_EQ(ra.gt.t_ns, rb.gt.t_ns);
+        break;
+      case drivers::RecordType::kEvent:
+        EXPECT_EQ(ra.event.text, rb.event.text);
+        break;
     }
   }
   EXPECT_TRUE(a.problems().empty());
@@ -73,7 +77,7 @@ TEST(CliKlogCompression, CompressedLogReplaysTheSameImagesAndLockstepTrajectoryA
   const std::string dir = kestrel::test::temp_dir("cli_klogz");
   const std::string sim = "sim --scenario figure8 --duration 5 --seed 4 --width 320 --height 240 ";
   const CmdResult r0 = run(sim + "--image-codec none --out " + dir + "/raw.klog");
-  const CmdResult r1 = run(sim + "--out " + dir + "/zstd.klog");   // the default compression
+  const CmdResult r1 = run(sim + "--out " + dir + "/zstd.klog");  // the default compression
   const CmdResult r2 = run(sim + "--image-codec lz4 --out " + dir + "/lz4.klog");
   ASSERT_EQ(r0.code, 0) << r0.out;
   ASSERT_EQ(r1.code, 0) << r1.out;
@@ -97,8 +101,8 @@ TEST(CliKlogCompression, CompressedLogReplaysTheSameImagesAndLockstepTrajectoryA
   std::string traj[3];
   const char* names[3] = {"raw", "zstd", "lz4"};
   for (int k = 0; k < 3; ++k) {
-    const CmdResult r = run("replay " + dir + "/" + names[k] + ".klog --pace lockstep --traj-out " + dir + "/" +
-                            names[k] + ".txt -q");
+    const CmdResult r = run("replay " + dir + "/" + names[k] + ".klog --pace lockstep --traj-out " + dir +
+                            "/" + names[k] + ".txt -q");
     ASSERT_EQ(r.code, 0) << r.out;
     traj[k] = slurp(dir + "/" + names[k] + ".txt");
   }
@@ -119,7 +123,8 @@ TEST(CliKlogCompression, CompressedLogReplaysTheSameImagesAndLockstepTrajectoryA
 
 TEST(CliKlogCompression, BadCompressionOptionsAreUsageErrors) {
   const std::string dir = kestrel::test::temp_dir("cli_klogz_bad");
-  const CmdResult a = run("sim --duration 1 --width 64 --height 48 --image-codec brotli --out " + dir + "/a.klog");
+  const CmdResult a =
+      run("sim --duration 1 --width 64 --height 48 --image-codec brotli --out " + dir + "/a.klog");
   EXPECT_EQ(a.code, 2) << a.out;
   EXPECT_NE(a.out.find("--image-codec"), std::string::npos) << a.out;
   const CmdResult b = run("sim --duration 1 --width 64 --height 48 --zstd-level 99 --out " + dir + "/b.klog");
@@ -138,8 +143,8 @@ TEST(CliKlogCompression, RecordSectionChoosesTheLoggersCompression) {
   const drivers::LiveConfig lz =
       drivers::live_config_from_yaml(config_with("record:\n  image_codec: lz4\n"), "c.yaml");
   EXPECT_EQ(lz.record.compression.codec, drivers::klog::ImageCodec::kLz4);
-  const drivers::LiveConfig z3 =
-      drivers::live_config_from_yaml(config_with("record:\n  image_codec: zstd\n  zstd_level: 3\n"), "c.yaml");
+  const drivers::LiveConfig z3 = drivers::live_config_from_yaml(
+      config_with("record:\n  image_codec: zstd\n  zstd_level: 3\n"), "c.yaml");
   EXPECT_EQ(z3.record.compression.zstd_level, 3);
   const drivers::LiveConfig off =
       drivers::live_config_from_yaml(config_with("record:\n  image_codec: none\n"), "c.yaml");
@@ -152,7 +157,8 @@ TEST(CliKlogCompression, RecordSectionChoosesTheLoggersCompression) {
     }
     return std::string("no error");
   };
-  EXPECT_NE(error("record:\n  image_codec: png\n").find("c.yaml: record.image_codec: expected one of zstd, lz4, none"),
+  EXPECT_NE(error("record:\n  image_codec: png\n")
+                .find("c.yaml: record.image_codec: expected one of zstd, lz4, none"),
             std::string::npos);
   EXPECT_NE(error("record:\n  zstd_level: 40\n").find("c.yaml: record.zstd_level"), std::string::npos)
       << error("record:\n  zstd_level: 40\n");

@@ -16,11 +16,10 @@
 #include <atomic>
 #include <cstdio>
 #include <filesystem>
-#include <thread>
-#include <vector>
-
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
+#include <thread>
+#include <vector>
 
 #include "kestrel/drivers/klog.hpp"
 #include "kestrel/drivers/klog_logger.hpp"
@@ -38,7 +37,7 @@ namespace kestrel::drivers {
 namespace {
 
 struct Frames {
-  std::vector<std::vector<uint8_t>> rgb, depth;   // VGA rgb8 / depth u16, cycled through
+  std::vector<std::vector<uint8_t>> rgb, depth;  // VGA rgb8 / depth u16, cycled through
 };
 
 Frames pattern_frames() {
@@ -62,7 +61,8 @@ Frames real_frames() {
     cv::Mat bgr = cv::imread(dir + name, cv::IMREAD_COLOR), rgb;
     std::snprintf(name, sizeof name, "/frame-%06d.depth.png", i);
     const cv::Mat depth = cv::imread(dir + name, cv::IMREAD_UNCHANGED);
-    if (bgr.cols != 640 || bgr.rows != 480 || depth.cols != 640 || depth.rows != 480 || depth.type() != CV_16UC1)
+    if (bgr.cols != 640 || bgr.rows != 480 || depth.cols != 640 || depth.rows != 480 ||
+        depth.type() != CV_16UC1)
       continue;
     cv::cvtColor(bgr, rgb, cv::COLOR_BGR2RGB);
     f.rgb.emplace_back(rgb.data, rgb.data + rgb.total() * 3);
@@ -130,7 +130,8 @@ RecordRun record(const std::string& path, double seconds, const klog::ImageCompr
       rt::sleep_until_ns(t);
       const int64_t a = rt::now_ns();
       if (!logger->log_image(RecordType::kRgb, t, a, static_cast<uint32_t>(k), 5000, rgb_view)) ++cam_fail;
-      if (!logger->log_image(RecordType::kDepth, t, a, static_cast<uint32_t>(k), 5000, depth_view)) ++cam_fail;
+      if (!logger->log_image(RecordType::kDepth, t, a, static_cast<uint32_t>(k), 5000, depth_view))
+        ++cam_fail;
       run.worst_cam_call_ns = std::max(run.worst_cam_call_ns, rt::now_ns() - a);
     }
     allocs += scope.count();
@@ -171,13 +172,15 @@ TEST(RecordThroughput, KESTREL_RECORD_TEST) {
   const RecordRun run = record(path.string(), seconds, raw, pattern_frames());
   const KlogLogger::Stats& st = run.stats;
   const double mb = static_cast<double>(st.bytes_written) / 1e6;
-  std::printf("[ figure ] record raw %.0f s real time: %llu records, %.1f MB (%.1f MB/s), drops imu %llu images %llu, "
-              "worst producer call (rgb+depth copy) %.2f ms, staging peak %.1f of %.1f MB (%.2f s of images), "
-              "logger CPU %.2f ms per frame pair\n",
-              seconds, (unsigned long long)st.records_written, mb, mb / run.seconds, (unsigned long long)st.imu_drops,
-              (unsigned long long)st.image_drops, run.worst_cam_call_ns * 1e-6, st.staging_peak_bytes / 1e6,
-              st.staging_bytes / 1e6, st.staging_peak_bytes / (30.0 * 640 * 480 * 5),
-              st.thread_cpu_ns * 1e-6 / static_cast<double>(run.n_cam));
+  std::printf(
+      "[ figure ] record raw %.0f s real time: %llu records, %.1f MB (%.1f MB/s), drops imu %llu images "
+      "%llu, "
+      "worst producer call (rgb+depth copy) %.2f ms, staging peak %.1f of %.1f MB (%.2f s of images), "
+      "logger CPU %.2f ms per frame pair\n",
+      seconds, (unsigned long long)st.records_written, mb, mb / run.seconds, (unsigned long long)st.imu_drops,
+      (unsigned long long)st.image_drops, run.worst_cam_call_ns * 1e-6, st.staging_peak_bytes / 1e6,
+      st.staging_bytes / 1e6, st.staging_peak_bytes / (30.0 * 640 * 480 * 5),
+      st.thread_cpu_ns * 1e-6 / static_cast<double>(run.n_cam));
   expect_complete(run);
 
   // The file reads back whole.
@@ -213,14 +216,14 @@ TEST(RecordThroughput, KESTREL_RECORD_COMPRESSED_TEST) {
   const double raw_mb = static_cast<double>(st.image_bytes_raw) / 1e6;
   const double mb = static_cast<double>(st.bytes_written) / 1e6;
   const double cpu_ms_per_pair = st.thread_cpu_ns * 1e-6 / static_cast<double>(run.n_cam);
-  std::printf("[ figure ] record %s on one CPU, %.0f s of real VGA RGB-D (7-Scenes) + IMU: %.1f MB of images -> "
-              "%.1f MB file (%.3f of raw, %.1f MB per 10 s), %.1f MB/s of raw images in real time; logger thread CPU "
-              "%.2f ms per frame pair (%.0f%% of one core at 30 Hz); drops imu %llu images %llu; worst producer "
-              "call %.2f ms; staging peak %.1f MB\n",
-              klog::describe(compression).c_str(), seconds, raw_mb, mb, mb / raw_mb, mb / seconds * 10.0,
-              raw_mb / run.seconds, cpu_ms_per_pair, cpu_ms_per_pair * 30.0 / 10.0,
-              (unsigned long long)st.imu_drops, (unsigned long long)st.image_drops, run.worst_cam_call_ns * 1e-6,
-              st.staging_peak_bytes / 1e6);
+  std::printf(
+      "[ figure ] record %s on one CPU, %.0f s of real VGA RGB-D (7-Scenes) + IMU: %.1f MB of images -> "
+      "%.1f MB file (%.3f of raw, %.1f MB per 10 s), %.1f MB/s of raw images in real time; logger thread CPU "
+      "%.2f ms per frame pair (%.0f%% of one core at 30 Hz); drops imu %llu images %llu; worst producer "
+      "call %.2f ms; staging peak %.1f MB\n",
+      klog::describe(compression).c_str(), seconds, raw_mb, mb, mb / raw_mb, mb / seconds * 10.0,
+      raw_mb / run.seconds, cpu_ms_per_pair, cpu_ms_per_pair * 30.0 / 10.0, (unsigned long long)st.imu_drops,
+      (unsigned long long)st.image_drops, run.worst_cam_call_ns * 1e-6, st.staging_peak_bytes / 1e6);
   expect_complete(run);
   // The goal of issue 43: a VGA RGB-D log at most a third of raw.
   EXPECT_LT(mb * 3.0, raw_mb);

@@ -57,7 +57,8 @@ Pairs sim_pairs(int n, bool noise) {
   drivers::LogRecord rec;
   while (r.next(rec) && static_cast<int>(p.depth.size()) < n) {
     if (rec.type == drivers::RecordType::kRgb) p.rgb.push_back(rec.image);
-    if (rec.type == drivers::RecordType::kDepth && p.depth.size() < p.rgb.size()) p.depth.push_back(rec.image);
+    if (rec.type == drivers::RecordType::kDepth && p.depth.size() < p.rgb.size())
+      p.depth.push_back(rec.image);
   }
   p.rgb.resize(p.depth.size());
   return p;
@@ -88,7 +89,7 @@ Pairs real_pairs(int n) {
     d.pixels.resize(depth.total() * 2);
     for (size_t k = 0; k < depth.total(); ++k) {
       uint16_t v = depth.at<uint16_t>(static_cast<int>(k));
-      if (v == 65535) v = 0;   // as the 7-Scenes reader gives it
+      if (v == 65535) v = 0;  // as the 7-Scenes reader gives it
       d.pixels[2 * k] = static_cast<uint8_t>(v & 0xff);
       d.pixels[2 * k + 1] = static_cast<uint8_t>(v >> 8);
     }
@@ -110,7 +111,7 @@ Cost measure(const std::vector<drivers::LogImage>& images, const klog::ImageComp
   enc.set_compression(c);
   std::string out;
   std::vector<uint8_t> back;
-  for (int rep = 0; rep < 2; ++rep)   // the first pass sizes buffers and contexts
+  for (int rep = 0; rep < 2; ++rep)  // the first pass sizes buffers and contexts
     for (const auto& img : images) {
       out.clear();
       klog::ImageCodec codec{};
@@ -162,9 +163,10 @@ TEST(KlogCompressionBench, CodecsLevelsAndPreFilterOnVgaRgbd) {
       const Cost depth = measure(p.depth, c);
       EXPECT_TRUE(rgb.identical && depth.identical) << klog::describe(c) << " did not round-trip " << p.name;
       const double stored_pair = (rgb.stored + depth.stored) / n;
-      std::printf("  %-32s %7.2f %7.2f %9.1f %8.3f %6.2fms %6.2fms %6.2fms %10.0f\n", klog::describe(c).c_str(),
-                  rgb.raw / rgb.stored, depth.raw / depth.stored, stored_pair * 300 / 1e6, stored_pair / raw_pair,
-                  rgb.enc_s / n * 1e3, depth.enc_s / n * 1e3, (rgb.dec_s + depth.dec_s) / n * 1e3,
+      std::printf("  %-32s %7.2f %7.2f %9.1f %8.3f %6.2fms %6.2fms %6.2fms %10.0f\n",
+                  klog::describe(c).c_str(), rgb.raw / rgb.stored, depth.raw / depth.stored,
+                  stored_pair * 300 / 1e6, stored_pair / raw_pair, rgb.enc_s / n * 1e3, depth.enc_s / n * 1e3,
+                  (rgb.dec_s + depth.dec_s) / n * 1e3,
                   (rgb.raw + depth.raw) / (rgb.enc_s + depth.enc_s) / 1e6);
     }
   }

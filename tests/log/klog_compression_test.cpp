@@ -54,7 +54,8 @@ LogImage scene_image(uint32_t i, PixelFormat f, int w, int h, uint32_t seed = 1)
         p[1] = static_cast<uint8_t>(d >> 8);
       } else {
         for (int c = 0; c < bpp; ++c)
-          p[c] = static_cast<uint8_t>(std::clamp(static_cast<int>(40 + 170 * s + 20 * c + noise(rng)), 0, 255));
+          p[c] =
+              static_cast<uint8_t>(std::clamp(static_cast<int>(40 + 170 * s + 20 * c + noise(rng)), 0, 255));
       }
     }
   return img;
@@ -83,8 +84,8 @@ std::vector<LogRecord> read_all(drivers::LogSource& src) {
   return out;
 }
 
-const PixelFormat kFormats[] = {PixelFormat::kGray8, PixelFormat::kRgb8, PixelFormat::kBgr8, PixelFormat::kYuyv,
-                                PixelFormat::kDepthU16};
+const PixelFormat kFormats[] = {PixelFormat::kGray8, PixelFormat::kRgb8, PixelFormat::kBgr8,
+                                PixelFormat::kYuyv, PixelFormat::kDepthU16};
 
 TEST(KlogCompression, FiltersInvertExactlyOnEveryFormatAndShape) {
   std::mt19937 rng(11);
@@ -99,10 +100,11 @@ TEST(KlogCompression, FiltersInvertExactlyOnEveryFormatAndShape) {
       const int stride = s[0] * bpp + 5;
       std::vector<uint8_t> strided(static_cast<size_t>(stride) * s[1], 0xAB);
       for (int y = 0; y < s[1]; ++y)
-        std::memcpy(&strided[static_cast<size_t>(y) * stride], &img.pixels[static_cast<size_t>(y) * s[0] * bpp],
-                    static_cast<size_t>(s[0]) * bpp);
+        std::memcpy(&strided[static_cast<size_t>(y) * stride],
+                    &img.pixels[static_cast<size_t>(y) * s[0] * bpp], static_cast<size_t>(s[0]) * bpp);
       std::vector<uint8_t> res(bytes), scratch(klog::filter_scratch_bytes(s[0])), back(bytes, 0x5A);
-      klog::filter_forward(filter, ImageView{s[0], s[1], stride, f, strided.data()}, res.data(), scratch.data());
+      klog::filter_forward(filter, ImageView{s[0], s[1], stride, f, strided.data()}, res.data(),
+                           scratch.data());
       klog::filter_inverse(filter, f, s[0], s[1], res.data(), back.data());
       EXPECT_EQ(back, img.pixels) << "format " << int(f) << " " << s[0] << "x" << s[1];
     }
@@ -204,7 +206,8 @@ std::vector<uint8_t> hand_made_v1(const LogImage& img, const ImuSample* s, uint1
   w.u32(static_cast<uint32_t>(16 + yaml.size() + 4));
   w.u32(static_cast<uint32_t>(yaml.size()));
   w.bytes(yaml.data(), yaml.size());
-  w.u32(static_cast<uint32_t>(crc32(0, reinterpret_cast<const Bytef*>(out.data()), static_cast<uInt>(out.size()))));
+  w.u32(static_cast<uint32_t>(
+      crc32(0, reinterpret_cast<const Bytef*>(out.data()), static_cast<uInt>(out.size()))));
   auto record = [&](uint16_t type, const std::string& payload) {
     w.u32(0x5A524BA5u);
     w.u16(type);
@@ -290,7 +293,7 @@ TEST(KlogCompression, CodecByteInAVersion1FileIsABadPayload) {
   for (int k = 0; k < 4; ++k) bytes[rec + 12 + k] = static_cast<uint8_t>(crc >> (8 * k));
   auto r = KlogReader::from_memory(bytes.data(), bytes.size(), "v1c.klog", {});
   const auto recs = read_all(*r);
-  ASSERT_EQ(recs.size(), 1u);   // the IMU record after it survives
+  ASSERT_EQ(recs.size(), 1u);  // the IMU record after it survives
   EXPECT_EQ(recs[0].type, RecordType::kImu);
   ASSERT_EQ(r->problems().size(), 1u);
   EXPECT_EQ(r->problems()[0].kind, "bad-payload");
@@ -346,12 +349,11 @@ CompressedLog compressed_log(const std::string& name) {
   const uint64_t base = c.bytes.size();
   const uint64_t cut = r2.data_offset();
   c.bytes.insert(c.bytes.end(), more.begin() + static_cast<std::ptrdiff_t>(cut), more.end());
-  const uint64_t img_end = base + klog::kRecordHeaderBytes +
-                           [&] {
-                             uint32_t len = 0;
-                             std::memcpy(&len, &more[cut + 8], 4);
-                             return uint64_t{len};
-                           }();
+  const uint64_t img_end = base + klog::kRecordHeaderBytes + [&] {
+    uint32_t len = 0;
+    std::memcpy(&len, &more[cut + 8], 4);
+    return uint64_t{len};
+  }();
   c.spans.push_back({RecordType::kRgb, base, img_end});
   c.spans.push_back({RecordType::kImu, img_end, c.bytes.size()});
   return c;
@@ -363,7 +365,7 @@ void reseal(std::vector<uint8_t>& b, const RecordSpan& s) {
   std::memcpy(&type, &b[s.begin + 4], 2);
   std::memcpy(&flags, &b[s.begin + 6], 2);
   std::memcpy(&len, &b[s.begin + 8], 4);
-  if (len > b.size() - s.begin - klog::kRecordHeaderBytes) return;   // a mutated length: leave it damaged
+  if (len > b.size() - s.begin - klog::kRecordHeaderBytes) return;  // a mutated length: leave it damaged
   const uint32_t crc = klog::record_crc(type, flags, len, &b[s.begin + klog::kRecordHeaderBytes]);
   for (int k = 0; k < 4; ++k) b[s.begin + 12 + k] = static_cast<uint8_t>(crc >> (8 * k));
 }
@@ -461,11 +463,11 @@ TEST(KlogCompression, TruncationInsideACompressedRecordKeepsEverythingBefore) {
 // A CRC-valid image record with the given header fields and pixel section.
 struct OneImage {
   std::vector<uint8_t> bytes;
-  uint64_t at = 0;   // the image record's offset
+  uint64_t at = 0;  // the image record's offset
 };
 
-OneImage one_image_log(uint32_t w, uint32_t h, PixelFormat f, klog::ImageCodec codec, klog::ImageFilter filter,
-                       const std::string& pixels) {
+OneImage one_image_log(uint32_t w, uint32_t h, PixelFormat f, klog::ImageCodec codec,
+                       klog::ImageFilter filter, const std::string& pixels) {
   uint64_t at = 0;
   uint64_t* record_at = &at;
   const std::string path = temp_dir("klogz_one") + "/h.klog";
@@ -495,7 +497,8 @@ OneImage one_image_log(uint32_t w, uint32_t h, PixelFormat f, klog::ImageCodec c
   b2.u16(1);
   b2.u16(0);
   b2.u32(static_cast<uint32_t>(imu.size()));
-  b2.u32(klog::record_crc(1, 0, static_cast<uint32_t>(imu.size()), reinterpret_cast<const uint8_t*>(imu.data())));
+  b2.u32(klog::record_crc(1, 0, static_cast<uint32_t>(imu.size()),
+                          reinterpret_cast<const uint8_t*>(imu.data())));
   r2 += imu;
   bytes.insert(bytes.end(), r2.begin(), r2.end());
   return OneImage{bytes, at};
@@ -513,7 +516,7 @@ void expect_refused(const OneImage& one, const char* needle) {
   auto r = KlogReader::from_memory(bytes.data(), bytes.size(), "lie.klog", {});
   const auto recs = read_all(*r);
   ASSERT_EQ(recs.size(), 1u);
-  EXPECT_EQ(recs[0].type, RecordType::kImu);   // reading resumes after the refused record
+  EXPECT_EQ(recs[0].type, RecordType::kImu);  // reading resumes after the refused record
   ASSERT_EQ(r->problems().size(), 1u);
   EXPECT_EQ(r->problems()[0].kind, "bad-payload");
   EXPECT_EQ(r->problems()[0].where, "lie.klog@" + std::to_string(at));
@@ -522,15 +525,15 @@ void expect_refused(const OneImage& one, const char* needle) {
 
 TEST(KlogCompression, SizeClaimsAreNeverTrusted) {
   // 32768 x 32768 RGB from a few bytes: refused before any buffer is sized.
-  expect_refused(one_image_log(32768, 32768, PixelFormat::kRgb8, klog::ImageCodec::kZstd, klog::ImageFilter::kNone,
-                               std::string(20, 'x')),
+  expect_refused(one_image_log(32768, 32768, PixelFormat::kRgb8, klog::ImageCodec::kZstd,
+                               klog::ImageFilter::kNone, std::string(20, 'x')),
                  "64 MiB");
   // 4000 x 4000 gray (16 MB) from 40 bytes of zstd: more than zstd can produce.
-  expect_refused(one_image_log(4000, 4000, PixelFormat::kGray8, klog::ImageCodec::kZstd, klog::ImageFilter::kNone,
-                               std::string(40, 'x')),
+  expect_refused(one_image_log(4000, 4000, PixelFormat::kGray8, klog::ImageCodec::kZstd,
+                               klog::ImageFilter::kNone, std::string(40, 'x')),
                  "more than the codec can produce");
-  expect_refused(one_image_log(4000, 4000, PixelFormat::kGray8, klog::ImageCodec::kLz4, klog::ImageFilter::kNone,
-                               std::string(40, 'x')),
+  expect_refused(one_image_log(4000, 4000, PixelFormat::kGray8, klog::ImageCodec::kLz4,
+                               klog::ImageFilter::kNone, std::string(40, 'x')),
                  "more than the codec can produce");
   // A zstd frame of 2000 bytes in a 10x10 gray record: its declared size disagrees.
   const std::vector<uint8_t> big(2000, 7), small(100, 7), smaller(60, 7);
@@ -546,7 +549,8 @@ TEST(KlogCompression, SizeClaimsAreNeverTrusted) {
     out.resize(ZSTD_compress2(cc, &out[0], out.size(), big.data(), big.size()));
     ZSTD_freeCCtx(cc);
     expect_refused(
-        one_image_log(10, 10, PixelFormat::kGray8, klog::ImageCodec::kZstd, klog::ImageFilter::kNone, out), "zstd");
+        one_image_log(10, 10, PixelFormat::kGray8, klog::ImageCodec::kZstd, klog::ImageFilter::kNone, out),
+        "zstd");
   }
   // Too few bytes: the frame fills 60 of 100.
   expect_refused(one_image_log(10, 10, PixelFormat::kGray8, klog::ImageCodec::kZstd, klog::ImageFilter::kNone,
@@ -556,16 +560,16 @@ TEST(KlogCompression, SizeClaimsAreNeverTrusted) {
   expect_refused(one_image_log(10, 10, PixelFormat::kGray8, static_cast<klog::ImageCodec>(9),
                                klog::ImageFilter::kNone, zstd_of(small)),
                  "unknown image codec");
-  expect_refused(one_image_log(5, 10, PixelFormat::kYuyv, klog::ImageCodec::kZstd, klog::ImageFilter::kMedPlanar,
-                               zstd_of(small)),
+  expect_refused(one_image_log(5, 10, PixelFormat::kYuyv, klog::ImageCodec::kZstd,
+                               klog::ImageFilter::kMedPlanar, zstd_of(small)),
                  "does not apply");
   // Raw with a filter is not a layout.
-  expect_refused(one_image_log(10, 10, PixelFormat::kGray8, klog::ImageCodec::kRaw, klog::ImageFilter::kMedPlanar,
-                               std::string(100, 'x')),
+  expect_refused(one_image_log(10, 10, PixelFormat::kGray8, klog::ImageCodec::kRaw,
+                               klog::ImageFilter::kMedPlanar, std::string(100, 'x')),
                  "raw pixels with a pre-filter");
   // The well-formed version of the same record reads.
-  const auto ok = one_image_log(10, 10, PixelFormat::kGray8, klog::ImageCodec::kZstd, klog::ImageFilter::kNone,
-                                zstd_of(small))
+  const auto ok = one_image_log(10, 10, PixelFormat::kGray8, klog::ImageCodec::kZstd,
+                                klog::ImageFilter::kNone, zstd_of(small))
                       .bytes;
   auto r = KlogReader::from_memory(ok.data(), ok.size(), "ok.klog", {});
   const auto recs = read_all(*r);

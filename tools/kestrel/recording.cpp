@@ -20,9 +20,11 @@ std::unique_ptr<drivers::KlogLogger> make_recording_logger(const drivers::LiveCo
 }
 
 void add_image_compression_options(CLI::App* app, ImageCompressionArgs& a) {
-  app->add_option("--image-codec", a.codec, "image compression in the .klog: zstd, lz4 or none (docs/log-format.md)")
+  app->add_option("--image-codec", a.codec,
+                  "image compression in the .klog: zstd, lz4 or none (docs/log-format.md)")
       ->capture_default_str();
-  app->add_option("--zstd-level", a.zstd_level, "zstd level (negative = faster, larger)")->capture_default_str();
+  app->add_option("--zstd-level", a.zstd_level, "zstd level (negative = faster, larger)")
+      ->capture_default_str();
 }
 
 drivers::klog::ImageCompression image_compression_from(const ImageCompressionArgs& a) {
@@ -39,13 +41,14 @@ drivers::klog::ImageCompression image_compression_from(const ImageCompressionArg
 std::string recording_summary(const drivers::KlogLogger& logger) {
   const auto st = logger.stats();
   char buf[768];
-  std::snprintf(buf, sizeof buf,
-                "log: %llu records, %.1f MB, drops: imu %llu, images %llu, events %llu; image staging peak %.1f of "
-                "%.1f MB; images %.1f MB -> %.1f MB (%s), logger CPU %.1f s\n",
-                (unsigned long long)st.records_written, st.bytes_written / 1e6, (unsigned long long)st.imu_drops,
-                (unsigned long long)st.image_drops, (unsigned long long)st.event_drops, st.staging_peak_bytes / 1e6,
-                st.staging_bytes / 1e6, st.image_bytes_raw / 1e6, st.image_bytes_stored / 1e6,
-                drivers::klog::describe(logger.compression()).c_str(), st.thread_cpu_ns * 1e-9);
+  std::snprintf(
+      buf, sizeof buf,
+      "log: %llu records, %.1f MB, drops: imu %llu, images %llu, events %llu; image staging peak %.1f of "
+      "%.1f MB; images %.1f MB -> %.1f MB (%s), logger CPU %.1f s\n",
+      (unsigned long long)st.records_written, st.bytes_written / 1e6, (unsigned long long)st.imu_drops,
+      (unsigned long long)st.image_drops, (unsigned long long)st.event_drops, st.staging_peak_bytes / 1e6,
+      st.staging_bytes / 1e6, st.image_bytes_raw / 1e6, st.image_bytes_stored / 1e6,
+      drivers::klog::describe(logger.compression()).c_str(), st.thread_cpu_ns * 1e-9);
   return buf;
 }
 

@@ -6,10 +6,9 @@
 // the camera-IMU offset (readers apply it, docs/frames.md).
 #pragma once
 
+#include <CLI/CLI.hpp>
 #include <memory>
 #include <string>
-
-#include <CLI/CLI.hpp>
 
 #include "kestrel/drivers/devices.hpp"
 #include "kestrel/drivers/klog_logger.hpp"

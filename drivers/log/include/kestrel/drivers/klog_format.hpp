@@ -30,8 +30,8 @@ constexpr size_t kRecordHeaderBytes = 16;      // sync, type, flags, payload_len
 constexpr uint32_t kMaxPayloadBytes = 64u << 20;
 
 constexpr size_t kImuPayloadBytes = 76;
-constexpr size_t kImageHeaderBytes = 36;       // followed by the pixels (raw or compressed, v2)
-constexpr size_t kImageCodecByte = 33;         // offsets in the image header (v2; zero in v1)
+constexpr size_t kImageHeaderBytes = 36;  // followed by the pixels (raw or compressed, v2)
+constexpr size_t kImageCodecByte = 33;    // offsets in the image header (v2; zero in v1)
 constexpr size_t kImageFilterByte = 34;
 constexpr size_t kGroundTruthPayloadBytes = 89;
 constexpr size_t kEventHeaderBytes = 16;       // followed by text_length bytes
@@ -128,8 +128,8 @@ class ByteReader {
 // when the payload does not have exactly the layout of its type.
 void encode_imu(const ImuSample& s, std::string& out);
 void encode_image_header(int64_t t_ns, int64_t t_recv_ns, uint32_t seq, int32_t exposure_us, int width,
-                         int height, PixelFormat format, std::string& out, ImageCodec codec = ImageCodec::kRaw,
-                         ImageFilter filter = ImageFilter::kNone);
+                         int height, PixelFormat format, std::string& out,
+                         ImageCodec codec = ImageCodec::kRaw, ImageFilter filter = ImageFilter::kNone);
 void encode_ground_truth(const GroundTruthPose& gt, std::string& out);
 void encode_event(const Event& e, std::string& out);
 

@@ -50,7 +50,8 @@ bool filter_applies(ImageFilter filter, PixelFormat f);
 // residuals. No allocation.
 size_t filter_scratch_bytes(int width);
 void filter_forward(ImageFilter filter, const ImageView& in, uint8_t* out, uint8_t* scratch);
-void filter_inverse(ImageFilter filter, PixelFormat f, int width, int height, uint8_t* residuals, uint8_t* out);
+void filter_inverse(ImageFilter filter, PixelFormat f, int width, int height, uint8_t* residuals,
+                    uint8_t* out);
 
 // What a writer does with image pixels. zstd_level follows zstd's scale
 // (negative = faster); lz4 has no level here.
@@ -90,7 +91,7 @@ class ImageEncoder {
   // size, 0 on failure (out is left resized to at + bound).
   size_t compress(const uint8_t* src, size_t n, std::string& out, size_t at);
   ImageCompression compression_;
-  void* zstd_ = nullptr;   // ZSTD_CCtx
+  void* zstd_ = nullptr;  // ZSTD_CCtx
   std::vector<uint8_t> lz4_state_;
   std::vector<uint8_t> filtered_;
   std::string alternative_;
@@ -115,7 +116,7 @@ class ImageDecoder {
   static uint64_t max_decoded_bytes(ImageCodec codec, size_t n);
 
  private:
-  void* zstd_ = nullptr;   // ZSTD_DCtx
+  void* zstd_ = nullptr;  // ZSTD_DCtx
   std::vector<uint8_t> residuals_;
 };
 

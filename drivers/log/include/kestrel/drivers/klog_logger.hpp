@@ -68,9 +68,9 @@ class KlogLogger {
     uint64_t records_lost_to_write_errors = 0;
     size_t staging_bytes = 0;        // the image staging buffer
     size_t staging_peak_bytes = 0;   // most of it ever in use: how close a stall came to dropping
-    uint64_t image_bytes_raw = 0;      // pixels given to the writer
-    uint64_t image_bytes_stored = 0;   // what they took in the file (compressed)
-    int64_t thread_cpu_ns = 0;         // the logger thread's CPU time; set by stop()
+    uint64_t image_bytes_raw = 0;    // pixels given to the writer
+    uint64_t image_bytes_stored = 0;  // what they took in the file (compressed)
+    int64_t thread_cpu_ns = 0;        // the logger thread's CPU time; set by stop()
   };
 
   // Staging memory that holds `seconds` of camera_hz frames of rgb_bytes +
