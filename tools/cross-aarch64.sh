@@ -33,6 +33,7 @@ packages=(
   libeigen3-dev libopencv-dev libceres-dev libcli11-dev libyaml-cpp-dev zlib1g-dev libzip-dev nlohmann-json3-dev
   libgtest-dev libgmock-dev libboost-dev libwebsocketpp-dev
   libusb-1.0-0-dev libopenni2-dev
+  libzstd-dev liblz4-dev   # compressed .klog images (drivers/log)
   librosbag-dev libsensor-msgs-dev libgeometry-msgs-dev
 )
 

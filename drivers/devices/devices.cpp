@@ -308,6 +308,20 @@ MavlinkSettings mavlink_settings_from_yaml_node(const YAML::Node& node, const st
   return m;
 }
 
+RecordSettings record_settings_from_yaml_node(const YAML::Node& node, const std::string& where) {
+  RecordSettings r;
+  if (!node) return r;
+  P p(where);
+  const std::string path = "record";
+  p.only(node, path, {"image_codec", "zstd_level"});
+  const std::string codec = p.str(node, "image_codec", path, klog::codec_name(r.compression.codec));
+  if (!klog::parse_codec(codec, r.compression.codec))
+    p.fail(path + ".image_codec", "expected one of zstd, lz4, none, got \"" + codec + "\"");
+  r.compression.zstd_level = static_cast<int>(p.integer(node, "zstd_level", path, r.compression.zstd_level,
+                                                        klog::zstd_min_level(), klog::zstd_max_level()));
+  return r;
+}
+
 EstimatorSettings estimator_settings_from_yaml_node(const YAML::Node& node, const std::string& where) {
   EstimatorSettings e;
   if (!node) return e;
@@ -435,8 +449,9 @@ LiveConfig live_config_from_yaml(const std::string& text, const std::string& whe
     const std::string k = kv.first.Scalar();
     bool estimator_section = k == "estimator";
     for (const std::string& e : estimator_sections) estimator_section = estimator_section || k == e;
-    if (k != "rig" && k != "drivers" && k != "threads" && k != "mavlink" && !estimator_section) {
-      std::string expected = "rig, drivers, threads, mavlink, estimator";
+    if (k != "rig" && k != "drivers" && k != "threads" && k != "mavlink" && k != "record" &&
+        !estimator_section) {
+      std::string expected = "rig, drivers, threads, mavlink, record, estimator";
       for (const std::string& e : estimator_sections)
         if (e != "estimator") expected += ", " + e;
       throw std::runtime_error(where + ": " + k + ": unknown key (expected " + expected + ")");
@@ -472,6 +487,7 @@ LiveConfig live_config_from_yaml(const std::string& text, const std::string& whe
     c.estimator = estimator_settings_from_yaml_node(root["estimator"], where);
     c.threads = thread_table_from_yaml_node(root["threads"], where);
     c.mavlink = mavlink_settings_from_yaml_node(root["mavlink"], where);
+    c.record = record_settings_from_yaml_node(root["record"], where);
   } catch (const YAML::Exception& e) {
     throw std::runtime_error(where + ": " + e.what());
   }

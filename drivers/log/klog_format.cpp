@@ -39,7 +39,8 @@ void encode_imu(const ImuSample& s, std::string& out) {
 }
 
 void encode_image_header(int64_t t_ns, int64_t t_recv_ns, uint32_t seq, int32_t exposure_us, int width,
-                         int height, PixelFormat format, std::string& out) {
+                         int height, PixelFormat format, std::string& out, ImageCodec codec,
+                         ImageFilter filter) {
   ByteWriter w(out);
   w.i64(t_ns);
   w.i64(t_recv_ns);
@@ -48,8 +49,8 @@ void encode_image_header(int64_t t_ns, int64_t t_recv_ns, uint32_t seq, int32_t 
   w.u32(static_cast<uint32_t>(width));
   w.u32(static_cast<uint32_t>(height));
   w.u8(static_cast<uint8_t>(format));
-  w.u8(0);
-  w.u8(0);
+  w.u8(static_cast<uint8_t>(codec));
+  w.u8(static_cast<uint8_t>(filter));
   w.u8(0);
 }
 
@@ -91,7 +92,8 @@ bool decode_imu(const uint8_t* p, size_t n, ImuSample& s, std::string& why) {
   return r.ok();
 }
 
-bool decode_image(const uint8_t* p, size_t n, LogImage& img, std::string& why) {
+bool decode_image(const uint8_t* p, size_t n, LogImage& img, std::string& why, ImageDecoder& decoder,
+                  uint32_t version) {
   if (n < kImageHeaderBytes) {
     why = "image payload is " + std::to_string(n) + " bytes, shorter than its " +
           std::to_string(kImageHeaderBytes) + "-byte header";
@@ -105,7 +107,9 @@ bool decode_image(const uint8_t* p, size_t n, LogImage& img, std::string& why) {
   const uint32_t width = r.u32();
   const uint32_t height = r.u32();
   const uint8_t format = r.u8();
-  r.skip(3);
+  const uint8_t codec = r.u8();
+  const uint8_t filter = r.u8();
+  r.skip(1);
   if (!is_valid_pixel_format(format)) {
     why = "unknown pixel format " + std::to_string(format);
     return false;
@@ -114,11 +118,43 @@ bool decode_image(const uint8_t* p, size_t n, LogImage& img, std::string& why) {
     why = "image size " + std::to_string(width) + "x" + std::to_string(height) + " out of range";
     return false;
   }
+  if (version < 2 && (codec != 0 || filter != 0)) {
+    why = "codec byte " + std::to_string(codec) + " / filter byte " + std::to_string(filter) +
+          " in a version 1 log (version 1 images are raw)";
+    return false;
+  }
+  if (!is_valid_codec(codec) || !is_valid_filter(filter)) {
+    why = "unknown image codec " + std::to_string(codec) + " or pre-filter " + std::to_string(filter);
+    return false;
+  }
   const uint64_t bytes =
       uint64_t{width} * height * static_cast<uint64_t>(bytes_per_pixel(static_cast<PixelFormat>(format)));
-  if (bytes != r.remaining()) {
-    why = "image " + std::to_string(width) + "x" + std::to_string(height) + " needs " + std::to_string(bytes) +
-          " pixel bytes, payload has " + std::to_string(r.remaining());
+  // A raw record could not hold more; a compressed one is not allowed to
+  // decode to more, whatever its few bytes claim.
+  if (bytes > kMaxPayloadBytes - kImageHeaderBytes) {
+    why = "image " + std::to_string(width) + "x" + std::to_string(height) + " would decode to " +
+          std::to_string(bytes) + " bytes, over the 64 MiB record limit";
+    return false;
+  }
+  const uint8_t* px = r.skip(r.remaining());
+  const size_t px_bytes = n - kImageHeaderBytes;
+  if (static_cast<ImageCodec>(codec) == ImageCodec::kRaw && bytes != px_bytes) {
+    why = "image " + std::to_string(width) + "x" + std::to_string(height) + " needs " +
+          std::to_string(bytes) + " pixel bytes, payload has " + std::to_string(px_bytes);
+    return false;
+  }
+  if (bytes > ImageDecoder::max_decoded_bytes(static_cast<ImageCodec>(codec), px_bytes)) {
+    why = std::string(codec_name(static_cast<ImageCodec>(codec))) + " image " + std::to_string(width) + "x" +
+          std::to_string(height) + " claims " + std::to_string(bytes) + " bytes from " +
+          std::to_string(px_bytes) + " compressed bytes, more than the codec can produce";
+    return false;
+  }
+  img.pixels.resize(static_cast<size_t>(bytes));
+  if (!decoder.decode(static_cast<ImageCodec>(codec), static_cast<ImageFilter>(filter),
+                      static_cast<PixelFormat>(format), static_cast<int>(width), static_cast<int>(height), px,
+                      px_bytes, img.pixels.data(), why)) {
+    why = std::string(codec_name(static_cast<ImageCodec>(codec))) + " image " + std::to_string(width) + "x" +
+          std::to_string(height) + ": " + why;
     return false;
   }
   img.t_ns = t_ns;
@@ -128,8 +164,6 @@ bool decode_image(const uint8_t* p, size_t n, LogImage& img, std::string& why) {
   img.width = static_cast<int>(width);
   img.height = static_cast<int>(height);
   img.format = static_cast<PixelFormat>(format);
-  const uint8_t* px = r.skip(static_cast<size_t>(bytes));
-  img.pixels.assign(px, px + bytes);
   return true;
 }
 

@@ -4,6 +4,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstring>
+#include <ctime>
 #include <stdexcept>
 
 namespace kestrel::drivers {
@@ -11,7 +12,9 @@ namespace kestrel::drivers {
 KlogLogger::KlogLogger(const std::string& path, const Rig& rig) : KlogLogger(path, rig, Options{}) {}
 
 KlogLogger::KlogLogger(const std::string& path, const Rig& rig, const Options& options) : options_(options) {
-  writer_.open(path, rig);
+  KlogWriter::Options wo;
+  wo.compression = options.compression;
+  writer_.open(path, rig, wo);
   writer_.set_fsync_every(options.fsync_every);
   // Rings hold their storage inline (hundreds of KB), so they live on the heap, allocated here once.
   imu_ = std::make_unique<rt::SpscRing<ImuSample, kImuRingSize>>();
@@ -98,6 +101,8 @@ void KlogLogger::guarded(F&& write) {
     write();
     records_written_.store(writer_.records_written(), std::memory_order_relaxed);
     bytes_written_.store(writer_.bytes_written(), std::memory_order_relaxed);
+    image_raw_.store(writer_.image_bytes_raw(), std::memory_order_relaxed);
+    image_stored_.store(writer_.image_bytes_stored(), std::memory_order_relaxed);
   } catch (const std::exception& e) {
     error_ = e.what();
     lost_.fetch_add(1, std::memory_order_relaxed);
@@ -159,6 +164,9 @@ void KlogLogger::run() {
     if (!any) std::this_thread::sleep_for(std::chrono::microseconds(options_.idle_sleep_us));
   }
   writer_.close();
+  timespec cpu{};
+  if (clock_gettime(CLOCK_THREAD_CPUTIME_ID, &cpu) == 0)
+    thread_cpu_ns_.store(int64_t{cpu.tv_sec} * 1'000'000'000 + cpu.tv_nsec, std::memory_order_relaxed);
 }
 
 void KlogLogger::stop() {
@@ -177,6 +185,9 @@ KlogLogger::Stats KlogLogger::stats() const {
   s.records_lost_to_write_errors = lost_.load(std::memory_order_relaxed);
   s.staging_bytes = stage_size_;
   s.staging_peak_bytes = static_cast<size_t>(stage_peak_.load(std::memory_order_relaxed));
+  s.image_bytes_raw = image_raw_.load(std::memory_order_relaxed);
+  s.image_bytes_stored = image_stored_.load(std::memory_order_relaxed);
+  s.thread_cpu_ns = thread_cpu_ns_.load(std::memory_order_relaxed);
   return s;
 }
 

@@ -14,8 +14,14 @@ namespace kestrel::drivers {
 
 KlogWriter::~KlogWriter() { close(); }
 
-void KlogWriter::open(const std::string& path, const Rig& rig) {
+void KlogWriter::open(const std::string& path, const Rig& rig) { open(path, rig, Options{}); }
+
+void KlogWriter::open(const std::string& path, const Rig& rig, const Options& options) {
   close();
+  if (options.version < 1 || options.version > kKlogVersion)
+    throw std::invalid_argument(path + ": cannot write klog version " + std::to_string(options.version));
+  if (options.version < 2 && options.compression.codec != klog::ImageCodec::kRaw)
+    throw std::invalid_argument(path + ": klog version 1 has no compressed images");
   const std::string yaml = rig_to_yaml(rig);
   if (yaml.size() > klog::kMaxRigYamlBytes) throw std::runtime_error(path + ": rig YAML too large for a klog header");
   std::FILE* f = std::fopen(path.c_str(), "wb");
@@ -24,7 +30,7 @@ void KlogWriter::open(const std::string& path, const Rig& rig) {
   std::string header;
   klog::ByteWriter w(header);
   w.bytes(klog::kMagic, 4);
-  w.u32(kKlogVersion);
+  w.u32(options.version);
   w.u32(static_cast<uint32_t>(klog::kFileHeaderFixedBytes + yaml.size() + klog::kFileHeaderCrcBytes));
   w.u32(static_cast<uint32_t>(yaml.size()));
   w.bytes(yaml.data(), yaml.size());
@@ -39,6 +45,17 @@ void KlogWriter::open(const std::string& path, const Rig& rig) {
   path_ = path;
   records_ = 0;
   bytes_ = header.size();
+  image_raw_ = 0;
+  image_stored_ = 0;
+  options_ = options;
+  encoder_.set_compression(options.compression);
+}
+
+void KlogWriter::set_compression(const klog::ImageCompression& c) {
+  if (options_.version < 2 && c.codec != klog::ImageCodec::kRaw)
+    throw std::invalid_argument(path_ + ": klog version 1 has no compressed images");
+  options_.compression = c;
+  encoder_.set_compression(c);
 }
 
 void KlogWriter::close() {
@@ -112,9 +129,17 @@ void KlogWriter::write_image(RecordType type, int64_t t_ns, int64_t t_recv_ns, u
     throw std::invalid_argument(path_ + ": image view without data or with stride < width * bpp");
   begin_record();
   klog::encode_image_header(t_ns, t_recv_ns, seq, exposure_us, view.width, view.height, view.format, scratch_);
-  // Packed rows: the stride is a property of the producer's buffer, not of the image.
-  for (int y = 0; y < view.height; ++y)
-    scratch_.append(reinterpret_cast<const char*>(view.data) + static_cast<size_t>(y) * view.stride_bytes, row);
+  const size_t pixels_at = scratch_.size();
+  klog::ImageCodec codec = klog::ImageCodec::kRaw;
+  klog::ImageFilter filter = klog::ImageFilter::kNone;
+  // Packed rows (or their compressed form): the stride is a property of the
+  // producer's buffer, not of the image.
+  encoder_.encode(view, scratch_, codec, filter);
+  const size_t image_at = klog::kRecordHeaderBytes;
+  scratch_[image_at + klog::kImageCodecByte] = static_cast<char>(codec);
+  scratch_[image_at + klog::kImageFilterByte] = static_cast<char>(filter);
+  image_raw_ += row * static_cast<size_t>(view.height);
+  image_stored_ += scratch_.size() - pixels_at;
   finish_record(type);
 }
 

@@ -1,7 +1,8 @@
 // Any byte string as a .klog, strict and salvaging (tests/log/klog_fuzz_entry.hpp
 // holds the invariants; the unit suite runs the same entry on mutations).
 // Seeds: the log fixture every record type is written by, and two cuts of it,
-// so the fuzzer starts past the magic and the CRCs.
+// so the fuzzer starts past the magic and the CRCs; and a log whose images
+// are compressed (zstd and lz4, version 2), so it reaches the decoders.
 #include "fuzz_target.hpp"
 #include "klog_fuzz_entry.hpp"
 #include "log_fixtures.hpp"
@@ -18,5 +19,6 @@ size_t kestrel::fuzz::write_seeds(const std::string& dir) {
   const auto bytes = kestrel::test::read_bytes(dir + "/small.klog");
   kestrel::test::write_bytes(dir + "/head3.klog", bytes.data(), spans[3].begin);
   kestrel::test::write_bytes(dir + "/cut.klog", bytes.data(), spans[4].begin + 20);
-  return 3;
+  kestrel::test::write_compressed_klog(dir + "/compressed.klog", nullptr);
+  return 4;
 }

@@ -143,4 +143,55 @@ inline void write_small_klog(const std::string& path, std::vector<RecordSpan>* s
   w.close();
 }
 
+// A smooth, slightly noisy w x h image (deterministic): compresses the way
+// camera frames do, so a writer stores it compressed.
+inline drivers::LogImage smooth_image(uint32_t i, PixelFormat f, int w, int h) {
+  drivers::LogImage img = fixture_image(i, f, w, h);
+  const int bpp = bytes_per_pixel(f);
+  uint32_t state = 12345u + i;
+  for (int y = 0; y < h; ++y)
+    for (int x = 0; x < w; ++x) {
+      state = state * 1664525u + 1013904223u;
+      const int v = 60 + x * 2 + y + static_cast<int>((state >> 28) & 3u);
+      uint8_t* p = &img.pixels[(static_cast<size_t>(y) * w + x) * bpp];
+      if (f == PixelFormat::kDepthU16) {
+        const int d = (x + y) % 11 == 0 ? 0 : 900 + 4 * v;
+        p[0] = static_cast<uint8_t>(d & 0xff);
+        p[1] = static_cast<uint8_t>(d >> 8);
+      } else {
+        for (int c = 0; c < bpp; ++c) p[c] = static_cast<uint8_t>(v + 9 * c);
+      }
+    }
+  return img;
+}
+
+// A version 2 log whose images are compressed: zstd RGB and depth, an lz4
+// gray frame, IMU between them (the fuzz target's compressed seed).
+inline void write_compressed_klog(const std::string& path, std::vector<RecordSpan>* spans) {
+  drivers::KlogWriter w;
+  w.open(path, fixture_rig());
+  uint64_t at = w.bytes_written();
+  auto mark = [&](drivers::RecordType t) {
+    if (spans) spans->push_back({t, at, w.bytes_written()});
+    at = w.bytes_written();
+  };
+  using drivers::RecordType;
+  w.write_imu(fixture_imu(0));
+  mark(RecordType::kImu);
+  w.write_image(RecordType::kRgb, smooth_image(0, PixelFormat::kRgb8, 24, 16));
+  mark(RecordType::kRgb);
+  w.write_image(RecordType::kDepth, smooth_image(0, PixelFormat::kDepthU16, 24, 16));
+  mark(RecordType::kDepth);
+  w.write_imu(fixture_imu(1));
+  mark(RecordType::kImu);
+  drivers::klog::ImageCompression lz4;
+  lz4.codec = drivers::klog::ImageCodec::kLz4;
+  w.set_compression(lz4);
+  w.write_image(RecordType::kRgb, smooth_image(1, PixelFormat::kGray8, 24, 16));
+  mark(RecordType::kRgb);
+  w.write_imu(fixture_imu(2));
+  mark(RecordType::kImu);
+  w.close();
+}
+
 }  // namespace kestrel::test

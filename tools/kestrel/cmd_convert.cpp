@@ -14,6 +14,7 @@
 #include "kestrel/drivers/log_export.hpp"
 #include "kestrel/drivers/log_source.hpp"
 #include "kestrel/drivers/rig_yaml.hpp"
+#include "kestrel/recording.hpp"
 
 namespace kestrel::cli {
 namespace {
@@ -27,16 +28,20 @@ struct ConvertArgs {
   std::string rig_out;
   drivers::LogOpenOptions open;
   bool quiet = false;
+  ImageCompressionArgs compression;
 };
 
 bool ends_with(const std::string& s, const std::string& e) {
   return s.size() >= e.size() && s.compare(s.size() - e.size(), e.size(), e) == 0;
 }
 
-drivers::ExportStats write_klog(drivers::LogSource& src, const std::string& path) {
+drivers::ExportStats write_klog(drivers::LogSource& src, const std::string& path,
+                                const drivers::klog::ImageCompression& compression) {
   drivers::KlogWriter w;
+  drivers::KlogWriter::Options wo;
+  wo.compression = compression;
   // The reader put the camera stamps on the IMU's clock: the copy has no offset left.
-  w.open(path, drivers::rig_for_shifted_records(src.rig()));
+  w.open(path, drivers::rig_for_shifted_records(src.rig()), wo);
   drivers::ExportStats st;
   drivers::LogRecord r;
   src.rewind();
@@ -100,7 +105,7 @@ int run_convert(const ConvertArgs& a) {
 
   drivers::ExportStats st;
   if (to == "klog")
-    st = write_klog(*src, a.out);
+    st = write_klog(*src, a.out, image_compression_from(a.compression));
   else if (to == "eth3d")
     st = drivers::export_eth3d(*src, a.out);
   else if (to == "openloris")
@@ -166,6 +171,7 @@ Subcommand add_convert_command(CLI::App& parent) {
                   "rosbag CameraInfo topic (default: beside the colour topic)");
   app->add_option("--gt-topic", a->open.ground_truth_topic,
                   "rosbag ground truth, geometry_msgs/PoseStamped (default /kestrel/ground_truth)");
+  add_image_compression_options(app, a->compression);
   app->add_flag("-q,--quiet", a->quiet, "print nothing but errors");
   Subcommand cmd;
   cmd.app = app;

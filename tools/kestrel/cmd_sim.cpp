@@ -7,6 +7,7 @@
 #include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/log_export.hpp"
 #include "kestrel/drivers/log_source.hpp"
+#include "kestrel/recording.hpp"
 #include "kestrel/tools/simulator.hpp"
 
 namespace kestrel::cli {
@@ -22,6 +23,7 @@ struct SimArgs {
   CLI::Option *width_opt = nullptr, *height_opt = nullptr, *fps_opt = nullptr, *imu_rate_opt = nullptr,
               *duration_opt = nullptr, *rig_offset_opt = nullptr;
   double rig_time_offset_ms = 0;
+  ImageCompressionArgs compression;
 };
 
 }  // namespace
@@ -101,6 +103,7 @@ Subcommand add_sim_command(CLI::App& parent) {
   app->add_option("--knot-spacing", o.knot_spacing_s,
                   "GT spline knot spacing [s] (default: the file's interval; --images: 0.1)");
   app->add_option("--threads", o.threads, "render threads")->capture_default_str();
+  add_image_compression_options(app, args->compression);
 
   Subcommand cmd;
   cmd.app = app;
@@ -116,6 +119,7 @@ Subcommand add_sim_command(CLI::App& parent) {
       opt.duration_s = args->duration;
     }
     opt.noise = !args->no_noise;
+    opt.image_compression = image_compression_from(args->compression);
     opt.yaw_follows_path = !args->fixed_yaw;
     tools::SimSummary s;
     try {

@@ -6,6 +6,7 @@
 // the camera-IMU offset (readers apply it, docs/frames.md).
 #pragma once
 
+#include <CLI/CLI.hpp>
 #include <memory>
 #include <string>
 
@@ -74,6 +75,16 @@ class TeeFrameSink final : public drivers::FrameSink {
 // holding buffer_s seconds of frames, its thread from the config's table.
 std::unique_ptr<drivers::KlogLogger> make_recording_logger(const drivers::LiveConfig& cfg, const std::string& path,
                                                            double buffer_s, uint32_t fsync_every);
+
+// `--image-codec` and `--zstd-level` for the offline .klog writers (`kestrel
+// sim`, `kestrel convert`); their defaults are the config's `record:` ones.
+struct ImageCompressionArgs {
+  std::string codec = drivers::klog::codec_name(drivers::default_image_compression().codec);
+  int zstd_level = drivers::default_image_compression().zstd_level;
+};
+void add_image_compression_options(CLI::App* app, ImageCompressionArgs& a);
+// Throws UsageError naming the option when a value is out of range.
+drivers::klog::ImageCompression image_compression_from(const ImageCompressionArgs& a);
 
 // "log: N records, X MB, drops: ...": the logger's end-of-run line.
 std::string recording_summary(const drivers::KlogLogger& logger);

@@ -9,8 +9,10 @@ namespace {
 
 class KlogSink final : public SimSink {
  public:
-  explicit KlogSink(std::string path) : path_(std::move(path)) {}
-  void begin(const Rig& rig) override { writer_.open(path_, rig); }
+  KlogSink(std::string path, const drivers::klog::ImageCompression& c) : path_(std::move(path)) {
+    options_.compression = c;
+  }
+  void begin(const Rig& rig) override { writer_.open(path_, rig, options_); }
   void imu(const ImuSample& s) override { writer_.write_imu(s); }
   void image(drivers::RecordType type, int64_t t_ns, uint32_t seq, const ImageView& view) override {
     writer_.write_image(type, t_ns, t_ns, seq, 0, view);
@@ -28,6 +30,7 @@ class KlogSink final : public SimSink {
 
  private:
   std::string path_;
+  drivers::KlogWriter::Options options_;
   drivers::KlogWriter writer_;
   uint64_t bytes_ = 0;
 };
@@ -36,7 +39,7 @@ class KlogSink final : public SimSink {
 
 SimSummary run_simulation(const SimOptions& options) {
   if (options.out_path.empty()) throw SimOptionError("--out is required");
-  KlogSink sink(options.out_path);
+  KlogSink sink(options.out_path, options.image_compression);
   return run_simulation(options, sink);
 }
 

@@ -22,6 +22,7 @@
 
 #include "kestrel/drivers/bmx055.hpp"
 #include "kestrel/drivers/clock_sync.hpp"
+#include "kestrel/drivers/klog.hpp"
 #include "kestrel/drivers/replay_source.hpp"
 #include "kestrel/drivers/sensor_rings.hpp"
 #include "kestrel/drivers/usb_bridge.hpp"
@@ -108,6 +109,15 @@ struct MavlinkSettings {
   double timesync_max_rtt_ms = 10;
 };
 
+// `record:` section (optional): how `kestrel record` and `kestrel run
+// --record` write their .klog. Keys `image_codec` (zstd | lz4 | none) and
+// `zstd_level`; defaults and what they were chosen on: docs/log-format.md.
+struct RecordSettings {
+  klog::ImageCompression compression = default_image_compression();
+};
+// Throws std::runtime_error "where: record.image_codec: expected one of zstd, lz4, none".
+RecordSettings record_settings_from_yaml_node(const YAML::Node& node, const std::string& where);
+
 // `threads:` section (optional): scheduling and CPU of every pipeline thread.
 // One rt::ThreadSpec per known thread (priority 0 = SCHED_OTHER, cpu -1 =
 // any). Threads the section does not name keep default_thread_table()'s value.
@@ -141,6 +151,7 @@ struct LiveConfig {
   EstimatorSettings estimator;
   ThreadTable threads = default_thread_table();
   MavlinkSettings mavlink;
+  RecordSettings record;
 };
 
 // Throws std::runtime_error "path: drivers.imu.acc_range_g: expected one of 2, 4, 8, 16".

@@ -9,18 +9,33 @@
 #include <vector>
 
 #include "kestrel/drivers/camera_time_shift.hpp"
+#include "kestrel/drivers/klog_image_codec.hpp"
 #include "kestrel/drivers/log_source.hpp"
 #include "kestrel/msgs.hpp"
 
 namespace kestrel::drivers {
 
-constexpr uint32_t kKlogVersion = 1;
+// 2: image pixels may be compressed (docs/log-format.md). Version 1 files
+// (raw images) still read, and the writer can still produce them.
+constexpr uint32_t kKlogVersion = 2;
+
+// The compression every writer uses unless told otherwise (the config's
+// `record:` default; docs/log-format.md says what it was chosen on).
+inline klog::ImageCompression default_image_compression() { return klog::ImageCompression{}; }
 
 // Writes records in the order it is given them. Not thread-safe: the logger
 // thread owns it. Each record is written with one fwrite and flushed, so a
-// crash loses at most the record being written.
+// crash loses at most the record being written. Images are compressed in
+// write_image, on the calling (the logger's) thread.
 class KlogWriter {
  public:
+  struct Options {
+    klog::ImageCompression compression = default_image_compression();
+    // 1 writes the old layout (raw images only; compression must be off):
+    // for tests and for readers that predate version 2.
+    uint32_t version = kKlogVersion;
+  };
+
   KlogWriter() = default;
   ~KlogWriter();
   KlogWriter(const KlogWriter&) = delete;
@@ -28,7 +43,9 @@ class KlogWriter {
 
   // Creates/truncates `path` and writes the file header with the rig.
   // Throws std::runtime_error naming the path on failure.
+  // Throws std::invalid_argument for an unknown version or compression in a version 1 file.
   void open(const std::string& path, const Rig& rig);
+  void open(const std::string& path, const Rig& rig, const Options& options);
   void close();
   bool is_open() const { return file_ != nullptr; }
 
@@ -39,11 +56,19 @@ class KlogWriter {
   void write_ground_truth(const GroundTruthPose& gt);
   void write_event(const Event& e);
 
+  // Changes the compression of the images that follow (a version 2 file can
+  // mix codecs record by record). Throws std::invalid_argument on a version 1 file.
+  void set_compression(const klog::ImageCompression& c);
+
   // Flush policy: by default every record is flushed to the OS (fflush);
   // set_fsync_every(n) additionally fsyncs every n records.
   void set_fsync_every(uint32_t n) { fsync_every_ = n; }
   uint64_t records_written() const { return records_; }
   uint64_t bytes_written() const { return bytes_; }
+  // Image pixel bytes given and written (their ratio is the compression's).
+  uint64_t image_bytes_raw() const { return image_raw_; }
+  uint64_t image_bytes_stored() const { return image_stored_; }
+  const Options& options() const { return options_; }
 
  private:
   void write_record(RecordType type, const uint8_t* payload, uint32_t size);
@@ -56,6 +81,10 @@ class KlogWriter {
   uint64_t records_ = 0;
   uint64_t bytes_ = 0;
   uint32_t fsync_every_ = 0;
+  uint64_t image_raw_ = 0;
+  uint64_t image_stored_ = 0;
+  Options options_;
+  klog::ImageEncoder encoder_;
   std::string scratch_;
 };
 
@@ -137,6 +166,7 @@ class KlogReader final : public LogSource {
   RecordHeader pending_header_;
   // Non-zero camera-IMU offset: records re-sorted after the shift.
   CameraTimeShift shift_;
+  klog::ImageDecoder decoder_;
   LogRecord scratch_;
   bool stored_done_ = false;
 };

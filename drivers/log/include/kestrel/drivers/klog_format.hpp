@@ -10,6 +10,7 @@
 #include <cstring>
 #include <string>
 
+#include "kestrel/drivers/klog_image_codec.hpp"
 #include "kestrel/drivers/log_source.hpp"
 #include "kestrel/msgs.hpp"
 
@@ -29,7 +30,9 @@ constexpr size_t kRecordHeaderBytes = 16;      // sync, type, flags, payload_len
 constexpr uint32_t kMaxPayloadBytes = 64u << 20;
 
 constexpr size_t kImuPayloadBytes = 76;
-constexpr size_t kImageHeaderBytes = 36;       // followed by width*height*bpp pixel bytes
+constexpr size_t kImageHeaderBytes = 36;  // followed by the pixels (raw or compressed, v2)
+constexpr size_t kImageCodecByte = 33;    // offsets in the image header (v2; zero in v1)
+constexpr size_t kImageFilterByte = 34;
 constexpr size_t kGroundTruthPayloadBytes = 89;
 constexpr size_t kEventHeaderBytes = 16;       // followed by text_length bytes
 constexpr uint32_t kMaxImageSide = 1u << 15;
@@ -125,12 +128,17 @@ class ByteReader {
 // when the payload does not have exactly the layout of its type.
 void encode_imu(const ImuSample& s, std::string& out);
 void encode_image_header(int64_t t_ns, int64_t t_recv_ns, uint32_t seq, int32_t exposure_us, int width,
-                         int height, PixelFormat format, std::string& out);
+                         int height, PixelFormat format, std::string& out,
+                         ImageCodec codec = ImageCodec::kRaw, ImageFilter filter = ImageFilter::kNone);
 void encode_ground_truth(const GroundTruthPose& gt, std::string& out);
 void encode_event(const Event& e, std::string& out);
 
 bool decode_imu(const uint8_t* p, size_t n, ImuSample& s, std::string& why);
-bool decode_image(const uint8_t* p, size_t n, LogImage& img, std::string& why);
+// `version` is the file's: version 1 knows only raw pixels. Compressed pixels
+// are decoded with `decoder` into img.pixels, never more than the header's
+// width * height * bpp, which must itself fit kMaxPayloadBytes.
+bool decode_image(const uint8_t* p, size_t n, LogImage& img, std::string& why, ImageDecoder& decoder,
+                  uint32_t version);
 bool decode_ground_truth(const uint8_t* p, size_t n, GroundTruthPose& gt, std::string& why);
 bool decode_event(const uint8_t* p, size_t n, Event& e, std::string& why);
 

@@ -49,6 +49,9 @@ class KlogLogger {
     size_t buffer_bytes = 0;
     uint32_t idle_sleep_us = 1000;            // logger poll period when the rings are empty
     uint32_t fsync_every = 0;                 // see KlogWriter::set_fsync_every
+    // Image compression, done on the logger thread (the config's `record:`
+    // section; docs/log-format.md).
+    klog::ImageCompression compression = default_image_compression();
     // The logger thread's scheduling (the config's `threads: kst-log:`).
     // SCHED_OTHER by default: it does blocking disk I/O and must never hold
     // a CPU the sensor threads need.
@@ -65,6 +68,9 @@ class KlogLogger {
     uint64_t records_lost_to_write_errors = 0;
     size_t staging_bytes = 0;        // the image staging buffer
     size_t staging_peak_bytes = 0;   // most of it ever in use: how close a stall came to dropping
+    uint64_t image_bytes_raw = 0;    // pixels given to the writer
+    uint64_t image_bytes_stored = 0;  // what they took in the file (compressed)
+    int64_t thread_cpu_ns = 0;        // the logger thread's CPU time; set by stop()
   };
 
   // Staging memory that holds `seconds` of camera_hz frames of rgb_bytes +
@@ -93,6 +99,7 @@ class KlogLogger {
   // What the logger thread asked for and was granted (a refused FIFO/pin runs anyway).
   const rt::ThreadSpec& thread_spec() const { return thread_spec_; }
   const rt::ThreadSetupReport& thread_report() const { return thread_report_; }
+  const klog::ImageCompression& compression() const { return options_.compression; }
   // The first write error ("" if none); read after stop().
   const std::string& error() const { return error_; }
 
@@ -141,6 +148,9 @@ class KlogLogger {
   std::atomic<uint64_t> records_written_{0};
   std::atomic<uint64_t> bytes_written_{0};
   std::atomic<uint64_t> lost_{0};
+  std::atomic<uint64_t> image_raw_{0};
+  std::atomic<uint64_t> image_stored_{0};
+  std::atomic<int64_t> thread_cpu_ns_{0};
   std::atomic<bool> stop_{false};
   std::string error_;
   rt::ThreadSpec thread_spec_{};

@@ -9,13 +9,13 @@
 
 #include <Eigen/Core>
 #include <Eigen/Geometry>
-
 #include <cstdint>
 #include <optional>
 #include <stdexcept>
 #include <string>
 #include <vector>
 
+#include "kestrel/drivers/klog_image_codec.hpp"
 #include "kestrel/drivers/log_source.hpp"
 #include "kestrel/msgs.hpp"
 #include "kestrel/tools/sim_imu.hpp"
@@ -46,6 +46,7 @@ struct SimOptions {
   std::string images_format = "auto";
   double position_smoothing = 0.0;      // --images: second-difference weight of the position spline
   std::string out_path;                 // .klog (run_simulation(options) only)
+  drivers::klog::ImageCompression image_compression{};  // of the .klog's images (--image-codec)
 
   double duration_s = -1.0;             // <= 0: scenario default / whole file
   double start_s = 0.0;                 // into the ground-truth file
