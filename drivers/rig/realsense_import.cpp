@@ -110,10 +110,12 @@ void parse_intrinsics(Lines& in, const std::string& header, RealSenseDump& d) {
   const std::vector<std::string> q = quoted(header);
   if (q.size() != 1) in.fail("Intrinsic of", "expected one quoted stream name");
   r.stream = q[0];
-  // ' / 848x480 / {Z16}'
-  const std::vector<std::string> parts = text::split(header.substr(header.rfind('"') + 1), '/');
-  if (parts.size() < 2) in.fail("Intrinsic of \"" + r.stream + "\"", "expected \"/ WIDTHxHEIGHT / {FORMATS}\"");
-  const std::string& size = parts[1];
+  // ' / 848x480 / {Z16}' (the formats hold '/' too: "{RGB8/Y16/YUYV}").
+  const std::string tail = header.substr(header.rfind('"') + 1);
+  const size_t s1 = tail.find('/');
+  const size_t s2 = s1 == std::string::npos ? std::string::npos : tail.find('/', s1 + 1);
+  if (s1 == std::string::npos) in.fail("Intrinsic of \"" + r.stream + "\"", "expected \"/ WIDTHxHEIGHT / {FORMATS}\"");
+  const std::string size = text::trim(tail.substr(s1 + 1, s2 == std::string::npos ? std::string::npos : s2 - s1 - 1));
   const size_t x = size.find('x');
   double w = 0, h = 0;
   if (x == std::string::npos || !text::parse_finite_f64(size.substr(0, x), w) ||
@@ -122,7 +124,7 @@ void parse_intrinsics(Lines& in, const std::string& header, RealSenseDump& d) {
     in.fail("Intrinsic of \"" + r.stream + "\"", "expected a size WIDTHxHEIGHT, got \"" + size + "\"");
   r.width = static_cast<int>(w);
   r.height = static_cast<int>(h);
-  if (parts.size() > 2) r.formats = parts[2];
+  if (s2 != std::string::npos) r.formats = text::trim(tail.substr(s2 + 1));
   const std::string s = r.stream + " " + std::to_string(r.width) + "x" + std::to_string(r.height) + ".";
   if (!in.done() && text::trim(in.peek()).rfind("Intrinsic NOT available", 0) == 0) {
     in.next();

@@ -76,7 +76,7 @@ TEST(RealSenseImport, DumpParsesEveryBlock) {
   EXPECT_DOUBLE_EQ(c->fx, 923.844299316406);
   EXPECT_DOUBLE_EQ(c->ppy, 360.937042236328);
   EXPECT_EQ(c->model, "Inverse Brown Conrady");
-  EXPECT_EQ(c->formats, " {RGB8/RGBA8/BGR8/BGRA8/Y16/YUYV}");
+  EXPECT_EQ(c->formats, "{RGB8/RGBA8/BGR8/BGRA8/Y16/YUYV}");
   const drivers::RsExtrinsics* pose = d.find_extrinsics("Depth", "Pose");
   ASSERT_NE(pose, nullptr);
   EXPECT_FALSE(pose->available);   // "N/A"
@@ -111,9 +111,9 @@ TEST(RealSenseImport, ColourCameraDepthRegisteredImuFromGyro) {
   for (int i = 0; i < 16; ++i) EXPECT_NEAR(I[i], kIdentity4[i], 2e-5) << i;
   // The camera's origin in the IMU frame: -t_DG - R_CD^T t_CD (the fixture's Gyro -> Depth is (0.00552, -0.0051,
   // -0.01174) with no rotation).
-  EXPECT_NEAR(r.T_BC[3], -0.00552 - 0.0147, 2e-4);
-  EXPECT_NEAR(r.T_BC[7], 0.0051, 2e-4);
-  EXPECT_NEAR(r.T_BC[11], 0.01174, 2e-4);
+  EXPECT_NEAR(r.T_BC[3], -0.00552 - 0.014716, 1e-4);
+  EXPECT_NEAR(r.T_BC[7], 0.0051 - 0.000137, 1e-4);
+  EXPECT_NEAR(r.T_BC[11], 0.01174 - 0.000392, 1e-4);
   // Noise: sqrt(variance / rate).
   EXPECT_NEAR(r.imu.acc_noise_density_mps2_sqrthz, std::sqrt(5.4e-4 / 250), 1e-12);
   EXPECT_NEAR(r.imu.gyro_noise_density_rad_s_sqrthz, std::sqrt(1.19e-5 / 200), 1e-12);
