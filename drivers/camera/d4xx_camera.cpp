@@ -22,14 +22,17 @@
 namespace kestrel::drivers::d4xx {
 
 namespace {
-constexpr uint32_t kBufFlagError = 0x00000040;   // V4L2_BUF_FLAG_ERROR
+constexpr uint32_t kBufFlagError = 0x00000040;  // V4L2_BUF_FLAG_ERROR
 }
 
 const char* stream_name(StreamKind k) {
   switch (k) {
-    case StreamKind::kColor: return "color";
-    case StreamKind::kDepth: return "depth";
-    case StreamKind::kInfrared: return "infrared";
+    case StreamKind::kColor:
+      return "color";
+    case StreamKind::kDepth:
+      return "depth";
+    case StreamKind::kInfrared:
+      return "infrared";
   }
   return "?";
 }
@@ -39,7 +42,8 @@ std::vector<NodeSet> group_d4xx_nodes(const std::vector<ProbedNode>& nodes, cons
   std::vector<ProbedNode> sorted;
   for (const ProbedNode& n : nodes)
     if (n.card.find(card_match) != std::string::npos) sorted.push_back(n);
-  std::sort(sorted.begin(), sorted.end(), [](const ProbedNode& a, const ProbedNode& b) { return a.minor < b.minor; });
+  std::sort(sorted.begin(), sorted.end(),
+            [](const ProbedNode& a, const ProbedNode& b) { return a.minor < b.minor; });
   std::vector<NodeSet> sets;
   auto set_of = [&](const ProbedNode& n) -> NodeSet& {
     for (NodeSet& s : sets)
@@ -84,7 +88,7 @@ void DeviceClock::observe(uint32_t pts_us, int64_t host_ns) {
   have_ = true;
   last_us_ = pts_us;
   last_unwrapped_us_ = d_ns / 1000;
-  (void)sync_.add(d_ns, host_ns);   // a jump resets the fit; counted in sync_.jumps()
+  (void)sync_.add(d_ns, host_ns);  // a jump resets the fit; counted in sync_.jumps()
   ++observations_;
   if (shared_ != nullptr) shared_->publish(ClockLine::of(sync_, d_ns, observations_));
 }
@@ -111,8 +115,8 @@ bool Stream::pending_has(uint32_t seq) const {
   return p.used && p.seq == seq;
 }
 
-void Stream::stamp(const NodeBuffer& b, DeviceClock& clock, bool feeds_clock, int64_t readout_ns, int64_t t_recv_ns,
-                   StreamFrame& out) {
+void Stream::stamp(const NodeBuffer& b, DeviceClock& clock, bool feeds_clock, int64_t readout_ns,
+                   int64_t t_recv_ns, StreamFrame& out) {
   out = StreamFrame{};
   const v4l2::BufferTime bt = v4l2::buffer_time(b.tv_sec, b.tv_usec, b.flags, t_recv_ns);
   out.t_buffer_ns = bt.t_ns;
@@ -259,7 +263,8 @@ std::string Camera::open(const Options& o) {
   image_ = o.infrared_is_image ? infrared_.get() : color_.get();
   if (image_ == nullptr) {
     close();
-    return o.infrared_is_image ? "D4xx: infrared_is_image needs the infrared stream" : "D4xx: the colour stream is off";
+    return o.infrared_is_image ? "D4xx: infrared_is_image needs the infrared stream"
+                               : "D4xx: the colour stream is off";
   }
   const NodeFormat& f = image_->video().format();
   if (f.fps > 0) period_ns_ = static_cast<int64_t>(1e9 / f.fps);
@@ -278,20 +283,22 @@ std::string Camera::open(const Options& o) {
     if (o.depth_camera.present && !o.infrared_is_image) {
       const CameraIntrinsics& di = o.depth_camera.intrinsics;
       if (di.width != df.width || di.height != df.height) {
-        const std::string e = "D4xx depth: stream " + std::to_string(df.width) + "x" + std::to_string(df.height) +
-                              " but the rig's depth_camera is " + std::to_string(di.width) + "x" +
-                              std::to_string(di.height);
+        const std::string e = "D4xx depth: stream " + std::to_string(df.width) + "x" +
+                              std::to_string(df.height) + " but the rig's depth_camera is " +
+                              std::to_string(di.width) + "x" + std::to_string(di.height);
         close();
         return e;
       }
       try {
-        registration_ = std::make_unique<DepthRegistration>(o.depth_camera, o.image_camera, o.rig_depth_scale_m);
+        registration_ =
+            std::make_unique<DepthRegistration>(o.depth_camera, o.image_camera, o.rig_depth_scale_m);
       } catch (const std::invalid_argument& ex) {
         close();
         return std::string("D4xx depth registration: ") + ex.what();
       }
       depth_scratch_.assign(out_px, 0);
-      out_px = static_cast<size_t>(registration_->colour_width()) * static_cast<size_t>(registration_->colour_height());
+      out_px = static_cast<size_t>(registration_->colour_width()) *
+               static_cast<size_t>(registration_->colour_height());
     }
     depth_buf_.pixels.reserve(out_px * 2);
   }
@@ -304,18 +311,21 @@ std::string Camera::open(const Options& o) {
   return "";
 }
 
-bool Camera::convert(StreamKind kind, const NodeBuffer& b, const NodeFormat& f, ImageBuffer& dst, ImageBuffer* ir2) {
+bool Camera::convert(StreamKind kind, const NodeBuffer& b, const NodeFormat& f, ImageBuffer& dst,
+                     ImageBuffer* ir2) {
   const int w = f.width, h = f.height;
   const int bpp_in = f.fourcc == v4l2::kZ16 || f.fourcc == v4l2::kYuyv || f.fourcc == kY8i ? 2
                      : f.fourcc == kRgb24                                                  ? 3
                                                                                            : 1;
   const int stride = f.stride > 0 ? f.stride : w * bpp_in;
   if (w <= 0 || h <= 0 || stride < w * bpp_in || b.data == nullptr ||
-      b.bytes_used < static_cast<size_t>(stride) * static_cast<size_t>(h - 1) + static_cast<size_t>(w * bpp_in))
+      b.bytes_used <
+          static_cast<size_t>(stride) * static_cast<size_t>(h - 1) + static_cast<size_t>(w * bpp_in))
     return false;
   auto size_to = [&](ImageBuffer& img, int iw, int ih, PixelFormat pf) {
-    const size_t need = static_cast<size_t>(iw) * static_cast<size_t>(ih) * static_cast<size_t>(bytes_per_pixel(pf));
-    if (need > img.pixels.capacity()) return false;   // sized at open(): never grow here
+    const size_t need =
+        static_cast<size_t>(iw) * static_cast<size_t>(ih) * static_cast<size_t>(bytes_per_pixel(pf));
+    if (need > img.pixels.capacity()) return false;  // sized at open(): never grow here
     img.pixels.resize(need);
     img.width = iw;
     img.height = ih;
@@ -337,7 +347,8 @@ bool Camera::convert(StreamKind kind, const NodeBuffer& b, const NodeFormat& f, 
     case StreamKind::kDepth:
       if (f.fourcc != v4l2::kZ16) return false;
       if (registration_) {
-        if (!size_to(dst, registration_->colour_width(), registration_->colour_height(), PixelFormat::kDepthU16))
+        if (!size_to(dst, registration_->colour_width(), registration_->colour_height(),
+                     PixelFormat::kDepthU16))
           return false;
         return v4l2::z16_to_registered_depth(b.data, w, h, stride, opt_.depth_unit_m, opt_.rig_depth_scale_m,
                                              *registration_, depth_scratch_.data(),
@@ -358,7 +369,8 @@ bool Camera::convert(StreamKind kind, const NodeBuffer& b, const NodeFormat& f, 
       for (int y = 0; y < h; ++y) {
         const uint8_t* s = b.data + static_cast<size_t>(y) * static_cast<size_t>(stride);
         uint8_t* l = dst.pixels.data() + static_cast<size_t>(y) * static_cast<size_t>(w);
-        uint8_t* r = ir2 != nullptr ? ir2->pixels.data() + static_cast<size_t>(y) * static_cast<size_t>(w) : nullptr;
+        uint8_t* r =
+            ir2 != nullptr ? ir2->pixels.data() + static_cast<size_t>(y) * static_cast<size_t>(w) : nullptr;
         for (int x = 0; x < w; ++x) {
           l[x] = s[2 * x];
           if (r != nullptr) r[x] = s[2 * x + 1];
@@ -377,7 +389,7 @@ Stream::Result Camera::grab_partner(Stream& s, int timeout_ms, const StreamFrame
   StreamFrame& held_meta = &s == depth_.get() ? depth_held_meta_ : ir_held_meta_;
   if (held) {
     if (held_meta.t_ns < lead.t_ns - tol) {
-      held = false;   // too old for this lead and every later one
+      held = false;  // too old for this lead and every later one
       ++depth_skipped_;
     } else if (held_meta.t_ns <= lead.t_ns + tol) {
       held = false;
@@ -385,7 +397,7 @@ Stream::Result Camera::grab_partner(Stream& s, int timeout_ms, const StreamFrame
       paired = true;
       return Stream::Result::kFrame;
     } else {
-      return Stream::Result::kFrame;   // still newer than this lead: it waits for the next
+      return Stream::Result::kFrame;  // still newer than this lead: it waits for the next
     }
   }
   // A few stale frames at most (a partner that fell behind catches up here).
@@ -425,7 +437,8 @@ Camera::Result Camera::grab(int timeout_ms, Frame& out) {
   if (image_ == nullptr) return Result::kError;
   NodeBuffer b;
   StreamFrame m;
-  const Stream::Result r = image_->next(timeout_ms, opt_.metadata_wait_ms, clock_, true, opt_.readout_ns, b, m);
+  const Stream::Result r =
+      image_->next(timeout_ms, opt_.metadata_wait_ms, clock_, true, opt_.readout_ns, b, m);
   if (r == Stream::Result::kTimeout) return Result::kTimeout;
   if (r == Stream::Result::kError) return Result::kError;
   const NodeFormat& f = image_->video().format();
@@ -488,31 +501,33 @@ std::string Camera::report() const {
     if (st == nullptr) return;
     const StreamCounters& c = st->counters();
     char b[512];
-    std::snprintf(b, sizeof b,
-                  "D4xx %s: %llu frames, %llu dropped, %llu hardware stamps; kernel stamps: %llu no metadata, %llu "
-                  "corrupt metadata, %llu no sensor timestamp; %llu orphan metadata, %llu frame-counter gaps, %llu "
-                  "errors, %llu timeouts\n",
-                  stream_name(st->kind()), static_cast<unsigned long long>(c.frames),
-                  static_cast<unsigned long long>(c.dropped), static_cast<unsigned long long>(c.hardware_stamps),
-                  static_cast<unsigned long long>(c.metadata_missing),
-                  static_cast<unsigned long long>(c.metadata_corrupt),
-                  static_cast<unsigned long long>(c.metadata_no_timestamp),
-                  static_cast<unsigned long long>(c.metadata_orphans),
-                  static_cast<unsigned long long>(c.frame_counter_gaps), static_cast<unsigned long long>(c.errors),
-                  static_cast<unsigned long long>(c.timeouts));
+    std::snprintf(
+        b, sizeof b,
+        "D4xx %s: %llu frames, %llu dropped, %llu hardware stamps; kernel stamps: %llu no metadata, %llu "
+        "corrupt metadata, %llu no sensor timestamp; %llu orphan metadata, %llu frame-counter gaps, %llu "
+        "errors, %llu timeouts\n",
+        stream_name(st->kind()), static_cast<unsigned long long>(c.frames),
+        static_cast<unsigned long long>(c.dropped), static_cast<unsigned long long>(c.hardware_stamps),
+        static_cast<unsigned long long>(c.metadata_missing),
+        static_cast<unsigned long long>(c.metadata_corrupt),
+        static_cast<unsigned long long>(c.metadata_no_timestamp),
+        static_cast<unsigned long long>(c.metadata_orphans),
+        static_cast<unsigned long long>(c.frame_counter_gaps), static_cast<unsigned long long>(c.errors),
+        static_cast<unsigned long long>(c.timeouts));
     s += b;
   };
   line(color_.get());
   line(depth_.get());
   line(infrared_.get());
   char b[256];
-  std::snprintf(b, sizeof b,
-                "D4xx clock: %llu observations, skew %.1f ppm, %llu jumps, mean excess latency %.0f us; %llu sets, "
-                "%llu without depth, %llu stale partners skipped",
-                static_cast<unsigned long long>(clock_.observations()), 1e6 * clock_.sync().skew(),
-                static_cast<unsigned long long>(clock_.sync().jumps()), 1e-3 * clock_.sync().mean_excess_latency_ns(),
-                static_cast<unsigned long long>(sets_), static_cast<unsigned long long>(unpaired_),
-                static_cast<unsigned long long>(depth_skipped_));
+  std::snprintf(
+      b, sizeof b,
+      "D4xx clock: %llu observations, skew %.1f ppm, %llu jumps, mean excess latency %.0f us; %llu sets, "
+      "%llu without depth, %llu stale partners skipped",
+      static_cast<unsigned long long>(clock_.observations()), 1e6 * clock_.sync().skew(),
+      static_cast<unsigned long long>(clock_.sync().jumps()), 1e-3 * clock_.sync().mean_excess_latency_ns(),
+      static_cast<unsigned long long>(sets_), static_cast<unsigned long long>(unpaired_),
+      static_cast<unsigned long long>(depth_skipped_));
   s += b;
   return s;
 }
@@ -547,12 +562,14 @@ std::vector<v4l2::FormatOption> enumerate_video(int fd) {
       bool any = false;
       for (fi.index = 0; xioctl(fd, VIDIOC_ENUM_FRAMEINTERVALS, &fi) == 0; ++fi.index) {
         if (fi.type != V4L2_FRMIVAL_TYPE_DISCRETE || fi.discrete.numerator == 0) break;
-        out.push_back({fs.pixel_format, static_cast<int>(fs.discrete.width), static_cast<int>(fs.discrete.height),
+        out.push_back({fs.pixel_format, static_cast<int>(fs.discrete.width),
+                       static_cast<int>(fs.discrete.height),
                        static_cast<double>(fi.discrete.denominator) / fi.discrete.numerator});
         any = true;
       }
       if (!any)
-        out.push_back({fs.pixel_format, static_cast<int>(fs.discrete.width), static_cast<int>(fs.discrete.height), 0.0});
+        out.push_back({fs.pixel_format, static_cast<int>(fs.discrete.width),
+                       static_cast<int>(fs.discrete.height), 0.0});
     }
   }
   return out;
@@ -580,14 +597,15 @@ class V4l2Node final : public Node {
       v4l2_format fmt;
       std::memset(&fmt, 0, sizeof fmt);
       fmt.type = V4L2_BUF_TYPE_META_CAPTURE;
-      fmt.fmt.meta.dataformat = kMetaFmtD4xx;   // passes Intel's blocks on kernels that know the D4xx
+      fmt.fmt.meta.dataformat = kMetaFmtD4xx;  // passes Intel's blocks on kernels that know the D4xx
       if (xioctl(fd_, VIDIOC_S_FMT, &fmt) < 0) {
         std::memset(&fmt, 0, sizeof fmt);
         fmt.type = V4L2_BUF_TYPE_META_CAPTURE;
         if (xioctl(fd_, VIDIOC_G_FMT, &fmt) < 0) return fail("VIDIOC_G_FMT (metadata) failed");
       }
       if (fmt.fmt.meta.dataformat != kMetaFmtD4xx && fmt.fmt.meta.dataformat != kMetaFmtUvc)
-        return fail("metadata format " + v4l2::fourcc_name(fmt.fmt.meta.dataformat) + " is neither UVCH nor D4XX");
+        return fail("metadata format " + v4l2::fourcc_name(fmt.fmt.meta.dataformat) +
+                    " is neither UVCH nor D4XX");
       format_.fourcc = fmt.fmt.meta.dataformat;
       format_.buffer_bytes = fmt.fmt.meta.buffersize;
     } else {
@@ -602,7 +620,8 @@ class V4l2Node final : public Node {
       fmt.fmt.pix.height = static_cast<uint32_t>(choice.option.height);
       fmt.fmt.pix.pixelformat = choice.option.fourcc;
       fmt.fmt.pix.field = V4L2_FIELD_NONE;
-      if (xioctl(fd_, VIDIOC_S_FMT, &fmt) < 0) return fail(std::string("VIDIOC_S_FMT: ") + std::strerror(errno));
+      if (xioctl(fd_, VIDIOC_S_FMT, &fmt) < 0)
+        return fail(std::string("VIDIOC_S_FMT: ") + std::strerror(errno));
       if (fmt.fmt.pix.pixelformat != choice.option.fourcc ||
           static_cast<int>(fmt.fmt.pix.width) != choice.option.width ||
           static_cast<int>(fmt.fmt.pix.height) != choice.option.height)
@@ -618,7 +637,8 @@ class V4l2Node final : public Node {
         std::memset(&parm, 0, sizeof parm);
         parm.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
         parm.parm.capture.timeperframe.numerator = 1000;
-        parm.parm.capture.timeperframe.denominator = static_cast<uint32_t>(std::lround(choice.option.fps * 1000));
+        parm.parm.capture.timeperframe.denominator =
+            static_cast<uint32_t>(std::lround(choice.option.fps * 1000));
         (void)xioctl(fd_, VIDIOC_S_PARM, &parm);
       }
     }
@@ -643,7 +663,8 @@ class V4l2Node final : public Node {
       book_.on_queued(static_cast<int>(i));
     }
     int t = static_cast<int>(type_);
-    if (xioctl(fd_, VIDIOC_STREAMON, &t) < 0) return fail(std::string("VIDIOC_STREAMON: ") + std::strerror(errno));
+    if (xioctl(fd_, VIDIOC_STREAMON, &t) < 0)
+      return fail(std::string("VIDIOC_STREAMON: ") + std::strerror(errno));
     return "";
   }
   void close() override {
@@ -724,7 +745,8 @@ std::vector<ProbedNode> probe_v4l2_nodes(std::string* error) {
       n.metadata = (caps & V4L2_CAP_META_CAPTURE) != 0 && !(caps & V4L2_CAP_VIDEO_CAPTURE);
       if (!n.metadata)
         for (const auto& o : enumerate_video(fd))
-          if (std::find(n.formats.begin(), n.formats.end(), o.fourcc) == n.formats.end()) n.formats.push_back(o.fourcc);
+          if (std::find(n.formats.begin(), n.formats.end(), o.fourcc) == n.formats.end())
+            n.formats.push_back(o.fourcc);
       out.push_back(n);
     }
     ::close(fd);

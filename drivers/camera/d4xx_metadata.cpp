@@ -7,10 +7,12 @@ namespace {
 
 uint16_t u16(const uint8_t* p) { return static_cast<uint16_t>(p[0] | (p[1] << 8)); }
 uint32_t u32(const uint8_t* p) {
-  return static_cast<uint32_t>(p[0]) | (static_cast<uint32_t>(p[1]) << 8) | (static_cast<uint32_t>(p[2]) << 16) |
-         (static_cast<uint32_t>(p[3]) << 24);
+  return static_cast<uint32_t>(p[0]) | (static_cast<uint32_t>(p[1]) << 8) |
+         (static_cast<uint32_t>(p[2]) << 16) | (static_cast<uint32_t>(p[3]) << 24);
 }
-uint64_t u64(const uint8_t* p) { return static_cast<uint64_t>(u32(p)) | (static_cast<uint64_t>(u32(p + 4)) << 32); }
+uint64_t u64(const uint8_t* p) {
+  return static_cast<uint64_t>(u32(p)) | (static_cast<uint64_t>(u32(p + 4)) << 32);
+}
 void put16(uint8_t* p, uint16_t v) {
   p[0] = static_cast<uint8_t>(v);
   p[1] = static_cast<uint8_t>(v >> 8);
@@ -37,13 +39,20 @@ uint32_t FrameMetadata::exposure_us() const {
 
 const char* parse_status_name(ParseStatus s) {
   switch (s) {
-    case ParseStatus::kOk: return "ok";
-    case ParseStatus::kEmpty: return "empty buffer";
-    case ParseStatus::kTruncatedRecord: return "record shorter than its header length";
-    case ParseStatus::kBadHeaderLength: return "UVC header length too short for its PTS/SCR";
-    case ParseStatus::kBadBlock: return "metadata block size < 8 or past the header";
-    case ParseStatus::kBadBlockSize: return "metadata block too short for its fields";
-    case ParseStatus::kNoD4xxBlocks: return "no D4xx metadata blocks";
+    case ParseStatus::kOk:
+      return "ok";
+    case ParseStatus::kEmpty:
+      return "empty buffer";
+    case ParseStatus::kTruncatedRecord:
+      return "record shorter than its header length";
+    case ParseStatus::kBadHeaderLength:
+      return "UVC header length too short for its PTS/SCR";
+    case ParseStatus::kBadBlock:
+      return "metadata block size < 8 or past the header";
+    case ParseStatus::kBadBlockSize:
+      return "metadata block too short for its fields";
+    case ParseStatus::kNoD4xxBlocks:
+      return "no D4xx metadata blocks";
   }
   return "?";
 }
@@ -105,7 +114,9 @@ ParseStatus parse_blocks(const uint8_t* p, size_t n, FrameMetadata& out) {
         c.exposure_us = e > 0xFFFFFFFFull ? 0xFFFFFFFFu : static_cast<uint32_t>(e);
         break;
       }
-      default: ++out.unknown_blocks; break;
+      default:
+        ++out.unknown_blocks;
+        break;
     }
     ++out.blocks;
     at += size;
@@ -193,7 +204,8 @@ size_t encode_record(const FrameMetadata& m, const EncodeOptions& o, uint8_t* ou
   put16(out + 8, m.usb_sof);
   uint8_t* h = out + kRecordPrefixBytes;
   h[0] = static_cast<uint8_t>(hlen);
-  h[1] = static_cast<uint8_t>((m.header_info & 0x03) | kInfoEoh | (o.pts ? kInfoPts : 0) | (o.scr ? kInfoScr : 0));
+  h[1] = static_cast<uint8_t>((m.header_info & 0x03) | kInfoEoh | (o.pts ? kInfoPts : 0) |
+                              (o.scr ? kInfoScr : 0));
   size_t at = 2;
   if (o.pts) {
     put32(h + at, m.pts_us);
@@ -208,7 +220,7 @@ size_t encode_record(const FrameMetadata& m, const EncodeOptions& o, uint8_t* ou
     uint8_t* b = h + at;
     put32(b, static_cast<uint32_t>(id));
     put32(b + 4, static_cast<uint32_t>(size));
-    put32(b + 8, 1);   // version
+    put32(b + 8, 1);  // version
     at += size;
     return b;
   };

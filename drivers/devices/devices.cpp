@@ -154,10 +154,11 @@ DriverSettings driver_settings_from_yaml_node(const YAML::Node& root, const std:
     if (const YAML::Node v = c["d4xx"]) {
       // RealSense D4xx over V4L2 + UVC metadata (docs/realsense.md lists every key and its default).
       const std::string vp = path + ".d4xx";
-      p.only(v, vp, {"card_match", "color_device", "color_meta_device", "depth_device", "depth_meta_device",
-                     "infrared_device", "infrared_meta_device", "image", "depth", "infrared", "depth_width_px",
-                     "depth_height_px", "depth_unit_m", "buffers", "metadata_wait_ms", "pair_tolerance_us",
-                     "readout_us"});
+      p.only(v, vp,
+             {"card_match", "color_device", "color_meta_device", "depth_device", "depth_meta_device",
+              "infrared_device", "infrared_meta_device", "image", "depth", "infrared", "depth_width_px",
+              "depth_height_px", "depth_unit_m", "buffers", "metadata_wait_ms", "pair_tolerance_us",
+              "readout_us"});
       CameraSettings::D4xx& x = cs.d4xx;
       x.card_match = p.str(v, "card_match", vp, "RealSense");
       x.color_device = p.str(v, "color_device", vp, "");
@@ -166,9 +167,11 @@ DriverSettings driver_settings_from_yaml_node(const YAML::Node& root, const std:
       x.depth_meta_device = p.str(v, "depth_meta_device", vp, "");
       x.infrared_device = p.str(v, "infrared_device", vp, "");
       x.infrared_meta_device = p.str(v, "infrared_meta_device", vp, "");
-      x.image = p.choice<std::string>(v, "image", vp, "color", {{"color", "color"}, {"infrared1", "infrared1"}});
+      x.image =
+          p.choice<std::string>(v, "image", vp, "color", {{"color", "color"}, {"infrared1", "infrared1"}});
       x.depth = p.boolean(v, "depth", vp, true);
-      x.infrared = p.choice<std::string>(v, "infrared", vp, "off", {{"off", "off"}, {"y8", "y8"}, {"y8i", "y8i"}});
+      x.infrared =
+          p.choice<std::string>(v, "infrared", vp, "off", {{"off", "off"}, {"y8", "y8"}, {"y8i", "y8i"}});
       x.depth_width_px = static_cast<int>(p.integer(v, "depth_width_px", vp, 0, 0, 8192));
       x.depth_height_px = static_cast<int>(p.integer(v, "depth_height_px", vp, 0, 0, 8192));
       x.depth_unit_m = p.num(v, "depth_unit_m", vp, 0.001);
@@ -518,13 +521,14 @@ DeviceReport probe_devices() {
   if (!err.empty()) r.notes.push_back("v4l2: " + err);
   err.clear();
   // RealSense D4xx: its nodes grouped as camera.type d4xx would find them.
-  for (const d4xx::NodeSet& n : d4xx::group_d4xx_nodes(d4xx::probe_v4l2_nodes(&err), d4xx::kDefaultCardMatch)) {
+  for (const d4xx::NodeSet& n :
+       d4xx::group_d4xx_nodes(d4xx::probe_v4l2_nodes(&err), d4xx::kDefaultCardMatch)) {
     auto node = [](const std::string& v, const std::string& m) {
       return v.empty() ? std::string("-") : v + (m.empty() ? std::string(" (no metadata node)") : " + " + m);
     };
     r.found.push_back({"camera", "d4xx", n.bus_info,
-                       n.card + ": colour " + node(n.color, n.color_meta) + ", depth " + node(n.depth, n.depth_meta) +
-                           ", infrared " + node(n.infrared, n.infrared_meta)});
+                       n.card + ": colour " + node(n.color, n.color_meta) + ", depth " +
+                           node(n.depth, n.depth_meta) + ", infrared " + node(n.infrared, n.infrared_meta)});
   }
   err.clear();
   for (const auto& d : openni2::list_devices(&err)) r.found.push_back({"camera", "openni2", d, ""});
@@ -602,7 +606,7 @@ struct LiveSensors::Impl {
   // in d4xx_clock for an IMU driver on the same camera (docs/realsense.md).
   std::unique_ptr<d4xx::Camera> d4xx_cam;
   SharedDeviceClock d4xx_clock;
-  std::string d4xx_nodes;   // which nodes were used (auto-found or configured)
+  std::string d4xx_nodes;  // which nodes were used (auto-found or configured)
   StrobeMatcher matcher;
   std::unique_ptr<KlogReader> log;  // the `log` sensors
   uint64_t log_imu = 0;
@@ -676,7 +680,8 @@ LiveSensors::LiveSensors(const LiveConfig& cfg) : impl_(std::make_unique<Impl>()
   switch (d.camera.type) {
     case CameraType::kNone:
     case CameraType::kLog:
-    case CameraType::kD4xx: break;   // opened below (open_d4xx)
+    case CameraType::kD4xx:
+      break;  // opened below (open_d4xx)
     case CameraType::kOpenNi2: {
       openni2::Options o;
       o.uri = d.camera.openni2_uri;
@@ -752,9 +757,11 @@ std::string LiveSensors::Impl::open_d4xx() {
                          (want_ir && nodes.infrared.empty());
   if (need_find) {
     std::string err;
-    const std::vector<d4xx::NodeSet> sets = d4xx::group_d4xx_nodes(d4xx::probe_v4l2_nodes(&err), x.card_match);
+    const std::vector<d4xx::NodeSet> sets =
+        d4xx::group_d4xx_nodes(d4xx::probe_v4l2_nodes(&err), x.card_match);
     if (sets.empty())
-      return "no V4L2 camera whose card name contains \"" + x.card_match + "\"" + (err.empty() ? "" : " (" + err + ")") +
+      return "no V4L2 camera whose card name contains \"" + x.card_match + "\"" +
+             (err.empty() ? "" : " (" + err + ")") +
              "; set drivers.camera.d4xx.*_device or check `kestrel devices`";
     const d4xx::NodeSet& f = sets.front();
     auto fill = [](std::string& dev, std::string& meta, const std::string& fdev, const std::string& fmeta) {
@@ -779,12 +786,13 @@ std::string LiveSensors::Impl::open_d4xx() {
   o.depth.enabled = x.depth;
   o.depth.video_device = nodes.depth;
   o.depth.meta_device = meta(nodes.depth_meta);
-  o.depth.request.width = x.depth_width_px > 0 ? x.depth_width_px
+  o.depth.request.width = x.depth_width_px > 0                         ? x.depth_width_px
                           : cfg.rig.depth_camera.present && want_color ? cfg.rig.depth_camera.intrinsics.width
                                                                        : cs.width_px;
   o.depth.request.height = x.depth_height_px > 0 ? x.depth_height_px
-                           : cfg.rig.depth_camera.present && want_color ? cfg.rig.depth_camera.intrinsics.height
-                                                                        : cs.height_px;
+                           : cfg.rig.depth_camera.present && want_color
+                               ? cfg.rig.depth_camera.intrinsics.height
+                               : cs.height_px;
   o.depth.request.fps = cs.rate_hz;
   o.depth.request.preferred = {v4l2::kZ16};
   o.infrared.enabled = want_ir;
@@ -804,9 +812,12 @@ std::string LiveSensors::Impl::open_d4xx() {
   o.image_camera = cfg.rig.rgb;
   o.pair_tolerance_ns = x.pair_tolerance_ns;
   o.shared_clock = &d4xx_clock;
-  d4xx_nodes = "colour " + (o.color.enabled ? o.color.video_device + " + " + (o.color.meta_device.empty() ? std::string("no metadata") : o.color.meta_device) : std::string("off")) +
-               ", depth " + (o.depth.enabled ? o.depth.video_device + " + " + (o.depth.meta_device.empty() ? std::string("no metadata") : o.depth.meta_device) : std::string("off")) +
-               ", infrared " + (o.infrared.enabled ? o.infrared.video_device + " + " + (o.infrared.meta_device.empty() ? std::string("no metadata") : o.infrared.meta_device) : std::string("off"));
+  auto describe = [](const d4xx::StreamOptions& so) {
+    if (!so.enabled) return std::string("off");
+    return so.video_device + " + " + (so.meta_device.empty() ? std::string("no metadata") : so.meta_device);
+  };
+  d4xx_nodes =
+      "colour " + describe(o.color) + ", depth " + describe(o.depth) + ", infrared " + describe(o.infrared);
   d4xx_cam = std::make_unique<d4xx::Camera>();
   const std::string e = d4xx_cam->open(o);
   if (!e.empty()) d4xx_cam.reset();

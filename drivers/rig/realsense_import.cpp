@@ -34,7 +34,7 @@ class Lines {
   bool done() const { return at_ >= lines_.size(); }
   const std::string& peek() const { return lines_[at_]; }
   std::string next() { return lines_[at_++]; }
-  int line() const { return static_cast<int>(at_); }   // 1-based number of the line last taken
+  int line() const { return static_cast<int>(at_); }  // 1-based number of the line last taken
   // The next line that is not blank (or "" at the end).
   std::string next_nonblank() {
     while (!done() && text::trim(peek()).empty()) ++at_;
@@ -50,7 +50,8 @@ class Lines {
   }
   std::vector<double> numbers(const std::string& s, const std::string& field, size_t count) const {
     const std::vector<std::string> f = text::split_ws(s);
-    if (f.size() != count) fail(field, "expected " + std::to_string(count) + " numbers, got \"" + text::trim(s) + "\"");
+    if (f.size() != count)
+      fail(field, "expected " + std::to_string(count) + " numbers, got \"" + text::trim(s) + "\"");
     std::vector<double> v;
     for (size_t i = 0; i < count; ++i) v.push_back(number(f[i], field + "[" + std::to_string(i) + "]"));
     return v;
@@ -114,8 +115,10 @@ void parse_intrinsics(Lines& in, const std::string& header, RealSenseDump& d) {
   const std::string tail = header.substr(header.rfind('"') + 1);
   const size_t s1 = tail.find('/');
   const size_t s2 = s1 == std::string::npos ? std::string::npos : tail.find('/', s1 + 1);
-  if (s1 == std::string::npos) in.fail("Intrinsic of \"" + r.stream + "\"", "expected \"/ WIDTHxHEIGHT / {FORMATS}\"");
-  const std::string size = text::trim(tail.substr(s1 + 1, s2 == std::string::npos ? std::string::npos : s2 - s1 - 1));
+  if (s1 == std::string::npos)
+    in.fail("Intrinsic of \"" + r.stream + "\"", "expected \"/ WIDTHxHEIGHT / {FORMATS}\"");
+  const std::string size =
+      text::trim(tail.substr(s1 + 1, s2 == std::string::npos ? std::string::npos : s2 - s1 - 1));
   const size_t x = size.find('x');
   double w = 0, h = 0;
   if (x == std::string::npos || !text::parse_finite_f64(size.substr(0, x), w) ||
@@ -203,9 +206,11 @@ void parse_extrinsics(Lines& in, const std::string& header, RealSenseDump& d) {
     d.extrinsics.push_back(e);
     return;
   }
-  if (first != "Rotation Matrix:") in.fail(s + "Rotation Matrix", "expected \"Rotation Matrix:\", got \"" + first + "\"");
+  if (first != "Rotation Matrix:")
+    in.fail(s + "Rotation Matrix", "expected \"Rotation Matrix:\", got \"" + first + "\"");
   for (int r = 0; r < 3; ++r) {
-    const std::vector<double> row = in.numbers(in.next_nonblank(), s + "Rotation Matrix[" + std::to_string(r) + "]", 3);
+    const std::vector<double> row =
+        in.numbers(in.next_nonblank(), s + "Rotation Matrix[" + std::to_string(r) + "]", 3);
     for (int c = 0; c < 3; ++c) e.T_to_from[static_cast<size_t>(4 * r + c)] = row[static_cast<size_t>(c)];
   }
   const std::string t = in.field("Translation Vector");
@@ -247,7 +252,8 @@ Mat4d rigid(const Mat4d& T) { return rigid_inverse(rigid_inverse(T)); }
 
 std::string read_file(const std::string& path) {
   std::ifstream f(path, std::ios::binary);
-  if (!f) throw std::runtime_error(path + ": cannot open (the output of `rs-enumerate-devices -c > " + path + "`)");
+  if (!f)
+    throw std::runtime_error(path + ": cannot open (the output of `rs-enumerate-devices -c > " + path + "`)");
   std::ostringstream s;
   s << f.rdbuf();
   return s.str();
@@ -265,11 +271,16 @@ bool solve5(std::array<std::array<double, 6>, 5> m, std::array<double, 5>& x) {
     std::swap(m[static_cast<size_t>(c)], m[static_cast<size_t>(p)]);
     for (int r = 0; r < 5; ++r) {
       if (r == c) continue;
-      const double f = m[static_cast<size_t>(r)][static_cast<size_t>(c)] / m[static_cast<size_t>(c)][static_cast<size_t>(c)];
-      for (int k = c; k < 6; ++k) m[static_cast<size_t>(r)][static_cast<size_t>(k)] -= f * m[static_cast<size_t>(c)][static_cast<size_t>(k)];
+      const double f = m[static_cast<size_t>(r)][static_cast<size_t>(c)] /
+                       m[static_cast<size_t>(c)][static_cast<size_t>(c)];
+      for (int k = c; k < 6; ++k)
+        m[static_cast<size_t>(r)][static_cast<size_t>(k)] -=
+            f * m[static_cast<size_t>(c)][static_cast<size_t>(k)];
     }
   }
-  for (int c = 0; c < 5; ++c) x[static_cast<size_t>(c)] = m[static_cast<size_t>(c)][5] / m[static_cast<size_t>(c)][static_cast<size_t>(c)];
+  for (int c = 0; c < 5; ++c)
+    x[static_cast<size_t>(c)] =
+        m[static_cast<size_t>(c)][5] / m[static_cast<size_t>(c)][static_cast<size_t>(c)];
   return true;
 }
 
@@ -300,7 +311,8 @@ const RsMotionIntrinsics* RealSenseDump::find_motion(const std::string& stream) 
 std::string RealSenseDump::sizes_of(const std::string& stream) const {
   std::string s;
   for (const RsIntrinsics& r : intrinsics)
-    if (r.stream == stream) s += (s.empty() ? "" : ", ") + std::to_string(r.width) + "x" + std::to_string(r.height);
+    if (r.stream == stream)
+      s += (s.empty() ? "" : ", ") + std::to_string(r.width) + "x" + std::to_string(r.height);
   return s.empty() ? "none" : s;
 }
 
@@ -340,14 +352,15 @@ bool fit_radtan(const RsIntrinsics& in, std::array<double, 5>& k, double& rms_px
   constexpr int kN = 24;
   for (int gy = 0; gy <= kN; ++gy)
     for (int gx = 0; gx <= kN; ++gx) {
-      const double px = in.width * gx / static_cast<double>(kN), py = in.height * gy / static_cast<double>(kN);
+      const double px = in.width * gx / static_cast<double>(kN),
+                   py = in.height * gy / static_cast<double>(kN);
       const double x = (px - in.ppx) / in.fx, y = (py - in.ppy) / in.fy;
       const double r2 = x * x + y * y;
       const double f = 1 + c[0] * r2 + c[1] * r2 * r2 + c[4] * r2 * r2 * r2;
-      if (inverse) {   // pixel (distorted) -> undistorted: librealsense's deprojection
+      if (inverse) {  // pixel (distorted) -> undistorted: librealsense's deprojection
         pairs.push_back({x * f + 2 * c[2] * x * y + c[3] * (r2 + 2 * x * x),
                          y * f + 2 * c[3] * x * y + c[2] * (r2 + 2 * y * y), x, y});
-      } else if (modified) {   // undistorted -> distorted, tangential terms on the radially scaled point
+      } else if (modified) {  // undistorted -> distorted, tangential terms on the radially scaled point
         const double xs = x * f, ys = y * f;
         pairs.push_back({x, y, xs + 2 * c[2] * xs * ys + c[3] * (r2 + 2 * xs * xs),
                          ys + 2 * c[3] * xs * ys + c[2] * (r2 + 2 * ys * ys)});
@@ -360,8 +373,9 @@ bool fit_radtan(const RsIntrinsics& in, std::array<double, 5>& k, double& rms_px
   std::array<std::array<double, 6>, 5> n{};
   for (const auto& p : pairs) {
     const double ux = p[0], uy = p[1], r2 = ux * ux + uy * uy;
-    const double rows[2][6] = {{ux * r2, ux * r2 * r2, 2 * ux * uy, r2 + 2 * ux * ux, ux * r2 * r2 * r2, p[2] - ux},
-                               {uy * r2, uy * r2 * r2, r2 + 2 * uy * uy, 2 * ux * uy, uy * r2 * r2 * r2, p[3] - uy}};
+    const double rows[2][6] = {
+        {ux * r2, ux * r2 * r2, 2 * ux * uy, r2 + 2 * ux * ux, ux * r2 * r2 * r2, p[2] - ux},
+        {uy * r2, uy * r2 * r2, r2 + 2 * uy * uy, 2 * ux * uy, uy * r2 * r2 * r2, p[3] - uy}};
     for (const auto& row : rows)
       for (size_t i = 0; i < 5; ++i)
         for (size_t j = 0; j < 6; ++j) n[i][j] += row[i] * row[j];
@@ -392,7 +406,9 @@ RealSenseImport import_realsense_text(const std::string& text, const std::string
   const int w = o.width > 0 ? o.width : (base.rgb.width > 0 ? base.rgb.width : 640);
   const int h = o.height > 0 ? o.height : (base.rgb.height > 0 ? base.rgb.height : 480);
   if (d.intrinsics.empty() && d.extrinsics.empty())
-    fail("no \"Intrinsic of\" or \"Extrinsic from\" sections: is this the output of `rs-enumerate-devices -c`?");
+    fail(
+        "no \"Intrinsic of\" or \"Extrinsic from\" sections: is this the output of `rs-enumerate-devices "
+        "-c`?");
 
   // ---- the camera ----
   auto intrinsics = [&](const RsIntrinsics& r, CameraIntrinsics& ci, const std::string& what) {
@@ -411,7 +427,7 @@ RealSenseImport import_realsense_text(const std::string& text, const std::string
       for (size_t i = 0; i < 4; ++i) ci.dist[i] = r.coeffs[i];
     } else if (r.model == "Brown Conrady") {
       ci.distortion = DistortionModel::kRadTan;
-      ci.dist = r.coeffs;   // k1 k2 p1 p2 k3, the same equations
+      ci.dist = r.coeffs;  // k1 k2 p1 p2 k3, the same equations
     } else {
       std::array<double, 5> k{};
       double rms = 0;
@@ -419,14 +435,14 @@ RealSenseImport import_realsense_text(const std::string& text, const std::string
         fail(what + ": distortion \"" + r.model + "\" has no Kestrel equivalent (none, radtan, equidistant)");
       ci.distortion = DistortionModel::kRadTan;
       ci.dist = k;
-      out.notes.push_back(what + ": \"" + r.model + "\" fitted as radtan over the image, residual " + fmt(rms) +
-                          " px rms" + (rms > 0.1 ? " (LARGE: check the undistortion)" : ""));
+      out.notes.push_back(what + ": \"" + r.model + "\" fitted as radtan over the image, residual " +
+                          fmt(rms) + " px rms" + (rms > 0.1 ? " (LARGE: check the undistortion)" : ""));
     }
   };
   const RsIntrinsics* cam = d.find(o.camera, w, h);
   if (cam == nullptr)
-    throw_named(name, "no intrinsics of \"" + o.camera + "\" at " + std::to_string(w) + "x" + std::to_string(h) +
-         " (the dump has: " + d.sizes_of(o.camera) + ")");
+    throw_named(name, "no intrinsics of \"" + o.camera + "\" at " + std::to_string(w) + "x" +
+                          std::to_string(h) + " (the dump has: " + d.sizes_of(o.camera) + ")");
   if (!cam->available) fail("Intrinsic of " + o.camera + ": \"Intrinsic NOT available!\" in the dump");
   intrinsics(*cam, rig.rgb, o.camera);
 
@@ -436,9 +452,11 @@ RealSenseImport import_realsense_text(const std::string& text, const std::string
     const RsIntrinsics* dep = d.find("Depth", dw, dh);
     if (dep == nullptr || !dep->available)
       throw_named(name, "no intrinsics of \"Depth\" at " + std::to_string(dw) + "x" + std::to_string(dh) +
-           " (the dump has: " + d.sizes_of("Depth") + "); depth must be registered to Color");
+                            " (the dump has: " + d.sizes_of("Depth") +
+                            "); depth must be registered to Color");
     const RsExtrinsics* e = d.find_extrinsics("Depth", "Color");
-    if (e == nullptr || !e->available) throw_named(name, "no Extrinsic from Depth To Color section (needed to register depth to colour)");
+    if (e == nullptr || !e->available)
+      throw_named(name, "no Extrinsic from Depth To Color section (needed to register depth to colour)");
     rig.depth_camera.present = true;
     intrinsics(*dep, rig.depth_camera.intrinsics, "Depth");
     rig.depth_camera.T_CD = rigid(e->T_to_from);
@@ -450,7 +468,8 @@ RealSenseImport import_realsense_text(const std::string& text, const std::string
     if (e != nullptr && e->available) {
       double off = 0;
       for (size_t i = 0; i < 16; ++i) off = std::max(off, std::abs(e->T_to_from[i] - kIdentity4[i]));
-      if (off > 1e-4) out.notes.push_back("Depth -> Infrared 1 is not identity (" + fmt(off) + "): unexpected on a D4xx");
+      if (off > 1e-4)
+        out.notes.push_back("Depth -> Infrared 1 is not identity (" + fmt(off) + "): unexpected on a D4xx");
     }
   }
 
@@ -470,7 +489,8 @@ RealSenseImport import_realsense_text(const std::string& text, const std::string
     rig.T_BC = rigid_inverse(a->T_to_from);
     out.notes.push_back("T_BC from Accel -> " + o.camera + " (no Gyro extrinsics in the dump)");
   } else {
-    out.missing.push_back("Extrinsic from \"Gyro\" To \"" + o.camera + "\" (no IMU: a D435/D415?): T_BC kept from the base rig, NOT calibrated");
+    out.missing.push_back("Extrinsic from \"Gyro\" To \"" + o.camera +
+                          "\" (no IMU: a D435/D415?): T_BC kept from the base rig, NOT calibrated");
   }
   rig.T_BI = kIdentity4;
 
@@ -478,15 +498,16 @@ RealSenseImport import_realsense_text(const std::string& text, const std::string
   auto noise = [&](const char* stream, double rate_hz, double& density, const char* unit) {
     const RsMotionIntrinsics* m = d.find_motion(stream);
     if (m == nullptr || !m->available) {
-      out.missing.push_back(std::string("Motion Intrinsic of \"") + stream + "\": noise density " + fmt(density) +
-                            " " + unit + " kept from the base rig");
+      out.missing.push_back(std::string("Motion Intrinsic of \"") + stream + "\": noise density " +
+                            fmt(density) + " " + unit + " kept from the base rig");
       return;
     }
     const double var = (m->noise_variances[0] + m->noise_variances[1] + m->noise_variances[2]) / 3.0;
     if (!(var > 0)) {
-      out.missing.push_back(std::string("Motion Intrinsic of \"") + stream +
-                            "\": noise variances are zero (IMU not calibrated, rs-imu-calibration): noise density " +
-                            fmt(density) + " " + unit + " kept from the base rig");
+      out.missing.push_back(
+          std::string("Motion Intrinsic of \"") + stream +
+          "\": noise variances are zero (IMU not calibrated, rs-imu-calibration): noise density " +
+          fmt(density) + " " + unit + " kept from the base rig");
       return;
     }
     // A discrete variance per sample at rate f is sigma_c^2 * f: density = sqrt(var / f).
@@ -496,11 +517,13 @@ RealSenseImport import_realsense_text(const std::string& text, const std::string
     if (m->has_sensitivity) {
       double off = 0;
       for (size_t r = 0; r < 3; ++r)
-        for (size_t c = 0; c < 4; ++c) off = std::max(off, std::abs(m->sensitivity[4 * r + c] - (r == c ? 1.0 : 0.0)));
+        for (size_t c = 0; c < 4; ++c)
+          off = std::max(off, std::abs(m->sensitivity[4 * r + c] - (r == c ? 1.0 : 0.0)));
       if (off > 1e-6)
-        out.notes.push_back(std::string(stream) + ": sensitivity/bias matrix is not identity (" + fmt(off) +
-                            "): Kestrel does not apply it; write it to the device (rs-imu-calibration) so the "
-                            "firmware does");
+        out.notes.push_back(
+            std::string(stream) + ": sensitivity/bias matrix is not identity (" + fmt(off) +
+            "): Kestrel does not apply it; write it to the device (rs-imu-calibration) so the "
+            "firmware does");
     }
   };
   noise("Accel", o.accel_rate_hz, rig.imu.acc_noise_density_mps2_sqrthz, "m/s^2/sqrt(Hz)");
@@ -508,12 +531,15 @@ RealSenseImport import_realsense_text(const std::string& text, const std::string
   rig.imu_rate_hz = o.gyro_rate_hz;
 
   // ---- what the dump has no place for ----
-  out.notes.push_back("imu.rate_hz: " + fmt(rig.imu_rate_hz) + " (the gyro's; the accelerometer is interpolated onto it)");
-  out.notes.push_back("imu random walks: not in the dump: acc " + fmt(rig.imu.acc_random_walk_mps3_sqrthz) +
-                      " m/s^3/sqrt(Hz), gyro " + fmt(rig.imu.gyro_random_walk_rad_s2_sqrthz) +
-                      " rad/s^2/sqrt(Hz) from the base rig (the dump's bias variances are a static uncertainty)");
-  out.notes.push_back("depth unit and range: not in `-c` output: scale_m_per_unit " + fmt(rig.depth.scale_m_per_unit) +
-                      ", " + fmt(rig.depth.min_range_m) + ".." + fmt(rig.depth.max_range_m) + " m from the base rig");
+  out.notes.push_back("imu.rate_hz: " + fmt(rig.imu_rate_hz) +
+                      " (the gyro's; the accelerometer is interpolated onto it)");
+  out.notes.push_back(
+      "imu random walks: not in the dump: acc " + fmt(rig.imu.acc_random_walk_mps3_sqrthz) +
+      " m/s^3/sqrt(Hz), gyro " + fmt(rig.imu.gyro_random_walk_rad_s2_sqrthz) +
+      " rad/s^2/sqrt(Hz) from the base rig (the dump's bias variances are a static uncertainty)");
+  out.notes.push_back("depth unit and range: not in `-c` output: scale_m_per_unit " +
+                      fmt(rig.depth.scale_m_per_unit) + ", " + fmt(rig.depth.min_range_m) + ".." +
+                      fmt(rig.depth.max_range_m) + " m from the base rig");
   out.notes.push_back("time_offset_cam_imu_ns: " + std::to_string(rig.time_offset_cam_imu_ns) +
                       " from the base rig (frames and IMU share the D4xx clock; docs/realsense.md)");
   out.notes.push_back("camera.rate_hz " + fmt(rig.camera_rate_hz) + ", gravity " + fmt(rig.gravity_mps2) +

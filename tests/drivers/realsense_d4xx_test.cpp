@@ -33,39 +33,39 @@ void put(std::vector<uint8_t>& v, uint64_t x, int bytes) {
 // One record written byte by byte from the layouts (not through encode_record).
 std::vector<uint8_t> hand_record() {
   std::vector<uint8_t> b;
-  put(b, 0x0000001122334455ull, 8);   // ns
-  put(b, 0x0123, 2);                  // sof
-  const size_t hlen = 2 + 4 + 6 + 40 + 8 + 40;   // header + PTS + SCR + timing + unknown block + configuration
+  put(b, 0x0000001122334455ull, 8);             // ns
+  put(b, 0x0123, 2);                            // sof
+  const size_t hlen = 2 + 4 + 6 + 40 + 8 + 40;  // header + PTS + SCR + timing + unknown block + configuration
   b.push_back(static_cast<uint8_t>(hlen));
-  b.push_back(0x8d);                  // EOH | SCR | PTS | FID
-  put(b, 1'000'000, 4);               // PTS us
-  put(b, 0xAABBCCDD, 4);              // SCR STC
-  put(b, 0x0456, 2);                  // SCR SOF
-  put(b, 0x80000001, 4);              // md_capture_timing
+  b.push_back(0x8d);      // EOH | SCR | PTS | FID
+  put(b, 1'000'000, 4);   // PTS us
+  put(b, 0xAABBCCDD, 4);  // SCR STC
+  put(b, 0x0456, 2);      // SCR SOF
+  put(b, 0x80000001, 4);  // md_capture_timing
   put(b, 40, 4);
-  put(b, 1, 4);                       // version
-  put(b, 0x3f, 4);                    // every field valid
-  put(b, 77, 4);                      // frame counter
-  put(b, 990'000, 4);                 // sensor timestamp us
-  put(b, 9'000, 4);                   // readout
-  put(b, 2'000, 4);                   // exposure
-  put(b, 33'333, 4);                  // frame interval
-  put(b, 12'000, 4);                  // pipe latency
-  put(b, 0x12345678, 4);              // a block this parser does not know
+  put(b, 1, 4);           // version
+  put(b, 0x3f, 4);        // every field valid
+  put(b, 77, 4);          // frame counter
+  put(b, 990'000, 4);     // sensor timestamp us
+  put(b, 9'000, 4);       // readout
+  put(b, 2'000, 4);       // exposure
+  put(b, 33'333, 4);      // frame interval
+  put(b, 12'000, 4);      // pipe latency
+  put(b, 0x12345678, 4);  // a block this parser does not know
   put(b, 8, 4);
-  put(b, 0x80000002, 4);              // md_configuration
+  put(b, 0x80000002, 4);  // md_configuration
   put(b, 40, 4);
   put(b, 1, 4);
   put(b, 0x7f, 4);
-  b.push_back(2);                     // hw type
-  b.push_back(9);                     // sku
-  put(b, 0, 4);                       // cookie
-  put(b, 0x1f, 2);                    // format
+  b.push_back(2);   // hw type
+  b.push_back(9);   // sku
+  put(b, 0, 4);     // cookie
+  put(b, 0x1f, 2);  // format
   put(b, 848, 2);
   put(b, 480, 2);
   put(b, 30, 2);
-  put(b, 0, 2);                       // trigger
-  put(b, 5, 2);                       // calibration count
+  put(b, 0, 2);  // trigger
+  put(b, 5, 2);  // calibration count
   put(b, 0, 6);
   return b;
 }
@@ -122,10 +122,10 @@ TEST(RealSenseMetadata, EncoderRoundTripsEveryField) {
     EXPECT_EQ(back.pts_us, m.pts_us);
     EXPECT_EQ(back.timing.sensor_timestamp_us, m.timing.sensor_timestamp_us);
     EXPECT_EQ(back.control.rgb, !depth);
-    EXPECT_EQ(back.exposure_us(), 15'600u);   // RGB: 100 us units; depth: us
+    EXPECT_EQ(back.exposure_us(), 15'600u);  // RGB: 100 us units; depth: us
     EXPECT_EQ(back.configuration.width, 640);
   }
-  EXPECT_EQ(encode_record(m, EncodeOptions{}, buf.data(), 20), 0u);   // too small: nothing written
+  EXPECT_EQ(encode_record(m, EncodeOptions{}, buf.data(), 20), 0u);  // too small: nothing written
 }
 
 TEST(RealSenseMetadata, EveryTruncationIsRefusedNeverOverread) {
@@ -144,19 +144,19 @@ TEST(RealSenseMetadata, BadLengthsAreNamed) {
   std::vector<uint8_t> b = hand_record();
   FrameMetadata m;
   std::vector<uint8_t> x = b;
-  x[10] = 1;   // bLength < 2
+  x[10] = 1;  // bLength < 2
   EXPECT_EQ(parse_metadata_buffer(x.data(), x.size(), m), ParseStatus::kBadHeaderLength);
   x = b;
-  x[10] = 8;   // PTS + SCR announced, 8 bytes cannot hold them
+  x[10] = 8;  // PTS + SCR announced, 8 bytes cannot hold them
   EXPECT_EQ(parse_metadata_buffer(x.data(), x.size(), m), ParseStatus::kBadHeaderLength);
   x = b;
-  x[10 + 12 + 4] = 4;   // capture timing's md_size < 8
+  x[10 + 12 + 4] = 4;  // capture timing's md_size < 8
   EXPECT_EQ(parse_metadata_buffer(x.data(), x.size(), m), ParseStatus::kBadBlock);
   x = b;
-  x[10 + 12 + 4] = 200;   // past the header
+  x[10 + 12 + 4] = 200;  // past the header
   EXPECT_EQ(parse_metadata_buffer(x.data(), x.size(), m), ParseStatus::kBadBlock);
   x = b;
-  x[10 + 12 + 4] = 24;   // a capture timing too short for its fields
+  x[10 + 12 + 4] = 24;  // a capture timing too short for its fields
   EXPECT_EQ(parse_metadata_buffer(x.data(), x.size(), m), ParseStatus::kBadBlockSize);
   // A plain UVC header (no vendor bytes) is valid but carries no D4xx time.
   std::vector<uint8_t> plain;
@@ -181,18 +181,20 @@ TEST(RealSenseClock, UnwrapsThe32BitCounterAndMapsWithSkew) {
   DeviceClock c;
   // Device us counter 20 ppm slow; host = 5 s + device * (1 + 20e-6) + 300 us latency.
   const double skew = 20e-6;
-  uint32_t dev = 0xFFFF0000u;   // about to wrap
+  uint32_t dev = 0xFFFF0000u;  // about to wrap
   int64_t dev64 = dev;
   for (int i = 0; i < 300; ++i) {
-    const int64_t h = 5'000'000'000 + static_cast<int64_t>(std::llround((dev64 * 1000.0) * (1 + skew))) + 300'000;
+    const int64_t h =
+        5'000'000'000 + static_cast<int64_t>(std::llround((dev64 * 1000.0) * (1 + skew))) + 300'000;
     c.observe(dev, h);
     dev += 33'333;
     dev64 += 33'333;
   }
-  EXPECT_GT(dev64, int64_t{1} << 32);   // wrapped
+  EXPECT_GT(dev64, int64_t{1} << 32);  // wrapped
   EXPECT_EQ(c.unwrap_ns(dev - 10), (dev64 - 10) * 1000);
   EXPECT_EQ(c.unwrap_ns(dev + 100), (dev64 + 100) * 1000);
-  const int64_t expect = 5'000'000'000 + static_cast<int64_t>(std::llround((dev64 * 1000.0) * (1 + skew))) + 300'000;
+  const int64_t expect =
+      5'000'000'000 + static_cast<int64_t>(std::llround((dev64 * 1000.0) * (1 + skew))) + 300'000;
   EXPECT_NEAR(static_cast<double>(c.to_host_ns(dev)), static_cast<double>(expect), 2'000.0);
   EXPECT_NEAR(c.sync().skew(), skew, 1e-6);
   EXPECT_EQ(c.sync().jumps(), 0u);
@@ -202,20 +204,40 @@ TEST(RealSenseClock, UnwrapsThe32BitCounterAndMapsWithSkew) {
   c.observe(dev, expect);
   ClockLine line;
   ASSERT_TRUE(shared.read(line));
-  EXPECT_NEAR(static_cast<double>(line.to_host_ns(c.unwrap_ns(dev))), static_cast<double>(c.to_host_ns(dev)), 1.0);
+  EXPECT_NEAR(static_cast<double>(line.to_host_ns(c.unwrap_ns(dev))), static_cast<double>(c.to_host_ns(dev)),
+              1.0);
 }
 
 TEST(RealSenseNodes, GroupsEachCamerasNodesByBusWithTheirMetadata) {
   std::vector<ProbedNode> n = {
-      {"/dev/video0", 0, "Intel(R) RealSense(TM) Depth Camera 435i Depth", "usb-0000:00:14.0-2", false, {v4l2::kZ16}},
+      {"/dev/video0",
+       0,
+       "Intel(R) RealSense(TM) Depth Camera 435i Depth",
+       "usb-0000:00:14.0-2",
+       false,
+       {v4l2::kZ16}},
       {"/dev/video1", 1, "Intel(R) RealSense(TM) Depth Camera 435i Depth", "usb-0000:00:14.0-2", true, {}},
-      {"/dev/video2", 2, "Intel(R) RealSense(TM) Depth Camera 435i Depth", "usb-0000:00:14.0-2", false,
+      {"/dev/video2",
+       2,
+       "Intel(R) RealSense(TM) Depth Camera 435i Depth",
+       "usb-0000:00:14.0-2",
+       false,
        {v4l2::kGrey, kY8i}},
       {"/dev/video3", 3, "Intel(R) RealSense(TM) Depth Camera 435i Depth", "usb-0000:00:14.0-2", true, {}},
-      {"/dev/video4", 4, "Intel(R) RealSense(TM) Depth Camera 435i RGB", "usb-0000:00:14.0-2", false, {v4l2::kYuyv}},
+      {"/dev/video4",
+       4,
+       "Intel(R) RealSense(TM) Depth Camera 435i RGB",
+       "usb-0000:00:14.0-2",
+       false,
+       {v4l2::kYuyv}},
       {"/dev/video5", 5, "Intel(R) RealSense(TM) Depth Camera 435i RGB", "usb-0000:00:14.0-2", true, {}},
       {"/dev/video6", 6, "HD Webcam", "usb-0000:00:14.0-5", false, {v4l2::kYuyv, v4l2::kMjpeg}},
-      {"/dev/video8", 8, "Intel(R) RealSense(TM) Depth Camera 455 RGB", "usb-0000:00:14.0-3", false, {v4l2::kYuyv}},
+      {"/dev/video8",
+       8,
+       "Intel(R) RealSense(TM) Depth Camera 455 RGB",
+       "usb-0000:00:14.0-3",
+       false,
+       {v4l2::kYuyv}},
   };
   const std::vector<NodeSet> s = group_d4xx_nodes(n, kDefaultCardMatch);
   ASSERT_EQ(s.size(), 2u);
@@ -226,7 +248,7 @@ TEST(RealSenseNodes, GroupsEachCamerasNodesByBusWithTheirMetadata) {
   EXPECT_EQ(s[0].color, "/dev/video4");
   EXPECT_EQ(s[0].color_meta, "/dev/video5");
   EXPECT_EQ(s[1].color, "/dev/video8");
-  EXPECT_EQ(s[1].color_meta, "");   // no metadata node (kernel without it): kernel stamps
+  EXPECT_EQ(s[1].color_meta, "");  // no metadata node (kernel without it): kernel stamps
 }
 
 // ---- fake nodes ---------------------------------------------------------------------------
@@ -234,14 +256,14 @@ struct FakeBuf {
   std::vector<uint8_t> bytes;
   uint32_t seq = 0;
   uint32_t flags = v4l2::kBufFlagTimestampMonotonic;
-  int64_t t_ns = 0;   // the kernel's buffer stamp
+  int64_t t_ns = 0;  // the kernel's buffer stamp
 };
 struct FakeScript {
   NodeFormat format;
-  std::vector<FakeBuf> bufs;   // in arrival order
+  std::vector<FakeBuf> bufs;  // in arrival order
   size_t next = 0;
   uint64_t requeued = 0;
-  int out = 0;                 // dequeued and not yet requeued
+  int out = 0;  // dequeued and not yet requeued
   // A metadata node's buffers arrive with their frame: buffer k is there once
   // the video node `gate` has handed out a frame with sequence >= k's.
   const FakeScript* gate = nullptr;
@@ -342,9 +364,9 @@ std::vector<uint8_t> rgb_to_yuyv(const uint8_t* rgb, int w, int h) {
 
 // The camera's clock as the fakes tell it: device us = (host - h0) / (1 + skew).
 struct DeviceTime {
-  int64_t h0_ns = 1'000'000'000'000;   // host time of device zero... far from the frames' times
-  double skew = 40e-6;                 // the device clock runs 40 ppm slow
-  uint32_t base_us = 0xFFF00000u;      // wraps about a second in
+  int64_t h0_ns = 1'000'000'000'000;  // host time of device zero... far from the frames' times
+  double skew = 40e-6;                // the device clock runs 40 ppm slow
+  uint32_t base_us = 0xFFF00000u;     // wraps about a second in
   uint32_t us(int64_t host_ns) const {
     const double d = static_cast<double>(host_ns - h0_ns) / (1 + skew) / 1000.0;
     return base_us + static_cast<uint32_t>(static_cast<int64_t>(std::floor(d)));
@@ -352,8 +374,8 @@ struct DeviceTime {
 };
 
 // One frame's metadata buffer bytes, as uvcvideo would hand them over.
-std::vector<uint8_t> frame_metadata(const DeviceTime& dt, int64_t t_mid_ns, int64_t exposure_ns, int64_t readout_ns,
-                                    int64_t latency_ns, uint32_t counter, bool depth) {
+std::vector<uint8_t> frame_metadata(const DeviceTime& dt, int64_t t_mid_ns, int64_t exposure_ns,
+                                    int64_t readout_ns, int64_t latency_ns, uint32_t counter, bool depth) {
   FrameMetadata m;
   const int64_t t_tx = t_mid_ns + exposure_ns / 2 + readout_ns;
   m.host_ns = t_tx + latency_ns;
@@ -378,7 +400,7 @@ struct Small {
   DeviceTime dt;
   static constexpr int kW = 8, kH = 6, kFrames = 120;
   static constexpr int64_t kPeriod = 33'333'333, kExposure = 4'000'000, kReadout = 10'000'000;
-  std::vector<int64_t> t_mid;   // host truth per frame
+  std::vector<int64_t> t_mid;  // host truth per frame
   Small() {
     dev["/dev/video4"].format = video_format(kRgb24, kW, kH, 30, 3);
     dev["/dev/video5"].format = meta_format();
@@ -388,11 +410,11 @@ struct Small {
     for (int i = 0; i < kFrames; ++i) {
       const int64_t t = 2'000'000'000 + i * kPeriod;
       t_mid.push_back(t);
-      const int64_t lat = 150'000 + (i * 7919 % 500) * 1000;   // 150..650 us
+      const int64_t lat = 150'000 + (i * 7919 % 500) * 1000;  // 150..650 us
       FakeBuf c;
       c.seq = static_cast<uint32_t>(i);
       c.bytes.assign(kW * kH * 3, static_cast<uint8_t>(i));
-      c.t_ns = t + kExposure / 2 + kReadout + lat;   // uvcvideo's stamp: roughly when the frame began arriving
+      c.t_ns = t + kExposure / 2 + kReadout + lat;  // uvcvideo's stamp: roughly when the frame began arriving
       dev["/dev/video4"].bufs.push_back(c);
       FakeBuf cm{frame_metadata(dt, t, kExposure, kReadout, lat, static_cast<uint32_t>(i), false),
                  static_cast<uint32_t>(i), v4l2::kBufFlagTimestampMonotonic, c.t_ns};
@@ -439,7 +461,7 @@ TEST(RealSenseD4xx, HardwareStampsPairDepthAndCountEveryFault) {
       if (b.seq == seq) return b;
     throw std::runtime_error("no such metadata");
   };
-  at(50).bytes[10] = 1;   // bLength 1
+  at(50).bytes[10] = 1;  // bLength 1
   {
     FrameMetadata m;
     ASSERT_EQ(parse_metadata_buffer(at(60).bytes.data(), at(60).bytes.size(), m), ParseStatus::kOk);
@@ -486,7 +508,7 @@ TEST(RealSenseD4xx, HardwareStampsPairDepthAndCountEveryFault) {
     }
     if (f.depth != nullptr) {
       ++with_depth;
-      EXPECT_EQ(f.depth_meta.seq, i);   // the partner is this frame's exposure
+      EXPECT_EQ(f.depth_meta.seq, i);  // the partner is this frame's exposure
       EXPECT_EQ(f.depth->pixels[0], static_cast<uint8_t>(i));
       EXPECT_EQ(f.depth->format, PixelFormat::kDepthU16);
     } else {
@@ -494,7 +516,7 @@ TEST(RealSenseD4xx, HardwareStampsPairDepthAndCountEveryFault) {
     }
   }
   EXPECT_EQ(frames, Small::kFrames - 1);
-  EXPECT_EQ(with_depth, Small::kFrames - 2);   // colour 70 and depth 90 have no partner
+  EXPECT_EQ(with_depth, Small::kFrames - 2);  // colour 70 and depth 90 have no partner
   // Hardware stamps: within the clock fit's error (its window is short here) and the us quantisation.
   EXPECT_LT(worst_hw_us, 150.0);
   const Counters c = cam.counters();
@@ -503,12 +525,12 @@ TEST(RealSenseD4xx, HardwareStampsPairDepthAndCountEveryFault) {
   EXPECT_EQ(c.color.metadata_missing, 3u);
   EXPECT_EQ(c.color.metadata_corrupt, 1u);
   EXPECT_EQ(c.color.metadata_no_timestamp, 1u);
-  EXPECT_EQ(c.color.metadata_orphans, 1u);        // frame 70's metadata
-  EXPECT_EQ(c.color.frame_counter_gaps, 3u);      // the counter jumps at 33 (30..32 unseen), 51 (50 corrupt), 71
+  EXPECT_EQ(c.color.metadata_orphans, 1u);    // frame 70's metadata
+  EXPECT_EQ(c.color.frame_counter_gaps, 3u);  // the counter jumps at 33 (30..32 unseen), 51 (50 corrupt), 71
   EXPECT_EQ(c.depth.dropped, 1u);
-  EXPECT_EQ(c.unpaired, 1u);                      // colour 90 (colour 70 never came)
-  EXPECT_EQ(c.depth_skipped, 1u);                 // depth 70: its colour frame was lost
-  EXPECT_EQ(s.dev["/dev/video4"].out, 0);         // every buffer went back to the driver
+  EXPECT_EQ(c.unpaired, 1u);               // colour 90 (colour 70 never came)
+  EXPECT_EQ(c.depth_skipped, 1u);          // depth 70: its colour frame was lost
+  EXPECT_EQ(s.dev["/dev/video4"].out, 0);  // every buffer went back to the driver
   EXPECT_EQ(s.dev["/dev/video5"].out, 0);
   EXPECT_NE(cam.report().find("3 no metadata, 1 corrupt metadata"), std::string::npos) << cam.report();
 }
@@ -526,9 +548,9 @@ TEST(RealSenseD4xx, InfraredY8iSplitsTheImagersAndCanBeTheImage) {
   ASSERT_NE(f.image, nullptr);
   ASSERT_NE(f.ir2, nullptr);
   EXPECT_EQ(f.image->format, PixelFormat::kGray8);
-  EXPECT_EQ(f.image->pixels[0], 10);   // left imager: the low byte
+  EXPECT_EQ(f.image->pixels[0], 10);  // left imager: the low byte
   EXPECT_EQ(f.ir2->pixels[0], 20);
-  EXPECT_EQ(f.image_meta.source, StampSource::kKernelNoMetadata);   // no metadata node configured
+  EXPECT_EQ(f.image_meta.source, StampSource::kKernelNoMetadata);  // no metadata node configured
   EXPECT_NE(f.depth, nullptr);
   // Missing nodes are named.
   Camera bad(fake_factory(s.dev));
@@ -536,7 +558,7 @@ TEST(RealSenseD4xx, InfraredY8iSplitsTheImagersAndCanBeTheImage) {
   b.color.meta_device = "/dev/video9";
   EXPECT_EQ(bad.open(b), "D4xx color metadata: /dev/video9: No such file or directory");
   b = s.options();
-  b.depth.video_device = "/dev/video5";   // a metadata node where a video node belongs
+  b.depth.video_device = "/dev/video5";  // a metadata node where a video node belongs
   EXPECT_EQ(bad.open(b), "D4xx depth: /dev/video5: wrong node kind");
 }
 
@@ -553,7 +575,7 @@ TEST(RealSenseD4xx, DepthIsRegisteredToColourWithTheRigsExtrinsic) {
   o.image_camera = k;
   o.depth_camera.present = true;
   o.depth_camera.intrinsics = k;
-  o.depth_camera.T_CD = {1, 0, 0, 0.3, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1};   // ~2 px of disparity at 0.77 m
+  o.depth_camera.T_CD = {1, 0, 0, 0.3, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1};  // ~2 px of disparity at 0.77 m
   Camera cam(fake_factory(s.dev));
   ASSERT_EQ(cam.open(o), "");
   Frame f;
@@ -575,7 +597,7 @@ TEST(RealSenseD4xx, SteadyStateAllocatesNothing) {
   Camera cam(fake_factory(s.dev));
   ASSERT_EQ(cam.open(s.options()), "");
   Frame f;
-  for (int i = 0; i < 5; ++i) ASSERT_EQ(cam.grab(10, f), Camera::Result::kFrame);   // warm-up
+  for (int i = 0; i < 5; ++i) ASSERT_EQ(cam.grab(10, f), Camera::Result::kFrame);  // warm-up
   const uint64_t before = rt::alloc_count_this_thread();
   for (int i = 0; i < 100; ++i) ASSERT_EQ(cam.grab(10, f), Camera::Result::kFrame);
   EXPECT_EQ(rt::alloc_count_this_thread() - before, 0u);
@@ -630,7 +652,7 @@ TEST(RealSenseD4xx, SimulatedFlightComesOutWithTheLogsStampsAndPixels) {
   dev["/dev/video1"].format = meta_format();
   const DeviceTime dt;
   std::mt19937 rng(7);
-  std::uniform_int_distribution<int64_t> jitter(0, 900'000);   // USB + scheduling above the floor
+  std::uniform_int_distribution<int64_t> jitter(0, 900'000);  // USB + scheduling above the floor
   const int64_t exposure = 6'000'000, readout = 12'000'000, floor = 120'000;
   for (size_t i = 0; i < cap.rgb.size(); ++i) {
     const int64_t t = cap.rgb[i].t_ns;
@@ -640,11 +662,12 @@ TEST(RealSenseD4xx, SimulatedFlightComesOutWithTheLogsStampsAndPixels) {
     c.bytes = rgb_to_yuyv(cap.rgb[i].img.pixels.data(), w, h);
     c.t_ns = t + exposure / 2 + readout + lat + 1'000'000;
     dev["/dev/video4"].bufs.push_back(std::move(c));
-    dev["/dev/video5"].bufs.push_back({frame_metadata(dt, t, exposure, readout, lat, static_cast<uint32_t>(i), false),
-                                       static_cast<uint32_t>(i), v4l2::kBufFlagTimestampMonotonic, 0});
+    dev["/dev/video5"].bufs.push_back(
+        {frame_metadata(dt, t, exposure, readout, lat, static_cast<uint32_t>(i), false),
+         static_cast<uint32_t>(i), v4l2::kBufFlagTimestampMonotonic, 0});
     FakeBuf d;
     d.seq = static_cast<uint32_t>(i);
-    d.bytes = cap.depth[i].img.pixels;   // DepthU16 little-endian = Z16 at the rig's unit
+    d.bytes = cap.depth[i].img.pixels;  // DepthU16 little-endian = Z16 at the rig's unit
     d.t_ns = t + readout;
     dev["/dev/video0"].bufs.push_back(std::move(d));
     dev["/dev/video1"].bufs.push_back({frame_metadata(dt, cap.depth[i].t_ns, exposure, readout, lat + 50'000,
@@ -667,7 +690,7 @@ TEST(RealSenseD4xx, SimulatedFlightComesOutWithTheLogsStampsAndPixels) {
 
   KlogWriter out;
   const char* klog = std::getenv("KESTREL_REALSENSE_KLOG_OUT");
-  std::vector<std::pair<int64_t, int>> order;   // for the by-hand ATE: the flight as the driver delivered it
+  std::vector<std::pair<int64_t, int>> order;  // for the by-hand ATE: the flight as the driver delivered it
   std::vector<LogImage> got_rgb, got_depth;
   Frame f;
   double sum_abs_us = 0, worst_us = 0, worst_late_us = 0, sum_rgb_err = 0;
@@ -686,7 +709,8 @@ TEST(RealSenseD4xx, SimulatedFlightComesOutWithTheLogsStampsAndPixels) {
     if (i > 0) {
       EXPECT_EQ(f.image_meta.source, StampSource::kHardware);
       const double err_us = (f.image_meta.t_ns - cap.rgb[i].t_ns) * 1e-3;
-      if (f.image_meta.t_ns > cap.rgb.front().t_ns + 2'000'000'000) worst_late_us = std::max(worst_late_us, std::abs(err_us));
+      if (f.image_meta.t_ns > cap.rgb.front().t_ns + 2'000'000'000)
+        worst_late_us = std::max(worst_late_us, std::abs(err_us));
       sum_abs_us += std::abs(err_us);
       worst_us = std::max(worst_us, std::abs(err_us));
       ++n;
@@ -694,17 +718,18 @@ TEST(RealSenseD4xx, SimulatedFlightComesOutWithTheLogsStampsAndPixels) {
     if (klog != nullptr) {
       got_rgb.push_back(*f.image);
       got_depth.push_back(*f.depth);
-      got_depth.back().t_ns = got_rgb.back().t_ns;   // one frame, one time: the colour's
+      got_depth.back().t_ns = got_rgb.back().t_ns;  // one frame, one time: the colour's
     }
   }
   ASSERT_EQ(n + 1, cap.rgb.size());
   const double mean_us = sum_abs_us / static_cast<double>(n);
-  std::printf("[ RealSense ] %zu frames: stamp error vs the log mean %.1f us, worst %.1f us (%.1f us after 2 s); "
-              "colour YUYV round trip %.2f DN mean; clock skew %.2f ppm (true 40), %llu jumps\n",
-              n + 1, mean_us, worst_us, worst_late_us, sum_rgb_err / static_cast<double>(n + 1),
-              cam.clock().sync().skew() * 1e6, static_cast<unsigned long long>(cam.clock().sync().jumps()));
-  // The clock fit's error (docs/realsense.md, "Time"): USB latency jitter of 0.9 ms shrinks to tens of us as the
-  // envelope's window fills; the first frames, before the skew is fitted, are worst.
+  std::printf(
+      "[ RealSense ] %zu frames: stamp error vs the log mean %.1f us, worst %.1f us (%.1f us after 2 s); "
+      "colour YUYV round trip %.2f DN mean; clock skew %.2f ppm (true 40), %llu jumps\n",
+      n + 1, mean_us, worst_us, worst_late_us, sum_rgb_err / static_cast<double>(n + 1),
+      cam.clock().sync().skew() * 1e6, static_cast<unsigned long long>(cam.clock().sync().jumps()));
+  // The clock fit's error (docs/realsense.md, "Time"): USB latency jitter of 0.9 ms shrinks to tens of us as
+  // the envelope's window fills; the first frames, before the skew is fitted, are worst.
   EXPECT_LT(mean_us, 60.0);
   EXPECT_LT(worst_us, 400.0);
   EXPECT_LT(worst_late_us, 150.0);
@@ -761,10 +786,11 @@ TEST(RealSenseConfig, TemplatesParseAndKeysHaveTheirDefaults) {
   EXPECT_EQ(x.buffers, 4);
   EXPECT_DOUBLE_EQ(x.depth_unit_m, 0.001);
   EXPECT_EQ(x.pair_tolerance_ns, 0);
-  const LiveConfig e = live_config_from_yaml(
-      rig + "drivers:\n  camera:\n    type: d4xx\n    d4xx: {image: infrared1, infrared: y8i, pair_tolerance_us: 500, "
-            "color_meta_device: none, depth_device: /dev/video0}\n",
-      "x.yaml");
+  const LiveConfig e = live_config_from_yaml(rig +
+                                                 "drivers:\n  camera:\n    type: d4xx\n    d4xx: {image: "
+                                                 "infrared1, infrared: y8i, pair_tolerance_us: 500, "
+                                                 "color_meta_device: none, depth_device: /dev/video0}\n",
+                                             "x.yaml");
   EXPECT_EQ(e.drivers.camera.d4xx.pair_tolerance_ns, 500'000);
   EXPECT_EQ(e.drivers.camera.d4xx.color_meta_device, "none");
   EXPECT_EQ(e.drivers.camera.d4xx.depth_device, "/dev/video0");
@@ -779,7 +805,8 @@ TEST(RealSenseConfig, TemplatesParseAndKeysHaveTheirDefaults) {
   EXPECT_NE(error("{image: infrared1}").find("x.yaml: drivers.camera.d4xx.infrared: must be y8 or y8i"),
             std::string::npos)
       << error("{image: infrared1}");
-  EXPECT_NE(error("{metadata_wait: 2}").find("metadata_wait"), std::string::npos);   // a unit-less key is refused
+  EXPECT_NE(error("{metadata_wait: 2}").find("metadata_wait"),
+            std::string::npos);  // a unit-less key is refused
   EXPECT_NE(error("{infrared: both}").find("drivers.camera.d4xx.infrared"), std::string::npos);
 }
 

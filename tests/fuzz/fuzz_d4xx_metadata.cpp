@@ -27,7 +27,8 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   o.configuration = m.configuration.present;
   o.control = m.control.present;
   o.depth_control = !m.control.rgb;
-  if (!o.capture_timing && !o.configuration && !o.control) return 0;   // only blocks the encoder does not write
+  if (!o.capture_timing && !o.configuration && !o.control)
+    return 0;  // only blocks the encoder does not write
   // The encoder writes RGB exposure in 100 us units: compare what survives that.
   if (m.control.present && m.control.rgb) m.control.exposure_us -= m.control.exposure_us % 100;
   std::vector<uint8_t> again(512);
@@ -38,7 +39,8 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   if (d4::parse_metadata_buffer(again.data(), again.size(), back) != d4::ParseStatus::kOk) std::abort();
   if (back.host_ns != m.host_ns || back.pts_us != m.pts_us || back.has_pts != m.has_pts ||
       back.timing.sensor_timestamp_us != m.timing.sensor_timestamp_us ||
-      back.timing.frame_counter != m.timing.frame_counter || back.configuration.width != m.configuration.width)
+      back.timing.frame_counter != m.timing.frame_counter ||
+      back.configuration.width != m.configuration.width)
     std::abort();
   return 0;
 }
@@ -60,8 +62,10 @@ size_t kestrel::fuzz::write_seeds(const std::string& dir) {
   m.control.exposure_us = 8'000;
   size_t count = 0;
   std::vector<uint8_t> all;
-  const d4::EncodeOptions variants[] = {
-      {}, {true, true, true, true, true, true}, {true, false, true, false, false, false}, {false, true, true, true, false, true}};
+  const d4::EncodeOptions variants[] = {{},
+                                        {true, true, true, true, true, true},
+                                        {true, false, true, false, false, false},
+                                        {false, true, true, true, false, true}};
   for (const d4::EncodeOptions& o : variants) {
     std::vector<uint8_t> b(512);
     b.resize(d4::encode_record(m, o, b.data(), b.size()));

@@ -21,7 +21,8 @@ void import(const std::string& text, const char* camera) {
   } catch (const std::runtime_error&) {
     return;
   }
-  const kestrel::Rig back = kestrel::drivers::rig_from_yaml(kestrel::drivers::rig_to_yaml(imp.rig), "again.yaml");
+  const kestrel::Rig back =
+      kestrel::drivers::rig_from_yaml(kestrel::drivers::rig_to_yaml(imp.rig), "again.yaml");
   if (!kestrel::drivers::rig_equal(back, imp.rig)) std::abort();
 }
 }  // namespace

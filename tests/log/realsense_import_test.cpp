@@ -1,13 +1,14 @@
 // `rs-enumerate-devices -c` -> Rig (drivers/rig realsense_import.hpp) and
 // `kestrel calib import-realsense`: every mapped field, the distortion fit,
 // missing sections named, bad input refused with file, line and field.
+#include "kestrel/drivers/realsense_import.hpp"
+
 #include <gtest/gtest.h>
 
 #include <cmath>
 #include <fstream>
 #include <string>
 
-#include "kestrel/drivers/realsense_import.hpp"
 #include "kestrel/drivers/rig_yaml.hpp"
 #include "realsense_fixtures.hpp"
 #include "run_command.hpp"
@@ -18,8 +19,10 @@ namespace {
 
 std::string replace(std::string s, const std::string& from, const std::string& to) {
   const size_t at = s.find(from);
-  if (at == std::string::npos) ADD_FAILURE() << "fixture lacks: " << from;
-  else s.replace(at, from.size(), to);
+  if (at == std::string::npos)
+    ADD_FAILURE() << "fixture lacks: " << from;
+  else
+    s.replace(at, from.size(), to);
   return s;
 }
 
@@ -79,7 +82,7 @@ TEST(RealSenseImport, DumpParsesEveryBlock) {
   EXPECT_EQ(c->formats, "{RGB8/RGBA8/BGR8/BGRA8/Y16/YUYV}");
   const drivers::RsExtrinsics* pose = d.find_extrinsics("Depth", "Pose");
   ASSERT_NE(pose, nullptr);
-  EXPECT_FALSE(pose->available);   // "N/A"
+  EXPECT_FALSE(pose->available);  // "N/A"
   const drivers::RsMotionIntrinsics* g = d.find_motion("Gyro");
   ASSERT_NE(g, nullptr);
   EXPECT_TRUE(g->has_sensitivity);
@@ -88,29 +91,31 @@ TEST(RealSenseImport, DumpParsesEveryBlock) {
 }
 
 TEST(RealSenseImport, ColourCameraDepthRegisteredImuFromGyro) {
-  const drivers::RealSenseImport imp =
-      drivers::import_realsense_text(kRealSenseD435iDump, "d435i.txt", drivers::RealSenseImportOptions{}, base());
+  const drivers::RealSenseImport imp = drivers::import_realsense_text(
+      kRealSenseD435iDump, "d435i.txt", drivers::RealSenseImportOptions{}, base());
   const Rig& r = imp.rig;
   EXPECT_EQ(r.rgb.width, 640);
   EXPECT_DOUBLE_EQ(r.rgb.fx, 615.896179199219);
   EXPECT_DOUBLE_EQ(r.rgb.fy, 616.076416015625);
   EXPECT_DOUBLE_EQ(r.rgb.cx, 321.17333984375);
   EXPECT_DOUBLE_EQ(r.rgb.cy, 240.62467956543);
-  EXPECT_EQ(r.rgb.distortion, DistortionModel::kNone);   // all-zero Inverse Brown Conrady
+  EXPECT_EQ(r.rgb.distortion, DistortionModel::kNone);  // all-zero Inverse Brown Conrady
   ASSERT_TRUE(r.depth_camera.present);
   EXPECT_DOUBLE_EQ(r.depth_camera.intrinsics.fx, 384.902587890625);
   EXPECT_EQ(r.depth_camera.intrinsics.width, 640);
   // T_CD is Depth -> Color as printed (row by row), p_C = T_CD p_D.
   EXPECT_NEAR(r.depth_camera.T_CD[3], 0.0147160086780787, 1e-12);
-  EXPECT_NEAR(r.depth_camera.T_CD[1], -0.00590259, 2e-6);   // row 0, column 1
-  EXPECT_NEAR(r.depth_camera.T_CD[4], 0.00589996, 2e-6);    // row 1, column 0
+  EXPECT_NEAR(r.depth_camera.T_CD[1], -0.00590259, 2e-6);  // row 0, column 1
+  EXPECT_NEAR(r.depth_camera.T_CD[4], 0.00589996, 2e-6);   // row 1, column 0
   // T_BC = (Gyro -> Color)^-1: composed with the printed transform it is the identity.
-  const Mat4d T_CG = {0.999982, -0.00590259, -0.00108582, 0.020278759963896, 0.00589996, 0.99998, -0.00240645,
-                      -0.00490168678215574, 0.0011, 0.0024, 0.999997, -0.0113540282909766, 0, 0, 0, 1};
+  const Mat4d T_CG = {0.999982,   -0.00590259, -0.00108582, 0.020278759963896,
+                      0.00589996, 0.99998,     -0.00240645, -0.00490168678215574,
+                      0.0011,     0.0024,      0.999997,    -0.0113540282909766,
+                      0,          0,           0,           1};
   const Mat4d I = mul(r.T_BC, T_CG);
   for (int i = 0; i < 16; ++i) EXPECT_NEAR(I[i], kIdentity4[i], 2e-5) << i;
-  // The camera's origin in the IMU frame: -t_DG - R_CD^T t_CD (the fixture's Gyro -> Depth is (0.00552, -0.0051,
-  // -0.01174) with no rotation).
+  // The camera's origin in the IMU frame: -t_DG - R_CD^T t_CD (the fixture's Gyro -> Depth is (0.00552,
+  // -0.0051, -0.01174) with no rotation).
   EXPECT_NEAR(r.T_BC[3], -0.00552 - 0.014716, 1e-4);
   EXPECT_NEAR(r.T_BC[7], 0.0051 - 0.000137, 1e-4);
   EXPECT_NEAR(r.T_BC[11], 0.01174 - 0.000392, 1e-4);
@@ -134,17 +139,18 @@ TEST(RealSenseImport, InfraredCameraHasDepthInItsFrame) {
   o.camera = "Infrared 1";
   o.width = 848;
   o.height = 480;
-  const drivers::RealSenseImport imp = drivers::import_realsense_text(kRealSenseD435iDump, "d435i.txt", o, base());
+  const drivers::RealSenseImport imp =
+      drivers::import_realsense_text(kRealSenseD435iDump, "d435i.txt", o, base());
   EXPECT_FALSE(imp.rig.depth_camera.present);
   EXPECT_DOUBLE_EQ(imp.rig.rgb.fx, 427.877685546875);
-  EXPECT_NEAR(imp.rig.T_BC[3], -0.00552, 1e-9);   // Gyro -> Infrared 1 inverted: no rotation
+  EXPECT_NEAR(imp.rig.T_BC[3], -0.00552, 1e-9);  // Gyro -> Infrared 1 inverted: no rotation
   EXPECT_NEAR(imp.rig.T_BC[7], 0.0051, 1e-9);
   EXPECT_NEAR(imp.rig.T_BC[11], 0.01174, 1e-9);
 }
 
 TEST(RealSenseImport, InverseBrownConradyFittedAsRadtan) {
-  const drivers::RealSenseImport imp =
-      drivers::import_realsense_text(kRealSenseD455Dump, "d455.txt", drivers::RealSenseImportOptions{}, base());
+  const drivers::RealSenseImport imp = drivers::import_realsense_text(
+      kRealSenseD455Dump, "d455.txt", drivers::RealSenseImportOptions{}, base());
   const CameraIntrinsics& c = imp.rig.rgb;
   ASSERT_EQ(c.distortion, DistortionModel::kRadTan);
   std::string notes;
@@ -169,7 +175,7 @@ TEST(RealSenseImport, InverseBrownConradyFittedAsRadtan) {
       worst = std::max(worst, std::hypot((dx * c.fx + c.cx) - px, (dy * c.fy + c.cy) - py));
     }
   EXPECT_LT(worst, 0.25) << "px";
-  EXPECT_GT(std::abs(c.dist[0]), 0.01);   // a real fit, not zeros
+  EXPECT_GT(std::abs(c.dist[0]), 0.01);  // a real fit, not zeros
 }
 
 TEST(RealSenseImport, MissingSectionsAreNamed) {
@@ -187,7 +193,7 @@ TEST(RealSenseImport, MissingSectionsAreNamed) {
   EXPECT_NE(missing.find("Extrinsic from \"Gyro\" To \"Color\""), std::string::npos) << missing;
   EXPECT_NE(missing.find("Motion Intrinsic of \"Accel\""), std::string::npos) << missing;
   EXPECT_NE(missing.find("Motion Intrinsic of \"Gyro\""), std::string::npos) << missing;
-  EXPECT_DOUBLE_EQ(imp.rig.imu.acc_noise_density_mps2_sqrthz, 1e-2);   // kept from the base
+  EXPECT_DOUBLE_EQ(imp.rig.imu.acc_noise_density_mps2_sqrthz, 1e-2);  // kept from the base
   // What the rig cannot do without is an error naming the dump and the section.
   const std::string no_dc = cut_block(kRealSenseD435iDump, "Extrinsic from \"Depth\"\t  To\t  \"Color\"", 7);
   EXPECT_EQ(error_of(no_dc),
@@ -197,19 +203,24 @@ TEST(RealSenseImport, MissingSectionsAreNamed) {
   big.height = 1080;
   EXPECT_EQ(error_of(kRealSenseD435iDump, big),
             "d435i.txt: no intrinsics of \"Color\" at 1920x1080 (the dump has: 640x480, 1280x720)");
-  EXPECT_NE(error_of("Device info:\n    Name : \tx\n").find("is this the output of `rs-enumerate-devices -c`"),
-            std::string::npos);
+  EXPECT_NE(
+      error_of("Device info:\n    Name : \tx\n").find("is this the output of `rs-enumerate-devices -c`"),
+      std::string::npos);
 }
 
 TEST(RealSenseImport, BadNumbersNameLineAndField) {
-  const std::string bad = replace(kRealSenseD435iDump, "Fx:         \t615.896179199219", "Fx:         \tfast");
+  const std::string bad =
+      replace(kRealSenseD435iDump, "Fx:         \t615.896179199219", "Fx:         \tfast");
   EXPECT_EQ(error_of(bad), "d435i.txt:14: Color 640x480.Fx: expected a finite number, got \"fast\"");
-  const std::string neg = replace(kRealSenseD435iDump, "Fy:         \t616.076416015625", "Fy:         \t-616");
+  const std::string neg =
+      replace(kRealSenseD435iDump, "Fy:         \t616.076416015625", "Fy:         \t-616");
   EXPECT_NE(error_of(neg).find("focal lengths must be > 0"), std::string::npos);
-  const std::string rot = replace(kRealSenseD435iDump, "   0.999982        -0.00590259", "   0.5             -0.00590259");
+  const std::string rot =
+      replace(kRealSenseD435iDump, "   0.999982        -0.00590259", "   0.5             -0.00590259");
   EXPECT_NE(error_of(rot).find("Rotation Matrix: the rotation is not orthonormal"), std::string::npos)
       << error_of(rot);
-  const std::string shortrow = replace(kRealSenseD435iDump, "  Coeffs:     \t0  \t0  \t0  \t0  \t0  ", "  Coeffs: 0 0");
+  const std::string shortrow =
+      replace(kRealSenseD435iDump, "  Coeffs:     \t0  \t0  \t0  \t0  \t0  ", "  Coeffs: 0 0");
   EXPECT_NE(error_of(shortrow).find("Color 640x480.Coeffs: expected 5 numbers"), std::string::npos);
 }
 
@@ -217,16 +228,17 @@ TEST(RealSenseImport, CommandWritesARigAndNamesAMissingDump) {
   const std::string dir = temp_dir("realsense_cli");
   std::ofstream(dir + "/d435i.txt") << kRealSenseD435iDump;
   const std::string base_cfg = std::string(KESTREL_SOURCE_DIR) + "/configs/realsense_d435i.yaml";
-  const CmdResult r = run_kestrel("calib import-realsense " + dir + "/d435i.txt --base " + base_cfg + " --out " + dir +
-                                  "/my_rig.yaml");
+  const CmdResult r = run_kestrel("calib import-realsense " + dir + "/d435i.txt --base " + base_cfg +
+                                  " --out " + dir + "/my_rig.yaml");
   ASSERT_EQ(r.code, 0) << r.out;
   EXPECT_NE(r.out.find("depth registered from the Depth stream"), std::string::npos) << r.out;
   const Rig rig = drivers::load_rig_file(dir + "/my_rig.yaml");
   EXPECT_DOUBLE_EQ(rig.rgb.fx, 615.896179199219);
   EXPECT_TRUE(rig.depth_camera.present);
   EXPECT_DOUBLE_EQ(rig.depth.max_range_m, drivers::load_rig_file(dir + "/my_rig.yaml").depth.max_range_m);
-  const CmdResult ir = run_kestrel("calib import-realsense " + dir + "/d435i.txt --camera infrared1 --size 848x480 " +
-                                   "--out " + dir + "/ir.yaml");
+  const CmdResult ir =
+      run_kestrel("calib import-realsense " + dir + "/d435i.txt --camera infrared1 --size 848x480 " +
+                  "--out " + dir + "/ir.yaml");
   ASSERT_EQ(ir.code, 0) << ir.out;
   EXPECT_FALSE(drivers::load_rig_file(dir + "/ir.yaml").depth_camera.present);
   // The contract: a missing DUMP exits non-zero and names it.

@@ -56,8 +56,9 @@ Rig load_base_rig(const std::string& path) {
 
 Subcommand add_calib_command(CLI::App& parent) {
   auto a = std::make_shared<CalibArgs>();
-  CLI::App* app = parent.add_subcommand(
-      "calib", "calibration: import Kalibr's camera-IMU calibration or a RealSense's factory calibration as a rig file");
+  CLI::App* app = parent.add_subcommand("calib",
+                                        "calibration: import Kalibr's camera-IMU calibration or a "
+                                        "RealSense's factory calibration as a rig file");
   app->require_subcommand(1, 1);
   CLI::App* imp = app->add_subcommand(
       "import-kalibr", "Kalibr's camchain-imucam.yaml + imu.yaml -> a Kestrel rig YAML (T_cam_imu inverted to T_BC)");
@@ -79,16 +80,19 @@ Subcommand add_calib_command(CLI::App& parent) {
       "a RealSense D4xx's factory calibration (`rs-enumerate-devices -c` output) -> a Kestrel rig YAML");
   rs->add_option("dump", r->dump, "the text `rs-enumerate-devices -c > DUMP` printed")->required();
   rs->add_option("--out", r->out, "rig YAML to write (use it as a live config's `rig: FILE`)")->required();
-  rs->add_option("--base", r->base,
-                 "rig file or live config giving what the dump does not (depth unit and range, IMU random walks and "
-                 "ranges, camera rate): configs/realsense_d435i.yaml or configs/realsense_d455.yaml");
+  rs->add_option(
+      "--base", r->base,
+      "rig file or live config giving what the dump does not (depth unit and range, IMU random walks and "
+      "ranges, camera rate): configs/realsense_d435i.yaml or configs/realsense_d455.yaml");
   rs->add_option("--camera", r->camera, "the rig's camera: color, or infrared1 (depth is in its frame)")
       ->capture_default_str();
-  rs->add_option("--size", r->size, "the camera stream's size WIDTHxHEIGHT (default: the base rig's, else 640x480)");
+  rs->add_option("--size", r->size,
+                 "the camera stream's size WIDTHxHEIGHT (default: the base rig's, else 640x480)");
   rs->add_option("--depth-size", r->depth_size, "the depth stream's size (default: the camera's)");
   rs->add_option("--accel-rate-hz", r->accel_rate_hz, "the accelerometer's stream rate (noise density)")
       ->capture_default_str();
-  rs->add_option("--gyro-rate-hz", r->gyro_rate_hz, "the gyroscope's stream rate (noise density, imu.rate_hz)")
+  rs->add_option("--gyro-rate-hz", r->gyro_rate_hz,
+                 "the gyroscope's stream rate (noise density, imu.rate_hz)")
       ->capture_default_str();
   rs->footer(
       "Example:\n  rs-enumerate-devices -c > d435i.txt\n  kestrel calib import-realsense d435i.txt --base "
@@ -117,21 +121,24 @@ Subcommand add_calib_command(CLI::App& parent) {
       const drivers::RealSenseImport imp = drivers::import_realsense(r->dump, o, base);
       std::ofstream f(r->out);
       f << "# Imported by `kestrel calib import-realsense` from " << r->dump << " (camera: " << o.camera
-        << ").\n# T_BC is the dump's Gyro -> camera extrinsic inverted (body = the IMU as librealsense reports "
-           "its axes);\n# the depth camera is the dump's Depth stream with Depth -> camera as T_CD.\n";
+        << ").\n# T_BC is the dump's Gyro -> camera extrinsic inverted (body = the IMU as librealsense "
+           "reports its axes);\n# the depth camera is the dump's Depth stream with Depth -> camera as T_CD.\n";
       for (const std::string& m : imp.missing) f << "# MISSING: " << m << "\n";
-      f << "# Not from the dump (" << (r->base.empty() ? std::string("Kestrel's defaults") : r->base) << "):\n";
+      f << "# Not from the dump (" << (r->base.empty() ? std::string("Kestrel's defaults") : r->base)
+        << "):\n";
       for (const std::string& n : imp.notes) f << "#   " << n << "\n";
       f << drivers::rig_to_yaml(imp.rig);
       f.close();
       if (!f) throw std::runtime_error(r->out + ": cannot write");
       const Rig back = drivers::load_rig_file(r->out);
-      if (!drivers::rig_equal(back, imp.rig)) throw std::runtime_error(r->out + ": does not read back to the same rig");
-      std::printf("wrote %s: %s %dx%d, fx %.3f fy %.3f cx %.3f cy %.3f px, %s distortion; depth %s; IMU %.1f Hz\n",
-                  r->out.c_str(), o.camera.c_str(), imp.rig.rgb.width, imp.rig.rgb.height, imp.rig.rgb.fx,
-                  imp.rig.rgb.fy, imp.rig.rgb.cx, imp.rig.rgb.cy, drivers::distortion_name(imp.rig.rgb.distortion),
-                  imp.rig.depth_camera.present ? "registered from the Depth stream" : "in the camera's frame",
-                  imp.rig.imu_rate_hz);
+      if (!drivers::rig_equal(back, imp.rig))
+        throw std::runtime_error(r->out + ": does not read back to the same rig");
+      std::printf(
+          "wrote %s: %s %dx%d, fx %.3f fy %.3f cx %.3f cy %.3f px, %s distortion; depth %s; IMU %.1f Hz\n",
+          r->out.c_str(), o.camera.c_str(), imp.rig.rgb.width, imp.rig.rgb.height, imp.rig.rgb.fx,
+          imp.rig.rgb.fy, imp.rig.rgb.cx, imp.rig.rgb.cy, drivers::distortion_name(imp.rig.rgb.distortion),
+          imp.rig.depth_camera.present ? "registered from the Depth stream" : "in the camera's frame",
+          imp.rig.imu_rate_hz);
       for (const std::string& m : imp.missing) std::printf("MISSING in %s: %s\n", r->dump.c_str(), m.c_str());
       std::printf("not in the dump (from %s):\n", r->base.empty() ? "Kestrel's defaults" : r->base.c_str());
       for (const std::string& n : imp.notes) std::printf("  %s\n", n.c_str());
@@ -152,7 +159,8 @@ Subcommand add_calib_command(CLI::App& parent) {
     if (!f) throw std::runtime_error(a->out + ": cannot write");
     // The rig must read back as written: the file is what the drivers will load.
     const Rig back = drivers::load_rig_file(a->out);
-    if (!drivers::rig_equal(back, imp.rig)) throw std::runtime_error(a->out + ": does not read back to the same rig");
+    if (!drivers::rig_equal(back, imp.rig))
+      throw std::runtime_error(a->out + ": does not read back to the same rig");
     std::printf("wrote %s: %dx%d, fx %.3f fy %.3f cx %.3f cy %.3f px, %s distortion, time offset %.3f ms, IMU %.1f Hz\n",
                 a->out.c_str(), imp.rig.rgb.width, imp.rig.rgb.height, imp.rig.rgb.fx, imp.rig.rgb.fy, imp.rig.rgb.cx,
                 imp.rig.rgb.cy, drivers::distortion_name(imp.rig.rgb.distortion),

@@ -42,7 +42,7 @@
 
 namespace kestrel::drivers::d4xx {
 
-constexpr uint32_t kY8i = v4l2::fourcc('Y', '8', 'I', ' ');     // left IR low byte, right IR high byte
+constexpr uint32_t kY8i = v4l2::fourcc('Y', '8', 'I', ' ');  // left IR low byte, right IR high byte
 constexpr uint32_t kRgb24 = v4l2::fourcc('R', 'G', 'B', '3');
 constexpr const char* kDefaultCardMatch = "RealSense";
 
@@ -52,23 +52,23 @@ struct NodeBuffer {
   const uint8_t* data = nullptr;
   size_t bytes_used = 0;
   uint32_t sequence = 0;
-  uint32_t flags = 0;   // v4l2_buffer.flags (timestamp source, error)
+  uint32_t flags = 0;  // v4l2_buffer.flags (timestamp source, error)
   int64_t tv_sec = 0;
   int64_t tv_usec = 0;
 };
 
 struct NodeRequest {
-  bool metadata = false;          // a V4L2_BUF_TYPE_META_CAPTURE node
-  v4l2::FormatRequest format;     // video nodes
+  bool metadata = false;       // a V4L2_BUF_TYPE_META_CAPTURE node
+  v4l2::FormatRequest format;  // video nodes
   int buffers = 4;
 };
 
 struct NodeFormat {
-  uint32_t fourcc = 0;   // pixel format, or the metadata format (kMetaFmtUvc / kMetaFmtD4xx)
+  uint32_t fourcc = 0;  // pixel format, or the metadata format (kMetaFmtUvc / kMetaFmtD4xx)
   int width = 0;
   int height = 0;
   double fps = 0;
-  int stride = 0;        // bytes per row (video)
+  int stride = 0;  // bytes per row (video)
   size_t buffer_bytes = 0;
 };
 
@@ -89,15 +89,15 @@ class Node {
   virtual bool requeue(const NodeBuffer& b) = 0;
 };
 using NodeFactory = std::function<std::unique_ptr<Node>()>;
-std::unique_ptr<Node> make_v4l2_node();   // the kernel's (reports "not built" without V4L2)
+std::unique_ptr<Node> make_v4l2_node();  // the kernel's (reports "not built" without V4L2)
 
 // ---- finding a D4xx's nodes -----------------------------------------------------------
 struct ProbedNode {
-  std::string path;        // /dev/videoN
-  int minor = -1;          // N
+  std::string path;  // /dev/videoN
+  int minor = -1;    // N
   std::string card;
   std::string bus_info;
-  bool metadata = false;   // a metadata capture node
+  bool metadata = false;  // a metadata capture node
   std::vector<uint32_t> formats;
 };
 struct NodeSet {
@@ -111,7 +111,7 @@ struct NodeSet {
 // node). Depth: the node offering Z16; infrared: Y8I or GREY without Z16;
 // colour: YUYV without Z16. One entry per camera found.
 std::vector<NodeSet> group_d4xx_nodes(const std::vector<ProbedNode>& nodes, const std::string& card_match);
-std::vector<ProbedNode> probe_v4l2_nodes(std::string* error = nullptr);   // the kernel's /dev/video*
+std::vector<ProbedNode> probe_v4l2_nodes(std::string* error = nullptr);  // the kernel's /dev/video*
 
 // ---- the device clock ------------------------------------------------------------------
 // 32-bit microsecond stamps (PTS, sensor timestamp) onto one 64-bit line:
@@ -143,30 +143,30 @@ enum class StreamKind { kColor, kDepth, kInfrared };
 const char* stream_name(StreamKind k);
 
 enum class StampSource {
-  kHardware,          // sensor timestamp mapped through the device clock
-  kKernelNoMetadata,  // no metadata buffer for this frame
-  kKernelCorrupt,     // its metadata did not parse
-  kKernelNoTimestamp, // metadata without a valid sensor timestamp (or the clock not yet valid)
+  kHardware,           // sensor timestamp mapped through the device clock
+  kKernelNoMetadata,   // no metadata buffer for this frame
+  kKernelCorrupt,      // its metadata did not parse
+  kKernelNoTimestamp,  // metadata without a valid sensor timestamp (or the clock not yet valid)
 };
 
 struct StreamCounters {
   uint64_t frames = 0;
-  uint64_t dropped = 0;             // sequence gaps (frames the kernel or camera lost)
+  uint64_t dropped = 0;  // sequence gaps (frames the kernel or camera lost)
   uint64_t restarts = 0;
-  uint64_t errors = 0;              // buffers flagged bad, wrong size, requeue failures
+  uint64_t errors = 0;  // buffers flagged bad, wrong size, requeue failures
   uint64_t timeouts = 0;
   uint64_t hardware_stamps = 0;
-  uint64_t metadata_missing = 0;    // frames stamped from the kernel: no metadata buffer
-  uint64_t metadata_corrupt = 0;    //   ... metadata rejected by the parser
+  uint64_t metadata_missing = 0;  // frames stamped from the kernel: no metadata buffer
+  uint64_t metadata_corrupt = 0;  //   ... metadata rejected by the parser
   uint64_t metadata_no_timestamp = 0;
   uint64_t metadata_orphans = 0;    // metadata buffers whose frame never came
   uint64_t frame_counter_gaps = 0;  // md_capture_timing.frame_counter jumps (camera-side drops)
 };
 
 struct StreamFrame {
-  int64_t t_ns = 0;            // mid-exposure, host clock
-  int64_t t_device_ns = -1;    // mid-exposure, device clock unwrapped (-1 without metadata)
-  int64_t t_buffer_ns = 0;     // the kernel's buffer stamp
+  int64_t t_ns = 0;          // mid-exposure, host clock
+  int64_t t_device_ns = -1;  // mid-exposure, device clock unwrapped (-1 without metadata)
+  int64_t t_buffer_ns = 0;   // the kernel's buffer stamp
   int64_t t_recv_ns = 0;
   uint32_t seq = 0;
   uint32_t frame_counter = 0;
@@ -224,42 +224,42 @@ class Stream {
 // ---- the camera ------------------------------------------------------------------------------
 struct StreamOptions {
   bool enabled = false;
-  std::string video_device;   // /dev/videoN
-  std::string meta_device;    // "" = no metadata: kernel stamps
+  std::string video_device;  // /dev/videoN
+  std::string meta_device;   // "" = no metadata: kernel stamps
   v4l2::FormatRequest request;
 };
 
 struct Options {
-  StreamOptions color;        // YUYV (or RGB3) -> Rgb8
-  StreamOptions depth;        // Z16 -> DepthU16 (registered to the image camera when depth_camera.present)
-  StreamOptions infrared;     // GREY (Infrared 1) or Y8I (Infrared 1 + 2) -> Gray8
-  bool infrared_is_image = false;   // the rig's camera is Infrared 1 (depth is in its frame already)
+  StreamOptions color;     // YUYV (or RGB3) -> Rgb8
+  StreamOptions depth;     // Z16 -> DepthU16 (registered to the image camera when depth_camera.present)
+  StreamOptions infrared;  // GREY (Infrared 1) or Y8I (Infrared 1 + 2) -> Gray8
+  bool infrared_is_image = false;  // the rig's camera is Infrared 1 (depth is in its frame already)
   int buffers = 4;
   int metadata_wait_ms = 2;
-  int64_t readout_ns = 0;           // for kernel (end-of-frame) fallback stamps
+  int64_t readout_ns = 0;  // for kernel (end-of-frame) fallback stamps
   double depth_unit_m = 0.001;
   double rig_depth_scale_m = 0.001;
-  DepthCamera depth_camera;         // rig.depth_camera: registration of depth to colour
-  CameraIntrinsics image_camera;    // rig.rgb
-  int64_t pair_tolerance_ns = 0;    // depth/IR to image by device time; 0 = half a frame period
+  DepthCamera depth_camera;       // rig.depth_camera: registration of depth to colour
+  CameraIntrinsics image_camera;  // rig.rgb
+  int64_t pair_tolerance_ns = 0;  // depth/IR to image by device time; 0 = half a frame period
   ClockSyncOptions clock;
-  SharedDeviceClock* shared_clock = nullptr;   // published for the IMU driver
+  SharedDeviceClock* shared_clock = nullptr;  // published for the IMU driver
 };
 
 struct Counters {
   StreamCounters color, depth, infrared;
-  uint64_t sets = 0;          // frames delivered
-  uint64_t unpaired = 0;      // image frames delivered without a depth partner
-  uint64_t depth_skipped = 0; // depth frames older than any image partner
+  uint64_t sets = 0;           // frames delivered
+  uint64_t unpaired = 0;       // image frames delivered without a depth partner
+  uint64_t depth_skipped = 0;  // depth frames older than any image partner
   uint64_t clock_jumps = 0;
 };
 
 struct Frame {
   StreamFrame image_meta;
-  const ImageBuffer* image = nullptr;   // Rgb8 (colour) or Gray8 (Infrared 1)
-  const ImageBuffer* depth = nullptr;   // nullptr when not paired / not enabled
-  const ImageBuffer* ir1 = nullptr;     // infrared enabled (and not the image)
-  const ImageBuffer* ir2 = nullptr;     // with Y8I
+  const ImageBuffer* image = nullptr;  // Rgb8 (colour) or Gray8 (Infrared 1)
+  const ImageBuffer* depth = nullptr;  // nullptr when not paired / not enabled
+  const ImageBuffer* ir1 = nullptr;    // infrared enabled (and not the image)
+  const ImageBuffer* ir2 = nullptr;    // with Y8I
   StreamFrame depth_meta;
 };
 
@@ -282,17 +282,17 @@ class Camera {
   Result grab(int timeout_ms, Frame& out);
   Counters counters() const;
   const DeviceClock& clock() const { return clock_; }
-  std::string report() const;   // one line per stream: counters and stamp sources
+  std::string report() const;  // one line per stream: counters and stamp sources
 
  private:
   bool convert(StreamKind kind, const NodeBuffer& b, const NodeFormat& f, ImageBuffer& dst, ImageBuffer* ir2);
-  Stream::Result grab_partner(Stream& s, int timeout_ms, const StreamFrame& lead, ImageBuffer& dst, ImageBuffer* ir2,
-                              StreamFrame& meta, bool& paired);
+  Stream::Result grab_partner(Stream& s, int timeout_ms, const StreamFrame& lead, ImageBuffer& dst,
+                              ImageBuffer* ir2, StreamFrame& meta, bool& paired);
 
   NodeFactory factory_;
   Options opt_;
   std::unique_ptr<Stream> color_, depth_, infrared_;
-  Stream* image_ = nullptr;   // the lead stream (colour, or infrared)
+  Stream* image_ = nullptr;  // the lead stream (colour, or infrared)
   DeviceClock clock_;
   ImageBuffer image_buf_, depth_buf_, ir1_buf_, ir2_buf_;
   // A partner frame newer than its lead waits here for the next lead.

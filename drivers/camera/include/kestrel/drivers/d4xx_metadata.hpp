@@ -33,8 +33,8 @@ namespace kestrel::drivers::d4xx {
 
 // V4L2 metadata formats: linux/videodev2.h V4L2_META_FMT_UVC and V4L2_META_FMT_D4XX
 // (same layout; the second tells a D4xx-aware kernel to pass the vendor bytes).
-constexpr uint32_t kMetaFmtUvc = 0x48435655;    // 'UVCH'
-constexpr uint32_t kMetaFmtD4xx = 0x58583444;   // 'D4XX'
+constexpr uint32_t kMetaFmtUvc = 0x48435655;   // 'UVCH'
+constexpr uint32_t kMetaFmtD4xx = 0x58583444;  // 'D4XX'
 
 // md_type ids (librealsense src/metadata.h).
 enum class BlockId : uint32_t {
@@ -49,12 +49,12 @@ enum class BlockId : uint32_t {
 
 // Sizes of the blocks' wire layouts, header included.
 constexpr size_t kBlockHeaderBytes = 8;
-constexpr size_t kCaptureTimingBytes = 40;   // header + 8 x u32
-constexpr size_t kConfigurationBytes = 40;   // header + version, flags, hw, sku, cookie, format, w, h, fps,
-                                             // trigger, calibration count, 6 reserved
-constexpr size_t kDepthControlBytes = 60;    // header + 13 x u32
-constexpr size_t kRgbControlBytes = 72;      // header + 16 x u32
-constexpr size_t kRecordPrefixBytes = 10;    // ns + sof before the payload header
+constexpr size_t kCaptureTimingBytes = 40;  // header + 8 x u32
+constexpr size_t kConfigurationBytes = 40;  // header + version, flags, hw, sku, cookie, format, w, h, fps,
+                                            // trigger, calibration count, 6 reserved
+constexpr size_t kDepthControlBytes = 60;   // header + 13 x u32
+constexpr size_t kRgbControlBytes = 72;     // header + 16 x u32
+constexpr size_t kRecordPrefixBytes = 10;   // ns + sof before the payload header
 constexpr size_t kUvcHeaderMaxBytes = 255;
 
 // md_capture_timing.flags: which fields the firmware filled.
@@ -73,7 +73,7 @@ struct CaptureTiming {
   uint32_t version = 0;
   uint32_t flags = 0;
   uint32_t frame_counter = 0;
-  uint32_t sensor_timestamp_us = 0;   // mid-exposure, device clock (wraps every 2^32 us = 71.6 min)
+  uint32_t sensor_timestamp_us = 0;  // mid-exposure, device clock (wraps every 2^32 us = 71.6 min)
   uint32_t readout_time_us = 0;
   uint32_t exposure_time_us = 0;
   uint32_t frame_interval_us = 0;
@@ -97,26 +97,26 @@ struct ControlExposure {
   bool present = false;
   bool rgb = false;
   uint32_t flags = 0;
-  uint32_t exposure_us = 0;   // converted to us
-  uint32_t laser_power = 0;   // depth only
+  uint32_t exposure_us = 0;  // converted to us
+  uint32_t laser_power = 0;  // depth only
 };
 
 struct FrameMetadata {
-  int64_t host_ns = 0;        // uvc_meta_buf.ns (CLOCK_MONOTONIC)
+  int64_t host_ns = 0;  // uvc_meta_buf.ns (CLOCK_MONOTONIC)
   uint16_t usb_sof = 0;
   uint8_t header_length = 0;  // bLength
   uint8_t header_info = 0;    // bmHeaderInfo
   bool has_pts = false;
   bool has_scr = false;
-  uint32_t pts_us = 0;        // dwPresentationTime: D4xx, device clock us at readout/transmit start
+  uint32_t pts_us = 0;  // dwPresentationTime: D4xx, device clock us at readout/transmit start
   uint32_t scr_stc = 0;
   uint16_t scr_sof = 0;
   CaptureTiming timing;
   Configuration configuration;
   ControlExposure control;
-  int records = 0;            // records in the buffer
-  int blocks = 0;             // D4xx blocks walked in the record used
-  int unknown_blocks = 0;     // ids this parser does not read (skipped by their size)
+  int records = 0;         // records in the buffer
+  int blocks = 0;          // D4xx blocks walked in the record used
+  int unknown_blocks = 0;  // ids this parser does not read (skipped by their size)
 
   // The hardware sensor timestamp, when the firmware says it is valid.
   bool has_sensor_timestamp() const {
@@ -128,13 +128,13 @@ struct FrameMetadata {
 
 enum class ParseStatus {
   kOk,
-  kEmpty,             // no bytes (a metadata buffer the driver returned empty)
-  kTruncatedRecord,   // fewer bytes than the 10-byte prefix + bLength
-  kBadHeaderLength,   // bLength < 2, or too short for the PTS / SCR its flags announce
-  kBadBlock,          // a D4xx block whose size is < 8 or runs past the header
-  kBadBlockSize,      // a known block too short for its fields
-  kNoD4xxBlocks,      // a valid UVC header with no vendor bytes (a non-D4xx camera, or a kernel
-                      // that does not pass them)
+  kEmpty,            // no bytes (a metadata buffer the driver returned empty)
+  kTruncatedRecord,  // fewer bytes than the 10-byte prefix + bLength
+  kBadHeaderLength,  // bLength < 2, or too short for the PTS / SCR its flags announce
+  kBadBlock,         // a D4xx block whose size is < 8 or runs past the header
+  kBadBlockSize,     // a known block too short for its fields
+  kNoD4xxBlocks,     // a valid UVC header with no vendor bytes (a non-D4xx camera, or a kernel
+                     // that does not pass them)
 };
 const char* parse_status_name(ParseStatus s);
 
@@ -155,7 +155,7 @@ struct EncodeOptions {
   bool scr = true;
   bool capture_timing = true;
   bool configuration = true;
-  bool depth_control = false;   // else an RGB control block, when `control` is on
+  bool depth_control = false;  // else an RGB control block, when `control` is on
   bool control = true;
 };
 // Writes one record; returns its size, or 0 when `capacity` is too small.

@@ -62,16 +62,16 @@ struct CameraSettings {
     std::string color_device, color_meta_device;
     std::string depth_device, depth_meta_device;
     std::string infrared_device, infrared_meta_device;
-    std::string image = "color";       // color | infrared1: the stream that is the rig's camera
+    std::string image = "color";  // color | infrared1: the stream that is the rig's camera
     bool depth = true;
-    std::string infrared = "off";      // off | y8 (Infrared 1) | y8i (Infrared 1 + 2)
-    int depth_width_px = 0;            // 0: the rig's depth_camera size, else the camera's
+    std::string infrared = "off";  // off | y8 (Infrared 1) | y8i (Infrared 1 + 2)
+    int depth_width_px = 0;        // 0: the rig's depth_camera size, else the camera's
     int depth_height_px = 0;
     double depth_unit_m = 0.001;
     int buffers = 4;
     int metadata_wait_ms = 2;
-    int64_t pair_tolerance_ns = 0;     // 0: half a frame period
-    int64_t readout_ns = 0;            // for kernel-stamped (fallback) frames
+    int64_t pair_tolerance_ns = 0;  // 0: half a frame period
+    int64_t readout_ns = 0;         // for kernel-stamped (fallback) frames
   } d4xx;
 };
 

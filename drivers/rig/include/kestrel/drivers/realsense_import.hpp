@@ -34,32 +34,32 @@ namespace kestrel::drivers {
 
 // ---- the dump as read ------------------------------------------------------------
 struct RsIntrinsics {
-  std::string stream;   // "Color", "Depth", "Infrared 1", ...
+  std::string stream;  // "Color", "Depth", "Infrared 1", ...
   int width = 0, height = 0;
   std::string formats;  // "{Z16}"
   bool available = false;
   double fx = 0, fy = 0, ppx = 0, ppy = 0;
-  std::string model;    // "Brown Conrady", "Inverse Brown Conrady", "None", ...
+  std::string model;  // "Brown Conrady", "Inverse Brown Conrady", "None", ...
   std::array<double, 5> coeffs{};
   int line = 0;
 };
 struct RsMotionIntrinsics {
-  std::string stream;   // "Accel" | "Gyro"
+  std::string stream;  // "Accel" | "Gyro"
   bool available = false;
   std::array<double, 3> bias_variances{};
   std::array<double, 3> noise_variances{};
-  std::array<double, 12> sensitivity{};   // 3 rows of 4 (scale | bias)
+  std::array<double, 12> sensitivity{};  // 3 rows of 4 (scale | bias)
   bool has_sensitivity = false;
   int line = 0;
 };
 struct RsExtrinsics {
   std::string from, to;
   bool available = false;
-  Mat4d T_to_from = kIdentity4;   // p_to = T p_from
+  Mat4d T_to_from = kIdentity4;  // p_to = T p_from
   int line = 0;
 };
 struct RealSenseDump {
-  std::string device_name;        // "Intel RealSense D435I" when the dump has its device info
+  std::string device_name;  // "Intel RealSense D435I" when the dump has its device info
   std::string serial;
   std::string firmware;
   std::vector<RsIntrinsics> intrinsics;
@@ -68,7 +68,7 @@ struct RealSenseDump {
   const RsIntrinsics* find(const std::string& stream, int width, int height) const;
   const RsExtrinsics* find_extrinsics(const std::string& from, const std::string& to) const;
   const RsMotionIntrinsics* find_motion(const std::string& stream) const;
-  std::string sizes_of(const std::string& stream) const;   // "640x480, 1280x720" for errors
+  std::string sizes_of(const std::string& stream) const;  // "640x480, 1280x720" for errors
 };
 
 // Throws std::runtime_error "NAME:LINE: FIELD: what" for anything malformed.
@@ -77,17 +77,17 @@ RealSenseDump parse_realsense_dump(const std::string& text, const std::string& n
 
 // ---- the import ---------------------------------------------------------------------
 struct RealSenseImportOptions {
-  std::string camera = "Color";   // the rig's camera: "Color" or "Infrared 1"
-  int width = 0, height = 0;      // of the camera stream; 0 = the base rig's rgb size, else 640x480
-  int depth_width = 0, depth_height = 0;   // 0 = the camera's size
-  double accel_rate_hz = 250;     // the rates the IMU streams run at (noise densities depend on them)
+  std::string camera = "Color";           // the rig's camera: "Color" or "Infrared 1"
+  int width = 0, height = 0;              // of the camera stream; 0 = the base rig's rgb size, else 640x480
+  int depth_width = 0, depth_height = 0;  // 0 = the camera's size
+  double accel_rate_hz = 250;             // the rates the IMU streams run at (noise densities depend on them)
   double gyro_rate_hz = 200;
 };
 
 struct RealSenseImport {
   Rig rig;
-  std::vector<std::string> notes;     // every field taken from the base rig, every fit
-  std::vector<std::string> missing;   // sections the dump lacks that the rig would use
+  std::vector<std::string> notes;    // every field taken from the base rig, every fit
+  std::vector<std::string> missing;  // sections the dump lacks that the rig would use
 };
 
 // Throws std::runtime_error naming `name` and the section for anything the

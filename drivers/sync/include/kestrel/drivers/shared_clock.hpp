@@ -27,7 +27,7 @@ struct ClockLine {
   int64_t d0_ns = 0;
   int64_t h0_ns = 0;
   double skew = 0.0;
-  uint64_t jumps = 0;        // resets of the owner's ClockSync so far (a reader may want to know)
+  uint64_t jumps = 0;  // resets of the owner's ClockSync so far (a reader may want to know)
   uint64_t observations = 0;
 
   int64_t to_host_ns(int64_t device_ns) const {
