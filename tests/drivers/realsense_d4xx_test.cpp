@@ -805,6 +805,20 @@ TEST(RealSenseConfig, TemplatesParseAndKeysHaveTheirDefaults) {
   EXPECT_NE(error("{image: infrared1}").find("x.yaml: drivers.camera.d4xx.infrared: must be y8 or y8i"),
             std::string::npos)
       << error("{image: infrared1}");
+  // Without the device: LiveSensors names the stream and the node.
+  const LiveConfig none = live_config_from_yaml(
+      rig + "drivers:\n  camera:\n    type: d4xx\n    d4xx: {color_device: /dev/kestrel-no-such-video, "
+            "color_meta_device: none, depth: false}\n",
+      "x.yaml");
+  try {
+    LiveSensors live(none);
+    ADD_FAILURE() << "opened a camera that does not exist";
+  } catch (const std::runtime_error& err) {
+    EXPECT_NE(std::string(err.what()).find(
+                  "camera (RealSense D4xx): D4xx color: /dev/kestrel-no-such-video: No such file or directory"),
+              std::string::npos)
+        << err.what();
+  }
   EXPECT_NE(error("{metadata_wait: 2}").find("metadata_wait"),
             std::string::npos);  // a unit-less key is refused
   EXPECT_NE(error("{infrared: both}").find("drivers.camera.d4xx.infrared"), std::string::npos);

@@ -34,6 +34,15 @@ struct ClockLine {
     const int64_t dd = device_ns - d0_ns;
     return h0_ns + dd + static_cast<int64_t>(std::llround(static_cast<double>(dd) * skew));
   }
+  // A 32-bit microsecond stamp of the same device (a D4xx HID IMU sample) on
+  // this line's unwrapped device time: the value nearest d0, so the reader
+  // needs no wrap state of its own (valid within +-35 min of the last
+  // publication, which comes every frame).
+  int64_t unwrap_us32_ns(uint32_t device_us) const {
+    const int64_t d0_us = d0_ns / 1000;
+    const auto delta = static_cast<int32_t>(device_us - static_cast<uint32_t>(d0_us));
+    return (d0_us + delta) * 1000;
+  }
   static ClockLine of(const ClockSync& s, int64_t d_ref_ns, uint64_t observations) {
     ClockLine l;
     l.valid = s.valid();
