@@ -814,10 +814,9 @@ TEST(RealSenseConfig, TemplatesParseAndKeysHaveTheirDefaults) {
     LiveSensors live(none);
     ADD_FAILURE() << "opened a camera that does not exist";
   } catch (const std::runtime_error& err) {
-    EXPECT_NE(std::string(err.what()).find(
-                  "camera (RealSense D4xx): D4xx color: /dev/kestrel-no-such-video: No such file or directory"),
-              std::string::npos)
-        << err.what();
+    const std::string want =
+        "camera (RealSense D4xx): D4xx color: /dev/kestrel-no-such-video: No such file or directory";
+    EXPECT_NE(std::string(err.what()).find(want), std::string::npos) << err.what();
   }
   EXPECT_NE(error("{metadata_wait: 2}").find("metadata_wait"),
             std::string::npos);  // a unit-less key is refused

@@ -122,7 +122,8 @@ Subcommand add_calib_command(CLI::App& parent) {
       std::ofstream f(r->out);
       f << "# Imported by `kestrel calib import-realsense` from " << r->dump << " (camera: " << o.camera
         << ").\n# T_BC is the dump's Gyro -> camera extrinsic inverted (body = the IMU as librealsense "
-           "reports its axes);\n# the depth camera is the dump's Depth stream with Depth -> camera as T_CD.\n";
+           "reports its axes);\n# the depth camera is the dump's Depth stream with Depth -> camera as "
+           "T_CD.\n";
       for (const std::string& m : imp.missing) f << "# MISSING: " << m << "\n";
       f << "# Not from the dump (" << (r->base.empty() ? std::string("Kestrel's defaults") : r->base)
         << "):\n";
