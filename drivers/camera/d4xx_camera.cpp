@@ -219,6 +219,8 @@ void Camera::close() {
 std::string Camera::open(const Options& o) {
   close();
   opt_ = o;
+  depth_held_ = ir_held_ = false;
+  sets_ = unpaired_ = depth_skipped_ = 0;
   clock_ = DeviceClock(o.clock);
   clock_.publish_to(o.shared_clock);
   std::string errors;
