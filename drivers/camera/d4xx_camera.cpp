@@ -502,7 +502,11 @@ std::string Camera::report() const {
   auto line = [&](const Stream* st) {
     if (st == nullptr) return;
     const StreamCounters& c = st->counters();
-    char b[512];
+    const uint32_t mf = st->metadata_format();
+    const std::string meta = mf == 0             ? "no metadata node"
+                             : mf == kMetaFmtUvc ? "metadata UVCH (no D4xx blocks: kernel stamps)"
+                                                 : "metadata " + v4l2::fourcc_name(mf);
+    char b[640];
     std::snprintf(
         b, sizeof b,
         "D4xx %s: %llu frames, %llu dropped, %llu hardware stamps; kernel stamps: %llu no metadata, %llu "

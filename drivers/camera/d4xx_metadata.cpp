@@ -79,8 +79,11 @@ ParseStatus parse_blocks(const uint8_t* p, size_t n, FrameMetadata& out) {
         t.pipe_latency_us = u32(b + 36);
         break;
       }
+      // Control and configuration blocks: only the fields read must be there (their sizes
+      // changed between firmware versions; the kernel's D4XX page says 60 for depth control
+      // now, 56 in its first version).
       case BlockId::kConfiguration: {
-        if (size < kConfigurationBytes) return ParseStatus::kBadBlockSize;
+        if (size < 34) return ParseStatus::kBadBlockSize;
         Configuration& c = out.configuration;
         c.present = true;
         c.flags = u32(b + 12);
@@ -94,7 +97,7 @@ ParseStatus parse_blocks(const uint8_t* p, size_t n, FrameMetadata& out) {
         break;
       }
       case BlockId::kDepthControl: {
-        if (size < kDepthControlBytes) return ParseStatus::kBadBlockSize;
+        if (size < 28) return ParseStatus::kBadBlockSize;
         ControlExposure& c = out.control;
         c.present = true;
         c.rgb = false;
@@ -104,7 +107,7 @@ ParseStatus parse_blocks(const uint8_t* p, size_t n, FrameMetadata& out) {
         break;
       }
       case BlockId::kRgbControl: {
-        if (size < kRgbControlBytes) return ParseStatus::kBadBlockSize;
+        if (size < 60) return ParseStatus::kBadBlockSize;
         ControlExposure& c = out.control;
         c.present = true;
         c.rgb = true;

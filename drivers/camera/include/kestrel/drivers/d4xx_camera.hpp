@@ -186,6 +186,8 @@ class Stream {
   StreamKind kind() const { return kind_; }
   Node& video() { return *video_; }
   bool has_metadata() const { return meta_ != nullptr && meta_->is_open(); }
+  // The metadata node's format ('D4XX', or 'UVCH' which carries no sensor timestamps); 0 without one.
+  uint32_t metadata_format() const { return has_metadata() ? meta_->format().fourcc : 0; }
 
   // Waits for a frame and stamps it; the caller converts b's bytes, then
   // release(b) hands the buffer back to the driver. `clock` is fed when

@@ -15,9 +15,13 @@
 //
 // The D4xx blocks (as librealsense documents them, src/metadata.h): each is
 //   u32 md_type_id, u32 md_size, body
-// where md_size is the whole block including those 8 bytes (librealsense's
-// comment says "without header" but its validity check compares md_size with
-// sizeof(md_capture_timing), header included; we follow the check).
+// where md_size is the whole block including those 8 bytes (the kernel's
+// V4L2_META_FMT_D4XX page: "Size in bytes, include ID"; librealsense's
+// validity check compares md_size with sizeof(md_capture_timing), header
+// included, though a comment there says otherwise).
+// The kernel passes these vendor bytes only with the 'D4XX' metadata format,
+// which uvcvideo offers for the D4xx models in its device table; with 'UVCH'
+// it cuts the header after PTS and SCR (kNoD4xxBlocks below).
 // md_capture_timing (0x80000001) carries the frame's hardware sensor
 // timestamp: the middle of the exposure in microseconds of the camera's own
 // clock, the clock the D4xx's HID IMU stamps its samples with.
