@@ -509,10 +509,11 @@ std::string Camera::report() const {
     char b[640];
     std::snprintf(
         b, sizeof b,
-        "D4xx %s: %llu frames, %llu dropped, %llu hardware stamps; kernel stamps: %llu no metadata, %llu "
+        "D4xx %s (%s): %llu frames, %llu dropped, %llu hardware stamps; kernel stamps: %llu no metadata, "
+        "%llu "
         "corrupt metadata, %llu no sensor timestamp; %llu orphan metadata, %llu frame-counter gaps, %llu "
         "errors, %llu timeouts\n",
-        stream_name(st->kind()), static_cast<unsigned long long>(c.frames),
+        stream_name(st->kind()), meta.c_str(), static_cast<unsigned long long>(c.frames),
         static_cast<unsigned long long>(c.dropped), static_cast<unsigned long long>(c.hardware_stamps),
         static_cast<unsigned long long>(c.metadata_missing),
         static_cast<unsigned long long>(c.metadata_corrupt),

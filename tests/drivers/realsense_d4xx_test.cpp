@@ -537,6 +537,34 @@ TEST(RealSenseD4xx, HardwareStampsPairDepthAndCountEveryFault) {
   EXPECT_NE(cam.report().find("3 no metadata, 1 corrupt metadata"), std::string::npos) << cam.report();
 }
 
+TEST(RealSenseD4xx, UvchMetadataWithoutBlocksFallsBackLoudly) {
+  // A kernel that offers only 'UVCH' cuts the header after PTS and SCR: no sensor timestamp.
+  Small s;
+  s.dev["/dev/video5"].format.fourcc = kMetaFmtUvc;
+  for (FakeBuf& b : s.dev["/dev/video5"].bufs) {
+    FrameMetadata m;
+    ASSERT_EQ(parse_metadata_buffer(b.bytes.data(), b.bytes.size(), m), ParseStatus::kOk);
+    EncodeOptions o;
+    o.capture_timing = o.configuration = o.control = false;
+    b.bytes.resize(512);
+    b.bytes.resize(encode_record(m, o, b.bytes.data(), 512));
+  }
+  Camera cam(fake_factory(s.dev));
+  ASSERT_EQ(cam.open(s.options()), "");
+  Frame f;
+  int n = 0;
+  while (cam.grab(10, f) == Camera::Result::kFrame) {
+    EXPECT_EQ(f.image_meta.source, StampSource::kKernelNoTimestamp);
+    EXPECT_EQ(f.image_meta.metadata_status, ParseStatus::kNoD4xxBlocks);
+    ++n;
+  }
+  EXPECT_EQ(n, Small::kFrames);
+  EXPECT_EQ(cam.counters().color.metadata_no_timestamp, static_cast<uint64_t>(Small::kFrames));
+  EXPECT_EQ(cam.counters().color.hardware_stamps, 0u);
+  EXPECT_NE(cam.report().find("D4xx color (metadata UVCH (no D4xx blocks: kernel stamps))"), std::string::npos)
+      << cam.report();
+}
+
 TEST(RealSenseD4xx, InfraredY8iSplitsTheImagersAndCanBeTheImage) {
   Small s;
   Camera cam(fake_factory(s.dev));
