@@ -473,6 +473,11 @@ RealSenseImport import_realsense_text(const std::string& text, const std::string
     }
   }
 
+  if (o.camera == "Color" && d.find("Infrared 1", w, h) != nullptr)
+    out.notes.push_back(
+        "Infrared 1 and 2 intrinsics: read, not used (the rig's camera is Color; "
+        "--camera infrared1 makes the left imager the camera)");
+
   // ---- the IMU: extrinsics ----
   const RsExtrinsics* g = d.find_extrinsics("Gyro", o.camera);
   const RsExtrinsics* a = d.find_extrinsics("Accel", o.camera);

@@ -129,7 +129,8 @@ TEST(RealSenseImport, ColourCameraDepthRegisteredImuFromGyro) {
   EXPECT_TRUE(imp.missing.empty());
   std::string notes;
   for (const std::string& n : imp.notes) notes += n + "\n";
-  for (const char* what : {"random walks", "depth unit", "time_offset_cam_imu_ns", "camera.rate_hz"})
+  for (const char* what :
+       {"random walks", "depth unit", "time_offset_cam_imu_ns", "camera.rate_hz", "Infrared 1"})
     EXPECT_NE(notes.find(what), std::string::npos) << what << " not named in:\n" << notes;
   EXPECT_TRUE(drivers::rig_equal(drivers::rig_from_yaml(drivers::rig_to_yaml(r), "x"), r));
 }
