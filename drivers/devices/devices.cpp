@@ -13,6 +13,7 @@
 #include <stdexcept>
 
 #include "kestrel/drivers/bmx055_drdy.hpp"
+#include "kestrel/drivers/d4xx_camera.hpp"
 #include "kestrel/drivers/i2c_bus.hpp"
 #include "kestrel/drivers/klog.hpp"
 #include "kestrel/drivers/openni2_camera.hpp"
@@ -116,12 +117,13 @@ DriverSettings driver_settings_from_yaml_node(const YAML::Node& root, const std:
 
   if (const YAML::Node c = root["camera"]) {
     const std::string path = "drivers.camera";
-    p.only(c, path, {"type", "width_px", "height_px", "rate_hz", "openni2", "v4l2"});
+    p.only(c, path, {"type", "width_px", "height_px", "rate_hz", "openni2", "v4l2", "d4xx"});
     CameraSettings& cs = d.camera;
     cs.type = p.choice<CameraType>(c, "type", path, CameraType::kNone,
                                    {{"none", CameraType::kNone},
                                     {"openni2", CameraType::kOpenNi2},
                                     {"v4l2", CameraType::kV4l2},
+                                    {"d4xx", CameraType::kD4xx},
                                     {"log", CameraType::kLog}});
     cs.width_px = static_cast<int>(p.integer(c, "width_px", path, 640, 1, 8192));
     cs.height_px = static_cast<int>(p.integer(c, "height_px", path, 480, 1, 8192));
@@ -148,6 +150,38 @@ DriverSettings driver_settings_from_yaml_node(const YAML::Node& root, const std:
       if (cs.v4l2_depth_unit_m <= 0) p.fail(vp + ".depth_unit_m", "must be > 0");
       cs.v4l2_buffers = static_cast<int>(p.integer(v, "buffers", vp, 4, 2, 32));
       cs.v4l2_readout_ns = 1000 * p.integer(v, "readout_us", vp, 0, 0, 1'000'000);
+    }
+    if (const YAML::Node v = c["d4xx"]) {
+      // RealSense D4xx over V4L2 + UVC metadata (docs/realsense.md lists every key and its default).
+      const std::string vp = path + ".d4xx";
+      p.only(v, vp,
+             {"card_match", "color_device", "color_meta_device", "depth_device", "depth_meta_device",
+              "infrared_device", "infrared_meta_device", "image", "depth", "infrared", "depth_width_px",
+              "depth_height_px", "depth_unit_m", "buffers", "metadata_wait_ms", "pair_tolerance_us",
+              "readout_us"});
+      CameraSettings::D4xx& x = cs.d4xx;
+      x.card_match = p.str(v, "card_match", vp, "RealSense");
+      x.color_device = p.str(v, "color_device", vp, "");
+      x.color_meta_device = p.str(v, "color_meta_device", vp, "");
+      x.depth_device = p.str(v, "depth_device", vp, "");
+      x.depth_meta_device = p.str(v, "depth_meta_device", vp, "");
+      x.infrared_device = p.str(v, "infrared_device", vp, "");
+      x.infrared_meta_device = p.str(v, "infrared_meta_device", vp, "");
+      x.image =
+          p.choice<std::string>(v, "image", vp, "color", {{"color", "color"}, {"infrared1", "infrared1"}});
+      x.depth = p.boolean(v, "depth", vp, true);
+      x.infrared =
+          p.choice<std::string>(v, "infrared", vp, "off", {{"off", "off"}, {"y8", "y8"}, {"y8i", "y8i"}});
+      x.depth_width_px = static_cast<int>(p.integer(v, "depth_width_px", vp, 0, 0, 8192));
+      x.depth_height_px = static_cast<int>(p.integer(v, "depth_height_px", vp, 0, 0, 8192));
+      x.depth_unit_m = p.num(v, "depth_unit_m", vp, 0.001);
+      if (x.depth_unit_m <= 0) p.fail(vp + ".depth_unit_m", "must be > 0");
+      x.buffers = static_cast<int>(p.integer(v, "buffers", vp, 4, 2, 32));
+      x.metadata_wait_ms = static_cast<int>(p.integer(v, "metadata_wait_ms", vp, 2, 0, 100));
+      x.pair_tolerance_ns = 1000 * p.integer(v, "pair_tolerance_us", vp, 0, 0, 1'000'000);
+      x.readout_ns = 1000 * p.integer(v, "readout_us", vp, 0, 0, 1'000'000);
+      if (x.image == "infrared1" && x.infrared == "off")
+        p.fail(vp + ".infrared", "must be y8 or y8i when image is infrared1");
     }
     if (cs.type == CameraType::kV4l2 && cs.v4l2_color_device.empty())
       p.fail(path + ".v4l2.color_device", "missing (required for type v4l2)");
@@ -519,6 +553,17 @@ DeviceReport probe_devices() {
   }
   if (!err.empty()) r.notes.push_back("v4l2: " + err);
   err.clear();
+  // RealSense D4xx: its nodes grouped as camera.type d4xx would find them.
+  for (const d4xx::NodeSet& n :
+       d4xx::group_d4xx_nodes(d4xx::probe_v4l2_nodes(&err), d4xx::kDefaultCardMatch)) {
+    auto node = [](const std::string& v, const std::string& m) {
+      return v.empty() ? std::string("-") : v + (m.empty() ? std::string(" (no metadata node)") : " + " + m);
+    };
+    r.found.push_back({"camera", "d4xx", n.bus_info,
+                       n.card + ": colour " + node(n.color, n.color_meta) + ", depth " +
+                           node(n.depth, n.depth_meta) + ", infrared " + node(n.infrared, n.infrared_meta)});
+  }
+  err.clear();
   for (const auto& d : openni2::list_devices(&err)) r.found.push_back({"camera", "openni2", d, ""});
   if (!err.empty()) r.notes.push_back("openni2: " + err);
   // I2C: probe the BMX055 chip ids on every adapter (reads only).
@@ -590,6 +635,11 @@ struct LiveSensors::Impl {
   openni2::Camera oni;
   v4l2::Camera color, depth;
   ImageBuffer rgb_buf, depth_buf;
+  // RealSense D4xx (camera.type d4xx): its device clock's line is published
+  // in d4xx_clock for an IMU driver on the same camera (docs/realsense.md).
+  std::unique_ptr<d4xx::Camera> d4xx_cam;
+  SharedDeviceClock d4xx_clock;
+  std::string d4xx_nodes;  // which nodes were used (auto-found or configured)
   StrobeMatcher matcher;
   std::unique_ptr<KlogReader> log;  // the `log` sensors
   uint64_t log_imu = 0;
@@ -600,6 +650,7 @@ struct LiveSensors::Impl {
 
   void imu_loop(ImuSink& sink);
   void cam_loop(FrameSink& sink);
+  std::string open_d4xx();
   void log_loop(ImuSink& imu, FrameSink& frames);
 };
 
@@ -661,7 +712,9 @@ LiveSensors::LiveSensors(const LiveConfig& cfg) : impl_(std::make_unique<Impl>()
   }
   switch (d.camera.type) {
     case CameraType::kNone:
-    case CameraType::kLog: break;
+    case CameraType::kLog:
+    case CameraType::kD4xx:
+      break;  // opened below (open_d4xx)
     case CameraType::kOpenNi2: {
       openni2::Options o;
       o.uri = d.camera.openni2_uri;
@@ -705,6 +758,10 @@ LiveSensors::LiveSensors(const LiveConfig& cfg) : impl_(std::make_unique<Impl>()
       break;
     }
   }
+  if (d.camera.type == CameraType::kD4xx) {
+    const std::string e = m.open_d4xx();
+    if (!e.empty()) missing.push_back("camera (RealSense D4xx): " + e);
+  }
   if (d.imu.type == ImuType::kNone && d.camera.type == CameraType::kNone)
     missing.push_back("the config names no sensor (drivers.camera.type and drivers.imu.type are none)");
   if (!missing.empty()) {
@@ -714,6 +771,90 @@ LiveSensors::LiveSensors(const LiveConfig& cfg) : impl_(std::make_unique<Impl>()
     msg += "\n  (`kestrel devices` lists what is connected)";
     throw std::runtime_error(msg);
   }
+}
+
+// The D4xx's nodes: as configured, else found by card name (the first camera
+// whose V4L2 card matches), each video node's metadata node beside it.
+std::string LiveSensors::Impl::open_d4xx() {
+  const CameraSettings& cs = cfg.drivers.camera;
+  const CameraSettings::D4xx& x = cs.d4xx;
+  d4xx::NodeSet nodes;
+  nodes.color = x.color_device;
+  nodes.color_meta = x.color_meta_device;
+  nodes.depth = x.depth_device;
+  nodes.depth_meta = x.depth_meta_device;
+  nodes.infrared = x.infrared_device;
+  nodes.infrared_meta = x.infrared_meta_device;
+  const bool want_color = x.image == "color", want_ir = x.infrared != "off";
+  const bool need_find = (want_color && nodes.color.empty()) || (x.depth && nodes.depth.empty()) ||
+                         (want_ir && nodes.infrared.empty());
+  if (need_find) {
+    std::string err;
+    const std::vector<d4xx::NodeSet> sets =
+        d4xx::group_d4xx_nodes(d4xx::probe_v4l2_nodes(&err), x.card_match);
+    if (sets.empty())
+      return "no V4L2 camera whose card name contains \"" + x.card_match + "\"" +
+             (err.empty() ? "" : " (" + err + ")") +
+             "; set drivers.camera.d4xx.*_device or check `kestrel devices`";
+    const d4xx::NodeSet& f = sets.front();
+    auto fill = [](std::string& dev, std::string& meta, const std::string& fdev, const std::string& fmeta) {
+      if (dev.empty()) {
+        dev = fdev;
+        if (meta.empty()) meta = fmeta;
+      }
+    };
+    fill(nodes.color, nodes.color_meta, f.color, f.color_meta);
+    fill(nodes.depth, nodes.depth_meta, f.depth, f.depth_meta);
+    fill(nodes.infrared, nodes.infrared_meta, f.infrared, f.infrared_meta);
+  }
+  auto meta = [](const std::string& m) { return m == "none" ? std::string() : m; };
+  d4xx::Options o;
+  o.color.enabled = want_color;
+  o.color.video_device = nodes.color;
+  o.color.meta_device = meta(nodes.color_meta);
+  o.color.request.width = cs.width_px;
+  o.color.request.height = cs.height_px;
+  o.color.request.fps = cs.rate_hz;
+  o.color.request.preferred = {v4l2::kYuyv, d4xx::kRgb24};
+  o.depth.enabled = x.depth;
+  o.depth.video_device = nodes.depth;
+  o.depth.meta_device = meta(nodes.depth_meta);
+  o.depth.request.width = x.depth_width_px > 0                         ? x.depth_width_px
+                          : cfg.rig.depth_camera.present && want_color ? cfg.rig.depth_camera.intrinsics.width
+                                                                       : cs.width_px;
+  o.depth.request.height = x.depth_height_px > 0 ? x.depth_height_px
+                           : cfg.rig.depth_camera.present && want_color
+                               ? cfg.rig.depth_camera.intrinsics.height
+                               : cs.height_px;
+  o.depth.request.fps = cs.rate_hz;
+  o.depth.request.preferred = {v4l2::kZ16};
+  o.infrared.enabled = want_ir;
+  o.infrared.video_device = nodes.infrared;
+  o.infrared.meta_device = meta(nodes.infrared_meta);
+  o.infrared.request.width = cs.width_px;
+  o.infrared.request.height = cs.height_px;
+  o.infrared.request.fps = cs.rate_hz;
+  o.infrared.request.preferred = {x.infrared == "y8i" ? d4xx::kY8i : v4l2::kGrey};
+  o.infrared_is_image = x.image == "infrared1";
+  o.buffers = x.buffers;
+  o.metadata_wait_ms = x.metadata_wait_ms;
+  o.readout_ns = x.readout_ns;
+  o.depth_unit_m = x.depth_unit_m;
+  o.rig_depth_scale_m = cfg.rig.depth.scale_m_per_unit;
+  o.depth_camera = want_color ? cfg.rig.depth_camera : DepthCamera{};
+  o.image_camera = cfg.rig.rgb;
+  o.pair_tolerance_ns = x.pair_tolerance_ns;
+  o.shared_clock = &d4xx_clock;
+  auto describe = [](const d4xx::StreamOptions& so) {
+    if (!so.enabled) return std::string("off");
+    return so.video_device + " + " + (so.meta_device.empty() ? std::string("no metadata") : so.meta_device);
+  };
+  d4xx_nodes =
+      "colour " + describe(o.color) + ", depth " + describe(o.depth) + ", infrared " + describe(o.infrared);
+  d4xx_cam = std::make_unique<d4xx::Camera>();
+  const std::string e = d4xx_cam->open(o);
+  if (!e.empty()) d4xx_cam.reset();
+  return e;
 }
 
 LiveSensors::~LiveSensors() { stop(); }
@@ -779,6 +920,19 @@ void LiveSensors::Impl::cam_loop(FrameSink& sink) {
           ++unpaired;
         }
       }
+    } else if (d.camera.type == CameraType::kD4xx && d4xx_cam) {
+      d4xx::Frame df;
+      const auto r = d4xx_cam->grab(timeout_ms, df);
+      ok = r == d4xx::Camera::Result::kFrame;
+      if (r == d4xx::Camera::Result::kTimeout) ++frame_timeouts;
+      if (r == d4xx::Camera::Result::kError) ++frame_errors;
+      f.t_ns = df.image_meta.t_ns;
+      f.t_recv_ns = df.image_meta.t_recv_ns;
+      f.seq = df.image_meta.seq;
+      f.exposure_us = df.image_meta.exposure_us;
+      f.rgb = df.image;
+      f.depth = df.depth;
+      if (ok && cfg.drivers.camera.d4xx.depth && df.depth == nullptr) ++unpaired;
     } else {
       return;
     }
@@ -892,7 +1046,10 @@ std::string LiveSensors::description() const {
   const DriverSettings& d = impl_->cfg.drivers;
   std::string s = "camera: ";
   if (d.camera.type == CameraType::kLog) return "camera and IMU: log " + d.log_path;
-  s += d.camera.type == CameraType::kOpenNi2 ? "OpenNI2" : d.camera.type == CameraType::kV4l2 ? "V4L2" : "none";
+  s += d.camera.type == CameraType::kOpenNi2 ? "OpenNI2"
+       : d.camera.type == CameraType::kV4l2  ? "V4L2"
+       : d.camera.type == CameraType::kD4xx  ? "RealSense D4xx (" + impl_->d4xx_nodes + ")"
+                                             : "none";
   s += ", IMU: ";
   s += d.imu.type == ImuType::kBmx055I2c ? "BMX055 over I2C (" + d.imu.i2c_bus_device + ")"
        : d.imu.type == ImuType::kBmx055Usb ? std::string("BMX055 via USB bridge") : std::string("none");
@@ -907,6 +1064,7 @@ std::string LiveSensors::report() const {
                 (unsigned long long)m.frames, (unsigned long long)m.frame_timeouts, (unsigned long long)m.frame_errors,
                 (unsigned long long)m.unpaired);
   s += b;
+  if (m.d4xx_cam) s += m.d4xx_cam->report() + "\n";
   if (m.log) {
     std::snprintf(b, sizeof b, "log sensors: %llu IMU samples played\n", (unsigned long long)m.log_imu);
     s += b;

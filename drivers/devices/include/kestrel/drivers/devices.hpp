@@ -35,7 +35,7 @@ namespace kestrel::drivers {
 // same sinks and threads as the hardware (a bench without sensors, and the
 // tests of `kestrel run`). Camera stamps are handed out as the camera's clock
 // gave them (the log's offset taken back out), like a camera driver's.
-enum class CameraType { kNone, kOpenNi2, kV4l2, kLog };
+enum class CameraType { kNone, kOpenNi2, kV4l2, kLog, kD4xx };
 enum class ImuType { kNone, kBmx055I2c, kBmx055Usb, kLog };
 
 struct CameraSettings {
@@ -56,6 +56,25 @@ struct CameraSettings {
   double v4l2_depth_unit_m = 0.001;
   int v4l2_buffers = 4;
   int64_t v4l2_readout_ns = 0;
+  // d4xx: a RealSense D4xx over V4L2 with its UVC metadata nodes (docs/realsense.md).
+  // Empty device paths are found by card name; a metadata path of "none" turns
+  // that stream's hardware stamps off (kernel stamps).
+  struct D4xx {
+    std::string card_match = "RealSense";
+    std::string color_device, color_meta_device;
+    std::string depth_device, depth_meta_device;
+    std::string infrared_device, infrared_meta_device;
+    std::string image = "color";  // color | infrared1: the stream that is the rig's camera
+    bool depth = true;
+    std::string infrared = "off";  // off | y8 (Infrared 1) | y8i (Infrared 1 + 2)
+    int depth_width_px = 0;        // 0: the rig's depth_camera size, else the camera's
+    int depth_height_px = 0;
+    double depth_unit_m = 0.001;
+    int buffers = 4;
+    int metadata_wait_ms = 2;
+    int64_t pair_tolerance_ns = 0;  // 0: half a frame period
+    int64_t readout_ns = 0;         // for kernel-stamped (fallback) frames
+  } d4xx;
 };
 
 struct ImuSettings {
