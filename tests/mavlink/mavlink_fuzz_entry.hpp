@@ -7,7 +7,7 @@
 #include <cstdlib>
 #include <cstring>
 
-#include "kestrel/mavlink/mavlink_decoder.hpp"
+#include "kestrel/drivers/mavlink/mavlink_decoder.hpp"
 
 namespace kestrel::test {
 

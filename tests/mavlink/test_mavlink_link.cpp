@@ -25,11 +25,11 @@
 #include <thread>
 #include <vector>
 
-#include "kestrel/mavlink/mavlink_decoder.hpp"
-#include "kestrel/mavlink/mavlink_v2.hpp"
+#include "kestrel/drivers/mavlink/mavlink_decoder.hpp"
+#include "kestrel/drivers/mavlink/mavlink_v2.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"
-#include "kestrel/mavlink/serial_link.hpp"
-#include "kestrel/mavlink/time_sync.hpp"
+#include "kestrel/drivers/mavlink/serial_link.hpp"
+#include "kestrel/drivers/mavlink/time_sync.hpp"
 #include "mavlink_fuzz_entry.hpp"
 #include "run_command.hpp"
 #include "test_data.hpp"

@@ -2,8 +2,8 @@
 
 #include <stdexcept>
 
-#include "kestrel/mavlink/serial_link.hpp"
-#include "kestrel/mavlink/udp_sender.hpp"
+#include "kestrel/drivers/mavlink/serial_link.hpp"
+#include "kestrel/drivers/mavlink/udp_sender.hpp"
 
 namespace kestrel::mavlink {
 namespace {

@@ -9,10 +9,10 @@
 #include <memory>
 #include <string>
 
-#include "kestrel/mavlink/link.hpp"
-#include "kestrel/mavlink/mavlink_decoder.hpp"
+#include "kestrel/drivers/mavlink/link.hpp"
+#include "kestrel/drivers/mavlink/mavlink_decoder.hpp"
 #include "kestrel/mavlink/odometry_adapter.hpp"
-#include "kestrel/mavlink/time_sync.hpp"
+#include "kestrel/drivers/mavlink/time_sync.hpp"
 
 namespace kestrel::mavlink {
 

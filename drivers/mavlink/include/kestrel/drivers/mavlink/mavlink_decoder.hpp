@@ -13,7 +13,7 @@
 #include <cstddef>
 #include <cstdint>
 
-#include "kestrel/mavlink/mavlink_v2.hpp"
+#include "kestrel/drivers/mavlink/mavlink_v2.hpp"
 
 namespace kestrel::mavlink {
 

@@ -18,7 +18,7 @@
 
 #include <cstdint>
 
-#include "kestrel/mavlink/mavlink_v2.hpp"
+#include "kestrel/drivers/mavlink/mavlink_v2.hpp"
 
 namespace kestrel::mavlink {
 

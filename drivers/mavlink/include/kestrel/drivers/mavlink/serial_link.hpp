@@ -11,7 +11,7 @@
 #include <cstdint>
 #include <string>
 
-#include "kestrel/mavlink/link.hpp"
+#include "kestrel/drivers/mavlink/link.hpp"
 
 namespace kestrel::mavlink {
 

@@ -1,4 +1,4 @@
-#include "kestrel/mavlink/mavlink_decoder.hpp"
+#include "kestrel/drivers/mavlink/mavlink_decoder.hpp"
 
 #include <cstring>
 

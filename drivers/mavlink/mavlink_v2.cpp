@@ -1,4 +1,4 @@
-#include "kestrel/mavlink/mavlink_v2.hpp"
+#include "kestrel/drivers/mavlink/mavlink_v2.hpp"
 
 #include <cstring>
 

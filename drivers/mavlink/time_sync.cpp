@@ -1,4 +1,4 @@
-#include "kestrel/mavlink/time_sync.hpp"
+#include "kestrel/drivers/mavlink/time_sync.hpp"
 
 #include <cmath>
 
