@@ -832,6 +832,9 @@ std::optional<mavlink::OdometryStreamOptions> mavlink_options(const drivers::Mav
   o.heartbeat_rate_hz = cfg.heartbeat_rate_hz;
   o.timesync = cfg.timesync;
   o.timesync_options.max_rtt_ns = static_cast<int64_t>(cfg.timesync_max_rtt_ms * 1e6);
+  o.signing = cfg.signing;
+  o.signing_key = cfg.signing_key;
+  o.signing_link_id = static_cast<uint8_t>(cfg.signing_link_id);
   return o;
 }
 
