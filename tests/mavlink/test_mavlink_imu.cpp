@@ -223,7 +223,7 @@ TEST(MavlinkHighresImu, FaultsAreCountedAndSurvived) {
   std::printf("%s", d.report().c_str());
 }
 
-TEST(MavlinkHighresImu, SteadyStateAllocatesNothingAndTakesNoLock) {
+TEST(MavlinkHighresImu, SteadyStateAllocatesNothing) {
   ASSERT_TRUE(kestrel::rt::alloc_hook_linked());
   SimAutopilotOptions o;
   o.offset_ns = 2'000'000'000 - kestrel::rt::now_ns();
@@ -311,6 +311,30 @@ TEST(MavlinkHighresImu, LiveConfigErrorsNameTheKey) {
   EXPECT_NE(err("  type: mavlink\n  mavlink: {udp: 'a:1', signing: {key_file: /nonexistent/k.key}}\n")
                 .find("/nonexistent/k.key"),
             std::string::npos);
+}
+
+TEST(MavlinkHighresImu, ShippedTemplateParsesWithItsKeyFile) {
+  const std::string dir = kestrel::test::temp_dir("mavlink_imu_template");
+  {
+    std::ifstream in(std::string(KESTREL_SOURCE_DIR) + "/configs/openni2_px4_imu_mavlink.yaml");
+    std::ofstream(dir + "/live.yaml") << in.rdbuf();
+  }
+  // Without fc.key beside it: the error names the key and the file.
+  try {
+    kd::load_live_config(dir + "/live.yaml");
+    ADD_FAILURE() << "loaded without its key file";
+  } catch (const std::exception& e) {
+    EXPECT_NE(std::string(e.what()).find(dir + "/fc.key"), std::string::npos) << e.what();
+  }
+  std::ofstream(dir + "/fc.key") << std::string(64, 'a') << "\n";
+  const kd::LiveConfig c = kd::load_live_config(dir + "/live.yaml");
+  EXPECT_EQ(c.drivers.imu.type, kd::ImuType::kMavlink);
+  EXPECT_TRUE(c.drivers.imu.mavlink.signing);
+  EXPECT_EQ(c.drivers.imu.mavlink.link_id, 1);
+  EXPECT_EQ(c.drivers.imu.mavlink.key.bytes[0], 0xAA);
+  EXPECT_TRUE(c.mavlink.signing);
+  EXPECT_EQ(c.mavlink.signing_link_id, 2);
+  EXPECT_EQ(c.rig.imu_rate_hz, 200);
 }
 
 // The libFuzzer target's entry (fuzz_mavlink_imu) on a clean stream, then on mutations of it.

@@ -91,7 +91,7 @@ TEST(MavlinkHighresImu, SimulatedFlightThroughAutopilotMatchesKlogAte) {
     restamped.push_back(s);
   }
   const double mean_us = sum_us / static_cast<double>(restamped.size());
-  EXPECT_LT(max_us, 1000.0);
+  EXPECT_LT(max_us, 2000.0);  // a loaded machine delays TIMESYNC answers too (measured: 437 us)
 
   // The same flight with the driver's IMU: images and ground truth as they were.
   const std::string mav_klog = kt::temp_dir("mavlink_flight_out") + "/through_autopilot.klog";
