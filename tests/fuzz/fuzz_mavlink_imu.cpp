@@ -26,7 +26,7 @@ size_t kestrel::fuzz::write_seeds(const std::string& dir) {
       t.tc1 = 5'000'000'000 + i;
       t.ts1 = kestrel::test::kFuzzHostNs;
       t.target_system = 1;
-      t.target_component = 197;
+      t.target_component = 191;
       add(km::encode_timesync(t, seq++, 1, 1, f, s));
     }
     km::CommandAckMsg a;

@@ -479,6 +479,10 @@ Subcommand add_run_command(CLI::App& parent) {
                             .c_str()
                       : "no answer from an autopilot",
                   (unsigned long long)odometry->time_sync().stats().requests_answered);
+    if (odometry && odometry->signing_stats() != nullptr)
+      std::printf("MAVLink signing on: %llu signed frames sent, %llu frames from the autopilot refused\n",
+                  (unsigned long long)odometry->signing_stats()->signed_sent,
+                  (unsigned long long)odometry->decoder_stats().unauthenticated);
     if (recorder) {
       std::printf("%s", recording_summary(*recorder).c_str());
       if (!recorder->error().empty()) std::fprintf(stderr, "kestrel run: recording: %s\n", recorder->error().c_str());

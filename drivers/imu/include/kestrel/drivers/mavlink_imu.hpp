@@ -44,7 +44,9 @@ struct MavlinkImuConfig {
   MavlinkImuMessage message = MavlinkImuMessage::kHighres;
   double rate_hz = 200;             // asked for with SET_MESSAGE_INTERVAL
   uint8_t sysid = 1;                // ours (a companion shares the vehicle's system id)
-  uint8_t compid = 197;             // ours: MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY
+  // Ours: MAV_COMP_ID_ONBOARD_COMPUTER, not the ODOMETRY link's 197, so a router in front of both
+  // links sends each one the answers meant for it.
+  uint8_t compid = 191;
   uint8_t target_sysid = 1;         // the autopilot's; 0 = any
   uint8_t target_compid = 1;        // MAV_COMP_ID_AUTOPILOT1; 0 = any
   double raw_acc_mps2_per_lsb = 0;  // RAW_IMU only (required then): the board's scale
