@@ -1,5 +1,5 @@
 // A simulated autopilot for the flight controller's IMU driver tests: a thread
-// on a loopback UDP socket that behaves like PX4 / ArduPilot towards a
+// on a loopback UDP socket (or a pty's master side: a serial port) that behaves like PX4 / ArduPilot towards a
 // companion computer. It answers TIMESYNC requests in its own clock (the host
 // clock plus `offset_ns`), answers MAV_CMD_SET_MESSAGE_INTERVAL with a
 // COMMAND_ACK and then streams the given IMU samples as HIGHRES_IMU,
@@ -8,6 +8,7 @@
 // injected at given sample indexes. Test code: it may allocate.
 #pragma once
 
+#include <fcntl.h>
 #include <netinet/in.h>
 #include <poll.h>
 #include <sys/socket.h>
@@ -38,6 +39,7 @@ struct SimImuSample {
 };
 
 struct SimAutopilotOptions {
+  bool serial = false;                 // a pty instead of UDP: endpoint() is the slave's path
   int64_t offset_ns = 0;               // autopilot clock - host clock
   int64_t latency_ns = 300'000;        // from the sample's time to its send
   int64_t start_lead_ns = 50'000'000;  // the stream starts this long after the command
@@ -56,15 +58,23 @@ class SimAutopilot {
  public:
   SimAutopilot(const SimAutopilotOptions& o, std::vector<SimImuSample> samples)
       : o_(o), samples_(std::move(samples)) {
-    fd_ = ::socket(AF_INET, SOCK_DGRAM | SOCK_CLOEXEC, 0);
-    sockaddr_in a{};
-    a.sin_family = AF_INET;
-    a.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-    if (fd_ < 0 || ::bind(fd_, reinterpret_cast<sockaddr*>(&a), sizeof a) != 0)
-      throw std::runtime_error("sim autopilot: cannot bind a loopback UDP socket");
-    socklen_t len = sizeof a;
-    ::getsockname(fd_, reinterpret_cast<sockaddr*>(&a), &len);
-    port_ = ntohs(a.sin_port);
+    if (o_.serial) {
+      fd_ = ::posix_openpt(O_RDWR | O_NOCTTY | O_CLOEXEC);
+      if (fd_ < 0 || ::grantpt(fd_) != 0 || ::unlockpt(fd_) != 0 || ::ptsname(fd_) == nullptr)
+        throw std::runtime_error("sim autopilot: no pty");
+      slave_ = ::ptsname(fd_);
+      have_peer_ = true;
+    } else {
+      fd_ = ::socket(AF_INET, SOCK_DGRAM | SOCK_CLOEXEC, 0);
+      sockaddr_in a{};
+      a.sin_family = AF_INET;
+      a.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+      if (fd_ < 0 || ::bind(fd_, reinterpret_cast<sockaddr*>(&a), sizeof a) != 0)
+        throw std::runtime_error("sim autopilot: cannot bind a loopback UDP socket");
+      socklen_t len = sizeof a;
+      ::getsockname(fd_, reinterpret_cast<sockaddr*>(&a), &len);
+      port_ = ntohs(a.sin_port);
+    }
     if (o_.signing) {
       verify_ = std::make_unique<mavlink::MavlinkSigning>(o_.key, o_.link_id);
       sign_ = std::make_unique<mavlink::MavlinkSigning>(o_.key, o_.link_id);
@@ -81,7 +91,7 @@ class SimAutopilot {
     ::close(fd_);
   }
   uint16_t port() const { return port_; }
-  std::string endpoint() const { return "127.0.0.1:" + std::to_string(port_); }
+  std::string endpoint() const { return o_.serial ? slave_ : "127.0.0.1:" + std::to_string(port_); }
 
   // The autopilot time of sample i (valid once streaming started).
   int64_t t_ap_ns(std::size_t i) const { return stream_ap0_ns_.load() + samples_[i].t_rel_ns; }
@@ -110,7 +120,10 @@ class SimAutopilot {
   int64_t ap_now() const { return rt::now_ns() + o_.offset_ns; }
 
   void send(std::size_t n) {
-    if (have_peer_) ::sendto(fd_, tx_, n, 0, reinterpret_cast<const sockaddr*>(&peer_), sizeof peer_);
+    if (o_.serial)
+      (void)!::write(fd_, tx_, n);
+    else if (have_peer_)
+      ::sendto(fd_, tx_, n, 0, reinterpret_cast<const sockaddr*>(&peer_), sizeof peer_);
   }
 
   void send_sample(std::size_t i) {
@@ -210,10 +223,14 @@ class SimAutopilot {
       if (::ppoll(&p, 1, &ts, nullptr) <= 0) continue;
       sockaddr_in from{};
       socklen_t len = sizeof from;
-      const ssize_t r =
-          ::recvfrom(fd_, rx, sizeof rx, MSG_DONTWAIT, reinterpret_cast<sockaddr*>(&from), &len);
-      if (r <= 0) continue;
-      peer_ = from;
+      const ssize_t r = o_.serial ? ::read(fd_, rx, sizeof rx)
+                                  : ::recvfrom(fd_, rx, sizeof rx, MSG_DONTWAIT, reinterpret_cast<sockaddr*>(&from), &len);
+      if (r <= 0) {
+        // A pty master reads EIO while no slave is open: do not spin on it.
+        if (o_.serial) std::this_thread::sleep_for(std::chrono::milliseconds(5));
+        continue;
+      }
+      if (!o_.serial) peer_ = from;
       have_peer_ = true;
       std::lock_guard<std::mutex> l(m_);
       decoder_.feed(rx, static_cast<std::size_t>(r), [&](const mavlink::MavlinkFrame& f) { on_frame(f); });
@@ -224,6 +241,7 @@ class SimAutopilot {
   std::vector<SimImuSample> samples_;
   int fd_ = -1;
   uint16_t port_ = 0;
+  std::string slave_;
   sockaddr_in peer_{};
   bool have_peer_ = false;
   std::unique_ptr<mavlink::MavlinkSigning> sign_, verify_, wrong_;

@@ -150,6 +150,36 @@ TEST(MavlinkHighresImu, SimulatedAutopilotStampsMapOntoHostClockAndValuesMatch) 
       1e-6 * static_cast<double>(o.offset_ns), 1e-3 * static_cast<double>(d.time_sync().stats().last_rtt_ns));
 }
 
+TEST(MavlinkHighresImu, OverASerialPortToo) {
+  // The same through the serial transport: the autopilot on a pty's master side, the driver on its slave.
+  SimAutopilotOptions o;
+  o.serial = true;
+  o.offset_ns = 9'000'000'000 - kestrel::rt::now_ns();
+  const auto truth = synthetic_imu(200, 1.5);
+  SimAutopilot ap(o, truth);
+  kd::MonotonicHostClock clock;
+  kd::MavlinkImuConfig c;
+  c.serial_device = ap.endpoint();
+  c.serial_baud = 921600;
+  c.rate_hz = 200;
+  kd::MavlinkImuDriver d(c, clock);
+  EXPECT_EQ(d.endpoint(), ap.endpoint() + ":921600");
+  FixedSink sink(1000);
+  run_driver(d, sink, ap, 10'000'000'000);
+  EXPECT_TRUE(d.interval_accepted()) << d.report();
+  ASSERT_GT(sink.samples.size(), truth.size() / 2) << d.report();
+  std::size_t k = 0;
+  double worst_us = 0;
+  for (const auto& s : sink.samples) {
+    k = match_index(ap, truth.size(), s.t_ns, k);
+    worst_us = std::max(worst_us, 1e-3 * std::abs(static_cast<double>(s.t_ns - ap.t_host_ns(k))));
+    EXPECT_EQ(s.acc_mps2[2], static_cast<double>(static_cast<float>(truth[k].acc_mps2[2])));
+  }
+  EXPECT_LT(worst_us, 1000.0);
+  std::printf("HIGHRES_IMU over a pty: %zu of %zu samples, max stamp error %.1f us\n", sink.samples.size(),
+              truth.size(), worst_us);
+}
+
 TEST(MavlinkHighresImu, ScaledAndRawImuInTheirUnits) {
   for (auto msg : {kd::MavlinkImuMessage::kScaled, kd::MavlinkImuMessage::kRaw}) {
     SimAutopilotOptions o;
