@@ -111,11 +111,19 @@ void MavlinkImuDriver::step(ImuSink& sink, int64_t max_wait_ns) noexcept {
   const int r = ::ppoll(&p, 1, &ts, nullptr);
   if (r < 0 && errno != EINTR) ++c_.poll_errors;
   if (r <= 0) return;
+  std::size_t total = 0;
   for (;;) {
     const std::size_t got = link_->receive(rx_, sizeof rx_);
     if (got == 0) break;
+    total += got;
     const int64_t t_recv = clock_.now_ns();
     decoder_.feed(rx_, got, [&](const ml::MavlinkFrame& f) { on_frame(f, t_recv, sink); });
+  }
+  if (total == 0 && (p.revents & (POLLERR | POLLHUP | POLLNVAL)) != 0) {
+    // The device is gone (a USB serial adapter unplugged): the descriptor stays readable, so wait out the
+    // period instead of spinning on it.
+    ++c_.link_errors;
+    ::ppoll(nullptr, 0, &ts, nullptr);
   }
 }
 
@@ -228,14 +236,14 @@ std::string MavlinkImuDriver::report() const {
       b, sizeof b,
       "mavlink imu (%s, %s): %llu samples, %llu sink drops, %llu before clock sync, %llu out of order, "
       "%llu gaps, %llu non-finite, %llu stamp outliers, %llu other messages, %llu crc failures, "
-      "%llu unknown ids, %llu unauthenticated; interval %s after %llu requests; clock offset %.3f ms "
-      "(%s, last rtt %.3f ms)\n",
+      "%llu unknown ids, %llu unauthenticated, %llu link errors; interval %s after %llu requests; "
+      "clock offset %.3f ms (%s, last rtt %.3f ms)\n",
       link_->endpoint().c_str(), to_string(cfg_.message), (unsigned long long)c_.samples,
       (unsigned long long)c_.sink_drops, (unsigned long long)c_.before_sync,
       (unsigned long long)c_.out_of_order, (unsigned long long)c_.gaps, (unsigned long long)c_.nonfinite,
       (unsigned long long)c_.stamp_outliers, (unsigned long long)c_.other_messages,
       (unsigned long long)d.bad_crc, (unsigned long long)d.unknown_msgid,
-      (unsigned long long)d.unauthenticated,
+      (unsigned long long)d.unauthenticated, (unsigned long long)c_.link_errors,
       interval_state_ == kAccepted  ? "accepted"
       : interval_state_ == kRefused ? "refused"
                                     : "unanswered",

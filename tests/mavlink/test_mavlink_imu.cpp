@@ -156,7 +156,8 @@ TEST(MavlinkHighresImu, OverASerialPortToo) {
   o.serial = true;
   o.offset_ns = 9'000'000'000 - kestrel::rt::now_ns();
   const auto truth = synthetic_imu(200, 1.5);
-  SimAutopilot ap(o, truth);
+  auto owned = std::make_unique<SimAutopilot>(o, truth);
+  SimAutopilot& ap = *owned;
   kd::MonotonicHostClock clock;
   kd::MavlinkImuConfig c;
   c.serial_device = ap.endpoint();
@@ -178,6 +179,13 @@ TEST(MavlinkHighresImu, OverASerialPortToo) {
   EXPECT_LT(worst_us, 1000.0);
   std::printf("HIGHRES_IMU over a pty: %zu of %zu samples, max stamp error %.1f us\n", sink.samples.size(),
               truth.size(), worst_us);
+  // The autopilot's end of the line goes away (an adapter unplugged): counted, and the driver waits out
+  // each period instead of spinning on the hung-up descriptor.
+  owned.reset();
+  const int64_t t0 = kestrel::rt::now_ns();
+  for (int i = 0; i < 5; ++i) d.step(sink, 40'000'000);
+  EXPECT_GT(d.counters().link_errors, 0u) << d.report();
+  EXPECT_GT(kestrel::rt::now_ns() - t0, 100'000'000) << "5 steps returned at once: spinning";
 }
 
 TEST(MavlinkHighresImu, ScaledAndRawImuInTheirUnits) {

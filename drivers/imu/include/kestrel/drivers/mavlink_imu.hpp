@@ -77,6 +77,7 @@ struct MavlinkImuCounters {
   uint64_t commands_sent = 0;    // SET_MESSAGE_INTERVAL
   uint64_t command_refused = 0;  // a COMMAND_ACK other than accepted
   uint64_t poll_errors = 0;
+  uint64_t link_errors = 0;  // the descriptor reports an error or hang-up and gives no bytes
   // The decoder's (crc failures, unknown message ids, bytes skipped, unauthenticated) are in decoder_stats().
 };
 
