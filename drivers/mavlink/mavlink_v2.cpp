@@ -100,7 +100,7 @@ std::size_t frame_v2(uint32_t msgid, uint8_t crc_extra, const uint8_t* payload, 
   p = put_u8(p, kStxV2);
   p = put_u8(p, static_cast<uint8_t>(len));
   p = put_u8(p, sign != nullptr ? kIncompatSigned : 0);  // the checksum covers the flag
-  p = put_u8(p, 0);  // compat flags
+  p = put_u8(p, 0);                                      // compat flags
   p = put_u8(p, seq);
   p = put_u8(p, sysid);
   p = put_u8(p, compid);
@@ -281,9 +281,15 @@ CommandAckMsg unpack_command_ack(const uint8_t* payload) {
 
 bool message_spec(uint32_t msgid, uint8_t* crc_extra, std::size_t* payload_len) {
   switch (msgid) {
-    case kMsgIdHeartbeat: *crc_extra = kHeartbeatCrcExtra, *payload_len = kHeartbeatPayloadBytes; return true;
-    case kMsgIdTimesync: *crc_extra = kTimesyncCrcExtra, *payload_len = kTimesyncPayloadBytes; return true;
-    case kMsgIdOdometry: *crc_extra = kOdometryCrcExtra, *payload_len = kOdometryPayloadBytes; return true;
+    case kMsgIdHeartbeat:
+      *crc_extra = kHeartbeatCrcExtra, *payload_len = kHeartbeatPayloadBytes;
+      return true;
+    case kMsgIdTimesync:
+      *crc_extra = kTimesyncCrcExtra, *payload_len = kTimesyncPayloadBytes;
+      return true;
+    case kMsgIdOdometry:
+      *crc_extra = kOdometryCrcExtra, *payload_len = kOdometryPayloadBytes;
+      return true;
     case kMsgIdHighresImu:
       *crc_extra = kHighresImuCrcExtra, *payload_len = kHighresImuPayloadBytes;
       return true;
@@ -299,7 +305,8 @@ bool message_spec(uint32_t msgid, uint8_t* crc_extra, std::size_t* payload_len) 
     case kMsgIdCommandAck:
       *crc_extra = kCommandAckCrcExtra, *payload_len = kCommandAckPayloadBytes;
       return true;
-    default: return false;
+    default:
+      return false;
   }
 }
 

@@ -38,7 +38,8 @@ bool TimeSync::on_message(const TimesyncMsg& m, uint8_t from_sysid, uint8_t from
   stats_.last_rtt_ns = rtt;
   ++stats_.responses_used;
   // Autopilot time at the midpoint of the exchange minus ours.
-  const double sample = static_cast<double>(m.tc1) - (static_cast<double>(m.ts1) + static_cast<double>(now_ns)) / 2.0;
+  const double sample =
+      static_cast<double>(m.tc1) - (static_cast<double>(m.ts1) + static_cast<double>(now_ns)) / 2.0;
   if (samples_ > 0 && std::abs(sample - offset_ns_) > static_cast<double>(opt_.reset_jump_ns)) {
     if (++far_in_a_row_ < opt_.reset_after) return false;
     samples_ = 0;  // the autopilot's clock jumped (a reboot): start again

@@ -1,11 +1,10 @@
 // A simulated autopilot for the flight controller's IMU driver tests: a thread
-// on a loopback UDP socket (or a pty's master side: a serial port) that behaves like PX4 / ArduPilot towards a
-// companion computer. It answers TIMESYNC requests in its own clock (the host
-// clock plus `offset_ns`), answers MAV_CMD_SET_MESSAGE_INTERVAL with a
-// COMMAND_ACK and then streams the given IMU samples as HIGHRES_IMU,
-// SCALED_IMU or RAW_IMU, each sent when its time comes (plus a link latency).
-// With a key it signs everything and accepts only what verifies. Faults are
-// injected at given sample indexes. Test code: it may allocate.
+// on a loopback UDP socket (or a pty's master side: a serial port) that behaves like PX4 / ArduPilot towards
+// a companion computer. It answers TIMESYNC requests in its own clock (the host clock plus `offset_ns`),
+// answers MAV_CMD_SET_MESSAGE_INTERVAL with a COMMAND_ACK and then streams the given IMU samples as
+// HIGHRES_IMU, SCALED_IMU or RAW_IMU, each sent when its time comes (plus a link latency). With a key it
+// signs everything and accepts only what verifies. Faults are injected at given sample indexes. Test code: it
+// may allocate.
 #pragma once
 
 #include <fcntl.h>
@@ -224,8 +223,9 @@ class SimAutopilot {
       if (::ppoll(&p, 1, &ts, nullptr) <= 0) continue;
       sockaddr_in from{};
       socklen_t len = sizeof from;
-      const ssize_t r = o_.serial ? ::read(fd_, rx, sizeof rx)
-                                  : ::recvfrom(fd_, rx, sizeof rx, MSG_DONTWAIT, reinterpret_cast<sockaddr*>(&from), &len);
+      const ssize_t r =
+          o_.serial ? ::read(fd_, rx, sizeof rx)
+                    : ::recvfrom(fd_, rx, sizeof rx, MSG_DONTWAIT, reinterpret_cast<sockaddr*>(&from), &len);
       if (r <= 0) {
         // A pty master reads EIO while no slave is open: do not spin on it.
         if (o_.serial) std::this_thread::sleep_for(std::chrono::milliseconds(5));

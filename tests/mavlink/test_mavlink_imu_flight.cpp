@@ -32,7 +32,8 @@ struct VecSink final : kd::ImuSink {
 };
 
 // `klog` with its IMU records replaced by `imu` (in time order), everything else as it was.
-void write_with_imu(const std::string& klog, const std::vector<kestrel::ImuSample>& imu, const std::string& out) {
+void write_with_imu(const std::string& klog, const std::vector<kestrel::ImuSample>& imu,
+                    const std::string& out) {
   auto log = kd::open_log(klog);
   kd::KlogWriter w;
   w.open(out, log->rig());

@@ -27,9 +27,9 @@
 
 #include "kestrel/drivers/mavlink/mavlink_decoder.hpp"
 #include "kestrel/drivers/mavlink/mavlink_v2.hpp"
-#include "kestrel/mavlink/odometry_stream.hpp"
 #include "kestrel/drivers/mavlink/serial_link.hpp"
 #include "kestrel/drivers/mavlink/time_sync.hpp"
+#include "kestrel/mavlink/odometry_stream.hpp"
 #include "mavlink_fuzz_entry.hpp"
 #include "run_command.hpp"
 #include "test_data.hpp"

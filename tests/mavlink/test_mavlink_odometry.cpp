@@ -20,9 +20,9 @@
 #include <vector>
 
 #include "kestrel/drivers/mavlink/mavlink_v2.hpp"
+#include "kestrel/drivers/mavlink/udp_sender.hpp"
 #include "kestrel/mavlink/odometry_adapter.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"
-#include "kestrel/drivers/mavlink/udp_sender.hpp"
 #include "run_command.hpp"
 #include "test_data.hpp"
 

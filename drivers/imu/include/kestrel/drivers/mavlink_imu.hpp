@@ -42,8 +42,8 @@ struct MavlinkImuConfig {
   std::string serial_device;  // ... or its serial port (one of the two)
   int serial_baud = 921600;
   MavlinkImuMessage message = MavlinkImuMessage::kHighres;
-  double rate_hz = 200;             // asked for with SET_MESSAGE_INTERVAL
-  uint8_t sysid = 1;                // ours (a companion shares the vehicle's system id)
+  double rate_hz = 200;  // asked for with SET_MESSAGE_INTERVAL
+  uint8_t sysid = 1;     // ours (a companion shares the vehicle's system id)
   // Ours: MAV_COMP_ID_ONBOARD_COMPUTER, not the ODOMETRY link's 197, so a router in front of both
   // links sends each one the answers meant for it.
   uint8_t compid = 191;

@@ -11,8 +11,8 @@
 
 #include "kestrel/drivers/mavlink/link.hpp"
 #include "kestrel/drivers/mavlink/mavlink_decoder.hpp"
-#include "kestrel/mavlink/odometry_adapter.hpp"
 #include "kestrel/drivers/mavlink/time_sync.hpp"
+#include "kestrel/mavlink/odometry_adapter.hpp"
 
 namespace kestrel::mavlink {
 

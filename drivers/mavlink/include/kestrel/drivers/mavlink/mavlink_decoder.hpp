@@ -31,11 +31,11 @@ struct MavlinkFrame {
 };
 
 struct MavlinkDecoderStats {
-  uint64_t frames = 0;         // checked and handed out
+  uint64_t frames = 0;  // checked and handed out
   uint64_t bad_crc = 0;
-  uint64_t unknown_msgid = 0;  // headers of messages we cannot check
-  uint64_t bad_header = 0;     // unknown incompatibility flags
-  uint64_t bytes_skipped = 0;  // outside any frame
+  uint64_t unknown_msgid = 0;    // headers of messages we cannot check
+  uint64_t bad_header = 0;       // unknown incompatibility flags
+  uint64_t bytes_skipped = 0;    // outside any frame
   uint64_t unauthenticated = 0;  // checked frames the signing object refused (signing on)
 };
 
