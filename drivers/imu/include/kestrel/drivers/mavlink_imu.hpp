@@ -52,7 +52,11 @@ struct MavlinkImuConfig {
   double raw_acc_mps2_per_lsb = 0;  // RAW_IMU only (required then): the board's scale
   double raw_gyro_rad_s_per_lsb = 0;
   double timesync_rate_hz = 1;
-  mavlink::TimeSyncOptions timesync;
+  mavlink::TimeSyncOptions timesync = [] {
+    mavlink::TimeSyncOptions o;
+    o.prefer_short_round_trips = true;  // the stamps of every sample depend on it
+    return o;
+  }();
   // A sample mapped this far before its arrival means a wrong offset, not a slow link: a late sample
   // with a right stamp is good data (a loaded test machine delays whole bursts by 100+ ms).
   int64_t max_latency_ns = 1'000'000'000;
