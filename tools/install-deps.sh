@@ -14,6 +14,7 @@ packages=(
   libjs-three                             # the viewer page's 3-D view, served from /usr/share/javascript/three
   libzstd-dev liblz4-dev   # drivers/log: compressed .klog images (docs/log-format.md)
   valgrind   # `kestrel bench --cpu-budget` counts instructions with callgrind (tests/profile); this VM's perf has no counters
+  libssl-dev   # tests/mavlink: OpenSSL's SHA-256, the reference for MAVLink signing's own (tests only)
   nodejs   # tests/mavlink: node-mavlink decoder. Debian ships npm apart (apt-get install npm where `npm` is missing;
            # not listed: it conflicts with a NodeSource nodejs, which bundles npm). Without npm the test skips loudly.
 )

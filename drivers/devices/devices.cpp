@@ -107,6 +107,76 @@ E pick_code(const P& p, const std::string& key, double v, std::initializer_list<
   p.fail(key, "expected one of " + list);
 }
 
+// A path in a config, relative to the config file's folder.
+std::string relative_to_config(const std::string& path, const std::string& where) {
+  const auto slash = where.rfind('/');
+  if (path.empty() || path[0] == '/' || slash == std::string::npos) return path;
+  return where.substr(0, slash + 1) + path;
+}
+
+// `signing: {key_file: PATH, link_id: N}` of a MAVLink link; the key is read
+// here, so a missing or short key file stops the start naming it.
+void parse_signing(const P& p, const YAML::Node& n, const std::string& path, const std::string& where,
+                   std::string& key_file, mavlink::SigningKey& key, int& link_id) {
+  p.only(n, path, {"key_file", "link_id"});
+  key_file = relative_to_config(p.str(n, "key_file", path, ""), where);
+  if (key_file.empty()) p.fail(path + ".key_file", "missing (a file with the 32-byte key)");
+  link_id = static_cast<int>(p.integer(n, "link_id", path, 0, 0, 255));
+  try {
+    key = mavlink::load_signing_key(key_file);
+  } catch (const std::exception& e) {
+    p.fail(path + ".key_file", e.what());
+  }
+}
+
+void parse_mavlink_imu(const P& p, const YAML::Node& n, const std::string& path, const std::string& where,
+                       MavlinkImuConfig& c) {
+  p.only(n, path,
+         {"udp", "serial_device", "serial_baud", "message", "rate_hz", "sysid", "compid", "target_sysid",
+          "target_compid", "raw_acc_mps2_per_lsb", "raw_gyro_rad_s_per_lsb", "timesync_rate_hz",
+          "timesync_max_rtt_ms", "max_latency_ms", "gap_periods", "signing"});
+  c.udp = p.str(n, "udp", path, "");
+  c.serial_device = p.str(n, "serial_device", path, "");
+  c.serial_baud = static_cast<int>(p.integer(n, "serial_baud", path, c.serial_baud, 1200, 4000000));
+  if (c.udp.empty() == c.serial_device.empty())
+    p.fail(path, "expected one of udp (HOST:PORT) or serial_device");
+  c.message = p.choice<MavlinkImuMessage>(n, "message", path, MavlinkImuMessage::kHighres,
+                                          {{"highres_imu", MavlinkImuMessage::kHighres},
+                                           {"scaled_imu", MavlinkImuMessage::kScaled},
+                                           {"raw_imu", MavlinkImuMessage::kRaw}});
+  c.rate_hz = p.num(n, "rate_hz", path, c.rate_hz);
+  if (!(c.rate_hz > 0 && c.rate_hz <= 2000)) p.fail(path + ".rate_hz", "must be in (0, 2000]");
+  c.sysid = static_cast<uint8_t>(p.integer(n, "sysid", path, c.sysid, 1, 255));
+  c.compid = static_cast<uint8_t>(p.integer(n, "compid", path, c.compid, 1, 255));
+  c.target_sysid = static_cast<uint8_t>(p.integer(n, "target_sysid", path, c.target_sysid, 0, 255));
+  c.target_compid = static_cast<uint8_t>(p.integer(n, "target_compid", path, c.target_compid, 0, 255));
+  c.raw_acc_mps2_per_lsb = p.num(n, "raw_acc_mps2_per_lsb", path, 0);
+  c.raw_gyro_rad_s_per_lsb = p.num(n, "raw_gyro_rad_s_per_lsb", path, 0);
+  if (c.message == MavlinkImuMessage::kRaw && !(c.raw_acc_mps2_per_lsb > 0 && c.raw_gyro_rad_s_per_lsb > 0))
+    p.fail(path + ".raw_acc_mps2_per_lsb",
+           "message raw_imu needs raw_acc_mps2_per_lsb and raw_gyro_rad_s_per_lsb > 0 "
+           "(the board's sensor scale)");
+  c.timesync_rate_hz = p.num(n, "timesync_rate_hz", path, c.timesync_rate_hz);
+  if (!(c.timesync_rate_hz > 0))
+    p.fail(path + ".timesync_rate_hz", "must be > 0 (the samples need the clock)");
+  const double rtt_ms =
+      p.num(n, "timesync_max_rtt_ms", path, 1e-6 * static_cast<double>(c.timesync.max_rtt_ns));
+  if (!(rtt_ms > 0)) p.fail(path + ".timesync_max_rtt_ms", "must be > 0");
+  c.timesync.max_rtt_ns = static_cast<int64_t>(rtt_ms * 1e6);
+  const double lat_ms = p.num(n, "max_latency_ms", path, 1e-6 * static_cast<double>(c.max_latency_ns));
+  if (!(lat_ms > 0)) p.fail(path + ".max_latency_ms", "must be > 0");
+  c.max_latency_ns = static_cast<int64_t>(lat_ms * 1e6);
+  c.gap_periods = p.num(n, "gap_periods", path, c.gap_periods);
+  if (!(c.gap_periods > 1)) p.fail(path + ".gap_periods", "must be > 1");
+  if (const YAML::Node sg = n["signing"]) {
+    std::string file;
+    int link = 0;
+    parse_signing(p, sg, path + ".signing", where, file, c.key, link);
+    c.signing = true;
+    c.link_id = static_cast<uint8_t>(link);
+  }
+}
+
 }  // namespace
 
 DriverSettings driver_settings_from_yaml_node(const YAML::Node& root, const std::string& where) {
@@ -189,14 +259,16 @@ DriverSettings driver_settings_from_yaml_node(const YAML::Node& root, const std:
 
   if (const YAML::Node m = root["imu"]) {
     const std::string path = "drivers.imu";
-    p.only(m, path, {"type", "acc_range_g", "acc_bandwidth_hz", "gyro_range_dps", "gyro_odr_hz", "gyro_bandwidth_hz",
-                     "axis_remap", "i2c", "usb"});
+    p.only(m, path,
+           {"type", "acc_range_g", "acc_bandwidth_hz", "gyro_range_dps", "gyro_odr_hz", "gyro_bandwidth_hz",
+            "axis_remap", "i2c", "usb", "mavlink"});
     ImuSettings& is = d.imu;
     is.type = p.choice<ImuType>(m, "type", path, ImuType::kNone,
                                 {{"none", ImuType::kNone},
                                  {"bmx055_i2c", ImuType::kBmx055I2c},
                                  {"bmx055_usb", ImuType::kBmx055Usb},
-                                 {"log", ImuType::kLog}});
+                                 {"log", ImuType::kLog},
+                                 {"mavlink", ImuType::kMavlink}});
     bmx055::Config& b = is.bmx055;
     using namespace bmx055;
     b.acc_range = pick_code<acc::Range>(p, path + ".acc_range_g", p.num(m, "acc_range_g", path, 16),
@@ -272,6 +344,9 @@ DriverSettings driver_settings_from_yaml_node(const YAML::Node& root, const std:
     }
     if (is.type == ImuType::kBmx055I2c && is.i2c_bus_device.empty())
       p.fail(path + ".i2c.bus_device", "missing (required for type bmx055_i2c)");
+    if (const YAML::Node ml = m["mavlink"]) parse_mavlink_imu(p, ml, path + ".mavlink", where, is.mavlink);
+    if (is.type == ImuType::kMavlink && !m["mavlink"])
+      p.fail(path + ".mavlink", "missing (required for type mavlink: udp or serial_device)");
   }
 
   if (const YAML::Node s = root["strobe"]) {
@@ -304,8 +379,8 @@ MavlinkSettings mavlink_settings_from_yaml_node(const YAML::Node& node, const st
   P p(where);
   const std::string path = "mavlink";
   p.only(node, path,
-         {"udp", "serial_device", "serial_baud", "sysid", "compid", "R_FB", "odometry_rate_hz", "heartbeat_rate_hz",
-          "timesync", "timesync_max_rtt_ms"});
+         {"udp", "serial_device", "serial_baud", "sysid", "compid", "R_FB", "odometry_rate_hz",
+          "heartbeat_rate_hz", "timesync", "timesync_max_rtt_ms", "signing"});
   m.present = true;
   m.udp = p.str(node, "udp", path, m.udp);
   m.serial_device = p.str(node, "serial_device", path, m.serial_device);
@@ -339,6 +414,10 @@ MavlinkSettings mavlink_settings_from_yaml_node(const YAML::Node& node, const st
   if (!(m.timesync_max_rtt_ms > 0)) p.fail(path + ".timesync_max_rtt_ms", "must be > 0");
   if (!m.udp.empty() && !m.serial_device.empty())
     p.fail(path, "udp and serial_device both set: one link at a time");
+  if (const YAML::Node sg = node["signing"]) {
+    parse_signing(p, sg, path + ".signing", where, m.signing_key_file, m.signing_key, m.signing_link_id);
+    m.signing = true;
+  }
   return m;
 }
 
@@ -630,6 +709,7 @@ struct LiveSensors::Impl {
   std::unique_ptr<bmx055::Driver> bmx;
   LibusbEndpoint usb;
   std::unique_ptr<UsbBridgeDriver> bridge;
+  std::unique_ptr<MavlinkImuDriver> mav;  // the flight controller's IMU
   StrobeRingSink strobes;
   // Cameras
   openni2::Camera oni;
@@ -707,6 +787,14 @@ LiveSensors::LiveSensors(const LiveConfig& cfg) : impl_(std::make_unique<Impl>()
         break;
       }
       m.bridge = std::make_unique<UsbBridgeDriver>(m.usb, m.clock, d.imu.usb);
+      break;
+    }
+    case ImuType::kMavlink: {
+      try {
+        m.mav = std::make_unique<MavlinkImuDriver>(d.imu.mavlink, m.clock);
+      } catch (const std::exception& e) {
+        missing.push_back(std::string("IMU (flight controller over MAVLink): ") + e.what());
+      }
       break;
     }
   }
@@ -875,6 +963,9 @@ void LiveSensors::Impl::imu_loop(ImuSink& sink) {
         const auto& u = cfg.drivers.imu.usb;
         if (usb.open(u.vid, u.pid, u.endpoint_in).empty()) bridge = std::make_unique<UsbBridgeDriver>(usb, clock, u);
       }
+    } else if (mav) {
+      // Blocks on the link until bytes arrive or a request is due; the cap keeps stop() prompt.
+      mav->step(sink, 100'000'000);
     } else {
       return;
     }
@@ -1019,7 +1110,7 @@ void LiveSensors::start(ImuSink& imu, FrameSink& frames) {
     m.thread_reports.emplace_back(spec, r);
     return;
   }
-  if (m.bmx || m.bridge) {
+  if (m.bmx || m.bridge || m.mav) {
     const rt::ThreadSpec& spec = m.cfg.threads[PipelineThread::kImu];
     m.imu_thread = rt::start_thread(spec, [&m, &imu] { m.imu_loop(imu); }, &r);
     m.thread_reports.emplace_back(spec, r);
@@ -1051,8 +1142,12 @@ std::string LiveSensors::description() const {
        : d.camera.type == CameraType::kD4xx  ? "RealSense D4xx (" + impl_->d4xx_nodes + ")"
                                              : "none";
   s += ", IMU: ";
-  s += d.imu.type == ImuType::kBmx055I2c ? "BMX055 over I2C (" + d.imu.i2c_bus_device + ")"
-       : d.imu.type == ImuType::kBmx055Usb ? std::string("BMX055 via USB bridge") : std::string("none");
+  s += d.imu.type == ImuType::kBmx055I2c   ? "BMX055 over I2C (" + d.imu.i2c_bus_device + ")"
+       : d.imu.type == ImuType::kBmx055Usb ? std::string("BMX055 via USB bridge")
+       : d.imu.type == ImuType::kMavlink
+           ? "flight controller over MAVLink (" + std::string(to_string(d.imu.mavlink.message)) + ", " +
+                 (d.imu.mavlink.udp.empty() ? d.imu.mavlink.serial_device : d.imu.mavlink.udp) + ")"
+           : std::string("none");
   return s;
 }
 
@@ -1089,6 +1184,7 @@ std::string LiveSensors::report() const {
                   m.bridge->clock_sync().skew() * 1e6, (unsigned long long)c.strobes);
     s += b;
   }
+  if (m.mav) s += m.mav->report();
   if (m.cfg.drivers.strobe.enabled) {
     std::snprintf(b, sizeof b, "strobes: %llu matched, %llu frames unmatched, residual camera offset %.3f ms\n",
                   (unsigned long long)m.matcher.matched(), (unsigned long long)m.matcher.unmatched_frames(),

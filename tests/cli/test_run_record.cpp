@@ -18,8 +18,8 @@
 #include <vector>
 
 #include "kestrel/drivers/klog.hpp"
+#include "kestrel/drivers/mavlink/mavlink_decoder.hpp"
 #include "kestrel/drivers/rig_yaml.hpp"
-#include "kestrel/mavlink/mavlink_decoder.hpp"
 #include "kestrel/tools/trajectory_eval.hpp"
 #include "run_command.hpp"
 #include "test_data.hpp"

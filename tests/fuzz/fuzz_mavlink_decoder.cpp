@@ -2,7 +2,7 @@
 // holds the invariants). Seeds: HEARTBEAT and TIMESYNC frames as the link
 // sends them, one stream of each and one interleaved.
 #include "fuzz_target.hpp"
-#include "kestrel/mavlink/mavlink_v2.hpp"
+#include "kestrel/drivers/mavlink/mavlink_v2.hpp"
 #include "mavlink_fuzz_entry.hpp"
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {

@@ -25,11 +25,11 @@
 #include <thread>
 #include <vector>
 
-#include "kestrel/mavlink/mavlink_decoder.hpp"
-#include "kestrel/mavlink/mavlink_v2.hpp"
+#include "kestrel/drivers/mavlink/mavlink_decoder.hpp"
+#include "kestrel/drivers/mavlink/mavlink_v2.hpp"
+#include "kestrel/drivers/mavlink/serial_link.hpp"
+#include "kestrel/drivers/mavlink/time_sync.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"
-#include "kestrel/mavlink/serial_link.hpp"
-#include "kestrel/mavlink/time_sync.hpp"
 #include "mavlink_fuzz_entry.hpp"
 #include "run_command.hpp"
 #include "test_data.hpp"
@@ -562,4 +562,70 @@ TEST(MavlinkCli, UdpAndSerialBothSendHeartbeatAndOdometry) {
   EXPECT_EQ(kestrel::test::run_kestrel("replay " + log + " --mavlink-udp 127.0.0.1:1 --mavlink-serial " + pty.slave).code,
             2);
   EXPECT_EQ(kestrel::test::run_kestrel("replay " + log + " --mavlink-serial " + pty.slave + ":fast").code, 2);
+}
+
+TEST(MavlinkSigning, OdometryStreamSignsEverythingAndAnswersOnlySignedRequests) {
+  // The ODOMETRY link with a key: every frame it sends verifies with the key (a
+  // fresh verifier, as the autopilot is), an unsigned TIMESYNC request from the
+  // autopilot is refused and counted, a signed one is answered.
+  uint16_t port = 0;
+  const int ap = udp_socket_on_loopback(&port);
+  ASSERT_GE(ap, 0);
+  km::SigningKey key;
+  for (size_t i = 0; i < key.bytes.size(); ++i) key.bytes[i] = static_cast<uint8_t>(200 - i);
+  km::OdometryStreamOptions so;
+  so.endpoint = "127.0.0.1:" + std::to_string(port);
+  so.signing = true;
+  so.signing_key = key;
+  so.signing_link_id = 4;
+  km::OdometryStream stream(so);
+  km::MavlinkSigning ap_verify(key, 0), ap_sign(key, 9);
+  km::MavlinkDecoder verified;
+  verified.set_signing(&ap_verify);
+  std::map<uint32_t, int> seen;
+  sockaddr_in from{};
+  socklen_t fl = sizeof from;
+  auto drain = [&] {
+    uint8_t buf[2048];
+    pollfd p{ap, POLLIN, 0};
+    while (poll(&p, 1, 50) > 0) {
+      const ssize_t n = recvfrom(ap, buf, sizeof buf, 0, reinterpret_cast<sockaddr*>(&from), &fl);
+      if (n <= 0) break;
+      verified.feed(buf, static_cast<size_t>(n), [&](const km::MavlinkFrame& f) { ++seen[f.msgid]; });
+    }
+  };
+  int64_t now = 1'000'000'000;
+  stream.service(now);
+  km::OdometryInput in;
+  in.quality = kestrel::core::TrackingQuality::kTracking;
+  in.t_ns = now;
+  ASSERT_TRUE(stream.publish(in));
+  drain();
+  EXPECT_EQ(seen[km::kMsgIdHeartbeat], 1);
+  EXPECT_EQ(seen[km::kMsgIdTimesync], 1);
+  EXPECT_EQ(seen[km::kMsgIdOdometry], 1);
+  EXPECT_EQ(verified.stats().unauthenticated, 0u);
+  ASSERT_NE(stream.signing_stats(), nullptr);
+  EXPECT_EQ(stream.signing_stats()->signed_sent, 3u);
+
+  // The autopilot asks for our clock, unsigned then signed.
+  km::TimesyncMsg q;
+  q.ts1 = 777;
+  uint8_t out[km::kMaxFrameBytes];
+  size_t m = km::encode_timesync(q, 0, 1, 1, out);
+  sendto(ap, out, m, 0, reinterpret_cast<sockaddr*>(&from), fl);
+  std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  stream.service(now + 1000);
+  EXPECT_EQ(stream.time_sync().stats().requests_answered, 0u);
+  EXPECT_EQ(stream.decoder_stats().unauthenticated, 1u);
+  EXPECT_EQ(stream.signing_stats()->unsigned_rejected, 1u);
+  m = km::encode_timesync(q, 1, 1, 1, out, &ap_sign);
+  sendto(ap, out, m, 0, reinterpret_cast<sockaddr*>(&from), fl);
+  std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  stream.service(now + 2000);
+  EXPECT_EQ(stream.time_sync().stats().requests_answered, 1u);
+  drain();
+  EXPECT_EQ(seen[km::kMsgIdTimesync], 2) << "the answer, signed";
+  EXPECT_EQ(verified.stats().unauthenticated, 0u);
+  close(ap);
 }

@@ -19,10 +19,10 @@
 #include <string>
 #include <vector>
 
-#include "kestrel/mavlink/mavlink_v2.hpp"
+#include "kestrel/drivers/mavlink/mavlink_v2.hpp"
+#include "kestrel/drivers/mavlink/udp_sender.hpp"
 #include "kestrel/mavlink/odometry_adapter.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"
-#include "kestrel/mavlink/udp_sender.hpp"
 #include "run_command.hpp"
 #include "test_data.hpp"
 

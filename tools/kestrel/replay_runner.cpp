@@ -22,8 +22,8 @@
 #include "kestrel/imu_rate_stage.hpp"
 #include "kestrel/map_threads.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"
-#include "kestrel/mavlink/serial_link.hpp"
-#include "kestrel/mavlink/udp_sender.hpp"
+#include "kestrel/drivers/mavlink/serial_link.hpp"
+#include "kestrel/drivers/mavlink/udp_sender.hpp"
 #include "kestrel/rt/alloc_counter.hpp"
 #include "kestrel/rt/clock.hpp"
 #include "kestrel/rt/history_ring.hpp"
@@ -500,6 +500,8 @@ class OutputStage {
       report_.mavlink_timesync_converged = mavlink_->time_sync().converged();
       report_.mavlink_timesync_offset_ms = 1e-6 * static_cast<double>(mavlink_->time_sync().offset_ns());
       report_.mavlink_timesync_answered = mavlink_->time_sync().stats().requests_answered;
+      report_.mavlink_signing = mavlink_->signing_stats() != nullptr;
+      report_.mavlink_unauthenticated = mavlink_->decoder_stats().unauthenticated;
     }
   }
 
@@ -954,6 +956,9 @@ std::optional<mavlink::OdometryStreamOptions> mavlink_options(const drivers::Mav
   o.heartbeat_rate_hz = cfg.heartbeat_rate_hz;
   o.timesync = cfg.timesync;
   o.timesync_options.max_rtt_ns = static_cast<int64_t>(cfg.timesync_max_rtt_ms * 1e6);
+  o.signing = cfg.signing;
+  o.signing_key = cfg.signing_key;
+  o.signing_link_id = static_cast<uint8_t>(cfg.signing_link_id);
   return o;
 }
 
@@ -1022,7 +1027,9 @@ std::string replay_metrics_json(const ReplayReport& r) {
                       {"frames", r.mavlink_frames},
                       {"timesync_answered", r.mavlink_timesync_answered},
                       {"timesync_converged", r.mavlink_timesync_converged},
-                      {"timesync_offset_ms", json_figure(r.mavlink_timesync_offset_ms)}};
+                      {"timesync_offset_ms", json_figure(r.mavlink_timesync_offset_ms)},
+                      {"signing", r.mavlink_signing},
+                      {"unauthenticated", r.mavlink_unauthenticated}};
   j["time_offset_ms"] = json_figure(r.time_offset_ms);
   j["time_offset_estimated"] = r.time_offset_estimated;
   const auto& c = r.estimator_counters;
@@ -1248,6 +1255,13 @@ std::string replay_summary(const ReplayReport& r) {
                   static_cast<unsigned long long>(r.mavlink_heartbeats),
                   r.mavlink_timesync_converged ? "converged" : "no answer from an autopilot");
     s += buf;
+    if (r.mavlink_signing) {
+      std::snprintf(buf, sizeof buf,
+                    "MAVLink signing on: %llu frames from the autopilot refused (unsigned, wrongly "
+                    "signed or replayed)\n",
+                    static_cast<unsigned long long>(r.mavlink_unauthenticated));
+      s += buf;
+    }
   }
   if (r.view) s += viewer::stats_summary(r.viewer);
   if (r.alloc_counting) {

@@ -256,6 +256,9 @@ struct ReplayReport {
   double mavlink_timesync_offset_ms = 0.0;
   uint64_t mavlink_timesync_answered = 0;
   uint64_t mavlink_failed = 0;  // sendto() errors, counted, never retried
+  bool mavlink_signing = false;
+  uint64_t mavlink_unauthenticated =
+      0;  // frames from the autopilot refused by signing (unsigned, wrong, replayed)
   // Heap allocations made by the estimator thread after warm-up, and how many
   // frames it processed in that span.
   int64_t steady_allocs = 0;

@@ -2,8 +2,8 @@
 
 #include <stdexcept>
 
-#include "kestrel/mavlink/serial_link.hpp"
-#include "kestrel/mavlink/udp_sender.hpp"
+#include "kestrel/drivers/mavlink/serial_link.hpp"
+#include "kestrel/drivers/mavlink/udp_sender.hpp"
 
 namespace kestrel::mavlink {
 namespace {
@@ -34,7 +34,12 @@ uint8_t mav_state_of(core::TrackingQuality q) {
 OdometryStream::OdometryStream(const OdometryStreamOptions& opt) : OdometryStream(open_link(opt), opt) {}
 
 OdometryStream::OdometryStream(std::unique_ptr<Link> link, const OdometryStreamOptions& opt)
-    : opt_(opt), link_(std::move(link)), sync_(opt.timesync_options) {}
+    : opt_(opt), link_(std::move(link)), sync_(opt.timesync_options) {
+  if (opt_.signing) {
+    signing_ = std::make_unique<MavlinkSigning>(opt_.signing_key, opt_.signing_link_id);
+    decoder_.set_signing(signing_.get());
+  }
+}
 
 bool OdometryStream::send(std::size_t n) noexcept { return link_->send(frame_, n); }
 
@@ -48,7 +53,7 @@ void OdometryStream::service(int64_t now_ns) noexcept {
       } else if (f.msgid == kMsgIdTimesync && opt_.timesync) {
         TimesyncMsg reply;
         if (sync_.on_message(unpack_timesync(f.payload), f.sysid, f.compid, opt_.sysid, opt_.compid, now_ns, &reply))
-          send(encode_timesync(reply, seq_++, opt_.sysid, opt_.compid, frame_));
+          send(encode_timesync(reply, seq_++, opt_.sysid, opt_.compid, frame_, signing_.get()));
       }
     });
   }
@@ -56,12 +61,13 @@ void OdometryStream::service(int64_t now_ns) noexcept {
     next_heartbeat_ns_ = now_ns + period_ns(opt_.heartbeat_rate_hz);
     HeartbeatMsg h;
     h.system_status = status_;
-    if (send(encode_heartbeat(h, seq_++, opt_.sysid, opt_.compid, frame_))) ++stats_.heartbeats_sent;
+    if (send(encode_heartbeat(h, seq_++, opt_.sysid, opt_.compid, frame_, signing_.get())))
+      ++stats_.heartbeats_sent;
   }
   if (opt_.timesync && opt_.timesync_rate_hz > 0 && now_ns >= next_timesync_ns_) {
     const double rate = sync_.converged() ? opt_.timesync_rate_hz : 10.0 * opt_.timesync_rate_hz;
     next_timesync_ns_ = now_ns + period_ns(rate);
-    send(encode_timesync(sync_.request(now_ns), seq_++, opt_.sysid, opt_.compid, frame_));
+    send(encode_timesync(sync_.request(now_ns), seq_++, opt_.sysid, opt_.compid, frame_, signing_.get()));
   }
 }
 
@@ -78,7 +84,7 @@ bool OdometryStream::publish(const OdometryInput& in) noexcept {
     return false;
   }
   if (opt_.stamps_on_host_clock && in.t_ns > 0) m.time_usec = static_cast<uint64_t>(sync_.to_link_time_ns(in.t_ns) / 1000);
-  if (!send(encode_odometry(m, seq_++, opt_.sysid, opt_.compid, frame_))) return false;
+  if (!send(encode_odometry(m, seq_++, opt_.sysid, opt_.compid, frame_, signing_.get()))) return false;
   last_odometry_t_ns_ = in.t_ns;
   ++stats_.odometry_sent;
   return true;

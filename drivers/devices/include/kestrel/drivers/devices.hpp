@@ -23,6 +23,7 @@
 #include "kestrel/drivers/bmx055.hpp"
 #include "kestrel/drivers/clock_sync.hpp"
 #include "kestrel/drivers/klog.hpp"
+#include "kestrel/drivers/mavlink_imu.hpp"
 #include "kestrel/drivers/replay_source.hpp"
 #include "kestrel/drivers/sensor_rings.hpp"
 #include "kestrel/drivers/usb_bridge.hpp"
@@ -36,7 +37,7 @@ namespace kestrel::drivers {
 // tests of `kestrel run`). Camera stamps are handed out as the camera's clock
 // gave them (the log's offset taken back out), like a camera driver's.
 enum class CameraType { kNone, kOpenNi2, kV4l2, kLog, kD4xx };
-enum class ImuType { kNone, kBmx055I2c, kBmx055Usb, kLog };
+enum class ImuType { kNone, kBmx055I2c, kBmx055Usb, kLog, kMavlink };
 
 struct CameraSettings {
   CameraType type = CameraType::kNone;
@@ -84,6 +85,7 @@ struct ImuSettings {
   std::string gpio_chip;            // data_ready: gpio
   int gpio_line = -1;
   UsbBridgeConfig usb;
+  MavlinkImuConfig mavlink;  // type: mavlink, the flight controller's IMU (docs/px4.md)
 };
 
 struct StrobeSettings {
@@ -126,6 +128,11 @@ struct MavlinkSettings {
   double heartbeat_rate_hz = 1;
   bool timesync = true;
   double timesync_max_rtt_ms = 10;
+  // signing: {key_file, link_id}: sign what we send, accept only what verifies.
+  bool signing = false;
+  std::string signing_key_file;  // resolved against the config's folder
+  mavlink::SigningKey signing_key;
+  int signing_link_id = 0;
 };
 
 // `record:` section (optional): how `kestrel record` and `kestrel run

@@ -11,7 +11,7 @@
 #include <cstdint>
 
 #include "kestrel/core/estimator.hpp"
-#include "kestrel/mavlink/mavlink_v2.hpp"
+#include "kestrel/drivers/mavlink/mavlink_v2.hpp"
 
 namespace kestrel::mavlink {
 

@@ -9,10 +9,10 @@
 #include <memory>
 #include <string>
 
-#include "kestrel/mavlink/link.hpp"
-#include "kestrel/mavlink/mavlink_decoder.hpp"
+#include "kestrel/drivers/mavlink/link.hpp"
+#include "kestrel/drivers/mavlink/mavlink_decoder.hpp"
+#include "kestrel/drivers/mavlink/time_sync.hpp"
 #include "kestrel/mavlink/odometry_adapter.hpp"
-#include "kestrel/mavlink/time_sync.hpp"
 
 namespace kestrel::mavlink {
 
@@ -33,6 +33,11 @@ struct OdometryStreamOptions {
   // Pose times are CLOCK_MONOTONIC (live): put them on the autopilot's clock
   // once TIMESYNC knows it. Replay's are the log's: sent as they are.
   bool stamps_on_host_clock = true;
+  // MAVLink 2 signing (drivers/mavlink/mavlink_signing.hpp): every frame we
+  // send is signed, and only frames that verify are read.
+  bool signing = false;
+  SigningKey signing_key;
+  uint8_t signing_link_id = 0;
 };
 
 struct OdometryStreamStats {
@@ -61,6 +66,7 @@ class OdometryStream {
   const OdometryStreamStats& stream_stats() const { return stats_; }
   const TimeSync& time_sync() const { return sync_; }
   const MavlinkDecoderStats& decoder_stats() const { return decoder_.stats(); }
+  const SigningStats* signing_stats() const { return signing_ ? &signing_->stats() : nullptr; }
   uint64_t not_initialised() const { return skipped_; }
   const std::string& endpoint() const { return link_->endpoint(); }
 
@@ -69,6 +75,7 @@ class OdometryStream {
 
   OdometryStreamOptions opt_;
   std::unique_ptr<Link> link_;
+  std::unique_ptr<MavlinkSigning> signing_;
   MavlinkDecoder decoder_;
   TimeSync sync_;
   OdometryStreamStats stats_;

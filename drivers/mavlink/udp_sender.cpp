@@ -1,4 +1,4 @@
-#include "kestrel/mavlink/udp_sender.hpp"
+#include "kestrel/drivers/mavlink/udp_sender.hpp"
 
 #include <netdb.h>
 #include <sys/socket.h>

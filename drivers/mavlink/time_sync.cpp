@@ -1,4 +1,4 @@
-#include "kestrel/mavlink/time_sync.hpp"
+#include "kestrel/drivers/mavlink/time_sync.hpp"
 
 #include <cmath>
 
@@ -38,7 +38,8 @@ bool TimeSync::on_message(const TimesyncMsg& m, uint8_t from_sysid, uint8_t from
   stats_.last_rtt_ns = rtt;
   ++stats_.responses_used;
   // Autopilot time at the midpoint of the exchange minus ours.
-  const double sample = static_cast<double>(m.tc1) - (static_cast<double>(m.ts1) + static_cast<double>(now_ns)) / 2.0;
+  const double sample =
+      static_cast<double>(m.tc1) - (static_cast<double>(m.ts1) + static_cast<double>(now_ns)) / 2.0;
   if (samples_ > 0 && std::abs(sample - offset_ns_) > static_cast<double>(opt_.reset_jump_ns)) {
     if (++far_in_a_row_ < opt_.reset_after) return false;
     samples_ = 0;  // the autopilot's clock jumped (a reboot): start again
@@ -46,6 +47,29 @@ bool TimeSync::on_message(const TimesyncMsg& m, uint8_t from_sysid, uint8_t from
   }
   far_in_a_row_ = 0;
   ++samples_;
+  if (opt_.prefer_short_round_trips) {
+    if (samples_ == 1) {
+      for (int64_t& r : rtts_) r = 0;
+      next_rtt_ = 0;
+    }
+    rtts_[next_rtt_] = rtt + 1;  // + 1 ns: 0 marks an empty slot
+    next_rtt_ = (next_rtt_ + 1) % kRttWindow;
+    if (samples_ <= opt_.converge_samples) {
+      // The shortest exchange so far sets the offset.
+      if (samples_ == 1 || rtt < best_rtt_converging_) {
+        best_rtt_converging_ = rtt;
+        offset_ns_ = sample;
+      }
+      return false;
+    }
+    int64_t shortest = rtts_[0];
+    for (int64_t r : rtts_)
+      if (r != 0 && (shortest == 0 || r < shortest)) shortest = r;
+    // A 1 us floor: on a loopback link every round trip is a few us and should count alike.
+    const double trust = (static_cast<double>(shortest) + 1000.0) / (static_cast<double>(rtt + 1) + 1000.0);
+    offset_ns_ += opt_.alpha * trust * (sample - offset_ns_);
+    return false;
+  }
   // The mean of the first samples, then a running average.
   const double w = samples_ <= opt_.converge_samples ? 1.0 / samples_ : opt_.alpha;
   offset_ns_ = samples_ == 1 ? sample : offset_ns_ + w * (sample - offset_ns_);

@@ -6,14 +6,18 @@
 // again, so a start byte inside a payload cannot swallow the frame after it.
 // Messages this build has no CRC_EXTRA for cannot be checked: they are
 // counted and scanned past byte by byte like damage (their start byte may be
-// a false one). Signed frames are accepted with the
-// signature skipped (not verified). tests/mavlink fuzzes it.
+// a false one). Without a signing object, signed frames are accepted with the
+// signature skipped (not verified); with one (set_signing), only frames it
+// verifies come out: unsigned, wrongly signed and replayed ones are dropped
+// whole and counted (MavlinkSigning::stats(), and `unauthenticated` here).
+// tests/mavlink fuzzes it.
 #pragma once
 
 #include <cstddef>
 #include <cstdint>
 
-#include "kestrel/mavlink/mavlink_v2.hpp"
+#include "kestrel/drivers/mavlink/mavlink_signing.hpp"
+#include "kestrel/drivers/mavlink/mavlink_v2.hpp"
 
 namespace kestrel::mavlink {
 
@@ -27,11 +31,12 @@ struct MavlinkFrame {
 };
 
 struct MavlinkDecoderStats {
-  uint64_t frames = 0;         // checked and handed out
+  uint64_t frames = 0;  // checked and handed out
   uint64_t bad_crc = 0;
-  uint64_t unknown_msgid = 0;  // headers of messages we cannot check
-  uint64_t bad_header = 0;     // unknown incompatibility flags
-  uint64_t bytes_skipped = 0;  // outside any frame
+  uint64_t unknown_msgid = 0;    // headers of messages we cannot check
+  uint64_t bad_header = 0;       // unknown incompatibility flags
+  uint64_t bytes_skipped = 0;    // outside any frame
+  uint64_t unauthenticated = 0;  // checked frames the signing object refused (signing on)
 };
 
 class MavlinkDecoder {
@@ -45,10 +50,12 @@ class MavlinkDecoder {
     }
   }
   const MavlinkDecoderStats& stats() const { return stats_; }
+  // Verify every frame with `s` (owned by the caller, outliving the decoder); nullptr: off.
+  void set_signing(MavlinkSigning* s) { signing_ = s; }
 
  private:
-  static constexpr std::size_t kSignatureBytes = 13;
-  static constexpr std::size_t kCapacity = kHeaderV2Bytes + kMaxPayloadBytes + kChecksumBytes + kSignatureBytes;
+  static constexpr std::size_t kCapacity =
+      kHeaderV2Bytes + kMaxPayloadBytes + kChecksumBytes + kSignatureBlockBytes;
   // Works on the buffered bytes; true when a frame was completed into frame_.
   bool scan();
   // Drops buf_[0, from) and any bytes up to the next start byte.
@@ -58,6 +65,7 @@ class MavlinkDecoder {
   std::size_t n_ = 0;
   MavlinkFrame frame_;
   MavlinkDecoderStats stats_;
+  MavlinkSigning* signing_ = nullptr;
 };
 
 }  // namespace kestrel::mavlink

@@ -18,7 +18,7 @@
 
 #include <cstdint>
 
-#include "kestrel/mavlink/mavlink_v2.hpp"
+#include "kestrel/drivers/mavlink/mavlink_v2.hpp"
 
 namespace kestrel::mavlink {
 
@@ -28,6 +28,11 @@ struct TimeSyncOptions {
   double alpha = 0.1;  // weight of a new sample in the running average once converged
   int64_t reset_jump_ns = 50'000'000;
   int reset_after = 3;
+  // Trust short exchanges more (the flight controller's IMU link): the offset starts from the
+  // converging sample with the shortest round trip instead of their mean, and each later sample
+  // weighs alpha * (shortest recent round trip / its round trip). A sample's error is bounded by half
+  // its round trip, and a slow exchange is usually a queued, one-sided one. Off: the mean, then alpha.
+  bool prefer_short_round_trips = false;
 };
 
 struct TimeSyncStats {
@@ -64,6 +69,10 @@ class TimeSync {
   double offset_ns_ = 0.0;
   int samples_ = 0;
   int far_in_a_row_ = 0;
+  static constexpr int kRttWindow = 8;
+  int64_t rtts_[kRttWindow] = {};  // the last round trips used (prefer_short_round_trips)
+  int next_rtt_ = 0;
+  int64_t best_rtt_converging_ = 0;
 };
 
 }  // namespace kestrel::mavlink

@@ -25,6 +25,8 @@ class Link {
   // Whatever arrived, up to cap bytes; 0 when nothing did.
   virtual std::size_t receive(uint8_t* buf, std::size_t cap) noexcept = 0;
   virtual const std::string& endpoint() const = 0;
+  // The descriptor a reader may block on (poll) for the next bytes; -1 when there is none.
+  virtual int fd() const noexcept { return -1; }
   const LinkStats& stats() const { return stats_; }
 
  protected:

@@ -11,7 +11,7 @@
 #include <cstdint>
 #include <string>
 
-#include "kestrel/mavlink/link.hpp"
+#include "kestrel/drivers/mavlink/link.hpp"
 
 namespace kestrel::mavlink {
 
@@ -28,6 +28,7 @@ class SerialLink final : public Link {
   bool send(const uint8_t* data, std::size_t n) noexcept override;
   std::size_t receive(uint8_t* buf, std::size_t cap) noexcept override;
   const std::string& endpoint() const override { return endpoint_; }
+  int fd() const noexcept override { return fd_; }
   std::size_t queued_bytes() const { return out_n_; }
 
  private:

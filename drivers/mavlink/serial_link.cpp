@@ -1,4 +1,4 @@
-#include "kestrel/mavlink/serial_link.hpp"
+#include "kestrel/drivers/mavlink/serial_link.hpp"
 
 #include <fcntl.h>
 #include <termios.h>

@@ -1,4 +1,4 @@
-#include "kestrel/mavlink/mavlink_decoder.hpp"
+#include "kestrel/drivers/mavlink/mavlink_decoder.hpp"
 
 #include <cstring>
 
@@ -28,7 +28,7 @@ bool MavlinkDecoder::scan() {
       continue;
     }
     const bool is_signed = (incompat & 0x01u) != 0;
-    const std::size_t need = kHeaderV2Bytes + len + kChecksumBytes + (is_signed ? kSignatureBytes : 0);
+    const std::size_t need = kHeaderV2Bytes + len + kChecksumBytes + (is_signed ? kSignatureBlockBytes : 0);
     if (n_ < need) return false;
     const uint32_t msgid = static_cast<uint32_t>(buf_[7]) | static_cast<uint32_t>(buf_[8]) << 8 |
                            static_cast<uint32_t>(buf_[9]) << 16;
@@ -48,6 +48,13 @@ bool MavlinkDecoder::scan() {
     if (buf_[c] != (crc & 0xFF) || buf_[c + 1] != (crc >> 8)) {
       ++stats_.bad_crc;
       resync(1);
+      continue;
+    }
+    if (signing_ != nullptr && signing_->verify(buf_, need) != SignatureCheck::kOk) {
+      // A real frame (its checksum holds), so it is skipped whole.
+      ++stats_.unauthenticated;
+      std::memmove(buf_, buf_ + need, n_ - need);
+      n_ -= need;
       continue;
     }
     frame_.msgid = msgid;

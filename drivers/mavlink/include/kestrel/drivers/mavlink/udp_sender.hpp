@@ -8,7 +8,7 @@
 #include <cstdint>
 #include <string>
 
-#include "kestrel/mavlink/link.hpp"
+#include "kestrel/drivers/mavlink/link.hpp"
 
 namespace kestrel::mavlink {
 
@@ -27,6 +27,7 @@ class UdpSender final : public Link {
   // address it hears from), recv(MSG_DONTWAIT).
   std::size_t receive(uint8_t* buf, std::size_t cap) noexcept override;
   const std::string& endpoint() const override { return endpoint_; }
+  int fd() const noexcept override { return fd_; }
 
  private:
   std::string endpoint_;
