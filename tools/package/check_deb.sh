@@ -43,7 +43,8 @@ trap '$sudo dpkg --purge kestrel >/dev/null 2>&1 || true' EXIT
 file -L /usr/bin/kestrel | grep -q ', stripped' || fail "/usr/bin/kestrel is not stripped"
 printf '  %-52s %6d KiB\n' "/usr/bin/kestrel installed (stripped)" $(( $(stat -c %s /usr/bin/kestrel) / 1024 ))
 for f in /lib/systemd/system/kestrel.service /lib/udev/rules.d/60-kestrel.rules /etc/kestrel/kestrel.yaml \
-  /usr/share/kestrel/configs/realsense_d435i.yaml /usr/share/doc/kestrel/package.md; do
+  /usr/share/kestrel/configs/realsense_d435i.yaml /usr/share/kestrel/viewer/index.html \
+  /usr/share/doc/kestrel/package.md; do
   [ -f "$f" ] || fail "$f not installed"
 done
 dpkg-query -W -f='${Conffiles}\n' kestrel | grep -q /etc/kestrel/kestrel.yaml || fail "kestrel.yaml is not a conffile"

@@ -2,7 +2,7 @@
 # `cmake --build --preset release --target package`. Included last by the top-level CMakeLists.txt.
 #
 # One package, `kestrel`, from the `runtime` install component only: the binary, the config templates,
-# the systemd unit, the udev rules and the docs. The static libraries, headers and CMake/pkg-config
+# the `--view` page (tools/viewer), the systemd unit, the udev rules and the docs. The static libraries, headers and CMake/pkg-config
 # files (the unnamed install component, docs/api.md) are left out: they build programs, a companion
 # computer runs one. The debug symbols go to kestrel-dbgsym (a .ddeb, Debian's naming).
 
@@ -48,6 +48,8 @@ set(CPACK_DEBIAN_PACKAGE_PRIORITY optional)
 # The run-time libraries from the binary's NEEDED entries (dpkg-shlibdeps), and adduser for postinst.
 set(CPACK_DEBIAN_PACKAGE_SHLIBDEPS ON)
 set(CPACK_DEBIAN_PACKAGE_DEPENDS "adduser")
+# The `--view` page loads three.js from Debian's package (tools/viewer); the estimator runs without it.
+set(CPACK_DEBIAN_PACKAGE_RECOMMENDS "libjs-three")
 # Strip and split: CPack copies the DWARF of every unstripped ELF file to kestrel-dbgsym
 # (/usr/lib/debug/.build-id/, where gdb finds it by the binary's build id) and strips the file.
 set(CPACK_DEBIAN_DEBUGINFO_PACKAGE ON)
