@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The README's test command and CI's (.ci/run): installs what is missing, then
 #   1. release build + the default ctest labels (everything but bench and fuzz)
+#   1b. the .deb: cpack from the release tree, apt-get install, checks, dpkg -r
 #   2. the ASan + UBSan suite: build target kestrel_asan_suite, `ctest --preset
 #      debug` (label asan, sanitizer-sized flights: KESTREL_TEST_SCALE=small)
 #   3. bounded libFuzzer runs of every parser (clang): `ctest --preset fuzz`,
@@ -8,7 +9,8 @@
 #   4. the two-thread stress tests under ThreadSanitizer
 # and prints what each part cost. docs/testing.md: the suites, what each
 # covers, local runs, the CPU-hour fuzz command, measured costs.
-# Skips (local use only): KESTREL_SKIP_ASAN=1, KESTREL_SKIP_FUZZ=1, KESTREL_SKIP_TSAN=1.
+# Skips (local use only): KESTREL_SKIP_ASAN=1, KESTREL_SKIP_FUZZ=1, KESTREL_SKIP_TSAN=1,
+# KESTREL_SKIP_DEB=1 (the .deb part installs a package: root or sudo).
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
 cd "$root"
@@ -20,6 +22,11 @@ source "$root/tools/timed_parts.sh"
 part "install-deps" bash tools/install-deps.sh
 part "release build" bash tools/build.sh release
 part "release suite" ctest --preset release -j "$jobs"
+# The companion computer's .deb from the release tree just built (no rebuild): build, install,
+# `kestrel version`, unit and udev checks, remove (tools/package/check_deb.sh, docs/package.md).
+if [ "${KESTREL_SKIP_DEB:-0}" != "1" ]; then
+  part "deb package (build, install, remove)" bash tools/package/check_deb.sh build/release
+fi
 if [ "${KESTREL_SKIP_ASAN:-0}" != "1" ]; then
   part "asan+ubsan build (asan suite)" bash tools/build.sh debug --target kestrel_asan_suite
   part "asan+ubsan suite" ctest --preset debug -j "$jobs"
