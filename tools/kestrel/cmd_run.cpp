@@ -21,6 +21,7 @@
 #include "kestrel/recording.hpp"
 #include "kestrel/replay_runner.hpp"
 #include "kestrel/rt/clock.hpp"
+#include "kestrel/rt/thread_setup.hpp"
 #include "kestrel/tools/estimator_config_yaml.hpp"
 #include "kestrel/tools/map_files.hpp"
 #include "kestrel/view_cli.hpp"
@@ -226,6 +227,9 @@ Subcommand add_run_command(CLI::App& parent) {
     opt.live = live;
     std::printf("running %s -> estimator '%s' (%s)\n", sensors.description().c_str(), est_cfg.backend.c_str(),
                 a->estimator.empty() && !cfg.estimator.backend.empty() ? "from the config" : "");
+    // Memory locked and the stack prefaulted before any pipeline thread starts
+    // (docs/threads.md); refused without CAP_IPC_LOCK, and the line says so.
+    std::printf("process: %s\n", rt::to_string(rt::setup_process()).c_str());
     g_run_stop.store(false);
     std::signal(SIGINT, run_on_signal);
     std::signal(SIGTERM, run_on_signal);
