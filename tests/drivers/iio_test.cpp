@@ -7,16 +7,21 @@
 #include <gtest/gtest.h>
 #include <time.h>
 
+#include <atomic>
+#include <chrono>
 #include <cmath>
 #include <cstring>
 #include <random>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "iio_bench.hpp"
+#include "kestrel/drivers/devices.hpp"
 #include "kestrel/drivers/iio_device.hpp"
 #include "kestrel/drivers/iio_scan.hpp"
 #include "kestrel/rt/alloc_counter.hpp"
+#include "kestrel/rt/clock.hpp"
 #include "vec_imu_sink.hpp"
 
 namespace kestrel::test {
@@ -888,6 +893,134 @@ TEST(IioImuConfig, ValidateNamesTheField) {
   EXPECT_TRUE(says("axis_remap"));
   c.axis_remap = {1, 2, 3};
   EXPECT_NO_THROW(c.validate());
+}
+
+// ---- the live config and the sensor thread ----------------------------------------------
+
+std::string live_yaml(const std::string& imu) {
+  return "rig:\n  camera: {width_px: 640, height_px: 480, fx_px: 500, fy_px: 500, cx_px: 320, cy_px: 240}\n"
+         "drivers:\n  imu:\n" +
+         imu;
+}
+
+TEST(IioLiveConfig, TheIioSectionWithUnitsInItsKeys) {
+  const drivers::LiveConfig c = drivers::live_config_from_yaml(
+      live_yaml("    type: iio\n    axis_remap: [+y, -x, +z]\n    iio:\n      accel_device: accel_3d\n"
+                "      gyro_device: gyro_3d\n      sysfs_root: fake/sys\n      dev_root: /tmp/dev\n"
+                "      accel_rate_hz: 200\n      gyro_rate_hz: 400\n      timestamp_clock: boottime\n"
+                "      buffer_length_samples: 1024\n      watermark_samples: 2\n      read_timeout_ms: 50\n"
+                "      stall_timeout_ms: 300\n      max_stamp_gap_ms: 2000\n      latency_floor_us: 90\n"),
+      "/cfg/live.yaml");
+  const iio::ImuConfig& i = c.drivers.imu.iio;
+  EXPECT_EQ(c.drivers.imu.type, drivers::ImuType::kIio);
+  EXPECT_EQ(i.accel_device, "accel_3d");
+  EXPECT_EQ(i.gyro_device, "gyro_3d");
+  EXPECT_EQ(i.sysfs_root, "/cfg/fake/sys");  // relative to the config
+  EXPECT_EQ(i.dev_root, "/tmp/dev");
+  EXPECT_EQ(i.accel_rate_hz, 200);
+  EXPECT_EQ(i.gyro_rate_hz, 400);
+  EXPECT_EQ(i.timestamp_clock, "boottime");
+  EXPECT_EQ(i.buffer_length_samples, 1024);
+  EXPECT_EQ(i.watermark_samples, 2);
+  EXPECT_EQ(i.read_timeout_ms, 50);
+  EXPECT_EQ(i.stall_timeout_ns, 300'000'000);
+  EXPECT_EQ(i.max_stamp_gap_ns, 2'000'000'000);
+  EXPECT_EQ(i.clock.latency_floor_ns, 90'000);
+  EXPECT_EQ(i.axis_remap, (std::array<int8_t, 3>{2, -1, 3}));
+  // Defaults: the kernel's paths, monotonic stamps.
+  const drivers::LiveConfig d =
+      drivers::live_config_from_yaml(live_yaml("    type: iio\n    iio: {device: bmi088}\n"), "x.yaml");
+  EXPECT_EQ(d.drivers.imu.iio.sysfs_root, "/sys/bus/iio/devices");
+  EXPECT_EQ(d.drivers.imu.iio.dev_root, "/dev");
+  EXPECT_EQ(d.drivers.imu.iio.timestamp_clock, "monotonic");
+  EXPECT_EQ(d.drivers.imu.iio.rate_hz, 200);
+}
+
+TEST(IioLiveConfig, ErrorsNameFileAndKey) {
+  auto error = [](const std::string& imu) {
+    try {
+      drivers::live_config_from_yaml(live_yaml(imu), "live.yaml");
+    } catch (const std::runtime_error& e) {
+      return std::string(e.what());
+    }
+    return std::string("no error");
+  };
+  EXPECT_NE(error("    type: iio\n").find("live.yaml: drivers.imu.iio.device: missing"), std::string::npos)
+      << error("    type: iio\n");
+  EXPECT_NE(error("    type: iio\n    iio: {device: a, rate: 5}\n").find("drivers.imu.iio.rate: unknown key"),
+            std::string::npos);
+  EXPECT_NE(error("    type: iio\n    iio: {device: a, timestamp_clock: gps}\n")
+                .find("drivers.imu.iio.timestamp_clock: expected one of"),
+            std::string::npos);
+  EXPECT_NE(error("    type: iio\n    iio: {device: a, accel_device: b}\n")
+                .find("drivers.imu.iio.device: a combined"),
+            std::string::npos);
+  EXPECT_NE(error("    type: iio\n    iio: {device: a, stall_timeout_ms: 0}\n")
+                .find("drivers.imu.iio.stall_timeout_ms: must be in"),
+            std::string::npos);
+}
+
+// The sensor thread of `kestrel record` / `kestrel run`: LiveSensors opens the
+// fake tree from a config and its kst-imu thread waits in poll() on the FIFO.
+struct CountingSink final : drivers::ImuSink {
+  std::atomic<uint64_t> n{0};
+  std::atomic<int64_t> last_t{0};
+  std::atomic<uint64_t> out_of_order{0};
+  bool push(const ImuSample& s) noexcept override {
+    if (s.t_ns <= last_t.load()) out_of_order.fetch_add(1);
+    last_t.store(s.t_ns);
+    n.fetch_add(1);
+    return true;
+  }
+};
+struct NoFrames final : drivers::FrameSink {
+  bool push_frame(const drivers::CameraFrame&) noexcept override { return true; }
+};
+
+TEST(IioLiveSensors, TheImuThreadReadsTheConfiguredDevice) {
+  iio::FakeIioTree tree(temp_dir("iio_live"), {combined_imu_spec()});
+  const drivers::LiveConfig c = drivers::live_config_from_yaml(
+      live_yaml("    type: iio\n    iio:\n      device: icm42688\n      sysfs_root: " + tree.sysfs_root() +
+                "\n      dev_root: " + tree.dev_root() + "\n"),
+      "live.yaml");
+  drivers::LiveSensors live(c);
+  EXPECT_NE(live.description().find("Linux IIO (icm42688"), std::string::npos) << live.description();
+  tree.open_writers();
+  CountingSink sink;
+  NoFrames frames;
+  live.start(sink, frames);
+  // 0.4 s of scans at 200 Hz in real time, stamped on CLOCK_MONOTONIC as the kernel would.
+  for (int i = 0; i < 80; ++i) {
+    uint8_t r[64];
+    const size_t n = tree.encode(0, rt::now_ns(), {0, 0, 9.8}, {0, 0, 0.1}, r, sizeof r);
+    ASSERT_EQ(tree.write_bytes(0, r, n), n);
+    std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  }
+  std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  live.stop();
+  const std::string report = live.report();
+  std::printf("[ figure ] %s", report.c_str());
+  EXPECT_GE(sink.n.load(), 76u);  // the first few wait for the framer to confirm alignment
+  EXPECT_EQ(sink.out_of_order.load(), 0u);
+  EXPECT_NE(report.find("iio imu: state streaming"), std::string::npos);
+  EXPECT_NE(report.find("host-clock stamps"), std::string::npos);
+}
+
+TEST(IioLiveSensors, AMissingDeviceIsNamedWhenOpening) {
+  iio::FakeIioTree tree(temp_dir("iio_live_missing"), {d4xx_accel_spec()});
+  const drivers::LiveConfig c = drivers::live_config_from_yaml(
+      live_yaml("    type: iio\n    iio:\n      accel_device: accel_3d\n      gyro_device: gyro_3d\n"
+                "      sysfs_root: " +
+                tree.sysfs_root() + "\n"),
+      "live.yaml");
+  try {
+    drivers::LiveSensors live(c);
+    FAIL() << "opened a gyro that is not there";
+  } catch (const std::runtime_error& e) {
+    const std::string m = e.what();
+    EXPECT_NE(m.find("IMU (Linux IIO)"), std::string::npos) << m;
+    EXPECT_NE(m.find("no IIO device named \"gyro_3d\""), std::string::npos) << m;
+  }
 }
 
 }  // namespace

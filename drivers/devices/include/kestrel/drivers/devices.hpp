@@ -22,6 +22,7 @@
 
 #include "kestrel/drivers/bmx055.hpp"
 #include "kestrel/drivers/clock_sync.hpp"
+#include "kestrel/drivers/iio_imu.hpp"
 #include "kestrel/drivers/sensor_rings.hpp"
 #include "kestrel/drivers/usb_bridge.hpp"
 #include "kestrel/msgs.hpp"
@@ -34,7 +35,7 @@ namespace kestrel::drivers {
 // tests of `kestrel run`). Camera stamps are handed out as the camera's clock
 // gave them (the log's offset taken back out), like a camera driver's.
 enum class CameraType { kNone, kOpenNi2, kV4l2, kLog };
-enum class ImuType { kNone, kBmx055I2c, kBmx055Usb, kLog };
+enum class ImuType { kNone, kBmx055I2c, kBmx055Usb, kLog, kIio };
 
 struct CameraSettings {
   CameraType type = CameraType::kNone;
@@ -63,6 +64,7 @@ struct ImuSettings {
   std::string gpio_chip;            // data_ready: gpio
   int gpio_line = -1;
   UsbBridgeConfig usb;
+  iio::ImuConfig iio;               // type iio: Linux IIO devices (docs/drivers/iio.md)
 };
 
 struct StrobeSettings {
