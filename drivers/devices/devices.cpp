@@ -155,8 +155,9 @@ DriverSettings driver_settings_from_yaml_node(const YAML::Node& root, const std:
 
   if (const YAML::Node m = root["imu"]) {
     const std::string path = "drivers.imu";
-    p.only(m, path, {"type", "acc_range_g", "acc_bandwidth_hz", "gyro_range_dps", "gyro_odr_hz", "gyro_bandwidth_hz",
-                     "axis_remap", "i2c", "usb", "iio"});
+    p.only(m, path,
+           {"type", "acc_range_g", "acc_bandwidth_hz", "gyro_range_dps", "gyro_odr_hz", "gyro_bandwidth_hz",
+            "axis_remap", "i2c", "usb", "iio"});
     ImuSettings& is = d.imu;
     is.type = p.choice<ImuType>(m, "type", path, ImuType::kNone,
                                 {{"none", ImuType::kNone},
@@ -236,9 +237,10 @@ DriverSettings driver_settings_from_yaml_node(const YAML::Node& root, const std:
     // ---- Linux IIO (docs/drivers/iio.md) ----
     if (const YAML::Node x = m["iio"]) {
       const std::string xp = path + ".iio";
-      p.only(x, xp, {"device", "accel_device", "gyro_device", "sysfs_root", "dev_root", "rate_hz", "accel_rate_hz",
-                     "gyro_rate_hz", "timestamp_clock", "buffer_length_samples", "watermark_samples",
-                     "read_timeout_ms", "stall_timeout_ms", "max_stamp_gap_ms", "latency_floor_us"});
+      p.only(x, xp,
+             {"device", "accel_device", "gyro_device", "sysfs_root", "dev_root", "rate_hz", "accel_rate_hz",
+              "gyro_rate_hz", "timestamp_clock", "buffer_length_samples", "watermark_samples",
+              "read_timeout_ms", "stall_timeout_ms", "max_stamp_gap_ms", "latency_floor_us"});
       iio::ImuConfig& c = is.iio;
       c.device = p.str(x, "device", xp, c.device);
       c.accel_device = p.str(x, "accel_device", xp, c.accel_device);
@@ -247,7 +249,8 @@ DriverSettings driver_settings_from_yaml_node(const YAML::Node& root, const std:
       c.dev_root = p.str(x, "dev_root", xp, c.dev_root);
       const auto rel = [&](std::string& dir) {
         const auto slash = where.rfind('/');
-        if (!dir.empty() && dir[0] != '/' && slash != std::string::npos) dir = where.substr(0, slash + 1) + dir;
+        if (!dir.empty() && dir[0] != '/' && slash != std::string::npos)
+          dir = where.substr(0, slash + 1) + dir;
       };
       rel(c.sysfs_root);
       rel(c.dev_root);
@@ -260,7 +263,8 @@ DriverSettings driver_settings_from_yaml_node(const YAML::Node& root, const std:
                                                  {"realtime", "realtime"},
                                                  {"monotonic_raw", "monotonic_raw"},
                                                  {"tai", "tai"}});
-      c.buffer_length_samples = static_cast<int>(p.integer(x, "buffer_length_samples", xp, 512, 2, 1'000'000));
+      c.buffer_length_samples =
+          static_cast<int>(p.integer(x, "buffer_length_samples", xp, 512, 2, 1'000'000));
       c.watermark_samples = static_cast<int>(p.integer(x, "watermark_samples", xp, 1, 1, 1'000'000));
       c.read_timeout_ms = static_cast<int>(p.integer(x, "read_timeout_ms", xp, 20, 1, 10'000));
       c.stall_timeout_ns = 1'000'000 * p.integer(x, "stall_timeout_ms", xp, 200, 1, 60'000);
@@ -273,7 +277,8 @@ DriverSettings driver_settings_from_yaml_node(const YAML::Node& root, const std:
       } catch (const std::invalid_argument& e) {
         const std::string w = e.what();
         const auto colon = w.find(": ");
-        p.fail(path + ".iio." + w.substr(0, colon), colon == std::string::npos ? "invalid" : w.substr(colon + 2));
+        p.fail(path + ".iio." + w.substr(0, colon),
+               colon == std::string::npos ? "invalid" : w.substr(colon + 2));
       }
     }
     try {
@@ -516,9 +521,9 @@ LiveConfig load_live_config(const std::string& path, const std::vector<std::stri
 
 std::string built_drivers_summary() {
   auto b = [](bool x) { return x ? "built" : "NOT built"; };
-  return std::string("v4l2 ") + b(v4l2::v4l2_built()) + ", openni2 " + b(openni2::openni2_built()) + ", libusb (IMU bridge) " +
-         b(libusb_built()) + ", i2c-dev (BMX055) " + b(i2c_dev_built()) + ", gpio-cdev (data-ready) " +
-         b(bmx055::gpio_cdev_built()) + ", iio (sysfs) built";
+  return std::string("v4l2 ") + b(v4l2::v4l2_built()) + ", openni2 " + b(openni2::openni2_built()) +
+         ", libusb (IMU bridge) " + b(libusb_built()) + ", i2c-dev (BMX055) " + b(i2c_dev_built()) +
+         ", gpio-cdev (data-ready) " + b(bmx055::gpio_cdev_built()) + ", iio (sysfs) built";
 }
 
 DeviceReport probe_devices() {
@@ -580,7 +585,8 @@ DeviceReport probe_devices() {
   for (const auto& d : iio::list_devices(iio::kDefaultSysfsRoot, &err)) {
     if (!d.has_accel && !d.has_gyro) continue;
     std::string what = d.has_accel && d.has_gyro ? "accel + gyro" : d.has_accel ? "accel" : "gyro";
-    what += d.has_buffer && d.has_timestamp ? ", buffered with timestamps" : ", no buffer/timestamp (not usable)";
+    what +=
+        d.has_buffer && d.has_timestamp ? ", buffered with timestamps" : ", no buffer/timestamp (not usable)";
     r.found.push_back({"imu", "iio", d.dir, "name \"" + d.name + "\" (" + what + ")"});
   }
   if (!err.empty()) r.notes.push_back("iio: " + err);
@@ -764,7 +770,7 @@ void LiveSensors::Impl::imu_loop(ImuSink& sink) {
       const iio::ImuState st = iio_imu->step(sink);
       if (st == iio::ImuState::kDisconnected || st == iio::ImuState::kClosed) {
         rt::sleep_for_ns(1'000'000'000);
-        (void)iio_imu->open();   // retried every second until the device is back
+        (void)iio_imu->open();  // retried every second until the device is back
       }
     } else if (bridge) {
       if (bridge->step(sink, &strobes) == UsbBridgeState::kDisconnected) {
@@ -932,8 +938,8 @@ std::string LiveSensors::description() const {
   if (d.camera.type == CameraType::kLog) return "camera and IMU: log " + d.log_path;
   s += d.camera.type == CameraType::kOpenNi2 ? "OpenNI2" : d.camera.type == CameraType::kV4l2 ? "V4L2" : "none";
   s += ", IMU: ";
-  s += d.imu.type == ImuType::kBmx055I2c ? "BMX055 over I2C (" + d.imu.i2c_bus_device + ")"
-       : d.imu.type == ImuType::kBmx055Usb ? std::string("BMX055 via USB bridge")
+  s += d.imu.type == ImuType::kBmx055I2c               ? "BMX055 over I2C (" + d.imu.i2c_bus_device + ")"
+       : d.imu.type == ImuType::kBmx055Usb             ? std::string("BMX055 via USB bridge")
        : d.imu.type == ImuType::kIio && impl_->iio_imu ? "Linux IIO (" + impl_->iio_imu->description() + ")"
                                                        : std::string("none");
   return s;
