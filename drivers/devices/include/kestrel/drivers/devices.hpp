@@ -9,8 +9,6 @@
 //    FrameSink. Used by `kestrel record` and `kestrel run`.
 #pragma once
 
-#include <yaml-cpp/yaml.h>
-
 #include <array>
 #include <atomic>
 #include <cstdint>
@@ -19,6 +17,8 @@
 #include <thread>
 #include <utility>
 #include <vector>
+
+#include <yaml-cpp/yaml.h>
 
 #include "kestrel/drivers/bmx055.hpp"
 #include "kestrel/drivers/clock_sync.hpp"
@@ -64,7 +64,7 @@ struct ImuSettings {
   std::string gpio_chip;            // data_ready: gpio
   int gpio_line = -1;
   UsbBridgeConfig usb;
-  iio::ImuConfig iio;  // type iio: Linux IIO devices (docs/drivers/iio.md)
+  iio::ImuConfig iio;               // type iio: Linux IIO devices (docs/drivers/iio.md)
 };
 
 struct StrobeSettings {
