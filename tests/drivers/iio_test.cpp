@@ -996,7 +996,9 @@ TEST(IioLiveSensors, TheImuThreadReadsTheConfiguredDevice) {
     ASSERT_EQ(tree.write_bytes(0, r, n), n);
     std::this_thread::sleep_for(std::chrono::milliseconds(5));
   }
-  std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  // The thread may be slow to wake on a loaded machine: wait for it, up to 2 s.
+  for (int k = 0; k < 200 && sink.n.load() < 80; ++k)
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
   live.stop();
   const std::string report = live.report();
   std::printf("[ figure ] %s", report.c_str());
