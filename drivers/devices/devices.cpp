@@ -261,14 +261,15 @@ DriverSettings driver_settings_from_yaml_node(const YAML::Node& root, const std:
     const std::string path = "drivers.imu";
     p.only(m, path,
            {"type", "acc_range_g", "acc_bandwidth_hz", "gyro_range_dps", "gyro_odr_hz", "gyro_bandwidth_hz",
-            "axis_remap", "i2c", "usb", "mavlink"});
+            "axis_remap", "i2c", "usb", "mavlink", "iio"});
     ImuSettings& is = d.imu;
     is.type = p.choice<ImuType>(m, "type", path, ImuType::kNone,
                                 {{"none", ImuType::kNone},
                                  {"bmx055_i2c", ImuType::kBmx055I2c},
                                  {"bmx055_usb", ImuType::kBmx055Usb},
                                  {"log", ImuType::kLog},
-                                 {"mavlink", ImuType::kMavlink}});
+                                 {"mavlink", ImuType::kMavlink},
+                                 {"iio", ImuType::kIio}});
     bmx055::Config& b = is.bmx055;
     using namespace bmx055;
     b.acc_range = pick_code<acc::Range>(p, path + ".acc_range_g", p.num(m, "acc_range_g", path, 16),
@@ -306,6 +307,7 @@ DriverSettings driver_settings_from_yaml_node(const YAML::Node& root, const std:
     is.usb.acc_range = b.acc_range;
     is.usb.gyro_range = b.gyro_range;
     is.usb.axis_remap = b.axis_remap;
+    is.iio.axis_remap = b.axis_remap;
     if (const YAML::Node i2c = m["i2c"]) {
       const std::string ip = path + ".i2c";
       p.only(i2c, ip, {"bus_device", "acc_i2c_addr", "gyro_i2c_addr", "mag_enabled", "mag_i2c_addr", "data_ready",
@@ -336,6 +338,53 @@ DriverSettings driver_settings_from_yaml_node(const YAML::Node& root, const std:
       is.usb.clock.latency_floor_ns = 1000 * p.integer(u, "latency_floor_us", up, 0, 0, 100'000);
       is.usb.read_timeout_ms = static_cast<int>(p.integer(u, "read_timeout_ms", up, 20, 1, 10'000));
       is.usb.no_data_timeout_ns = 1'000'000 * p.integer(u, "no_data_timeout_ms", up, 200, 1, 60'000);
+    }
+    // ---- Linux IIO (docs/drivers/iio.md) ----
+    if (const YAML::Node x = m["iio"]) {
+      const std::string xp = path + ".iio";
+      p.only(x, xp,
+             {"device", "accel_device", "gyro_device", "sysfs_root", "dev_root", "rate_hz", "accel_rate_hz",
+              "gyro_rate_hz", "timestamp_clock", "buffer_length_samples", "watermark_samples",
+              "read_timeout_ms", "stall_timeout_ms", "max_stamp_gap_ms", "latency_floor_us"});
+      iio::ImuConfig& c = is.iio;
+      c.device = p.str(x, "device", xp, c.device);
+      c.accel_device = p.str(x, "accel_device", xp, c.accel_device);
+      c.gyro_device = p.str(x, "gyro_device", xp, c.gyro_device);
+      c.sysfs_root = p.str(x, "sysfs_root", xp, c.sysfs_root);
+      c.dev_root = p.str(x, "dev_root", xp, c.dev_root);
+      const auto rel = [&](std::string& dir) {
+        const auto slash = where.rfind('/');
+        if (!dir.empty() && dir[0] != '/' && slash != std::string::npos)
+          dir = where.substr(0, slash + 1) + dir;
+      };
+      rel(c.sysfs_root);
+      rel(c.dev_root);
+      c.rate_hz = p.num(x, "rate_hz", xp, c.rate_hz);
+      c.accel_rate_hz = p.num(x, "accel_rate_hz", xp, c.accel_rate_hz);
+      c.gyro_rate_hz = p.num(x, "gyro_rate_hz", xp, c.gyro_rate_hz);
+      c.timestamp_clock = p.choice<std::string>(x, "timestamp_clock", xp, c.timestamp_clock,
+                                                {{"monotonic", "monotonic"},
+                                                 {"boottime", "boottime"},
+                                                 {"realtime", "realtime"},
+                                                 {"monotonic_raw", "monotonic_raw"},
+                                                 {"tai", "tai"}});
+      c.buffer_length_samples =
+          static_cast<int>(p.integer(x, "buffer_length_samples", xp, 512, 2, 1'000'000));
+      c.watermark_samples = static_cast<int>(p.integer(x, "watermark_samples", xp, 1, 1, 1'000'000));
+      c.read_timeout_ms = static_cast<int>(p.integer(x, "read_timeout_ms", xp, 20, 1, 10'000));
+      c.stall_timeout_ns = 1'000'000 * p.integer(x, "stall_timeout_ms", xp, 200, 1, 60'000);
+      c.max_stamp_gap_ns = 1'000'000 * p.integer(x, "max_stamp_gap_ms", xp, 1000, 1, 3'600'000);
+      c.clock.latency_floor_ns = 1000 * p.integer(x, "latency_floor_us", xp, 0, 0, 100'000);
+    }
+    if (is.type == ImuType::kIio) {
+      try {
+        is.iio.validate();
+      } catch (const std::invalid_argument& e) {
+        const std::string w = e.what();
+        const auto colon = w.find(": ");
+        p.fail(path + ".iio." + w.substr(0, colon),
+               colon == std::string::npos ? "invalid" : w.substr(colon + 2));
+      }
     }
     try {
       b.validate();
@@ -617,9 +666,9 @@ LiveConfig load_live_config(const std::string& path, const std::vector<std::stri
 
 std::string built_drivers_summary() {
   auto b = [](bool x) { return x ? "built" : "NOT built"; };
-  return std::string("v4l2 ") + b(v4l2::v4l2_built()) + ", openni2 " + b(openni2::openni2_built()) + ", libusb (IMU bridge) " +
-         b(libusb_built()) + ", i2c-dev (BMX055) " + b(i2c_dev_built()) + ", gpio-cdev (data-ready) " +
-         b(bmx055::gpio_cdev_built());
+  return std::string("v4l2 ") + b(v4l2::v4l2_built()) + ", openni2 " + b(openni2::openni2_built()) +
+         ", libusb (IMU bridge) " + b(libusb_built()) + ", i2c-dev (BMX055) " + b(i2c_dev_built()) +
+         ", gpio-cdev (data-ready) " + b(bmx055::gpio_cdev_built()) + ", iio (sysfs) built";
 }
 
 DeviceReport probe_devices() {
@@ -687,6 +736,16 @@ DeviceReport probe_devices() {
     r.found.push_back({"imu", "usb-bridge", s, "serial " + (u.serial.empty() ? std::string("?") : u.serial)});
   }
   if (!err.empty()) r.notes.push_back("usb: " + err);
+  // IIO: every device whose scan has accel or anglvel channels (sysfs reads only).
+  err.clear();
+  for (const auto& d : iio::list_devices(iio::kDefaultSysfsRoot, &err)) {
+    if (!d.has_accel && !d.has_gyro) continue;
+    std::string what = d.has_accel && d.has_gyro ? "accel + gyro" : d.has_accel ? "accel" : "gyro";
+    what +=
+        d.has_buffer && d.has_timestamp ? ", buffered with timestamps" : ", no buffer/timestamp (not usable)";
+    r.found.push_back({"imu", "iio", d.dir, "name \"" + d.name + "\" (" + what + ")"});
+  }
+  if (!err.empty()) r.notes.push_back("iio: " + err);
   return r;
 }
 
@@ -710,6 +769,7 @@ struct LiveSensors::Impl {
   LibusbEndpoint usb;
   std::unique_ptr<UsbBridgeDriver> bridge;
   std::unique_ptr<MavlinkImuDriver> mav;  // the flight controller's IMU
+  std::unique_ptr<iio::ImuDriver> iio_imu;
   StrobeRingSink strobes;
   // Cameras
   openni2::Camera oni;
@@ -794,6 +854,15 @@ LiveSensors::LiveSensors(const LiveConfig& cfg) : impl_(std::make_unique<Impl>()
         m.mav = std::make_unique<MavlinkImuDriver>(d.imu.mavlink, m.clock);
       } catch (const std::exception& e) {
         missing.push_back(std::string("IMU (flight controller over MAVLink): ") + e.what());
+      }
+      break;
+    }
+    case ImuType::kIio: {
+      m.iio_imu = std::make_unique<iio::ImuDriver>(m.clock, d.imu.iio);
+      const std::string e = m.iio_imu->open();
+      if (!e.empty()) {
+        missing.push_back("IMU (Linux IIO): " + e);
+        m.iio_imu.reset();
       }
       break;
     }
@@ -957,6 +1026,13 @@ void LiveSensors::Impl::imu_loop(ImuSink& sink) {
       } else {
         rt::sleep_until_ns(std::min(wake, rt::now_ns() + 100'000'000));
       }
+    } else if (iio_imu) {
+      // Blocks in poll() on the device nodes (read_timeout_ms at most).
+      const iio::ImuState st = iio_imu->step(sink);
+      if (st == iio::ImuState::kDisconnected || st == iio::ImuState::kClosed) {
+        rt::sleep_for_ns(1'000'000'000);
+        (void)iio_imu->open();  // retried every second until the device is back
+      }
     } else if (bridge) {
       if (bridge->step(sink, &strobes) == UsbBridgeState::kDisconnected) {
         rt::sleep_for_ns(1'000'000'000);
@@ -1110,7 +1186,7 @@ void LiveSensors::start(ImuSink& imu, FrameSink& frames) {
     m.thread_reports.emplace_back(spec, r);
     return;
   }
-  if (m.bmx || m.bridge || m.mav) {
+  if (m.bmx || m.bridge || m.mav || m.iio_imu) {
     const rt::ThreadSpec& spec = m.cfg.threads[PipelineThread::kImu];
     m.imu_thread = rt::start_thread(spec, [&m, &imu] { m.imu_loop(imu); }, &r);
     m.thread_reports.emplace_back(spec, r);
@@ -1147,7 +1223,8 @@ std::string LiveSensors::description() const {
        : d.imu.type == ImuType::kMavlink
            ? "flight controller over MAVLink (" + std::string(to_string(d.imu.mavlink.message)) + ", " +
                  (d.imu.mavlink.udp.empty() ? d.imu.mavlink.serial_device : d.imu.mavlink.udp) + ")"
-           : std::string("none");
+       : d.imu.type == ImuType::kIio && impl_->iio_imu ? "Linux IIO (" + impl_->iio_imu->description() + ")"
+                                                       : std::string("none");
   return s;
 }
 
@@ -1185,6 +1262,7 @@ std::string LiveSensors::report() const {
     s += b;
   }
   if (m.mav) s += m.mav->report();
+  if (m.iio_imu) s += m.iio_imu->report() + "\n";
   if (m.cfg.drivers.strobe.enabled) {
     std::snprintf(b, sizeof b, "strobes: %llu matched, %llu frames unmatched, residual camera offset %.3f ms\n",
                   (unsigned long long)m.matcher.matched(), (unsigned long long)m.matcher.unmatched_frames(),

@@ -22,6 +22,7 @@
 
 #include "kestrel/drivers/bmx055.hpp"
 #include "kestrel/drivers/clock_sync.hpp"
+#include "kestrel/drivers/iio_imu.hpp"
 #include "kestrel/drivers/klog.hpp"
 #include "kestrel/drivers/mavlink_imu.hpp"
 #include "kestrel/drivers/replay_source.hpp"
@@ -37,7 +38,7 @@ namespace kestrel::drivers {
 // tests of `kestrel run`). Camera stamps are handed out as the camera's clock
 // gave them (the log's offset taken back out), like a camera driver's.
 enum class CameraType { kNone, kOpenNi2, kV4l2, kLog, kD4xx };
-enum class ImuType { kNone, kBmx055I2c, kBmx055Usb, kLog, kMavlink };
+enum class ImuType { kNone, kBmx055I2c, kBmx055Usb, kLog, kMavlink, kIio };
 
 struct CameraSettings {
   CameraType type = CameraType::kNone;
@@ -86,6 +87,7 @@ struct ImuSettings {
   int gpio_line = -1;
   UsbBridgeConfig usb;
   MavlinkImuConfig mavlink;  // type: mavlink, the flight controller's IMU (docs/px4.md)
+  iio::ImuConfig iio;               // type iio: Linux IIO devices (docs/drivers/iio.md)
 };
 
 struct StrobeSettings {
