@@ -1,15 +1,17 @@
 // open_log(): one entry point for every recorded format.
+#include "kestrel/drivers/open_log.hpp"
+
 #include <cstring>
 #include <fstream>
 #include <optional>
 #include <stdexcept>
 
-#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/dataset_logs.hpp"
 #include "kestrel/drivers/folder_logs.hpp"
 #include "kestrel/drivers/klog.hpp"
 #include "kestrel/drivers/log_source.hpp"
 #include "kestrel/drivers/rig_yaml.hpp"
+#include "kestrel/drivers/rosbag2.hpp"
 #include "text_log.hpp"
 
 namespace kestrel::drivers {
@@ -31,6 +33,16 @@ RosbagTopics topics_of(const LogOpenOptions& o) {
   return t;
 }
 
+Rosbag2ReadOptions rosbag2_of(const LogOpenOptions& o) {
+  Rosbag2ReadOptions t;
+  t.rgb_topic = o.rgb_topic;
+  t.depth_topic = o.depth_topic;
+  t.imu_topic = o.imu_topic;
+  t.camera_info_topic = o.camera_info_topic;
+  t.ground_truth_topic = o.ground_truth_topic;
+  return t;
+}
+
 SevenScenesReader::Options seven_scenes(const LogOpenOptions& o) {
   SevenScenesReader::Options s;
   s.fps = o.fps;
@@ -48,10 +60,13 @@ LogFormat parse_log_format(const std::string& name) {
   if (name == "openloris") return LogFormat::kOpenLoris;
   if (name == "rosbag") return LogFormat::kRosbag;
   if (name == "7scenes") return LogFormat::kSevenScenes;
+  if (name == "rosbag2") return LogFormat::kRosbag2;
   throw std::runtime_error("unknown log format \"" + name + "\" (expected " + log_format_names() + ")");
 }
 
-const char* log_format_names() { return "auto, klog, euroc, tum, eth3d, openloris, rosbag, 7scenes"; }
+const char* log_format_names() {
+  return "auto, klog, euroc, tum, eth3d, openloris, rosbag, 7scenes, rosbag2";
+}
 
 std::unique_ptr<LogSource> open_log(const std::string& path, LogFormat format) {
   LogOpenOptions o;
@@ -71,23 +86,31 @@ std::unique_ptr<LogSource> open_log(const std::string& path, const LogOpenOption
     case LogFormat::kOpenLoris: return std::make_unique<OpenLorisReader>(path, r);
     case LogFormat::kRosbag: return std::make_unique<RosbagReader>(path, topics_of(opt), r);
     case LogFormat::kSevenScenes: return std::make_unique<SevenScenesReader>(path, r, seven_scenes(opt));
+    case LogFormat::kRosbag2:
+      return std::make_unique<Rosbag2Reader>(path, rosbag2_of(opt), r);
     case LogFormat::kAuto: break;
   }
   if (text::is_file(path)) {
     const bool ext = path.size() >= 5 && path.compare(path.size() - 5, 5, ".klog") == 0;
     if (ext || has_klog_magic(path)) return std::make_unique<KlogReader>(path);
     if (is_rosbag_file(path)) return std::make_unique<RosbagReader>(path, topics_of(opt), r);
-    throw std::runtime_error(path + ": not a .klog file (no KLOG magic), not a ROS bag (no #ROSBAG magic) and not a folder");
+    if (is_rosbag2(path)) return std::make_unique<Rosbag2Reader>(path, rosbag2_of(opt), r);
+    throw std::runtime_error(path +
+                             ": not a .klog file (no KLOG magic), not a ROS bag (no #ROSBAG magic), not an "
+                             "MCAP file and not a folder");
   }
   if (text::is_dir(path)) {
+    if (is_rosbag2(path)) return std::make_unique<Rosbag2Reader>(path, rosbag2_of(opt), r);
     if (is_euroc_folder(path)) return std::make_unique<EurocReader>(path);
     // ETH3D before TUM: both have rgb.txt.
     if (is_eth3d_folder(path)) return std::make_unique<Eth3dReader>(path, r);
     if (is_openloris_folder(path)) return std::make_unique<OpenLorisReader>(path, r);
     if (is_tum_folder(path)) return std::make_unique<TumReader>(path);
     if (is_sevenscenes_folder(path)) return std::make_unique<SevenScenesReader>(path, r, seven_scenes(opt));
-    throw std::runtime_error(path + ": unknown log folder (no mav0/, imu0/, imu0.csv, rgb.txt, color.txt, "
-                                    "calibration.txt or frame-000000.pose.txt)");
+    throw std::runtime_error(
+        path +
+        ": unknown log folder (no metadata.yaml, mav0/, imu0/, imu0.csv, rgb.txt, color.txt, "
+        "calibration.txt or frame-000000.pose.txt)");
   }
   throw std::runtime_error(path + ": no such file or folder");
 }

@@ -8,12 +8,13 @@
 
 #include "kestrel/commands.hpp"
 #include "kestrel/drivers/camera_time_shift.hpp"
-#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/dataset_logs.hpp"
 #include "kestrel/drivers/klog.hpp"
 #include "kestrel/drivers/log_export.hpp"
 #include "kestrel/drivers/log_source.hpp"
+#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/rig_yaml.hpp"
+#include "kestrel/drivers/rosbag2.hpp"
 #include "kestrel/recording.hpp"
 
 namespace kestrel::cli {
@@ -29,6 +30,8 @@ struct ConvertArgs {
   drivers::LogOpenOptions open;
   bool quiet = false;
   ImageCompressionArgs compression;
+  std::string mcap_compression = "zstd";
+  size_t mcap_chunk_bytes = 4u << 20;
 };
 
 bool ends_with(const std::string& s, const std::string& e) {
@@ -86,8 +89,12 @@ int run_convert(const ConvertArgs& a) {
       throw UsageError("--out " + a.out +
                        ": say the output format with --to (klog, eth3d, openloris, euroc, rosbag)");
   }
-  if (to != "klog" && to != "eth3d" && to != "openloris" && to != "euroc" && to != "rosbag")
-    throw UsageError("unknown --to '" + to + "' (expected klog, eth3d, openloris, euroc or rosbag)");
+  if (to != "klog" && to != "eth3d" && to != "openloris" && to != "euroc" && to != "rosbag" &&
+      to != "rosbag2")
+    throw UsageError("unknown --to '" + to + "' (expected klog, eth3d, openloris, euroc, rosbag or rosbag2)");
+  if (to == "rosbag2" && a.mcap_compression != "zstd" && a.mcap_compression != "lz4" &&
+      a.mcap_compression != "none")
+    throw UsageError("--mcap-compression " + a.mcap_compression + " (expected zstd, lz4 or none)");
   if (to == "rosbag" && !drivers::rosbag_built())
     throw std::runtime_error(
         "ROS bag support not built (tools/install-deps.sh installs librosbag-dev; reconfigure)");
@@ -95,10 +102,12 @@ int run_convert(const ConvertArgs& a) {
   std::unique_ptr<drivers::LogSource> src = drivers::open_log(a.in, o);
   const bool rig_used = o.format == drivers::LogFormat::kEth3d ||
                         o.format == drivers::LogFormat::kOpenLoris ||
-                        o.format == drivers::LogFormat::kRosbag || o.format == drivers::LogFormat::kSevenScenes ||
+                        o.format == drivers::LogFormat::kRosbag || o.format == drivers::LogFormat::kRosbag2 ||
+                        o.format == drivers::LogFormat::kSevenScenes ||
                         (o.format == drivers::LogFormat::kAuto &&
                          (src->format_name() == "eth3d" || src->format_name() == "openloris" ||
-                          src->format_name() == "rosbag" || src->format_name() == "7scenes"));
+                          src->format_name() == "rosbag" || src->format_name() == "rosbag2" ||
+                          src->format_name() == "7scenes"));
   if (!a.rig_path.empty() && !rig_used)
     std::fprintf(stderr, "kestrel convert: warning: --rig is ignored for %s input (it carries its own rig)\n",
                  src->format_name().c_str());
@@ -112,7 +121,18 @@ int run_convert(const ConvertArgs& a) {
     st = drivers::export_openloris(*src, a.out);
   else if (to == "euroc")
     st = drivers::export_euroc(*src, a.out);
-  else {
+  else if (to == "rosbag2") {
+    drivers::Rosbag2WriteOptions w;
+    if (!o.rgb_topic.empty()) w.topics.rgb = o.rgb_topic;
+    if (!o.depth_topic.empty()) w.topics.depth = o.depth_topic;
+    if (!o.imu_topic.empty()) w.topics.imu = o.imu_topic;
+    if (!o.camera_info_topic.empty()) w.topics.camera_info = o.camera_info_topic;
+    if (!o.ground_truth_topic.empty()) w.topics.ground_truth = o.ground_truth_topic;
+    w.mcap.compression = a.mcap_compression == "none" ? "" : a.mcap_compression;
+    w.mcap.chunk_size_bytes = a.mcap_chunk_bytes;
+    const drivers::Rosbag2Stats r = drivers::export_rosbag2(*src, a.out, w);
+    st.imu = r.imu, st.rgb = r.rgb, st.depth = r.depth, st.ground_truth = r.ground_truth;
+  } else {
     drivers::RosbagTopics t;
     if (!o.rgb_topic.empty()) t.rgb = o.rgb_topic;
     if (!o.depth_topic.empty()) t.depth = o.depth_topic;
@@ -151,19 +171,27 @@ Subcommand add_convert_command(CLI::App& parent) {
       "  kestrel convert ~/eth3d/sofa_1 --out sofa_1.klog\n"
       "  kestrel convert d435i.bag --out d435i.klog --rig configs/my_d435i.yaml\n"
       "  kestrel convert sim.klog --to eth3d --out sim_eth3d/ --rig-out sim_rig.yaml\n"
+      "  kestrel convert sim.klog --to rosbag2 --out sim_ros2/   (ros2 bag play sim_ros2)\n"
       "Formats, columns, units and frames: docs/datasets.md");
   app->add_option("input", a->in, "a .klog, ROS bag, or EuRoC / TUM / ETH3D / OpenLORIS / 7-Scenes folder")->required();
   app->add_option("--out", a->out, "output: OUT.klog (default), OUT.bag, or a folder with --to")->required();
   app->add_option("--format", a->format, std::string("input format: ") + drivers::log_format_names())
       ->capture_default_str();
   app->add_option("--to", a->to,
-                  "output format: klog, eth3d, openloris, euroc, rosbag (default: from --out)");
+                  "output format: klog, eth3d, openloris, euroc, rosbag, rosbag2 (default: from --out)");
+  app->add_option("--mcap-compression", a->mcap_compression,
+                  "rosbag2: MCAP chunk compression (zstd, lz4, none)")
+      ->capture_default_str();
+  app->add_option("--mcap-chunk-bytes", a->mcap_chunk_bytes,
+                  "rosbag2: uncompressed bytes per MCAP chunk (0 = unchunked)")
+      ->capture_default_str();
   app->add_option("--rig", a->rig_path,
                   "rig YAML for calibration the dataset lacks (ETH3D, OpenLORIS, 7-Scenes, rosbag)");
   app->add_option("--rig-out", a->rig_out, "also write the resulting rig as YAML here");
   app->add_option("--fps", a->open.fps, "7-Scenes: the frame rate its time stamps are made from (frame i at i / fps)")
       ->capture_default_str();
-  app->add_option("--rgb-topic", a->open.rgb_topic, "rosbag colour topic (default /camera/color/image_raw)");
+  app->add_option("--rgb-topic", a->open.rgb_topic,
+                  "rosbag / rosbag2 colour topic (default /camera/color/image_raw)");
   app->add_option("--depth-topic", a->open.depth_topic,
                   "rosbag depth topic (default /camera/aligned_depth_to_color/image_raw)");
   app->add_option("--imu-topic", a->open.imu_topic, "rosbag IMU topic (default /camera/imu)");

@@ -3,14 +3,15 @@
 #include <fstream>
 #include <iostream>
 
-#include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/commands.hpp"
-#include "kestrel/drivers/open_log.hpp"
+#include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/drivers/devices.hpp"
+#include "kestrel/drivers/open_log.hpp"
+#include "kestrel/mcap_out.hpp"
 #include "kestrel/replay_runner.hpp"
-#include "kestrel/view_cli.hpp"
 #include "kestrel/tools/estimator_config_yaml.hpp"
 #include "kestrel/tools/map_files.hpp"
+#include "kestrel/view_cli.hpp"
 
 namespace kestrel::cli {
 
@@ -34,6 +35,7 @@ Subcommand add_replay_command(CLI::App& parent) {
     std::string mapping, loop;
     std::string map_traj_out, map_final_traj_out;
     std::string map_in, map_out;
+    std::string mcap_out;
   };
   auto args = std::make_shared<Args>();
   CLI::App* app = parent.add_subcommand("replay", "play a recorded log through the estimator (HIL harness)");
@@ -83,6 +85,8 @@ Subcommand add_replay_command(CLI::App& parent) {
   app->add_option("--map-in", args->map_in,
                   "start from this map file (a flight's --map-out): the flight maps nothing until it relocalises in "
                   "it, then goes on in its frame (docs/map.md)");
+  app->add_option("--mcap-out", args->mcap_out,
+                  "write the poses here as nav_msgs/msg/Odometry in MCAP (ROS 2, Foxglove; docs/ros2.md)");
   app->add_option("--map-out", args->map_out, "write the map here at the end (versioned, CRC-checked; docs/map.md)");
   app->add_option("--metrics-out", args->metrics_out,
                   "write latency histograms, drops, counters, CPU, RSS, real-time factor as JSON");
@@ -170,7 +174,9 @@ Subcommand add_replay_command(CLI::App& parent) {
                                                                    : "";
       if (!flag.empty()) throw UsageError(flag + ": the backend '" + est.name() + "' runs without a map");
     };
+    const auto mcap = add_mcap_out(opt, args->mcap_out);
     ReplayReport r = run_replay(opt);
+    if (mcap) mcap->close();
     r.config = tools::estimator_config_entries(*opt.config);
     if (!args->traj_out.empty()) tools::write_tum(args->traj_out, r.trajectory);
     if (!args->map_traj_out.empty()) {
@@ -193,6 +199,7 @@ Subcommand add_replay_command(CLI::App& parent) {
       if (!args->traj_out.empty()) std::cout << "trajectory: " << args->traj_out << "\n";
       if (!args->metrics_out.empty()) std::cout << "metrics: " << args->metrics_out << "\n";
       if (!args->map_out.empty()) std::cout << "map: " << args->map_out << "\n";
+      if (mcap) std::cout << "mcap: " << args->mcap_out << " (" << mcap->count() << " odometry messages)\n";
     }
     return 0;
   };

@@ -18,6 +18,7 @@
 #include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/drivers/devices.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"
+#include "kestrel/mcap_out.hpp"
 #include "kestrel/recording.hpp"
 #include "kestrel/replay_runner.hpp"
 #include "kestrel/rt/clock.hpp"
@@ -46,6 +47,7 @@ struct RunArgs {
   bool print_config = false;
   std::string mapping, loop;
   std::string map_in, map_out;
+  std::string mcap_out;
 };
 
 // Latency statistics start after this much sample time (start-up is not steady state).
@@ -94,7 +96,9 @@ int run_log_through_replay(const RunArgs& a, const drivers::LiveConfig& cfg,
   std::printf("running %s at %s pace through the replay pipeline -> estimator '%s'\n",
               cfg.drivers.log_path.c_str(), drivers::to_string(cfg.drivers.log_pace),
               est_cfg.backend.c_str());
+  const auto mcap = add_mcap_out(opt, a.mcap_out);
   ReplayReport r = run_replay(opt);
+  if (mcap) mcap->close();
   r.config = tools::estimator_config_entries(est_cfg);
   std::printf("%s", replay_summary(r).c_str());
   for (const auto& p : r.problems)
@@ -104,6 +108,9 @@ int run_log_through_replay(const RunArgs& a, const drivers::LiveConfig& cfg,
     std::printf("trajectory: %s (%zu poses)\n", a.traj_out.c_str(), r.trajectory.size());
   }
   if (!a.map_out.empty()) std::printf("map: %s\n", a.map_out.c_str());
+  if (mcap)
+    std::printf("mcap: %s (%llu odometry messages)\n", a.mcap_out.c_str(),
+                static_cast<unsigned long long>(mcap->count()));
   return 0;
 }
 
@@ -125,6 +132,8 @@ Subcommand add_run_command(CLI::App& parent) {
   app->add_option("--loop", a->loop, "on|off: loop closing and relocalisation (default on)");
   app->add_option("--map-in", a->map_in,
                   "start from this map file: nothing is mapped until the camera relocalises in it (docs/map.md)");
+  app->add_option("--mcap-out", a->mcap_out,
+                  "write the poses here as nav_msgs/msg/Odometry in MCAP (ROS 2, Foxglove; docs/ros2.md)");
   app->add_option("--map-out", a->map_out, "write the map here when the run stops (docs/map.md)");
   app->add_option("--mavlink-udp", a->mavlink_udp,
                   "MAVLink v2 to the flight controller at HOST:PORT: ODOMETRY per pose, HEARTBEAT 1 Hz, TIMESYNC "
@@ -233,12 +242,14 @@ Subcommand add_run_command(CLI::App& parent) {
     g_run_stop.store(false);
     std::signal(SIGINT, run_on_signal);
     std::signal(SIGTERM, run_on_signal);
+    const auto mcap = add_mcap_out(opt, a->mcap_out);
     ReplayReport r;
     try {
       r = run_replay(opt);
     } catch (const std::invalid_argument& e) {
       throw UsageError(e.what());
     }
+    if (mcap) mcap->close();
     std::signal(SIGINT, SIG_DFL);
     std::signal(SIGTERM, SIG_DFL);
     r.config = tools::estimator_config_entries(est_cfg);
@@ -256,6 +267,9 @@ Subcommand add_run_command(CLI::App& parent) {
       std::printf("trajectory: %s (%zu poses)\n", a->traj_out.c_str(), r.trajectory.size());
     }
     if (!a->map_out.empty()) std::printf("map: %s\n", a->map_out.c_str());
+    if (mcap)
+      std::printf("mcap: %s (%llu odometry messages)\n", a->mcap_out.c_str(),
+                  static_cast<unsigned long long>(mcap->count()));
     return 0;
   };
   return s;

@@ -9,7 +9,7 @@
 
 namespace kestrel::drivers {
 
-enum class LogFormat { kAuto, kKlog, kEuroc, kTum, kEth3d, kOpenLoris, kRosbag, kSevenScenes };
+enum class LogFormat { kAuto, kKlog, kEuroc, kTum, kEth3d, kOpenLoris, kRosbag, kSevenScenes, kRosbag2 };
 
 // How to open a log beyond its path (docs/datasets.md).
 struct LogOpenOptions {
@@ -19,11 +19,13 @@ struct LogOpenOptions {
   std::string rig_path;
   // 7-Scenes has no time stamps: frame i is at i / fps.
   double fps = 30.0;
-  // ROS bag topics ("" = the RealSense D435i defaults of RosbagTopics).
+  // ROS bag topics ("" = the RealSense D435i defaults of RosbagTopics; for
+  // rosbag2, "" = found by message type).
   std::string rgb_topic, depth_topic, imu_topic, camera_info_topic, ground_truth_topic;
 };
 
-// Opens `path` as `format` (kAuto: a .klog file, a ROS 1 bag, an EuRoC ASL
+// Opens `path` as `format` (kAuto: a .klog file, a ROS 1 bag, a rosbag2
+// folder (metadata.yaml) or .mcap file, an EuRoC ASL
 // folder with mav0/ or imu0/, an ETH3D folder (rgb.txt + calibration.txt,
 // associated.txt or imu.txt), an OpenLORIS folder (color.txt,
 // d400_accelerometer.txt, or sensors.yaml + trans_matrix.yaml), a 7-Scenes
@@ -33,8 +35,9 @@ struct LogOpenOptions {
 std::unique_ptr<LogSource> open_log(const std::string& path, LogFormat format = LogFormat::kAuto);
 std::unique_ptr<LogSource> open_log(const std::string& path, const LogOpenOptions& options);
 
-// "auto", "klog", "euroc", "tum", "eth3d", "openloris", "rosbag", "7scenes"; throws on unknown names.
+// "auto", "klog", "euroc", "tum", "eth3d", "openloris", "rosbag", "7scenes", "rosbag2"; throws on unknown
+// names.
 LogFormat parse_log_format(const std::string& name);
-const char* log_format_names();   // "auto, klog, euroc, tum, eth3d, openloris, rosbag, 7scenes"
+const char* log_format_names();  // "auto, klog, euroc, tum, eth3d, openloris, rosbag, 7scenes, rosbag2"
 
 }  // namespace kestrel::drivers
