@@ -549,9 +549,14 @@ RealSenseImport import_realsense_text(const std::string& text, const std::string
                       " from the base rig (frames and IMU share the D4xx clock; docs/realsense.md)");
   out.notes.push_back("camera.rate_hz " + fmt(rig.camera_rate_hz) + ", gravity " + fmt(rig.gravity_mps2) +
                       " m/s^2, IMU ranges, acc_bias_tau_s: from the base rig");
-  if (rig.name.empty() || rig.name == base.name)
+  if (rig.name.empty() || rig.name == base.name) {
     rig.name = (d.device_name.empty() ? std::string("realsense") : d.device_name) +
                (d.serial.empty() ? std::string() : " " + d.serial);
+    // The name is the dump's text: only printable ASCII survives the rig
+    // YAML's round trip as it is (found by fuzz_realsense_dump).
+    for (char& c : rig.name)
+      if (static_cast<unsigned char>(c) < 0x20 || static_cast<unsigned char>(c) > 0x7e) c = '?';
+  }
   try {
     rig_from_yaml(rig_to_yaml(rig), "the imported rig");
   } catch (const std::runtime_error& e) {
