@@ -97,7 +97,12 @@ int run_log_through_replay(const RunArgs& a, const drivers::LiveConfig& cfg,
               cfg.drivers.log_path.c_str(), drivers::to_string(cfg.drivers.log_pace),
               est_cfg.backend.c_str());
   const auto mcap = add_mcap_out(opt, a.mcap_out);
-  ReplayReport r = run_replay(opt);
+  ReplayReport r;
+  try {
+    r = run_replay(opt);
+  } catch (const std::invalid_argument& e) {
+    throw UsageError(e.what());
+  }
   if (mcap) mcap->close();
   r.config = tools::estimator_config_entries(est_cfg);
   std::printf("%s", replay_summary(r).c_str());
@@ -192,6 +197,7 @@ Subcommand add_run_command(CLI::App& parent) {
     opt.pace = drivers::ReplayPace::kRealtime;
     opt.warmup_ns = kWarmupNs;
     opt.status_line = true;
+    opt.camera_silent_after_ns = 150'000'000;
     // --record: every sample also goes to the recorder (its own rings and disk
     // thread), with the stamps the drivers gave it, so the flight replays.
     std::unique_ptr<drivers::KlogLogger> recorder;

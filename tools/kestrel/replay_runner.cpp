@@ -181,8 +181,17 @@ class EstimatorStage {
         // still come before this frame; an IMU that stopped in flight must
         // not hold the camera back), and never starts for a log without an
         // IMU (the rgbd backend).
+        // Live, it also ends after opt_.max_frame_wait_for_imu_ns on the wall
+        // clock: an IMU that stopped must not hold the last frame either.
+        bool waited_enough = false;
+        if (opt_.live) {
+          const int64_t now = rt::now_ns();
+          if (frame_wait_since_ns_ < 0) frame_wait_since_ns_ = now;
+          waited_enough = now - frame_wait_since_ns_ >= opt_.max_frame_wait_for_imu_ns;
+        }
         if (s != nullptr || lockstep || feeder_done || last_imu_t_ns_ >= f->t_ns || !has_imu_ ||
-            rings_.frames.size() > 1) {
+            rings_.frames.size() > 1 || waited_enough) {
+          frame_wait_since_ns_ = -1;
           on_frame(*f);
           rings_.frames.pop();
           took = true;
@@ -302,7 +311,8 @@ class EstimatorStage {
     if (latency > imu_max_since_frame_ns_) imu_max_since_frame_ns_ = latency;
     for (int i = 0; i < 3; ++i) last_gyro_rps_[i] = s.gyro_rps[i];
     // Without a camera the trajectory is sampled from the IMU-rate output.
-    const bool camera_silent = last_frame_t_ns_ < 0 || s.t_ns - last_frame_t_ns_ > 1'000'000'000;
+    const bool camera_silent =
+        last_frame_t_ns_ < 0 || s.t_ns - last_frame_t_ns_ > opt_.camera_silent_after_ns;
     if (camera_silent && (last_out_t_ns_ < 0 || s.t_ns - last_out_t_ns_ >= opt_.imu_only_output_period_ns)) {
       emit(est_.output());
     }
@@ -391,6 +401,7 @@ class EstimatorStage {
   ReplayReport& report_;
   viewer::ViewerFeed* feed_;
   MapThreads* map_ = nullptr;
+  int64_t frame_wait_since_ns_ = -1;  // live: when the frame at the front began waiting for the IMU
   int64_t imu_max_since_frame_ns_ = 0;
   int64_t frame_period_ns_ = 0;
   int64_t imu_gap_ns_ = 50'000'000;
@@ -830,7 +841,13 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   report.loop_cpu_s = map_threads.loop_cpu_s();
   const int64_t wall1 = rt::now_ns();
 
-  if (source) report.replay = source->stats();
+  if (source) {
+    report.replay = source->stats();
+  } else {
+    // Live: what the estimator was handed (the drivers' own counts are in their report).
+    report.replay.imu_pushed = estimator.counters().imu_in;
+    report.replay.frames_pushed = estimator.counters().frames_in;
+  }
   if (const rt::LatencyHistogram* h = estimator.mapping_latency()) report.mapping = *h;
   if (const rt::LatencyHistogram* h = estimator.loop_latency()) report.loop = *h;
   report.estimator_counters = estimator.counters();

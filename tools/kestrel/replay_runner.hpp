@@ -150,6 +150,13 @@ struct ReplayOptions {
   int64_t warmup_ns = 2'000'000'000;
   // Logs without camera records still get a trajectory, at this period.
   int64_t imu_only_output_period_ns = 50'000'000;
+  // ... once the camera has been silent this long: 1 s in replay (a log without
+  // a camera); `kestrel run` sets 150 ms, so a flight controller keeps getting
+  // ODOMETRY through a short camera dropout.
+  int64_t camera_silent_after_ns = 1'000'000'000;
+  // Live input only: a frame waits at most this long (wall clock) for the IMU
+  // up to its time, so an IMU that stopped cannot hold the camera back.
+  int64_t max_frame_wait_for_imu_ns = 50'000'000;
   // Called on the output thread for every pose (not the estimator thread: it
   // may block or allocate).
   std::function<void(const PoseSample&)> on_pose;
