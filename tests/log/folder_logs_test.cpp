@@ -385,7 +385,8 @@ TEST(OpenLog, DetectsFormatsAndRejectsUnknownOnes) {
   EXPECT_EQ(drivers::parse_log_format("klog"), drivers::LogFormat::kKlog);
   EXPECT_EQ(drivers::parse_log_format("euroc"), drivers::LogFormat::kEuroc);
   EXPECT_EQ(drivers::parse_log_format("tum"), drivers::LogFormat::kTum);
-  EXPECT_THROW(drivers::parse_log_format("rosbag2"), std::runtime_error);   // ROS 2 bags: not read
+  EXPECT_EQ(drivers::parse_log_format("rosbag2"), drivers::LogFormat::kRosbag2);
+  EXPECT_THROW(drivers::parse_log_format("hdf5"), std::runtime_error);
   const std::string dir = temp_dir("open_log");
   try {
     drivers::open_log(dir);
