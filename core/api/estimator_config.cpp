@@ -243,6 +243,14 @@ void visit_map(MapSystemOptions& m, OptionVisitor& v) {
   v.value("loop_inlier_m", l.inlier_m, "3D-3D inlier distance, plus 3 sigma of the depth");
   v.value("loop_min_inliers", l.min_inliers, "inliers a loop needs");
   v.value("loop_min_inlier_share", l.min_inlier_share, "... and this share of the matches");
+  v.value("loop_min_seed_inliers", l.min_seed_inliers,
+          "descriptor matches need this many 3D inliers to seed a correction, which the guided search then "
+          "extends (docs/map.md)");
+  v.value("loop_guided_radius_px", l.guided_radius_px,
+          "guided search: the place projected with the seed's correction, matched within this x the level's "
+          "scale (0: off; the seed must carry loop_min_inliers)");
+  v.value("loop_place_features", l.place_features,
+          "the candidate keyframe's depth-backed features without a map point are matched too");
   v.value(
       "loop_refine_chi2", l.refine_chi2,
       "after the 3D fit, a 4-DoF refit on pixels and depths with their noise; its inliers (whitened error "

@@ -22,6 +22,8 @@ std::string LoopOptions::validate() const {
   if (min_inliers < 3) e << "  loop_min_inliers must be >= 3\n";
   if (!(min_inlier_share >= 0 && min_inlier_share <= 1)) e << "  loop_min_inlier_share must be in [0, 1]\n";
   if (ransac_iterations < 1) e << "  loop_ransac_iterations must be >= 1\n";
+  if (min_seed_inliers < 3) e << "  loop_min_seed_inliers must be >= 3\n";
+  if (!(guided_radius_px >= 0)) e << "  loop_guided_radius_px must be >= 0\n";
   if (!(min_out_of_plane_m >= 0)) e << "  loop_min_out_of_plane_m must be >= 0\n";
   if (!(min_correction_chi2 >= 0)) e << "  loop_min_correction_chi2 must be >= 0\n";
   if (!(inlier_m > 0)) e << "  loop_inlier_m must be > 0\n";
@@ -122,12 +124,17 @@ bool LoopCloser::detect(int kf, LoopMatch* out) {
                           std::min(opt_.max_candidates, 16), cands);
   stats_.candidates += static_cast<uint64_t>(n);
   bool found = false;
+  chosen_record_ = -1;
   for (int c = 0; c < n; ++c) {
     LoopMatch m;
     if (!verify(kf, cands[c].keyframe, cands[c].score, &m)) continue;
-    if (!found || m.inliers > out->inliers) *out = std::move(m);
+    if (!found || m.inliers > out->inliers) {
+      *out = std::move(m);
+      if (logging_) chosen_record_ = static_cast<int64_t>(log_.candidates.size()) - 1;
+    }
     found = true;
   }
+  if (chosen_record_ >= 0) log_.candidates[static_cast<size_t>(chosen_record_)].chosen = true;
   if (found) ++stats_.verified;
   return found;
 }
@@ -139,6 +146,8 @@ PlaceMatcher::PlaceMatcher(Map& map, const MapCamera& cam) : map_(map), cam_(cam
 
 PlaceMatcher::Result PlaceMatcher::match(const KeyframeFeature* f, int n, const Eigen::Isometry3d& T_MC, int cand,
                                          const LoopOptions& opt, uint64_t seed, PlaceFit* out) {
+  out->place_points = out->matches = out->ransac_inliers = out->guided_matches = out->inliers = 0;
+  out->failed = LoopVerdict::kFewPoints;
   // The candidate's place: its points and those of its closest connected
   // keyframes. With connected_min_shared > 1 not any covisible one: fusing
   // links the place to the keyframes flown since by a point or two, and their
@@ -147,7 +156,8 @@ PlaceMatcher::Result PlaceMatcher::match(const KeyframeFeature* f, int n, const 
   const int nn = map_.covisible(cand, opt.connected_min_shared, opt.candidate_neighbours, kf_scratch_.data(),
                                 shared_scratch_.data());
   const uint64_t mark = map_.next_mark();
-  pts_.clear();
+  const double floor_m = map_.options().point_sigma_floor_m;
+  targets_.clear();
   for (int i = -1; i < nn; ++i) {
     const int k = i < 0 ? cand : kf_scratch_[i];
     const MapKeyframe& N = map_.keyframe(k);
@@ -155,53 +165,154 @@ PlaceMatcher::Result PlaceMatcher::match(const KeyframeFeature* f, int n, const 
       const int32_t p = map_.point_of(k, j);
       if (p < 0 || map_.point(p).mark == mark) continue;
       map_.point(p).mark = mark;
-      pts_.push_back(p);
+      const MapPoint& P = map_.point(p);
+      targets_.push_back({P.p_M, &P.desc, p, point_sigma_m(cam_, P, floor_m), P.level});
     }
   }
-  if (static_cast<int>(pts_.size()) < opt.min_inliers) return kFewPoints;
-  // Descriptor matches of the depth-backed features, best two with the ratio test.
+  // The candidate's own depth-backed features that the map keeps no point
+  // for (culled, or never seen twice): RGB-D measured them, and most of a
+  // keyframe is such features (the map keeps the points seen again, a small
+  // share of what a view holds), so without them a revisit from another
+  // angle rarely finds enough matches.
+  if (opt.place_features) {
+    const MapKeyframe& C = map_.keyframe(cand);
+    for (int j = 0; j < C.n; ++j) {
+      const KeyframeFeature& g = map_.feature(cand, j);
+      if (map_.point_of(cand, j) >= 0 || g.depth_m <= 0) continue;
+      targets_.push_back({C.T_MC * cam_.point_C(g), &g.desc, -1,
+                          std::max(floor_m, cam_.sigma_depth_m(g.depth_m)), g.level});
+    }
+  }
+  out->place_points = static_cast<int>(targets_.size());
+  const int seed_min = std::min(opt.min_seed_inliers, opt.min_inliers);
+  if (out->place_points < seed_min) return kFewInliers;
+  // Descriptor matches of the depth-backed features, best two with the ratio
+  // test; a second best within a few cm of the best is the same place seen
+  // twice (a point and the feature it came from), not an ambiguity.
   std::vector<Eigen::Vector3d> q, p;
   std::vector<double> thr;
-  std::vector<std::pair<int, int>> pairs;
+  Pairs pairs;
+  const auto add_pair = [&](int j, int t) {
+    q.push_back(T_MC * cam_.point_C(f[j]));
+    p.push_back(targets_[static_cast<size_t>(t)].p_M);
+    thr.push_back(opt.inlier_m + 3.0 * cam_.sigma_depth_m(f[j].depth_m));
+    pairs.emplace_back(j, t);
+  };
+  const int nt = static_cast<int>(targets_.size());
+  dist_.resize(static_cast<size_t>(nt));
   for (int j = 0; j < n; ++j) {
     if (f[j].depth_m <= 0) continue;
-    BestTwoMatches bt;
-    for (int32_t pt : pts_) bt.offer(hamming_distance(f[j].desc, map_.point(pt).desc), pt);
-    if (bt.best_index < 0 || bt.best > opt.match_max_hamming || !bt.passes_ratio(static_cast<float>(opt.match_ratio)))
-      continue;
-    const int32_t arg = bt.best_index;
-    q.push_back(T_MC * cam_.point_C(f[j]));
-    p.push_back(map_.point(arg).p_M);
-    thr.push_back(opt.inlier_m + 3.0 * cam_.sigma_depth_m(f[j].depth_m));
-    pairs.emplace_back(j, arg);
+    int best = BestTwoMatches::kNone, arg = -1;
+    for (int t = 0; t < nt; ++t) {
+      dist_[static_cast<size_t>(t)] = hamming_distance(f[j].desc, *targets_[static_cast<size_t>(t)].desc);
+      if (dist_[static_cast<size_t>(t)] < best) {
+        best = dist_[static_cast<size_t>(t)];
+        arg = t;
+      }
+    }
+    if (arg < 0 || best > opt.match_max_hamming) continue;
+    int second = BestTwoMatches::kNone;
+    const Eigen::Vector3d& pb = targets_[static_cast<size_t>(arg)].p_M;
+    for (int t = 0; t < nt; ++t)
+      if (t != arg && dist_[static_cast<size_t>(t)] < second &&
+          (targets_[static_cast<size_t>(t)].p_M - pb).squaredNorm() > kSamePlace_m * kSamePlace_m)
+        second = dist_[static_cast<size_t>(t)];
+    if (second != BestTwoMatches::kNone && !(best < opt.match_ratio * second)) continue;
+    add_pair(j, arg);
   }
-  const int m = static_cast<int>(q.size());
-  if (m < opt.min_inliers) return kFewInliers;
+  out->matches = static_cast<int>(q.size());
+  out->failed = LoopVerdict::kFewMatches;
+  if (out->matches < seed_min) return kFewInliers;
   // 4-DoF RANSAC: two matches fix yaw and translation. Seeded by the caller
   // (keyframe ids), so a replay finds the same places.
   std::mt19937_64 rng(seed);
   std::vector<int> best_in, in;
   auto inliers_of = [&](const Eigen::Isometry3d& T, std::vector<int>& set) {
     set.clear();
-    for (int i = 0; i < m; ++i)
-      if ((T * q[i] - p[i]).norm() < thr[i]) set.push_back(i);
+    for (size_t i = 0; i < q.size(); ++i)
+      if ((T * q[i] - p[i]).norm() < thr[i]) set.push_back(static_cast<int>(i));
   };
+  const int m0 = out->matches;
   for (int it = 0; it < opt.ransac_iterations; ++it) {
-    const int a = static_cast<int>(rng() % static_cast<uint64_t>(m));
-    const int b = static_cast<int>(rng() % static_cast<uint64_t>(m));
+    const int a = static_cast<int>(rng() % static_cast<uint64_t>(m0));
+    const int b = static_cast<int>(rng() % static_cast<uint64_t>(m0));
     if (a == b || (q[a] - q[b]).head<2>().norm() < 0.1 || (p[a] - p[b]).head<2>().norm() < 0.1) continue;
     const Eigen::Isometry3d T = fit_4dof(q, p, {a, b});
     inliers_of(T, in);
     if (in.size() > best_in.size()) best_in.swap(in);
   }
-  if (static_cast<int>(best_in.size()) < opt.min_inliers) return kFewInliers;
+  out->ransac_inliers = static_cast<int>(best_in.size());
+  out->failed = LoopVerdict::kFewInliers;
+  if (out->ransac_inliers < seed_min) return kFewInliers;
   Eigen::Isometry3d T = fit_4dof(q, p, best_in);
   for (int round = 0; round < 2; ++round) {
     inliers_of(T, in);
-    if (static_cast<int>(in.size()) < opt.min_inliers) break;
+    if (static_cast<int>(in.size()) < seed_min) break;
     T = fit_4dof(q, p, in);
   }
   inliers_of(T, in);
+  out->ransac_inliers = static_cast<int>(in.size());
+  if (out->ransac_inliers < seed_min || in.size() < opt.min_inlier_share * m0) return kFewInliers;
+  // Guided search: the seed's correction puts the place's targets in the
+  // query image; each is matched to the features around where it lands, at
+  // a consistent depth. The descriptors alone match few targets of a place
+  // seen from another angle (every target competes with every other); where
+  // the geometry already says where to look, most of them are found.
+  if (opt.guided_radius_px > 0) {
+    std::vector<char> taken(static_cast<size_t>(n), 0), target_taken(static_cast<size_t>(nt), 0);
+    std::vector<std::pair<int, int>> kept;  // (feature, target) of the seed's inliers
+    for (int i : in) kept.push_back(pairs[static_cast<size_t>(i)]);
+    for (const auto& [j, t] : kept) {
+      taken[static_cast<size_t>(j)] = 1;
+      target_taken[static_cast<size_t>(t)] = 1;
+    }
+    const Eigen::Isometry3d T_CM = (T * T_MC).inverse();
+    // Per feature: the best target found for it and its distance.
+    std::vector<int> claim(static_cast<size_t>(n), -1), claim_dist(static_cast<size_t>(n), BestTwoMatches::kNone);
+    for (int t = 0; t < nt; ++t) {
+      if (target_taken[static_cast<size_t>(t)]) continue;
+      const Target& tg = targets_[static_cast<size_t>(t)];
+      const Eigen::Vector3d c = T_CM * tg.p_M;
+      if (c.z() < 0.1) continue;
+      const double u = cam_.K.fx * c.x() / c.z() + cam_.K.cx, v = cam_.K.fy * c.y() / c.z() + cam_.K.cy;
+      if (u < 0 || v < 0 || u >= cam_.width || v >= cam_.height) continue;
+      BestTwoMatches bt;
+      for (int j = 0; j < n; ++j) {
+        if (taken[static_cast<size_t>(j)] || f[j].depth_m <= 0) continue;
+        const double r = opt.guided_radius_px * std::pow(cam_.level_scale, f[j].level);
+        if (std::abs(f[j].u_px - u) > r || std::abs(f[j].v_px - v) > r) continue;
+        if (std::abs(c.z() - f[j].depth_m) > opt.inlier_m + 3.0 * cam_.sigma_depth_m(f[j].depth_m)) continue;
+        bt.offer(hamming_distance(f[j].desc, *tg.desc), j);
+      }
+      if (bt.best_index < 0 || bt.best > opt.match_max_hamming ||
+          !bt.passes_ratio(static_cast<float>(opt.match_ratio)))
+        continue;
+      const size_t j = static_cast<size_t>(bt.best_index);
+      if (bt.best < claim_dist[j]) {
+        claim_dist[j] = bt.best;
+        claim[j] = t;
+      }
+    }
+    q.clear();
+    p.clear();
+    thr.clear();
+    pairs.clear();
+    for (const auto& [j, t] : kept) add_pair(j, t);
+    for (int j = 0; j < n; ++j)
+      if (claim[static_cast<size_t>(j)] >= 0) add_pair(j, claim[static_cast<size_t>(j)]);
+    out->guided_matches = static_cast<int>(pairs.size() - kept.size());
+    T = fit_4dof(q, p, [&] {
+      std::vector<int> all(q.size());
+      for (size_t i = 0; i < all.size(); ++i) all[i] = static_cast<int>(i);
+      return all;
+    }());
+    inliers_of(T, in);
+    if (!in.empty()) T = fit_4dof(q, p, in);
+    inliers_of(T, in);
+  }
+  const int m = static_cast<int>(q.size());
+  out->inliers = static_cast<int>(in.size());
+  out->failed = LoopVerdict::kFewRefitInliers;
   if (static_cast<int>(in.size()) < opt.min_inliers || in.size() < opt.min_inlier_share * m) return kFewInliers;
   if (opt.refine_chi2 > 0) {
     // The 3D fit weighs every point alike and its gate admits several cm at
@@ -212,6 +323,7 @@ PlaceMatcher::Result PlaceMatcher::match(const KeyframeFeature* f, int n, const 
     for (int round = 0; round < 2; ++round) {
       T = refine_4dof(T, T_MC, f, pairs, cand_in, opt.refine_chi2);
       chi2_inliers(T, T_MC, f, pairs, opt.refine_chi2, in);
+      out->inliers = static_cast<int>(in.size());
       if (static_cast<int>(in.size()) < opt.min_inliers) return kFewInliers;
       cand_in = in;
     }
@@ -220,6 +332,7 @@ PlaceMatcher::Result PlaceMatcher::match(const KeyframeFeature* f, int n, const 
   } else {
     out->cov.setZero();
   }
+  out->failed = LoopVerdict::kVerified;
   out->correction = T;
   out->matches = m;
   out->inliers = static_cast<int>(in.size());
@@ -234,8 +347,13 @@ PlaceMatcher::Result PlaceMatcher::match(const KeyframeFeature* f, int n, const 
   scatter /= static_cast<double>(in.size());
   const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eig(scatter, Eigen::EigenvaluesOnly);
   out->out_of_plane_m = std::sqrt(std::max(0.0, eig.eigenvalues()(0)));
+  // The matches to map points join them on closing; a feature-only target
+  // has no point to join.
   out->inlier_pairs.clear();
-  for (int i : in) out->inlier_pairs.push_back(pairs[static_cast<size_t>(i)]);
+  for (int i : in) {
+    const int32_t pt = targets_[static_cast<size_t>(pairs[static_cast<size_t>(i)].second)].point;
+    if (pt >= 0) out->inlier_pairs.emplace_back(pairs[static_cast<size_t>(i)].first, pt);
+  }
   return kOk;
 }
 
@@ -275,9 +393,8 @@ struct PlaceCost {
 
 }  // namespace
 
-void PlaceMatcher::pair_sigmas(const KeyframeFeature& f, int32_t pt, double* sigma_px,
-                               double* sigma_z_m) const {
-  const double sp = point_sigma_m(cam_, map_.point(pt), map_.options().point_sigma_floor_m);
+void PlaceMatcher::pair_sigmas(const KeyframeFeature& f, int t, double* sigma_px, double* sigma_z_m) const {
+  const double sp = targets_[static_cast<size_t>(t)].sigma_m;
   const double spx = cam_.sigma_px(f.level), sz = cam_.sigma_depth_m(f.depth_m);
   const double lever = cam_.K.fx * sp / std::max(0.1, static_cast<double>(f.depth_m));
   *sigma_px = std::sqrt(spx * spx + lever * lever);
@@ -300,7 +417,7 @@ Eigen::Isometry3d PlaceMatcher::refine_4dof(const Eigen::Isometry3d& T, const Ei
     pair_sigmas(f[j], pt, &spx, &sz);
     problem.AddResidualBlock(
         new ceres::AutoDiffCostFunction<PlaceCost, 3, 4>(new PlaceCost(
-            T_CM, map_.point(pt).p_M, cam_.K, f[j].u_px, f[j].v_px, f[j].depth_m, 1.0 / spx, 1.0 / sz)),
+            T_CM, targets_[static_cast<size_t>(pt)].p_M, cam_.K, f[j].u_px, f[j].v_px, f[j].depth_m, 1.0 / spx, 1.0 / sz)),
         &huber, x);
   }
   ceres::Solver::Options so;
@@ -328,7 +445,7 @@ Eigen::Matrix4d PlaceMatcher::refit_covariance(const Eigen::Isometry3d& T, const
     double spx = 1, sz = 1;
     pair_sigmas(f[j], pt, &spx, &sz);
     const ceres::AutoDiffCostFunction<PlaceCost, 3, 4> cost(new PlaceCost(
-        T_CM, map_.point(pt).p_M, cam_.K, f[j].u_px, f[j].v_px, f[j].depth_m, 1.0 / spx, 1.0 / sz));
+        T_CM, targets_[static_cast<size_t>(pt)].p_M, cam_.K, f[j].u_px, f[j].v_px, f[j].depth_m, 1.0 / spx, 1.0 / sz));
     double r[3];
     Eigen::Matrix<double, 3, 4, Eigen::RowMajor> J;
     double* jac[1] = {J.data()};
@@ -347,7 +464,7 @@ void PlaceMatcher::chi2_inliers(const Eigen::Isometry3d& T, const Eigen::Isometr
   const Eigen::Isometry3d T_CM = (T * T_MC).inverse();
   for (size_t i = 0; i < pairs.size(); ++i) {
     const auto& [j, pt] = pairs[i];
-    const Eigen::Vector3d c = T_CM * map_.point(pt).p_M;
+    const Eigen::Vector3d c = T_CM * targets_[static_cast<size_t>(pt)].p_M;
     if (c.z() < 1e-3) continue;
     double spx = 1, sz = 1;
     pair_sigmas(f[j], pt, &spx, &sz);
@@ -364,24 +481,52 @@ bool LoopCloser::verify(int kf, int cand, double score, LoopMatch* out) {
   PlaceFit fit;
   const PlaceMatcher::Result r = matcher_.match(&map_.feature(kf, 0), K.n, K.T_MC, cand, opt_,
                                                 static_cast<uint64_t>(K.id) * 1000003u + C.id, &fit);
-  if (r != PlaceMatcher::kOk) {
-    if (r == PlaceMatcher::kFewInliers) ++stats_.rejected_inliers;
-    return false;
-  }
-  if (fit.out_of_plane_m < opt_.min_out_of_plane_m) {
-    ++stats_.rejected_planar;
-    return false;
-  }
   const Eigen::Isometry3d& T = fit.correction;
-  // Drift, or an alias? The odometry drifts by a few percent of the path at
-  // most; a correction beyond that means another place that looks the same.
   const double path_m = std::max(0.0, K.path_m - C.path_m);
   const Eigen::Vector3d pos = K.T_MC.translation();
   const double yaw = yaw_of(T.linear());
   const double dp = (T * pos - pos).norm(), dyaw = std::abs(yaw);
+  LoopCandidateRecord* rec = log_candidate();
+  if (rec != nullptr) {
+    rec->query_id = K.id;
+    rec->candidate_id = C.id;
+    rec->query_t_ns = K.t_ns;
+    rec->candidate_t_ns = C.t_ns;
+    rec->score = score;
+    rec->place_points = fit.place_points;
+    rec->matches = fit.matches;
+    rec->ransac_inliers = fit.ransac_inliers;
+    rec->guided_matches = fit.guided_matches;
+    rec->inliers = fit.inliers;
+    rec->path_m = path_m;
+    rec->T_MC_query = K.T_MC;
+    rec->T_MC_candidate = C.T_MC;
+    if (r == PlaceMatcher::kOk) {
+      rec->out_of_plane_m = fit.out_of_plane_m;
+      rec->correction = T;
+      rec->correction_m = dp;
+      rec->correction_rad = dyaw;
+    }
+  }
+  const auto verdict = [&](LoopVerdict v) {
+    if (rec != nullptr) rec->verdict = v;
+  };
+  if (r != PlaceMatcher::kOk) {
+    ++stats_.rejected_inliers;
+    verdict(fit.failed);
+    return false;
+  }
+  if (fit.out_of_plane_m < opt_.min_out_of_plane_m) {
+    ++stats_.rejected_planar;
+    verdict(LoopVerdict::kPlanar);
+    return false;
+  }
+  // Drift, or an alias? The odometry drifts by a few percent of the path at
+  // most; a correction beyond that means another place that looks the same.
   if (dp > opt_.max_correction_m + opt_.max_correction_per_m * path_m ||
       dyaw > opt_.max_yaw_rad + opt_.max_yaw_per_m * path_m) {
     ++stats_.rejected_drift;
+    verdict(LoopVerdict::kDrift);
     return false;
   }
   // The correction's uncertainty where it acts, at the query: p' = Rz(yaw) p + t.
@@ -396,9 +541,11 @@ bool LoopCloser::verify(int kf, int cand, double score, LoopMatch* out) {
     d << yaw, T * pos - pos;
     if (d.dot(S.ldlt().solve(d)) < opt_.min_correction_chi2) {
       ++stats_.skipped_insignificant;
+      verdict(LoopVerdict::kInsignificant);
       return false;
     }
   }
+  verdict(LoopVerdict::kVerified);
   const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eig(S.block<3, 3>(1, 1), Eigen::EigenvaluesOnly);
   out->sigma_m = std::sqrt(std::max(0.0, eig.eigenvalues()(2)));
   out->sigma_rad = std::sqrt(S(0, 0));
@@ -507,12 +654,49 @@ bool LoopCloser::close(const LoopMatch& lm, LoopClosure* out) {
   return true;
 }
 
+LoopCandidateRecord* LoopCloser::log_candidate() {
+  if (!logging_) return nullptr;
+  log_.candidates.emplace_back();
+  return &log_.candidates.back();
+}
+
+const char* loop_verdict_name(LoopVerdict v) {
+  switch (v) {
+    case LoopVerdict::kFewPoints: return "few_points";
+    case LoopVerdict::kFewMatches: return "few_matches";
+    case LoopVerdict::kFewInliers: return "few_inliers";
+    case LoopVerdict::kFewRefitInliers: return "few_refit_inliers";
+    case LoopVerdict::kPlanar: return "planar";
+    case LoopVerdict::kDrift: return "drift";
+    case LoopVerdict::kInsignificant: return "within_uncertainty";
+    case LoopVerdict::kVerified: return "verified";
+  }
+  return "?";
+}
+
 LoopClosure LoopCloser::process(int kf) {
   LoopClosure r;
   if (!map_.keyframe_used(kf)) return r;
   ++stats_.queries;
   const uint32_t id = map_.keyframe(kf).id;
-  if (last_closure_kf_id_ != 0 && id < last_closure_kf_id_ + static_cast<uint32_t>(opt_.cooldown_keyframes)) {
+  const bool cooldown =
+      last_closure_kf_id_ != 0 && id < last_closure_kf_id_ + static_cast<uint32_t>(opt_.cooldown_keyframes);
+  if (logging_) {
+    LoopQueryRecord q;
+    q.id = id;
+    q.t_ns = map_.keyframe(kf).t_ns;
+    q.cooldown = cooldown;
+    q.T_MC = map_.keyframe(kf).T_MC;
+    const int nc = map_.covisible(kf, 1, map_.max_keyframes(), kf_scratch_.data(), shared_scratch_.data());
+    const int64_t min_age_ns = static_cast<int64_t>(opt_.min_age_s * 1e9);
+    for (int i = 0; i < nc && q.old_links.size() < 8; ++i) {
+      const MapKeyframe& O = map_.keyframe(kf_scratch_[i]);
+      if (q.t_ns - O.t_ns >= min_age_ns) q.old_links.emplace_back(O.id, shared_scratch_[i]);
+    }
+    log_.queries.push_back(std::move(q));
+  }
+  chosen_record_ = -1;
+  if (cooldown) {
     pending_count_ = 0;
     return r;
   }
@@ -528,13 +712,19 @@ LoopClosure LoopCloser::process(int kf) {
     const double dp = (pending_.correction * pos - m.correction * pos).norm();
     const double dyaw = std::abs(yaw_of((pending_.correction.linear().transpose() * m.correction.linear())));
     consistent = dp < opt_.consistency_m && dyaw < opt_.consistency_rad;
-    if (!consistent) ++stats_.rejected_consistency;
+    if (!consistent) {
+      ++stats_.rejected_consistency;
+      if (chosen_record_ >= 0) log_.candidates[static_cast<size_t>(chosen_record_)].inconsistent = true;
+    }
   }
   pending_count_ = consistent ? pending_count_ + 1 : 1;
   pending_ = m;
   if (pending_count_ < opt_.consistent_keyframes) return r;
   pending_count_ = 0;
-  if (close(m, &r)) last_closure_kf_id_ = map_.keyframe(map_.newest_keyframe()).id;
+  if (close(m, &r)) {
+    last_closure_kf_id_ = map_.keyframe(map_.newest_keyframe()).id;
+    if (chosen_record_ >= 0) log_.candidates[static_cast<size_t>(chosen_record_)].closed = true;
+  }
   return r;
 }
 

@@ -36,6 +36,7 @@ Subcommand add_replay_command(CLI::App& parent) {
     std::string map_traj_out, map_final_traj_out;
     std::string map_in, map_out;
     std::string mcap_out;
+    std::string loop_log;
   };
   auto args = std::make_shared<Args>();
   CLI::App* app = parent.add_subcommand("replay", "play a recorded log through the estimator (HIL harness)");
@@ -87,6 +88,10 @@ Subcommand add_replay_command(CLI::App& parent) {
                   "it, then goes on in its frame (docs/map.md)");
   app->add_option("--mcap-out", args->mcap_out,
                   "write the poses here as nav_msgs/msg/Odometry in MCAP (ROS 2, Foxglove; docs/ros2.md)");
+  app->add_option("--loop-log", args->loop_log,
+                  "write every loop candidate here (CSV: BoW score, matches, inliers, the verdict, and with the "
+                  "log's ground truth its view overlap and the correction's error); with ground truth the "
+                  "summary and --metrics-out also count the revisits the flight made (docs/map.md)");
   app->add_option("--map-out", args->map_out, "write the map here at the end (versioned, CRC-checked; docs/map.md)");
   app->add_option("--metrics-out", args->metrics_out,
                   "write latency histograms, drops, counters, CPU, RSS, real-time factor as JSON");
@@ -169,14 +174,26 @@ Subcommand add_replay_command(CLI::App& parent) {
     opt.check_before_start = [args](const core::Estimator& est) {
       if (est.has_map()) return;
       const std::string flag = !args->map_in.empty()               ? "--map-in"
+                               : !args->loop_log.empty()           ? "--loop-log"
                                : !args->map_traj_out.empty()       ? "--map-traj-out"
                                : !args->map_final_traj_out.empty() ? "--map-final-traj-out"
                                                                    : "";
       if (!flag.empty()) throw UsageError(flag + ": the backend '" + est.name() + "' runs without a map");
     };
     const auto mcap = add_mcap_out(opt, args->mcap_out);
+    // The revisits need the log's ground truth and a second pass over its
+    // depth: only when asked for.
+    const bool loop_truth = !args->loop_log.empty() || !args->metrics_out.empty();
+    opt.loop_log = loop_truth;
     ReplayReport r = run_replay(opt);
     if (mcap) mcap->close();
+    if (opt.loop_log && r.has_map) {
+      drivers::LogOpenOptions o = opt.open;
+      o.format = opt.format;
+      const auto log = drivers::open_log(opt.path, o);
+      r.loop_truth = evaluate_loops(*log, r.loop_log);
+      if (!args->loop_log.empty()) write_loop_log(args->loop_log, r.loop_log, *r.loop_truth);
+    }
     r.config = tools::estimator_config_entries(*opt.config);
     if (!args->traj_out.empty()) tools::write_tum(args->traj_out, r.trajectory);
     if (!args->map_traj_out.empty()) {

@@ -647,6 +647,7 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   report.trajectory.reserve(1 << 16);
   report.has_map = estimator.has_map();
   if (report.has_map) report.map_trajectory.reserve(1 << 16);
+  if (opt.loop_log && estimator.map_system() != nullptr) estimator.map_system()->set_loop_logging(true);
 
   // At realtime pace the optimizer gets its own thread, as it will fly; fast
   // and lockstep run it inline, so both give the lockstep trajectory bit for
@@ -836,6 +837,8 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     std::vector<tools::KeyframeAnchor>& anchors = report.map_final_keyframes;
     for (const core::MapKeyframePose& k : estimator.map_keyframe_poses()) anchors.push_back({k.t_ns, k.T_MB, k.T_WB});
     if (!anchors.empty()) report.map_final_trajectory = tools::anchor_to_keyframes(report.trajectory, anchors);
+    if (opt.loop_log && estimator.map_system() != nullptr)
+      report.loop_log = estimator.map_system()->loop_closer().log();
   }
   report.mapping_cpu_s = map_threads.mapping_cpu_s();
   report.loop_cpu_s = map_threads.loop_cpu_s();
@@ -1016,6 +1019,26 @@ std::string replay_metrics_json(const ReplayReport& r) {
     j["map_corrections"] = r.map_corrections;
     j["mapping_cpu_s"] = r.mapping_cpu_s;
     j["loop_cpu_s"] = r.loop_cpu_s;
+    if (r.loop_truth && r.loop_truth->available) {
+      const LoopTruth& t = *r.loop_truth;
+      j["loop_truth"] = Json{{"keyframes", t.keyframes},
+                             {"revisit_keyframes", t.revisit_keyframes},
+                             {"revisit_pairs", t.revisit_pairs},
+                             {"candidates", t.candidates},
+                             {"candidates_true", t.candidates_true},
+                             {"revisit_keyframes_with_candidate", t.revisit_keyframes_candidate},
+                             {"recognised", t.recognised},
+                             {"recognised_true", t.recognised_true},
+                             {"verified", t.verified},
+                             {"verified_true", t.verified_true},
+                             {"revisit_keyframes_recognised", t.revisit_keyframes_recognised},
+                             {"revisit_keyframes_linked", t.revisit_keyframes_linked},
+                             {"revisit_keyframes_found", t.revisit_keyframes_found},
+                             {"closed", t.closed},
+                             {"false", t.closed_false},
+                             {"loop_recall", t.loop_recall},
+                             {"map_recall", t.map_recall}};
+    }
   } else {
     for (const char* k : {"loop_closures", "relocalisations", "keyframes_in_map", "map_points", "map_correction_m"})
       j[k] = nullptr;
@@ -1217,6 +1240,7 @@ std::string replay_summary(const ReplayReport& r) {
     s += buf;
   }
   if (!r.backend_summary.empty()) s += r.backend_summary + "\n";
+  if (r.loop_truth) s += loop_truth_summary(*r.loop_truth) + "\n";
   {
     const core::DivergenceCounts& dv = r.estimator_counters.divergence;
     std::string causes;

@@ -19,6 +19,7 @@
 #include "kestrel/drivers/devices.hpp"
 #include "kestrel/drivers/log_source.hpp"
 #include "kestrel/drivers/replay_source.hpp"
+#include "kestrel/loop_truth.hpp"
 #include "kestrel/mavlink/odometry_adapter.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"
 #include "kestrel/rt/latency_histogram.hpp"
@@ -135,6 +136,8 @@ struct ReplayOptions {
   // Live sensors instead of `path` (pace must be realtime).
   std::shared_ptr<LiveInput> live;
   std::string map_out;  // the map file written at the end ("": none; tools/config/map_files.hpp)
+  // Keep the loop closer's log of every query and candidate (ReplayReport::loop_log).
+  bool loop_log = false;
   drivers::LogFormat format = drivers::LogFormat::kAuto;
   drivers::LogOpenOptions open;  // rig for datasets, bag topics (open.format is ignored: `format` rules)
   drivers::ReplayPace pace = drivers::ReplayPace::kLockstep;
@@ -210,6 +213,10 @@ struct ReplayReport {
   // The map (backends with one): its frame at the end, per keyframe cost of
   // the mapping and loop threads, and their CPU time.
   bool has_map = false;
+  core::LoopLog loop_log;  // ReplayOptions::loop_log
+  // The loop log against the log's ground truth (loop_truth.hpp), when the
+  // caller computed it: the metrics JSON's `loop_truth`, a summary line.
+  std::optional<LoopTruth> loop_truth;
   core::MapFrameState map;
   uint64_t map_corrections = 0;  // changes of T_map_odom seen by the output
   rt::LatencyHistogram mapping;

@@ -208,6 +208,7 @@ class EkfEstimator final : public Estimator {
   std::vector<MapKeyframePose> map_keyframe_poses() const override {
     return map_ ? map_->keyframe_poses(T_BC_.inverse()) : std::vector<MapKeyframePose>{};
   }
+  MapSystem* map_system() override { return map_.get(); }
 
  private:
   // moving: the velocity and tilt are guesses (a moving start, or a restart

@@ -124,6 +124,8 @@ struct EstimatorCounters {
   DivergenceCounts divergence;  // zero for backends without divergence detection (imu)
 };
 
+class MapSystem;  // core/mapping
+
 // One keyframe of the map at the end of a flight (Estimator::map_keyframe_poses).
 struct MapKeyframePose {
   int64_t t_ns = 0;
@@ -185,6 +187,9 @@ class Estimator {
   // correction, beside the odometry pose the keyframe was taken at. Empty
   // without a map. After the map threads stopped (it allocates).
   virtual std::vector<MapKeyframePose> map_keyframe_poses() const { return {}; }
+  // The map itself (nullptr without one): the harness turns on its loop log
+  // before the flight and reads the map after its threads stopped.
+  virtual MapSystem* map_system() { return nullptr; }
 };
 
 // IMU-only dead reckoning after a static initialisation. Named as what it is:

@@ -44,6 +44,17 @@ struct LoopOptions {
   double inlier_m = 0.05;    // 3D-3D inlier: this + 3 sigma of the depth
   int min_inliers = 40;
   double min_inlier_share = 0.3;  // of the matches
+  // Two-stage verification (docs/map.md, "Loops on natural flights"): the
+  // descriptor matches need only this many 3D inliers to seed a correction;
+  // the place's targets are then projected into the query with it and
+  // matched within guided_radius_px (x the level's scale) at a consistent
+  // depth, and min_inliers / min_inlier_share apply to all of them.
+  // guided_radius_px 0: no guided search (the seed must carry min_inliers).
+  int min_seed_inliers = 15;
+  double guided_radius_px = 10.0;
+  // The candidate keyframe's depth-backed features without a map point are
+  // targets too (most of a keyframe; the map keeps only points seen again).
+  bool place_features = true;
   // After the 3D fit: refit on pixels and depths, inliers below this chi2 (3 DoF); 0: off
   double refine_chi2 = 7.815;
   // The correction must be drift: at most base + per_m x path flown since the candidate.
@@ -97,11 +108,30 @@ struct LoopStats {
   uint64_t points_merged = 0;
 };
 
+// What became of one candidate: the stage that refused it, or verified. In
+// stage order, so "how far it got" compares.
+enum class LoopVerdict : uint8_t {
+  kFewPoints,        // the place holds fewer points than min_inliers
+  kFewMatches,       // fewer descriptor matches than min_inliers
+  kFewInliers,       // the 3D RANSAC: fewer than min_inliers, or below min_inlier_share
+  kFewRefitInliers,  // the refit on pixels and depths kept too few
+  kPlanar,
+  kDrift,
+  kInsignificant,    // verified, but within its own uncertainty
+  kVerified,
+};
+const char* loop_verdict_name(LoopVerdict v);
+
 // A keyframe's features matched to a place of the map: T_MC_true =
 // correction * T_MC (4 DoF) and the inliers behind it.
 struct PlaceFit {
   Eigen::Isometry3d correction = Eigen::Isometry3d::Identity();
-  int matches = 0, inliers = 0;
+  // Filled as far as the verification got, also when it fails (the loop log):
+  // targets of the place (points and the candidate's features), descriptor
+  // matches, the seed RANSAC's inliers, matches the guided search added, the
+  // final inliers; and the stage that refused it (kVerified: none did).
+  int place_points = 0, matches = 0, ransac_inliers = 0, guided_matches = 0, inliers = 0;
+  LoopVerdict failed = LoopVerdict::kFewPoints;
   double out_of_plane_m = 0;  // RMS distance of the inliers' map points from their best-fit plane
   // Covariance of (yaw [rad], t [m]) of the correction from the refit's pixels
   // and depths; zero without the refit (refine_chi2 = 0).
@@ -117,7 +147,7 @@ struct PlaceFit {
 // min_inlier_share, candidate_neighbours.
 class PlaceMatcher {
  public:
-  enum Result { kOk, kFewPoints, kFewInliers };
+  enum Result { kOk, kFewInliers };
   PlaceMatcher(Map& map, const MapCamera& cam);
   Result match(const KeyframeFeature* f, int n, const Eigen::Isometry3d& T_MC, int candidate, const LoopOptions& opt,
                uint64_t seed, PlaceFit* out);
@@ -137,16 +167,66 @@ class PlaceMatcher {
   // The pairs whose whitened pixel and depth error under T is below chi2.
   void chi2_inliers(const Eigen::Isometry3d& T, const Eigen::Isometry3d& T_MC, const KeyframeFeature* f,
                     const Pairs& pairs, double chi2, std::vector<int>& out) const;
-  // A pair's pixel and depth noise, the map point's own included.
-  void pair_sigmas(const KeyframeFeature& f, int32_t pt, double* sigma_px, double* sigma_z_m) const;
+  // A pair's pixel and depth noise, the target's own included.
+  void pair_sigmas(const KeyframeFeature& f, int target, double* sigma_px, double* sigma_z_m) const;
+
+  // What a query feature can match in the place: a map point, or one of the
+  // candidate keyframe's own depth-backed features.
+  struct Target {
+    Eigen::Vector3d p_M;
+    const OrbDescriptor* desc;
+    int32_t point;   // map point, -1: a feature of the candidate
+    double sigma_m;  // 1-sigma of p_M
+    int16_t level;
+  };
+  // Targets closer than this are one place seen twice (a point and the
+  // feature it was made from): no ambiguity for the ratio test.
+  static constexpr double kSamePlace_m = 0.05;
 
   Map& map_;
   MapCamera cam_;
-  std::vector<int32_t> kf_scratch_, shared_scratch_, pts_;
+  std::vector<int32_t> kf_scratch_, shared_scratch_;
+  std::vector<Target> targets_;
+  std::vector<int> dist_;
 };
 
 // Yaw of a rotation about W's (or M's) z axis [rad].
 double yaw_of(const Eigen::Matrix3d& R);
+
+
+// The loop log (LoopCloser::set_logging): every query and every candidate
+// with what verification made of it, so a flight's misses can be explained
+// against its ground truth (tools: `--loop-log`, docs/map.md).
+struct LoopQueryRecord {
+  uint32_t id = 0;
+  int64_t t_ns = 0;
+  bool cooldown = false;  // not searched: too soon after a closure
+  Eigen::Isometry3d T_MC = Eigen::Isometry3d::Identity();  // at the query
+  // Keyframes at least min_age_s older that the map already links it to
+  // (shared points, most first, at most 8): a revisit the local mapper's
+  // fusing has joined to the old place needs no loop.
+  std::vector<std::pair<uint32_t, int>> old_links;  // (keyframe id, shared points)
+};
+struct LoopCandidateRecord {
+  uint32_t query_id = 0, candidate_id = 0;
+  int64_t query_t_ns = 0, candidate_t_ns = 0;
+  double score = 0;
+  int place_points = 0, matches = 0, ransac_inliers = 0, guided_matches = 0, inliers = 0;
+  double out_of_plane_m = 0;
+  double correction_m = 0, correction_rad = 0;  // at the query keyframe
+  double path_m = 0;                            // flown between the two
+  LoopVerdict verdict = LoopVerdict::kFewPoints;
+  bool chosen = false;        // the query's best verified candidate
+  bool inconsistent = false;  // chosen, refused by the consistency check
+  bool closed = false;        // chosen, and the loop closed on it
+  Eigen::Isometry3d T_MC_query = Eigen::Isometry3d::Identity();
+  Eigen::Isometry3d T_MC_candidate = Eigen::Isometry3d::Identity();
+  Eigen::Isometry3d correction = Eigen::Isometry3d::Identity();
+};
+struct LoopLog {
+  std::vector<LoopQueryRecord> queries;
+  std::vector<LoopCandidateRecord> candidates;
+};
 
 // A verified match of a keyframe against an older place.
 struct LoopMatch {
@@ -184,9 +264,14 @@ class LoopCloser {
 
   const LoopStats& stats() const { return stats_; }
   const LoopOptions& options() const { return opt_; }
+  // Keep the loop log (off by default: it grows with the flight; the loop
+  // thread is not real time, so it may).
+  void set_logging(bool on) { logging_ = on; }
+  const LoopLog& log() const { return log_; }
 
  private:
   bool verify(int kf, int candidate, double score, LoopMatch* out);
+  LoopCandidateRecord* log_candidate();
 
   // A closed loop, kept for later pose graphs: b seen from a (camera frames).
   struct LoopEdge {
@@ -206,6 +291,9 @@ class LoopCloser {
   int pending_count_ = 0;
   uint32_t last_closure_kf_id_ = 0;
   std::vector<int32_t> kf_scratch_, shared_scratch_;
+  bool logging_ = false;
+  LoopLog log_;
+  int64_t chosen_record_ = -1;        // the record detect() chose, or -1
 };
 
 }  // namespace kestrel::core

@@ -113,6 +113,8 @@ class MapSystem {
   const Map& map() const { return *map_; }
   const LocalMapper& mapper() const { return *mapper_; }
   const LoopCloser& loop_closer() const { return *closer_; }
+  // Before the flight: keep the loop closer's log (LoopCloser::set_logging).
+  void set_loop_logging(bool on) { closer_->set_logging(on); }
   const Relocaliser* relocaliser() const { return reloc_.get(); }
   const MapSystemCounters& counters() const { return counters_; }
   const rt::LatencyHistogram& mapping_latency() const { return mapping_latency_; }

@@ -153,7 +153,7 @@ class WindowEstimator final : public Estimator {
   const rt::LatencyHistogram* loop_latency() const override { return map_ ? &map_->loop_latency() : nullptr; }
   std::vector<uint8_t> save_map() const override { return map_ ? map_->save() : std::vector<uint8_t>{}; }
   std::vector<MapKeyframePose> map_keyframe_poses() const override;
-  MapSystem* map_system() { return map_.get(); }
+  MapSystem* map_system() override { return map_.get(); }
 
   const WindowEstimatorCounters& window_counters() const { return wc_; }
   // Wall time of the newest solve whose result reached the tracking side
