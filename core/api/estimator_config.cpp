@@ -251,6 +251,13 @@ void visit_map(MapSystemOptions& m, OptionVisitor& v) {
           "scale (0: off; the seed must carry loop_min_inliers)");
   v.value("loop_place_features", l.place_features,
           "the candidate keyframe's depth-backed features without a map point are matched too");
+  v.value("loop_prior_seed_radius_px", l.prior_seed_radius_px,
+          "no seed from the descriptors: the odometry's pose seeds the guided search within this radius (0: off)");
+  v.value("loop_geometric_candidates", l.geometric_candidates,
+          "candidates from the map's geometry beside place recognition's: old keyframes the query's depth "
+          "points land in view of (0: none)");
+  v.value("loop_geometric_min_overlap", l.geometric_min_overlap, "... at least this share of them");
+  v.value("loop_geometric_max_range_m", l.geometric_max_range_m, "... within this range");
   v.value(
       "loop_refine_chi2", l.refine_chi2,
       "after the 3D fit, a 4-DoF refit on pixels and depths with their noise; its inliers (whitened error "

@@ -23,6 +23,11 @@ std::string LoopOptions::validate() const {
   if (!(min_inlier_share >= 0 && min_inlier_share <= 1)) e << "  loop_min_inlier_share must be in [0, 1]\n";
   if (ransac_iterations < 1) e << "  loop_ransac_iterations must be >= 1\n";
   if (min_seed_inliers < 3) e << "  loop_min_seed_inliers must be >= 3\n";
+  if (!(prior_seed_radius_px >= 0)) e << "  loop_prior_seed_radius_px must be >= 0\n";
+  if (geometric_candidates < 0) e << "  loop_geometric_candidates must be >= 0\n";
+  if (!(geometric_min_overlap > 0 && geometric_min_overlap <= 1))
+    e << "  loop_geometric_min_overlap must be in (0, 1]\n";
+  if (!(geometric_max_range_m > 0)) e << "  loop_geometric_max_range_m must be > 0\n";
   if (!(guided_radius_px >= 0)) e << "  loop_guided_radius_px must be >= 0\n";
   if (!(min_out_of_plane_m >= 0)) e << "  loop_min_out_of_plane_m must be >= 0\n";
   if (!(min_correction_chi2 >= 0)) e << "  loop_min_correction_chi2 must be >= 0\n";
@@ -119,15 +124,34 @@ bool LoopCloser::detect(int kf, LoopMatch* out) {
     const MapKeyframe& C = map_.keyframe(k);
     return C.mark == mark || K.t_ns - C.t_ns < min_age_ns;
   };
-  KeyframeDatabase::Match cands[16];
-  const int n = db->query(map_.bow(kf), K.n_bow, skip, static_cast<float>(min_score), 0.8,
-                          std::min(opt_.max_candidates, 16), cands);
+  KeyframeDatabase::Match cands[32];
+  int n = db->query(map_.bow(kf), K.n_bow, skip, static_cast<float>(min_score), 0.8,
+                    std::min(opt_.max_candidates, 16), cands);
+  const int n_bow = n;
+  if (opt_.geometric_candidates > 0) {
+    int32_t geo[16];
+    float share[16];
+    const auto skip_geo = [&](int k) {
+      if (skip(k)) return true;
+      for (int c = 0; c < n_bow; ++c)
+        if (cands[c].keyframe == k) return true;
+      return false;
+    };
+    const int ng = geometric_candidates(kf, skip_geo, std::min(opt_.geometric_candidates, 16), geo, share);
+    for (int g = 0; g < ng; ++g) {
+      const MapKeyframe& C = map_.keyframe(geo[g]);
+      cands[n].keyframe = geo[g];
+      cands[n].score = static_cast<float>(bow_score(map_.bow(kf), K.n_bow, map_.bow(geo[g]), C.n_bow));
+      ++n;
+    }
+    stats_.geometric_candidates += static_cast<uint64_t>(ng);
+  }
   stats_.candidates += static_cast<uint64_t>(n);
   bool found = false;
   chosen_record_ = -1;
   for (int c = 0; c < n; ++c) {
     LoopMatch m;
-    if (!verify(kf, cands[c].keyframe, cands[c].score, &m)) continue;
+    if (!verify(kf, cands[c].keyframe, cands[c].score, c >= n_bow, &m)) continue;
     if (!found || m.inliers > out->inliers) {
       *out = std::move(m);
       if (logging_) chosen_record_ = static_cast<int64_t>(log_.candidates.size()) - 1;
@@ -232,36 +256,38 @@ PlaceMatcher::Result PlaceMatcher::match(const KeyframeFeature* f, int n, const 
     for (size_t i = 0; i < q.size(); ++i)
       if ((T * q[i] - p[i]).norm() < thr[i]) set.push_back(static_cast<int>(i));
   };
-  const int m0 = out->matches;
-  for (int it = 0; it < opt.ransac_iterations; ++it) {
-    const int a = static_cast<int>(rng() % static_cast<uint64_t>(m0));
-    const int b = static_cast<int>(rng() % static_cast<uint64_t>(m0));
-    if (a == b || (q[a] - q[b]).head<2>().norm() < 0.1 || (p[a] - p[b]).head<2>().norm() < 0.1) continue;
-    const Eigen::Isometry3d T = fit_4dof(q, p, {a, b});
-    inliers_of(T, in);
-    if (in.size() > best_in.size()) best_in.swap(in);
-  }
-  out->ransac_inliers = static_cast<int>(best_in.size());
-  out->failed = LoopVerdict::kFewInliers;
-  if (out->ransac_inliers < seed_min) return kFewInliers;
-  Eigen::Isometry3d T = fit_4dof(q, p, best_in);
-  for (int round = 0; round < 2; ++round) {
-    inliers_of(T, in);
-    if (static_cast<int>(in.size()) < seed_min) break;
-    T = fit_4dof(q, p, in);
-  }
-  inliers_of(T, in);
-  out->ransac_inliers = static_cast<int>(in.size());
-  if (out->ransac_inliers < seed_min || in.size() < opt.min_inlier_share * m0) return kFewInliers;
-  // Guided search: the seed's correction puts the place's targets in the
-  // query image; each is matched to the features around where it lands, at
-  // a consistent depth. The descriptors alone match few targets of a place
-  // seen from another angle (every target competes with every other); where
-  // the geometry already says where to look, most of them are found.
-  if (opt.guided_radius_px > 0) {
+  // The best correction RANSAC finds on the pairs, refitted on its inliers
+  // (left in `in`); false below seed_min inliers or the share.
+  const auto ransac = [&](Eigen::Isometry3d* T) {
+    const int m0 = static_cast<int>(q.size());
+    best_in.clear();
+    for (int it = 0; it < opt.ransac_iterations && m0 >= 2; ++it) {
+      const int a = static_cast<int>(rng() % static_cast<uint64_t>(m0));
+      const int b = static_cast<int>(rng() % static_cast<uint64_t>(m0));
+      if (a == b || (q[a] - q[b]).head<2>().norm() < 0.1 || (p[a] - p[b]).head<2>().norm() < 0.1) continue;
+      inliers_of(fit_4dof(q, p, {a, b}), in);
+      if (in.size() > best_in.size()) best_in.swap(in);
+    }
+    out->ransac_inliers = static_cast<int>(best_in.size());
+    if (out->ransac_inliers < seed_min) return false;
+    *T = fit_4dof(q, p, best_in);
+    for (int round = 0; round < 2; ++round) {
+      inliers_of(*T, in);
+      if (static_cast<int>(in.size()) < seed_min) break;
+      *T = fit_4dof(q, p, in);
+    }
+    inliers_of(*T, in);
+    out->ransac_inliers = static_cast<int>(in.size());
+    return out->ransac_inliers >= seed_min && in.size() >= opt.min_inlier_share * m0;
+  };
+  // Guided search: a correction puts the place's targets in the query image;
+  // each is matched to the features around where it lands, at a consistent
+  // depth. The descriptors alone match few targets of a place seen from
+  // another angle (every target competes with every other); where the
+  // geometry already says where to look, most of them are found. The pairs
+  // become `kept` and what the search adds.
+  const auto guided = [&](const Eigen::Isometry3d& T, double radius_px, const Pairs& kept) {
     std::vector<char> taken(static_cast<size_t>(n), 0), target_taken(static_cast<size_t>(nt), 0);
-    std::vector<std::pair<int, int>> kept;  // (feature, target) of the seed's inliers
-    for (int i : in) kept.push_back(pairs[static_cast<size_t>(i)]);
     for (const auto& [j, t] : kept) {
       taken[static_cast<size_t>(j)] = 1;
       target_taken[static_cast<size_t>(t)] = 1;
@@ -279,7 +305,7 @@ PlaceMatcher::Result PlaceMatcher::match(const KeyframeFeature* f, int n, const 
       BestTwoMatches bt;
       for (int j = 0; j < n; ++j) {
         if (taken[static_cast<size_t>(j)] || f[j].depth_m <= 0) continue;
-        const double r = opt.guided_radius_px * std::pow(cam_.level_scale, f[j].level);
+        const double r = radius_px * std::pow(cam_.level_scale, f[j].level);
         if (std::abs(f[j].u_px - u) > r || std::abs(f[j].v_px - v) > r) continue;
         if (std::abs(c.z() - f[j].depth_m) > opt.inlier_m + 3.0 * cam_.sigma_depth_m(f[j].depth_m)) continue;
         bt.offer(hamming_distance(f[j].desc, *tg.desc), j);
@@ -300,12 +326,24 @@ PlaceMatcher::Result PlaceMatcher::match(const KeyframeFeature* f, int n, const 
     for (const auto& [j, t] : kept) add_pair(j, t);
     for (int j = 0; j < n; ++j)
       if (claim[static_cast<size_t>(j)] >= 0) add_pair(j, claim[static_cast<size_t>(j)]);
-    out->guided_matches = static_cast<int>(pairs.size() - kept.size());
-    T = fit_4dof(q, p, [&] {
-      std::vector<int> all(q.size());
-      for (size_t i = 0; i < all.size(); ++i) all[i] = static_cast<int>(i);
-      return all;
-    }());
+    return static_cast<int>(pairs.size() - kept.size());
+  };
+  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+  out->failed = out->matches < seed_min ? LoopVerdict::kFewMatches : LoopVerdict::kFewInliers;
+  if (out->matches < seed_min || !ransac(&T)) {
+    // No seed from the descriptors: the odometry's own pose is one (a loop
+    // corrects drift, a few cm). Its guided matches must then agree on a
+    // correction as descriptor matches would.
+    if (opt.prior_seed_radius_px <= 0) return kFewInliers;
+    out->prior_seeded = true;
+    out->guided_matches = guided(Eigen::Isometry3d::Identity(), opt.prior_seed_radius_px, Pairs{});
+    out->matches = static_cast<int>(q.size());
+    if (out->matches < seed_min || !ransac(&T)) return kFewInliers;
+  }
+  if (opt.guided_radius_px > 0) {
+    Pairs kept;
+    for (int i : in) kept.push_back(pairs[static_cast<size_t>(i)]);
+    out->guided_matches = guided(T, opt.guided_radius_px, kept);
     inliers_of(T, in);
     if (!in.empty()) T = fit_4dof(q, p, in);
     inliers_of(T, in);
@@ -475,7 +513,52 @@ void PlaceMatcher::chi2_inliers(const Eigen::Isometry3d& T, const Eigen::Isometr
   }
 }
 
-bool LoopCloser::verify(int kf, int cand, double score, LoopMatch* out) {
+template <class Skip>
+int LoopCloser::geometric_candidates(int kf, const Skip& skip, int max, int32_t* out_kf, float* out_share) {
+  const MapKeyframe& K = map_.keyframe(kf);
+  // A sample of the query's depth points, in M.
+  Eigen::Vector3d pts[48];
+  int np = 0;
+  const int stride = std::max(1, K.n / 48);
+  for (int j = 0; j < K.n && np < 48; j += stride) {
+    const KeyframeFeature& g = map_.feature(kf, j);
+    if (g.depth_m > 0) pts[np++] = K.T_MC * cam_.point_C(g);
+  }
+  if (np < 8) return 0;
+  const Eigen::Vector3d axis_K = K.T_MC.linear().col(2);
+  int n = 0;
+  map_.for_each_keyframe([&](int k) {
+    if (k == kf || skip(k)) return;
+    const MapKeyframe& C = map_.keyframe(k);
+    if ((C.T_MC.translation() - K.T_MC.translation()).norm() > opt_.geometric_max_range_m) return;
+    if (C.T_MC.linear().col(2).dot(axis_K) < 0) return;  // looking away: a view beside, not a revisit
+    const Eigen::Isometry3d T_CM = C.T_MC.inverse();
+    int seen = 0;
+    for (int i = 0; i < np; ++i) {
+      const Eigen::Vector3d c = T_CM * pts[i];
+      if (c.z() < 0.1 || c.z() > opt_.geometric_max_range_m) continue;
+      const double u = cam_.K.fx * c.x() / c.z() + cam_.K.cx, v = cam_.K.fy * c.y() / c.z() + cam_.K.cy;
+      if (u >= 0 && v >= 0 && u < cam_.width && v < cam_.height) ++seen;
+    }
+    const float share = static_cast<float>(seen) / static_cast<float>(np);
+    if (share < opt_.geometric_min_overlap) return;
+    // Insertion into the best `max`, best first.
+    int at = n < max ? n : max;
+    while (at > 0 && out_share[at - 1] < share) --at;
+    if (at >= max) return;
+    const int last = std::min(n, max - 1);
+    for (int i = last; i > at; --i) {
+      out_kf[i] = out_kf[i - 1];
+      out_share[i] = out_share[i - 1];
+    }
+    out_kf[at] = k;
+    out_share[at] = share;
+    n = std::min(n + 1, max);
+  });
+  return n;
+}
+
+bool LoopCloser::verify(int kf, int cand, double score, bool geometric, LoopMatch* out) {
   const MapKeyframe& K = map_.keyframe(kf);
   const MapKeyframe& C = map_.keyframe(cand);
   PlaceFit fit;
@@ -493,6 +576,8 @@ bool LoopCloser::verify(int kf, int cand, double score, LoopMatch* out) {
     rec->query_t_ns = K.t_ns;
     rec->candidate_t_ns = C.t_ns;
     rec->score = score;
+    rec->geometric = geometric;
+    rec->prior_seeded = fit.prior_seeded;
     rec->place_points = fit.place_points;
     rec->matches = fit.matches;
     rec->ransac_inliers = fit.ransac_inliers;

@@ -9,6 +9,8 @@ Relocaliser::Relocaliser(Map& map, const MapCamera& cam, const LoopOptions& opt)
     : map_(map), opt_(opt), matcher_(map, cam) {
   opt_.min_inliers = opt.reloc_min_inliers;
   opt_.min_inlier_share = opt.reloc_min_inlier_share;
+  // Lost: the odometry's pose is no seed for where the place is.
+  opt_.prior_seed_radius_px = 0;
   capacity_ = map.features_per_keyframe();
   bow_.reset(new BowEntry[static_cast<size_t>(capacity_)]);
   desc_.reset(new OrbDescriptor[static_cast<size_t>(capacity_)]);

@@ -256,7 +256,8 @@ void write_loop_log(const std::string& path, const core::LoopLog& loop_log, cons
   std::ofstream f(path);
   if (!f) throw std::runtime_error("--loop-log: cannot write " + path);
   f << "query_id,query_t_s,candidate_id,candidate_t_s,bow_score,place_points,matches,ransac_inliers,guided_matches,inliers,"
-       "out_of_plane_m,correction_m,correction_rad,path_m,verdict,chosen,inconsistent,closed,gt_overlap,"
+       "out_of_plane_m,correction_m,correction_rad,path_m,verdict,geometric,prior_seeded,chosen,inconsistent,closed,"
+       "gt_overlap,"
        "gt_error_m,gt_error_rad\n";
   char line[512];
   for (size_t i = 0; i < loop_log.candidates.size(); ++i) {
@@ -264,11 +265,11 @@ void write_loop_log(const std::string& path, const core::LoopLog& loop_log, cons
     const LoopTruthCandidate g = truth.available && i < truth.per_candidate.size() ? truth.per_candidate[i]
                                                                                     : LoopTruthCandidate{};
     std::snprintf(line, sizeof line,
-                  "%u,%.6f,%u,%.6f,%.4f,%d,%d,%d,%d,%d,%.4f,%.4f,%.5f,%.2f,%s,%d,%d,%d,%.3f,%.4f,%.5f\n", c.query_id,
+                  "%u,%.6f,%u,%.6f,%.4f,%d,%d,%d,%d,%d,%.4f,%.4f,%.5f,%.2f,%s,%d,%d,%d,%d,%d,%.3f,%.4f,%.5f\n", c.query_id,
                   1e-9 * static_cast<double>(c.query_t_ns), c.candidate_id,
                   1e-9 * static_cast<double>(c.candidate_t_ns), c.score, c.place_points, c.matches,
                   c.ransac_inliers, c.guided_matches, c.inliers, c.out_of_plane_m, c.correction_m, c.correction_rad, c.path_m,
-                  core::loop_verdict_name(c.verdict), c.chosen ? 1 : 0, c.inconsistent ? 1 : 0, c.closed ? 1 : 0,
+                  core::loop_verdict_name(c.verdict), c.geometric ? 1 : 0, c.prior_seeded ? 1 : 0, c.chosen ? 1 : 0, c.inconsistent ? 1 : 0, c.closed ? 1 : 0,
                   g.overlap, g.error_m, g.error_rad);
     f << line;
   }

@@ -55,6 +55,20 @@ struct LoopOptions {
   // The candidate keyframe's depth-backed features without a map point are
   // targets too (most of a keyframe; the map keeps only points seen again).
   bool place_features = true;
+  // When the descriptors seed nothing, the odometry's own pose is the seed
+  // (a loop's correction is drift, a few cm): the place is projected with no
+  // correction and matched within this radius (0: off; relocalisation, which
+  // has no pose to trust, never uses it).
+  double prior_seed_radius_px = 20.0;
+  // Candidates from the map's geometry beside place recognition's: the old
+  // keyframes (min_age_s, not connected) that the query's depth points,
+  // placed by the map, land in front of within geometric_max_range_m, at
+  // least geometric_min_overlap of them; the best geometric_candidates. A
+  // loop's correction is bounded drift, so the place it closes on is where
+  // the map already puts it; a look-alike elsewhere is never such a candidate.
+  int geometric_candidates = 2;
+  double geometric_min_overlap = 0.3;
+  double geometric_max_range_m = 6.0;
   // After the 3D fit: refit on pixels and depths, inliers below this chi2 (3 DoF); 0: off
   double refine_chi2 = 7.815;
   // The correction must be drift: at most base + per_m x path flown since the candidate.
@@ -96,7 +110,8 @@ struct LoopOptions {
 
 struct LoopStats {
   uint64_t queries = 0;
-  uint64_t candidates = 0;        // from the inverted index
+  uint64_t candidates = 0;        // from the inverted index and the map's geometry
+  uint64_t geometric_candidates = 0;  // ... of which from the geometry
   uint64_t verified = 0;          // passed geometry and the drift bound
   uint64_t rejected_inliers = 0;  // too few 3D-3D inliers
   uint64_t rejected_drift = 0;    // a correction the odometry could not have drifted (an alias)
@@ -132,6 +147,7 @@ struct PlaceFit {
   // final inliers; and the stage that refused it (kVerified: none did).
   int place_points = 0, matches = 0, ransac_inliers = 0, guided_matches = 0, inliers = 0;
   LoopVerdict failed = LoopVerdict::kFewPoints;
+  bool prior_seeded = false;  // the descriptors seeded nothing; the odometry's pose did
   double out_of_plane_m = 0;  // RMS distance of the inliers' map points from their best-fit plane
   // Covariance of (yaw [rad], t [m]) of the correction from the refit's pixels
   // and depths; zero without the refit (refine_chi2 = 0).
@@ -216,6 +232,8 @@ struct LoopCandidateRecord {
   double correction_m = 0, correction_rad = 0;  // at the query keyframe
   double path_m = 0;                            // flown between the two
   LoopVerdict verdict = LoopVerdict::kFewPoints;
+  bool geometric = false;     // from the map's geometry, not place recognition
+  bool prior_seeded = false;  // PlaceFit::prior_seeded
   bool chosen = false;        // the query's best verified candidate
   bool inconsistent = false;  // chosen, refused by the consistency check
   bool closed = false;        // chosen, and the loop closed on it
@@ -270,7 +288,11 @@ class LoopCloser {
   const LoopLog& log() const { return log_; }
 
  private:
-  bool verify(int kf, int candidate, double score, LoopMatch* out);
+  bool verify(int kf, int candidate, double score, bool geometric, LoopMatch* out);
+  // Old keyframes whose view the query's depth points land in (their share),
+  // best first, at most max; skip(k) leaves one out.
+  template <class Skip>
+  int geometric_candidates(int kf, const Skip& skip, int max, int32_t* out_kf, float* out_share);
   LoopCandidateRecord* log_candidate();
 
   // A closed loop, kept for later pose graphs: b seen from a (camera frames).
