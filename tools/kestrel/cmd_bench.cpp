@@ -79,6 +79,10 @@ struct BenchRow {
   double map_ate_se3_rmse_m = kNaN;
   double map_final_ate_se3_rmse_m = kNaN;  // through the map's keyframes as they ended the flight
   double loop_closures = kNaN, relocalisations = kNaN, keyframes_in_map = kNaN, map_points = kNaN;
+  // The loops against the ground truth (loop_truth.hpp): revisit keyframes,
+  // shares of them the loop closer recognised and the map found either way,
+  // closed loops whose correction disagrees with the truth.
+  double loop_revisits = kNaN, loop_recall = kNaN, map_recall = kNaN, false_loops = kNaN;
   double map_correction_m = kNaN;
   double mapping_ms_p50 = kNaN, mapping_ms_p99 = kNaN, loop_ms_p50 = kNaN, loop_ms_p99 = kNaN;
 };
@@ -171,6 +175,7 @@ std::map<std::string, double> replay_in_child(const std::string& log, const std:
       opt.pace = pace;
       opt.estimator = config.backend;
       opt.config = config;
+      opt.loop_log = true;
       ReplayReport r = run_replay(opt);
       if (!traj_out.empty()) tools::write_tum(traj_out, r.trajectory);
       o << "estimator " << r.estimator << "\n";
@@ -209,6 +214,12 @@ std::map<std::string, double> replay_in_child(const std::string& log, const std:
           o << "mapping_ms_p50 " << ms(r.mapping.p50()) << "\nmapping_ms_p99 " << ms(r.mapping.p99()) << "\n";
         if (r.loop.count() > 0)
           o << "loop_ms_p50 " << ms(r.loop.p50()) << "\nloop_ms_p99 " << ms(r.loop.p99()) << "\n";
+        const auto src = drivers::open_log(log, drivers::LogOpenOptions{});
+        const LoopTruth t = evaluate_loops(*src, r.loop_log);
+        if (t.available) {
+          o << "loop_revisits " << t.revisit_keyframes << "\nfalse_loops " << t.closed_false << "\n";
+          if (t.revisit_keyframes > 0) o << "loop_recall " << t.loop_recall << "\nmap_recall " << t.map_recall << "\n";
+        }
       }
       o << "peak_rss_mb " << r.peak_rss_mb << "\n";
       o << "duration_s " << r.log_duration_s << "\n";
@@ -343,17 +354,21 @@ void print_map_table(const std::vector<BenchRow>& rows) {
   if (!any) return;
   std::printf(
       "\nmap (per keyframe [ms] p50 / p99; cpu/s: the map's threads, then the whole process)\n"
-      "%-26s %-20s %-17s %-17s %6s %8s %6s %6s %8s %7s %7s\n",
-      "case", "estimator", "mapping", "loop", "kfs", "points", "loops", "relocs", "corr_m", "map", "proc");
+      "%-26s %-20s %-17s %-17s %6s %8s %6s %6s %8s %7s %7s %8s %6s %6s %6s\n",
+      "case", "estimator", "mapping", "loop", "kfs", "points", "loops", "relocs", "corr_m", "map", "proc", "revisits",
+      "recall", "found", "false");
   for (const auto& r : rows) {
     if (r.status != "ok" || !std::isfinite(r.keyframes_in_map)) continue;
-    std::printf("%-26s %-20s %-17s %-17s %6s %8s %6s %6s %8s %7s %7s\n", r.name.c_str(), r.estimator.c_str(),
+    std::printf("%-26s %-20s %-17s %-17s %6s %8s %6s %6s %8s %7s %7s %8s %6s %6s %6s\n", r.name.c_str(),
+                r.estimator.c_str(),
                 (fmt(r.mapping_ms_p50, "%.1f") + " / " + fmt(r.mapping_ms_p99, "%.1f")).c_str(),
                 (fmt(r.loop_ms_p50, "%.1f") + " / " + fmt(r.loop_ms_p99, "%.1f")).c_str(),
                 fmt(r.keyframes_in_map, "%.0f").c_str(), fmt(r.map_points, "%.0f").c_str(),
                 fmt(r.loop_closures, "%.0f").c_str(), fmt(r.relocalisations, "%.0f").c_str(),
                 fmt(r.map_correction_m, "%.3f").c_str(), fmt(r.map_cpu_s_per_s, "%.2f").c_str(),
-                fmt(r.cpu_per_s, "%.2f").c_str());
+                fmt(r.cpu_per_s, "%.2f").c_str(), fmt(r.loop_revisits, "%.0f").c_str(),
+                fmt(r.loop_recall, "%.2f").c_str(), fmt(r.map_recall, "%.2f").c_str(),
+                fmt(r.false_loops, "%.0f").c_str());
   }
 }
 
@@ -400,7 +415,11 @@ std::string rows_json(const std::vector<BenchRow>& rows, double duration_s) {
         {"mapping_ms_p50", r.mapping_ms_p50},
         {"mapping_ms_p99", r.mapping_ms_p99},
         {"loop_ms_p50", r.loop_ms_p50},
-        {"loop_ms_p99", r.loop_ms_p99}};
+        {"loop_ms_p99", r.loop_ms_p99},
+        {"loop_revisits", r.loop_revisits},
+        {"loop_recall", r.loop_recall},
+        {"map_recall", r.map_recall},
+        {"false_loops", r.false_loops}};
     for (const auto& [key, value] : figures) c[key] = json_figure(value);
     c["fail"] = !r.fail.empty();
     c["fail_reasons"] = r.fail;
@@ -817,6 +836,10 @@ Subcommand add_bench_command(CLI::App& parent) {
         er.mapping_ms_p99 = get(m, "mapping_ms_p99");
         er.loop_ms_p50 = get(m, "loop_ms_p50");
         er.loop_ms_p99 = get(m, "loop_ms_p99");
+        er.loop_revisits = get(m, "loop_revisits");
+        er.loop_recall = get(m, "loop_recall");
+        er.map_recall = get(m, "map_recall");
+        er.false_loops = get(m, "false_loops");
         rows.push_back(er);
         ++ran;
       }
