@@ -199,12 +199,15 @@ PlaceMatcher::Result PlaceMatcher::match(const KeyframeFeature* f, int n, const 
   // share of what a view holds), so without them a revisit from another
   // angle rarely finds enough matches.
   if (opt.place_features) {
-    const MapKeyframe& C = map_.keyframe(cand);
-    for (int j = 0; j < C.n; ++j) {
-      const KeyframeFeature& g = map_.feature(cand, j);
-      if (map_.point_of(cand, j) >= 0 || g.depth_m <= 0) continue;
-      targets_.push_back({C.T_MC * cam_.point_C(g), &g.desc, -1,
-                          std::max(floor_m, cam_.sigma_depth_m(g.depth_m)), g.level});
+    for (int i = -1; i < nn; ++i) {
+      const int k = i < 0 ? cand : kf_scratch_[i];
+      const MapKeyframe& C = map_.keyframe(k);
+      for (int j = 0; j < C.n; ++j) {
+        const KeyframeFeature& g = map_.feature(k, j);
+        if (map_.point_of(k, j) >= 0 || g.depth_m <= 0) continue;
+        targets_.push_back({C.T_MC * cam_.point_C(g), &g.desc, -1,
+                            std::max(floor_m, cam_.sigma_depth_m(g.depth_m)), g.level});
+      }
     }
   }
   out->place_points = static_cast<int>(targets_.size());
