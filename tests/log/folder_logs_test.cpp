@@ -36,7 +36,7 @@ std::string first_data_line(const std::string& path) {
 }
 
 struct Counts {
-  size_t imu = 0, rgb = 0, depth = 0, gt = 0, events = 0;
+  size_t imu = 0, rgb = 0, depth = 0, gt = 0, events = 0, right = 0;
   bool time_ordered = true;
 };
 
@@ -52,6 +52,9 @@ Counts replay(drivers::LogSource& src) {
       case RecordType::kDepth: ++c.depth, t = r.image.t_ns; break;
       case RecordType::kGroundTruth: ++c.gt, t = r.gt.t_ns; break;
       case RecordType::kEvent: ++c.events, t = r.event.t_ns; break;
+      case RecordType::kRight:
+        ++c.right, t = r.image.t_ns;
+        break;
     }
     if (t < last) c.time_ordered = false;
     last = t;
