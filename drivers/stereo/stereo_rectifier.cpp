@@ -42,23 +42,34 @@ void check_intrinsics(const CameraIntrinsics& k, const std::string& field) {
 }  // namespace
 
 // Where each rectified pixel comes from: the top-left source pixel of its
-// bilinear neighbourhood and the weights of the right and lower neighbours in
-// 1/64 steps (x0 < 0: outside the raw image, the pixel is black). Our own
-// remap rather than cv::remap, which hands its rows to OpenCV's thread pool
-// and allocates per call: this one runs on the tracking thread as it is.
+// bilinear neighbourhood as an offset into the source image, and the weights
+// of the right and lower neighbours in 1/64 steps. Our own remap rather than
+// cv::remap, which hands its rows to OpenCV's thread pool and allocates per
+// call: this one runs on the tracking thread as it is. The offsets hold for
+// one source stride; a view with another stride rebuilds them (no allocation).
 struct RemapEntry {
-  int16_t x0 = -1, y0 = -1;
+  int32_t offset = 0;
   uint8_t wx = 0, wy = 0;
 };
 
 struct RemapTable {
   std::vector<RemapEntry> at;
+  std::vector<uint32_t> xy;       // x0 | y0 << 16 per entry, to rebuild the offsets for another stride
+  std::vector<uint32_t> outside;  // pixels without a source pixel (black)
+  int stride = 0;
   void build(const cv::Mat& map_x, const cv::Mat& map_y, int width, int height) {
-    at.assign(static_cast<size_t>(width) * static_cast<size_t>(height), RemapEntry{});
+    const size_t n = static_cast<size_t>(width) * static_cast<size_t>(height);
+    at.assign(n, RemapEntry{});
+    xy.assign(n, 0);
+    outside.clear();
     for (int y = 0; y < height; ++y)
       for (int x = 0; x < width; ++x) {
+        const size_t i = static_cast<size_t>(y) * width + x;
         const float sx = map_x.at<float>(y, x), sy = map_y.at<float>(y, x);
-        if (!(sx >= 0 && sy >= 0 && sx <= width - 1 && sy <= height - 1)) continue;
+        if (!(sx >= 0 && sy >= 0 && sx <= width - 1 && sy <= height - 1)) {
+          outside.push_back(static_cast<uint32_t>(i));
+          continue;
+        }
         int x0 = static_cast<int>(std::floor(sx)), y0 = static_cast<int>(std::floor(sy));
         int wx = static_cast<int>(std::lround((sx - x0) * 64.0f)),
             wy = static_cast<int>(std::lround((sy - y0) * 64.0f));
@@ -67,27 +78,30 @@ struct RemapTable {
         if (wy == 64) ++y0, wy = 0;
         if (x0 >= width - 1) x0 = width - 2, wx = 64;
         if (y0 >= height - 1) y0 = height - 2, wy = 64;
-        at[static_cast<size_t>(y) * width + x] =
-            RemapEntry{static_cast<int16_t>(x0), static_cast<int16_t>(y0), static_cast<uint8_t>(wx),
-                       static_cast<uint8_t>(wy)};
+        xy[i] = static_cast<uint32_t>(x0) | static_cast<uint32_t>(y0) << 16;
+        at[i].wx = static_cast<uint8_t>(wx);
+        at[i].wy = static_cast<uint8_t>(wy);
       }
+    set_stride(width);
   }
-  void apply(const uint8_t* src, int src_stride, uint8_t* dst, int width, int height) const {
+  void set_stride(int s) {
+    stride = s;
+    for (size_t i = 0; i < at.size(); ++i)
+      at[i].offset = static_cast<int32_t>(xy[i] >> 16) * s + static_cast<int32_t>(xy[i] & 0xffffu);
+  }
+  void apply(const uint8_t* src, int src_stride, uint8_t* dst, int width, int height) {
+    if (src_stride != stride) set_stride(src_stride);
+    const size_t n = static_cast<size_t>(width) * static_cast<size_t>(height);
     const RemapEntry* e = at.data();
-    for (int y = 0; y < height; ++y) {
-      uint8_t* out = dst + static_cast<size_t>(y) * width;
-      for (int x = 0; x < width; ++x, ++e) {
-        if (e->x0 < 0) {
-          out[x] = 0;
-          continue;
-        }
-        const uint8_t* p = src + static_cast<ptrdiff_t>(e->y0) * src_stride + e->x0;
-        const int wx = e->wx, wy = e->wy;
-        const int top = p[0] * (64 - wx) + p[1] * wx;
-        const int bottom = p[src_stride] * (64 - wx) + p[src_stride + 1] * wx;
-        out[x] = static_cast<uint8_t>((top * (64 - wy) + bottom * wy + 2048) >> 12);
-      }
+    for (size_t i = 0; i < n; ++i) {
+      const uint8_t* p = src + e[i].offset;
+      const int wx = e[i].wx, wy = e[i].wy;
+      const int top = p[0] * 64 + (p[1] - p[0]) * wx;
+      const int bottom = p[src_stride] * 64 + (p[src_stride + 1] - p[src_stride]) * wx;
+      dst[i] = static_cast<uint8_t>((top * 64 + (bottom - top) * wy + 2048) >> 12);
     }
+    // Rare (alpha 0 keeps only valid pixels): blacked out after the loop, so the loop has no branch.
+    for (uint32_t i : outside) dst[i] = 0;
   }
 };
 
@@ -96,6 +110,8 @@ struct StereoRectifier::Impl {
   std::vector<uint8_t> gray_l, gray_r;  // raw colour converted to grey
   std::vector<uint8_t> out_l, out_r;
   int width = 0, height = 0;
+  // The pair is rectified already (a D4xx IR pair, a ZED, the simulator's): no remap, only grey conversion.
+  bool identity = false;
 };
 
 StereoRectifier::StereoRectifier(const Rig& rig) : rectified_(rig), impl_(std::make_unique<Impl>()) {
@@ -135,6 +151,24 @@ StereoRectifier::StereoRectifier(const Rig& rig) : rectified_(rig), impl_(std::m
     refuse("the baseline is vertical (right camera above or below the left)");
 
   const cv::Size size(k0.width, k0.height);
+  if (size.width > 32767 || size.height > 32767) refuse("images wider or taller than 32767 px");
+  const size_t px = static_cast<size_t>(size.width) * static_cast<size_t>(size.height);
+  impl_->width = size.width;
+  impl_->height = size.height;
+  impl_->gray_l.resize(px);
+  impl_->gray_r.resize(px);
+  // Rectified already: equal pinhole cameras, parallel axes, the right one along the left one's +x.
+  const double rot_err = cv::norm(cv::Mat(R) - cv::Mat(cv::Matx33d::eye()));
+  if (k0.distortion == DistortionModel::kNone && k1.distortion == DistortionModel::kNone && k0.fx == k1.fx &&
+      k0.fy == k1.fy && k0.cx == k1.cx && k0.cy == k1.cy && rot_err < 1e-9 &&
+      std::abs(t[1]) < 1e-9 * baseline && std::abs(t[2]) < 1e-9 * baseline && t[0] < 0) {
+    impl_->identity = true;
+    rectified_.rgb.dist = {};
+    rectified_.stereo.rectified = true;
+    rectified_.stereo.baseline_m = -t[0];
+    rectified_.depth_camera.present = false;
+    return;
+  }
   const cv::Matx33d K0 = camera_matrix(k0), K1 = camera_matrix(k1);
   const cv::Mat D0 = dist_coeffs(k0), D1 = dist_coeffs(k1);
   cv::Mat R0, R1, P0, P1, Q, lx, ly, rx, ry;
@@ -176,14 +210,8 @@ StereoRectifier::StereoRectifier(const Rig& rig) : rectified_(rig), impl_(std::m
   rectified_.stereo.baseline_m = b;
   rectified_.depth_camera.present = false;
 
-  if (size.width > 32767 || size.height > 32767) refuse("images wider or taller than 32767 px");
-  impl_->width = size.width;
-  impl_->height = size.height;
   impl_->left.build(lx, ly, size.width, size.height);
   impl_->right.build(rx, ry, size.width, size.height);
-  const size_t px = static_cast<size_t>(size.width) * static_cast<size_t>(size.height);
-  impl_->gray_l.resize(px);
-  impl_->gray_r.resize(px);
   impl_->out_l.resize(px);
   impl_->out_r.resize(px);
 }
@@ -225,15 +253,23 @@ bool StereoRectifier::rectify(const ImageView& left, const ImageView& right, Ima
     ++refused_;
     return false;
   }
-  m.left.apply(l, stride, m.out_l.data(), m.width, m.height);
-  *left_out = ImageView{m.width, m.height, m.width, PixelFormat::kGray8, m.out_l.data()};
+  if (m.identity) {
+    *left_out = ImageView{m.width, m.height, stride, PixelFormat::kGray8, l};
+  } else {
+    m.left.apply(l, stride, m.out_l.data(), m.width, m.height);
+    *left_out = ImageView{m.width, m.height, m.width, PixelFormat::kGray8, m.out_l.data()};
+  }
   if (right.data != nullptr) {
     const uint8_t* r = grey_of(right, m.width, m.height, m.gray_r, &stride);
     if (r == nullptr) {
       ++refused_;
     } else {
-      m.right.apply(r, stride, m.out_r.data(), m.width, m.height);
-      *right_out = ImageView{m.width, m.height, m.width, PixelFormat::kGray8, m.out_r.data()};
+      if (m.identity) {
+        *right_out = ImageView{m.width, m.height, stride, PixelFormat::kGray8, r};
+      } else {
+        m.right.apply(r, stride, m.out_r.data(), m.width, m.height);
+        *right_out = ImageView{m.width, m.height, m.width, PixelFormat::kGray8, m.out_r.data()};
+      }
     }
   }
   return true;
