@@ -7,9 +7,9 @@
 
 namespace {
 const std::vector<std::string> kNames = {
-    "mav0/imu0/data.csv",  "mav0/imu0/sensor.yaml", "mav0/cam0/data.csv",
-    "mav0/cam0/sensor.yaml", "mav0/depth0/data.csv", "mav0/depth0/sensor.yaml",
-    "mav0/state_groundtruth_estimate0/data.csv", "mav0/kestrel_rig.yaml", "mav0/kestrel_events.csv",
+    "mav0/imu0/data.csv", "mav0/imu0/sensor.yaml", "mav0/cam0/data.csv", "mav0/cam0/sensor.yaml",
+    "mav0/depth0/data.csv", "mav0/depth0/sensor.yaml", "mav0/state_groundtruth_estimate0/data.csv",
+    "mav0/kestrel_rig.yaml", "mav0/kestrel_events.csv",
     // Appended (older inputs keep their meaning): the right camera of a stereo pair (docs/stereo.md).
     "mav0/cam1/data.csv", "mav0/cam1/sensor.yaml"};
 std::unique_ptr<kestrel::drivers::LogSource> open(const std::string& dir) {

@@ -648,8 +648,9 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   if (input_rig.stereo.present) {
     // No live driver delivers a right image yet: every frame would be depth-less, so say so at start.
     if (opt.live)
-      throw std::invalid_argument("the rig has a stereo: right camera, and live stereo drivers do not exist yet "
-                                  "(docs/stereo.md); replay a recorded stereo log instead");
+      throw std::invalid_argument(
+          "the rig has a stereo: right camera, and live stereo drivers do not exist yet "
+          "(docs/stereo.md); replay a recorded stereo log instead");
     try {
       stereo = std::make_unique<drivers::StereoRectifier>(input_rig);
     } catch (const std::invalid_argument& e) {
@@ -1234,11 +1235,12 @@ std::string replay_summary(const ReplayReport& r) {
   s += buf;
   if (r.stereo) {
     // Stereo: how many frames lost their right image, by cause (docs/stereo.md).
-    std::snprintf(buf, sizeof buf,
-                  "stereo: rectified at start-up, baseline %.4f m; frames without a right image %llu (right images "
-                  "unpaired: %llu)\n",
-                  r.stereo_baseline_m, static_cast<unsigned long long>(r.input_faults.no_depth),
-                  static_cast<unsigned long long>(r.replay.right_unpaired));
+    std::snprintf(
+        buf, sizeof buf,
+        "stereo: rectified at start-up, baseline %.4f m; frames without a right image %llu (right images "
+        "unpaired: %llu)\n",
+        r.stereo_baseline_m, static_cast<unsigned long long>(r.input_faults.no_depth),
+        static_cast<unsigned long long>(r.replay.right_unpaired));
     s += buf;
   }
   if (r.imu_to_output.count() > 0) {

@@ -105,7 +105,7 @@ struct TrackResult {
   int detected = 0;             // features in the current frame
   int with_depth = 0;           // of those, with a valid depth
   int stereo_searched = 0;      // stereo: features searched along their row of the right image
-  bool stereo_no_right = false; // stereo: the frame came without its right image (tracked without depth)
+  bool stereo_no_right = false;  // stereo: the frame came without its right image (tracked without depth)
   int predicted = 0;            // keyframe points that projected into the image
   int matched = 0;              // correspondences handed to LONSC
   int inliers = 0;
