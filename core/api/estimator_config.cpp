@@ -100,6 +100,21 @@ void visit_tracker(TrackerOptions& o, OptionVisitor& v) {
   v.value("max_iterations", o.rigid.max_iterations, "ransac: hypotheses at most");
   v.value("seed", o.rigid.seed, "ransac: random seed (re-seeded every frame: replays are deterministic)");
   v.end_section();
+  v.begin_section(
+      "stereo",
+      "stereo rigs: feature depth from the row search in the rectified right image (docs/stereo.md)");
+  v.value("min_disparity_px", o.stereo.min_disparity_px,
+          "smallest disparity searched: farthest depth f b / this");
+  v.value("max_disparity_px", o.stereo.max_disparity_px,
+          "largest disparity searched: nearest depth f b / this");
+  v.value("patch_half_rows_px", o.stereo.patch_half_rows_px, "SAD patch: 16 columns by 2 x this + 1 rows");
+  v.value("uniqueness_ratio", o.stereo.uniqueness_ratio,
+          "best SAD < this x the best more than 1 px away, else no match");
+  v.value("max_mean_abs_diff", o.stereo.max_mean_abs_diff,
+          "best match's mean absolute difference per pixel [grey levels]");
+  v.value("disparity_sigma_px", o.stereo.disparity_sigma_px,
+          "1-sigma of a matched disparity: depth sigma = z^2 x this / (f b)");
+  v.end_section();
   v.begin_section("pose_refine", "6-DoF Gauss-Newton on the LONSC inliers (docs/lonsc.md)");
   v.value("max_iterations", o.refine.max_iterations, "Gauss-Newton iterations");
   v.value("huber_px", o.refine.huber_px, "Huber threshold on the whitened error (<= 0: least squares)");

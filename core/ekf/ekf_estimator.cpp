@@ -351,7 +351,7 @@ bool EkfEstimator::add_frame(const RgbdFrame& f) {
                              ? 1.0
                              : 1e-9 * static_cast<double>(std::max<int64_t>(0, f.t_ns - last_tracked_t_ns_));
   const double sigma_px = std::max(opt_.pred_sigma_min_px, opt_.pred_sigma_px_per_s * since_s);
-  const TrackResult& r = tracker_.track(f.t_ns, f.rgb, f.depth, T_WB * T_BC_, sigma_px);
+  const TrackResult& r = tracker_.track(f.t_ns, f.rgb, f.depth, f.right, T_WB * T_BC_, sigma_px);
 
   const int n_in = tracker_.num_observations();
   const WindowObservation* in = tracker_.observations();

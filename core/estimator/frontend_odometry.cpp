@@ -145,7 +145,7 @@ bool FrontendOdometry::add_frame(const RgbdFrame& f) {
                              : 1e-9 * static_cast<double>(std::max<int64_t>(0, f.t_ns - last_tracked_t_ns_));
   const double sigma_px = std::max(opt_.pred_sigma_min_px, opt_.pred_sigma_px_per_s * since_s);
 
-  const TrackResult& r = tracker_.track(f.t_ns, f.rgb, f.depth, T_WC_pred, sigma_px);
+  const TrackResult& r = tracker_.track(f.t_ns, f.rgb, f.depth, f.right, T_WC_pred, sigma_px);
   // Predict the (p, v) covariance to the frame time.
   if (P_t_ns_ >= 0) {
     const double dt = std::max(0.0, 1e-9 * static_cast<double>(f.t_ns - P_t_ns_));
@@ -309,7 +309,8 @@ bool FrontendOdometry::add_frame_vision_only(const RgbdFrame& f) {
   }
   const double since_s = last_tracked_t_ns_ < 0 ? 1.0 : 1e-9 * static_cast<double>(f.t_ns - last_tracked_t_ns_);
   const double sigma_px = opt_.vision_only_pred_sigma_px + opt_.pred_sigma_px_per_s * std::max(0.0, since_s - 0.034);
-  const TrackResult& r = tracker_.track(f.t_ns, f.rgb, f.depth, T_WC_pred, sigma_px, /*rotation_known=*/false);
+  const TrackResult& r =
+      tracker_.track(f.t_ns, f.rgb, f.depth, f.right, T_WC_pred, sigma_px, /*rotation_known=*/false);
   if (r.tracked() || r.status == TrackStatus::kNewKeyframe) {
     const Eigen::Isometry3d T_WB = r.T_WC * T_BC_.inverse();
     const double dt_s = 1e-9 * static_cast<double>(f.t_ns - t_last_ns_);

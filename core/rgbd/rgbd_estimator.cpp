@@ -90,7 +90,8 @@ bool RgbdEstimator::add_frame(const RgbdFrame& f) {
   const double since_s =
       last_tracked_t_ns_ < 0 ? 0.0 : 1e-9 * static_cast<double>(std::max<int64_t>(0, f.t_ns - last_tracked_t_ns_));
   const double sigma_px = opt_.pred_sigma_px + opt_.pred_sigma_px_per_s * std::max(0.0, since_s - 0.034);
-  const TrackResult& r = tracker_.track(f.t_ns, f.rgb, f.depth, T_WC_pred, sigma_px, /*rotation_known=*/false);
+  const TrackResult& r =
+      tracker_.track(f.t_ns, f.rgb, f.depth, f.right, T_WC_pred, sigma_px, /*rotation_known=*/false);
   const bool accepted = r.tracked() || r.status == TrackStatus::kNewKeyframe;
   Eigen::Isometry3d T_WC = T_WC_pred;
   if (accepted) {

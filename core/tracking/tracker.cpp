@@ -45,6 +45,7 @@ std::string TrackerOptions::validate() const {
     e << "map_*: radius > 0, min_inliers >= 6, ratio in (0, 1], max corrections > 0\n";
   if (far_tracks && !(far_search_radius_px > 0 && far_max_segment_px > 0))
     e << "far_search_radius_px, far_max_segment_px: > 0\n";
+  e << stereo.validate();
   return e.str();
 }
 
@@ -183,7 +184,13 @@ struct Tracker::Impl {
         corr_has_q(new uint8_t[static_cast<size_t>(capacity)]),
         corr_z(new double[static_cast<size_t>(capacity)]),
         corr_sz(new double[static_cast<size_t>(capacity)]),
-        orderer(static_cast<size_t>(capacity)) {
+        orderer(static_cast<size_t>(capacity)),
+        stereo_on(rig.stereo.present && rig.stereo.rectified && rig.stereo.baseline_m > 0),
+        stereo_fb_px_m(rig.rgb.fx * rig.stereo.baseline_m),
+        stereo(opt.stereo),
+        kp_x(new float[static_cast<size_t>(capacity)]),
+        kp_y(new float[static_cast<size_t>(capacity)]),
+        disparity(new float[static_cast<size_t>(capacity)]) {
     K.fx = cam.fx();
     K.fy = cam.fy();
     K.cx = cam.cx();
@@ -217,6 +224,27 @@ struct Tracker::Impl {
     if (zc < depth.min_range_m || zc > depth.max_range_m) return 0.0;
     if (zmax - zmin > edge_rel * zc) return 0.0;
     return zc;
+  }
+
+  // Stereo: depth z = f b / d from the row search; a feature without a match has none.
+  [[gnu::noinline]] int stereo_depth(FrameData& f, const ImageView& left, const ImageView& right) {
+    f.with_depth = 0;
+    const int n = f.feats.size();
+    for (int i = 0; i < n; ++i) {
+      kp_x[i] = f.feats.keypoint(i).x;
+      kp_y[i] = f.feats.keypoint(i).y;
+    }
+    StereoMatchStats st;
+    stereo.match(left, right, kp_x.get(), kp_y.get(), n, disparity.get(), &st);
+    for (int i = 0; i < n; ++i) {
+      const double z = disparity[i] > 0 ? stereo_fb_px_m / disparity[i] : 0.0;
+      f.has_depth[i] = z > 0 ? 1 : 0;
+      if (z > 0) {
+        f.p_C[i] = cam.back_project(Eigen::Vector2d(kp_x[i], kp_y[i]), z);
+        ++f.with_depth;
+      }
+    }
+    return st.searched;
   }
 
   [[gnu::noinline]] void back_project(FrameData& f, const ImageView& d, double edge_rel) {
@@ -668,6 +696,11 @@ struct Tracker::Impl {
   std::unique_ptr<uint8_t[]> corr_has_q;
   std::unique_ptr<double[]> corr_z, corr_sz;
   CorrespondenceOrderer orderer;
+  // Stereo rigs: the row search and its per-feature buffers.
+  bool stereo_on;
+  double stereo_fb_px_m;  // f * baseline
+  StereoMatcher stereo;
+  std::unique_ptr<float[]> kp_x, kp_y, disparity;
 };
 
 Tracker::Tracker(const Rig& rig, const TrackerOptions& opt) : opt_(opt) {
@@ -781,6 +814,14 @@ void Tracker::clear_map() {
 
 const TrackResult& Tracker::track(int64_t t_ns, const ImageView& image, const ImageView& depth,
                                   const Eigen::Isometry3d& T_WC_pred, double pred_sigma_px, bool rotation_known) {
+  return track(t_ns, image, depth, ImageView{}, T_WC_pred, pred_sigma_px, rotation_known);
+}
+
+bool Tracker::stereo() const { return impl_->stereo_on; }
+
+const TrackResult& Tracker::track(int64_t t_ns, const ImageView& image, const ImageView& depth,
+                                  const ImageView& right, const Eigen::Isometry3d& T_WC_pred,
+                                  double pred_sigma_px, bool rotation_known) {
   Impl& m = *impl_;
   result_ = TrackResult{};
   result_.T_WC = T_WC_pred;
@@ -795,7 +836,12 @@ const TrackResult& Tracker::track(int64_t t_ns, const ImageView& image, const Im
     result_.status = TrackStatus::kFeatureError;
     return result_;
   }
-  m.back_project(m.cur, depth, opt_.depth_edge_rel);
+  if (m.stereo_on) {
+    result_.stereo_no_right = right.data == nullptr;
+    result_.stereo_searched = m.stereo_depth(m.cur, image, right);
+  } else {
+    m.back_project(m.cur, depth, opt_.depth_edge_rel);
+  }
   m.cur.t_ns = t_ns;
   std::fill(m.cur.lm_id.get(), m.cur.lm_id.get() + m.cur.feats.size(), 0u);
   std::fill(m.cur.map_idx.get(), m.cur.map_idx.get() + m.cur.feats.size(), -1);

@@ -57,6 +57,25 @@ void camera_from_sensor(const std::string& path, Rig& rig) {
   if (y.rate_hz) rig.camera_rate_hz = *y.rate_hz;
 }
 
+// cam1 of an ASL folder: the right camera of a stereo pair (rig.stereo).
+void right_camera_from_sensor(const std::string& path, Rig& rig) {
+  const EurocSensorYaml y = read_euroc_sensor_yaml(path);
+  if (!y.resolution_px) throw std::runtime_error(path + ": resolution: expected a list of 2 numbers");
+  if (!y.intrinsics_px) throw std::runtime_error(path + ": intrinsics: expected a list of 4 numbers");
+  CameraIntrinsics& k = rig.stereo.intrinsics;
+  k.width = (*y.resolution_px)[0];
+  k.height = (*y.resolution_px)[1];
+  k.fx = (*y.intrinsics_px)[0];
+  k.fy = (*y.intrinsics_px)[1];
+  k.cx = (*y.intrinsics_px)[2];
+  k.cy = (*y.intrinsics_px)[3];
+  k.distortion = y.distortion;
+  k.dist = {};
+  for (size_t i = 0; i < y.distortion_coefficients.size(); ++i) k.dist[i] = y.distortion_coefficients[i];
+  rig.stereo.T_BC1 = y.T_BS;
+  rig.stereo.present = true;
+}
+
 void imu_from_sensor(const std::string& path, Rig& rig) {
   const EurocSensorYaml y = read_euroc_sensor_yaml(path);
   rig.T_BI = y.T_BS;
@@ -299,6 +318,15 @@ EurocReader::EurocReader(const std::string& path_in) {
     else s.problem(cam_yaml, "missing-file", "no camera calibration; the rig keeps default intrinsics");
     if (text::is_file(imu_yaml)) imu_from_sensor(imu_yaml, s.rig_);
     else s.problem(imu_yaml, "missing-file", "no IMU noise figures; the rig keeps defaults");
+    // A second camera makes the folder a stereo log: depth from matching cam0 against cam1 (docs/stereo.md).
+    const std::string cam1_yaml = root + "/cam1/sensor.yaml";
+    if (!flat_ && text::is_file(root + "/cam1/data.csv")) {
+      if (text::is_file(cam1_yaml))
+        right_camera_from_sensor(cam1_yaml, s.rig_);
+      else
+        s.problem(cam1_yaml, "missing-file",
+                  "cam1 images without a calibration; replayed as a monocular log");
+    }
   }
 
   imu_file_ = flat_ ? root + "/imu0.csv" : root + "/imu0/data.csv";
@@ -314,6 +342,9 @@ EurocReader::EurocReader(const std::string& path_in) {
   } else {
     if (text::is_file(root + "/cam0/data.csv")) read_image_csv(root + "/cam0/data.csv", root + "/cam0/data", s, s.rgb_);
     else s.problem(root + "/cam0/data.csv", "missing-file", "no cam0 table; no images replayed");
+    // Only with a stereo rig (cam1/sensor.yaml or the rig file's stereo:): uncalibrated images are no use.
+    if (s.rig_.stereo.present && text::is_file(root + "/cam1/data.csv"))
+      read_image_csv(root + "/cam1/data.csv", root + "/cam1/data", s, s.right_);
     if (text::is_file(root + "/depth0/data.csv"))
       read_image_csv(root + "/depth0/data.csv", root + "/depth0/data", s, s.depth_);
     if (text::is_file(root + "/state_groundtruth_estimate0/data.csv"))

@@ -130,7 +130,7 @@ ExportStats export_euroc(LogSource& src, const std::string& out_dir) {
           "a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]\n");
   OutFile cam(mav + "/cam0/data.csv");
   cam.put("#timestamp [ns],filename\n");
-  std::unique_ptr<OutFile> depth, gt, events;
+  std::unique_ptr<OutFile> depth, gt, events, right;
   ExportStats st;
   int64_t last_rgb_t = 0, last_depth_t = 0;
   int dup = 0;
@@ -205,9 +205,24 @@ ExportStats export_euroc(LogSource& src, const std::string& out_dir) {
         ++st.events;
         break;
       }
+      case RecordType::kRight: {
+        // A stereo log's right camera goes where EuRoC keeps it, cam1.
+        if (!right) {
+          mkdirs(mav + "/cam1/data");
+          right = std::make_unique<OutFile>(mav + "/cam1/data.csv");
+          right->put("#timestamp [ns],filename\n");
+        }
+        const std::string name = std::to_string(r.image.t_ns) + ".png";
+        const std::string file = mav + "/cam1/data/" + name;
+        const cv::Mat m = to_writable(r.image);
+        if (m.empty() || !cv::imwrite(file, m)) throw std::runtime_error(file + ": cannot write PNG");
+        right->put(std::to_string(r.image.t_ns) + "," + name + "\n");
+        break;
+      }
     }
   }
   imu.close();
+  if (right) right->close();
   cam.close();
   if (depth) depth->close();
   if (gt) gt->close();
@@ -403,6 +418,8 @@ ExportStats export_eth3d(LogSource& src, const std::string& out_dir) {
         break;
       }
       case RecordType::kEvent: break;   // ETH3D has no place for events
+      case RecordType::kRight:
+        break;  // nor for a second camera
     }
   }
   rgb.close();
@@ -488,6 +505,8 @@ ExportStats export_openloris(LogSource& src, const std::string& out_dir) {
         ++st.ground_truth;
         break;
       case RecordType::kEvent: break;   // nor has OpenLORIS
+      case RecordType::kRight:
+        break;
     }
   }
   color.close();

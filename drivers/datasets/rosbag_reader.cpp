@@ -556,6 +556,8 @@ ExportStats export_rosbag(LogSource& src, const std::string& path, const RosbagT
         }
         case RecordType::kEvent:
           break;  // no ROS message for it
+        case RecordType::kRight:
+          break;  // no second image topic yet (docs/stereo.md)
       }
     }
     bag.close();

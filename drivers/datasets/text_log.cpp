@@ -24,10 +24,10 @@ void StreamLogSource::order_streams(const std::string& imu_file, const std::stri
   check(gt_, [](const Row<GroundTruthPose>& r) { return r.value.t_ns; }, [](const auto& r) { return r.line; }, gt_file);
   // Camera stamps onto the IMU's clock (the rig's time_offset_cam_imu_ns);
   // the merge in next() then interleaves them where they belong.
-  for (auto* images : {&rgb_, &depth_})
+  for (auto* images : {&rgb_, &depth_, &right_})
     for (ImageEntry& e : *images) e.t_ns = camera_stamp_on_imu_clock(rig_, e.t_ns);
   // Image rows carry their own "file:line".
-  for (auto* images : {&rgb_, &depth_}) {
+  for (auto* images : {&rgb_, &depth_, &right_}) {
     for (size_t i = 1; i < images->size(); ++i)
       if ((*images)[i].t_ns <= (*images)[i - 1].t_ns)
         problem((*images)[i].where, "time-order", "image timestamp not after the previous row's; replayed in sorted order");
@@ -104,6 +104,8 @@ bool StreamLogSource::next(LogRecord& out) {
     consider(2, i_depth_ < depth_.size(), i_depth_ < depth_.size() ? depth_[i_depth_].t_ns : 0);
     consider(3, i_gt_ < gt_.size(), i_gt_ < gt_.size() ? gt_[i_gt_].value.t_ns : 0);
     consider(4, i_ev_ < events_.size(), i_ev_ < events_.size() ? events_[i_ev_].value.t_ns : 0);
+    // Last at equal times: the right image follows its left one, as depth follows colour.
+    consider(5, i_right_ < right_.size(), i_right_ < right_.size() ? right_[i_right_].t_ns : 0);
     switch (best) {
       case 0:
         out.type = RecordType::kImu;
@@ -128,13 +130,20 @@ bool StreamLogSource::next(LogRecord& out) {
         out.offset = events_[i_ev_].line;
         out.event = events_[i_ev_++].value;
         return true;
+      case 5: {
+        const ImageEntry& e = right_[i_right_++];
+        out.type = RecordType::kRight;
+        out.offset = e.line;
+        if (load_image(e, out.type, out.image)) return true;
+        continue;
+      }
       default: return false;
     }
   }
 }
 
 void StreamLogSource::rewind() {
-  i_imu_ = i_rgb_ = i_depth_ = i_gt_ = i_ev_ = 0;
+  i_imu_ = i_rgb_ = i_depth_ = i_right_ = i_gt_ = i_ev_ = 0;
   images_seen_ = 0;
 }
 
@@ -151,6 +160,7 @@ const std::vector<LogProblem>& FolderLogSource::problems() const { return impl_-
 size_t FolderLogSource::imu_count() const { return impl_->imu_.size(); }
 size_t FolderLogSource::rgb_count() const { return impl_->rgb_.size(); }
 size_t FolderLogSource::depth_count() const { return impl_->depth_.size(); }
+size_t FolderLogSource::right_count() const { return impl_->right_.size(); }
 size_t FolderLogSource::ground_truth_count() const { return impl_->gt_.size(); }
 
 }  // namespace kestrel::drivers

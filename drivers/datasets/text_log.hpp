@@ -52,12 +52,13 @@ class StreamLogSource final : public LogSource {
   std::vector<Row<ImuSample>> imu_;
   std::vector<ImageEntry> rgb_;
   std::vector<ImageEntry> depth_;
+  std::vector<ImageEntry> right_;  // a stereo pair's right camera (RecordType::kRight)
   std::vector<Row<GroundTruthPose>> gt_;
   std::vector<Row<Event>> events_;
 
  private:
   bool load_image(const ImageEntry& e, RecordType type, LogImage& img);
-  size_t i_imu_ = 0, i_rgb_ = 0, i_depth_ = 0, i_gt_ = 0, i_ev_ = 0;
+  size_t i_imu_ = 0, i_rgb_ = 0, i_depth_ = 0, i_right_ = 0, i_gt_ = 0, i_ev_ = 0;
   size_t images_reported_until_ = 0;   // image decode failures are reported once across rewinds
   size_t images_seen_ = 0;
 };

@@ -17,8 +17,10 @@ int rank_of(RecordType t) {
     case RecordType::kDepth: return 2;
     case RecordType::kGroundTruth: return 3;
     case RecordType::kEvent: return 4;
+    case RecordType::kRight:
+      return 5;
   }
-  return 5;
+  return 6;
 }
 
 }  // namespace
@@ -27,7 +29,9 @@ int64_t record_time_ns(const LogRecord& r) {
   switch (r.type) {
     case RecordType::kImu: return r.imu.t_ns;
     case RecordType::kRgb:
-    case RecordType::kDepth: return r.image.t_ns;
+    case RecordType::kDepth:
+    case RecordType::kRight:
+      return r.image.t_ns;
     case RecordType::kGroundTruth: return r.gt.t_ns;
     case RecordType::kEvent: return r.event.t_ns;
   }

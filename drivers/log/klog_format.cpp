@@ -6,7 +6,7 @@
 namespace kestrel::drivers::klog {
 
 bool is_known_record_type(uint16_t type) {
-  return type >= static_cast<uint16_t>(RecordType::kImu) && type <= static_cast<uint16_t>(RecordType::kEvent);
+  return type >= static_cast<uint16_t>(RecordType::kImu) && type <= static_cast<uint16_t>(RecordType::kRight);
 }
 
 bool is_valid_pixel_format(uint8_t format) {

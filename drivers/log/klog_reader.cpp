@@ -221,6 +221,7 @@ bool KlogReader::decode(uint64_t offset, const RecordHeader& h, LogRecord& out, 
     case RecordType::kImu: return klog::decode_imu(p, h.length, out.imu, why);
     case RecordType::kRgb:
     case RecordType::kDepth:
+    case RecordType::kRight:
       return klog::decode_image(p, h.length, out.image, why, decoder_, version_);
     case RecordType::kGroundTruth: return klog::decode_ground_truth(p, h.length, out.gt, why);
     case RecordType::kEvent: return klog::decode_event(p, h.length, out.event, why);

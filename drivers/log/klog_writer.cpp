@@ -116,8 +116,8 @@ void KlogWriter::write_image(RecordType type, const LogImage& img) {
 
 void KlogWriter::write_image(RecordType type, int64_t t_ns, int64_t t_recv_ns, uint32_t seq, int32_t exposure_us,
                              const ImageView& view) {
-  if (type != RecordType::kRgb && type != RecordType::kDepth)
-    throw std::invalid_argument("KlogWriter::write_image: type must be kRgb or kDepth");
+  if (type != RecordType::kRgb && type != RecordType::kDepth && type != RecordType::kRight)
+    throw std::invalid_argument("KlogWriter::write_image: type must be kRgb, kDepth or kRight");
   const int bpp = bytes_per_pixel(view.format);
   if (bpp == 0 || view.width < 0 || view.height < 0 ||
       static_cast<uint32_t>(view.width) > klog::kMaxImageSide ||

@@ -101,6 +101,7 @@ void ReplaySource::emit_pending() {
   // Not delivered: give the pixels back.
   if (pending_.rgb_handle != rt::kInvalidHandle) rings_.images.release(pending_.rgb_handle);
   if (pending_.depth_handle != rt::kInvalidHandle) rings_.images.release(pending_.depth_handle);
+  if (pending_.right_handle != rt::kInvalidHandle) rings_.images.release(pending_.right_handle);
 }
 
 bool ReplaySource::step() {
@@ -136,6 +137,7 @@ bool ReplaySource::step() {
       pending_.exposure_us = rec_.image.exposure_us;
       pending_.rgb_handle = h;
       pending_.depth_handle = rt::kInvalidHandle;
+      pending_.right_handle = rt::kInvalidHandle;
       have_pending_ = true;
       if (stats_.first_t_ns < 0) stats_.first_t_ns = rec_.image.t_ns;
       stats_.last_t_ns = rec_.image.t_ns;
@@ -152,6 +154,20 @@ bool ReplaySource::step() {
       uint32_t h = rt::kInvalidHandle;
       if (copy_image(rec_.image, h)) pending_.depth_handle = h;
       emit_pending();
+      break;
+    }
+    case RecordType::kRight: {
+      // Waits for nothing: a frame goes out at the next IMU or image record,
+      // so a right image stamped later than that (or whose left image is
+      // missing) is counted and dropped, and the frame is tracked without depth.
+      const bool pairs = have_pending_ && pending_.right_handle == rt::kInvalidHandle &&
+                         std::llabs(rec_.image.t_ns - pending_.t_ns) <= kRightPairingNs;
+      if (!pairs) {
+        ++stats_.right_unpaired;
+        break;
+      }
+      uint32_t h = rt::kInvalidHandle;
+      if (copy_image(rec_.image, h)) pending_.right_handle = h;
       break;
     }
     case RecordType::kGroundTruth:

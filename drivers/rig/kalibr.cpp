@@ -135,43 +135,57 @@ KalibrImport import_kalibr_text(const std::string& camchain_yaml, const std::str
     for (const auto& kv : chain) have += std::string(have.empty() ? "" : ", ") + kv.first.Scalar();
     cr.fail(camera, "no such camera in the chain (it has: " + (have.empty() ? std::string("none") : have) + ")");
   }
-  if (!cam.IsMap()) cr.fail(camera, "expected a mapping");
+  // One camera of the chain: its intrinsics and camera -> body.
+  auto read_camera = [&](const YAML::Node& cam, const std::string& name, CameraIntrinsics& ki) {
+    if (!cam.IsMap()) cr.fail(name, "expected a mapping");
+    const std::string c = name + ".";
+    if (cam["camera_model"] && cam["camera_model"].Scalar() != "pinhole")
+      cr.fail(c + "camera_model", "\"" + cam["camera_model"].Scalar() + "\": Kestrel's camera is pinhole");
+    if (!cam["intrinsics"]) cr.fail(c + "intrinsics", "missing ([fu, fv, pu, pv] in pixels)");
+    const std::vector<double> k = cr.numbers(cam["intrinsics"], c + "intrinsics", 4);
+    ki.fx = k[0];
+    ki.fy = k[1];
+    ki.cx = k[2];
+    ki.cy = k[3];
+    // The rig file refuses these; an import must not write what cannot be read (found by fuzz_kalibr).
+    if (k[0] <= 0 || k[1] <= 0) cr.fail(c + "intrinsics", "focal lengths fu, fv must be > 0");
+    if (!cam["resolution"]) cr.fail(c + "resolution", "missing ([width, height] in pixels)");
+    const std::vector<double> res = cr.numbers(cam["resolution"], c + "resolution", 2);
+    // Bounded before the cast to int, which is undefined past INT_MAX (found by fuzz_kalibr).
+    if (res[0] < 1 || res[1] < 1 || res[0] > 32768 || res[1] > 32768 || res[0] != std::floor(res[0]) ||
+        res[1] != std::floor(res[1]))
+      cr.fail(c + "resolution", "expected two whole numbers from 1 to 32768");
+    ki.width = static_cast<int>(res[0]);
+    ki.height = static_cast<int>(res[1]);
+    ki.dist = {};
+    const std::string model = cam["distortion_model"] ? cam["distortion_model"].Scalar() : std::string();
+    if (model.empty() || model == "none") {
+      ki.distortion = DistortionModel::kNone;
+      if (model.empty()) out.notes.push_back(c + "distortion_model: missing: no distortion assumed");
+    } else if (model == "radtan" || model == "equidistant") {
+      if (!cam["distortion_coeffs"])
+        cr.fail(c + "distortion_coeffs", "missing (4 numbers for " + model + ")");
+      const std::vector<double> d = cr.numbers(cam["distortion_coeffs"], c + "distortion_coeffs", 4);
+      ki.distortion = model == "radtan" ? DistortionModel::kRadTan : DistortionModel::kEquidistant;
+      for (int i = 0; i < 4; ++i) ki.dist[i] = d[i];  // radtan: k1 k2 p1 p2 (k3 = 0); equidistant: k1..k4
+    } else {
+      cr.fail(c + "distortion_model", "\"" + model + "\": expected radtan, equidistant or none");
+    }
+    if (!cam["T_cam_imu"])
+      cr.fail(c + "T_cam_imu",
+              "missing: this is a camera-only chain; use the camchain-imucam-*.yaml of "
+              "kalibr_calibrate_imu_camera");
+    return rigid_inverse(cr.transform(cam["T_cam_imu"], c + "T_cam_imu"));
+  };
+  rig.T_BC = read_camera(cam, camera, rig.rgb);
   const std::string c = camera + ".";
-  if (cam["camera_model"] && cam["camera_model"].Scalar() != "pinhole")
-    cr.fail(c + "camera_model", "\"" + cam["camera_model"].Scalar() + "\": Kestrel's camera is pinhole");
-  if (!cam["intrinsics"]) cr.fail(c + "intrinsics", "missing ([fu, fv, pu, pv] in pixels)");
-  const std::vector<double> k = cr.numbers(cam["intrinsics"], c + "intrinsics", 4);
-  rig.rgb.fx = k[0];
-  rig.rgb.fy = k[1];
-  rig.rgb.cx = k[2];
-  rig.rgb.cy = k[3];
-  // The rig file refuses these; an import must not write what cannot be read (found by fuzz_kalibr).
-  if (k[0] <= 0 || k[1] <= 0) cr.fail(c + "intrinsics", "focal lengths fu, fv must be > 0");
-  if (!cam["resolution"]) cr.fail(c + "resolution", "missing ([width, height] in pixels)");
-  const std::vector<double> res = cr.numbers(cam["resolution"], c + "resolution", 2);
-  // Bounded before the cast to int, which is undefined past INT_MAX (found by fuzz_kalibr).
-  if (res[0] < 1 || res[1] < 1 || res[0] > 32768 || res[1] > 32768 || res[0] != std::floor(res[0]) ||
-      res[1] != std::floor(res[1]))
-    cr.fail(c + "resolution", "expected two whole numbers from 1 to 32768");
-  rig.rgb.width = static_cast<int>(res[0]);
-  rig.rgb.height = static_cast<int>(res[1]);
-  rig.rgb.dist = {};
-  const std::string model = cam["distortion_model"] ? cam["distortion_model"].Scalar() : std::string();
-  if (model.empty() || model == "none") {
-    rig.rgb.distortion = DistortionModel::kNone;
-    if (model.empty()) out.notes.push_back(c + "distortion_model: missing: no distortion assumed");
-  } else if (model == "radtan" || model == "equidistant") {
-    if (!cam["distortion_coeffs"]) cr.fail(c + "distortion_coeffs", "missing (4 numbers for " + model + ")");
-    const std::vector<double> d = cr.numbers(cam["distortion_coeffs"], c + "distortion_coeffs", 4);
-    rig.rgb.distortion = model == "radtan" ? DistortionModel::kRadTan : DistortionModel::kEquidistant;
-    for (int i = 0; i < 4; ++i) rig.rgb.dist[i] = d[i];  // radtan: k1 k2 p1 p2 (k3 = 0); equidistant: k1..k4
-  } else {
-    cr.fail(c + "distortion_model", "\"" + model + "\": expected radtan, equidistant or none");
+  // A two-camera chain imported from cam0 is a stereo rig: cam1 is its right camera (docs/stereo.md).
+  rig.stereo = StereoCamera{};
+  if (camera == "cam0" && chain["cam1"]) {
+    rig.stereo.T_BC1 = read_camera(chain["cam1"], "cam1", rig.stereo.intrinsics);
+    rig.stereo.present = true;
+    out.notes.push_back("cam1: imported as the right camera of a stereo pair (stereo:); depth from matching");
   }
-  if (!cam["T_cam_imu"])
-    cr.fail(c + "T_cam_imu",
-            "missing: this is a camera-only chain; use the camchain-imucam-*.yaml of kalibr_calibrate_imu_camera");
-  rig.T_BC = rigid_inverse(cr.transform(cam["T_cam_imu"], c + "T_cam_imu"));
   if (cam["timeshift_cam_imu"]) {
     rig.time_offset_cam_imu_ns =
         static_cast<int64_t>(std::llround(1e9 * cr.number(cam["timeshift_cam_imu"], c + "timeshift_cam_imu")));

@@ -157,12 +157,12 @@ Rig rig_from_yaml_node(const YAML::Node& root, const std::string& where, const s
   // table (drivers::load_thread_table reads it); inside a live config `rig.threads` stays an error.
   if (prefix.empty())
     p.only_keys(root, "",
-                {"name", "camera", "depth", "depth_camera", "T_BC", "T_BI", "imu", "time_offset_cam_imu_ns", "gravity_mps2",
-                 "threads"});
+                {"name", "camera", "depth", "depth_camera", "stereo", "T_BC", "T_BI", "imu",
+                 "time_offset_cam_imu_ns", "gravity_mps2", "threads"});
   else
     p.only_keys(root, "",
-                {"name", "camera", "depth", "depth_camera", "T_BC", "T_BI", "imu", "time_offset_cam_imu_ns",
-                 "gravity_mps2"});
+                {"name", "camera", "depth", "depth_camera", "stereo", "T_BC", "T_BI", "imu",
+                 "time_offset_cam_imu_ns", "gravity_mps2"});
   Rig rig;
   if (root["name"]) {
     if (!root["name"].IsScalar()) p.fail("name", "expected a string");
@@ -187,6 +187,16 @@ Rig rig_from_yaml_node(const YAML::Node& root, const std::string& where, const s
     if (!dc["T_CD"]) p.fail("depth_camera.T_CD", "missing (required: depth camera -> colour camera, 4x4 row-major)");
     p.matrix(dc["T_CD"], "depth_camera.T_CD", rig.depth_camera.T_CD);
     rig.depth_camera.present = true;
+  }
+
+  if (const YAML::Node sc = root["stereo"]) {
+    p.only_keys(
+        sc, "stereo",
+        {"width_px", "height_px", "fx_px", "fy_px", "cx_px", "cy_px", "distortion", "dist_coeffs", "T_BC1"});
+    intrinsics(p, sc, "stereo.", rig.stereo.intrinsics);
+    if (!sc["T_BC1"]) p.fail("stereo.T_BC1", "missing (required: right camera -> body, 4x4 row-major)");
+    p.matrix(sc["T_BC1"], "stereo.T_BC1", rig.stereo.T_BC1);
+    rig.stereo.present = true;
   }
 
   if (const YAML::Node d = root["depth"]) {
@@ -268,6 +278,15 @@ std::string rig_to_yaml(const Rig& r) {
     o << "  # depth camera -> colour camera, 4x4 row-major\n";
     o << "  T_CD: " << list(r.depth_camera.T_CD.data(), 16, "        ") << "\n";
   }
+  if (r.stereo.present) {
+    // A rectified rig is the estimator's view of the pair, derived at start-up; files keep the calibration.
+    o << "# the right camera of a stereo pair (camera: is the left one); depth from matching "
+         "(docs/stereo.md)\n";
+    o << "stereo:\n";
+    emit_intrinsics(o, r.stereo.intrinsics);
+    o << "  # right camera -> body, 4x4 row-major\n";
+    o << "  T_BC1: " << list(r.stereo.T_BC1.data(), 16, "        ") << "\n";
+  }
   o << "# camera -> body (body = IMU frame), 4x4 row-major\n";
   o << "T_BC: " << list(r.T_BC.data(), 16, "       ") << "\n";
   o << "# IMU -> body, 4x4 row-major\n";
@@ -300,10 +319,14 @@ bool rig_equal(const Rig& a, const Rig& b) {
       a.depth_camera.present == b.depth_camera.present &&
       (!a.depth_camera.present || (intrinsics_equal(a.depth_camera.intrinsics, b.depth_camera.intrinsics) &&
                                    a.depth_camera.T_CD == b.depth_camera.T_CD));
-  return a.name == b.name && intrinsics_equal(a.rgb, b.rgb) && depth_camera_equal &&
+  const bool stereo_equal =
+      a.stereo.present == b.stereo.present &&
+      (!a.stereo.present ||
+       (intrinsics_equal(a.stereo.intrinsics, b.stereo.intrinsics) && a.stereo.T_BC1 == b.stereo.T_BC1));
+  return a.name == b.name && intrinsics_equal(a.rgb, b.rgb) && depth_camera_equal && stereo_equal &&
          a.depth.scale_m_per_unit == b.depth.scale_m_per_unit && a.depth.min_range_m == b.depth.min_range_m &&
-         a.depth.max_range_m == b.depth.max_range_m && a.depth.sigma_coeff_per_m == b.depth.sigma_coeff_per_m &&
-         a.T_BC == b.T_BC && a.T_BI == b.T_BI &&
+         a.depth.max_range_m == b.depth.max_range_m &&
+         a.depth.sigma_coeff_per_m == b.depth.sigma_coeff_per_m && a.T_BC == b.T_BC && a.T_BI == b.T_BI &&
          a.imu.gyro_noise_density_rad_s_sqrthz == b.imu.gyro_noise_density_rad_s_sqrthz &&
          a.imu.gyro_random_walk_rad_s2_sqrthz == b.imu.gyro_random_walk_rad_s2_sqrthz &&
          a.imu.acc_noise_density_mps2_sqrthz == b.imu.acc_noise_density_mps2_sqrthz &&

@@ -266,6 +266,7 @@ Rosbag2Stats export_rosbag2(LogSource& src, const std::string& out_dir, const Ro
         break;
       }
       case RecordType::kEvent:
+      case RecordType::kRight:  // stereo right images: no topic for them yet (docs/stereo.md)
         ++st.skipped;
         break;
     }

@@ -54,6 +54,7 @@ void expect_same_records(const std::string& a_path, const std::string& b_path, s
         break;
       case drivers::RecordType::kRgb:
       case drivers::RecordType::kDepth:
+      case drivers::RecordType::kRight:
         ++*images;
         EXPECT_EQ(ra.image.t_ns, rb.image.t_ns);
         EXPECT_EQ(ra.image.seq, rb.image.seq);

@@ -26,7 +26,8 @@ inline size_t drain_twice(drivers::LogSource& src, size_t input_bytes) {
     size_t n = 0;
     while (src.next(r)) {
       if (++n > bound) std::abort();
-      if (r.type == drivers::RecordType::kRgb || r.type == drivers::RecordType::kDepth) {
+      if (r.type == drivers::RecordType::kRgb || r.type == drivers::RecordType::kDepth ||
+          r.type == drivers::RecordType::kRight) {
         const auto v = r.image.view();
         if (static_cast<size_t>(v.stride_bytes) * static_cast<size_t>(v.height) != r.image.pixels.size()) std::abort();
       }

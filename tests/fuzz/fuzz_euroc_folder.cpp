@@ -1,4 +1,4 @@
-// An EuRoC ASL folder (EurocReader): the IMU, camera, depth and ground-truth
+// An EuRoC ASL folder (EurocReader): the IMU, camera (cam0, cam1), depth and ground-truth
 // CSVs, the sensor.yaml files and Kestrel's rig and events files, unpacked
 // from one input. Seeds: the log fixture exported by export_euroc.
 #include "folder_fuzz.hpp"
@@ -7,9 +7,11 @@
 
 namespace {
 const std::vector<std::string> kNames = {
-    "mav0/imu0/data.csv",  "mav0/imu0/sensor.yaml", "mav0/cam0/data.csv",
-    "mav0/cam0/sensor.yaml", "mav0/depth0/data.csv", "mav0/depth0/sensor.yaml",
-    "mav0/state_groundtruth_estimate0/data.csv", "mav0/kestrel_rig.yaml", "mav0/kestrel_events.csv"};
+    "mav0/imu0/data.csv", "mav0/imu0/sensor.yaml", "mav0/cam0/data.csv", "mav0/cam0/sensor.yaml",
+    "mav0/depth0/data.csv", "mav0/depth0/sensor.yaml", "mav0/state_groundtruth_estimate0/data.csv",
+    "mav0/kestrel_rig.yaml", "mav0/kestrel_events.csv",
+    // Appended (older inputs keep their meaning): the right camera of a stereo pair (docs/stereo.md).
+    "mav0/cam1/data.csv", "mav0/cam1/sensor.yaml"};
 std::unique_ptr<kestrel::drivers::LogSource> open(const std::string& dir) {
   return std::make_unique<kestrel::drivers::EurocReader>(dir);
 }

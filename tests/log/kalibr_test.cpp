@@ -181,3 +181,51 @@ TEST(Kalibr, CommandWritesARigTheDriversLoad) {
 
 }  // namespace
 }  // namespace kestrel::test
+
+// Issue 48: a two-camera chain imported from cam0 is a stereo rig; cam1's T_cam_imu gives T_BC1.
+namespace kestrel::test {
+namespace {
+
+TEST(Kalibr, TwoCameraChainBecomesAStereoRigThatRoundTrips) {
+  const std::string cam1 = R"(cam1:
+  T_cam_imu:
+  - [0.01745240643728351, -0.9998476951563913, 0.0, -0.035]
+  - [0.0, 0.0, -1.0, 0.02]
+  - [0.9998476951563913, 0.01745240643728351, 0.0, -0.04]
+  - [0.0, 0.0, 0.0, 1.0]
+  T_cn_cnm1:
+  - [1.0, 0.0, 0.0, -0.05]
+  - [0.0, 1.0, 0.0, 0.0]
+  - [0.0, 0.0, 1.0, 0.0]
+  - [0.0, 0.0, 0.0, 1.0]
+  camera_model: pinhole
+  distortion_coeffs: [0.01, -0.02, 0.0, 0.0]
+  distortion_model: equidistant
+  intrinsics: [600.5, 600.25, 320.0, 240.5]
+  resolution: [640, 480]
+  timeshift_cam_imu: 0.0052131
+)";
+  const drivers::KalibrImport imp = drivers::import_kalibr_text(
+      std::string(kCamchain) + cam1, "camchain.yaml", kImuYaml, "imu.yaml", "cam0", base());
+  const Rig& r = imp.rig;
+  ASSERT_TRUE(r.stereo.present);
+  EXPECT_DOUBLE_EQ(r.stereo.intrinsics.fx, 600.5);
+  EXPECT_EQ(r.stereo.intrinsics.distortion, DistortionModel::kEquidistant);
+  EXPECT_DOUBLE_EQ(r.stereo.intrinsics.dist[1], -0.02);
+  // cam1 sits 5 cm further along the cameras' x, which is the body's -y here.
+  EXPECT_NEAR(r.stereo.T_BC1[7] - r.T_BC[7], -0.05, 1e-3);
+  EXPECT_NEAR(r.stereo.T_BC1[3], r.T_BC[3], 1e-3);
+  // The rig file carries the pair unchanged.
+  EXPECT_TRUE(drivers::rig_equal(drivers::rig_from_yaml(drivers::rig_to_yaml(r), "rt"), r));
+  // Importing cam1 itself stays a monocular rig.
+  EXPECT_FALSE(drivers::import_kalibr_text(std::string(kCamchain) + cam1, "camchain.yaml", kImuYaml,
+                                           "imu.yaml", "cam1", base())
+                   .rig.stereo.present);
+  // A bad field of cam1 is named as cam1's.
+  EXPECT_NE(error_of(std::string(kCamchain) + replace(cam1, "[640, 480]", "[640]"), kImuYaml)
+                .find("cam1.resolution"),
+            std::string::npos);
+}
+
+}  // namespace
+}  // namespace kestrel::test

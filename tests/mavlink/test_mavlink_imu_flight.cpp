@@ -48,6 +48,7 @@ void write_with_imu(const std::string& klog, const std::vector<kestrel::ImuSampl
         break;
       case kd::RecordType::kRgb:
       case kd::RecordType::kDepth:
+      case kd::RecordType::kRight:
         imu_until(r.image.t_ns);
         w.write_image(r.type, r.image);
         break;

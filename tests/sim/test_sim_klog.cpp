@@ -76,6 +76,9 @@ TEST(SimKlog, ReadsBackThroughTheLogApi) {
         break;
       case RecordType::kGroundTruth: ++gt; t = r.gt.t_ns; break;
       case RecordType::kEvent: t = r.event.t_ns; break;
+      case RecordType::kRight:
+        ADD_FAILURE() << "the simulator writes no stereo records";
+        break;
     }
     EXPECT_GE(t, last);
     last = t;

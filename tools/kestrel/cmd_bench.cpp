@@ -45,6 +45,7 @@ struct BenchCase {
   std::vector<std::string> backends;  // non-empty: these backends, whatever --estimator says
   std::string skipped;     // non-empty: why it cannot run
   double room_m = 0.0;     // hybrid: rendered hall size (SimOptions::room_m); 0: a room around the flight
+  bool stereo = false;     // hybrid: rendered as stereo pairs instead of RGB-D (`kestrel sim --stereo`)
 };
 
 // The figures of one row; NaN where a figure does not exist (yet).
@@ -103,6 +104,18 @@ std::vector<BenchCase> discover_cases(const std::string& data_dir) {
     BenchCase c;
     c.name = std::string("hybrid-") + seq;
     c.kind = "hybrid";
+    c.gt_path = (euroc / seq / "gt_body_20hz.csv").string();
+    c.imu_path = (euroc / seq / "imu0.csv").string();
+    if (!fs::exists(c.gt_path) || !fs::exists(c.imu_path)) c.skipped = "not found: " + (euroc / seq).string();
+    cases.push_back(c);
+  }
+  // Every hybrid flight again as a stereo rig (issue 48, docs/stereo.md): the
+  // same motion, room and IMU, a right image instead of a depth image.
+  for (const char* seq : sequences) {
+    BenchCase c;
+    c.name = std::string("stereo-") + seq;
+    c.kind = "hybrid";
+    c.stereo = true;
     c.gt_path = (euroc / seq / "gt_body_20hz.csv").string();
     c.imu_path = (euroc / seq / "imu0.csv").string();
     if (!fs::exists(c.gt_path) || !fs::exists(c.imu_path)) c.skipped = "not found: " + (euroc / seq).string();
@@ -749,6 +762,7 @@ Subcommand add_bench_command(CLI::App& parent) {
           so.imu_path = c.imu_path;
           so.fps = 30.0;
           so.room_m = c.room_m;
+          so.stereo = c.stereo;
         }
         log = (fs::path(args->workdir) / (c.name + ".klog")).string();
         so.out_path = log;

@@ -59,6 +59,9 @@ drivers::ExportStats write_klog(drivers::LogSource& src, const std::string& path
       case drivers::RecordType::kDepth:
         w.write_image(r.type, r.image), ++st.depth;
         break;
+      case drivers::RecordType::kRight:
+        w.write_image(r.type, r.image);
+        break;
       case drivers::RecordType::kGroundTruth:
         w.write_ground_truth(r.gt), ++st.ground_truth;
         break;

@@ -91,6 +91,12 @@ Subcommand add_sim_command(CLI::App& parent) {
   app->add_option("--cover-s", o.cover_s,
                   "seconds the lens stays covered: near-black noise frames without depth while the flight goes on");
   app->add_flag("--no-noise", args->no_noise, "ideal sensors: no IMU noise or bias, exact depth, clean images");
+  app->add_flag(
+      "--stereo", o.stereo,
+      "render a stereo pair (a right camera beside the left) instead of depth images (docs/stereo.md)");
+  app->add_option("--stereo-baseline-m", o.stereo_baseline_m,
+                  "stereo: right camera along the left camera's x [m]")
+      ->capture_default_str();
   app->add_option("--depth-dropout", o.depth_dropout, "share of depth pixels lost in small blobs")
       ->capture_default_str();
   app->add_option("--image-noise", o.image_noise_sigma, "colour noise std [8-bit DN]")->capture_default_str();

@@ -15,15 +15,17 @@
 #include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/core/frontend_odometry.hpp"
 #include "kestrel/core/rgbd_estimator.hpp"
+#include "kestrel/core/stereo_matcher.hpp"
 #include "kestrel/core/tracker.hpp"
 #include "kestrel/core/window_estimator.hpp"
 #include "kestrel/drivers/camera_time_shift.hpp"
+#include "kestrel/drivers/mavlink/serial_link.hpp"
+#include "kestrel/drivers/mavlink/udp_sender.hpp"
 #include "kestrel/drivers/open_log.hpp"
+#include "kestrel/drivers/stereo_rectifier.hpp"
 #include "kestrel/imu_rate_stage.hpp"
 #include "kestrel/map_threads.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"
-#include "kestrel/drivers/mavlink/serial_link.hpp"
-#include "kestrel/drivers/mavlink/udp_sender.hpp"
 #include "kestrel/rt/alloc_counter.hpp"
 #include "kestrel/rt/clock.hpp"
 #include "kestrel/rt/history_ring.hpp"
@@ -160,6 +162,9 @@ class EstimatorStage {
     imu_gap_ns_ = rig.imu_rate_hz > 0 ? static_cast<int64_t>(5e9 / rig.imu_rate_hz) : 50'000'000;
     has_imu_ = rig.imu_rate_hz > 0;
   }
+
+  // A stereo rig: each pair is rectified here, on this thread, before tracking.
+  void set_stereo(drivers::StereoRectifier* s) { stereo_ = s; }
 
   // Processes what the rings hold; true when it took anything. `feeder_done`
   // lets a frame go ahead of the IMU samples that would normally follow it.
@@ -325,10 +330,18 @@ class EstimatorStage {
     f.seq = m.seq;
     if (const drivers::ImageBuffer* b = rings_.images.get(m.rgb_handle)) f.rgb = b->view();
     if (const drivers::ImageBuffer* b = rings_.images.get(m.depth_handle)) f.depth = b->view();
+    if (const drivers::ImageBuffer* b = rings_.images.get(m.right_handle)) f.right = b->view();
     if (screen(f)) {
       last_frame_t_ns_ = m.t_ns;
       const double cpu0 = thread_cpu_s();
       const int64_t t0 = rt::now_ns();
+      if (stereo_ != nullptr) {
+        // Rectification is part of the frame's tracking cost (it runs here, as it will on the vehicle).
+        ImageView l, r;
+        stereo_->rectify(f.rgb, f.right, &l, &r);
+        f.rgb = l;
+        f.right = r;
+      }
       est_.add_frame(f);
       const int64_t t1 = rt::now_ns();
       work_cpu_s_ += thread_cpu_s() - cpu0;
@@ -351,6 +364,7 @@ class EstimatorStage {
     }
     if (m.rgb_handle != rt::kInvalidHandle) rings_.images.release(m.rgb_handle);
     if (m.depth_handle != rt::kInvalidHandle) rings_.images.release(m.depth_handle);
+    if (m.right_handle != rt::kInvalidHandle) rings_.images.release(m.right_handle);
     if (est_.output().quality != core::TrackingQuality::kUninitialized) emit(est_.output());
   }
 
@@ -386,12 +400,14 @@ class EstimatorStage {
     if (last_frame_t_ns_ >= 0 && frame_period_ns_ > 0 && f.t_ns - last_frame_t_ns_ > frame_period_ns_ * 3 / 2)
       faults_.missing +=
           static_cast<uint64_t>((f.t_ns - last_frame_t_ns_ + frame_period_ns_ / 2) / frame_period_ns_) - 1;
-    if (depth_valid_share(f.depth) < 0.01) ++faults_.no_depth;
+    // A stereo frame's depth is its right image.
+    if (stereo_ != nullptr ? f.right.data == nullptr : depth_valid_share(f.depth) < 0.01) ++faults_.no_depth;
     return true;
   }
 
   static constexpr int64_t kStatusPeriodNs = 1'000'000'000;
   core::Estimator& est_;
+  drivers::StereoRectifier* stereo_ = nullptr;
   drivers::SensorRings& rings_;
   ImuRing& imu_;
   rt::SpscRing<OutPose, kOutRingCapacity>& out_;
@@ -624,13 +640,37 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     report.log_path = opt.path;
     report.log_format = log->format_name();
   }
-  const Rig& rig = log ? log->rig() : opt.live->rig;
+  const Rig& input_rig = log ? log->rig() : opt.live->rig;
+  // A stereo rig is rectified once, here; the estimator runs on the rectified
+  // left camera, with the depth model of the disparity search (docs/stereo.md).
+  std::unique_ptr<drivers::StereoRectifier> stereo;
+  Rig stereo_rig;
+  if (input_rig.stereo.present) {
+    // No live driver delivers a right image yet: every frame would be depth-less, so say so at start.
+    if (opt.live)
+      throw std::invalid_argument(
+          "the rig has a stereo: right camera, and live stereo drivers do not exist yet "
+          "(docs/stereo.md); replay a recorded stereo log instead");
+    try {
+      stereo = std::make_unique<drivers::StereoRectifier>(input_rig);
+    } catch (const std::invalid_argument& e) {
+      throw std::invalid_argument(report.log_path + ": " + e.what());
+    }
+    stereo_rig = stereo->rectified_rig();
+    const core::StereoMatchOptions so = opt.config
+                                            ? opt.config->tracker.stereo
+                                            : core::EstimatorConfig::defaults(opt.estimator).tracker.stereo;
+    stereo_rig.depth = core::stereo_depth_model(stereo_rig.rgb.fx, stereo_rig.stereo.baseline_m, so);
+    report.stereo = true;
+    report.stereo_baseline_m = stereo_rig.stereo.baseline_m;
+  }
+  const Rig& rig = stereo ? stereo_rig : input_rig;
   report.pace = opt.pace;
   report.alloc_counting = rt::alloc_hook_linked();
 
   // Everything sized here, before any thread starts.
   auto rings = std::make_unique<drivers::SensorRings>(
-      opt.live && opt.live->max_image_bytes > 0 ? opt.live->max_image_bytes : max_image_bytes_for(rig));
+      opt.live && opt.live->max_image_bytes > 0 ? opt.live->max_image_bytes : max_image_bytes_for(input_rig));
   auto out = std::make_unique<rt::SpscRing<OutPose, kOutRingCapacity>>();
   auto status = std::make_unique<rt::Mailbox<PipelineStatus>>();
   const bool realtime = opt.pace == drivers::ReplayPace::kRealtime;
@@ -695,6 +735,7 @@ ReplayReport run_replay(const ReplayOptions& opt) {
                          opt.pace == drivers::ReplayPace::kRealtime ? opt.threads : drivers::default_thread_table(),
                          report.threads);
   stage.set_map_threads(&map_threads);
+  stage.set_stereo(stereo.get());
 
   const int64_t wall0 = rt::now_ns();
   const double cpu0 = process_cpu_s();
@@ -985,6 +1026,7 @@ std::optional<mavlink::OdometryStreamOptions> mavlink_options(const drivers::Mav
 std::string replay_metrics_json(const ReplayReport& r) {
   Json j = Json::object();
   j["estimator"] = r.estimator;
+  j["stereo"] = r.stereo ? Json{{"baseline_m", r.stereo_baseline_m}} : Json(nullptr);
   j["log"] = r.log_path;
   j["log_format"] = r.log_format;
   j["pace"] = drivers::to_string(r.pace);
@@ -1055,7 +1097,8 @@ std::string replay_metrics_json(const ReplayReport& r) {
                     {"image_pool_exhausted", r.image_pool_exhausted},
                     {"propagator_forward", r.propagator_forward_drops},
                     {"images_too_large", r.replay.images_too_large},
-                    {"depth_unpaired", r.replay.depth_unpaired}};
+                    {"depth_unpaired", r.replay.depth_unpaired},
+                    {"right_unpaired", r.replay.right_unpaired}};
   j["input_faults"] = Json{{"missing", r.input_faults.missing},
                            {"out_of_order", r.input_faults.out_of_order},
                            {"repeated", r.input_faults.repeated},
@@ -1213,6 +1256,16 @@ std::string replay_summary(const ReplayReport& r) {
       static_cast<unsigned long long>(r.replay.frames_pushed), r.trajectory.size(), r.wall_s,
       r.realtime_factor, r.cpu_s, r.estimator_cpu_s, r.peak_rss_mb);
   s += buf;
+  if (r.stereo) {
+    // Stereo: how many frames lost their right image, by cause (docs/stereo.md).
+    std::snprintf(
+        buf, sizeof buf,
+        "stereo: rectified at start-up, baseline %.4f m; frames without a right image %llu (right images "
+        "unpaired: %llu)\n",
+        r.stereo_baseline_m, static_cast<unsigned long long>(r.input_faults.no_depth),
+        static_cast<unsigned long long>(r.replay.right_unpaired));
+    s += buf;
+  }
   if (r.imu_to_output.count() > 0) {
     std::snprintf(buf, sizeof buf, "imu->output latency: p50 %.3f ms, p99 %.3f ms, max %.3f ms\n",
                   1e-6 * static_cast<double>(r.imu_to_output.percentile(50)),

@@ -68,7 +68,7 @@ struct InputFaultCounts {
   uint64_t missing = 0;       // frames absent from the stream (time gaps of more than 1.5 periods)
   uint64_t out_of_order = 0;  // time not after the previous frame (duplicates included); withheld
   uint64_t repeated = 0;      // pixels identical to the previous frame (frozen camera); withheld
-  uint64_t no_depth = 0;      // depth image absent or (almost) all invalid
+  uint64_t no_depth = 0;      // depth image absent or (almost) all invalid; stereo: right image absent
   uint64_t imu_gaps = 0;      // IMU time steps longer than five sample periods (lost samples)
 };
 
@@ -198,6 +198,8 @@ struct ReplayOptions {
 struct ReplayReport {
   std::string estimator;
   bool world_levelled = true;  // Estimator::world_levelled(): posyaw alignment is meaningful
+  bool stereo = false;         // a stereo rig, rectified at start-up (docs/stereo.md)
+  double stereo_baseline_m = 0;
   // The effective settings ("section.key", YAML value), for the metrics JSON.
   std::vector<std::pair<std::string, std::string>> config;
   std::string log_path;

@@ -125,6 +125,7 @@ SimSummary run_image_simulation(const SimOptions& o, SimSink& sink) {
     switch (rec.type) {
       case drivers::RecordType::kRgb:
       case drivers::RecordType::kDepth:
+      case drivers::RecordType::kRight:
         sink.image(rec.type, rec.image.t_ns, rec.image.seq, rec.image.view());
         sum.frames += rec.type == drivers::RecordType::kRgb;
         break;

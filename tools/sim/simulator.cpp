@@ -149,6 +149,14 @@ SimSummary run_simulation(const SimOptions& o, SimSink& sink) {
   const int64_t true_offset_ns = rig.time_offset_cam_imu_ns;
   if (o.rig_time_offset_ms) rig.time_offset_cam_imu_ns = to_ns(*o.rig_time_offset_ms * 1e-3);
   const Eigen::Isometry3d T_BC = to_isometry(rig.T_BC);
+  // The right camera: the left one moved along its own x (an ideal, already rectified pair).
+  const Eigen::Isometry3d T_BC1 = T_BC * Eigen::Translation3d(o.stereo_baseline_m, 0, 0);
+  if (o.stereo) {
+    if (!(o.stereo_baseline_m > 0)) throw std::invalid_argument("--stereo-baseline-m: must be > 0");
+    rig.stereo.present = true;
+    rig.stereo.intrinsics = rig.rgb;
+    rig.stereo.T_BC1 = to_mat4(T_BC1);
+  }
 
   // ---- trajectory ----
   std::unique_ptr<MotionModel> traj;
@@ -276,6 +284,39 @@ SimSummary run_simulation(const SimOptions& o, SimSink& sink) {
     return 1.0 + exposure_change * (drift + step);
   };
 
+  // One camera's image of a frame: motion blur, exposure gain and a covered lens applied alike to both
+  // cameras of a stereo pair. The right camera's noise is seeded apart (seq with the top bit set).
+  std::vector<uint8_t> rgb_right(o.stereo ? rgb.size() : 0);
+  std::vector<uint16_t> depth_right(o.stereo ? depth.size() : 0);
+  auto render_view = [&](const FrameSlot& f, const Eigen::Isometry3d& T_BCx, uint32_t seq,
+                         std::vector<uint8_t>& out, std::vector<uint16_t>& out_depth) {
+    if (blur_subframes == 1) {
+      const TrajectoryState s = traj->state(f.t_true_s);
+      renderer.render(Eigen::Translation3d(s.p_WB) * s.q_WB * T_BCx, seq, out.data(), out_depth.data());
+    } else {
+      std::fill(acc.begin(), acc.end(), 0);
+      for (int j = 0; j < blur_subframes; ++j) {
+        const double dt = (static_cast<double>(j) / (blur_subframes - 1) - 0.5) * motion_blur_ms * 1e-3;
+        const TrajectoryState s = traj->state(std::clamp(f.t_true_s + dt, 0.0, T));
+        const bool middle = j == blur_subframes / 2;
+        renderer.render(Eigen::Translation3d(s.p_WB) * s.q_WB * T_BCx, seq, sub_rgb.data(),
+                        middle ? out_depth.data() : sub_depth.data());
+        for (size_t i = 0; i < acc.size(); ++i) acc[i] = static_cast<uint16_t>(acc[i] + sub_rgb[i]);
+      }
+      for (size_t i = 0; i < acc.size(); ++i)
+        out[i] = static_cast<uint8_t>((acc[i] + blur_subframes / 2) / blur_subframes);
+    }
+    if (exposure_change > 0.0) {
+      const double g = gain_at(f.t_true_s);
+      for (uint8_t& p : out) p = static_cast<uint8_t>(std::min(255.0, p * g + 0.5));
+    }
+    if (o.cover_s > 0.0 && f.t_true_s >= o.cover_at_s && f.t_true_s < o.cover_at_s + o.cover_s) {
+      // Noise, not a constant: identical frames would be withheld as repeats.
+      for (uint8_t& p : out) p = static_cast<uint8_t>((cover_lcg = cover_lcg * 1664525u + 1013904223u) >> 30);
+      std::fill(out_depth.begin(), out_depth.end(), 0);
+    }
+  };
+
   SimSummary sum;
   sum.trajectory = traj->description();
   sum.hybrid = hybrid;
@@ -341,35 +382,17 @@ SimSummary run_simulation(const SimOptions& o, SimSink& sink) {
         continue;
       }
       const auto r0 = Clock::now();
-      if (blur_subframes == 1) {
-        const TrajectoryState s = traj->state(f.t_true_s);
-        renderer.render(Eigen::Translation3d(s.p_WB) * s.q_WB * T_BC, f.seq, rgb.data(), depth.data());
-      } else {
-        std::fill(acc.begin(), acc.end(), 0);
-        for (int j = 0; j < blur_subframes; ++j) {
-          const double dt = (static_cast<double>(j) / (blur_subframes - 1) - 0.5) * motion_blur_ms * 1e-3;
-          const TrajectoryState s = traj->state(std::clamp(f.t_true_s + dt, 0.0, T));
-          const bool middle = j == blur_subframes / 2;
-          renderer.render(Eigen::Translation3d(s.p_WB) * s.q_WB * T_BC, f.seq, sub_rgb.data(),
-                          middle ? depth.data() : sub_depth.data());
-          for (size_t i = 0; i < acc.size(); ++i) acc[i] = static_cast<uint16_t>(acc[i] + sub_rgb[i]);
-        }
-        for (size_t i = 0; i < acc.size(); ++i)
-          rgb[i] = static_cast<uint8_t>((acc[i] + blur_subframes / 2) / blur_subframes);
-      }
-      if (exposure_change > 0.0) {
-        const double g = gain_at(f.t_true_s);
-        for (uint8_t& p : rgb) p = static_cast<uint8_t>(std::min(255.0, p * g + 0.5));
-      }
-      if (o.cover_s > 0.0 && f.t_true_s >= o.cover_at_s && f.t_true_s < o.cover_at_s + o.cover_s) {
-        // Noise, not a constant: identical frames would be withheld as repeats.
-        for (uint8_t& p : rgb) p = static_cast<uint8_t>((cover_lcg = cover_lcg * 1664525u + 1013904223u) >> 30);
-        std::fill(depth.begin(), depth.end(), 0);
-      }
+      render_view(f, T_BC, f.seq, rgb, depth);
+      if (o.stereo) render_view(f, T_BC1, f.seq ^ 0x80000000u, rgb_right, depth_right);
       render_s += std::chrono::duration<double>(Clock::now() - r0).count();
       sink.image(drivers::RecordType::kRgb, f.stamp_ns, f.seq, ImageView{W, H, W * 3, PixelFormat::kRgb8, rgb.data()});
-      sink.image(drivers::RecordType::kDepth, f.stamp_ns, f.seq,
-                 ImageView{W, H, W * 2, PixelFormat::kDepthU16, reinterpret_cast<const uint8_t*>(depth.data())});
+      if (o.stereo)
+        sink.image(drivers::RecordType::kRight, f.stamp_ns, f.seq,
+                   ImageView{W, H, W * 3, PixelFormat::kRgb8, rgb_right.data()});
+      else
+        sink.image(
+            drivers::RecordType::kDepth, f.stamp_ns, f.seq,
+            ImageView{W, H, W * 2, PixelFormat::kDepthU16, reinterpret_cast<const uint8_t*>(depth.data())});
       ++sum.frames;
     }
   }

@@ -77,6 +77,10 @@ struct RgbdFrameMsg {
   uint32_t rgb_handle = 0;   // slot in the colour image pool
   uint32_t depth_handle = 0; // slot in the depth image pool (registered to colour)
   uint32_t flags = 0;
+  // A stereo rig's right image (raw, as the camera gave it; the tracking side
+  // rectifies both): a slot in the same pool. Every holder of a frame releases
+  // it as it releases the other two.
+  uint32_t right_handle = 0;  // 0: none (rt::kInvalidHandle)
 };
 
 enum class DistortionModel : uint8_t { kNone = 0, kRadTan = 1, kEquidistant = 2 };
@@ -122,12 +126,29 @@ struct DepthCamera {
   Mat4d T_CD = kIdentity4;  // depth camera -> colour camera
 };
 
+// The second camera of a stereo pair (EuRoC cam1, a Kalibr chain's cam1, a
+// D4xx IR pair). `Rig::rgb` and `Rig::T_BC` are then the left camera (cam0).
+// Depth comes from matching the left image's features along the rows of the
+// rectified pair instead of a depth image (docs/stereo.md).
+struct StereoCamera {
+  bool present = false;
+  CameraIntrinsics intrinsics;  // right camera, as calibrated (with its distortion)
+  Mat4d T_BC1 = kIdentity4;     // right camera -> body
+  // Set only on the rig the rectification (drivers/stereo) hands the
+  // estimator: `rgb` is then the rectified left camera (pinhole, no
+  // distortion), `T_BC` the rectified left camera -> body, and the rectified
+  // right camera has the same intrinsics, translated by +baseline_m along x.
+  bool rectified = false;
+  double baseline_m = 0;
+};
+
 // Everything a log or a live rig needs to interpret its sensors.
 struct Rig {
   std::string name;
   CameraIntrinsics rgb;            // depth is registered to this camera
   DepthModel depth;
   DepthCamera depth_camera;        // present: the raw depth comes from another camera
+  StereoCamera stereo;             // present: a stereo pair, depth from matching (docs/stereo.md)
   Mat4d T_BC = kIdentity4;         // camera -> body (body = IMU frame)
   Mat4d T_BI = kIdentity4;         // IMU -> body; identity unless the body frame is elsewhere
   ImuNoise imu;

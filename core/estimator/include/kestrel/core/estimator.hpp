@@ -23,6 +23,9 @@ struct RgbdFrame {
   uint32_t seq = 0;
   ImageView rgb;     // data == nullptr when absent
   ImageView depth;   // registered to rgb; data == nullptr when absent
+  // A stereo rig: rgb and right are the rectified pair (drivers/stereo), the
+  // features' depth comes from matching them; data == nullptr when absent.
+  ImageView right;
 };
 
 enum class TrackingQuality : uint8_t {

@@ -22,9 +22,10 @@
 #include "kestrel/core/camera.hpp"
 #include "kestrel/core/lonsc.hpp"
 #include "kestrel/core/motion_estimation.hpp"
-#include "kestrel/core/orb.hpp"
 #include "kestrel/core/observation.hpp"
+#include "kestrel/core/orb.hpp"
 #include "kestrel/core/rigid_consensus.hpp"
+#include "kestrel/core/stereo_matcher.hpp"
 #include "kestrel/msgs.hpp"
 
 namespace kestrel::core {
@@ -80,6 +81,9 @@ struct TrackerOptions {
   bool far_tracks = false;
   double far_search_radius_px = 3.0;  // distance from the segment, at level 0 (scales with the level)
   double far_max_segment_px = 40.0;   // a longer segment is too ambiguous to search
+  // Stereo rigs (a rectified Rig::stereo): each feature's depth from the row
+  // search in the right image (stereo_matcher.hpp, docs/stereo.md).
+  StereoMatchOptions stereo;
 
   [[nodiscard]] std::string validate() const;
 };
@@ -100,6 +104,8 @@ struct TrackResult {
   bool keyframe = false;        // this frame became the keyframe
   int detected = 0;             // features in the current frame
   int with_depth = 0;           // of those, with a valid depth
+  int stereo_searched = 0;      // stereo: features searched along their row of the right image
+  bool stereo_no_right = false;  // stereo: the frame came without its right image (tracked without depth)
   int predicted = 0;            // keyframe points that projected into the image
   int matched = 0;              // correspondences handed to LONSC
   int inliers = 0;
@@ -154,6 +160,14 @@ class Tracker {
   // DoF from the pairs with depth (TrackerOptions::rigid_method).
   const TrackResult& track(int64_t t_ns, const ImageView& image, const ImageView& depth,
                            const Eigen::Isometry3d& T_WC_pred, double pred_sigma_px, bool rotation_known = true);
+  // A stereo rig (Rig::stereo rectified): image and right are the rectified
+  // pair and the features' depth comes from the row search; a frame without
+  // its right image is tracked with depth-less features. Without a stereo
+  // rig `right` is ignored.
+  const TrackResult& track(int64_t t_ns, const ImageView& image, const ImageView& depth,
+                           const ImageView& right, const Eigen::Isometry3d& T_WC_pred, double pred_sigma_px,
+                           bool rotation_known = true);
+  bool stereo() const;
 
   // Drops the keyframe: the next frame with depth starts a new one at its predicted pose.
   void reset();

@@ -34,6 +34,7 @@ class FolderLogSource : public LogSource {
   size_t imu_count() const;
   size_t rgb_count() const;     // listed images whose file exists
   size_t depth_count() const;
+  size_t right_count() const;  // a stereo pair's right images (EuRoC cam1) whose file exists
   size_t ground_truth_count() const;
 
  protected:

@@ -37,6 +37,9 @@ enum class RecordType : uint16_t {
   kDepth = 3,
   kGroundTruth = 4,
   kEvent = 5,
+  // The right image of a stereo pair (Rig::stereo), paired with the kRgb
+  // record of the same time (klog type 6, the image payload).
+  kRight = 6,
 };
 
 // One record; only the member named by `type` is meaningful.
@@ -44,7 +47,7 @@ struct LogRecord {
   RecordType type = RecordType::kImu;
   uint64_t offset = 0;   // byte offset (klog) or line number (text formats) it came from
   ImuSample imu;
-  LogImage image;        // kRgb or kDepth
+  LogImage image;  // kRgb, kDepth or kRight
   GroundTruthPose gt;
   Event event;
 };

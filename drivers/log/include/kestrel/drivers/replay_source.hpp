@@ -28,6 +28,7 @@ struct ReplayStats {
   uint64_t frames_dropped = 0;    // ring full or no free image buffer
   uint64_t images_too_large = 0;  // bigger than the buffers sized at start-up
   uint64_t depth_unpaired = 0;    // a depth image with no colour image at its time
+  uint64_t right_unpaired = 0;    // a stereo right image with no left image at its time (mismatched stamps)
   uint64_t ground_truth = 0;      // not fed to the estimator, only counted
   uint64_t events = 0;
   int64_t first_t_ns = -1;
@@ -39,6 +40,9 @@ class ReplaySource {
   // Depth pairs with the colour image it follows when their times differ by
   // at most this much (registered RGB-D cameras stamp both alike).
   static constexpr int64_t kDepthPairingNs = 5'000'000;
+  // A stereo pair is triggered together (EuRoC stamps both alike); the same
+  // bound, so a right image that belongs to another exposure is refused.
+  static constexpr int64_t kRightPairingNs = kDepthPairingNs;
   // How long `--pace fast` sleeps on a full ring before it looks at `stop`
   // again; the consumer's pop wakes it sooner.
   static constexpr int64_t kFullRingWaitNs = 20'000'000;

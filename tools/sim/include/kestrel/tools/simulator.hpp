@@ -70,6 +70,10 @@ struct SimOptions {
   double frame_drop_rate = 0.0;         // probability a frame is lost (not written)
 
   bool noise = true;                    // false: ideal IMU, exact depth, clean images, no dropouts
+  // Stereo (`--stereo`): a right camera like the left one, baseline_m along
+  // the left camera's x; the log holds stereo pairs instead of depth images.
+  bool stereo = false;
+  double stereo_baseline_m = 0.11;      // EuRoC's VI-Sensor
   double depth_dropout = 0.003;         // share of depth pixels lost in small blobs
   double image_noise_sigma = 1.0;       // 8-bit DN
   double acc_bias_tau_s = 300.0;        // paper 000 eq. 6
