@@ -17,6 +17,7 @@ packages=(
                          # package's postinst (adduser); test.sh checks its unit with `systemd-analyze verify`
   valgrind   # `kestrel bench --cpu-budget` counts instructions with callgrind (tests/profile); this VM's perf has no counters
   libssl-dev   # tests/mavlink: OpenSSL's SHA-256, the reference for MAVLink signing's own (tests only)
+  pybind11-dev python3-dev python3-numpy python3-pytest   # tools/python: `import kestrel` and its pytest suite
   nodejs   # tests/mavlink: node-mavlink decoder. Debian ships npm apart (apt-get install npm where `npm` is missing;
            # not listed: it conflicts with a NodeSource nodejs, which bundles npm). Without npm the test skips loudly.
 )
