@@ -310,3 +310,22 @@ def test_tum_files_round_trip(tmp_path):
     back = kestrel.load_trajectory(path)
     assert back.shape == gt.shape
     assert np.allclose(back, gt, atol=1e-6, rtol=0)
+
+
+# ---- docs/python.md's worked example ------------------------------------------------------------------------
+
+def test_the_docs_example_runs_and_tracks(tmp_path, hover_log):
+    import re
+    import sys
+    page = os.path.join(os.path.dirname(__file__), "..", "..", "docs", "python.md")
+    with open(page) as f:
+        blocks = re.findall(r"```python\n(.*?)```", f.read(), re.S)
+    assert len(blocks) == 1, "docs/python.md should hold exactly one python example"
+    script = tmp_path / "example.py"
+    script.write_text(blocks[0])
+    out = subprocess.run([sys.executable, str(script), str(hover_log)], check=True, capture_output=True,
+                         text=True).stdout
+    ates = [float(a) for a in re.findall(r"ATE ([0-9.]+) m", out)]
+    assert len(ates) == 2, out
+    assert max(ates) < 0.05, out
+    assert "final quality tracking" in out, out

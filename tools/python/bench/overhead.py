@@ -5,7 +5,7 @@ Preloads every record of LOG (reading is not the binding's cost), then feeds the
 docs/api.md's C++ loop does, and splits the wall time into the time spent inside the C++ estimator calls
 (Estimator.counters["native_s"]) and the rest: argument conversion, array checks and the Python loop itself.
 
-usage: PYTHONPATH=build/release/python python3 tools/python/bench_overhead.py LOG [BACKEND ...]
+usage: PYTHONPATH=build/release/python python3 tools/python/bench/overhead.py LOG [BACKEND ...]
 """
 import sys
 import time
