@@ -177,6 +177,18 @@ void encode(const Image& m, std::vector<uint8_t>& out) {
   w.u32(m.step);
   w.bytes(m.data, m.data_size);
 }
+void encode(const CompressedImage& m, std::vector<uint8_t>& out) {
+  CdrWriter w(out);
+  w.header(m.t_ns, m.frame_id);
+  w.str(m.format);
+  w.bytes(m.data, m.data_size);
+}
+void decode(const uint8_t* p, size_t n, CompressedImage& m) {
+  CdrReader r(p, n);
+  m.t_ns = r.header(&m.frame_id);
+  m.format = r.str("format");
+  m.data = r.bytes("data", m.data_size);
+}
 void decode(const uint8_t* p, size_t n, Image& m) {
   CdrReader r(p, n);
   m.t_ns = r.header(&m.frame_id);
@@ -301,6 +313,7 @@ const std::map<std::string, std::string>& definitions() {
        "std_msgs/Header header\nuint32 height\nuint32 width\nstring encoding\nuint8 is_bigendian\nuint32 "
        "step\n"
        "uint8[] data\n"},
+      {"sensor_msgs/CompressedImage", "std_msgs/Header header\nstring format\nuint8[] data\n"},
       {"sensor_msgs/CameraInfo",
        "std_msgs/Header header\nuint32 height\nuint32 width\nstring distortion_model\nfloat64[] "
        "d\nfloat64[9] k\n"
@@ -317,6 +330,7 @@ const std::map<std::string, std::vector<std::string>>& dependencies() {
       {"sensor_msgs/Imu",
        {"std_msgs/Header", "builtin_interfaces/Time", "geometry_msgs/Quaternion", "geometry_msgs/Vector3"}},
       {"sensor_msgs/Image", {"std_msgs/Header", "builtin_interfaces/Time"}},
+      {"sensor_msgs/CompressedImage", {"std_msgs/Header", "builtin_interfaces/Time"}},
       {"sensor_msgs/CameraInfo",
        {"std_msgs/Header", "builtin_interfaces/Time", "sensor_msgs/RegionOfInterest"}},
       {"nav_msgs/Odometry",

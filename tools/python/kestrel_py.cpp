@@ -205,6 +205,20 @@ drivers::LogOpenOptions open_options(py::dict& kw, drivers::LogFormat& format) {
   take_str("imu_topic", o.imu_topic);
   take_str("camera_info_topic", o.camera_info_topic);
   take_str("gt_topic", o.ground_truth_topic);
+  if (kw.contains("topics")) {
+    py::object v = kw["topics"];
+    if (py::isinstance<py::str>(v)) {
+      std::string all = v.cast<std::string>();
+      for (size_t a = 0; a <= all.size();) {
+        const size_t b = std::min(all.find(',', a), all.size());
+        if (b > a) o.topics.push_back(all.substr(a, b - a));
+        a = b + 1;
+      }
+    } else if (!v.is_none()) {
+      o.topics = v.cast<std::vector<std::string>>();
+    }
+    PyDict_DelItemString(kw.ptr(), "topics");
+  }
   if (kw.contains("fps")) {
     o.fps = py::cast<double>(kw["fps"]);
     PyDict_DelItemString(kw.ptr(), "fps");
@@ -226,8 +240,9 @@ class Log {
     py::dict d(kw);
     drivers::LogFormat format = drivers::LogFormat::kAuto;
     const drivers::LogOpenOptions o = open_options(d, format);
-    refuse_unknown(d, "open_log",
-                   "format, rig, fps, rgb_topic, depth_topic, imu_topic, camera_info_topic, gt_topic");
+    refuse_unknown(
+        d, "open_log",
+        "format, rig, fps, rgb_topic, depth_topic, imu_topic, camera_info_topic, gt_topic, topics");
     path_ = path;
     src_ = drivers::open_log(path, o);
   }
@@ -595,9 +610,8 @@ class PyEstimator {
 // ---- replay -----------------------------------------------------------------
 
 constexpr const char* kReplayOptions =
-    "format, rig, fps, rgb_topic, depth_topic, imu_topic, camera_info_topic, gt_topic, estimator, config, "
-    "pace, "
-    "mapping, loop, warmup_s, trajectory, report";
+    "format, rig, fps, rgb_topic, depth_topic, imu_topic, camera_info_topic, gt_topic, topics, estimator, "
+    "config, pace, mapping, loop, warmup_s, trajectory, report";
 
 py::object replay(const std::string& path, py::kwargs kw) {
   py::dict d(kw);

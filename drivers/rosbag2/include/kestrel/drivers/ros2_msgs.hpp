@@ -79,6 +79,17 @@ struct Image {
   uint32_t data_size = 0;
 };
 
+// sensor_msgs/msg/CompressedImage: `format` as image_transport writes it
+// ("jpeg", "png", "rgb8; jpeg compressed bgr8", "16UC1; compressedDepth png");
+// data is a view, as for Image.
+struct CompressedImage {
+  int64_t t_ns = 0;
+  std::string frame_id;
+  std::string format;
+  const uint8_t* data = nullptr;
+  uint32_t data_size = 0;
+};
+
 struct CameraInfo {
   int64_t t_ns = 0;
   std::string frame_id;
@@ -119,12 +130,14 @@ struct TransformStamped {
 void encode(const Imu& m, std::vector<uint8_t>& out);
 void encode(const Image& m, std::vector<uint8_t>& out);
 void encode(const CameraInfo& m, std::vector<uint8_t>& out);
+void encode(const CompressedImage& m, std::vector<uint8_t>& out);
 void encode(const Odometry& m, std::vector<uint8_t>& out);
 void encode(const PoseStamped& m, std::vector<uint8_t>& out);
 void encode(const std::vector<TransformStamped>& tf, std::vector<uint8_t>& out);  // tf2_msgs/msg/TFMessage
 
 void decode(const uint8_t* p, size_t n, Imu& m);
 void decode(const uint8_t* p, size_t n, Image& m);
+void decode(const uint8_t* p, size_t n, CompressedImage& m);
 void decode(const uint8_t* p, size_t n, CameraInfo& m);
 void decode(const uint8_t* p, size_t n, Odometry& m);
 void decode(const uint8_t* p, size_t n, PoseStamped& m);
