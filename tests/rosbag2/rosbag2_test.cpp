@@ -3,7 +3,6 @@
 #include "kestrel/drivers/rosbag2.hpp"
 
 #include <gtest/gtest.h>
-#include <sqlite3.h>
 #include <unistd.h>
 #include <zlib.h>
 
@@ -16,6 +15,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "../datasets/dataset_fixtures.hpp"
+#include "db3_fixture.hpp"
 #include "kestrel/drivers/klog.hpp"
 #include "kestrel/drivers/mcap.hpp"
 #include "kestrel/drivers/open_log.hpp"
@@ -438,65 +438,6 @@ TEST(Rosbag2, TruncatedBagReplaysUpToTheDamageAndSqliteIsNamed) {
 
 // ---- rosbag2's sqlite3 storage, CompressedImage, --topics ------------------------------------------------
 
-// A rosbag2 bag exported as MCAP, then the same messages written with
-// libsqlite3 into the sqlite3 storage plugin's tables (rosbag2_storage_default_plugins'
-// layout: topics(id, name, type, serialization_format, offered_qos_profiles),
-// messages(id, topic_id, timestamp, data)) and a metadata.yaml naming it. Topic ids
-// start at 7 so nothing relies on them matching MCAP channel ids.
-void mcap_to_db3(const std::string& mcap_path, const std::string& dir, const std::string& name) {
-  fs::create_directories(dir);
-  const std::string db_path = dir + "/" + name;
-  fs::remove(db_path);
-  sqlite3* db = nullptr;
-  ASSERT_EQ(sqlite3_open(db_path.c_str(), &db), SQLITE_OK);
-  auto exec = [&](const char* sql) {
-    ASSERT_EQ(sqlite3_exec(db, sql, nullptr, nullptr, nullptr), SQLITE_OK) << sql;
-  };
-  exec(
-      "CREATE TABLE schema(schema_version INTEGER PRIMARY KEY, ros_distro TEXT NOT NULL);"
-      "INSERT INTO schema VALUES(3, 'humble');"
-      "CREATE TABLE topics(id INTEGER PRIMARY KEY, name TEXT NOT NULL, type TEXT NOT NULL, "
-      "serialization_format TEXT NOT NULL, offered_qos_profiles TEXT NOT NULL);"
-      "CREATE TABLE messages(id INTEGER PRIMARY KEY, topic_id INTEGER NOT NULL, timestamp INTEGER NOT NULL, "
-      "data BLOB NOT NULL);"
-      "CREATE INDEX timestamp_idx ON messages (timestamp ASC);"
-      "BEGIN;");
-  mcap::Reader r(mcap_path);
-  sqlite3_stmt* topic = nullptr;
-  sqlite3_stmt* msg = nullptr;
-  ASSERT_EQ(sqlite3_prepare_v2(db, "INSERT INTO topics VALUES(?1, ?2, ?3, 'cdr', '')", -1, &topic, nullptr),
-            SQLITE_OK);
-  ASSERT_EQ(sqlite3_prepare_v2(db, "INSERT INTO messages(topic_id, timestamp, data) VALUES(?1, ?2, ?3)", -1,
-                               &msg, nullptr),
-            SQLITE_OK);
-  bool topics_done = false;
-  r.scan([&](const mcap::MessageRef& m, const uint8_t* data, size_t n) {
-    if (!topics_done) {
-      for (const auto& [id, ch] : r.channels()) {
-        sqlite3_reset(topic);
-        sqlite3_bind_int(topic, 1, id + 7);
-        sqlite3_bind_text(topic, 2, ch.topic.c_str(), -1, SQLITE_TRANSIENT);
-        sqlite3_bind_text(topic, 3, r.schemas().at(ch.schema_id).name.c_str(), -1, SQLITE_TRANSIENT);
-        EXPECT_EQ(sqlite3_step(topic), SQLITE_DONE);
-      }
-      topics_done = true;
-    }
-    sqlite3_reset(msg);
-    sqlite3_bind_int(msg, 1, m.channel_id + 7);
-    sqlite3_bind_int64(msg, 2, static_cast<sqlite3_int64>(m.log_time_ns));
-    sqlite3_bind_blob(msg, 3, data, static_cast<int>(n), SQLITE_TRANSIENT);
-    EXPECT_EQ(sqlite3_step(msg), SQLITE_DONE);
-  });
-  sqlite3_finalize(topic);
-  sqlite3_finalize(msg);
-  exec("COMMIT;");
-  sqlite3_close(db);
-  write_text(dir + "/metadata.yaml",
-             "rosbag2_bagfile_information:\n  version: 5\n  storage_identifier: sqlite3\n"
-             "  relative_file_paths:\n    - " +
-                 name + "\n");
-}
-
 void expect_same_records(const std::vector<drivers::LogRecord>& a, const std::vector<drivers::LogRecord>& b) {
   ASSERT_EQ(a.size(), b.size());
   for (size_t i = 0; i < a.size(); ++i) {
@@ -529,7 +470,7 @@ TEST(Rosbag2Sqlite, Db3GivesTheSameRecordsAsTheMcapItHolds) {
   const std::string bag = mcap_bag_of_small_klog("sq");
   const std::string mcap_file = bag + "/" + fs::path(bag).filename().string() + "_0.mcap";
   const std::string dir = tmp("sq_db3");
-  mcap_to_db3(mcap_file, dir, "sq_0.db3");
+  write_db3_from_mcap(mcap_file, dir, "sq_0.db3");
   auto ref = drivers::open_log(bag);
   auto db = drivers::open_log(dir);
   EXPECT_EQ(db->format_name(), "rosbag2");
@@ -550,7 +491,7 @@ TEST(Rosbag2Sqlite, Db3GivesTheSameRecordsAsTheMcapItHolds) {
 TEST(Rosbag2Sqlite, DamagedDb3IsReadUpToTheDamageOrNamed) {
   const std::string bag = mcap_bag_of_small_klog("sqcut");
   const std::string dir = tmp("sqcut_db3");
-  mcap_to_db3(bag + "/sqcut_mcap_0.mcap", dir, "c_0.db3");
+  write_db3_from_mcap(bag + "/sqcut_mcap_0.mcap", dir, "c_0.db3");
   const std::string f = dir + "/c_0.db3";
   const size_t full = read_all(*drivers::open_log(dir)).size();
   // Cut: the pages past the cut are gone. Either the reader reads what is left and says where it
