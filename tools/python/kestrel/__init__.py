@@ -19,7 +19,8 @@ def open_log(path, **options):
     """Open a .klog, rosbag2 folder / .mcap, ROS 1 bag, EuRoC, TUM RGB-D, ETH3D, OpenLORIS or 7-Scenes log.
 
     Options: format, rig (a rig YAML for datasets without calibration), fps (7-Scenes), rgb_topic,
-    depth_topic, imu_topic, camera_info_topic, gt_topic. Iterate it for its records.
+    depth_topic, imu_topic, camera_info_topic, gt_topic, topics (rosbag2: read only these; a list or "a,b").
+    Iterate it for its records.
     """
     return Log(_os.fspath(path), **options)
 
