@@ -43,6 +43,13 @@ class SqliteStore : public MessageStore {
       sqlite3_close(db_);
       throw std::runtime_error(path + ": cannot open as SQLite3: " + why);
     }
+    // A file cut short (a recorder killed mid-write, a full disk) still says
+    // in its header how many pages it had, and SQLite refuses such a file at
+    // the first statement. With the schema marked writable it takes the file's
+    // real size instead and reads every page that is there, failing only at a
+    // missing one: read up to the damage. The connection is read-only, so
+    // nothing can be written through it either way.
+    sqlite3_db_config(db_, SQLITE_DBCONFIG_WRITABLE_SCHEMA, 1, nullptr);
     try {
       read_topics();
       prepare(load_, "SELECT data FROM messages WHERE id = ?1");
@@ -66,9 +73,11 @@ class SqliteStore : public MessageStore {
     prepare(st, "SELECT id, topic_id, timestamp, data FROM messages ORDER BY id");
     std::map<uint16_t, uint32_t> seq;
     size_t n = 0;
+    int64_t last_id = 0;
     int rc;
     while ((rc = sqlite3_step(st.s)) == SQLITE_ROW) {
       const int64_t id = sqlite3_column_int64(st.s, 0);
+      last_id = id;
       const int64_t topic = sqlite3_column_int64(st.s, 1);
       const int64_t t = sqlite3_column_int64(st.s, 2);
       const auto* data = static_cast<const uint8_t*>(sqlite3_column_blob(st.s, 3));
@@ -96,7 +105,7 @@ class SqliteStore : public MessageStore {
       ++n;
     }
     if (rc != SQLITE_DONE)
-      problem(path_ + ": messages after row " + std::to_string(n),
+      problem(path_ + ": messages after row " + std::to_string(last_id),
               rc == SQLITE_CORRUPT ? "truncated" : "bad-file",
               std::string("SQLite: ") + sqlite3_errmsg(db_) + "; read up to here");
     return n;
