@@ -177,6 +177,22 @@ void encode(const Image& m, std::vector<uint8_t>& out) {
   w.u32(m.step);
   w.bytes(m.data, m.data_size);
 }
+void encode(const DiagnosticArray& m, std::vector<uint8_t>& out) {
+  CdrWriter w(out);
+  w.header(m.t_ns, m.frame_id);
+  w.u32(static_cast<uint32_t>(m.status.size()));
+  for (const auto& s : m.status) {
+    w.u8(s.level);
+    w.str(s.name);
+    w.str(s.message);
+    w.str(s.hardware_id);
+    w.u32(static_cast<uint32_t>(s.values.size()));
+    for (const auto& [k, v] : s.values) {
+      w.str(k);
+      w.str(v);
+    }
+  }
+}
 void encode(const CompressedImage& m, std::vector<uint8_t>& out) {
   CdrWriter w(out);
   w.header(m.t_ns, m.frame_id);
@@ -322,6 +338,10 @@ const std::map<std::string, std::string>& definitions() {
        "std_msgs/Header header\nstring child_frame_id\ngeometry_msgs/PoseWithCovariance pose\n"
        "geometry_msgs/TwistWithCovariance twist\n"},
       {"tf2_msgs/TFMessage", "geometry_msgs/TransformStamped[] transforms\n"},
+      {"diagnostic_msgs/KeyValue", "string key\nstring value\n"},
+      {"diagnostic_msgs/DiagnosticStatus",
+       "byte level\nstring name\nstring message\nstring hardware_id\nKeyValue[] values\n"},
+      {"diagnostic_msgs/DiagnosticArray", "std_msgs/Header header\nDiagnosticStatus[] status\n"},
   };
   return d;
 }
@@ -343,6 +363,9 @@ const std::map<std::string, std::vector<std::string>>& dependencies() {
       {"tf2_msgs/TFMessage",
        {"geometry_msgs/TransformStamped", "std_msgs/Header", "builtin_interfaces/Time",
         "geometry_msgs/Transform", "geometry_msgs/Vector3", "geometry_msgs/Quaternion"}},
+      {"diagnostic_msgs/DiagnosticArray",
+       {"std_msgs/Header", "builtin_interfaces/Time", "diagnostic_msgs/DiagnosticStatus",
+        "diagnostic_msgs/KeyValue"}},
   };
   return d;
 }

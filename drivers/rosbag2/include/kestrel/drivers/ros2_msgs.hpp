@@ -11,6 +11,7 @@
 #include <array>
 #include <cstdint>
 #include <string>
+#include <utility>
 #include <vector>
 
 namespace kestrel::drivers::ros2 {
@@ -127,7 +128,20 @@ struct TransformStamped {
   std::array<double, 4> rotation_xyzw{0, 0, 0, 1};
 };
 
+// diagnostic_msgs/msg/DiagnosticArray (written only: --mcap-out's /diagnostics).
+struct DiagnosticStatus {
+  uint8_t level = 0;  // OK 0, WARN 1, ERROR 2, STALE 3
+  std::string name, message, hardware_id;
+  std::vector<std::pair<std::string, std::string>> values;  // diagnostic_msgs/KeyValue
+};
+struct DiagnosticArray {
+  int64_t t_ns = 0;
+  std::string frame_id;
+  std::vector<DiagnosticStatus> status;
+};
+
 void encode(const Imu& m, std::vector<uint8_t>& out);
+void encode(const DiagnosticArray& m, std::vector<uint8_t>& out);
 void encode(const Image& m, std::vector<uint8_t>& out);
 void encode(const CameraInfo& m, std::vector<uint8_t>& out);
 void encode(const CompressedImage& m, std::vector<uint8_t>& out);
