@@ -13,10 +13,12 @@ packages=(
   libwebsocketpp-dev nlohmann-json3-dev   # tools/viewer: HTTP + WebSocket server (over Boost.Asio), its messages
   libjs-three                             # the viewer page's 3-D view, served from /usr/share/javascript/three
   libzstd-dev liblz4-dev   # drivers/log: compressed .klog images (docs/log-format.md)
+  libsqlite3-dev   # drivers/rosbag2: rosbag2's sqlite3 storage (.db3; docs/ros2.md)
   file adduser systemd   # tools/package: cpack's DEB generator finds unstripped ELF files with `file`; the
                          # package's postinst (adduser); test.sh checks its unit with `systemd-analyze verify`
   valgrind   # `kestrel bench --cpu-budget` counts instructions with callgrind (tests/profile); this VM's perf has no counters
   libssl-dev   # tests/mavlink: OpenSSL's SHA-256, the reference for MAVLink signing's own (tests only)
+  pybind11-dev python3-dev python3-numpy python3-pytest   # tools/python: `import kestrel` and its pytest suite
   nodejs   # tests/mavlink: node-mavlink decoder. Debian ships npm apart (apt-get install npm where `npm` is missing;
            # not listed: it conflicts with a NodeSource nodejs, which bundles npm). Without npm the test skips loudly.
 )

@@ -177,6 +177,34 @@ void encode(const Image& m, std::vector<uint8_t>& out) {
   w.u32(m.step);
   w.bytes(m.data, m.data_size);
 }
+void encode(const DiagnosticArray& m, std::vector<uint8_t>& out) {
+  CdrWriter w(out);
+  w.header(m.t_ns, m.frame_id);
+  w.u32(static_cast<uint32_t>(m.status.size()));
+  for (const auto& s : m.status) {
+    w.u8(s.level);
+    w.str(s.name);
+    w.str(s.message);
+    w.str(s.hardware_id);
+    w.u32(static_cast<uint32_t>(s.values.size()));
+    for (const auto& [k, v] : s.values) {
+      w.str(k);
+      w.str(v);
+    }
+  }
+}
+void encode(const CompressedImage& m, std::vector<uint8_t>& out) {
+  CdrWriter w(out);
+  w.header(m.t_ns, m.frame_id);
+  w.str(m.format);
+  w.bytes(m.data, m.data_size);
+}
+void decode(const uint8_t* p, size_t n, CompressedImage& m) {
+  CdrReader r(p, n);
+  m.t_ns = r.header(&m.frame_id);
+  m.format = r.str("format");
+  m.data = r.bytes("data", m.data_size);
+}
 void decode(const uint8_t* p, size_t n, Image& m) {
   CdrReader r(p, n);
   m.t_ns = r.header(&m.frame_id);
@@ -301,6 +329,7 @@ const std::map<std::string, std::string>& definitions() {
        "std_msgs/Header header\nuint32 height\nuint32 width\nstring encoding\nuint8 is_bigendian\nuint32 "
        "step\n"
        "uint8[] data\n"},
+      {"sensor_msgs/CompressedImage", "std_msgs/Header header\nstring format\nuint8[] data\n"},
       {"sensor_msgs/CameraInfo",
        "std_msgs/Header header\nuint32 height\nuint32 width\nstring distortion_model\nfloat64[] "
        "d\nfloat64[9] k\n"
@@ -309,6 +338,10 @@ const std::map<std::string, std::string>& definitions() {
        "std_msgs/Header header\nstring child_frame_id\ngeometry_msgs/PoseWithCovariance pose\n"
        "geometry_msgs/TwistWithCovariance twist\n"},
       {"tf2_msgs/TFMessage", "geometry_msgs/TransformStamped[] transforms\n"},
+      {"diagnostic_msgs/KeyValue", "string key\nstring value\n"},
+      {"diagnostic_msgs/DiagnosticStatus",
+       "byte level\nstring name\nstring message\nstring hardware_id\nKeyValue[] values\n"},
+      {"diagnostic_msgs/DiagnosticArray", "std_msgs/Header header\nDiagnosticStatus[] status\n"},
   };
   return d;
 }
@@ -317,6 +350,7 @@ const std::map<std::string, std::vector<std::string>>& dependencies() {
       {"sensor_msgs/Imu",
        {"std_msgs/Header", "builtin_interfaces/Time", "geometry_msgs/Quaternion", "geometry_msgs/Vector3"}},
       {"sensor_msgs/Image", {"std_msgs/Header", "builtin_interfaces/Time"}},
+      {"sensor_msgs/CompressedImage", {"std_msgs/Header", "builtin_interfaces/Time"}},
       {"sensor_msgs/CameraInfo",
        {"std_msgs/Header", "builtin_interfaces/Time", "sensor_msgs/RegionOfInterest"}},
       {"nav_msgs/Odometry",
@@ -329,6 +363,9 @@ const std::map<std::string, std::vector<std::string>>& dependencies() {
       {"tf2_msgs/TFMessage",
        {"geometry_msgs/TransformStamped", "std_msgs/Header", "builtin_interfaces/Time",
         "geometry_msgs/Transform", "geometry_msgs/Vector3", "geometry_msgs/Quaternion"}},
+      {"diagnostic_msgs/DiagnosticArray",
+       {"std_msgs/Header", "builtin_interfaces/Time", "diagnostic_msgs/DiagnosticStatus",
+        "diagnostic_msgs/KeyValue"}},
   };
   return d;
 }

@@ -10,7 +10,10 @@
 #include <filesystem>
 #include <fstream>
 #include <map>
+#include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
 #include <optional>
+#include <set>
 #include <sstream>
 #include <stdexcept>
 
@@ -18,6 +21,7 @@
 #include "kestrel/drivers/rig_yaml.hpp"
 #include "kestrel/drivers/ros2_msgs.hpp"
 #include "kestrel/drivers/text.hpp"
+#include "message_store.hpp"
 
 namespace kestrel::drivers {
 namespace fs = std::filesystem;
@@ -25,6 +29,7 @@ namespace {
 
 constexpr const char* kImuType = "sensor_msgs/msg/Imu";
 constexpr const char* kImageType = "sensor_msgs/msg/Image";
+constexpr const char* kCompressedType = "sensor_msgs/msg/CompressedImage";
 constexpr const char* kInfoType = "sensor_msgs/msg/CameraInfo";
 constexpr const char* kTfType = "tf2_msgs/msg/TFMessage";
 constexpr const char* kPoseType = "geometry_msgs/msg/PoseStamped";
@@ -308,7 +313,9 @@ bool is_rosbag2(const std::string& path) {
   if (text::is_dir(path)) return text::is_file((fs::path(path) / "metadata.yaml").string());
   std::ifstream f(path, std::ios::binary);
   char m[8] = {};
-  return f.read(m, 8) && std::memcmp(m, mcap::kMagic, 8) == 0;
+  if (f.read(m, 8) && std::memcmp(m, mcap::kMagic, 8) == 0) return true;
+  // A lone .db3 (rosbag2's sqlite3 storage): SQLite's header and the extension.
+  return fs::path(path).extension() == ".db3" && rosbag2_store::is_sqlite3_file(path);
 }
 
 namespace {
@@ -318,6 +325,17 @@ bool colour_encoding(const std::string& e) {
   return e == "rgb8" || e == "bgr8" || e == "mono8" || e == "8UC1";
 }
 bool depth_encoding(const std::string& e) { return e == "16UC1" || e == "mono16" || e == "32FC1"; }
+// CompressedImage.format as image_transport writes it: "jpeg" / "png" (colour),
+// "<encoding>; jpeg compressed <encoding>", "16UC1; compressedDepth png"
+// (depth). The encoding before ';' decides, else the word compressedDepth.
+bool compressed_is_depth(const std::string& f) {
+  const std::string enc = f.substr(0, f.find(';'));
+  return depth_encoding(enc) || f.find("compressedDepth") != std::string::npos;
+}
+bool compressed_known(const std::string& f) {
+  return f.find("jpeg") != std::string::npos || f.find("jpg") != std::string::npos ||
+         f.find("png") != std::string::npos;
+}
 }  // namespace
 
 struct Rosbag2Reader::Impl {
@@ -325,7 +343,8 @@ struct Rosbag2Reader::Impl {
   Rosbag2ReadOptions opt;
   Rig rig;
   std::vector<LogProblem> problems;
-  std::unique_ptr<mcap::Reader> mr;
+  std::unique_ptr<rosbag2_store::MessageStore> mr;
+  std::set<uint16_t> compressed;  // channels of sensor_msgs/msg/CompressedImage
   struct Entry {
     int64_t t_ns, t_recv_ns;
     Kind kind;
@@ -352,6 +371,7 @@ struct Rosbag2Reader::Impl {
       problem(where_of(ref), "bad-image", "cannot read the message again");
       return false;
     }
+    if (compressed.count(ref.channel_id)) return load_compressed(ref, data, depth, img);
     ros2::Image m;
     try {
       ros2::decode(data, ref.size, m);
@@ -408,6 +428,95 @@ struct Rosbag2Reader::Impl {
     }
     return true;
   }
+
+  // JPEG / PNG through OpenCV's decoders. compressedDepth (image_transport's
+  // depth plugin) puts a 12-byte header before the PNG: int32 format, then
+  // float depthQuantA, depthQuantB, used by 32FC1 (inverse depth, quantised:
+  // z = A / (v - B)); 16UC1 PNGs hold the millimetres themselves.
+  bool load_compressed(const mcap::MessageRef& ref, const uint8_t* data, bool depth, LogImage& img) {
+    ros2::CompressedImage m;
+    try {
+      ros2::decode(data, ref.size, m);
+    } catch (const std::exception& e) {
+      problem(where_of(ref), "bad-payload", e.what());
+      return false;
+    }
+    const bool cdepth = m.format.find("compressedDepth") != std::string::npos;
+    const bool inverse = cdepth && m.format.rfind("32FC1", 0) == 0;
+    const uint8_t* p = m.data;
+    size_t n = m.data_size;
+    float quant_a = 0, quant_b = 0;
+    if (cdepth) {
+      if (n < 12) {
+        problem(where_of(ref), "bad-image", "compressedDepth shorter than its 12-byte header");
+        return false;
+      }
+      std::memcpy(&quant_a, p + 4, 4);
+      std::memcpy(&quant_b, p + 8, 4);
+      p += 12, n -= 12;
+    }
+    cv::Mat im;
+    try {
+      im = cv::imdecode(cv::Mat(1, static_cast<int>(n), CV_8UC1, const_cast<uint8_t*>(p)),
+                        cv::IMREAD_UNCHANGED);
+    } catch (const cv::Exception& e) {
+      im.release();
+    }
+    if (im.empty() || im.cols > 32768 || im.rows > 32768) {
+      problem(where_of(ref), "bad-image", "format \"" + m.format + "\": the JPEG/PNG data does not decode");
+      return false;
+    }
+    const int w = im.cols, h = im.rows;
+    img.t_ns = m.t_ns;
+    img.width = w;
+    img.height = h;
+    if (depth) {
+      if (im.type() != CV_16UC1) {
+        problem(where_of(ref), "bad-image",
+                "depth \"" + m.format + "\" decodes to " + std::to_string(im.channels()) + " channel(s) of " +
+                    std::to_string(im.elemSize1() * 8) + " bits (expected one of 16)");
+        return false;
+      }
+      img.format = PixelFormat::kDepthU16;
+      img.pixels.resize(static_cast<size_t>(w) * h * 2);
+      for (int y = 0; y < h; ++y) {
+        const uint16_t* s = im.ptr<uint16_t>(y);
+        uint8_t* d = img.pixels.data() + static_cast<size_t>(y) * w * 2;
+        if (!inverse) {
+          std::memcpy(d, s, static_cast<size_t>(w) * 2);
+          continue;
+        }
+        for (int x = 0; x < w; ++x) {
+          const double z = s[x] != 0 ? quant_a / (static_cast<double>(s[x]) - quant_b) : 0.0;
+          const double mm = std::isfinite(z) && z > 0 ? std::round(z * 1000.0) : 0.0;
+          const uint16_t v = mm > 0 && mm <= 65535 ? static_cast<uint16_t>(mm) : 0;
+          std::memcpy(d + 2 * x, &v, 2);
+        }
+      }
+      return true;
+    }
+    if (im.depth() != CV_8U || (im.channels() != 1 && im.channels() != 3 && im.channels() != 4)) {
+      problem(where_of(ref), "bad-image",
+              "colour \"" + m.format + "\" decodes to " + std::to_string(im.channels()) + " channel(s) of " +
+                  std::to_string(im.elemSize1() * 8) + " bits (expected 8-bit grey or colour)");
+      return false;
+    }
+    // OpenCV decodes colour as BGR(A); alpha is dropped.
+    img.format = im.channels() == 1 ? PixelFormat::kGray8 : PixelFormat::kBgr8;
+    const int out_c = im.channels() == 1 ? 1 : 3;
+    img.pixels.resize(static_cast<size_t>(w) * h * out_c);
+    for (int y = 0; y < h; ++y) {
+      const uint8_t* s = im.ptr<uint8_t>(y);
+      uint8_t* d = img.pixels.data() + static_cast<size_t>(y) * w * out_c;
+      if (im.channels() != 4) {
+        std::memcpy(d, s, static_cast<size_t>(w) * out_c);
+        continue;
+      }
+      for (int x = 0; x < w; ++x)
+        d[3 * x] = s[4 * x], d[3 * x + 1] = s[4 * x + 1], d[3 * x + 2] = s[4 * x + 2];
+    }
+    return true;
+  }
 };
 
 Rosbag2Reader::Rosbag2Reader(const std::string& path, const Rosbag2ReadOptions& options, const Rig* rig_in)
@@ -416,6 +525,7 @@ Rosbag2Reader::Rosbag2Reader(const std::string& path, const Rosbag2ReadOptions& 
   s.path = path;
   s.opt = options;
   std::string mcap_path = path;
+  std::string storage;
   if (text::is_dir(path)) {
     const std::string meta = (fs::path(path) / "metadata.yaml").string();
     YAML::Node y;
@@ -425,10 +535,9 @@ Rosbag2Reader::Rosbag2Reader(const std::string& path, const Rosbag2ReadOptions& 
       throw std::runtime_error(meta + ": cannot read: " + e.what());
     }
     if (!y) throw std::runtime_error(meta + ": no rosbag2_bagfile_information");
-    const std::string storage = y["storage_identifier"] ? y["storage_identifier"].as<std::string>() : "";
-    if (storage != "mcap")
-      throw std::runtime_error(meta + ": storage_identifier \"" + storage +
-                               "\" (only mcap is read; SQLite3 .db3 storage is not supported yet)");
+    storage = y["storage_identifier"] ? y["storage_identifier"].as<std::string>() : "";
+    if (storage != "mcap" && storage != "sqlite3")
+      throw std::runtime_error(meta + ": storage_identifier \"" + storage + "\" (mcap and sqlite3 are read)");
     const std::string comp = y["compression_format"] ? y["compression_format"].as<std::string>() : "";
     if (!comp.empty())
       throw std::runtime_error(meta + ": compression_format \"" + comp +
@@ -442,7 +551,11 @@ Rosbag2Reader::Rosbag2Reader(const std::string& path, const Rosbag2ReadOptions& 
                 "only the first of " + std::to_string(files.size()) + " split files is read");
   }
   s.file = mcap_path;
-  s.mr = std::make_unique<mcap::Reader>(mcap_path, options.mcap);
+  if (storage.empty()) storage = rosbag2_store::is_sqlite3_file(mcap_path) ? "sqlite3" : "mcap";
+  if (storage == "sqlite3")
+    s.mr = rosbag2_store::open_sqlite3(mcap_path);
+  else
+    s.mr = rosbag2_store::open_mcap(mcap_path, options.mcap);
 
   std::map<uint16_t, Role> role;
   std::string rgb_topic = options.rgb_topic, depth_topic = options.depth_topic, imu_topic = options.imu_topic,
@@ -462,8 +575,13 @@ Rosbag2Reader::Rosbag2Reader(const std::string& path, const Rosbag2ReadOptions& 
     const std::string type = sc == s.mr->schemas().end() ? "" : sc->second.name;
     const std::string where = s.file + ":" + ch.topic;
     auto known = [](const std::string& t) {
-      return t == kImuType || t == kImageType || t == kInfoType || t == kTfType || t == kPoseType;
+      return t == kImuType || t == kImageType || t == kCompressedType || t == kInfoType || t == kTfType ||
+             t == kPoseType;
     };
+    if (!options.topics.empty() &&
+        std::find(options.topics.begin(), options.topics.end(), ch.topic) == options.topics.end() &&
+        type != kTfType && type != kInfoType)
+      return kIgnore;  // not chosen (--topics); tf_static and CameraInfo still give the rig
     if (!known(type)) {
       s.problem(where, "unsupported-type", "message type \"" + type + "\" is not read; topic ignored");
       return kIgnore;
@@ -488,8 +606,32 @@ Rosbag2Reader::Rosbag2Reader(const std::string& path, const Rosbag2ReadOptions& 
       return ch.topic == gt_topic ? kGtRole : kIgnore;
     }
     // Image: the named topics, else by the first message's encoding.
+    if (type == kCompressedType) s.compressed.insert(ch.id);
     if (ch.topic == rgb_topic) return kColorRole;
     if (ch.topic == depth_topic) return kDepthRole;
+    if (type == kCompressedType) {
+      ros2::CompressedImage ci;
+      try {
+        ros2::decode(data, n, ci);
+      } catch (const std::exception&) {
+        return kIgnore;
+      }
+      if (!compressed_known(ci.format)) {
+        s.problem(where, "bad-encoding",
+                  "CompressedImage format \"" + ci.format + "\" (jpeg or png are read); topic ignored");
+        return kIgnore;
+      }
+      const bool d = compressed_is_depth(ci.format);
+      if (!d && rgb_topic.empty() && options.rgb_topic.empty()) {
+        rgb_topic = ch.topic;
+        return kColorRole;
+      }
+      if (d && depth_topic.empty() && options.depth_topic.empty()) {
+        depth_topic = ch.topic;
+        return kDepthRole;
+      }
+      return kIgnore;
+    }
     ros2::Image im;
     try {
       ros2::decode(data, n, im);
@@ -540,9 +682,23 @@ Rosbag2Reader::Rosbag2Reader(const std::string& path, const Rosbag2ReadOptions& 
         }
         case kColorRole:
         case kDepthRole: {
+          const bool d = ro == kDepthRole;
+          if (s.compressed.count(m.channel_id)) {
+            ros2::CompressedImage ci;
+            ros2::decode(data, n, ci);
+            if (!compressed_known(ci.format) || compressed_is_depth(ci.format) != d) {
+              s.problem(
+                  where, "bad-image",
+                  std::string(d ? "depth" : "colour") + " CompressedImage format \"" + ci.format + "\"");
+              return;
+            }
+            if (!d && cam_frame.empty()) cam_frame = ci.frame_id;
+            (d ? depth : rgb).push_back({ci.t_ns, t_recv, static_cast<uint32_t>(s.images.size())});
+            s.images.push_back(m);
+            break;
+          }
           ros2::Image im;
           ros2::decode(data, n, im);
-          const bool d = ro == kDepthRole;
           if (d ? !depth_encoding(im.encoding) : !colour_encoding(im.encoding)) {
             s.problem(where, "bad-image",
                       std::string(d ? "depth" : "colour") + " encoding \"" + im.encoding + "\" (expected " +
@@ -594,6 +750,17 @@ Rosbag2Reader::Rosbag2Reader(const std::string& path, const Rosbag2ReadOptions& 
   });
   for (auto& p : s.mr->problems()) s.problems.push_back(p);
   s.mr->problems().clear();
+  for (const auto& t : options.topics) {
+    bool found = false;
+    std::string have;
+    for (const auto& [id, ch] : s.mr->channels()) {
+      found = found || ch.topic == t;
+      have += (have.empty() ? "" : ", ") + ch.topic;
+    }
+    if (!found)
+      throw std::runtime_error(path + ": --topics names " + t +
+                               ", which the bag does not have (it has: " + have + ")");
+  }
 
   // The rig: --rig, else Kestrel's own, else CameraInfo (+ tf_static).
   Rig r;

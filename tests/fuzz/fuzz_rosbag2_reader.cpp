@@ -1,11 +1,15 @@
 // Any byte string as an MCAP file: the container reader (from memory) with
 // every CDR decoder on every message, and Rosbag2Reader (topics by type, rig
 // from CameraInfo / tf_static, colour-depth pairing, image conversion) on the
-// same bytes as a file. Never a crash, a leak or an allocation beyond the
-// reader's bounds. Seeds: rosbag2 exports of the log fixture (zstd, lz4,
-// unchunked) and a cut of one, so the fuzzer starts past magic and CRCs.
+// same bytes as a file; bytes with SQLite's header go through the sqlite3
+// storage (libsqlite3 on a damaged database, then our reading of its rows).
+// Never a crash, a leak or an allocation beyond the reader's bounds. Seeds:
+// rosbag2 exports of the log fixture (zstd, lz4, unchunked), a cut of one, and
+// the same bag as a .db3 and a cut of that, so the fuzzer starts past magic
+// and CRCs.
 #include <unistd.h>
 
+#include "db3_fixture.hpp"
 #include "fuzz_target.hpp"
 #include "kestrel/drivers/klog.hpp"
 #include "kestrel/drivers/mcap.hpp"
@@ -25,6 +29,11 @@ void decode_all(const uint8_t* p, size_t n) {
   }
   try {
     ros2::Image m;
+    ros2::decode(p, n, m);
+  } catch (const std::runtime_error&) {
+  }
+  try {
+    ros2::CompressedImage m;
     ros2::decode(p, n, m);
   } catch (const std::runtime_error&) {
   }
@@ -106,7 +115,14 @@ size_t kestrel::fuzz::write_seeds(const std::string& dir) {
     const auto bytes = kestrel::test::read_bytes(bag + "/bag_tmp_0.mcap");
     const std::string name = comp.empty() ? "unchunked" : comp;
     kestrel::test::write_bytes(dir + "/" + name + ".mcap", bytes.data(), bytes.size());
-    if (comp.empty()) kestrel::test::write_bytes(dir + "/cut.mcap", bytes.data(), bytes.size() / 2), ++n;
+    if (comp.empty()) {
+      kestrel::test::write_bytes(dir + "/cut.mcap", bytes.data(), bytes.size() / 2), ++n;
+      kestrel::test::write_db3_from_mcap(bag + "/bag_tmp_0.mcap", bag, "seed.db3");
+      const auto db = kestrel::test::read_bytes(bag + "/seed.db3");
+      kestrel::test::write_bytes(dir + "/sqlite.db3", db.data(), db.size());
+      kestrel::test::write_bytes(dir + "/cut.db3", db.data(), db.size() * 6 / 10);
+      n += 2;
+    }
     std::filesystem::remove_all(bag);
     ++n;
   }

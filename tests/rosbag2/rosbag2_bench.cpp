@@ -8,6 +8,7 @@
 #include <cstdio>
 #include <filesystem>
 
+#include "db3_fixture.hpp"
 #include "kestrel/drivers/klog.hpp"
 #include "kestrel/drivers/rosbag2.hpp"
 #include "run_command.hpp"
@@ -70,6 +71,19 @@ TEST(Rosbag2Bench, WriterAndReaderThroughputOnAVgaFlight) {
         "rosbag2 %-5s: %.1f MB .mcap, %zu frames; write %.2f s = %.0f MB/s, %.0f frames/s; "
         "read %.2f s = %.0f MB/s, %.0f frames/s\n",
         name.c_str(), mb, st.rgb, tw, mb / tw, st.rgb / tw, tr, mb / tr, frames / tr);
+    if (!comp.empty()) continue;
+    // The same messages in rosbag2's sqlite3 storage (written by libsqlite3, db3_fixture.hpp).
+    const std::string sq = dir + "/bag_db3";
+    write_db3_from_mcap(bag + "/bag_none_0.mcap", sq, "bag_db3_0.db3");
+    const double db_mb = static_cast<double>(std::filesystem::file_size(sq + "/bag_db3_0.db3")) / 1e6;
+    t0 = std::chrono::steady_clock::now();
+    drivers::Rosbag2Reader db(sq);
+    size_t db_frames = 0;
+    while (db.next(rec)) db_frames += rec.type == drivers::RecordType::kRgb;
+    const double td = seconds_since(t0);
+    EXPECT_EQ(db_frames, st.rgb);
+    std::printf("rosbag2 db3  : %.1f MB .db3, %zu frames; read %.2f s = %.0f MB/s, %.0f frames/s\n", db_mb,
+                db_frames, td, db_mb / td, db_frames / td);
   }
 }
 

@@ -246,6 +246,34 @@ TEST(Rosbag2Cli, ConvertReplayAndOdometryOut) {
   EXPECT_NEAR(std::abs(p["orientation"]["w"].get<double>()), std::abs(row[7]), 1e-6);
   EXPECT_EQ(t["first"]["header"]["frame_id"], "odom");
   EXPECT_EQ(t["first"]["child_frame_id"], "base_link");
+
+  // /tf: map -> odom -> base_link with every pose, decoded by @foxglove/rosmsg2-serialization.
+  const json& tf = j["topics"]["/tf"];
+  EXPECT_EQ(tf["type"], "tf2_msgs/msg/TFMessage");
+  EXPECT_EQ(tf["count"], t["count"]);
+  EXPECT_EQ(tf["trailing"], 0);
+  EXPECT_EQ(tf["reencodedDiffers"], 0);
+  const json& tl = tf["last"]["transforms"];
+  ASSERT_EQ(tl.size(), 2u) << tf.dump();
+  EXPECT_EQ(tl[0]["header"]["frame_id"], "map");
+  EXPECT_EQ(tl[0]["child_frame_id"], "odom");
+  EXPECT_EQ(tl[1]["header"]["frame_id"], "odom");
+  EXPECT_EQ(tl[1]["child_frame_id"], "base_link");
+  EXPECT_NEAR(tl[1]["transform"]["translation"]["x"].get<double>(), row[1], 1e-6);
+  EXPECT_NEAR(tl[1]["transform"]["translation"]["z"].get<double>(), row[3], 1e-6);
+  // /diagnostics: about once a second of the 4 s flight (and on every change), the last one tracking.
+  const json& dg = j["topics"]["/diagnostics"];
+  EXPECT_EQ(dg["type"], "diagnostic_msgs/msg/DiagnosticArray");
+  EXPECT_GE(dg["count"].get<int>(), 4);
+  EXPECT_LE(dg["count"].get<int>(), 20);
+  EXPECT_EQ(dg["trailing"], 0);
+  EXPECT_EQ(dg["reencodedDiffers"], 0);
+  const json& st = dg["last"]["status"];
+  ASSERT_EQ(st.size(), 1u) << dg.dump();
+  EXPECT_EQ(st[0]["level"], 0);
+  EXPECT_EQ(st[0]["message"], "tracking");
+  EXPECT_EQ(st[0]["values"][0]["key"], "quality");
+  EXPECT_EQ(st[0]["values"][1]["key"], "reset_counter");
 }
 
 }  // namespace

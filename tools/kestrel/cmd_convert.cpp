@@ -200,6 +200,9 @@ Subcommand add_convert_command(CLI::App& parent) {
   app->add_option("--imu-topic", a->open.imu_topic, "rosbag IMU topic (default /camera/imu)");
   app->add_option("--camera-info-topic", a->open.camera_info_topic,
                   "rosbag CameraInfo topic (default: beside the colour topic)");
+  app->add_option("--topics", a->open.topics,
+                  "rosbag2: read only these topics (comma-separated), detected by type among them (docs/ros2.md)")
+      ->delimiter(',');
   app->add_option("--gt-topic", a->open.ground_truth_topic,
                   "rosbag ground truth, geometry_msgs/PoseStamped (default /kestrel/ground_truth)");
   add_image_compression_options(app, a->compression);

@@ -54,6 +54,10 @@ Subcommand add_replay_command(CLI::App& parent) {
   app->add_option("--imu-topic", args->open.imu_topic, "rosbag IMU topic (default /camera/imu)");
   app->add_option("--camera-info-topic", args->open.camera_info_topic,
                   "rosbag CameraInfo topic (default: beside the colour topic)");
+  app->add_option("--topics", args->open.topics,
+                  "rosbag2: read only these topics (comma-separated), detected by type among them; tf_static and "
+                  "CameraInfo are still read for the rig (docs/ros2.md)")
+      ->delimiter(',');
   app->add_option("--gt-topic", args->open.ground_truth_topic,
                   "rosbag ground truth, geometry_msgs/PoseStamped (default /kestrel/ground_truth)");
   app->add_option("--pace", args->pace,

@@ -1,6 +1,9 @@
 #include "kestrel/mcap_out.hpp"
 
 #include <climits>
+#include <string>
+#include <utility>
+#include <vector>
 
 #include "kestrel/drivers/ros2_msgs.hpp"
 
@@ -13,6 +16,61 @@ McapPoseWriter::McapPoseWriter(const std::string& path) {
   const char* type = "nav_msgs/msg/Odometry";
   odom_ = w_.add_channel(w_.add_schema(type, "ros2msg", drivers::ros2::schema_text(type)),
                          "/kestrel/odometry", "cdr");
+  const char* tf = "tf2_msgs/msg/TFMessage";
+  tf_ = w_.add_channel(w_.add_schema(tf, "ros2msg", drivers::ros2::schema_text(tf)), "/tf", "cdr");
+  const char* diag = "diagnostic_msgs/msg/DiagnosticArray";
+  diag_ =
+      w_.add_channel(w_.add_schema(diag, "ros2msg", drivers::ros2::schema_text(diag)), "/diagnostics", "cdr");
+}
+
+namespace {
+const char* quality_text(core::TrackingQuality q) {
+  switch (q) {
+    case core::TrackingQuality::kUninitialized:
+      return "uninitialized";
+    case core::TrackingQuality::kImuOnly:
+      return "imu_only";
+    case core::TrackingQuality::kTracking:
+      return "tracking";
+    case core::TrackingQuality::kLost:
+      return "lost";
+    case core::TrackingQuality::kVisionOnly:
+      return "vision_only";
+  }
+  return "unknown";
+}
+}  // namespace
+
+void McapPoseWriter::write_diagnostics(const PoseSample& s) {
+  const int q = static_cast<int>(s.quality);
+  if (s.t_ns - last_diag_t_ns_ < 1'000'000'000 && q == last_quality_ && s.reset_counter == last_resets_ &&
+      s.map.alignment == last_alignment_)
+    return;
+  last_diag_t_ns_ = s.t_ns, last_quality_ = q, last_resets_ = s.reset_counter,
+  last_alignment_ = s.map.alignment;
+  drivers::ros2::DiagnosticArray d;
+  d.t_ns = s.t_ns;
+  drivers::ros2::DiagnosticStatus st;
+  // OK while the camera keeps the pose; WARN while the IMU alone carries it or
+  // nothing is known yet; ERROR when the backend says it is lost.
+  st.level = s.quality == core::TrackingQuality::kTracking || s.quality == core::TrackingQuality::kVisionOnly
+                 ? 0
+             : s.quality == core::TrackingQuality::kLost ? 2
+                                                         : 1;
+  st.name = "kestrel: estimator";
+  st.hardware_id = "kestrel";
+  st.message = quality_text(s.quality);
+  st.values = {{"quality", quality_text(s.quality)}, {"reset_counter", std::to_string(s.reset_counter)}};
+  if (s.map.active) {
+    st.values.emplace_back("map_localized", s.map.localized ? "true" : "false");
+    st.values.emplace_back("map_keyframes", std::to_string(s.map.keyframes));
+    st.values.emplace_back("map_points", std::to_string(s.map.points));
+    st.values.emplace_back("loop_closures", std::to_string(s.map.loop_closures));
+    st.values.emplace_back("relocalisations", std::to_string(s.map.relocalisations));
+  }
+  d.status.push_back(std::move(st));
+  drivers::ros2::encode(d, buf_);
+  w_.write(diag_, static_cast<uint64_t>(s.t_ns), static_cast<uint64_t>(s.t_ns), buf_.data(), buf_.size());
 }
 
 void McapPoseWriter::write(const PoseSample& s) {
@@ -44,6 +102,25 @@ void McapPoseWriter::write(const PoseSample& s) {
   drivers::ros2::encode(m, buf_);
   w_.write(odom_, static_cast<uint64_t>(s.t_ns), static_cast<uint64_t>(s.t_ns), buf_.data(), buf_.size());
   ++count_;
+
+  // REP 105: map -> odom is the map's correction (identity without a map),
+  // odom -> base_link the continuous odometry.
+  std::vector<drivers::ros2::TransformStamped> tf(2);
+  const Eigen::Isometry3d T_map_odom = s.map.active ? s.map.T_map_odom() : Eigen::Isometry3d::Identity();
+  const Eigen::Quaterniond q_mo(T_map_odom.linear());
+  tf[0].t_ns = tf[1].t_ns = s.t_ns;
+  tf[0].frame_id = "map";
+  tf[0].child_frame_id = "odom";
+  tf[0].translation = {T_map_odom.translation().x(), T_map_odom.translation().y(),
+                       T_map_odom.translation().z()};
+  tf[0].rotation_xyzw = {q_mo.x(), q_mo.y(), q_mo.z(), q_mo.w()};
+  tf[1].frame_id = "odom";
+  tf[1].child_frame_id = "base_link";
+  tf[1].translation = m.pose.position;
+  tf[1].rotation_xyzw = m.pose.orientation_xyzw;
+  drivers::ros2::encode(tf, buf_);
+  w_.write(tf_, static_cast<uint64_t>(s.t_ns), static_cast<uint64_t>(s.t_ns), buf_.data(), buf_.size());
+  write_diagnostics(s);
 }
 
 void McapPoseWriter::close() { w_.close(); }

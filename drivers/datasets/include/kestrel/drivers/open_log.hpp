@@ -4,6 +4,7 @@
 
 #include <memory>
 #include <string>
+#include <vector>
 
 #include "kestrel/drivers/log_source.hpp"
 
@@ -22,6 +23,8 @@ struct LogOpenOptions {
   // ROS bag topics ("" = the RealSense D435i defaults of RosbagTopics; for
   // rosbag2, "" = found by message type).
   std::string rgb_topic, depth_topic, imu_topic, camera_info_topic, ground_truth_topic;
+  // rosbag2: read only these topics (empty = all; Rosbag2ReadOptions::topics).
+  std::vector<std::string> topics;
 };
 
 // Opens `path` as `format` (kAuto: a .klog file, a ROS 1 bag, a rosbag2

@@ -11,6 +11,7 @@
 #include <array>
 #include <cstdint>
 #include <string>
+#include <utility>
 #include <vector>
 
 namespace kestrel::drivers::ros2 {
@@ -79,6 +80,17 @@ struct Image {
   uint32_t data_size = 0;
 };
 
+// sensor_msgs/msg/CompressedImage: `format` as image_transport writes it
+// ("jpeg", "png", "rgb8; jpeg compressed bgr8", "16UC1; compressedDepth png");
+// data is a view, as for Image.
+struct CompressedImage {
+  int64_t t_ns = 0;
+  std::string frame_id;
+  std::string format;
+  const uint8_t* data = nullptr;
+  uint32_t data_size = 0;
+};
+
 struct CameraInfo {
   int64_t t_ns = 0;
   std::string frame_id;
@@ -116,15 +128,30 @@ struct TransformStamped {
   std::array<double, 4> rotation_xyzw{0, 0, 0, 1};
 };
 
+// diagnostic_msgs/msg/DiagnosticArray (written only: --mcap-out's /diagnostics).
+struct DiagnosticStatus {
+  uint8_t level = 0;  // OK 0, WARN 1, ERROR 2, STALE 3
+  std::string name, message, hardware_id;
+  std::vector<std::pair<std::string, std::string>> values;  // diagnostic_msgs/KeyValue
+};
+struct DiagnosticArray {
+  int64_t t_ns = 0;
+  std::string frame_id;
+  std::vector<DiagnosticStatus> status;
+};
+
 void encode(const Imu& m, std::vector<uint8_t>& out);
+void encode(const DiagnosticArray& m, std::vector<uint8_t>& out);
 void encode(const Image& m, std::vector<uint8_t>& out);
 void encode(const CameraInfo& m, std::vector<uint8_t>& out);
+void encode(const CompressedImage& m, std::vector<uint8_t>& out);
 void encode(const Odometry& m, std::vector<uint8_t>& out);
 void encode(const PoseStamped& m, std::vector<uint8_t>& out);
 void encode(const std::vector<TransformStamped>& tf, std::vector<uint8_t>& out);  // tf2_msgs/msg/TFMessage
 
 void decode(const uint8_t* p, size_t n, Imu& m);
 void decode(const uint8_t* p, size_t n, Image& m);
+void decode(const uint8_t* p, size_t n, CompressedImage& m);
 void decode(const uint8_t* p, size_t n, CameraInfo& m);
 void decode(const uint8_t* p, size_t n, Odometry& m);
 void decode(const uint8_t* p, size_t n, PoseStamped& m);

@@ -43,7 +43,8 @@ struct Rosbag2Stats {
 Rosbag2Stats export_rosbag2(LogSource& src, const std::string& out_dir,
                             const Rosbag2WriteOptions& options = {});
 
-// True if `path` is a folder holding metadata.yaml with storage mcap, or a file with MCAP magic.
+// True if `path` is a folder holding metadata.yaml, a file with MCAP magic, or
+// a .db3 file with SQLite's header (rosbag2's sqlite3 storage).
 bool is_rosbag2(const std::string& path);
 
 struct Rosbag2ReadOptions {
@@ -51,9 +52,15 @@ struct Rosbag2ReadOptions {
   // encoding), the depth Image topic (16UC1 / 32FC1), the CameraInfo beside
   // the colour topic, PoseStamped as ground truth.
   std::string rgb_topic, depth_topic, imu_topic, camera_info_topic, ground_truth_topic;
+  // Non-empty: only these topics are read (then detected by type among them,
+  // or named above); tf_static and CameraInfo are read for the rig regardless.
+  // A topic the bag does not have is an error naming the ones it has.
+  std::vector<std::string> topics;
   mcap::ReaderOptions mcap;
 };
 
+// Reads storage mcap (chunked, zstd / lz4) and sqlite3 (libsqlite3, read-only);
+// Image and CompressedImage (jpeg / png, image_transport's compressedDepth).
 class Rosbag2Reader : public LogSource {
  public:
   // `rig` (from --rig) wins over the file's; else the "kestrel" rig metadata,
