@@ -75,6 +75,8 @@ const char* record_type_name(drivers::RecordType t) {
       return "rgb";
     case drivers::RecordType::kDepth:
       return "depth";
+    case drivers::RecordType::kRight:
+      return "right";
     case drivers::RecordType::kGroundTruth:
       return "ground_truth";
     case drivers::RecordType::kEvent:
@@ -159,6 +161,7 @@ Record to_python(const drivers::LogRecord& r) {
       break;
     case drivers::RecordType::kRgb:
     case drivers::RecordType::kDepth:
+    case drivers::RecordType::kRight:  // a stereo rig's right image (docs/stereo.md)
       o.t_ns = r.image.t_ns;
       o.seq = r.image.seq;
       o.image = image_array(r.image);
