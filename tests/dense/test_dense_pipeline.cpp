@@ -99,6 +99,9 @@ TEST(DensePipeline, ReplayWritesPlyAndOctomapInOneFrameWithoutAllocating) {
   ASSERT_TRUE(r.dense);
   std::printf("%s", cli::replay_summary(r).c_str());
   EXPECT_EQ(r.steady_allocs, 0) << "the dense hand-off allocated on the estimator thread";
+  bool dense_thread = false;
+  for (const cli::AppliedThread& t : r.threads) dense_thread = dense_thread || t.name == "kst-dense";
+  EXPECT_TRUE(dense_thread);
   EXPECT_GT(r.dense_stats.keyframes, 10u);
   EXPECT_EQ(r.dense_stats.integrated, r.dense_stats.keyframes) << "lockstep waits: nothing dropped";
   EXPECT_EQ(r.dense_stats.dropped, 0u);

@@ -56,11 +56,17 @@ DenseMapper::DenseMapper(const DenseOptions& opt, const Rig& rig, bool wait_when
     (void)free_.try_push(static_cast<uint32_t>(i));
   }
   started_ = true;
-  static const rt::ThreadSpec spec{"kst-dense", 0, -1, 0};
-  thread_ = rt::start_thread(spec, [this] { run(); });
+  thread_ = rt::start_thread(
+      thread_spec(), [this] { run(); }, &thread_report_);
 }
 
 DenseMapper::~DenseMapper() { stop(); }
+
+const rt::ThreadSpec& DenseMapper::thread_spec() {
+  // Not real time: SCHED_OTHER on any CPU, below everything that flies.
+  static const rt::ThreadSpec spec{"kst-dense", 0, -1, 0};
+  return spec;
+}
 
 bool DenseMapper::is_keyframe(int64_t t_ns, const Eigen::Isometry3d& T_WB) const {
   if (!have_last_) return true;

@@ -90,9 +90,10 @@ Subcommand add_replay_command(CLI::App& parent) {
   app->add_option("--mcap-out", args->mcap_out,
                   "write the poses here as nav_msgs/msg/Odometry in MCAP (ROS 2, Foxglove; docs/ros2.md)");
   app->add_option("--map-out", args->map_out, "write the map here at the end (versioned, CRC-checked; docs/map.md)");
-  app->add_option("--dense-out", args->dense_out,
-                  "build the dense map (the config's dense: section) and write its surface here as PLY, in the "
-                  "frame of --traj-out (docs/dense.md)");
+  app->add_option(
+      "--dense-out", args->dense_out,
+      "build the dense map (the config's dense: section) and write its surface here as PLY, in the "
+      "frame of --traj-out (docs/dense.md)");
   app->add_option("--dense-octomap-out", args->dense_octomap_out,
                   "build the dense map and write its occupancy here as an OctoMap .bt (docs/dense.md)");
   app->add_option("--metrics-out", args->metrics_out,
@@ -210,7 +211,8 @@ Subcommand add_replay_command(CLI::App& parent) {
       if (!args->metrics_out.empty()) std::cout << "metrics: " << args->metrics_out << "\n";
       if (!args->map_out.empty()) std::cout << "map: " << args->map_out << "\n";
       if (!args->dense_out.empty()) std::cout << "dense map: " << args->dense_out << "\n";
-      if (!args->dense_octomap_out.empty()) std::cout << "dense occupancy: " << args->dense_octomap_out << "\n";
+      if (!args->dense_octomap_out.empty())
+        std::cout << "dense occupancy: " << args->dense_octomap_out << "\n";
       if (mcap) std::cout << "mcap: " << args->mcap_out << " (" << mcap->count() << " odometry messages)\n";
     }
     return 0;

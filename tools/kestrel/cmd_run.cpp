@@ -145,9 +145,10 @@ Subcommand add_run_command(CLI::App& parent) {
   app->add_option("--mcap-out", a->mcap_out,
                   "write the poses here as nav_msgs/msg/Odometry in MCAP (ROS 2, Foxglove; docs/ros2.md)");
   app->add_option("--map-out", a->map_out, "write the map here when the run stops (docs/map.md)");
-  app->add_option("--dense-out", a->dense_out,
-                  "build the dense map (the config's dense: section) and write its surface here as PLY when the "
-                  "run stops, in the frame of --traj-out (docs/dense.md)");
+  app->add_option(
+      "--dense-out", a->dense_out,
+      "build the dense map (the config's dense: section) and write its surface here as PLY when the "
+      "run stops, in the frame of --traj-out (docs/dense.md)");
   app->add_option("--dense-octomap-out", a->dense_octomap_out,
                   "build the dense map and write its occupancy here as an OctoMap .bt when the run stops");
   app->add_option("--mavlink-udp", a->mavlink_udp,
@@ -279,7 +280,8 @@ Subcommand add_run_command(CLI::App& parent) {
           "%s",
           threads_summary({applied_thread(recorder->thread_spec(), recorder->thread_report())}).c_str());
       std::printf("%s", recording_summary(*recorder).c_str());
-      if (!recorder->error().empty()) std::fprintf(stderr, "kestrel run: recording: %s\n", recorder->error().c_str());
+      if (!recorder->error().empty())
+        std::fprintf(stderr, "kestrel run: recording: %s\n", recorder->error().c_str());
     }
     if (!a->traj_out.empty()) {
       tools::write_tum(a->traj_out, r.trajectory);

@@ -17,14 +17,14 @@
 #include "kestrel/core/rgbd_estimator.hpp"
 #include "kestrel/core/tracker.hpp"
 #include "kestrel/core/window_estimator.hpp"
+#include "kestrel/dense/dense_files.hpp"
 #include "kestrel/drivers/camera_time_shift.hpp"
+#include "kestrel/drivers/mavlink/serial_link.hpp"
+#include "kestrel/drivers/mavlink/udp_sender.hpp"
 #include "kestrel/drivers/open_log.hpp"
 #include "kestrel/imu_rate_stage.hpp"
 #include "kestrel/map_threads.hpp"
-#include "kestrel/dense/dense_files.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"
-#include "kestrel/drivers/mavlink/serial_link.hpp"
-#include "kestrel/drivers/mavlink/udp_sender.hpp"
 #include "kestrel/rt/alloc_counter.hpp"
 #include "kestrel/rt/clock.hpp"
 #include "kestrel/rt/history_ring.hpp"
@@ -344,7 +344,8 @@ class EstimatorStage {
       }
       if (anchor_ != nullptr)
         anchor_->publish(to_anchor(est_.output()));
-      if (dense_ != nullptr && est_.output().quality == core::TrackingQuality::kTracking) {
+      if (dense_ != nullptr && (est_.output().quality == core::TrackingQuality::kTracking ||
+                                est_.output().quality == core::TrackingQuality::kVisionOnly)) {
         // The pose --traj-out gets for this frame: the map is in the trajectory's frame W.
         const core::NavState& st = est_.output().state;
         Eigen::Isometry3d T_WB = Eigen::Isometry3d::Identity();
@@ -712,6 +713,8 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   if (!opt.dense_out.empty() || !opt.dense_octomap_out.empty() || opt.on_dense_map) dense_opt.enabled = true;
   dense::DenseMapper dense_mapper(dense_opt, rig, !realtime);
   stage.set_dense(&dense_mapper);
+  if (dense_mapper.enabled())
+    report.threads.push_back(applied_thread(dense::DenseMapper::thread_spec(), dense_mapper.thread_report()));
 
   const int64_t wall0 = rt::now_ns();
   const double cpu0 = process_cpu_s();
@@ -865,7 +868,8 @@ ReplayReport run_replay(const ReplayOptions& opt) {
       dense::write_ply(opt.dense_out, pts);
       report.dense_points = pts.size();
     }
-    if (!opt.dense_octomap_out.empty()) report.dense_octomap_leaves = dense::write_octomap_bt(opt.dense_octomap_out, dm);
+    if (!opt.dense_octomap_out.empty())
+      report.dense_octomap_leaves = dense::write_octomap_bt(opt.dense_octomap_out, dm);
     if (opt.on_dense_map) opt.on_dense_map(dm);
   }
   if (report.has_map) {
@@ -1337,17 +1341,17 @@ std::string replay_summary(const ReplayReport& r) {
   if (r.view) s += viewer::stats_summary(r.viewer);
   if (r.dense) {
     const dense::DenseStats& d = r.dense_stats;
-    std::snprintf(buf, sizeof buf,
-                  "dense map: %llu keyframes fused, %llu dropped, %llu wrong size; keyframe->map p50 %.1f ms, "
-                  "p99 %.1f ms; cpu %.2f s; %d of %d blocks (%.0f MB), %llu evicted, %llu refused; %llu surface "
-                  "points\n",
-                  static_cast<unsigned long long>(d.integrated), static_cast<unsigned long long>(d.dropped),
-                  static_cast<unsigned long long>(d.wrong_size), 1e-6 * static_cast<double>(d.latency.percentile(50)),
-                  1e-6 * static_cast<double>(d.latency.percentile(99)), d.cpu_s, r.dense_blocks,
-                  r.dense_block_capacity, r.dense_memory_mb,
-                  static_cast<unsigned long long>(r.dense_counters.blocks_evicted),
-                  static_cast<unsigned long long>(r.dense_counters.blocks_refused),
-                  static_cast<unsigned long long>(r.dense_points));
+    std::snprintf(
+        buf, sizeof buf,
+        "dense map: %llu keyframes fused, %llu dropped, %llu wrong size; keyframe->map p50 %.1f ms, "
+        "p99 %.1f ms; cpu %.2f s; %d of %d blocks (%.0f MB), %llu evicted, %llu refused; %llu surface "
+        "points\n",
+        static_cast<unsigned long long>(d.integrated), static_cast<unsigned long long>(d.dropped),
+        static_cast<unsigned long long>(d.wrong_size), 1e-6 * static_cast<double>(d.latency.percentile(50)),
+        1e-6 * static_cast<double>(d.latency.percentile(99)), d.cpu_s, r.dense_blocks, r.dense_block_capacity,
+        r.dense_memory_mb, static_cast<unsigned long long>(r.dense_counters.blocks_evicted),
+        static_cast<unsigned long long>(r.dense_counters.blocks_refused),
+        static_cast<unsigned long long>(r.dense_points));
     s += buf;
   }
   if (r.alloc_counting) {

@@ -12,13 +12,13 @@
 #include <string>
 #include <vector>
 
-#include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/core/estimator.hpp"
 #include "kestrel/core/estimator_config.hpp"
+#include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/dense/dense_mapper.hpp"
-#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/devices.hpp"
 #include "kestrel/drivers/log_source.hpp"
+#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/replay_source.hpp"
 #include "kestrel/mavlink/odometry_adapter.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"

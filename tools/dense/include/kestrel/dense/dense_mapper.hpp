@@ -19,6 +19,7 @@
 #include "kestrel/rt/doorbell.hpp"
 #include "kestrel/rt/latency_histogram.hpp"
 #include "kestrel/rt/spsc_ring.hpp"
+#include "kestrel/rt/thread_setup.hpp"
 
 namespace kestrel::dense {
 
@@ -66,6 +67,9 @@ class DenseMapper {
   const core::TsdfMap& map() const { return *map_; }
   const DenseStats& stats() const { return stats_; }
   const DenseOptions& options() const { return opt_; }
+  // The thread's row (name, priority, CPU) and what it was granted.
+  static const rt::ThreadSpec& thread_spec();
+  const rt::ThreadSetupReport& thread_report() const { return thread_report_; }
 
  private:
   struct Slot {
@@ -92,6 +96,7 @@ class DenseMapper {
   std::atomic<bool> stop_{false};
   std::atomic<uint64_t> handed_{0}, done_{0};
   std::thread thread_;
+  rt::ThreadSetupReport thread_report_;
   bool have_last_ = false;
   int64_t last_t_ns_ = 0;
   Eigen::Isometry3d last_T_WB_ = Eigen::Isometry3d::Identity();
