@@ -14,6 +14,7 @@ packages=(
   libjs-three                             # the viewer page's 3-D view, served from /usr/share/javascript/three
   libzstd-dev liblz4-dev   # drivers/log: compressed .klog images (docs/log-format.md)
   libsqlite3-dev   # drivers/rosbag2: rosbag2's sqlite3 storage (.db3; docs/ros2.md)
+  liboctomap-dev   # tools/dense: the dense map's OctoMap .bt export, and tests/dense reads it back (docs/dense.md)
   file adduser systemd   # tools/package: cpack's DEB generator finds unstripped ELF files with `file`; the
                          # package's postinst (adduser); test.sh checks its unit with `systemd-analyze verify`
   valgrind   # `kestrel bench --cpu-budget` counts instructions with callgrind (tests/profile); this VM's perf has no counters

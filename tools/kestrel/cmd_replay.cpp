@@ -5,6 +5,7 @@
 
 #include "kestrel/commands.hpp"
 #include "kestrel/core/estimator_factory.hpp"
+#include "kestrel/dense/dense_config.hpp"
 #include "kestrel/drivers/devices.hpp"
 #include "kestrel/drivers/open_log.hpp"
 #include "kestrel/mcap_out.hpp"
@@ -35,6 +36,7 @@ Subcommand add_replay_command(CLI::App& parent) {
     std::string mapping, loop;
     std::string map_traj_out, map_final_traj_out;
     std::string map_in, map_out;
+    std::string dense_out, dense_octomap_out;  // the dense map (docs/dense.md)
     std::string mcap_out;
     std::string loop_log;
   };
@@ -97,6 +99,12 @@ Subcommand add_replay_command(CLI::App& parent) {
                   "log's ground truth its view overlap and the correction's error); with ground truth the "
                   "summary and --metrics-out also count the revisits the flight made (docs/map.md)");
   app->add_option("--map-out", args->map_out, "write the map here at the end (versioned, CRC-checked; docs/map.md)");
+  app->add_option(
+      "--dense-out", args->dense_out,
+      "build the dense map (the config's dense: section) and write its surface here as PLY, in the "
+      "frame of --traj-out (docs/dense.md)");
+  app->add_option("--dense-octomap-out", args->dense_octomap_out,
+                  "build the dense map and write its occupancy here as an OctoMap .bt (docs/dense.md)");
   app->add_option("--metrics-out", args->metrics_out,
                   "write latency histograms, drops, counters, CPU, RSS, real-time factor as JSON");
   app->add_option("--warmup", args->warmup_s, "seconds of log before steady-state statistics start")
@@ -135,6 +143,9 @@ Subcommand add_replay_command(CLI::App& parent) {
     }
     opt.estimator = opt.config->backend;
     opt.map_out = args->map_out;
+    opt.dense = dense::load_dense_options(args->config);
+    opt.dense_out = args->dense_out;
+    opt.dense_octomap_out = args->dense_octomap_out;
     if (!args->config.empty()) opt.threads = drivers::load_thread_table(args->config);
     try {
       opt.format = drivers::parse_log_format(args->format);
@@ -220,6 +231,9 @@ Subcommand add_replay_command(CLI::App& parent) {
       if (!args->traj_out.empty()) std::cout << "trajectory: " << args->traj_out << "\n";
       if (!args->metrics_out.empty()) std::cout << "metrics: " << args->metrics_out << "\n";
       if (!args->map_out.empty()) std::cout << "map: " << args->map_out << "\n";
+      if (!args->dense_out.empty()) std::cout << "dense map: " << args->dense_out << "\n";
+      if (!args->dense_octomap_out.empty())
+        std::cout << "dense occupancy: " << args->dense_octomap_out << "\n";
       if (mcap) std::cout << "mcap: " << args->mcap_out << " (" << mcap->count() << " odometry messages)\n";
     }
     return 0;

@@ -16,6 +16,7 @@
 #include "kestrel/commands.hpp"
 #include "kestrel/core/estimator.hpp"
 #include "kestrel/core/estimator_factory.hpp"
+#include "kestrel/dense/dense_config.hpp"
 #include "kestrel/drivers/devices.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"
 #include "kestrel/mcap_out.hpp"
@@ -47,6 +48,7 @@ struct RunArgs {
   bool print_config = false;
   std::string mapping, loop;
   std::string map_in, map_out;
+  std::string dense_out, dense_octomap_out;  // the dense map (docs/dense.md)
   std::string mcap_out;
 };
 
@@ -64,6 +66,9 @@ ReplayOptions pipeline_options(const RunArgs& a, const drivers::LiveConfig& cfg,
   opt.threads = cfg.threads;
   opt.mavlink = mavlink;
   opt.map_out = a.map_out;
+  opt.dense = dense::load_dense_options(cfg.path);
+  opt.dense_out = a.dense_out;
+  opt.dense_octomap_out = a.dense_octomap_out;
   if (!a.view.endpoint.empty()) {
     opt.view = true;
     opt.view_options = view_options;
@@ -140,6 +145,12 @@ Subcommand add_run_command(CLI::App& parent) {
   app->add_option("--mcap-out", a->mcap_out,
                   "write the poses here as nav_msgs/msg/Odometry in MCAP (ROS 2, Foxglove; docs/ros2.md)");
   app->add_option("--map-out", a->map_out, "write the map here when the run stops (docs/map.md)");
+  app->add_option(
+      "--dense-out", a->dense_out,
+      "build the dense map (the config's dense: section) and write its surface here as PLY when the "
+      "run stops, in the frame of --traj-out (docs/dense.md)");
+  app->add_option("--dense-octomap-out", a->dense_octomap_out,
+                  "build the dense map and write its occupancy here as an OctoMap .bt when the run stops");
   app->add_option("--mavlink-udp", a->mavlink_udp,
                   "MAVLink v2 to the flight controller at HOST:PORT: ODOMETRY per pose, HEARTBEAT 1 Hz, TIMESYNC "
                   "(over the config's mavlink: link; docs/px4.md)");
@@ -158,7 +169,10 @@ Subcommand add_run_command(CLI::App& parent) {
   Subcommand s;
   s.app = app;
   s.run = [a] {
-    const drivers::LiveConfig cfg = drivers::load_live_config(a->config, tools::estimator_config_sections());
+    // The dense map's `dense:` section is read apart (tools/dense); the live reader lets it through.
+    std::vector<std::string> sections = tools::estimator_config_sections();
+    sections.emplace_back("dense");
+    const drivers::LiveConfig cfg = drivers::load_live_config(a->config, sections);
     if (!a->estimator.empty() && !core::estimator_known(a->estimator))
       throw UsageError("unknown --estimator '" + a->estimator + "' (expected one of: " + core::estimator_names() + ")");
     // The default backend is replay's (window) unless the config or --estimator names one.
@@ -266,7 +280,8 @@ Subcommand add_run_command(CLI::App& parent) {
           "%s",
           threads_summary({applied_thread(recorder->thread_spec(), recorder->thread_report())}).c_str());
       std::printf("%s", recording_summary(*recorder).c_str());
-      if (!recorder->error().empty()) std::fprintf(stderr, "kestrel run: recording: %s\n", recorder->error().c_str());
+      if (!recorder->error().empty())
+        std::fprintf(stderr, "kestrel run: recording: %s\n", recorder->error().c_str());
     }
     if (!a->traj_out.empty()) {
       tools::write_tum(a->traj_out, r.trajectory);

@@ -18,6 +18,7 @@
 #include "kestrel/core/stereo_matcher.hpp"
 #include "kestrel/core/tracker.hpp"
 #include "kestrel/core/window_estimator.hpp"
+#include "kestrel/dense/dense_files.hpp"
 #include "kestrel/drivers/camera_time_shift.hpp"
 #include "kestrel/drivers/mavlink/serial_link.hpp"
 #include "kestrel/drivers/mavlink/udp_sender.hpp"
@@ -218,6 +219,8 @@ class EstimatorStage {
   uint64_t frames_fed() const { return frames_fed_; }
   // The map's threads, woken after each frame (set before any frame).
   void set_map_threads(MapThreads* m) { map_ = m; }
+  // The dense map's hand-off, offered every tracked frame (set before any frame).
+  void set_dense(dense::DenseMapper* d) { dense_ = d->enabled() ? d : nullptr; }
   // CPU the backend's own calls took on this thread. The thread's total also
   // holds the harness: the fast pace's busy-yield while the feeder decodes,
   // the deterministic paces' wait for the map, the lockstep's log reading.
@@ -354,6 +357,15 @@ class EstimatorStage {
       }
       if (anchor_ != nullptr)
         anchor_->publish(to_anchor(est_.output()));
+      if (dense_ != nullptr && (est_.output().quality == core::TrackingQuality::kTracking ||
+                                est_.output().quality == core::TrackingQuality::kVisionOnly)) {
+        // The pose --traj-out gets for this frame: the map is in the trajectory's frame W.
+        const core::NavState& st = est_.output().state;
+        Eigen::Isometry3d T_WB = Eigen::Isometry3d::Identity();
+        T_WB.linear() = st.q_WB.normalized().toRotationMatrix();
+        T_WB.translation() = st.p_WB;
+        dense_->offer(m.t_ns, f.rgb, f.depth, T_WB);
+      }
       ++frames_fed_;
       if (t1 - t0 > window_tracking_max_ns_) window_tracking_max_ns_ = t1 - t0;
       if (counting_) {
@@ -417,6 +429,7 @@ class EstimatorStage {
   ReplayReport& report_;
   viewer::ViewerFeed* feed_;
   MapThreads* map_ = nullptr;
+  dense::DenseMapper* dense_ = nullptr;
   int64_t frame_wait_since_ns_ = -1;  // live: when the frame at the front began waiting for the IMU
   int64_t imu_max_since_frame_ns_ = 0;
   int64_t frame_period_ns_ = 0;
@@ -736,6 +749,14 @@ ReplayReport run_replay(const ReplayOptions& opt) {
                          report.threads);
   stage.set_map_threads(&map_threads);
   stage.set_stereo(stereo.get());
+  // The dense map's thread (off unless asked for): the deterministic paces
+  // wait for a free slot, realtime drops and counts.
+  dense::DenseOptions dense_opt = opt.dense;
+  if (!opt.dense_out.empty() || !opt.dense_octomap_out.empty() || opt.on_dense_map) dense_opt.enabled = true;
+  dense::DenseMapper dense_mapper(dense_opt, rig, !realtime);
+  stage.set_dense(&dense_mapper);
+  if (dense_mapper.enabled())
+    report.threads.push_back(applied_thread(dense::DenseMapper::thread_spec(), dense_mapper.thread_report()));
 
   const int64_t wall0 = rt::now_ns();
   const double cpu0 = process_cpu_s();
@@ -874,6 +895,25 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   }
   map_threads.stop();
   if (!opt.map_out.empty()) tools::write_map_file(opt.map_out, estimator.save_map());
+  if (dense_mapper.enabled()) {
+    dense_mapper.stop();
+    const core::TsdfMap& dm = dense_mapper.map();
+    report.dense = true;
+    report.dense_stats = dense_mapper.stats();
+    report.dense_counters = dm.counters();
+    report.dense_blocks = dm.blocks_in_use();
+    report.dense_block_capacity = dm.block_capacity();
+    report.dense_memory_mb = static_cast<double>(dm.memory_bytes()) / 1048576.0;
+    if (!opt.dense_out.empty()) {
+      std::vector<core::SurfacePoint> pts;
+      dm.extract_surface(pts);
+      dense::write_ply(opt.dense_out, pts);
+      report.dense_points = pts.size();
+    }
+    if (!opt.dense_octomap_out.empty())
+      report.dense_octomap_leaves = dense::write_octomap_bt(opt.dense_octomap_out, dm);
+    if (opt.on_dense_map) opt.on_dense_map(dm);
+  }
   if (report.has_map) {
     std::vector<tools::KeyframeAnchor>& anchors = report.map_final_keyframes;
     for (const core::MapKeyframePose& k : estimator.map_keyframe_poses()) anchors.push_back({k.t_ns, k.T_MB, k.T_WB});
@@ -1084,6 +1124,24 @@ std::string replay_metrics_json(const ReplayReport& r) {
   } else {
     for (const char* k : {"loop_closures", "relocalisations", "keyframes_in_map", "map_points", "map_correction_m"})
       j[k] = nullptr;
+  }
+  if (r.dense) {
+    const dense::DenseStats& d = r.dense_stats;
+    j["dense"] = Json{{"keyframes", d.keyframes},
+                      {"integrated", d.integrated},
+                      {"dropped", d.dropped},
+                      {"wrong_size", d.wrong_size},
+                      {"cpu_s", d.cpu_s},
+                      {"latency", histogram_json(d.latency)},
+                      {"integrate", histogram_json(d.integrate)},
+                      {"blocks", r.dense_blocks},
+                      {"block_capacity", r.dense_block_capacity},
+                      {"memory_mb", r.dense_memory_mb},
+                      {"blocks_evicted", r.dense_counters.blocks_evicted},
+                      {"blocks_refused", r.dense_counters.blocks_refused},
+                      {"surface_points", r.dense_points}};
+  } else {
+    j["dense"] = nullptr;
   }
   j["optimizer_threaded"] = r.optimizer_threaded;
   j["imu_rate_poses"] = r.imu_rate_poses;
@@ -1358,6 +1416,21 @@ std::string replay_summary(const ReplayReport& r) {
     }
   }
   if (r.view) s += viewer::stats_summary(r.viewer);
+  if (r.dense) {
+    const dense::DenseStats& d = r.dense_stats;
+    std::snprintf(
+        buf, sizeof buf,
+        "dense map: %llu keyframes fused, %llu dropped, %llu wrong size; keyframe->map p50 %.1f ms, "
+        "p99 %.1f ms; cpu %.2f s; %d of %d blocks (%.0f MB), %llu evicted, %llu refused; %llu surface "
+        "points\n",
+        static_cast<unsigned long long>(d.integrated), static_cast<unsigned long long>(d.dropped),
+        static_cast<unsigned long long>(d.wrong_size), 1e-6 * static_cast<double>(d.latency.percentile(50)),
+        1e-6 * static_cast<double>(d.latency.percentile(99)), d.cpu_s, r.dense_blocks, r.dense_block_capacity,
+        r.dense_memory_mb, static_cast<unsigned long long>(r.dense_counters.blocks_evicted),
+        static_cast<unsigned long long>(r.dense_counters.blocks_refused),
+        static_cast<unsigned long long>(r.dense_points));
+    s += buf;
+  }
   if (r.alloc_counting) {
     std::snprintf(buf, sizeof buf, "estimator-thread heap allocations after warm-up: %lld\n",
                   static_cast<long long>(r.steady_allocs));

@@ -12,12 +12,13 @@
 #include <string>
 #include <vector>
 
-#include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/core/estimator.hpp"
 #include "kestrel/core/estimator_config.hpp"
-#include "kestrel/drivers/open_log.hpp"
+#include "kestrel/core/estimator_factory.hpp"
+#include "kestrel/dense/dense_mapper.hpp"
 #include "kestrel/drivers/devices.hpp"
 #include "kestrel/drivers/log_source.hpp"
+#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/replay_source.hpp"
 #include "kestrel/loop_truth.hpp"
 #include "kestrel/mavlink/odometry_adapter.hpp"
@@ -193,6 +194,13 @@ struct ReplayOptions {
   double view_wait_s = 0;
   // Called once the viewer listens (the CLI prints where to point a browser).
   std::function<void(const viewer::Server&)> on_view_ready;
+  // The dense map (tools/dense, docs/dense.md): its thread runs when
+  // dense.enabled, or when one of its outputs below is asked for.
+  dense::DenseOptions dense;
+  std::string dense_out;          // the surface as PLY, in W (the frame of the trajectory)
+  std::string dense_octomap_out;  // occupancy as an OctoMap .bt
+  // Called at the end with the finished map (tests, measurements); enables the map.
+  std::function<void(const core::TsdfMap&)> on_dense_map;
 };
 
 struct ReplayReport {
@@ -285,6 +293,14 @@ struct ReplayReport {
   viewer::ServerStats viewer;
   uint64_t viewer_snapshots = 0;          // published by the estimator thread
   uint64_t viewer_snapshots_skipped = 0;  // no free slot: the viewer was behind
+  // The dense map (docs/dense.md); dense false: it did not run.
+  bool dense = false;
+  dense::DenseStats dense_stats;
+  core::TsdfCounters dense_counters;
+  int dense_blocks = 0, dense_block_capacity = 0;
+  double dense_memory_mb = 0;
+  uint64_t dense_points = 0;  // written to dense_out
+  uint64_t dense_octomap_leaves = 0;
 };
 
 ReplayReport run_replay(const ReplayOptions& opt);

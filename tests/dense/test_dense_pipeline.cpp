@@ -1,0 +1,188 @@
+// The dense map in the pipeline (tools/dense through kestrel replay's
+// harness): a simulated figure-8 replayed with --dense-out and
+// --dense-octomap-out; the PLY is read back (the contract: vertex x y z as
+// float), the .bt read back with liboctomap and checked against the PLY (one
+// frame for both), the estimator thread's allocation count stays zero, and
+// with the map off nothing of it runs.
+#include <gtest/gtest.h>
+#include <octomap/OcTree.h>
+
+#include <cmath>
+#include <cstdio>
+#include <cstring>
+#include <fstream>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include "kestrel/dense/dense_config.hpp"
+#include "kestrel/replay_runner.hpp"
+#include "kestrel/rt/alloc_counter.hpp"
+#include "kestrel/tools/simulator.hpp"
+#include "test_data.hpp"
+
+namespace kestrel {
+namespace {
+
+// Reads a binary little-endian PLY with float x y z first in its vertex
+// record; fails the test on anything else.
+std::vector<Eigen::Vector3f> read_ply(const std::string& path) {
+  std::ifstream f(path, std::ios::binary);
+  EXPECT_TRUE(f.good()) << path;
+  std::string line;
+  std::size_t n = 0, stride = 0;
+  std::vector<std::string> props;
+  std::getline(f, line);
+  EXPECT_EQ(line, "ply");
+  while (std::getline(f, line) && line != "end_header") {
+    std::istringstream s(line);
+    std::string w, type, name;
+    s >> w;
+    if (w == "format") {
+      s >> type;
+      EXPECT_EQ(type, "binary_little_endian");
+    } else if (w == "element") {
+      s >> type >> n;
+      EXPECT_EQ(type, "vertex");
+    } else if (w == "property") {
+      s >> type >> name;
+      props.push_back(name);
+      stride += type == "float" ? 4 : type == "uchar" ? 1 : 0;
+    }
+  }
+  EXPECT_GE(props.size(), 3u);
+  EXPECT_EQ(props[0], "x");
+  EXPECT_EQ(props[1], "y");
+  EXPECT_EQ(props[2], "z");
+  std::vector<Eigen::Vector3f> pts(n);
+  std::vector<char> rec(stride);
+  for (std::size_t i = 0; i < n; ++i) {
+    f.read(rec.data(), static_cast<std::streamsize>(stride));
+    EXPECT_TRUE(f.good()) << "PLY ends at vertex " << i << " of " << n;
+    std::memcpy(pts[i].data(), rec.data(), 12);
+  }
+  return pts;
+}
+
+std::string simulate(const std::string& dir, double duration_s) {
+  tools::SimOptions so;
+  so.scenario = "figure8";
+  so.duration_s = duration_s;
+  so.seed = 3;
+  so.width = 320;
+  so.height = 240;
+  so.threads = 2;
+  so.out_path = dir + "/f8.klog";
+  tools::run_simulation(so);
+  return so.out_path;
+}
+
+TEST(DensePipeline, ReplayWritesPlyAndOctomapInOneFrameWithoutAllocating) {
+  ASSERT_TRUE(rt::alloc_hook_linked());
+  const std::string dir = test::temp_dir("dense_pipeline");
+  cli::ReplayOptions ro;
+  ro.path = simulate(dir, 8.0);
+  ro.pace = drivers::ReplayPace::kLockstep;
+  ro.dense_out = dir + "/map.ply";
+  ro.dense_octomap_out = dir + "/map.bt";
+  int queries_free = 0, queries_occupied = 0;
+  ro.on_dense_map = [&](const core::TsdfMap& m) {
+    // The planner's query along the flown path: a segment between two
+    // nearby poses it flew is not occupied.
+    queries_free += m.segment({0, 0, 0}, {0.05, 0, 0}) != core::Occupancy::kOccupied;
+    std::vector<Eigen::Vector3f> occ;
+    m.occupied_voxels(occ);
+    if (!occ.empty())
+      queries_occupied += m.occupancy(occ.front().cast<double>()) == core::Occupancy::kOccupied;
+  };
+  const cli::ReplayReport r = cli::run_replay(ro);
+  ASSERT_TRUE(r.dense);
+  std::printf("%s", cli::replay_summary(r).c_str());
+  EXPECT_EQ(r.steady_allocs, 0) << "the dense hand-off allocated on the estimator thread";
+  bool dense_thread = false;
+  for (const cli::AppliedThread& t : r.threads) dense_thread = dense_thread || t.name == "kst-dense";
+  EXPECT_TRUE(dense_thread);
+  EXPECT_GT(r.dense_stats.keyframes, 10u);
+  EXPECT_EQ(r.dense_stats.integrated, r.dense_stats.keyframes) << "lockstep waits: nothing dropped";
+  EXPECT_EQ(r.dense_stats.dropped, 0u);
+  EXPECT_EQ(queries_free, 1);
+  EXPECT_EQ(queries_occupied, 1);
+
+  const std::vector<Eigen::Vector3f> pts = read_ply(ro.dense_out);
+  ASSERT_EQ(pts.size(), r.dense_points);
+  ASSERT_GT(pts.size(), 1000u);
+  for (const Eigen::Vector3f& p : pts) ASSERT_TRUE(p.allFinite());
+
+  octomap::OcTree tree(0.1);
+  ASSERT_TRUE(tree.readBinary(ro.dense_octomap_out)) << ro.dense_octomap_out;
+  EXPECT_DOUBLE_EQ(tree.getResolution(), 0.05);
+  EXPECT_GT(tree.getNumLeafNodes(), 0u);
+  // The surface points lie in occupied cells of the OctoMap (or next to
+  // one: a zero crossing sits between an occupied and a free voxel).
+  std::size_t near_occupied = 0;
+  for (std::size_t i = 0; i < pts.size(); i += 10) {
+    bool hit = false;
+    for (int d = 0; d < 7 && !hit; ++d) {
+      octomap::point3d q(pts[i].x(), pts[i].y(), pts[i].z());
+      if (d > 0) q((d - 1) / 2) += (d % 2 ? 0.05f : -0.05f);
+      const octomap::OcTreeNode* n = tree.search(q);
+      hit = n != nullptr && tree.isNodeOccupied(n);
+    }
+    near_occupied += hit;
+  }
+  EXPECT_GT(static_cast<double>(near_occupied), 0.95 * static_cast<double>((pts.size() + 9) / 10));
+}
+
+TEST(DensePipeline, RealtimePaceDropsInsteadOfWaitingAndCounts) {
+  const std::string dir = test::temp_dir("dense_realtime");
+  cli::ReplayOptions ro;
+  ro.path = simulate(dir, 5.0);
+  ro.pace = drivers::ReplayPace::kRealtime;
+  ro.dense.enabled = true;
+  ro.dense.handoff_slots = 1;
+  const cli::ReplayReport r = cli::run_replay(ro);
+  ASSERT_TRUE(r.dense);
+  std::printf("%s", cli::replay_summary(r).c_str());
+  EXPECT_EQ(r.steady_allocs, 0);
+  EXPECT_GT(r.dense_stats.keyframes, 5u);
+  // Every keyframe is accounted for: fused, or dropped and counted.
+  EXPECT_EQ(r.dense_stats.integrated + r.dense_stats.dropped, r.dense_stats.keyframes);
+}
+
+TEST(DensePipeline, WithTheMapOffNothingRuns) {
+  const std::string dir = test::temp_dir("dense_off");
+  cli::ReplayOptions ro;
+  ro.path = simulate(dir, 3.0);
+  ro.pace = drivers::ReplayPace::kLockstep;
+  const cli::ReplayReport r = cli::run_replay(ro);
+  EXPECT_FALSE(r.dense);
+  for (const cli::AppliedThread& t : r.threads) EXPECT_NE(t.name, "kst-dense");
+  EXPECT_EQ(cli::replay_summary(r).find("dense map"), std::string::npos);
+}
+
+TEST(DenseConfig, SectionReadAndBadKeysNamed) {
+  const dense::DenseOptions o =
+      dense::dense_options_from_yaml("dense:\n  enabled: true\n  voxel_size_m: 0.1\n", "test.yaml");
+  EXPECT_TRUE(o.enabled);
+  EXPECT_DOUBLE_EQ(o.tsdf.voxel_size_m, 0.1);
+  try {
+    dense::dense_options_from_yaml("dense:\n  voxel_size: 0.1\n", "test.yaml");
+    FAIL() << "accepted an unknown key";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("test.yaml:2: dense.voxel_size: unknown key"), std::string::npos)
+        << e.what();
+  }
+  try {
+    dense::dense_options_from_yaml("dense:\n  voxel_size_m: big\n", "test.yaml");
+    FAIL() << "accepted a bad value";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("dense.voxel_size_m"), std::string::npos) << e.what();
+  }
+  EXPECT_THROW(dense::dense_options_from_yaml("dense:\n  voxel_size_m: 0\n", "test.yaml"),
+               std::runtime_error);
+  // Every key of the table reads back what it prints.
+  EXPECT_EQ(dense::dense_options_table(dense::DenseOptions{}).size(), 15u);
+}
+
+}  // namespace
+}  // namespace kestrel

@@ -1,0 +1,93 @@
+#include "kestrel/dense/dense_config.hpp"
+
+#include <yaml-cpp/yaml.h>
+
+#include <fstream>
+#include <sstream>
+#include <stdexcept>
+
+namespace kestrel::dense {
+
+namespace {
+// One table for reading and printing, so a key cannot be read but not listed.
+template <class Fn>
+void visit(DenseOptions& o, Fn&& fn) {
+  fn("enabled", o.enabled);
+  fn("voxel_size_m", o.tsdf.voxel_size_m);
+  fn("memory_budget_mb", o.tsdf.memory_budget_mb);
+  fn("truncation_voxels", o.tsdf.truncation_voxels);
+  fn("max_depth_m", o.tsdf.max_depth_m);
+  fn("pixel_stride", o.tsdf.pixel_stride);
+  fn("carve_stride", o.tsdf.carve_stride);
+  fn("weight_reference_depth_m", o.tsdf.weight_reference_depth_m);
+  fn("max_weight", o.tsdf.max_weight);
+  fn("min_weight", o.tsdf.min_weight);
+  fn("evict_distance_m", o.tsdf.evict_distance_m);
+  fn("keyframe_distance_m", o.keyframe_distance_m);
+  fn("keyframe_angle_deg", o.keyframe_angle_deg);
+  fn("keyframe_interval_s", o.keyframe_interval_s);
+  fn("handoff_slots", o.handoff_slots);
+}
+}  // namespace
+
+DenseOptions dense_options_from_yaml(const std::string& text, const std::string& where) {
+  DenseOptions o;
+  YAML::Node root;
+  try {
+    root = YAML::Load(text);
+  } catch (const YAML::ParserException& e) {
+    throw std::runtime_error(where + ":" + std::to_string(e.mark.line + 1) + ": YAML syntax error: " + e.msg);
+  }
+  if (!root.IsMap() || !root["dense"]) return o;
+  const YAML::Node d = root["dense"];
+  if (!d.IsMap()) throw std::runtime_error(where + ": dense: expected a mapping of keys");
+  std::string keys;
+  visit(o, [&](const char* k, auto&) { keys += keys.empty() ? k : std::string(", ") + k; });
+  for (const auto& kv : d) {
+    bool known = false;
+    visit(o, [&](const char* k, auto&) { known = known || kv.first.Scalar() == k; });
+    if (!known)
+      throw std::runtime_error(where + ":" + std::to_string(kv.first.Mark().line + 1) + ": dense." +
+                               kv.first.Scalar() + ": unknown key (expected one of: " + keys + ")");
+  }
+  visit(o, [&](const char* k, auto& v) {
+    if (!d[k]) return;
+    try {
+      v = d[k].as<std::decay_t<decltype(v)>>();
+    } catch (const YAML::Exception&) {
+      throw std::runtime_error(where + ":" + std::to_string(d[k].Mark().line + 1) + ": dense." + k +
+                               ": bad value '" + d[k].Scalar() + "'");
+    }
+  });
+  try {
+    o.validate();
+  } catch (const std::invalid_argument& e) {
+    throw std::runtime_error(where + ": " + e.what());
+  }
+  return o;
+}
+
+DenseOptions load_dense_options(const std::string& path) {
+  if (path.empty()) return DenseOptions{};
+  std::ifstream f(path, std::ios::binary);
+  if (!f) throw std::runtime_error(path + ": cannot open config file");
+  std::ostringstream s;
+  s << f.rdbuf();
+  return dense_options_from_yaml(s.str(), path);
+}
+
+std::vector<std::pair<std::string, std::string>> dense_options_table(const DenseOptions& in) {
+  DenseOptions o = in;
+  std::vector<std::pair<std::string, std::string>> out;
+  visit(o, [&](const char* k, auto& v) {
+    std::ostringstream s;
+    if constexpr (std::is_same_v<std::decay_t<decltype(v)>, bool>)
+      s << (v ? "true" : "false");
+    else
+      s << v;
+    out.emplace_back(std::string("dense.") + k, s.str());
+  });
+  return out;
+}
+
+}  // namespace kestrel::dense

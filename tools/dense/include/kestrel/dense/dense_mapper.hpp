@@ -1,0 +1,106 @@
+// The dense map's thread (kst-dense, not real time) and its hand-off from the
+// estimator thread. The estimator thread offers every tracked frame; the
+// mapper keeps those that moved enough since the last one kept (its
+// keyframes), copies depth and colour into one of a few slots sized at
+// start-up and rings the thread. No slot free: the frame is dropped and
+// counted in realtime pace (the estimator never waits for the map); the
+// deterministic paces wait, so the map is the same on every run. docs/dense.md.
+#pragma once
+
+#include <Eigen/Geometry>
+#include <atomic>
+#include <cstdint>
+#include <mutex>
+#include <thread>
+#include <vector>
+
+#include "kestrel/core/tsdf_map.hpp"
+#include "kestrel/msgs.hpp"
+#include "kestrel/rt/doorbell.hpp"
+#include "kestrel/rt/latency_histogram.hpp"
+#include "kestrel/rt/spsc_ring.hpp"
+#include "kestrel/rt/thread_setup.hpp"
+
+namespace kestrel::dense {
+
+struct DenseOptions {
+  bool enabled = false;
+  core::TsdfOptions tsdf;
+  // A frame becomes a dense keyframe when it moved this far from the last one,
+  // turned this much, or this long passed.
+  double keyframe_distance_m = 0.10;
+  double keyframe_angle_deg = 10.0;
+  double keyframe_interval_s = 1.0;
+  // Frames waiting for the thread (each a depth and a colour image of the rig's size).
+  int handoff_slots = 4;
+  void validate() const;  // throws std::invalid_argument naming the key
+};
+
+struct DenseStats {
+  uint64_t offered = 0;     // tracked frames the estimator thread offered
+  uint64_t keyframes = 0;   // selected as dense keyframes
+  uint64_t dropped = 0;     // selected, no free slot (realtime pace only)
+  uint64_t wrong_size = 0;  // images not of the rig's size: not fused, counted
+  uint64_t integrated = 0;
+  double cpu_s = 0;                // the thread's, after stop()
+  rt::LatencyHistogram latency;    // hand-off -> fused in the map
+  rt::LatencyHistogram integrate;  // per keyframe, the fusion alone
+};
+
+class DenseMapper {
+ public:
+  // Starts the thread when opt.enabled (nothing otherwise). `wait_when_full`:
+  // the deterministic paces. T_BC: camera -> body, from the rig.
+  DenseMapper(const DenseOptions& opt, const Rig& rig, bool wait_when_full);
+  ~DenseMapper();
+  DenseMapper(const DenseMapper&) = delete;
+  DenseMapper& operator=(const DenseMapper&) = delete;
+
+  bool enabled() const { return started_; }
+  // Estimator thread, after a tracked frame; T_WB its pose. Allocation- and lock-free.
+  void offer(int64_t t_ns, const ImageView& rgb, const ImageView& depth, const Eigen::Isometry3d& T_WB);
+  // Waits until the thread fused everything handed over.
+  void wait_idle();
+  // Fuses what was handed over, then joins. Idempotent.
+  void stop();
+  // After stop(): the map, in W (the frame of the trajectory output).
+  const core::TsdfMap& map() const { return *map_; }
+  const DenseStats& stats() const { return stats_; }
+  const DenseOptions& options() const { return opt_; }
+  // The thread's row (name, priority, CPU) and what it was granted.
+  static const rt::ThreadSpec& thread_spec();
+  const rt::ThreadSetupReport& thread_report() const { return thread_report_; }
+
+ private:
+  struct Slot {
+    int64_t t_ns = 0;
+    int64_t handed_ns = 0;
+    Eigen::Isometry3d T_WC = Eigen::Isometry3d::Identity();
+    ImageView rgb, depth;
+    std::vector<uint8_t> rgb_bytes, depth_bytes;
+  };
+  static constexpr std::size_t kRingCapacity = 64;
+  void run();
+  bool is_keyframe(int64_t t_ns, const Eigen::Isometry3d& T_WB) const;
+
+  DenseOptions opt_;
+  Rig rig_;
+  Eigen::Isometry3d T_BC_ = Eigen::Isometry3d::Identity();
+  bool wait_when_full_ = false;
+  bool started_ = false;
+  std::unique_ptr<core::TsdfMap> map_;
+  std::vector<Slot> slots_;
+  rt::SpscRing<uint32_t, kRingCapacity> filled_;  // estimator -> dense
+  rt::SpscRing<uint32_t, kRingCapacity> free_;    // dense -> estimator
+  rt::Doorbell work_bell_, free_bell_;
+  std::atomic<bool> stop_{false};
+  std::atomic<uint64_t> handed_{0}, done_{0};
+  std::thread thread_;
+  rt::ThreadSetupReport thread_report_;
+  bool have_last_ = false;
+  int64_t last_t_ns_ = 0;
+  Eigen::Isometry3d last_T_WB_ = Eigen::Isometry3d::Identity();
+  DenseStats stats_;
+};
+
+}  // namespace kestrel::dense
