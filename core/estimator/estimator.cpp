@@ -67,4 +67,20 @@ const EstimatorCounters& DeadReckoningEstimator::counters() const {
   return counters_;
 }
 
+const char* tracking_quality_name(TrackingQuality q) {
+  switch (q) {
+    case TrackingQuality::kUninitialized:
+      return "uninitialized";
+    case TrackingQuality::kImuOnly:
+      return "imu_only";
+    case TrackingQuality::kTracking:
+      return "tracking";
+    case TrackingQuality::kLost:
+      return "lost";
+    case TrackingQuality::kVisionOnly:
+      return "vision_only";
+  }
+  return "unknown";
+}
+
 }  // namespace kestrel::core

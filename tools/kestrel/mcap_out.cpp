@@ -23,24 +23,6 @@ McapPoseWriter::McapPoseWriter(const std::string& path) {
       w_.add_channel(w_.add_schema(diag, "ros2msg", drivers::ros2::schema_text(diag)), "/diagnostics", "cdr");
 }
 
-namespace {
-const char* quality_text(core::TrackingQuality q) {
-  switch (q) {
-    case core::TrackingQuality::kUninitialized:
-      return "uninitialized";
-    case core::TrackingQuality::kImuOnly:
-      return "imu_only";
-    case core::TrackingQuality::kTracking:
-      return "tracking";
-    case core::TrackingQuality::kLost:
-      return "lost";
-    case core::TrackingQuality::kVisionOnly:
-      return "vision_only";
-  }
-  return "unknown";
-}
-}  // namespace
-
 void McapPoseWriter::write_diagnostics(const PoseSample& s) {
   const int q = static_cast<int>(s.quality);
   if (s.t_ns - last_diag_t_ns_ < 1'000'000'000 && q == last_quality_ && s.reset_counter == last_resets_ &&
@@ -59,8 +41,9 @@ void McapPoseWriter::write_diagnostics(const PoseSample& s) {
                                                          : 1;
   st.name = "kestrel: estimator";
   st.hardware_id = "kestrel";
-  st.message = quality_text(s.quality);
-  st.values = {{"quality", quality_text(s.quality)}, {"reset_counter", std::to_string(s.reset_counter)}};
+  st.message = core::tracking_quality_name(s.quality);
+  st.values = {{"quality", core::tracking_quality_name(s.quality)},
+               {"reset_counter", std::to_string(s.reset_counter)}};
   if (s.map.active) {
     st.values.emplace_back("map_localized", s.map.localized ? "true" : "false");
     st.values.emplace_back("map_keyframes", std::to_string(s.map.keyframes));

@@ -35,21 +35,6 @@ namespace {
 
 using Clock = std::chrono::steady_clock;
 
-const char* quality_name(core::TrackingQuality q) {
-  switch (q) {
-    case core::TrackingQuality::kUninitialized:
-      return "uninitialized";
-    case core::TrackingQuality::kImuOnly:
-      return "imu_only";
-    case core::TrackingQuality::kTracking:
-      return "tracking";
-    case core::TrackingQuality::kLost:
-      return "lost";
-    case core::TrackingQuality::kVisionOnly:
-      return "vision_only";
-  }
-  return "unknown";
-}
 
 const char* format_name(PixelFormat f) {
   switch (f) {
@@ -414,7 +399,7 @@ PyState to_python(const State& s) {
   o.v_WB = vec(s.v_WB);
   o.gyro_bias_rps = vec(s.gyro_bias_rps);
   o.acc_bias_mps2 = vec(s.acc_bias_mps2);
-  o.quality = quality_name(s.quality);
+  o.quality = core::tracking_quality_name(s.quality);
   o.reset_counter = s.reset_counter;
   o.from_frame = s.from_frame;
   return o;

@@ -38,6 +38,9 @@ enum class TrackingQuality : uint8_t {
   // is as good as tracking; attitude is not tied to gravity meanwhile.
   kVisionOnly = 4,
 };
+// "uninitialized", "imu_only", "tracking", "lost", "vision_only": the names
+// outputs print (ROS diagnostics, Python).
+const char* tracking_quality_name(TrackingQuality q);
 
 // Covariance of a pose estimate, 6x6 in the order [dp_W; dtheta_B]:
 //   dp_W     position error in W [m] (x, y, z of W): p_WB = p_hat + dp_W
