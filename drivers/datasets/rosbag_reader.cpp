@@ -9,6 +9,7 @@
 #include "kestrel/drivers/camera_time_shift.hpp"
 #include "kestrel/drivers/dataset_logs.hpp"
 #include "kestrel/drivers/log_export.hpp"
+#include "kestrel/drivers/ros2_msgs.hpp"
 #include "text_log.hpp"
 
 #if KESTREL_WITH_ROSBAG
@@ -144,23 +145,7 @@ struct RosbagReader::Impl {
     for (uint64_t y = 0; y < h; ++y) {
       const uint8_t* src = m->data.data() + y * m->step;
       uint8_t* dst = img.pixels.data() + y * w * out_bpp;
-      if (in_bpp == 4) {
-        // 32FC1 is metres (REP 118); stored as millimetres, 0 = invalid or beyond 65.535 m.
-        for (uint64_t x = 0; x < w; ++x) {
-          uint8_t b[4];
-          std::memcpy(b, src + 4 * x, 4);
-          if (swap) std::swap(b[0], b[3]), std::swap(b[1], b[2]);
-          float f;
-          std::memcpy(&f, b, 4);
-          const double mm = std::isfinite(f) && f > 0 ? std::round(static_cast<double>(f) * 1000.0) : 0.0;
-          const uint16_t v = mm > 0 && mm <= 65535 ? static_cast<uint16_t>(mm) : 0;
-          std::memcpy(dst + 2 * x, &v, 2);
-        }
-      } else if (in_bpp == 2 && swap) {
-        for (uint64_t x = 0; x < w; ++x) dst[2 * x] = src[2 * x + 1], dst[2 * x + 1] = src[2 * x];
-      } else {
-        std::memcpy(dst, src, w * out_bpp);
-      }
+      ros2::image_row_to_log(src, dst, w, static_cast<int>(in_bpp), static_cast<int>(out_bpp), swap);
     }
     return true;
   }

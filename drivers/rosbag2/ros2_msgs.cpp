@@ -1,6 +1,7 @@
 // CDR codecs and ros2msg schema texts for the handful of ROS 2 types Kestrel reads and writes.
 #include "kestrel/drivers/ros2_msgs.hpp"
 
+#include <cmath>
 #include <cstring>
 #include <map>
 #include <stdexcept>
@@ -383,6 +384,25 @@ std::string schema_text(const std::string& type) {
   for (const auto& d : dep->second)
     s += "\n" + std::string(80, '=') + "\nMSG: " + d + "\n" + definitions().at(d);
   return s;
+}
+
+void image_row_to_log(const uint8_t* src, uint8_t* dst, uint64_t width, int in_bpp, int out_bpp, bool big_endian) {
+  if (in_bpp == 4) {
+    for (uint64_t x = 0; x < width; ++x) {
+      uint8_t b[4];
+      std::memcpy(b, src + 4 * x, 4);
+      if (big_endian) std::swap(b[0], b[3]), std::swap(b[1], b[2]);
+      float f;
+      std::memcpy(&f, b, 4);
+      const double mm = std::isfinite(f) && f > 0 ? std::round(static_cast<double>(f) * 1000.0) : 0.0;
+      const uint16_t v = mm > 0 && mm <= 65535 ? static_cast<uint16_t>(mm) : 0;
+      std::memcpy(dst + 2 * x, &v, 2);
+    }
+  } else if (in_bpp == 2 && big_endian) {
+    for (uint64_t x = 0; x < width; ++x) dst[2 * x] = src[2 * x + 1], dst[2 * x + 1] = src[2 * x];
+  } else {
+    std::memcpy(dst, src, width * static_cast<uint64_t>(out_bpp));
+  }
 }
 
 }  // namespace kestrel::drivers::ros2

@@ -408,23 +408,7 @@ struct Rosbag2Reader::Impl {
     for (uint64_t y = 0; y < h; ++y) {
       const uint8_t* s = m.data + y * m.step;
       uint8_t* d = img.pixels.data() + y * w * out_bpp;
-      if (in_bpp == 4) {
-        // 32FC1 is metres (REP 118); stored as millimetres, 0 = invalid or beyond 65.535 m.
-        for (uint64_t x = 0; x < w; ++x) {
-          uint8_t b[4];
-          std::memcpy(b, s + 4 * x, 4);
-          if (swap) std::swap(b[0], b[3]), std::swap(b[1], b[2]);
-          float f;
-          std::memcpy(&f, b, 4);
-          const double mm = std::isfinite(f) && f > 0 ? std::round(static_cast<double>(f) * 1000.0) : 0.0;
-          const uint16_t v = mm > 0 && mm <= 65535 ? static_cast<uint16_t>(mm) : 0;
-          std::memcpy(d + 2 * x, &v, 2);
-        }
-      } else if (in_bpp == 2 && swap) {
-        for (uint64_t x = 0; x < w; ++x) d[2 * x] = s[2 * x + 1], d[2 * x + 1] = s[2 * x];
-      } else {
-        std::memcpy(d, s, w * out_bpp);
-      }
+      ros2::image_row_to_log(s, d, w, static_cast<int>(in_bpp), static_cast<int>(out_bpp), swap);
     }
     return true;
   }
