@@ -61,6 +61,8 @@ void visit_tracker(TrackerOptions& o, OptionVisitor& v) {
               "order of the correspondences LONSC walks");
   v.value("keypoint_sigma_px", o.keypoint_sigma_px, "keypoint noise at pyramid level 0 (scales with the level)");
   v.value("min_inliers", o.min_inliers, "fewer LONSC inliers: the frame is not tracked");
+  v.value("motion_model_min_inliers", o.motion_model_min_inliers,
+          "no IMU rotation and no rigid consensus: inliers the motion-model fallback needs (0: off)");
   v.value("keyframe_area_ratio", o.keyframe_area_ratio,
           "matched / detected area below this: new keyframe (paper 000: 50-60 %)");
   v.value("keyframe_min_inliers", o.keyframe_min_inliers, "fewer inliers than this: new keyframe");

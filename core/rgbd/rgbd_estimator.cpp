@@ -97,10 +97,13 @@ bool RgbdEstimator::add_frame(const RgbdFrame& f) {
   if (accepted) {
     T_WC = r.T_WC;
     rc_.tracked += r.tracked() ? 1 : 0;
+    rc_.motion_model += r.tracked() && r.motion_model ? 1 : 0;
     rc_.keyframes += r.keyframe ? 1 : 0;
     rc_.model_estimates += static_cast<uint64_t>(r.model_estimates);
     const int n_obs = tracker_.num_observations();
-    if (window_ && n_obs >= opt_.min_observations) {
+    // A motion-model pose (no depth, no consensus) stays out of the window:
+    // its depth-less observations would pull the frames that have depth.
+    if (window_ && n_obs >= opt_.min_observations && !r.motion_model) {
       WindowFrameInput in;
       in.t_ns = f.t_ns;
       const Eigen::Isometry3d T_WB = T_WC * T_CB_;
@@ -203,7 +206,7 @@ bool RgbdEstimator::add_frame(const RgbdFrame& f) {
 
 std::string RgbdEstimator::backend_summary() const {
   std::ostringstream o;
-  o << "rgbd: tracked " << rc_.tracked << ", keyframes " << rc_.keyframes << ", lost " << rc_.lost << " (few matches " << rc_.lost_few_matches << ", no motion "
+  o << "rgbd: tracked " << rc_.tracked << " (motion model " << rc_.motion_model << "), keyframes " << rc_.keyframes << ", lost " << rc_.lost << " (few matches " << rc_.lost_few_matches << ", no motion "
     << rc_.lost_no_motion << "), restarts "
     << rc_.restarts << ", solves ok " << rc_.solves_ok << ", rejected " << rc_.solves_rejected << ", map poses "
     << rc_.map_poses << ", rigid fits/frame "

@@ -32,6 +32,8 @@ std::string TrackerOptions::validate() const {
     e << "search_radius_min_px/max_px: need 0 < min <= max\n";
   if (!(match_ratio > 0 && match_ratio <= 1)) e << "match_ratio: in (0, 1]\n";
   if (min_inliers < 3) e << "min_inliers: at least 3\n";
+  if (motion_model_min_inliers != 0 && motion_model_min_inliers < 6)
+    e << "motion_model_min_inliers: 0 (off) or at least 6\n";
   if (!(keyframe_area_ratio > 0 && keyframe_area_ratio < 1)) e << "keyframe_area_ratio: in (0, 1)\n";
   if (area_grid_cols < 2 || area_grid_rows < 2) e << "area_grid_cols/rows: at least 2\n";
   if (map_capacity < 0) e << "map_capacity: >= 0 (0: no local map)\n";
@@ -168,6 +170,7 @@ struct Tracker::Impl {
         corr(new Correspondence2D3D[static_cast<size_t>(capacity)]),
         corr_cur(new int[static_cast<size_t>(capacity)]),
         order(new uint32_t[static_cast<size_t>(capacity)]),
+        model_inl(new uint32_t[static_cast<size_t>(capacity)]),
         area_detected(new uint8_t[static_cast<size_t>(opt.area_grid_cols * opt.area_grid_rows)]),
         area_matched(new uint8_t[static_cast<size_t>(opt.area_grid_cols * opt.area_grid_rows)]),
         obs(new WindowObservation[static_cast<size_t>(capacity)]),
@@ -423,6 +426,30 @@ struct Tracker::Impl {
     return n;
   }
 
+  // The motion-model fallback (TrackerOptions::motion_model_min_inliers):
+  // from the predicted R, t, Huber Gauss-Newton on the kept matches, then keep
+  // those within the consistency bound; three rounds. The inliers are
+  // model_inl[0..*n_in).
+  bool track_motion_model(const TrackerOptions& opt, int n, Eigen::Matrix3d* R, Eigen::Vector3d* t, size_t* n_in) {
+    *n_in = static_cast<size_t>(n);
+    for (int k = 0; k < n; ++k) model_inl[k] = static_cast<uint32_t>(k);
+    for (int round = 0; round < 3; ++round) {
+      if (!refine_pose_gauss_newton(R, t, K, corr.get(), static_cast<size_t>(n), model_inl.get(), *n_in, opt.refine)
+               .ok)
+        return false;
+      *n_in = 0;
+      for (int k = 0; k < n; ++k) {
+        const Eigen::Vector3d q = *R * corr[k].p_prev + *t;
+        if (q.z() < opt.rigid.consistency.min_depth_m) continue;
+        const Eigen::Vector2d e(K.fx * q.x() / q.z() + K.cx - corr[k].u_cur.x(),
+                                K.fy * q.y() / q.z() + K.cy - corr[k].u_cur.y());
+        if (e.squaredNorm() <= opt.rigid.consistency.threshold2(corr[k])) model_inl[(*n_in)++] = static_cast<uint32_t>(k);
+      }
+      if (static_cast<int>(*n_in) < opt.motion_model_min_inliers) return false;
+    }
+    return true;
+  }
+
   // RGB-D PnP on corr[0..n) from the guess: two rounds, dropping matches
   // beyond 3 sigma (3-row error) in between. The inliers are order[0..*n_in).
   bool solve_map_pose(const TrackerOptions& opt, int n, Eigen::Matrix3d* R, Eigen::Vector3d* t,
@@ -670,6 +697,7 @@ struct Tracker::Impl {
   std::unique_ptr<Correspondence2D3D[]> corr;
   std::unique_ptr<int[]> corr_cur;
   std::unique_ptr<uint32_t[]> order;
+  std::unique_ptr<uint32_t[]> model_inl;  // the motion-model fallback's inliers
   std::unique_ptr<uint8_t[]> area_detected, area_matched;
   std::unique_ptr<WindowObservation[]> obs;
   int n_obs = 0;
@@ -920,21 +948,29 @@ const TrackResult& Tracker::track(int64_t t_ns, const ImageView& image, const Im
     result_.model_estimates = est.model_estimates;
     result_.motion_status = est.status;
     if (!est.ok() || static_cast<int>(est.num_inliers) < opt_.min_inliers) {
-      result_.status = TrackStatus::kMotionFailed;
-      result_.inliers = static_cast<int>(est.num_inliers);
-      return result_;
-    }
-    R = est.R;
-    t = est.t;
-    Eigen::Matrix<double, 6, 6> cov;
-    if (!refine_pose_rgbd(&R, &t, m.K, m.corr.get(), m.corr_z.get(), m.corr_sz.get(), m.rigid.inlier_indices(),
-                          est.num_inliers, opt_.refine.huber_px, &cov)) {
+      size_t n_model = 0;
+      if (opt_.motion_model_min_inliers > 0 && m.track_motion_model(opt_, n, &R, &t, &n_model)) {
+        inl = m.model_inl.get();
+        n_inl = n_model;
+        result_.motion_model = true;
+      } else {
+        result_.status = TrackStatus::kMotionFailed;
+        result_.inliers = static_cast<int>(est.num_inliers);
+        return result_;
+      }
+    } else {
       R = est.R;
       t = est.t;
+      Eigen::Matrix<double, 6, 6> cov;
+      if (!refine_pose_rgbd(&R, &t, m.K, m.corr.get(), m.corr_z.get(), m.corr_sz.get(), m.rigid.inlier_indices(),
+                            est.num_inliers, opt_.refine.huber_px, &cov)) {
+        R = est.R;
+        t = est.t;
+      }
+      inl = m.rigid.inlier_indices();
+      n_inl = est.num_inliers;
+      result_.inlier_rms_px = est.inlier_rms_px;
     }
-    inl = m.rigid.inlier_indices();
-    n_inl = est.num_inliers;
-    result_.inlier_rms_px = est.inlier_rms_px;
   }
   result_.inliers = static_cast<int>(n_inl);
   Eigen::Isometry3d T_CK = Eigen::Isometry3d::Identity();

@@ -29,6 +29,29 @@ double ate_se3(const test::RunResult& r) {
   return tools::evaluate(r.gt, r.est, eo).ate_m.rmse;
 }
 
+// Forwards a log but withholds every k-th depth image, as the 7-Scenes
+// reader withholds a depth image byte-identical to the one before.
+class WithholdDepth : public drivers::LogSource {
+ public:
+  WithholdDepth(drivers::LogSource& in, int every) : in_(in), every_(every) {}
+  const Rig& rig() const override { return in_.rig(); }
+  bool next(drivers::LogRecord& out) override {
+    while (in_.next(out)) {
+      if (out.type == drivers::RecordType::kDepth && ++depth_seen_ % every_ == 0) continue;
+      return true;
+    }
+    return false;
+  }
+  void rewind() override { in_.rewind(); }
+  const std::vector<drivers::LogProblem>& problems() const override { return in_.problems(); }
+  std::string format_name() const override { return in_.format_name(); }
+
+ private:
+  drivers::LogSource& in_;
+  int every_;
+  int depth_seen_ = 0;
+};
+
 const core::RgbdEstimator& as_rgbd(const std::unique_ptr<core::Estimator>& e) {
   return dynamic_cast<const core::RgbdEstimator&>(*e);
 }
@@ -66,6 +89,35 @@ TEST(RgbdEstimator, LonscRunsAndRansacBothTrackAndTheWindowHelps) {
   EXPECT_LT(ate_l, ate_t * 1.05);
   EXPECT_EQ(as_rgbd(l).rgbd_counters().restarts, 0u);
   EXPECT_EQ(as_rgbd(r).rgbd_counters().restarts, 0u);
+}
+
+// A frame without depth has no 3D-3D pairs for the rigid consensus; the
+// motion-model fallback poses it from the keyframe's points alone. Off, the
+// same frames are lost.
+TEST(RgbdEstimator, AFrameWithoutDepthIsPosedByTheMotionModel) {
+  const std::string path = test::simulate("figure8", 6.0, 7);
+  auto run_with = [&](int min_inliers, std::unique_ptr<core::Estimator>* est) {
+    auto log = drivers::open_log(path);
+    WithholdDepth holed(*log, 7);
+    core::EstimatorConfig c = core::EstimatorConfig::defaults("rgbd");
+    c.tracker.motion_model_min_inliers = min_inliers;
+    *est = core::make_estimator(c, log->rig());
+    return test::run_on(holed, **est, kNoImu);
+  };
+  std::unique_ptr<core::Estimator> on, off;
+  const test::RunResult r_on = run_with(30, &on);
+  const test::RunResult r_off = run_with(0, &off);
+  const core::RgbdCounters& c_on = as_rgbd(on).rgbd_counters();
+  const core::RgbdCounters& c_off = as_rgbd(off).rgbd_counters();
+  const double ate_on = ate_se3(r_on);
+  std::printf("figure8 6 s, every 7th depth withheld: fallback on ATE %.4f m (%s)\n  off: %s\n", ate_on,
+              on->backend_summary().c_str(), off->backend_summary().c_str());
+  const uint64_t holes = r_on.frames_total / 7;
+  ASSERT_GT(holes, 20u);
+  EXPECT_GE(c_off.lost_no_motion, holes * 9 / 10) << "without the fallback a depth-less frame is lost";
+  EXPECT_GE(c_on.motion_model, holes * 9 / 10);
+  EXPECT_EQ(c_on.lost, 0u);
+  EXPECT_LT(ate_on, 0.03);
 }
 
 TEST(RgbdEstimator, NoHeapAllocationInSteadyState) {

@@ -60,6 +60,7 @@ struct RgbdEstimatorOptions {
 
 struct RgbdCounters {
   uint64_t tracked = 0;
+  uint64_t motion_model = 0;      // of those: posed by the motion-model fallback (TrackerOptions)
   uint64_t keyframes = 0;
   uint64_t lost = 0;
   uint64_t lost_few_matches = 0;  // of those: too few matches in the search windows

@@ -50,6 +50,14 @@ struct TrackerOptions {
   PoseRefineOptions refine;
   double keypoint_sigma_px = 1.0;   // at level 0; scales with the level
   int min_inliers = 15;             // below: the frame is not tracked
+  // Without an IMU rotation, a frame the rigid consensus cannot fix (too few
+  // pairs with a current depth: a dropped or repeated depth image, depth
+  // lost to range or glare) is tracked the way ORB-SLAM tracks with its
+  // motion model: Huber Gauss-Newton on every match from the predicted pose,
+  // three rounds dropping the matches beyond the consistency bound. With no
+  // consensus behind it the pose needs more inliers than a consensus does.
+  // 0: off (the frame is lost).
+  int motion_model_min_inliers = 30;
   // Keyframes.
   double keyframe_area_ratio = 0.55;   // matched / detected area below this: new keyframe
   int keyframe_min_inliers = 60;       // fewer inliers than this: new keyframe
@@ -127,6 +135,7 @@ struct TrackResult {
   bool map_corrected = false;
   MotionStatus motion_status = MotionStatus::kOk;
   bool six_dof = false;      // tracked without a rotation prior (rigid model)
+  bool motion_model = false; // six_dof: the rigid consensus failed, the motion-model fallback fixed the pose
   int model_estimates = 0;   // six_dof: rigid fits the consensus search made
   bool tracked() const { return status == TrackStatus::kTracked; }
 };
