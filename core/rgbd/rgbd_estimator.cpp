@@ -98,6 +98,7 @@ bool RgbdEstimator::add_frame(const RgbdFrame& f) {
     T_WC = r.T_WC;
     rc_.tracked += r.tracked() ? 1 : 0;
     rc_.motion_model += r.tracked() && r.motion_model ? 1 : 0;
+    if (r.tracked()) rc_.refined_rms_px_sum += r.refined_rms_px;
     rc_.keyframes += r.keyframe ? 1 : 0;
     rc_.model_estimates += static_cast<uint64_t>(r.model_estimates);
     const int n_obs = tracker_.num_observations();
@@ -209,7 +210,8 @@ std::string RgbdEstimator::backend_summary() const {
   o << "rgbd: tracked " << rc_.tracked << " (motion model " << rc_.motion_model << "), keyframes " << rc_.keyframes << ", lost " << rc_.lost << " (few matches " << rc_.lost_few_matches << ", no motion "
     << rc_.lost_no_motion << "), restarts "
     << rc_.restarts << ", solves ok " << rc_.solves_ok << ", rejected " << rc_.solves_rejected << ", map poses "
-    << rc_.map_poses << ", rigid fits/frame "
+    << rc_.map_poses << ", inlier rms "
+    << (rc_.tracked > 0 ? rc_.refined_rms_px_sum / static_cast<double>(rc_.tracked) : 0.0) << " px, rigid fits/frame "
     << (rc_.tracked > 0 ? static_cast<double>(rc_.model_estimates) / static_cast<double>(rc_.tracked) : 0.0);
   return o.str();
 }

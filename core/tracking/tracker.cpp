@@ -973,6 +973,17 @@ const TrackResult& Tracker::track(int64_t t_ns, const ImageView& image, const Im
     }
   }
   result_.inliers = static_cast<int>(n_inl);
+  if (n_inl > 0) {
+    double sum2 = 0;
+    for (size_t k = 0; k < n_inl; ++k) {
+      const Correspondence2D3D& c = m.corr[inl[k]];
+      const Eigen::Vector3d q = R * c.p_prev + t;
+      if (q.z() <= 0) continue;
+      sum2 += (Eigen::Vector2d(m.K.fx * q.x() / q.z() + m.K.cx, m.K.fy * q.y() / q.z() + m.K.cy) - c.u_cur)
+                  .squaredNorm();
+    }
+    result_.refined_rms_px = std::sqrt(sum2 / static_cast<double>(n_inl));
+  }
   Eigen::Isometry3d T_CK = Eigen::Isometry3d::Identity();
   T_CK.linear() = R;
   T_CK.translation() = t;

@@ -230,6 +230,34 @@ Trajectory straight_line(double speed_mps, double yaw_rate_rps = 0.0, bool movin
   return t;
 }
 
+// An estimate that turns 10 % less than the truth about the body's x axis
+// (and exactly as much about y and z) reports that gain whatever the world
+// alignment; an axis the truth barely turns about has no gain.
+TEST(EvalMetrics, RotationGainFindsAnAxisThatTurnsTenPercentShort) {
+  Trajectory gt, est;
+  for (int i = 0; i <= 300; ++i) {
+    const double t = i / 30.0;
+    TimedPose g;
+    g.t_ns = 1'000'000'000 + static_cast<int64_t>(std::llround(t * 1e9));
+    g.p = Eigen::Vector3d(0.3 * t, 0.2 * std::sin(t), 1.0);
+    const Eigen::Vector3d w(0.3 * std::sin(0.7 * t), 0.25 * std::sin(0.5 * t), 0.01 * std::sin(t));
+    g.q = Eigen::Quaterniond(Eigen::AngleAxisd(w.norm(), w.normalized()));
+    TimedPose e = g;
+    const Eigen::Vector3d we(0.9 * w.x(), w.y(), w.z());
+    e.q = Eigen::Quaterniond(Eigen::AngleAxisd(we.norm(), we.normalized()));
+    gt.push_back(g);
+    est.push_back(e);
+  }
+  const Eigen::Matrix3d R = Eigen::AngleAxisd(0.7, Eigen::Vector3d(1, 2, 3).normalized()).toRotationMatrix();
+  const EvalResult r = evaluate(gt, transformed(est, 1.0, R, Eigen::Vector3d(1, 2, 3)), with_align(Alignment::kSe3));
+  EXPECT_NEAR(r.rot_gain.x(), 0.9, 0.01);
+  EXPECT_NEAR(r.rot_gain.y(), 1.0, 0.01);
+  EXPECT_TRUE(std::isnan(r.rot_gain.z())) << "the truth turns 0.6 degrees about z: " << r.rot_gain.z();
+  const EvalResult same = evaluate(gt, gt, with_align(Alignment::kSe3));
+  EXPECT_NEAR(same.rot_gain.x(), 1.0, 1e-9);
+  EXPECT_NEAR(same.rot_gain.y(), 1.0, 1e-9);
+}
+
 TEST(EvalRpe, ConstantVelocityErrorGivesErrorTimesDelta) {
   const double dv = 0.05;
   const Trajectory gt = straight_line(1.0);

@@ -42,6 +42,9 @@ std::vector<Field> fields(const EvalResult& r) {
   f.push_back(num("ate_rot_rmse_deg", r.ate_rot_deg.rmse));
   f.push_back(num("ate_rot_mean_deg", r.ate_rot_deg.mean));
   f.push_back(num("ate_rot_max_deg", r.ate_rot_deg.max));
+  f.push_back(num("rot_gain_x", r.rot_gain.x()));
+  f.push_back(num("rot_gain_y", r.rot_gain.y()));
+  f.push_back(num("rot_gain_z", r.rot_gain.z()));
   f.push_back(num("rpe_delta_s", r.rpe_delta_s));
   f.push_back(integer("rpe_pairs", r.rpe_pairs));
   f.push_back(num("rpe_trans_rmse_m", r.rpe_trans_rmse_m));

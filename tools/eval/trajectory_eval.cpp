@@ -383,6 +383,23 @@ EvalResult evaluate(const Trajectory& gt_in, const Trajectory& est_in, const Eva
   r.ate_m = make_stats(r.pos_err_m);
   r.ate_rot_deg = make_stats(r.rot_err_deg);
 
+  // ---- rotation gain (alignment-free: relative to the first pose) ----
+  {
+    Eigen::Vector3d sum_eg = Eigen::Vector3d::Zero(), sum_gg = Eigen::Vector3d::Zero();
+    Eigen::Vector3d g_max = Eigen::Vector3d::Zero();
+    const Eigen::Quaterniond qe0 = est_matched.front().q.normalized(), qg0 = r.gt_matched.front().q.normalized();
+    for (size_t i = 0; i < est_matched.size(); ++i) {
+      const Eigen::AngleAxisd ae(qe0.conjugate() * est_matched[i].q.normalized());
+      const Eigen::AngleAxisd ag(qg0.conjugate() * r.gt_matched[i].q.normalized());
+      const Eigen::Vector3d ve = ae.angle() * ae.axis(), vg = ag.angle() * ag.axis();
+      sum_eg += ve.cwiseProduct(vg);
+      sum_gg += vg.cwiseProduct(vg);
+      g_max = g_max.cwiseMax(vg.cwiseAbs());
+    }
+    for (int a = 0; a < 3; ++a)
+      if (g_max(a) >= 2.0 / kRadToDeg) r.rot_gain(a) = sum_eg(a) / sum_gg(a);
+  }
+
   // ---- coverage and path length ----
   const auto coverage_gap_ns = static_cast<int64_t>(std::llround(opt.coverage_gap_s * 1e9));
   int64_t covered_ns = 0;

@@ -60,7 +60,8 @@ struct RgbdEstimatorOptions {
 
 struct RgbdCounters {
   uint64_t tracked = 0;
-  uint64_t motion_model = 0;      // of those: posed by the motion-model fallback (TrackerOptions)
+  uint64_t motion_model = 0;
+  double refined_rms_px_sum = 0;  // tracked frames' inlier reprojection RMS at the final pose, summed      // of those: posed by the motion-model fallback (TrackerOptions)
   uint64_t keyframes = 0;
   uint64_t lost = 0;
   uint64_t lost_few_matches = 0;  // of those: too few matches in the search windows

@@ -122,6 +122,9 @@ struct TrackResult {
   double area_ratio = 0;        // matched / detected cells of the area grid
   double search_radius_px = 0;
   double inlier_rms_px = 0;
+  // Reprojection RMS of the inliers at the final pose [px]: a calibration
+  // that is off (intrinsics, distortion, registration) shows here first.
+  double refined_rms_px = 0;
   // Local map search (keyframes only): points re-found, PnP inliers, and
   // the pose they give (camera in W, 1-sigma bounds: the largest axis) with
   // its distance from the chained pose. map_corrected: the keyframe took it

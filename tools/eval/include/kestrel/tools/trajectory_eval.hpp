@@ -11,6 +11,7 @@
 
 #include <cstdint>
 #include <optional>
+#include <limits>
 #include <string>
 #include <vector>
 
@@ -133,6 +134,13 @@ struct EvalResult {
 
   Stats ate_m;                     // position error after alignment [m]
   Stats ate_rot_deg;               // angle of R_gt^T * R_est_aligned [deg]
+  // Rotation gain per body axis: the least-squares slope of the estimate's
+  // rotation vector against the ground truth's, both taken relative to the
+  // first associated pose in that pose's body frame. 1 = no rotation-scale
+  // error; tracking noise and drift scatter around 1, a camera model that is
+  // off (focal length, distortion, registration) pulls it away on a whole
+  // axis. NaN on an axis the ground truth turns less than 2 degrees about.
+  Eigen::Vector3d rot_gain = Eigen::Vector3d::Constant(std::numeric_limits<double>::quiet_NaN());
 
   double rpe_delta_s = 0;
   int rpe_pairs = 0;
