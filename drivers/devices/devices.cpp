@@ -7,6 +7,7 @@
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <cstring>
 #include <fstream>
 #include <initializer_list>
 #include <sstream>
@@ -210,7 +211,9 @@ DriverSettings driver_settings_from_yaml_node(const YAML::Node& root, const std:
     }
     if (const YAML::Node v = c["v4l2"]) {
       const std::string vp = path + ".v4l2";
-      p.only(v, vp, {"color_device", "color_format", "depth_device", "depth_format", "depth_unit_m", "buffers", "readout_us"});
+      p.only(v, vp,
+             {"color_device", "color_format", "depth_device", "depth_format", "depth_unit_m", "buffers",
+              "readout_us", "right_device", "stereo_layout"});
       cs.v4l2_color_device = p.str(v, "color_device", vp, "");
       cs.v4l2_color_format = p.choice<std::string>(v, "color_format", vp, "yuyv",
                                                    {{"yuyv", "yuyv"}, {"mjpeg", "mjpeg"}, {"grey", "grey"}});
@@ -220,6 +223,11 @@ DriverSettings driver_settings_from_yaml_node(const YAML::Node& root, const std:
       if (cs.v4l2_depth_unit_m <= 0) p.fail(vp + ".depth_unit_m", "must be > 0");
       cs.v4l2_buffers = static_cast<int>(p.integer(v, "buffers", vp, 4, 2, 32));
       cs.v4l2_readout_ns = 1000 * p.integer(v, "readout_us", vp, 0, 0, 1'000'000);
+      cs.v4l2_right_device = p.str(v, "right_device", vp, "");
+      cs.v4l2_stereo_layout = p.choice<std::string>(v, "stereo_layout", vp, "off",
+                                                    {{"off", "off"}, {"side_by_side", "side_by_side"}});
+      if (!cs.v4l2_right_device.empty() && cs.v4l2_stereo_layout != "off")
+        p.fail(vp + ".stereo_layout", "side_by_side and right_device exclude each other (one right image)");
     }
     if (const YAML::Node v = c["d4xx"]) {
       // RealSense D4xx over V4L2 + UVC metadata (docs/realsense.md lists every key and its default).
@@ -773,8 +781,9 @@ struct LiveSensors::Impl {
   StrobeRingSink strobes;
   // Cameras
   openni2::Camera oni;
-  v4l2::Camera color, depth;
-  ImageBuffer rgb_buf, depth_buf;
+  v4l2::Camera color, depth, right;  // right: a stereo rig's second node
+  ImageBuffer rgb_buf, depth_buf, right_buf;
+  ImageBuffer sbs_buf;  // side_by_side: the whole frame before it is split
   // RealSense D4xx (camera.type d4xx): its device clock's line is published
   // in d4xx_clock for an IMU driver on the same camera (docs/realsense.md).
   std::unique_ptr<d4xx::Camera> d4xx_cam;
@@ -802,6 +811,8 @@ LiveSensors::LiveSensors(const LiveConfig& cfg) : impl_(std::make_unique<Impl>()
   const size_t px = static_cast<size_t>(d.camera.width_px) * static_cast<size_t>(d.camera.height_px);
   m.rgb_buf.pixels.reserve(px * 3);
   m.depth_buf.pixels.reserve(px * 2);
+  m.right_buf.pixels.reserve(px * 3);
+  if (d.camera.v4l2_stereo_layout == "side_by_side") m.sbs_buf.pixels.reserve(2 * px * 3);
   StrobeMatchOptions so;
   so.initial_offset_ns = d.strobe.initial_offset_ns;
   so.tolerance_ns = d.strobe.tolerance_ns;
@@ -895,8 +906,17 @@ LiveSensors::LiveSensors(const LiveConfig& cfg) : impl_(std::make_unique<Impl>()
       o.request.preferred = {v4l2::fourcc_from_name(d.camera.v4l2_color_format)};
       o.buffers = d.camera.v4l2_buffers;
       o.readout_ns = d.camera.v4l2_readout_ns;
+      const bool side_by_side = d.camera.v4l2_stereo_layout == "side_by_side";
+      if (side_by_side) o.request.width = 2 * d.camera.width_px;
       std::string e = m.color.open(o);
-      if (!e.empty()) missing.push_back("colour camera (V4L2): " + e);
+      if (!e.empty()) missing.push_back(std::string(side_by_side ? "stereo camera (V4L2, side by side): "
+                                                                 : "colour camera (V4L2): ") + e);
+      if (!d.camera.v4l2_right_device.empty()) {
+        v4l2::Options r = o;
+        r.device = d.camera.v4l2_right_device;
+        e = m.right.open(r);
+        if (!e.empty()) missing.push_back("right camera (V4L2): " + e);
+      }
       if (!d.camera.v4l2_depth_device.empty()) {
         o.device = d.camera.v4l2_depth_device;
         o.request.preferred = {v4l2::fourcc_from_name(d.camera.v4l2_depth_format)};
@@ -1068,8 +1088,27 @@ void LiveSensors::Impl::cam_loop(FrameSink& sink) {
       f.depth = &depth_buf;
     } else if (d.camera.type == CameraType::kV4l2) {
       v4l2::FrameMeta meta;
-      const auto r = color.grab(timeout_ms, rgb_buf, meta);
+      const bool side_by_side = d.camera.v4l2_stereo_layout == "side_by_side";
+      const auto r = color.grab(timeout_ms, side_by_side ? sbs_buf : rgb_buf, meta);
       ok = r == v4l2::GrabResult::kFrame;
+      if (ok && side_by_side) {
+        if (split_side_by_side(sbs_buf, rgb_buf, right_buf)) {
+          f.right = &right_buf;
+        } else {
+          ++frame_errors;
+          ok = false;
+        }
+      }
+      if (ok && right.is_open()) {
+        // The right node's frame nearest in time (within half a period), as depth below.
+        v4l2::FrameMeta rm;
+        if (right.grab(timeout_ms, right_buf, rm) == v4l2::GrabResult::kFrame &&
+            std::llabs(rm.t_ns - meta.t_ns) < static_cast<int64_t>(0.5e9 / d.camera.rate_hz)) {
+          f.right = &right_buf;
+        } else {
+          ++unpaired;
+        }
+      }
       if (r == v4l2::GrabResult::kTimeout) ++frame_timeouts;
       if (r == v4l2::GrabResult::kError) ++frame_errors;
       f.t_ns = meta.t_ns;
@@ -1099,6 +1138,8 @@ void LiveSensors::Impl::cam_loop(FrameSink& sink) {
       f.exposure_us = df.image_meta.exposure_us;
       f.rgb = df.image;
       f.depth = df.depth;
+      // Infrared 1 as the image with Y8I: Infrared 2 is a stereo rig's right image (same exposure).
+      if (cfg.rig.stereo.present && cfg.drivers.camera.d4xx.image == "infrared1") f.right = df.ir2;
       if (ok && cfg.drivers.camera.d4xx.depth && df.depth == nullptr) ++unpaired;
     } else {
       return;
@@ -1142,11 +1183,12 @@ void LiveSensors::Impl::log_loop(ImuSink& imu, FrameSink& sink) {
     (void)sink.push_frame(f);
   };
   while (!stop.load(std::memory_order_relaxed) && log->next(r)) {
-    const bool image = r.type == RecordType::kRgb || r.type == RecordType::kDepth;
+    const bool image = r.type == RecordType::kRgb || r.type == RecordType::kDepth || r.type == RecordType::kRight;
     const int64_t t = r.type == RecordType::kImu ? r.imu.t_ns : image ? r.image.t_ns : -1;
     if (t < 0) continue;  // ground truth and events are not sensors
     if (wall0 < 0) wall0 = rt::now_ns(), log0 = t;
-    if (!(r.type == RecordType::kDepth && have_rgb)) flush();
+    const bool image_part = r.type == RecordType::kDepth || r.type == RecordType::kRight;
+    if (!(image_part && have_rgb)) flush();
     const int64_t due = wall0 + (t - log0);
     if (due > rt::now_ns()) rt::sleep_until_ns(due);
     if (r.type == RecordType::kImu) {
@@ -1165,6 +1207,9 @@ void LiveSensors::Impl::log_loop(ImuSink& imu, FrameSink& sink) {
       f.exposure_us = r.image.exposure_us;
       f.rgb = &rgb_buf;
       have_rgb = true;
+    } else if (r.type == RecordType::kRight && have_rgb) {
+      // A stereo log: the right image of the pair; the frame goes with the next record.
+      if (copy(r.image, right_buf)) f.right = &right_buf;
     } else if (have_rgb) {
       if (copy(r.image, depth_buf)) f.depth = &depth_buf;
       flush();
@@ -1173,6 +1218,48 @@ void LiveSensors::Impl::log_loop(ImuSink& imu, FrameSink& sink) {
     }
   }
   flush();
+}
+
+bool split_side_by_side(const ImageBuffer& in, ImageBuffer& left, ImageBuffer& right) {
+  const int bpp = bytes_per_pixel(in.format);
+  if (bpp <= 0 || in.width <= 0 || in.width % 2 != 0 || in.height <= 0) return false;
+  if (in.format == PixelFormat::kYuyv && in.width % 4 != 0) return false;  // a macropixel holds two pixels
+  const size_t row = static_cast<size_t>(in.width) * static_cast<size_t>(bpp);
+  const size_t half = row / 2;
+  const size_t bytes = half * static_cast<size_t>(in.height);
+  if (in.pixels.size() < row * static_cast<size_t>(in.height) || left.pixels.capacity() < bytes ||
+      right.pixels.capacity() < bytes)
+    return false;
+  for (ImageBuffer* o : {&left, &right}) {
+    o->t_ns = in.t_ns;
+    o->t_recv_ns = in.t_recv_ns;
+    o->seq = in.seq;
+    o->width = in.width / 2;
+    o->height = in.height;
+    o->format = in.format;
+    o->pixels.resize(bytes);
+  }
+  for (int y = 0; y < in.height; ++y) {
+    const uint8_t* src = in.pixels.data() + static_cast<size_t>(y) * row;
+    std::memcpy(left.pixels.data() + static_cast<size_t>(y) * half, src, half);
+    std::memcpy(right.pixels.data() + static_cast<size_t>(y) * half, src + half, half);
+  }
+  return true;
+}
+
+std::string stereo_capability(const CameraSettings& c) {
+  switch (c.type) {
+    case CameraType::kLog: return "";  // a stereo log's right records
+    case CameraType::kV4l2:
+      if (!c.v4l2_right_device.empty() || c.v4l2_stereo_layout == "side_by_side") return "";
+      return "drivers.camera.v4l2: a stereo rig needs right_device or stereo_layout: side_by_side";
+    case CameraType::kD4xx:
+      if (c.d4xx.image == "infrared1" && c.d4xx.infrared == "y8i") return "";
+      return "drivers.camera.d4xx: a stereo rig needs image: infrared1 and infrared: y8i (Infrared 1 + 2)";
+    case CameraType::kOpenNi2: return "drivers.camera: OpenNI2 cameras deliver no right image";
+    case CameraType::kNone: return "drivers.camera: none";
+  }
+  return "drivers.camera: unknown type";
 }
 
 void LiveSensors::start(ImuSink& imu, FrameSink& frames) {

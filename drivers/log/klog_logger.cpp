@@ -51,7 +51,8 @@ bool KlogLogger::log_image(RecordType type, int64_t t_ns, int64_t t_recv_ns, uin
                            const ImageView& view) noexcept {
   const size_t row = static_cast<size_t>(std::max(view.width, 0)) * static_cast<size_t>(bytes_per_pixel(view.format));
   const size_t bytes = row * static_cast<size_t>(std::max(view.height, 0));
-  if ((type != RecordType::kRgb && type != RecordType::kDepth) || bytes > options_.max_image_bytes ||
+  if ((type != RecordType::kRgb && type != RecordType::kDepth && type != RecordType::kRight) ||
+      bytes > options_.max_image_bytes ||
       (bytes > 0 && (!view.data || static_cast<size_t>(view.stride_bytes) < row))) {
     image_rejects_.fetch_add(1, std::memory_order_relaxed);
     return false;

@@ -7,6 +7,7 @@
 
 #include "kestrel/drivers/devices.hpp"
 #include "kestrel/drivers/rig_yaml.hpp"
+#include "kestrel/rt/alloc_counter.hpp"
 
 namespace kestrel::drivers {
 namespace {
@@ -47,6 +48,65 @@ void expect_error(const std::string& text, const std::string& needle) {
     EXPECT_NE(std::string(e.what()).find(needle), std::string::npos) << e.what();
     EXPECT_EQ(std::string(e.what()).rfind("x.yaml", 0), 0u) << e.what();
   }
+}
+
+// Live stereo (docs/stereo.md, "Live stereo"): the V4L2 keys, and which
+// camera settings can deliver a stereo rig's right image.
+TEST(LiveConfig, StereoCameraSettingsAndTheirCapability) {
+  const LiveConfig sbs = live_config_from_yaml(
+      with_drivers("  camera: {type: v4l2, v4l2: {color_device: /dev/video0, color_format: grey, stereo_layout: "
+                   "side_by_side}}\n"),
+      "x.yaml");
+  EXPECT_EQ(sbs.drivers.camera.v4l2_stereo_layout, "side_by_side");
+  EXPECT_EQ(stereo_capability(sbs.drivers.camera), "");
+  const LiveConfig two = live_config_from_yaml(
+      with_drivers("  camera: {type: v4l2, v4l2: {color_device: /dev/video0, right_device: /dev/video2}}\n"), "x.yaml");
+  EXPECT_EQ(two.drivers.camera.v4l2_right_device, "/dev/video2");
+  EXPECT_EQ(stereo_capability(two.drivers.camera), "");
+  const LiveConfig mono =
+      live_config_from_yaml(with_drivers("  camera: {type: v4l2, v4l2: {color_device: /dev/video0}}\n"), "x.yaml");
+  EXPECT_NE(stereo_capability(mono.drivers.camera).find("right_device or stereo_layout"), std::string::npos);
+  const LiveConfig ir = live_config_from_yaml(
+      with_drivers("  camera: {type: d4xx, d4xx: {image: infrared1, infrared: y8i, depth: false}}\n"), "x.yaml");
+  EXPECT_EQ(stereo_capability(ir.drivers.camera), "");
+  const LiveConfig ir1 = live_config_from_yaml(
+      with_drivers("  camera: {type: d4xx, d4xx: {image: infrared1, infrared: y8}}\n"), "x.yaml");
+  EXPECT_NE(stereo_capability(ir1.drivers.camera).find("infrared: y8i"), std::string::npos);
+  expect_error(with_drivers("  camera: {type: v4l2, v4l2: {color_device: /dev/video0, right_device: /dev/video2, "
+                            "stereo_layout: side_by_side}}\n"),
+               "drivers.camera.v4l2.stereo_layout: side_by_side and right_device exclude each other");
+  expect_error(with_drivers("  camera: {type: v4l2, v4l2: {color_device: /dev/video0, stereo_layout: top_bottom}}\n"),
+               "drivers.camera.v4l2.stereo_layout");
+}
+
+TEST(LiveConfig, ASideBySideFrameSplitsIntoItsTwoHalvesWithoutAllocating) {
+  ImageBuffer in, left, right;
+  in.width = 8;
+  in.height = 3;
+  in.format = PixelFormat::kGray8;
+  in.t_ns = 42;
+  for (int y = 0; y < 3; ++y)
+    for (int x = 0; x < 8; ++x) in.pixels.push_back(static_cast<uint8_t>(10 * y + x));
+  left.pixels.reserve(12);
+  right.pixels.reserve(12);
+  ASSERT_TRUE(rt::alloc_hook_linked());
+  {
+    rt::AllocCountScope scope;
+    ASSERT_TRUE(split_side_by_side(in, left, right));
+    EXPECT_EQ(scope.count(), 0u);
+  }
+  EXPECT_EQ(left.width, 4);
+  EXPECT_EQ(right.height, 3);
+  EXPECT_EQ(right.t_ns, 42);
+  EXPECT_EQ(left.pixels[4], 10);   // row 1, x 0
+  EXPECT_EQ(right.pixels[4], 14);  // row 1, x 4
+  EXPECT_EQ(right.pixels[11], 27);
+  in.width = 7;  // odd: no halves
+  EXPECT_FALSE(split_side_by_side(in, left, right));
+  in.width = 8;
+  ImageBuffer small;
+  small.pixels.reserve(4);
+  EXPECT_FALSE(split_side_by_side(in, small, right)) << "a half larger than its buffer must not allocate";
 }
 
 TEST(LiveConfig, ErrorsNameFileAndKey) {

@@ -229,6 +229,7 @@ Subcommand add_run_command(CLI::App& parent) {
     auto live = std::make_shared<LiveInput>();
     live->rig = cfg.rig;
     live->description = sensors.description();
+    live->stereo_problem = drivers::stereo_capability(cfg.drivers.camera);
     live->max_image_bytes =
         static_cast<size_t>(cfg.drivers.camera.width_px) * cfg.drivers.camera.height_px * 3;
     live->start = [&](drivers::ImuSink& imu, drivers::FrameSink& frames,

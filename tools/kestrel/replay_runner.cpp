@@ -603,9 +603,15 @@ class RingFrameSink final : public drivers::FrameSink {
       rings_.images.release(m.rgb_handle);
       return drop();
     }
+    if (f.right != nullptr && !copy(*f.right, m.right_handle)) {
+      rings_.images.release(m.rgb_handle);
+      if (m.depth_handle != rt::kInvalidHandle) rings_.images.release(m.depth_handle);
+      return drop();
+    }
     if (rings_.push_frame(m)) return true;
     rings_.images.release(m.rgb_handle);
     if (m.depth_handle != rt::kInvalidHandle) rings_.images.release(m.depth_handle);
+    if (m.right_handle != rt::kInvalidHandle) rings_.images.release(m.right_handle);
     return false;
   }
   uint64_t drops = 0;
@@ -659,11 +665,10 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   std::unique_ptr<drivers::StereoRectifier> stereo;
   Rig stereo_rig;
   if (input_rig.stereo.present) {
-    // No live driver delivers a right image yet: every frame would be depth-less, so say so at start.
-    if (opt.live)
-      throw std::invalid_argument(
-          "the rig has a stereo: right camera, and live stereo drivers do not exist yet "
-          "(docs/stereo.md); replay a recorded stereo log instead");
+    // Camera settings that deliver no right image would make every frame depth-less: say so at start.
+    if (opt.live && !opt.live->stereo_problem.empty())
+      throw std::invalid_argument("the rig has a stereo: right camera, but " + opt.live->stereo_problem +
+                                  " (docs/stereo.md, \"Live stereo\")");
     try {
       stereo = std::make_unique<drivers::StereoRectifier>(input_rig);
     } catch (const std::invalid_argument& e) {

@@ -123,6 +123,9 @@ struct LiveInput {
   Rig rig;
   std::string description;          // what runs, for the report
   std::size_t max_image_bytes = 0;  // the largest image the drivers deliver (0: the rig's size)
+  // Why the camera settings cannot deliver a stereo rig's right image ("" when they can;
+  // drivers::stereo_capability): a stereo rig is refused before start with it.
+  std::string stereo_problem;
   // Starts the sensor threads delivering into the sinks (which outlive stop());
   // appends the threads it started, as granted.
   std::function<void(drivers::ImuSink&, drivers::FrameSink&, std::vector<AppliedThread>&)> start;

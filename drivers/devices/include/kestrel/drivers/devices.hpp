@@ -54,6 +54,12 @@ struct CameraSettings {
   std::string v4l2_color_device;
   std::string v4l2_color_format = "yuyv";
   std::string v4l2_depth_device;   // "" = colour only
+  // A stereo rig's right image (the rig's `stereo:` section; docs/stereo.md):
+  // a second node (right_device, its frame nearest in time within half a
+  // period), or one node whose frames carry left | right side by side
+  // (stereo_layout side_by_side: the node is opened at twice the width).
+  std::string v4l2_right_device;   // "" = none
+  std::string v4l2_stereo_layout = "off";  // off | side_by_side
   std::string v4l2_depth_format = "z16";
   double v4l2_depth_unit_m = 0.001;
   int v4l2_buffers = 4;
@@ -229,7 +235,17 @@ struct CameraFrame {
   bool strobe_matched = false;
   const ImageBuffer* rgb = nullptr;
   const ImageBuffer* depth = nullptr;   // nullptr when the rig has no depth
+  const ImageBuffer* right = nullptr;   // a stereo rig's right image, nullptr when none came
 };
+
+// One side-by-side stereo frame (left | right, each half the width) into two
+// images of the half width, without allocating when their capacity suffices.
+// False when the width is odd, the format unknown or a capacity too small.
+bool split_side_by_side(const ImageBuffer& in, ImageBuffer& left, ImageBuffer& right);
+
+// Whether the camera settings can deliver a stereo rig's right image
+// (`kestrel run` refuses a stereo rig before start when they cannot, and says why).
+std::string stereo_capability(const CameraSettings& c);  // "" when they can
 
 class FrameSink {
  public:
