@@ -40,6 +40,7 @@ Rosbag2ReadOptions rosbag2_of(const LogOpenOptions& o) {
   t.imu_topic = o.imu_topic;
   t.camera_info_topic = o.camera_info_topic;
   t.ground_truth_topic = o.ground_truth_topic;
+  t.right_topic = o.right_topic;
   t.topics = o.topics;
   return t;
 }

@@ -36,6 +36,7 @@ constexpr const char* kPoseType = "geometry_msgs/msg/PoseStamped";
 constexpr const char* kBaseFrame = "base_link";
 constexpr const char* kImuFrame = "camera_imu_optical_frame";
 constexpr const char* kColorFrame = "camera_color_optical_frame";
+constexpr const char* kRightFrame = "camera_right_optical_frame";
 
 // rosbag2's offered_qos_profiles: reliable, keep last 10 (tf_static: transient local, keep last 1).
 std::string qos(bool latched) {
@@ -159,6 +160,10 @@ Rosbag2Stats export_rosbag2(LogSource& src, const std::string& out_dir, const Ro
                c_depth = channel(t.depth, kImageType, false),
                c_info = channel(t.camera_info, kInfoType, false), c_tf = channel("/tf_static", kTfType, true),
                c_gt = channel(t.ground_truth, kPoseType, false);
+  // A stereo rig's right camera: its images, its CameraInfo (P carries the baseline) and its frame in tf_static.
+  const bool stereo = rig.stereo.present;
+  const size_t c_right = stereo ? channel(t.right, kImageType, false) : 0,
+               c_rinfo = stereo ? channel(t.right_camera_info, kInfoType, false) : 0;
   // The exact rig (IMU noise, depth model, T_BC): CameraInfo and tf_static carry only part of it.
   w.add_metadata("kestrel", {{"rig_yaml", rig_to_yaml(rig)}});
 
@@ -175,6 +180,25 @@ Rosbag2Stats export_rosbag2(LogSource& src, const std::string& out_dir, const Ro
     info.distortion_model = "equidistant", info.d.assign(rig.rgb.dist.begin(), rig.rgb.dist.begin() + 4);
   else
     info.distortion_model = "plumb_bob", info.d.assign(5, 0.0);
+
+  ros2::CameraInfo rinfo;
+  if (stereo) {
+    const CameraIntrinsics& k = rig.stereo.intrinsics;
+    rinfo.frame_id = kRightFrame;
+    rinfo.width = static_cast<uint32_t>(k.width);
+    rinfo.height = static_cast<uint32_t>(k.height);
+    rinfo.k = {k.fx, 0, k.cx, 0, k.fy, k.cy, 0, 0, 1};
+    rinfo.r = {1, 0, 0, 0, 1, 0, 0, 0, 1};
+    // ROS's convention: P[3] = -fx * baseline in the left camera's frame (exact for a rectified pair).
+    const Mat4d T_C0C1 = mul(inverse(rig.T_BC), rig.stereo.T_BC1);
+    rinfo.p = {k.fx, 0, k.cx, -k.fx * T_C0C1[3], 0, k.fy, k.cy, 0, 0, 0, 1, 0};
+    if (k.distortion == DistortionModel::kRadTan)
+      rinfo.distortion_model = "plumb_bob", rinfo.d.assign(k.dist.begin(), k.dist.end());
+    else if (k.distortion == DistortionModel::kEquidistant)
+      rinfo.distortion_model = "equidistant", rinfo.d.assign(k.dist.begin(), k.dist.begin() + 4);
+    else
+      rinfo.distortion_model = "plumb_bob", rinfo.d.assign(5, 0.0);
+  }
 
   Rosbag2Stats st;
   std::vector<uint8_t> buf, px;
@@ -193,7 +217,7 @@ Rosbag2Stats export_rosbag2(LogSource& src, const std::string& out_dir, const Ro
   while (src.next(r)) {
     const int64_t t_rec = record_time_ns(r);
     if (!tf_written) {
-      std::vector<ros2::TransformStamped> tf(2);
+      std::vector<ros2::TransformStamped> tf(stereo ? 3 : 2);
       tf[0].t_ns = tf[1].t_ns = std::max<int64_t>(0, t_rec);
       tf[0].frame_id = tf[1].frame_id = kBaseFrame;
       tf[0].child_frame_id = kImuFrame;
@@ -202,6 +226,13 @@ Rosbag2Stats export_rosbag2(LogSource& src, const std::string& out_dir, const Ro
       tf[1].child_frame_id = kColorFrame;
       tf[1].translation = {rig.T_BC[3], rig.T_BC[7], rig.T_BC[11]};
       tf[1].rotation_xyzw = quat_xyzw_of(rig.T_BC);
+      if (stereo) {
+        tf[2].t_ns = tf[0].t_ns;
+        tf[2].frame_id = kBaseFrame;
+        tf[2].child_frame_id = kRightFrame;
+        tf[2].translation = {rig.stereo.T_BC1[3], rig.stereo.T_BC1[7], rig.stereo.T_BC1[11]};
+        tf[2].rotation_xyzw = quat_xyzw_of(rig.stereo.T_BC1);
+      }
       ros2::encode(tf, buf);
       put(c_tf, tf[0].t_ns);
       tf_written = true;
@@ -270,8 +301,30 @@ Rosbag2Stats export_rosbag2(LogSource& src, const std::string& out_dir, const Ro
         ++st.ground_truth;
         break;
       }
+      case RecordType::kRight: {
+        const LogImage& im = r.image;
+        if (!stereo || im.format == PixelFormat::kYuyv || im.format == PixelFormat::kDepthU16) {
+          ++st.skipped;
+          break;
+        }
+        ros2::Image m;
+        m.t_ns = im.t_ns;
+        m.frame_id = kRightFrame;
+        m.width = static_cast<uint32_t>(im.width);
+        m.height = static_cast<uint32_t>(im.height);
+        m.encoding = encoding_of(im.format);
+        m.step = static_cast<uint32_t>(im.width * bytes_per_pixel(im.format));
+        m.data = im.pixels.data();
+        m.data_size = static_cast<uint32_t>(im.pixels.size());
+        ros2::encode(m, buf);
+        put(c_right, m.t_ns);
+        ++st.right;
+        rinfo.t_ns = im.t_ns;
+        ros2::encode(rinfo, buf);
+        put(c_rinfo, rinfo.t_ns);
+        break;
+      }
       case RecordType::kEvent:
-      case RecordType::kRight:  // stereo right images: no topic for them yet (docs/stereo.md)
         ++st.skipped;
         break;
     }
@@ -319,8 +372,8 @@ bool is_rosbag2(const std::string& path) {
 }
 
 namespace {
-enum Kind : uint8_t { kImuK = 0, kRgbK = 1, kDepthK = 2, kGtK = 3 };
-enum Role : uint8_t { kIgnore, kImuRole, kColorRole, kDepthRole, kInfoRole, kTfRole, kGtRole };
+enum Kind : uint8_t { kImuK = 0, kRgbK = 1, kDepthK = 2, kGtK = 3, kRightK = 4 };
+enum Role : uint8_t { kIgnore, kImuRole, kColorRole, kDepthRole, kInfoRole, kTfRole, kGtRole, kRightRole };
 bool colour_encoding(const std::string& e) {
   return e == "rgb8" || e == "bgr8" || e == "mono8" || e == "8UC1";
 }
@@ -543,7 +596,8 @@ Rosbag2Reader::Rosbag2Reader(const std::string& path, const Rosbag2ReadOptions& 
 
   std::map<uint16_t, Role> role;
   std::string rgb_topic = options.rgb_topic, depth_topic = options.depth_topic, imu_topic = options.imu_topic,
-              gt_topic = options.ground_truth_topic;
+              gt_topic = options.ground_truth_topic, right_topic = options.right_topic;
+  std::string right_frame;
   std::map<std::string, ros2::CameraInfo> infos;  // first per topic
   std::vector<ros2::TransformStamped> tf_static;
   std::string imu_frame, cam_frame;
@@ -551,7 +605,7 @@ Rosbag2Reader::Rosbag2Reader(const std::string& path, const Rosbag2ReadOptions& 
     int64_t t_ns, t_recv;
     uint32_t idx;
   };
-  std::vector<Img> rgb, depth;
+  std::vector<Img> rgb, depth, right;
 
   auto classify = [&](const mcap::MessageRef& m, const uint8_t* data, size_t n) -> Role {
     const auto& ch = s.mr->channels().at(m.channel_id);
@@ -593,6 +647,8 @@ Rosbag2Reader::Rosbag2Reader(const std::string& path, const Rosbag2ReadOptions& 
     if (type == kCompressedType) s.compressed.insert(ch.id);
     if (ch.topic == rgb_topic) return kColorRole;
     if (ch.topic == depth_topic) return kDepthRole;
+    if (right_topic.empty() && ch.topic == Rosbag2Topics{}.right) right_topic = ch.topic;  // our writer's
+    if (ch.topic == right_topic) return kRightRole;
     if (type == kCompressedType) {
       ros2::CompressedImage ci;
       try {
@@ -662,6 +718,32 @@ Rosbag2Reader::Rosbag2Reader(const std::string& path, const Rosbag2ReadOptions& 
           if (imu_frame.empty()) imu_frame = x.frame_id;
           s.entries.push_back({sm.t_ns, t_recv, kImuK, static_cast<uint32_t>(s.imu.size())});
           s.imu.push_back(sm);
+          break;
+        }
+        case kRightRole: {
+          // The right image of a stereo pair: colour encodings as the left (loaded as the left is).
+          if (s.compressed.count(m.channel_id)) {
+            ros2::CompressedImage ci;
+            ros2::decode(data, n, ci);
+            if (!compressed_known(ci.format) || compressed_is_depth(ci.format)) {
+              s.problem(where, "bad-image", "right CompressedImage format \"" + ci.format + "\"");
+              return;
+            }
+            if (right_frame.empty()) right_frame = ci.frame_id;
+            right.push_back({ci.t_ns, t_recv, static_cast<uint32_t>(s.images.size())});
+            s.images.push_back(m);
+            break;
+          }
+          ros2::Image im;
+          ros2::decode(data, n, im);
+          if (!colour_encoding(im.encoding)) {
+            s.problem(where, "bad-image",
+                      "right encoding \"" + im.encoding + "\" (expected rgb8, bgr8 or mono8)");
+            return;
+          }
+          if (right_frame.empty()) right_frame = im.frame_id;
+          right.push_back({im.t_ns, t_recv, static_cast<uint32_t>(s.images.size())});
+          s.images.push_back(m);
           break;
         }
         case kColorRole:
@@ -810,6 +892,49 @@ Rosbag2Reader::Rosbag2Reader(const std::string& path, const Rosbag2ReadOptions& 
                 "no transform between \"" + imu_frame + "\" and \"" + cam_frame +
                     "\": T_BC = identity assumed (give --rig)");
     }
+    // A stereo pair: the right camera from its CameraInfo, placed by /tf_static or else by P's baseline.
+    if (!right.empty()) {
+      const size_t k = right_topic.rfind('/');
+      const std::string rinfo_topic =
+          (k == std::string::npos ? std::string() : right_topic.substr(0, k)) + "/camera_info";
+      const auto ri_it = infos.find(rinfo_topic);
+      if (ri_it == infos.end()) {
+        s.problem(s.file + ":" + rinfo_topic, "missing-file",
+                  "no CameraInfo for the right images of " + right_topic +
+                      ": replayed as a monocular log (give the stereo rig with --rig)");
+        right.clear();
+      } else {
+        const ros2::CameraInfo& rci = ri_it->second;
+        CameraIntrinsics& rk = r.stereo.intrinsics;
+        rk.width = static_cast<int>(rci.width), rk.height = static_cast<int>(rci.height);
+        rk.fx = rci.k[0], rk.cx = rci.k[2], rk.fy = rci.k[4], rk.cy = rci.k[5];
+        const bool rzero = std::all_of(rci.d.begin(), rci.d.end(), [](double d) { return d == 0; });
+        rk.distortion = rzero                                     ? DistortionModel::kNone
+                        : rci.distortion_model == "equidistant"    ? DistortionModel::kEquidistant
+                                                                  : DistortionModel::kRadTan;
+        if (rk.distortion != DistortionModel::kNone)
+          for (size_t j = 0; j < std::min<size_t>(5, rci.d.size()); ++j) rk.dist[j] = rci.d[j];
+        if (right_frame.empty()) right_frame = rci.frame_id;
+        std::string rr;
+        const Mat4d T_Rr = to_root(right_frame, rr);
+        if (!right_frame.empty() && parent.count(right_frame) && rr == rc) {
+          r.stereo.T_BC1 = mul(r.T_BC, mul(inverse(T_Rc), T_Rr));
+        } else if (rci.p[0] > 0 && rci.p[3] < 0) {
+          Mat4d T_C0C1 = kIdentity4;
+          T_C0C1[3] = -rci.p[3] / rci.p[0];
+          r.stereo.T_BC1 = mul(r.T_BC, T_C0C1);
+          s.problem(s.file + ":" + rinfo_topic, "assumed",
+                    "no /tf_static to the right camera's frame \"" + right_frame +
+                        "\": placed by its CameraInfo's baseline (-P[3]/P[0] = " + text::fmt17(T_C0C1[3]) +
+                        " m), rotation identity");
+        } else {
+          throw std::runtime_error(s.file + ":" + rinfo_topic +
+                                   ": the right camera has no transform in /tf_static and no baseline in P "
+                                   "(P[3] = -fx * baseline); give the stereo rig with --rig");
+        }
+        r.stereo.present = true;
+      }
+    }
     // BMX055 / BMI055 datasheet densities, as the other dataset readers assume.
     r.imu.gyro_noise_density_rad_s_sqrthz = 2.4434609527920612e-04;
     r.imu.gyro_random_walk_rad_s2_sqrthz = 2.0e-05;
@@ -858,6 +983,32 @@ Rosbag2Reader::Rosbag2Reader(const std::string& path, const Rosbag2ReadOptions& 
       s.entries.push_back({tc, depth[j].t_recv, kDepthK, depth[j].idx});
     }
   }
+  // Right images share the left stamp too (nearest within 20 ms), only with a stereo rig.
+  if (!right.empty() && !r.stereo.present) {
+    s.problem(s.file + ":" + right_topic, "unsupported",
+              "right images but a rig without a stereo: section; replayed as a monocular log");
+    right.clear();
+  }
+  std::stable_sort(right.begin(), right.end(), by_t);
+  size_t right_unpaired = 0;
+  {
+    std::vector<bool> taken(right.size(), false);
+    size_t q = 0;
+    for (size_t i = 0; i < rgb.size() && !right.empty(); ++i) {
+      if (i > 0 && rgb[i].t_ns == rgb[i - 1].t_ns) continue;
+      while (q + 1 < right.size() &&
+             std::llabs(right[q + 1].t_ns - rgb[i].t_ns) <= std::llabs(right[q].t_ns - rgb[i].t_ns))
+        ++q;
+      if (!taken[q] && std::llabs(right[q].t_ns - rgb[i].t_ns) <= 20'000'000) {
+        taken[q] = true;
+        s.entries.push_back({camera_stamp_on_imu_clock(r, rgb[i].t_ns), right[q].t_recv, kRightK, right[q].idx});
+      }
+    }
+    right_unpaired = static_cast<size_t>(std::count(taken.begin(), taken.end(), false));
+  }
+  if (right_unpaired > 0)
+    s.problem(s.file + ":" + right_topic, "unassociated",
+              std::to_string(right_unpaired) + " right images without a left image within 20 ms; skipped");
   const size_t unassoc = static_cast<size_t>(std::count(used.begin(), used.end(), false));
   if (unassoc > 0)
     s.problem(s.file + ":" + depth_topic, "unassociated",
@@ -917,10 +1068,11 @@ bool Rosbag2Reader::next(LogRecord& out) {
         out.gt = s.gt[e.idx];
         return true;
       case kRgbK:
-      case kDepthK: {
+      case kDepthK:
+      case kRightK: {
         const bool depth = e.kind == kDepthK;
         if (!s.load_image(s.images[e.idx], depth, out.image)) continue;
-        out.type = depth ? RecordType::kDepth : RecordType::kRgb;
+        out.type = depth ? RecordType::kDepth : e.kind == kRightK ? RecordType::kRight : RecordType::kRgb;
         out.image.t_ns = e.t_ns;
         out.image.t_recv_ns = e.t_recv_ns;
         out.image.seq = s.images[e.idx].sequence;

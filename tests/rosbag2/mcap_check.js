@@ -298,8 +298,86 @@ async function write(path, mode) {
   fs.writeFileSync(path, Buffer.concat(chunks));
 }
 
+// 0.2 s of a D4xx infrared pair as realsense-ros publishes it without /tf_static:
+// IMU at 200 Hz, infra1 and infra2 mono8 4x3 at 20 Hz (infra2 0.5 ms later),
+// each with its CameraInfo; infra2's P[3] = -fx * 0.05 (a 5 cm baseline).
+async function writeStereo(path) {
+  const chunks = [];
+  let pos = 0n;
+  const writable = {
+    position: () => pos,
+    write: async (b) => {
+      chunks.push(Buffer.from(b));
+      pos += BigInt(b.length);
+    },
+  };
+  const w = new McapWriter({writable, useChunks: true, chunkSize: 2048});
+  await w.start({profile: 'ros2', library: 'node fixture'});
+  const sid = {};
+  const ser = {};
+  for (const [name, text] of Object.entries(defs)) {
+    sid[name] = await w.registerSchema({name, encoding: 'ros2msg', data: new TextEncoder().encode(text)});
+    ser[name] = new MessageWriter(parse(text, {ros2: true}));
+  }
+  const chan = (topic, type) =>
+      w.registerChannel({topic, messageEncoding: 'cdr', schemaId: sid[type], metadata: new Map()});
+  const imu = await chan('/cam/imu', 'sensor_msgs/msg/Imu');
+  const left = await chan('/cam/infra1/image_rect_raw', 'sensor_msgs/msg/Image');
+  const right = await chan('/cam/infra2/image_rect_raw', 'sensor_msgs/msg/Image');
+  const linfo = await chan('/cam/infra1/camera_info', 'sensor_msgs/msg/CameraInfo');
+  const rinfo = await chan('/cam/infra2/camera_info', 'sensor_msgs/msg/CameraInfo');
+  const t0 = 1700000000n * 1000000000n;
+  const stamp = (t) => ({sec: Number(t / 1000000000n), nanosec: Number(t % 1000000000n)});
+  let seq = 0;
+  const add = async (channelId, t, bytes) =>
+      w.addMessage({channelId, sequence: seq++, logTime: t, publishTime: t, data: bytes});
+  const info = (t, frame, tx) => ser['sensor_msgs/msg/CameraInfo'].writeMessage({
+    header: {stamp: stamp(t), frame_id: frame},
+    height: 3,
+    width: 4,
+    distortion_model: 'plumb_bob',
+    d: [0, 0, 0, 0, 0],
+    k: [382.5, 0, 2.0, 0, 382.5, 1.5, 0, 0, 1],
+    r: [1, 0, 0, 0, 1, 0, 0, 0, 1],
+    p: [382.5, 0, 2.0, tx, 0, 382.5, 1.5, 0, 0, 0, 1, 0],
+    binning_x: 0,
+    binning_y: 0,
+    roi: {x_offset: 0, y_offset: 0, height: 0, width: 0, do_rectify: false},
+  });
+  const image = (t, frame, k, base) => ser['sensor_msgs/msg/Image'].writeMessage({
+    header: {stamp: stamp(t), frame_id: frame},
+    height: 3,
+    width: 4,
+    encoding: 'mono8',
+    is_bigendian: 0,
+    step: 4,
+    data: new Uint8Array(12).map((_, j) => (base + j * 5 + k) & 0xff),
+  });
+  for (let i = 0; i < 40; i++) {
+    const t = t0 + BigInt(i) * 5000000n;
+    await add(imu, t, ser['sensor_msgs/msg/Imu'].writeMessage({
+      header: {stamp: stamp(t), frame_id: 'imu'},
+      orientation: {x: 0, y: 0, z: 0, w: 1},
+      orientation_covariance: [-1, 0, 0, 0, 0, 0, 0, 0, 0],
+      angular_velocity: {x: 0, y: 0, z: 0},
+      angular_velocity_covariance: new Array(9).fill(0),
+      linear_acceleration: {x: 0, y: 0, z: 9.81},
+      linear_acceleration_covariance: new Array(9).fill(0),
+    }));
+    if (i % 10 === 0) {
+      const k = i / 10;
+      await add(left, t, image(t, 'infra1', k, 10));
+      await add(right, t + 500000n, image(t + 500000n, 'infra2', k, 100));
+      await add(linfo, t, info(t, 'infra1', 0));
+      await add(rinfo, t, info(t, 'infra2', -382.5 * 0.05));
+    }
+  }
+  await w.end();
+  fs.writeFileSync(path, Buffer.concat(chunks));
+}
+
 const [cmd, file, mode] = process.argv.slice(2);
-(cmd === 'read' ? read(file) : write(file, mode || 'lz4')).catch((e) => {
+(cmd === 'read' ? read(file) : cmd === 'write-stereo' ? writeStereo(file) : write(file, mode || 'lz4')).catch((e) => {
   process.stderr.write(String(e && e.stack ? e.stack : e) + '\n');
   process.exit(1);
 });

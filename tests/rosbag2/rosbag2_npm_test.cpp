@@ -191,6 +191,75 @@ TEST(Rosbag2Npm, WeReadWhatMcapCoreWrites) {
   }
 }
 
+// A D4xx infrared pair as realsense-ros records it (no /tf_static): the right
+// topic named, the right camera from its CameraInfo, placed by P's baseline;
+// each right image paired with its left one (0.5 ms apart) on the left's stamp.
+TEST(Rosbag2Npm, AnInfraredPairFromMcapCoreIsAStereoLog) {
+  REQUIRE_NODE();
+  const std::string f = dir() + "/node_stereo.mcap";
+  const CmdResult w = node("write-stereo " + f);
+  ASSERT_EQ(w.code, 0) << w.out;
+  drivers::LogOpenOptions o;
+  o.rgb_topic = "/cam/infra1/image_rect_raw";
+  o.right_topic = "/cam/infra2/image_rect_raw";
+  auto log = drivers::open_log(f, o);
+  const Rig& rig = log->rig();
+  ASSERT_TRUE(rig.stereo.present) << problems_text(*log);
+  EXPECT_EQ(rig.stereo.intrinsics.fx, 382.5);
+  EXPECT_NEAR(rig.stereo.T_BC1[3] - rig.T_BC[3], 0.05, 1e-12);  // T_BC = identity here: +x by the baseline
+  EXPECT_NE(problems_text(*log).find("placed by its CameraInfo's baseline"), std::string::npos)
+      << problems_text(*log);
+  const auto recs = read_all(*log);
+  const auto left = of_type(recs, RecordType::kRgb), right = of_type(recs, RecordType::kRight);
+  ASSERT_EQ(left.size(), 4u) << problems_text(*log);
+  ASSERT_EQ(right.size(), 4u) << problems_text(*log);
+  for (size_t k = 0; k < 4; ++k) {
+    EXPECT_EQ(right[k].image.t_ns, left[k].image.t_ns);
+    EXPECT_EQ(right[k].image.format, PixelFormat::kGray8);
+    ASSERT_EQ(right[k].image.pixels.size(), 12u);
+    for (size_t j = 0; j < 12; ++j) EXPECT_EQ(right[k].image.pixels[j], (100 + j * 5 + k) & 0xff);
+  }
+  // Without --right-topic the same bag is a monocular log: nothing is taken for a right image by guess.
+  auto mono = drivers::open_log(f, drivers::LogOpenOptions{});
+  EXPECT_FALSE(mono->rig().stereo.present);
+}
+
+// A stereo log through rosbag2 and back: its right images and their
+// CameraInfo go out on their own topics, come back as right records, and the
+// lockstep trajectory is the .klog's to the last digit.
+TEST(Rosbag2Cli, AStereoLogRoundTripsThroughRosbag2) {
+  const std::string klog = dir() + "/st.klog", bag = dir() + "/st_ros2";
+  CmdResult r = run_kestrel("sim --scenario figure8 --duration 3 --seed 5 --width 320 --height 240 --stereo --out " +
+                            klog);
+  ASSERT_EQ(r.code, 0) << r.out;
+  r = run_kestrel("convert " + klog + " --to rosbag2 --out " + bag);
+  ASSERT_EQ(r.code, 0) << r.out;
+  const std::string ta = dir() + "/st_a.txt", tb = dir() + "/st_b.txt";
+  r = run_kestrel("replay " + klog + " --traj-out " + ta);
+  ASSERT_EQ(r.code, 0) << r.out;
+  r = run_kestrel("replay " + bag + " --traj-out " + tb);
+  ASSERT_EQ(r.code, 0) << r.out;
+  EXPECT_NE(r.out.find("frames without a right image 0 "), std::string::npos) << r.out;
+  std::ifstream fa(ta), fb(tb);
+  const std::string a((std::istreambuf_iterator<char>(fa)), {}), b((std::istreambuf_iterator<char>(fb)), {});
+  EXPECT_GT(a.size(), 1000u);
+  EXPECT_EQ(a, b) << "the rosbag2 round trip changed the stereo trajectory";
+  if (!node_ready().empty()) {
+    std::fprintf(stderr, "SKIPPED: @mcap/core unavailable, the right topics NOT checked independently: %s\n",
+                 node_ready().c_str());
+    GTEST_SKIP() << "@mcap/core unavailable: " << node_ready();
+  }
+  const json j = node_read(bag + "/st_ros2_0.mcap");
+  for (const char* topic : {"/camera/right/image_raw", "/camera/right/camera_info"}) {
+    SCOPED_TRACE(topic);
+    const json& t = j["topics"][topic];
+    ASSERT_TRUE(t.is_object()) << j.dump();
+    EXPECT_GT(t["count"].get<int>(), 80);
+    EXPECT_EQ(t["trailing"], 0);
+    EXPECT_EQ(t["reencodedDiffers"], 0);
+  }
+}
+
 // The contracts through the command line: convert, replay of the folder, --mcap-out.
 TEST(Rosbag2Cli, ConvertReplayAndOdometryOut) {
   const std::string klog = dir() + "/fig8.klog", bag = dir() + "/fig8_ros2";

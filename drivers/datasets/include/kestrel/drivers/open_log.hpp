@@ -23,6 +23,8 @@ struct LogOpenOptions {
   // ROS bag topics ("" = the RealSense D435i defaults of RosbagTopics; for
   // rosbag2, "" = found by message type).
   std::string rgb_topic, depth_topic, imu_topic, camera_info_topic, ground_truth_topic;
+  // rosbag2: a stereo pair's right image topic (Rosbag2ReadOptions::right_topic).
+  std::string right_topic;
   // rosbag2: read only these topics (empty = all; Rosbag2ReadOptions::topics).
   std::vector<std::string> topics;
 };

@@ -21,6 +21,10 @@ struct Rosbag2Topics {
   std::string depth = "/camera/aligned_depth_to_color/image_raw";
   std::string camera_info = "/camera/color/camera_info";
   std::string ground_truth = "/kestrel/ground_truth";
+  // A stereo rig's right camera (written only for stereo logs; read as the
+  // right image when no --right-topic is given).
+  std::string right = "/camera/right/image_raw";
+  std::string right_camera_info = "/camera/right/camera_info";
 };
 
 struct Rosbag2WriteOptions {
@@ -29,7 +33,7 @@ struct Rosbag2WriteOptions {
 };
 
 struct Rosbag2Stats {
-  size_t imu = 0, rgb = 0, depth = 0, ground_truth = 0, skipped = 0;
+  size_t imu = 0, rgb = 0, depth = 0, right = 0, ground_truth = 0, skipped = 0;
   uint64_t bytes = 0;
 };
 
@@ -37,6 +41,7 @@ struct Rosbag2Stats {
 // storage mcap) and out_dir/<name>_0.mcap: sensor_msgs/msg/Imu, Image (colour
 // as stored: rgb8 / bgr8 / mono8; depth 16UC1 in millimetres), CameraInfo with
 // each colour image, /tf_static (base_link -> imu, base_link -> colour camera),
+// a stereo log's right images with their CameraInfo (Rosbag2Topics::right),
 // ground truth as geometry_msgs/msg/PoseStamped, and the exact Kestrel rig as
 // an MCAP Metadata record "kestrel" (key rig_yaml). Header stamps are the
 // records' t_ns (on the IMU clock); log times the same. Throws naming the file.
@@ -52,6 +57,11 @@ struct Rosbag2ReadOptions {
   // encoding), the depth Image topic (16UC1 / 32FC1), the CameraInfo beside
   // the colour topic, PoseStamped as ground truth.
   std::string rgb_topic, depth_topic, imu_topic, camera_info_topic, ground_truth_topic;
+  // A stereo pair's right image topic (e.g. realsense-ros /camera/infra2/image_rect_raw with
+  // rgb_topic /camera/infra1/image_rect_raw); "" = Rosbag2Topics::right when the bag has it.
+  // The rig's right camera comes from its CameraInfo (beside it) and /tf_static, or from the
+  // CameraInfo's projection P (baseline = -P[3] / P[0]) without one.
+  std::string right_topic;
   // Non-empty: only these topics are read (then detected by type among them,
   // or named above); tf_static and CameraInfo are read for the rig regardless.
   // A topic the bag does not have is an error naming the ones it has.
