@@ -193,6 +193,7 @@ drivers::LogOpenOptions open_options(py::dict& kw, drivers::LogFormat& format) {
   take_str("imu_topic", o.imu_topic);
   take_str("camera_info_topic", o.camera_info_topic);
   take_str("gt_topic", o.ground_truth_topic);
+  take_str("right_topic", o.right_topic);
   if (kw.contains("topics")) {
     py::object v = kw["topics"];
     if (py::isinstance<py::str>(v)) {
@@ -230,7 +231,7 @@ class Log {
     const drivers::LogOpenOptions o = open_options(d, format);
     refuse_unknown(
         d, "open_log",
-        "format, rig, fps, rgb_topic, depth_topic, imu_topic, camera_info_topic, gt_topic, topics");
+        "format, rig, fps, rgb_topic, depth_topic, imu_topic, camera_info_topic, gt_topic, right_topic, topics");
     path_ = path;
     src_ = drivers::open_log(path, o);
   }
@@ -598,7 +599,7 @@ class PyEstimator {
 // ---- replay -----------------------------------------------------------------
 
 constexpr const char* kReplayOptions =
-    "format, rig, fps, rgb_topic, depth_topic, imu_topic, camera_info_topic, gt_topic, topics, estimator, "
+    "format, rig, fps, rgb_topic, depth_topic, imu_topic, camera_info_topic, gt_topic, right_topic, topics, estimator, "
     "config, pace, mapping, loop, warmup_s, trajectory, report";
 
 py::object replay(const std::string& path, py::kwargs kw) {
