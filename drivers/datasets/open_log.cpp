@@ -30,6 +30,7 @@ RosbagTopics topics_of(const LogOpenOptions& o) {
   if (!o.imu_topic.empty()) t.imu = o.imu_topic;
   if (!o.camera_info_topic.empty()) t.camera_info = o.camera_info_topic;
   if (!o.ground_truth_topic.empty()) t.ground_truth = o.ground_truth_topic;
+  t.right = o.right_topic;
   return t;
 }
 

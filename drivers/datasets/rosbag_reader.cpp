@@ -51,7 +51,7 @@ namespace {
 
 namespace {
 
-enum Kind : uint8_t { kImuK = 0, kRgbK = 1, kDepthK = 2, kGtK = 3 };
+enum Kind : uint8_t { kImuK = 0, kRgbK = 1, kDepthK = 2, kGtK = 3, kRightK = 4 };
 
 int64_t ns_of(const ros::Time& t) { return static_cast<int64_t>(t.sec) * 1000000000 + t.nsec; }
 ros::Time time_of(int64_t t_ns) {
@@ -166,13 +166,20 @@ RosbagReader::RosbagReader(const std::string& path, const RosbagTopics& topics, 
   Rig r = rig ? *rig : Rig{};
   if (!rig) r.name = text::file_name(path);
   bool have_info = false;
-  std::vector<ds::Listed> rgb_t, depth_t;  // for association (file = index as text)
-  std::vector<uint32_t> rgb_idx, depth_idx;
-  std::vector<int64_t> rgb_recv, depth_recv;
+  std::vector<ds::Listed> rgb_t, depth_t, right_t;  // for association (file = index as text)
+  std::vector<uint32_t> rgb_idx, depth_idx, right_idx;
+  std::vector<int64_t> rgb_recv, depth_recv, right_recv;
+  const std::string right_info_topic = topics.right.empty() ? std::string() : [&] {
+    const size_t k = topics.right.find_last_of('/');
+    return (k == std::string::npos ? std::string() : topics.right.substr(0, k)) + "/camera_info";
+  }();
+  bool have_right_info = false;
+  double right_baseline_m = 0;
   size_t n_imu = 0, n_skipped = 0;
   try {
-    rosbag::View view(s.bag, rosbag::TopicQuery(std::vector<std::string>{topics.imu, topics.rgb, topics.depth,
-                                                                         info_topic, topics.ground_truth}));
+    std::vector<std::string> wanted{topics.imu, topics.rgb, topics.depth, info_topic, topics.ground_truth};
+    if (!topics.right.empty()) wanted.push_back(topics.right), wanted.push_back(right_info_topic);
+    rosbag::View view(s.bag, rosbag::TopicQuery(wanted));
     size_t k = 0;
     for (const rosbag::MessageInstance& mi : view) {
       ++k;
@@ -202,6 +209,40 @@ RosbagReader::RosbagReader(const std::string& path, const RosbagTopics& topics, 
           }
           s.entries.push_back({x.t_ns, t_recv, kImuK, static_cast<uint32_t>(s.imu.size()), x.seq});
           s.imu.push_back(x);
+        } else if (!topics.right.empty() && topic == topics.right) {
+          auto m = mi.isType<sensor_msgs::Image>() ? mi.instantiate<sensor_msgs::Image>() : nullptr;
+          if (!m) {
+            s.problem(where, "bad-type", "expected sensor_msgs/Image, got " + mi.getDataType());
+            ++n_skipped;
+            continue;
+          }
+          ds::Listed l;
+          l.t_ns = ns_of(m->header.stamp);
+          l.line = s.images.size();
+          right_t.push_back(l);
+          right_idx.push_back(static_cast<uint32_t>(s.images.size()));
+          right_recv.push_back(t_recv);
+          s.images.push_back(mi);
+          s.image_where.push_back(where);
+        } else if (!topics.right.empty() && topic == right_info_topic) {
+          if (have_right_info) continue;
+          auto m = mi.isType<sensor_msgs::CameraInfo>() ? mi.instantiate<sensor_msgs::CameraInfo>() : nullptr;
+          if (!m || m->K[0] <= 0 || m->K[4] <= 0 || m->width == 0 || m->height == 0) {
+            s.problem(where, "bad-row", "the right camera's CameraInfo is not usable; ignored");
+            continue;
+          }
+          CameraIntrinsics& k = r.stereo.intrinsics;
+          k.width = static_cast<int>(m->width), k.height = static_cast<int>(m->height);
+          k.fx = m->K[0], k.cx = m->K[2], k.fy = m->K[4], k.cy = m->K[5];
+          k.dist = {};
+          const bool zero = std::all_of(m->D.begin(), m->D.end(), [](double d) { return d == 0; });
+          k.distortion = zero ? DistortionModel::kNone
+                              : m->distortion_model == "equidistant" ? DistortionModel::kEquidistant
+                                                                      : DistortionModel::kRadTan;
+          if (k.distortion != DistortionModel::kNone)
+            for (size_t j = 0; j < std::min<size_t>(5, m->D.size()); ++j) k.dist[j] = m->D[j];
+          right_baseline_m = m->P[0] > 0 ? -m->P[3] / m->P[0] : 0.0;
+          have_right_info = true;
         } else if (topic == topics.rgb || topic == topics.depth) {
           // Only the header is needed now; pixels are read again when replayed.
           auto m = mi.isType<sensor_msgs::Image>() ? mi.instantiate<sensor_msgs::Image>() : nullptr;
@@ -292,6 +333,27 @@ RosbagReader::RosbagReader(const std::string& path, const RosbagTopics& topics, 
     s.problem(path + ":" + info_topic, "missing-file",
               "no CameraInfo: camera intrinsics taken from the --rig file");
   }
+  // A stereo pair: --rig's stereo: section wins; else the right CameraInfo, placed by P's baseline
+  // (a ROS 1 bag's tf is not read: the rotation between the cameras is taken as none, and said).
+  if (!right_t.empty() && !(rig && rig->stereo.present)) {
+    if (!have_right_info || !(right_baseline_m > 0)) {
+      s.problem(path + ":" + right_info_topic, "missing-file",
+                "no CameraInfo with a baseline (P[3] = -fx * baseline) for the right images of " + topics.right +
+                    ": replayed as a monocular log (give the stereo rig with --rig)");
+      right_t.clear(), right_idx.clear(), right_recv.clear();
+      r.stereo = StereoCamera{};
+    } else {
+      Mat4d T_C0C1 = kIdentity4;
+      T_C0C1[3] = right_baseline_m;
+      r.stereo.T_BC1 = ds::mat_mul(r.T_BC, T_C0C1);
+      r.stereo.present = true;
+      s.problem(path + ":" + right_info_topic, "assumed",
+                "the right camera placed by its CameraInfo's baseline (" + text::fmt17(right_baseline_m) +
+                    " m along x), rotation identity: ROS 1 tf is not read (give --rig for a calibrated pair)");
+    }
+  } else if (!topics.right.empty() && right_t.empty()) {
+    s.problem(path + ":" + topics.right, "missing-file", "no right images on this topic");
+  }
   // Depth from a bag: 16UC1 is millimetres (REP 118) and 32FC1 metres is converted to millimetres.
   r.depth.scale_m_per_unit = 0.001;
 
@@ -324,6 +386,20 @@ RosbagReader::RosbagReader(const std::string& path, const RosbagTopics& topics, 
       s.entries.push_back({rgb_t[i].t_ns, depth_t[d].t_ns, kDepthK, depth_idx[d], static_cast<uint32_t>(d)});
     }
   }
+  if (!right_t.empty()) {
+    sort_by_t(right_t, right_idx, right_recv);
+    size_t right_pairs = 0;
+    const auto right_of = ds::associate(rgb_t, right_t, 20'000'000, right_pairs);
+    for (size_t i = 0; i < rgb_t.size(); ++i) {
+      if ((i > 0 && rgb_t[i].t_ns == rgb_t[i - 1].t_ns) || right_of[i] < 0) continue;
+      const size_t q = static_cast<size_t>(right_of[i]);
+      s.entries.push_back({rgb_t[i].t_ns, right_t[q].t_ns, kRightK, right_idx[q], static_cast<uint32_t>(q)});
+    }
+    if (right_pairs < right_t.size())
+      s.problem(path + ":" + topics.right, "unassociated",
+                std::to_string(right_t.size() - right_pairs) +
+                    " right images without a left image within 20 ms; skipped");
+  }
   const size_t unassoc = static_cast<size_t>(std::count(used.begin(), used.end(), false));
   if (unassoc > 0)
     s.problem(path + ":" + topics.depth, "unassociated",
@@ -332,7 +408,7 @@ RosbagReader::RosbagReader(const std::string& path, const RosbagTopics& topics, 
 
   // Camera stamps onto the IMU's clock (the rig's time_offset_cam_imu_ns).
   for (auto& e : s.entries)
-    if (e.kind == kRgbK || e.kind == kDepthK) e.t_ns = camera_stamp_on_imu_clock(r, e.t_ns);
+    if (e.kind == kRgbK || e.kind == kDepthK || e.kind == kRightK) e.t_ns = camera_stamp_on_imu_clock(r, e.t_ns);
   // Replayed in stamp order; at equal stamps IMU, colour, depth, ground truth.
   size_t late = 0;
   for (size_t i = 1; i < s.entries.size(); ++i)
@@ -406,12 +482,15 @@ bool RosbagReader::next(LogRecord& out) {
         out.gt = s.gt[e.idx];
         return true;
       case kRgbK:
-      case kDepthK: {
+      case kDepthK:
+      case kRightK: {
         ++s.images_seen;
         const bool report = s.images_seen > s.images_reported_until;
         if (report) s.images_reported_until = s.images_seen;
-        out.type = e.kind == kRgbK ? RecordType::kRgb : RecordType::kDepth;
-        if (!s.load_image(e.idx, out.type, out.image, report)) continue;
+        out.type = e.kind == kRgbK ? RecordType::kRgb : e.kind == kDepthK ? RecordType::kDepth : RecordType::kRight;
+        // The right image decodes as the left one does.
+        if (!s.load_image(e.idx, e.kind == kDepthK ? RecordType::kDepth : RecordType::kRgb, out.image, report))
+          continue;
         out.image.t_ns = e.t_ns;
         out.image.t_recv_ns = e.t_recv_ns;
         out.image.seq = e.seq;
@@ -541,8 +620,42 @@ ExportStats export_rosbag(LogSource& src, const std::string& path, const RosbagT
         }
         case RecordType::kEvent:
           break;  // no ROS message for it
-        case RecordType::kRight:
-          break;  // no second image topic yet (docs/stereo.md)
+        case RecordType::kRight: {
+          // A stereo log's right image, with a CameraInfo whose P carries the baseline (ROS's convention).
+          if (!rig.stereo.present) break;
+          const LogImage& im = r.image;
+          if (im.format != PixelFormat::kGray8 && im.format != PixelFormat::kRgb8 && im.format != PixelFormat::kBgr8)
+            break;
+          const std::string right_topic = topics.right.empty() ? "/camera/right/image_raw" : topics.right;
+          const size_t k = right_topic.find_last_of('/');
+          const std::string rinfo_topic =
+              (k == std::string::npos ? std::string() : right_topic.substr(0, k)) + "/camera_info";
+          sensor_msgs::Image m;
+          m.header.stamp = time_of(im.t_ns);
+          m.header.seq = im.seq;
+          m.header.frame_id = "camera_right";
+          m.width = static_cast<uint32_t>(im.width);
+          m.height = static_cast<uint32_t>(im.height);
+          m.encoding = im.format == PixelFormat::kGray8 ? "mono8" : im.format == PixelFormat::kRgb8 ? "rgb8" : "bgr8";
+          m.step = m.width * static_cast<uint32_t>(bytes_per_pixel(im.format));
+          m.data = im.pixels;
+          bag.write(right_topic, m.header.stamp, m);
+          const CameraIntrinsics& ki = rig.stereo.intrinsics;
+          const Mat4d T_C0C1 = ds::mat_mul(ds::mat_inv(rig.T_BC), rig.stereo.T_BC1);
+          sensor_msgs::CameraInfo ci;
+          ci.header = m.header;
+          ci.width = static_cast<uint32_t>(ki.width), ci.height = static_cast<uint32_t>(ki.height);
+          ci.K = {ki.fx, 0, ki.cx, 0, ki.fy, ki.cy, 0, 0, 1};
+          ci.R = {1, 0, 0, 0, 1, 0, 0, 0, 1};
+          ci.P = {ki.fx, 0, ki.cx, -ki.fx * T_C0C1[3], 0, ki.fy, ki.cy, 0, 0, 0, 1, 0};
+          ci.distortion_model = ki.distortion == DistortionModel::kEquidistant ? "equidistant" : "plumb_bob";
+          if (ki.distortion == DistortionModel::kEquidistant)
+            ci.D.assign(ki.dist.begin(), ki.dist.begin() + 4);
+          else
+            ci.D.assign(ki.dist.begin(), ki.dist.end());
+          bag.write(rinfo_topic, m.header.stamp, ci);
+          break;
+        }
       }
     }
     bag.close();

@@ -223,5 +223,53 @@ TEST(RosbagExport, KlogToBagToKlogKeepsWhatTheFormatHolds) {
   }
 }
 
+// A stereo log through a ROS 1 bag: the right images on their own topic with a
+// CameraInfo whose P carries the baseline; read back with --right-topic, the
+// pair is stereo again (the right camera placed by that baseline, said), each
+// right image with its left one's stamp and pixels unchanged.
+TEST(RosbagExport, AStereoLogKeepsItsRightImagesAndBaseline) {
+  ASSERT_TRUE(drivers::rosbag_built());
+  const std::string dir = temp_dir("rosbag_stereo");
+  Rig rig = small_rig();
+  rig.T_BC = kIdentity4;
+  rig.stereo.present = true;
+  rig.stereo.intrinsics = rig.rgb;
+  rig.stereo.T_BC1 = kIdentity4;
+  rig.stereo.T_BC1[3] = 0.08;
+  {
+    drivers::KlogWriter w;
+    w.open(dir + "/s.klog", rig);
+    for (uint32_t i = 0; i < 200; ++i) {
+      const ImuSample s = imu_at(i);
+      w.write_imu(s);
+      if (i % 20 == 0) {
+        w.write_image(drivers::RecordType::kRgb, image_at(s.t_ns, i / 20, PixelFormat::kGray8));
+        w.write_image(drivers::RecordType::kRight, image_at(s.t_ns, 100 + i / 20, PixelFormat::kGray8));
+      }
+    }
+  }
+  drivers::KlogReader a(dir + "/s.klog");
+  drivers::RosbagTopics t;
+  t.right = "/stereo/right/image_raw";
+  drivers::export_rosbag(a, dir + "/s.bag", t);
+  drivers::RosbagReader b(dir + "/s.bag", t, nullptr);
+  ASSERT_TRUE(b.rig().stereo.present) << problems_text(b);
+  EXPECT_NEAR(b.rig().stereo.T_BC1[3], 0.08, 1e-12);
+  EXPECT_EQ(b.rig().stereo.intrinsics.fx, rig.rgb.fx);
+  EXPECT_NE(problems_text(b).find("placed by its CameraInfo's baseline"), std::string::npos) << problems_text(b);
+  const auto x = read_all(a), y = read_all(b);
+  const auto lx = of_type(x, drivers::RecordType::kRgb), rx = of_type(x, drivers::RecordType::kRight);
+  const auto ly = of_type(y, drivers::RecordType::kRgb), ry = of_type(y, drivers::RecordType::kRight);
+  ASSERT_EQ(rx.size(), 10u);
+  ASSERT_EQ(ry.size(), rx.size()) << problems_text(b);
+  for (size_t k = 0; k < rx.size(); ++k) {
+    EXPECT_EQ(ry[k].image.t_ns, ly[k].image.t_ns);
+    EXPECT_EQ(ry[k].image.pixels, rx[k].image.pixels);
+  }
+  // Without the right topic named, the same bag is monocular.
+  drivers::RosbagReader mono(dir + "/s.bag", drivers::RosbagTopics{}, nullptr);
+  EXPECT_FALSE(mono.rig().stereo.present);
+}
+
 }  // namespace
 }  // namespace kestrel::test

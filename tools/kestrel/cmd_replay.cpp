@@ -55,7 +55,7 @@ Subcommand add_replay_command(CLI::App& parent) {
                   "rosbag depth topic (default /camera/aligned_depth_to_color/image_raw)");
   app->add_option("--imu-topic", args->open.imu_topic, "rosbag IMU topic (default /camera/imu)");
   app->add_option("--right-topic", args->open.right_topic,
-                  "rosbag2: a stereo pair's right image topic, e.g. /camera/infra2/image_rect_raw with --rgb-topic "
+                  "rosbag / rosbag2: a stereo pair's right image topic, e.g. /camera/infra2/image_rect_raw with --rgb-topic "
                   "/camera/infra1/image_rect_raw (default /camera/right/image_raw when present; docs/stereo.md)");
   app->add_option("--camera-info-topic", args->open.camera_info_topic,
                   "rosbag CameraInfo topic (default: beside the colour topic)");

@@ -55,6 +55,10 @@ struct RosbagTopics {
   std::string imu = "/camera/imu";
   std::string camera_info;                             // "" = the colour topic's sibling ".../camera_info"
   std::string ground_truth = "/kestrel/ground_truth";  // geometry_msgs/PoseStamped (T_WB), optional
+  // A stereo pair's right image (e.g. /cam1/image_raw beside rgb /cam0/image_raw); "" = none. Its
+  // CameraInfo (the sibling ".../camera_info") gives the right camera and P[3] = -fx * baseline
+  // places it, unless --rig has a stereo: section.
+  std::string right;
 };
 
 // True when Kestrel was built with librosbag (KESTREL_WITH_ROSBAG).
