@@ -6,19 +6,11 @@
 
 namespace kestrel {
 
-namespace {
-// The embedded estimator runs on the caller's thread alone: no mapping or
-// loop-closing threads, so no map (the pipeline of `kestrel replay|run` has them).
-core::EstimatorConfig embedded_config(const std::string& backend) {
-  core::EstimatorConfig c = core::EstimatorConfig::defaults(backend);
-  c.window.map.mapping = false;
-  c.window.map.loop = false;
-  return c;
-}
-}  // namespace
+Estimator::Estimator(const Rig& rig, const std::string& backend, MapWork map_work)
+    : Estimator(rig, core::EstimatorConfig::defaults(backend), map_work) {}
 
-Estimator::Estimator(const Rig& rig, const std::string& backend)
-    : impl_(core::make_estimator(embedded_config(backend), rig)) {}
+Estimator::Estimator(const Rig& rig, const core::EstimatorConfig& config, MapWork map_work)
+    : impl_(core::make_estimator(config, rig)), map_work_(map_work) {}
 
 Estimator::~Estimator() = default;
 
@@ -46,10 +38,31 @@ bool Estimator::feed_rgbd(int64_t t_ns, const ImageView& rgb, const ImageView& d
   f.seq = frame_seq_++;
   f.rgb = rgb;
   f.depth = depth;
-  if (!impl_->add_frame(f)) return false;
+  const bool used = impl_->add_frame(f);
+  // Inline map work: until the map has taken what this frame handed over, as
+  // the deterministic replay paces wait for the map threads after each frame.
+  if (map_work_ == MapWork::kInline && impl_->has_map()) run_map();
+  if (!used) return false;
   publish(true);
   return true;
 }
+
+void Estimator::run_map() {
+  for (int guard = 0; guard < 1000; ++guard) {
+    const bool mapped = impl_->mapping_step();
+    const bool looped = impl_->loop_step();
+    if (!mapped && !looped && !impl_->map_busy()) return;
+  }
+}
+
+bool Estimator::map_step() {
+  if (map_work_ != MapWork::kCaller || !impl_->has_map()) return false;
+  const bool mapped = impl_->mapping_step();
+  const bool looped = impl_->loop_step();
+  return mapped || looped;
+}
+
+bool Estimator::has_map() const { return impl_->has_map(); }
 
 void Estimator::publish(bool from_frame) {
   const core::EstimatorOutput& o = impl_->output();
@@ -62,6 +75,9 @@ void Estimator::publish(bool from_frame) {
   state_.quality = o.quality;
   state_.reset_counter = o.reset_counter;
   state_.from_frame = from_frame;
+  state_.map_active = o.map.active;
+  state_.T_map_odom = o.map.T_map_odom();
+  state_.loop_closures = o.map.loop_closures;
   if (cb_ && (from_frame || imu_rate_)) {
     ++counters_.callbacks;
     cb_(state_);

@@ -750,7 +750,7 @@ PYBIND11_MODULE(_kestrel, m) {
 
   py::class_<PyEstimator>(m, "Estimator",
                           "one backend behind add_imu / add_frame (docs/api.md, docs/python.md)")
-      .def(py::init<const Rig&, const std::string&>(), py::arg("rig"), py::arg("backend") = "vo")
+      .def(py::init<const Rig&, const std::string&>(), py::arg("rig"), py::arg("backend") = "auto")
       .def("on_state", &PyEstimator::on_state, py::arg("callback"), py::arg("imu_rate") = false,
            "callback(State) on every frame (and IMU sample with imu_rate=True); None removes it")
       .def("add_imu", &PyEstimator::add_imu, py::arg("t_ns"), py::arg("gyro_rps"), py::arg("acc_mps2"))
