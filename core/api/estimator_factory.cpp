@@ -34,14 +34,6 @@ std::unique_ptr<Estimator> make_estimator(const EstimatorConfig& c, const Rig& r
   throw std::invalid_argument("unknown estimator '" + name + "' (expected one of: " + estimator_names() + ")");
 }
 
-const Tracker* tracker_of(const Estimator& est) {
-  if (const auto* w = dynamic_cast<const WindowEstimator*>(&est)) return &w->front().tracker();
-  if (const auto* vo = dynamic_cast<const FrontendOdometry*>(&est)) return &vo->tracker();
-  if (const auto* e = dynamic_cast<const EkfEstimator*>(&est)) return &e->tracker();
-  if (const auto* r = dynamic_cast<const RgbdEstimator*>(&est)) return &r->tracker();
-  return nullptr;
-}
-
-const WindowEstimator* window_of(const Estimator& est) { return dynamic_cast<const WindowEstimator*>(&est); }
+const Tracker* tracker_of(const Estimator& est) { return est.front_end_tracker(); }
 
 }  // namespace kestrel::core

@@ -4,7 +4,7 @@
 #include <cstring>
 
 #include "kestrel/core/estimator_factory.hpp"
-#include "kestrel/core/window_estimator.hpp"
+#include "kestrel/core/tracker.hpp"
 #include "kestrel/rt/clock.hpp"
 
 namespace kestrel::viewer {
@@ -74,7 +74,6 @@ void preview_depth(const ImageView& v, ViewSnapshot& s) {
 ViewerFeed::ViewerFeed(const core::Estimator& est, const Rig& rig, const FeedOptions& opt)
     : est_(est),
       tracker_(core::tracker_of(est)),
-      window_(core::window_of(est)),
       rig_(rig),
       min_period_ns_(opt.max_rate_hz > 0 ? static_cast<int64_t>(1e9 / opt.max_rate_hz) : 0),
       map_period_ns_(static_cast<int64_t>(opt.map_period_s * 1e9)) {}
@@ -162,15 +161,15 @@ void ViewerFeed::fill(ViewSnapshot& s, const core::RgbdFrame& f, const FrameInfo
   st.tracking_ns = info.tracking_ns;
   st.tracking_max_ns = tracking_max_ns_;
   st.imu_to_pose_max_ns = imu_max_ns_;
-  st.has_window = window_ != nullptr;
-  if (window_ != nullptr) {
-    const core::WindowEstimatorCounters& w = window_->window_counters();
-    st.optimizer_solve_ns = window_->last_solve_ns();
+  core::OptimizerStatus w;
+  st.has_window = est_.optimizer_status(&w);
+  if (st.has_window) {
+    st.optimizer_solve_ns = w.last_solve_ns;
     st.window_jobs = w.jobs;
     st.window_applied = w.applied;
     st.window_failures = w.failures;
     st.window_skipped_busy = w.skipped_busy;
-    st.window_resets = w.window_resets;
+    st.window_resets = w.resets;
   }
   const core::EstimatorCounters& c = est_.counters();
   st.imu_in = c.imu_in;

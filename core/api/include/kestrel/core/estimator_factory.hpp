@@ -23,11 +23,8 @@ const char* estimator_names();
 bool estimator_known(const std::string& name);
 
 class Tracker;
-class WindowEstimator;
-// The one place that looks behind the interface, for status lines and the
-// live viewer: the tracker of the backends built on it (vo, window, ekf;
-// nullptr for imu), and the window backend itself (nullptr for the others).
+// The tracker of the backends built on one (vo, window, ekf, rgbd; nullptr
+// for imu), for status lines and the live viewer: Estimator::front_end_tracker().
 const Tracker* tracker_of(const Estimator& est);
-const WindowEstimator* window_of(const Estimator& est);
 
 }  // namespace kestrel::core

@@ -191,6 +191,7 @@ class EkfEstimator final : public Estimator {
   const EkfEstimatorCounters& ekf_counters() const { return ekf_counters_; }
   const TrackResult& last_track() const { return tracker_.last(); }
   const Tracker& tracker() const { return tracker_; }
+  const Tracker* front_end_tracker() const override { return &tracker_; }
   const EkfEstimatorOptions& options() const { return opt_; }
   // Per frame with observations: ekf_.update() alone [ns].
   const rt::LatencyHistogram& update_latency() const { return update_latency_; }

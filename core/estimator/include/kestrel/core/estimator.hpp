@@ -139,6 +139,18 @@ struct MapKeyframePose {
   Eigen::Isometry3d T_WB = Eigen::Isometry3d::Identity();  // odometry frame, when it was taken
 };
 
+class Tracker;
+
+// A backend's optimizer, for status lines and the viewer (Estimator::optimizer_status).
+struct OptimizerStatus {
+  uint64_t jobs = 0;          // solves asked for
+  uint64_t applied = 0;       // solves whose result was taken
+  uint64_t failures = 0;
+  uint64_t skipped_busy = 0;  // frames that found the optimizer still busy
+  uint64_t resets = 0;        // window restarts
+  int64_t last_solve_ns = 0;
+};
+
 class Estimator {
  public:
   virtual ~Estimator() = default;
@@ -196,6 +208,11 @@ class Estimator {
   // The map itself (nullptr without one): the harness turns on its loop log
   // before the flight and reads the map after its threads stopped.
   virtual MapSystem* map_system() { return nullptr; }
+
+  // For display, read from the thread that feeds: the tracking front end
+  // (nullptr for imu), and the optimizer's counters (false without one).
+  virtual const Tracker* front_end_tracker() const { return nullptr; }
+  virtual bool optimizer_status(OptimizerStatus* /*out*/) const { return false; }
 };
 
 // IMU-only dead reckoning after a static initialisation. Named as what it is:

@@ -88,6 +88,7 @@ class RgbdEstimator final : public Estimator {
   const RgbdCounters& rgbd_counters() const { return rc_; }
   const TrackResult& last_track() const { return tracker_.last(); }
   const Tracker& tracker() const { return tracker_; }
+  const Tracker* front_end_tracker() const override { return &tracker_; }
   const WindowOptimizer* window() const { return window_.get(); }
 
  private:

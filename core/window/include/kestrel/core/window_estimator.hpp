@@ -159,6 +159,16 @@ class WindowEstimator final : public Estimator {
   // Wall time of the newest solve whose result reached the tracking side
   // (0 before the first): a live figure for displays, read on the tracking thread.
   int64_t last_solve_ns() const { return last_solve_ns_; }
+  const Tracker* front_end_tracker() const override { return &front().tracker(); }
+  bool optimizer_status(OptimizerStatus* out) const override {
+    out->jobs = wc_.jobs;
+    out->applied = wc_.applied;
+    out->failures = wc_.failures;
+    out->skipped_busy = wc_.skipped_busy;
+    out->resets = wc_.window_resets;
+    out->last_solve_ns = last_solve_ns_;
+    return true;
+  }
   const FrontendOdometry& front() const { return front_; }
 
  private:

@@ -19,10 +19,6 @@
 #include "kestrel/rt/object_pool.hpp"
 #include "kestrel/rt/spsc_ring.hpp"
 
-namespace kestrel::core {
-class WindowEstimator;
-}
-
 namespace kestrel::viewer {
 
 // Preview sizes: the colour image is subsampled by the smallest integer
@@ -149,7 +145,6 @@ class ViewerFeed {
 
   const core::Estimator& est_;
   const core::Tracker* tracker_;
-  const core::WindowEstimator* window_;
   Rig rig_;
   int64_t min_period_ns_;
   int64_t map_period_ns_;
