@@ -25,6 +25,9 @@ struct TumviFixtureOptions {
   double focal_scale = 1.3;
   std::array<double, 4> k = {0.02, -0.01, 0.004, -0.001};  // equidistant k1..k4
   int max_frames = 1 << 30;
+  // false: the images stay as rendered and the chain carries the source camera's own model (radtan or
+  // none); only the layout is TUM-VI's.
+  bool equidistant = true;
 };
 
 // p_C = T_cam_imu p_I is the inverse of T_BC (body = IMU).
@@ -39,17 +42,17 @@ inline std::array<double, 16> rigid_inverse16(const Mat4d& T) {
 }
 
 inline std::string kalibr_camera(const std::string& name, const CameraIntrinsics& k, double focal_scale,
-                                 const std::array<double, 4>& d, const Mat4d& T_BC) {
+                                 const char* model, const std::array<double, 4>& d, const Mat4d& T_BC) {
   const auto T = rigid_inverse16(T_BC);
   char buf[2048];
   std::snprintf(
       buf, sizeof buf,
       "%s:\n  T_cam_imu:\n  - [%.17g, %.17g, %.17g, %.17g]\n  - [%.17g, %.17g, %.17g, %.17g]\n"
       "  - [%.17g, %.17g, %.17g, %.17g]\n  - [0.0, 0.0, 0.0, 1.0]\n  camera_model: pinhole\n"
-      "  distortion_coeffs: [%.17g, %.17g, %.17g, %.17g]\n  distortion_model: equidistant\n"
+      "  distortion_coeffs: [%.17g, %.17g, %.17g, %.17g]\n  distortion_model: %s\n"
       "  intrinsics: [%.17g, %.17g, %.17g, %.17g]\n  resolution: [%d, %d]\n  rostopic: /%s/image_raw\n",
       name.c_str(), T[0], T[1], T[2], T[3], T[4], T[5], T[6], T[7], T[8], T[9], T[10], T[11], d[0], d[1],
-      d[2], d[3], k.fx * focal_scale, k.fy * focal_scale, k.cx, k.cy, k.width, k.height, name.c_str());
+      d[2], d[3], model, k.fx * focal_scale, k.fy * focal_scale, k.cx, k.cy, k.width, k.height, name.c_str());
   return buf;
 }
 
@@ -64,8 +67,23 @@ inline int write_tumvi_folder(drivers::LogSource& src, const std::string& dir,
   fs::create_directories(dir + "/dso");
   {
     std::ofstream f(dir + "/dso/camchain.yaml");
-    f << kalibr_camera("cam0", rig.rgb, o.focal_scale, o.k, rig.T_BC)
-      << kalibr_camera("cam1", rig.stereo.intrinsics, o.focal_scale, o.k, rig.stereo.T_BC1);
+    // Kalibr's radtan has four coefficients (k1 k2 p1 p2).
+    auto own = [](const CameraIntrinsics& k) {
+      if (k.dist[4] != 0)
+        throw std::runtime_error("write_tumvi_folder: radtan k3 has no place in a Kalibr chain");
+      return std::array<double, 4>{k.dist[0], k.dist[1], k.dist[2], k.dist[3]};
+    };
+    auto model = [](const CameraIntrinsics& k) {
+      return k.distortion == DistortionModel::kRadTan ? "radtan" : "none";
+    };
+    const CameraIntrinsics& k0 = rig.rgb;
+    const CameraIntrinsics& k1 = rig.stereo.intrinsics;
+    if (o.equidistant)
+      f << kalibr_camera("cam0", k0, o.focal_scale, "equidistant", o.k, rig.T_BC)
+        << kalibr_camera("cam1", k1, o.focal_scale, "equidistant", o.k, rig.stereo.T_BC1);
+    else
+      f << kalibr_camera("cam0", k0, 1.0, model(k0), own(k0), rig.T_BC)
+        << kalibr_camera("cam1", k1, 1.0, model(k1), own(k1), rig.stereo.T_BC1);
     std::ofstream g(dir + "/dso/imu_config.yaml");
     g.precision(17);
     g << "accelerometer_noise_density: " << rig.imu.acc_noise_density_mps2_sqrthz
@@ -74,7 +92,8 @@ inline int write_tumvi_folder(drivers::LogSource& src, const std::string& dir,
       << "\ngyroscope_random_walk: " << rig.imu.gyro_random_walk_rad_s2_sqrthz
       << "\nrostopic: /imu0\nupdate_rate: " << rig.imu_rate_hz << "\n";
   }
-  // For each fisheye pixel, where its ray meets the pinhole image.
+  // For each fisheye pixel, where its ray meets the source image, through the source camera's own model
+  // (the simulator's pair carries radial-tangential distortion).
   auto make_map = [&](const CameraIntrinsics& k, cv::Mat& mx, cv::Mat& my) {
     const cv::Matx33d K_fish(k.fx * o.focal_scale, 0, k.cx, 0, k.fy * o.focal_scale, k.cy, 0, 0, 1);
     const cv::Vec4d D(o.k[0], o.k[1], o.k[2], o.k[3]);
@@ -88,8 +107,17 @@ inline int write_tumvi_folder(drivers::LogSource& src, const std::string& dir,
     for (int v = 0; v < k.height; ++v)
       for (int u = 0; u < k.width; ++u) {
         const cv::Vec2d x = und.at<cv::Vec2d>(v * k.width + u);
-        mx.at<float>(v, u) = static_cast<float>(k.fx * x[0] + k.cx);
-        my.at<float>(v, u) = static_cast<float>(k.fy * x[1] + k.cy);
+        double xd = x[0], yd = x[1];
+        if (k.distortion == DistortionModel::kRadTan) {
+          const double r2 = x[0] * x[0] + x[1] * x[1];
+          const double radial = 1 + k.dist[0] * r2 + k.dist[1] * r2 * r2 + k.dist[4] * r2 * r2 * r2;
+          xd = x[0] * radial + 2 * k.dist[2] * x[0] * x[1] + k.dist[3] * (r2 + 2 * x[0] * x[0]);
+          yd = x[1] * radial + k.dist[2] * (r2 + 2 * x[1] * x[1]) + 2 * k.dist[3] * x[0] * x[1];
+        } else if (k.distortion != DistortionModel::kNone) {
+          throw std::runtime_error("write_tumvi_folder: the source camera must be radtan or undistorted");
+        }
+        mx.at<float>(v, u) = static_cast<float>(k.fx * xd + k.cx);
+        my.at<float>(v, u) = static_cast<float>(k.fy * yd + k.cy);
       }
   };
   cv::Mat mx0, my0, mx1, my1;
@@ -130,7 +158,11 @@ inline int write_tumvi_folder(drivers::LogSource& src, const std::string& dir,
         throw std::runtime_error("write_tumvi_folder: unexpected pixel format");
       }
       cv::Mat fish, fish16;
-      cv::remap(grey, fish, is_left ? mx0 : mx1, is_left ? my0 : my1, cv::INTER_LINEAR, cv::BORDER_CONSTANT);
+      if (o.equidistant)
+        cv::remap(grey, fish, is_left ? mx0 : mx1, is_left ? my0 : my1, cv::INTER_LINEAR,
+                  cv::BORDER_CONSTANT);
+      else
+        fish = grey;
       fish.convertTo(fish16, CV_16U, 257.0);  // the full 16-bit range, as TUM-VI's *_16 images
       const std::string name = std::to_string(im.t_ns) + ".png";
       cv::imwrite(m + (is_left ? "/cam0/data/" : "/cam1/data/") + name, fish16);
