@@ -256,22 +256,23 @@ std::map<std::string, double> replay_in_child(const std::string& log, const std:
         g = tools::load_trajectory(gt, &warnings);
       }
       if (!g.empty()) {
-      tools::EvalOptions eo;
-      // A backend whose W is not levelled (rgbd) has a tilt no yaw alignment
-      // takes out: it is scored after SE(3) in both columns.
-      eo.align = r.world_levelled ? tools::Alignment::kPosYaw : tools::Alignment::kSe3;
-      tools::EvalResult e = tools::evaluate(g, r.trajectory, eo);
-      o << "ate_rmse_m " << e.ate_m.rmse << "\n";
-      eo.align = tools::Alignment::kSe3;
-      o << "ate_se3_rmse_m " << tools::evaluate(g, r.trajectory, eo).ate_m.rmse << "\n";
-      if (r.has_map && !r.map_trajectory.empty())
-        o << "map_ate_se3_rmse_m " << tools::evaluate(g, r.map_trajectory, eo).ate_m.rmse << "\n";
-      if (r.has_map && !r.map_final_trajectory.empty())
-        o << "map_final_ate_se3_rmse_m " << tools::evaluate(g, r.map_final_trajectory, eo).ate_m.rmse << "\n";
-      o << "rpe_trans_m_per_s " << e.rpe_trans_m_per_s << "\n";
-      eo.align = tools::Alignment::kSim3;
-      const tools::EvalResult sim3 = tools::evaluate(g, r.trajectory, eo);
-      o << "ate_sim3_rmse_m " << sim3.ate_m.rmse << "\nsim3_scale " << sim3.T_align.scale << "\n";
+        tools::EvalOptions eo;
+        // A backend whose W is not levelled (rgbd) has a tilt no yaw alignment
+        // takes out: it is scored after SE(3) in both columns.
+        eo.align = r.world_levelled ? tools::Alignment::kPosYaw : tools::Alignment::kSe3;
+        tools::EvalResult e = tools::evaluate(g, r.trajectory, eo);
+        o << "ate_rmse_m " << e.ate_m.rmse << "\n";
+        eo.align = tools::Alignment::kSe3;
+        o << "ate_se3_rmse_m " << tools::evaluate(g, r.trajectory, eo).ate_m.rmse << "\n";
+        if (r.has_map && !r.map_trajectory.empty())
+          o << "map_ate_se3_rmse_m " << tools::evaluate(g, r.map_trajectory, eo).ate_m.rmse << "\n";
+        if (r.has_map && !r.map_final_trajectory.empty())
+          o << "map_final_ate_se3_rmse_m " << tools::evaluate(g, r.map_final_trajectory, eo).ate_m.rmse
+            << "\n";
+        o << "rpe_trans_m_per_s " << e.rpe_trans_m_per_s << "\n";
+        eo.align = tools::Alignment::kSim3;
+        const tools::EvalResult sim3 = tools::evaluate(g, r.trajectory, eo);
+        o << "ate_sim3_rmse_m " << sim3.ate_m.rmse << "\nsim3_scale " << sim3.T_align.scale << "\n";
       }
       o << "frames " << frames << "\nposes " << r.trajectory.size() << "\n";
     } catch (const std::exception& ex) {
@@ -555,6 +556,7 @@ struct DatasetRow {
   double frames = kNaN, duration_s = kNaN, pose_share = kNaN, ate_se3_m = kNaN, ate_sim3_m = kNaN;
   double sim3_scale = kNaN, cpu_s_per_s = kNaN, process_cpu_s_per_s = kNaN;
   std::string status = "ok";  // else what went wrong; the other rows still run
+  std::string input_problems;  // the reader's LogProblems, counted, the first named
   std::string traj;           // the TUM trajectory written ("" when none)
 };
 
@@ -569,10 +571,13 @@ int run_dataset_root(const std::string& root, const std::string& out_dir, driver
                      const core::EstimatorConfig& cfg, bool strict) {
   if (!fs::is_directory(root)) throw UsageError("--dataset-root: no such folder: " + root);
   std::vector<DatasetSequence> seqs;
-  if (drivers::is_tumvi_folder(root) || drivers::is_euroc_folder(root))
-    seqs.push_back({fs::path(root).filename().string(), root});
-  else
+  if (drivers::is_tumvi_folder(root) || drivers::is_euroc_folder(root)) {
+    fs::path p = fs::path(root).lexically_normal();
+    if (p.filename().empty()) p = p.parent_path();  // "DIR/"
+    seqs.push_back({p.filename().string(), root});
+  } else {
     find_sequences(root, root, 3, seqs);
+  }
   if (seqs.empty())
     throw std::runtime_error(root +
                              ": no EuRoC or TUM-VI sequence (a folder with mav0/, imu0/data.csv or imu0.csv) "
@@ -595,6 +600,12 @@ int run_dataset_root(const std::string& root, const std::string& out_dir, driver
         continue;
       }
       const bool stereo = src->rig().stereo.present && (folder == nullptr || folder->right_count() > 0);
+      // What the reader skipped or repaired stays visible beside the figures it affects.
+      if (!src->problems().empty()) {
+        const drivers::LogProblem& p = src->problems().front();
+        row.input_problems = std::to_string(src->problems().size()) +
+                             " input problem(s), the first: " + p.kind + " at " + p.where;
+      }
       row.mode = stereo ? "stereo-inertial" : "mono-inertial";
     } catch (const std::exception& e) {
       row.status = std::string("FAILED: ") + e.what();
@@ -618,6 +629,7 @@ int run_dataset_root(const std::string& root, const std::string& out_dir, driver
       row.status = "FAILED: " + error;
     else if (!gt_note.empty())
       row.status = "no ground truth: " + gt_note;
+    if (!row.input_problems.empty()) row.status += "; " + row.input_problems;
     if (!fs::exists(row.traj)) row.traj.clear();
     rows.push_back(row);
   }
