@@ -8,6 +8,7 @@
 
 #include "kestrel/drivers/folder_logs.hpp"
 #include "kestrel/drivers/rig_yaml.hpp"
+#include "asl_tables.hpp"
 #include "dataset_common.hpp"
 #include "text_log.hpp"
 
@@ -85,6 +86,11 @@ void imu_from_sensor(const std::string& path, Rig& rig) {
   if (y.acc_noise_density_mps2_sqrthz) rig.imu.acc_noise_density_mps2_sqrthz = *y.acc_noise_density_mps2_sqrthz;
   if (y.acc_random_walk_mps3_sqrthz) rig.imu.acc_random_walk_mps3_sqrthz = *y.acc_random_walk_mps3_sqrthz;
 }
+
+}  // namespace
+
+// The ASL tables, shared with the TUM-VI reader (asl_tables.hpp).
+namespace asl {
 
 std::string where(const std::string& file, size_t line) { return file + ":" + std::to_string(line); }
 
@@ -217,6 +223,13 @@ void read_image_csv(const std::string& csv, const std::string& data_dir, StreamL
                                             " skipped");
 }
 
+}  // namespace asl
+
+namespace {
+
+using asl::data_line;
+using asl::where;
+
 // kestrel_events.csv (written by export_euroc): t_ns,code,text (text may hold commas).
 void read_events_csv(const std::string& path, StreamLogSource& s) {
   std::vector<std::string> lines;
@@ -330,7 +343,7 @@ EurocReader::EurocReader(const std::string& path_in) {
   }
 
   imu_file_ = flat_ ? root + "/imu0.csv" : root + "/imu0/data.csv";
-  read_imu_csv(imu_file_, s);
+  asl::read_imu_csv(imu_file_, s);
 
   if (flat_) {
     // The official estimate carries v_WB (and biases); the 20 Hz body file exists for every sequence.
@@ -340,18 +353,19 @@ EurocReader::EurocReader(const std::string& path_in) {
         break;
       }
   } else {
-    if (text::is_file(root + "/cam0/data.csv")) read_image_csv(root + "/cam0/data.csv", root + "/cam0/data", s, s.rgb_);
+    if (text::is_file(root + "/cam0/data.csv"))
+      asl::read_image_csv(root + "/cam0/data.csv", root + "/cam0/data", s, s.rgb_);
     else s.problem(root + "/cam0/data.csv", "missing-file", "no cam0 table; no images replayed");
     // Only with a stereo rig (cam1/sensor.yaml or the rig file's stereo:): uncalibrated images are no use.
     if (s.rig_.stereo.present && text::is_file(root + "/cam1/data.csv"))
-      read_image_csv(root + "/cam1/data.csv", root + "/cam1/data", s, s.right_);
+      asl::read_image_csv(root + "/cam1/data.csv", root + "/cam1/data", s, s.right_);
     if (text::is_file(root + "/depth0/data.csv"))
-      read_image_csv(root + "/depth0/data.csv", root + "/depth0/data", s, s.depth_);
+      asl::read_image_csv(root + "/depth0/data.csv", root + "/depth0/data", s, s.depth_);
     if (text::is_file(root + "/state_groundtruth_estimate0/data.csv"))
       gt_file_ = root + "/state_groundtruth_estimate0/data.csv";
     if (text::is_file(root + "/kestrel_events.csv")) read_events_csv(root + "/kestrel_events.csv", s);
   }
-  if (!gt_file_.empty()) read_gt_csv(gt_file_, s);
+  if (!gt_file_.empty()) asl::read_gt_csv(gt_file_, s);
   s.order_streams(imu_file_, gt_file_);
 }
 

@@ -64,11 +64,12 @@ LogFormat parse_log_format(const std::string& name) {
   if (name == "rosbag") return LogFormat::kRosbag;
   if (name == "7scenes") return LogFormat::kSevenScenes;
   if (name == "rosbag2") return LogFormat::kRosbag2;
+  if (name == "tumvi") return LogFormat::kTumvi;
   throw std::runtime_error("unknown log format \"" + name + "\" (expected " + log_format_names() + ")");
 }
 
 const char* log_format_names() {
-  return "auto, klog, euroc, tum, eth3d, openloris, rosbag, 7scenes, rosbag2";
+  return "auto, klog, euroc, tum, eth3d, openloris, rosbag, 7scenes, rosbag2, tumvi";
 }
 
 std::unique_ptr<LogSource> open_log(const std::string& path, LogFormat format) {
@@ -91,6 +92,7 @@ std::unique_ptr<LogSource> open_log(const std::string& path, const LogOpenOption
     case LogFormat::kSevenScenes: return std::make_unique<SevenScenesReader>(path, r, seven_scenes(opt));
     case LogFormat::kRosbag2:
       return std::make_unique<Rosbag2Reader>(path, rosbag2_of(opt), r);
+    case LogFormat::kTumvi: return std::make_unique<TumviReader>(path);
     case LogFormat::kAuto: break;
   }
   if (text::is_file(path)) {
@@ -104,6 +106,8 @@ std::unique_ptr<LogSource> open_log(const std::string& path, const LogOpenOption
   }
   if (text::is_dir(path)) {
     if (is_rosbag2(path)) return std::make_unique<Rosbag2Reader>(path, rosbag2_of(opt), r);
+    // TUM-VI before EuRoC: both have mav0/.
+    if (is_tumvi_folder(path)) return std::make_unique<TumviReader>(path);
     if (is_euroc_folder(path)) return std::make_unique<EurocReader>(path);
     // ETH3D before TUM: both have rgb.txt.
     if (is_eth3d_folder(path)) return std::make_unique<Eth3dReader>(path, r);

@@ -65,6 +65,10 @@ bool StreamLogSource::load_image(const ImageEntry& e, RecordType type, LogImage&
   } else if (m.type() == CV_8UC1) {
     out = m;
     fmt = PixelFormat::kGray8;
+  } else if (m.type() == CV_16UC1) {
+    // 16-bit grey (TUM-VI's *_16 exports): the top 8 bits, as the tracker reads 8-bit grey.
+    m.convertTo(out, CV_8U, 1.0 / 256.0);
+    fmt = PixelFormat::kGray8;
   } else if (m.type() == CV_8UC3) {
     cv::cvtColor(m, out, cv::COLOR_BGR2RGB);
     fmt = PixelFormat::kRgb8;
@@ -72,7 +76,9 @@ bool StreamLogSource::load_image(const ImageEntry& e, RecordType type, LogImage&
     cv::cvtColor(m, out, cv::COLOR_BGRA2RGB);
     fmt = PixelFormat::kRgb8;
   } else {
-    if (report) problem(e.where, "bad-image", e.path + ": expected an 8-bit gray, RGB or RGBA image");
+    if (report)
+      problem(e.where, "bad-image",
+              e.path + ": expected an 8-bit gray, RGB or RGBA image or a 16-bit gray one");
     return false;
   }
   img.t_ns = e.t_ns;

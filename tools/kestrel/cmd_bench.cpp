@@ -7,6 +7,7 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cstdio>
 #include <cmath>
 #include <cstring>
@@ -19,6 +20,8 @@
 #include <utility>
 
 #include "kestrel/core/estimator_factory.hpp"
+#include "kestrel/drivers/folder_logs.hpp"
+#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/tools/estimator_config_yaml.hpp"
 #include "kestrel/commands.hpp"
 #include "kestrel/replay_runner.hpp"
@@ -172,7 +175,8 @@ std::vector<BenchCase> discover_cases(const std::string& data_dir) {
 std::map<std::string, double> replay_in_child(const std::string& log, const std::string& gt,
                                               drivers::ReplayPace pace, const core::EstimatorConfig& config,
                                               const std::string& traj_out,
-                                              std::string& estimator, std::string& error) {
+                                              std::string& estimator, std::string& error,
+                                              std::string* gt_note = nullptr) {
   int fds[2];
   if (pipe(fds) != 0) throw std::runtime_error("pipe failed");
   std::fflush(nullptr);
@@ -240,20 +244,37 @@ std::map<std::string, double> replay_in_child(const std::string& log, const std:
       const double frames = static_cast<double>(r.replay.frames_pushed);
       if (frames > 0) o << "pose_share " << std::min(1.0, static_cast<double>(r.trajectory.size()) / frames) << "\n";
       std::vector<std::string> warnings;
-      tools::Trajectory g = tools::load_trajectory(gt, &warnings);
-      tools::EvalOptions eo;
-      // A backend whose W is not levelled (rgbd) has a tilt no yaw alignment
-      // takes out: it is scored after SE(3) in both columns.
-      eo.align = r.world_levelled ? tools::Alignment::kPosYaw : tools::Alignment::kSe3;
-      tools::EvalResult e = tools::evaluate(g, r.trajectory, eo);
-      o << "ate_rmse_m " << e.ate_m.rmse << "\n";
-      eo.align = tools::Alignment::kSe3;
-      o << "ate_se3_rmse_m " << tools::evaluate(g, r.trajectory, eo).ate_m.rmse << "\n";
-      if (r.has_map && !r.map_trajectory.empty())
-        o << "map_ate_se3_rmse_m " << tools::evaluate(g, r.map_trajectory, eo).ate_m.rmse << "\n";
-      if (r.has_map && !r.map_final_trajectory.empty())
-        o << "map_final_ate_se3_rmse_m " << tools::evaluate(g, r.map_final_trajectory, eo).ate_m.rmse << "\n";
-      o << "rpe_trans_m_per_s " << e.rpe_trans_m_per_s << "\n";
+      tools::Trajectory g;
+      if (gt_note != nullptr) {
+        // --dataset-root: a sequence without ground truth is still run and its trajectory written.
+        try {
+          g = tools::load_trajectory(gt, &warnings);
+        } catch (const std::exception& ex) {
+          o << "gt_note " << ex.what() << "\n";
+        }
+      } else {
+        g = tools::load_trajectory(gt, &warnings);
+      }
+      if (!g.empty()) {
+        tools::EvalOptions eo;
+        // A backend whose W is not levelled (rgbd) has a tilt no yaw alignment
+        // takes out: it is scored after SE(3) in both columns.
+        eo.align = r.world_levelled ? tools::Alignment::kPosYaw : tools::Alignment::kSe3;
+        tools::EvalResult e = tools::evaluate(g, r.trajectory, eo);
+        o << "ate_rmse_m " << e.ate_m.rmse << "\n";
+        eo.align = tools::Alignment::kSe3;
+        o << "ate_se3_rmse_m " << tools::evaluate(g, r.trajectory, eo).ate_m.rmse << "\n";
+        if (r.has_map && !r.map_trajectory.empty())
+          o << "map_ate_se3_rmse_m " << tools::evaluate(g, r.map_trajectory, eo).ate_m.rmse << "\n";
+        if (r.has_map && !r.map_final_trajectory.empty())
+          o << "map_final_ate_se3_rmse_m " << tools::evaluate(g, r.map_final_trajectory, eo).ate_m.rmse
+            << "\n";
+        o << "rpe_trans_m_per_s " << e.rpe_trans_m_per_s << "\n";
+        eo.align = tools::Alignment::kSim3;
+        const tools::EvalResult sim3 = tools::evaluate(g, r.trajectory, eo);
+        o << "ate_sim3_rmse_m " << sim3.ate_m.rmse << "\nsim3_scale " << sim3.T_align.scale << "\n";
+      }
+      o << "frames " << frames << "\nposes " << r.trajectory.size() << "\n";
     } catch (const std::exception& ex) {
       o << "error " << ex.what() << "\n";
     }
@@ -288,6 +309,8 @@ std::map<std::string, double> replay_in_child(const std::string& log, const std:
     const std::string k = line.substr(0, sp), v = line.substr(sp + 1);
     if (k == "estimator") {
       estimator = v;
+    } else if (k == "gt_note") {
+      if (gt_note != nullptr) *gt_note = v;
     } else if (k == "error") {
       error = v;
     } else {
@@ -500,6 +523,159 @@ std::string run_under_callgrind(const std::vector<std::string>& replay_args, con
   return {};
 }
 
+// ---- --dataset-root -----------------------------------------------------------
+// The standard table of the VIO papers from a user's own copy of EuRoC or
+// TUM-VI (docs/stereo.md): every sequence under the root, whole length, the
+// ATE after SE(3) and after Sim(3) per sequence, the share of frames posed and
+// the CPU per second of flight; evo-compatible TUM trajectories beside it.
+
+struct DatasetSequence {
+  std::string name;  // path under the root ("V1_01_easy", "tumvi/dataset-room1_512_16")
+  std::string path;
+};
+
+// A sequence is a folder the EuRoC or TUM-VI reader takes; its insides are not searched further.
+void find_sequences(const fs::path& dir, const fs::path& root, int depth, std::vector<DatasetSequence>& out) {
+  std::vector<fs::path> children;
+  std::error_code ec;
+  for (const auto& e : fs::directory_iterator(dir, ec))
+    if (e.is_directory(ec)) children.push_back(e.path());
+  std::sort(children.begin(), children.end());
+  for (const fs::path& c : children) {
+    const std::string p = c.string();
+    if (drivers::is_tumvi_folder(p) || drivers::is_euroc_folder(p))
+      out.push_back({fs::relative(c, root).string(), p});
+    else if (depth > 1)
+      find_sequences(c, root, depth - 1, out);
+  }
+}
+
+struct DatasetRow {
+  DatasetSequence seq;
+  std::string format = "-", mode = "-";
+  double frames = kNaN, duration_s = kNaN, pose_share = kNaN, ate_se3_m = kNaN, ate_sim3_m = kNaN;
+  double sim3_scale = kNaN, cpu_s_per_s = kNaN, process_cpu_s_per_s = kNaN;
+  std::string status = "ok";  // else what went wrong; the other rows still run
+  std::string input_problems;  // the reader's LogProblems, counted, the first named
+  std::string traj;           // the TUM trajectory written ("" when none)
+};
+
+// CSV fields are ours except the status text, which may hold commas or quotes.
+std::string csv_quoted(const std::string& v) {
+  std::string o = "\"";
+  for (char c : v) o += c == '"' ? std::string("\"\"") : std::string(1, c);
+  return o + "\"";
+}
+
+int run_dataset_root(const std::string& root, const std::string& out_dir, drivers::ReplayPace pace,
+                     const core::EstimatorConfig& cfg, bool strict) {
+  if (!fs::is_directory(root)) throw UsageError("--dataset-root: no such folder: " + root);
+  std::vector<DatasetSequence> seqs;
+  if (drivers::is_tumvi_folder(root) || drivers::is_euroc_folder(root)) {
+    fs::path p = fs::path(root).lexically_normal();
+    if (p.filename().empty()) p = p.parent_path();  // "DIR/"
+    seqs.push_back({p.filename().string(), root});
+  } else {
+    find_sequences(root, root, 3, seqs);
+  }
+  if (seqs.empty())
+    throw std::runtime_error(root +
+                             ": no EuRoC or TUM-VI sequence (a folder with mav0/, imu0/data.csv or imu0.csv) "
+                             "up to three levels down");
+  fs::create_directories(out_dir);
+  std::vector<DatasetRow> rows;
+  for (const DatasetSequence& sq : seqs) {
+    DatasetRow row;
+    row.seq = sq;
+    std::fprintf(stderr, "bench: %s ...\n", sq.name.c_str());
+    // Opened here first (the tables only; images stay on disk) so a sequence
+    // that cannot be replayed is named in its row rather than lost in a child.
+    try {
+      const auto src = drivers::open_log(sq.path);
+      row.format = src->format_name();
+      const auto* folder = dynamic_cast<const drivers::FolderLogSource*>(src.get());
+      if (folder != nullptr && folder->rgb_count() == 0) {
+        row.status = "FAILED: no cam0 images (IMU and ground truth only?)";
+        rows.push_back(row);
+        continue;
+      }
+      const bool stereo = src->rig().stereo.present && (folder == nullptr || folder->right_count() > 0);
+      // What the reader skipped or repaired stays visible beside the figures it affects.
+      if (!src->problems().empty()) {
+        const drivers::LogProblem& p = src->problems().front();
+        row.input_problems = std::to_string(src->problems().size()) +
+                             " input problem(s), the first: " + p.kind + " at " + p.where;
+      }
+      row.mode = stereo ? "stereo-inertial" : "mono-inertial";
+    } catch (const std::exception& e) {
+      row.status = std::string("FAILED: ") + e.what();
+      rows.push_back(row);
+      continue;
+    }
+    std::string name = sq.name;
+    std::replace(name.begin(), name.end(), '/', '_');
+    row.traj = (fs::path(out_dir) / (name + ".tum")).string();
+    std::string est, error, gt_note;
+    const auto m = replay_in_child(sq.path, sq.path, pace, cfg, row.traj, est, error, &gt_note);
+    row.frames = get(m, "frames");
+    row.duration_s = get(m, "duration_s");
+    row.pose_share = get(m, "pose_share");
+    row.ate_se3_m = get(m, "ate_se3_rmse_m");
+    row.ate_sim3_m = get(m, "ate_sim3_rmse_m");
+    row.sim3_scale = get(m, "sim3_scale");
+    row.cpu_s_per_s = get(m, "cpu_s_per_s");
+    row.process_cpu_s_per_s = get(m, "cpu_per_s");
+    if (!error.empty())
+      row.status = "FAILED: " + error;
+    else if (!gt_note.empty())
+      row.status = "no ground truth: " + gt_note;
+    if (!row.input_problems.empty()) row.status += "; " + row.input_problems;
+    if (!fs::exists(row.traj)) row.traj.clear();
+    rows.push_back(row);
+  }
+
+  const std::string md_path = (fs::path(out_dir) / "table.md").string();
+  const std::string csv_path = (fs::path(out_dir) / "table.csv").string();
+  std::ostringstream md;
+  md << "| sequence | format | mode | frames | length s | posed % | ATE SE(3) m | ATE Sim(3) m | Sim(3) "
+        "scale | "
+        "estimator CPU s/s | process CPU s/s | status |\n"
+     << "|---|---|---|---|---|---|---|---|---|---|---|---|\n";
+  std::ostringstream csv;
+  csv << "sequence,format,mode,frames,duration_s,pose_share,ate_se3_rmse_m,ate_sim3_rmse_m,sim3_scale,cpu_s_"
+         "per_s,"
+         "process_cpu_s_per_s,trajectory,status\n";
+  int failed = 0;
+  auto cell = [](double v, const char* f) { return fmt(v, f); };
+  for (const DatasetRow& r : rows) {
+    if (r.status.rfind("FAILED", 0) == 0) ++failed;
+    std::string status = r.status;
+    std::replace(status.begin(), status.end(), '|', '/');
+    std::replace(status.begin(), status.end(), '\n', ' ');
+    md << "| " << r.seq.name << " | " << r.format << " | " << r.mode << " | " << cell(r.frames, "%.0f")
+       << " | " << cell(r.duration_s, "%.1f") << " | " << cell(100.0 * r.pose_share, "%.1f") << " | "
+       << cell(r.ate_se3_m, "%.4f") << " | " << cell(r.ate_sim3_m, "%.4f") << " | "
+       << cell(r.sim3_scale, "%.3f") << " | " << cell(r.cpu_s_per_s, "%.3f") << " | "
+       << cell(r.process_cpu_s_per_s, "%.3f") << " | " << status << " |\n";
+    auto num = [](double v) { return std::isfinite(v) ? fmt(v, "%.6g") : std::string(); };
+    csv << csv_quoted(r.seq.name) << ',' << r.format << ',' << r.mode << ',' << num(r.frames) << ','
+        << num(r.duration_s) << ',' << num(r.pose_share) << ',' << num(r.ate_se3_m) << ','
+        << num(r.ate_sim3_m) << ',' << num(r.sim3_scale) << ',' << num(r.cpu_s_per_s) << ','
+        << num(r.process_cpu_s_per_s) << ',' << csv_quoted(r.traj) << ',' << csv_quoted(r.status) << '\n';
+  }
+  for (const auto& [path, text] : {std::pair<const std::string&, std::string>{md_path, md.str()},
+                                   std::pair<const std::string&, std::string>{csv_path, csv.str()}}) {
+    std::ofstream f(path);
+    if (!(f << text)) throw std::runtime_error("cannot write " + path);
+  }
+  std::printf("%s\ntable: %s, %s; trajectories (TUM: t[s] x y z qx qy qz qw, body in W): %s/<sequence>.tum\n",
+              md.str().c_str(), md_path.c_str(), csv_path.c_str(), out_dir.c_str());
+  if (failed > 0)
+    std::fprintf(stderr, "bench: %d of %zu sequence(s) FAILED (named in the table)\n", failed, rows.size());
+  if (failed == static_cast<int>(rows.size())) return 1;
+  return strict && failed > 0 ? 2 : 0;
+}
+
 bool selected(const std::string& name, const std::vector<std::string>& only) {
   if (only.empty()) return true;
   for (const auto& o : only)
@@ -529,6 +705,8 @@ Subcommand add_bench_command(CLI::App& parent) {
     CLI::Option* duration_opt = nullptr;
     CLI::Option* mapping_opt = nullptr;
     std::string cpu_budget_log;
+    std::string dataset_root;
+    std::string out_dir;
   };
   auto args = std::make_shared<Args>();
   CLI::App* app = parent.add_subcommand("bench", "run the benchmark suite and print one table");
@@ -569,8 +747,16 @@ Subcommand add_bench_command(CLI::App& parent) {
                 "--duration default 4 s here), with estimates for ARM cores (docs/embedded.md)");
   app->add_option("--cpu-budget-log", args->cpu_budget_log,
                   "--cpu-budget on this log instead of the simulated flight (it needs ground truth)");
-  app->add_flag("--strict", args->strict,
-                "exit non-zero when a row FAILs (ATE over 1 m or pose share under 99 %) or a case fails to run");
+  app->add_option(
+      "--dataset-root", args->dataset_root,
+      "instead of the cases: every EuRoC or TUM-VI sequence found under this folder, whole length, "
+      "the first --estimator (stereo-inertial where the sequence has cam1); writes table.md, "
+      "table.csv and <sequence>.tum into --out (docs/stereo.md)");
+  app->add_option("--out", args->out_dir,
+                  "--dataset-root: where the table and trajectories go (default: <workdir>/datasets)");
+  app->add_flag(
+      "--strict", args->strict,
+      "exit non-zero when a row FAILs (ATE over 1 m or pose share under 99 %) or a case fails to run");
 
   Subcommand cmd;
   cmd.app = app;
@@ -595,7 +781,16 @@ Subcommand add_bench_command(CLI::App& parent) {
       if (!core::estimator_known(e))
         throw UsageError("unknown --estimator '" + e + "' (expected one of: " + core::estimator_names() + ")");
     for (const std::string& v : args->lonsc_variants)
-      if (v != "tuned" && v != "paper") throw UsageError("unknown --lonsc-variant '" + v + "' (expected tuned, paper)");
+      if (v != "tuned" && v != "paper")
+        throw UsageError("unknown --lonsc-variant '" + v + "' (expected tuned, paper)");
+    if (!args->dataset_root.empty()) {
+      const std::string backend = args->estimators.front();
+      core::EstimatorConfig cfg = tools::load_estimator_config(args->config, backend);
+      tools::apply_map_switches(cfg, backend.rfind("window", 0) == 0 ? args->mapping.front() : "", "");
+      const std::string out =
+          args->out_dir.empty() ? (fs::path(args->workdir) / "datasets").string() : args->out_dir;
+      return run_dataset_root(args->dataset_root, out, pace, cfg, args->strict);
+    }
     if (args->cpu_budget) {
       const std::string backend = args->estimators.front();
       const std::string mapping = args->mapping.front();

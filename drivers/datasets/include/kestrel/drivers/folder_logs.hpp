@@ -59,6 +59,26 @@ class EurocReader final : public FolderLogSource {
   bool flat_ = false;
 };
 
+// TUM-VI (the "dataset-<name>_512_16" export): mav0/cam0, cam1, imu0 as in
+// EuRoC's ASL layout (16-bit grey PNGs become 8-bit grey), the Kalibr chain
+// dso/camchain.yaml (equidistant; cam1 makes it a stereo rig), the IMU noise of
+// dso/imu_config.yaml, ground truth from mav0/mocap0/data.csv. A missing
+// calibration, right image or IMU file is reported and survived (monocular /
+// default figures); right images whose stamp has no left image are named.
+// Throws std::runtime_error without mav0/ or an IMU table, or when the chain
+// is malformed (naming the file and the field).
+class TumviReader final : public FolderLogSource {
+ public:
+  // A right image pairs with the left one within this (the cameras are triggered together).
+  static constexpr int64_t kStereoPairToleranceNs = 1'000'000;
+  explicit TumviReader(const std::string& path);
+  std::string format_name() const override { return "tumvi"; }
+  const std::string& camchain_file() const { return camchain_file_; }
+
+ private:
+  std::string camchain_file_;
+};
+
 // TUM RGB-D: rgb.txt (required), depth.txt, groundtruth.txt, accelerometer.txt.
 class TumReader final : public FolderLogSource {
  public:
@@ -99,5 +119,7 @@ EurocSensorYaml read_euroc_sensor_yaml(const std::string& path);
 // True when `path` looks like an EuRoC / a TUM folder (used by open_log).
 bool is_euroc_folder(const std::string& path);
 bool is_tum_folder(const std::string& path);
+// A folder with mav0/ and dso/camchain.yaml or mav0/mocap0/ (EuRoC has neither).
+bool is_tumvi_folder(const std::string& path);
 
 }  // namespace kestrel::drivers

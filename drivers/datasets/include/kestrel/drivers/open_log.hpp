@@ -10,7 +10,9 @@
 
 namespace kestrel::drivers {
 
-enum class LogFormat { kAuto, kKlog, kEuroc, kTum, kEth3d, kOpenLoris, kRosbag, kSevenScenes, kRosbag2 };
+enum class LogFormat {
+  kAuto, kKlog, kEuroc, kTum, kEth3d, kOpenLoris, kRosbag, kSevenScenes, kRosbag2, kTumvi
+};
 
 // How to open a log beyond its path (docs/datasets.md).
 struct LogOpenOptions {
@@ -30,7 +32,8 @@ struct LogOpenOptions {
 };
 
 // Opens `path` as `format` (kAuto: a .klog file, a ROS 1 bag, a rosbag2
-// folder (metadata.yaml) or .mcap file, an EuRoC ASL
+// folder (metadata.yaml) or .mcap file, a TUM-VI folder (mav0/ with
+// dso/camchain.yaml or mav0/mocap0/), an EuRoC ASL
 // folder with mav0/ or imu0/, an ETH3D folder (rgb.txt + calibration.txt,
 // associated.txt or imu.txt), an OpenLORIS folder (color.txt,
 // d400_accelerometer.txt, or sensors.yaml + trans_matrix.yaml), a 7-Scenes
@@ -40,9 +43,10 @@ struct LogOpenOptions {
 std::unique_ptr<LogSource> open_log(const std::string& path, LogFormat format = LogFormat::kAuto);
 std::unique_ptr<LogSource> open_log(const std::string& path, const LogOpenOptions& options);
 
-// "auto", "klog", "euroc", "tum", "eth3d", "openloris", "rosbag", "7scenes", "rosbag2"; throws on unknown
+// "auto", "klog", "euroc", "tum", "eth3d", "openloris", "rosbag", "7scenes", "rosbag2", "tumvi"; throws on
+// unknown
 // names.
 LogFormat parse_log_format(const std::string& name);
-const char* log_format_names();  // "auto, klog, euroc, tum, eth3d, openloris, rosbag, 7scenes, rosbag2"
+const char* log_format_names();  // "auto, klog, ..., rosbag2, tumvi"
 
 }  // namespace kestrel::drivers
