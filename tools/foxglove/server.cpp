@@ -80,15 +80,26 @@ struct Server::Impl {
   }
   void on_close(Hdl h) {
     std::lock_guard<std::mutex> l(mutex);
+    // websocketpp closes a connection whose frames break RFC 6455 or exceed
+    // the message size; the close code says which.
+    websocketpp::lib::error_code ec;
+    const auto con = ws.get_con_from_hdl(h, ec);
+    if (!ec) {
+      const auto code = con->get_local_close_code();
+      if (code == websocketpp::close::status::protocol_error ||
+          code == websocketpp::close::status::message_too_big ||
+          code == websocketpp::close::status::invalid_payload)
+        ++stats.protocol_errors;
+    }
     clients.erase(h);
   }
   void on_fail(Hdl h) {
     std::lock_guard<std::mutex> l(mutex);
-    const auto con = ws.get_con_from_hdl(h);
-    const auto code = con->get_ec();
-    if (code == websocketpp::error::make_error_code(websocketpp::error::rejected))
-      return;  // counted in validate
-    ++stats.protocol_errors;
+    websocketpp::lib::error_code ec;
+    const auto con = ws.get_con_from_hdl(h, ec);
+    // A refused subprotocol is counted where it is refused (on_validate).
+    if (!ec && con->get_ec() == websocketpp::error::make_error_code(websocketpp::error::rejected)) return;
+    ++stats.handshakes_failed;
   }
   bool on_validate(Hdl h) {
     const auto con = ws.get_con_from_hdl(h);
@@ -277,11 +288,12 @@ std::string stats_summary(const ServerStats& s) {
                     std::to_string(s.messages_sent) + " messages sent (" +
                     std::to_string(s.bytes_sent / 1000) + " kB), dropped " + std::to_string(s.dropped_queue) +
                     " (queue full) + " + std::to_string(s.dropped_slow_client) + " (slow client)";
-  if (s.clients_refused + s.bad_handshakes + s.protocol_errors + s.bad_messages > 0)
+  if (s.clients_refused + s.bad_handshakes + s.handshakes_failed + s.protocol_errors + s.bad_messages > 0)
     out += "; refused " + std::to_string(s.clients_refused) + " client(s), " +
-           std::to_string(s.bad_handshakes) + " bad handshake(s), " + std::to_string(s.protocol_errors) +
-           " protocol error(s), " + std::to_string(s.bad_messages) + " bad message(s)" +
-           (s.last_error.empty() ? "" : " (last: " + s.last_error + ")");
+           std::to_string(s.bad_handshakes) + " handshake(s) without the subprotocol, " +
+           std::to_string(s.handshakes_failed) + " failed handshake(s), " +
+           std::to_string(s.protocol_errors) + " protocol error(s), " + std::to_string(s.bad_messages) +
+           " bad message(s)" + (s.last_error.empty() ? "" : " (last: " + s.last_error + ")");
   return out + "\n";
 }
 

@@ -1279,6 +1279,10 @@ std::string replay_metrics_json(const ReplayReport& r) {
                            {"applied", t.applied},
                            {"error", t.error}});
   j["threads"] = std::move(threads);
+  if (r.map_clouds + r.map_clouds_dropped + r.map_keyframes_dropped > 0)
+    j["ros2_map_topics"] = Json{{"clouds", r.map_clouds},
+                                {"clouds_dropped", r.map_clouds_dropped},
+                                {"keyframes_dropped", r.map_keyframes_dropped}};
   if (r.view) {
     const viewer::ServerStats& v = r.viewer;
     const bool streamed = v.streaming_s > 0;
@@ -1480,6 +1484,14 @@ std::string replay_summary(const ReplayReport& r) {
     }
   }
   if (r.view) s += viewer::stats_summary(r.viewer);
+  if (r.map_clouds + r.map_clouds_dropped + r.map_keyframes_dropped > 0) {
+    std::snprintf(buf, sizeof buf,
+                  "ros2 map topics: %llu point clouds; dropped %llu clouds, %llu keyframes (output behind)\n",
+                  static_cast<unsigned long long>(r.map_clouds),
+                  static_cast<unsigned long long>(r.map_clouds_dropped),
+                  static_cast<unsigned long long>(r.map_keyframes_dropped));
+    s += buf;
+  }
   if (r.dense) {
     const dense::DenseStats& d = r.dense_stats;
     std::snprintf(

@@ -31,9 +31,10 @@ void parse_endpoint(const std::string& text, ServerOptions& opt);
 
 struct ServerStats {
   uint64_t clients = 0, clients_refused = 0;
-  uint64_t bad_handshakes = 0;   // no foxglove.websocket.v1 subprotocol offered
-  uint64_t protocol_errors = 0;  // malformed WebSocket frames (closed by websocketpp)
-  uint64_t bad_messages = 0;     // client messages refused by parse_client_message, or binary
+  uint64_t bad_handshakes = 0;     // no foxglove.websocket.v1 subprotocol offered
+  uint64_t handshakes_failed = 0;  // not HTTP, timed out, closed early
+  uint64_t protocol_errors = 0;    // malformed WebSocket frames (or over the size; closed)
+  uint64_t bad_messages = 0;       // client messages refused by parse_client_message, or binary
   uint64_t subscriptions = 0, unsubscriptions = 0;
   uint64_t published = 0;            // messages handed to publish()
   uint64_t dropped_queue = 0;        // publish() found the queue full
