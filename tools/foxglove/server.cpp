@@ -54,6 +54,7 @@ struct Server::Impl {
   std::deque<Pending> queue;
   size_t queue_bytes = 0;
   bool flush_posted = false;
+  bool stopping = false;
   ServerStats stats;
 
   // Server thread only.
@@ -99,7 +100,10 @@ struct Server::Impl {
     const auto con = ws.get_con_from_hdl(h, ec);
     // A refused subprotocol is counted where it is refused (on_validate).
     if (!ec && con->get_ec() == websocketpp::error::make_error_code(websocketpp::error::rejected)) return;
+    // Stopping cancels the accept websocketpp keeps pending: not a client's failure.
+    if (stopping) return;
     ++stats.handshakes_failed;
+    if (!ec) stats.last_error = "handshake failed: " + con->get_ec().message();
   }
   bool on_validate(Hdl h) {
     const auto con = ws.get_con_from_hdl(h);
@@ -229,6 +233,10 @@ void Server::stop() {
   m.started = false;
   boost::asio::post(m.ws.get_io_service(), [&m] {
     m.flush();
+    {
+      std::lock_guard<std::mutex> l(m.mutex);
+      m.stopping = true;
+    }
     websocketpp::lib::error_code ec;
     m.ws.stop_listening(ec);
     std::vector<Hdl> hs;
