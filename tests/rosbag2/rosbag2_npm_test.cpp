@@ -442,5 +442,41 @@ TEST(Rosbag2Cli, FoxgloveLiveWithTheNpmClient) {
   EXPECT_NE(kout.find("1 bad message(s)"), std::string::npos) << kout;
 }
 
+// `kestrel run` (live sensor threads playing a log): --mcap-out and --foxglove side by side, and the config's
+// ros2: section (map_points_rate_hz: 0 writes no point clouds; a rate out of range is refused by name).
+TEST(Rosbag2Cli, RunWithMcapOutFoxgloveAndTheRos2Section) {
+  REQUIRE_NODE();
+  const std::string d = dir() + "/run";
+  fs::create_directories(d);
+  CmdResult r =
+      run_kestrel("sim --scenario figure8 --duration 4 --width 160 --height 120 --out " + d + "/src.klog");
+  ASSERT_EQ(r.code, 0) << r.out;
+  const std::string sensors =
+      "drivers:\n"
+      "  camera: {type: log, width_px: 160, height_px: 120, rate_hz: 30}\n"
+      "  imu: {type: log}\n"
+      "  log: {path: src.klog}\n"
+      "estimator:\n"
+      "  backend: window\n";
+  std::ofstream(d + "/bad.yaml") << sensors << "ros2:\n  map_points_rate_hz: 99\n";
+  r = run_kestrel("run --config " + d + "/bad.yaml --duration 1 --mcap-out " + d + "/x.mcap");
+  EXPECT_NE(r.code, 0);
+  EXPECT_NE(r.out.find("ros2.map_points_rate_hz: expected a number in [0, 30]"), std::string::npos) << r.out;
+
+  std::ofstream(d + "/live.yaml") << sensors << "ros2:\n  map_points_rate_hz: 0\n";
+  const std::string mcap = d + "/run.mcap";
+  r = run_kestrel("run --config " + d + "/live.yaml --duration 3.5 --mcap-out " + mcap +
+                  " --foxglove 127.0.0.1:0");
+  ASSERT_EQ(r.code, 0) << r.out;
+  EXPECT_NE(r.out.find("foxglove: ws://127.0.0.1:"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("foxglove: 0 client(s), 0 messages sent"), std::string::npos) << r.out;
+  const json j = node_read(mcap);
+  EXPECT_GT(j["topics"]["/kestrel/odometry"]["count"].get<int>(), 30);
+  EXPECT_FALSE(j["topics"].contains("/kestrel/map_points")) << "map_points_rate_hz: 0 wrote point clouds";
+  ASSERT_TRUE(j["topics"].contains("/kestrel/map_markers"));
+  EXPECT_GE(j["topics"]["/kestrel/map_markers"]["count"].get<int>(), 2);
+  EXPECT_EQ(j["topics"]["/kestrel/map_markers"]["trailing"], 0);
+}
+
 }  // namespace
 }  // namespace kestrel::test
