@@ -206,6 +206,26 @@ TEST(FoxgloveServer, ASlowClientIsDroppedFromNeverWaitedFor) {
   EXPECT_LT(worst_ns, 20'000'000) << "publish() waited";
 }
 
+TEST(FoxgloveServer, ClientsBeyondTheLimitAreClosed) {
+  ServerOptions o;
+  o.address = "127.0.0.1";
+  o.max_clients = 1;
+  Server s(o, two_channels());
+  s.start();
+  WsClient first, second;
+  ASSERT_TRUE(open_foxglove(first, s.port()));
+  ASSERT_TRUE(s.wait_for_client(2'000'000'000));
+  ASSERT_TRUE(open_foxglove(second, s.port()));  // upgraded, then closed with 1013 "try again later"
+  EXPECT_TRUE(second.closed_within(2000));
+  uint8_t op = 0;
+  std::string p;
+  EXPECT_TRUE(first.next(2000, &op, &p)) << "the first client lost its serverInfo";
+  const ServerStats st = s.stats();
+  s.stop();
+  EXPECT_EQ(st.clients, 1u);
+  EXPECT_EQ(st.clients_refused, 1u);
+}
+
 TEST(Ros2Settings, MapPointsRateFromTheConfig) {
   EXPECT_EQ(drivers::ros2_settings_from_yaml_node(YAML::Load("{}")["ros2"], "c.yaml").map_points_rate_hz,
             1.0);

@@ -57,7 +57,7 @@ struct Server::Impl {
   bool stopping = false;
   ServerStats stats;
 
-  // Server thread only.
+  // Under the mutex too: publish() and wait_for_client() look at the clients.
   struct Client {
     std::map<uint32_t, uint32_t> sub_by_id;  // subscription id -> channel id
   };
@@ -121,6 +121,9 @@ struct Server::Impl {
     ++stats.bad_messages;
     stats.last_error = why;
     websocketpp::lib::error_code ec;
+    // A client flooding bad messages without reading its answers gets no more of them.
+    const auto con = ws.get_con_from_hdl(h, ec);
+    if (ec || con->get_buffered_amount() > opt.max_client_backlog_bytes) return;
     ws.send(h, status_json(2, why), websocketpp::frame::opcode::text, ec);
   }
   void on_message(Hdl h, WsServer::message_ptr msg) {
