@@ -492,6 +492,19 @@ RecordSettings record_settings_from_yaml_node(const YAML::Node& node, const std:
   return r;
 }
 
+Ros2Settings ros2_settings_from_yaml_node(const YAML::Node& node, const std::string& where) {
+  Ros2Settings r;
+  if (!node) return r;
+  P p(where);
+  const std::string path = "ros2";
+  p.only(node, path, {"map_points_rate_hz"});
+  r.map_points_rate_hz = p.num(node, "map_points_rate_hz", path, r.map_points_rate_hz);
+  // Above the camera rate every frame would copy the map for nothing.
+  if (!(r.map_points_rate_hz >= 0 && r.map_points_rate_hz <= 30))
+    p.fail(path + ".map_points_rate_hz", "expected a number in [0, 30]");
+  return r;
+}
+
 EstimatorSettings estimator_settings_from_yaml_node(const YAML::Node& node, const std::string& where) {
   EstimatorSettings e;
   if (!node) return e;
@@ -534,6 +547,10 @@ auto parse_config_section(const std::string& path, const char* section, Parse pa
 
 EstimatorSettings load_estimator_settings(const std::string& path) {
   return parse_config_section(path, "estimator", estimator_settings_from_yaml_node);
+}
+
+Ros2Settings load_ros2_settings(const std::string& path) {
+  return parse_config_section(path, "ros2", ros2_settings_from_yaml_node);
 }
 
 MavlinkSettings load_mavlink_settings(const std::string& path) {
@@ -619,9 +636,9 @@ LiveConfig live_config_from_yaml(const std::string& text, const std::string& whe
     const std::string k = kv.first.Scalar();
     bool estimator_section = k == "estimator";
     for (const std::string& e : estimator_sections) estimator_section = estimator_section || k == e;
-    if (k != "rig" && k != "drivers" && k != "threads" && k != "mavlink" && k != "record" &&
+    if (k != "rig" && k != "drivers" && k != "threads" && k != "mavlink" && k != "record" && k != "ros2" &&
         !estimator_section) {
-      std::string expected = "rig, drivers, threads, mavlink, record, estimator";
+      std::string expected = "rig, drivers, threads, mavlink, record, ros2, estimator";
       for (const std::string& e : estimator_sections)
         if (e != "estimator") expected += ", " + e;
       throw std::runtime_error(where + ": " + k + ": unknown key (expected " + expected + ")");
@@ -658,6 +675,7 @@ LiveConfig live_config_from_yaml(const std::string& text, const std::string& whe
     c.threads = thread_table_from_yaml_node(root["threads"], where);
     c.mavlink = mavlink_settings_from_yaml_node(root["mavlink"], where);
     c.record = record_settings_from_yaml_node(root["record"], where);
+    c.ros2 = ros2_settings_from_yaml_node(root["ros2"], where);
   } catch (const YAML::Exception& e) {
     throw std::runtime_error(where + ": " + e.what());
   }

@@ -29,6 +29,11 @@ void CdrWriter::f64(double v) {
   std::memcpy(&u, &v, 8);
   for (int k = 0; k < 8; ++k) b_.push_back(static_cast<uint8_t>(u >> (8 * k)));
 }
+void CdrWriter::f32(float v) {
+  uint32_t u;
+  std::memcpy(&u, &v, 4);
+  u32(u);
+}
 void CdrWriter::str(const std::string& s) {
   u32(static_cast<uint32_t>(s.size() + 1));  // the length counts the terminating NUL
   b_.insert(b_.end(), s.begin(), s.end());
@@ -146,6 +151,58 @@ void pose(CdrReader& r, Pose& p) {
   r.f64s(p.orientation_xyzw.data(), 4, "pose.orientation");
 }
 }  // namespace
+
+void encode(const PointCloudXyz& m, std::vector<uint8_t>& out) {
+  CdrWriter w(out);
+  w.header(m.t_ns, m.frame_id);
+  w.u32(1);  // height: an unordered cloud is one row
+  w.u32(m.n);
+  w.u32(3);  // fields
+  const char* names[3] = {"x", "y", "z"};
+  for (uint32_t k = 0; k < 3; ++k) {
+    w.str(names[k]);
+    w.u32(4 * k);  // offset
+    w.u8(7);       // sensor_msgs/PointField FLOAT32
+    w.u32(1);      // count
+  }
+  w.u8(0);  // is_bigendian
+  w.u32(12);
+  w.u32(12 * m.n);
+  // The floats' bytes as they are in memory: CDR_LE, and every target is little-endian.
+  static_assert(sizeof(float) == 4);
+  w.bytes(reinterpret_cast<const uint8_t*>(m.xyz), 12u * m.n);
+  w.u8(1);  // is_dense: no NaN points
+}
+void encode(const std::vector<Marker>& markers, std::vector<uint8_t>& out) {
+  CdrWriter w(out);
+  w.u32(static_cast<uint32_t>(markers.size()));
+  for (const Marker& m : markers) {
+    w.header(m.t_ns, m.frame_id);
+    w.str(m.ns);
+    w.i32(m.id);
+    w.i32(m.type);
+    w.i32(m.action);
+    pose(w, m.pose);
+    w.f64s(m.scale.data(), 3);
+    for (float c : m.color_rgba) w.f32(c);
+    w.i32(0);  // lifetime.sec: 0, forever
+    w.u32(0);  // lifetime.nanosec
+    w.u8(0);   // frame_locked
+    w.u32(static_cast<uint32_t>(m.points.size()));
+    for (const auto& p : m.points) w.f64s(p.data(), 3);
+    w.u32(0);         // colors: none (color holds for every point)
+    w.str("");        // texture_resource
+    w.header(0, "");  // texture: an empty CompressedImage
+    w.str("");
+    w.u32(0);
+    w.u32(0);   // uv_coordinates
+    w.str("");  // text
+    w.str("");  // mesh_resource
+    w.str("");  // mesh_file.filename
+    w.u32(0);   // mesh_file.data
+    w.u8(0);    // mesh_use_embedded_materials
+  }
+}
 
 void encode(const Imu& m, std::vector<uint8_t>& out) {
   CdrWriter w(out);
@@ -343,6 +400,21 @@ const std::map<std::string, std::string>& definitions() {
       {"diagnostic_msgs/DiagnosticStatus",
        "byte level\nstring name\nstring message\nstring hardware_id\nKeyValue[] values\n"},
       {"diagnostic_msgs/DiagnosticArray", "std_msgs/Header header\nDiagnosticStatus[] status\n"},
+      {"sensor_msgs/PointField", "string name\nuint32 offset\nuint8 datatype\nuint32 count\n"},
+      {"sensor_msgs/PointCloud2",
+       "std_msgs/Header header\nuint32 height\nuint32 width\nPointField[] fields\nbool is_bigendian\n"
+       "uint32 point_step\nuint32 row_step\nuint8[] data\nbool is_dense\n"},
+      {"builtin_interfaces/Duration", "int32 sec\nuint32 nanosec\n"},
+      {"std_msgs/ColorRGBA", "float32 r\nfloat32 g\nfloat32 b\nfloat32 a\n"},
+      {"visualization_msgs/UVCoordinate", "float32 u\nfloat32 v\n"},
+      {"visualization_msgs/MeshFile", "string filename\nuint8[] data\n"},
+      {"visualization_msgs/Marker",
+       "std_msgs/Header header\nstring ns\nint32 id\nint32 type\nint32 action\ngeometry_msgs/Pose pose\n"
+       "geometry_msgs/Vector3 scale\nstd_msgs/ColorRGBA color\nbuiltin_interfaces/Duration lifetime\n"
+       "bool frame_locked\ngeometry_msgs/Point[] points\nstd_msgs/ColorRGBA[] colors\n"
+       "string texture_resource\nsensor_msgs/CompressedImage texture\nUVCoordinate[] uv_coordinates\n"
+       "string text\nstring mesh_resource\nMeshFile mesh_file\nbool mesh_use_embedded_materials\n"},
+      {"visualization_msgs/MarkerArray", "Marker[] markers\n"},
   };
   return d;
 }
@@ -367,6 +439,12 @@ const std::map<std::string, std::vector<std::string>>& dependencies() {
       {"diagnostic_msgs/DiagnosticArray",
        {"std_msgs/Header", "builtin_interfaces/Time", "diagnostic_msgs/DiagnosticStatus",
         "diagnostic_msgs/KeyValue"}},
+      {"sensor_msgs/PointCloud2", {"std_msgs/Header", "builtin_interfaces/Time", "sensor_msgs/PointField"}},
+      {"visualization_msgs/MarkerArray",
+       {"visualization_msgs/Marker", "std_msgs/Header", "builtin_interfaces/Time", "geometry_msgs/Pose",
+        "geometry_msgs/Point", "geometry_msgs/Quaternion", "geometry_msgs/Vector3", "std_msgs/ColorRGBA",
+        "builtin_interfaces/Duration", "sensor_msgs/CompressedImage", "visualization_msgs/UVCoordinate",
+        "visualization_msgs/MeshFile"}},
   };
   return d;
 }

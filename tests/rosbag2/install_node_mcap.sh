@@ -1,13 +1,15 @@
 #!/bin/sh
 # Installs the independent MCAP / ROS 2 CDR implementations the rosbag2 tests
 # check against (@mcap/core, @foxglove/rosmsg, @foxglove/rosmsg2-serialization,
-# and the pure-JS fzstd / lz4js decompressors) from npm into CACHE_DIR, once.
+# the pure-JS fzstd / lz4js decompressors, and @foxglove/ws-protocol + ws for
+# the Foxglove live test) from npm into CACHE_DIR, once.
 # Usage: install_node_mcap.sh CACHE_DIR. Exit 0 when usable, 1 otherwise (the reason on stderr).
 set -u
 cache="$1"
-pkgs="@mcap/core@2.2.2 @foxglove/rosmsg@5.0.5 @foxglove/rosmsg2-serialization@3.1.0 fzstd@0.1.1 lz4js@0.2.0"
+pkgs="@mcap/core@2.2.2 @foxglove/rosmsg@5.0.5 @foxglove/rosmsg2-serialization@3.1.0 fzstd@0.1.1 lz4js@0.2.0
+  @foxglove/ws-protocol@0.8.0 ws@8.18.0"
 ready() {
-  for p in @mcap/core @foxglove/rosmsg @foxglove/rosmsg2-serialization fzstd lz4js; do
+  for p in @mcap/core @foxglove/rosmsg @foxglove/rosmsg2-serialization fzstd lz4js @foxglove/ws-protocol ws; do
     [ -f "$cache/node_modules/$p/package.json" ] || return 1
   done
   return 0

@@ -113,6 +113,33 @@ async function read(path) {
     }
     t.last = summaryOf(msg);
     t.count++;
+    if (t.type === 'sensor_msgs/msg/PointCloud2') {
+      // The first points read back through the fields' own offsets, as a viewer would.
+      const off = Object.fromEntries(msg.fields.map((f) => [f.name, f.offset]));
+      const dv = new DataView(msg.data.buffer, msg.data.byteOffset, msg.data.byteLength);
+      const pts = [];
+      for (let i = 0; i < Math.min(msg.width, 4); ++i)
+        pts.push(['x', 'y', 'z'].map((k) => dv.getFloat32(i * msg.point_step + off[k], !msg.is_bigendian)));
+      t.lastPoints = pts;
+      t.sizeMismatches =
+          (t.sizeMismatches || 0) + (msg.data.length !== msg.width * msg.height * msg.point_step);
+    }
+    if (t.type === 'visualization_msgs/msg/MarkerArray') {
+      t.markers = t.markers || [];
+      for (const k of msg.markers)
+        t.markers.push({
+          ns: k.ns,
+          id: k.id,
+          type: k.type,
+          action: k.action,
+          frame: k.header.frame_id,
+          points: k.points.length,
+          firstPoint: k.points[0] || null,
+          pose: k.pose,
+          scale: k.scale,
+          color: k.color
+        });
+    }
   }
   out.indexed.ordered = ordered;
   process.stdout.write(JSON.stringify(out, null, 1) + '\n');

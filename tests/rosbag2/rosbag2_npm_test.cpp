@@ -10,12 +10,15 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <map>
 #include <nlohmann/json.hpp>
 #include <sstream>
 
 #include "../datasets/dataset_fixtures.hpp"
 #include "kestrel/drivers/klog.hpp"
+#include "kestrel/drivers/mcap.hpp"
 #include "kestrel/drivers/open_log.hpp"
+#include "kestrel/drivers/ros2_msgs.hpp"
 #include "kestrel/drivers/rosbag2.hpp"
 #include "run_command.hpp"
 
@@ -260,6 +263,74 @@ TEST(Rosbag2Cli, AStereoLogRoundTripsThroughRosbag2) {
   }
 }
 
+// The map's messages with known values, decoded by the serializer from our schema text.
+TEST(Rosbag2Npm, PointCloud2AndMarkerArrayDecodeWithTheirValues) {
+  REQUIRE_NODE();
+  const std::string f = dir() + "/map_msgs.mcap";
+  {
+    drivers::mcap::Writer w;
+    w.open(f, {});
+    const char* pc = "sensor_msgs/msg/PointCloud2";
+    const char* ma = "visualization_msgs/msg/MarkerArray";
+    const uint16_t cpc =
+        w.add_channel(w.add_schema(pc, "ros2msg", drivers::ros2::schema_text(pc)), "/pts", "cdr");
+    const uint16_t cma =
+        w.add_channel(w.add_schema(ma, "ros2msg", drivers::ros2::schema_text(ma)), "/mk", "cdr");
+    std::vector<float> xyz;
+    for (int i = 0; i < 1000; ++i) xyz.insert(xyz.end(), {0.5f * i, -1.25f, 3.0f + 0.001f * i});
+    drivers::ros2::PointCloudXyz cloud;
+    cloud.t_ns = 1'500'000'000;
+    cloud.frame_id = "map";
+    cloud.xyz = xyz.data();
+    cloud.n = 1000;
+    std::vector<uint8_t> buf;
+    drivers::ros2::encode(cloud, buf);
+    w.write(cpc, 1, 1, buf.data(), buf.size());
+    std::vector<drivers::ros2::Marker> m(2);
+    m[0].frame_id = m[1].frame_id = "map";
+    m[0].ns = "keyframes";
+    m[0].id = 7;
+    m[0].pose.position = {1, 2, 3};
+    m[0].scale = {0.15, 0.02, 0.02};
+    m[0].color_rgba = {0.25f, 0.5f, 1.0f, 1.0f};
+    m[1].ns = "loop_edges";
+    m[1].id = 0;
+    m[1].type = drivers::ros2::Marker::kLineList;
+    m[1].points = {{0, 0, 0}, {4, 5, 6}, {1, 1, 1}, {2, 2, 2}};
+    drivers::ros2::encode(m, buf);
+    w.write(cma, 2, 2, buf.data(), buf.size());
+    w.close();
+  }
+  const json j = node_read(f);
+  const json& p = j["topics"]["/pts"];
+  EXPECT_EQ(p["type"], "sensor_msgs/msg/PointCloud2");
+  EXPECT_EQ(p["trailing"], 0);
+  EXPECT_EQ(p["reencodedDiffers"], 0);
+  EXPECT_EQ(p["sizeMismatches"], 0);
+  EXPECT_EQ(p["last"]["width"], 1000);
+  EXPECT_EQ(p["last"]["height"], 1);
+  EXPECT_EQ(p["last"]["header"]["frame_id"], "map");
+  EXPECT_EQ(p["last"]["header"]["stamp"]["sec"], 1);
+  EXPECT_EQ(p["last"]["header"]["stamp"]["nanosec"], 500000000);
+  ASSERT_EQ(p["lastPoints"].size(), 4u);
+  EXPECT_EQ(p["lastPoints"][3][0].get<double>(), 1.5);
+  EXPECT_EQ(p["lastPoints"][3][1].get<double>(), -1.25);
+  EXPECT_EQ(p["lastPoints"][3][2].get<double>(), static_cast<double>(3.0f + 0.003f));
+  const json& k = j["topics"]["/mk"];
+  EXPECT_EQ(k["type"], "visualization_msgs/msg/MarkerArray");
+  EXPECT_EQ(k["trailing"], 0);
+  EXPECT_EQ(k["reencodedDiffers"], 0);
+  ASSERT_EQ(k["markers"].size(), 2u) << k.dump();
+  EXPECT_EQ(k["markers"][0]["ns"], "keyframes");
+  EXPECT_EQ(k["markers"][0]["id"], 7);
+  EXPECT_EQ(k["markers"][0]["type"], 0);
+  EXPECT_EQ(k["markers"][0]["pose"]["position"]["y"], 2.0);
+  EXPECT_EQ(k["markers"][0]["scale"]["x"], 0.15);
+  EXPECT_EQ(k["markers"][0]["color"]["r"], 0.25);
+  EXPECT_EQ(k["markers"][1]["type"], 5);
+  EXPECT_EQ(k["markers"][1]["points"], 4);
+}
+
 // The contracts through the command line: convert, replay of the folder, --mcap-out.
 TEST(Rosbag2Cli, ConvertReplayAndOdometryOut) {
   const std::string klog = dir() + "/fig8.klog", bag = dir() + "/fig8_ros2";
@@ -343,6 +414,137 @@ TEST(Rosbag2Cli, ConvertReplayAndOdometryOut) {
   EXPECT_EQ(st[0]["message"], "tracking");
   EXPECT_EQ(st[0]["values"][0]["key"], "quality");
   EXPECT_EQ(st[0]["values"][1]["key"], "reset_counter");
+
+  // The map: the local map's points at most 1 Hz of log time (ros2.map_points_rate_hz's default) after a
+  // keyframe, in the map frame; an arrow per keyframe with ids 0, 1, 2, ...; at the end the map's keyframe
+  // path.
+  const json& pc = j["topics"]["/kestrel/map_points"];
+  EXPECT_EQ(pc["type"], "sensor_msgs/msg/PointCloud2");
+  EXPECT_GE(pc["count"].get<int>(), 2) << pc.dump();
+  EXPECT_LE(pc["count"].get<int>(), 5);
+  EXPECT_EQ(pc["trailing"], 0);
+  EXPECT_EQ(pc["reencodedDiffers"], 0);
+  EXPECT_EQ(pc["sizeMismatches"], 0);
+  EXPECT_EQ(pc["last"]["header"]["frame_id"], "map");
+  EXPECT_GT(pc["last"]["width"].get<int>(), 50);
+  EXPECT_LE(pc["last"]["width"].get<int>(), 8192);
+  for (const json& q : pc["lastPoints"])
+    for (int c = 0; c < 3; ++c) EXPECT_LT(std::abs(q[c].get<double>()), 50.0) << q.dump();
+  const json& mk = j["topics"]["/kestrel/map_markers"];
+  EXPECT_EQ(mk["type"], "visualization_msgs/msg/MarkerArray");
+  EXPECT_EQ(mk["trailing"], 0);
+  EXPECT_EQ(mk["reencodedDiffers"], 0);
+  int arrows = 0;
+  bool deleted = false, path = false;
+  for (const json& m : mk["markers"]) {
+    EXPECT_EQ(m["frame"], "map");
+    if (m["ns"] == "keyframes") {
+      EXPECT_FALSE(deleted) << "an arrow after the final markers";
+      EXPECT_EQ(m["id"], arrows) << "keyframe arrows are numbered in order";
+      EXPECT_EQ(m["type"], 0);
+      ++arrows;
+    } else if (m["action"] == 3) {
+      deleted = true;
+    } else if (m["ns"] == "keyframe_path") {
+      EXPECT_TRUE(deleted);
+      EXPECT_EQ(m["type"], 4);
+      EXPECT_GE(m["points"].get<int>(), 2);
+      path = true;
+    }
+  }
+  EXPECT_GE(arrows, 3);
+  EXPECT_TRUE(deleted && path) << mk.dump();
+}
+
+// --foxglove: @foxglove/ws-protocol's client connects while a realtime replay runs, sees the advertised
+// topics (the --mcap-out ones, ros2msg schemas, cdr), subscribes to odometry and decodes 3 messages with
+// @foxglove/rosmsg2-serialization from the advertised schema; a message the server does not offer is refused
+// with a named status and counted.
+TEST(Rosbag2Cli, FoxgloveLiveWithTheNpmClient) {
+  REQUIRE_NODE();
+  const std::string klog = dir() + "/fox.klog";
+  CmdResult r = run_kestrel("sim --scenario figure8 --duration 4 --width 320 --height 240 --out " + klog);
+  ASSERT_EQ(r.code, 0) << r.out;
+  const int port = 20000 + static_cast<int>(getpid() % 20000);
+  const std::string url = "ws://127.0.0.1:" + std::to_string(port);
+  const std::string log = dir() + "/fox_kestrel.txt";
+  const std::string out = dir() + "/fox_client.json";
+  // kestrel in the background, the client in the foreground; then wait for kestrel's summary.
+  r = run_command("sh -c '" + built_program("kestrel") + " replay " + klog +
+                  " --pace realtime --foxglove 127.0.0.1:" + std::to_string(port) + " --foxglove-wait 30 > " +
+                  log + " 2>&1 & NODE_PATH=" + std::string(KESTREL_BUILD_DIR) +
+                  "/npm-cache-mcap/node_modules node " + std::string(KESTREL_SOURCE_DIR) +
+                  "/tests/rosbag2/foxglove_check.js " + url + " > " + out + "; c=$?; wait; exit $c'");
+  std::ifstream lf(log), cf(out);
+  const std::string kout((std::istreambuf_iterator<char>(lf)), {}),
+      cout((std::istreambuf_iterator<char>(cf)), {});
+  ASSERT_EQ(r.code, 0) << r.out << "\nclient:\n" << cout << "\nkestrel:\n" << kout;
+  const json j = json::parse(cout);
+  EXPECT_EQ(j["subprotocol"], "foxglove.websocket.v1");
+  EXPECT_EQ(j["serverInfo"]["name"], "kestrel");
+  std::map<std::string, std::string> types;
+  for (const json& c : j["channels"]) {
+    types[c["topic"]] = c["schemaName"];
+    EXPECT_EQ(c["encoding"], "cdr");
+    EXPECT_EQ(c["schemaEncoding"], "ros2msg");
+  }
+  EXPECT_EQ(types["/kestrel/odometry"], "nav_msgs/msg/Odometry");
+  EXPECT_EQ(types["/tf"], "tf2_msgs/msg/TFMessage");
+  EXPECT_EQ(types["/diagnostics"], "diagnostic_msgs/msg/DiagnosticArray");
+  EXPECT_EQ(types["/kestrel/map_points"], "sensor_msgs/msg/PointCloud2");
+  EXPECT_EQ(types["/kestrel/map_markers"], "visualization_msgs/msg/MarkerArray");
+  ASSERT_EQ(j["messages"].size(), 3u);
+  int64_t last_ns = -1;
+  for (const json& m : j["messages"]) {
+    EXPECT_EQ(m["trailing"], false);
+    EXPECT_EQ(m["frame_id"], "odom");
+    EXPECT_EQ(m["child_frame_id"], "base_link");
+    const int64_t t_ns = m["stamp"]["sec"].get<int64_t>() * 1000000000 + m["stamp"]["nanosec"].get<int64_t>();
+    EXPECT_EQ(std::to_string(t_ns), m["timestamp"].get<std::string>()) << "the frame's time is the stamp";
+    EXPECT_GT(t_ns, last_ns);
+    last_ns = t_ns;
+  }
+  ASSERT_GE(j["statuses"].size(), 1u);
+  EXPECT_EQ(j["statuses"][0]["level"], 2);
+  EXPECT_NE(j["statuses"][0]["message"].get<std::string>().find("clientPublish"), std::string::npos);
+  EXPECT_NE(kout.find("foxglove: 1 client(s)"), std::string::npos) << kout;
+  EXPECT_NE(kout.find("1 bad message(s)"), std::string::npos) << kout;
+}
+
+// `kestrel run` (live sensor threads playing a log): --mcap-out and --foxglove side by side, and the config's
+// ros2: section (map_points_rate_hz: 0 writes no point clouds; a rate out of range is refused by name).
+TEST(Rosbag2Cli, RunWithMcapOutFoxgloveAndTheRos2Section) {
+  REQUIRE_NODE();
+  const std::string d = dir() + "/run";
+  fs::create_directories(d);
+  CmdResult r =
+      run_kestrel("sim --scenario figure8 --duration 4 --width 160 --height 120 --out " + d + "/src.klog");
+  ASSERT_EQ(r.code, 0) << r.out;
+  const std::string sensors =
+      "drivers:\n"
+      "  camera: {type: log, width_px: 160, height_px: 120, rate_hz: 30}\n"
+      "  imu: {type: log}\n"
+      "  log: {path: src.klog}\n"
+      "estimator:\n"
+      "  backend: window\n";
+  std::ofstream(d + "/bad.yaml") << sensors << "ros2:\n  map_points_rate_hz: 99\n";
+  r = run_kestrel("run --config " + d + "/bad.yaml --duration 1 --mcap-out " + d + "/x.mcap");
+  EXPECT_NE(r.code, 0);
+  EXPECT_NE(r.out.find("ros2.map_points_rate_hz: expected a number in [0, 30]"), std::string::npos) << r.out;
+
+  std::ofstream(d + "/live.yaml") << sensors << "ros2:\n  map_points_rate_hz: 0\n";
+  const std::string mcap = d + "/run.mcap";
+  r = run_kestrel("run --config " + d + "/live.yaml --duration 3.5 --mcap-out " + mcap +
+                  " --foxglove 127.0.0.1:0");
+  ASSERT_EQ(r.code, 0) << r.out;
+  EXPECT_NE(r.out.find("foxglove: ws://127.0.0.1:"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("foxglove: 0 client(s), 0 messages sent"), std::string::npos) << r.out;
+  const json j = node_read(mcap);
+  EXPECT_GT(j["topics"]["/kestrel/odometry"]["count"].get<int>(), 30);
+  EXPECT_FALSE(j["topics"].contains("/kestrel/map_points")) << "map_points_rate_hz: 0 wrote point clouds";
+  ASSERT_TRUE(j["topics"].contains("/kestrel/map_markers"));
+  EXPECT_GE(j["topics"]["/kestrel/map_markers"]["count"].get<int>(), 2);
+  EXPECT_EQ(j["topics"]["/kestrel/map_markers"]["trailing"], 0);
 }
 
 }  // namespace

@@ -133,7 +133,10 @@ TEST(Rosbag2Cdr, SchemaTextsCarryTheirDependencies) {
   EXPECT_NE(s.find("MSG: builtin_interfaces/Time\nint32 sec\nuint32 nanosec\n"), std::string::npos);
   EXPECT_NE(ros2::schema_text("nav_msgs/msg/Odometry").find("MSG: geometry_msgs/TwistWithCovariance"),
             std::string::npos);
-  EXPECT_EQ(ros2::schema_text("sensor_msgs/msg/PointCloud2"), "");
+  EXPECT_NE(ros2::schema_text("sensor_msgs/msg/PointCloud2").find("MSG: sensor_msgs/PointField\n"), std::string::npos);
+  EXPECT_NE(ros2::schema_text("visualization_msgs/msg/MarkerArray").find("MSG: visualization_msgs/MeshFile\n"),
+            std::string::npos);
+  EXPECT_EQ(ros2::schema_text("sensor_msgs/msg/LaserScan"), "");  // a type this file does not know
 }
 
 void write_mcap(const std::string& path, const std::string& compression, size_t chunk) {

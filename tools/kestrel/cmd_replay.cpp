@@ -8,6 +8,7 @@
 #include "kestrel/dense/dense_config.hpp"
 #include "kestrel/drivers/devices.hpp"
 #include "kestrel/drivers/open_log.hpp"
+#include "kestrel/foxglove_out.hpp"
 #include "kestrel/mcap_out.hpp"
 #include "kestrel/replay_runner.hpp"
 #include "kestrel/tools/estimator_config_yaml.hpp"
@@ -38,6 +39,8 @@ Subcommand add_replay_command(CLI::App& parent) {
     std::string map_in, map_out;
     std::string dense_out, dense_octomap_out;  // the dense map (docs/dense.md)
     std::string mcap_out;
+    std::string foxglove;  // [ADDR:]PORT
+    double foxglove_wait_s = 0;
     std::string loop_log;
   };
   auto args = std::make_shared<Args>();
@@ -95,8 +98,15 @@ Subcommand add_replay_command(CLI::App& parent) {
   app->add_option("--map-in", args->map_in,
                   "start from this map file (a flight's --map-out): the flight maps nothing until it relocalises in "
                   "it, then goes on in its frame (docs/map.md)");
-  app->add_option("--mcap-out", args->mcap_out,
-                  "write the poses here as nav_msgs/msg/Odometry in MCAP (ROS 2, Foxglove; docs/ros2.md)");
+  app->add_option(
+      "--mcap-out", args->mcap_out,
+      "write the poses (nav_msgs/msg/Odometry, /tf, /diagnostics), the map points (PointCloud2) and "
+      "keyframe and loop markers here in MCAP (ROS 2, Foxglove; docs/ros2.md)");
+  app->add_option(
+      "--foxglove", args->foxglove,
+      "serve the --mcap-out topics live over the Foxglove WebSocket protocol on [ADDR:]PORT (docs/ros2.md)");
+  app->add_option("--foxglove-wait", args->foxglove_wait_s,
+                  "with --foxglove: wait up to this long [s] for a client first");
   app->add_option("--loop-log", args->loop_log,
                   "write every loop candidate here (CSV: BoW score, matches, inliers, the verdict, and with the "
                   "log's ground truth its view overlap and the correction's error); with ground truth the "
@@ -198,13 +208,17 @@ Subcommand add_replay_command(CLI::App& parent) {
                                                                    : "";
       if (!flag.empty()) throw UsageError(flag + ": the backend '" + est.name() + "' runs without a map");
     };
-    const auto mcap = add_mcap_out(opt, args->mcap_out);
+    const drivers::Ros2Settings ros2 =
+        args->config.empty() ? drivers::Ros2Settings{} : drivers::load_ros2_settings(args->config);
+    const auto mcap = add_mcap_out(opt, args->mcap_out, ros2.map_points_rate_hz);
+    const auto fox = add_foxglove(opt, args->foxglove, ros2.map_points_rate_hz, args->foxglove_wait_s);
     // The revisits need the log's ground truth and a second pass over its
     // depth: only when asked for.
     const bool loop_truth = !args->loop_log.empty() || !args->metrics_out.empty();
     opt.loop_log = loop_truth;
     ReplayReport r = run_replay(opt);
     if (mcap) mcap->close();
+    if (fox) fox->server().stop();
     if (opt.loop_log && r.has_map) {
       drivers::LogOpenOptions o = opt.open;
       o.format = opt.format;
@@ -238,6 +252,7 @@ Subcommand add_replay_command(CLI::App& parent) {
       if (!args->dense_octomap_out.empty())
         std::cout << "dense occupancy: " << args->dense_octomap_out << "\n";
       if (mcap) std::cout << "mcap: " << args->mcap_out << " (" << mcap->count() << " odometry messages)\n";
+      if (fox) std::cout << foxglove::stats_summary(fox->server().stats());
     }
     return 0;
   };

@@ -18,6 +18,7 @@
 #include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/dense/dense_config.hpp"
 #include "kestrel/drivers/devices.hpp"
+#include "kestrel/foxglove_out.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"
 #include "kestrel/mcap_out.hpp"
 #include "kestrel/recording.hpp"
@@ -50,6 +51,8 @@ struct RunArgs {
   std::string map_in, map_out;
   std::string dense_out, dense_octomap_out;  // the dense map (docs/dense.md)
   std::string mcap_out;
+  std::string foxglove;  // [ADDR:]PORT
+  double foxglove_wait_s = 0;
 };
 
 // Latency statistics start after this much sample time (start-up is not steady state).
@@ -101,7 +104,8 @@ int run_log_through_replay(const RunArgs& a, const drivers::LiveConfig& cfg,
   std::printf("running %s at %s pace through the replay pipeline -> estimator '%s'\n",
               cfg.drivers.log_path.c_str(), drivers::to_string(cfg.drivers.log_pace),
               est_cfg.backend.c_str());
-  const auto mcap = add_mcap_out(opt, a.mcap_out);
+  const auto mcap = add_mcap_out(opt, a.mcap_out, cfg.ros2.map_points_rate_hz);
+  const auto fox = add_foxglove(opt, a.foxglove, cfg.ros2.map_points_rate_hz, a.foxglove_wait_s);
   ReplayReport r;
   try {
     r = run_replay(opt);
@@ -109,6 +113,7 @@ int run_log_through_replay(const RunArgs& a, const drivers::LiveConfig& cfg,
     throw UsageError(e.what());
   }
   if (mcap) mcap->close();
+  if (fox) fox->server().stop();
   r.config = tools::estimator_config_entries(est_cfg);
   std::printf("%s", replay_summary(r).c_str());
   for (const auto& p : r.problems)
@@ -121,6 +126,7 @@ int run_log_through_replay(const RunArgs& a, const drivers::LiveConfig& cfg,
   if (mcap)
     std::printf("mcap: %s (%llu odometry messages)\n", a.mcap_out.c_str(),
                 static_cast<unsigned long long>(mcap->count()));
+  if (fox) std::printf("%s", foxglove::stats_summary(fox->server().stats()).c_str());
   return 0;
 }
 
@@ -142,8 +148,15 @@ Subcommand add_run_command(CLI::App& parent) {
   app->add_option("--loop", a->loop, "on|off: loop closing and relocalisation (default on)");
   app->add_option("--map-in", a->map_in,
                   "start from this map file: nothing is mapped until the camera relocalises in it (docs/map.md)");
-  app->add_option("--mcap-out", a->mcap_out,
-                  "write the poses here as nav_msgs/msg/Odometry in MCAP (ROS 2, Foxglove; docs/ros2.md)");
+  app->add_option(
+      "--mcap-out", a->mcap_out,
+      "write the poses (nav_msgs/msg/Odometry, /tf, /diagnostics), the map points (PointCloud2) and "
+      "keyframe and loop markers here in MCAP (ROS 2, Foxglove; docs/ros2.md)");
+  app->add_option(
+      "--foxglove", a->foxglove,
+      "serve the --mcap-out topics live over the Foxglove WebSocket protocol on [ADDR:]PORT (docs/ros2.md)");
+  app->add_option("--foxglove-wait", a->foxglove_wait_s,
+                  "with --foxglove: wait up to this long [s] for a client first");
   app->add_option("--map-out", a->map_out, "write the map here when the run stops (docs/map.md)");
   app->add_option(
       "--dense-out", a->dense_out,
@@ -263,7 +276,8 @@ Subcommand add_run_command(CLI::App& parent) {
     g_run_stop.store(false);
     std::signal(SIGINT, run_on_signal);
     std::signal(SIGTERM, run_on_signal);
-    const auto mcap = add_mcap_out(opt, a->mcap_out);
+    const auto mcap = add_mcap_out(opt, a->mcap_out, cfg.ros2.map_points_rate_hz);
+    const auto fox = add_foxglove(opt, a->foxglove, cfg.ros2.map_points_rate_hz, a->foxglove_wait_s);
     ReplayReport r;
     try {
       r = run_replay(opt);
@@ -271,6 +285,7 @@ Subcommand add_run_command(CLI::App& parent) {
       throw UsageError(e.what());
     }
     if (mcap) mcap->close();
+    if (fox) fox->server().stop();
     std::signal(SIGINT, SIG_DFL);
     std::signal(SIGTERM, SIG_DFL);
     r.config = tools::estimator_config_entries(est_cfg);
@@ -292,6 +307,7 @@ Subcommand add_run_command(CLI::App& parent) {
     if (mcap)
       std::printf("mcap: %s (%llu odometry messages)\n", a->mcap_out.c_str(),
                   static_cast<unsigned long long>(mcap->count()));
+    if (fox) std::printf("%s", foxglove::stats_summary(fox->server().stats()).c_str());
     return 0;
   };
   return s;

@@ -149,7 +149,7 @@ class EstimatorStage {
   EstimatorStage(core::Estimator& est, drivers::SensorRings& rings, ImuRing& imu,
                  rt::SpscRing<OutPose, kOutRingCapacity>& out, rt::Mailbox<PipelineStatus>& status,
                  rt::Mailbox<Anchor>* anchor, const ReplayOptions& opt, const Rig& rig, ReplayReport& report,
-                 viewer::ViewerFeed* feed)
+                 viewer::ViewerFeed* feed, MapTopicsFeed* map_feed)
       : est_(est),
         rings_(rings),
         imu_(imu),
@@ -158,7 +158,8 @@ class EstimatorStage {
         anchor_(anchor),
         opt_(opt),
         report_(report),
-        feed_(feed) {
+        feed_(feed),
+        map_feed_(map_feed) {
     frame_period_ns_ = rig.camera_rate_hz > 0 ? static_cast<int64_t>(1e9 / rig.camera_rate_hz) : 0;
     imu_gap_ns_ = rig.imu_rate_hz > 0 ? static_cast<int64_t>(5e9 / rig.imu_rate_hz) : 50'000'000;
     has_imu_ = rig.imu_rate_hz > 0;
@@ -373,6 +374,7 @@ class EstimatorStage {
         ++report_.steady_frames;
       }
       if (feed_ != nullptr) publish_view(f, t1 - t0);
+      if (map_feed_ != nullptr) map_feed_->on_frame(f.t_ns);
     }
     if (m.rgb_handle != rt::kInvalidHandle) rings_.images.release(m.rgb_handle);
     if (m.depth_handle != rt::kInvalidHandle) rings_.images.release(m.depth_handle);
@@ -428,6 +430,7 @@ class EstimatorStage {
   const ReplayOptions& opt_;
   ReplayReport& report_;
   viewer::ViewerFeed* feed_;
+  MapTopicsFeed* map_feed_;
   MapThreads* map_ = nullptr;
   dense::DenseMapper* dense_ = nullptr;
   int64_t frame_wait_since_ns_ = -1;  // live: when the frame at the front began waiting for the IMU
@@ -459,8 +462,14 @@ class OutputStage {
  public:
   OutputStage(rt::SpscRing<OutPose, kOutRingCapacity>& out, const rt::Mailbox<PipelineStatus>& status,
               const ReplayOptions& opt, ReplayReport& report, const rt::Mailbox<OutPose>* imu_pose,
-              viewer::Server* view)
-      : out_(out), status_(status), opt_(opt), report_(report), imu_pose_(imu_pose), view_(view) {
+              viewer::Server* view, MapTopicsFeed* map_feed)
+      : out_(out),
+        status_(status),
+        opt_(opt),
+        report_(report),
+        imu_pose_(imu_pose),
+        view_(view),
+        map_feed_(map_feed) {
     if (opt.mavlink) {
       mavlink::OdometryStreamOptions mo = *opt.mavlink;
       mo.stamps_on_host_clock = opt.live != nullptr;  // a log's time is not CLOCK_MONOTONIC
@@ -513,6 +522,18 @@ class OutputStage {
       if (mavlink_) mavlink_->publish(odometry_input_of(s));
       if (view_ != nullptr) view_->add_pose(s.t_ns, s.p_WB, s.q_WB, s.quality);
     }
+    // After the poses: a cloud or keyframe goes out with the T_map_odom of
+    // the poses up to its frame.
+    if (map_feed_ != nullptr) {
+      KeyframePose k;
+      while (map_feed_->pop_keyframe(k))
+        if (opt_.on_keyframe) opt_.on_keyframe(k);
+      rt::PoolHandle h = rt::kInvalidHandle;
+      while (const MapCloud* c = map_feed_->take_cloud(&h)) {
+        if (opt_.on_map_cloud) opt_.on_map_cloud(*c);
+        map_feed_->release(h);
+      }
+    }
     if (opt_.status_line) {
       PipelineStatus st;
       uint64_t version = 0;
@@ -556,6 +577,7 @@ class OutputStage {
   const rt::Mailbox<OutPose>* imu_pose_ = nullptr;
   uint64_t imu_pose_version_ = 0;
   viewer::Server* view_ = nullptr;
+  MapTopicsFeed* map_feed_ = nullptr;
 };
 
 }  // namespace
@@ -583,6 +605,34 @@ std::string threads_summary(const std::vector<AppliedThread>& t) {
   }
   return s;
 }
+
+namespace {
+
+// The keyframes as the map ends the flight, and each closed loop drawn
+// between its two keyframes there (the closure's own camera positions when a
+// keyframe left the map since). After the map threads stopped: it allocates.
+MapFinal map_final_of(core::Estimator& est) {
+  MapFinal f;
+  for (const core::MapKeyframePose& k : est.map_keyframe_poses()) f.keyframes.push_back({k.t_ns, k.T_MB});
+  if (est.map_system() == nullptr) return f;
+  auto position_at = [&f](int64_t t_ns, const Eigen::Vector3d& fallback) {
+    const auto it = std::lower_bound(f.keyframes.begin(), f.keyframes.end(), t_ns,
+                                     [](const MapFinal::Keyframe& k, int64_t t) { return k.t_ns < t; });
+    return it != f.keyframes.end() && it->t_ns == t_ns ? Eigen::Vector3d(it->T_MB.translation()) : fallback;
+  };
+  for (const core::LoopCandidateRecord& c : est.map_system()->loop_closer().log().candidates) {
+    if (!c.closed) continue;
+    MapFinal::Loop l;
+    l.query_t_ns = c.query_t_ns;
+    l.candidate_t_ns = c.candidate_t_ns;
+    l.p_M_query = position_at(c.query_t_ns, c.T_MC_query.translation());
+    l.p_M_candidate = position_at(c.candidate_t_ns, c.T_MC_candidate.translation());
+    f.loops.push_back(l);
+  }
+  return f;
+}
+
+}  // namespace
 
 namespace {
 
@@ -705,7 +755,9 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   report.trajectory.reserve(1 << 16);
   report.has_map = estimator.has_map();
   if (report.has_map) report.map_trajectory.reserve(1 << 16);
-  if (opt.loop_log && estimator.map_system() != nullptr) estimator.map_system()->set_loop_logging(true);
+  // The final loop markers are read from the loop closer's log.
+  if ((opt.loop_log || opt.on_map_final) && estimator.map_system() != nullptr)
+    estimator.map_system()->set_loop_logging(true);
 
   // At realtime pace the optimizer gets its own thread, as it will fly; fast
   // and lockstep run it inline, so both give the lockstep trajectory bit for
@@ -732,11 +784,17 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     view = std::make_unique<viewer::Server>(opt.view_options, *feed, control.get());
     if (source) source->set_ground_truth_ring(&feed->ground_truth_ring());
   }
+  // The ROS outputs' map (sized here with the rest; nothing for a backend without a tracker).
+  std::unique_ptr<MapTopicsFeed> map_feed;
+  if (opt.on_map_cloud || opt.on_keyframe) {
+    map_feed = std::make_unique<MapTopicsFeed>(estimator, opt.on_map_cloud ? opt.map_points_rate_hz : 0.0);
+    if (!map_feed->active()) map_feed.reset();
+  }
   EstimatorStage stage(estimator, *rings, realtime ? *est_imu : rings->imu, *out, *status,
-                       realtime ? anchor.get() : nullptr, opt, rig, report, feed.get());
+                       realtime ? anchor.get() : nullptr, opt, rig, report, feed.get(), map_feed.get());
   auto imu_pose = std::make_unique<rt::Mailbox<OutPose>>();
   ImuRateStage propagator(rings->imu, *est_imu, *anchor, rig, opt.warmup_ns, *imu_pose);
-  OutputStage output(*out, *status, opt, report, imu_pose.get(), view.get());
+  OutputStage output(*out, *status, opt, report, imu_pose.get(), view.get(), map_feed.get());
   if (view) {
     // In realtime pace kst-propagate owns the IMU -> pose figure.
     if (realtime) view->set_imu_latency_probe([&propagator] { return propagator.take_recent_max_ns(); });
@@ -925,6 +983,12 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     if (!anchors.empty()) report.map_final_trajectory = tools::anchor_to_keyframes(report.trajectory, anchors);
     if (opt.loop_log && estimator.map_system() != nullptr)
       report.loop_log = estimator.map_system()->loop_closer().log();
+    if (opt.on_map_final) opt.on_map_final(map_final_of(estimator));
+  }
+  if (map_feed) {
+    report.map_clouds = map_feed->clouds_published();
+    report.map_clouds_dropped = map_feed->clouds_dropped();
+    report.map_keyframes_dropped = map_feed->keyframes_dropped();
   }
   report.mapping_cpu_s = map_threads.mapping_cpu_s();
   report.loop_cpu_s = map_threads.loop_cpu_s();
@@ -1220,6 +1284,10 @@ std::string replay_metrics_json(const ReplayReport& r) {
                            {"applied", t.applied},
                            {"error", t.error}});
   j["threads"] = std::move(threads);
+  if (r.map_clouds + r.map_clouds_dropped + r.map_keyframes_dropped > 0)
+    j["ros2_map_topics"] = Json{{"clouds", r.map_clouds},
+                                {"clouds_dropped", r.map_clouds_dropped},
+                                {"keyframes_dropped", r.map_keyframes_dropped}};
   if (r.view) {
     const viewer::ServerStats& v = r.viewer;
     const bool streamed = v.streaming_s > 0;
@@ -1421,6 +1489,14 @@ std::string replay_summary(const ReplayReport& r) {
     }
   }
   if (r.view) s += viewer::stats_summary(r.viewer);
+  if (r.map_clouds + r.map_clouds_dropped + r.map_keyframes_dropped > 0) {
+    std::snprintf(buf, sizeof buf,
+                  "ros2 map topics: %llu point clouds; dropped %llu clouds, %llu keyframes (output behind)\n",
+                  static_cast<unsigned long long>(r.map_clouds),
+                  static_cast<unsigned long long>(r.map_clouds_dropped),
+                  static_cast<unsigned long long>(r.map_keyframes_dropped));
+    s += buf;
+  }
   if (r.dense) {
     const dense::DenseStats& d = r.dense_stats;
     std::snprintf(

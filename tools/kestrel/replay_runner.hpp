@@ -21,6 +21,7 @@
 #include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/replay_source.hpp"
 #include "kestrel/loop_truth.hpp"
+#include "kestrel/map_topics.hpp"
 #include "kestrel/mavlink/odometry_adapter.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"
 #include "kestrel/rt/latency_histogram.hpp"
@@ -54,6 +55,20 @@ struct PoseSample {
   core::MapFrameState map;        // T_map_odom and the map's counters (backends with a map)
   // The pose in the map frame: T_map_odom * T_WB (the odometry when there is no map).
   Eigen::Isometry3d T_map_body() const;
+};
+
+// The map's last word, for the ROS outputs' final markers.
+struct MapFinal {
+  struct Keyframe {
+    int64_t t_ns = 0;
+    Eigen::Isometry3d T_MB = Eigen::Isometry3d::Identity();
+  };
+  struct Loop {
+    int64_t query_t_ns = 0, candidate_t_ns = 0;
+    Eigen::Vector3d p_M_query = Eigen::Vector3d::Zero(), p_M_candidate = Eigen::Vector3d::Zero();
+  };
+  std::vector<Keyframe> keyframes;  // oldest first
+  std::vector<Loop> loops;          // closed loops, in order
 };
 
 struct OutPose;  // imu_rate_stage.hpp
@@ -178,6 +193,16 @@ struct ReplayOptions {
   // relocalisation, a loaded map found): the correction, published apart
   // from the continuous odometry (docs/map.md).
   std::function<void(const PoseSample&)> on_map_correction;
+  // The map for the ROS outputs (docs/ros2.md), on the output thread: the
+  // local map's points at most map_points_rate_hz of log time (0: none) and
+  // every new keyframe's camera pose, in W; handed over by MapTopicsFeed
+  // when either callback is set and the backend has a tracker.
+  double map_points_rate_hz = 0;
+  std::function<void(const MapCloud&)> on_map_cloud;
+  std::function<void(const KeyframePose&)> on_keyframe;
+  // After the map threads stopped (backends with a map): the keyframes as the
+  // map holds them at the end and the loops closed between them.
+  std::function<void(const MapFinal&)> on_map_final;
   // Called with the backend once it is built, before any record is read or
   // thread started: the command checks the options that depend on it (a map
   // output for a backend without a map) and throws, so nothing runs in vain.
@@ -296,6 +321,9 @@ struct ReplayReport {
   viewer::ServerStats viewer;
   uint64_t viewer_snapshots = 0;          // published by the estimator thread
   uint64_t viewer_snapshots_skipped = 0;  // no free slot: the viewer was behind
+  // The ROS outputs' map hand-off (MapTopicsFeed): clouds handed over, and
+  // what the estimator thread dropped because the output thread was behind.
+  uint64_t map_clouds = 0, map_clouds_dropped = 0, map_keyframes_dropped = 0;
   // The dense map (docs/dense.md); dense false: it did not run.
   bool dense = false;
   dense::DenseStats dense_stats;

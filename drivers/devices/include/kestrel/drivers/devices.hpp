@@ -152,6 +152,17 @@ struct RecordSettings {
 // Throws std::runtime_error "where: record.image_codec: expected one of zstd, lz4, none".
 RecordSettings record_settings_from_yaml_node(const YAML::Node& node, const std::string& where);
 
+// `ros2:` section (optional): what `--mcap-out` and `--foxglove` publish
+// beside the poses (docs/ros2.md).
+struct Ros2Settings {
+  double map_points_rate_hz =
+      1.0;  // PointCloud2 of the local map at most this often [Hz of log time]; 0: none
+};
+// Throws std::runtime_error "where: ros2.map_points_rate_hz: expected a number in [0, 30]".
+Ros2Settings ros2_settings_from_yaml_node(const YAML::Node& node, const std::string& where);
+// The `ros2:` section of any YAML file (defaults when none).
+Ros2Settings load_ros2_settings(const std::string& path);
+
 // `threads:` section (optional): scheduling and CPU of every pipeline thread.
 // One rt::ThreadSpec per known thread (priority 0 = SCHED_OTHER, cpu -1 =
 // any). Threads the section does not name keep default_thread_table()'s value.
@@ -186,6 +197,7 @@ struct LiveConfig {
   ThreadTable threads = default_thread_table();
   MavlinkSettings mavlink;
   RecordSettings record;
+  Ros2Settings ros2;
 };
 
 // Throws std::runtime_error "path: drivers.imu.acc_range_g: expected one of 2, 4, 8, 16".

@@ -23,6 +23,7 @@ class CdrWriter {
   void u32(uint32_t v);
   void i32(int32_t v);
   void f64(double v);
+  void f32(float v);
   void str(const std::string& s);
   void bytes(const uint8_t* p, size_t n);  // uint8[] with its length
   void f64s(const double* p, size_t n);    // fixed array: no length
@@ -140,6 +141,33 @@ struct DiagnosticArray {
   std::vector<DiagnosticStatus> status;
 };
 
+// sensor_msgs/msg/PointCloud2 of x y z float32 points (written only:
+// --mcap-out's and --foxglove's map points). One row, dense, little-endian,
+// 12 bytes per point.
+struct PointCloudXyz {
+  int64_t t_ns = 0;
+  std::string frame_id;
+  const float* xyz = nullptr;  // 3 * n floats, a view into the caller's buffer
+  uint32_t n = 0;
+};
+
+// visualization_msgs/msg/Marker (the Humble definition) with what Kestrel
+// draws: a pose, a scale, one colour and a list of points.
+struct Marker {
+  enum Type : int32_t { kArrow = 0, kSphere = 2, kLineStrip = 4, kLineList = 5 };
+  enum Action : int32_t { kAdd = 0, kDeleteAll = 3 };
+  int64_t t_ns = 0;
+  std::string frame_id, ns;
+  int32_t id = 0, type = kArrow, action = kAdd;
+  Pose pose;
+  std::array<double, 3> scale{1, 1, 1};
+  std::array<float, 4> color_rgba{1, 1, 1, 1};
+  std::vector<std::array<double, 3>> points;
+};
+
+void encode(const PointCloudXyz& m, std::vector<uint8_t>& out);
+void encode(const std::vector<Marker>& markers,
+            std::vector<uint8_t>& out);  // visualization_msgs/msg/MarkerArray
 void encode(const Imu& m, std::vector<uint8_t>& out);
 void encode(const DiagnosticArray& m, std::vector<uint8_t>& out);
 void encode(const Image& m, std::vector<uint8_t>& out);
