@@ -318,34 +318,52 @@ Eigen::Vector3f TsdfMap::voxel_centre(int b, int i) const {
   return (k.cast<float>() + Eigen::Vector3f::Constant(0.5f)) * static_cast<float>(opt_.voxel_size_m);
 }
 
-void TsdfMap::extract_surface(std::vector<SurfacePoint>& out) const {
+template <class Emit>
+void TsdfMap::block_surface(int b, Emit&& emit) const {
   const auto vox = static_cast<float>(opt_.voxel_size_m);
   const auto min_w = static_cast<float>(opt_.min_weight);
-  for (int b = 0; b < capacity_; ++b) {
-    if (!blocks_[static_cast<std::size_t>(b)].used) continue;
-    const Voxel* vx = &voxels_[static_cast<std::size_t>(b) * kBlockVoxels];
-    for (int i = 0; i < kBlockVoxels; ++i) {
-      const Voxel& a = vx[i];
-      if (a.weight < min_w) continue;
-      const Eigen::Vector3f pa = voxel_centre(b, i);
-      for (int axis = 0; axis < 3; ++axis) {
-        Eigen::Vector3f pb = pa;
-        pb[axis] += vox;
-        const Voxel* nb = voxel_at(pb.cast<double>());
-        if (nb == nullptr || nb->weight < min_w) continue;
-        // A sign change between two voxels that both saw the surface (not the
-        // +truncation/-truncation jump at the band's edge behind an object).
-        if ((a.sdf_m > 0) == (nb->sdf_m > 0)) continue;
-        if (std::fabs(a.sdf_m - nb->sdf_m) > 2.0f * vox) continue;
-        const float f = a.sdf_m / (a.sdf_m - nb->sdf_m);
-        SurfacePoint s;
-        s.p = pa + f * (pb - pa);
-        const Voxel& c = std::fabs(a.sdf_m) <= std::fabs(nb->sdf_m) ? a : *nb;
-        std::memcpy(s.rgb, c.rgb, 3);
-        out.push_back(s);
-      }
+  const Voxel* vx = &voxels_[static_cast<std::size_t>(b) * kBlockVoxels];
+  for (int i = 0; i < kBlockVoxels; ++i) {
+    const Voxel& a = vx[i];
+    if (a.weight < min_w) continue;
+    const Eigen::Vector3f pa = voxel_centre(b, i);
+    for (int axis = 0; axis < 3; ++axis) {
+      Eigen::Vector3f pb = pa;
+      pb[axis] += vox;
+      const Voxel* nb = voxel_at(pb.cast<double>());
+      if (nb == nullptr || nb->weight < min_w) continue;
+      // A sign change between two voxels that both saw the surface (not the
+      // +truncation/-truncation jump at the band's edge behind an object).
+      if ((a.sdf_m > 0) == (nb->sdf_m > 0)) continue;
+      if (std::fabs(a.sdf_m - nb->sdf_m) > 2.0f * vox) continue;
+      const float f = a.sdf_m / (a.sdf_m - nb->sdf_m);
+      SurfacePoint s;
+      s.p = pa + f * (pb - pa);
+      const Voxel& c = std::fabs(a.sdf_m) <= std::fabs(nb->sdf_m) ? a : *nb;
+      std::memcpy(s.rgb, c.rgb, 3);
+      if (!emit(s)) return;
     }
   }
+}
+
+void TsdfMap::extract_surface(std::vector<SurfacePoint>& out) const {
+  for (int b = 0; b < capacity_; ++b)
+    if (blocks_[static_cast<std::size_t>(b)].used)
+      block_surface(b, [&](const SurfacePoint& s) {
+        out.push_back(s);
+        return true;
+      });
+}
+
+int TsdfMap::extract_block_surface(int b, SurfacePoint* out, int max) const {
+  int n = 0;
+  if (b < 0 || b >= capacity_ || !blocks_[static_cast<std::size_t>(b)].used) return 0;
+  block_surface(b, [&](const SurfacePoint& s) {
+    if (n >= max) return false;
+    out[n++] = s;
+    return true;
+  });
+  return n;
 }
 
 void TsdfMap::occupied_voxels(std::vector<Eigen::Vector3f>& out) const {

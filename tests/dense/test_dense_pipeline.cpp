@@ -7,6 +7,7 @@
 #include <gtest/gtest.h>
 #include <octomap/OcTree.h>
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <cstring>
@@ -160,6 +161,36 @@ TEST(DensePipeline, WithTheMapOffNothingRuns) {
   EXPECT_EQ(cli::replay_summary(r).find("dense map"), std::string::npos);
 }
 
+// --dense-map-out: every keyframe re-fused from the archive; without a map
+// (the default backend has none) M = W, so the two surfaces are the same
+// walls: each map-frame point lies within a voxel of some W point.
+TEST(DensePipeline, MapFrameSurfaceIsReintegratedFromEveryKeyframe) {
+  const std::string dir = test::temp_dir("dense_map_out");
+  cli::ReplayOptions ro;
+  ro.path = simulate(dir, 6.0);
+  ro.pace = drivers::ReplayPace::kLockstep;
+  ro.dense_out = dir + "/w.ply";
+  ro.dense_map_out = dir + "/m.ply";
+  const cli::ReplayReport r = cli::run_replay(ro);
+  ASSERT_TRUE(r.dense);
+  EXPECT_TRUE(r.dense_stats.rebuilt);
+  EXPECT_EQ(static_cast<uint64_t>(r.dense_stats.rebuild.fused), r.dense_stats.integrated);
+  EXPECT_EQ(r.dense_stats.rebuild.no_pose, 0);
+  EXPECT_EQ(r.dense_archive_overwritten, 0u);
+  EXPECT_NE(cli::replay_summary(r).find("dense map in the map frame:"), std::string::npos);
+  const std::vector<Eigen::Vector3f> w = read_ply(dir + "/w.ply"), m = read_ply(dir + "/m.ply");
+  ASSERT_GT(w.size(), 1000u);
+  ASSERT_GT(m.size(), 1000u);
+  EXPECT_EQ(m.size(), r.dense_map_points);
+  std::size_t near = 0;
+  for (std::size_t i = 0; i < m.size(); i += 50) {
+    float best = 1e9f;
+    for (const Eigen::Vector3f& p : w) best = std::min(best, (p - m[i]).norm());
+    near += best <= 0.05f ? 1 : 0;
+  }
+  EXPECT_GE(static_cast<double>(near), 0.95 * static_cast<double>((m.size() + 49) / 50));
+}
+
 TEST(DenseConfig, SectionReadAndBadKeysNamed) {
   const dense::DenseOptions o =
       dense::dense_options_from_yaml("dense:\n  enabled: true\n  voxel_size_m: 0.1\n", "test.yaml");
@@ -181,7 +212,18 @@ TEST(DenseConfig, SectionReadAndBadKeysNamed) {
   EXPECT_THROW(dense::dense_options_from_yaml("dense:\n  voxel_size_m: 0\n", "test.yaml"),
                std::runtime_error);
   // Every key of the table reads back what it prints.
-  EXPECT_EQ(dense::dense_options_table(dense::DenseOptions{}).size(), 15u);
+  EXPECT_EQ(dense::dense_options_table(dense::DenseOptions{}).size(), 17u);
+  // The keyframe archive's keys (--dense-map-out), and a bad stride named.
+  const dense::DenseOptions a = dense::dense_options_from_yaml(
+      "dense:\n  archive_budget_mb: 12\n  archive_stride_px: 4\n", "test.yaml");
+  EXPECT_DOUBLE_EQ(a.archive.budget_mb, 12.0);
+  EXPECT_EQ(a.archive.stride_px, 4);
+  try {
+    dense::dense_options_from_yaml("dense:\n  archive_stride_px: 0\n", "test.yaml");
+    FAIL() << "accepted stride 0";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("dense.archive_stride_px"), std::string::npos) << e.what();
+  }
 }
 
 }  // namespace

@@ -27,6 +27,8 @@ void visit(DenseOptions& o, Fn&& fn) {
   fn("keyframe_angle_deg", o.keyframe_angle_deg);
   fn("keyframe_interval_s", o.keyframe_interval_s);
   fn("handoff_slots", o.handoff_slots);
+  fn("archive_budget_mb", o.archive.budget_mb);
+  fn("archive_stride_px", o.archive.stride_px);
 }
 }  // namespace
 

@@ -37,6 +37,7 @@ void DenseOptions::validate() const {
   require(std::isfinite(keyframe_angle_deg) && keyframe_angle_deg >= 0,
           "keyframe_angle_deg must be >= 0 deg");
   require(std::isfinite(keyframe_interval_s) && keyframe_interval_s > 0, "keyframe_interval_s must be > 0 s");
+  archive.validate();
   require(handoff_slots >= 1 && handoff_slots <= static_cast<int>(64), "handoff_slots must be in [1, 64]");
 }
 
@@ -48,6 +49,7 @@ DenseMapper::DenseMapper(const DenseOptions& opt, const Rig& rig, bool wait_when
     throw std::invalid_argument("dense map: the rig has no camera size (rgb.width/height)");
   T_BC_.matrix() = Eigen::Map<const Eigen::Matrix<double, 4, 4, Eigen::RowMajor>>(rig.T_BC.data());
   map_ = std::make_unique<core::TsdfMap>(opt_.tsdf);
+  if (opt_.archive.budget_mb > 0) archive_ = std::make_unique<core::KeyframeArchive>(opt_.archive, rig.rgb);
   const auto pixels = static_cast<std::size_t>(rig.rgb.width) * static_cast<std::size_t>(rig.rgb.height);
   slots_.resize(static_cast<std::size_t>(opt_.handoff_slots));
   for (std::size_t i = 0; i < slots_.size(); ++i) {
@@ -131,6 +133,7 @@ void DenseMapper::run() {
     Slot& s = slots_[i];
     const int64_t t0 = rt::now_ns();
     map_->integrate(s.depth, s.rgb, rig_.rgb, rig_.depth, s.T_WC);
+    if (archive_ != nullptr) (void)archive_->store(s.t_ns, s.T_WC, s.depth, s.rgb);
     const int64_t t1 = rt::now_ns();
     stats_.integrate.record(t1 - t0);
     stats_.latency.record(t1 - s.handed_ns);
@@ -142,6 +145,20 @@ void DenseMapper::run() {
   timespec ts{};
   clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
   stats_.cpu_s = static_cast<double>(ts.tv_sec) + 1e-9 * static_cast<double>(ts.tv_nsec);
+}
+
+void DenseMapper::rebuild_along(const std::function<bool(int64_t t_ns, Eigen::Isometry3d& C_MW)>& C_MW_of) {
+  if (map_ == nullptr || archive_ == nullptr) return;
+  stop();
+  stats_.rebuild =
+      core::reintegrate(*archive_, rig_.depth, *map_,
+                        [&](int64_t t_ns, const Eigen::Isometry3d& T_WC, Eigen::Isometry3d& T_MC) {
+                          Eigen::Isometry3d C_MW;
+                          if (!C_MW_of(t_ns, C_MW)) return false;
+                          T_MC = C_MW * T_WC;
+                          return true;
+                        });
+  stats_.rebuilt = true;
 }
 
 void DenseMapper::wait_idle() {

@@ -37,7 +37,7 @@ Subcommand add_replay_command(CLI::App& parent) {
     std::string mapping, loop;
     std::string map_traj_out, map_final_traj_out;
     std::string map_in, map_out;
-    std::string dense_out, dense_octomap_out;  // the dense map (docs/dense.md)
+    std::string dense_out, dense_octomap_out, dense_map_out;  // the dense map (docs/dense.md)
     std::string mcap_out;
     std::string foxglove;  // [ADDR:]PORT
     double foxglove_wait_s = 0;
@@ -118,6 +118,9 @@ Subcommand add_replay_command(CLI::App& parent) {
       "frame of --traj-out (docs/dense.md)");
   app->add_option("--dense-octomap-out", args->dense_octomap_out,
                   "build the dense map and write its occupancy here as an OctoMap .bt (docs/dense.md)");
+  app->add_option("--dense-map-out", args->dense_map_out,
+                  "build the dense map and write its surface here as PLY re-integrated along the map's final "
+                  "trajectory (the frame of --map-final-traj-out: surfaces follow loops; docs/dense.md)");
   app->add_option("--metrics-out", args->metrics_out,
                   "write latency histograms, drops, counters, CPU, RSS, real-time factor as JSON");
   app->add_option("--warmup", args->warmup_s, "seconds of log before steady-state statistics start")
@@ -159,6 +162,7 @@ Subcommand add_replay_command(CLI::App& parent) {
     opt.dense = dense::load_dense_options(args->config);
     opt.dense_out = args->dense_out;
     opt.dense_octomap_out = args->dense_octomap_out;
+    opt.dense_map_out = args->dense_map_out;
     if (!args->config.empty()) opt.threads = drivers::load_thread_table(args->config);
     try {
       opt.format = drivers::parse_log_format(args->format);
@@ -251,6 +255,7 @@ Subcommand add_replay_command(CLI::App& parent) {
       if (!args->dense_out.empty()) std::cout << "dense map: " << args->dense_out << "\n";
       if (!args->dense_octomap_out.empty())
         std::cout << "dense occupancy: " << args->dense_octomap_out << "\n";
+      if (!args->dense_map_out.empty()) std::cout << "dense map (map frame): " << args->dense_map_out << "\n";
       if (mcap) std::cout << "mcap: " << args->mcap_out << " (" << mcap->count() << " odometry messages)\n";
       if (fox) std::cout << foxglove::stats_summary(fox->server().stats());
     }

@@ -815,7 +815,14 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   // The dense map's thread (off unless asked for): the deterministic paces
   // wait for a free slot, realtime drops and counts.
   dense::DenseOptions dense_opt = opt.dense;
-  if (!opt.dense_out.empty() || !opt.dense_octomap_out.empty() || opt.on_dense_map) dense_opt.enabled = true;
+  if (!opt.dense_out.empty() || !opt.dense_octomap_out.empty() || !opt.dense_map_out.empty() ||
+      opt.on_dense_map || opt.on_dense_map_rebuilt)
+    dense_opt.enabled = true;
+  // A keyframe's correction comes from a trajectory pose at most this far in
+  // time (a dense keyframe is a frame of the trajectory; farther: a lost stretch).
+  constexpr int64_t kDenseCorrectionMaxGapNs = 100'000'000;
+  // The keyframe archive costs its budget in memory; only a re-integration reads it.
+  if (opt.dense_map_out.empty() && !opt.on_dense_map_rebuilt) dense_opt.archive.budget_mb = 0;
   dense::DenseMapper dense_mapper(dense_opt, rig, !realtime);
   stage.set_dense(&dense_mapper);
   if (dense_mapper.enabled())
@@ -958,6 +965,16 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   }
   map_threads.stop();
   if (!opt.map_out.empty()) tools::write_map_file(opt.map_out, estimator.save_map());
+  if (report.has_map) {
+    std::vector<tools::KeyframeAnchor>& anchors = report.map_final_keyframes;
+    for (const core::MapKeyframePose& k : estimator.map_keyframe_poses())
+      anchors.push_back({k.t_ns, k.T_MB, k.T_WB});
+    if (!anchors.empty())
+      report.map_final_trajectory = tools::anchor_to_keyframes(report.trajectory, anchors);
+    if (opt.loop_log && estimator.map_system() != nullptr)
+      report.loop_log = estimator.map_system()->loop_closer().log();
+    if (opt.on_map_final) opt.on_map_final(map_final_of(estimator));
+  }
   if (dense_mapper.enabled()) {
     dense_mapper.stop();
     const core::TsdfMap& dm = dense_mapper.map();
@@ -976,14 +993,44 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     if (!opt.dense_octomap_out.empty())
       report.dense_octomap_leaves = dense::write_octomap_bt(opt.dense_octomap_out, dm);
     if (opt.on_dense_map) opt.on_dense_map(dm);
-  }
-  if (report.has_map) {
-    std::vector<tools::KeyframeAnchor>& anchors = report.map_final_keyframes;
-    for (const core::MapKeyframePose& k : estimator.map_keyframe_poses()) anchors.push_back({k.t_ns, k.T_MB, k.T_WB});
-    if (!anchors.empty()) report.map_final_trajectory = tools::anchor_to_keyframes(report.trajectory, anchors);
-    if (opt.loop_log && estimator.map_system() != nullptr)
-      report.loop_log = estimator.map_system()->loop_closer().log();
-    if (opt.on_map_final) opt.on_map_final(map_final_of(estimator));
+    if (!opt.dense_map_out.empty() || opt.on_dense_map_rebuilt) {
+      // The map's final word on every keyframe's pose; the map's memory is
+      // reused, so this runs after everything W needed was written.
+      if (dense_mapper.archive() == nullptr)
+        throw std::invalid_argument(
+            "--dense-map-out needs the keyframe archive (dense.archive_budget_mb > 0)");
+      // The correction at the trajectory's pose nearest the keyframe (they are
+      // the same frame; the nearest also absorbs a stamp the backend moved by
+      // its time-offset estimate): without a map M = W and it is the identity.
+      const tools::Trajectory& W = report.trajectory;
+      const tools::Trajectory& M = report.map_final_trajectory.empty() ? W : report.map_final_trajectory;
+      auto iso = [](const tools::TimedPose& p) {
+        Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+        T.linear() = p.q.normalized().toRotationMatrix();
+        T.translation() = p.p;
+        return T;
+      };
+      dense_mapper.rebuild_along([&](int64_t t_ns, Eigen::Isometry3d& C_MW) {
+        if (W.empty() || M.size() != W.size()) return false;
+        auto it = std::lower_bound(W.begin(), W.end(), t_ns,
+                                   [](const tools::TimedPose& p, int64_t t) { return p.t_ns < t; });
+        if (it == W.end() || (it != W.begin() && t_ns - std::prev(it)->t_ns < it->t_ns - t_ns)) --it;
+        if (std::llabs(it->t_ns - t_ns) > kDenseCorrectionMaxGapNs) return false;
+        const std::size_t i = static_cast<std::size_t>(it - W.begin());
+        C_MW = iso(M[i]) * iso(W[i]).inverse();
+        return true;
+      });
+      report.dense_stats = dense_mapper.stats();
+      report.dense_archive_capacity = dense_mapper.archive()->capacity();
+      report.dense_archive_overwritten = dense_mapper.archive()->counters().overwritten;
+      if (!opt.dense_map_out.empty()) {
+        std::vector<core::SurfacePoint> pts;
+        dm.extract_surface(pts);
+        dense::write_ply(opt.dense_map_out, pts);
+        report.dense_map_points = pts.size();
+      }
+      if (opt.on_dense_map_rebuilt) opt.on_dense_map_rebuilt(dm);
+    }
   }
   if (map_feed) {
     report.map_clouds = map_feed->clouds_published();
@@ -1208,7 +1255,14 @@ std::string replay_metrics_json(const ReplayReport& r) {
                       {"memory_mb", r.dense_memory_mb},
                       {"blocks_evicted", r.dense_counters.blocks_evicted},
                       {"blocks_refused", r.dense_counters.blocks_refused},
-                      {"surface_points", r.dense_points}};
+                      {"surface_points", r.dense_points},
+                      {"map_frame_rebuilt", d.rebuilt},
+                      {"map_frame_keyframes", d.rebuild.fused},
+                      {"map_frame_no_pose", d.rebuild.no_pose},
+                      {"map_frame_rebuild_cpu_s", 1e-9 * static_cast<double>(d.rebuild.cpu_ns)},
+                      {"map_frame_surface_points", r.dense_map_points},
+                      {"archive_capacity", r.dense_archive_capacity},
+                      {"archive_overwritten", r.dense_archive_overwritten}};
   } else {
     j["dense"] = nullptr;
   }
@@ -1511,6 +1565,16 @@ std::string replay_summary(const ReplayReport& r) {
         static_cast<unsigned long long>(r.dense_counters.blocks_refused),
         static_cast<unsigned long long>(r.dense_points));
     s += buf;
+    if (d.rebuilt) {
+      std::snprintf(
+          buf, sizeof buf,
+          "dense map in the map frame: %d keyframes re-fused (%d without a pose, %llu overwritten in "
+          "the archive of %d), %.2f s; %llu surface points\n",
+          d.rebuild.fused, d.rebuild.no_pose, static_cast<unsigned long long>(r.dense_archive_overwritten),
+          r.dense_archive_capacity, 1e-9 * static_cast<double>(d.rebuild.cpu_ns),
+          static_cast<unsigned long long>(r.dense_map_points));
+      s += buf;
+    }
   }
   if (r.alloc_counting) {
     std::snprintf(buf, sizeof buf, "estimator-thread heap allocations after warm-up: %lld\n",

@@ -227,6 +227,12 @@ struct ReplayOptions {
   dense::DenseOptions dense;
   std::string dense_out;          // the surface as PLY, in W (the frame of the trajectory)
   std::string dense_octomap_out;  // occupancy as an OctoMap .bt
+  // The surface again, re-integrated from the keyframe archive along the map's
+  // final trajectory (the frame M of --map-final-traj-out, after loops and
+  // bundle adjustments); without a map, along the trajectory itself (M = W).
+  std::string dense_map_out;
+  // Called with the re-integrated map (tests, measurements); enables the map and the re-integration.
+  std::function<void(const core::TsdfMap&)> on_dense_map_rebuilt;
   // Called at the end with the finished map (tests, measurements); enables the map.
   std::function<void(const core::TsdfMap&)> on_dense_map;
 };
@@ -332,6 +338,9 @@ struct ReplayReport {
   double dense_memory_mb = 0;
   uint64_t dense_points = 0;  // written to dense_out
   uint64_t dense_octomap_leaves = 0;
+  uint64_t dense_map_points = 0;           // written to dense_map_out
+  uint64_t dense_archive_overwritten = 0;  // keyframes the archive no longer had for the re-integration
+  int dense_archive_capacity = 0;
 };
 
 ReplayReport run_replay(const ReplayOptions& opt);

@@ -99,6 +99,17 @@ class TsdfMap {
   void occupied_voxels(std::vector<Eigen::Vector3f>& out) const;
   void free_voxels(std::vector<Eigen::Vector3f>& out) const;
 
+  // Block by block, for a stream that sends only what changed (the viewer):
+  // slots 0..block_capacity()-1; a slot's key changes when it is evicted and
+  // reused. block_updated: counters().frames after the frame that last listed it (>= 1).
+  bool block_used(int b) const { return blocks_[static_cast<std::size_t>(b)].used; }
+  uint32_t block_updated(int b) const { return blocks_[static_cast<std::size_t>(b)].last_seen; }
+  const Eigen::Vector3i& block_key_of(int b) const { return blocks_[static_cast<std::size_t>(b)].key; }
+  double block_size_m() const { return block_size_m_; }
+  // The surface points of one block (extract_surface's, block b's share):
+  // at most `max` into `out`, returns how many. Allocation-free.
+  int extract_block_surface(int b, SurfacePoint* out, int max) const;
+
   void clear();
   const TsdfOptions& options() const { return opt_; }
   const TsdfCounters& counters() const { return counters_; }
@@ -128,6 +139,9 @@ class TsdfMap {
   const Voxel* voxel_at(const Eigen::Vector3d& p_M) const;
   Occupancy classify(const Voxel& v) const;
   Eigen::Vector3f voxel_centre(int block, int i) const;
+  // Calls emit(SurfacePoint) for each surface point of block b until it returns false.
+  template <class Emit>
+  void block_surface(int b, Emit&& emit) const;
 
   TsdfOptions opt_;
   double block_size_m_ = 0.4;

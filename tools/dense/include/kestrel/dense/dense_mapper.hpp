@@ -10,10 +10,13 @@
 #include <Eigen/Geometry>
 #include <atomic>
 #include <cstdint>
+#include <functional>
+#include <memory>
 #include <mutex>
 #include <thread>
 #include <vector>
 
+#include "kestrel/core/keyframe_archive.hpp"
 #include "kestrel/core/tsdf_map.hpp"
 #include "kestrel/msgs.hpp"
 #include "kestrel/rt/doorbell.hpp"
@@ -33,6 +36,9 @@ struct DenseOptions {
   double keyframe_interval_s = 1.0;
   // Frames waiting for the thread (each a depth and a colour image of the rig's size).
   int handoff_slots = 4;
+  // The keyframes' depth kept for a re-integration along the map's corrected
+  // poses (--dense-map-out); budget 0 turns it off.
+  core::KeyframeArchiveOptions archive;
   void validate() const;  // throws std::invalid_argument naming the key
 };
 
@@ -45,6 +51,9 @@ struct DenseStats {
   double cpu_s = 0;                // the thread's, after stop()
   rt::LatencyHistogram latency;    // hand-off -> fused in the map
   rt::LatencyHistogram integrate;  // per keyframe, the fusion alone
+  // The re-integration in the map frame (rebuild_along), when it ran.
+  bool rebuilt = false;
+  core::ReintegrationReport rebuild;
 };
 
 class DenseMapper {
@@ -65,6 +74,15 @@ class DenseMapper {
   void stop();
   // After stop(): the map, in W (the frame of the trajectory output).
   const core::TsdfMap& map() const { return *map_; }
+  // After stop(): clears the map and fuses every archived keyframe again,
+  // moved by the correction C_MW(t_ns) = T_MB(t) * T_WB(t)^-1 that C_MW_of gives
+  // for its time (the map's final trajectory after loops and bundle
+  // adjustments against the odometry it was fused along), so map() is then in
+  // that frame M. The same memory: write what W needs first. False from
+  // C_MW_of: the keyframe is left out, counted.
+  void rebuild_along(const std::function<bool(int64_t t_ns, Eigen::Isometry3d& C_MW)>& C_MW_of);
+  // The archive (after stop()): capacity, counters.
+  const core::KeyframeArchive* archive() const { return archive_.get(); }
   const DenseStats& stats() const { return stats_; }
   const DenseOptions& options() const { return opt_; }
   // The thread's row (name, priority, CPU) and what it was granted.
@@ -89,6 +107,7 @@ class DenseMapper {
   bool wait_when_full_ = false;
   bool started_ = false;
   std::unique_ptr<core::TsdfMap> map_;
+  std::unique_ptr<core::KeyframeArchive> archive_;  // written on kst-dense only
   std::vector<Slot> slots_;
   rt::SpscRing<uint32_t, kRingCapacity> filled_;  // estimator -> dense
   rt::SpscRing<uint32_t, kRingCapacity> free_;    // dense -> estimator
