@@ -176,6 +176,24 @@ RosbagReader::RosbagReader(const std::string& path, const RosbagTopics& topics, 
   bool have_right_info = false;
   double right_baseline_m = 0;
   size_t n_imu = 0, n_skipped = 0;
+  // Only an image's header is read now (its stamp); the pixels are read again when replayed.
+  auto list_image = [&](const rosbag::MessageInstance& mi, const std::string& where, int64_t t_recv,
+                        std::vector<ds::Listed>& t, std::vector<uint32_t>& idx, std::vector<int64_t>& recv) {
+    auto m = mi.isType<sensor_msgs::Image>() ? mi.instantiate<sensor_msgs::Image>() : nullptr;
+    if (!m) {
+      s.problem(where, "bad-type", "expected sensor_msgs/Image, got " + mi.getDataType());
+      return false;
+    }
+    ds::Listed l;
+    l.t_ns = ns_of(m->header.stamp);
+    l.line = s.images.size();
+    t.push_back(l);
+    idx.push_back(static_cast<uint32_t>(s.images.size()));
+    recv.push_back(t_recv);
+    s.images.push_back(mi);
+    s.image_where.push_back(where);
+    return true;
+  };
   try {
     std::vector<std::string> wanted{topics.imu, topics.rgb, topics.depth, info_topic, topics.ground_truth};
     if (!topics.right.empty()) wanted.push_back(topics.right), wanted.push_back(right_info_topic);
@@ -210,20 +228,7 @@ RosbagReader::RosbagReader(const std::string& path, const RosbagTopics& topics, 
           s.entries.push_back({x.t_ns, t_recv, kImuK, static_cast<uint32_t>(s.imu.size()), x.seq});
           s.imu.push_back(x);
         } else if (!topics.right.empty() && topic == topics.right) {
-          auto m = mi.isType<sensor_msgs::Image>() ? mi.instantiate<sensor_msgs::Image>() : nullptr;
-          if (!m) {
-            s.problem(where, "bad-type", "expected sensor_msgs/Image, got " + mi.getDataType());
-            ++n_skipped;
-            continue;
-          }
-          ds::Listed l;
-          l.t_ns = ns_of(m->header.stamp);
-          l.line = s.images.size();
-          right_t.push_back(l);
-          right_idx.push_back(static_cast<uint32_t>(s.images.size()));
-          right_recv.push_back(t_recv);
-          s.images.push_back(mi);
-          s.image_where.push_back(where);
+          if (!list_image(mi, where, t_recv, right_t, right_idx, right_recv)) ++n_skipped;
         } else if (!topics.right.empty() && topic == right_info_topic) {
           if (have_right_info) continue;
           auto m = mi.isType<sensor_msgs::CameraInfo>() ? mi.instantiate<sensor_msgs::CameraInfo>() : nullptr;
@@ -244,21 +249,10 @@ RosbagReader::RosbagReader(const std::string& path, const RosbagTopics& topics, 
           right_baseline_m = m->P[0] > 0 ? -m->P[3] / m->P[0] : 0.0;
           have_right_info = true;
         } else if (topic == topics.rgb || topic == topics.depth) {
-          // Only the header is needed now; pixels are read again when replayed.
-          auto m = mi.isType<sensor_msgs::Image>() ? mi.instantiate<sensor_msgs::Image>() : nullptr;
-          if (!m) {
-            s.problem(where, "bad-type", "expected sensor_msgs/Image, got " + mi.getDataType());
+          const bool rgb = topic == topics.rgb;
+          if (!list_image(mi, where, t_recv, rgb ? rgb_t : depth_t, rgb ? rgb_idx : depth_idx,
+                          rgb ? rgb_recv : depth_recv))
             ++n_skipped;
-            continue;
-          }
-          ds::Listed l;
-          l.t_ns = ns_of(m->header.stamp);
-          l.line = s.images.size();
-          (topic == topics.rgb ? rgb_t : depth_t).push_back(l);
-          (topic == topics.rgb ? rgb_idx : depth_idx).push_back(static_cast<uint32_t>(s.images.size()));
-          (topic == topics.rgb ? rgb_recv : depth_recv).push_back(t_recv);
-          s.images.push_back(mi);
-          s.image_where.push_back(where);
         } else if (topic == info_topic) {
           if (have_info) continue;
           auto m = mi.isType<sensor_msgs::CameraInfo>() ? mi.instantiate<sensor_msgs::CameraInfo>() : nullptr;
