@@ -244,6 +244,14 @@ void visit_map(MapSystemOptions& m, OptionVisitor& v) {
   v.value("point_min_keyframes_for_prior", o.point_min_keyframes_for_prior,
           "points seen by fewer keyframes are not handed to the tracker");
   v.value("min_keyframe_interval_s", o.min_keyframe_interval_s, "keyframes closer in time are not mapped");
+  GlobalBaOptions& g = m.global_ba;
+  v.value("global_ba", g.enabled,
+          "after each closed loop, a bundle adjustment of the whole map on the loop thread (docs/map.md)");
+  v.value("global_ba_max_keyframes", g.max_keyframes,
+          "the global BA's free keyframes, newest first (older ones seeing the same points are held)");
+  v.value("global_ba_max_points", g.max_points, "the global BA's points, the most observed first");
+  v.value("global_ba_iterations", g.iterations,
+          "Levenberg-Marquardt iterations per round of the global BA (two rounds)");
   LoopOptions& l = m.closing;
   v.value("loop_min_age_s", l.min_age_s, "loop candidates are at least this much older than the keyframe");
   v.value(

@@ -1,6 +1,7 @@
 #include "kestrel/core/estimator_config.hpp"
 #include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/core/kestrel.hpp"
+#include "kestrel/core/map_system.hpp"
 
 #include <utility>
 
@@ -51,7 +52,8 @@ void Estimator::run_map() {
   for (int guard = 0; guard < 1000; ++guard) {
     const bool mapped = impl_->mapping_step();
     const bool looped = impl_->loop_step();
-    if (!mapped && !looped && !impl_->map_busy()) return;
+    const bool adjusted = impl_->map_system() != nullptr && impl_->map_system()->global_ba_step();
+    if (!mapped && !looped && !adjusted && !impl_->map_busy()) return;
   }
 }
 
@@ -59,7 +61,8 @@ bool Estimator::map_step() {
   if (map_work_ != MapWork::kCaller || !impl_->has_map()) return false;
   const bool mapped = impl_->mapping_step();
   const bool looped = impl_->loop_step();
-  return mapped || looped;
+  const bool adjusted = impl_->map_system() != nullptr && impl_->map_system()->global_ba_step();
+  return mapped || looped || adjusted;
 }
 
 bool Estimator::has_map() const { return impl_->has_map(); }

@@ -1,14 +1,103 @@
 #include "kestrel/core/bundle_adjustment.hpp"
 
 #include <Eigen/Cholesky>
+#include <Eigen/SparseCholesky>
+#include <Eigen/SparseCore>
 #include <algorithm>
 #include <cmath>
+#include <unordered_map>
 
 #include "kestrel/core/so3.hpp"
 
 namespace kestrel::core {
 
+// The reduced camera system of a large problem, in 6x6 blocks: one per free
+// pose on the diagonal, one per pair of free poses that share a point below
+// it. The pattern is built once per solve and analysed once; each LM step
+// only refills the values and factorises.
+struct BaSparse {
+  Eigen::SparseMatrix<double> S;  // lower triangle
+  Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>, Eigen::Lower, Eigen::AMDOrdering<int>> ldlt;
+  std::vector<Eigen::Matrix<double, 6, 6>> blocks;  // [0, nf): diagonal; then (row > col)
+  std::vector<int32_t> block_row, block_col;
+  std::vector<int32_t> pair_block;  // per observation pair, in the Schur loop's order
+  std::vector<int32_t> base;        // per block and column: the value index of its first stored row
+  Eigen::VectorXd rhs;
+};
+
 namespace {
+
+// The block pattern of the reduced system for the observation pairs the
+// Schur loop visits (same order), its sparse matrix and symbolic analysis.
+void build_sparse_pattern(const BaScratch& s, size_t nq, int nf, BaSparse& sp) {
+  sp.blocks.assign(static_cast<size_t>(nf), Eigen::Matrix<double, 6, 6>::Zero());
+  sp.block_row.resize(static_cast<size_t>(nf));
+  sp.block_col.resize(static_cast<size_t>(nf));
+  for (int f = 0; f < nf; ++f) sp.block_row[static_cast<size_t>(f)] = sp.block_col[static_cast<size_t>(f)] = f;
+  std::unordered_map<uint64_t, int32_t> index;
+  sp.pair_block.clear();
+  for (size_t a = 0; a < nq; ++a) {
+    for (int32_t e = s.point_begin[a]; e < s.point_begin[a + 1]; ++e) {
+      const int fi = s.free_of[static_cast<size_t>(e)];
+      if (fi < 0) continue;
+      for (int32_t e2 = s.point_begin[a]; e2 <= e; ++e2) {
+        const int fj = s.free_of[static_cast<size_t>(e2)];
+        if (fj < 0) continue;
+        if (fi == fj) {
+          sp.pair_block.push_back(fi);
+          continue;
+        }
+        const int hi = std::max(fi, fj), lo = std::min(fi, fj);
+        const uint64_t key = static_cast<uint64_t>(hi) * static_cast<uint64_t>(nf) + static_cast<uint64_t>(lo);
+        auto it = index.find(key);
+        if (it == index.end()) {
+          it = index.emplace(key, static_cast<int32_t>(sp.blocks.size())).first;
+          sp.blocks.emplace_back(Eigen::Matrix<double, 6, 6>::Zero());
+          sp.block_row.push_back(hi);
+          sp.block_col.push_back(lo);
+        }
+        sp.pair_block.push_back(it->second);
+      }
+    }
+  }
+  std::vector<Eigen::Triplet<double>> t;
+  t.reserve(sp.blocks.size() * 36);
+  for (size_t b = 0; b < sp.blocks.size(); ++b) {
+    const int r0 = 6 * sp.block_row[b], c0 = 6 * sp.block_col[b];
+    const bool diag = static_cast<int>(b) < nf;
+    for (int c = 0; c < 6; ++c)
+      for (int r = diag ? c : 0; r < 6; ++r) t.emplace_back(r0 + r, c0 + c, 0.0);
+  }
+  sp.S.resize(6 * nf, 6 * nf);
+  sp.S.setFromTriplets(t.begin(), t.end());
+  sp.S.makeCompressed();
+  sp.base.resize(sp.blocks.size() * 6);
+  const int* outer = sp.S.outerIndexPtr();
+  const int* inner = sp.S.innerIndexPtr();
+  for (size_t b = 0; b < sp.blocks.size(); ++b) {
+    const int r0 = 6 * sp.block_row[b], c0 = 6 * sp.block_col[b];
+    const bool diag = static_cast<int>(b) < nf;
+    for (int c = 0; c < 6; ++c) {
+      const int first = diag ? r0 + c : r0;
+      sp.base[b * 6 + static_cast<size_t>(c)] =
+          static_cast<int32_t>(std::lower_bound(inner + outer[c0 + c], inner + outer[c0 + c + 1], first) - inner);
+    }
+  }
+  sp.ldlt.analyzePattern(sp.S);
+}
+
+// The blocks into the matrix's lower triangle.
+void scatter_sparse(int nf, BaSparse& sp) {
+  double* val = sp.S.valuePtr();
+  for (size_t b = 0; b < sp.blocks.size(); ++b) {
+    const bool diag = static_cast<int>(b) < nf;
+    const Eigen::Matrix<double, 6, 6>& B = sp.blocks[b];
+    for (int c = 0; c < 6; ++c) {
+      double* dst = val + sp.base[b * 6 + static_cast<size_t>(c)];
+      for (int r = diag ? c : 0; r < 6; ++r) *dst++ = B(r, c);
+    }
+  }
+}
 
 constexpr double kMinZ_m = 1e-3;  // the same clamp as the Ceres cost: a point behind the camera stays finite
 // Ceres' trust radius bounds (1e16 and 1e-32) as damping bounds: mu never
@@ -131,8 +220,14 @@ BaResult solve_bundle_adjustment(BaProblem& pb, int max_iterations, BaScratch& s
   s.points_old.resize(nq);
   s.R_old.resize(np);
   s.t_old.resize(np);
-  s.H.resize(dim, dim);
-  s.S.resize(dim, dim);
+  s.H_diag.resize(static_cast<size_t>(nf));
+  const bool sparse = nf > s.sparse_from_free_poses;
+  if (sparse) {
+    if (!s.sparse) s.sparse = std::make_shared<BaSparse>();
+    build_sparse_pattern(s, nq, nf, *s.sparse);
+  } else {
+    s.S.resize(dim, dim);
+  }
   s.g.resize(dim);
   s.b.resize(dim);
   s.dx.resize(dim);
@@ -150,7 +245,7 @@ BaResult solve_bundle_adjustment(BaProblem& pb, int max_iterations, BaScratch& s
   Linearised L;
   while (res.iterations < max_iterations) {
     if (linearise_again) {
-      s.H.setZero();
+      for (Eigen::Matrix<double, 6, 6>& Hf : s.H_diag) Hf.setZero();
       s.g.setZero();
       for (size_t a = 0; a < nq; ++a) {
         Eigen::Matrix3d& V = s.V[a];
@@ -170,7 +265,7 @@ BaResult solve_bundle_adjustment(BaProblem& pb, int max_iterations, BaScratch& s
           const int f = s.free_of[static_cast<size_t>(e)];
           if (f < 0) continue;
           const Eigen::Matrix<double, 3, 6>& Jc = L.J_pose;
-          s.H.block<6, 6>(6 * f, 6 * f).noalias() += w * Jc.transpose() * Jc;
+          s.H_diag[static_cast<size_t>(f)].noalias() += w * Jc.transpose() * Jc;
           s.g.segment<6>(6 * f).noalias() += w * Jc.transpose() * r;
           s.W[static_cast<size_t>(e)].noalias() = w * Jc.transpose() * Jp;
         }
@@ -180,7 +275,7 @@ BaResult solve_bundle_adjustment(BaProblem& pb, int max_iterations, BaScratch& s
         if (!gravity_on(pb, P)) continue;
         const int f = s.free_index[i];
         const Eigen::Matrix3d J = -so3::hat(-P.R_CM.col(2)) * pb.gravity_inv_sigma;
-        s.H.block<3, 3>(6 * f, 6 * f).noalias() += J.transpose() * J;
+        s.H_diag[static_cast<size_t>(f)].topLeftCorner<3, 3>().noalias() += J.transpose() * J;
         s.g.segment<3>(6 * f).noalias() += J.transpose() * gravity_residual(pb, P);
       }
       linearise_again = false;
@@ -188,9 +283,24 @@ BaResult solve_bundle_adjustment(BaProblem& pb, int max_iterations, BaScratch& s
     ++res.iterations;
 
     // Damped reduced camera system S dx = -b.
-    s.S = s.H;
-    for (int d = 0; d < dim; ++d) s.S(d, d) += mu * damping(s.H(d, d));
+    if (sparse) {
+      BaSparse& sp = *s.sparse;
+      for (size_t b = static_cast<size_t>(nf); b < sp.blocks.size(); ++b) sp.blocks[b].setZero();
+      for (int f = 0; f < nf; ++f) {
+        Eigen::Matrix<double, 6, 6>& D = sp.blocks[static_cast<size_t>(f)];
+        D = s.H_diag[static_cast<size_t>(f)];
+        for (int d = 0; d < 6; ++d) D(d, d) += mu * damping(s.H_diag[static_cast<size_t>(f)](d, d));
+      }
+    } else {
+      s.S.setZero();
+      for (int f = 0; f < nf; ++f) {
+        s.S.block<6, 6>(6 * f, 6 * f) = s.H_diag[static_cast<size_t>(f)];
+        for (int d = 0; d < 6; ++d)
+          s.S(6 * f + d, 6 * f + d) += mu * damping(s.H_diag[static_cast<size_t>(f)](d, d));
+      }
+    }
     s.b = s.g;
+    size_t pair = 0;
     for (size_t a = 0; a < nq; ++a) {
       Eigen::Matrix3d Vd = s.V[a];
       for (int d = 0; d < 3; ++d) Vd(d, d) += mu * damping(s.V[a](d, d));
@@ -205,7 +315,17 @@ BaResult solve_bundle_adjustment(BaProblem& pb, int max_iterations, BaScratch& s
           const int fj = s.free_of[static_cast<size_t>(e2)];
           if (fj < 0) continue;
           const Eigen::Matrix<double, 6, 6> B = WV * s.W[static_cast<size_t>(e2)].transpose();
-          if (fi > fj) {
+          if (sparse) {
+            Eigen::Matrix<double, 6, 6>& T = s.sparse->blocks[static_cast<size_t>(s.sparse->pair_block[pair++])];
+            if (fi > fj) {
+              T -= B;
+            } else if (fi < fj) {
+              T -= B.transpose();
+            } else {
+              T -= B;
+              if (e2 != e) T -= B.transpose();
+            }
+          } else if (fi > fj) {
             s.S.block<6, 6>(6 * fi, 6 * fj) -= B;
           } else if (fi < fj) {
             s.S.block<6, 6>(6 * fj, 6 * fi) -= B.transpose();
@@ -217,7 +337,17 @@ BaResult solve_bundle_adjustment(BaProblem& pb, int max_iterations, BaScratch& s
       }
     }
     bool solved = true;
-    if (dim > 0) {
+    if (dim > 0 && sparse) {
+      BaSparse& sp = *s.sparse;
+      scatter_sparse(nf, sp);
+      sp.ldlt.factorize(sp.S);
+      solved = sp.ldlt.info() == Eigen::Success;
+      if (solved) {
+        sp.rhs = -s.b;
+        s.dx = sp.ldlt.solve(sp.rhs);
+        solved = sp.ldlt.info() == Eigen::Success && s.dx.allFinite();
+      }
+    } else if (dim > 0) {
       Eigen::LDLT<Eigen::MatrixXd, Eigen::Lower> ldlt(s.S);
       s.dx = ldlt.solve(-s.b);
       solved = ldlt.info() == Eigen::Success && s.dx.allFinite();
@@ -225,7 +355,7 @@ BaResult solve_bundle_adjustment(BaProblem& pb, int max_iterations, BaScratch& s
     // Back-substitution, and the model's decrease: with (A + mu D) x = -g it
     // is -g'x - x'Ax/2 = (-g'x + mu x'Dx) / 2.
     double gx = dim > 0 ? s.g.dot(s.dx) : 0.0, xDx = 0;
-    for (int d = 0; d < dim; ++d) xDx += damping(s.H(d, d)) * s.dx[d] * s.dx[d];
+    for (int d = 0; d < dim; ++d) xDx += damping(s.H_diag[static_cast<size_t>(d / 6)](d % 6, d % 6)) * s.dx[d] * s.dx[d];
     for (size_t a = 0; a < nq && solved; ++a) {
       Eigen::Vector3d rhs = s.g_point[a];
       for (int32_t e = s.point_begin[a]; e < s.point_begin[a + 1]; ++e) {

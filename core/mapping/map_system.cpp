@@ -10,7 +10,9 @@
 
 namespace kestrel::core {
 
-std::string MapSystemOptions::validate() const { return map.validate() + closing.validate(); }
+std::string MapSystemOptions::validate() const {
+  return map.validate() + closing.validate() + global_ba.validate();
+}
 
 MapSystem::MapSystem(const MapCamera& cam, int features_per_keyframe, const MapSystemOptions& opt)
     : opt_(opt), cam_(cam) {
@@ -20,6 +22,7 @@ MapSystem::MapSystem(const MapCamera& cam, int features_per_keyframe, const MapS
   mapper_ = std::make_unique<LocalMapper>(*map_, cam);
   closer_ = std::make_unique<LoopCloser>(*map_, cam, opt.closing);
   if (map_->vocabulary() != nullptr) reloc_ = std::make_unique<Relocaliser>(*map_, cam, opt.closing);
+  if (opt.loop && opt.global_ba.enabled) gba_ = std::make_unique<GlobalBundleAdjustment>(cam, opt.global_ba);
   if (opt.map_in) {
     const std::string where = opt.map_in_path.empty() ? std::string("the map") : opt.map_in_path;
     if (!opt.mapping) throw std::runtime_error(where + ": a map to start from needs the map (--mapping on)");
@@ -198,6 +201,19 @@ void MapSystem::publish_frame() {
 // ---- loop thread ---------------------------------------------------------------
 
 bool MapSystem::loop_step() {
+  if (gba_ && gba_->snapshotted()) return false;  // global_ba_step() first
+  if (gba_ && gba_->solved()) {
+    if (gba_->apply(*map_) && map_->newest_keyframe() >= 0) {
+      // As after the loop: the odometry stays, T_map_odom absorbs the move.
+      const MapKeyframe& N = map_->keyframe(map_->newest_keyframe());
+      state_.set_T_map_odom(project_4dof(N.T_MC * N.T_WC.inverse()));
+      ++state_.alignment;
+      realigned_ = true;
+      publish_frame();
+    }
+    in_flight_.fetch_sub(1, std::memory_order_acq_rel);  // taken by the snapshot
+    return true;
+  }
   const int32_t* k = loop_todo_.front();
   if (k == nullptr) return false;
   loop_todo_.pop();
@@ -213,9 +229,19 @@ bool MapSystem::loop_step() {
     ++state_.loop_closures;
     realigned_ = true;
     publish_frame();
+    // The map is held (a deterministic pace waits) until the solution is back.
+    if (gba_ && gba_->snapshot(*map_)) in_flight_.fetch_add(1, std::memory_order_acq_rel);
   }
   loop_latency_.record(rt::now_ns() - t0);
   in_flight_.fetch_sub(1, std::memory_order_acq_rel);
+  return true;
+}
+
+bool MapSystem::global_ba_step() {
+  if (!gba_ || !gba_->snapshotted()) return false;
+  const int64_t t0 = rt::now_ns();
+  (void)gba_->solve();
+  gba_latency_.record(rt::now_ns() - t0);
   return true;
 }
 
@@ -249,6 +275,16 @@ std::string MapSystem::summary() const {
     << l.rejected_drift << " drift / " << l.rejected_consistency << " consistency, "
     << l.skipped_insignificant << " within their uncertainty, " << l.closures << " closed (pose graph failed "
     << l.pose_graph_failures << "), " << l.points_merged << " points merged";
+  if (gba_) {
+    const GlobalBaStats& g = gba_->stats();
+    o << "; global BA: " << g.runs << " runs (failed " << g.failures << "), last " << g.keyframes
+      << " keyframes (+" << g.fixed_keyframes << " held), " << g.points << " points, " << g.observations
+      << " observations, " << g.outliers << " outliers, cost " << g.initial_cost << " -> " << g.final_cost
+      << ", largest keyframe move " << g.max_keyframe_move_m << " m; followed " << g.followed_keyframes
+      << " keyframes / " << g.followed_points << " points mapped during the solves, " << g.lost_keyframes
+      << " culled; solve p50 " << 1e-6 * static_cast<double>(gba_latency_.percentile(50)) << " ms, max "
+      << 1e-6 * static_cast<double>(gba_latency_.max()) << " ms";
+  }
   if (reloc_) {
     const RelocStats& r = reloc_->stats();
     o << "; relocalisation: " << r.queries << " queries, " << r.candidates << " candidates, " << r.verified

@@ -129,7 +129,7 @@ TEST(MapSystem, ALoopMovesTheMapFrameNotTheOdometry) {
     fill(p, s, static_cast<int64_t>(k) * 500'000'000);
     p->T_WC = D * T_true;
     sys.submit_keyframe(p);
-    while (sys.mapping_step() || sys.loop_step()) {
+    while (sys.mapping_step() || sys.loop_step() || sys.global_ba_step()) {
     }
     if (const core::MapUpdate* u = sys.take_update()) {
       realigned_seen |= u->realigned;
@@ -189,7 +189,7 @@ void fly_lap(core::MapSystem& sys, const SimRoom& room, std::mt19937_64& rng, co
     p->T_WC = J * T_true;
     p->chain = chain;
     sys.submit_keyframe(p);
-    while (sys.mapping_step() || sys.loop_step()) {
+    while (sys.mapping_step() || sys.loop_step() || sys.global_ba_step()) {
     }
     if (const core::MapUpdate* u = sys.take_update()) sys.release_update(u);
     if (out == nullptr) continue;

@@ -2,6 +2,7 @@
 
 #include <time.h>
 
+#include "kestrel/core/map_system.hpp"
 #include "kestrel/rt/clock.hpp"
 #include "kestrel/rt/thread_setup.hpp"
 
@@ -28,6 +29,9 @@ MapThreads::MapThreads(core::Estimator& est, const drivers::ThreadTable& table, 
               std::lock_guard<std::mutex> lock(mutex_);
               worked = t == 0 ? est_.mapping_step() : est_.loop_step();
             }
+            // The global bundle adjustment solves its copy of the map outside
+            // the lock, so the mapping thread goes on meanwhile.
+            if (t == 1 && est_.map_system() != nullptr && est_.map_system()->global_ba_step()) worked = true;
             if (worked) {
               // A mapped keyframe is new work for the loop thread.
               if (t == 0) bells_[1].ring();

@@ -973,6 +973,10 @@ ReplayReport run_replay(const ReplayOptions& opt) {
       report.map_final_trajectory = tools::anchor_to_keyframes(report.trajectory, anchors);
     if (opt.loop_log && estimator.map_system() != nullptr)
       report.loop_log = estimator.map_system()->loop_closer().log();
+    if (const core::MapSystem* ms = estimator.map_system(); ms != nullptr && ms->global_ba() != nullptr) {
+      report.global_ba = ms->global_ba()->stats();
+      report.global_ba_solve.merge(ms->global_ba_latency());
+    }
     if (opt.on_map_final) opt.on_map_final(map_final_of(estimator));
   }
   if (dense_mapper.enabled()) {
@@ -1217,6 +1221,20 @@ std::string replay_metrics_json(const ReplayReport& r) {
     j["map_corrections"] = r.map_corrections;
     j["mapping_cpu_s"] = r.mapping_cpu_s;
     j["loop_cpu_s"] = r.loop_cpu_s;
+    if (r.global_ba) {
+      const core::GlobalBaStats& g = *r.global_ba;
+      j["global_ba"] = Json{{"runs", g.runs},
+                            {"failures", g.failures},
+                            {"keyframes", g.keyframes},
+                            {"fixed_keyframes", g.fixed_keyframes},
+                            {"points", g.points},
+                            {"observations", g.observations},
+                            {"outliers", g.outliers},
+                            {"followed_keyframes", g.followed_keyframes},
+                            {"followed_points", g.followed_points},
+                            {"max_keyframe_move_m", g.max_keyframe_move_m},
+                            {"solve", histogram_json(r.global_ba_solve)}};
+    }
     if (r.loop_truth && r.loop_truth->available) {
       const LoopTruth& t = *r.loop_truth;
       j["loop_truth"] = Json{{"keyframes", t.keyframes},
@@ -1512,6 +1530,18 @@ std::string replay_summary(const ReplayReport& r) {
                   r.loop_cpu_s, static_cast<unsigned long long>(r.map.loop_closures),
                   static_cast<unsigned long long>(r.map.relocalisations), r.map.T_map_odom().translation().norm());
     s += buf;
+    if (r.global_ba && r.global_ba->runs > 0) {
+      std::snprintf(buf, sizeof buf,
+                    "global BA after loops: %llu runs (%llu failed), last %llu keyframes, %llu points; solve p50 %.0f "
+                    "ms, max %.0f ms; largest keyframe move %.3f m\n",
+                    static_cast<unsigned long long>(r.global_ba->runs),
+                    static_cast<unsigned long long>(r.global_ba->failures),
+                    static_cast<unsigned long long>(r.global_ba->keyframes),
+                    static_cast<unsigned long long>(r.global_ba->points),
+                    1e-6 * static_cast<double>(r.global_ba_solve.percentile(50)),
+                    1e-6 * static_cast<double>(r.global_ba_solve.max()), r.global_ba->max_keyframe_move_m);
+      s += buf;
+    }
   }
   const InputFaultCounts& ff = r.input_faults;
   if (ff.missing + ff.out_of_order + ff.repeated + ff.no_depth + ff.imu_gaps > 0) {

@@ -15,6 +15,7 @@
 #include "kestrel/core/estimator.hpp"
 #include "kestrel/core/estimator_config.hpp"
 #include "kestrel/core/estimator_factory.hpp"
+#include "kestrel/core/global_bundle_adjustment.hpp"
 #include "kestrel/dense/dense_mapper.hpp"
 #include "kestrel/drivers/devices.hpp"
 #include "kestrel/drivers/log_source.hpp"
@@ -265,6 +266,10 @@ struct ReplayReport {
   uint64_t map_corrections = 0;  // changes of T_map_odom seen by the output
   rt::LatencyHistogram mapping;
   rt::LatencyHistogram loop;
+  // The global bundle adjustment after loops (map.global_ba; none when off):
+  // its counters and the time of each solve on the loop thread.
+  std::optional<core::GlobalBaStats> global_ba;
+  rt::LatencyHistogram global_ba_solve;
   double mapping_cpu_s = 0, loop_cpu_s = 0;
   double log_duration_s = 0;
   double wall_s = 0;

@@ -10,6 +10,7 @@
 
 #include <Eigen/Core>
 #include <cstdint>
+#include <memory>
 #include <vector>
 
 #include "kestrel/core/motion_estimation.hpp"
@@ -47,16 +48,25 @@ struct BaResult {
   double initial_cost = 0, final_cost = 0;  // 1/2 sum of Huber(chi2) + gravity terms
 };
 
+struct BaSparse;  // bundle_adjustment.cpp: the sparse reduced system
+
 // Reusable work space: the mapping thread keeps one so that its vectors keep
 // their capacity from keyframe to keyframe. The solver still allocates a
 // little (the LDLT, the reduced system when its size changes): the mapping
 // thread is not real time.
 struct BaScratch {
+  // The reduced camera system is solved dense up to this many free poses and
+  // sparse (a simplicial LDLT on the covisibility pattern) above: a local BA's
+  // 9 keyframes stay dense and bit for bit what they were; a global BA's
+  // hundreds would make a dense system of (6n)^2 doubles and an O(n^3) solve.
+  int sparse_from_free_poses = 40;
   std::vector<int32_t> free_index, by_point, point_begin, cursor, free_of;
   std::vector<Eigen::Matrix<double, 6, 3>> W;
   std::vector<Eigen::Matrix3d> V, V_inv;
   std::vector<Eigen::Vector3d> g_point, d_point, points_old;
-  Eigen::MatrixXd H, S;
+  std::vector<Eigen::Matrix<double, 6, 6>> H_diag;  // pose-pose terms touch only a pose's own block
+  std::shared_ptr<BaSparse> sparse;
+  Eigen::MatrixXd S;
   Eigen::VectorXd g, b, dx;
   std::vector<Eigen::Matrix3d> R_old;
   std::vector<Eigen::Vector3d> t_old;

@@ -26,6 +26,7 @@
 #include <vector>
 
 #include "kestrel/core/estimator.hpp"
+#include "kestrel/core/global_bundle_adjustment.hpp"
 #include "kestrel/core/local_mapper.hpp"
 #include "kestrel/core/loop_closer.hpp"
 #include "kestrel/core/map.hpp"
@@ -41,6 +42,7 @@ struct MapSystemOptions {
   bool loop = true;     // loop closing and relocalisation (--loop on|off; nothing without mapping)
   MapOptions map;
   LoopOptions closing;  // loop detection, verification, correction (loop_closer.hpp)
+  GlobalBaOptions global_ba;  // after each closed loop (global_bundle_adjustment.hpp)
   // Place recognition's vocabulary file ("": the one built into `kestrel`,
   // configs/vocabulary/). Core does no I/O: tools load it into `vocabulary`;
   // without one, loop closing and relocalisation are off.
@@ -101,7 +103,14 @@ class MapSystem {
   // ---- mapping thread ----
   bool mapping_step();
   // ---- loop thread ----
+  // Under the harness's map lock. After a closed loop it copies the map for
+  // the global bundle adjustment, and the call after global_ba_step() writes
+  // the solution back; in between it does nothing (returns false).
   bool loop_step();
+  // The global bundle adjustment's solve, WITHOUT the map lock (it reads only
+  // its copy), on the loop thread after loop_step(); false when there is
+  // none waiting. The mapping thread goes on meanwhile.
+  bool global_ba_step();
 
   // ---- after the threads stopped (or from the mapping/loop threads) ----
   // The map file's bytes (map_file.hpp).
@@ -116,6 +125,9 @@ class MapSystem {
   // Before the flight: keep the loop closer's log (LoopCloser::set_logging).
   void set_loop_logging(bool on) { closer_->set_logging(on); }
   const Relocaliser* relocaliser() const { return reloc_.get(); }
+  // nullptr when off (map.global_ba, or no loop closing).
+  const GlobalBundleAdjustment* global_ba() const { return gba_.get(); }
+  const rt::LatencyHistogram& global_ba_latency() const { return gba_latency_; }
   const MapSystemCounters& counters() const { return counters_; }
   const rt::LatencyHistogram& mapping_latency() const { return mapping_latency_; }
   const rt::LatencyHistogram& loop_latency() const { return loop_latency_; }
@@ -136,6 +148,7 @@ class MapSystem {
   std::unique_ptr<LocalMapper> mapper_;
   std::unique_ptr<LoopCloser> closer_;
   std::unique_ptr<Relocaliser> reloc_;  // with a vocabulary and the loop on
+  std::unique_ptr<GlobalBundleAdjustment> gba_;  // with the loop on and map.global_ba
   MapCamera cam_;
   // Packets: slot indices tracking -> mapping (todo), mapping -> tracking (free).
   std::unique_ptr<KeyframePacket[]> packets_;
@@ -159,7 +172,7 @@ class MapSystem {
   uint32_t chain_ = 0;            // the odometry chain the map is localised in
   bool loaded_unfound_ = false;   // a loaded map this flight has not found yet
   int64_t lost_since_ns_ = -1;
-  rt::LatencyHistogram mapping_latency_, loop_latency_;
+  rt::LatencyHistogram mapping_latency_, loop_latency_, gba_latency_;
   MapSystemCounters counters_;
   std::atomic<uint64_t> overrun_{0}, applied_{0};
 };
