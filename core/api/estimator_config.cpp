@@ -252,6 +252,9 @@ void visit_map(MapSystemOptions& m, OptionVisitor& v) {
   v.value("global_ba_max_points", g.max_points, "the global BA's points, the most observed first");
   v.value("global_ba_iterations", g.iterations,
           "Levenberg-Marquardt iterations per round of the global BA (two rounds)");
+  v.value("global_ba_odometry_sigma_m", g.odometry_sigma_m,
+          "the global BA holds each keyframe to its parent by the odometry's relative pose, this loose (0: off)");
+  v.value("global_ba_odometry_sigma_rad", g.odometry_sigma_rad, "... and this loose in rotation");
   LoopOptions& l = m.closing;
   v.value("loop_min_age_s", l.min_age_s, "loop candidates are at least this much older than the keyframe");
   v.value(

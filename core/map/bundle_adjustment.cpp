@@ -21,6 +21,7 @@ struct BaSparse {
   std::vector<Eigen::Matrix<double, 6, 6>> blocks;  // [0, nf): diagonal; then (row > col)
   std::vector<int32_t> block_row, block_col;
   std::vector<int32_t> pair_block;  // per observation pair, in the Schur loop's order
+  std::vector<int32_t> rel_block;   // per relative-pose factor between two free poses (else -1)
   std::vector<int32_t> base;        // per block and column: the value index of its first stored row
   Eigen::VectorXd rhs;
 };
@@ -29,12 +30,25 @@ namespace {
 
 // The block pattern of the reduced system for the observation pairs the
 // Schur loop visits (same order), its sparse matrix and symbolic analysis.
-void build_sparse_pattern(const BaScratch& s, size_t nq, int nf, BaSparse& sp) {
+void build_sparse_pattern(const BaProblem& pb, const BaScratch& s, size_t nq, int nf, BaSparse& sp) {
   sp.blocks.assign(static_cast<size_t>(nf), Eigen::Matrix<double, 6, 6>::Zero());
   sp.block_row.resize(static_cast<size_t>(nf));
   sp.block_col.resize(static_cast<size_t>(nf));
-  for (int f = 0; f < nf; ++f) sp.block_row[static_cast<size_t>(f)] = sp.block_col[static_cast<size_t>(f)] = f;
+  for (int f = 0; f < nf; ++f)
+    sp.block_row[static_cast<size_t>(f)] = sp.block_col[static_cast<size_t>(f)] = f;
   std::unordered_map<uint64_t, int32_t> index;
+  auto block_of = [&](int fi, int fj) {
+    const int hi = std::max(fi, fj), lo = std::min(fi, fj);
+    const uint64_t key = static_cast<uint64_t>(hi) * static_cast<uint64_t>(nf) + static_cast<uint64_t>(lo);
+    auto it = index.find(key);
+    if (it == index.end()) {
+      it = index.emplace(key, static_cast<int32_t>(sp.blocks.size())).first;
+      sp.blocks.emplace_back(Eigen::Matrix<double, 6, 6>::Zero());
+      sp.block_row.push_back(hi);
+      sp.block_col.push_back(lo);
+    }
+    return it->second;
+  };
   sp.pair_block.clear();
   for (size_t a = 0; a < nq; ++a) {
     for (int32_t e = s.point_begin[a]; e < s.point_begin[a + 1]; ++e) {
@@ -47,18 +61,15 @@ void build_sparse_pattern(const BaScratch& s, size_t nq, int nf, BaSparse& sp) {
           sp.pair_block.push_back(fi);
           continue;
         }
-        const int hi = std::max(fi, fj), lo = std::min(fi, fj);
-        const uint64_t key = static_cast<uint64_t>(hi) * static_cast<uint64_t>(nf) + static_cast<uint64_t>(lo);
-        auto it = index.find(key);
-        if (it == index.end()) {
-          it = index.emplace(key, static_cast<int32_t>(sp.blocks.size())).first;
-          sp.blocks.emplace_back(Eigen::Matrix<double, 6, 6>::Zero());
-          sp.block_row.push_back(hi);
-          sp.block_col.push_back(lo);
-        }
-        sp.pair_block.push_back(it->second);
+        sp.pair_block.push_back(block_of(fi, fj));
       }
     }
+  }
+  sp.rel_block.assign(pb.relative.size(), -1);
+  for (size_t r = 0; r < pb.relative.size(); ++r) {
+    const int fa = s.free_index[static_cast<size_t>(pb.relative[r].a)];
+    const int fb = s.free_index[static_cast<size_t>(pb.relative[r].b)];
+    if (fa >= 0 && fb >= 0 && fa != fb) sp.rel_block[r] = block_of(fa, fb);
   }
   std::vector<Eigen::Triplet<double>> t;
   t.reserve(sp.blocks.size() * 36);
@@ -79,8 +90,8 @@ void build_sparse_pattern(const BaScratch& s, size_t nq, int nf, BaSparse& sp) {
     const bool diag = static_cast<int>(b) < nf;
     for (int c = 0; c < 6; ++c) {
       const int first = diag ? r0 + c : r0;
-      sp.base[b * 6 + static_cast<size_t>(c)] =
-          static_cast<int32_t>(std::lower_bound(inner + outer[c0 + c], inner + outer[c0 + c + 1], first) - inner);
+      sp.base[b * 6 + static_cast<size_t>(c)] = static_cast<int32_t>(
+          std::lower_bound(inner + outer[c0 + c], inner + outer[c0 + c + 1], first) - inner);
     }
   }
   sp.ldlt.analyzePattern(sp.S);
@@ -170,6 +181,30 @@ double ba_chi2(const BaProblem& pb, const BaObservation& o) {
   return e;
 }
 
+void ba_relative_residual(const BaProblem& pb, const BaRelativePose& e, Eigen::Matrix<double, 6, 1>* r,
+                          Eigen::Matrix<double, 6, 6>* J_a, Eigen::Matrix<double, 6, 6>* J_b) {
+  const BaPose& A = pb.poses[static_cast<size_t>(e.a)];
+  const BaPose& B = pb.poses[static_cast<size_t>(e.b)];
+  // T_CaCb = T_CaM T_CbM^-1.
+  const Eigen::Matrix3d R = A.R_CM * B.R_CM.transpose();
+  const Eigen::Vector3d Rt_b = R * B.t_CM;
+  const Eigen::Vector3d t = A.t_CM - Rt_b;
+  const Eigen::Vector3d r_rot = so3::Log(e.R_ab.transpose() * R);
+  r->head<3>() = r_rot * e.inv_sigma_rad;
+  r->tail<3>() = (t - e.t_ab) * e.inv_sigma_m;
+  if (J_a == nullptr || J_b == nullptr) return;
+  // Exp(da) R_a: Log(Z' Exp(da) R) = Log(Z' R Exp(R' da)); R_b^T Exp(-db): Log(Z' R Exp(-db)).
+  const Eigen::Matrix3d Jr_inv = so3::right_jacobian_inv(r_rot);
+  J_a->setZero();
+  J_b->setZero();
+  J_a->block<3, 3>(0, 0) = Jr_inv * R.transpose() * e.inv_sigma_rad;
+  J_b->block<3, 3>(0, 0) = -Jr_inv * e.inv_sigma_rad;
+  J_a->block<3, 3>(3, 0) = so3::hat(Rt_b) * e.inv_sigma_m;
+  J_a->block<3, 3>(3, 3) = Eigen::Matrix3d::Identity() * e.inv_sigma_m;
+  J_b->block<3, 3>(3, 0) = -R * so3::hat(B.t_CM) * e.inv_sigma_m;
+  J_b->block<3, 3>(3, 3) = -R * e.inv_sigma_m;
+}
+
 double ba_cost(const BaProblem& pb) {
   double cost = 0;
   for (const BaObservation& o : pb.obs) {
@@ -184,6 +219,11 @@ double ba_cost(const BaProblem& pb) {
   }
   for (const BaPose& P : pb.poses)
     if (gravity_on(pb, P)) cost += gravity_residual(pb, P).squaredNorm();
+  Eigen::Matrix<double, 6, 1> r;
+  for (const BaRelativePose& e : pb.relative) {
+    ba_relative_residual(pb, e, &r, nullptr, nullptr);
+    cost += r.squaredNorm();
+  }
   return 0.5 * cost;
 }
 
@@ -221,10 +261,11 @@ BaResult solve_bundle_adjustment(BaProblem& pb, int max_iterations, BaScratch& s
   s.R_old.resize(np);
   s.t_old.resize(np);
   s.H_diag.resize(static_cast<size_t>(nf));
+  s.H_rel.resize(pb.relative.size());
   const bool sparse = nf > s.sparse_from_free_poses;
   if (sparse) {
     if (!s.sparse) s.sparse = std::make_shared<BaSparse>();
-    build_sparse_pattern(s, nq, nf, *s.sparse);
+    build_sparse_pattern(pb, s, nq, nf, *s.sparse);
   } else {
     s.S.resize(dim, dim);
   }
@@ -278,6 +319,22 @@ BaResult solve_bundle_adjustment(BaProblem& pb, int max_iterations, BaScratch& s
         s.H_diag[static_cast<size_t>(f)].topLeftCorner<3, 3>().noalias() += J.transpose() * J;
         s.g.segment<3>(6 * f).noalias() += J.transpose() * gravity_residual(pb, P);
       }
+      for (size_t k = 0; k < pb.relative.size(); ++k) {
+        const BaRelativePose& e = pb.relative[k];
+        Eigen::Matrix<double, 6, 1> r;
+        Eigen::Matrix<double, 6, 6> Ja, Jb;
+        ba_relative_residual(pb, e, &r, &Ja, &Jb);
+        const int fa = s.free_index[static_cast<size_t>(e.a)], fb = s.free_index[static_cast<size_t>(e.b)];
+        if (fa >= 0) {
+          s.H_diag[static_cast<size_t>(fa)].noalias() += Ja.transpose() * Ja;
+          s.g.segment<6>(6 * fa).noalias() += Ja.transpose() * r;
+        }
+        if (fb >= 0) {
+          s.H_diag[static_cast<size_t>(fb)].noalias() += Jb.transpose() * Jb;
+          s.g.segment<6>(6 * fb).noalias() += Jb.transpose() * r;
+        }
+        s.H_rel[k].noalias() = Ja.transpose() * Jb;
+      }
       linearise_again = false;
     }
     ++res.iterations;
@@ -299,6 +356,24 @@ BaResult solve_bundle_adjustment(BaProblem& pb, int max_iterations, BaScratch& s
           s.S(6 * f + d, 6 * f + d) += mu * damping(s.H_diag[static_cast<size_t>(f)](d, d));
       }
     }
+    // The relative-pose factors' (a, b) blocks, into the lower triangle.
+    for (size_t k = 0; k < pb.relative.size(); ++k) {
+      const int fa = s.free_index[static_cast<size_t>(pb.relative[k].a)];
+      const int fb = s.free_index[static_cast<size_t>(pb.relative[k].b)];
+      if (fa < 0 || fb < 0 || fa == fb) continue;
+      if (sparse) {
+        Eigen::Matrix<double, 6, 6>& T = s.sparse->blocks[static_cast<size_t>(s.sparse->rel_block[k])];
+        if (fa > fb) {
+          T += s.H_rel[k];
+        } else {
+          T += s.H_rel[k].transpose();
+        }
+      } else if (fa > fb) {
+        s.S.block<6, 6>(6 * fa, 6 * fb) += s.H_rel[k];
+      } else {
+        s.S.block<6, 6>(6 * fb, 6 * fa) += s.H_rel[k].transpose();
+      }
+    }
     s.b = s.g;
     size_t pair = 0;
     for (size_t a = 0; a < nq; ++a) {
@@ -316,7 +391,8 @@ BaResult solve_bundle_adjustment(BaProblem& pb, int max_iterations, BaScratch& s
           if (fj < 0) continue;
           const Eigen::Matrix<double, 6, 6> B = WV * s.W[static_cast<size_t>(e2)].transpose();
           if (sparse) {
-            Eigen::Matrix<double, 6, 6>& T = s.sparse->blocks[static_cast<size_t>(s.sparse->pair_block[pair++])];
+            Eigen::Matrix<double, 6, 6>& T =
+                s.sparse->blocks[static_cast<size_t>(s.sparse->pair_block[pair++])];
             if (fi > fj) {
               T -= B;
             } else if (fi < fj) {
@@ -355,7 +431,8 @@ BaResult solve_bundle_adjustment(BaProblem& pb, int max_iterations, BaScratch& s
     // Back-substitution, and the model's decrease: with (A + mu D) x = -g it
     // is -g'x - x'Ax/2 = (-g'x + mu x'Dx) / 2.
     double gx = dim > 0 ? s.g.dot(s.dx) : 0.0, xDx = 0;
-    for (int d = 0; d < dim; ++d) xDx += damping(s.H_diag[static_cast<size_t>(d / 6)](d % 6, d % 6)) * s.dx[d] * s.dx[d];
+    for (int d = 0; d < dim; ++d)
+      xDx += damping(s.H_diag[static_cast<size_t>(d / 6)](d % 6, d % 6)) * s.dx[d] * s.dx[d];
     for (size_t a = 0; a < nq && solved; ++a) {
       Eigen::Vector3d rhs = s.g_point[a];
       for (int32_t e = s.point_begin[a]; e < s.point_begin[a + 1]; ++e) {
@@ -365,8 +442,7 @@ BaResult solve_bundle_adjustment(BaProblem& pb, int max_iterations, BaScratch& s
       s.d_point[a] = -s.V_inv[a] * rhs;
       if (!s.d_point[a].allFinite()) solved = false;
       gx += s.g_point[a].dot(s.d_point[a]);
-      for (int d = 0; d < 3; ++d)
-        xDx += damping(s.V[a](d, d)) * s.d_point[a][d] * s.d_point[a][d];
+      for (int d = 0; d < 3; ++d) xDx += damping(s.V[a](d, d)) * s.d_point[a][d] * s.d_point[a][d];
     }
     const double predicted = 0.5 * (-gx + mu * xDx);
     // Ceres' other stops: a step too small to change the parameters

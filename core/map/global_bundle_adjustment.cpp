@@ -10,6 +10,10 @@ std::string GlobalBaOptions::validate() const {
   if (max_keyframes < 1) e << "  global_ba_max_keyframes must be >= 1\n";
   if (max_points < 1) e << "  global_ba_max_points must be >= 1\n";
   if (iterations < 1) e << "  global_ba_iterations must be >= 1\n";
+  if (!(odometry_sigma_m >= 0) || !(odometry_sigma_rad >= 0))
+    e << "  global_ba_odometry_sigma_m and global_ba_odometry_sigma_rad must be >= 0\n";
+  if ((odometry_sigma_m > 0) != (odometry_sigma_rad > 0))
+    e << "  global_ba_odometry_sigma_m and global_ba_odometry_sigma_rad are both 0 (off) or both > 0\n";
   return e.str();
 }
 
@@ -92,6 +96,31 @@ bool GlobalBundleAdjustment::snapshot(const Map& map) {
       pb_.obs.push_back(ob);
     }
   }
+  // The odometry between each keyframe and its parent, where both are in the
+  // problem, one is free and T_WC of both comes from one odometry chain.
+  pb_.relative.clear();
+  if (opt_.odometry_sigma_m > 0) {
+    for (size_t i = 0; i < kfs_.size(); ++i) {
+      const MapKeyframe& K = map.keyframe(kfs_[i].slot);
+      if (K.parent < 0 || slot_pose_[static_cast<size_t>(K.parent)] < 0) continue;
+      const MapKeyframe& P = map.keyframe(K.parent);
+      const int32_t a = slot_pose_[static_cast<size_t>(K.parent)];
+      const int32_t b = static_cast<int32_t>(i);
+      if (P.chain != K.chain || P.session != 0 ||
+          (pb_.poses[static_cast<size_t>(a)].fixed && pb_.poses[i].fixed))
+        continue;
+      const Eigen::Isometry3d T_ab = P.T_WC.inverse() * K.T_WC;
+      BaRelativePose e;
+      e.a = a;
+      e.b = b;
+      e.R_ab = T_ab.linear();
+      e.t_ab = T_ab.translation();
+      e.inv_sigma_m = 1.0 / opt_.odometry_sigma_m;
+      e.inv_sigma_rad = 1.0 / opt_.odometry_sigma_rad;
+      pb_.relative.push_back(e);
+    }
+  }
+  stats_.odometry_factors = pb_.relative.size();
   stats_.keyframes = n_free;
   stats_.fixed_keyframes = pb_.poses.size() - n_free;
   stats_.points = pb_.points_M.size();

@@ -37,6 +37,7 @@ int LocalMapper::insert(const KeyframePacket& pk, const Eigen::Isometry3d& T_MW,
     }
   }
   ++stats_.keyframes;
+  map_.keyframe(kf).chain = pk.chain;
   if (have_last_) path_m_ += (pk.T_WC.translation() - last_p_W_).norm();
   have_last_ = true;
   last_p_W_ = pk.T_WC.translation();

@@ -30,14 +30,16 @@ MapSystem::MapSystem(const MapCamera& cam, int features_per_keyframe, const MapS
     const std::string e = decode_map(opt.map_in->data(), opt.map_in->size(), cam, map_.get(), &info);
     if (!e.empty()) throw std::runtime_error(where + ": not a usable map: " + e);
     if (reloc_ == nullptr)
-      throw std::runtime_error(where + ": a loaded map is found by relocalisation, which needs the loop on and a "
-                                       "vocabulary (--loop on, map.vocabulary)");
+      throw std::runtime_error(where +
+                               ": a loaded map is found by relocalisation, which needs the loop on and a "
+                               "vocabulary (--loop on, map.vocabulary)");
     last_kf_ = map_->newest_keyframe();
     loaded_unfound_ = info.keyframes > 0;
   }
   packets_.reset(new KeyframePacket[kPackets]);
   packet_features_.reset(new KeyframeFeature[static_cast<size_t>(kPackets) * features_per_keyframe]);
-  for (int i = 0; i < kPackets; ++i) packets_[i].features = packet_features_.get() + i * features_per_keyframe;
+  for (int i = 0; i < kPackets; ++i)
+    packets_[i].features = packet_features_.get() + i * features_per_keyframe;
   for (int i = kPackets - 1; i >= 0; --i) free_packets_[n_free_packets_++] = i;
   const int cap = std::max(1, opt.map.update_max_points);
   updates_.reset(new MapUpdate[kUpdates]);
@@ -117,8 +119,8 @@ bool MapSystem::mapping_step() {
   int kf = -1;
   if (opt_.mapping && localise(pk)) {
     const int64_t min_dt = static_cast<int64_t>(opt_.map.min_keyframe_interval_s * 1e9);
-    const bool too_soon = last_kf_ >= 0 && map_->keyframe_used(last_kf_) &&
-                          pk.t_ns - map_->keyframe(last_kf_).t_ns < min_dt;
+    const bool too_soon =
+        last_kf_ >= 0 && map_->keyframe_used(last_kf_) && pk.t_ns - map_->keyframe(last_kf_).t_ns < min_dt;
     if (!too_soon) kf = mapper_->insert(pk, state_.T_map_odom(), last_kf_);
   }
   if (kf >= 0) {
@@ -156,7 +158,8 @@ bool MapSystem::localise(const KeyframePacket& pk) {
     ++state_.relocalisations;
     realigned_ = true;
     loaded_unfound_ = false;
-  } else if (loaded_unfound_ || pk.t_ns - lost_since_ns_ < static_cast<int64_t>(opt_.closing.reloc_timeout_s * 1e9)) {
+  } else if (loaded_unfound_ ||
+             pk.t_ns - lost_since_ns_ < static_cast<int64_t>(opt_.closing.reloc_timeout_s * 1e9)) {
     ++counters_.keyframes_lost;
     return false;
   } else {
@@ -261,13 +264,14 @@ std::vector<MapKeyframePose> MapSystem::keyframe_poses(const Eigen::Isometry3d& 
 std::string MapSystem::summary() const {
   const LocalMapperStats& m = mapper_->stats();
   std::ostringstream o;
-  o << "map: " << map_->num_keyframes() << " keyframes, " << map_->num_points() << " points; keyframes mapped "
-    << counters_.keyframes_mapped << " (overrun " << overrun_.load() << ", refused full " << m.refused_full
-    << "), culled " << m.keyframes_culled << "; points created " << m.points_created << ", fused "
-    << m.points_fused << ", culled " << m.points_culled << ", observations by projection " << m.observations_added
-    << "; local BA " << m.ba_runs << " (failed " << m.ba_failures << ", outliers " << m.ba_outliers
-    << "); updates " << counters_.updates_published << " published, " << applied_.load() << " applied, "
-    << counters_.updates_skipped << " skipped; lost keyframes " << counters_.keyframes_lost << ", relocalisation timeouts "
+  o << "map: " << map_->num_keyframes() << " keyframes, " << map_->num_points()
+    << " points; keyframes mapped " << counters_.keyframes_mapped << " (overrun " << overrun_.load()
+    << ", refused full " << m.refused_full << "), culled " << m.keyframes_culled << "; points created "
+    << m.points_created << ", fused " << m.points_fused << ", culled " << m.points_culled
+    << ", observations by projection " << m.observations_added << "; local BA " << m.ba_runs << " (failed "
+    << m.ba_failures << ", outliers " << m.ba_outliers << "); updates " << counters_.updates_published
+    << " published, " << applied_.load() << " applied, " << counters_.updates_skipped
+    << " skipped; lost keyframes " << counters_.keyframes_lost << ", relocalisation timeouts "
     << counters_.reloc_timeouts;
   const LoopStats& l = closer_->stats();
   o << "; loop: " << l.queries << " queries, " << l.candidates << " candidates, " << l.verified
@@ -279,10 +283,11 @@ std::string MapSystem::summary() const {
     const GlobalBaStats& g = gba_->stats();
     o << "; global BA: " << g.runs << " runs (failed " << g.failures << "), last " << g.keyframes
       << " keyframes (+" << g.fixed_keyframes << " held), " << g.points << " points, " << g.observations
-      << " observations, " << g.outliers << " outliers, cost " << g.initial_cost << " -> " << g.final_cost
-      << ", largest keyframe move " << g.max_keyframe_move_m << " m; followed " << g.followed_keyframes
-      << " keyframes / " << g.followed_points << " points mapped during the solves, " << g.lost_keyframes
-      << " culled; solve p50 " << 1e-6 * static_cast<double>(gba_latency_.percentile(50)) << " ms, max "
+      << " observations, " << g.odometry_factors << " odometry factors, " << g.outliers << " outliers, cost "
+      << g.initial_cost << " -> " << g.final_cost << ", largest keyframe move " << g.max_keyframe_move_m
+      << " m; followed " << g.followed_keyframes << " keyframes / " << g.followed_points
+      << " points mapped during the solves, " << g.lost_keyframes << " culled; solve p50 "
+      << 1e-6 * static_cast<double>(gba_latency_.percentile(50)) << " ms, max "
       << 1e-6 * static_cast<double>(gba_latency_.max()) << " ms";
   }
   if (reloc_) {

@@ -14,6 +14,8 @@
 //     keyframes (spanning tree, strong covisibility and earlier loop edges,
 //     the new loop edge), the candidate and the map's first keyframe held;
 //     points move with their reference keyframe; the matched points are merged.
+//  5. (MapSystem, after process()) the global bundle adjustment of the
+//     whole map: global_bundle_adjustment.hpp.
 // Not real time: the loop thread. docs/map.md.
 #pragma once
 

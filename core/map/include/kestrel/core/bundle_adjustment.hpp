@@ -33,6 +33,17 @@ struct BaObservation {
   bool enabled = true;  // false: left out of the solve (an outlier)
 };
 
+// Keyframe b seen from keyframe a (camera frames) as the odometry measured
+// it: a factor that holds keyframes together where they share few points
+// (the global BA's; the local BA has none). Whitened: rotation
+// Log(R_ab^-1 R_CaCb) x inv_sigma_rad, translation (t_CaCb - t_ab) x inv_sigma_m.
+struct BaRelativePose {
+  int32_t a = 0, b = 0;
+  Eigen::Matrix3d R_ab = Eigen::Matrix3d::Identity();
+  Eigen::Vector3d t_ab = Eigen::Vector3d::Zero();
+  double inv_sigma_rad = 0, inv_sigma_m = 0;
+};
+
 struct BaProblem {
   PinholeK K;
   double huber = 2.8;            // on the whitened error of one observation
@@ -40,6 +51,7 @@ struct BaProblem {
   std::vector<BaPose> poses;
   std::vector<Eigen::Vector3d> points_M;
   std::vector<BaObservation> obs;
+  std::vector<BaRelativePose> relative;  // ours only: the Ceres twin leaves them out
 };
 
 struct BaResult {
@@ -64,7 +76,8 @@ struct BaScratch {
   std::vector<Eigen::Matrix<double, 6, 3>> W;
   std::vector<Eigen::Matrix3d> V, V_inv;
   std::vector<Eigen::Vector3d> g_point, d_point, points_old;
-  std::vector<Eigen::Matrix<double, 6, 6>> H_diag;  // pose-pose terms touch only a pose's own block
+  std::vector<Eigen::Matrix<double, 6, 6>> H_diag;  // observations and gravity touch only a pose's own block
+  std::vector<Eigen::Matrix<double, 6, 6>> H_rel;   // per relative-pose factor: the (a, b) block
   std::shared_ptr<BaSparse> sparse;
   Eigen::MatrixXd S;
   Eigen::VectorXd g, b, dx;
@@ -74,8 +87,12 @@ struct BaScratch {
 
 // Whitened squared error of one observation at the problem's current values.
 double ba_chi2(const BaProblem& p, const BaObservation& o);
-// 1/2 sum of the robust costs, as Ceres counts it.
+// 1/2 sum of the robust costs, as Ceres counts it (+ the relative-pose factors' squares).
 double ba_cost(const BaProblem& p);
+// A relative-pose factor's whitened residual (rotation, translation) and its
+// Jacobians under each pose's left perturbation (R <- Exp(dtheta) R, t <- t + dt).
+void ba_relative_residual(const BaProblem& p, const BaRelativePose& e, Eigen::Matrix<double, 6, 1>* r,
+                          Eigen::Matrix<double, 6, 6>* J_a, Eigen::Matrix<double, 6, 6>* J_b);
 
 BaResult solve_bundle_adjustment(BaProblem& p, int max_iterations, BaScratch& scratch);
 BaResult solve_bundle_adjustment_ceres(BaProblem& p, int max_iterations);

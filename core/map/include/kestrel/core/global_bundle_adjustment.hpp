@@ -32,6 +32,12 @@ struct GlobalBaOptions {
   int max_keyframes = 1000;
   int max_points = 40000;
   int iterations = 10;  // per round; two rounds with outliers left out of the second
+  // Each keyframe is held to its spanning-tree parent by the odometry's
+  // relative pose between them (same chain), with these sigmas (0: none).
+  // Loose, so the points decide wherever keyframes share them; where they
+  // share few, the odometry keeps the map from bending.
+  double odometry_sigma_m = 0.01;
+  double odometry_sigma_rad = 0.01;
 
   [[nodiscard]] std::string validate() const;
 };
@@ -43,6 +49,7 @@ struct GlobalBaStats {
   uint64_t fixed_keyframes = 0;
   uint64_t points = 0;
   uint64_t observations = 0;
+  uint64_t odometry_factors = 0;  // last run
   uint64_t outliers = 0;            // left out of the second round, last run
   uint64_t followed_keyframes = 0;  // mapped during the solve: took their parent's correction (all runs)
   uint64_t followed_points = 0;

@@ -84,6 +84,7 @@ struct MapKeyframe {
   Eigen::Vector3d g_C = Eigen::Vector3d(0, 0, -1);           // gravity direction in C, from the odometry
   int32_t parent = -1;  // spanning tree: the keyframe it was chained from
   uint32_t session = 0;  // 0: this flight; > 0: loaded from a map file
+  uint32_t chain = 0;    // the odometry chain of T_WC (KeyframePacket::chain): T_WC compare within one
   int n = 0;             // features
   int first_feature = 0;  // into Map::features / Map::point_of
   int n_bow = 0;          // its BoW vector: Map::bow(kf), n_bow entries (with a vocabulary)
