@@ -1,5 +1,5 @@
 // The comparison protocol of our ORB against cv::ORB (docs/orb.md), shared by
-// features_orb_euroc_test and bench_orb. Test-side code: OpenCV is fine here.
+// test_features_orb_euroc and bench_orb. Test-side code: OpenCV is fine here.
 #pragma once
 
 #include <opencv2/core.hpp>

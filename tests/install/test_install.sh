@@ -3,7 +3,7 @@
 # against it as a separate project, twice: through find_package(Kestrel) and
 # its imported targets, and through pkg-config. Both programs replay a
 # simulated log (made by the installed `kestrel`) and must print the same
-# trajectory. Usage: install_test.sh BUILD_DIR API_EXAMPLE_CPP WORK_DIR
+# trajectory. Usage: test_install.sh BUILD_DIR API_EXAMPLE_CPP WORK_DIR
 set -eu
 build="$1"
 example="$2"

@@ -3,7 +3,7 @@
 # PYTHONPATH=P/lib/python3/dist-packages python3 -c "import kestrel; kestrel.replay(LOG)"
 # returns an (N, 8) array. The module must come from the prefix, not the build
 # tree, and must work with the build tree out of sight.
-# Usage: install_test.sh BUILD_DIR PYTHON WORK_DIR
+# Usage: test_install.sh BUILD_DIR PYTHON WORK_DIR
 set -eu
 build="$1"
 python="$2"
