@@ -230,6 +230,12 @@ bool MapSystem::loop_step() {
     state_.set_T_map_odom(project_4dof(N.T_MC * N.T_WC.inverse()));
     ++state_.alignment;
     ++state_.loop_closures;
+    for (int i = 0; i < 3; ++i) {
+      if (map_->keyframe_used(c.match.query))
+        state_.loop_p_M_query[i] = map_->keyframe(c.match.query).T_MC.translation()[i];
+      if (map_->keyframe_used(c.match.candidate))
+        state_.loop_p_M_candidate[i] = map_->keyframe(c.match.candidate).T_MC.translation()[i];
+    }
     realigned_ = true;
     publish_frame();
     // The map is held (a deterministic pace waits) until the solution is back.

@@ -63,6 +63,47 @@ struct NoisyMap {
 
 core::GlobalBaOptions gba_options() { return core::GlobalBaOptions{}; }
 
+// The problem the global BA builds from the map (every keyframe, the first
+// held; every point seen twice), at the map's estimates or at the truth.
+core::BaProblem problem_of(const NoisyMap& m, bool at_truth, std::vector<int>* slots) {
+  const core::Map& map = m.dm.map;
+  core::BaProblem pb;
+  pb.K = sim_camera().K;
+  pb.gravity_inv_sigma = 1.0 / map.options().ba_gravity_sigma_rad;
+  std::vector<int> pose_of(static_cast<size_t>(map.max_keyframes()), -1);
+  map.for_each_keyframe([&](int k) {
+    pose_of[static_cast<size_t>(k)] = static_cast<int>(pb.poses.size());
+    slots->push_back(k);
+    const Eigen::Isometry3d T_CM =
+        (at_truth ? m.dm.truth[static_cast<size_t>(k)] : map.keyframe(k).T_MC).inverse();
+    core::BaPose P;
+    P.R_CM = T_CM.linear();
+    P.t_CM = T_CM.translation();
+    P.fixed = pb.poses.empty();
+    P.has_gravity = !P.fixed;
+    P.g_C = map.keyframe(k).g_C;
+    pb.poses.push_back(P);
+  });
+  for (int p = 0; p < map.max_points(); ++p) {
+    if (!map.point_used(p) || map.point(p).n_obs < 2) continue;
+    const core::MapPoint& P = map.point(p);
+    const int a = static_cast<int>(pb.points_M.size());
+    pb.points_M.push_back(at_truth ? m.room.points[P.landmark_id - 1] : P.p_M);
+    for (int i = 0; i < P.n_obs; ++i) {
+      const core::KeyframeFeature& f = map.feature(P.obs_kf[i], P.obs_feat[i]);
+      core::BaObservation o;
+      o.pose = pose_of[static_cast<size_t>(P.obs_kf[i])];
+      o.point = a;
+      o.u_px = f.u_px;
+      o.v_px = f.v_px;
+      o.depth_m = f.depth_m;
+      o.inv_sigma_z = 1.0 / sim_camera().sigma_depth_m(f.depth_m);
+      pb.obs.push_back(o);
+    }
+  }
+  return pb;
+}
+
 // The odometry factor's analytic Jacobians against central differences of its
 // residual under the solver's own perturbation (R <- Exp(dtheta) R, t <- t + dt).
 TEST(BundleAdjustment, TheRelativePoseFactorsJacobiansMatchNumericalDifferences) {
@@ -116,41 +157,8 @@ TEST(BundleAdjustment, TheSparseReducedSystemSolvesWhatTheDenseOneSolves) {
   NoisyMap m;
   for (int k = 0; k < 48; ++k) ASSERT_GE(m.add(k, 48), 0);
   // The problem the global BA builds, solved both ways from the same start.
-  core::BaProblem dense_pb, sparse_pb;
-  {
-    core::Map& map = m.dm.map;
-    core::BaProblem pb;
-    pb.K = sim_camera().K;
-    std::vector<int> pose_of(static_cast<size_t>(map.max_keyframes()), -1);
-    map.for_each_keyframe([&](int k) {
-      pose_of[static_cast<size_t>(k)] = static_cast<int>(pb.poses.size());
-      core::BaPose P;
-      const Eigen::Isometry3d T_CM = map.keyframe(k).T_MC.inverse();
-      P.R_CM = T_CM.linear();
-      P.t_CM = T_CM.translation();
-      P.fixed = pb.poses.empty();
-      pb.poses.push_back(P);
-    });
-    for (int p = 0; p < map.max_points(); ++p) {
-      if (!map.point_used(p) || map.point(p).n_obs < 2) continue;
-      const core::MapPoint& P = map.point(p);
-      const int a = static_cast<int>(pb.points_M.size());
-      pb.points_M.push_back(P.p_M);
-      for (int i = 0; i < P.n_obs; ++i) {
-        const core::KeyframeFeature& f = map.feature(P.obs_kf[i], P.obs_feat[i]);
-        core::BaObservation o;
-        o.pose = pose_of[static_cast<size_t>(P.obs_kf[i])];
-        o.point = a;
-        o.u_px = f.u_px;
-        o.v_px = f.v_px;
-        o.depth_m = f.depth_m;
-        o.inv_sigma_z = 1.0 / sim_camera().sigma_depth_m(f.depth_m);
-        pb.obs.push_back(o);
-      }
-    }
-    dense_pb = pb;
-    sparse_pb = pb;
-  }
+  std::vector<int> slots;
+  core::BaProblem dense_pb = problem_of(m, false, &slots), sparse_pb = dense_pb;
   core::BaScratch dense_s, sparse_s;
   dense_s.sparse_from_free_poses = 1000;
   sparse_s.sparse_from_free_poses = 0;
@@ -172,40 +180,8 @@ TEST(BundleAdjustment, TheSparseReducedSystemSolvesWhatTheDenseOneSolves) {
 // the true keyframe poses and points: what the global BA should reach.
 std::vector<Eigen::Vector3d> optimum_from_truth(const NoisyMap& m) {
   const core::Map& map = m.dm.map;
-  core::BaProblem pb;
-  pb.K = sim_camera().K;
-  pb.gravity_inv_sigma = 1.0 / map.options().ba_gravity_sigma_rad;
-  std::vector<int> pose_of(static_cast<size_t>(map.max_keyframes()), -1);
   std::vector<int> slots;
-  map.for_each_keyframe([&](int k) {
-    pose_of[static_cast<size_t>(k)] = static_cast<int>(pb.poses.size());
-    slots.push_back(k);
-    const Eigen::Isometry3d T_CM = m.dm.truth[static_cast<size_t>(k)].inverse();
-    core::BaPose P;
-    P.R_CM = T_CM.linear();
-    P.t_CM = T_CM.translation();
-    P.fixed = pb.poses.empty();
-    P.has_gravity = !P.fixed;
-    P.g_C = map.keyframe(k).g_C;
-    pb.poses.push_back(P);
-  });
-  for (int p = 0; p < map.max_points(); ++p) {
-    if (!map.point_used(p) || map.point(p).n_obs < 2) continue;
-    const core::MapPoint& P = map.point(p);
-    const int a = static_cast<int>(pb.points_M.size());
-    pb.points_M.push_back(m.room.points[P.landmark_id - 1]);
-    for (int i = 0; i < P.n_obs; ++i) {
-      const core::KeyframeFeature& f = map.feature(P.obs_kf[i], P.obs_feat[i]);
-      core::BaObservation o;
-      o.pose = pose_of[static_cast<size_t>(P.obs_kf[i])];
-      o.point = a;
-      o.u_px = f.u_px;
-      o.v_px = f.v_px;
-      o.depth_m = f.depth_m;
-      o.inv_sigma_z = 1.0 / sim_camera().sigma_depth_m(f.depth_m);
-      pb.obs.push_back(o);
-    }
-  }
+  core::BaProblem pb = problem_of(m, true, &slots);
   core::BaScratch s;
   core::solve_bundle_adjustment(pb, 50, s);
   std::vector<Eigen::Vector3d> p_M(static_cast<size_t>(map.max_keyframes()), Eigen::Vector3d::Zero());

@@ -72,6 +72,27 @@ void Ros2Output::write_diagnostics(const PoseSample& s) {
   publish(Ros2Topic::kDiagnostics, s.t_ns);
 }
 
+// A closed loop as it happens: one segment between its two keyframes, where
+// the map put them at the closure (ns loop_edges, id = the loop's index). The
+// final markers redraw every loop where the map ends up.
+void Ros2Output::write_loop_edge(const PoseSample& s) {
+  if (!s.map.active || s.map.loop_closures <= loops_drawn_) return;
+  loops_drawn_ = s.map.loop_closures;
+  std::vector<drivers::ros2::Marker> a(1);
+  a[0].t_ns = s.t_ns;
+  a[0].frame_id = "map";
+  a[0].ns = "loop_edges";
+  a[0].id = static_cast<int32_t>(s.map.loop_closures - 1);
+  a[0].type = drivers::ros2::Marker::kLineList;
+  a[0].scale = {0.02, 0, 0};
+  a[0].color_rgba = {1.0f, 0.3f, 0.1f, 1.0f};
+  a[0].points.push_back({s.map.loop_p_M_query[0], s.map.loop_p_M_query[1], s.map.loop_p_M_query[2]});
+  a[0].points.push_back(
+      {s.map.loop_p_M_candidate[0], s.map.loop_p_M_candidate[1], s.map.loop_p_M_candidate[2]});
+  drivers::ros2::encode(a, buf_);
+  publish(Ros2Topic::kMarkers, s.t_ns);
+}
+
 void Ros2Output::on_pose(const PoseSample& s) {
   // Repeated stamps are skipped: one odometry message per time.
   if (s.t_ns < 0 || s.t_ns <= last_t_ns_) return;
@@ -117,6 +138,7 @@ void Ros2Output::on_pose(const PoseSample& s) {
   drivers::ros2::encode(tf, buf_);
   publish(Ros2Topic::kTf, s.t_ns);
   write_diagnostics(s);
+  write_loop_edge(s);
 }
 
 void Ros2Output::on_cloud(const MapCloud& c) {

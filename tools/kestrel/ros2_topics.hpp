@@ -46,6 +46,7 @@ class Ros2Output {
  private:
   void publish(Ros2Topic t, int64_t t_ns);
   void write_diagnostics(const PoseSample& s);
+  void write_loop_edge(const PoseSample& s);
 
   Ros2Sink& sink_;
   uint64_t count_[kRos2Topics] = {};
@@ -53,6 +54,7 @@ class Ros2Output {
   int64_t last_topic_t_ns_[kRos2Topics] = {INT64_MIN, INT64_MIN, INT64_MIN, INT64_MIN, INT64_MIN};
   Eigen::Isometry3d T_map_odom_ = Eigen::Isometry3d::Identity();
   int32_t next_keyframe_id_ = 0;
+  uint64_t loops_drawn_ = 0;  // live loop edges published (MapFrameState::loop_closures)
   // Diagnostics once a second of log time, and at once when the quality, the
   // reset counter or the map's alignment changes.
   int64_t last_diag_t_ns_ = INT64_MIN;

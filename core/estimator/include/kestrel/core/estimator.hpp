@@ -65,6 +65,10 @@ struct MapFrameState {
   double p[3] = {0, 0, 0};     // T_map_odom: translation [m]
   double q[4] = {1, 0, 0, 0};  // and rotation (w x y z)
   uint64_t loop_closures = 0;
+  // The newest closed loop's two keyframes (camera positions in M at its
+  // closure), for drawing it live; zero before the first.
+  double loop_p_M_query[3] = {0, 0, 0};
+  double loop_p_M_candidate[3] = {0, 0, 0};
   uint64_t relocalisations = 0;
   uint32_t keyframes = 0;  // in the map
   uint32_t points = 0;
