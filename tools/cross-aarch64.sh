@@ -3,7 +3,8 @@
 #   1. host tools: crossbuild-essential-arm64 (aarch64-linux-gnu-g++) and qemu-user-static
 #   2. a sysroot: our dependencies' Debian 12 arm64 packages and everything they need,
 #      downloaded with a private apt state and unpacked (never installed: see below)
-#   3. the `aarch64` preset built against it (tools/cross/aarch64-linux-gnu.cmake)
+#   3. the `aarch64` preset configured against it (tools/cross/aarch64-linux-gnu.cmake), checked
+#      for paths of the build machine (tools/cross/check_host_paths.sh), then built
 #   4. `ctest --preset aarch64` under qemu: every unit-labelled test at sanitizer-sized
 #      flights (KESTREL_TEST_SCALE=small)
 #   5. a replay smoke test: the cross-built `kestrel` simulates a short flight, replays it
@@ -18,7 +19,8 @@
 #
 # Environment: KESTREL_AARCH64_SYSROOT (default ~/.cache/kestrel/aarch64-sysroot; kept
 # between runs and rebuilt when the package list below changes), KESTREL_CROSS_SKIP_TESTS=1
-# (build only).
+# (build only), KESTREL_CROSS_TARGETS (what to build; default the suite and `kestrel`: a
+# single small target such as features_orb_test proves the sysroot in minutes).
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
 cd "$root"
@@ -35,6 +37,9 @@ packages=(
   libusb-1.0-0-dev libopenni2-dev
   libzstd-dev liblz4-dev   # compressed .klog images (drivers/log)
   librosbag-dev libsensor-msgs-dev libgeometry-msgs-dev
+  libsqlite3-dev   # drivers/rosbag2 (.db3)
+  liboctomap-dev   # tools/dense, tests/dense
+  libssl-dev       # tests/mavlink's reference SHA-256
 )
 
 script_name=cross-aarch64.sh
@@ -69,9 +74,29 @@ private_apt() {
     -o APT::Install-Recommends=false "$@"
 }
 
+# CMake package files written at the package's build name the libraries it linked by absolute path
+# (Debian's CeresTargets.cmake: "/usr/lib/aarch64-linux-gnu/liblapack.so;...libblas.so;..."), and
+# CMake re-roots find_*() results into CMAKE_SYSROOT but never an imported target's paths: the build
+# then depends on the host's /usr/lib/aarch64-linux-gnu, which exists only where arm64 packages are
+# installed on the host. Prefix every such library path, as a quoted string or list element, with
+# ${CMAKE_SYSROOT} (set by tools/cross/aarch64-linux-gnu.cmake), which keeps the sysroot movable.
+# Only library files: the `_realCurr STREQUAL "/usr/lib/.../cmake/X"` lines that choose the import
+# prefix must keep the path as packaged.
+relocate_cmake_files() {
+  local dir=$1 files
+  mapfile -d '' files < <(grep -rlZP --include='*.cmake' \
+    '(?<=[";])/(usr/)?lib/aarch64-linux-gnu/[^";$]*?\.(so|a)(\.[0-9]+)*(?=[";])' "$dir" || true)
+  [ ${#files[@]} -eq 0 ] && return
+  perl -pi -e 's{(?<=[";])(/(?:usr/)?lib/aarch64-linux-gnu/[^";\$]*?\.(?:so|a)(?:\.[0-9]+)*)(?=[";])}{\$\{CMAKE_SYSROOT\}$1}g' \
+    "${files[@]}"
+  printf 'sysroot: re-rooted absolute library paths in %s\n' "${files[@]#"$dir"/}"
+}
+
 build_sysroot() {
   local want
-  want=$(printf '%s\n' "${packages[@]}" | sha256sum | cut -c1-16)
+  # The preparation's version joins the package list in the stamp: a sysroot made by an older
+  # script (without relocate_cmake_files) is rebuilt, not reused.
+  want=$( (echo "prepare 2"; printf '%s\n' "${packages[@]}") | sha256sum | cut -c1-16)
   if [ -f "$sysroot/.kestrel-sysroot" ] && [ "$(cat "$sysroot/.kestrel-sysroot")" = "$want" ]; then
     echo "sysroot up to date: $sysroot"
     return
@@ -106,6 +131,7 @@ build_sysroot() {
     done
     [ -e "$lib/$name" ] || { echo "sysroot: no implementation of $name in $lib" >&2; exit 1; }
   done
+  relocate_cmake_files "$new"
   echo "$want" > "$new/.kestrel-sysroot"
   rm -rf "$sysroot"
   mv "$new" "$sysroot"
@@ -144,7 +170,12 @@ EOF
 part "host tools" host_tools
 part "sysroot" build_sysroot
 # The tests the preset runs (kestrel_asan_suite) and the program the smoke test drives.
-part "aarch64 build" bash tools/build.sh aarch64 --target kestrel_asan_suite kestrel
+# Configured on every run (the sysroot may be new) and checked before any compiler runs: a path of
+# the build machine on a link line passes here only by luck (tools/cross/check_host_paths.sh).
+part "aarch64 configure" cmake --preset aarch64 --log-level=WARNING
+part "host path check" tools/cross/check_host_paths.sh build/aarch64
+read -r -a targets <<< "${KESTREL_CROSS_TARGETS:-kestrel_asan_suite kestrel}"
+part "aarch64 build" bash tools/build.sh aarch64 --target "${targets[@]}"
 if [ "${KESTREL_CROSS_SKIP_TESTS:-0}" != "1" ]; then
   part "aarch64 unit tests (qemu)" ctest --preset aarch64 -j "$jobs"
   part "aarch64 replay smoke (qemu)" smoke
