@@ -10,6 +10,8 @@
 #   5. a replay smoke test: the cross-built `kestrel` simulates a short flight, replays it
 #      through `window` and evaluates it, all under qemu; the ATE must stay under 5 cm
 #      (1.3 cm natively) with at least 95 % of the frames posed (the rest is start-up)
+#   6. the arm64 .deb (cpack in the cross tree), checked, and its `kestrel` run under qemu
+#      (tools/package/check_deb_cross.sh)
 # and prints what each part cost.
 #
 # Why a sysroot and not `apt-get install libopencv-dev:arm64 …` (multiarch): on Debian 12
@@ -20,7 +22,8 @@
 # Environment: KESTREL_AARCH64_SYSROOT (default ~/.cache/kestrel/aarch64-sysroot; kept
 # between runs and rebuilt when the package list below changes), KESTREL_CROSS_SKIP_TESTS=1
 # (build only), KESTREL_CROSS_TARGETS (what to build; default the suite and `kestrel`: a
-# single small target such as features_orb_test proves the sysroot in minutes).
+# single small target such as features_orb_test proves the sysroot in minutes),
+# KESTREL_CROSS_SKIP_PACKAGE=1 (no arm64 .deb; needed when the targets leave `kestrel` out).
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
 cd "$root"
@@ -74,29 +77,11 @@ private_apt() {
     -o APT::Install-Recommends=false "$@"
 }
 
-# CMake package files written at the package's build name the libraries it linked by absolute path
-# (Debian's CeresTargets.cmake: "/usr/lib/aarch64-linux-gnu/liblapack.so;...libblas.so;..."), and
-# CMake re-roots find_*() results into CMAKE_SYSROOT but never an imported target's paths: the build
-# then depends on the host's /usr/lib/aarch64-linux-gnu, which exists only where arm64 packages are
-# installed on the host. Prefix every such library path, as a quoted string or list element, with
-# ${CMAKE_SYSROOT} (set by tools/cross/aarch64-linux-gnu.cmake), which keeps the sysroot movable.
-# Only library files: the `_realCurr STREQUAL "/usr/lib/.../cmake/X"` lines that choose the import
-# prefix must keep the path as packaged.
-relocate_cmake_files() {
-  local dir=$1 files
-  mapfile -d '' files < <(grep -rlZP --include='*.cmake' \
-    '(?<=[";])/(usr/)?lib/aarch64-linux-gnu/[^";$]*?\.(so|a)(\.[0-9]+)*(?=[";])' "$dir" || true)
-  [ ${#files[@]} -eq 0 ] && return
-  perl -pi -e 's{(?<=[";])(/(?:usr/)?lib/aarch64-linux-gnu/[^";\$]*?\.(?:so|a)(?:\.[0-9]+)*)(?=[";])}{\$\{CMAKE_SYSROOT\}$1}g' \
-    "${files[@]}"
-  printf 'sysroot: re-rooted absolute library paths in %s\n' "${files[@]#"$dir"/}"
-}
-
 build_sysroot() {
   local want
   # The preparation's version joins the package list in the stamp: a sysroot made by an older
-  # script (without relocate_cmake_files) is rebuilt, not reused.
-  want=$( (echo "prepare 2"; printf '%s\n' "${packages[@]}") | sha256sum | cut -c1-16)
+  # script (without relocate_cmake_files.sh) is rebuilt, not reused.
+  want=$( (echo "prepare 3"; printf '%s\n' "${packages[@]}") | sha256sum | cut -c1-16)
   if [ -f "$sysroot/.kestrel-sysroot" ] && [ "$(cat "$sysroot/.kestrel-sysroot")" = "$want" ]; then
     echo "sysroot up to date: $sysroot"
     return
@@ -109,12 +94,25 @@ build_sysroot() {
   tail -n 2 "$state/download.txt"
   rm -rf "$new"
   mkdir -p "$new"
-  local n=0 d
+  local n=0 d ctl="$state/control"
+  # The packages' shlibs and symbols files, merged into the sysroot's DEBIAN/: dpkg-shlibdeps, run
+  # by cpack on the arm64 binary, finds its libraries in the sysroot, where no dpkg database knows
+  # them, and then reads these files from the "package build tree" holding the library, i.e. the
+  # sysroot (tools/package/package.cmake; docs/package.md).
+  mkdir -p "$new/DEBIAN"
+  : > "$new/DEBIAN/shlibs"
+  : > "$new/DEBIAN/symbols"
   for d in "$state"/cache/archives/*.deb; do
     dpkg-deb -x "$d" "$new"
+    rm -rf "$ctl"
+    dpkg-deb -e "$d" "$ctl"
+    [ -f "$ctl/shlibs" ] && cat "$ctl/shlibs" >> "$new/DEBIAN/shlibs"
+    [ -f "$ctl/symbols" ] && cat "$ctl/symbols" >> "$new/DEBIAN/symbols"
     n=$((n + 1))
   done
-  echo "unpacked $n packages into $new"
+  rm -rf "$ctl"
+  echo "unpacked $n packages into $new; shlibs of $(grep -c '^[a-z]' "$new/DEBIAN/shlibs") and symbols of" \
+    "$(grep -c '^[a-z]' "$new/DEBIAN/symbols") libraries in DEBIAN/"
   # Absolute symlinks (libz.so -> /lib/...) would point into the host: make them relative.
   local link target
   while IFS= read -r -d '' link; do
@@ -131,7 +129,8 @@ build_sysroot() {
     done
     [ -e "$lib/$name" ] || { echo "sysroot: no implementation of $name in $lib" >&2; exit 1; }
   done
-  relocate_cmake_files "$new"
+  # Absolute library paths in the packages' CMake files (Ceres: LAPACK/BLAS) would name the host's.
+  tools/cross/relocate_cmake_files.sh "$new"
   echo "$want" > "$new/.kestrel-sysroot"
   rm -rf "$sysroot"
   mv "$new" "$sysroot"
@@ -179,4 +178,12 @@ part "aarch64 build" bash tools/build.sh aarch64 --target "${targets[@]}"
 if [ "${KESTREL_CROSS_SKIP_TESTS:-0}" != "1" ]; then
   part "aarch64 unit tests (qemu)" ctest --preset aarch64 -j "$jobs"
   part "aarch64 replay smoke (qemu)" smoke
+else
+  echo "== aarch64 tests and smoke SKIPPED (KESTREL_CROSS_SKIP_TESTS=1) =="
+fi
+# The arm64 .deb from this tree, checked and its binary run under qemu (docs/package.md "arm64").
+if [ "${KESTREL_CROSS_SKIP_PACKAGE:-0}" != "1" ]; then
+  part "arm64 package" tools/package/check_deb_cross.sh build/aarch64 "$sysroot"
+else
+  echo "== arm64 package SKIPPED (KESTREL_CROSS_SKIP_PACKAGE=1) =="
 fi

@@ -16,13 +16,13 @@ pattern='(^|[ :=,]|-I|-L)(/usr)?/lib/(aarch64|x86_64)-linux-gnu/|(^|[ :=,]|-I|-i
 # ninja's .ninja files: build.ninja and the per-target ones it includes.
 mapfile -t files < <(find "$build" -maxdepth 3 -name '*.ninja' -print)
 # Each offending path once, with the first file that names it.
-hits=$(grep -oE "($pattern)[^ ]*" "${files[@]}" | sed -E 's/:(-I|-L|-isystem |[ :=,])/: /' |
+hits=$(grep -HoE "($pattern)[^ ]*" "${files[@]}" | sed -E 's/:(-I|-L|-isystem |[ :=,])/: /' |
   sort -t: -k2 -u || true)
 if [ -n "$hits" ]; then
-  echo "check_host_paths: FAILED: the cross build names $(echo "$hits" | wc -l) file(s) of the build machine:" >&2
+  echo "check_host_paths: FAILED: the cross build names $(echo "$hits" | wc -l) path(s) of the build machine:" >&2
   echo "$hits" >&2
-  echo "(a CMake package file in the sysroot with an absolute path: tools/cross-aarch64.sh" \
-    "relocate_cmake_files; docs/embedded.md)" >&2
+  echo "(a CMake package file in the sysroot with an absolute path: tools/cross/relocate_cmake_files.sh;" \
+    "docs/embedded.md)" >&2
   exit 1
 fi
 echo "check_host_paths: no host library or header path in ${#files[@]} ninja file(s) of $build"
