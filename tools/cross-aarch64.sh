@@ -22,7 +22,7 @@
 # Environment: KESTREL_AARCH64_SYSROOT (default ~/.cache/kestrel/aarch64-sysroot; kept
 # between runs and rebuilt when the package list below changes), KESTREL_CROSS_SKIP_TESTS=1
 # (build only), KESTREL_CROSS_TARGETS (what to build; default the suite and `kestrel`: a
-# single small target such as features_orb_test proves the sysroot in minutes),
+# single small target such as test_features_orb proves the sysroot in minutes),
 # KESTREL_CROSS_SKIP_PACKAGE=1 (no arm64 .deb; needed when the targets leave `kestrel` out).
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
