@@ -3,12 +3,15 @@
 #   1. host tools: crossbuild-essential-arm64 (aarch64-linux-gnu-g++) and qemu-user-static
 #   2. a sysroot: our dependencies' Debian 12 arm64 packages and everything they need,
 #      downloaded with a private apt state and unpacked (never installed: see below)
-#   3. the `aarch64` preset built against it (tools/cross/aarch64-linux-gnu.cmake)
+#   3. the `aarch64` preset configured against it (tools/cross/aarch64-linux-gnu.cmake), checked
+#      for paths of the build machine (tools/cross/check_host_paths.sh), then built
 #   4. `ctest --preset aarch64` under qemu: every unit-labelled test at sanitizer-sized
 #      flights (KESTREL_TEST_SCALE=small)
 #   5. a replay smoke test: the cross-built `kestrel` simulates a short flight, replays it
 #      through `window` and evaluates it, all under qemu; the ATE must stay under 5 cm
 #      (1.3 cm natively) with at least 95 % of the frames posed (the rest is start-up)
+#   6. the arm64 .deb (cpack in the cross tree), checked, and its `kestrel` run under qemu
+#      (tools/package/check_deb_cross.sh)
 # and prints what each part cost.
 #
 # Why a sysroot and not `apt-get install libopencv-dev:arm64 …` (multiarch): on Debian 12
@@ -18,7 +21,9 @@
 #
 # Environment: KESTREL_AARCH64_SYSROOT (default ~/.cache/kestrel/aarch64-sysroot; kept
 # between runs and rebuilt when the package list below changes), KESTREL_CROSS_SKIP_TESTS=1
-# (build only).
+# (build only), KESTREL_CROSS_TARGETS (what to build; default the suite and `kestrel`: a
+# single small target such as test_features_orb proves the sysroot in minutes),
+# KESTREL_CROSS_SKIP_PACKAGE=1 (no arm64 .deb; needed when the targets leave `kestrel` out).
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
 cd "$root"
@@ -35,6 +40,9 @@ packages=(
   libusb-1.0-0-dev libopenni2-dev
   libzstd-dev liblz4-dev   # compressed .klog images (drivers/log)
   librosbag-dev libsensor-msgs-dev libgeometry-msgs-dev
+  libsqlite3-dev   # drivers/rosbag2 (.db3)
+  liboctomap-dev   # tools/dense, tests/dense
+  libssl-dev       # tests/mavlink's reference SHA-256
 )
 
 script_name=cross-aarch64.sh
@@ -71,7 +79,9 @@ private_apt() {
 
 build_sysroot() {
   local want
-  want=$(printf '%s\n' "${packages[@]}" | sha256sum | cut -c1-16)
+  # The preparation's version joins the package list in the stamp: a sysroot made by an older
+  # script (without relocate_cmake_files.sh) is rebuilt, not reused.
+  want=$( (echo "prepare 3"; printf '%s\n' "${packages[@]}") | sha256sum | cut -c1-16)
   if [ -f "$sysroot/.kestrel-sysroot" ] && [ "$(cat "$sysroot/.kestrel-sysroot")" = "$want" ]; then
     echo "sysroot up to date: $sysroot"
     return
@@ -84,12 +94,25 @@ build_sysroot() {
   tail -n 2 "$state/download.txt"
   rm -rf "$new"
   mkdir -p "$new"
-  local n=0 d
+  local n=0 d ctl="$state/control"
+  # The packages' shlibs and symbols files, merged into the sysroot's DEBIAN/: dpkg-shlibdeps, run
+  # by cpack on the arm64 binary, finds its libraries in the sysroot, where no dpkg database knows
+  # them, and then reads these files from the "package build tree" holding the library, i.e. the
+  # sysroot (tools/package/package.cmake; docs/package.md).
+  mkdir -p "$new/DEBIAN"
+  : > "$new/DEBIAN/shlibs"
+  : > "$new/DEBIAN/symbols"
   for d in "$state"/cache/archives/*.deb; do
     dpkg-deb -x "$d" "$new"
+    rm -rf "$ctl"
+    dpkg-deb -e "$d" "$ctl"
+    [ -f "$ctl/shlibs" ] && cat "$ctl/shlibs" >> "$new/DEBIAN/shlibs"
+    [ -f "$ctl/symbols" ] && cat "$ctl/symbols" >> "$new/DEBIAN/symbols"
     n=$((n + 1))
   done
-  echo "unpacked $n packages into $new"
+  rm -rf "$ctl"
+  echo "unpacked $n packages into $new; shlibs of $(grep -c '^[a-z]' "$new/DEBIAN/shlibs") and symbols of" \
+    "$(grep -c '^[a-z]' "$new/DEBIAN/symbols") libraries in DEBIAN/"
   # Absolute symlinks (libz.so -> /lib/...) would point into the host: make them relative.
   local link target
   while IFS= read -r -d '' link; do
@@ -106,6 +129,8 @@ build_sysroot() {
     done
     [ -e "$lib/$name" ] || { echo "sysroot: no implementation of $name in $lib" >&2; exit 1; }
   done
+  # Absolute library paths in the packages' CMake files (Ceres: LAPACK/BLAS) would name the host's.
+  tools/cross/relocate_cmake_files.sh "$new"
   echo "$want" > "$new/.kestrel-sysroot"
   rm -rf "$sysroot"
   mv "$new" "$sysroot"
@@ -144,8 +169,21 @@ EOF
 part "host tools" host_tools
 part "sysroot" build_sysroot
 # The tests the preset runs (kestrel_asan_suite) and the program the smoke test drives.
-part "aarch64 build" bash tools/build.sh aarch64 --target kestrel_asan_suite kestrel
+# Configured on every run (the sysroot may be new) and checked before any compiler runs: a path of
+# the build machine on a link line passes here only by luck (tools/cross/check_host_paths.sh).
+part "aarch64 configure" cmake --preset aarch64 --log-level=WARNING
+part "host path check" tools/cross/check_host_paths.sh build/aarch64
+read -r -a targets <<< "${KESTREL_CROSS_TARGETS:-kestrel_asan_suite kestrel}"
+part "aarch64 build" bash tools/build.sh aarch64 --target "${targets[@]}"
 if [ "${KESTREL_CROSS_SKIP_TESTS:-0}" != "1" ]; then
   part "aarch64 unit tests (qemu)" ctest --preset aarch64 -j "$jobs"
   part "aarch64 replay smoke (qemu)" smoke
+else
+  echo "== aarch64 tests and smoke SKIPPED (KESTREL_CROSS_SKIP_TESTS=1) =="
+fi
+# The arm64 .deb from this tree, checked and its binary run under qemu (docs/package.md "arm64").
+if [ "${KESTREL_CROSS_SKIP_PACKAGE:-0}" != "1" ]; then
+  part "arm64 package" tools/package/check_deb_cross.sh build/aarch64 "$sysroot"
+else
+  echo "== arm64 package SKIPPED (KESTREL_CROSS_SKIP_PACKAGE=1) =="
 fi

@@ -12,11 +12,14 @@ set(CMAKE_C_COMPILER aarch64-linux-gnu-gcc)
 set(CMAKE_CXX_COMPILER aarch64-linux-gnu-g++)
 
 # Outside the source tree: CMake refuses to export include paths that lie inside it.
-set(_sysroot "$ENV{HOME}/.cache/kestrel/aarch64-sysroot")
-if(DEFINED ENV{KESTREL_AARCH64_SYSROOT})
-  set(_sysroot "$ENV{KESTREL_AARCH64_SYSROOT}")
+set(KESTREL_AARCH64_SYSROOT "$ENV{HOME}/.cache/kestrel/aarch64-sysroot" CACHE PATH
+  "Root of the arm64 sysroot (tools/cross-aarch64.sh)")
+# The environment wins over the cache: a tree configured once keeps following the sysroot the script
+# is given (a plain CACHE set would keep the first one and link against a sysroot no longer meant).
+if(DEFINED ENV{KESTREL_AARCH64_SYSROOT} AND NOT "$ENV{KESTREL_AARCH64_SYSROOT}" STREQUAL "")
+  set(KESTREL_AARCH64_SYSROOT "$ENV{KESTREL_AARCH64_SYSROOT}" CACHE PATH
+    "Root of the arm64 sysroot (tools/cross-aarch64.sh)" FORCE)
 endif()
-set(KESTREL_AARCH64_SYSROOT "${_sysroot}" CACHE PATH "Root of the arm64 sysroot (tools/cross-aarch64.sh)")
 if(NOT KESTREL_AARCH64_SYSROOT OR NOT EXISTS "${KESTREL_AARCH64_SYSROOT}/usr/include/opencv4")
   message(FATAL_ERROR "aarch64 toolchain: KESTREL_AARCH64_SYSROOT='${KESTREL_AARCH64_SYSROOT}' is not a sysroot "
     "with our dependencies (no usr/include/opencv4 in it); tools/cross-aarch64.sh builds one")

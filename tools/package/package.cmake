@@ -43,6 +43,27 @@ set(CPACK_DEBIAN_FILE_NAME DEB-DEFAULT)   # kestrel_<version>_<arch>.deb
 if(CMAKE_CROSSCOMPILING AND CMAKE_SYSTEM_PROCESSOR MATCHES "^(aarch64|arm64)$")
   set(CPACK_DEBIAN_PACKAGE_ARCHITECTURE arm64)
 endif()
+# A cross build (tools/cross-aarch64.sh): the host's binutils cannot read an arm64 binary, so the
+# strip/split uses the toolchain's; dpkg-shlibdeps looks for the libraries in the sysroot (-l) and
+# reads their shlibs/symbols from the sysroot's DEBIAN/, which the sysroot preparation merges from the
+# packages it unpacked (no dpkg database knows them); DEB_HOST_ARCH makes it run the target's objdump
+# and search the target's multiarch folders. The variable lives in the file cpack reads when it runs.
+if(CMAKE_CROSSCOMPILING)
+  if(NOT CPACK_DEBIAN_PACKAGE_ARCHITECTURE OR NOT CMAKE_LIBRARY_ARCHITECTURE)
+    message(FATAL_ERROR "package.cmake: no Debian architecture for the cross target '${CMAKE_SYSTEM_PROCESSOR}'")
+  endif()
+  set(CPACK_OBJCOPY_EXECUTABLE ${CMAKE_OBJCOPY})
+  set(CPACK_READELF_EXECUTABLE ${CMAKE_READELF})
+  if(NOT EXISTS "${CMAKE_SYSROOT}/DEBIAN/shlibs")
+    message(WARNING "package.cmake: ${CMAKE_SYSROOT}/DEBIAN/shlibs missing (a sysroot from an older "
+      "tools/cross-aarch64.sh): the package's Depends will lack the libraries; run the script again")
+  endif()
+  set(CPACK_DEBIAN_PACKAGE_SHLIBDEPS_PRIVATE_DIRS
+    "${CMAKE_SYSROOT}/usr/lib/${CMAKE_LIBRARY_ARCHITECTURE}" "${CMAKE_SYSROOT}/lib/${CMAKE_LIBRARY_ARCHITECTURE}")
+  file(WRITE ${CMAKE_BINARY_DIR}/package/cross.cmake
+    "set(ENV{DEB_HOST_ARCH} ${CPACK_DEBIAN_PACKAGE_ARCHITECTURE})\n")
+  set(CPACK_PROJECT_CONFIG_FILE ${CMAKE_BINARY_DIR}/package/cross.cmake)
+endif()
 set(CPACK_DEBIAN_PACKAGE_SECTION science)
 set(CPACK_DEBIAN_PACKAGE_PRIORITY optional)
 # The run-time libraries from the binary's NEEDED entries (dpkg-shlibdeps), and adduser for postinst.
