@@ -15,6 +15,12 @@ std::string to_yaml(const kestrel::dense::DenseOptions& o) {
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   const std::string text(reinterpret_cast<const char*>(data), size);
+  // The `viewer:` section (viewer.dense_max_kbps) from the same text: refused or in range.
+  try {
+    const double kbps = kestrel::dense::dense_view_max_kbps_from_yaml(text, "fuzz.yaml");
+    if (!(kbps >= 100 && kbps <= 1e6)) std::abort();
+  } catch (const std::runtime_error&) {
+  }
   kestrel::dense::DenseOptions o;
   try {
     o = kestrel::dense::dense_options_from_yaml(text, "fuzz.yaml");
@@ -35,5 +41,6 @@ size_t kestrel::fuzz::write_seeds(const std::string& dir) {
   o.tsdf.memory_budget_mb = 8;
   write_file(dir + "/edited.yaml", to_yaml(o));
   write_file(dir + "/bad_key.yaml", "dense:\n  voxel: 1\n");
-  return 3;
+  write_file(dir + "/viewer.yaml", "viewer:\n  dense_max_kbps: 500\ndense:\n  live_reanchor: true\n");
+  return 4;
 }

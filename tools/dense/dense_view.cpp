@@ -47,8 +47,10 @@ void DenseViewEncoder::reset() {
 
 std::size_t DenseViewEncoder::encode(uint8_t* out, std::size_t max_bytes) {
   if (max_bytes < kDenseViewMinMessageBytes || sent_.empty()) return 0;
+  // Every block again, but what the browsers hold stays known: a block sent
+  // and since evicted still goes out as removed.
   if (resend_all_.exchange(false, std::memory_order_relaxed))
-    for (Sent& s : sent_) s.sent = false;
+    for (Sent& s : sent_) s.stamp = 0;
   const double block_m = map_.block_size_m();
   const double range_m = kRangeBlocks * block_m;
   std::size_t at = kDenseViewHeaderBytes;

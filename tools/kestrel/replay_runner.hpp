@@ -231,6 +231,9 @@ struct ReplayOptions {
   // final trajectory (the frame M of --map-final-traj-out, after loops and
   // bundle adjustments); without a map, along the trajectory itself (M = W).
   std::string dense_map_out;
+  // The dense map's stream to the live viewer (--view with the map on): the
+  // config's viewer.dense_max_kbps [kbit/s] (docs/dense.md).
+  double dense_view_max_kbps = 2000;
   // Called with the re-integrated map (tests, measurements); enables the map and the re-integration.
   std::function<void(const core::TsdfMap&)> on_dense_map_rebuilt;
   // Called at the end with the finished map (tests, measurements); enables the map.
@@ -341,6 +344,9 @@ struct ReplayReport {
   uint64_t dense_map_points = 0;           // written to dense_map_out
   uint64_t dense_archive_overwritten = 0;  // keyframes the archive no longer had for the re-integration
   int dense_archive_capacity = 0;
+  bool dense_live_reanchor = false;  // in flight the map was in the map frame (dense.live_reanchor)
+  int dense_live_blocks = 0;         // blocks at the end of the flight, before any re-integration
+  core::ReintegrationReport dense_w_rebuild;  // live_reanchor: --dense-out fused again along W
 };
 
 ReplayReport run_replay(const ReplayOptions& opt);

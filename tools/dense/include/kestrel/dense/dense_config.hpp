@@ -17,4 +17,10 @@ DenseOptions load_dense_options(const std::string& path);
 // Every key as ("dense.key", value), for --print-config and the metrics.
 std::vector<std::pair<std::string, std::string>> dense_options_table(const DenseOptions& o);
 
+// `viewer.dense_max_kbps` [kbit/s]: the cap of the dense map's stream to the
+// live viewer (docs/dense.md). The `viewer:` section holds only this key.
+inline constexpr double kDefaultDenseViewMaxKbps = 2000;
+double dense_view_max_kbps_from_yaml(const std::string& text, const std::string& where);
+double load_dense_view_max_kbps(const std::string& path);
+
 }  // namespace kestrel::dense

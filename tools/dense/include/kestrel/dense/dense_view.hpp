@@ -87,6 +87,19 @@ class DenseViewEncoder {
   DenseViewCounters counters_;
 };
 
+// Where kst-dense puts finished messages (the viewer's BinaryStream, adapted
+// by the pipeline, so this library does not depend on the viewer's). Called
+// on kst-dense only; implementations must not block.
+class DenseViewSink {
+ public:
+  virtual ~DenseViewSink() = default;
+  virtual bool wanted() = 0;               // a browser is connected
+  virtual bool take_resend_request() = 0;  // true once after a browser asked for everything
+  // A free buffer (nullptr: none, try later); stays the caller's until publish().
+  virtual uint8_t* acquire(std::size_t* capacity) = 0;
+  virtual void publish(std::size_t bytes) = 0;
+};
+
 // One decoded block (tests, tools): points in the map's frame.
 struct DenseViewBlock {
   Eigen::Vector3i key = Eigen::Vector3i::Zero();
