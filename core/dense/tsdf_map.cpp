@@ -295,7 +295,8 @@ void TsdfMap::fuse(const ImageView& depth, const ImageView& rgb, const CameraInt
             const uint8_t* px = rgb.data + static_cast<std::ptrdiff_t>(v) * rgb.stride_bytes + 3 * u;
             for (int c = 0; c < 3; ++c) {
               const float in = px[bgr ? 2 - c : c];
-              x.rgb[c] = static_cast<uint8_t>(std::clamp(std::lround((x.rgb[c] * x.weight - in * w) / W), 0L, 255L));
+              x.rgb[c] =
+                  static_cast<uint8_t>(std::clamp(std::lround((x.rgb[c] * x.weight - in * w) / W), 0L, 255L));
             }
           }
           x.weight = W;

@@ -227,7 +227,8 @@ TEST(DenseLive, SurfacesFollowACorrectionThatJumpsMidFlightWithinTheCpuBudget) {
       "dense live re-anchoring: without it median %.4f m 95%% %.4f m (%zu points); with it median %.4f m "
       "95%% %.4f m (%zu points); viewer's copy median %.4f m 95%% %.4f m (%zu points); %llu corrections, "
       "%llu keyframes re-fused (%d waiting at the correction) in %.2f CPU-s, caught up after %.2f s "
-      "(budget %.2f CPU-s/s); kst-dense in all %.2f CPU-s (fusion, re-anchoring, encoding and this test's decoding)\n",
+      "(budget %.2f CPU-s/s); kst-dense in all %.2f CPU-s (fusion, re-anchoring, encoding and this test's "
+      "decoding)\n",
       off.map.median, off.map.p95, off.map.points, on.map.median, on.map.p95, on.map.points, on.view.median,
       on.view.p95, on.view.points, static_cast<unsigned long long>(on.stats.corrections),
       static_cast<unsigned long long>(on.stats.reanchored), on.backlog_at_correction, on.stats.reanchor_cpu_s,

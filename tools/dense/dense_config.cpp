@@ -118,8 +118,8 @@ double dense_view_max_kbps_from_yaml(const std::string& text, const std::string&
   try {
     kbps = k.as<double>();
   } catch (const YAML::Exception&) {
-    throw std::runtime_error(where + ":" + std::to_string(k.Mark().line + 1) + ": viewer.dense_max_kbps: bad value '" +
-                             k.Scalar() + "'");
+    throw std::runtime_error(where + ":" + std::to_string(k.Mark().line + 1) +
+                             ": viewer.dense_max_kbps: bad value '" + k.Scalar() + "'");
   }
   // One message must fit the one-second burst: the largest block is ~9 kB.
   if (!(kbps >= 100 && kbps <= 1e6))

@@ -39,7 +39,8 @@ void DenseOptions::validate() const {
           "keyframe_angle_deg must be >= 0 deg");
   require(std::isfinite(keyframe_interval_s) && keyframe_interval_s > 0, "keyframe_interval_s must be > 0 s");
   archive.validate();
-  require(std::isfinite(reanchor_min_shift_m) && reanchor_min_shift_m >= 0, "reanchor_min_shift_m must be >= 0 m");
+  require(std::isfinite(reanchor_min_shift_m) && reanchor_min_shift_m >= 0,
+          "reanchor_min_shift_m must be >= 0 m");
   require(std::isfinite(reanchor_min_angle_deg) && reanchor_min_angle_deg >= 0,
           "reanchor_min_angle_deg must be >= 0 deg");
   require(std::isfinite(reanchor_cpu_s_per_s) && reanchor_cpu_s_per_s > 0 && reanchor_cpu_s_per_s <= 1,
@@ -200,7 +201,6 @@ void DenseMapper::fuse_slot(Slot& s) {
   ++stats_.integrated;
 }
 
-
 void DenseMapper::apply_correction(const Correction& c) {
   ++stats_.corrections;
   // The drift that the new correction removes built up since the previous
@@ -209,7 +209,8 @@ void DenseMapper::apply_correction(const Correction& c) {
   // fused with it already); earlier ones keep theirs. T_map_odom is all the
   // pipeline sees in flight: a bundle adjustment that moves older keyframes
   // individually is followed at the end (--dense-map-out), not here.
-  const int64_t t_a = have_correction_ ? last_correction_.t_ns : (archive_->size() > 0 ? archive_->t_ns(0) : c.t_ns);
+  const int64_t t_a =
+      have_correction_ ? last_correction_.t_ns : (archive_->size() > 0 ? archive_->t_ns(0) : c.t_ns);
   const Eigen::Isometry3d C_a = have_correction_ ? last_correction_.C_MW : Eigen::Isometry3d::Identity();
   const uint64_t first = archive_->counters().stored - static_cast<uint64_t>(archive_->size());
   for (int i = 0; i < archive_->size(); ++i) {
@@ -218,7 +219,8 @@ void DenseMapper::apply_correction(const Correction& c) {
     const auto k = static_cast<std::size_t>((first + static_cast<uint64_t>(i)) %
                                             static_cast<uint64_t>(archive_->capacity()));
     const double s =
-        t >= c.t_ns ? 1.0 : static_cast<double>(t - t_a) / static_cast<double>(std::max<int64_t>(1, c.t_ns - t_a));
+        t >= c.t_ns ? 1.0
+                    : static_cast<double>(t - t_a) / static_cast<double>(std::max<int64_t>(1, c.t_ns - t_a));
     target_C_[k] = interpolate(C_a, c.C_MW, s);
   }
   interval_t_a_ = t_a;
@@ -242,7 +244,8 @@ int DenseMapper::reanchor_pending(int* worst) const {
                                             static_cast<uint64_t>(archive_->capacity()));
     const Eigen::Vector3d p_WC = archive_->T_WC(i).translation();
     const double shift_m = (target_C_[k] * p_WC - fused_C_[k] * p_WC).norm();
-    const double angle_rad = Eigen::AngleAxisd(fused_C_[k].linear().transpose() * target_C_[k].linear()).angle();
+    const double angle_rad =
+        Eigen::AngleAxisd(fused_C_[k].linear().transpose() * target_C_[k].linear()).angle();
     if (shift_m <= opt_.reanchor_min_shift_m && angle_rad <= min_angle_rad) continue;
     ++n;
     // The farthest moved first: at 1 m a turn of one radian moves a surface by a metre.
@@ -262,9 +265,9 @@ bool DenseMapper::reanchor_one() {
     reanchor_refill_ns_ = now;
     reanchor_tokens_cpu_s_ = opt_.reanchor_burst_cpu_s;
   }
-  reanchor_tokens_cpu_s_ = std::min(opt_.reanchor_burst_cpu_s,
-                                    reanchor_tokens_cpu_s_ + opt_.reanchor_cpu_s_per_s * 1e-9 *
-                                                                 static_cast<double>(now - reanchor_refill_ns_));
+  reanchor_tokens_cpu_s_ = std::min(
+      opt_.reanchor_burst_cpu_s, reanchor_tokens_cpu_s_ + opt_.reanchor_cpu_s_per_s * 1e-9 *
+                                                              static_cast<double>(now - reanchor_refill_ns_));
   reanchor_refill_ns_ = now;
   if (reanchor_tokens_cpu_s_ <= 0) return false;
   int i = -1;
@@ -285,7 +288,8 @@ bool DenseMapper::reanchor_one() {
   map_->integrate(archive_->depth(i), archive_->rgb(i), archive_->camera(), rig_.depth, target_C_[k] * T_WC);
   fused_C_[k] = target_C_[k];
   clock_gettime(CLOCK_THREAD_CPUTIME_ID, &b);
-  const double cpu_s = static_cast<double>(b.tv_sec - a.tv_sec) + 1e-9 * static_cast<double>(b.tv_nsec - a.tv_nsec);
+  const double cpu_s =
+      static_cast<double>(b.tv_sec - a.tv_sec) + 1e-9 * static_cast<double>(b.tv_nsec - a.tv_nsec);
   reanchor_tokens_cpu_s_ -= cpu_s;
   stats_.reanchor_cpu_s += cpu_s;
   ++stats_.reanchored;

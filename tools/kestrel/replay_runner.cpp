@@ -1034,7 +1034,8 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     report.dense_stats = dense_mapper.stats();
     report.dense_live_reanchor = dense_opt.live_reanchor;
     report.dense_live_blocks = dm.blocks_in_use();
-    if (dense_opt.live_reanchor && (!opt.dense_out.empty() || !opt.dense_octomap_out.empty() || opt.on_dense_map)) {
+    if (dense_opt.live_reanchor &&
+        (!opt.dense_out.empty() || !opt.dense_octomap_out.empty() || opt.on_dense_map)) {
       // In flight the map was in the map frame; the contract of --dense-out
       // is W: the archive fused again along the odometry (the identity).
       dense_mapper.rebuild_along([](int64_t, Eigen::Isometry3d& C_MW) {
@@ -1640,9 +1641,11 @@ std::string replay_summary(const ReplayReport& r) {
       s += buf;
     }
     if (d.view_messages > 0 || d.view_no_slot > 0) {
-      std::snprintf(buf, sizeof buf, "dense map to the viewer: %llu messages, %.1f kB encoded, %llu rounds without a free slot\n",
-                    static_cast<unsigned long long>(d.view_messages), 1e-3 * static_cast<double>(d.view_bytes),
-                    static_cast<unsigned long long>(d.view_no_slot));
+      std::snprintf(
+          buf, sizeof buf,
+          "dense map to the viewer: %llu messages, %.1f kB encoded, %llu rounds without a free slot\n",
+          static_cast<unsigned long long>(d.view_messages), 1e-3 * static_cast<double>(d.view_bytes),
+          static_cast<unsigned long long>(d.view_no_slot));
       s += buf;
     }
     if (d.rebuilt) {

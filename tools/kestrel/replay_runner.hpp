@@ -344,8 +344,8 @@ struct ReplayReport {
   uint64_t dense_map_points = 0;           // written to dense_map_out
   uint64_t dense_archive_overwritten = 0;  // keyframes the archive no longer had for the re-integration
   int dense_archive_capacity = 0;
-  bool dense_live_reanchor = false;  // in flight the map was in the map frame (dense.live_reanchor)
-  int dense_live_blocks = 0;         // blocks at the end of the flight, before any re-integration
+  bool dense_live_reanchor = false;           // in flight the map was in the map frame (dense.live_reanchor)
+  int dense_live_blocks = 0;                  // blocks at the end of the flight, before any re-integration
   core::ReintegrationReport dense_w_rebuild;  // live_reanchor: --dense-out fused again along W
 };
 

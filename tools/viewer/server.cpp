@@ -943,8 +943,10 @@ std::string stats_summary(const ServerStats& s) {
                 static_cast<unsigned long long>(s.connections_refused), static_cast<unsigned long long>(s.clients_refused));
   std::string out = buf;
   if (s.dense_messages > 0 || s.dense_resyncs > 0) {
-    std::snprintf(buf, sizeof buf, "viewer dense map: %llu messages, %.1f kB sent (summed over browsers), %llu resyncs\n",
-                  static_cast<unsigned long long>(s.dense_messages), 1e-3 * static_cast<double>(s.dense_bytes),
+    std::snprintf(buf, sizeof buf,
+                  "viewer dense map: %llu messages, %.1f kB sent (summed over browsers), %llu resyncs\n",
+                  static_cast<unsigned long long>(s.dense_messages),
+                  1e-3 * static_cast<double>(s.dense_bytes),
                   static_cast<unsigned long long>(s.dense_resyncs));
     out += buf;
   }

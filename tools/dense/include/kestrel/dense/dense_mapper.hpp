@@ -45,11 +45,11 @@ struct DenseOptions {
   // the correction moves them they are taken out and fused again where they
   // now are, within a CPU budget. Needs the archive (archive.budget_mb > 0).
   bool live_reanchor = false;
-  double reanchor_min_shift_m = 0.02;    // a keyframe is re-fused when its camera moved this far ...
-  double reanchor_min_angle_deg = 1.0;   // ... or turned this much
-  double reanchor_cpu_s_per_s = 0.05;    // CPU-seconds of re-fusion per second of wall time, at most
-  double reanchor_burst_cpu_s = 0.25;    // unspent budget is kept up to this [CPU-s]
-  void validate() const;  // throws std::invalid_argument naming the key
+  double reanchor_min_shift_m = 0.02;   // a keyframe is re-fused when its camera moved this far ...
+  double reanchor_min_angle_deg = 1.0;  // ... or turned this much
+  double reanchor_cpu_s_per_s = 0.05;   // CPU-seconds of re-fusion per second of wall time, at most
+  double reanchor_burst_cpu_s = 0.25;   // unspent budget is kept up to this [CPU-s]
+  void validate() const;                // throws std::invalid_argument naming the key
 };
 
 struct DenseStats {
@@ -65,11 +65,11 @@ struct DenseStats {
   bool rebuilt = false;
   core::ReintegrationReport rebuild;
   // Live re-anchoring.
-  uint64_t corrections = 0;           // changes of T_map_odom received
-  uint64_t corrections_dropped = 0;   // their ring was full (the thread was seconds behind)
-  uint64_t reanchored = 0;            // keyframes taken out and fused again
-  double reanchor_cpu_s = 0;          // the CPU that cost
-  int reanchor_pending_max = 0;       // keyframes waiting for it, at most (sampled after each correction)
+  uint64_t corrections = 0;          // changes of T_map_odom received
+  uint64_t corrections_dropped = 0;  // their ring was full (the thread was seconds behind)
+  uint64_t reanchored = 0;           // keyframes taken out and fused again
+  double reanchor_cpu_s = 0;         // the CPU that cost
+  int reanchor_pending_max = 0;      // keyframes waiting for it, at most (sampled after each correction)
   rt::LatencyHistogram reanchor_catch_up;  // correction received -> every keyframe it moved re-fused
   // The viewer stream (attach_view).
   uint64_t view_messages = 0, view_bytes = 0, view_no_slot = 0;
