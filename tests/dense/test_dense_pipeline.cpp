@@ -273,22 +273,30 @@ TEST(DenseConfig, SectionReadAndBadKeysNamed) {
   } catch (const std::runtime_error& e) {
     EXPECT_NE(std::string(e.what()).find("dense.live_reanchor"), std::string::npos) << e.what();
   }
-  EXPECT_DOUBLE_EQ(dense::dense_view_max_kbps_from_yaml("dense:\n  enabled: true\n", "test.yaml"),
-                   dense::kDefaultDenseViewMaxKbps);
-  EXPECT_DOUBLE_EQ(dense::dense_view_max_kbps_from_yaml("viewer:\n  dense_max_kbps: 500\n", "test.yaml"),
-                   500.0);
+  EXPECT_DOUBLE_EQ(dense::dense_view_options_from_yaml("dense:\n  enabled: true\n", "test.yaml").max_kbps,
+                   dense::DenseViewOptions{}.max_kbps);
+  const dense::DenseViewOptions v = dense::dense_view_options_from_yaml(
+      "viewer:\n  dense_max_kbps: 500\n  dense_period_s: 0.2\n", "test.yaml");
+  EXPECT_DOUBLE_EQ(v.max_kbps, 500.0);
+  EXPECT_DOUBLE_EQ(v.period_s, 0.2);
   try {
-    dense::dense_view_max_kbps_from_yaml("viewer:\n  dense_kbps: 500\n", "test.yaml");
+    dense::dense_view_options_from_yaml("viewer:\n  dense_kbps: 500\n", "test.yaml");
     FAIL() << "accepted an unknown viewer key";
   } catch (const std::runtime_error& e) {
     EXPECT_NE(std::string(e.what()).find("test.yaml:2: viewer.dense_kbps: unknown key"), std::string::npos)
         << e.what();
   }
   try {
-    dense::dense_view_max_kbps_from_yaml("viewer:\n  dense_max_kbps: 10\n", "test.yaml");
+    dense::dense_view_options_from_yaml("viewer:\n  dense_max_kbps: 10\n", "test.yaml");
     FAIL() << "accepted a cap below one block a second";
   } catch (const std::runtime_error& e) {
-    EXPECT_NE(std::string(e.what()).find("test.yaml:2: viewer.dense_max_kbps must be"), std::string::npos)
+    EXPECT_NE(std::string(e.what()).find("viewer.dense_max_kbps must be"), std::string::npos) << e.what();
+  }
+  try {
+    dense::dense_view_options_from_yaml("viewer:\n  dense_period_s: soon\n", "test.yaml");
+    FAIL() << "accepted a bad period";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("test.yaml:2: viewer.dense_period_s: bad value"), std::string::npos)
         << e.what();
   }
 }

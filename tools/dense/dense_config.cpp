@@ -97,44 +97,49 @@ std::vector<std::pair<std::string, std::string>> dense_options_table(const Dense
   return out;
 }
 
-double dense_view_max_kbps_from_yaml(const std::string& text, const std::string& where) {
+DenseViewOptions dense_view_options_from_yaml(const std::string& text, const std::string& where) {
   YAML::Node root;
   try {
     root = YAML::Load(text);
   } catch (const YAML::ParserException& e) {
     throw std::runtime_error(where + ":" + std::to_string(e.mark.line + 1) + ": YAML syntax error: " + e.msg);
   }
-  double kbps = kDefaultDenseViewMaxKbps;
-  if (!root.IsMap() || !root["viewer"]) return kbps;
+  DenseViewOptions o;
+  if (!root.IsMap() || !root["viewer"]) return o;
   const YAML::Node v = root["viewer"];
   if (!v.IsMap()) throw std::runtime_error(where + ": viewer: expected a mapping of keys");
   for (const auto& kv : v) {
-    if (kv.first.Scalar() != "dense_max_kbps")
+    if (kv.first.Scalar() != "dense_max_kbps" && kv.first.Scalar() != "dense_period_s")
       throw std::runtime_error(where + ":" + std::to_string(kv.first.Mark().line + 1) + ": viewer." +
-                               kv.first.Scalar() + ": unknown key (expected one of: dense_max_kbps)");
+                               kv.first.Scalar() +
+                               ": unknown key (expected one of: dense_max_kbps, dense_period_s)");
   }
-  const YAML::Node k = v["dense_max_kbps"];
-  if (!k) return kbps;
+  for (auto [key, value] : {std::pair<const char*, double*>{"dense_max_kbps", &o.max_kbps},
+                            std::pair<const char*, double*>{"dense_period_s", &o.period_s}}) {
+    const YAML::Node k = v[key];
+    if (!k) continue;
+    try {
+      *value = k.as<double>();
+    } catch (const YAML::Exception&) {
+      throw std::runtime_error(where + ":" + std::to_string(k.Mark().line + 1) + ": viewer." + key +
+                               ": bad value '" + k.Scalar() + "'");
+    }
+  }
   try {
-    kbps = k.as<double>();
-  } catch (const YAML::Exception&) {
-    throw std::runtime_error(where + ":" + std::to_string(k.Mark().line + 1) +
-                             ": viewer.dense_max_kbps: bad value '" + k.Scalar() + "'");
+    o.validate();
+  } catch (const std::invalid_argument& e) {
+    throw std::runtime_error(where + ": " + e.what());
   }
-  // One message must fit the one-second burst: the largest block is ~9 kB.
-  if (!(kbps >= 100 && kbps <= 1e6))
-    throw std::runtime_error(where + ":" + std::to_string(k.Mark().line + 1) +
-                             ": viewer.dense_max_kbps must be in [100, 1000000] kbit/s");
-  return kbps;
+  return o;
 }
 
-double load_dense_view_max_kbps(const std::string& path) {
-  if (path.empty()) return kDefaultDenseViewMaxKbps;
+DenseViewOptions load_dense_view_options(const std::string& path) {
+  if (path.empty()) return DenseViewOptions{};
   std::ifstream f(path, std::ios::binary);
   if (!f) throw std::runtime_error(path + ": cannot open config file");
   std::ostringstream s;
   s << f.rdbuf();
-  return dense_view_max_kbps_from_yaml(s.str(), path);
+  return dense_view_options_from_yaml(s.str(), path);
 }
 
 }  // namespace kestrel::dense

@@ -149,12 +149,14 @@ void DenseMapper::note_correction(int64_t t_ns, uint32_t alignment, const Eigen:
   work_bell_.ring();
 }
 
-void DenseMapper::attach_view(DenseViewSink* sink, double max_kbps) {
+void DenseMapper::attach_view(DenseViewSink* sink, const DenseViewOptions& view) {
   if (!started_ || sink == nullptr) return;
   view_encoder_ = std::make_unique<DenseViewEncoder>(*map_);
   // A second of the rate as the burst: a browser that connects gets the first
   // second's worth at once, then the steady rate.
-  view_budget_ = std::make_unique<ByteBudget>(max_kbps, 1.0);
+  view.validate();
+  view_budget_ = std::make_unique<ByteBudget>(view.max_kbps, 1.0);
+  view_period_ns_ = static_cast<int64_t>(view.period_s * 1e9);
   view_sink_.store(sink, std::memory_order_release);
 }
 
@@ -299,21 +301,30 @@ bool DenseMapper::reanchor_one() {
 void DenseMapper::pump_view() {
   DenseViewSink* sink = view_sink_.load(std::memory_order_acquire);
   if (sink == nullptr || !sink->wanted()) return;
-  if (sink->take_resend_request()) view_encoder_->request_all();
-  const std::size_t allowed = view_budget_->available(rt::now_ns());
-  if (allowed < kDenseViewMinMessageBytes) return;
-  std::size_t capacity = 0;
-  uint8_t* buf = sink->acquire(&capacity);
-  if (buf == nullptr) {
-    ++stats_.view_no_slot;
-    return;
+  const int64_t now = rt::now_ns();
+  const bool resend = sink->take_resend_request();
+  if (resend) view_encoder_->request_all();
+  // A round at most every period (a browser that just connected does not wait):
+  // a block several keyframes touched meanwhile is extracted and sent once.
+  if (!resend && now < view_next_round_ns_) return;
+  view_next_round_ns_ = now + view_period_ns_;
+  // As many messages as the budget and the free slots allow; what is left waits for the next round.
+  for (;;) {
+    const std::size_t allowed = view_budget_->available(now);
+    if (allowed < kDenseViewMinMessageBytes) return;
+    std::size_t capacity = 0;
+    uint8_t* buf = sink->acquire(&capacity);
+    if (buf == nullptr) {
+      ++stats_.view_no_slot;
+      return;
+    }
+    const std::size_t n = view_encoder_->encode(buf, std::min(capacity, allowed));
+    if (n == 0) return;
+    view_budget_->spend(n);
+    sink->publish(n);
+    ++stats_.view_messages;
+    stats_.view_bytes += n;
   }
-  const std::size_t n = view_encoder_->encode(buf, std::min(capacity, allowed));
-  if (n == 0) return;
-  view_budget_->spend(n);
-  sink->publish(n);
-  ++stats_.view_messages;
-  stats_.view_bytes += n;
 }
 
 void DenseMapper::run() {

@@ -16,6 +16,14 @@ constexpr double kRangeBlocks = 1.25;
 void put(uint8_t* p, const void* v, std::size_t n) { std::memcpy(p, v, n); }
 }  // namespace
 
+void DenseViewOptions::validate() const {
+  // One message must fit the one-second burst: the largest block is ~9 kB.
+  if (!(max_kbps >= 100 && max_kbps <= 1e6))
+    throw std::invalid_argument("viewer.dense_max_kbps must be in [100, 1000000] kbit/s");
+  if (!(period_s >= 0 && period_s <= 10))
+    throw std::invalid_argument("viewer.dense_period_s must be in [0, 10] s");
+}
+
 ByteBudget::ByteBudget(double max_kbps, double burst_s)
     : bytes_per_ns_(max_kbps * 1000.0 / 8.0 * 1e-9),
       cap_bytes_(max_kbps * 1000.0 / 8.0 * burst_s),

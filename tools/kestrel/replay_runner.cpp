@@ -854,7 +854,7 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   if (opt.dense_map_out.empty() && !opt.on_dense_map_rebuilt && !dense_opt.live_reanchor)
     dense_opt.archive.budget_mb = 0;
   dense::DenseMapper dense_mapper(dense_opt, rig, !realtime);
-  if (dense_sink) dense_mapper.attach_view(dense_sink.get(), opt.dense_view_max_kbps);
+  if (dense_sink) dense_mapper.attach_view(dense_sink.get(), opt.dense_view);
   stage.set_dense(&dense_mapper);
   if (dense_mapper.enabled())
     report.threads.push_back(applied_thread(dense::DenseMapper::thread_spec(), dense_mapper.thread_report()));

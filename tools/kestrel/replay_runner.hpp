@@ -232,8 +232,8 @@ struct ReplayOptions {
   // bundle adjustments); without a map, along the trajectory itself (M = W).
   std::string dense_map_out;
   // The dense map's stream to the live viewer (--view with the map on): the
-  // config's viewer.dense_max_kbps [kbit/s] (docs/dense.md).
-  double dense_view_max_kbps = 2000;
+  // config's viewer: section (docs/dense.md).
+  dense::DenseViewOptions dense_view;
   // Called with the re-integrated map (tests, measurements); enables the map and the re-integration.
   std::function<void(const core::TsdfMap&)> on_dense_map_rebuilt;
   // Called at the end with the finished map (tests, measurements); enables the map.

@@ -46,7 +46,7 @@ struct DenseOptions {
   // now are, within a CPU budget. Needs the archive (archive.budget_mb > 0).
   bool live_reanchor = false;
   double reanchor_min_shift_m = 0.02;   // a keyframe is re-fused when its camera moved this far ...
-  double reanchor_min_angle_deg = 1.0;  // ... or turned this much
+  double reanchor_min_angle_deg = 0.5;  // ... or turned this much
   double reanchor_cpu_s_per_s = 0.05;   // CPU-seconds of re-fusion per second of wall time, at most
   double reanchor_burst_cpu_s = 0.25;   // unspent budget is kept up to this [CPU-s]
   void validate() const;                // throws std::invalid_argument naming the key
@@ -91,9 +91,9 @@ class DenseMapper {
   // T_map_odom = C_MW and its change counter (MapFrameState::alignment). Only
   // a change is passed on (a ring). Allocation- and lock-free. Used by live_reanchor.
   void note_correction(int64_t t_ns, uint32_t alignment, const Eigen::Isometry3d& C_MW);
-  // Before the first offer: the viewer's stream, at most max_kbps [kbit/s]
+  // Before the first offer: the viewer's stream, at most view.max_kbps [kbit/s]
   // (encoded on kst-dense; the sink must outlive stop()). Allocates the encoder.
-  void attach_view(DenseViewSink* sink, double max_kbps);
+  void attach_view(DenseViewSink* sink, const DenseViewOptions& view);
   // Waits until the thread fused everything handed over.
   void wait_idle();
   // Fuses what was handed over, then joins. Idempotent.
@@ -182,6 +182,8 @@ class DenseMapper {
   std::atomic<DenseViewSink*> view_sink_{nullptr};
   std::unique_ptr<DenseViewEncoder> view_encoder_;
   std::unique_ptr<ByteBudget> view_budget_;
+  int64_t view_period_ns_ = 0;
+  int64_t view_next_round_ns_ = 0;
 };
 
 }  // namespace kestrel::dense

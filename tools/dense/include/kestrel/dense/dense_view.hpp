@@ -32,6 +32,15 @@ inline constexpr int kDenseViewMaxBlockPoints = 3 * core::TsdfMap::kBlockVoxels;
 inline constexpr std::size_t kDenseViewMinMessageBytes =
     kDenseViewHeaderBytes + kDenseViewRecordBytes + kDenseViewPointBytes * kDenseViewMaxBlockPoints;
 
+// The stream's settings (the config's `viewer:` section, docs/dense.md).
+struct DenseViewOptions {
+  double max_kbps = 2000;  // viewer.dense_max_kbps [kbit/s]
+  // viewer.dense_period_s [s]: rounds start at most this often, so a block
+  // several keyframes touched in between is extracted and sent once.
+  double period_s = 0.5;
+  void validate() const;  // throws std::invalid_argument naming the key
+};
+
 // A token bucket in bytes: refilled at max_kbps, holding at most burst_s of it.
 class ByteBudget {
  public:
