@@ -795,15 +795,18 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   auto input_finished = [&] {
     return source ? source->finished() : live_done.load(std::memory_order_acquire);
   };
+  // The dense map's stream to the viewer, declared before the server that reads
+  // it and the mapper that writes it, so both are gone before it is.
+  std::unique_ptr<viewer::BinaryStream> dense_stream;
+  std::unique_ptr<DenseToViewer> dense_sink;
   // The live viewer: its snapshot pool is sized here with the rest.
   std::unique_ptr<viewer::ViewerFeed> feed;
   std::unique_ptr<viewer::PlaybackControl> control;
   std::unique_ptr<viewer::Server> view;
   // The dense map's thread runs when dense.enabled or one of its outputs is asked for.
   const bool dense_on = opt.dense.enabled || !opt.dense_out.empty() || !opt.dense_octomap_out.empty() ||
-                        !opt.dense_map_out.empty() || opt.on_dense_map || opt.on_dense_map_rebuilt;
-  std::unique_ptr<viewer::BinaryStream> dense_stream;
-  std::unique_ptr<DenseToViewer> dense_sink;
+                        !opt.dense_map_out.empty() || opt.on_dense_map || opt.on_dense_map_rebuilt ||
+                        opt.on_dense_map_live;
   if (opt.view) {
     feed = std::make_unique<viewer::ViewerFeed>(estimator, rig);
     control = std::make_unique<viewer::PlaybackControl>(opt.pace == drivers::ReplayPace::kLockstep, feed.get());
@@ -1034,6 +1037,7 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     report.dense_stats = dense_mapper.stats();
     report.dense_live_reanchor = dense_opt.live_reanchor;
     report.dense_live_blocks = dm.blocks_in_use();
+    if (opt.on_dense_map_live) opt.on_dense_map_live(dm);
     if (dense_opt.live_reanchor &&
         (!opt.dense_out.empty() || !opt.dense_octomap_out.empty() || opt.on_dense_map)) {
       // In flight the map was in the map frame; the contract of --dense-out

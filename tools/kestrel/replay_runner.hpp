@@ -238,6 +238,9 @@ struct ReplayOptions {
   std::function<void(const core::TsdfMap&)> on_dense_map_rebuilt;
   // Called at the end with the finished map (tests, measurements); enables the map.
   std::function<void(const core::TsdfMap&)> on_dense_map;
+  // The map as it was at the end of the flight, before any re-integration:
+  // in W, or in the map frame with dense.live_reanchor (benches score it).
+  std::function<void(const core::TsdfMap&)> on_dense_map_live;
 };
 
 struct ReplayReport {
