@@ -182,6 +182,39 @@ int TsdfMap::find_or_allocate(const Eigen::Vector3i& key, const Eigen::Vector3d&
 
 void TsdfMap::integrate(const ImageView& depth, const ImageView& rgb, const CameraIntrinsics& cam,
                         const DepthModel& dm, const Eigen::Isometry3d& T_MC) {
+  fuse<false>(depth, rgb, cam, dm, T_MC);
+}
+
+void TsdfMap::deintegrate(const ImageView& depth, const ImageView& rgb, const CameraIntrinsics& cam,
+                          const DepthModel& dm, const Eigen::Isometry3d& T_MC) {
+  fuse<true>(depth, rgb, cam, dm, T_MC);
+}
+
+int TsdfMap::list_existing(const Eigen::Vector3i& key) {
+  const int b = find(key);
+  if (b < 0) return -1;
+  const auto stamp = static_cast<uint32_t>(counters_.frames);
+  if (view_stamp_[static_cast<std::size_t>(b)] != stamp) {
+    view_stamp_[static_cast<std::size_t>(b)] = stamp;
+    blocks_[static_cast<std::size_t>(b)].last_seen = stamp;
+    in_view_.push_back(b);
+  }
+  return b;
+}
+
+template <bool kRemove>
+void TsdfMap::fuse(const ImageView& depth, const ImageView& rgb, const CameraIntrinsics& cam,
+                   const DepthModel& dm, const Eigen::Isometry3d& T_MC) {
+  // kRemove lists only the blocks that exist (what was fused is in them, unless
+  // evicted since) and subtracts each observation's weighted share again.
+  auto list = [&](const Eigen::Vector3i& key, const Eigen::Vector3d& cam_M) {
+    if constexpr (kRemove) {
+      (void)cam_M;
+      list_existing(key);
+    } else {
+      find_or_allocate(key, cam_M);
+    }
+  };
   if (depth.data == nullptr || depth.format != PixelFormat::kDepthU16 || depth.width != cam.width ||
       depth.height != cam.height)
     return;
@@ -207,11 +240,10 @@ void TsdfMap::integrate(const ImageView& depth, const ImageView& rgb, const Came
       const double band_z = trunc_m_ / ray_C.norm();
       // The band is at most 2 * truncation long; blocks are >= 2.7 truncations:
       // its ends and middle reach every block it touches.
-      for (double s : {z - band_z, z, z + band_z}) find_or_allocate(block_key(cam_M + ray_M * s), cam_M);
+      for (double s : {z - band_z, z, z + band_z}) list(block_key(cam_M + ray_M * s), cam_M);
       if (u % opt_.carve_stride == 0 && v % opt_.carve_stride == 0) {
         const double step_z = 0.5 * block_size_m_ / ray_C.norm();
-        for (double s = min_z; s < z - band_z; s += step_z)
-          find_or_allocate(block_key(cam_M + ray_M * s), cam_M);
+        for (double s = min_z; s < z - band_z; s += step_z) list(block_key(cam_M + ray_M * s), cam_M);
       }
     }
   }
@@ -251,6 +283,27 @@ void TsdfMap::integrate(const ImageView& depth, const ImageView& rgb, const Came
       const auto w =
           static_cast<float>(sigma_ref > 0 && sigma > 0 ? (sigma_ref * sigma_ref) / (sigma * sigma) : 1.0);
       Voxel& x = vx[i];
+      if constexpr (kRemove) {
+        // The exact inverse of the update below while the weight did not
+        // saturate; a voxel left with (almost) nothing is unknown again.
+        const float W = x.weight - w;
+        if (W <= 1e-3f) {
+          x = Voxel{};
+        } else {
+          x.sdf_m = std::clamp((x.sdf_m * x.weight - sdf * w) / W, -trunc, trunc);
+          if (colour && std::fabs(sdf) < vox) {
+            const uint8_t* px = rgb.data + static_cast<std::ptrdiff_t>(v) * rgb.stride_bytes + 3 * u;
+            for (int c = 0; c < 3; ++c) {
+              const float in = px[bgr ? 2 - c : c];
+              x.rgb[c] =
+                  static_cast<uint8_t>(std::clamp(std::lround((x.rgb[c] * x.weight - in * w) / W), 0L, 255L));
+            }
+          }
+          x.weight = W;
+        }
+        ++counters_.voxels_updated;
+        continue;
+      }
       const float W = x.weight + w;
       x.sdf_m = (x.sdf_m * x.weight + sdf * w) / W;
       if (colour && std::fabs(sdf) < vox) {

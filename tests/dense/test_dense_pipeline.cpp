@@ -191,6 +191,42 @@ TEST(DensePipeline, MapFrameSurfaceIsReintegratedFromEveryKeyframe) {
   EXPECT_GE(static_cast<double>(near), 0.95 * static_cast<double>((m.size() + 49) / 50));
 }
 
+// dense.live_reanchor through the pipeline: the corrections come with every
+// frame, the estimator thread still allocates nothing, and --dense-out keeps
+// its contract (W): fused again along the odometry at the end, it matches the
+// surface of the same flight fused without live re-anchoring.
+TEST(DensePipeline, LiveReanchoringKeepsDenseOutInWAndAllocatesNothing) {
+  const std::string dir = test::temp_dir("dense_live_reanchor");
+  const std::string log = simulate(dir, 6.0);
+  cli::ReplayOptions ro;
+  ro.path = log;
+  ro.pace = drivers::ReplayPace::kLockstep;
+  ro.dense_out = dir + "/plain.ply";
+  const cli::ReplayReport plain = cli::run_replay(ro);
+  ro.dense_out = dir + "/live.ply";
+  ro.dense.live_reanchor = true;
+  const cli::ReplayReport r = cli::run_replay(ro);
+  ASSERT_TRUE(r.dense);
+  EXPECT_TRUE(r.dense_live_reanchor);
+  EXPECT_EQ(r.steady_allocs, 0)
+      << "note_correction or the archive hand-off allocated on the estimator thread";
+  EXPECT_GE(r.dense_stats.corrections, 1u) << "the map's first alignment never reached kst-dense";
+  EXPECT_EQ(static_cast<uint64_t>(r.dense_w_rebuild.fused), r.dense_stats.integrated);
+  const std::string summary = cli::replay_summary(r);
+  EXPECT_NE(summary.find("dense map live re-anchoring:"), std::string::npos) << summary;
+  const std::vector<Eigen::Vector3f> a = read_ply(dir + "/plain.ply"), b = read_ply(dir + "/live.ply");
+  ASSERT_GT(a.size(), 1000u);
+  ASSERT_GT(b.size(), 1000u);
+  std::size_t near = 0;
+  for (std::size_t i = 0; i < b.size(); i += 50) {
+    float best = 1e9f;
+    for (const Eigen::Vector3f& p : a) best = std::min(best, (p - b[i]).norm());
+    near += best <= 0.05f ? 1 : 0;
+  }
+  EXPECT_GE(static_cast<double>(near), 0.95 * static_cast<double>((b.size() + 49) / 50));
+  EXPECT_GT(plain.dense_points, 0u);
+}
+
 TEST(DenseConfig, SectionReadAndBadKeysNamed) {
   const dense::DenseOptions o =
       dense::dense_options_from_yaml("dense:\n  enabled: true\n  voxel_size_m: 0.1\n", "test.yaml");
@@ -212,7 +248,7 @@ TEST(DenseConfig, SectionReadAndBadKeysNamed) {
   EXPECT_THROW(dense::dense_options_from_yaml("dense:\n  voxel_size_m: 0\n", "test.yaml"),
                std::runtime_error);
   // Every key of the table reads back what it prints.
-  EXPECT_EQ(dense::dense_options_table(dense::DenseOptions{}).size(), 17u);
+  EXPECT_EQ(dense::dense_options_table(dense::DenseOptions{}).size(), 22u);
   // The keyframe archive's keys (--dense-map-out), and a bad stride named.
   const dense::DenseOptions a = dense::dense_options_from_yaml(
       "dense:\n  archive_budget_mb: 12\n  archive_stride_px: 4\n", "test.yaml");
@@ -223,6 +259,45 @@ TEST(DenseConfig, SectionReadAndBadKeysNamed) {
     FAIL() << "accepted stride 0";
   } catch (const std::runtime_error& e) {
     EXPECT_NE(std::string(e.what()).find("dense.archive_stride_px"), std::string::npos) << e.what();
+  }
+  // Live re-anchoring's keys, and the viewer's cap (its own `viewer:` section).
+  const dense::DenseOptions l = dense::dense_options_from_yaml(
+      "dense:\n  live_reanchor: true\n  reanchor_min_shift_m: 0.05\n  reanchor_cpu_s_per_s: 0.1\n",
+      "test.yaml");
+  EXPECT_TRUE(l.live_reanchor);
+  EXPECT_DOUBLE_EQ(l.reanchor_min_shift_m, 0.05);
+  EXPECT_DOUBLE_EQ(l.reanchor_cpu_s_per_s, 0.1);
+  try {
+    dense::dense_options_from_yaml("dense:\n  live_reanchor: true\n  archive_budget_mb: 0\n", "test.yaml");
+    FAIL() << "accepted live re-anchoring without an archive";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("dense.live_reanchor"), std::string::npos) << e.what();
+  }
+  EXPECT_DOUBLE_EQ(dense::dense_view_options_from_yaml("dense:\n  enabled: true\n", "test.yaml").max_kbps,
+                   dense::DenseViewOptions{}.max_kbps);
+  const dense::DenseViewOptions v = dense::dense_view_options_from_yaml(
+      "viewer:\n  dense_max_kbps: 500\n  dense_period_s: 0.2\n", "test.yaml");
+  EXPECT_DOUBLE_EQ(v.max_kbps, 500.0);
+  EXPECT_DOUBLE_EQ(v.period_s, 0.2);
+  try {
+    dense::dense_view_options_from_yaml("viewer:\n  dense_kbps: 500\n", "test.yaml");
+    FAIL() << "accepted an unknown viewer key";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("test.yaml:2: viewer.dense_kbps: unknown key"), std::string::npos)
+        << e.what();
+  }
+  try {
+    dense::dense_view_options_from_yaml("viewer:\n  dense_max_kbps: 10\n", "test.yaml");
+    FAIL() << "accepted a cap below one block a second";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("viewer.dense_max_kbps must be"), std::string::npos) << e.what();
+  }
+  try {
+    dense::dense_view_options_from_yaml("viewer:\n  dense_period_s: soon\n", "test.yaml");
+    FAIL() << "accepted a bad period";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("test.yaml:2: viewer.dense_period_s: bad value"), std::string::npos)
+        << e.what();
   }
 }
 

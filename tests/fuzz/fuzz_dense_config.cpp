@@ -1,4 +1,4 @@
-// Any text as the config's `dense:` section (tools/dense, docs/dense.md).
+// Any text as the config's `dense:` and `viewer:` sections (tools/dense, docs/dense.md).
 // Refusing is allowed (std::runtime_error naming the file and key); a section
 // it accepts must print (dense_options_table) to YAML that loads to the same print.
 // Seeds: the defaults printed, and a few edited values.
@@ -15,6 +15,17 @@ std::string to_yaml(const kestrel::dense::DenseOptions& o) {
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   const std::string text(reinterpret_cast<const char*>(data), size);
+  // The `viewer:` section (viewer.dense_*) from the same text: refused, or valid.
+  try {
+    const kestrel::dense::DenseViewOptions v =
+        kestrel::dense::dense_view_options_from_yaml(text, "fuzz.yaml");
+    try {
+      v.validate();
+    } catch (const std::invalid_argument&) {
+      std::abort();
+    }
+  } catch (const std::runtime_error&) {
+  }
   kestrel::dense::DenseOptions o;
   try {
     o = kestrel::dense::dense_options_from_yaml(text, "fuzz.yaml");
@@ -35,5 +46,7 @@ size_t kestrel::fuzz::write_seeds(const std::string& dir) {
   o.tsdf.memory_budget_mb = 8;
   write_file(dir + "/edited.yaml", to_yaml(o));
   write_file(dir + "/bad_key.yaml", "dense:\n  voxel: 1\n");
-  return 3;
+  write_file(dir + "/viewer.yaml",
+             "viewer:\n  dense_max_kbps: 500\n  dense_period_s: 0.2\ndense:\n  live_reanchor: true\n");
+  return 4;
 }

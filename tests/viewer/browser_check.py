@@ -201,7 +201,9 @@ def flood(port, n):
 # ---------------------------------------------------------------- viewer mode
 def run_viewer(args, b):
     cmd = [args.kestrel, "replay", args.log, "--pace", "lockstep", "--view", "127.0.0.1:0", "--view-wait", "60",
-           "--metrics-out", os.path.join(args.out_dir, "viewer_metrics.json"), "--status", "off"]
+           "--metrics-out", os.path.join(args.out_dir, "viewer_metrics.json"), "--status", "off",
+           # The dense map on: its blocks must reach the page too (docs/dense.md, "The viewer stream").
+           "--dense-out", os.path.join(args.out_dir, "viewer_dense.ply")]
     print("running:", " ".join(cmd), flush=True)
     out_path = os.path.join(args.out_dir, "viewer_replay.log")
     out = open(out_path, "w+")
@@ -312,6 +314,10 @@ def run_viewer(args, b):
                "the page keeps updating after the bad requests")
         code = replay.wait(timeout=120)
         check(code == 0, f"the replay finished normally (exit {code})")
+        b.wait("const v = window.kestrelViewer; return v.denseMessages > 0 && v.densePoints > 1000 && v.denseBlocks > 10",
+               "the dense map's blocks reached the page and were drawn")
+        print("dense map on the page: %d points in %d blocks from %d messages" % tuple(
+            b.js("const v = window.kestrelViewer; return [v.densePoints, v.denseBlocks, v.denseMessages]")), flush=True)
     finally:
         if replay.poll() is None:
             replay.kill()
@@ -323,6 +329,8 @@ def run_viewer(args, b):
         m = json.load(f)
     steady = m["allocations"]["estimator_thread_steady"]
     check(steady == 0, f"no estimator-thread allocation after warm-up with a browser connected ({steady})")
+    d = m["dense"]
+    check(d is not None and d["view_messages"] > 0, "kst-dense encoded the dense map for the viewer")
     v = m["viewer"]
     check(v["browsers"] >= 1 and v["frames_sent"] > 0, f"the viewer streamed frames ({v['frames_sent']})")
     check(v["protocol_errors"] >= 1, f"the malformed frame was counted ({v['protocol_errors']})")

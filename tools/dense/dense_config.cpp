@@ -29,6 +29,11 @@ void visit(DenseOptions& o, Fn&& fn) {
   fn("handoff_slots", o.handoff_slots);
   fn("archive_budget_mb", o.archive.budget_mb);
   fn("archive_stride_px", o.archive.stride_px);
+  fn("live_reanchor", o.live_reanchor);
+  fn("reanchor_min_shift_m", o.reanchor_min_shift_m);
+  fn("reanchor_min_angle_deg", o.reanchor_min_angle_deg);
+  fn("reanchor_cpu_s_per_s", o.reanchor_cpu_s_per_s);
+  fn("reanchor_burst_cpu_s", o.reanchor_burst_cpu_s);
 }
 }  // namespace
 
@@ -90,6 +95,51 @@ std::vector<std::pair<std::string, std::string>> dense_options_table(const Dense
     out.emplace_back(std::string("dense.") + k, s.str());
   });
   return out;
+}
+
+DenseViewOptions dense_view_options_from_yaml(const std::string& text, const std::string& where) {
+  YAML::Node root;
+  try {
+    root = YAML::Load(text);
+  } catch (const YAML::ParserException& e) {
+    throw std::runtime_error(where + ":" + std::to_string(e.mark.line + 1) + ": YAML syntax error: " + e.msg);
+  }
+  DenseViewOptions o;
+  if (!root.IsMap() || !root["viewer"]) return o;
+  const YAML::Node v = root["viewer"];
+  if (!v.IsMap()) throw std::runtime_error(where + ": viewer: expected a mapping of keys");
+  for (const auto& kv : v) {
+    if (kv.first.Scalar() != "dense_max_kbps" && kv.first.Scalar() != "dense_period_s")
+      throw std::runtime_error(where + ":" + std::to_string(kv.first.Mark().line + 1) + ": viewer." +
+                               kv.first.Scalar() +
+                               ": unknown key (expected one of: dense_max_kbps, dense_period_s)");
+  }
+  for (auto [key, value] : {std::pair<const char*, double*>{"dense_max_kbps", &o.max_kbps},
+                            std::pair<const char*, double*>{"dense_period_s", &o.period_s}}) {
+    const YAML::Node k = v[key];
+    if (!k) continue;
+    try {
+      *value = k.as<double>();
+    } catch (const YAML::Exception&) {
+      throw std::runtime_error(where + ":" + std::to_string(k.Mark().line + 1) + ": viewer." + key +
+                               ": bad value '" + k.Scalar() + "'");
+    }
+  }
+  try {
+    o.validate();
+  } catch (const std::invalid_argument& e) {
+    throw std::runtime_error(where + ": " + e.what());
+  }
+  return o;
+}
+
+DenseViewOptions load_dense_view_options(const std::string& path) {
+  if (path.empty()) return DenseViewOptions{};
+  std::ifstream f(path, std::ios::binary);
+  if (!f) throw std::runtime_error(path + ": cannot open config file");
+  std::ostringstream s;
+  s << f.rdbuf();
+  return dense_view_options_from_yaml(s.str(), path);
 }
 
 }  // namespace kestrel::dense

@@ -16,6 +16,14 @@ constexpr double kRangeBlocks = 1.25;
 void put(uint8_t* p, const void* v, std::size_t n) { std::memcpy(p, v, n); }
 }  // namespace
 
+void DenseViewOptions::validate() const {
+  // One message must fit the one-second burst: the largest block is ~9 kB.
+  if (!(max_kbps >= 100 && max_kbps <= 1e6))
+    throw std::invalid_argument("viewer.dense_max_kbps must be in [100, 1000000] kbit/s");
+  if (!(period_s >= 0 && period_s <= 10))
+    throw std::invalid_argument("viewer.dense_period_s must be in [0, 10] s");
+}
+
 ByteBudget::ByteBudget(double max_kbps, double burst_s)
     : bytes_per_ns_(max_kbps * 1000.0 / 8.0 * 1e-9),
       cap_bytes_(max_kbps * 1000.0 / 8.0 * burst_s),
@@ -47,8 +55,10 @@ void DenseViewEncoder::reset() {
 
 std::size_t DenseViewEncoder::encode(uint8_t* out, std::size_t max_bytes) {
   if (max_bytes < kDenseViewMinMessageBytes || sent_.empty()) return 0;
+  // Every block again, but what the browsers hold stays known: a block sent
+  // and since evicted still goes out as removed.
   if (resend_all_.exchange(false, std::memory_order_relaxed))
-    for (Sent& s : sent_) s.sent = false;
+    for (Sent& s : sent_) s.stamp = 0;
   const double block_m = map_.block_size_m();
   const double range_m = kRangeBlocks * block_m;
   std::size_t at = kDenseViewHeaderBytes;

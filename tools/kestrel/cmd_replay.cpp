@@ -160,6 +160,7 @@ Subcommand add_replay_command(CLI::App& parent) {
     opt.estimator = opt.config->backend;
     opt.map_out = args->map_out;
     opt.dense = dense::load_dense_options(args->config);
+    opt.dense_view = dense::load_dense_view_options(args->config);
     opt.dense_out = args->dense_out;
     opt.dense_octomap_out = args->dense_octomap_out;
     opt.dense_map_out = args->dense_map_out;

@@ -70,6 +70,7 @@ ReplayOptions pipeline_options(const RunArgs& a, const drivers::LiveConfig& cfg,
   opt.mavlink = mavlink;
   opt.map_out = a.map_out;
   opt.dense = dense::load_dense_options(cfg.path);
+  opt.dense_view = dense::load_dense_view_options(cfg.path);
   opt.dense_out = a.dense_out;
   opt.dense_octomap_out = a.dense_octomap_out;
   if (!a.view.endpoint.empty()) {
@@ -185,6 +186,7 @@ Subcommand add_run_command(CLI::App& parent) {
     // The dense map's `dense:` section is read apart (tools/dense); the live reader lets it through.
     std::vector<std::string> sections = tools::estimator_config_sections();
     sections.emplace_back("dense");
+    sections.emplace_back("viewer");  // viewer.dense_*, read with the dense section
     const drivers::LiveConfig cfg = drivers::load_live_config(a->config, sections);
     if (!a->estimator.empty() && !core::estimator_known(a->estimator))
       throw UsageError("unknown --estimator '" + a->estimator + "' (expected one of: " + core::estimator_names() + ")");

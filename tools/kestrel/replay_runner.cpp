@@ -38,6 +38,25 @@
 
 namespace kestrel::cli {
 
+namespace {
+// kst-dense's messages into the viewer's stream: the two libraries know
+// nothing of each other, the pipeline joins them here.
+class DenseToViewer final : public dense::DenseViewSink {
+ public:
+  explicit DenseToViewer(viewer::BinaryStream& s) : s_(s) {}
+  bool wanted() override { return s_.wanted(); }
+  bool take_resend_request() override { return s_.take_resend_request(); }
+  uint8_t* acquire(std::size_t* capacity) override { return s_.acquire(capacity); }
+  void publish(std::size_t bytes) override { s_.publish(bytes); }
+
+ private:
+  viewer::BinaryStream& s_;
+};
+// A viewer message slot: the encoder stops a round at this size (the largest
+// block is ~9 kB), so one message is a few blocks to a few hundred.
+constexpr std::size_t kDenseViewSlotBytes = 64 * 1024;
+}  // namespace
+
 PoseSample pose_sample_of(const OutPose& p) {
   PoseSample s;
   s.t_ns = p.t_ns;
@@ -358,6 +377,8 @@ class EstimatorStage {
       }
       if (anchor_ != nullptr)
         anchor_->publish(to_anchor(est_.output()));
+      if (dense_ != nullptr && est_.output().map.active && est_.output().map.localized)
+        dense_->note_correction(m.t_ns, est_.output().map.alignment, est_.output().map.T_map_odom());
       if (dense_ != nullptr && (est_.output().quality == core::TrackingQuality::kTracking ||
                                 est_.output().quality == core::TrackingQuality::kVisionOnly)) {
         // The pose --traj-out gets for this frame: the map is in the trajectory's frame W.
@@ -774,14 +795,27 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   auto input_finished = [&] {
     return source ? source->finished() : live_done.load(std::memory_order_acquire);
   };
+  // The dense map's stream to the viewer, declared before the server that reads
+  // it and the mapper that writes it, so both are gone before it is.
+  std::unique_ptr<viewer::BinaryStream> dense_stream;
+  std::unique_ptr<DenseToViewer> dense_sink;
   // The live viewer: its snapshot pool is sized here with the rest.
   std::unique_ptr<viewer::ViewerFeed> feed;
   std::unique_ptr<viewer::PlaybackControl> control;
   std::unique_ptr<viewer::Server> view;
+  // The dense map's thread runs when dense.enabled or one of its outputs is asked for.
+  const bool dense_on = opt.dense.enabled || !opt.dense_out.empty() || !opt.dense_octomap_out.empty() ||
+                        !opt.dense_map_out.empty() || opt.on_dense_map || opt.on_dense_map_rebuilt ||
+                        opt.on_dense_map_live;
   if (opt.view) {
     feed = std::make_unique<viewer::ViewerFeed>(estimator, rig);
     control = std::make_unique<viewer::PlaybackControl>(opt.pace == drivers::ReplayPace::kLockstep, feed.get());
     view = std::make_unique<viewer::Server>(opt.view_options, *feed, control.get());
+    if (dense_on) {
+      dense_stream = std::make_unique<viewer::BinaryStream>(kDenseViewSlotBytes);
+      dense_sink = std::make_unique<DenseToViewer>(*dense_stream);
+      view->set_dense_stream(dense_stream.get());
+    }
     if (source) source->set_ground_truth_ring(&feed->ground_truth_ring());
   }
   // The ROS outputs' map (sized here with the rest; nothing for a backend without a tracker).
@@ -815,15 +849,15 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   // The dense map's thread (off unless asked for): the deterministic paces
   // wait for a free slot, realtime drops and counts.
   dense::DenseOptions dense_opt = opt.dense;
-  if (!opt.dense_out.empty() || !opt.dense_octomap_out.empty() || !opt.dense_map_out.empty() ||
-      opt.on_dense_map || opt.on_dense_map_rebuilt)
-    dense_opt.enabled = true;
+  dense_opt.enabled = dense_on;
   // A keyframe's correction comes from a trajectory pose at most this far in
   // time (a dense keyframe is a frame of the trajectory; farther: a lost stretch).
   constexpr int64_t kDenseCorrectionMaxGapNs = 100'000'000;
   // The keyframe archive costs its budget in memory; only a re-integration reads it.
-  if (opt.dense_map_out.empty() && !opt.on_dense_map_rebuilt) dense_opt.archive.budget_mb = 0;
+  if (opt.dense_map_out.empty() && !opt.on_dense_map_rebuilt && !dense_opt.live_reanchor)
+    dense_opt.archive.budget_mb = 0;
   dense::DenseMapper dense_mapper(dense_opt, rig, !realtime);
+  if (dense_sink) dense_mapper.attach_view(dense_sink.get(), opt.dense_view);
   stage.set_dense(&dense_mapper);
   if (dense_mapper.enabled())
     report.threads.push_back(applied_thread(dense::DenseMapper::thread_spec(), dense_mapper.thread_report()));
@@ -979,11 +1013,45 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     }
     if (opt.on_map_final) opt.on_map_final(map_final_of(estimator));
   }
+  // The same correction lookup for the W contract (below) and the map frame.
+  const tools::Trajectory& traj_W = report.trajectory;
+  auto iso = [](const tools::TimedPose& p) {
+    Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+    T.linear() = p.q.normalized().toRotationMatrix();
+    T.translation() = p.p;
+    return T;
+  };
+  auto correction_along = [&](const tools::Trajectory& M) {
+    return [&traj_W, &M, iso](int64_t t_ns, Eigen::Isometry3d& C_MW) {
+      const tools::Trajectory& W = traj_W;
+      if (W.empty() || M.size() != W.size()) return false;
+      auto it = std::lower_bound(W.begin(), W.end(), t_ns,
+                                 [](const tools::TimedPose& p, int64_t t) { return p.t_ns < t; });
+      if (it == W.end() || (it != W.begin() && t_ns - std::prev(it)->t_ns < it->t_ns - t_ns)) --it;
+      if (std::llabs(it->t_ns - t_ns) > kDenseCorrectionMaxGapNs) return false;
+      const std::size_t i = static_cast<std::size_t>(it - W.begin());
+      C_MW = iso(M[i]) * iso(W[i]).inverse();
+      return true;
+    };
+  };
   if (dense_mapper.enabled()) {
     dense_mapper.stop();
     const core::TsdfMap& dm = dense_mapper.map();
     report.dense = true;
     report.dense_stats = dense_mapper.stats();
+    report.dense_live_reanchor = dense_opt.live_reanchor;
+    report.dense_live_blocks = dm.blocks_in_use();
+    if (opt.on_dense_map_live) opt.on_dense_map_live(dm);
+    if (dense_opt.live_reanchor &&
+        (!opt.dense_out.empty() || !opt.dense_octomap_out.empty() || opt.on_dense_map)) {
+      // In flight the map was in the map frame; the contract of --dense-out
+      // is W: the archive fused again along the odometry (the identity).
+      dense_mapper.rebuild_along([](int64_t, Eigen::Isometry3d& C_MW) {
+        C_MW = Eigen::Isometry3d::Identity();
+        return true;
+      });
+      report.dense_w_rebuild = dense_mapper.stats().rebuild;
+    }
     report.dense_counters = dm.counters();
     report.dense_blocks = dm.blocks_in_use();
     report.dense_block_capacity = dm.block_capacity();
@@ -1006,24 +1074,9 @@ ReplayReport run_replay(const ReplayOptions& opt) {
       // The correction at the trajectory's pose nearest the keyframe (they are
       // the same frame; the nearest also absorbs a stamp the backend moved by
       // its time-offset estimate): without a map M = W and it is the identity.
-      const tools::Trajectory& W = report.trajectory;
-      const tools::Trajectory& M = report.map_final_trajectory.empty() ? W : report.map_final_trajectory;
-      auto iso = [](const tools::TimedPose& p) {
-        Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
-        T.linear() = p.q.normalized().toRotationMatrix();
-        T.translation() = p.p;
-        return T;
-      };
-      dense_mapper.rebuild_along([&](int64_t t_ns, Eigen::Isometry3d& C_MW) {
-        if (W.empty() || M.size() != W.size()) return false;
-        auto it = std::lower_bound(W.begin(), W.end(), t_ns,
-                                   [](const tools::TimedPose& p, int64_t t) { return p.t_ns < t; });
-        if (it == W.end() || (it != W.begin() && t_ns - std::prev(it)->t_ns < it->t_ns - t_ns)) --it;
-        if (std::llabs(it->t_ns - t_ns) > kDenseCorrectionMaxGapNs) return false;
-        const std::size_t i = static_cast<std::size_t>(it - W.begin());
-        C_MW = iso(M[i]) * iso(W[i]).inverse();
-        return true;
-      });
+      const tools::Trajectory& M =
+          report.map_final_trajectory.empty() ? report.trajectory : report.map_final_trajectory;
+      dense_mapper.rebuild_along(correction_along(M));
       report.dense_stats = dense_mapper.stats();
       report.dense_archive_capacity = dense_mapper.archive()->capacity();
       report.dense_archive_overwritten = dense_mapper.archive()->counters().overwritten;
@@ -1279,6 +1332,19 @@ std::string replay_metrics_json(const ReplayReport& r) {
                       {"map_frame_no_pose", d.rebuild.no_pose},
                       {"map_frame_rebuild_cpu_s", 1e-9 * static_cast<double>(d.rebuild.cpu_ns)},
                       {"map_frame_surface_points", r.dense_map_points},
+                      {"live_reanchor", r.dense_live_reanchor},
+                      {"live_blocks", r.dense_live_blocks},
+                      {"corrections", d.corrections},
+                      {"corrections_dropped", d.corrections_dropped},
+                      {"reanchored", d.reanchored},
+                      {"reanchor_cpu_s", d.reanchor_cpu_s},
+                      {"reanchor_pending_max", d.reanchor_pending_max},
+                      {"reanchor_catch_up", histogram_json(d.reanchor_catch_up)},
+                      {"w_rebuild_keyframes", r.dense_w_rebuild.fused},
+                      {"w_rebuild_cpu_s", 1e-9 * static_cast<double>(r.dense_w_rebuild.cpu_ns)},
+                      {"view_messages", d.view_messages},
+                      {"view_bytes", d.view_bytes},
+                      {"view_no_slot", d.view_no_slot},
                       {"archive_capacity", r.dense_archive_capacity},
                       {"archive_overwritten", r.dense_archive_overwritten}};
   } else {
@@ -1595,6 +1661,27 @@ std::string replay_summary(const ReplayReport& r) {
         static_cast<unsigned long long>(r.dense_counters.blocks_refused),
         static_cast<unsigned long long>(r.dense_points));
     s += buf;
+    if (r.dense_live_reanchor) {
+      std::snprintf(buf, sizeof buf,
+                    "dense map live re-anchoring: %llu corrections (%llu dropped), %llu keyframes re-fused, "
+                    "%.2f CPU-s, at most %d waiting, caught up p50 %.0f ms max %.0f ms; --dense-out along W: "
+                    "%d keyframes %.2f s\n",
+                    static_cast<unsigned long long>(d.corrections),
+                    static_cast<unsigned long long>(d.corrections_dropped),
+                    static_cast<unsigned long long>(d.reanchored), d.reanchor_cpu_s, d.reanchor_pending_max,
+                    1e-6 * static_cast<double>(d.reanchor_catch_up.percentile(50)),
+                    1e-6 * static_cast<double>(d.reanchor_catch_up.max()), r.dense_w_rebuild.fused,
+                    1e-9 * static_cast<double>(r.dense_w_rebuild.cpu_ns));
+      s += buf;
+    }
+    if (d.view_messages > 0 || d.view_no_slot > 0) {
+      std::snprintf(
+          buf, sizeof buf,
+          "dense map to the viewer: %llu messages, %.1f kB encoded, %llu rounds without a free slot\n",
+          static_cast<unsigned long long>(d.view_messages), 1e-3 * static_cast<double>(d.view_bytes),
+          static_cast<unsigned long long>(d.view_no_slot));
+      s += buf;
+    }
     if (d.rebuilt) {
       std::snprintf(
           buf, sizeof buf,

@@ -232,10 +232,16 @@ struct ReplayOptions {
   // final trajectory (the frame M of --map-final-traj-out, after loops and
   // bundle adjustments); without a map, along the trajectory itself (M = W).
   std::string dense_map_out;
+  // The dense map's stream to the live viewer (--view with the map on): the
+  // config's viewer: section (docs/dense.md).
+  dense::DenseViewOptions dense_view;
   // Called with the re-integrated map (tests, measurements); enables the map and the re-integration.
   std::function<void(const core::TsdfMap&)> on_dense_map_rebuilt;
   // Called at the end with the finished map (tests, measurements); enables the map.
   std::function<void(const core::TsdfMap&)> on_dense_map;
+  // The map as it was at the end of the flight, before any re-integration:
+  // in W, or in the map frame with dense.live_reanchor (benches score it).
+  std::function<void(const core::TsdfMap&)> on_dense_map_live;
 };
 
 struct ReplayReport {
@@ -346,6 +352,9 @@ struct ReplayReport {
   uint64_t dense_map_points = 0;           // written to dense_map_out
   uint64_t dense_archive_overwritten = 0;  // keyframes the archive no longer had for the re-integration
   int dense_archive_capacity = 0;
+  bool dense_live_reanchor = false;           // in flight the map was in the map frame (dense.live_reanchor)
+  int dense_live_blocks = 0;                  // blocks at the end of the flight, before any re-integration
+  core::ReintegrationReport dense_w_rebuild;  // live_reanchor: --dense-out fused again along W
 };
 
 ReplayReport run_replay(const ReplayOptions& opt);

@@ -165,6 +165,7 @@ struct Client {
   int64_t stalled_since_ns = 0;
   bool map_pending = false;
   bool closing = false;
+  bool dense_missed = false;  // a dense message was not sent: its blocks are stale here
 };
 
 struct PendingPose {
@@ -213,6 +214,7 @@ struct Server::Impl {
   uint16_t bound_port = 0;
   std::map<std::string, std::pair<std::string, std::string>> files;  // path -> (content type, body)
   std::function<int64_t()> imu_probe;
+  BinaryStream* dense = nullptr;
   cv::Mat turbo = turbo_table();  // depth colours, BGR, 256 entries
 
   // ---- viewer thread only
@@ -405,6 +407,11 @@ struct Server::Impl {
     }
     if (!fin.empty()) send_text(n, fin);
     feed.request_map();
+    if (dense != nullptr) {
+      // The blocks sent before this browser came: all again (to every browser; the others just redraw them).
+      dense->request_resend();
+      dense->set_wanted(true);
+    }
     const int count = static_cast<int>(clients.size());
     {
       std::lock_guard<std::mutex> lock(stats_mu);
@@ -437,7 +444,10 @@ struct Server::Impl {
       std::lock_guard<std::mutex> lock(stats_mu);
       n_clients = static_cast<int>(clients.size());
     }
-    if (clients.empty()) feed.set_wanted(false);
+    if (clients.empty()) {
+      feed.set_wanted(false);
+      if (dense != nullptr) dense->set_wanted(false);
+    }
   }
 
   void on_message(Hdl hdl, WsServer::message_ptr msg) {
@@ -716,7 +726,44 @@ struct Server::Impl {
         }
       }
     }
+    forward_dense();
     account(now);
+  }
+
+  // Every dense message to every browser whose socket drains; one that
+  // misses a message would keep stale blocks, so it is sent everything again
+  // once it drains (the request goes to the producer: it encodes, not us).
+  void forward_dense() {
+    if (dense == nullptr) return;
+    const uint8_t* data = nullptr;
+    std::size_t size = 0;
+    uint32_t slot = 0;
+    while (dense->take(&data, &size, &slot)) {
+      const std::string m(reinterpret_cast<const char*>(data), size);
+      dense->release(slot);
+      for (Client& c : clients) {
+        if (c.closing) continue;
+        websocketpp::lib::error_code ec;
+        WsServer::connection_ptr con = ws.get_con_from_hdl(c.hdl, ec);
+        if (ec || !con || con->get_buffered_amount() > kStallBacklogBytes || !send_binary(c, m)) {
+          c.dense_missed = true;
+          continue;
+        }
+        with_stats([&](ServerStats& x) {
+          ++x.dense_messages;
+          x.dense_bytes += m.size();
+        });
+      }
+    }
+    for (Client& c : clients) {
+      if (!c.dense_missed || c.closing) continue;
+      websocketpp::lib::error_code ec;
+      WsServer::connection_ptr con = ws.get_con_from_hdl(c.hdl, ec);
+      if (ec || !con || con->get_buffered_amount() > kFrameBacklogBytes) continue;
+      c.dense_missed = false;
+      dense->request_resend();
+      with_stats([](ServerStats& x) { ++x.dense_resyncs; });
+    }
   }
 
   // CPU and bytes while at least one browser is connected.
@@ -779,6 +826,8 @@ Server::Server(const ServerOptions& opt, ViewerFeed& feed, PlaybackControl* cont
 Server::~Server() { stop(); }
 
 void Server::set_imu_latency_probe(std::function<int64_t()> probe) { impl_->imu_probe = std::move(probe); }
+
+void Server::set_dense_stream(BinaryStream* stream) { impl_->dense = stream; }
 
 rt::ThreadSetupReport Server::start(const rt::ThreadSpec& spec) {
   Impl& m = *impl_;
@@ -892,7 +941,16 @@ std::string stats_summary(const ServerStats& s) {
                 static_cast<unsigned long long>(s.frames_sent), static_cast<unsigned long long>(s.frames_skipped_budget),
                 static_cast<unsigned long long>(s.frames_skipped_backlog),
                 static_cast<unsigned long long>(s.connections_refused), static_cast<unsigned long long>(s.clients_refused));
-  return buf;
+  std::string out = buf;
+  if (s.dense_messages > 0 || s.dense_resyncs > 0) {
+    std::snprintf(buf, sizeof buf,
+                  "viewer dense map: %llu messages, %.1f kB sent (summed over browsers), %llu resyncs\n",
+                  static_cast<unsigned long long>(s.dense_messages),
+                  1e-3 * static_cast<double>(s.dense_bytes),
+                  static_cast<unsigned long long>(s.dense_resyncs));
+    out += buf;
+  }
+  return out;
 }
 
 }  // namespace kestrel::viewer

@@ -6,10 +6,14 @@
 //   types 2-5: u32 at 4 = count, float32 from byte 8:
 //     2 poses [t, x, y, z, quality], 3 map points [x, y, z],
 //     4 ground truth [x, y, z] (ground-truth frame), 5 keyframes [t, x, y, z, qw, qx, qy, qz].
+//   type 6 (dense map, docs/dense.md): u32 at 4 = block count, f32 at 8 = block
+//     size [m], f32 at 12 = quantisation range [m]; per block i32 x, y, z, u16 n,
+//     n points of u8 qx, qy, qz, r, g, b (position = key * block + q / 255 * range);
+//     n = 0: the block is gone. Only changed blocks come; a block replaces its last copy.
 // Frames: W of the estimator (z up, gravity along -z); metres, seconds.
 'use strict';
 
-const BIN_FRAME = 1, BIN_POSES = 2, BIN_MAP = 3, BIN_GT = 4, BIN_KEYFRAMES = 5;
+const BIN_FRAME = 1, BIN_POSES = 2, BIN_MAP = 3, BIN_GT = 4, BIN_KEYFRAMES = 5, BIN_DENSE = 6;
 const FEATURE_DEPTH = 1, FEATURE_MATCHED = 2, FEATURE_INLIER = 4, FEATURE_MAP = 8;
 const QUALITY_COLOURS = [[0.55, 0.58, 0.62], [0.82, 0.6, 0.13], [0.35, 0.65, 1.0], [0.97, 0.32, 0.29]];
 const PLOT_WINDOW_S = 30;
@@ -18,6 +22,7 @@ const PLOT_WINDOW_S = 30;
 const kv = window.kestrelViewer = {
   connected: false, estimator: '', hello: null, state: null, framesShown: 0, statesReceived: 0,
   trajectoryPoints: 0, groundTruthPoints: 0, keyframes: 0, mapPoints: 0, webgl: false, renders: 0,
+  denseBlocks: 0, densePoints: 0, denseMessages: 0,
   ended: false, paused: false, controlsAvailable: false, errors: [],
 };
 
@@ -192,6 +197,60 @@ function onMap(f, n) {
   kv.mapPoints = n;
 }
 
+// The dense map: one small point cloud per block, replaced when the block
+// comes again (the stream sends a block whole, never a part of one).
+const denseBlocks = new Map();
+let denseMaterial = null;
+
+function onDense(buf) {
+  const dv = new DataView(buf);
+  const count = dv.getUint32(4, true), block = dv.getFloat32(8, true), range = dv.getFloat32(12, true);
+  let at = 16;
+  kv.denseMessages++;
+  if (!denseMaterial) denseMaterial = new THREE.PointsMaterial({ size: 3, sizeAttenuation: false, vertexColors: THREE.VertexColors });
+  for (let r = 0; r < count && at + 14 <= buf.byteLength; r++) {
+    const kx = dv.getInt32(at, true), ky = dv.getInt32(at + 4, true), kz = dv.getInt32(at + 8, true);
+    const n = dv.getUint16(at + 12, true);
+    at += 14;
+    if (at + 6 * n > buf.byteLength) break;
+    const key = kx + ',' + ky + ',' + kz;
+    const old = denseBlocks.get(key);
+    if (old) {
+      kv.densePoints -= old.n;
+      if (view.scene) view.scene.remove(old.object);
+      old.object.geometry.dispose();
+      denseBlocks.delete(key);
+    }
+    if (n > 0) {
+      const q = new Uint8Array(buf, at, 6 * n);
+      const pos = new Float32Array(3 * n), col = new Float32Array(3 * n);
+      const ox = kx * block, oy = ky * block, oz = kz * block, k = range / 255;
+      for (let i = 0; i < n; i++) {
+        pos[3 * i] = ox + q[6 * i] * k; pos[3 * i + 1] = oy + q[6 * i + 1] * k; pos[3 * i + 2] = oz + q[6 * i + 2] * k;
+        col[3 * i] = q[6 * i + 3] / 255; col[3 * i + 1] = q[6 * i + 4] / 255; col[3 * i + 2] = q[6 * i + 5] / 255;
+      }
+      const g = new THREE.BufferGeometry();
+      g.setAttribute('position', new THREE.BufferAttribute(pos, 3));
+      g.setAttribute('color', new THREE.BufferAttribute(col, 3));
+      const object = new THREE.Points(g, denseMaterial);
+      object.visible = !$('show-dense') || $('show-dense').checked;
+      if (view.scene) view.scene.add(object);
+      denseBlocks.set(key, { object, n });
+      kv.densePoints += n;
+    }
+    at += 6 * n;
+  }
+  kv.denseBlocks = denseBlocks.size;
+}
+
+function clearDense() {
+  for (const b of denseBlocks.values()) { if (view.scene) view.scene.remove(b.object); b.object.geometry.dispose(); }
+  denseBlocks.clear();
+  kv.denseBlocks = kv.densePoints = 0;
+}
+
+$('show-dense').onchange = () => { for (const b of denseBlocks.values()) b.object.visible = $('show-dense').checked; };
+
 function onKeyframes(f, n) {
   for (let i = 0; i < n; i++) keyframePoses.push(Array.from(f.subarray(8 * i, 8 * i + 8)));
   kv.keyframes = keyframePoses.length;
@@ -214,6 +273,7 @@ function resetScene() {
   keyframePoses.length = 0;
   rebuildKeyframes();
   if (view.mapGeometry) view.mapGeometry.setDrawRange(0, 0);
+  clearDense();
   Object.assign(kv, { trajectoryPoints: 0, groundTruthPoints: 0, keyframes: 0, mapPoints: 0, aligned: false });
   for (const p of Object.values(plots)) p.clear();
 }
@@ -369,7 +429,8 @@ function showState(s) {
   $('v-imu').textContent = fmt(L.imu_to_pose_max, 2) + ' ms';
   $('v-inliers').textContent = tr ? tr.inliers : 'n/a';
   updateBody(s);
-  $('scene-counts').textContent = `${kv.trajectoryPoints} poses · ${kv.keyframes} keyframes · ${kv.mapPoints} map points`;
+  $('scene-counts').textContent = `${kv.trajectoryPoints} poses · ${kv.keyframes} keyframes · ${kv.mapPoints} map points` +
+    (kv.denseBlocks > 0 ? ` · dense ${kv.densePoints} points in ${kv.denseBlocks} blocks` : '');
 }
 
 // ---------------------------------------------------------------- controls
@@ -440,6 +501,7 @@ function onText(m) {
 function onBinary(buf) {
   const type = new Uint8Array(buf, 0, 1)[0];
   if (type === BIN_FRAME) { showFrame(buf); return; }
+  if (type === BIN_DENSE) { onDense(buf); return; }
   const n = new DataView(buf).getUint32(4, true);
   const stride = { [BIN_POSES]: 5, [BIN_MAP]: 3, [BIN_GT]: 3, [BIN_KEYFRAMES]: 8 }[type];
   if (!stride) return;

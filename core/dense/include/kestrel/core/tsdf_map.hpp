@@ -81,6 +81,14 @@ class TsdfMap {
   void integrate(const ImageView& depth, const ImageView& rgb, const CameraIntrinsics& cam,
                  const DepthModel& depth_model, const Eigen::Isometry3d& T_MC);
 
+  // Takes back what integrate() with the same arguments added (re-anchoring a
+  // keyframe whose pose moved: remove it where it was, fuse it where it is).
+  // Exact while no voxel's weight saturated at max_weight and its block was not
+  // evicted in between; a voxel left without weight becomes unknown. Never
+  // allocates a block. Allocation-free.
+  void deintegrate(const ImageView& depth, const ImageView& rgb, const CameraIntrinsics& cam,
+                   const DepthModel& depth_model, const Eigen::Isometry3d& T_MC);
+
   // The planner's queries. Unknown (never seen, weight too low, evicted) is
   // neither free nor occupied: a planner decides what it dares.
   Occupancy occupancy(const Eigen::Vector3d& p_M) const;
@@ -132,6 +140,10 @@ class TsdfMap {
 
   int find(const Eigen::Vector3i& key) const;  // block index or -1
   int find_or_allocate(const Eigen::Vector3i& key, const Eigen::Vector3d& cam_M);
+  int list_existing(const Eigen::Vector3i& key);
+  template <bool kRemove>
+  void fuse(const ImageView& depth, const ImageView& rgb, const CameraIntrinsics& cam,
+            const DepthModel& depth_model, const Eigen::Isometry3d& T_MC);
   bool evict_one_far(const Eigen::Vector3d& cam_M);
   void erase(int block);
   uint32_t slot_of(const Eigen::Vector3i& key) const;

@@ -7,6 +7,7 @@
 #include <vector>
 
 #include "kestrel/dense/dense_mapper.hpp"
+#include "kestrel/dense/dense_view.hpp"
 
 namespace kestrel::dense {
 
@@ -16,5 +17,11 @@ DenseOptions dense_options_from_yaml(const std::string& text, const std::string&
 DenseOptions load_dense_options(const std::string& path);
 // Every key as ("dense.key", value), for --print-config and the metrics.
 std::vector<std::pair<std::string, std::string>> dense_options_table(const DenseOptions& o);
+
+// The `viewer:` section (docs/dense.md): the dense map's stream to the live
+// viewer, `dense_max_kbps` [kbit/s] and `dense_period_s` [s]. Unknown keys and
+// bad values are errors naming the file, line and key.
+DenseViewOptions dense_view_options_from_yaml(const std::string& text, const std::string& where);
+DenseViewOptions load_dense_view_options(const std::string& path);
 
 }  // namespace kestrel::dense

@@ -18,6 +18,7 @@
 
 #include "kestrel/core/keyframe_archive.hpp"
 #include "kestrel/core/tsdf_map.hpp"
+#include "kestrel/dense/dense_view.hpp"
 #include "kestrel/msgs.hpp"
 #include "kestrel/rt/doorbell.hpp"
 #include "kestrel/rt/latency_histogram.hpp"
@@ -39,7 +40,16 @@ struct DenseOptions {
   // The keyframes' depth kept for a re-integration along the map's corrected
   // poses (--dense-map-out); budget 0 turns it off.
   core::KeyframeArchiveOptions archive;
-  void validate() const;  // throws std::invalid_argument naming the key
+  // Live re-anchoring (docs/dense.md): keyframes are fused from the archive in
+  // the map frame M (the correction T_map_odom the pipeline passes), and when
+  // the correction moves them they are taken out and fused again where they
+  // now are, within a CPU budget. Needs the archive (archive.budget_mb > 0).
+  bool live_reanchor = false;
+  double reanchor_min_shift_m = 0.02;   // a keyframe is re-fused when its camera moved this far ...
+  double reanchor_min_angle_deg = 0.5;  // ... or turned this much
+  double reanchor_cpu_s_per_s = 0.05;   // CPU-seconds of re-fusion per second of wall time, at most
+  double reanchor_burst_cpu_s = 0.25;   // unspent budget is kept up to this [CPU-s]
+  void validate() const;                // throws std::invalid_argument naming the key
 };
 
 struct DenseStats {
@@ -54,6 +64,15 @@ struct DenseStats {
   // The re-integration in the map frame (rebuild_along), when it ran.
   bool rebuilt = false;
   core::ReintegrationReport rebuild;
+  // Live re-anchoring.
+  uint64_t corrections = 0;          // changes of T_map_odom received
+  uint64_t corrections_dropped = 0;  // their ring was full (the thread was seconds behind)
+  uint64_t reanchored = 0;           // keyframes taken out and fused again
+  double reanchor_cpu_s = 0;         // the CPU that cost
+  int reanchor_pending_max = 0;      // keyframes waiting for it, at most (sampled after each correction)
+  rt::LatencyHistogram reanchor_catch_up;  // correction received -> every keyframe it moved re-fused
+  // The viewer stream (attach_view).
+  uint64_t view_messages = 0, view_bytes = 0, view_no_slot = 0;
 };
 
 class DenseMapper {
@@ -68,6 +87,13 @@ class DenseMapper {
   bool enabled() const { return started_; }
   // Estimator thread, after a tracked frame; T_WB its pose. Allocation- and lock-free.
   void offer(int64_t t_ns, const ImageView& rgb, const ImageView& depth, const Eigen::Isometry3d& T_WB);
+  // Estimator thread, every frame (before offer): the map's correction
+  // T_map_odom = C_MW and its change counter (MapFrameState::alignment). Only
+  // a change is passed on (a ring). Allocation- and lock-free. Used by live_reanchor.
+  void note_correction(int64_t t_ns, uint32_t alignment, const Eigen::Isometry3d& C_MW);
+  // Before the first offer: the viewer's stream, at most view.max_kbps [kbit/s]
+  // (encoded on kst-dense; the sink must outlive stop()). Allocates the encoder.
+  void attach_view(DenseViewSink* sink, const DenseViewOptions& view);
   // Waits until the thread fused everything handed over.
   void wait_idle();
   // Fuses what was handed over, then joins. Idempotent.
@@ -83,6 +109,10 @@ class DenseMapper {
   void rebuild_along(const std::function<bool(int64_t t_ns, Eigen::Isometry3d& C_MW)>& C_MW_of);
   // The archive (after stop()): capacity, counters.
   const core::KeyframeArchive* archive() const { return archive_.get(); }
+  // Any thread, approximate: keyframes a correction moved that wait to be re-fused.
+  int reanchor_backlog() const { return reanchor_backlog_.load(std::memory_order_acquire); }
+  // Any thread: corrections the thread has taken in (their backlog is then known).
+  uint64_t corrections_applied() const { return corrections_applied_.load(std::memory_order_acquire); }
   const DenseStats& stats() const { return stats_; }
   const DenseOptions& options() const { return opt_; }
   // The thread's row (name, priority, CPU) and what it was granted.
@@ -94,11 +124,22 @@ class DenseMapper {
     int64_t t_ns = 0;
     int64_t handed_ns = 0;
     Eigen::Isometry3d T_WC = Eigen::Isometry3d::Identity();
+    Eigen::Isometry3d C_MW = Eigen::Isometry3d::Identity();  // the correction when it was taken
     ImageView rgb, depth;
     std::vector<uint8_t> rgb_bytes, depth_bytes;
   };
   static constexpr std::size_t kRingCapacity = 64;
+  struct Correction {
+    int64_t t_ns = 0;
+    int64_t received_ns = 0;
+    Eigen::Isometry3d C_MW = Eigen::Isometry3d::Identity();
+  };
   void run();
+  void fuse_slot(Slot& s);
+  void apply_correction(const Correction& c);
+  bool reanchor_one();  // false: nothing due, or no budget now
+  int reanchor_pending(int* worst) const;
+  void pump_view();
   bool is_keyframe(int64_t t_ns, const Eigen::Isometry3d& T_WB) const;
 
   DenseOptions opt_;
@@ -120,6 +161,29 @@ class DenseMapper {
   int64_t last_t_ns_ = 0;
   Eigen::Isometry3d last_T_WB_ = Eigen::Isometry3d::Identity();
   DenseStats stats_;
+  // Live re-anchoring. Estimator thread: the newest correction and its counter.
+  bool have_alignment_ = false;
+  uint32_t alignment_ = 0;
+  Eigen::Isometry3d C_now_ = Eigen::Isometry3d::Identity();
+  rt::SpscRing<Correction, 64> corrections_;  // estimator -> dense
+  // kst-dense: per archived keyframe (indexed by its store number modulo the
+  // archive's capacity) the correction it is fused with and the one it should have.
+  std::vector<Eigen::Isometry3d> fused_C_, target_C_;
+  Correction last_correction_;  // the interval start for the next one
+  bool have_correction_ = false;
+  int64_t interval_t_a_ = 0;  // where the newest correction's interval began, and the correction then
+  Eigen::Isometry3d interval_C_a_ = Eigen::Isometry3d::Identity();
+  std::atomic<int> reanchor_backlog_{0};
+  std::atomic<uint64_t> corrections_applied_{0};
+  double reanchor_tokens_cpu_s_ = 0;
+  int64_t reanchor_refill_ns_ = -1;
+  int64_t catch_up_since_ns_ = -1;  // a correction left keyframes to re-fuse since then
+  // The viewer stream (kst-dense).
+  std::atomic<DenseViewSink*> view_sink_{nullptr};
+  std::unique_ptr<DenseViewEncoder> view_encoder_;
+  std::unique_ptr<ByteBudget> view_budget_;
+  int64_t view_period_ns_ = 0;
+  int64_t view_next_round_ns_ = 0;
 };
 
 }  // namespace kestrel::dense

@@ -32,6 +32,15 @@ inline constexpr int kDenseViewMaxBlockPoints = 3 * core::TsdfMap::kBlockVoxels;
 inline constexpr std::size_t kDenseViewMinMessageBytes =
     kDenseViewHeaderBytes + kDenseViewRecordBytes + kDenseViewPointBytes * kDenseViewMaxBlockPoints;
 
+// The stream's settings (the config's `viewer:` section, docs/dense.md).
+struct DenseViewOptions {
+  double max_kbps = 2000;  // viewer.dense_max_kbps [kbit/s]
+  // viewer.dense_period_s [s]: rounds start at most this often, so a block
+  // several keyframes touched in between is extracted and sent once.
+  double period_s = 0.5;
+  void validate() const;  // throws std::invalid_argument naming the key
+};
+
 // A token bucket in bytes: refilled at max_kbps, holding at most burst_s of it.
 class ByteBudget {
  public:
@@ -85,6 +94,19 @@ class DenseViewEncoder {
   int cursor_ = 0;
   std::atomic<bool> resend_all_{false};
   DenseViewCounters counters_;
+};
+
+// Where kst-dense puts finished messages (the viewer's BinaryStream, adapted
+// by the pipeline, so this library does not depend on the viewer's). Called
+// on kst-dense only; implementations must not block.
+class DenseViewSink {
+ public:
+  virtual ~DenseViewSink() = default;
+  virtual bool wanted() = 0;               // a browser is connected
+  virtual bool take_resend_request() = 0;  // true once after a browser asked for everything
+  // A free buffer (nullptr: none, try later); stays the caller's until publish().
+  virtual uint8_t* acquire(std::size_t* capacity) = 0;
+  virtual void publish(std::size_t bytes) = 0;
 };
 
 // One decoded block (tests, tools): points in the map's frame.

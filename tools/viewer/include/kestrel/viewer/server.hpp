@@ -23,6 +23,7 @@
 #include "kestrel/core/estimator.hpp"
 #include "kestrel/rt/thread_setup.hpp"
 #include "kestrel/tools/trajectory_eval.hpp"
+#include "kestrel/viewer/binary_stream.hpp"
 #include "kestrel/viewer/feed.hpp"
 
 namespace kestrel::viewer {
@@ -69,6 +70,9 @@ struct ServerStats {
   uint64_t frames_skipped_backlog = 0;  // the browser's socket was not draining
   uint64_t bytes_sent = 0;
   uint64_t messages_sent = 0;
+  // The dense map's block messages (set_dense_stream), summed over browsers; a
+  // browser whose socket was backed up misses one and is sent everything again.
+  uint64_t dense_messages = 0, dense_bytes = 0, dense_resyncs = 0;
   // The viewer thread's CPU and the bytes queued, over the time at least one
   // browser was connected: the figures docs/viewer.md quotes.
   double streaming_s = 0;
@@ -90,6 +94,9 @@ class Server {
   // panel when another thread (kst-propagate) owns that figure; it returns the
   // max since the previous call [ns].
   void set_imu_latency_probe(std::function<int64_t()> probe);
+  // Before start(): the dense map's messages (docs/dense.md), forwarded as
+  // they come to every browser; a browser that connects asks for all of it.
+  void set_dense_stream(BinaryStream* stream);
 
   // Loads the page's files, binds and starts the viewer thread (spec: the
   // thread table's kst-viewer). Throws std::runtime_error naming the file or
