@@ -13,54 +13,19 @@
 #include <unordered_map>
 #include <vector>
 
+#include "dense_room.hpp"
 #include "kestrel/core/tsdf_map.hpp"
 #include "kestrel/tools/sim_render.hpp"
 
 namespace kestrel {
 namespace {
 
-// Unsigned distance to an upright box's surface (inside or out).
-double box_distance(const tools::SceneBox& b, const Eigen::Vector3d& p_W) {
-  const Eigen::Matrix3d R = Eigen::AngleAxisd(b.yaw_rad, Eigen::Vector3d::UnitZ()).toRotationMatrix();
-  const Eigen::Vector3d q = (R.transpose() * (p_W - b.center_W)).cwiseAbs() - b.half_m;
-  if ((q.array() <= 0).all()) return -q.maxCoeff();
-  return q.cwiseMax(0.0).norm();
-}
-
-double room_distance(const Eigen::AlignedBox3d& room, const Eigen::Vector3d& p) {
-  if (room.contains(p)) return std::min((p - room.min()).minCoeff(), (room.max() - p).minCoeff());
-  return (p - p.cwiseMax(room.min()).cwiseMin(room.max())).norm();
-}
+using namespace dense_test;
 
 struct World {
   tools::Scene scene;
-  double distance(const Eigen::Vector3d& p) const {
-    double d = room_distance(scene.room, p);
-    for (const tools::SceneBox& b : scene.boxes) d = std::min(d, box_distance(b, p));
-    return d;
-  }
+  double distance(const Eigen::Vector3d& p) const { return scene_distance(scene, p); }
 };
-
-double quantile(std::vector<double> v, double q) {
-  if (v.empty()) return NAN;
-  const auto k = static_cast<std::size_t>(q * static_cast<double>(v.size() - 1));
-  std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(k), v.end());
-  return v[k];
-}
-
-// Camera on a circle in the room, looking outwards and a little down (z forward, y down).
-Eigen::Isometry3d pose_on_circle(double a) {
-  const Eigen::Vector3d p(0.8 * std::cos(a), 0.8 * std::sin(a), 1.4 + 0.2 * std::sin(3 * a));
-  const Eigen::Vector3d fwd = Eigen::Vector3d(std::cos(a + 0.6), std::sin(a + 0.6), -0.25).normalized();
-  Eigen::Matrix3d R;
-  R.col(2) = fwd;
-  R.col(0) = fwd.cross(Eigen::Vector3d::UnitZ()).normalized();
-  R.col(1) = R.col(2).cross(R.col(0));
-  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
-  T.linear() = R;
-  T.translation() = p;
-  return T;
-}
 
 TEST(DenseAccuracy, FusedSurfaceBeatsRawDepthOnTheRenderedRoom) {
   World w;

@@ -1,0 +1,74 @@
+// The rendered room the dense map's tests fly in (test_dense_accuracy,
+// test_dense_reanchor, test_dense_live): its true geometry as a distance
+// function, the surface-error quantiles, and the circle the camera flies.
+#pragma once
+
+#include <Eigen/Geometry>
+#include <algorithm>
+#include <cmath>
+#include <cstddef>
+#include <vector>
+
+#include "kestrel/tools/sim_render.hpp"
+
+namespace kestrel::dense_test {
+
+// Distance to a yawed box's surface, inside or out.
+inline double box_distance(const tools::SceneBox& b, const Eigen::Vector3d& p_W) {
+  const Eigen::Matrix3d R = Eigen::AngleAxisd(b.yaw_rad, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+  const Eigen::Vector3d q = (R.transpose() * (p_W - b.center_W)).cwiseAbs() - b.half_m;
+  if ((q.array() <= 0).all()) return -q.maxCoeff();
+  return q.cwiseMax(0.0).norm();
+}
+
+// Distance to the room's walls, floor and ceiling.
+inline double room_distance(const Eigen::AlignedBox3d& room, const Eigen::Vector3d& p) {
+  if (room.contains(p)) return std::min((p - room.min()).minCoeff(), (room.max() - p).minCoeff());
+  return (p - p.cwiseMax(room.min()).cwiseMin(room.max())).norm();
+}
+
+// Distance to the nearest true surface of the scene.
+inline double scene_distance(const tools::Scene& s, const Eigen::Vector3d& p) {
+  double d = room_distance(s.room, p);
+  for (const tools::SceneBox& b : s.boxes) d = std::min(d, box_distance(b, p));
+  return d;
+}
+
+// A 5.5 x 5.5 x 3 m room with two yawed boxes.
+inline tools::Scene room_with_boxes() {
+  tools::Scene s;
+  s.room = Eigen::AlignedBox3d(Eigen::Vector3d(-3.0, -2.5, 0.0), Eigen::Vector3d(2.5, 3.0, 3.0));
+  tools::SceneBox b1;
+  b1.center_W = {1.7, 0.4, 0.5};
+  b1.half_m = {0.3, 0.5, 0.5};
+  b1.yaw_rad = 0.4;
+  tools::SceneBox b2;
+  b2.center_W = {-1.6, -1.2, 0.7};
+  b2.half_m = {0.4, 0.25, 0.7};
+  b2.yaw_rad = -0.3;
+  s.boxes = {b1, b2};
+  return s;
+}
+
+inline double quantile(std::vector<double> v, double q) {
+  if (v.empty()) return NAN;
+  const auto k = static_cast<std::size_t>(q * static_cast<double>(v.size() - 1));
+  std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(k), v.end());
+  return v[k];
+}
+
+// Camera on a circle in the room, looking outwards and a little down (z forward, y down).
+inline Eigen::Isometry3d pose_on_circle(double a) {
+  const Eigen::Vector3d p(0.8 * std::cos(a), 0.8 * std::sin(a), 1.4 + 0.2 * std::sin(3 * a));
+  const Eigen::Vector3d fwd = Eigen::Vector3d(std::cos(a + 0.6), std::sin(a + 0.6), -0.25).normalized();
+  Eigen::Matrix3d R;
+  R.col(2) = fwd;
+  R.col(0) = fwd.cross(Eigen::Vector3d::UnitZ()).normalized();
+  R.col(1) = R.col(2).cross(R.col(0));
+  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+  T.linear() = R;
+  T.translation() = p;
+  return T;
+}
+
+}  // namespace kestrel::dense_test
