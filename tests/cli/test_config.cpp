@@ -250,6 +250,30 @@ TEST(ConfigCli, PrintConfigPrintsTheEffectiveSettingsAndExits) {
   EXPECT_EQ(a.out, b.out);
 }
 
+// The tool-side sections (dense:, viewer:) are printed beside the estimator's,
+// and what is printed reads back to the same print.
+TEST(ConfigCli, PrintConfigPrintsTheDenseAndViewerSectionsAndReadsBack) {
+  const std::string dir = kestrel::test::temp_dir("cfg_dense_" + std::to_string(getpid()));
+  {
+    std::ofstream f(dir + "/c.yaml");
+    f << "dense: {voxel_size_m: 0.1, live_reanchor: true}\nviewer: {dense_max_kbps: 300}\n";
+  }
+  const auto r = kestrel::test::run_kestrel("replay --config " + dir + "/c.yaml --print-config");
+  ASSERT_EQ(r.code, 0) << r.out;
+  EXPECT_NE(r.out.find("\ndense:\n  enabled: false\n  voxel_size_m: 0.1\n"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("  live_reanchor: true\n"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("\nviewer:\n  dense_max_kbps: 300\n  dense_period_s: 0.5\n"), std::string::npos) << r.out;
+  {
+    std::ofstream f(dir + "/printed.yaml");
+    f << r.out;
+  }
+  const auto back = kestrel::test::run_kestrel("replay --config " + dir + "/printed.yaml --print-config");
+  ASSERT_EQ(back.code, 0) << back.out;
+  EXPECT_EQ(back.out, r.out);
+  const auto cfg = kestrel::test::run_kestrel("config --config " + dir + "/c.yaml");
+  EXPECT_EQ(cfg.out, r.out);
+}
+
 TEST(ConfigCli, MetricsJsonCarriesTheSettings) {
   const std::string dir = kestrel::test::temp_dir("cfg_metrics_" + std::to_string(getpid()));
   auto r = kestrel::test::run_kestrel("sim --scenario hover --duration 3 --seed 2 --width 160 --height 120 --out " +

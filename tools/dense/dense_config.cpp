@@ -142,4 +142,12 @@ DenseViewOptions load_dense_view_options(const std::string& path) {
   return dense_view_options_from_yaml(s.str(), path);
 }
 
+std::string dense_sections_yaml(const DenseOptions& o, const DenseViewOptions& v) {
+  std::ostringstream s;
+  s << "dense:\n";
+  for (const auto& [k, value] : dense_options_table(o)) s << "  " << k.substr(6) << ": " << value << "\n";
+  s << "viewer:\n  dense_max_kbps: " << v.max_kbps << "\n  dense_period_s: " << v.period_s << "\n";
+  return s.str();
+}
+
 }  // namespace kestrel::dense

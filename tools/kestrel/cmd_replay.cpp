@@ -45,26 +45,33 @@ Subcommand add_replay_command(CLI::App& parent) {
   };
   auto args = std::make_shared<Args>();
   CLI::App* app = parent.add_subcommand("replay", "play a recorded log through the estimator (HIL harness)");
-  app->add_option("log", args->path,
-                  "a .klog file, a ROS 1 bag, or an EuRoC / TUM / ETH3D / OpenLORIS folder (docs/datasets.md); "
-                  "required unless --print-config");
+  app->add_option(
+      "log", args->path,
+      "a .klog file, a ROS 1 bag, or an EuRoC / TUM / ETH3D / OpenLORIS folder (docs/datasets.md); "
+      "required unless --print-config");
   app->add_option("--format", args->format, std::string("input format: ") + drivers::log_format_names())
       ->capture_default_str();
-  app->add_option("--rig", args->open.rig_path, "rig YAML for calibration the dataset lacks (ETH3D, OpenLORIS, 7-Scenes, rosbag)");
-  app->add_option("--fps", args->open.fps, "7-Scenes: the frame rate its time stamps are made from (frame i at i / fps)")
+  app->add_option("--rig", args->open.rig_path,
+                  "rig YAML for calibration the dataset lacks (ETH3D, OpenLORIS, 7-Scenes, rosbag)");
+  app->add_option("--fps", args->open.fps,
+                  "7-Scenes: the frame rate its time stamps are made from (frame i at i / fps)")
       ->capture_default_str();
-  app->add_option("--rgb-topic", args->open.rgb_topic, "rosbag colour topic (default /camera/color/image_raw)");
+  app->add_option("--rgb-topic", args->open.rgb_topic,
+                  "rosbag colour topic (default /camera/color/image_raw)");
   app->add_option("--depth-topic", args->open.depth_topic,
                   "rosbag depth topic (default /camera/aligned_depth_to_color/image_raw)");
   app->add_option("--imu-topic", args->open.imu_topic, "rosbag IMU topic (default /camera/imu)");
-  app->add_option("--right-topic", args->open.right_topic,
-                  "rosbag / rosbag2: a stereo pair's right image topic, e.g. /camera/infra2/image_rect_raw with --rgb-topic "
-                  "/camera/infra1/image_rect_raw (default /camera/right/image_raw when present; docs/stereo.md)");
+  app->add_option(
+      "--right-topic", args->open.right_topic,
+      "rosbag / rosbag2: a stereo pair's right image topic, e.g. /camera/infra2/image_rect_raw with "
+      "--rgb-topic "
+      "/camera/infra1/image_rect_raw (default /camera/right/image_raw when present; docs/stereo.md)");
   app->add_option("--camera-info-topic", args->open.camera_info_topic,
                   "rosbag CameraInfo topic (default: beside the colour topic)");
-  app->add_option("--topics", args->open.topics,
-                  "rosbag2: read only these topics (comma-separated), detected by type among them; tf_static and "
-                  "CameraInfo are still read for the rig (docs/ros2.md)")
+  app->add_option(
+         "--topics", args->open.topics,
+         "rosbag2: read only these topics (comma-separated), detected by type among them; tf_static and "
+         "CameraInfo are still read for the rig (docs/ros2.md)")
       ->delimiter(',');
   app->add_option("--gt-topic", args->open.ground_truth_topic,
                   "rosbag ground truth, geometry_msgs/PoseStamped (default /kestrel/ground_truth)");
@@ -72,16 +79,19 @@ Subcommand add_replay_command(CLI::App& parent) {
                   "realtime (sensor timing, drops like live), fast (as fast as it drains), "
                   "lockstep (deterministic, bit-identical output)")
       ->capture_default_str();
-  app->add_option("--estimator", args->estimator,
-                  std::string("backend: ") + core::estimator_names() +
-                      " (auto, the default: window with an IMU, rgbd without; window = front end + sliding-window optimizer; vo = "
-                      "tracking front end + IMU; ekf = EKF SLAM; imu = IMU dead reckoning; rgbd = RGB-D tracking "
-                      "without an IMU)")
+  app->add_option(
+         "--estimator", args->estimator,
+         std::string("backend: ") + core::estimator_names() +
+             " (auto, the default: window with an IMU, rgbd without; window = front end + sliding-window "
+             "optimizer; vo = "
+             "tracking front end + IMU; ekf = EKF SLAM; imu = IMU dead reckoning; rgbd = RGB-D tracking "
+             "without an IMU)")
       ->capture_default_str();
-  app->add_option("--config", args->config,
-                  "a config whose estimator sections (estimator:, frontend:, window:, ekf:; docs/config.md) set every "
-                  "tunable (--estimator overrides its backend) and whose `threads:` table schedules the threads in "
-                  "realtime pace (configs/*.yaml, docs/threads.md)");
+  app->add_option(
+      "--config", args->config,
+      "a config whose estimator sections (estimator:, frontend:, window:, ekf:; docs/config.md) set every "
+      "tunable (--estimator overrides its backend) and whose `threads:` table schedules the threads in "
+      "realtime pace (configs/*.yaml, docs/threads.md)");
   app->add_flag("--print-config", args->print_config,
                 "print the effective estimator settings as YAML and exit (with a log: after opening it)");
   app->add_option("--traj-out", args->traj_out, "write the trajectory here (TUM: t[s] x y z qx qy qz qw)");
@@ -89,15 +99,18 @@ Subcommand add_replay_command(CLI::App& parent) {
                   "on|off: the map beside the backend (local mapping thread, tracking against the refined "
                   "map; default on for window, off for ekf; docs/map.md)");
   app->add_option("--loop", args->loop, "on|off: loop closing and relocalisation on the map (default on)");
-  app->add_option("--map-traj-out", args->map_traj_out,
-                  "write the trajectory in the map frame here, T_map_odom(t) * pose(t) (TUM); --traj-out keeps the "
-                  "continuous odometry");
-  app->add_option("--map-final-traj-out", args->map_final_traj_out,
-                  "write the trajectory through the map's keyframes as they ended the flight (TUM; after every "
-                  "bundle adjustment and loop correction: what SLAM benchmarks score, not what flew; docs/map.md)");
-  app->add_option("--map-in", args->map_in,
-                  "start from this map file (a flight's --map-out): the flight maps nothing until it relocalises in "
-                  "it, then goes on in its frame (docs/map.md)");
+  app->add_option(
+      "--map-traj-out", args->map_traj_out,
+      "write the trajectory in the map frame here, T_map_odom(t) * pose(t) (TUM); --traj-out keeps the "
+      "continuous odometry");
+  app->add_option(
+      "--map-final-traj-out", args->map_final_traj_out,
+      "write the trajectory through the map's keyframes as they ended the flight (TUM; after every "
+      "bundle adjustment and loop correction: what SLAM benchmarks score, not what flew; docs/map.md)");
+  app->add_option(
+      "--map-in", args->map_in,
+      "start from this map file (a flight's --map-out): the flight maps nothing until it relocalises in "
+      "it, then goes on in its frame (docs/map.md)");
   app->add_option(
       "--mcap-out", args->mcap_out,
       "write the poses (nav_msgs/msg/Odometry, /tf, /diagnostics), the map points (PointCloud2) and "
@@ -107,11 +120,13 @@ Subcommand add_replay_command(CLI::App& parent) {
       "serve the --mcap-out topics live over the Foxglove WebSocket protocol on [ADDR:]PORT (docs/ros2.md)");
   app->add_option("--foxglove-wait", args->foxglove_wait_s,
                   "with --foxglove: wait up to this long [s] for a client first");
-  app->add_option("--loop-log", args->loop_log,
-                  "write every loop candidate here (CSV: BoW score, matches, inliers, the verdict, and with the "
-                  "log's ground truth its view overlap and the correction's error); with ground truth the "
-                  "summary and --metrics-out also count the revisits the flight made (docs/map.md)");
-  app->add_option("--map-out", args->map_out, "write the map here at the end (versioned, CRC-checked; docs/map.md)");
+  app->add_option(
+      "--loop-log", args->loop_log,
+      "write every loop candidate here (CSV: BoW score, matches, inliers, the verdict, and with the "
+      "log's ground truth its view overlap and the correction's error); with ground truth the "
+      "summary and --metrics-out also count the revisits the flight made (docs/map.md)");
+  app->add_option("--map-out", args->map_out,
+                  "write the map here at the end (versioned, CRC-checked; docs/map.md)");
   app->add_option(
       "--dense-out", args->dense_out,
       "build the dense map (the config's dense: section) and write its surface here as PLY, in the "
@@ -126,9 +141,10 @@ Subcommand add_replay_command(CLI::App& parent) {
   app->add_option("--warmup", args->warmup_s, "seconds of log before steady-state statistics start")
       ->capture_default_str();
   app->add_flag("-q,--quiet", args->quiet, "print nothing but errors");
-  app->add_option("--mavlink-udp", args->mavlink_udp,
-                  "MAVLink v2 to a flight controller at HOST:PORT: ODOMETRY per pose, HEARTBEAT 1 Hz, TIMESYNC "
-                  "(the config's mavlink: section sets ids, R_FB, rates; docs/px4.md)");
+  app->add_option(
+      "--mavlink-udp", args->mavlink_udp,
+      "MAVLink v2 to a flight controller at HOST:PORT: ODOMETRY per pose, HEARTBEAT 1 Hz, TIMESYNC "
+      "(the config's mavlink: section sets ids, R_FB, rates; docs/px4.md)");
   app->add_option("--mavlink-serial", args->mavlink_serial,
                   "the same over a serial port, DEVICE[:BAUD] (baud default: the config's, else 921600)");
   app->add_option("--status", args->status,
@@ -145,8 +161,8 @@ Subcommand add_replay_command(CLI::App& parent) {
     opt.estimator = args->estimator;
     const std::string override_backend = app->count("--estimator") ? args->estimator : "";
     if (!override_backend.empty() && !core::estimator_known(override_backend))
-      throw UsageError("unknown --estimator '" + override_backend + "' (expected one of: " + core::estimator_names() +
-                       ")");
+      throw UsageError("unknown --estimator '" + override_backend +
+                       "' (expected one of: " + core::estimator_names() + ")");
     opt.config = tools::load_estimator_config(args->config, override_backend);
     try {
       tools::apply_map_switches(*opt.config, args->mapping, args->loop);
@@ -182,14 +198,16 @@ Subcommand add_replay_command(CLI::App& parent) {
     }
     if (args->status != "on" && args->status != "off" && args->status != "auto")
       throw UsageError("--status must be on, off or auto");
-    opt.status_line = !args->quiet && (args->status == "on" ||
-                                       (args->status == "auto" && opt.pace == drivers::ReplayPace::kRealtime));
+    opt.status_line =
+        !args->quiet &&
+        (args->status == "on" || (args->status == "auto" && opt.pace == drivers::ReplayPace::kRealtime));
     if (!args->view.endpoint.empty()) {
       opt.view = true;
       opt.view_options = view_server_options(args->view, "replay " + args->path);
       opt.view_wait_s = args->view.wait_s;
       opt.on_view_ready = [args](const viewer::Server& s) { print_view_ready(s, args->view); };
-    } else if (app->count("--view-wait") + app->count("--view-clients") + app->count("--view-bandwidth") > 0) {
+    } else if (app->count("--view-wait") + app->count("--view-clients") + app->count("--view-bandwidth") >
+               0) {
       throw UsageError("--view-wait, --view-clients and --view-bandwidth need --view [ADDR:]PORT");
     }
     if (args->print_config) {
@@ -199,7 +217,8 @@ Subcommand add_replay_command(CLI::App& parent) {
         o.format = opt.format;
         (void)drivers::open_log(opt.path, o);
       }
-      std::cout << tools::estimator_config_to_yaml(*opt.config);
+      std::cout << tools::estimator_config_to_yaml(*opt.config)
+                << dense::dense_sections_yaml(opt.dense, opt.dense_view);
       return 0;
     }
     if (args->path.empty()) throw UsageError("replay: the log is required (unless --print-config)");
@@ -243,13 +262,15 @@ Subcommand add_replay_command(CLI::App& parent) {
     }
     if (!args->map_final_traj_out.empty()) {
       if (r.map_final_trajectory.empty())
-        throw std::runtime_error("--map-final-traj-out: the map holds no keyframe of this flight; nothing written to " +
-                                 args->map_final_traj_out);
+        throw std::runtime_error(
+            "--map-final-traj-out: the map holds no keyframe of this flight; nothing written to " +
+            args->map_final_traj_out);
       tools::write_tum(args->map_final_traj_out, r.map_final_trajectory);
     }
     if (!args->quiet) {
       std::cout << replay_summary(r);
-      for (const auto& p : r.problems) std::cerr << "problem: " << p.where << ": " << p.kind << ": " << p.detail << "\n";
+      for (const auto& p : r.problems)
+        std::cerr << "problem: " << p.where << ": " << p.kind << ": " << p.detail << "\n";
       if (!args->traj_out.empty()) std::cout << "trajectory: " << args->traj_out << "\n";
       if (!args->metrics_out.empty()) std::cout << "metrics: " << args->metrics_out << "\n";
       if (!args->map_out.empty()) std::cout << "map: " << args->map_out << "\n";

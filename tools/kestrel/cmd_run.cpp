@@ -140,15 +140,17 @@ Subcommand add_run_command(CLI::App& parent) {
   app->add_option("--estimator", a->estimator,
                   std::string("backend: ") + core::estimator_names() +
                       " (default: the config's estimator.backend, else window)");
-  app->add_flag("--print-config", a->print_config,
-                "print the effective estimator settings as YAML (the config's estimator sections on the backend's "
-                "defaults, docs/config.md) and exit");
+  app->add_flag(
+      "--print-config", a->print_config,
+      "print the effective estimator settings as YAML (the config's estimator sections on the backend's "
+      "defaults, docs/config.md) and exit");
   app->add_option("--duration", a->duration_s, "seconds to run (0 = until Ctrl-C)")->capture_default_str();
   app->add_option("--mapping", a->mapping,
                   "on|off: the map beside the backend (default on for window, off for ekf; docs/map.md)");
   app->add_option("--loop", a->loop, "on|off: loop closing and relocalisation (default on)");
-  app->add_option("--map-in", a->map_in,
-                  "start from this map file: nothing is mapped until the camera relocalises in it (docs/map.md)");
+  app->add_option(
+      "--map-in", a->map_in,
+      "start from this map file: nothing is mapped until the camera relocalises in it (docs/map.md)");
   app->add_option(
       "--mcap-out", a->mcap_out,
       "write the poses (nav_msgs/msg/Odometry, /tf, /diagnostics), the map points (PointCloud2) and "
@@ -165,21 +167,27 @@ Subcommand add_run_command(CLI::App& parent) {
       "run stops, in the frame of --traj-out (docs/dense.md)");
   app->add_option("--dense-octomap-out", a->dense_octomap_out,
                   "build the dense map and write its occupancy here as an OctoMap .bt when the run stops");
-  app->add_option("--mavlink-udp", a->mavlink_udp,
-                  "MAVLink v2 to the flight controller at HOST:PORT: ODOMETRY per pose, HEARTBEAT 1 Hz, TIMESYNC "
-                  "(over the config's mavlink: link; docs/px4.md)");
-  app->add_option("--mavlink-serial", a->mavlink_serial,
-                  "the same over a serial port, DEVICE[:BAUD] (baud default: the config's mavlink.serial_baud)");
-  app->add_option("--record", a->record,
-                  "also record the sensors into this .klog while estimating (replay it afterwards with kestrel replay)");
+  app->add_option(
+      "--mavlink-udp", a->mavlink_udp,
+      "MAVLink v2 to the flight controller at HOST:PORT: ODOMETRY per pose, HEARTBEAT 1 Hz, TIMESYNC "
+      "(over the config's mavlink: link; docs/px4.md)");
+  app->add_option(
+      "--mavlink-serial", a->mavlink_serial,
+      "the same over a serial port, DEVICE[:BAUD] (baud default: the config's mavlink.serial_baud)");
+  app->add_option(
+      "--record", a->record,
+      "also record the sensors into this .klog while estimating (replay it afterwards with kestrel replay)");
   app->add_option("--record-buffer-s", a->record_buffer_s,
                   "seconds of camera frames the recorder holds while the disk stalls")
       ->capture_default_str();
-  app->add_option("--traj-out", a->traj_out, "write the estimated trajectory here (TUM: t[s] x y z qx qy qz qw)");
+  app->add_option("--traj-out", a->traj_out,
+                  "write the estimated trajectory here (TUM: t[s] x y z qx qy qz qw)");
   add_view_options(app, a->view, false);
-  app->footer("Runs: live drivers -> sensor rings -> kst-propagate (IMU-rate pose at once) -> estimator thread (IMU and\n"
-              "frames in time order) -> kst-optimizer; thread scheduling from the config's threads: table.\n"
-              "Without the sensors it exits with 1 naming what is missing.");
+  app->footer(
+      "Runs: live drivers -> sensor rings -> kst-propagate (IMU-rate pose at once) -> estimator thread (IMU "
+      "and\n"
+      "frames in time order) -> kst-optimizer; thread scheduling from the config's threads: table.\n"
+      "Without the sensors it exits with 1 naming what is missing.");
   Subcommand s;
   s.app = app;
   s.run = [a] {
@@ -189,7 +197,8 @@ Subcommand add_run_command(CLI::App& parent) {
     sections.emplace_back("viewer");  // viewer.dense_*, read with the dense section
     const drivers::LiveConfig cfg = drivers::load_live_config(a->config, sections);
     if (!a->estimator.empty() && !core::estimator_known(a->estimator))
-      throw UsageError("unknown --estimator '" + a->estimator + "' (expected one of: " + core::estimator_names() + ")");
+      throw UsageError("unknown --estimator '" + a->estimator +
+                       "' (expected one of: " + core::estimator_names() + ")");
     // The default backend is replay's (window) unless the config or --estimator names one.
     core::EstimatorConfig est_cfg = tools::load_estimator_config(a->config, a->estimator);
     try {
@@ -202,7 +211,9 @@ Subcommand add_run_command(CLI::App& parent) {
       throw UsageError(e.what());
     }
     if (a->print_config) {
-      std::cout << tools::estimator_config_to_yaml(est_cfg);
+      std::cout << tools::estimator_config_to_yaml(est_cfg)
+                << dense::dense_sections_yaml(dense::load_dense_options(a->config),
+                                              dense::load_dense_view_options(a->config));
       return 0;
     }
     std::optional<mavlink::OdometryStreamOptions> mo;

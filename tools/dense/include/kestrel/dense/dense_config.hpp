@@ -23,5 +23,9 @@ std::vector<std::pair<std::string, std::string>> dense_options_table(const Dense
 // bad values are errors naming the file, line and key.
 DenseViewOptions dense_view_options_from_yaml(const std::string& text, const std::string& where);
 DenseViewOptions load_dense_view_options(const std::string& path);
+// The `dense:` and `viewer:` sections as YAML that the loaders above read back
+// (`--print-config`, `kestrel config`: the tool-side sections beside the
+// estimator's).
+std::string dense_sections_yaml(const DenseOptions& o, const DenseViewOptions& v);
 
 }  // namespace kestrel::dense
