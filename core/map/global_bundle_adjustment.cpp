@@ -3,6 +3,8 @@
 #include <algorithm>
 #include <sstream>
 
+#include "ba_observation.hpp"
+
 namespace kestrel::core {
 
 std::string GlobalBaOptions::validate() const {
@@ -85,15 +87,7 @@ bool GlobalBundleAdjustment::snapshot(const Map& map) {
       const int32_t k = P.obs_kf[i];
       if (slot_pose_[static_cast<size_t>(k)] < 0) add_pose(k, true);
       const KeyframeFeature& f = map.feature(k, P.obs_feat[i]);
-      BaObservation ob;
-      ob.pose = slot_pose_[static_cast<size_t>(k)];
-      ob.point = a;
-      ob.u_px = f.u_px;
-      ob.v_px = f.v_px;
-      ob.depth_m = f.depth_m > 0 ? f.depth_m : 0.0;
-      ob.inv_sigma_px = 1.0 / cam_.sigma_px(f.level);
-      ob.inv_sigma_z = f.depth_m > 0 ? 1.0 / cam_.sigma_depth_m(f.depth_m) : 0.0;
-      pb_.obs.push_back(ob);
+      pb_.obs.push_back(ba_observation(cam_, f, slot_pose_[static_cast<size_t>(k)], a));
     }
   }
   // The odometry between each keyframe and its parent, where both are in the

@@ -3,6 +3,8 @@
 #include <algorithm>
 #include <cmath>
 
+#include "ba_observation.hpp"
+
 namespace kestrel::core {
 
 double MapCamera::sigma_px(int level) const { return keypoint_sigma_px * std::pow(level_scale, level); }
@@ -113,7 +115,8 @@ void LocalMapper::fuse(int kf) {
         const double r = radius_px[std::clamp<int>(f.level, 0, kLevels - 1)];
         const double du = f.u_px - u, dv = f.v_px - v;
         if (du * du + dv * dv > r * r) continue;
-        if (f.depth_m > 0 && std::abs(f.depth_m - c.z()) > map_.options().fuse_depth_tol_rel * c.z() + 0.03) continue;
+        if (f.depth_m > 0 && std::abs(f.depth_m - c.z()) > map_.options().fuse_depth_tol_rel * c.z() + 0.03)
+          continue;
         const int d = hamming_distance(P.desc, f.desc);
         if (d < best) {
           best = d;
@@ -221,15 +224,8 @@ bool LocalMapper::bundle_adjust(int kf) {
     for (int i = 0; i < P.n_obs; ++i) {
       if (map_.keyframe(P.obs_kf[i]).mark2 != in_mark) continue;
       const KeyframeFeature& f = map_.feature(P.obs_kf[i], P.obs_feat[i]);
-      BaObservation ob;
-      ob.pose = shared_scratch_[static_cast<size_t>(P.obs_kf[i])];
-      ob.point = static_cast<int32_t>(a);
-      ob.u_px = f.u_px;
-      ob.v_px = f.v_px;
-      ob.depth_m = f.depth_m > 0 ? f.depth_m : 0.0;
-      ob.inv_sigma_px = 1.0 / cam_.sigma_px(f.level);
-      ob.inv_sigma_z = f.depth_m > 0 ? 1.0 / cam_.sigma_depth_m(f.depth_m) : 0.0;
-      pb.obs.push_back(ob);
+      pb.obs.push_back(ba_observation(cam_, f, shared_scratch_[static_cast<size_t>(P.obs_kf[i])],
+                                      static_cast<int32_t>(a)));
     }
   }
   ++stats_.ba_runs;
@@ -283,7 +279,8 @@ void LocalMapper::cull_points(int kf) {
       const uint32_t age = now - P.first_kf_id;
       if (age < 3) continue;
       const bool rare = P.n_obs < o.cull_point_min_keyframes;
-      const bool missed = P.visible >= 4 && static_cast<double>(P.found) < o.cull_point_min_found_ratio * P.visible;
+      const bool missed =
+          P.visible >= 4 && static_cast<double>(P.found) < o.cull_point_min_found_ratio * P.visible;
       if (rare || missed) {
         map_.erase_point(p);
         ++stats_.points_culled;

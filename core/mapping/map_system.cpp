@@ -204,14 +204,19 @@ void MapSystem::publish_frame() {
 // ---- loop thread ---------------------------------------------------------------
 
 bool MapSystem::loop_step() {
+  // The odometry stays where it is; the map frame moves against it: W sits in
+  // M where keyframe kf's corrected pose says (4 DoF: both see gravity). This
+  // also takes in what local BA moved since the last change.
+  auto realign_to = [this](int kf) {
+    const MapKeyframe& N = map_->keyframe(kf);
+    state_.set_T_map_odom(project_4dof(N.T_MC * N.T_WC.inverse()));
+    ++state_.alignment;
+    realigned_ = true;
+  };
   if (gba_ && gba_->snapshotted()) return false;  // global_ba_step() first
   if (gba_ && gba_->solved()) {
     if (gba_->apply(*map_) && map_->newest_keyframe() >= 0) {
-      // As after the loop: the odometry stays, T_map_odom absorbs the move.
-      const MapKeyframe& N = map_->keyframe(map_->newest_keyframe());
-      state_.set_T_map_odom(project_4dof(N.T_MC * N.T_WC.inverse()));
-      ++state_.alignment;
-      realigned_ = true;
+      realign_to(map_->newest_keyframe());
       publish_frame();
     }
     in_flight_.fetch_sub(1, std::memory_order_acq_rel);  // taken by the snapshot
@@ -223,12 +228,7 @@ bool MapSystem::loop_step() {
   const int64_t t0 = rt::now_ns();
   const LoopClosure c = closer_->process(*k);
   if (c.closed) {
-    // The odometry stays where it is; the map frame moves against it: W sits
-    // in M where the newest keyframe's corrected pose says (4 DoF: both see
-    // gravity). This also takes in what local BA moved since the last change.
-    const MapKeyframe& N = map_->keyframe(c.newest);
-    state_.set_T_map_odom(project_4dof(N.T_MC * N.T_WC.inverse()));
-    ++state_.alignment;
+    realign_to(c.newest);
     ++state_.loop_closures;
     for (int i = 0; i < 3; ++i) {
       if (map_->keyframe_used(c.match.query))
@@ -236,7 +236,6 @@ bool MapSystem::loop_step() {
       if (map_->keyframe_used(c.match.candidate))
         state_.loop_p_M_candidate[i] = map_->keyframe(c.match.candidate).T_MC.translation()[i];
     }
-    realigned_ = true;
     publish_frame();
     // The map is held (a deterministic pace waits) until the solution is back.
     if (gba_ && gba_->snapshot(*map_)) in_flight_.fetch_add(1, std::memory_order_acq_rel);

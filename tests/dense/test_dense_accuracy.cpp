@@ -29,16 +29,7 @@ struct World {
 
 TEST(DenseAccuracy, FusedSurfaceBeatsRawDepthOnTheRenderedRoom) {
   World w;
-  w.scene.room = Eigen::AlignedBox3d(Eigen::Vector3d(-3.0, -2.5, 0.0), Eigen::Vector3d(2.5, 3.0, 3.0));
-  tools::SceneBox b1;
-  b1.center_W = {1.7, 0.4, 0.5};
-  b1.half_m = {0.3, 0.5, 0.5};
-  b1.yaw_rad = 0.4;
-  tools::SceneBox b2;
-  b2.center_W = {-1.6, -1.2, 0.7};
-  b2.half_m = {0.4, 0.25, 0.7};
-  b2.yaw_rad = -0.3;
-  w.scene.boxes = {b1, b2};
+  w.scene = room_with_boxes();
 
   CameraIntrinsics cam;
   cam.width = 320;
