@@ -11,7 +11,8 @@ namespace {
 
 // Enums travel through the visitor as an index into their names.
 template <typename E>
-void enum_choice(OptionVisitor& v, const char* key, E& e, const std::vector<const char*>& names, const char* doc) {
+void enum_choice(OptionVisitor& v, const char* key, E& e, const std::vector<const char*>& names,
+                 const char* doc) {
   int i = static_cast<int>(e);
   v.choice(key, i, names, doc);
   e = static_cast<E>(i);
@@ -32,7 +33,8 @@ void visit_orb(OrbOptions& o, OptionVisitor& v) {
 }
 
 void visit_lonsc(LonscOptions& o, OptionVisitor& v) {
-  v.begin_section("lonsc", "LONSC outlier rejection (core/tracking, docs/lonsc.md); lonsc_variant sets the defaults");
+  v.begin_section("lonsc",
+                  "LONSC outlier rejection (core/tracking, docs/lonsc.md); lonsc_variant sets the defaults");
   v.value("threshold_px", o.consistency.threshold_px, "reprojection error bound of the consistency test");
   v.value("scale_by_sigma", o.consistency.scale_by_sigma, "scale the bound with the keypoint's sigma");
   v.value("reference_sigma_px", o.consistency.reference_sigma_px, "sigma at which the bound is threshold_px");
@@ -56,10 +58,12 @@ void visit_tracker(TrackerOptions& o, OptionVisitor& v) {
   v.value("search_k_sigma", o.search_k_sigma, "search radius = this x the predicted pixel uncertainty");
   v.value("match_ratio", o.match_ratio, "best < ratio x second best Hamming distance within the window");
   v.value("match_max_hamming", o.match_max_hamming, "largest accepted Hamming distance [bits of 256]");
-  v.value("match_max_level_diff", o.match_max_level_diff, "pyramid levels between keyframe and current keypoint");
+  v.value("match_max_level_diff", o.match_max_level_diff,
+          "pyramid levels between keyframe and current keypoint");
   enum_choice(v, "correspondence_order", o.order, {"as_given", "by_match_cost", "hilbert", "shuffled"},
               "order of the correspondences LONSC walks");
-  v.value("keypoint_sigma_px", o.keypoint_sigma_px, "keypoint noise at pyramid level 0 (scales with the level)");
+  v.value("keypoint_sigma_px", o.keypoint_sigma_px,
+          "keypoint noise at pyramid level 0 (scales with the level)");
   v.value("min_inliers", o.min_inliers, "fewer LONSC inliers: the frame is not tracked");
   v.value("motion_model_min_inliers", o.motion_model_min_inliers,
           "no IMU rotation and no rigid consensus: inliers the motion-model fallback needs (0: off)");
@@ -76,8 +80,10 @@ void visit_tracker(TrackerOptions& o, OptionVisitor& v) {
   v.value("map_match_ratio", o.map_match_ratio, "best < ratio x second best for a map match");
   v.value("map_depth_tol_rel", o.map_depth_tol_rel, "measured vs map depth within rel x z + 3 cm");
   v.value("map_min_inliers", o.map_min_inliers, "fewer PnP inliers: the keyframe keeps its chained pose");
-  v.value("map_max_correction_m", o.map_max_correction_m, "a larger map correction is taken for false matches");
-  v.value("map_max_correction_rad", o.map_max_correction_rad, "a larger map correction is taken for false matches");
+  v.value("map_max_correction_m", o.map_max_correction_m,
+          "a larger map correction is taken for false matches");
+  v.value("map_max_correction_rad", o.map_max_correction_rad,
+          "a larger map correction is taken for false matches");
   v.value("map_max_sigma_m", o.map_max_sigma_m, "a less certain map pose is not reported");
   v.value("far_tracks", o.far_tracks,
           "follow keyframe features without depth along their epipolar segment beyond the depth range");
@@ -86,19 +92,24 @@ void visit_tracker(TrackerOptions& o, OptionVisitor& v) {
           "far tracks: a longer epipolar segment is not searched");
   visit_orb(o.orb, v);
   visit_lonsc(o.lonsc, v);
-  v.begin_section("rigid", "6-DoF tracking without an IMU rotation (rgbd backend, IMU outage; docs/real-imagery.md)");
+  v.begin_section("rigid",
+                  "6-DoF tracking without an IMU rotation (rgbd backend, IMU outage; docs/real-imagery.md)");
   enum_choice(v, "method", o.rigid_method, {"lonsc", "ransac"},
               "how the 3-point rigid model is found: LONSC's ordered runs, or RANSAC");
-  v.value("threshold_px", o.rigid.consistency.threshold_px, "reprojection error bound of the consistency test");
+  v.value("threshold_px", o.rigid.consistency.threshold_px,
+          "reprojection error bound of the consistency test");
   v.value("depth_tol_rel", o.rigid.depth_tol_rel, "3D distance bound: this share of the current depth...");
   v.value("depth_tol_m", o.rigid.depth_tol_m, "...plus this");
   v.value("min_run_length", o.rigid.min_run_length, "lonsc: shorter runs are not trusted");
-  v.value("candidate_runs", o.rigid.candidate_runs, "lonsc: longest runs that each propose a motion, at most 8");
-  v.value("min_sample_spread_m", o.rigid.min_sample_spread_m, "points of a model closer than this: degenerate");
+  v.value("candidate_runs", o.rigid.candidate_runs,
+          "lonsc: longest runs that each propose a motion, at most 8");
+  v.value("min_sample_spread_m", o.rigid.min_sample_spread_m,
+          "points of a model closer than this: degenerate");
   int rigid_min_inliers = static_cast<int>(o.rigid.min_inliers);
   v.value("min_inliers", rigid_min_inliers, "fewer inliers: no motion");
   o.rigid.min_inliers = static_cast<std::size_t>(rigid_min_inliers < 0 ? 0 : rigid_min_inliers);
-  v.value("confidence", o.rigid.confidence, "ransac: stop when an all-inlier triple was drawn with this probability");
+  v.value("confidence", o.rigid.confidence,
+          "ransac: stop when an all-inlier triple was drawn with this probability");
   v.value("max_iterations", o.rigid.max_iterations, "ransac: hypotheses at most");
   v.value("seed", o.rigid.seed, "ransac: random seed (re-seeded every frame: replays are deterministic)");
   v.end_section();
@@ -120,7 +131,8 @@ void visit_tracker(TrackerOptions& o, OptionVisitor& v) {
   v.begin_section("pose_refine", "6-DoF Gauss-Newton on the LONSC inliers (docs/lonsc.md)");
   v.value("max_iterations", o.refine.max_iterations, "Gauss-Newton iterations");
   v.value("huber_px", o.refine.huber_px, "Huber threshold on the whitened error (<= 0: least squares)");
-  v.value("rotation_prior_sigma_rad", o.refine.rotation_prior_sigma_rad, "> 0: keep R near the gyro's (0: off)");
+  v.value("rotation_prior_sigma_rad", o.refine.rotation_prior_sigma_rad,
+          "> 0: keep R near the gyro's (0: off)");
   v.value("min_step", o.refine.min_step, "stop when the step falls below this [rad, m]");
   v.end_section();
 }
@@ -128,14 +140,16 @@ void visit_tracker(TrackerOptions& o, OptionVisitor& v) {
 void visit_vo(FrontendOdometryOptions& o, OptionVisitor& v) {
   v.value("accel_noise_mps2_sqrthz", o.accel_noise_mps2_sqrthz, "vo fusion: white acceleration error");
   v.value("position_sigma_m", o.position_sigma_m, "vo fusion: tracked position noise");
-  v.value("initial_velocity_sigma_mps", o.initial_velocity_sigma_mps, "vo fusion: velocity sigma at the start");
+  v.value("initial_velocity_sigma_mps", o.initial_velocity_sigma_mps,
+          "vo fusion: velocity sigma at the start");
   v.value("attitude_gain", o.attitude_gain, "share of the way to the tracked attitude per tracked frame");
   v.value("gyro_bias_gain", o.gyro_bias_gain, "integral share of the gyro bias per tracked frame");
   v.value("gate_sigma", o.gate_sigma, "innovations beyond this many sigma are not believed");
   v.value("max_lost_frames", o.max_lost_frames, "untracked frames before a new keyframe at the IMU pose");
   v.value("moving_start_after_ns", o.moving_start_after_ns,
           "vo/imu: no still window by then: start moving (the window backend: window.moving_start_after_ns)");
-  v.value("pred_sigma_px_per_s", o.pred_sigma_px_per_s, "search window growth per second since the last track");
+  v.value("pred_sigma_px_per_s", o.pred_sigma_px_per_s,
+          "search window growth per second since the last track");
   v.value("pred_sigma_min_px", o.pred_sigma_min_px, "search window pixel uncertainty, lower bound");
   v.value("imu_outage_after_ns", o.imu_outage_after_ns,
           "a frame this long after the last IMU sample: IMU lost, track on the camera alone (0: never)");
@@ -146,7 +160,8 @@ void visit_vo(FrontendOdometryOptions& o, OptionVisitor& v) {
 void visit_window(EstimatorConfig& c, OptionVisitor& v) {
   WindowEstimatorOptions& e = c.window;
   WindowOptions& w = e.window;
-  v.begin_section("window", "the sliding-window optimizer and the window backend (core/window, docs/optimizer.md)");
+  v.begin_section("window",
+                  "the sliding-window optimizer and the window backend (core/window, docs/optimizer.md)");
   v.value("recent_frames", w.S, "S: most recent frames in the window");
   v.value("keyframes", w.N, "N: keyframes outside the recent frames; S + N <= 10");
   v.value("max_landmarks", w.max_landmarks, "landmark budget, fixed at start-up");
@@ -167,9 +182,10 @@ void visit_window(EstimatorConfig& c, OptionVisitor& v) {
   v.value("zero_velocity_sigma_mps", w.zero_velocity_sigma_mps, "zero-velocity factor on still frames");
   v.value("function_tolerance", w.function_tolerance, "stop when the relative cost decrease falls below");
   v.value("step_tolerance", w.step_tolerance, "stop when the step's max-norm falls below");
-  v.value("estimate_time_offset", w.estimate_time_offset,
-          "estimate the camera-IMU time offset online on top of the rig's time_offset_cam_imu_ns: a t_d state "
-          "(VINS-Mono's) measured by correlating vision-only rotations with the gyro (docs/optimizer.md)");
+  v.value(
+      "estimate_time_offset", w.estimate_time_offset,
+      "estimate the camera-IMU time offset online on top of the rig's time_offset_cam_imu_ns: a t_d state "
+      "(VINS-Mono's) measured by correlating vision-only rotations with the gyro (docs/optimizer.md)");
   v.value("time_offset_prior_sigma_ms", w.time_offset_prior_sigma_ms,
           "prior on the estimated offset around the rig's value, until the correlation has a measurement");
   TimeOffsetCalibratorOptions& to = e.time_offset;
@@ -179,9 +195,12 @@ void visit_window(EstimatorConfig& c, OptionVisitor& v) {
   v.value("time_offset_min_intervals", to.min_intervals, "frame intervals before the first measurement");
   v.value("time_offset_max_sigma_ms", to.max_sigma_ms, "a measurement less certain than this is not used");
   v.value("time_offset_sigma_floor_ms", to.sigma_floor_ms, "the measurement's 1-sigma is at least this");
-  v.value("time_offset_gate_rad", to.gate_rad, "a frame interval no offset explains within this is an outlier");
-  v.value("time_offset_max_interval_s", to.max_interval_s, "a frame further than this from its keyframe is not used");
-  v.value("time_offset_gyro_capacity", to.gyro_capacity, "gyro samples kept by the correlation (fixed memory)");
+  v.value("time_offset_gate_rad", to.gate_rad,
+          "a frame interval no offset explains within this is an outlier");
+  v.value("time_offset_max_interval_s", to.max_interval_s,
+          "a frame further than this from its keyframe is not used");
+  v.value("time_offset_gyro_capacity", to.gyro_capacity,
+          "gyro samples kept by the correlation (fixed memory)");
   v.value("time_offset_min_matches", e.time_offset_min_matches,
           "depth-backed matches a frame pair needs for its vision-only rotation");
   v.value("keyframes_only", e.keyframes_only, "only keyframes enter the window (cheaper, less accurate)");
@@ -191,20 +210,28 @@ void visit_window(EstimatorConfig& c, OptionVisitor& v) {
   v.value("max_correction_m", e.max_correction_m, "optimized vs propagated position beyond this: a failure");
   v.value("max_speed_mps", e.max_speed_mps, "an optimized speed beyond this: a failure");
   v.value("max_consecutive_failures", e.max_consecutive_failures, "then the window restarts");
-  v.value("max_imu_gap_ns", e.max_imu_gap_ns, "a longer IMU gap cannot be preintegrated (continue_without_imu)");
-  v.value("continue_without_imu", e.continue_without_imu,
-          "IMU lost in flight: frames go on as vision-only states (false: the window restarts after the gap)");
-  v.value("hold_velocity_sigma_mps", e.window.hold_velocity_sigma_mps, "vision-only states: velocity held at the guess");
-  v.value("hold_gyro_bias_sigma_rps", e.window.hold_gyro_bias_sigma_rps, "vision-only states: gyro bias held");
-  v.value("hold_acc_bias_sigma_mps2", e.window.hold_acc_bias_sigma_mps2, "vision-only states: accel bias held");
+  v.value("max_imu_gap_ns", e.max_imu_gap_ns,
+          "a longer IMU gap cannot be preintegrated (continue_without_imu)");
+  v.value(
+      "continue_without_imu", e.continue_without_imu,
+      "IMU lost in flight: frames go on as vision-only states (false: the window restarts after the gap)");
+  v.value("hold_velocity_sigma_mps", e.window.hold_velocity_sigma_mps,
+          "vision-only states: velocity held at the guess");
+  v.value("hold_gyro_bias_sigma_rps", e.window.hold_gyro_bias_sigma_rps,
+          "vision-only states: gyro bias held");
+  v.value("hold_acc_bias_sigma_mps2", e.window.hold_acc_bias_sigma_mps2,
+          "vision-only states: accel bias held");
   v.value("zero_velocity_when_still", e.zero_velocity_when_still, "zero-velocity factor on still frames");
-  v.value("still_max_speed_mps", e.still_max_speed_mps, "a frame is still only if the speed is below this too");
-  v.value("use_map_pose", e.use_map_pose, "keyframes re-located on the local map carry that pose as a factor");
+  v.value("still_max_speed_mps", e.still_max_speed_mps,
+          "a frame is still only if the speed is below this too");
+  v.value("use_map_pose", e.use_map_pose,
+          "keyframes re-located on the local map carry that pose as a factor");
   v.value("map_pose_sigma_m", e.map_pose_sigma_m, "map pose factor sigma, lower bound");
   v.value("map_pose_sigma_rad", e.map_pose_sigma_rad, "map pose factor sigma, lower bound");
   v.value("moving_start_after_ns", c.window_moving_start_after_ns,
           "no still window by then: the dynamic start (the optimizer fixes attitude and velocity)");
-  v.value("use_map_points", w.use_map_points, "map points hold their window landmarks by a prior (docs/map.md)");
+  v.value("use_map_points", w.use_map_points,
+          "map points hold their window landmarks by a prior (docs/map.md)");
   v.value("map_anchor_min_landmarks", w.map_anchor_min_landmarks,
           "with this many map-point landmarks the map fixes the gauge");
   v.end_section();
@@ -212,8 +239,10 @@ void visit_window(EstimatorConfig& c, OptionVisitor& v) {
 
 void visit_map(MapSystemOptions& m, OptionVisitor& v) {
   MapOptions& o = m.map;
-  v.begin_section("map", "the map beside the window backend: local mapping, loop closing (core/map, docs/map.md)");
-  v.value("mapping", m.mapping, "build a map on the kst-mapping thread and track against it (--mapping on|off)");
+  v.begin_section("map",
+                  "the map beside the window backend: local mapping, loop closing (core/map, docs/map.md)");
+  v.value("mapping", m.mapping,
+          "build a map on the kst-mapping thread and track against it (--mapping on|off)");
   v.value("loop", m.loop, "loop closing and relocalisation on the kst-loop thread (--loop on|off)");
   v.value("vocabulary", m.vocabulary_path,
           "place recognition vocabulary file (kestrel vocab); empty: the one built into kestrel");
@@ -240,7 +269,8 @@ void visit_map(MapSystemOptions& m, OptionVisitor& v) {
   v.value("update_max_points", o.update_max_points, "refined points handed to the tracker per keyframe");
   v.value("neighbour_radius_m", o.neighbour_radius_m, "keyframes this close count as the neighbourhood");
   v.value("neighbour_max_angle_rad", o.neighbour_max_angle_rad, "... when their optical axes are this close");
-  v.value("point_sigma_floor_m", o.point_sigma_floor_m, "a map point's prior in the window: at least this sigma");
+  v.value("point_sigma_floor_m", o.point_sigma_floor_m,
+          "a map point's prior in the window: at least this sigma");
   v.value("point_min_keyframes_for_prior", o.point_min_keyframes_for_prior,
           "points seen by fewer keyframes are not handed to the tracker");
   v.value("min_keyframe_interval_s", o.min_keyframe_interval_s, "keyframes closer in time are not mapped");
@@ -252,8 +282,9 @@ void visit_map(MapSystemOptions& m, OptionVisitor& v) {
   v.value("global_ba_max_points", g.max_points, "the global BA's points, the most observed first");
   v.value("global_ba_iterations", g.iterations,
           "Levenberg-Marquardt iterations per round of the global BA (two rounds)");
-  v.value("global_ba_odometry_sigma_m", g.odometry_sigma_m,
-          "the global BA holds each keyframe to its parent by the odometry's relative pose, this loose (0: off)");
+  v.value(
+      "global_ba_odometry_sigma_m", g.odometry_sigma_m,
+      "the global BA holds each keyframe to its parent by the odometry's relative pose, this loose (0: off)");
   v.value("global_ba_odometry_sigma_rad", g.odometry_sigma_rad, "... and this loose in rotation");
   LoopOptions& l = m.closing;
   v.value("loop_min_age_s", l.min_age_s, "loop candidates are at least this much older than the keyframe");
@@ -280,7 +311,8 @@ void visit_map(MapSystemOptions& m, OptionVisitor& v) {
   v.value("loop_place_features", l.place_features,
           "the candidate keyframe's depth-backed features without a map point are matched too");
   v.value("loop_prior_seed_radius_px", l.prior_seed_radius_px,
-          "no seed from the descriptors: the odometry's pose seeds the guided search within this radius (0: off)");
+          "no seed from the descriptors: the odometry's pose seeds the guided search within this radius (0: "
+          "off)");
   v.value("loop_geometric_candidates", l.geometric_candidates,
           "candidates from the map's geometry beside place recognition's: old keyframes the query's depth "
           "points land in view of (0: none)");
@@ -290,8 +322,9 @@ void visit_map(MapSystemOptions& m, OptionVisitor& v) {
       "loop_refine_chi2", l.refine_chi2,
       "after the 3D fit, a 4-DoF refit on pixels and depths with their noise; its inliers (whitened error "
       "below this, 3 DoF) must meet the two bounds above (0: no refit; relocalisation too)");
-  v.value("loop_max_correction_m", l.max_correction_m,
-          "a loop's correction is drift: at most this + loop_max_correction_per_m x path since the candidate");
+  v.value(
+      "loop_max_correction_m", l.max_correction_m,
+      "a loop's correction is drift: at most this + loop_max_correction_per_m x path since the candidate");
   v.value("loop_max_correction_per_m", l.max_correction_per_m, "drift per metre flown (beyond: an alias)");
   v.value("loop_max_yaw_rad", l.max_yaw_rad, "yaw correction at most this + loop_max_yaw_per_m x path");
   v.value("loop_max_yaw_per_m", l.max_yaw_per_m, "yaw drift per metre flown [rad/m]");
@@ -308,10 +341,13 @@ void visit_map(MapSystemOptions& m, OptionVisitor& v) {
   v.value("loop_consistency_m", l.consistency_m, "their corrections agree within this at the keyframe");
   v.value("loop_consistency_rad", l.consistency_rad, "... and this in yaw");
   v.value("loop_pose_graph_iterations", l.pose_graph_iterations, "4-DoF pose graph iterations");
-  v.value("loop_covis_edge_min_shared", l.covis_edge_min_shared, "points shared by a covisibility edge of the pose graph");
+  v.value("loop_covis_edge_min_shared", l.covis_edge_min_shared,
+          "points shared by a covisibility edge of the pose graph");
   v.value("loop_cooldown_keyframes", l.cooldown_keyframes, "no new loop within this many keyframes of one");
-  v.value("reloc_max_candidates", l.reloc_max_candidates, "best place-recognition candidates verified per lost keyframe");
-  v.value("reloc_min_inliers", l.reloc_min_inliers, "inliers a relocalisation needs (no drift bound after a loss)");
+  v.value("reloc_max_candidates", l.reloc_max_candidates,
+          "best place-recognition candidates verified per lost keyframe");
+  v.value("reloc_min_inliers", l.reloc_min_inliers,
+          "inliers a relocalisation needs (no drift bound after a loss)");
   v.value("reloc_min_inlier_share", l.reloc_min_inlier_share, "... and this share of the matches");
   v.value("reloc_consistent_keyframes", l.reloc_consistent_keyframes,
           "consecutive lost keyframes that must give the same alignment");
@@ -322,7 +358,8 @@ void visit_map(MapSystemOptions& m, OptionVisitor& v) {
 
 void visit_rgbd(RgbdEstimatorOptions& o, OptionVisitor& v) {
   WindowOptions& w = o.window;
-  v.begin_section("rgbd", "the rgbd backend: RGB-D tracking without an IMU (core/rgbd, docs/real-imagery.md)");
+  v.begin_section("rgbd",
+                  "the rgbd backend: RGB-D tracking without an IMU (core/rgbd, docs/real-imagery.md)");
   v.value("use_window", o.use_window, "refine with the sliding window (false: the tracker's poses alone)");
   v.value("recent_frames", w.S, "S: most recent frames in its window");
   v.value("keyframes", w.N, "N: keyframes outside the recent frames; S + N <= 10");
@@ -336,10 +373,12 @@ void visit_rgbd(RgbdEstimatorOptions& o, OptionVisitor& v) {
   v.value("pred_sigma_px", o.pred_sigma_px, "motion model pixel uncertainty at one frame (search window)");
   v.value("pred_sigma_px_per_s", o.pred_sigma_px_per_s, "its growth per second without a tracked frame");
   v.value("max_lost_frames", o.max_lost_frames, "untracked frames before the tracker and the window restart");
-  v.value("use_map_pose", o.use_map_pose, "keyframes re-located on the local map carry that pose as a factor");
+  v.value("use_map_pose", o.use_map_pose,
+          "keyframes re-located on the local map carry that pose as a factor");
   v.value("map_pose_sigma_m", o.map_pose_sigma_m, "map pose factor sigma, lower bound");
   v.value("map_pose_sigma_rad", o.map_pose_sigma_rad, "map pose factor sigma, lower bound");
-  v.value("max_correction_m", o.max_correction_m, "window vs tracked pose beyond this: the solve is not taken");
+  v.value("max_correction_m", o.max_correction_m,
+          "window vs tracked pose beyond this: the solve is not taken");
   v.end_section();
 }
 
@@ -372,16 +411,19 @@ void visit_ekf(EkfEstimatorOptions& o, OptionVisitor& v) {
   v.value("default_acc_random_walk_mps3_sqrthz", o.default_acc_random_walk, "when the rig gives none");
   v.value("imu_noise_inflation", o.imu_noise_inflation,
           "every IMU noise density (the rig's or the defaults) is multiplied by this (docs/ekf.md)");
-  v.value("pred_sigma_px_per_s", o.pred_sigma_px_per_s, "search window growth per second since the last update");
+  v.value("pred_sigma_px_per_s", o.pred_sigma_px_per_s,
+          "search window growth per second since the last update");
   v.value("pred_sigma_min_px", o.pred_sigma_min_px, "search window pixel uncertainty, lower bound");
-  v.value("use_map_pose", o.use_map_pose, "keyframes re-located on the tracker's local map update the filter with that pose");
+  v.value("use_map_pose", o.use_map_pose,
+          "keyframes re-located on the tracker's local map update the filter with that pose");
   v.value("map_pose_sigma_m", o.map_pose_sigma_m, "map pose measurement sigma, lower bound");
   v.value("map_pose_sigma_rad", o.map_pose_sigma_rad, "map pose measurement sigma, lower bound");
   v.value("map_pose_gate_chi2", o.map_pose_gate_chi2, "map pose innovation gate (chi2, 6 dof; 16.81 = 99 %)");
   v.value("map_pose_min_interval_s", o.map_pose_min_interval_s,
           "at most one map pose per this interval (the map is not independent of the filter)");
   v.value("max_lost_frames", o.max_lost_frames, "untracked frames before the tracker takes a new keyframe");
-  v.value("min_used_for_tracking", o.min_used_for_tracking, "observations used for the frame to count as tracked");
+  v.value("min_used_for_tracking", o.min_used_for_tracking,
+          "observations used for the frame to count as tracked");
   v.value("min_frame_interval_ms", o.min_frame_interval_ms,
           "a frame closer than this to the last one taken is skipped if that one tracked "
           "(the IMU carries the state; 50: every other frame of a 30 Hz camera; 0: every frame; "
@@ -396,13 +438,16 @@ void visit_ekf(EkfEstimatorOptions& o, OptionVisitor& v) {
 
 }  // namespace
 
-LonscOptions lonsc_options(LonscVariant v) { return v == LonscVariant::kPaper ? LonscOptions::paper() : LonscOptions{}; }
+LonscOptions lonsc_options(LonscVariant v) {
+  return v == LonscVariant::kPaper ? LonscOptions::paper() : LonscOptions{};
+}
 
 const char* to_string(LonscVariant v) { return v == LonscVariant::kPaper ? "paper" : "tuned"; }
 
 EstimatorConfig EstimatorConfig::defaults(const std::string& backend, LonscVariant variant) {
   if (!estimator_known(backend))
-    throw std::invalid_argument("unknown estimator '" + backend + "' (expected one of: " + estimator_names() + ")");
+    throw std::invalid_argument("unknown estimator '" + backend + "' (expected one of: " + estimator_names() +
+                                ")");
   EstimatorConfig c;
   c.backend = backend;
   c.lonsc_variant = variant;
@@ -455,12 +500,14 @@ void visit_safety(DivergenceOptions& o, OptionVisitor& v) {
           "IMU-only time after the last visual fix before the pose is reported lost (the state is kept)");
   v.value("max_lost_s", o.max_lost_s, "reported lost this long without a fix: the backend re-initialises");
   v.value("max_speed_mps", o.max_speed_mps, "an estimated speed beyond this is a divergence");
-  v.value("max_acc_bias_mps2", o.max_acc_bias_mps2, "an accelerometer bias estimate beyond this is a divergence");
+  v.value("max_acc_bias_mps2", o.max_acc_bias_mps2,
+          "an accelerometer bias estimate beyond this is a divergence");
   v.value("max_gyro_bias_rps", o.max_gyro_bias_rps, "a gyro bias estimate beyond this is a divergence");
   v.value("max_position_sigma_m", o.max_position_sigma_m,
           "a position standard deviation beyond this (ekf, window) is a divergence");
   v.value("max_rejected_fixes", o.max_rejected_fixes,
-          "consecutive tracked frames the backend refuses (vision vs IMU beyond the gate) before it re-initialises; "
+          "consecutive tracked frames the backend refuses (vision vs IMU beyond the gate) before it "
+          "re-initialises; "
           "0: off");
   v.end_section();
 }
@@ -470,13 +517,15 @@ void visit_safety(DivergenceOptions& o, OptionVisitor& v) {
 void visit_options(EstimatorConfig& c, OptionVisitor& v) {
   {
     v.begin_section("estimator", "which backend runs");
-    v.value("backend", c.backend,
-            "auto, window, window-embedded, window-ceres, vo, ekf, imu, rgbd (selects the defaults; auto: window "
-            "with an IMU, rgbd without)");
+    v.value(
+        "backend", c.backend,
+        "auto, window, window-embedded, window-ceres, vo, ekf, imu, rgbd (selects the defaults; auto: window "
+        "with an IMU, rgbd without)");
     v.end_section();
   }
   {
-    v.begin_section("frontend", "the tracker every backend shares, and the vo backend's fusion (core/tracking)");
+    v.begin_section("frontend",
+                    "the tracker every backend shares, and the vo backend's fusion (core/tracking)");
     enum_choice(v, "lonsc_variant", c.lonsc_variant, {"tuned", "paper"},
                 "LONSC defaults: this project's (tuned) or paper 000's Algorithm 1 as printed (paper)");
     visit_vo(c.vo, v);

@@ -1,9 +1,10 @@
+#include "kestrel/core/estimator_factory.hpp"
+
 #include <stdexcept>
 
-#include "kestrel/core/estimator_factory.hpp"
-#include "kestrel/core/estimator_config.hpp"
 #include "kestrel/core/ekf_estimator.hpp"
 #include "kestrel/core/estimator.hpp"
+#include "kestrel/core/estimator_config.hpp"
 #include "kestrel/core/frontend_odometry.hpp"
 #include "kestrel/core/rgbd_estimator.hpp"
 #include "kestrel/core/window_estimator.hpp"
@@ -31,7 +32,8 @@ std::unique_ptr<Estimator> make_estimator(const EstimatorConfig& c, const Rig& r
     return std::make_unique<WindowEstimator>(rig, c.window_options());
   if (name == "ekf") return std::make_unique<EkfEstimator>(rig, c.ekf_options());
   if (name == "rgbd") return std::make_unique<RgbdEstimator>(rig, c.rgbd_options());
-  throw std::invalid_argument("unknown estimator '" + name + "' (expected one of: " + estimator_names() + ")");
+  throw std::invalid_argument("unknown estimator '" + name + "' (expected one of: " + estimator_names() +
+                              ")");
 }
 
 const Tracker* tracker_of(const Estimator& est) { return est.front_end_tracker(); }

@@ -1,9 +1,10 @@
-#include "kestrel/core/estimator_config.hpp"
-#include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/core/kestrel.hpp"
-#include "kestrel/core/map_system.hpp"
 
 #include <utility>
+
+#include "kestrel/core/estimator_config.hpp"
+#include "kestrel/core/estimator_factory.hpp"
+#include "kestrel/core/map_system.hpp"
 
 namespace kestrel {
 

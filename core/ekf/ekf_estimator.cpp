@@ -1,5 +1,4 @@
 #include "kestrel/core/ekf_estimator.hpp"
-#include "kestrel/core/rig_transforms.hpp"
 
 #include <algorithm>
 #include <cmath>
@@ -7,6 +6,7 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "kestrel/core/rig_transforms.hpp"
 #include "kestrel/rt/clock.hpp"
 
 namespace kestrel::core {
@@ -305,8 +305,8 @@ void EkfEstimator::supervise() {
     return;
   }
   NavState s0 = out_.state;
-  const bool finite = s0.p_WB.allFinite() && s0.q_WB.coeffs().allFinite() && s0.bg_rps.allFinite() &&
-                      s0.ba_mps2.allFinite();
+  const bool finite =
+      s0.p_WB.allFinite() && s0.q_WB.coeffs().allFinite() && s0.bg_rps.allFinite() && s0.ba_mps2.allFinite();
   if (!finite && have_fix_state_) {
     const int64_t t = s0.t_ns;
     s0 = last_fix_state_;
@@ -317,8 +317,10 @@ void EkfEstimator::supervise() {
   }
   s0.v_WB.setZero();
   const DivergenceOptions& d = opt_.divergence;
-  if (!finite || why == DivergenceCause::kAccBias || !(s0.ba_mps2.norm() <= d.max_acc_bias_mps2)) s0.ba_mps2.setZero();
-  if (!finite || why == DivergenceCause::kGyroBias || !(s0.bg_rps.norm() <= d.max_gyro_bias_rps)) s0.bg_rps.setZero();
+  if (!finite || why == DivergenceCause::kAccBias || !(s0.ba_mps2.norm() <= d.max_acc_bias_mps2))
+    s0.ba_mps2.setZero();
+  if (!finite || why == DivergenceCause::kGyroBias || !(s0.bg_rps.norm() <= d.max_gyro_bias_rps))
+    s0.bg_rps.setZero();
   start(s0, true, true);
   publish(s0.t_ns);
   monitor_.on_reinitialised(s0.t_ns, why);
@@ -394,7 +396,8 @@ bool EkfEstimator::add_frame(const RgbdFrame& f) {
     ekf_.update(nullptr, 0);
   }
   const bool map_pose_due =
-      last_map_pose_t_ns_ < 0 || 1e-9 * static_cast<double>(f.t_ns - last_map_pose_t_ns_) >= opt_.map_pose_min_interval_s;
+      last_map_pose_t_ns_ < 0 ||
+      1e-9 * static_cast<double>(f.t_ns - last_map_pose_t_ns_) >= opt_.map_pose_min_interval_s;
   if (opt_.use_map_pose && r.keyframe && r.map_pose_valid && map_pose_due) {
     const Eigen::Isometry3d T_WB_map = r.T_WC_map * T_BC_.inverse();
     const double sp = std::max(opt_.map_pose_sigma_m, r.map_sigma_p_m);

@@ -56,8 +56,8 @@ Mat6 se3_adjoint(const Pose& T) {
   return A;
 }
 
-bool stereo_project(const StereoCamera& cam, const Pose& T_WB, const Vec3& m_W, double min_depth_m, StereoMeas& z,
-                    Eigen::Matrix<double, 3, 6>* J_pose, Mat3* J_m) {
+bool stereo_project(const StereoCamera& cam, const Pose& T_WB, const Vec3& m_W, double min_depth_m,
+                    StereoMeas& z, Eigen::Matrix<double, 3, 6>* J_pose, Mat3* J_m) {
   const Vec3 p_B = T_WB.R.transpose() * (m_W - T_WB.p);
   const Vec3 q = cam.T_CB.R * p_B + cam.T_CB.p;
   if (!(q.z() >= min_depth_m)) return false;
@@ -89,7 +89,7 @@ bool stereo_triangulate(const StereoCamera& cam, const StereoMeas& z, Vec3& p_C,
   if (J_z != nullptr) {
     const double id2 = 1.0 / (d * d);
     // Columns: d/duL, d/dv, d/duR, with d = uL - uR.
-    *J_z << b / d - du * b * id2, 0.0, du * b * id2,  //
+    *J_z << b / d - du * b * id2, 0.0, du * b * id2,     //
         -dv * k * b * id2, k * b / d, dv * k * b * id2,  //
         -cam.fsu * b * id2, 0.0, cam.fsu * b * id2;
   }

@@ -1,7 +1,6 @@
 #include "kestrel/core/ekf_slam.hpp"
 
 #include <Eigen/Cholesky>
-
 #include <algorithm>
 #include <cmath>
 #include <limits>
@@ -26,7 +25,8 @@ namespace {
 // (depth x panel) always stay on the stack: the update never allocates.
 constexpr int kMaxChunk = 32;
 constexpr int kPanel = 128;
-static_assert(3 * kMaxChunk * kPanel <= 16384, "GEMM packing buffers must fit Eigen's stack allocation limit");
+static_assert(3 * kMaxChunk * kPanel <= 16384,
+              "GEMM packing buffers must fit Eigen's stack allocation limit");
 
 constexpr int kPoseDim = 6;
 
@@ -34,8 +34,10 @@ constexpr int kPoseDim = 6;
 
 const char* motion_model_name(EkfMotionModel m) {
   switch (m) {
-    case EkfMotionModel::kVelocity: return "velocity";
-    case EkfMotionModel::kImu: return "imu";
+    case EkfMotionModel::kVelocity:
+      return "velocity";
+    case EkfMotionModel::kImu:
+      return "imu";
   }
   return "?";
 }
@@ -55,7 +57,8 @@ void EkfSlamOptions::validate() const {
   if (!(max_init_depth_m > min_depth_m)) fail("max_init_depth_m", "must be > min_depth_m");
   if (max_missed_frames < 0) fail("max_missed_frames", "must be >= 0");
   if (max_consecutive_rejects < 1) fail("max_consecutive_rejects", "must be >= 1");
-  if (!(vel_sigma_mps >= 0.0) || !(gyro_vel_sigma_rps >= 0.0)) fail("vel_sigma_mps/gyro_vel_sigma_rps", "must be >= 0");
+  if (!(vel_sigma_mps >= 0.0) || !(gyro_vel_sigma_rps >= 0.0))
+    fail("vel_sigma_mps/gyro_vel_sigma_rps", "must be >= 0");
   if (!(gyro_noise_density >= 0.0) || !(acc_noise_density >= 0.0) || !(gyro_random_walk >= 0.0) ||
       !(acc_random_walk >= 0.0))
     fail("imu noise", "densities must be >= 0");
@@ -95,7 +98,8 @@ std::string EkfSlamOptions::describe() const {
   return s.str();
 }
 
-StereoObservation virtual_stereo(uint32_t id, double u, double v, double depth_m, double fx, double baseline_m) {
+StereoObservation virtual_stereo(uint32_t id, double u, double v, double depth_m, double fx,
+                                 double baseline_m) {
   StereoObservation o;
   o.id = id;
   o.uL = u;
@@ -114,7 +118,8 @@ StereoObservation pixel_only(uint32_t id, double u, double v) {
   return o;
 }
 
-EkfSlam::EkfSlam(const EkfSlamOptions& options, const ekf::StereoCamera& camera) : opt_(options), cam_(camera) {
+EkfSlam::EkfSlam(const EkfSlamOptions& options, const ekf::StereoCamera& camera)
+    : opt_(options), cam_(camera) {
   opt_.validate();
   if (!(cam_.fsu > 0.0) || !(cam_.fsv > 0.0) || !(cam_.baseline_m > 0.0))
     throw std::invalid_argument("ekf camera: fsu, fsv and baseline_m must be > 0");
@@ -167,8 +172,8 @@ void EkfSlam::reset(const Pose& T_WB, const Mat6& P_pose) {
   reset_imu(T_WB, Vec3::Zero(), Vec3::Zero(), Vec3::Zero(), P_pose, 1.0, 0.01, 0.1);
 }
 
-void EkfSlam::reset_imu(const Pose& T_WB, const Vec3& v_WB, const Vec3& bg, const Vec3& ba, const Mat6& P_pose,
-                        double v_sigma, double bg_sigma, double ba_sigma) {
+void EkfSlam::reset_imu(const Pose& T_WB, const Vec3& v_WB, const Vec3& bg, const Vec3& ba,
+                        const Mat6& P_pose, double v_sigma, double bg_sigma, double ba_sigma) {
   T_WB_ = T_WB;
   v_WB_ = v_WB;
   bg_ = bg;
@@ -495,7 +500,8 @@ void EkfSlam::update_chunk(const int* slots, int count, EkfUpdateStats& stats) {
     const int slot = slots[i];
     const auto ki = static_cast<size_t>(k);
     ekf::StereoMeas zh;
-    if (!ekf::stereo_project(cam_, T_WB_, lm_p_.col(slot), opt_.min_depth_m, zh, &Hp_[ki], &Hm_[ki])) continue;
+    if (!ekf::stereo_project(cam_, T_WB_, lm_p_.col(slot), opt_.min_depth_m, zh, &Hp_[ki], &Hm_[ki]))
+      continue;
     const int oi = lm_this_obs_[static_cast<size_t>(slot)];
     const StereoObservation& ob = obs_cache_[static_cast<size_t>(oi)];
     row0_[ki] = m;

@@ -18,7 +18,9 @@ StaticInitOptions init_options(const Rig& rig) {
 }  // namespace
 
 DeadReckoningEstimator::DeadReckoningEstimator(const Rig& rig, int64_t moving_start_after_ns)
-    : init_(init_options(rig)), prop_(imu_propagator_options(rig)), moving_start_after_ns_(moving_start_after_ns) {}
+    : init_(init_options(rig)),
+      prop_(imu_propagator_options(rig)),
+      moving_start_after_ns_(moving_start_after_ns) {}
 
 bool DeadReckoningEstimator::add_imu(const ImuSample& s) {
   ++counters_.imu_in;

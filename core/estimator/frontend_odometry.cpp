@@ -91,8 +91,8 @@ void FrontendOdometry::report_divergence(DivergenceCause why) {
 // accelerometer holds position. The output says kLost until a visual fix.
 void FrontendOdometry::reinitialise(DivergenceCause why) {
   NavState x = prop_.state();
-  const bool finite = x.p_WB.allFinite() && x.q_WB.coeffs().allFinite() && x.bg_rps.allFinite() &&
-                      x.ba_mps2.allFinite();
+  const bool finite =
+      x.p_WB.allFinite() && x.q_WB.coeffs().allFinite() && x.bg_rps.allFinite() && x.ba_mps2.allFinite();
   if (!finite && have_fix_state_) {
     const int64_t t = x.t_ns;
     x = last_fix_state_;
@@ -103,8 +103,10 @@ void FrontendOdometry::reinitialise(DivergenceCause why) {
   }
   x.v_WB.setZero();
   const DivergenceOptions& d = opt_.divergence;
-  if (!finite || why == DivergenceCause::kAccBias || !(x.ba_mps2.norm() <= d.max_acc_bias_mps2)) x.ba_mps2.setZero();
-  if (!finite || why == DivergenceCause::kGyroBias || !(x.bg_rps.norm() <= d.max_gyro_bias_rps)) x.bg_rps.setZero();
+  if (!finite || why == DivergenceCause::kAccBias || !(x.ba_mps2.norm() <= d.max_acc_bias_mps2))
+    x.ba_mps2.setZero();
+  if (!finite || why == DivergenceCause::kGyroBias || !(x.bg_rps.norm() <= d.max_gyro_bias_rps))
+    x.bg_rps.setZero();
   prop_.correct(x);
   out_.state = prop_.state();
   tracker_.reset();
@@ -124,7 +126,8 @@ void FrontendOdometry::reinitialise(DivergenceCause why) {
 bool FrontendOdometry::add_frame(const RgbdFrame& f) {
   ++counters_.frames_in;
   if (!started_) return false;
-  if (opt_.imu_outage_after_ns > 0 && last_imu_t_ns_ >= 0 && f.t_ns - last_imu_t_ns_ > opt_.imu_outage_after_ns)
+  if (opt_.imu_outage_after_ns > 0 && last_imu_t_ns_ >= 0 &&
+      f.t_ns - last_imu_t_ns_ > opt_.imu_outage_after_ns)
     return add_frame_vision_only(f);
   const NavState& s = prop_.state();
   // The propagated state is at the last IMU sample, up to one IMU period
@@ -299,16 +302,18 @@ bool FrontendOdometry::add_frame_vision_only(const RgbdFrame& f) {
   }
   Eigen::Isometry3d T_WC_pred = T_WC_last_;
   if (t_prev_ns_ >= 0 && t_last_ns_ > t_prev_ns_) {
-    const double ratio =
-        std::clamp(static_cast<double>(f.t_ns - t_last_ns_) / static_cast<double>(t_last_ns_ - t_prev_ns_), 0.0, 100.0);
+    const double ratio = std::clamp(
+        static_cast<double>(f.t_ns - t_last_ns_) / static_cast<double>(t_last_ns_ - t_prev_ns_), 0.0, 100.0);
     const Eigen::Isometry3d D = T_WC_prev_.inverse() * T_WC_last_;
     Eigen::Isometry3d Ds = Eigen::Isometry3d::Identity();
     Ds.linear() = so3::Exp(ratio * so3::Log(D.linear()));
     Ds.translation() = ratio * D.translation();
     T_WC_pred = T_WC_last_ * Ds;
   }
-  const double since_s = last_tracked_t_ns_ < 0 ? 1.0 : 1e-9 * static_cast<double>(f.t_ns - last_tracked_t_ns_);
-  const double sigma_px = opt_.vision_only_pred_sigma_px + opt_.pred_sigma_px_per_s * std::max(0.0, since_s - 0.034);
+  const double since_s =
+      last_tracked_t_ns_ < 0 ? 1.0 : 1e-9 * static_cast<double>(f.t_ns - last_tracked_t_ns_);
+  const double sigma_px =
+      opt_.vision_only_pred_sigma_px + opt_.pred_sigma_px_per_s * std::max(0.0, since_s - 0.034);
   const TrackResult& r =
       tracker_.track(f.t_ns, f.rgb, f.depth, f.right, T_WC_pred, sigma_px, /*rotation_known=*/false);
   if (r.tracked() || r.status == TrackStatus::kNewKeyframe) {

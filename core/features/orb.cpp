@@ -25,10 +25,12 @@ using orb_detail::Plane;
 std::string OrbOptions::validate() const {
   std::ostringstream e;
   if (n_features < 1 || n_features > 100000) e << "n_features: " << n_features << " not in [1, 100000]\n";
-  if (n_levels < 1 || n_levels > kMaxLevels) e << "n_levels: " << n_levels << " not in [1, " << kMaxLevels << "]\n";
+  if (n_levels < 1 || n_levels > kMaxLevels)
+    e << "n_levels: " << n_levels << " not in [1, " << kMaxLevels << "]\n";
   if (!(scale_factor > 1.0f && scale_factor <= 2.0f))
     e << "scale_factor: " << scale_factor << " not in (1, 2] (area resampling uses 3 taps)\n";
-  if (fast_threshold < 1 || fast_threshold > 254) e << "fast_threshold: " << fast_threshold << " not in [1, 254]\n";
+  if (fast_threshold < 1 || fast_threshold > 254)
+    e << "fast_threshold: " << fast_threshold << " not in [1, 254]\n";
   if (fast_threshold_min < 1 || fast_threshold_min > fast_threshold)
     e << "fast_threshold_min: " << fast_threshold_min << " not in [1, fast_threshold]\n";
   if (edge_margin < kMinEdgeMargin || edge_margin > 1000)
@@ -53,11 +55,16 @@ std::string OrbOptions::to_string() const {
 
 const char* to_string(OrbStatus s) {
   switch (s) {
-    case OrbStatus::kOk: return "ok";
-    case OrbStatus::kNullImage: return "null or inconsistent image (data, width, height, stride)";
-    case OrbStatus::kUnsupportedFormat: return "unsupported pixel format (Gray8, Rgb8, Bgr8 only)";
-    case OrbStatus::kImageTooLarge: return "image larger than the extractor's preallocated maximum";
-    case OrbStatus::kOutputTooSmall: return "OrbFeatures capacity below n_features";
+    case OrbStatus::kOk:
+      return "ok";
+    case OrbStatus::kNullImage:
+      return "null or inconsistent image (data, width, height, stride)";
+    case OrbStatus::kUnsupportedFormat:
+      return "unsupported pixel format (Gray8, Rgb8, Bgr8 only)";
+    case OrbStatus::kImageTooLarge:
+      return "image larger than the extractor's preallocated maximum";
+    case OrbStatus::kOutputTooSmall:
+      return "OrbFeatures capacity below n_features";
   }
   return "unknown";
 }
@@ -209,7 +216,8 @@ OrbExtractor::OrbExtractor(const OrbOptions& opt, int max_width, int max_height)
   // 3x3 NMS with a strict tie-break keeps no two 8-neighbours, so at most one
   // candidate per 2x2 block of the keypoint area, searched once: this is the
   // worst case, not a guess.
-  m.cand_capacity = static_cast<std::size_t>((max_width + 1) / 2) * static_cast<std::size_t>((max_height + 1) / 2);
+  m.cand_capacity =
+      static_cast<std::size_t>((max_width + 1) / 2) * static_cast<std::size_t>((max_height + 1) / 2);
   m.cand = alloc<Cand>(m.cand_capacity);
   m.cand_sorted = alloc<Cand>(m.cand_capacity);
   m.max_cells = static_cast<std::size_t>(max_width / opt.cell_size + 2) *
@@ -438,7 +446,8 @@ int OrbExtractor::Impl::detect(Plane img, int kx0, int kx1, int ky0, int ky1, in
         ++overflow;
         continue;
       }
-      cand[n_cand++] = Cand{static_cast<uint16_t>(cx), static_cast<uint16_t>(yc), static_cast<uint16_t>(s), 0};
+      cand[n_cand++] =
+          Cand{static_cast<uint16_t>(cx), static_cast<uint16_t>(yc), static_cast<uint16_t>(s), 0};
     }
   }
   return n_cand;

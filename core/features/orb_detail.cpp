@@ -32,8 +32,9 @@ const char* vector_isa() {
 }
 
 std::array<int, 16> fast_circle_offsets(int stride) {
-  static constexpr int kCircle[16][2] = {{0, -3}, {1, -3}, {2, -2}, {3, -1}, {3, 0},  {3, 1},  {2, 2},  {1, 3},
-                                         {0, 3},  {-1, 3}, {-2, 2}, {-3, 1}, {-3, 0}, {-3, -1}, {-2, -2}, {-1, -3}};
+  static constexpr int kCircle[16][2] = {{0, -3}, {1, -3},  {2, -2},  {3, -1}, {3, 0},  {3, 1},
+                                         {2, 2},  {1, 3},   {0, 3},   {-1, 3}, {-2, 2}, {-3, 1},
+                                         {-3, 0}, {-3, -1}, {-2, -2}, {-1, -3}};
   std::array<int, 16> off{};
   for (int i = 0; i < 16; ++i) off[i] = kCircle[i][1] * stride + kCircle[i][0];
   return off;

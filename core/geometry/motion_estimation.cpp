@@ -10,11 +10,16 @@ namespace kestrel::core {
 
 const char* to_string(MotionStatus s) {
   switch (s) {
-    case MotionStatus::kOk: return "ok";
-    case MotionStatus::kTooFewCorrespondences: return "too_few_correspondences";
-    case MotionStatus::kDegenerate: return "degenerate";
-    case MotionStatus::kNoConsistentRun: return "no_consistent_run";
-    case MotionStatus::kTooFewInliers: return "too_few_inliers";
+    case MotionStatus::kOk:
+      return "ok";
+    case MotionStatus::kTooFewCorrespondences:
+      return "too_few_correspondences";
+    case MotionStatus::kDegenerate:
+      return "degenerate";
+    case MotionStatus::kNoConsistentRun:
+      return "no_consistent_run";
+    case MotionStatus::kTooFewInliers:
+      return "too_few_inliers";
   }
   return "unknown";
 }
@@ -30,7 +35,7 @@ bool TranslationNormalEquations::solve(Eigen::Vector3d* t, double min_spread2_px
   // D = diag(A, B, E - C^2/A - D^2/B). No pivoting needed: A, B > 0 always.
   const double iA = 1.0 / A, iB = 1.0 / B;
   const double l20 = C * iA, l21 = D * iB;
-  const double d2 = E - C * l20 - D * l21;  // = sum_w * pixel_spread2()
+  const double d2 = E - C * l20 - D * l21;            // = sum_w * pixel_spread2()
   if (!(d2 > min_spread2_px2 * sum_w)) return false;  // also catches NaN
   const double x2 = (g.z() - l20 * g.x() - l21 * g.y()) / d2;
   const Eigen::Vector3d x(g.x() * iA - l20 * x2, g.y() * iB - l21 * x2, x2);
@@ -53,8 +58,9 @@ void for_each_selected(const Correspondence2D3D* c, std::size_t n, const uint32_
 
 }  // namespace
 
-MotionStatus translation_least_squares(const Eigen::Matrix3d& R, const PinholeK& K, const Correspondence2D3D* c,
-                                       std::size_t n, Eigen::Vector3d* t_out, const uint32_t* idx) {
+MotionStatus translation_least_squares(const Eigen::Matrix3d& R, const PinholeK& K,
+                                       const Correspondence2D3D* c, std::size_t n, Eigen::Vector3d* t_out,
+                                       const uint32_t* idx) {
   TranslationNormalEquations ne;
   for_each_selected(c, n, idx, [&](const Correspondence2D3D& ci) { ne.add(R * ci.p_prev, ci.u_cur, K); });
   if (ne.rows < 2) return MotionStatus::kTooFewCorrespondences;
@@ -62,8 +68,8 @@ MotionStatus translation_least_squares(const Eigen::Matrix3d& R, const PinholeK&
 }
 
 MotionStatus translation_least_squares_weighted(const Eigen::Matrix3d& R, const PinholeK& K,
-                                                const Correspondence2D3D* c, std::size_t n, Eigen::Vector3d* t_out,
-                                                const uint32_t* idx) {
+                                                const Correspondence2D3D* c, std::size_t n,
+                                                Eigen::Vector3d* t_out, const uint32_t* idx) {
   Eigen::Vector3d t0;
   const MotionStatus s = translation_least_squares(R, K, c, n, &t0, idx);
   if (s != MotionStatus::kOk) return s;
@@ -239,7 +245,8 @@ std::ostream& operator<<(std::ostream& os, const ConsistencyTest& o) {
 
 std::ostream& operator<<(std::ostream& os, const PoseRefineOptions& o) {
   return os << "pose_refine{max_iterations=" << o.max_iterations << " huber_px=" << o.huber_px
-            << " rotation_prior_sigma_rad=" << o.rotation_prior_sigma_rad << " min_step=" << o.min_step << "}";
+            << " rotation_prior_sigma_rad=" << o.rotation_prior_sigma_rad << " min_step=" << o.min_step
+            << "}";
 }
 
 }  // namespace kestrel::core

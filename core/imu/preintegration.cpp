@@ -150,7 +150,8 @@ bool Preintegrated::integrate_segment(const ImuSample& a, const ImuSample& b, in
     if (t1_ns > b.t_ns) t1_ns = b.t_ns;
     if (params_.signal == ImuSignalModel::kLinear) {
       // Mean of the linear signal over [t0, t1] = its value at the centre.
-      const double s = (0.5 * static_cast<double>(t0_ns + t1_ns - 2 * a.t_ns)) / static_cast<double>(b.t_ns - a.t_ns);
+      const double s =
+          (0.5 * static_cast<double>(t0_ns + t1_ns - 2 * a.t_ns)) / static_cast<double>(b.t_ns - a.t_ns);
       gyro += s * (to_eigen(b.gyro_rps) - ga);
       acc += s * (to_eigen(b.acc_mps2) - aa);
     }
@@ -171,7 +172,8 @@ Matrix9d Preintegrated::sqrt_information() const {
   return W;
 }
 
-PreintegratedDelta Preintegrated::corrected_delta(const Eigen::Vector3d& bg_rps, const Eigen::Vector3d& ba_mps2) const {
+PreintegratedDelta Preintegrated::corrected_delta(const Eigen::Vector3d& bg_rps,
+                                                  const Eigen::Vector3d& ba_mps2) const {
   const Eigen::Vector3d dbg = bg_rps - bg_;
   const Eigen::Vector3d dba = ba_mps2 - ba_;
   PreintegratedDelta d;
@@ -181,7 +183,8 @@ PreintegratedDelta Preintegrated::corrected_delta(const Eigen::Vector3d& bg_rps,
   return d;
 }
 
-Vector9d imu_residual(const Preintegrated& pim, const NavState& x_i, const NavState& x_j, ImuFactorJacobians* J) {
+Vector9d imu_residual(const Preintegrated& pim, const NavState& x_i, const NavState& x_j,
+                      ImuFactorJacobians* J) {
   const double dt = pim.dt_total();
   const Eigen::Vector3d g = pim.params().gravity_W();
   const Eigen::Matrix3d R_i = x_i.q_WB.toRotationMatrix();

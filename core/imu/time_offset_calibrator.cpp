@@ -22,7 +22,8 @@ std::string TimeOffsetCalibratorOptions::validate() const {
   return e.str();
 }
 
-TimeOffsetCalibrator::TimeOffsetCalibrator(const TimeOffsetCalibratorOptions& opt, const Eigen::Matrix3d& R_BC)
+TimeOffsetCalibrator::TimeOffsetCalibrator(const TimeOffsetCalibratorOptions& opt,
+                                           const Eigen::Matrix3d& R_BC)
     : opt_(opt), R_BC_(R_BC) {
   const std::string err = opt_.validate();
   if (!err.empty()) throw std::invalid_argument("TimeOffsetCalibratorOptions: " + err);
@@ -74,7 +75,8 @@ void TimeOffsetCalibrator::add_gyro(int64_t t_ns, const Eigen::Vector3d& gyro_rp
     if (t_ns - last.t_ns > 50'000'000) {
       g_head_ = g_n_ = 0;
     } else {
-      g.q = (last.q * exp_q(0.5 * (last.w + gyro_rps) * (1e-9 * static_cast<double>(t_ns - last.t_ns)))).normalized();
+      g.q = (last.q * exp_q(0.5 * (last.w + gyro_rps) * (1e-9 * static_cast<double>(t_ns - last.t_ns))))
+                .normalized();
     }
   }
   if (g_n_ == opt_.gyro_capacity) {
@@ -108,8 +110,10 @@ bool TimeOffsetCalibrator::attitude(int64_t t_ns, Eigen::Quaterniond* out) const
   int lo = 0, hi = g_n_ - 1;  // the last sample at or before t
   while (hi - lo > 1) {
     const int mid = (lo + hi) / 2;
-    if (gyro_at(mid).t_ns <= t_ns) lo = mid;
-    else hi = mid;
+    if (gyro_at(mid).t_ns <= t_ns)
+      lo = mid;
+    else
+      hi = mid;
   }
   const Gyro& a = gyro_at(lo);
   const Gyro& b = gyro_at(std::min(lo + 1, g_n_ - 1));
@@ -149,8 +153,8 @@ void TimeOffsetCalibrator::absorb(const Interval& iv) {
     ++gated_;
     return;
   }
-  const double f = last_t1_ns_ >= 0 ? std::exp(-1e-9 * static_cast<double>(iv.t1_ns - last_t1_ns_) / opt_.memory_s)
-                                    : 1.0;
+  const double f =
+      last_t1_ns_ >= 0 ? std::exp(-1e-9 * static_cast<double>(iv.t1_ns - last_t1_ns_) / opt_.memory_s) : 1.0;
   last_t1_ns_ = iv.t1_ns;
   const double dt = 1e-9 * static_cast<double>(iv.t1_ns - iv.t0_ns);
   for (int j = 0; j < n_grid_; ++j) {

@@ -1,13 +1,13 @@
 #include "kestrel/core/loop_closer.hpp"
 
+#include <ceres/ceres.h>
+
+#include <Eigen/Eigenvalues>
 #include <algorithm>
 #include <cmath>
 #include <random>
 #include <sstream>
 #include <unordered_map>
-
-#include <Eigen/Eigenvalues>
-#include <ceres/ceres.h>
 
 #include "kestrel/core/pose_graph.hpp"
 #include "kestrel/core/vocabulary.hpp"
@@ -41,7 +41,8 @@ std::string LoopOptions::validate() const {
   if (pose_graph_iterations < 1) e << "  loop_pose_graph_iterations must be >= 1\n";
   if (reloc_max_candidates < 1) e << "  reloc_max_candidates must be >= 1\n";
   if (reloc_min_inliers < 3) e << "  reloc_min_inliers must be >= 3\n";
-  if (!(reloc_min_inlier_share >= 0 && reloc_min_inlier_share <= 1)) e << "  reloc_min_inlier_share must be in [0, 1]\n";
+  if (!(reloc_min_inlier_share >= 0 && reloc_min_inlier_share <= 1))
+    e << "  reloc_min_inlier_share must be in [0, 1]\n";
   if (reloc_consistent_keyframes < 1) e << "  reloc_consistent_keyframes must be >= 1\n";
   if (!(reloc_timeout_s >= 0)) e << "  reloc_timeout_s must be >= 0\n";
   return e.str();
@@ -58,7 +59,6 @@ namespace {
 // covariance, which sees the pixels' and depths' noise but not the error the
 // candidate place's keyframes share.
 constexpr double kLoopSigma_m = 0.002, kLoopSigma_rad = 0.0005;
-
 
 // 4-DoF least squares of p = Rz(yaw) q + t over the index set (closed form:
 // centroids, then the yaw of the centred xy cross-covariance).
@@ -168,8 +168,8 @@ PlaceMatcher::PlaceMatcher(Map& map, const MapCamera& cam) : map_(map), cam_(cam
   shared_scratch_.resize(static_cast<size_t>(map.max_keyframes()));
 }
 
-PlaceMatcher::Result PlaceMatcher::match(const KeyframeFeature* f, int n, const Eigen::Isometry3d& T_MC, int cand,
-                                         const LoopOptions& opt, uint64_t seed, PlaceFit* out) {
+PlaceMatcher::Result PlaceMatcher::match(const KeyframeFeature* f, int n, const Eigen::Isometry3d& T_MC,
+                                         int cand, const LoopOptions& opt, uint64_t seed, PlaceFit* out) {
   out->place_points = out->matches = out->ransac_inliers = out->guided_matches = out->inliers = 0;
   out->failed = LoopVerdict::kFewPoints;
   // The candidate's place: its points and those of its closest connected
@@ -297,7 +297,8 @@ PlaceMatcher::Result PlaceMatcher::match(const KeyframeFeature* f, int n, const 
     }
     const Eigen::Isometry3d T_CM = (T * T_MC).inverse();
     // Per feature: the best target found for it and its distance.
-    std::vector<int> claim(static_cast<size_t>(n), -1), claim_dist(static_cast<size_t>(n), BestTwoMatches::kNone);
+    std::vector<int> claim(static_cast<size_t>(n), -1),
+        claim_dist(static_cast<size_t>(n), BestTwoMatches::kNone);
     for (int t = 0; t < nt; ++t) {
       if (target_taken[static_cast<size_t>(t)]) continue;
       const Target& tg = targets_[static_cast<size_t>(t)];
@@ -354,7 +355,8 @@ PlaceMatcher::Result PlaceMatcher::match(const KeyframeFeature* f, int n, const 
   const int m = static_cast<int>(q.size());
   out->inliers = static_cast<int>(in.size());
   out->failed = LoopVerdict::kFewRefitInliers;
-  if (static_cast<int>(in.size()) < opt.min_inliers || in.size() < opt.min_inlier_share * m) return kFewInliers;
+  if (static_cast<int>(in.size()) < opt.min_inliers || in.size() < opt.min_inlier_share * m)
+    return kFewInliers;
   if (opt.refine_chi2 > 0) {
     // The 3D fit weighs every point alike and its gate admits several cm at
     // range, where the depth is poor: refit on what the camera measures well
@@ -456,10 +458,10 @@ Eigen::Isometry3d PlaceMatcher::refine_4dof(const Eigen::Isometry3d& T, const Ei
     const auto& [j, pt] = pairs[static_cast<size_t>(i)];
     double spx = 1, sz = 1;
     pair_sigmas(f[j], pt, &spx, &sz);
-    problem.AddResidualBlock(
-        new ceres::AutoDiffCostFunction<PlaceCost, 3, 4>(new PlaceCost(
-            T_CM, targets_[static_cast<size_t>(pt)].p_M, cam_.K, f[j].u_px, f[j].v_px, f[j].depth_m, 1.0 / spx, 1.0 / sz)),
-        &huber, x);
+    problem.AddResidualBlock(new ceres::AutoDiffCostFunction<PlaceCost, 3, 4>(
+                                 new PlaceCost(T_CM, targets_[static_cast<size_t>(pt)].p_M, cam_.K, f[j].u_px,
+                                               f[j].v_px, f[j].depth_m, 1.0 / spx, 1.0 / sz)),
+                             &huber, x);
   }
   ceres::Solver::Options so;
   so.linear_solver_type = ceres::DENSE_QR;
@@ -485,8 +487,9 @@ Eigen::Matrix4d PlaceMatcher::refit_covariance(const Eigen::Isometry3d& T, const
     const auto& [j, pt] = pairs[static_cast<size_t>(i)];
     double spx = 1, sz = 1;
     pair_sigmas(f[j], pt, &spx, &sz);
-    const ceres::AutoDiffCostFunction<PlaceCost, 3, 4> cost(new PlaceCost(
-        T_CM, targets_[static_cast<size_t>(pt)].p_M, cam_.K, f[j].u_px, f[j].v_px, f[j].depth_m, 1.0 / spx, 1.0 / sz));
+    const ceres::AutoDiffCostFunction<PlaceCost, 3, 4> cost(
+        new PlaceCost(T_CM, targets_[static_cast<size_t>(pt)].p_M, cam_.K, f[j].u_px, f[j].v_px, f[j].depth_m,
+                      1.0 / spx, 1.0 / sz));
     double r[3];
     Eigen::Matrix<double, 3, 4, Eigen::RowMajor> J;
     double* jac[1] = {J.data()};
@@ -675,8 +678,10 @@ bool LoopCloser::close(const LoopMatch& lm, LoopClosure* out) {
   for (size_t a = 0; a < n_nodes; ++a) {
     const int k = slot_of[a];
     const MapKeyframe& K = map_.keyframe(k);
-    if (map_.keyframe_used(K.parent)) g.add_edge_from_current(node_of[static_cast<size_t>(K.parent)], static_cast<int>(a), 0.01, 0.002);
-    const int nc = map_.covisible(k, opt_.covis_edge_min_shared, 5, kf_scratch_.data(), shared_scratch_.data());
+    if (map_.keyframe_used(K.parent))
+      g.add_edge_from_current(node_of[static_cast<size_t>(K.parent)], static_cast<int>(a), 0.01, 0.002);
+    const int nc =
+        map_.covisible(k, opt_.covis_edge_min_shared, 5, kf_scratch_.data(), shared_scratch_.data());
     for (int i = 0; i < nc; ++i) {
       const int o = kf_scratch_[i];
       if (map_.keyframe(o).id < K.id && o != K.parent)
@@ -705,7 +710,8 @@ bool LoopCloser::close(const LoopMatch& lm, LoopClosure* out) {
   g.add_edge(ic, iq, le.t_ab, yaw_of(lm.correction.linear()), le.sigma_m, le.sigma_rad);
   // Start the keyframes flown since the query where the loop says they are.
   for (size_t a = 0; a < n_nodes; ++a)
-    if (!g.fixed[a] && map_.keyframe(slot_of[a]).id >= query_id) g.move_node(static_cast<int>(a), lm.correction);
+    if (!g.fixed[a] && map_.keyframe(slot_of[a]).id >= query_id)
+      g.move_node(static_cast<int>(a), lm.correction);
   if (!g.solve(opt_.pose_graph_iterations)) {
     ++stats_.pose_graph_failures;
     return false;
@@ -737,7 +743,8 @@ bool LoopCloser::close(const LoopMatch& lm, LoopClosure* out) {
   out->closed = true;
   out->match = lm;
   out->newest = map_.newest_keyframe();
-  if (out->newest >= 0) out->newest_delta = delta[static_cast<size_t>(node_of[static_cast<size_t>(out->newest)])];
+  if (out->newest >= 0)
+    out->newest_delta = delta[static_cast<size_t>(node_of[static_cast<size_t>(out->newest)])];
   ++stats_.closures;
   return true;
 }
@@ -750,14 +757,22 @@ LoopCandidateRecord* LoopCloser::log_candidate() {
 
 const char* loop_verdict_name(LoopVerdict v) {
   switch (v) {
-    case LoopVerdict::kFewPoints: return "few_points";
-    case LoopVerdict::kFewMatches: return "few_matches";
-    case LoopVerdict::kFewInliers: return "few_inliers";
-    case LoopVerdict::kFewRefitInliers: return "few_refit_inliers";
-    case LoopVerdict::kPlanar: return "planar";
-    case LoopVerdict::kDrift: return "drift";
-    case LoopVerdict::kInsignificant: return "within_uncertainty";
-    case LoopVerdict::kVerified: return "verified";
+    case LoopVerdict::kFewPoints:
+      return "few_points";
+    case LoopVerdict::kFewMatches:
+      return "few_matches";
+    case LoopVerdict::kFewInliers:
+      return "few_inliers";
+    case LoopVerdict::kFewRefitInliers:
+      return "few_refit_inliers";
+    case LoopVerdict::kPlanar:
+      return "planar";
+    case LoopVerdict::kDrift:
+      return "drift";
+    case LoopVerdict::kInsignificant:
+      return "within_uncertainty";
+    case LoopVerdict::kVerified:
+      return "verified";
   }
   return "?";
 }

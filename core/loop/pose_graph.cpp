@@ -6,7 +6,9 @@
 
 namespace kestrel::core {
 
-Eigen::Matrix3d rot_z(double yaw) { return Eigen::AngleAxisd(yaw, Eigen::Vector3d::UnitZ()).toRotationMatrix(); }
+Eigen::Matrix3d rot_z(double yaw) {
+  return Eigen::AngleAxisd(yaw, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+}
 
 Eigen::Isometry3d project_4dof(const Eigen::Isometry3d& T) {
   // The yaw that best explains R about z: the heading of R's image of x
@@ -66,10 +68,12 @@ void PoseGraph4::move_node(int a, const Eigen::Isometry3d& D) {
 }
 
 void PoseGraph4::add_edge_from_current(int i, int j, double sigma_m, double sigma_rad) {
-  add_edge(i, j, T[i].linear().transpose() * (T[j].translation() - T[i].translation()), 0.0, sigma_m, sigma_rad);
+  add_edge(i, j, T[i].linear().transpose() * (T[j].translation() - T[i].translation()), 0.0, sigma_m,
+           sigma_rad);
 }
 
-void PoseGraph4::add_edge(int i, int j, const Eigen::Vector3d& t_ij, double yaw_ij, double sigma_m, double sigma_rad) {
+void PoseGraph4::add_edge(int i, int j, const Eigen::Vector3d& t_ij, double yaw_ij, double sigma_m,
+                          double sigma_rad) {
   PoseGraphEdge e;
   e.i = i;
   e.j = j;

@@ -16,13 +16,14 @@ Relocaliser::Relocaliser(Map& map, const MapCamera& cam, const LoopOptions& opt)
   desc_.reset(new OrbDescriptor[static_cast<size_t>(capacity_)]);
 }
 
-bool Relocaliser::agree(const Eigen::Isometry3d& a, const Eigen::Isometry3d& b, const Eigen::Vector3d& at) const {
+bool Relocaliser::agree(const Eigen::Isometry3d& a, const Eigen::Isometry3d& b,
+                        const Eigen::Vector3d& at) const {
   return (a * at - b * at).norm() < opt_.consistency_m &&
          std::abs(yaw_of(a.linear().transpose() * b.linear())) < opt_.consistency_rad;
 }
 
-bool Relocaliser::relocalise(const KeyframeFeature* f, int n, const Eigen::Isometry3d& T_MC_guess, uint64_t seed,
-                             Eigen::Isometry3d* correction) {
+bool Relocaliser::relocalise(const KeyframeFeature* f, int n, const Eigen::Isometry3d& T_MC_guess,
+                             uint64_t seed, Eigen::Isometry3d* correction) {
   const Vocabulary* voc = map_.vocabulary();
   const KeyframeDatabase* db = map_.database();
   if (voc == nullptr || db == nullptr || n <= 0) return false;
@@ -31,8 +32,9 @@ bool Relocaliser::relocalise(const KeyframeFeature* f, int n, const Eigen::Isome
   for (int j = 0; j < n; ++j) desc_[j] = f[j].desc;
   const int nb = voc->transform(desc_.get(), n, bow_.get());
   KeyframeDatabase::Match cands[32];
-  const int nc = db->query(bow_.get(), nb, [](int) { return false; }, static_cast<float>(opt_.min_score), 0.8,
-                           std::min(opt_.reloc_max_candidates, 32), cands);
+  const int nc = db->query(
+      bow_.get(), nb, [](int) { return false; }, static_cast<float>(opt_.min_score), 0.8,
+      std::min(opt_.reloc_max_candidates, 32), cands);
   stats_.candidates += static_cast<uint64_t>(nc);
   // Every candidate is verified: one that fits another pose than the best
   // makes the place ambiguous.
@@ -41,8 +43,8 @@ bool Relocaliser::relocalise(const KeyframeFeature* f, int n, const Eigen::Isome
   Eigen::Isometry3d fits[32];
   int n_fits = 0;
   for (int c = 0; c < nc; ++c) {
-    if (matcher_.match(f, n, T_MC_guess, cands[c].keyframe, opt_, seed * 1000003u + static_cast<uint64_t>(c), &fit) !=
-        PlaceMatcher::kOk)
+    if (matcher_.match(f, n, T_MC_guess, cands[c].keyframe, opt_, seed * 1000003u + static_cast<uint64_t>(c),
+                       &fit) != PlaceMatcher::kOk)
       continue;
     if (n_fits == 0 || fit.inliers > best.inliers) best = fit;
     fits[n_fits++] = fit.correction;

@@ -18,9 +18,11 @@ std::string MapOptions::validate() const {
   if (!(ba_gravity_sigma_rad >= 0)) e << "ba_gravity_sigma_rad: >= 0 (0: no gravity prior)\n";
   if (!(fuse_radius_px > 0)) e << "fuse_radius_px: > 0\n";
   if (fuse_max_hamming < 0 || fuse_max_hamming > 256) e << "fuse_max_hamming: in 0..256\n";
-  if (!(cull_keyframe_redundancy > 0 && cull_keyframe_redundancy <= 1)) e << "cull_keyframe_redundancy: in (0, 1]\n";
+  if (!(cull_keyframe_redundancy > 0 && cull_keyframe_redundancy <= 1))
+    e << "cull_keyframe_redundancy: in (0, 1]\n";
   if (cull_point_min_keyframes < 1) e << "cull_point_min_keyframes: at least 1\n";
-  if (!(cull_point_min_found_ratio >= 0 && cull_point_min_found_ratio <= 1)) e << "cull_point_min_found_ratio: in [0, 1]\n";
+  if (!(cull_point_min_found_ratio >= 0 && cull_point_min_found_ratio <= 1))
+    e << "cull_point_min_found_ratio: in [0, 1]\n";
   if (update_max_points < 0) e << "update_max_points: >= 0\n";
   if (!(neighbour_radius_m >= 0)) e << "neighbour_radius_m: >= 0\n";
   if (!(neighbour_max_angle_rad >= 0)) e << "neighbour_max_angle_rad: >= 0\n";
@@ -161,8 +163,8 @@ void Map::erase_keyframe(int kf) {
   }
 }
 
-int Map::add_point(uint32_t landmark_id, const Eigen::Vector3d& p_M, const OrbDescriptor& d, int level, int kf,
-                   int feat) {
+int Map::add_point(uint32_t landmark_id, const Eigen::Vector3d& p_M, const OrbDescriptor& d, int level,
+                   int kf, int feat) {
   if (free_pt_.empty() || landmark_id == 0 || find_point(landmark_id) >= 0) return -1;
   const int p = free_pt_.back();
   free_pt_.pop_back();
@@ -264,8 +266,10 @@ int Map::covisible(int kf, int min_shared, int max, int32_t* kf_out, int32_t* sh
   int n = 0;
   for (int i = 0; i < n_list; ++i) {
     const int o = covis_list_[i];
-    if (covis_count_[o] >= min_shared) covis_list_[n++] = o;
-    else covis_count_[o] = 0;
+    if (covis_count_[o] >= min_shared)
+      covis_list_[n++] = o;
+    else
+      covis_count_[o] = 0;
   }
   std::sort(covis_list_.get(), covis_list_.get() + n, [&](int32_t a, int32_t b) {
     return covis_count_[a] != covis_count_[b] ? covis_count_[a] > covis_count_[b] : kfs_[a].id > kfs_[b].id;

@@ -121,24 +121,27 @@ std::string decode_map(const uint8_t* data, size_t n, const MapCamera& cam, Map*
   if (!r.ok()) return "truncated header";
   if (vocab != 0 && map->vocabulary() != nullptr && vocab != map->vocabulary()->checksum()) {
     char b[160];
-    std::snprintf(b, sizeof b, "made with another place-recognition vocabulary (checksum %08x, this run uses %08x)",
-                  vocab, map->vocabulary()->checksum());
+    std::snprintf(b, sizeof b,
+                  "made with another place-recognition vocabulary (checksum %08x, this run uses %08x)", vocab,
+                  map->vocabulary()->checksum());
     return b;
   }
   const auto close = [](double a, double b) { return std::abs(a - b) <= 1e-6 * std::max(1.0, std::abs(b)); };
   if (width != cam.width || height != cam.height || !close(K.fx, cam.K.fx) || !close(K.fy, cam.K.fy) ||
       !close(K.cx, cam.K.cx) || !close(K.cy, cam.K.cy)) {
     char b[320];
-    std::snprintf(b, sizeof b,
-                  "made with another camera (%dx%d, fx %.3f fy %.3f cx %.3f cy %.3f; this rig: %dx%d, fx %.3f fy %.3f "
-                  "cx %.3f cy %.3f)",
-                  width, height, K.fx, K.fy, K.cx, K.cy, cam.width, cam.height, cam.K.fx, cam.K.fy, cam.K.cx, cam.K.cy);
+    std::snprintf(
+        b, sizeof b,
+        "made with another camera (%dx%d, fx %.3f fy %.3f cx %.3f cy %.3f; this rig: %dx%d, fx %.3f fy %.3f "
+        "cx %.3f cy %.3f)",
+        width, height, K.fx, K.fy, K.cx, K.cy, cam.width, cam.height, cam.K.fx, cam.K.fy, cam.K.cx, cam.K.cy);
     return b;
   }
   if (n_kf > static_cast<uint32_t>(map->max_keyframes()) || n_pt > static_cast<uint32_t>(map->max_points()))
     return "holds " + std::to_string(n_kf) + " keyframes and " + std::to_string(n_pt) +
-           " points, more than this map's capacity (map.max_keyframes " + std::to_string(map->max_keyframes()) +
-           ", map.max_points " + std::to_string(map->max_points()) + ")";
+           " points, more than this map's capacity (map.max_keyframes " +
+           std::to_string(map->max_keyframes()) + ", map.max_points " + std::to_string(map->max_points()) +
+           ")";
   // Read and check everything before the map is touched.
   struct Kf {
     int64_t t_ns;
@@ -155,12 +158,14 @@ std::string decode_map(const uint8_t* data, size_t n, const MapCamera& cam, Map*
   for (uint32_t i = 0; i < n_kf; ++i) {
     Kf k;
     k.t_ns = r.i64();
-    if (!get_pose(r, &k.T_MC) || !get_pose(r, &k.T_WC)) return at("keyframe", i) + (r.ok() ? "its pose is not a rigid transform" : "truncated");
+    if (!get_pose(r, &k.T_MC) || !get_pose(r, &k.T_WC))
+      return at("keyframe", i) + (r.ok() ? "its pose is not a rigid transform" : "truncated");
     k.parent = r.i32();
     k.path_m = r.f64();
     const uint32_t nf = r.u32();
     if (!r.ok()) return at("keyframe", i) + "truncated";
-    if (k.parent < -1 || k.parent >= static_cast<int32_t>(i)) return at("keyframe", i) + "parent out of range";
+    if (k.parent < -1 || k.parent >= static_cast<int32_t>(i))
+      return at("keyframe", i) + "parent out of range";
     if (!std::isfinite(k.path_m)) return at("keyframe", i) + "path length not finite";
     if (nf > static_cast<uint32_t>(map->features_per_keyframe()))
       return at("keyframe", i) + std::to_string(nf) + " features, this tracker keeps " +
@@ -180,8 +185,8 @@ std::string decode_map(const uint8_t* data, size_t n, const MapCamera& cam, Map*
       get_desc(r, &f.desc);
       const int32_t p = r.i32();
       if (!r.ok()) return at("keyframe", i) + "truncated";
-      if (!std::isfinite(f.x_px) || !std::isfinite(f.y_px) || !std::isfinite(f.u_px) || !std::isfinite(f.v_px) ||
-          !std::isfinite(f.depth_m) || f.depth_m < 0 || f.level < 0 || f.level > 31)
+      if (!std::isfinite(f.x_px) || !std::isfinite(f.y_px) || !std::isfinite(f.u_px) ||
+          !std::isfinite(f.v_px) || !std::isfinite(f.depth_m) || f.depth_m < 0 || f.level < 0 || f.level > 31)
         return at("keyframe", i) + "feature " + std::to_string(j) + " damaged";
       if (p < -1 || p >= static_cast<int64_t>(n_pt))
         return at("keyframe", i) + "feature " + std::to_string(j) + " observes point " + std::to_string(p) +

@@ -29,8 +29,8 @@ std::vector<uint8_t> seal(const char magic[4], uint32_t version, const std::vect
   return out;
 }
 
-std::string open_sealed(const uint8_t* data, size_t n, const char magic[4], uint32_t version, const uint8_t** payload,
-                        size_t* payload_n) {
+std::string open_sealed(const uint8_t* data, size_t n, const char magic[4], uint32_t version,
+                        const uint8_t** payload, size_t* payload_n) {
   ByteReader r(data, n);
   char m[4] = {};
   if (!r.bytes(m, 4)) return "too short to be a Kestrel file (" + std::to_string(n) + " bytes)";

@@ -158,7 +158,8 @@ Vocabulary Vocabulary::train(const std::vector<std::vector<OrbDescriptor>>& imag
     }
   }
   const double N = static_cast<double>(std::max<size_t>(1, images.size()));
-  for (int w = 0; w < v.words_; ++w) v.idf_[w] = docs[w] > 0 ? static_cast<float>(std::log(N / docs[w])) : 0.0f;
+  for (int w = 0; w < v.words_; ++w)
+    v.idf_[w] = docs[w] > 0 ? static_cast<float>(std::log(N / docs[w])) : 0.0f;
   v.finish();
   return v;
 }
@@ -253,7 +254,8 @@ Vocabulary Vocabulary::deserialise(const uint8_t* data, size_t n, std::string* e
   v.levels_ = static_cast<int>(r.u32());
   v.pattern_seed_ = r.u64();
   const uint32_t n_nodes = r.u32();
-  if (!r.ok() || n_nodes == 0 || n_nodes > r.remaining() / 40) return fail("bad node count " + std::to_string(n_nodes));
+  if (!r.ok() || n_nodes == 0 || n_nodes > r.remaining() / 40)
+    return fail("bad node count " + std::to_string(n_nodes));
   v.nodes_.resize(n_nodes);
   for (Node& nd : v.nodes_) {
     for (uint64_t& x : nd.desc) x = r.u64();
@@ -269,8 +271,9 @@ Vocabulary Vocabulary::deserialise(const uint8_t* data, size_t n, std::string* e
   // and the leaves as many as the words.
   for (uint32_t i = 0; i < n_nodes; ++i) {
     const Node& nd = v.nodes_[i];
-    if (nd.n_children < 0 || (nd.n_children > 0 && (nd.first_child <= static_cast<int32_t>(i) ||
-                                                    static_cast<int64_t>(nd.first_child) + nd.n_children > n_nodes)))
+    if (nd.n_children < 0 ||
+        (nd.n_children > 0 && (nd.first_child <= static_cast<int32_t>(i) ||
+                               static_cast<int64_t>(nd.first_child) + nd.n_children > n_nodes)))
       return fail("node " + std::to_string(i) + ": children out of range");
   }
   v.finish();
@@ -278,7 +281,8 @@ Vocabulary Vocabulary::deserialise(const uint8_t* data, size_t n, std::string* e
   // word, and the idf table would be read out of range (found by fuzzing).
   if (v.words_ == 0) return fail("the tree has no words (the root has no children)");
   if (static_cast<uint32_t>(v.words_) != n_words)
-    return fail("the tree has " + std::to_string(v.words_) + " leaves but " + std::to_string(n_words) + " word weights");
+    return fail("the tree has " + std::to_string(v.words_) + " leaves but " + std::to_string(n_words) +
+                " word weights");
   v.idf_ = idf;
   v.finish();
   return v;
@@ -292,7 +296,8 @@ KeyframeDatabase::KeyframeDatabase(int n_words, int max_keyframes, int max_entri
       in_(static_cast<size_t>(max_keyframes), 0),
       acc_(static_cast<size_t>(max_keyframes), 0.0f),
       common_(static_cast<size_t>(max_keyframes), 0) {
-  for (size_t i = 0; i < pool_.size(); ++i) pool_[i].next = i + 1 < pool_.size() ? static_cast<int32_t>(i + 1) : -1;
+  for (size_t i = 0; i < pool_.size(); ++i)
+    pool_[i].next = i + 1 < pool_.size() ? static_cast<int32_t>(i + 1) : -1;
   free_ = 0;
   touched_.reserve(static_cast<size_t>(max_keyframes));
 }

@@ -20,7 +20,8 @@ WindowOptions vision_only(WindowOptions w, const Rig& rig) {
   n.gyro_random_walk_rad_s2_sqrthz = 1e-5;
   n.acc_random_walk_mps3_sqrthz = 1e-4;
   w.imu = ImuNoiseParams::from_imu_noise(n, 200.0);
-  w.depth_sigma_coeff_per_m = rig.depth.sigma_coeff_per_m > 0 ? rig.depth.sigma_coeff_per_m : w.depth_sigma_coeff_per_m;
+  w.depth_sigma_coeff_per_m =
+      rig.depth.sigma_coeff_per_m > 0 ? rig.depth.sigma_coeff_per_m : w.depth_sigma_coeff_per_m;
   return w;
 }
 
@@ -30,7 +31,8 @@ std::string RgbdEstimatorOptions::validate() const {
   std::ostringstream e;
   e << tracker.validate() << window.validate();
   if (min_observations < 3) e << "min_observations: at least 3\n";
-  if (!(pred_sigma_px > 0) || !(pred_sigma_px_per_s >= 0)) e << "pred_sigma_px > 0, pred_sigma_px_per_s >= 0\n";
+  if (!(pred_sigma_px > 0) || !(pred_sigma_px_per_s >= 0))
+    e << "pred_sigma_px > 0, pred_sigma_px_per_s >= 0\n";
   if (max_lost_frames < 1) e << "max_lost_frames: at least 1\n";
   if (!(map_pose_sigma_m > 0) || !(map_pose_sigma_rad > 0)) e << "map_pose_sigma_m/rad: must be > 0\n";
   if (!(max_correction_m > 0)) e << "max_correction_m: must be > 0\n";
@@ -49,7 +51,8 @@ RgbdEstimator::RgbdEstimator(const Rig& rig, const RgbdEstimatorOptions& opt)
       monitor_(opt.divergence) {
   const std::string err = opt_.validate();
   if (!err.empty()) throw std::invalid_argument("RgbdEstimatorOptions:\n" + err);
-  if (opt_.use_window) window_ = std::make_unique<WindowOptimizer>(WindowOptimizer::pinhole_of(rig), T_BC_, opt_.window);
+  if (opt_.use_window)
+    window_ = std::make_unique<WindowOptimizer>(WindowOptimizer::pinhole_of(rig), T_BC_, opt_.window);
   // The world is the first body pose.
   T_WC_last_ = T_WC_prev_ = T_BC_;
 }
@@ -64,8 +67,8 @@ bool RgbdEstimator::add_imu(const ImuSample&) {
 // Constant velocity: the last frame-to-frame motion, scaled to the time step.
 Eigen::Isometry3d RgbdEstimator::predict(int64_t t_ns) const {
   if (t_last_ns_ < 0 || t_prev_ns_ < 0 || t_last_ns_ <= t_prev_ns_) return T_WC_last_;
-  const double ratio =
-      std::clamp(static_cast<double>(t_ns - t_last_ns_) / static_cast<double>(t_last_ns_ - t_prev_ns_), 0.0, 3.0);
+  const double ratio = std::clamp(
+      static_cast<double>(t_ns - t_last_ns_) / static_cast<double>(t_last_ns_ - t_prev_ns_), 0.0, 3.0);
   const Eigen::Isometry3d D = T_WC_prev_.inverse() * T_WC_last_;  // last in prev
   Eigen::Isometry3d Ds = Eigen::Isometry3d::Identity();
   Ds.linear() = so3::Exp(ratio * so3::Log(D.linear()));
@@ -87,8 +90,9 @@ bool RgbdEstimator::add_frame(const RgbdFrame& f) {
   ++counters_.frames_in;
   if (t_last_ns_ >= 0 && f.t_ns <= t_last_ns_) return false;
   const Eigen::Isometry3d T_WC_pred = predict(f.t_ns);
-  const double since_s =
-      last_tracked_t_ns_ < 0 ? 0.0 : 1e-9 * static_cast<double>(std::max<int64_t>(0, f.t_ns - last_tracked_t_ns_));
+  const double since_s = last_tracked_t_ns_ < 0
+                             ? 0.0
+                             : 1e-9 * static_cast<double>(std::max<int64_t>(0, f.t_ns - last_tracked_t_ns_));
   const double sigma_px = opt_.pred_sigma_px + opt_.pred_sigma_px_per_s * std::max(0.0, since_s - 0.034);
   const TrackResult& r =
       tracker_.track(f.t_ns, f.rgb, f.depth, f.right, T_WC_pred, sigma_px, /*rotation_known=*/false);
@@ -207,11 +211,12 @@ bool RgbdEstimator::add_frame(const RgbdFrame& f) {
 
 std::string RgbdEstimator::backend_summary() const {
   std::ostringstream o;
-  o << "rgbd: tracked " << rc_.tracked << " (motion model " << rc_.motion_model << "), keyframes " << rc_.keyframes << ", lost " << rc_.lost << " (few matches " << rc_.lost_few_matches << ", no motion "
-    << rc_.lost_no_motion << "), restarts "
-    << rc_.restarts << ", solves ok " << rc_.solves_ok << ", rejected " << rc_.solves_rejected << ", map poses "
-    << rc_.map_poses << ", inlier rms "
-    << (rc_.tracked > 0 ? rc_.refined_rms_px_sum / static_cast<double>(rc_.tracked) : 0.0) << " px, rigid fits/frame "
+  o << "rgbd: tracked " << rc_.tracked << " (motion model " << rc_.motion_model << "), keyframes "
+    << rc_.keyframes << ", lost " << rc_.lost << " (few matches " << rc_.lost_few_matches << ", no motion "
+    << rc_.lost_no_motion << "), restarts " << rc_.restarts << ", solves ok " << rc_.solves_ok
+    << ", rejected " << rc_.solves_rejected << ", map poses " << rc_.map_poses << ", inlier rms "
+    << (rc_.tracked > 0 ? rc_.refined_rms_px_sum / static_cast<double>(rc_.tracked) : 0.0)
+    << " px, rigid fits/frame "
     << (rc_.tracked > 0 ? static_cast<double>(rc_.model_estimates) / static_cast<double>(rc_.tracked) : 0.0);
   return o.str();
 }

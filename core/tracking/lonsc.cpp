@@ -57,10 +57,14 @@ uint32_t hilbert_d(uint32_t n, uint32_t x, uint32_t y) {
 
 const char* to_string(CorrespondenceOrder o) {
   switch (o) {
-    case CorrespondenceOrder::kAsGiven: return "as_given";
-    case CorrespondenceOrder::kByMatchCost: return "by_match_cost";
-    case CorrespondenceOrder::kHilbert: return "hilbert";
-    case CorrespondenceOrder::kShuffled: return "shuffled";
+    case CorrespondenceOrder::kAsGiven:
+      return "as_given";
+    case CorrespondenceOrder::kByMatchCost:
+      return "by_match_cost";
+    case CorrespondenceOrder::kHilbert:
+      return "hilbert";
+    case CorrespondenceOrder::kShuffled:
+      return "shuffled";
   }
   return "unknown";
 }
@@ -77,7 +81,8 @@ std::size_t CorrespondenceOrderer::order(CorrespondenceOrder mode, const Corresp
   const std::size_t m = std::min(n, capacity_);
   for (std::size_t i = 0; i < m; ++i) order_out[i] = static_cast<uint32_t>(i);
   switch (mode) {
-    case CorrespondenceOrder::kAsGiven: return m;
+    case CorrespondenceOrder::kAsGiven:
+      return m;
     case CorrespondenceOrder::kShuffled: {
       uint64_t s = seed;
       for (std::size_t i = m; i > 1; --i) std::swap(order_out[i - 1], order_out[splitmix64(&s) % i]);
@@ -156,8 +161,8 @@ bool MotionWorkspace::solve_pair(std::size_t i, std::size_t j, const PinholeK& K
 }
 
 MotionStatus MotionWorkspace::solve_on(const uint32_t* idx, std::size_t k, const PinholeK& K,
-                                       const Correspondence2D3D* c, bool weighted, const Eigen::Vector3d* t_ref,
-                                       Eigen::Vector3d* t) const {
+                                       const Correspondence2D3D* c, bool weighted,
+                                       const Eigen::Vector3d* t_ref, Eigen::Vector3d* t) const {
   Eigen::Vector3d t0;
   if (weighted && t_ref) {
     t0 = *t_ref;  // depth weights from the caller's estimate: one pass instead of two
@@ -204,16 +209,16 @@ std::size_t MotionWorkspace::collect_inliers(const Eigen::Vector3d& t, const Pin
   return k;
 }
 
-void MotionWorkspace::finish(const Eigen::Vector3d& t_hat, const PinholeK& K,
-                             const Correspondence2D3D* c, std::size_t n, const ConsistencyTest& test,
-                             bool weighted, int refine_passes, std::size_t min_inliers, MotionEstimate* out,
-                             std::size_t precollected) {
+void MotionWorkspace::finish(const Eigen::Vector3d& t_hat, const PinholeK& K, const Correspondence2D3D* c,
+                             std::size_t n, const ConsistencyTest& test, bool weighted, int refine_passes,
+                             std::size_t min_inliers, MotionEstimate* out, std::size_t precollected) {
   Eigen::Vector3d t = t_hat;
   // Paper lines 14-19, then optional re-collection passes with the refined t
   // (t_hat from one run can be a few px off at the image border).
   for (int pass = 0; pass <= std::max(refine_passes, 0); ++pass) {
-    const std::size_t k =
-        (pass == 0 && precollected != kNotCollected) ? precollected : collect_inliers(t, K, c, n, test, nullptr);
+    const std::size_t k = (pass == 0 && precollected != kNotCollected)
+                              ? precollected
+                              : collect_inliers(t, K, c, n, test, nullptr);
     out->num_inliers = k;
     if (k < std::max<std::size_t>(min_inliers, 2)) {
       out->status = MotionStatus::kTooFewInliers;
@@ -248,7 +253,8 @@ PoseRefineResult MotionWorkspace::refine_pose(Eigen::Matrix3d* R, Eigen::Vector3
                                               const ConsistencyTest& test, const PoseRefineOptions& opt,
                                               const Eigen::Matrix3d* R_prior) {
   const std::size_t m = std::min(n, est->num_used);
-  const PoseRefineResult res = refine_pose_gauss_newton(R, t, K, c, m, inliers_.get(), est->num_inliers, opt, R_prior);
+  const PoseRefineResult res =
+      refine_pose_gauss_newton(R, t, K, c, m, inliers_.get(), est->num_inliers, opt, R_prior);
   if (!res.ok) return res;
   // With R corrected, correspondences that only failed because of the IMU's
   // rotation error (far from the image centre) come back.
@@ -267,8 +273,9 @@ PoseRefineResult MotionWorkspace::refine_pose(Eigen::Matrix3d* R, Eigen::Vector3
 LonscEstimator::LonscEstimator(std::size_t capacity, const LonscOptions& opt)
     : MotionWorkspace(capacity), opt_(opt) {}
 
-MotionEstimate LonscEstimator::estimate(const Eigen::Matrix3d& R, const PinholeK& K, const Correspondence2D3D* c,
-                                        std::size_t n, const uint32_t* order, const Eigen::Vector3d& t_init) {
+MotionEstimate LonscEstimator::estimate(const Eigen::Matrix3d& R, const PinholeK& K,
+                                        const Correspondence2D3D* c, std::size_t n, const uint32_t* order,
+                                        const Eigen::Vector3d& t_init) {
   MotionEstimate out;
   const std::size_t m = std::min(n, capacity_);
   out.num_used = m;
@@ -434,8 +441,8 @@ void TwoPointRansac::set_options(const RansacOptions& opt) {
 
 uint64_t TwoPointRansac::next_random() { return splitmix64(&rng_state_); }
 
-MotionEstimate TwoPointRansac::estimate(const Eigen::Matrix3d& R, const PinholeK& K, const Correspondence2D3D* c,
-                                        std::size_t n) {
+MotionEstimate TwoPointRansac::estimate(const Eigen::Matrix3d& R, const PinholeK& K,
+                                        const Correspondence2D3D* c, std::size_t n) {
   MotionEstimate out;
   const std::size_t m = std::min(n, capacity_);
   out.num_used = m;
@@ -493,7 +500,9 @@ MotionEstimate TwoPointRansac::estimate(const Eigen::Matrix3d& R, const PinholeK
 
 std::ostream& operator<<(std::ostream& os, const LonscOptions& o) {
   return os << "lonsc{" << o.consistency << " min_run_length=" << o.min_run_length
-            << " verify_seed_pair=" << o.verify_seed_pair << " grow_model=" << o.grow_model << " candidate_runs=" << o.candidate_runs << " min_pair_separation_px=" << o.min_pair_separation_px
+            << " verify_seed_pair=" << o.verify_seed_pair << " grow_model=" << o.grow_model
+            << " candidate_runs=" << o.candidate_runs
+            << " min_pair_separation_px=" << o.min_pair_separation_px
             << " weighted_least_squares=" << o.weighted_least_squares << " refine_passes=" << o.refine_passes
             << " min_inliers=" << o.min_inliers << "}";
 }
@@ -501,7 +510,8 @@ std::ostream& operator<<(std::ostream& os, const LonscOptions& o) {
 std::ostream& operator<<(std::ostream& os, const RansacOptions& o) {
   return os << "ransac2pt{" << o.consistency << " confidence=" << o.confidence
             << " max_iterations=" << o.max_iterations << " seed=" << o.seed
-            << " reseed_each_call=" << o.reseed_each_call << " min_pair_separation_px=" << o.min_pair_separation_px
+            << " reseed_each_call=" << o.reseed_each_call
+            << " min_pair_separation_px=" << o.min_pair_separation_px
             << " weighted_least_squares=" << o.weighted_least_squares << " refine_passes=" << o.refine_passes
             << " min_inliers=" << o.min_inliers << "}";
 }

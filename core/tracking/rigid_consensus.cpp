@@ -1,7 +1,6 @@
 #include "kestrel/core/rigid_consensus.hpp"
 
 #include <Eigen/SVD>
-
 #include <algorithm>
 #include <cmath>
 

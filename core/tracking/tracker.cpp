@@ -1,7 +1,6 @@
 #include "kestrel/core/tracker.hpp"
 
 #include <Eigen/Cholesky>
-
 #include <algorithm>
 #include <cmath>
 #include <limits>
@@ -14,12 +13,18 @@ namespace kestrel::core {
 
 const char* to_string(TrackStatus s) {
   switch (s) {
-    case TrackStatus::kTracked: return "tracked";
-    case TrackStatus::kNewKeyframe: return "new-keyframe";
-    case TrackStatus::kNoImage: return "no-image";
-    case TrackStatus::kFeatureError: return "feature-error";
-    case TrackStatus::kTooFewMatches: return "too-few-matches";
-    case TrackStatus::kMotionFailed: return "motion-failed";
+    case TrackStatus::kTracked:
+      return "tracked";
+    case TrackStatus::kNewKeyframe:
+      return "new-keyframe";
+    case TrackStatus::kNoImage:
+      return "no-image";
+    case TrackStatus::kFeatureError:
+      return "feature-error";
+    case TrackStatus::kTooFewMatches:
+      return "too-few-matches";
+    case TrackStatus::kMotionFailed:
+      return "motion-failed";
   }
   return "?";
 }
@@ -40,7 +45,8 @@ std::string TrackerOptions::validate() const {
   if (!(rigid.consistency.threshold_px > 0 && rigid.depth_tol_rel >= 0 && rigid.depth_tol_m >= 0 &&
         rigid.min_run_length >= 3 && rigid.candidate_runs >= 1 && rigid.candidate_runs <= 8 &&
         rigid.confidence > 0 && rigid.confidence < 1 && rigid.max_iterations >= 1))
-    e << "rigid.*: threshold_px > 0, tolerances >= 0, min_run_length >= 3, candidate_runs in [1, 8], confidence "
+    e << "rigid.*: threshold_px > 0, tolerances >= 0, min_run_length >= 3, candidate_runs in [1, 8], "
+         "confidence "
          "in (0, 1), max_iterations >= 1\n";
   if (map_capacity > 0 && !(map_search_radius_px > 0 && map_min_inliers >= 6 && map_match_ratio > 0 &&
                             map_match_ratio <= 1 && map_max_correction_m > 0 && map_max_correction_rad > 0))
@@ -57,11 +63,11 @@ constexpr int kSearchCellPx = 32;
 
 struct FrameData {
   OrbFeatures feats;
-  std::unique_ptr<Eigen::Vector3d[]> p_C;   // back-projected keypoints, camera frame [m]
+  std::unique_ptr<Eigen::Vector3d[]> p_C;  // back-projected keypoints, camera frame [m]
   std::unique_ptr<uint8_t[]> has_depth;
-  std::unique_ptr<uint32_t[]> lm_id;        // persistent landmark id per feature, 0: none yet
-  std::unique_ptr<int32_t[]> map_idx;       // its local-map entry, -1: none
-  std::unique_ptr<uint8_t[]> owned;         // 1: this frame created that entry (as a keyframe)
+  std::unique_ptr<uint32_t[]> lm_id;   // persistent landmark id per feature, 0: none yet
+  std::unique_ptr<int32_t[]> map_idx;  // its local-map entry, -1: none
+  std::unique_ptr<uint8_t[]> owned;    // 1: this frame created that entry (as a keyframe)
   Eigen::Isometry3d T_WC = Eigen::Isometry3d::Identity();
   int64_t t_ns = 0;
   int with_depth = 0;
@@ -110,8 +116,8 @@ struct MapPoint {
 // cov: the [t, w] covariance of the last linearisation (whitened errors, so
 // in m and rad).
 bool refine_pose_rgbd(Eigen::Matrix3d* R, Eigen::Vector3d* t, const PinholeK& K, const Correspondence2D3D* c,
-                      const double* z, const double* sigma_z, const uint32_t* idx, std::size_t n, double huber,
-                      Eigen::Matrix<double, 6, 6>* cov) {
+                      const double* z, const double* sigma_z, const uint32_t* idx, std::size_t n,
+                      double huber, Eigen::Matrix<double, 6, 6>* cov) {
   if (n < 3) return false;
   for (int it = 0; it < 6; ++it) {
     Eigen::Matrix<double, 6, 6> H = Eigen::Matrix<double, 6, 6>::Zero();
@@ -121,14 +127,14 @@ bool refine_pose_rgbd(Eigen::Matrix3d* R, Eigen::Vector3d* t, const PinholeK& K,
       const Eigen::Vector3d q = *R * c[i].p_prev + *t;
       if (q.z() < 0.05) continue;
       const double iz = 1.0 / q.z(), s = 1.0 / std::max(1e-3, static_cast<double>(c[i].sigma_px));
-      Eigen::Vector3d r(s * (K.fx * q.x() * iz + K.cx - c[i].u_cur.x()), s * (K.fy * q.y() * iz + K.cy - c[i].u_cur.y()),
-                        (q.z() - z[i]) / sigma_z[i]);
+      Eigen::Vector3d r(s * (K.fx * q.x() * iz + K.cx - c[i].u_cur.x()),
+                        s * (K.fy * q.y() * iz + K.cy - c[i].u_cur.y()), (q.z() - z[i]) / sigma_z[i]);
       Eigen::Matrix3d Jq;
-      Jq << s * K.fx * iz, 0, -s * K.fx * q.x() * iz * iz, 0, s * K.fy * iz, -s * K.fy * q.y() * iz * iz, 0, 0,
-          1.0 / sigma_z[i];
+      Jq << s * K.fx * iz, 0, -s * K.fx * q.x() * iz * iz, 0, s * K.fy * iz, -s * K.fy * q.y() * iz * iz, 0,
+          0, 1.0 / sigma_z[i];
       Eigen::Matrix<double, 3, 6> J;
-      J.leftCols<3>() = Jq;                         // d q / d t = I
-      J.rightCols<3>() = -Jq * so3::hat(q);         // d q / d w = -[q]x
+      J.leftCols<3>() = Jq;                  // d q / d t = I
+      J.rightCols<3>() = -Jq * so3::hat(q);  // d q / d w = -[q]x
       const double e = r.norm();
       const double w = e <= huber ? 1.0 : huber / e;
       H.noalias() += w * J.transpose() * J;
@@ -214,7 +220,8 @@ struct Tracker::Impl {
     if (cx < 1 || cy < 1 || cx >= d.width - 1 || cy >= d.height - 1) return 0.0;
     double zmin = std::numeric_limits<double>::infinity(), zmax = 0.0, zc = 0.0;
     for (int dy = -1; dy <= 1; ++dy) {
-      const auto* row = reinterpret_cast<const uint16_t*>(d.data + static_cast<size_t>(cy + dy) * d.stride_bytes);
+      const auto* row =
+          reinterpret_cast<const uint16_t*>(d.data + static_cast<size_t>(cy + dy) * d.stride_bytes);
       for (int dx = -1; dx <= 1; ++dx) {
         const uint16_t raw = row[cx + dx];
         if (raw == 0) return 0.0;
@@ -294,7 +301,8 @@ struct Tracker::Impl {
       return gy * cols + gx;
     };
     for (int i = 0; i < cur.feats.size(); ++i) area_detected[cell(cur.feats.keypoint(i))] = 1;
-    for (size_t k = 0; k < n_inliers; ++k) area_matched[cell(cur.feats.keypoint(corr_cur[inlier_idx[k]]))] = 1;
+    for (size_t k = 0; k < n_inliers; ++k)
+      area_matched[cell(cur.feats.keypoint(corr_cur[inlier_idx[k]]))] = 1;
     int det = 0, mat = 0;
     for (int c = 0; c < cols * rows; ++c) {
       det += area_detected[c];
@@ -351,7 +359,8 @@ struct Tracker::Impl {
   // matches give a pose good to a centimetre or two, noisier than tracking's
   // chained one, so it only replaces *T_WC when apply (a restart with no
   // chain); otherwise the window weighs it against the chain. Allocation-free.
-  [[gnu::noinline]] void search_map(const TrackerOptions& opt, Eigen::Isometry3d* T_WC, bool apply, TrackResult& res) {
+  [[gnu::noinline]] void search_map(const TrackerOptions& opt, Eigen::Isometry3d* T_WC, bool apply,
+                                    TrackResult& res) {
     if (map_size == 0) return;
     const int n = match_map_points(opt, T_WC->inverse());
     res.map_matched = n;
@@ -369,7 +378,8 @@ struct Tracker::Impl {
     const double dp = (T_WC_new.translation() - T_WC->translation()).norm();
     const double dr = Eigen::AngleAxisd(R).angle();
     const double sigma_p = std::sqrt(cov.topLeftCorner<3, 3>().diagonal().maxCoeff());
-    if (dp > opt.map_max_correction_m || dr > opt.map_max_correction_rad || !(sigma_p <= opt.map_max_sigma_m)) return;
+    if (dp > opt.map_max_correction_m || dr > opt.map_max_correction_rad || !(sigma_p <= opt.map_max_sigma_m))
+      return;
     res.map_inliers = static_cast<int>(n_in);
     res.map_pose_valid = true;
     res.T_WC_map = T_WC_new;
@@ -405,10 +415,12 @@ struct Tracker::Impl {
       if (!cam.in_image(uv)) continue;
       const double z_tol = opt.map_depth_tol_rel * p_C.z() + 0.03;
       const BestTwoMatches bt = search_circle(uv, radius, mp.desc, [&](int j, const OrbKeypoint& ckp) {
-        return cur.lm_id[j] == 0 && cur.has_depth[j] && std::abs(ckp.level - mp.level) <= opt.match_max_level_diff &&
+        return cur.lm_id[j] == 0 && cur.has_depth[j] &&
+               std::abs(ckp.level - mp.level) <= opt.match_max_level_diff &&
                std::abs(cur.p_C[j].z() - p_C.z()) <= z_tol;
       });
-      if (bt.best_index < 0 || bt.best > opt.map_match_max_hamming || !bt.passes_ratio(opt.map_match_ratio)) continue;
+      if (bt.best_index < 0 || bt.best > opt.map_match_max_hamming || !bt.passes_ratio(opt.map_match_ratio))
+        continue;
       keep_best(bt, i);
     }
     int n = 0;
@@ -430,11 +442,13 @@ struct Tracker::Impl {
   // from the predicted R, t, Huber Gauss-Newton on the kept matches, then keep
   // those within the consistency bound; three rounds. The inliers are
   // model_inl[0..*n_in).
-  bool track_motion_model(const TrackerOptions& opt, int n, Eigen::Matrix3d* R, Eigen::Vector3d* t, size_t* n_in) {
+  bool track_motion_model(const TrackerOptions& opt, int n, Eigen::Matrix3d* R, Eigen::Vector3d* t,
+                          size_t* n_in) {
     *n_in = static_cast<size_t>(n);
     for (int k = 0; k < n; ++k) model_inl[k] = static_cast<uint32_t>(k);
     for (int round = 0; round < 3; ++round) {
-      if (!refine_pose_gauss_newton(R, t, K, corr.get(), static_cast<size_t>(n), model_inl.get(), *n_in, opt.refine)
+      if (!refine_pose_gauss_newton(R, t, K, corr.get(), static_cast<size_t>(n), model_inl.get(), *n_in,
+                                    opt.refine)
                .ok)
         return false;
       *n_in = 0;
@@ -443,7 +457,8 @@ struct Tracker::Impl {
         if (q.z() < opt.rigid.consistency.min_depth_m) continue;
         const Eigen::Vector2d e(K.fx * q.x() / q.z() + K.cx - corr[k].u_cur.x(),
                                 K.fy * q.y() / q.z() + K.cy - corr[k].u_cur.y());
-        if (e.squaredNorm() <= opt.rigid.consistency.threshold2(corr[k])) model_inl[(*n_in)++] = static_cast<uint32_t>(k);
+        if (e.squaredNorm() <= opt.rigid.consistency.threshold2(corr[k]))
+          model_inl[(*n_in)++] = static_cast<uint32_t>(k);
       }
       if (static_cast<int>(*n_in) < opt.motion_model_min_inliers) return false;
     }
@@ -461,14 +476,16 @@ struct Tracker::Impl {
     }
     *n_in = static_cast<size_t>(n);
     for (int round = 0; round < 2; ++round) {
-      if (!refine_pose_rgbd(R, t, K, corr.get(), map_z.get(), map_sz.get(), order.get(), *n_in, 2.0, cov)) return false;
+      if (!refine_pose_rgbd(R, t, K, corr.get(), map_z.get(), map_sz.get(), order.get(), *n_in, 2.0, cov))
+        return false;
       *n_in = 0;
       for (int k = 0; k < n; ++k) {
         const Eigen::Vector3d q = *R * corr[k].p_prev + *t;
         if (q.z() < 0.1) continue;
         const double s = 1.0 / corr[k].sigma_px;
         const Eigen::Vector3d e(s * (K.fx * q.x() / q.z() + K.cx - corr[k].u_cur.x()),
-                                s * (K.fy * q.y() / q.z() + K.cy - corr[k].u_cur.y()), (q.z() - map_z[k]) / map_sz[k]);
+                                s * (K.fy * q.y() / q.z() + K.cy - corr[k].u_cur.y()),
+                                (q.z() - map_z[k]) / map_sz[k]);
         if (e.norm() <= 3.0) order[(*n_in)++] = static_cast<uint32_t>(k);
       }
       if (static_cast<int>(*n_in) < opt.map_min_inliers) return false;
@@ -491,7 +508,8 @@ struct Tracker::Impl {
 
   // map_i: the ring slot of the landmark (-1: none); a map point's refined
   // position goes with the observation to the window as a prior.
-  void add_observation(uint32_t id, const Eigen::Vector2d& uv, double depth_m, float sigma_px, int32_t map_i) {
+  void add_observation(uint32_t id, const Eigen::Vector2d& uv, double depth_m, float sigma_px,
+                       int32_t map_i) {
     WindowObservation& o = obs[n_obs++];
     o.landmark_id = id;
     o.uv = uv;
@@ -526,8 +544,8 @@ struct Tracker::Impl {
   // Projects the keyframe's depth-backed points into cur with the IMU-predicted
   // motion (R_pred, t_pred: keyframe camera -> current camera) and matches each
   // in a circle of `radius`; fills corr / corr_cur and returns how many matched.
-  [[gnu::noinline]] int match_keyframe(const TrackerOptions& opt, const Eigen::Matrix3d& R_pred, const Eigen::Vector3d& t_pred,
-                     double radius, TrackResult& res) {
+  [[gnu::noinline]] int match_keyframe(const TrackerOptions& opt, const Eigen::Matrix3d& R_pred,
+                                       const Eigen::Vector3d& t_pred, double radius, TrackResult& res) {
     build_grid(cur);
     const int n_cur = cur.feats.size();
     reset_best(n_cur);
@@ -539,9 +557,10 @@ struct Tracker::Impl {
       if (!cam.in_image(uv)) continue;
       ++res.predicted;
       const int kf_level = kf.feats.keypoint(i).level;
-      const BestTwoMatches bt = search_circle(uv, radius, kf.feats.descriptor(i), [&](int, const OrbKeypoint& ckp) {
-        return std::abs(ckp.level - kf_level) <= opt.match_max_level_diff;
-      });
+      const BestTwoMatches bt =
+          search_circle(uv, radius, kf.feats.descriptor(i), [&](int, const OrbKeypoint& ckp) {
+            return std::abs(ckp.level - kf_level) <= opt.match_max_level_diff;
+          });
       if (bt.best_index < 0 || bt.best > opt.match_max_hamming || !bt.passes_ratio(opt.match_ratio)) continue;
       keep_best(bt, i);
     }
@@ -572,8 +591,8 @@ struct Tracker::Impl {
       cur.lm_id[j] = kf.lm_id[best_kf[j]];
       cur.map_idx[j] = kf.map_idx[best_kf[j]];
       mark[j] |= FeatureMark::kInlier;
-      add_observation(cur.lm_id[j], corr[idx].u_cur, cur.has_depth[j] ? cur.p_C[j].z() : 0.0, corr[idx].sigma_px,
-                      cur.map_idx[j]);
+      add_observation(cur.lm_id[j], corr[idx].u_cur, cur.has_depth[j] ? cur.p_C[j].z() : 0.0,
+                      corr[idx].sigma_px, cur.map_idx[j]);
     }
   }
 
@@ -841,7 +860,8 @@ void Tracker::clear_map() {
 }
 
 const TrackResult& Tracker::track(int64_t t_ns, const ImageView& image, const ImageView& depth,
-                                  const Eigen::Isometry3d& T_WC_pred, double pred_sigma_px, bool rotation_known) {
+                                  const Eigen::Isometry3d& T_WC_pred, double pred_sigma_px,
+                                  bool rotation_known) {
   return track(t_ns, image, depth, ImageView{}, T_WC_pred, pred_sigma_px, rotation_known);
 }
 
@@ -894,8 +914,8 @@ const TrackResult& Tracker::track(int64_t t_ns, const ImageView& image, const Im
   const Eigen::Isometry3d T_CK_pred = T_WC_pred.inverse() * m.kf.T_WC;
   const Eigen::Matrix3d R_pred = T_CK_pred.linear();
   const Eigen::Vector3d t_pred = T_CK_pred.translation();
-  const double radius = std::clamp(opt_.search_k_sigma * pred_sigma_px, opt_.search_radius_min_px,
-                                   opt_.search_radius_max_px);
+  const double radius =
+      std::clamp(opt_.search_k_sigma * pred_sigma_px, opt_.search_radius_min_px, opt_.search_radius_max_px);
   result_.search_radius_px = radius;
   const int n = m.match_keyframe(opt_, R_pred, t_pred, radius, result_);
   result_.matched = n;
@@ -906,8 +926,8 @@ const TrackResult& Tracker::track(int64_t t_ns, const ImageView& image, const Im
 
   // ---- LONSC with the IMU rotation (or a 6-DoF rigid model without one), ---
   // ---- then Gauss-Newton on the inliers ------------------------------------
-  const size_t n_ordered =
-      m.orderer.order(opt_.order, m.corr.get(), static_cast<size_t>(n), m.order.get(), m.cam.width(), m.cam.height());
+  const size_t n_ordered = m.orderer.order(opt_.order, m.corr.get(), static_cast<size_t>(n), m.order.get(),
+                                           m.cam.width(), m.cam.height());
   Eigen::Matrix3d R = R_pred;
   Eigen::Vector3d t = t_pred;
   const uint32_t* inl = nullptr;
@@ -922,9 +942,9 @@ const TrackResult& Tracker::track(int64_t t_ns, const ImageView& image, const Im
       return result_;
     }
     t = est.t;
-    const PoseRefineResult ref = refine_pose_gauss_newton(&R, &t, m.K, m.corr.get(), static_cast<size_t>(n),
-                                                          m.lonsc.inlier_indices(), est.num_inliers, opt_.refine,
-                                                          opt_.refine.rotation_prior_sigma_rad > 0 ? &R_pred : nullptr);
+    const PoseRefineResult ref = refine_pose_gauss_newton(
+        &R, &t, m.K, m.corr.get(), static_cast<size_t>(n), m.lonsc.inlier_indices(), est.num_inliers,
+        opt_.refine, opt_.refine.rotation_prior_sigma_rad > 0 ? &R_pred : nullptr);
     if (!ref.ok) {
       R = R_pred;
       t = est.t;
@@ -939,11 +959,12 @@ const TrackResult& Tracker::track(int64_t t_ns, const ImageView& image, const Im
       m.corr_q[k] = m.cur.p_C[j];
       m.corr_z[k] = m.cur.has_depth[j] ? m.cur.p_C[j].z() : 1.0;
       // No depth: the depth row weighs nothing.
-      m.corr_sz[k] = m.cur.has_depth[j] ? std::max(0.005, m.depth.sigma_coeff_per_m * m.corr_z[k] * m.corr_z[k]) : 1e9;
+      m.corr_sz[k] =
+          m.cur.has_depth[j] ? std::max(0.005, m.depth.sigma_coeff_per_m * m.corr_z[k] * m.corr_z[k]) : 1e9;
     }
-    const RigidEstimate est = m.rigid.estimate(opt_.rigid_method, m.K, m.corr.get(), m.corr_q.get(),
-                                               m.corr_has_q.get(), static_cast<size_t>(n),
-                                               n_ordered > 0 ? m.order.get() : nullptr);
+    const RigidEstimate est =
+        m.rigid.estimate(opt_.rigid_method, m.K, m.corr.get(), m.corr_q.get(), m.corr_has_q.get(),
+                         static_cast<size_t>(n), n_ordered > 0 ? m.order.get() : nullptr);
     result_.six_dof = true;
     result_.model_estimates = est.model_estimates;
     result_.motion_status = est.status;
@@ -962,8 +983,8 @@ const TrackResult& Tracker::track(int64_t t_ns, const ImageView& image, const Im
       R = est.R;
       t = est.t;
       Eigen::Matrix<double, 6, 6> cov;
-      if (!refine_pose_rgbd(&R, &t, m.K, m.corr.get(), m.corr_z.get(), m.corr_sz.get(), m.rigid.inlier_indices(),
-                            est.num_inliers, opt_.refine.huber_px, &cov)) {
+      if (!refine_pose_rgbd(&R, &t, m.K, m.corr.get(), m.corr_z.get(), m.corr_sz.get(),
+                            m.rigid.inlier_indices(), est.num_inliers, opt_.refine.huber_px, &cov)) {
         R = est.R;
         t = est.t;
       }

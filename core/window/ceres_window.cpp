@@ -28,7 +28,8 @@ class PoseManifold final : public ceres::Manifold {
   int TangentSize() const override { return 6; }
   bool Plus(const double* x, const double* delta, double* x_plus_delta) const override {
     const Eigen::Quaterniond q(x[6], x[3], x[4], x[5]);
-    const Eigen::Quaterniond qn = (q * so3::exp_quat(Eigen::Vector3d(delta[3], delta[4], delta[5]))).normalized();
+    const Eigen::Quaterniond qn =
+        (q * so3::exp_quat(Eigen::Vector3d(delta[3], delta[4], delta[5]))).normalized();
     for (int i = 0; i < 3; ++i) x_plus_delta[i] = x[i] + delta[i];
     x_plus_delta[3] = qn.x();
     x_plus_delta[4] = qn.y();
@@ -102,8 +103,8 @@ class VisualCost final : public ceres::CostFunction {
     Matrix36d Jp;
     Eigen::Matrix3d Jl;
     const bool want = jacobians != nullptr;
-    if (visual_residual(P_, x, l, o_, td_s, &r, want ? &Jp : nullptr, want ? &Jl : nullptr, want ? &Jt : nullptr) ==
-        0) {
+    if (visual_residual(P_, x, l, o_, td_s, &r, want ? &Jp : nullptr, want ? &Jl : nullptr,
+                        want ? &Jt : nullptr) == 0) {
       // Behind the camera: contributes nothing, exactly as in our solver.
       r.setZero();
       Jp.setZero();
@@ -289,7 +290,8 @@ class PriorCost final : public ceres::CostFunction {
         Jk.middleCols(3, 3) = (Jk.middleCols(3, 3) * Jr[k]).eval();
         split_jacobian(Jk, r, jacobians[2 * k], jacobians[2 * k + 1]);
       }
-      if (with_td_ && jacobians[2 * k_n]) Eigen::Map<Eigen::VectorXd>(jacobians[2 * k_n], r) = J_.col(kD * k_n);
+      if (with_td_ && jacobians[2 * k_n])
+        Eigen::Map<Eigen::VectorXd>(jacobians[2 * k_n], r) = J_.col(kD * k_n);
     }
     return true;
   }
@@ -306,7 +308,7 @@ struct CeresWindow {
   ceres::Problem problem;
   std::vector<std::array<double, 7>> pose;  // by slot
   std::vector<std::array<double, 9>> sb;
-  std::vector<int> lm_index;                // active landmark indices
+  std::vector<int> lm_index;  // active landmark indices
   std::vector<std::array<double, 3>> lm;
   double td_s = 0.0;  // the time offset's parameter block (estimate_td)
   int n_residual_blocks = 0;
@@ -319,8 +321,8 @@ struct CeresWindow {
       const int s = P.order[k];
       const NavState& x = P.states[s].x;
       pose[s] = {x.p_WB.x(), x.p_WB.y(), x.p_WB.z(), x.q_WB.x(), x.q_WB.y(), x.q_WB.z(), x.q_WB.w()};
-      sb[s] = {x.v_WB.x(), x.v_WB.y(), x.v_WB.z(), x.bg_rps.x(), x.bg_rps.y(), x.bg_rps.z(),
-               x.ba_mps2.x(), x.ba_mps2.y(), x.ba_mps2.z()};
+      sb[s] = {x.v_WB.x(),   x.v_WB.y(),    x.v_WB.z(),    x.bg_rps.x(), x.bg_rps.y(),
+               x.bg_rps.z(), x.ba_mps2.x(), x.ba_mps2.y(), x.ba_mps2.z()};
       problem.AddParameterBlock(pose[s].data(), 7, manifold);
       problem.AddParameterBlock(sb[s].data(), 9);
     }
@@ -340,10 +342,11 @@ struct CeresWindow {
       for (int j = 0; j < L.n_obs; ++j) {
         const int s = L.obs_slot[j];
         if (P.estimate_td())
-          problem.AddResidualBlock(new VisualCost(P, P.obs_of(s)[L.obs_idx[j]]), loss, pose[s].data(), lm[a].data(),
-                                   &td_s);
+          problem.AddResidualBlock(new VisualCost(P, P.obs_of(s)[L.obs_idx[j]]), loss, pose[s].data(),
+                                   lm[a].data(), &td_s);
         else
-          problem.AddResidualBlock(new VisualCost(P, P.obs_of(s)[L.obs_idx[j]]), loss, pose[s].data(), lm[a].data());
+          problem.AddResidualBlock(new VisualCost(P, P.obs_of(s)[L.obs_idx[j]]), loss, pose[s].data(),
+                                   lm[a].data());
         ++n_residual_blocks;
       }
       if (L.has_prior) {
@@ -519,7 +522,7 @@ WindowOptimizer::Result solve_window_ceres(WindowProblem& P, const CeresWindowOp
     res.status = WindowOptimizer::Status::kConverged;
   } else if (summary.termination_type == ceres::NO_CONVERGENCE) {
     res.status = summary.total_time_in_seconds * 1e3 >= budget_ms ? WindowOptimizer::Status::kTimeBudget
-                                                                   : WindowOptimizer::Status::kMaxIterations;
+                                                                  : WindowOptimizer::Status::kMaxIterations;
   } else {
     res.status = WindowOptimizer::Status::kFailed;
   }

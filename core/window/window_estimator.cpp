@@ -42,7 +42,9 @@ WindowEstimator::WindowEstimator(const Rig& rig, const WindowEstimatorOptions& o
         // (predict() used to decay the bias with the rig's tau while the factor
         // held it as a random walk: two models in one estimator.)
         o.window.imu.acc_bias_tau_s =
-            o.window.acc_bias_model == WindowOptions::AccBiasModel::kBoundedRandomWalk ? o.window.acc_bias_tau_s : 0.0;
+            o.window.acc_bias_model == WindowOptions::AccBiasModel::kBoundedRandomWalk
+                ? o.window.acc_bias_tau_s
+                : 0.0;
         o.window.depth_sigma_coeff_per_m = rig.depth.sigma_coeff_per_m;
         return o;
       }()),
@@ -105,8 +107,8 @@ std::string WindowEstimator::backend_summary() const {
     << ", applied " << wc_.applied << ", failures " << wc_.failures << ", window resets " << wc_.window_resets
     << ", skipped (busy " << wc_.skipped_busy << ", few obs " << wc_.skipped_few_obs << ", no imu "
     << wc_.skipped_no_imu << "), stale " << wc_.stale_results << ", imu gaps " << wc_.imu_gaps
-    << ", still frames " << wc_.stationary_frames << ", map poses " << wc_.map_poses << ", vision-only frames "
-    << wc_.vision_only_frames;
+    << ", still frames " << wc_.stationary_frames << ", map poses " << wc_.map_poses
+    << ", vision-only frames " << wc_.vision_only_frames;
   const WindowOptimizer::Counters& oc = window_->counters();
   o << "; landmarks from depth " << oc.landmarks_from_depth << ", triangulated " << oc.landmarks_triangulated
     << ", observations skipped (budget " << oc.obs_skipped_budget << ", invalid " << oc.obs_skipped_invalid
@@ -114,8 +116,11 @@ std::string WindowEstimator::backend_summary() const {
   if (calib_) {
     const TimeOffsetEstimate e = calib_->estimate();
     o << ", time offset " << 1e3 * td_s_ << " ms (rotation correlation: ";
-    if (e.sigma_s > 0.0) o << 1e3 * e.td_s << " +- " << 1e3 * e.sigma_s << " ms, residual " << 1e3 * e.residual_rad << " mrad" << (e.valid ? "" : " (too loose, unused)");
-    else o << "none";
+    if (e.sigma_s > 0.0)
+      o << 1e3 * e.td_s << " +- " << 1e3 * e.sigma_s << " ms, residual " << 1e3 * e.residual_rad << " mrad"
+        << (e.valid ? "" : " (too loose, unused)");
+    else
+      o << "none";
     o << ", " << calib_->used_intervals() << " intervals, " << calib_->gated_intervals() << " gated)";
   }
   if (map_) o << "\n" << map_->summary();
@@ -131,7 +136,8 @@ bool WindowEstimator::estimated_time_offset_s(double* td_s) const {
 // Backward differences over the previous tracked frame (VINS-Mono's feature
 // velocity): the velocity half a frame earlier, good enough to move a pixel
 // by the few milliseconds of an offset. None across a gap or a lost track.
-void WindowEstimator::image_velocities(int64_t t_ns, const WindowObservation* obs, int n, Eigen::Vector2d* vel) {
+void WindowEstimator::image_velocities(int64_t t_ns, const WindowObservation* obs, int n,
+                                       Eigen::Vector2d* vel) {
   const double dt_s = 1e-9 * static_cast<double>(t_ns - prev_t_ns_);
   const bool usable = prev_t_ns_ >= 0 && dt_s > 0.0 && dt_s <= 0.1;
   for (int k = 0; k < n; ++k) {
@@ -267,7 +273,8 @@ void WindowEstimator::measure_camera_rotation(int64_t t_ns, const TrackResult& r
   int m = 0;
   for (int k = 0; k < n; ++k) {
     const WindowObservation& o = tracker.observations()[k];
-    const PrevObs* p = std::lower_bound(begin, end, o.landmark_id, [](const PrevObs& a, uint32_t id) { return a.id < id; });
+    const PrevObs* p =
+        std::lower_bound(begin, end, o.landmark_id, [](const PrevObs& a, uint32_t id) { return a.id < id; });
     if (p == end || p->id != o.landmark_id || !(p->depth_m > 0.0)) continue;
     Correspondence2D3D& c = corr_[m++];
     c.p_prev = Eigen::Vector3d((p->uv.x() - K_.cx) / K_.fx, (p->uv.y() - K_.cy) / K_.fy, 1.0) * p->depth_m;
@@ -294,8 +301,8 @@ void WindowEstimator::measure_camera_rotation(int64_t t_ns, const TrackResult& r
 // the motion rather than from the previous frame's pixel, so a landmark seen
 // for the first time (every new point of a keyframe) moves too. Observations
 // without depth keep the backward difference of image_velocities.
-void WindowEstimator::depth_velocities(const NavState& x, const WindowObservation* obs, int n, Eigen::Vector2d* vel,
-                                       double* dvel) const {
+void WindowEstimator::depth_velocities(const NavState& x, const WindowObservation* obs, int n,
+                                       Eigen::Vector2d* vel, double* dvel) const {
   const Eigen::Matrix3d R_BC = T_BC_.linear();
   const Eigen::Vector3d v_B = x.q_WB.conjugate() * x.v_WB;
   const Eigen::Vector3d w_B = last_gyro_rps_ - x.bg_rps;
@@ -303,7 +310,8 @@ void WindowEstimator::depth_velocities(const NavState& x, const WindowObservatio
     dvel[k] = 0.0;
     if (!(obs[k].depth_m > 0.0)) continue;
     const Eigen::Vector3d p_C =
-        Eigen::Vector3d((obs[k].uv.x() - K_.cx) / K_.fx, (obs[k].uv.y() - K_.cy) / K_.fy, 1.0) * obs[k].depth_m;
+        Eigen::Vector3d((obs[k].uv.x() - K_.cx) / K_.fx, (obs[k].uv.y() - K_.cy) / K_.fy, 1.0) *
+        obs[k].depth_m;
     const Eigen::Vector3d p_B = R_BC * p_C + T_BC_.translation();
     const Eigen::Vector3d pdot_C = R_BC.transpose() * (-w_B.cross(p_B) - v_B);
     dvel[k] = pdot_C.z();
@@ -409,7 +417,8 @@ bool WindowEstimator::add_imu(const ImuSample& s) {
   if (calib_) calib_->add_gyro(s.t_ns, last_gyro_rps_);
   NavState still_state;
   if (still_.add(s, still_state)) still_t_ns_ = s.t_ns;
-  if (have_last_sample_ && s.t_ns - last_sample_.t_ns > opt_.max_imu_gap_ns && (pim_active_ || window_started_)) {
+  if (have_last_sample_ && s.t_ns - last_sample_.t_ns > opt_.max_imu_gap_ns &&
+      (pim_active_ || window_started_)) {
     // Preintegrating across the gap would invent motion. With
     // continue_without_imu the frames of the gap went in vision-only and the
     // chain restarts at the next frame; without it the window restarts

@@ -1,13 +1,12 @@
 #include "kestrel/core/window_optimizer.hpp"
 
-#include <memory>
-
 #include <Eigen/Cholesky>
 #include <Eigen/Eigenvalues>
 #include <Eigen/LU>
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <memory>
 #include <sstream>
 #include <stdexcept>
 
@@ -60,23 +59,32 @@ std::string WindowOptions::validate() const {
     e << "acc_bias_tau_s must be > 0 for the bounded random walk; ";
   if (!(imu.gyro_random_walk_rad_s2_sqrthz > 0.0) || !(imu.acc_random_walk_mps3_sqrthz > 0.0))
     e << "imu random walks (gyro_random_walk_rad_s2_sqrthz, acc_random_walk_mps3_sqrthz) must be > 0; ";
-  if (!(prior_gyro_bias_sigma_rps > 0.0) || !(prior_acc_bias_sigma_mps2 > 0.0)) e << "bias prior sigmas must be > 0; ";
+  if (!(prior_gyro_bias_sigma_rps > 0.0) || !(prior_acc_bias_sigma_mps2 > 0.0))
+    e << "bias prior sigmas must be > 0; ";
   if (!(gauge_sigma > 0.0)) e << "gauge_sigma must be > 0; ";
   if (!(zero_velocity_sigma_mps > 0.0)) e << "zero_velocity_sigma_mps must be > 0; ";
   if (!(time_offset_prior_sigma_ms > 0.0)) e << "time_offset_prior_sigma_ms must be > 0; ";
-  if (!(hold_velocity_sigma_mps > 0.0) || !(hold_gyro_bias_sigma_rps > 0.0) || !(hold_acc_bias_sigma_mps2 > 0.0))
-    e << "hold sigmas (hold_velocity_sigma_mps, hold_gyro_bias_sigma_rps, hold_acc_bias_sigma_mps2) must be > 0; ";
+  if (!(hold_velocity_sigma_mps > 0.0) || !(hold_gyro_bias_sigma_rps > 0.0) ||
+      !(hold_acc_bias_sigma_mps2 > 0.0))
+    e << "hold sigmas (hold_velocity_sigma_mps, hold_gyro_bias_sigma_rps, hold_acc_bias_sigma_mps2) must be "
+         "> 0; ";
   return e.str();
 }
 
 const char* to_string(WindowOptimizer::Status s) {
   switch (s) {
-    case WindowOptimizer::Status::kConverged: return "converged";
-    case WindowOptimizer::Status::kMaxIterations: return "max_iterations";
-    case WindowOptimizer::Status::kTimeBudget: return "time_budget";
-    case WindowOptimizer::Status::kNoProgress: return "no_progress";
-    case WindowOptimizer::Status::kEmpty: return "empty";
-    case WindowOptimizer::Status::kFailed: return "failed";
+    case WindowOptimizer::Status::kConverged:
+      return "converged";
+    case WindowOptimizer::Status::kMaxIterations:
+      return "max_iterations";
+    case WindowOptimizer::Status::kTimeBudget:
+      return "time_budget";
+    case WindowOptimizer::Status::kNoProgress:
+      return "no_progress";
+    case WindowOptimizer::Status::kEmpty:
+      return "empty";
+    case WindowOptimizer::Status::kFailed:
+      return "failed";
   }
   return "?";
 }
@@ -91,13 +99,13 @@ struct WindowOptimizer::Workspace {
 
   // Solver.
   int pos_of_slot[kWindowMaxStates] = {};
-  std::vector<int32_t> active;      // active landmark indices
+  std::vector<int32_t> active;  // active landmark indices
   int n_active = 0;
-  Eigen::MatrixXd H_lin, H_red;     // camera part (landmark-free) / reduced system
+  Eigen::MatrixXd H_lin, H_red;  // camera part (landmark-free) / reduced system
   Eigen::VectorXd b_lin, b_red, dx, diag_c;
   std::vector<Eigen::Matrix3d> V, Vinv;
   std::vector<Eigen::Vector3d> w, dl, diag_l;
-  std::vector<Matrix63d> W;         // per observation (slot-major like problem.obs)
+  std::vector<Matrix63d> W;            // per observation (slot-major like problem.obs)
   std::vector<Eigen::RowVector3d> Wt;  // per landmark: its coupling with t_d, sum over its observations
   std::vector<Eigen::Vector3d> cand_l;
   NavState cand_x[kWindowMaxStates];
@@ -135,15 +143,17 @@ struct WindowOptimizer::Workspace {
   double next_yaw_var = 0.0;
 };
 
-WindowOptimizer::WindowOptimizer(const PinholeK& K, const Eigen::Isometry3d& T_BC, const WindowOptions& options)
+WindowOptimizer::WindowOptimizer(const PinholeK& K, const Eigen::Isometry3d& T_BC,
+                                 const WindowOptions& options)
     : problem_(std::make_unique<WindowProblem>()), ws_(std::make_unique<Workspace>()) {
   const std::string err = options.validate();
   if (!err.empty()) throw std::invalid_argument("WindowOptions: " + err);
   WindowProblem& P = *problem_;
   P.opt = options;
   P.bias_noise = options.imu;
-  P.bias_noise.acc_bias_tau_s =
-      options.acc_bias_model == WindowOptions::AccBiasModel::kBoundedRandomWalk ? options.acc_bias_tau_s : 0.0;
+  P.bias_noise.acc_bias_tau_s = options.acc_bias_model == WindowOptions::AccBiasModel::kBoundedRandomWalk
+                                    ? options.acc_bias_tau_s
+                                    : 0.0;
   P.K = K;
   P.R_CB = T_BC.linear().transpose();
   P.p_CB = -P.R_CB * T_BC.translation();
@@ -316,7 +326,8 @@ bool WindowOptimizer::add_frame(const WindowFrameInput& in) {
   }
   if (P.n_states >= P.max_states) marginalize_or_drop(P.order[0]);  // defensive: cannot happen
 
-  if (P.estimate_td() && in.td_meas_sigma_s > 0.0 && std::isfinite(in.td_meas_s) && std::isfinite(in.td_meas_sigma_s)) {
+  if (P.estimate_td() && in.td_meas_sigma_s > 0.0 && std::isfinite(in.td_meas_s) &&
+      std::isfinite(in.td_meas_sigma_s)) {
     // The newest measurement stands until the next; the first one also
     // starts t_d there, which the prior alone would take many solves to reach.
     if (!(P.td_meas_sigma_s > 0.0)) P.td_s = in.td_meas_s;
@@ -430,8 +441,9 @@ void WindowOptimizer::add_observations(int slot, const WindowFrameInput& in) {
     w.sigma_px = o.sigma_px > 0.0f ? static_cast<double>(o.sigma_px) : P.opt.pixel_sigma;
     w.sigma_depth_m = std::max(1e-3, P.opt.depth_sigma_coeff_per_m * o.depth_m * o.depth_m);
     w.uv_vel_pxps = in.uv_vel_pxps != nullptr && in.uv_vel_pxps[k].allFinite() ? in.uv_vel_pxps[k]
-                                                                                : Eigen::Vector2d::Zero();
-    w.depth_vel_mps = in.depth_vel_mps != nullptr && std::isfinite(in.depth_vel_mps[k]) ? in.depth_vel_mps[k] : 0.0;
+                                                                               : Eigen::Vector2d::Zero();
+    w.depth_vel_mps =
+        in.depth_vel_mps != nullptr && std::isfinite(in.depth_vel_mps[k]) ? in.depth_vel_mps[k] : 0.0;
     const Eigen::Vector3d ray_C((o.uv.x() - P.K.cx) / P.K.fx, (o.uv.y() - P.K.cy) / P.K.fy, 1.0);
     if (!L.initialised && o.depth_m > 0.0) {
       const Eigen::Vector3d p_B = P.R_CB.transpose() * (ray_C * o.depth_m - P.p_CB);
@@ -729,8 +741,8 @@ namespace {
 
 // Cost of the whole problem with states xs (indexed by slot) and landmark positions ls.
 // td_s: the time offset (P.td_s unless a step is being tried).
-double problem_cost(const WindowProblem& P, const NavState* xs, const Eigen::Vector3d* ls, const int32_t* active,
-                    int n_active, Vector15d* dx_scratch, double td_s) {
+double problem_cost(const WindowProblem& P, const NavState* xs, const Eigen::Vector3d* ls,
+                    const int32_t* active, int n_active, Vector15d* dx_scratch, double td_s) {
   double cost = 0.0;
   for (int a = 0; a < n_active; ++a) {
     const WindowLandmark& L = P.lms[active[a]];
@@ -741,7 +753,8 @@ double problem_cost(const WindowProblem& P, const NavState* xs, const Eigen::Vec
       cost += 0.5 * huber_rho(r.squaredNorm(), P.opt.huber_px, nullptr);
     }
     if (L.has_prior)
-      cost += 0.5 * huber_rho(landmark_prior_residual(L, ls[active[a]]).squaredNorm(), P.opt.huber_px, nullptr);
+      cost +=
+          0.5 * huber_rho(landmark_prior_residual(L, ls[active[a]]).squaredNorm(), P.opt.huber_px, nullptr);
   }
   for (int k = 0; k < P.n_states; ++k) {
     const int s = P.order[k];
@@ -987,7 +1000,8 @@ WindowOptimizer::Result WindowOptimizer::optimize_ours() {
       if (P.prior_active) {
         for (int k = 0; k < P.n_states; ++k) {
           const int s = P.order[k];
-          if (P.states[s].in_prior) ws.prior_dx[s] = state_minus(P.states[s].x, P.states[s].x0, &ws.prior_Jrot[s]);
+          if (P.states[s].in_prior)
+            ws.prior_dx[s] = state_minus(P.states[s].x, P.states[s].x0, &ws.prior_Jrot[s]);
         }
         for (int a = 0; a < P.n_states; ++a) {
           const int s = P.order[a];

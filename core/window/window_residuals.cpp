@@ -16,7 +16,8 @@ double huber_rho(double s, double a, double* rho1) {
 }
 
 int visual_residual(const WindowProblem& P, const NavState& x, const Eigen::Vector3d& l_W, const WindowObs& o,
-                    double td_s, Eigen::Vector3d* r, Matrix36d* J_pose, Eigen::Matrix3d* J_l, Eigen::Vector3d* J_td) {
+                    double td_s, Eigen::Vector3d* r, Matrix36d* J_pose, Eigen::Matrix3d* J_l,
+                    Eigen::Vector3d* J_td) {
   const Eigen::Matrix3d R = x.q_WB.toRotationMatrix();
   const Eigen::Vector3d p_B = R.transpose() * (l_W - x.p_WB);
   const Eigen::Vector3d p_C = P.R_CB * p_B + P.p_CB;
@@ -62,8 +63,8 @@ double time_offset_prior_residual(const WindowProblem& P, double td_s, double* J
   return w * td_s;
 }
 
-Vector15d imu_bias_residual(const WindowProblem& P, const WindowState& sj, const NavState& x_i, const NavState& x_j,
-                            Matrix15d* J_i, Matrix15d* J_j) {
+Vector15d imu_bias_residual(const WindowProblem& P, const WindowState& sj, const NavState& x_i,
+                            const NavState& x_j, Matrix15d* J_i, Matrix15d* J_j) {
   Vector15d r;
   ImuFactorJacobians Jimu;
   BiasFactorJacobians Jb;
@@ -119,7 +120,8 @@ Eigen::Vector4d gauge_residual(const WindowProblem& P, const NavState& x, Eigen:
   return r;
 }
 
-Eigen::Vector3d gauge_rotation_residual(const WindowProblem& P, const NavState& x, Eigen::Matrix<double, 3, 6>* J) {
+Eigen::Vector3d gauge_rotation_residual(const WindowProblem& P, const NavState& x,
+                                        Eigen::Matrix<double, 3, 6>* J) {
   const Eigen::Vector3d phi = so3::Log(P.gauge_q.toRotationMatrix().transpose() * x.q_WB.toRotationMatrix());
   if (J) {
     J->setZero();
@@ -146,7 +148,8 @@ Vector9d hold_residual(const WindowProblem& P, const WindowState& st, const NavS
 
 Vector6d pose_prior_residual(const WindowState& st, const NavState& x, Matrix6d* J) {
   Vector6d r;
-  const Eigen::Vector3d phi = so3::Log(st.prior_q_WB.toRotationMatrix().transpose() * x.q_WB.toRotationMatrix());
+  const Eigen::Vector3d phi =
+      so3::Log(st.prior_q_WB.toRotationMatrix().transpose() * x.q_WB.toRotationMatrix());
   r.head<3>() = (x.p_WB - st.prior_p_WB) / st.prior_sigma_p_m;
   r.tail<3>() = phi / st.prior_sigma_rad;
   if (J) {

@@ -15,11 +15,16 @@ namespace kestrel::drivers {
 
 const char* to_string(I2cStatus s) {
   switch (s) {
-    case I2cStatus::kOk: return "ok";
-    case I2cStatus::kNack: return "nack";
-    case I2cStatus::kTimeout: return "timeout";
-    case I2cStatus::kIoError: return "io-error";
-    case I2cStatus::kNotOpen: return "not-open";
+    case I2cStatus::kOk:
+      return "ok";
+    case I2cStatus::kNack:
+      return "nack";
+    case I2cStatus::kTimeout:
+      return "timeout";
+    case I2cStatus::kIoError:
+      return "io-error";
+    case I2cStatus::kNotOpen:
+      return "not-open";
   }
   return "?";
 }

@@ -14,8 +14,8 @@ namespace kestrel::drivers::openni2 {
 namespace {
 ClockSyncOptions device_clock_options() {
   ClockSyncOptions o;
-  o.bucket_ns = 500'000'000;   // ~15 frames per bucket
-  o.max_buckets = 40;          // 20 s window
+  o.bucket_ns = 500'000'000;  // ~15 frames per bucket
+  o.max_buckets = 40;         // 20 s window
   o.max_abs_skew = 0.002;
   return o;
 }
@@ -86,13 +86,14 @@ std::string Camera::open(const Options& o) {
   cm.setFps(o.fps);
   cm.setPixelFormat(openni::PIXEL_FORMAT_RGB888);
   if (m.color.setVideoMode(cm) != openni::STATUS_OK)
-    return fail("colour mode " + std::to_string(o.width) + "x" + std::to_string(o.height) + "@" + std::to_string(o.fps) +
-                " RGB888 not supported");
+    return fail("colour mode " + std::to_string(o.width) + "x" + std::to_string(o.height) + "@" +
+                std::to_string(o.fps) + " RGB888 not supported");
   openni::VideoMode dm = m.depth.getVideoMode();
   dm.setResolution(o.width, o.height);
   dm.setFps(o.fps);
   dm.setPixelFormat(openni::PIXEL_FORMAT_DEPTH_1_MM);
-  if (m.depth.setVideoMode(dm) != openni::STATUS_OK) return fail("depth mode DEPTH_1_MM at the colour size not supported");
+  if (m.depth.setVideoMode(dm) != openni::STATUS_OK)
+    return fail("depth mode DEPTH_1_MM at the colour size not supported");
   (void)m.color.setMirroringEnabled(o.mirror);
   (void)m.depth.setMirroringEnabled(o.mirror);
   if (o.registration) {
@@ -102,7 +103,8 @@ std::string Camera::open(const Options& o) {
   }
   if (o.frame_sync && m.device.setDepthColorSyncEnabled(true) != openni::STATUS_OK)
     return fail("depth/colour frame sync could not be enabled");
-  if (m.depth.start() != openni::STATUS_OK || m.color.start() != openni::STATUS_OK) return fail("streams did not start");
+  if (m.depth.start() != openni::STATUS_OK || m.color.start() != openni::STATUS_OK)
+    return fail("streams did not start");
   m.open = true;
   sync_.reset();
   have_index_ = false;
@@ -153,7 +155,8 @@ GrabResult Camera::grab(int timeout_ms, ImageBuffer& rgb, ImageBuffer& depth, Fr
   meta.t_recv_ns = t_recv;
   meta.seq = index;
   openni::CameraSettings* cs = m.color.getCameraSettings();
-  meta.exposure_us = cs != nullptr ? cs->getExposure() : 0;   // SDK reports milliseconds or ticks; 0 if unknown
+  meta.exposure_us =
+      cs != nullptr ? cs->getExposure() : 0;  // SDK reports milliseconds or ticks; 0 if unknown
 
   const int w = m.cf.getWidth(), h = m.cf.getHeight();
   const size_t rgb_bytes = static_cast<size_t>(w) * h * 3, depth_bytes = static_cast<size_t>(w) * h * 2;
@@ -165,9 +168,10 @@ GrabResult Camera::grab(int timeout_ms, ImageBuffer& rgb, ImageBuffer& depth, Fr
   rgb.pixels.resize(rgb_bytes);
   depth.pixels.resize(depth_bytes);
   for (int y = 0; y < h; ++y)
-    std::memcpy(rgb.pixels.data() + static_cast<size_t>(y) * w * 3,
-                static_cast<const uint8_t*>(m.cf.getData()) + static_cast<size_t>(y) * m.cf.getStrideInBytes(),
-                static_cast<size_t>(w) * 3);
+    std::memcpy(
+        rgb.pixels.data() + static_cast<size_t>(y) * w * 3,
+        static_cast<const uint8_t*>(m.cf.getData()) + static_cast<size_t>(y) * m.cf.getStrideInBytes(),
+        static_cast<size_t>(w) * 3);
   const double k = 0.001 / opt_.rig_depth_scale_m;
   for (int y = 0; y < h; ++y) {
     const auto* s = reinterpret_cast<const uint16_t*>(static_cast<const uint8_t*>(m.df.getData()) +
@@ -202,7 +206,9 @@ struct Camera::Impl {};
 Camera::Camera() : impl_(std::make_unique<Impl>()), sync_(device_clock_options()) {}
 Camera::~Camera() = default;
 bool Camera::is_open() const { return false; }
-std::string Camera::open(const Options&) { return "OpenNI2 support not built (libopenni2 not found at build time)"; }
+std::string Camera::open(const Options&) {
+  return "OpenNI2 support not built (libopenni2 not found at build time)";
+}
 void Camera::close() {}
 GrabResult Camera::grab(int, ImageBuffer&, ImageBuffer&, FrameMeta&) { return GrabResult::kError; }
 

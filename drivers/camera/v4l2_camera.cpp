@@ -4,7 +4,6 @@
 #include <cerrno>
 #include <cmath>
 #include <cstring>
-
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
@@ -60,7 +59,8 @@ FormatChoice choose_format(const std::vector<FormatOption>& available, const For
       return c;
     }
   }
-  c.why = "no offered format matches " + std::to_string(req.width) + "x" + std::to_string(req.height) + " in {";
+  c.why =
+      "no offered format matches " + std::to_string(req.width) + "x" + std::to_string(req.height) + " in {";
   for (size_t i = 0; i < req.preferred.size(); ++i) c.why += (i ? ", " : "") + fourcc_name(req.preferred[i]);
   c.why += "}; the device offers:";
   size_t shown = 0;
@@ -82,7 +82,7 @@ BufferTime buffer_time(int64_t tv_sec, int64_t tv_usec, uint32_t flags, int64_t 
   t.monotonic = (flags & kBufFlagTimestampMask) == kBufFlagTimestampMonotonic;
   t.start_of_exposure = (flags & kBufFlagTstampSrcMask) == kBufFlagTstampSrcSoe;
   t.t_ns = t.monotonic ? tv_sec * 1'000'000'000 + tv_usec * 1'000 : t_dequeue_ns;
-  if (!t.monotonic) t.start_of_exposure = false;   // a dequeue time is an end-of-frame time at best
+  if (!t.monotonic) t.start_of_exposure = false;  // a dequeue time is an end-of-frame time at best
   return t;
 }
 
@@ -154,8 +154,8 @@ void yuyv_to_rgb(const uint8_t* src, int width, int height, int src_stride, uint
   }
 }
 
-void z16_to_depth(const uint8_t* src, int width, int height, int src_stride, double src_scale_m, double dst_scale_m,
-                  uint16_t* dst) {
+void z16_to_depth(const uint8_t* src, int width, int height, int src_stride, double src_scale_m,
+                  double dst_scale_m, uint16_t* dst) {
   const double k = src_scale_m / dst_scale_m;
   const bool same = std::abs(k - 1.0) < 1e-12;
   for (int y = 0; y < height; ++y) {
@@ -176,23 +176,28 @@ void z16_to_depth(const uint8_t* src, int width, int height, int src_stride, dou
 void copy_rows(const uint8_t* src, int row_bytes, int height, int src_stride, uint8_t* dst) {
   for (int y = 0; y < height; ++y)
     std::memcpy(dst + static_cast<size_t>(y) * static_cast<size_t>(row_bytes),
-                src + static_cast<size_t>(y) * static_cast<size_t>(src_stride), static_cast<size_t>(row_bytes));
+                src + static_cast<size_t>(y) * static_cast<size_t>(src_stride),
+                static_cast<size_t>(row_bytes));
 }
 
 bool z16_to_registered_depth(const uint8_t* src, int width, int height, int src_stride, double src_scale_m,
-                             double dst_scale_m, const DepthRegistration& reg, uint16_t* scratch, uint16_t* dst,
-                             int dst_stride, RegistrationStats* stats) {
+                             double dst_scale_m, const DepthRegistration& reg, uint16_t* scratch,
+                             uint16_t* dst, int dst_stride, RegistrationStats* stats) {
   if (width != reg.depth_width() || height != reg.depth_height()) return false;
   z16_to_depth(src, width, height, src_stride, src_scale_m, dst_scale_m, scratch);
-  const ImageView v{width, height, width * 2, PixelFormat::kDepthU16, reinterpret_cast<const uint8_t*>(scratch)};
+  const ImageView v{width, height, width * 2, PixelFormat::kDepthU16,
+                    reinterpret_cast<const uint8_t*>(scratch)};
   return reg.register_into(v, dst, dst_stride, stats);
 }
 
 PixelFormat Camera::output_format() const {
   switch (active_.fourcc) {
-    case kZ16: return PixelFormat::kDepthU16;
-    case kGrey: return PixelFormat::kGray8;
-    default: return PixelFormat::kRgb8;
+    case kZ16:
+      return PixelFormat::kDepthU16;
+    case kGrey:
+      return PixelFormat::kGray8;
+    default:
+      return PixelFormat::kRgb8;
   }
 }
 
@@ -218,7 +223,7 @@ std::vector<FormatOption> enumerate(int fd) {
     std::memset(&fs, 0, sizeof fs);
     fs.pixel_format = fd_desc.pixelformat;
     for (fs.index = 0; xioctl(fd, VIDIOC_ENUM_FRAMESIZES, &fs) == 0; ++fs.index) {
-      if (fs.type != V4L2_FRMSIZE_TYPE_DISCRETE) break;   // stepwise sizes: not offered by UVC cameras we use
+      if (fs.type != V4L2_FRMSIZE_TYPE_DISCRETE) break;  // stepwise sizes: not offered by UVC cameras we use
       v4l2_frmivalenum fi;
       std::memset(&fi, 0, sizeof fi);
       fi.pixel_format = fs.pixel_format;
@@ -260,7 +265,8 @@ std::vector<DeviceInfo> list_devices(std::string* error) {
         d.driver = reinterpret_cast<const char*>(cap.driver);
         d.bus_info = reinterpret_cast<const char*>(cap.bus_info);
         for (const FormatOption& o : enumerate(fd))
-          if (std::find(d.formats.begin(), d.formats.end(), o.fourcc) == d.formats.end()) d.formats.push_back(o.fourcc);
+          if (std::find(d.formats.begin(), d.formats.end(), o.fourcc) == d.formats.end())
+            d.formats.push_back(o.fourcc);
         out.push_back(d);
       }
     }
@@ -300,7 +306,8 @@ std::string Camera::open(const Options& o) {
   fmt.fmt.pix.pixelformat = choice.option.fourcc;
   fmt.fmt.pix.field = V4L2_FIELD_NONE;
   if (xioctl(fd_, VIDIOC_S_FMT, &fmt) < 0) return fail(std::string("VIDIOC_S_FMT: ") + std::strerror(errno));
-  if (fmt.fmt.pix.pixelformat != choice.option.fourcc || static_cast<int>(fmt.fmt.pix.width) != choice.option.width ||
+  if (fmt.fmt.pix.pixelformat != choice.option.fourcc ||
+      static_cast<int>(fmt.fmt.pix.width) != choice.option.width ||
       static_cast<int>(fmt.fmt.pix.height) != choice.option.height)
     return fail("the driver changed the requested format (verify after set failed)");
   active_ = choice.option;
@@ -309,8 +316,9 @@ std::string Camera::open(const Options& o) {
   if (o.depth_camera.present && choice.option.fourcc == kZ16) {
     const CameraIntrinsics& d = o.depth_camera.intrinsics;
     if (d.width != choice.option.width || d.height != choice.option.height)
-      return fail("depth stream " + std::to_string(choice.option.width) + "x" + std::to_string(choice.option.height) +
-                  " but the rig's depth_camera is " + std::to_string(d.width) + "x" + std::to_string(d.height));
+      return fail("depth stream " + std::to_string(choice.option.width) + "x" +
+                  std::to_string(choice.option.height) + " but the rig's depth_camera is " +
+                  std::to_string(d.width) + "x" + std::to_string(d.height));
     try {
       registration_ = std::make_unique<DepthRegistration>(o.depth_camera, o.colour, o.rig_depth_scale_m);
     } catch (const std::invalid_argument& e) {
@@ -324,7 +332,7 @@ std::string Camera::open(const Options& o) {
     parm.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
     parm.parm.capture.timeperframe.numerator = 1000;
     parm.parm.capture.timeperframe.denominator = static_cast<uint32_t>(std::lround(choice.option.fps * 1000));
-    (void)xioctl(fd_, VIDIOC_S_PARM, &parm);   // best effort: some drivers fix the rate
+    (void)xioctl(fd_, VIDIOC_S_PARM, &parm);  // best effort: some drivers fix the rate
   }
   v4l2_requestbuffers req;
   std::memset(&req, 0, sizeof req);
@@ -346,9 +354,11 @@ std::string Camera::open(const Options& o) {
     if (xioctl(fd_, VIDIOC_QBUF, &b) < 0) return fail("VIDIOC_QBUF failed");
     book_.on_queued(static_cast<int>(i));
   }
-  if (active_.fourcc == kMjpeg) decode_scratch_.reserve(static_cast<size_t>(active_.width) * active_.height * 3);
+  if (active_.fourcc == kMjpeg)
+    decode_scratch_.reserve(static_cast<size_t>(active_.width) * active_.height * 3);
   v4l2_buf_type type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
-  if (xioctl(fd_, VIDIOC_STREAMON, &type) < 0) return fail(std::string("VIDIOC_STREAMON: ") + std::strerror(errno));
+  if (xioctl(fd_, VIDIOC_STREAMON, &type) < 0)
+    return fail(std::string("VIDIOC_STREAMON: ") + std::strerror(errno));
   return "";
 }
 
@@ -390,8 +400,10 @@ GrabResult Camera::grab(int timeout_ms, ImageBuffer& dst, FrameMeta& meta) {
   int32_t exposure_us = 0;
   if (exposure_ctrl_ok_) {
     v4l2_control c{V4L2_CID_EXPOSURE_ABSOLUTE, 0};
-    if (xioctl(fd_, VIDIOC_G_CTRL, &c) == 0) exposure_us = c.value * 100;   // units of 100 us
-    else exposure_ctrl_ok_ = false;
+    if (xioctl(fd_, VIDIOC_G_CTRL, &c) == 0)
+      exposure_us = c.value * 100;  // units of 100 us
+    else
+      exposure_ctrl_ok_ = false;
   }
   const BufferTime bt = buffer_time(b.timestamp.tv_sec, b.timestamp.tv_usec, b.flags, t_recv);
   if (!bt.monotonic) ++counters_.non_monotonic;
@@ -417,14 +429,19 @@ GrabResult Camera::grab(int timeout_ms, ImageBuffer& dst, FrameMeta& meta) {
   bool ok = (b.flags & V4L2_BUF_FLAG_ERROR) == 0;
   const size_t need = static_cast<size_t>(ow) * oh * static_cast<size_t>(bytes_per_pixel(dst.format));
   if (ok && need <= dst.pixels.capacity()) {
-    dst.pixels.resize(need);   // within the start-up reservation: no allocation
+    dst.pixels.resize(need);  // within the start-up reservation: no allocation
     switch (active_.fourcc) {
-      case kYuyv: yuyv_to_rgb(src, w, h, stride_, dst.pixels.data(), w * 3); break;
-      case kGrey: copy_rows(src, w, h, stride_, dst.pixels.data()); break;
+      case kYuyv:
+        yuyv_to_rgb(src, w, h, stride_, dst.pixels.data(), w * 3);
+        break;
+      case kGrey:
+        copy_rows(src, w, h, stride_, dst.pixels.data());
+        break;
       case kZ16:
         if (registration_)
-          ok = z16_to_registered_depth(src, w, h, stride_, opt_.depth_scale_m, opt_.rig_depth_scale_m, *registration_,
-                                       depth_scratch_.data(), reinterpret_cast<uint16_t*>(dst.pixels.data()), ow * 2);
+          ok = z16_to_registered_depth(src, w, h, stride_, opt_.depth_scale_m, opt_.rig_depth_scale_m,
+                                       *registration_, depth_scratch_.data(),
+                                       reinterpret_cast<uint16_t*>(dst.pixels.data()), ow * 2);
         else
           z16_to_depth(src, w, h, stride_, opt_.depth_scale_m, opt_.rig_depth_scale_m,
                        reinterpret_cast<uint16_t*>(dst.pixels.data()));
@@ -443,7 +460,8 @@ GrabResult Camera::grab(int timeout_ms, ImageBuffer& dst, FrameMeta& meta) {
         }
         break;
       }
-      default: ok = false;
+      default:
+        ok = false;
     }
   } else {
     ok = false;

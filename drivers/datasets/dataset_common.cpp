@@ -131,9 +131,9 @@ std::vector<long> associate(const std::vector<Listed>& rgb, const std::vector<Li
   // A listed stamp may be any int64 (a sign included): the window's ends saturate.
   auto shifted = [](int64_t t, int64_t dt) {
     int64_t v = 0;
-    return __builtin_add_overflow(t, dt, &v) ? (dt < 0 ? std::numeric_limits<int64_t>::min()
-                                                      : std::numeric_limits<int64_t>::max())
-                                             : v;
+    return __builtin_add_overflow(t, dt, &v)
+               ? (dt < 0 ? std::numeric_limits<int64_t>::min() : std::numeric_limits<int64_t>::max())
+               : v;
   };
   for (size_t r = 0; r < rgb.size(); ++r) {
     while (lo < depth.size() && depth[lo].t_ns < shifted(rgb[r].t_ns, -max_dt_ns)) ++lo;

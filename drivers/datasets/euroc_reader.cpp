@@ -6,10 +6,10 @@
 #include <cstdint>
 #include <stdexcept>
 
-#include "kestrel/drivers/folder_logs.hpp"
-#include "kestrel/drivers/rig_yaml.hpp"
 #include "asl_tables.hpp"
 #include "dataset_common.hpp"
+#include "kestrel/drivers/folder_logs.hpp"
+#include "kestrel/drivers/rig_yaml.hpp"
 #include "text_log.hpp"
 
 namespace kestrel::drivers {
@@ -37,7 +37,8 @@ std::vector<double> yaml_numbers(const YAML::Node& n, const std::string& path, c
     throw std::runtime_error(path + ": " + field + ": expected a list of " + std::to_string(min_n) +
                              (min_n == max_n ? "" : ".." + std::to_string(max_n)) + " numbers");
   std::vector<double> v;
-  for (size_t i = 0; i < n.size(); ++i) v.push_back(yaml_number(n[i], path, field + "[" + std::to_string(i) + "]"));
+  for (size_t i = 0; i < n.size(); ++i)
+    v.push_back(yaml_number(n[i], path, field + "[" + std::to_string(i) + "]"));
   return v;
 }
 
@@ -53,7 +54,8 @@ void camera_from_sensor(const std::string& path, Rig& rig) {
   rig.rgb.cy = (*y.intrinsics_px)[3];
   rig.rgb.distortion = y.distortion;
   rig.rgb.dist = {};
-  for (size_t i = 0; i < y.distortion_coefficients.size(); ++i) rig.rgb.dist[i] = y.distortion_coefficients[i];
+  for (size_t i = 0; i < y.distortion_coefficients.size(); ++i)
+    rig.rgb.dist[i] = y.distortion_coefficients[i];
   rig.T_BC = y.T_BS;
   if (y.rate_hz) rig.camera_rate_hz = *y.rate_hz;
 }
@@ -81,9 +83,12 @@ void imu_from_sensor(const std::string& path, Rig& rig) {
   const EurocSensorYaml y = read_euroc_sensor_yaml(path);
   rig.T_BI = y.T_BS;
   if (y.rate_hz) rig.imu_rate_hz = *y.rate_hz;
-  if (y.gyro_noise_density_rad_s_sqrthz) rig.imu.gyro_noise_density_rad_s_sqrthz = *y.gyro_noise_density_rad_s_sqrthz;
-  if (y.gyro_random_walk_rad_s2_sqrthz) rig.imu.gyro_random_walk_rad_s2_sqrthz = *y.gyro_random_walk_rad_s2_sqrthz;
-  if (y.acc_noise_density_mps2_sqrthz) rig.imu.acc_noise_density_mps2_sqrthz = *y.acc_noise_density_mps2_sqrthz;
+  if (y.gyro_noise_density_rad_s_sqrthz)
+    rig.imu.gyro_noise_density_rad_s_sqrthz = *y.gyro_noise_density_rad_s_sqrthz;
+  if (y.gyro_random_walk_rad_s2_sqrthz)
+    rig.imu.gyro_random_walk_rad_s2_sqrthz = *y.gyro_random_walk_rad_s2_sqrthz;
+  if (y.acc_noise_density_mps2_sqrthz)
+    rig.imu.acc_noise_density_mps2_sqrthz = *y.acc_noise_density_mps2_sqrthz;
   if (y.acc_random_walk_mps3_sqrthz) rig.imu.acc_random_walk_mps3_sqrthz = *y.acc_random_walk_mps3_sqrthz;
 }
 
@@ -107,8 +112,9 @@ void read_imu_csv(const std::string& path, StreamLogSource& s) {
     if (!data_line(lines[i])) continue;
     const auto f = text::split(lines[i], ',');
     if (f.size() != 7) {
-      s.problem(where(path, i + 1), "bad-row",
-                "expected 7 comma-separated fields (t_ns, gyro x y z, acc x y z), got " + std::to_string(f.size()));
+      s.problem(
+          where(path, i + 1), "bad-row",
+          "expected 7 comma-separated fields (t_ns, gyro x y z, acc x y z), got " + std::to_string(f.size()));
       continue;
     }
     ImuSample m;
@@ -120,7 +126,8 @@ void read_imu_csv(const std::string& path, StreamLogSource& s) {
     bool ok = true;
     for (int k = 0; k < 6 && ok; ++k)
       if (!text::parse_f64(f[k + 1], v[k])) {
-        s.problem(where(path, i + 1), "bad-row", "field " + std::to_string(k + 2) + " \"" + f[k + 1] + "\" is not a number");
+        s.problem(where(path, i + 1), "bad-row",
+                  "field " + std::to_string(k + 2) + " \"" + f[k + 1] + "\" is not a number");
         ok = false;
       }
     if (!ok) continue;
@@ -167,7 +174,8 @@ void read_gt_csv(const std::string& path, StreamLogSource& s) {
     bool ok = true;
     for (size_t k = 0; k < n && ok; ++k)
       if (!text::parse_f64(f[k + 1], v[k]) || !std::isfinite(v[k])) {
-        s.problem(where(path, i + 1), "bad-row", "field " + std::to_string(k + 2) + " \"" + f[k + 1] + "\" is not a finite number");
+        s.problem(where(path, i + 1), "bad-row",
+                  "field " + std::to_string(k + 2) + " \"" + f[k + 1] + "\" is not a finite number");
         ok = false;
       }
     if (!ok) continue;
@@ -219,8 +227,8 @@ void read_image_csv(const std::string& csv, const std::string& data_dir, StreamL
     out.push_back(std::move(e));
   }
   if (!dir_ok && listed > 0)
-    s.problem(data_dir, "missing-file", "image folder absent: " + std::to_string(listed) + " images listed in " + csv +
-                                            " skipped");
+    s.problem(data_dir, "missing-file",
+              "image folder absent: " + std::to_string(listed) + " images listed in " + csv + " skipped");
 }
 
 }  // namespace asl
@@ -260,8 +268,10 @@ EurocSensorYaml read_euroc_sensor_yaml(const std::string& path) {
   EurocSensorYaml y;
   // Cameras: both lists are read before either is judged, so a bad number is named first.
   if (n["resolution"] || n["intrinsics"]) {
-    const auto res = n["resolution"] ? yaml_numbers(n["resolution"], path, "resolution", 2, 2) : std::vector<double>{};
-    const auto k = n["intrinsics"] ? yaml_numbers(n["intrinsics"], path, "intrinsics", 4, 4) : std::vector<double>{};
+    const auto res =
+        n["resolution"] ? yaml_numbers(n["resolution"], path, "resolution", 2, 2) : std::vector<double>{};
+    const auto k =
+        n["intrinsics"] ? yaml_numbers(n["intrinsics"], path, "intrinsics", 4, 4) : std::vector<double>{};
     if (!res.empty()) {
       if (res[0] < 1 || res[1] < 1 || res[0] != std::floor(res[0]) || res[1] != std::floor(res[1]) ||
           res[0] > 32768 || res[1] > 32768)
@@ -273,19 +283,25 @@ EurocSensorYaml read_euroc_sensor_yaml(const std::string& path) {
       y.intrinsics_px = std::array<double, 4>{k[0], k[1], k[2], k[3]};
     }
   }
-  const std::string model = n["distortion_model"] && n["distortion_model"].IsScalar()
-                                ? n["distortion_model"].Scalar() : "none";
-  if (model == "radial-tangential" || model == "radtan") y.distortion = DistortionModel::kRadTan;
-  else if (model == "equidistant") y.distortion = DistortionModel::kEquidistant;
-  else if (model == "none") y.distortion = DistortionModel::kNone;
-  else throw std::runtime_error(path + ": distortion_model: expected radial-tangential, equidistant or none, got \"" +
-                                model + "\"");
+  const std::string model =
+      n["distortion_model"] && n["distortion_model"].IsScalar() ? n["distortion_model"].Scalar() : "none";
+  if (model == "radial-tangential" || model == "radtan")
+    y.distortion = DistortionModel::kRadTan;
+  else if (model == "equidistant")
+    y.distortion = DistortionModel::kEquidistant;
+  else if (model == "none")
+    y.distortion = DistortionModel::kNone;
+  else
+    throw std::runtime_error(
+        path + ": distortion_model: expected radial-tangential, equidistant or none, got \"" + model + "\"");
   if (n["distortion_coefficients"])
-    y.distortion_coefficients = yaml_numbers(n["distortion_coefficients"], path, "distortion_coefficients", 0, 5);
+    y.distortion_coefficients =
+        yaml_numbers(n["distortion_coefficients"], path, "distortion_coefficients", 0, 5);
   const YAML::Node t = n["T_BS"];
   if (!t || !(t.IsMap() || t.IsSequence()))
     throw std::runtime_error(path + ": T_BS: missing (expected rows, cols, data)");
-  const auto d = t.IsMap() ? yaml_numbers(t["data"], path, "T_BS.data", 16, 16) : yaml_numbers(t, path, "T_BS", 16, 16);
+  const auto d =
+      t.IsMap() ? yaml_numbers(t["data"], path, "T_BS.data", 16, 16) : yaml_numbers(t, path, "T_BS", 16, 16);
   for (size_t i = 0; i < 16; ++i) y.T_BS[i] = d[i];
   if (n["rate_hz"]) y.rate_hz = yaml_number(n["rate_hz"], path, "rate_hz");
   const std::pair<const char*, std::optional<double>*> noise[] = {
@@ -299,7 +315,8 @@ EurocSensorYaml read_euroc_sensor_yaml(const std::string& path) {
 }
 
 bool is_euroc_folder(const std::string& path) {
-  return text::is_dir(path + "/mav0") || text::is_file(path + "/imu0/data.csv") || text::is_file(path + "/imu0.csv");
+  return text::is_dir(path + "/mav0") || text::is_file(path + "/imu0/data.csv") ||
+         text::is_file(path + "/imu0.csv");
 }
 
 EurocReader::EurocReader(const std::string& path_in) {
@@ -327,10 +344,14 @@ EurocReader::EurocReader(const std::string& path_in) {
     s.rig_ = load_rig_file(root + "/kestrel_rig.yaml");
   } else {
     s.rig_.name = name;
-    if (text::is_file(cam_yaml)) camera_from_sensor(cam_yaml, s.rig_);
-    else s.problem(cam_yaml, "missing-file", "no camera calibration; the rig keeps default intrinsics");
-    if (text::is_file(imu_yaml)) imu_from_sensor(imu_yaml, s.rig_);
-    else s.problem(imu_yaml, "missing-file", "no IMU noise figures; the rig keeps defaults");
+    if (text::is_file(cam_yaml))
+      camera_from_sensor(cam_yaml, s.rig_);
+    else
+      s.problem(cam_yaml, "missing-file", "no camera calibration; the rig keeps default intrinsics");
+    if (text::is_file(imu_yaml))
+      imu_from_sensor(imu_yaml, s.rig_);
+    else
+      s.problem(imu_yaml, "missing-file", "no IMU noise figures; the rig keeps defaults");
     // A second camera makes the folder a stereo log: depth from matching cam0 against cam1 (docs/stereo.md).
     const std::string cam1_yaml = root + "/cam1/sensor.yaml";
     if (!flat_ && text::is_file(root + "/cam1/data.csv")) {
@@ -355,7 +376,8 @@ EurocReader::EurocReader(const std::string& path_in) {
   } else {
     if (text::is_file(root + "/cam0/data.csv"))
       asl::read_image_csv(root + "/cam0/data.csv", root + "/cam0/data", s, s.rgb_);
-    else s.problem(root + "/cam0/data.csv", "missing-file", "no cam0 table; no images replayed");
+    else
+      s.problem(root + "/cam0/data.csv", "missing-file", "no cam0 table; no images replayed");
     // Only with a stereo rig (cam1/sensor.yaml or the rig file's stereo:): uncalibrated images are no use.
     if (s.rig_.stereo.present && text::is_file(root + "/cam1/data.csv"))
       asl::read_image_csv(root + "/cam1/data.csv", root + "/cam1/data", s, s.right_);

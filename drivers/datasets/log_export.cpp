@@ -56,7 +56,8 @@ std::string matrix_yaml(const Mat4d& m) {
 
 std::string camera_sensor_yaml(const Rig& r, const char* comment) {
   const auto& c = r.rgb;
-  std::string s = "%YAML:1.0\nsensor_type: camera\ncomment: " + std::string(comment) + "\n\n" + matrix_yaml(r.T_BC);
+  std::string s =
+      "%YAML:1.0\nsensor_type: camera\ncomment: " + std::string(comment) + "\n\n" + matrix_yaml(r.T_BC);
   s += "\nrate_hz: " + text::fmt17(r.camera_rate_hz) + "\n";
   s += "resolution: [" + std::to_string(c.width) + ", " + std::to_string(c.height) + "]\n";
   s += "camera_model: pinhole\n";
@@ -75,10 +76,14 @@ std::string camera_sensor_yaml(const Rig& r, const char* comment) {
 std::string imu_sensor_yaml(const Rig& r) {
   std::string s = "%YAML:1.0\nsensor_type: imu\ncomment: exported by Kestrel\n\n" + matrix_yaml(r.T_BI);
   s += "rate_hz: " + text::fmt17(r.imu_rate_hz) + "\n\n";
-  s += "gyroscope_noise_density: " + text::fmt17(r.imu.gyro_noise_density_rad_s_sqrthz) + "     # [ rad / s / sqrt(Hz) ]\n";
-  s += "gyroscope_random_walk: " + text::fmt17(r.imu.gyro_random_walk_rad_s2_sqrthz) + "       # [ rad / s^2 / sqrt(Hz) ]\n";
-  s += "accelerometer_noise_density: " + text::fmt17(r.imu.acc_noise_density_mps2_sqrthz) + "  # [ m / s^2 / sqrt(Hz) ]\n";
-  s += "accelerometer_random_walk: " + text::fmt17(r.imu.acc_random_walk_mps3_sqrthz) + "    # [ m / s^3 / sqrt(Hz) ]\n";
+  s += "gyroscope_noise_density: " + text::fmt17(r.imu.gyro_noise_density_rad_s_sqrthz) +
+       "     # [ rad / s / sqrt(Hz) ]\n";
+  s += "gyroscope_random_walk: " + text::fmt17(r.imu.gyro_random_walk_rad_s2_sqrthz) +
+       "       # [ rad / s^2 / sqrt(Hz) ]\n";
+  s += "accelerometer_noise_density: " + text::fmt17(r.imu.acc_noise_density_mps2_sqrthz) +
+       "  # [ m / s^2 / sqrt(Hz) ]\n";
+  s += "accelerometer_random_walk: " + text::fmt17(r.imu.acc_random_walk_mps3_sqrthz) +
+       "    # [ m / s^3 / sqrt(Hz) ]\n";
   return s;
 }
 
@@ -86,9 +91,12 @@ cv::Mat to_writable(const LogImage& img) {
   // LogImage pixels are packed, so a Mat header over them needs no copy.
   auto* data = const_cast<uint8_t*>(img.pixels.data());
   switch (img.format) {
-    case PixelFormat::kGray8: return cv::Mat(img.height, img.width, CV_8UC1, data);
-    case PixelFormat::kBgr8: return cv::Mat(img.height, img.width, CV_8UC3, data);
-    case PixelFormat::kDepthU16: return cv::Mat(img.height, img.width, CV_16UC1, data);
+    case PixelFormat::kGray8:
+      return cv::Mat(img.height, img.width, CV_8UC1, data);
+    case PixelFormat::kBgr8:
+      return cv::Mat(img.height, img.width, CV_8UC3, data);
+    case PixelFormat::kDepthU16:
+      return cv::Mat(img.height, img.width, CV_16UC1, data);
     case PixelFormat::kRgb8: {
       cv::Mat bgr;
       cv::cvtColor(cv::Mat(img.height, img.width, CV_8UC3, data), bgr, cv::COLOR_RGB2BGR);
@@ -126,8 +134,9 @@ ExportStats export_euroc(LogSource& src, const std::string& out_dir) {
     f.close();
   }
   OutFile imu(mav + "/imu0/data.csv");
-  imu.put("#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],a_RS_S_x [m s^-2],"
-          "a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]\n");
+  imu.put(
+      "#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],a_RS_S_x [m s^-2],"
+      "a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]\n");
   OutFile cam(mav + "/cam0/data.csv");
   cam.put("#timestamp [ns],filename\n");
   std::unique_ptr<OutFile> depth, gt, events, right;
@@ -154,9 +163,11 @@ ExportStats export_euroc(LogSource& src, const std::string& out_dir) {
         if (!is_rgb && !depth) {
           mkdirs(mav + "/depth0/data");
           OutFile y(mav + "/depth0/sensor.yaml");
-          y.put(camera_sensor_yaml(rig, "depth registered to the colour camera (cam0), 16-bit PNG; metres = value * "
-                                        "scale_m_per_unit in kestrel_rig.yaml") +
-                "scale_m_per_unit: " + text::fmt17(rig.depth.scale_m_per_unit) + "\n");
+          y.put(
+              camera_sensor_yaml(rig,
+                                 "depth registered to the colour camera (cam0), 16-bit PNG; metres = value * "
+                                 "scale_m_per_unit in kestrel_rig.yaml") +
+              "scale_m_per_unit: " + text::fmt17(rig.depth.scale_m_per_unit) + "\n");
           y.close();
           depth = std::make_unique<OutFile>(mav + "/depth0/data.csv");
           depth->put("#timestamp [ns],filename\n");
@@ -178,8 +189,10 @@ ExportStats export_euroc(LogSource& src, const std::string& out_dir) {
         if (!gt) {
           mkdirs(mav + "/state_groundtruth_estimate0");
           gt = std::make_unique<OutFile>(mav + "/state_groundtruth_estimate0/data.csv");
-          gt->put("#timestamp [ns],p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m],q_RS_w [],q_RS_x [],q_RS_y [],q_RS_z [],"
-                  "v_RS_R_x [m s^-1],v_RS_R_y [m s^-1],v_RS_R_z [m s^-1]\n");
+          gt->put(
+              "#timestamp [ns],p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m],q_RS_w [],q_RS_x [],q_RS_y [],q_RS_z "
+              "[],"
+              "v_RS_R_x [m s^-1],v_RS_R_y [m s^-1],v_RS_R_z [m s^-1]\n");
         }
         const auto& g = r.gt;
         std::string row = std::to_string(g.t_ns);
@@ -200,8 +213,8 @@ ExportStats export_euroc(LogSource& src, const std::string& out_dir) {
         std::string t = r.event.text;
         for (char& c : t)
           if (c == '\n' || c == '\r') c = ' ';
-        events->put(std::to_string(r.event.t_ns) + "," + std::to_string(static_cast<uint32_t>(r.event.code)) + "," +
-                    t + "\n");
+        events->put(std::to_string(r.event.t_ns) + "," + std::to_string(static_cast<uint32_t>(r.event.code)) +
+                    "," + t + "\n");
         ++st.events;
         break;
       }
@@ -292,7 +305,8 @@ struct Undistorter {
         } else {
           const double r = std::sqrt(x * x + y * y);
           const double th = std::atan(r), t2 = th * th;
-          const double thd = th * (1 + k[0] * t2 + k[1] * t2 * t2 + k[2] * t2 * t2 * t2 + k[3] * t2 * t2 * t2 * t2);
+          const double thd =
+              th * (1 + k[0] * t2 + k[1] * t2 * t2 + k[2] * t2 * t2 * t2 + k[3] * t2 * t2 * t2 * t2);
           const double s = r > 1e-12 ? thd / r : 1.0;
           xd = x * s, yd = y * s;
         }
@@ -303,7 +317,8 @@ struct Undistorter {
   cv::Mat apply(const cv::Mat& in, bool depth) const {
     if (!active || in.cols != map_x.cols || in.rows != map_x.rows) return in;
     cv::Mat out;
-    cv::remap(in, out, map_x, map_y, depth ? cv::INTER_NEAREST : cv::INTER_LINEAR, cv::BORDER_CONSTANT, cv::Scalar());
+    cv::remap(in, out, map_x, map_y, depth ? cv::INTER_NEAREST : cv::INTER_LINEAR, cv::BORDER_CONSTANT,
+              cv::Scalar());
     return out;
   }
 };
@@ -313,8 +328,9 @@ void write_png(const std::string& file, const cv::Mat& m) {
 }
 
 std::string tum_pose(int64_t t_ns, const Vec3d& p, const Quatd& q) {
-  return text::seconds_from_ns(t_ns) + " " + text::fmt17(p[0]) + " " + text::fmt17(p[1]) + " " + text::fmt17(p[2]) +
-         " " + text::fmt17(q[1]) + " " + text::fmt17(q[2]) + " " + text::fmt17(q[3]) + " " + text::fmt17(q[0]) + "\n";
+  return text::seconds_from_ns(t_ns) + " " + text::fmt17(p[0]) + " " + text::fmt17(p[1]) + " " +
+         text::fmt17(p[2]) + " " + text::fmt17(q[1]) + " " + text::fmt17(q[2]) + " " + text::fmt17(q[3]) +
+         " " + text::fmt17(q[0]) + "\n";
 }
 
 // One image name per stamp; a repeated stamp gets a suffix so files never collide.
@@ -335,8 +351,8 @@ class ImageNamer {
 };
 
 std::string cv_matrix(int rows, int cols, const double* v) {
-  std::string s = "!!opencv-matrix\n      rows: " + std::to_string(rows) + "\n      cols: " + std::to_string(cols) +
-                  "\n      dt: d\n      data: [ ";
+  std::string s = "!!opencv-matrix\n      rows: " + std::to_string(rows) +
+                  "\n      cols: " + std::to_string(cols) + "\n      dt: d\n      data: [ ";
   for (int i = 0; i < rows * cols; ++i) s += (i ? ", " : "") + text::fmt17(v[i]);
   return s + " ]\n";
 }
@@ -403,7 +419,8 @@ ExportStats export_eth3d(LogSource& src, const std::string& out_dir) {
                   undistort.apply(rescale_depth(r.image, rig.depth.scale_m_per_unit, 1.0 / 5000.0), true));
         const std::string t = text::seconds_from_ns(r.image.t_ns);
         depth.put(t + " " + name + "\n");
-        if (have_rgb && last_rgb_t == r.image.t_ns) assoc.put(t + " " + last_rgb_file + " " + t + " " + name + "\n");
+        if (have_rgb && last_rgb_t == r.image.t_ns)
+          assoc.put(t + " " + last_rgb_file + " " + t + " " + name + "\n");
         ++st.depth;
         break;
       }
@@ -417,7 +434,8 @@ ExportStats export_eth3d(LogSource& src, const std::string& out_dir) {
         ++st.ground_truth;
         break;
       }
-      case RecordType::kEvent: break;   // ETH3D has no place for events
+      case RecordType::kEvent:
+        break;  // ETH3D has no place for events
       case RecordType::kRight:
         break;  // nor for a second camera
     }
@@ -446,7 +464,8 @@ ExportStats export_openloris(LogSource& src, const std::string& out_dir) {
     y += "   intrinsics: " + cv_matrix(1, 4, k);
     y += "   distortion_model: " + std::string(model) + "\n";
     y += "   distortion_coefficients: " + cv_matrix(1, 5, rig.rgb.dist.data());
-    y += "d400_depth_optical_frame:\n   sensor_type: camera\n   depth_scale: " + text::fmt17(rig.depth.scale_m_per_unit) + "\n";
+    y += "d400_depth_optical_frame:\n   sensor_type: camera\n   depth_scale: " +
+         text::fmt17(rig.depth.scale_m_per_unit) + "\n";
     y += "d400_accelerometer:\n   sensor_type: imu\n   fps: " + text::fmt17(rig.imu_rate_hz) + "\n";
     y += "d400_gyroscope:\n   sensor_type: imu\n   fps: " + text::fmt17(rig.imu_rate_hz) + "\n";
     f.put(y);
@@ -454,10 +473,12 @@ ExportStats export_openloris(LogSource& src, const std::string& out_dir) {
   }
   {
     OutFile f(out_dir + "/trans_matrix.yaml");
-    std::string y = "%YAML:1.0\n# T_parent_child: child coordinates into the parent frame; exported by Kestrel\ntrans_matrix:\n";
+    std::string y =
+        "%YAML:1.0\n# T_parent_child: child coordinates into the parent frame; exported by "
+        "Kestrel\ntrans_matrix:\n";
     auto entry = [&](const char* parent, const char* child, const Mat4d& m) {
-      y += "   - parent_frame: " + std::string(parent) + "\n     child_frame: " + child + "\n     matrix: " +
-           cv_matrix(4, 4, m.data());
+      y += "   - parent_frame: " + std::string(parent) + "\n     child_frame: " + child +
+           "\n     matrix: " + cv_matrix(4, 4, m.data());
     };
     entry("base_link", "d400_gyroscope", kIdentity4);
     entry("d400_gyroscope", "d400_accelerometer", kIdentity4);
@@ -490,7 +511,8 @@ ExportStats export_openloris(LogSource& src, const std::string& out_dir) {
       case RecordType::kRgb:
       case RecordType::kDepth: {
         const bool is_rgb = r.type == RecordType::kRgb;
-        const std::string name = (is_rgb ? "color/" : "aligned_depth/") + (is_rgb ? rgb_name : depth_name)(r.image.t_ns);
+        const std::string name =
+            (is_rgb ? "color/" : "aligned_depth/") + (is_rgb ? rgb_name : depth_name)(r.image.t_ns);
         write_png(out_dir + "/" + name, to_writable(r.image));
         (is_rgb ? color : depth).put(text::seconds_from_ns(r.image.t_ns) + " " + name + "\n");
         ++(is_rgb ? st.rgb : st.depth);
@@ -499,12 +521,15 @@ ExportStats export_openloris(LogSource& src, const std::string& out_dir) {
       case RecordType::kGroundTruth:
         if (!gt) {
           gt = std::make_unique<OutFile>(out_dir + "/groundtruth.txt");
-          gt->put("# base_link (= IMU body) pose in the world, exported by Kestrel\n# timestamp tx ty tz qx qy qz qw\n");
+          gt->put(
+              "# base_link (= IMU body) pose in the world, exported by Kestrel\n# timestamp tx ty tz qx qy "
+              "qz qw\n");
         }
         gt->put(tum_pose(r.gt.t_ns, r.gt.p_WB, r.gt.q_WB));
         ++st.ground_truth;
         break;
-      case RecordType::kEvent: break;   // nor has OpenLORIS
+      case RecordType::kEvent:
+        break;  // nor has OpenLORIS
       case RecordType::kRight:
         break;
     }

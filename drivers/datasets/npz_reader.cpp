@@ -66,7 +66,8 @@ class DictParser {
     while (i_ < s_.size() && std::isspace(static_cast<unsigned char>(s_[i_]))) ++i_;
   }
   [[noreturn]] void error(const std::string& expected) const {
-    fail(what_, "npy header: expected " + expected + " at offset " + std::to_string(i_) + " of \"" + s_ + "\"");
+    fail(what_,
+         "npy header: expected " + expected + " at offset " + std::to_string(i_) + " of \"" + s_ + "\"");
   }
   void expect(char c) {
     skip_ws();
@@ -107,7 +108,8 @@ class DictParser {
       size_t v = 0;
       while (std::isdigit(static_cast<unsigned char>(peek()))) {
         const size_t digit = static_cast<size_t>(peek() - '0');
-        if (v > (std::numeric_limits<size_t>::max() - digit) / 10) fail(what_, "npy header: dimension overflows");
+        if (v > (std::numeric_limits<size_t>::max() - digit) / 10)
+          fail(what_, "npy header: dimension overflows");
         v = v * 10 + digit;
         ++i_;
       }
@@ -180,8 +182,8 @@ NpyHeader parse_npy_header(const uint8_t* bytes, size_t size, const std::string&
     pre = 10;
   } else if (major == 2 || major == 3) {
     if (size < 12) fail(what, "truncated npy preamble");
-    len = static_cast<size_t>(bytes[8]) | static_cast<size_t>(bytes[9]) << 8 | static_cast<size_t>(bytes[10]) << 16 |
-          static_cast<size_t>(bytes[11]) << 24;
+    len = static_cast<size_t>(bytes[8]) | static_cast<size_t>(bytes[9]) << 8 |
+          static_cast<size_t>(bytes[10]) << 16 | static_cast<size_t>(bytes[11]) << 24;
     pre = 12;
   } else {
     fail(what, "unsupported npy version " + std::to_string(major) + "." + std::to_string(bytes[7]));
@@ -202,8 +204,8 @@ NpyArray parse_npy(const uint8_t* bytes, size_t size, const std::string& what) {
   a.was_fortran_order = h.fortran_order;
   const size_t n = element_count(h.shape, what);
   if (size - h.header_bytes != n * 8)
-    fail(what, "truncated or oversized: shape " + std::to_string(n) + " elements needs " + std::to_string(n * 8) +
-                   " data bytes, found " + std::to_string(size - h.header_bytes));
+    fail(what, "truncated or oversized: shape " + std::to_string(n) + " elements needs " +
+                   std::to_string(n * 8) + " data bytes, found " + std::to_string(size - h.header_bytes));
   a.data.resize(n);
   std::memcpy(a.data.data(), bytes + h.header_bytes, n * 8);
   if (h.fortran_order) to_c_order(a);
@@ -266,7 +268,9 @@ NpyArray NpzFile::read(const std::string& name) const {
     while (got < n) {
       const zip_int64_t r = zip_fread(f, static_cast<uint8_t*>(dst) + got, n - got);
       if (r < 0) fail(what, std::string("decompression failed: ") + zip_file_strerror(f));
-      if (r == 0) fail(what, "truncated: member ends after " + std::to_string(got) + " of " + std::to_string(n) + " bytes");
+      if (r == 0)
+        fail(what,
+             "truncated: member ends after " + std::to_string(got) + " of " + std::to_string(n) + " bytes");
       got += static_cast<size_t>(r);
     }
   };
@@ -327,12 +331,14 @@ KittiVislamSequence load_kitti_vislam_npz(const std::string& path) {
 
   auto velocity = [&](const std::string& name, std::vector<double>& out) {
     const NpyArray a = need(name);
-    if (a.dims() != 2 || a.shape[0] != 3 || a.shape[1] != N) shape_error(name, a, "(3, " + std::to_string(N) + ")");
+    if (a.dims() != 2 || a.shape[0] != 3 || a.shape[1] != N)
+      shape_error(name, a, "(3, " + std::to_string(N) + ")");
     out.resize(3 * N);
     for (size_t i = 0; i < N; ++i)
       for (size_t r = 0; r < 3; ++r) {
         out[3 * i + r] = a.at(r, i);
-        if (!std::isfinite(out[3 * i + r])) fail(path + ":" + name, "non-finite value at step " + std::to_string(i));
+        if (!std::isfinite(out[3 * i + r]))
+          fail(path + ":" + name, "non-finite value at step " + std::to_string(i));
       }
   };
   velocity("linear_velocity", seq.v_B_mps);
@@ -361,8 +367,12 @@ KittiVislamSequence load_kitti_vislam_npz(const std::string& path) {
   const double* vL = uL + M * N;
   const double* uR = vL + M * N;
   const double* vR = uR + M * N;
-  auto present = [](double a, double b2, double c, double d) { return a != -1.0 && b2 != -1.0 && c != -1.0 && d != -1.0; };
-  auto absent = [](double a, double b2, double c, double d) { return a == -1.0 && b2 == -1.0 && c == -1.0 && d == -1.0; };
+  auto present = [](double a, double b2, double c, double d) {
+    return a != -1.0 && b2 != -1.0 && c != -1.0 && d != -1.0;
+  };
+  auto absent = [](double a, double b2, double c, double d) {
+    return a == -1.0 && b2 == -1.0 && c == -1.0 && d == -1.0;
+  };
   seq.step_begin.assign(N + 1, 0);
   for (size_t j = 0; j < M; ++j)
     for (size_t i = 0; i < N; ++i) {
@@ -376,7 +386,8 @@ KittiVislamSequence load_kitti_vislam_npz(const std::string& path) {
     for (size_t i = 0; i < N; ++i) {
       const size_t o = j * N + i;
       if (present(uL[o], vL[o], uR[o], vR[o])) {
-        if (!std::isfinite(uL[o]) || !std::isfinite(vL[o]) || !std::isfinite(uR[o]) || !std::isfinite(vR[o])) {
+        if (!std::isfinite(uL[o]) || !std::isfinite(vL[o]) || !std::isfinite(uR[o]) ||
+            !std::isfinite(vR[o])) {
           ++seq.missing_partial;
           continue;
         }

@@ -83,17 +83,26 @@ std::unique_ptr<LogSource> open_log(const std::string& path, const LogOpenOption
   if (!opt.rig_path.empty()) rig = load_rig_file(opt.rig_path);
   const Rig* r = rig ? &*rig : nullptr;
   switch (opt.format) {
-    case LogFormat::kKlog: return std::make_unique<KlogReader>(path);
-    case LogFormat::kEuroc: return std::make_unique<EurocReader>(path);
-    case LogFormat::kTum: return std::make_unique<TumReader>(path);
-    case LogFormat::kEth3d: return std::make_unique<Eth3dReader>(path, r);
-    case LogFormat::kOpenLoris: return std::make_unique<OpenLorisReader>(path, r);
-    case LogFormat::kRosbag: return std::make_unique<RosbagReader>(path, topics_of(opt), r);
-    case LogFormat::kSevenScenes: return std::make_unique<SevenScenesReader>(path, r, seven_scenes(opt));
+    case LogFormat::kKlog:
+      return std::make_unique<KlogReader>(path);
+    case LogFormat::kEuroc:
+      return std::make_unique<EurocReader>(path);
+    case LogFormat::kTum:
+      return std::make_unique<TumReader>(path);
+    case LogFormat::kEth3d:
+      return std::make_unique<Eth3dReader>(path, r);
+    case LogFormat::kOpenLoris:
+      return std::make_unique<OpenLorisReader>(path, r);
+    case LogFormat::kRosbag:
+      return std::make_unique<RosbagReader>(path, topics_of(opt), r);
+    case LogFormat::kSevenScenes:
+      return std::make_unique<SevenScenesReader>(path, r, seven_scenes(opt));
     case LogFormat::kRosbag2:
       return std::make_unique<Rosbag2Reader>(path, rosbag2_of(opt), r);
-    case LogFormat::kTumvi: return std::make_unique<TumviReader>(path);
-    case LogFormat::kAuto: break;
+    case LogFormat::kTumvi:
+      return std::make_unique<TumviReader>(path);
+    case LogFormat::kAuto:
+      break;
   }
   if (text::is_file(path)) {
     const bool ext = path.size() >= 5 && path.compare(path.size() - 5, 5, ".klog") == 0;

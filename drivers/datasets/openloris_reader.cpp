@@ -145,7 +145,8 @@ int64_t span_ns(int64_t later, int64_t earlier) {
 
 double rate_of(const std::vector<Vec3Row>& v) {
   return v.size() > 1 && v.back().t_ns > v.front().t_ns
-             ? static_cast<double>(v.size() - 1) * 1e9 / static_cast<double>(span_ns(v.back().t_ns, v.front().t_ns))
+             ? static_cast<double>(v.size() - 1) * 1e9 /
+                   static_cast<double>(span_ns(v.back().t_ns, v.front().t_ns))
              : 0.0;
 }
 
@@ -288,8 +289,8 @@ OpenLorisReader::OpenLorisReader(const std::string& path_in, const Rig* rig) {
   const auto depth_of = ds::associate(rgb, depth, 20'000'000, pairs_);
   ds::add_pairs(path, rgb, color_txt, depth, depth_txt, depth_of, s);
   if (r.camera_rate_hz <= 0 && rgb.size() > 1 && rgb.back().t_ns > rgb.front().t_ns)
-    r.camera_rate_hz =
-        static_cast<double>(rgb.size() - 1) * 1e9 / static_cast<double>(span_ns(rgb.back().t_ns, rgb.front().t_ns));
+    r.camera_rate_hz = static_cast<double>(rgb.size() - 1) * 1e9 /
+                       static_cast<double>(span_ns(rgb.back().t_ns, rgb.front().t_ns));
 
   // ---- IMU: merge the two streams at the faster one's stamps.
   const std::string acc_txt = path + "/d400_accelerometer.txt", gyro_txt = path + "/d400_gyroscope.txt";
@@ -303,8 +304,8 @@ OpenLorisReader::OpenLorisReader(const std::string& path_in, const Rig* rig) {
     imu_file_ = gyro_fast ? gyro_txt : acc_txt;
     // Interpolating across a gap would invent motion: a bracket wider than 4 slow periods is not bridged.
     const int64_t slow_dt = std::max<int64_t>(median_dt(slow), 1);
-    const int64_t max_gap = slow_dt > std::numeric_limits<int64_t>::max() / 4 ? std::numeric_limits<int64_t>::max()
-                                                                              : 4 * slow_dt;
+    const int64_t max_gap =
+        slow_dt > std::numeric_limits<int64_t>::max() / 4 ? std::numeric_limits<int64_t>::max() : 4 * slow_dt;
     size_t j = 0, outside = 0, gap = 0;
     uint32_t seq = 0;
     for (const auto& f : fast) {
@@ -323,7 +324,8 @@ OpenLorisReader::OpenLorisReader(const std::string& path_in, const Rig* rig) {
           ++gap;
           continue;
         }
-        const double u = static_cast<double>(span_ns(f.t_ns, a.t_ns)) / static_cast<double>(span_ns(b.t_ns, a.t_ns));
+        const double u =
+            static_cast<double>(span_ns(f.t_ns, a.t_ns)) / static_cast<double>(span_ns(b.t_ns, a.t_ns));
         for (int k = 0; k < 3; ++k) v[k] = a.v[k] + u * (b.v[k] - a.v[k]);
       }
       ImuSample m;

@@ -241,9 +241,9 @@ RosbagReader::RosbagReader(const std::string& path, const RosbagTopics& topics, 
           k.fx = m->K[0], k.cx = m->K[2], k.fy = m->K[4], k.cy = m->K[5];
           k.dist = {};
           const bool zero = std::all_of(m->D.begin(), m->D.end(), [](double d) { return d == 0; });
-          k.distortion = zero ? DistortionModel::kNone
-                              : m->distortion_model == "equidistant" ? DistortionModel::kEquidistant
-                                                                      : DistortionModel::kRadTan;
+          k.distortion = zero                                   ? DistortionModel::kNone
+                         : m->distortion_model == "equidistant" ? DistortionModel::kEquidistant
+                                                                : DistortionModel::kRadTan;
           if (k.distortion != DistortionModel::kNone)
             for (size_t j = 0; j < std::min<size_t>(5, m->D.size()); ++j) k.dist[j] = m->D[j];
           right_baseline_m = m->P[0] > 0 ? -m->P[3] / m->P[0] : 0.0;
@@ -332,8 +332,8 @@ RosbagReader::RosbagReader(const std::string& path, const RosbagTopics& topics, 
   if (!right_t.empty() && !(rig && rig->stereo.present)) {
     if (!have_right_info || !(right_baseline_m > 0)) {
       s.problem(path + ":" + right_info_topic, "missing-file",
-                "no CameraInfo with a baseline (P[3] = -fx * baseline) for the right images of " + topics.right +
-                    ": replayed as a monocular log (give the stereo rig with --rig)");
+                "no CameraInfo with a baseline (P[3] = -fx * baseline) for the right images of " +
+                    topics.right + ": replayed as a monocular log (give the stereo rig with --rig)");
       right_t.clear(), right_idx.clear(), right_recv.clear();
       r.stereo = StereoCamera{};
     } else {
@@ -341,9 +341,10 @@ RosbagReader::RosbagReader(const std::string& path, const RosbagTopics& topics, 
       T_C0C1[3] = right_baseline_m;
       r.stereo.T_BC1 = ds::mat_mul(r.T_BC, T_C0C1);
       r.stereo.present = true;
-      s.problem(path + ":" + right_info_topic, "assumed",
-                "the right camera placed by its CameraInfo's baseline (" + text::fmt17(right_baseline_m) +
-                    " m along x), rotation identity: ROS 1 tf is not read (give --rig for a calibrated pair)");
+      s.problem(
+          path + ":" + right_info_topic, "assumed",
+          "the right camera placed by its CameraInfo's baseline (" + text::fmt17(right_baseline_m) +
+              " m along x), rotation identity: ROS 1 tf is not read (give --rig for a calibrated pair)");
     }
   } else if (!topics.right.empty() && right_t.empty()) {
     s.problem(path + ":" + topics.right, "missing-file", "no right images on this topic");
@@ -402,7 +403,8 @@ RosbagReader::RosbagReader(const std::string& path, const RosbagTopics& topics, 
 
   // Camera stamps onto the IMU's clock (the rig's time_offset_cam_imu_ns).
   for (auto& e : s.entries)
-    if (e.kind == kRgbK || e.kind == kDepthK || e.kind == kRightK) e.t_ns = camera_stamp_on_imu_clock(r, e.t_ns);
+    if (e.kind == kRgbK || e.kind == kDepthK || e.kind == kRightK)
+      e.t_ns = camera_stamp_on_imu_clock(r, e.t_ns);
   // Replayed in stamp order; at equal stamps IMU, colour, depth, ground truth.
   size_t late = 0;
   for (size_t i = 1; i < s.entries.size(); ++i)
@@ -481,9 +483,12 @@ bool RosbagReader::next(LogRecord& out) {
         ++s.images_seen;
         const bool report = s.images_seen > s.images_reported_until;
         if (report) s.images_reported_until = s.images_seen;
-        out.type = e.kind == kRgbK ? RecordType::kRgb : e.kind == kDepthK ? RecordType::kDepth : RecordType::kRight;
+        out.type = e.kind == kRgbK     ? RecordType::kRgb
+                   : e.kind == kDepthK ? RecordType::kDepth
+                                       : RecordType::kRight;
         // The right image decodes as the left one does.
-        if (!s.load_image(e.idx, e.kind == kDepthK ? RecordType::kDepth : RecordType::kRgb, out.image, report))
+        if (!s.load_image(e.idx, e.kind == kDepthK ? RecordType::kDepth : RecordType::kRgb, out.image,
+                          report))
           continue;
         out.image.t_ns = e.t_ns;
         out.image.t_recv_ns = e.t_recv_ns;
@@ -618,7 +623,8 @@ ExportStats export_rosbag(LogSource& src, const std::string& path, const RosbagT
           // A stereo log's right image, with a CameraInfo whose P carries the baseline (ROS's convention).
           if (!rig.stereo.present) break;
           const LogImage& im = r.image;
-          if (im.format != PixelFormat::kGray8 && im.format != PixelFormat::kRgb8 && im.format != PixelFormat::kBgr8)
+          if (im.format != PixelFormat::kGray8 && im.format != PixelFormat::kRgb8 &&
+              im.format != PixelFormat::kBgr8)
             break;
           const std::string right_topic = topics.right.empty() ? "/camera/right/image_raw" : topics.right;
           const size_t k = right_topic.find_last_of('/');
@@ -630,7 +636,9 @@ ExportStats export_rosbag(LogSource& src, const std::string& path, const RosbagT
           m.header.frame_id = "camera_right";
           m.width = static_cast<uint32_t>(im.width);
           m.height = static_cast<uint32_t>(im.height);
-          m.encoding = im.format == PixelFormat::kGray8 ? "mono8" : im.format == PixelFormat::kRgb8 ? "rgb8" : "bgr8";
+          m.encoding = im.format == PixelFormat::kGray8  ? "mono8"
+                       : im.format == PixelFormat::kRgb8 ? "rgb8"
+                                                         : "bgr8";
           m.step = m.width * static_cast<uint32_t>(bytes_per_pixel(im.format));
           m.data = im.pixels;
           bag.write(right_topic, m.header.stamp, m);

@@ -56,10 +56,12 @@ CameraIntrinsics read_intrinsics(const std::string& path) {
     const auto f = text::split_ws(t);
     line = i + 1;
     if (f.size() != 3)
-      throw std::runtime_error(path + ":" + std::to_string(line) + ": expected 3 numbers per row of the 3x3 camera matrix");
+      throw std::runtime_error(path + ":" + std::to_string(line) +
+                               ": expected 3 numbers per row of the 3x3 camera matrix");
     for (const auto& s : f)
       if (!text::parse_f64(s, m[n++]) || !std::isfinite(m[n - 1]))
-        throw std::runtime_error(path + ":" + std::to_string(line) + ": \"" + s + "\" is not a finite number");
+        throw std::runtime_error(path + ":" + std::to_string(line) + ": \"" + s +
+                                 "\" is not a finite number");
   }
   if (n < 9) throw std::runtime_error(path + ": expected a 3x3 camera matrix (3 rows of 3 numbers)");
   if (!(m[0] > 0) || !(m[4] > 0) || m[1] != 0 || m[3] != 0 || m[6] != 0 || m[7] != 0 || m[8] != 1)
@@ -99,8 +101,8 @@ std::string read_pose(const std::string& path, Mat4d& T, size_t* bad_line) {
       for (int k = 0; k < 3; ++k) dot += T[4 * k + a] * T[4 * k + b];
       if (std::abs(dot - (a == b ? 1.0 : 0.0)) > 1e-3) {
         *bad_line = 1;
-        return "not a rigid transform: the rotation's columns are not orthonormal (off by " + text::fmt17(dot) +
-               " - " + (a == b ? "1" : "0") + ")";
+        return "not a rigid transform: the rotation's columns are not orthonormal (off by " +
+               text::fmt17(dot) + " - " + (a == b ? "1" : "0") + ")";
       }
     }
   const double det = T[0] * (T[5] * T[10] - T[6] * T[9]) - T[1] * (T[4] * T[10] - T[6] * T[8]) +
@@ -139,7 +141,8 @@ bool read_gravity(const std::string& path, Vec3d& g, std::string* where, std::st
   }
   const double norm = n == 3 ? std::sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2]) : 0.0;
   if (n != 3 || std::abs(norm - 1.0) > 1e-2) {
-    *why = "expected a unit vector of three numbers, got " + std::to_string(n) + " numbers of norm " + text::fmt17(norm);
+    *why = "expected a unit vector of three numbers, got " + std::to_string(n) + " numbers of norm " +
+           text::fmt17(norm);
     return false;
   }
   for (double& v : g) v /= norm;
@@ -160,7 +163,8 @@ Mat4d levelling(const Vec3d& g) {
   const double K[9] = {0, -v[2], v[1], v[2], 0, -v[0], -v[1], v[0], 0};
   double K2[9];
   for (int i = 0; i < 3; ++i)
-    for (int j = 0; j < 3; ++j) K2[3 * i + j] = K[3 * i] * K[j] + K[3 * i + 1] * K[3 + j] + K[3 * i + 2] * K[6 + j];
+    for (int j = 0; j < 3; ++j)
+      K2[3 * i + j] = K[3 * i] * K[j] + K[3 * i + 1] * K[3 + j] + K[3 * i + 2] * K[6 + j];
   const double f = (1 - c) / s2;
   for (int i = 0; i < 3; ++i)
     for (int j = 0; j < 3; ++j) T[4 * i + j] = (i == j ? 1.0 : 0.0) + K[3 * i + j] + f * K2[3 * i + j];
@@ -199,15 +203,26 @@ Rig SevenScenesReader::default_rig(const CameraIntrinsics& depth_intrinsics) {
   r.rgb.cy = 240.0;
   r.camera_rate_hz = 30.0;
   r.depth.scale_m_per_unit = 0.001;
-  r.depth.min_range_m = 0.4;   // Kinect v1 (structured light)
+  r.depth.min_range_m = 0.4;  // Kinect v1 (structured light)
   r.depth.max_range_m = 4.5;
   r.depth_camera.present = true;
   r.depth_camera.intrinsics = depth_intrinsics;
-  r.depth_camera.T_CD = {9.9996518012567637e-01,  2.6765126468950343e-03, -7.9041012313000904e-03,
-                         -2.5558943178152542e-02, -2.7409311281316700e-03, 9.9996302803027592e-01,
-                         -8.1504520778013286e-03, 1.0109636268061706e-04,  7.8819942130445332e-03,
-                         8.1718328771890631e-03,  9.9993554558014031e-01,  2.0318321729487039e-03,
-                         0, 0, 0, 1};
+  r.depth_camera.T_CD = {9.9996518012567637e-01,
+                         2.6765126468950343e-03,
+                         -7.9041012313000904e-03,
+                         -2.5558943178152542e-02,
+                         -2.7409311281316700e-03,
+                         9.9996302803027592e-01,
+                         -8.1504520778013286e-03,
+                         1.0109636268061706e-04,
+                         7.8819942130445332e-03,
+                         8.1718328771890631e-03,
+                         9.9993554558014031e-01,
+                         2.0318321729487039e-03,
+                         0,
+                         0,
+                         0,
+                         1};
   // Printed to 17 digits but only orthonormal to 1e-5: made exact so the rig's YAML round-trips.
   Quatd q;
   Vec3d p;
@@ -221,7 +236,8 @@ Rig SevenScenesReader::default_rig(const CameraIntrinsics& depth_intrinsics) {
 
 bool is_sevenscenes_folder(const std::string& path) {
   const std::string s = frame_stem(strip_slash(path), 0);
-  return text::is_file(s + ".pose.txt") && (text::is_file(s + ".color.png") || text::is_file(s + ".color.jpg"));
+  return text::is_file(s + ".pose.txt") &&
+         (text::is_file(s + ".color.png") || text::is_file(s + ".color.jpg"));
 }
 
 SevenScenesReader::SevenScenesReader(const std::string& path, const Rig* rig)
@@ -231,7 +247,8 @@ SevenScenesReader::SevenScenesReader(const std::string& path_in, const Rig* rig_
   const std::string path = strip_slash(path_in);
   StreamLogSource& s = *impl_;
   if (!text::is_dir(path)) throw std::runtime_error(path + ": no such folder");
-  if (!(opt.fps > 0 && opt.fps <= 1000)) throw std::invalid_argument("7-Scenes reader: --fps must be in (0, 1000]");
+  if (!(opt.fps > 0 && opt.fps <= 1000))
+    throw std::invalid_argument("7-Scenes reader: --fps must be in (0, 1000]");
 
   // Frames by index, from every file named frame-NNNNNN.<kind>.
   struct Files {
@@ -243,9 +260,12 @@ SevenScenesReader::SevenScenesReader(const std::string& path_in, const Rig* rig_
     const long i = frame_index(e.path().filename().string(), rest);
     if (i < 0) continue;
     Files& f = frames[i];
-    if (rest == ".color.png" || rest == ".color.jpg") f.colour = e.path().string();
-    else if (rest == ".depth.png") f.depth = e.path().string();
-    else if (rest == ".pose.txt") f.pose = e.path().string();
+    if (rest == ".color.png" || rest == ".color.jpg")
+      f.colour = e.path().string();
+    else if (rest == ".depth.png")
+      f.depth = e.path().string();
+    else if (rest == ".pose.txt")
+      f.pose = e.path().string();
   }
   if (frames.empty()) throw std::runtime_error(path + ": not a 7-Scenes folder (no frame-NNNNNN.* files)");
 
@@ -264,13 +284,15 @@ SevenScenesReader::SevenScenesReader(const std::string& path_in, const Rig* rig_
   if (text::is_file(intr))
     depth_k = read_intrinsics(intr);
   else
-    s.problem(intr, "assumed", "no camera-intrinsics.txt: 7-Scenes' published depth intrinsics (585, 585, 320, 240)");
+    s.problem(intr, "assumed",
+              "no camera-intrinsics.txt: 7-Scenes' published depth intrinsics (585, 585, 320, 240)");
   Rig r = rig_in ? *rig_in : default_rig(depth_k);
   if (!rig_in)
-    s.problem(intr, "assumed",
-              "7-Scenes publishes no colour calibration: colour camera 525 px at the image centre and a Kinect v1 "
-              "depth -> colour transform (2.6 cm) assumed; the depth is registered to colour with them (--rig to "
-              "override)");
+    s.problem(
+        intr, "assumed",
+        "7-Scenes publishes no colour calibration: colour camera 525 px at the image centre and a Kinect v1 "
+        "depth -> colour transform (2.6 cm) assumed; the depth is registered to colour with them (--rig to "
+        "override)");
   r.camera_rate_hz = opt.fps;
 
   // Missing numbers and missing files of a frame.
@@ -278,21 +300,25 @@ SevenScenesReader::SevenScenesReader(const std::string& path_in, const Rig* rig_
   for (long i = first; i <= last; ++i) {
     const auto it = frames.find(i);
     if (it == frames.end()) {
-      s.problem(frame_stem(path, i) + ".*", "missing-frame", "frame " + std::to_string(i) + " absent (no file of it)");
+      s.problem(frame_stem(path, i) + ".*", "missing-frame",
+                "frame " + std::to_string(i) + " absent (no file of it)");
       continue;
     }
     const Files& f = it->second;
-    if (f.colour.empty()) s.problem(frame_stem(path, i) + ".color.png", "missing-file", "no colour image; frame skipped");
+    if (f.colour.empty())
+      s.problem(frame_stem(path, i) + ".color.png", "missing-file", "no colour image; frame skipped");
     if (f.depth.empty())
       s.problem(frame_stem(path, i) + ".depth.png", "missing-file", "no depth image; colour replayed alone");
-    if (f.pose.empty()) s.problem(frame_stem(path, i) + ".pose.txt", "missing-file", "no pose; no ground truth here");
+    if (f.pose.empty())
+      s.problem(frame_stem(path, i) + ".pose.txt", "missing-file", "no pose; no ground truth here");
   }
 
   // Sizes from the first images; the depth camera's size comes from its images.
   for (const auto& [i, f] : frames) {
     int w = 0, h = 0;
     if (!f.colour.empty() && ds::image_size(f.colour, w, h)) {
-      if (!rig_in) r.rgb.width = w, r.rgb.height = h;
+      if (!rig_in)
+        r.rgb.width = w, r.rgb.height = h;
       else if (w != r.rgb.width || h != r.rgb.height)
         s.problem(f.colour, "bad-image",
                   std::to_string(w) + "x" + std::to_string(h) + " colour image, the rig says " +
@@ -323,10 +349,11 @@ SevenScenesReader::SevenScenesReader(const std::string& path_in, const Rig* rig_
   if (read_gravity(path + "/gravity-direction.txt", g, &gwhere, &gwhy)) {
     T_LW = levelling(g);
   } else {
-    s.problem(gwhere, gwhy == "missing" ? "missing-file" : "bad-row",
-              (gwhy == "missing" ? std::string() : gwhy + "; ") +
-                  "world frame not levelled: the ground truth's z is not up (an IMU synthesised along it would be "
-                  "wrong)");
+    s.problem(
+        gwhere, gwhy == "missing" ? "missing-file" : "bad-row",
+        (gwhy == "missing" ? std::string() : gwhy + "; ") +
+            "world frame not levelled: the ground truth's z is not up (an IMU synthesised along it would be "
+            "wrong)");
   }
   // The poses are the depth camera's (KinectFusion tracks depth): T_WB = T_WD T_DC T_CB.
   const Mat4d T_DB = ds::mat_mul(r.depth_camera.present ? ds::mat_inv(r.depth_camera.T_CD) : kIdentity4,
@@ -355,7 +382,8 @@ SevenScenesReader::SevenScenesReader(const std::string& path_in, const Rig* rig_
       const uint64_t h = file_hash(f.colour, sz);
       if (consecutive && h == prev_c && sz == prev_cs) {
         ++repeated_colour_;
-        s.problem(f.colour, "repeated-colour", "byte-identical to the previous frame's colour image; withheld");
+        s.problem(f.colour, "repeated-colour",
+                  "byte-identical to the previous frame's colour image; withheld");
       } else {
         s.rgb_.push_back(entry(f.colour, t_ns, i));
       }
@@ -369,9 +397,10 @@ SevenScenesReader::SevenScenesReader(const std::string& path_in, const Rig* rig_
       stale_depth = consecutive && h == prev_d && sz == prev_ds;
       if (stale_depth) {
         ++repeated_depth_;
-        s.problem(f.depth, "repeated-depth",
-                  "byte-identical to the previous frame's depth image; withheld, and this frame's ground truth "
-                  "(KinectFusion's pose from that same depth) with it");
+        s.problem(
+            f.depth, "repeated-depth",
+            "byte-identical to the previous frame's depth image; withheld, and this frame's ground truth "
+            "(KinectFusion's pose from that same depth) with it");
       } else if (!f.colour.empty()) {
         s.depth_.push_back(entry(f.depth, t_ns, i));
       }
@@ -418,10 +447,12 @@ bool SevenScenesReader::next(LogRecord& out) {
       if (img.seq >= unregistered_reported_until_) {
         unregistered_reported_until_ = img.seq + 1;
         const auto& d = impl_->depth_;
-        const auto it = std::find_if(d.begin(), d.end(), [&](const text::ImageEntry& e) { return e.seq == img.seq; });
+        const auto it =
+            std::find_if(d.begin(), d.end(), [&](const text::ImageEntry& e) { return e.seq == img.seq; });
         impl_->problem(it != d.end() ? it->where : std::to_string(img.seq), "bad-image",
                        "depth image " + std::to_string(img.width) + "x" + std::to_string(img.height) +
-                           " does not match the depth camera (" + std::to_string(registration_->depth_width()) + "x" +
+                           " does not match the depth camera (" +
+                           std::to_string(registration_->depth_width()) + "x" +
                            std::to_string(registration_->depth_height()) + "); not registered, withheld");
       }
       continue;

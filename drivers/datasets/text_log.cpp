@@ -1,13 +1,13 @@
 #include "text_log.hpp"
 
-#include "kestrel/drivers/camera_time_shift.hpp"
-#include "kestrel/drivers/folder_logs.hpp"
-
 #include <algorithm>
-#include <memory>
 #include <cstdint>
+#include <memory>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
+
+#include "kestrel/drivers/camera_time_shift.hpp"
+#include "kestrel/drivers/folder_logs.hpp"
 
 namespace kestrel::drivers::text {
 
@@ -18,10 +18,15 @@ void StreamLogSource::order_streams(const std::string& imu_file, const std::stri
         problem(file + ":" + std::to_string(line_of(rows[i])), "time-order",
                 "timestamp " + std::to_string(time_of(rows[i])) + " not after the previous row's " +
                     std::to_string(time_of(rows[i - 1])) + "; replayed in sorted order");
-    std::stable_sort(rows.begin(), rows.end(), [&](const auto& a, const auto& b) { return time_of(a) < time_of(b); });
+    std::stable_sort(rows.begin(), rows.end(),
+                     [&](const auto& a, const auto& b) { return time_of(a) < time_of(b); });
   };
-  check(imu_, [](const Row<ImuSample>& r) { return r.value.t_ns; }, [](const auto& r) { return r.line; }, imu_file);
-  check(gt_, [](const Row<GroundTruthPose>& r) { return r.value.t_ns; }, [](const auto& r) { return r.line; }, gt_file);
+  check(
+      imu_, [](const Row<ImuSample>& r) { return r.value.t_ns; }, [](const auto& r) { return r.line; },
+      imu_file);
+  check(
+      gt_, [](const Row<GroundTruthPose>& r) { return r.value.t_ns; }, [](const auto& r) { return r.line; },
+      gt_file);
   // Camera stamps onto the IMU's clock (the rig's time_offset_cam_imu_ns);
   // the merge in next() then interleaves them where they belong.
   for (auto* images : {&rgb_, &depth_, &right_})
@@ -30,7 +35,8 @@ void StreamLogSource::order_streams(const std::string& imu_file, const std::stri
   for (auto* images : {&rgb_, &depth_, &right_}) {
     for (size_t i = 1; i < images->size(); ++i)
       if ((*images)[i].t_ns <= (*images)[i - 1].t_ns)
-        problem((*images)[i].where, "time-order", "image timestamp not after the previous row's; replayed in sorted order");
+        problem((*images)[i].where, "time-order",
+                "image timestamp not after the previous row's; replayed in sorted order");
     std::stable_sort(images->begin(), images->end(),
                      [](const ImageEntry& a, const ImageEntry& b) { return a.t_ns < b.t_ns; });
   }
@@ -143,7 +149,8 @@ bool StreamLogSource::next(LogRecord& out) {
         if (load_image(e, out.type, out.image)) return true;
         continue;
       }
-      default: return false;
+      default:
+        return false;
     }
   }
 }

@@ -18,7 +18,7 @@ struct ImageEntry {
   int64_t t_recv_ns = 0;
   uint32_t seq = 0;
   std::string path;
-  std::string where;   // "file:line" of the row that listed it
+  std::string where;  // "file:line" of the row that listed it
   uint64_t line = 0;
 };
 
@@ -59,7 +59,7 @@ class StreamLogSource final : public LogSource {
  private:
   bool load_image(const ImageEntry& e, RecordType type, LogImage& img);
   size_t i_imu_ = 0, i_rgb_ = 0, i_depth_ = 0, i_right_ = 0, i_gt_ = 0, i_ev_ = 0;
-  size_t images_reported_until_ = 0;   // image decode failures are reported once across rewinds
+  size_t images_reported_until_ = 0;  // image decode failures are reported once across rewinds
   size_t images_seen_ = 0;
 };
 

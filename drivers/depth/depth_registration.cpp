@@ -29,7 +29,8 @@ void distort(const CameraIntrinsics& k, double x, double y, double& xd, double& 
         return;
       }
       const double th = std::atan(r), th2 = th * th;
-      const double thd = th * (1 + th2 * (k.dist[0] + th2 * (k.dist[1] + th2 * (k.dist[2] + th2 * k.dist[3]))));
+      const double thd =
+          th * (1 + th2 * (k.dist[0] + th2 * (k.dist[1] + th2 * (k.dist[2] + th2 * k.dist[3]))));
       xd = x * thd / r, yd = y * thd / r;
       return;
     }
@@ -51,14 +52,16 @@ void undistort(const CameraIntrinsics& k, double xd, double yd, double& x, doubl
 }
 
 void check(const CameraIntrinsics& k, const char* which) {
-  if (k.width <= 0 || k.height <= 0 || !(k.fx > 0) || !(k.fy > 0) || !std::isfinite(k.cx) || !std::isfinite(k.cy))
+  if (k.width <= 0 || k.height <= 0 || !(k.fx > 0) || !(k.fy > 0) || !std::isfinite(k.cx) ||
+      !std::isfinite(k.cy))
     throw std::invalid_argument(std::string("DepthRegistration: the ") + which +
                                 " camera needs a size and focal lengths > 0");
 }
 
 }  // namespace
 
-DepthRegistration::DepthRegistration(const DepthCamera& dc, const CameraIntrinsics& colour, double scale_m_per_unit)
+DepthRegistration::DepthRegistration(const DepthCamera& dc, const CameraIntrinsics& colour,
+                                     double scale_m_per_unit)
     : colour_(colour) {
   if (!dc.present) throw std::invalid_argument("DepthRegistration: the rig has no separate depth camera");
   check(dc.intrinsics, "depth");
@@ -96,14 +99,16 @@ bool DepthRegistration::register_into(const ImageView& depth, uint16_t* out, int
     return false;
   RegistrationStats s;
   auto row_out = [&](int y) {
-    return reinterpret_cast<uint16_t*>(reinterpret_cast<uint8_t*>(out) + static_cast<size_t>(y) * out_stride_bytes);
+    return reinterpret_cast<uint16_t*>(reinterpret_cast<uint8_t*>(out) +
+                                       static_cast<size_t>(y) * out_stride_bytes);
   };
   for (int y = 0; y < ch_; ++y) std::memset(row_out(y), 0, static_cast<size_t>(cw_) * 2);
   const CameraIntrinsics& k = colour_;
   const bool distorted = k.distortion != DistortionModel::kNone;
   const double half = 0.5 * (footprint_ - 1);
   for (int v = 0; v < dh_; ++v) {
-    const auto* row = reinterpret_cast<const uint16_t*>(depth.data + static_cast<size_t>(v) * depth.stride_bytes);
+    const auto* row =
+        reinterpret_cast<const uint16_t*>(depth.data + static_cast<size_t>(v) * depth.stride_bytes);
     const float* ray = ray_.get() + 2 * static_cast<size_t>(v) * dw_;
     for (int u = 0; u < dw_; ++u) {
       const uint16_t raw = row[u];

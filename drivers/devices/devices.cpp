@@ -56,15 +56,17 @@ class P {
       fail(key, "expected a number, got \"" + n.Scalar() + "\"");
     return v;
   }
-  long integer(const YAML::Node& m, const char* k, const std::string& path, long def, long lo, long hi) const {
+  long integer(const YAML::Node& m, const char* k, const std::string& path, long def, long lo,
+               long hi) const {
     if (!m[k]) return def;
     const YAML::Node n = m[k];
     const std::string key = path + "." + k;
     if (!n.IsScalar()) fail(key, "expected an integer");
     char* end = nullptr;
     errno = 0;
-    const long v = std::strtol(n.Scalar().c_str(), &end, 0);   // 0x18 allowed for addresses
-    if (n.Scalar().empty() || *end != '\0' || errno == ERANGE) fail(key, "expected an integer, got \"" + n.Scalar() + "\"");
+    const long v = std::strtol(n.Scalar().c_str(), &end, 0);  // 0x18 allowed for addresses
+    if (n.Scalar().empty() || *end != '\0' || errno == ERANGE)
+      fail(key, "expected an integer, got \"" + n.Scalar() + "\"");
     if (v < lo || v > hi) fail(key, "must be in " + std::to_string(lo) + ".." + std::to_string(hi));
     return v;
   }
@@ -280,16 +282,25 @@ DriverSettings driver_settings_from_yaml_node(const YAML::Node& root, const std:
                                  {"iio", ImuType::kIio}});
     bmx055::Config& b = is.bmx055;
     using namespace bmx055;
-    b.acc_range = pick_code<acc::Range>(p, path + ".acc_range_g", p.num(m, "acc_range_g", path, 16),
-                                        {{2, acc::Range::k2g}, {4, acc::Range::k4g}, {8, acc::Range::k8g}, {16, acc::Range::k16g}});
-    b.acc_bw = pick_code<acc::Bandwidth>(
-        p, path + ".acc_bandwidth_hz", p.num(m, "acc_bandwidth_hz", path, 250),
-        {{7.81, acc::Bandwidth::k7_81Hz}, {15.63, acc::Bandwidth::k15_63Hz}, {31.25, acc::Bandwidth::k31_25Hz},
-         {62.5, acc::Bandwidth::k62_5Hz}, {125, acc::Bandwidth::k125Hz}, {250, acc::Bandwidth::k250Hz},
-         {500, acc::Bandwidth::k500Hz}, {1000, acc::Bandwidth::k1000Hz}});
+    b.acc_range = pick_code<acc::Range>(
+        p, path + ".acc_range_g", p.num(m, "acc_range_g", path, 16),
+        {{2, acc::Range::k2g}, {4, acc::Range::k4g}, {8, acc::Range::k8g}, {16, acc::Range::k16g}});
+    b.acc_bw =
+        pick_code<acc::Bandwidth>(p, path + ".acc_bandwidth_hz", p.num(m, "acc_bandwidth_hz", path, 250),
+                                  {{7.81, acc::Bandwidth::k7_81Hz},
+                                   {15.63, acc::Bandwidth::k15_63Hz},
+                                   {31.25, acc::Bandwidth::k31_25Hz},
+                                   {62.5, acc::Bandwidth::k62_5Hz},
+                                   {125, acc::Bandwidth::k125Hz},
+                                   {250, acc::Bandwidth::k250Hz},
+                                   {500, acc::Bandwidth::k500Hz},
+                                   {1000, acc::Bandwidth::k1000Hz}});
     b.gyro_range = pick_code<gyro::Range>(p, path + ".gyro_range_dps", p.num(m, "gyro_range_dps", path, 2000),
-                                          {{2000, gyro::Range::k2000dps}, {1000, gyro::Range::k1000dps},
-                                           {500, gyro::Range::k500dps}, {250, gyro::Range::k250dps}, {125, gyro::Range::k125dps}});
+                                          {{2000, gyro::Range::k2000dps},
+                                           {1000, gyro::Range::k1000dps},
+                                           {500, gyro::Range::k500dps},
+                                           {250, gyro::Range::k250dps},
+                                           {125, gyro::Range::k125dps}});
     const double odr = p.num(m, "gyro_odr_hz", path, 400);
     const double bw = p.num(m, "gyro_bandwidth_hz", path, 47);
     const std::pair<double, double> odr_bw[] = {{2000, 523}, {2000, 230}, {1000, 116}, {400, 47},
@@ -301,14 +312,17 @@ DriverSettings driver_settings_from_yaml_node(const YAML::Node& root, const std:
         found = true;
       }
     if (!found)
-      p.fail(path + ".gyro_odr_hz", "gyro_odr_hz/gyro_bandwidth_hz must be a BMG160 pair: 2000/523, 2000/230, "
-                                    "1000/116, 400/47, 200/23, 100/12, 200/64, 100/32");
+      p.fail(path + ".gyro_odr_hz",
+             "gyro_odr_hz/gyro_bandwidth_hz must be a BMG160 pair: 2000/523, 2000/230, "
+             "1000/116, 400/47, 200/23, 100/12, 200/64, 100/32");
     if (const YAML::Node r = m["axis_remap"]) {
-      if (!r.IsSequence() || r.size() != 3) p.fail(path + ".axis_remap", "expected three of +x -x +y -y +z -z");
+      if (!r.IsSequence() || r.size() != 3)
+        p.fail(path + ".axis_remap", "expected three of +x -x +y -y +z -z");
       for (size_t i = 0; i < 3; ++i) {
         const std::string s = r[i].IsScalar() ? r[i].Scalar() : "";
         if (s.size() != 2 || (s[0] != '+' && s[0] != '-') || s[1] < 'x' || s[1] > 'z')
-          p.fail(path + ".axis_remap[" + std::to_string(i) + "]", "expected +x, -x, +y, -y, +z or -z, got \"" + s + "\"");
+          p.fail(path + ".axis_remap[" + std::to_string(i) + "]",
+                 "expected +x, -x, +y, -y, +z or -z, got \"" + s + "\"");
         b.axis_remap[i] = static_cast<int8_t>((s[0] == '-' ? -1 : 1) * (s[1] - 'x' + 1));
       }
     }
@@ -318,9 +332,10 @@ DriverSettings driver_settings_from_yaml_node(const YAML::Node& root, const std:
     is.iio.axis_remap = b.axis_remap;
     if (const YAML::Node i2c = m["i2c"]) {
       const std::string ip = path + ".i2c";
-      p.only(i2c, ip, {"bus_device", "acc_i2c_addr", "gyro_i2c_addr", "mag_enabled", "mag_i2c_addr", "data_ready",
-                       "gpio_chip", "gpio_line", "poll_period_us", "gyro_fifo_watermark_frames",
-                       "acc_fifo_watermark_frames", "self_test"});
+      p.only(i2c, ip,
+             {"bus_device", "acc_i2c_addr", "gyro_i2c_addr", "mag_enabled", "mag_i2c_addr", "data_ready",
+              "gpio_chip", "gpio_line", "poll_period_us", "gyro_fifo_watermark_frames",
+              "acc_fifo_watermark_frames", "self_test"});
       is.i2c_bus_device = p.str(i2c, "bus_device", ip, "");
       b.acc_addr = static_cast<uint8_t>(p.integer(i2c, "acc_i2c_addr", ip, 0x18, 0x18, 0x19));
       b.gyro_addr = static_cast<uint8_t>(p.integer(i2c, "gyro_i2c_addr", ip, 0x68, 0x68, 0x69));
@@ -339,7 +354,8 @@ DriverSettings driver_settings_from_yaml_node(const YAML::Node& root, const std:
     }
     if (const YAML::Node u = m["usb"]) {
       const std::string up = path + ".usb";
-      p.only(u, up, {"vid", "pid", "endpoint_in", "latency_floor_us", "read_timeout_ms", "no_data_timeout_ms"});
+      p.only(u, up,
+             {"vid", "pid", "endpoint_in", "latency_floor_us", "read_timeout_ms", "no_data_timeout_ms"});
       is.usb.vid = static_cast<uint16_t>(p.integer(u, "vid", up, usb_bridge::kDefaultVid, 0, 0xFFFF));
       is.usb.pid = static_cast<uint16_t>(p.integer(u, "pid", up, usb_bridge::kDefaultPid, 0, 0xFFFF));
       is.usb.endpoint_in = static_cast<uint8_t>(p.integer(u, "endpoint_in", up, 0x81, 0x81, 0x8F));
@@ -456,11 +472,12 @@ MavlinkSettings mavlink_settings_from_yaml_node(const YAML::Node& node, const st
     double worst = 0;
     for (int i = 0; i < 3; ++i)
       for (int j = 0; j < 3; ++j)
-        worst = std::max(worst, std::abs(R[3 * i] * R[3 * j] + R[3 * i + 1] * R[3 * j + 1] + R[3 * i + 2] * R[3 * j + 2] -
-                                         (i == j ? 1.0 : 0.0)));
+        worst = std::max(worst, std::abs(R[3 * i] * R[3 * j] + R[3 * i + 1] * R[3 * j + 1] +
+                                         R[3 * i + 2] * R[3 * j + 2] - (i == j ? 1.0 : 0.0)));
     const double det = R[0] * (R[4] * R[8] - R[5] * R[7]) - R[1] * (R[3] * R[8] - R[5] * R[6]) +
                        R[2] * (R[3] * R[7] - R[4] * R[6]);
-    if (worst > 1e-6 || det < 0) p.fail(path + ".R_FB", "not a rotation (rows must be orthonormal, determinant +1)");
+    if (worst > 1e-6 || det < 0)
+      p.fail(path + ".R_FB", "not a rotation (rows must be orthonormal, determinant +1)");
   }
   m.odometry_rate_hz = p.num(node, "odometry_rate_hz", path, m.odometry_rate_hz);
   m.heartbeat_rate_hz = p.num(node, "heartbeat_rate_hz", path, m.heartbeat_rate_hz);
@@ -559,8 +576,8 @@ MavlinkSettings load_mavlink_settings(const std::string& path) {
 
 namespace {
 constexpr const char* kThreadNames[kPipelineThreads] = {
-    "kst-imu", "kst-cam", "kst-replay", "kst-propagate", "kst-estimator", "kst-optimizer", "kst-log", "kst-viewer",
-    "kst-mapping", "kst-loop"};
+    "kst-imu",       "kst-cam", "kst-replay", "kst-propagate", "kst-estimator",
+    "kst-optimizer", "kst-log", "kst-viewer", "kst-mapping",   "kst-loop"};
 }  // namespace
 
 ThreadTable default_thread_table() {
@@ -657,7 +674,8 @@ LiveConfig live_config_from_yaml(const std::string& text, const std::string& whe
       // A rig file of its own (what `kestrel calib import-kalibr` writes), relative to this config.
       std::string file = root["rig"].Scalar();
       const auto slash = where.rfind('/');
-      if (!file.empty() && file[0] != '/' && slash != std::string::npos) file = where.substr(0, slash + 1) + file;
+      if (!file.empty() && file[0] != '/' && slash != std::string::npos)
+        file = where.substr(0, slash + 1) + file;
       c.rig = load_rig_file(file);
     } else {
       c.rig = rig_from_yaml_node(root["rig"], where, "rig.");
@@ -703,7 +721,8 @@ DeviceReport probe_devices() {
   for (const auto& d : v4l2::list_devices(&err)) {
     std::string fmts;
     for (uint32_t f : d.formats) fmts += (fmts.empty() ? "" : " ") + v4l2::fourcc_name(f);
-    r.found.push_back({"camera", "v4l2", d.path, d.card + " [" + d.driver + ", " + d.bus_info + "] formats: " + fmts});
+    r.found.push_back(
+        {"camera", "v4l2", d.path, d.card + " [" + d.driver + ", " + d.bus_info + "] formats: " + fmts});
   }
   if (!err.empty()) r.notes.push_back("v4l2: " + err);
   err.clear();
@@ -739,10 +758,12 @@ DeviceReport probe_devices() {
       }
       for (uint8_t acc : {bmx055::kAccAddrDefault, bmx055::kAccAddrAlt}) {
         uint8_t id = 0;
-        if (b.read_regs(acc, bmx055::acc::kChipIdReg, &id, 1) != I2cStatus::kOk || id != bmx055::acc::kChipId) continue;
+        if (b.read_regs(acc, bmx055::acc::kChipIdReg, &id, 1) != I2cStatus::kOk || id != bmx055::acc::kChipId)
+          continue;
         std::string gyro = "gyro not found";
         for (uint8_t g : {bmx055::kGyroAddrDefault, bmx055::kGyroAddrAlt})
-          if (b.read_regs(g, bmx055::gyro::kChipIdReg, &id, 1) == I2cStatus::kOk && id == bmx055::gyro::kChipId) {
+          if (b.read_regs(g, bmx055::gyro::kChipIdReg, &id, 1) == I2cStatus::kOk &&
+              id == bmx055::gyro::kChipId) {
             char s[32];
             std::snprintf(s, sizeof s, "gyro at 0x%02x", g);
             gyro = s;
@@ -845,7 +866,8 @@ LiveSensors::LiveSensors(const LiveConfig& cfg) : impl_(std::make_unique<Impl>()
   }
   switch (d.imu.type) {
     case ImuType::kNone:
-    case ImuType::kLog: break;
+    case ImuType::kLog:
+      break;
     case ImuType::kBmx055I2c: {
       std::string e = m.i2c.open(d.imu.i2c_bus_device);
       if (!e.empty()) {
@@ -927,8 +949,10 @@ LiveSensors::LiveSensors(const LiveConfig& cfg) : impl_(std::make_unique<Impl>()
       const bool side_by_side = d.camera.v4l2_stereo_layout == "side_by_side";
       if (side_by_side) o.request.width = 2 * d.camera.width_px;
       std::string e = m.color.open(o);
-      if (!e.empty()) missing.push_back(std::string(side_by_side ? "stereo camera (V4L2, side by side): "
-                                                                 : "colour camera (V4L2): ") + e);
+      if (!e.empty())
+        missing.push_back(
+            std::string(side_by_side ? "stereo camera (V4L2, side by side): " : "colour camera (V4L2): ") +
+            e);
       if (!d.camera.v4l2_right_device.empty()) {
         v4l2::Options r = o;
         r.device = d.camera.v4l2_right_device;
@@ -1075,7 +1099,8 @@ void LiveSensors::Impl::imu_loop(ImuSink& sink) {
       if (bridge->step(sink, &strobes) == UsbBridgeState::kDisconnected) {
         rt::sleep_for_ns(1'000'000'000);
         const auto& u = cfg.drivers.imu.usb;
-        if (usb.open(u.vid, u.pid, u.endpoint_in).empty()) bridge = std::make_unique<UsbBridgeDriver>(usb, clock, u);
+        if (usb.open(u.vid, u.pid, u.endpoint_in).empty())
+          bridge = std::make_unique<UsbBridgeDriver>(usb, clock, u);
       }
     } else if (mav) {
       // Blocks on the link until bytes arrive or a request is due; the cap keeps stop() prompt.
@@ -1201,7 +1226,8 @@ void LiveSensors::Impl::log_loop(ImuSink& imu, FrameSink& sink) {
     (void)sink.push_frame(f);
   };
   while (!stop.load(std::memory_order_relaxed) && log->next(r)) {
-    const bool image = r.type == RecordType::kRgb || r.type == RecordType::kDepth || r.type == RecordType::kRight;
+    const bool image =
+        r.type == RecordType::kRgb || r.type == RecordType::kDepth || r.type == RecordType::kRight;
     const int64_t t = r.type == RecordType::kImu ? r.imu.t_ns : image ? r.image.t_ns : -1;
     if (t < 0) continue;  // ground truth and events are not sensors
     if (wall0 < 0) wall0 = rt::now_ns(), log0 = t;
@@ -1267,15 +1293,18 @@ bool split_side_by_side(const ImageBuffer& in, ImageBuffer& left, ImageBuffer& r
 
 std::string stereo_capability(const CameraSettings& c) {
   switch (c.type) {
-    case CameraType::kLog: return "";  // a stereo log's right records
+    case CameraType::kLog:
+      return "";  // a stereo log's right records
     case CameraType::kV4l2:
       if (!c.v4l2_right_device.empty() || c.v4l2_stereo_layout == "side_by_side") return "";
       return "drivers.camera.v4l2: a stereo rig needs right_device or stereo_layout: side_by_side";
     case CameraType::kD4xx:
       if (c.d4xx.image == "infrared1" && c.d4xx.infrared == "y8i") return "";
       return "drivers.camera.d4xx: a stereo rig needs image: infrared1 and infrared: y8i (Infrared 1 + 2)";
-    case CameraType::kOpenNi2: return "drivers.camera: OpenNI2 cameras deliver no right image";
-    case CameraType::kNone: return "drivers.camera: none";
+    case CameraType::kOpenNi2:
+      return "drivers.camera: OpenNI2 cameras deliver no right image";
+    case CameraType::kNone:
+      return "drivers.camera: none";
   }
   return "drivers.camera: unknown type";
 }
@@ -1287,18 +1316,21 @@ void LiveSensors::start(ImuSink& imu, FrameSink& frames) {
   rt::ThreadSetupReport r;
   if (m.log) {
     const rt::ThreadSpec& spec = m.cfg.threads[PipelineThread::kCamera];
-    m.cam_thread = rt::start_thread(spec, [&m, &imu, &frames] { m.log_loop(imu, frames); }, &r);
+    m.cam_thread = rt::start_thread(
+        spec, [&m, &imu, &frames] { m.log_loop(imu, frames); }, &r);
     m.thread_reports.emplace_back(spec, r);
     return;
   }
   if (m.bmx || m.bridge || m.mav || m.iio_imu) {
     const rt::ThreadSpec& spec = m.cfg.threads[PipelineThread::kImu];
-    m.imu_thread = rt::start_thread(spec, [&m, &imu] { m.imu_loop(imu); }, &r);
+    m.imu_thread = rt::start_thread(
+        spec, [&m, &imu] { m.imu_loop(imu); }, &r);
     m.thread_reports.emplace_back(spec, r);
   }
   if (m.cfg.drivers.camera.type != CameraType::kNone) {
     const rt::ThreadSpec& spec = m.cfg.threads[PipelineThread::kCamera];
-    m.cam_thread = rt::start_thread(spec, [&m, &frames] { m.cam_loop(frames); }, &r);
+    m.cam_thread = rt::start_thread(
+        spec, [&m, &frames] { m.cam_loop(frames); }, &r);
     m.thread_reports.emplace_back(spec, r);
   }
 }
@@ -1338,8 +1370,8 @@ std::string LiveSensors::report() const {
   char b[512];
   std::string s;
   std::snprintf(b, sizeof b, "camera: %llu frames, %llu timeouts, %llu errors, %llu depth unpaired\n",
-                (unsigned long long)m.frames, (unsigned long long)m.frame_timeouts, (unsigned long long)m.frame_errors,
-                (unsigned long long)m.unpaired);
+                (unsigned long long)m.frames, (unsigned long long)m.frame_timeouts,
+                (unsigned long long)m.frame_errors, (unsigned long long)m.unpaired);
   s += b;
   if (m.d4xx_cam) s += m.d4xx_cam->report() + "\n";
   if (m.log) {
@@ -1348,28 +1380,31 @@ std::string LiveSensors::report() const {
   }
   if (m.bmx) {
     const auto& c = m.bmx->counters();
-    std::snprintf(b, sizeof b,
-                  "bmx055: state %s, %llu samples, %llu resets, %llu i2c errors, %llu overruns, %llu timeouts, "
-                  "%llu sink drops, gyro ODR %.3f Hz\n",
-                  bmx055::to_string(m.bmx->state()), (unsigned long long)c.samples, (unsigned long long)c.resets,
-                  (unsigned long long)c.i2c_errors, (unsigned long long)c.fifo_overruns, (unsigned long long)c.timeouts,
-                  (unsigned long long)c.sink_drops, m.bmx->gyro_odr_estimate_hz());
+    std::snprintf(
+        b, sizeof b,
+        "bmx055: state %s, %llu samples, %llu resets, %llu i2c errors, %llu overruns, %llu timeouts, "
+        "%llu sink drops, gyro ODR %.3f Hz\n",
+        bmx055::to_string(m.bmx->state()), (unsigned long long)c.samples, (unsigned long long)c.resets,
+        (unsigned long long)c.i2c_errors, (unsigned long long)c.fifo_overruns, (unsigned long long)c.timeouts,
+        (unsigned long long)c.sink_drops, m.bmx->gyro_odr_estimate_hz());
     s += b;
   }
   if (m.bridge) {
     const auto& c = m.bridge->counters();
-    std::snprintf(b, sizeof b,
-                  "usb bridge: state %s, %llu samples, %llu packets lost, %llu crc errors, %llu samples lost, "
-                  "clock skew %.1f ppm, %llu strobes\n",
-                  to_string(m.bridge->state()), (unsigned long long)c.samples, (unsigned long long)c.packets_lost,
-                  (unsigned long long)c.crc_errors, (unsigned long long)c.samples_lost,
-                  m.bridge->clock_sync().skew() * 1e6, (unsigned long long)c.strobes);
+    std::snprintf(
+        b, sizeof b,
+        "usb bridge: state %s, %llu samples, %llu packets lost, %llu crc errors, %llu samples lost, "
+        "clock skew %.1f ppm, %llu strobes\n",
+        to_string(m.bridge->state()), (unsigned long long)c.samples, (unsigned long long)c.packets_lost,
+        (unsigned long long)c.crc_errors, (unsigned long long)c.samples_lost,
+        m.bridge->clock_sync().skew() * 1e6, (unsigned long long)c.strobes);
     s += b;
   }
   if (m.mav) s += m.mav->report();
   if (m.iio_imu) s += m.iio_imu->report() + "\n";
   if (m.cfg.drivers.strobe.enabled) {
-    std::snprintf(b, sizeof b, "strobes: %llu matched, %llu frames unmatched, residual camera offset %.3f ms\n",
+    std::snprintf(b, sizeof b,
+                  "strobes: %llu matched, %llu frames unmatched, residual camera offset %.3f ms\n",
                   (unsigned long long)m.matcher.matched(), (unsigned long long)m.matcher.unmatched_frames(),
                   m.matcher.residual_offset_ns() * 1e-6);
     s += b;

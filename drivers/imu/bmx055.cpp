@@ -8,7 +8,7 @@ namespace kestrel::drivers::bmx055 {
 namespace {
 
 constexpr double kPi = 3.14159265358979323846;
-constexpr double kStandardGravity = 9.80665;   // datasheet "g"
+constexpr double kStandardGravity = 9.80665;    // datasheet "g"
 constexpr int64_t kCheckPeriodNs = 50'000'000;  // one register re-verified every 50 ms
 constexpr int64_t kVerifySettleNs = 1'000'000;
 constexpr int64_t kBistWaitNs = 20'000'000;
@@ -17,11 +17,11 @@ constexpr int kSelfTestAttempts = 3;
 ClockSyncOptions sample_clock_options(double prior_skew) {
   ClockSyncOptions o;
   o.bucket_ns = 200'000'000;
-  o.max_buckets = 50;              // 10 s window: follows oscillator drift with temperature
+  o.max_buckets = 50;  // 10 s window: follows oscillator drift with temperature
   o.min_buckets_for_skew = 3;
   o.prior_skew = prior_skew;
-  o.max_abs_skew = 0.1;            // ODR tolerance is a few percent; beyond 10 % the index is wrong
-  o.jump_threshold_ns = 5'000'000; // a sample "seen" 5 ms before it can exist: index lost track
+  o.max_abs_skew = 0.1;             // ODR tolerance is a few percent; beyond 10 % the index is wrong
+  o.jump_threshold_ns = 5'000'000;  // a sample "seen" 5 ms before it can exist: index lost track
   return o;
 }
 
@@ -29,16 +29,26 @@ ClockSyncOptions sample_clock_options(double prior_skew) {
 
 const char* to_string(State s) {
   switch (s) {
-    case State::kReset: return "reset";
-    case State::kWaitBoot: return "wait-boot";
-    case State::kProbe: return "probe";
-    case State::kSelfTestAcc: return "self-test-acc";
-    case State::kSelfTestGyro: return "self-test-gyro";
-    case State::kConfigure: return "configure";
-    case State::kVerify: return "verify";
-    case State::kStream: return "stream";
-    case State::kBackoff: return "backoff";
-    case State::kFailed: return "failed";
+    case State::kReset:
+      return "reset";
+    case State::kWaitBoot:
+      return "wait-boot";
+    case State::kProbe:
+      return "probe";
+    case State::kSelfTestAcc:
+      return "self-test-acc";
+    case State::kSelfTestGyro:
+      return "self-test-gyro";
+    case State::kConfigure:
+      return "configure";
+    case State::kVerify:
+      return "verify";
+    case State::kStream:
+      return "stream";
+    case State::kBackoff:
+      return "backoff";
+    case State::kFailed:
+      return "failed";
   }
   return "?";
 }
@@ -48,7 +58,8 @@ void Config::validate() const {
     throw std::invalid_argument(std::string(field) + ": " + why);
   };
   if (acc_addr != kAccAddrDefault && acc_addr != kAccAddrAlt) bad("acc_i2c_addr", "must be 0x18 or 0x19");
-  if (gyro_addr != kGyroAddrDefault && gyro_addr != kGyroAddrAlt) bad("gyro_i2c_addr", "must be 0x68 or 0x69");
+  if (gyro_addr != kGyroAddrDefault && gyro_addr != kGyroAddrAlt)
+    bad("gyro_i2c_addr", "must be 0x68 or 0x69");
   if (mag_addr < kMagAddrFirst || mag_addr > kMagAddrLast) bad("mag_i2c_addr", "must be 0x10..0x13");
   if (gyro_watermark_frames < 1 || gyro_watermark_frames >= gyro::kFifoDepthFrames)
     bad("gyro_fifo_watermark_frames", "must be 1..99");
@@ -57,7 +68,8 @@ void Config::validate() const {
   if (poll_period_ns <= 0) bad("poll_period_us", "must be > 0");
   // The poll period must drain the gyro FIFO before it overruns.
   const double fill_ns = 1e9 * gyro::kFifoDepthFrames / gyro::odr_hz(gyro_bw);
-  if (static_cast<double>(poll_period_ns) > 0.5 * fill_ns) bad("poll_period_us", "must be under half the gyro FIFO fill time");
+  if (static_cast<double>(poll_period_ns) > 0.5 * fill_ns)
+    bad("poll_period_us", "must be under half the gyro FIFO fill time");
   bool seen[3] = {false, false, false};
   for (int8_t r : axis_remap) {
     const int a = std::abs(static_cast<int>(r));
@@ -149,7 +161,9 @@ void convert(const RawXyz& gyro, const RawXyz& acc, const Scales& s, ImuSample& 
 
 size_t build_register_table(const Config& c, std::array<RegEntry, kMaxRegEntries>& t) {
   size_t n = 0;
-  auto add = [&](Part p, uint8_t reg, uint8_t v, uint8_t mask, const char* what) { t[n++] = RegEntry{p, reg, v, mask, what}; };
+  auto add = [&](Part p, uint8_t reg, uint8_t v, uint8_t mask, const char* what) {
+    t[n++] = RegEntry{p, reg, v, mask, what};
+  };
   const bool gpio = c.drdy == DataReadyMode::kGpio;
   // Accelerometer. Shadowing stays on (HBW bit 6 = 0) so an LSB/MSB pair is
   // never torn; the filtered output (bit 7 = 0) is what the bandwidth means.
@@ -159,7 +173,8 @@ size_t build_register_table(const Config& c, std::array<RegEntry, kMaxRegEntries
   add(Part::kAcc, acc::kAccdHbw, 0x00, 0xC0, "acc ACCD_HBW: filtered, shadowed");
   add(Part::kAcc, acc::kIntEn1, 0x00, 0x70, "acc INT_EN_1: no interrupts (read beside the gyro)");
   add(Part::kAcc, acc::kWdt, 0x06, 0x06, "acc BGW_SPI3_WDT: I2C watchdog 50 ms");
-  add(Part::kAcc, acc::kFifoConfig0, static_cast<uint8_t>(c.acc_watermark_frames), 0x3F, "acc FIFO_CONFIG_0 watermark");
+  add(Part::kAcc, acc::kFifoConfig0, static_cast<uint8_t>(c.acc_watermark_frames), 0x3F,
+      "acc FIFO_CONFIG_0 watermark");
   add(Part::kAcc, acc::kFifoConfig1, acc::kFifoModeStream, 0xC3, "acc FIFO_CONFIG_1: stream, xyz");
   // Gyroscope. BW bit 7 reads back as 1, hence the mask.
   add(Part::kGyro, gyro::kLpm1, 0x00, 0xA0, "gyro LPM1: normal mode");
@@ -171,7 +186,8 @@ size_t build_register_table(const Config& c, std::array<RegEntry, kMaxRegEntries
   add(Part::kGyro, gyro::kFifoWmEn, gpio ? 0x80 : 0x00, 0x80, "gyro FIFO watermark interrupt");
   add(Part::kGyro, gyro::kIntEn0, gpio ? 0x40 : 0x00, 0xC0, "gyro INT_EN_0: FIFO interrupt");
   add(Part::kGyro, gyro::kWdt, 0x06, 0x06, "gyro BGW_SPI3_WDT: I2C watchdog 50 ms");
-  add(Part::kGyro, gyro::kFifoConfig0, static_cast<uint8_t>(c.gyro_watermark_frames), 0xFF, "gyro FIFO_CONFIG_0 watermark, no tag");
+  add(Part::kGyro, gyro::kFifoConfig0, static_cast<uint8_t>(c.gyro_watermark_frames), 0xFF,
+      "gyro FIFO_CONFIG_0 watermark, no tag");
   add(Part::kGyro, gyro::kFifoConfig1, gyro::kFifoModeStream, 0xC3, "gyro FIFO_CONFIG_1: stream, xyz");
   return n;
 }
@@ -225,8 +241,12 @@ void Driver::restart_clock(PartClock& c, double keep_skew) {
   c.fresh = false;
 }
 
-double Driver::gyro_odr_estimate_hz() const { return 1e9 / (static_cast<double>(gyro_clk_.period_ns) * (1.0 + gyro_clk_.sync.skew())); }
-double Driver::acc_odr_estimate_hz() const { return 1e9 / (static_cast<double>(acc_clk_.period_ns) * (1.0 + acc_clk_.sync.skew())); }
+double Driver::gyro_odr_estimate_hz() const {
+  return 1e9 / (static_cast<double>(gyro_clk_.period_ns) * (1.0 + gyro_clk_.sync.skew()));
+}
+double Driver::acc_odr_estimate_hz() const {
+  return 1e9 / (static_cast<double>(acc_clk_.period_ns) * (1.0 + acc_clk_.sync.skew()));
+}
 
 int64_t Driver::step(ImuSink& sink) {
   const int64_t now = clock_.now_ns();
@@ -243,34 +263,55 @@ int64_t Driver::step(ImuSink& sink) {
       sink.event(now, EventCode::kDriverReset, "bmx055: soft reset");
       enter(State::kWaitBoot, cfg_.boot_wait_ns);
       break;
-    case State::kWaitBoot: enter(State::kProbe); break;
-    case State::kProbe: step_probe(sink); break;
-    case State::kSelfTestAcc: step_self_test_acc(sink); break;
-    case State::kSelfTestGyro: step_self_test_gyro(sink); break;
-    case State::kConfigure: step_configure(sink); break;
-    case State::kVerify: step_verify(sink); break;
-    case State::kStream: step_stream(sink); break;
-    case State::kBackoff: enter(State::kReset); break;
-    case State::kFailed: wake_ns_ = now + 1'000'000'000; break;
+    case State::kWaitBoot:
+      enter(State::kProbe);
+      break;
+    case State::kProbe:
+      step_probe(sink);
+      break;
+    case State::kSelfTestAcc:
+      step_self_test_acc(sink);
+      break;
+    case State::kSelfTestGyro:
+      step_self_test_gyro(sink);
+      break;
+    case State::kConfigure:
+      step_configure(sink);
+      break;
+    case State::kVerify:
+      step_verify(sink);
+      break;
+    case State::kStream:
+      step_stream(sink);
+      break;
+    case State::kBackoff:
+      enter(State::kReset);
+      break;
+    case State::kFailed:
+      wake_ns_ = now + 1'000'000'000;
+      break;
   }
   return wake_ns_;
 }
 
 void Driver::step_probe(ImuSink& sink) {
   uint8_t id = 0;
-  if (!read(Part::kAcc, acc::kChipIdReg, &id, 1)) return fault("bmx055: accelerometer does not answer (NACK)", sink);
+  if (!read(Part::kAcc, acc::kChipIdReg, &id, 1))
+    return fault("bmx055: accelerometer does not answer (NACK)", sink);
   if (id != acc::kChipId) {
     ++counters_.chip_id_mismatches;
     return fault("bmx055: accelerometer chip id is not 0xFA", sink);
   }
-  if (!read(Part::kGyro, gyro::kChipIdReg, &id, 1)) return fault("bmx055: gyroscope does not answer (NACK)", sink);
+  if (!read(Part::kGyro, gyro::kChipIdReg, &id, 1))
+    return fault("bmx055: gyroscope does not answer (NACK)", sink);
   if (id != gyro::kChipId) {
     ++counters_.chip_id_mismatches;
     return fault("bmx055: gyroscope chip id is not 0x0F", sink);
   }
   if (cfg_.mag_enabled) {
     // Optional part: absence is reported, not a fault.
-    mag_present_ = bus_.read_regs(cfg_.mag_addr, mag::kChipIdReg, &id, 1) == I2cStatus::kOk && id == mag::kChipId;
+    mag_present_ =
+        bus_.read_regs(cfg_.mag_addr, mag::kChipIdReg, &id, 1) == I2cStatus::kOk && id == mag::kChipId;
   }
   if (cfg_.self_test && !self_test_done_) {
     st_step_ = 0;
@@ -313,7 +354,8 @@ void Driver::step_self_test_acc(ImuSink& sink) {
     self_test_.acc_diff_mg[a] = std::abs(st_values_mg_[2 * a] - st_values_mg_[2 * a + 1]);
     self_test_.acc_pass = self_test_.acc_pass && self_test_.acc_diff_mg[a] >= acc::kSelfTestMinDiffMg[a];
   }
-  if (!write(Part::kGyro, gyro::kBist, gyro::kBistTrigger)) return fault("bmx055: gyro BIST trigger failed", sink);
+  if (!write(Part::kGyro, gyro::kBist, gyro::kBistTrigger))
+    return fault("bmx055: gyro BIST trigger failed", sink);
   enter(State::kSelfTestGyro, kBistWaitNs);
 }
 
@@ -330,13 +372,15 @@ void Driver::step_self_test_gyro(ImuSink& sink) {
   }
   ++counters_.self_test_failures;
   if (counters_.self_test_failures >= static_cast<uint64_t>(kSelfTestAttempts)) {
-    fault_ = self_test_.acc_pass ? "bmx055: gyroscope self-test failed" : "bmx055: accelerometer self-test failed";
+    fault_ =
+        self_test_.acc_pass ? "bmx055: gyroscope self-test failed" : "bmx055: accelerometer self-test failed";
     sink.event(clock_.now_ns(), EventCode::kDriverFault, fault_);
     enter(State::kFailed);
     return;
   }
   fault(self_test_.acc_pass ? "bmx055: gyroscope self-test failed (retrying)"
-                            : "bmx055: accelerometer self-test failed (retrying)", sink);
+                            : "bmx055: accelerometer self-test failed (retrying)",
+        sink);
 }
 
 void Driver::step_configure(ImuSink& sink) {
@@ -418,19 +462,20 @@ size_t Driver::read_fifo(Part p, RawXyz* out, size_t max, int64_t& t_obs_ns, boo
   return got;
 }
 
-int64_t Driver::sample_time(PartClock& c, size_t /*n*/, size_t k, int64_t /*obs_index*/, int64_t /*t_obs_ns*/) {
+int64_t Driver::sample_time(PartClock& c, size_t /*n*/, size_t k, int64_t /*obs_index*/,
+                            int64_t /*t_obs_ns*/) {
   return c.sync.to_host_ns((c.index + static_cast<int64_t>(k)) * c.period_ns);
 }
 
 void Driver::interpolate_acc(int64_t t_ns, Vec3d& acc, bool& sat, bool& have) const {
   have = false;
   if (acc_count_ == 0) return;
-  auto get = [&](int i) -> const AccPoint& {   // i = 0 oldest
+  auto get = [&](int i) -> const AccPoint& {  // i = 0 oldest
     return acc_hist_[static_cast<size_t>((acc_head_ - acc_count_ + i + kAccHistory) % kAccHistory)];
   };
   have = true;
   const AccPoint& newest = get(acc_count_ - 1);
-  if (t_ns >= newest.t_ns) {   // hold the newest: at most one accelerometer period old
+  if (t_ns >= newest.t_ns) {  // hold the newest: at most one accelerometer period old
     acc = newest.acc;
     sat = newest.sat;
     return;
@@ -444,7 +489,8 @@ void Driver::interpolate_acc(int64_t t_ns, Vec3d& acc, bool& sat, bool& have) co
     const AccPoint& a = get(i - 1);
     const AccPoint& b = get(i);
     if (a.t_ns <= t_ns && t_ns <= b.t_ns) {
-      const double w = b.t_ns > a.t_ns ? static_cast<double>(t_ns - a.t_ns) / static_cast<double>(b.t_ns - a.t_ns) : 1.0;
+      const double w =
+          b.t_ns > a.t_ns ? static_cast<double>(t_ns - a.t_ns) / static_cast<double>(b.t_ns - a.t_ns) : 1.0;
       for (size_t j = 0; j < 3; ++j) acc[j] = a.acc[j] + w * (b.acc[j] - a.acc[j]);
       sat = a.sat || b.sat;
       return;
@@ -458,7 +504,7 @@ bool Driver::check_one_register(ImuSink& sink) {
   const RegEntry& e = table_[check_index_ % table_size_];
   ++check_index_;
   uint8_t v = 0;
-  if (!read(e.part, e.reg, &v, 1)) return true;   // counted as an i2c error; checked again next round
+  if (!read(e.part, e.reg, &v, 1)) return true;  // counted as an i2c error; checked again next round
   if ((v & e.verify_mask) == (e.value & e.verify_mask)) return true;
   // Read twice before believing it: a flipped bit on the wire is not a lost
   // configuration.
@@ -480,7 +526,8 @@ void Driver::step_stream(ImuSink& sink) {
   // Polling is dithered by up to a quarter period: a poll locked in phase to
   // the ODR would show the lower envelope one constant latency, never its floor.
   dither_ = dither_ * 6364136223846793005ULL + 1442695040888963407ULL;
-  const int64_t dither = static_cast<int64_t>((dither_ >> 33) % static_cast<uint64_t>(cfg_.poll_period_ns / 4 + 1));
+  const int64_t dither =
+      static_cast<int64_t>((dither_ >> 33) % static_cast<uint64_t>(cfg_.poll_period_ns / 4 + 1));
   wake_ns_ = now + (cfg_.drdy == DataReadyMode::kGpio ? 2 * gyro_fill_ns : cfg_.poll_period_ns + dither);
 
   if (now - last_gyro_sample_host_ns_ > cfg_.stream_timeout_ns) {
@@ -500,7 +547,8 @@ void Driver::step_stream(ImuSink& sink) {
   const bool okt = read(Part::kAcc, acc::kTemp, reinterpret_cast<uint8_t*>(&traw), 1);
   if (okt) temp_c_ = temp_c_from_raw(traw);
   if (!okg || !oka || !okt) {
-    if (++consecutive_errors_ >= cfg_.max_consecutive_errors) return fault("bmx055: repeated I2C errors while streaming", sink);
+    if (++consecutive_errors_ >= cfg_.max_consecutive_errors)
+      return fault("bmx055: repeated I2C errors while streaming", sink);
   } else {
     consecutive_errors_ = 0;
   }
@@ -521,7 +569,8 @@ void Driver::step_stream(ImuSink& sink) {
   }
   if (ng > 0) {
     PartClock& c = gyro_clk_;
-    if (cfg_.drdy == DataReadyMode::kGpio && edge_t > prev_read_ns && static_cast<int64_t>(ng) >= cfg_.gyro_watermark_frames) {
+    if (cfg_.drdy == DataReadyMode::kGpio && edge_t > prev_read_ns &&
+        static_cast<int64_t>(ng) >= cfg_.gyro_watermark_frames) {
       // The watermark edge fired when the FIFO held W unread frames: frame W-1 of this read.
       (void)c.sync.add((c.index + cfg_.gyro_watermark_frames - 1) * c.period_ns, edge_t);
     }
@@ -557,8 +606,10 @@ void Driver::step_stream(ImuSink& sink) {
       s.temp_c = temp_c_;
       s.seq = seq_++;
       last_out_t_ns_ = s.t_ns;
-      if (sink.push(s)) ++counters_.samples;
-      else ++counters_.sink_drops;
+      if (sink.push(s))
+        ++counters_.samples;
+      else
+        ++counters_.sink_drops;
     }
     c.index += static_cast<int64_t>(ng);
     last_gyro_sample_host_ns_ = now;

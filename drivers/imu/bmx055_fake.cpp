@@ -7,7 +7,7 @@ namespace kestrel::drivers::bmx055 {
 namespace {
 constexpr double kPi = 3.14159265358979323846;
 constexpr double kG = 9.80665;
-constexpr int64_t kBootNs = 2'000'000;   // transfers NACK this long after a soft reset
+constexpr int64_t kBootNs = 2'000'000;  // transfers NACK this long after a soft reset
 }  // namespace
 
 FakeBmx055::FakeBmx055(ManualClock& clock, uint64_t seed) : clock_(clock), rng_(seed) {
@@ -92,7 +92,7 @@ FakeBmx055::Frame FakeBmx055::make_acc_frame(int64_t t) const {
     const double c = std::round(mps2 / acc_lsb_mps2());
     const auto v = static_cast<int16_t>(std::clamp(c, -2048.0, 2047.0));
     const auto u = static_cast<uint16_t>(static_cast<uint16_t>(v) << 4);
-    f.bytes[static_cast<size_t>(2 * i)] = static_cast<uint8_t>((u & 0xF0) | 0x01);   // new_data bit
+    f.bytes[static_cast<size_t>(2 * i)] = static_cast<uint8_t>((u & 0xF0) | 0x01);  // new_data bit
     f.bytes[static_cast<size_t>(2 * i + 1)] = static_cast<uint8_t>(u >> 8);
   }
   return f;
@@ -100,10 +100,12 @@ FakeBmx055::Frame FakeBmx055::make_acc_frame(int64_t t) const {
 
 void FakeBmx055::advance() {
   const int64_t now = clock_.now_ns();
-  const double gyro_period =
-      1e9 / gyro::odr_hz(static_cast<gyro::Bandwidth>(regs_[kGyro][gyro::kBw] & 0x07)) * (1.0 + gyro_clock_error);
+  const double gyro_period = 1e9 /
+                             gyro::odr_hz(static_cast<gyro::Bandwidth>(regs_[kGyro][gyro::kBw] & 0x07)) *
+                             (1.0 + gyro_clock_error);
   const double acc_period =
-      1e9 / acc::odr_hz(static_cast<acc::Bandwidth>(std::clamp<int>(regs_[kAcc][acc::kPmuBw] & 0x1F, 0x08, 0x0F))) *
+      1e9 /
+      acc::odr_hz(static_cast<acc::Bandwidth>(std::clamp<int>(regs_[kAcc][acc::kPmuBw] & 0x1F, 0x08, 0x0F))) *
       (1.0 + acc_clock_error);
   if (next_gyro_t_ < 0) next_gyro_t_ = now + static_cast<int64_t>(gyro_period);
   if (next_acc_t_ < 0) next_acc_t_ = now + static_cast<int64_t>(acc_period * 0.37);
@@ -114,7 +116,7 @@ void FakeBmx055::advance() {
     if (streaming(kGyro)) {
       gyro_times_.push_back(next_gyro_t_);
       if (gyro_fifo_.size() >= static_cast<size_t>(gyro::kFifoDepthFrames)) {
-        gyro_fifo_.pop_front();   // stream mode: oldest discarded
+        gyro_fifo_.pop_front();  // stream mode: oldest discarded
         gyro_overrun_ = true;
         ++gyro_lost_;
       }
@@ -202,7 +204,7 @@ I2cStatus FakeBmx055::read_regs(uint8_t addr7, uint8_t reg, uint8_t* dst, size_t
   const Dev d = dev_of(addr7);
   if (d == kNone || clock_.now_ns() < boot_until_[d] || inject_nack()) return I2cStatus::kNack;
   auto& r = regs_[static_cast<size_t>(d)];
-  if (d == kMag && (r[mag::kPowerCtrl] & 0x01) == 0) return I2cStatus::kNack;   // suspended BMM150
+  if (d == kMag && (r[mag::kPowerCtrl] & 0x01) == 0) return I2cStatus::kNack;  // suspended BMM150
   if (reg == 0x3F && d != kMag) {
     auto& fifo = d == kAcc ? acc_fifo_ : gyro_fifo_;
     size_t i = 0;
@@ -220,7 +222,7 @@ I2cStatus FakeBmx055::read_regs(uint8_t addr7, uint8_t reg, uint8_t* dst, size_t
       uint8_t v = r[a];
       if (d == kAcc && a >= acc::kDataXLsb && a <= 0x07) v = acc_latest_.bytes[a - acc::kDataXLsb];
       if (d == kGyro && a >= gyro::kRateXLsb && a <= 0x07) v = gyro_latest_.bytes[a - gyro::kRateXLsb];
-      if (d == kAcc && a == acc::kTemp) v = 4;   // 25 degC
+      if (d == kAcc && a == acc::kTemp) v = 4;  // 25 degC
       if (d == kAcc && a == acc::kFifoStatus)
         v = static_cast<uint8_t>((acc_overrun_ ? 0x80 : 0) | std::min<size_t>(acc_fifo_.size(), 0x7F));
       if (d == kGyro && a == gyro::kFifoStatus)
@@ -260,7 +262,7 @@ I2cStatus FakeBmx055::write_reg(uint8_t addr7, uint8_t reg, uint8_t value) {
   }
   r[reg] = value;
   if (d == kGyro && reg == gyro::kBw) r[reg] = value & 0x7F;
-  if (reg == 0x3E && d != kMag) {   // FIFO_CONFIG_1 write clears the FIFO
+  if (reg == 0x3E && d != kMag) {  // FIFO_CONFIG_1 write clears the FIFO
     if (d == kAcc) {
       acc_fifo_.clear();
       acc_overrun_ = false;

@@ -13,21 +13,30 @@ using namespace usb_bridge;
 
 const char* to_string(UsbStatus s) {
   switch (s) {
-    case UsbStatus::kOk: return "ok";
-    case UsbStatus::kTimeout: return "timeout";
-    case UsbStatus::kDisconnected: return "disconnected";
-    case UsbStatus::kError: return "error";
-    case UsbStatus::kNotOpen: return "not-open";
+    case UsbStatus::kOk:
+      return "ok";
+    case UsbStatus::kTimeout:
+      return "timeout";
+    case UsbStatus::kDisconnected:
+      return "disconnected";
+    case UsbStatus::kError:
+      return "error";
+    case UsbStatus::kNotOpen:
+      return "not-open";
   }
   return "?";
 }
 
 const char* to_string(UsbBridgeState s) {
   switch (s) {
-    case UsbBridgeState::kWaiting: return "waiting";
-    case UsbBridgeState::kStreaming: return "streaming";
-    case UsbBridgeState::kStalled: return "stalled";
-    case UsbBridgeState::kDisconnected: return "disconnected";
+    case UsbBridgeState::kWaiting:
+      return "waiting";
+    case UsbBridgeState::kStreaming:
+      return "streaming";
+    case UsbBridgeState::kStalled:
+      return "stalled";
+    case UsbBridgeState::kDisconnected:
+      return "disconnected";
   }
   return "?";
 }
@@ -36,10 +45,12 @@ void UsbBridgeConfig::validate() const {
   bool seen[3] = {false, false, false};
   for (int8_t r : axis_remap) {
     const int a = r < 0 ? -r : r;
-    if (a < 1 || a > 3 || seen[a - 1]) throw std::invalid_argument("axis_remap: must be a signed permutation of x, y, z");
+    if (a < 1 || a > 3 || seen[a - 1])
+      throw std::invalid_argument("axis_remap: must be a signed permutation of x, y, z");
     seen[a - 1] = true;
   }
-  if ((endpoint_in & 0x80) == 0) throw std::invalid_argument("endpoint_in: must be an IN endpoint (0x81..0x8F)");
+  if ((endpoint_in & 0x80) == 0)
+    throw std::invalid_argument("endpoint_in: must be an IN endpoint (0x81..0x8F)");
   if (read_timeout_ms <= 0) throw std::invalid_argument("read_timeout_ms: must be > 0");
   if (no_data_timeout_ns <= 0) throw std::invalid_argument("no_data_timeout_ms: must be > 0");
 }
@@ -100,7 +111,8 @@ UsbBridgeState UsbBridgeDriver::step(ImuSink& imu, StrobeSink* strobes) {
   return state_;
 }
 
-void UsbBridgeDriver::on_packet(const StreamParser::Packet& p, int64_t t_rx_ns, ImuSink& imu, StrobeSink* strobes) {
+void UsbBridgeDriver::on_packet(const StreamParser::Packet& p, int64_t t_rx_ns, ImuSink& imu,
+                                StrobeSink* strobes) {
   bool late = false;
   if (have_seq_) {
     const auto d = static_cast<int16_t>(static_cast<uint16_t>(p.header.seq - next_seq_));
@@ -130,9 +142,15 @@ void UsbBridgeDriver::on_packet(const StreamParser::Packet& p, int64_t t_rx_ns, 
   }
   if (state_ != UsbBridgeState::kStreaming) state_ = UsbBridgeState::kStreaming;
   switch (p.header.type) {
-    case PacketType::kImu: on_imu(p.payload, p.header.payload_len, t_rx_ns, imu); break;
-    case PacketType::kStrobe: on_strobes(p.payload, p.header.payload_len, strobes); break;
-    case PacketType::kStatus: on_status(p.payload, p.header.payload_len, t_rx_ns, imu); break;
+    case PacketType::kImu:
+      on_imu(p.payload, p.header.payload_len, t_rx_ns, imu);
+      break;
+    case PacketType::kStrobe:
+      on_strobes(p.payload, p.header.payload_len, strobes);
+      break;
+    case PacketType::kStatus:
+      on_status(p.payload, p.header.payload_len, t_rx_ns, imu);
+      break;
   }
 }
 
@@ -146,7 +164,8 @@ void UsbBridgeDriver::on_imu(const uint8_t* payload, size_t len, int64_t t_rx_ns
     const ImuWireSample& w = wire_[i];
     uint32_t flags = 0;
     if (have_sample_) {
-      const auto d = static_cast<int16_t>(static_cast<uint16_t>(w.sample_seq - static_cast<uint16_t>(last_sample_seq_ + 1)));
+      const auto d = static_cast<int16_t>(
+          static_cast<uint16_t>(w.sample_seq - static_cast<uint16_t>(last_sample_seq_ + 1)));
       if (d < 0) {
         ++counters_.samples_late;
         continue;
@@ -179,13 +198,15 @@ void UsbBridgeDriver::on_imu(const uint8_t* payload, size_t len, int64_t t_rx_ns
     s.t_recv_ns = t_rx_ns;
     s.seq = sample_seq_ext_;
     s.flags = flags;
-    bmx055::convert(bmx055::RawXyz{w.gyro[0], w.gyro[1], w.gyro[2]}, bmx055::RawXyz{w.acc[0], w.acc[1], w.acc[2]},
-                    scales_, s);
+    bmx055::convert(bmx055::RawXyz{w.gyro[0], w.gyro[1], w.gyro[2]},
+                    bmx055::RawXyz{w.acc[0], w.acc[1], w.acc[2]}, scales_, s);
     s.temp_c = bmx055::temp_c_from_raw(w.temp_raw);
     have_sample_ = true;
     last_sample_t_ns_ = s.t_ns;
-    if (imu.push(s)) ++counters_.samples;
-    else ++counters_.sink_drops;
+    if (imu.push(s))
+      ++counters_.samples;
+    else
+      ++counters_.sink_drops;
   }
 }
 
@@ -199,7 +220,7 @@ void UsbBridgeDriver::on_strobes(const uint8_t* payload, size_t len, StrobeSink*
     const StrobeWire& w = strobe_wire_[i];
     if (have_strobe_) {
       const int64_t d = static_cast<int64_t>(w.strobe_seq) - static_cast<int64_t>(last_strobe_seq_) - 1;
-      if (d < 0) continue;   // late duplicate
+      if (d < 0) continue;  // late duplicate
       counters_.strobes_lost += static_cast<uint64_t>(d);
     }
     have_strobe_ = true;
@@ -234,7 +255,8 @@ void UsbBridgeDriver::on_status(const uint8_t* payload, size_t len, int64_t t_rx
   if (differs && changed) {
     // The bridge's ranges are what the sensor was programmed with: trust them.
     ++counters_.config_mismatches;
-    imu.event(t_rx_ns, EventCode::kDriverFault, "usb bridge: sensor ranges differ from the config; using the bridge's");
+    imu.event(t_rx_ns, EventCode::kDriverFault,
+              "usb bridge: sensor ranges differ from the config; using the bridge's");
   }
   scales_ = bmx055::make_scales(static_cast<bmx055::acc::Range>(s.acc_range_code),
                                 static_cast<bmx055::gyro::Range>(s.gyro_range_code), cfg_.axis_remap);
@@ -276,8 +298,9 @@ std::string LibusbEndpoint::open(uint16_t vid, uint16_t pid, uint8_t endpoint_in
     if (libusb_get_device_descriptor(list[i], &d) != 0 || d.idVendor != vid || d.idProduct != pid) continue;
     const int rc = libusb_open(list[i], &h);
     if (rc == 0) break;
-    err = std::string("USB device ") + id + " found but cannot be opened: " +
-          libusb_strerror(static_cast<libusb_error>(rc)) + (rc == LIBUSB_ERROR_ACCESS ? " (udev rule / permissions)" : "");
+    err = std::string("USB device ") + id +
+          " found but cannot be opened: " + libusb_strerror(static_cast<libusb_error>(rc)) +
+          (rc == LIBUSB_ERROR_ACCESS ? " (udev rule / permissions)" : "");
     h = nullptr;
   }
   libusb_free_device_list(list, 1);
@@ -286,8 +309,8 @@ std::string LibusbEndpoint::open(uint16_t vid, uint16_t pid, uint8_t endpoint_in
   const int rc = libusb_claim_interface(h, interface_number);
   if (rc != 0) {
     libusb_close(h);
-    return std::string("USB device ") + id + ": cannot claim interface " + std::to_string(interface_number) + ": " +
-           libusb_strerror(static_cast<libusb_error>(rc));
+    return std::string("USB device ") + id + ": cannot claim interface " + std::to_string(interface_number) +
+           ": " + libusb_strerror(static_cast<libusb_error>(rc));
   }
   handle_ = h;
   ep_ = endpoint_in;
@@ -308,8 +331,8 @@ UsbStatus LibusbEndpoint::bulk_read(uint8_t* buf, size_t cap, size_t& got, int t
   got = 0;
   if (handle_ == nullptr) return UsbStatus::kNotOpen;
   int transferred = 0;
-  const int rc = libusb_bulk_transfer(static_cast<libusb_device_handle*>(handle_), ep_, buf, static_cast<int>(cap),
-                                      &transferred, timeout_ms);
+  const int rc = libusb_bulk_transfer(static_cast<libusb_device_handle*>(handle_), ep_, buf,
+                                      static_cast<int>(cap), &transferred, timeout_ms);
   got = transferred > 0 ? static_cast<size_t>(transferred) : 0;
   if (rc == 0) return UsbStatus::kOk;
   if (rc == LIBUSB_ERROR_TIMEOUT) return got > 0 ? UsbStatus::kOk : UsbStatus::kTimeout;
@@ -326,7 +349,8 @@ std::vector<UsbDeviceInfo> list_usb_devices(uint16_t vid, uint16_t pid, std::str
   }
   libusb_device** list = nullptr;
   const ssize_t n = libusb_get_device_list(ctx, &list);
-  if (n < 0 && error) *error = std::string("cannot list USB devices: ") + libusb_strerror(static_cast<libusb_error>(n));
+  if (n < 0 && error)
+    *error = std::string("cannot list USB devices: ") + libusb_strerror(static_cast<libusb_error>(n));
   for (ssize_t i = 0; i < n; ++i) {
     libusb_device_descriptor d;
     if (libusb_get_device_descriptor(list[i], &d) != 0) continue;
@@ -339,7 +363,8 @@ std::vector<UsbDeviceInfo> list_usb_devices(uint16_t vid, uint16_t pid, std::str
     libusb_device_handle* h = nullptr;
     if (d.iSerialNumber != 0 && libusb_open(list[i], &h) == 0) {
       unsigned char s[128] = {};
-      if (libusb_get_string_descriptor_ascii(h, d.iSerialNumber, s, sizeof s) > 0) info.serial = reinterpret_cast<char*>(s);
+      if (libusb_get_string_descriptor_ascii(h, d.iSerialNumber, s, sizeof s) > 0)
+        info.serial = reinterpret_cast<char*>(s);
       libusb_close(h);
     }
     out.push_back(info);

@@ -6,7 +6,8 @@
 
 namespace kestrel::drivers::usb_bridge {
 
-FakeUsbBridge::FakeUsbBridge(ManualClock& clock, const FakeBridgeOptions& o) : clock_(clock), o_(o), rng_(o.seed) {
+FakeUsbBridge::FakeUsbBridge(ManualClock& clock, const FakeBridgeOptions& o)
+    : clock_(clock), o_(o), rng_(o.seed) {
   motion = [](int64_t, double g[3], double a[3]) {
     g[0] = g[1] = g[2] = 0;
     a[0] = a[1] = 0;
@@ -43,7 +44,8 @@ int64_t FakeUsbBridge::latency() {
   return o_.latency_floor_ns + static_cast<int64_t>(j);
 }
 
-void FakeUsbBridge::emit(PacketType type, const uint8_t* payload, size_t len, uint64_t t_tx_us, int64_t t_tx_host) {
+void FakeUsbBridge::emit(PacketType type, const uint8_t* payload, size_t len, uint64_t t_tx_us,
+                         int64_t t_tx_host) {
   std::vector<uint8_t> bytes(kMaxPacketBytes);
   bytes.resize(encode_packet(type, seq_++, t_tx_us, payload, len, bytes.data(), bytes.size()));
   ++packets_sent_;
@@ -62,7 +64,7 @@ void FakeUsbBridge::emit(PacketType type, const uint8_t* payload, size_t len, ui
     const size_t n = std::uniform_int_distribution<size_t>(1, 40)(rng_);
     std::vector<uint8_t> g(n);
     for (auto& b : g) b = static_cast<uint8_t>(rng_());
-    if (n >= 2) g[n / 2] = kMagic0, g[n / 2 + 1 < n ? n / 2 + 1 : n / 2] = kMagic1;   // a false magic, too
+    if (n >= 2) g[n / 2] = kMagic0, g[n / 2 + 1 < n ? n / 2 + 1 : n / 2] = kMagic1;  // a false magic, too
     bytes.insert(bytes.begin(), g.begin(), g.end());
     ++garbage_;
   }
@@ -90,7 +92,7 @@ void FakeUsbBridge::generate_until(int64_t host_ns) {
     const int64_t frame = next_frame_host_;
     if (reboot_at_ >= 0 && frame >= reboot_at_) {
       h0_ = frame;
-      d0_us_ = 1000;   // a fresh counter
+      d0_us_ = 1000;  // a fresh counter
       ++boot_id_;
       seq_ = 0;
       sample_seq_ = 0;
@@ -142,8 +144,8 @@ void FakeUsbBridge::generate_until(int64_t host_ns) {
       next_status_host_ = frame + 1'000'000'000;
     }
     if (!imu_q_.empty()) {
-      emit(PacketType::kImu, payload, encode_imu_payload(imu_q_.data(), imu_q_.size(), payload, sizeof payload), t_tx,
-           frame);
+      emit(PacketType::kImu, payload,
+           encode_imu_payload(imu_q_.data(), imu_q_.size(), payload, sizeof payload), t_tx, frame);
       imu_q_.clear();
     }
     if (!strobe_q_.empty()) {

@@ -12,11 +12,16 @@ constexpr int64_t kDepthFollowsNs = 20'000'000;
 
 int rank_of(RecordType t) {
   switch (t) {
-    case RecordType::kImu: return 0;
-    case RecordType::kRgb: return 1;
-    case RecordType::kDepth: return 2;
-    case RecordType::kGroundTruth: return 3;
-    case RecordType::kEvent: return 4;
+    case RecordType::kImu:
+      return 0;
+    case RecordType::kRgb:
+      return 1;
+    case RecordType::kDepth:
+      return 2;
+    case RecordType::kGroundTruth:
+      return 3;
+    case RecordType::kEvent:
+      return 4;
     case RecordType::kRight:
       return 5;
   }
@@ -27,13 +32,16 @@ int rank_of(RecordType t) {
 
 int64_t record_time_ns(const LogRecord& r) {
   switch (r.type) {
-    case RecordType::kImu: return r.imu.t_ns;
+    case RecordType::kImu:
+      return r.imu.t_ns;
     case RecordType::kRgb:
     case RecordType::kDepth:
     case RecordType::kRight:
       return r.image.t_ns;
-    case RecordType::kGroundTruth: return r.gt.t_ns;
-    case RecordType::kEvent: return r.event.t_ns;
+    case RecordType::kGroundTruth:
+      return r.gt.t_ns;
+    case RecordType::kEvent:
+      return r.event.t_ns;
   }
   return 0;
 }
@@ -54,7 +62,8 @@ void CameraTimeShift::push(LogRecord&& r) {
     r.image.t_ns = key;
     // Depth stays right behind its colour image even when its own stamp
     // differs a little, so nothing is sorted in between the pair.
-    if (r.type == RecordType::kDepth && last_was_rgb_ && std::llabs(raw - last_rgb_raw_ns_) <= kDepthFollowsNs)
+    if (r.type == RecordType::kDepth && last_was_rgb_ &&
+        std::llabs(raw - last_rgb_raw_ns_) <= kDepthFollowsNs)
       key = last_rgb_key_ns_;
   }
   last_was_rgb_ = r.type == RecordType::kRgb;

@@ -10,7 +10,8 @@ bool is_known_record_type(uint16_t type) {
 }
 
 bool is_valid_pixel_format(uint8_t format) {
-  return format >= static_cast<uint8_t>(PixelFormat::kGray8) && format <= static_cast<uint8_t>(PixelFormat::kDepthU16);
+  return format >= static_cast<uint8_t>(PixelFormat::kGray8) &&
+         format <= static_cast<uint8_t>(PixelFormat::kDepthU16);
 }
 
 uint32_t record_crc(uint16_t type, uint16_t flags, uint32_t payload_length, const uint8_t* payload) {
@@ -193,7 +194,8 @@ bool decode_event(const uint8_t* p, size_t n, Event& e, std::string& why) {
   e.code = static_cast<EventCode>(r.u32());
   const uint32_t len = r.u32();
   if (len != r.remaining()) {
-    why = "event text length " + std::to_string(len) + " but " + std::to_string(r.remaining()) + " bytes follow";
+    why = "event text length " + std::to_string(len) + " but " + std::to_string(r.remaining()) +
+          " bytes follow";
     return false;
   }
   const uint8_t* t = r.skip(len);

@@ -28,7 +28,8 @@ KlogLogger::KlogLogger(const std::string& path, const Rig& rig, const Options& o
   // of a VGA frame is ~200 faults in the camera thread).
   std::memset(stage_.get(), 0, stage_size_);
   thread_spec_ = options.thread;
-  thread_ = rt::start_thread(thread_spec_, [this] { run(); }, &thread_report_);
+  thread_ = rt::start_thread(
+      thread_spec_, [this] { run(); }, &thread_report_);
 }
 
 KlogLogger::~KlogLogger() { stop(); }
@@ -47,9 +48,10 @@ bool KlogLogger::log_event(int64_t t_ns, EventCode code, const char* text) noexc
   return events_->try_push(m);
 }
 
-bool KlogLogger::log_image(RecordType type, int64_t t_ns, int64_t t_recv_ns, uint32_t seq, int32_t exposure_us,
-                           const ImageView& view) noexcept {
-  const size_t row = static_cast<size_t>(std::max(view.width, 0)) * static_cast<size_t>(bytes_per_pixel(view.format));
+bool KlogLogger::log_image(RecordType type, int64_t t_ns, int64_t t_recv_ns, uint32_t seq,
+                           int32_t exposure_us, const ImageView& view) noexcept {
+  const size_t row =
+      static_cast<size_t>(std::max(view.width, 0)) * static_cast<size_t>(bytes_per_pixel(view.format));
   const size_t bytes = row * static_cast<size_t>(std::max(view.height, 0));
   if ((type != RecordType::kRgb && type != RecordType::kDepth && type != RecordType::kRight) ||
       bytes > options_.max_image_bytes ||
@@ -70,7 +72,8 @@ bool KlogLogger::log_image(RecordType type, int64_t t_ns, int64_t t_recv_ns, uin
   }
   uint8_t* dst = stage_.get() + static_cast<size_t>(begin % stage_size_);
   for (int y = 0; y < view.height; ++y)
-    std::memcpy(dst + row * static_cast<size_t>(y), view.data + static_cast<size_t>(y) * view.stride_bytes, row);
+    std::memcpy(dst + row * static_cast<size_t>(y), view.data + static_cast<size_t>(y) * view.stride_bytes,
+                row);
   ImageMsg m;
   m.type = type;
   m.t_ns = t_ns;
@@ -151,7 +154,8 @@ bool KlogLogger::write_one() {
       guarded([&] { writer_.write_event(Event{ev->t_ns, ev->code, std::string(ev->text, ev->length)}); });
       events_->pop();
       return true;
-    default: return false;
+    default:
+      return false;
   }
 }
 

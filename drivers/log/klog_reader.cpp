@@ -21,10 +21,9 @@ namespace kestrel::drivers {
 namespace {
 
 constexpr size_t kWindowBytes = 64 * 1024;
-constexpr uint8_t kSyncBytes[4] = {kestrel::drivers::klog::kSyncMarker & 0xffu,
-                                   (kestrel::drivers::klog::kSyncMarker >> 8) & 0xffu,
-                                   (kestrel::drivers::klog::kSyncMarker >> 16) & 0xffu,
-                                   (kestrel::drivers::klog::kSyncMarker >> 24) & 0xffu};
+constexpr uint8_t kSyncBytes[4] = {
+    kestrel::drivers::klog::kSyncMarker & 0xffu, (kestrel::drivers::klog::kSyncMarker >> 8) & 0xffu,
+    (kestrel::drivers::klog::kSyncMarker >> 16) & 0xffu, (kestrel::drivers::klog::kSyncMarker >> 24) & 0xffu};
 
 bool pread_all(int fd, uint8_t* dst, size_t n, uint64_t offset) {
   while (n > 0) {
@@ -101,19 +100,21 @@ void KlogReader::open_header(const Options& options) {
             " inconsistent with a " + std::to_string(size_) + "-byte file";
     } else {
       header.resize(header_len);
-      if (!read_at(0, header.data(), header_len)) throw std::runtime_error(name_ + ": cannot read the klog header");
+      if (!read_at(0, header.data(), header_len))
+        throw std::runtime_error(name_ + ": cannot read the klog header");
       klog::ByteReader c(header.data() + header_len - 4, 4);
       const uint32_t stored = c.u32();
-      const auto actual = static_cast<uint32_t>(
-          crc32(crc32(0L, Z_NULL, 0), header.data(), static_cast<uInt>(header_len - klog::kFileHeaderCrcBytes)));
+      const auto actual = static_cast<uint32_t>(crc32(
+          crc32(0L, Z_NULL, 0), header.data(), static_cast<uInt>(header_len - klog::kFileHeaderCrcBytes)));
       if (stored != actual) why = "file header CRC mismatch";
     }
   }
   if (why.empty() && (version_ == 0 || version_ > kKlogVersion))
-    throw std::runtime_error(name_ + ": klog version " + std::to_string(version_) + ", this build reads versions 1.." +
-                             std::to_string(kKlogVersion));
+    throw std::runtime_error(name_ + ": klog version " + std::to_string(version_) +
+                             ", this build reads versions 1.." + std::to_string(kKlogVersion));
   if (why.empty()) {
-    const std::string yaml(reinterpret_cast<const char*>(header.data()) + klog::kFileHeaderFixedBytes, yaml_len);
+    const std::string yaml(reinterpret_cast<const char*>(header.data()) + klog::kFileHeaderFixedBytes,
+                           yaml_len);
     try {
       rig_ = rig_from_yaml(yaml, name_ + " (rig in the klog header)");
     } catch (const std::exception& e) {
@@ -135,7 +136,8 @@ void KlogReader::open_header(const Options& options) {
   RecordHeader h;
   data_start_ = resync(0, h);
   pos_ = data_start_;
-  problem(0, "bad-header", why + "; using a default rig, records start at offset " + std::to_string(data_start_));
+  problem(0, "bad-header",
+          why + "; using a default rig, records start at offset " + std::to_string(data_start_));
 }
 
 bool KlogReader::read_at(uint64_t offset, void* dst, size_t n) {
@@ -187,7 +189,8 @@ uint64_t KlogReader::resync(uint64_t from, RecordHeader& h) {
     const size_t last = n >= 4 ? n - 4 : 0;
     size_t i = 0;
     for (; i <= last && n >= 4; ++i) {
-      const uint8_t* p = static_cast<const uint8_t*>(std::memchr(chunk.data() + i, kSyncBytes[0], last + 1 - i));
+      const uint8_t* p =
+          static_cast<const uint8_t*>(std::memchr(chunk.data() + i, kSyncBytes[0], last + 1 - i));
       if (!p) {
         i = last + 1;
         break;
@@ -218,13 +221,16 @@ bool KlogReader::decode(uint64_t offset, const RecordHeader& h, LogRecord& out, 
   out.offset = offset;
   const uint8_t* p = payload_.data();
   switch (out.type) {
-    case RecordType::kImu: return klog::decode_imu(p, h.length, out.imu, why);
+    case RecordType::kImu:
+      return klog::decode_imu(p, h.length, out.imu, why);
     case RecordType::kRgb:
     case RecordType::kDepth:
     case RecordType::kRight:
       return klog::decode_image(p, h.length, out.image, why, decoder_, version_);
-    case RecordType::kGroundTruth: return klog::decode_ground_truth(p, h.length, out.gt, why);
-    case RecordType::kEvent: return klog::decode_event(p, h.length, out.event, why);
+    case RecordType::kGroundTruth:
+      return klog::decode_ground_truth(p, h.length, out.gt, why);
+    case RecordType::kEvent:
+      return klog::decode_event(p, h.length, out.event, why);
   }
   why = "unknown record type";
   return false;
@@ -247,7 +253,7 @@ bool KlogReader::next_as_stored(LogRecord& out) {
     const uint64_t at = pos_;
     RecordHeader h;
     if (pending_) {
-      h = pending_header_;   // resync already checked it and left the payload in payload_
+      h = pending_header_;  // resync already checked it and left the payload in payload_
       pending_ = false;
     } else {
       if (at >= size_) return false;
@@ -271,10 +277,12 @@ bool KlogReader::next_as_stored(LogRecord& out) {
       } else if (h.length > left - klog::kRecordHeaderBytes) {
         past_end = true;
         detail = "payload length " + std::to_string(h.length) + " runs " +
-                 std::to_string(h.length - (left - klog::kRecordHeaderBytes)) + " bytes past the end of the file";
+                 std::to_string(h.length - (left - klog::kRecordHeaderBytes)) +
+                 " bytes past the end of the file";
       } else if (!load_payload(at, h)) {
         kind = "bad-crc";
-        detail = "record CRC mismatch (type " + std::to_string(h.type) + ", length " + std::to_string(h.length) + ")";
+        detail = "record CRC mismatch (type " + std::to_string(h.type) + ", length " +
+                 std::to_string(h.length) + ")";
       }
       if (kind || past_end) {
         RecordHeader nh;
@@ -284,8 +292,8 @@ bool KlogReader::next_as_stored(LogRecord& out) {
         if (next_at >= size_)
           detail += "; no intact record after it (" + std::to_string(size_ - at) + " bytes dropped)";
         else
-          detail += "; skipped " + std::to_string(next_at - at) + " bytes to the next intact record at offset " +
-                    std::to_string(next_at);
+          detail += "; skipped " + std::to_string(next_at - at) +
+                    " bytes to the next intact record at offset " + std::to_string(next_at);
         problem(at, kind, std::move(detail));
         pos_ = next_at;
         if (next_at < size_) {

@@ -23,7 +23,8 @@ void KlogWriter::open(const std::string& path, const Rig& rig, const Options& op
   if (options.version < 2 && options.compression.codec != klog::ImageCodec::kRaw)
     throw std::invalid_argument(path + ": klog version 1 has no compressed images");
   const std::string yaml = rig_to_yaml(rig);
-  if (yaml.size() > klog::kMaxRigYamlBytes) throw std::runtime_error(path + ": rig YAML too large for a klog header");
+  if (yaml.size() > klog::kMaxRigYamlBytes)
+    throw std::runtime_error(path + ": rig YAML too large for a klog header");
   std::FILE* f = std::fopen(path.c_str(), "wb");
   if (!f) throw std::runtime_error(path + ": cannot create klog: " + std::strerror(errno));
 
@@ -34,8 +35,8 @@ void KlogWriter::open(const std::string& path, const Rig& rig, const Options& op
   w.u32(static_cast<uint32_t>(klog::kFileHeaderFixedBytes + yaml.size() + klog::kFileHeaderCrcBytes));
   w.u32(static_cast<uint32_t>(yaml.size()));
   w.bytes(yaml.data(), yaml.size());
-  w.u32(static_cast<uint32_t>(
-      crc32(crc32(0L, Z_NULL, 0), reinterpret_cast<const Bytef*>(header.data()), static_cast<uInt>(header.size()))));
+  w.u32(static_cast<uint32_t>(crc32(crc32(0L, Z_NULL, 0), reinterpret_cast<const Bytef*>(header.data()),
+                                    static_cast<uInt>(header.size()))));
   if (std::fwrite(header.data(), 1, header.size(), f) != header.size() || std::fflush(f) != 0) {
     const int err = errno;
     std::fclose(f);
@@ -114,8 +115,8 @@ void KlogWriter::write_image(RecordType type, const LogImage& img) {
   write_image(type, img.t_ns, img.t_recv_ns, img.seq, img.exposure_us, img.view());
 }
 
-void KlogWriter::write_image(RecordType type, int64_t t_ns, int64_t t_recv_ns, uint32_t seq, int32_t exposure_us,
-                             const ImageView& view) {
+void KlogWriter::write_image(RecordType type, int64_t t_ns, int64_t t_recv_ns, uint32_t seq,
+                             int32_t exposure_us, const ImageView& view) {
   if (type != RecordType::kRgb && type != RecordType::kDepth && type != RecordType::kRight)
     throw std::invalid_argument("KlogWriter::write_image: type must be kRgb, kDepth or kRight");
   const int bpp = bytes_per_pixel(view.format);
@@ -128,7 +129,8 @@ void KlogWriter::write_image(RecordType type, int64_t t_ns, int64_t t_recv_ns, u
   if (view.height > 0 && (!view.data || static_cast<size_t>(view.stride_bytes) < row))
     throw std::invalid_argument(path_ + ": image view without data or with stride < width * bpp");
   begin_record();
-  klog::encode_image_header(t_ns, t_recv_ns, seq, exposure_us, view.width, view.height, view.format, scratch_);
+  klog::encode_image_header(t_ns, t_recv_ns, seq, exposure_us, view.width, view.height, view.format,
+                            scratch_);
   const size_t pixels_at = scratch_.size();
   klog::ImageCodec codec = klog::ImageCodec::kRaw;
   klog::ImageFilter filter = klog::ImageFilter::kNone;

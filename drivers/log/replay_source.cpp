@@ -20,9 +20,12 @@ ReplayPace parse_replay_pace(const std::string& name) {
 
 const char* to_string(ReplayPace pace) {
   switch (pace) {
-    case ReplayPace::kRealtime: return "realtime";
-    case ReplayPace::kFast: return "fast";
-    case ReplayPace::kLockstep: return "lockstep";
+    case ReplayPace::kRealtime:
+      return "realtime";
+    case ReplayPace::kFast:
+      return "fast";
+    case ReplayPace::kLockstep:
+      return "lockstep";
   }
   return "?";
 }
@@ -85,7 +88,7 @@ bool ReplaySource::copy_image(const LogImage& img, uint32_t& handle) {
   b->width = img.width;
   b->height = img.height;
   b->format = img.format;
-  b->pixels.resize(bytes);   // within the reserved capacity: no allocation
+  b->pixels.resize(bytes);  // within the reserved capacity: no allocation
   if (bytes > 0) std::memcpy(b->pixels.data(), img.pixels.data(), bytes);
   return true;
 }
@@ -112,7 +115,7 @@ bool ReplaySource::step() {
   }
   switch (rec_.type) {
     case RecordType::kImu: {
-      emit_pending();   // a depth image, if any, follows its colour image directly
+      emit_pending();  // a depth image, if any, follows its colour image directly
       wait_until_due(rec_.imu.t_ns);
       ImuSample s = rec_.imu;
       // A live driver stamps arrival on the host clock; so does replay, which

@@ -29,14 +29,16 @@ class Reader {
       if (!n.IsMap()) throw std::runtime_error(where_ + ": expected a YAML mapping (a Kalibr file)");
       return n;
     } catch (const YAML::ParserException& e) {
-      throw std::runtime_error(where_ + ":" + std::to_string(e.mark.line + 1) + ": YAML syntax error: " + e.msg);
+      throw std::runtime_error(where_ + ":" + std::to_string(e.mark.line + 1) +
+                               ": YAML syntax error: " + e.msg);
     }
   }
 
   double number(const YAML::Node& n, const std::string& field) const {
     if (!n.IsScalar()) fail(field, "expected a number");
     double v = 0;
-    if (!text::parse_finite_f64(n.Scalar(), v)) fail(field, "expected a finite number, got \"" + n.Scalar() + "\"");
+    if (!text::parse_finite_f64(n.Scalar(), v))
+      fail(field, "expected a finite number, got \"" + n.Scalar() + "\"");
     return v;
   }
 
@@ -66,7 +68,8 @@ class Reader {
         worst = std::max(worst, std::abs(d - (i == j ? 1.0 : 0.0)));
       }
     // Kalibr prints about 8 significant digits.
-    if (worst > 1e-5) fail(field, "the rotation is not orthonormal (R R^T - I up to " + std::to_string(worst) + ")");
+    if (worst > 1e-5)
+      fail(field, "the rotation is not orthonormal (R R^T - I up to " + std::to_string(worst) + ")");
     return T;
   }
 
@@ -120,8 +123,8 @@ std::string fmt(double v) {
 }  // namespace
 
 KalibrImport import_kalibr_text(const std::string& camchain_yaml, const std::string& camchain_name,
-                                const std::string& imu_yaml, const std::string& imu_name, const std::string& camera,
-                                const Rig& base) {
+                                const std::string& imu_yaml, const std::string& imu_name,
+                                const std::string& camera, const Rig& base) {
   KalibrImport out;
   Rig& rig = out.rig;
   rig = base;
@@ -133,7 +136,8 @@ KalibrImport import_kalibr_text(const std::string& camchain_yaml, const std::str
   if (!cam) {
     std::string have;
     for (const auto& kv : chain) have += std::string(have.empty() ? "" : ", ") + kv.first.Scalar();
-    cr.fail(camera, "no such camera in the chain (it has: " + (have.empty() ? std::string("none") : have) + ")");
+    cr.fail(camera,
+            "no such camera in the chain (it has: " + (have.empty() ? std::string("none") : have) + ")");
   }
   // One camera of the chain: its intrinsics and camera -> body.
   auto read_camera = [&](const YAML::Node& cam, const std::string& name, CameraIntrinsics& ki) {
@@ -187,12 +191,13 @@ KalibrImport import_kalibr_text(const std::string& camchain_yaml, const std::str
     out.notes.push_back("cam1: imported as the right camera of a stereo pair (stereo:); depth from matching");
   }
   if (cam["timeshift_cam_imu"]) {
-    rig.time_offset_cam_imu_ns =
-        static_cast<int64_t>(std::llround(1e9 * cr.number(cam["timeshift_cam_imu"], c + "timeshift_cam_imu")));
+    rig.time_offset_cam_imu_ns = static_cast<int64_t>(
+        std::llround(1e9 * cr.number(cam["timeshift_cam_imu"], c + "timeshift_cam_imu")));
   } else {
     rig.time_offset_cam_imu_ns = 0;
-    out.notes.push_back(c + "timeshift_cam_imu: missing: time_offset_cam_imu_ns = 0 (estimate it: "
-                            "window.estimate_time_offset, docs/own-sensors.md)");
+    out.notes.push_back(c +
+                        "timeshift_cam_imu: missing: time_offset_cam_imu_ns = 0 (estimate it: "
+                        "window.estimate_time_offset, docs/own-sensors.md)");
   }
 
   // ---- IMU: Kalibr's input imu.yaml (top-level keys) or its results (imu0:) ----
@@ -209,31 +214,37 @@ KalibrImport import_kalibr_text(const std::string& camchain_yaml, const std::str
     if (!(v > 0)) ir.fail(ip + key, "must be > 0");
     return v;
   };
-  rig.imu.acc_noise_density_mps2_sqrthz = density("accelerometer_noise_density", "m/s^2/sqrt(Hz), continuous time");
+  rig.imu.acc_noise_density_mps2_sqrthz =
+      density("accelerometer_noise_density", "m/s^2/sqrt(Hz), continuous time");
   rig.imu.acc_random_walk_mps3_sqrthz = density("accelerometer_random_walk", "m/s^3/sqrt(Hz)");
-  rig.imu.gyro_noise_density_rad_s_sqrthz = density("gyroscope_noise_density", "rad/s/sqrt(Hz), continuous time");
+  rig.imu.gyro_noise_density_rad_s_sqrthz =
+      density("gyroscope_noise_density", "rad/s/sqrt(Hz), continuous time");
   rig.imu.gyro_random_walk_rad_s2_sqrthz = density("gyroscope_random_walk", "rad/s^2/sqrt(Hz)");
   if (imu["update_rate"]) {
     rig.imu_rate_hz = ir.number(imu["update_rate"], ip + "update_rate");
     if (!(rig.imu_rate_hz > 0)) ir.fail(ip + "update_rate", "must be > 0");
   } else {
-    out.notes.push_back(ip + "update_rate: missing: imu.rate_hz " + fmt(rig.imu_rate_hz) + " from the base rig");
+    out.notes.push_back(ip + "update_rate: missing: imu.rate_hz " + fmt(rig.imu_rate_hz) +
+                        " from the base rig");
   }
   if (imu["T_i_b"]) {
     const Mat4d T = ir.transform(imu["T_i_b"], ip + "T_i_b");
     for (int i = 0; i < 16; ++i)
       if (std::abs(T[i] - kIdentity4[i]) > 1e-9)
-        ir.fail(ip + "T_i_b", "not identity: Kestrel's body frame is this IMU (docs/frames.md); calibrate with it "
-                              "as Kalibr's reference IMU");
+        ir.fail(ip + "T_i_b",
+                "not identity: Kestrel's body frame is this IMU (docs/frames.md); calibrate with it "
+                "as Kalibr's reference IMU");
   }
   rig.T_BI = kIdentity4;
 
   // ---- what Kalibr has no place for ----
-  out.notes.push_back("camera.rate_hz: not in Kalibr's files: " + fmt(rig.camera_rate_hz) + " Hz from the base rig");
-  out.notes.push_back("depth: not in Kalibr's files (depth is registered to the colour camera): scale_m_per_unit " +
-                      fmt(rig.depth.scale_m_per_unit) + ", range " + fmt(rig.depth.min_range_m) + ".." +
-                      fmt(rig.depth.max_range_m) + " m, sigma_coeff_per_m " + fmt(rig.depth.sigma_coeff_per_m) +
-                      " from the base rig");
+  out.notes.push_back("camera.rate_hz: not in Kalibr's files: " + fmt(rig.camera_rate_hz) +
+                      " Hz from the base rig");
+  out.notes.push_back(
+      "depth: not in Kalibr's files (depth is registered to the colour camera): scale_m_per_unit " +
+      fmt(rig.depth.scale_m_per_unit) + ", range " + fmt(rig.depth.min_range_m) + ".." +
+      fmt(rig.depth.max_range_m) + " m, sigma_coeff_per_m " + fmt(rig.depth.sigma_coeff_per_m) +
+      " from the base rig");
   out.notes.push_back("imu.acc_bias_tau_s, gyro_range_rps, acc_range_mps2: not in Kalibr's files: " +
                       fmt(rig.imu.acc_bias_tau_s) + " s, " + fmt(rig.imu.gyro_range_rps) + " rad/s, " +
                       fmt(rig.imu.acc_range_mps2) + " m/s^2 from the base rig");
@@ -249,9 +260,10 @@ KalibrImport import_kalibr_text(const std::string& camchain_yaml, const std::str
   return out;
 }
 
-KalibrImport import_kalibr(const std::string& camchain_path, const std::string& imu_path, const std::string& camera,
-                           const Rig& base) {
-  return import_kalibr_text(read_file(camchain_path), camchain_path, read_file(imu_path), imu_path, camera, base);
+KalibrImport import_kalibr(const std::string& camchain_path, const std::string& imu_path,
+                           const std::string& camera, const Rig& base) {
+  return import_kalibr_text(read_file(camchain_path), camchain_path, read_file(imu_path), imu_path, camera,
+                            base);
 }
 
 }  // namespace kestrel::drivers

@@ -23,7 +23,8 @@ class Parser {
     throw std::runtime_error(where_ + ": " + (f.empty() ? "" : f + ": ") + msg);
   }
 
-  void only_keys(const YAML::Node& map, const std::string& path, std::initializer_list<const char*> keys) const {
+  void only_keys(const YAML::Node& map, const std::string& path,
+                 std::initializer_list<const char*> keys) const {
     if (!map.IsMap()) fail(path, "expected a mapping");
     for (const auto& kv : map) {
       const std::string k = kv.first.Scalar();
@@ -110,16 +111,22 @@ void intrinsics(const Parser& p, const YAML::Node& cam, const std::string& path,
   if (k.fy <= 0) p.fail(path + "fy_px", "must be > 0");
   if (cam["distortion"]) {
     const std::string d = cam["distortion"].IsScalar() ? cam["distortion"].Scalar() : "";
-    if (d == "none") k.distortion = DistortionModel::kNone;
-    else if (d == "radtan") k.distortion = DistortionModel::kRadTan;
-    else if (d == "equidistant") k.distortion = DistortionModel::kEquidistant;
-    else p.fail(path + "distortion", "expected radtan, equidistant or none, got \"" + d + "\"");
+    if (d == "none")
+      k.distortion = DistortionModel::kNone;
+    else if (d == "radtan")
+      k.distortion = DistortionModel::kRadTan;
+    else if (d == "equidistant")
+      k.distortion = DistortionModel::kEquidistant;
+    else
+      p.fail(path + "distortion", "expected radtan, equidistant or none, got \"" + d + "\"");
   }
   if (cam["dist_coeffs"]) {
     const YAML::Node dc = cam["dist_coeffs"];
     if (!dc.IsSequence() || dc.size() > 5)
-      p.fail(path + "dist_coeffs", "expected a list of up to 5 numbers (radtan k1 k2 p1 p2 k3, equidistant k1..k4)");
-    for (size_t i = 0; i < dc.size(); ++i) k.dist[i] = p.number(dc[i], path + "dist_coeffs[" + std::to_string(i) + "]");
+      p.fail(path + "dist_coeffs",
+             "expected a list of up to 5 numbers (radtan k1 k2 p1 p2 k3, equidistant k1..k4)");
+    for (size_t i = 0; i < dc.size(); ++i)
+      k.dist[i] = p.number(dc[i], path + "dist_coeffs[" + std::to_string(i) + "]");
   }
 }
 
@@ -135,17 +142,20 @@ void emit_intrinsics(std::ostringstream& o, const CameraIntrinsics& k) {
 }
 
 bool intrinsics_equal(const CameraIntrinsics& ca, const CameraIntrinsics& cb) {
-  return ca.width == cb.width && ca.height == cb.height && ca.fx == cb.fx && ca.fy == cb.fy && ca.cx == cb.cx &&
-         ca.cy == cb.cy && ca.distortion == cb.distortion && ca.dist == cb.dist;
+  return ca.width == cb.width && ca.height == cb.height && ca.fx == cb.fx && ca.fy == cb.fy &&
+         ca.cx == cb.cx && ca.cy == cb.cy && ca.distortion == cb.distortion && ca.dist == cb.dist;
 }
 
 }  // namespace
 
 const char* distortion_name(DistortionModel m) {
   switch (m) {
-    case DistortionModel::kNone: return "none";
-    case DistortionModel::kRadTan: return "radtan";
-    case DistortionModel::kEquidistant: return "equidistant";
+    case DistortionModel::kNone:
+      return "none";
+    case DistortionModel::kRadTan:
+      return "radtan";
+    case DistortionModel::kEquidistant:
+      return "equidistant";
   }
   return "none";
 }
@@ -174,17 +184,20 @@ Rig rig_from_yaml_node(const YAML::Node& root, const std::string& where, const s
 
   const YAML::Node cam = root["camera"];
   if (!cam) p.fail("camera", "missing (required)");
-  p.only_keys(cam, "camera",
-              {"width_px", "height_px", "fx_px", "fy_px", "cx_px", "cy_px", "distortion", "dist_coeffs", "rate_hz"});
+  p.only_keys(
+      cam, "camera",
+      {"width_px", "height_px", "fx_px", "fy_px", "cx_px", "cy_px", "distortion", "dist_coeffs", "rate_hz"});
   intrinsics(p, cam, "camera.", rig.rgb);
   p.opt_number(cam, "rate_hz", "camera.", rig.camera_rate_hz);
   p.non_negative(rig.camera_rate_hz, "camera.rate_hz");
 
   if (const YAML::Node dc = root["depth_camera"]) {
-    p.only_keys(dc, "depth_camera",
-                {"width_px", "height_px", "fx_px", "fy_px", "cx_px", "cy_px", "distortion", "dist_coeffs", "T_CD"});
+    p.only_keys(
+        dc, "depth_camera",
+        {"width_px", "height_px", "fx_px", "fy_px", "cx_px", "cy_px", "distortion", "dist_coeffs", "T_CD"});
     intrinsics(p, dc, "depth_camera.", rig.depth_camera.intrinsics);
-    if (!dc["T_CD"]) p.fail("depth_camera.T_CD", "missing (required: depth camera -> colour camera, 4x4 row-major)");
+    if (!dc["T_CD"])
+      p.fail("depth_camera.T_CD", "missing (required: depth camera -> colour camera, 4x4 row-major)");
     p.matrix(dc["T_CD"], "depth_camera.T_CD", rig.depth_camera.T_CD);
     rig.depth_camera.present = true;
   }
@@ -207,7 +220,8 @@ Rig rig_from_yaml_node(const YAML::Node& root, const std::string& where, const s
     p.opt_number(d, "sigma_coeff_per_m", "depth.", rig.depth.sigma_coeff_per_m);
     if (rig.depth.scale_m_per_unit <= 0) p.fail("depth.scale_m_per_unit", "must be > 0");
     p.non_negative(rig.depth.min_range_m, "depth.min_range_m");
-    if (rig.depth.max_range_m <= rig.depth.min_range_m) p.fail("depth.max_range_m", "must be > depth.min_range_m");
+    if (rig.depth.max_range_m <= rig.depth.min_range_m)
+      p.fail("depth.max_range_m", "must be > depth.min_range_m");
     p.non_negative(rig.depth.sigma_coeff_per_m, "depth.sigma_coeff_per_m");
   }
   if (root["T_BC"]) p.matrix(root["T_BC"], "T_BC", rig.T_BC);
@@ -216,8 +230,8 @@ Rig rig_from_yaml_node(const YAML::Node& root, const std::string& where, const s
   if (const YAML::Node imu = root["imu"]) {
     p.only_keys(imu, "imu",
                 {"rate_hz", "gyro_noise_density_rad_s_sqrthz", "gyro_random_walk_rad_s2_sqrthz",
-                 "acc_noise_density_mps2_sqrthz", "acc_random_walk_mps3_sqrthz", "acc_bias_tau_s", "gyro_range_rps",
-                 "acc_range_mps2"});
+                 "acc_noise_density_mps2_sqrthz", "acc_random_walk_mps3_sqrthz", "acc_bias_tau_s",
+                 "gyro_range_rps", "acc_range_mps2"});
     ImuNoise& n = rig.imu;
     const std::pair<const char*, double*> fields[] = {
         {"rate_hz", &rig.imu_rate_hz},
@@ -246,8 +260,8 @@ Rig rig_from_yaml(const std::string& yaml_text, const std::string& where) {
   try {
     root = YAML::Load(yaml_text);
   } catch (const YAML::ParserException& e) {
-    throw std::runtime_error(where + ":" + std::to_string(e.mark.line + 1) + ":" + std::to_string(e.mark.column + 1) +
-                             ": YAML syntax error: " + e.msg);
+    throw std::runtime_error(where + ":" + std::to_string(e.mark.line + 1) + ":" +
+                             std::to_string(e.mark.column + 1) + ": YAML syntax error: " + e.msg);
   }
   try {
     return rig_from_yaml_node(root, where, "");
@@ -272,7 +286,8 @@ std::string rig_to_yaml(const Rig& r) {
   o << "  max_range_m: " << text::fmt17(r.depth.max_range_m) << "\n";
   o << "  sigma_coeff_per_m: " << text::fmt17(r.depth.sigma_coeff_per_m) << "\n";
   if (r.depth_camera.present) {
-    o << "# the depth sensor when it is not the colour camera; its depth is registered to the colour camera\n";
+    o << "# the depth sensor when it is not the colour camera; its depth is registered to the colour "
+         "camera\n";
     o << "depth_camera:\n";
     emit_intrinsics(o, r.depth_camera.intrinsics);
     o << "  # depth camera -> colour camera, 4x4 row-major\n";

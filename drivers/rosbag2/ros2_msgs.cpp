@@ -464,7 +464,8 @@ std::string schema_text(const std::string& type) {
   return s;
 }
 
-void image_row_to_log(const uint8_t* src, uint8_t* dst, uint64_t width, int in_bpp, int out_bpp, bool big_endian) {
+void image_row_to_log(const uint8_t* src, uint8_t* dst, uint64_t width, int in_bpp, int out_bpp,
+                      bool big_endian) {
   if (in_bpp == 4) {
     for (uint64_t x = 0; x < width; ++x) {
       uint8_t b[4];

@@ -160,7 +160,8 @@ Rosbag2Stats export_rosbag2(LogSource& src, const std::string& out_dir, const Ro
                c_depth = channel(t.depth, kImageType, false),
                c_info = channel(t.camera_info, kInfoType, false), c_tf = channel("/tf_static", kTfType, true),
                c_gt = channel(t.ground_truth, kPoseType, false);
-  // A stereo rig's right camera: its images, its CameraInfo (P carries the baseline) and its frame in tf_static.
+  // A stereo rig's right camera: its images, its CameraInfo (P carries the baseline) and its frame in
+  // tf_static.
   const bool stereo = rig.stereo.present;
   const size_t c_right = stereo ? channel(t.right, kImageType, false) : 0,
                c_rinfo = stereo ? channel(t.right_camera_info, kInfoType, false) : 0;
@@ -909,9 +910,9 @@ Rosbag2Reader::Rosbag2Reader(const std::string& path, const Rosbag2ReadOptions& 
         rk.width = static_cast<int>(rci.width), rk.height = static_cast<int>(rci.height);
         rk.fx = rci.k[0], rk.cx = rci.k[2], rk.fy = rci.k[4], rk.cy = rci.k[5];
         const bool rzero = std::all_of(rci.d.begin(), rci.d.end(), [](double d) { return d == 0; });
-        rk.distortion = rzero                                     ? DistortionModel::kNone
-                        : rci.distortion_model == "equidistant"    ? DistortionModel::kEquidistant
-                                                                  : DistortionModel::kRadTan;
+        rk.distortion = rzero                                   ? DistortionModel::kNone
+                        : rci.distortion_model == "equidistant" ? DistortionModel::kEquidistant
+                                                                : DistortionModel::kRadTan;
         if (rk.distortion != DistortionModel::kNone)
           for (size_t j = 0; j < std::min<size_t>(5, rci.d.size()); ++j) rk.dist[j] = rci.d[j];
         if (right_frame.empty()) right_frame = rci.frame_id;
@@ -1001,7 +1002,8 @@ Rosbag2Reader::Rosbag2Reader(const std::string& path, const Rosbag2ReadOptions& 
         ++q;
       if (!taken[q] && std::llabs(right[q].t_ns - rgb[i].t_ns) <= 20'000'000) {
         taken[q] = true;
-        s.entries.push_back({camera_stamp_on_imu_clock(r, rgb[i].t_ns), right[q].t_recv, kRightK, right[q].idx});
+        s.entries.push_back(
+            {camera_stamp_on_imu_clock(r, rgb[i].t_ns), right[q].t_recv, kRightK, right[q].idx});
       }
     }
     right_unpaired = static_cast<size_t>(std::count(taken.begin(), taken.end(), false));

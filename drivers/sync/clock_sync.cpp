@@ -69,7 +69,8 @@ bool ClockSync::add(int64_t device_ns, int64_t host_ns) {
 }
 
 void ClockSync::close_bucket() {
-  const int cap = opt_.max_buckets < 2 ? 2 : (opt_.max_buckets > kMaxBuckets ? kMaxBuckets : opt_.max_buckets);
+  const int cap =
+      opt_.max_buckets < 2 ? 2 : (opt_.max_buckets > kMaxBuckets ? kMaxBuckets : opt_.max_buckets);
   if (count_ >= cap) {
     first_ = (first_ + 1) % kMaxBuckets;
     --count_;
@@ -113,8 +114,10 @@ void ClockSync::refit() {
         const int a = hull_[static_cast<size_t>(m - 2)];
         const int b = hull_[static_cast<size_t>(m - 1)];
         const double cross = (x(b) - x(a)) * (y(i) - y(a)) - (y(b) - y(a)) * (x(i) - x(a));
-        if (cross <= 0) --m;   // b is not below the chord a-i: drop it
-        else break;
+        if (cross <= 0)
+          --m;  // b is not below the chord a-i: drop it
+        else
+          break;
       }
       hull_[static_cast<size_t>(m++)] = i;
     }

@@ -2,11 +2,11 @@
 
 #include <sys/stat.h>
 
+#include <algorithm>
 #include <cctype>
 #include <cerrno>
 #include <cmath>
 #include <cstdio>
-#include <algorithm>
 #include <cstdlib>
 #include <fstream>
 #include <limits>
@@ -158,7 +158,8 @@ bool parse_seconds_ns(const std::string& s, int64_t& t_ns, const SecondsSyntax& 
     const int64_t tenth = last + 1;
     const int first_dropped = tenth >= 0 ? digit(static_cast<size_t>(tenth)) : 0;
     switch (syntax.below_ns) {
-      case BelowNs::kTruncate: break;
+      case BelowNs::kTruncate:
+        break;
       case BelowNs::kRound:
         if (first_dropped >= 5) {
           if (mag == kMax) return false;
@@ -179,7 +180,8 @@ std::string seconds_from_ns(int64_t t_ns) {
   char b[48];
   const bool neg = t_ns < 0;
   const uint64_t a = neg ? 0 - static_cast<uint64_t>(t_ns) : static_cast<uint64_t>(t_ns);
-  std::snprintf(b, sizeof b, "%s%llu.%09llu", neg ? "-" : "", static_cast<unsigned long long>(a / 1000000000u),
+  std::snprintf(b, sizeof b, "%s%llu.%09llu", neg ? "-" : "",
+                static_cast<unsigned long long>(a / 1000000000u),
                 static_cast<unsigned long long>(a % 1000000000u));
   return b;
 }
@@ -211,7 +213,7 @@ bool is_utf8(const std::string& s) {
   for (size_t i = 0; i < n;) {
     const unsigned c = p[i];
     size_t len = 0;
-    unsigned lo = 0x80, hi = 0xBF;   // the allowed range of the second byte
+    unsigned lo = 0x80, hi = 0xBF;  // the allowed range of the second byte
     if (c < 0x80) {
       ++i;
       continue;
@@ -219,12 +221,12 @@ bool is_utf8(const std::string& s) {
       len = 2;
     } else if (c >= 0xE0 && c <= 0xEF) {
       len = 3;
-      if (c == 0xE0) lo = 0xA0;   // overlong
-      if (c == 0xED) hi = 0x9F;   // surrogates
+      if (c == 0xE0) lo = 0xA0;  // overlong
+      if (c == 0xED) hi = 0x9F;  // surrogates
     } else if (c >= 0xF0 && c <= 0xF4) {
       len = 4;
-      if (c == 0xF0) lo = 0x90;   // overlong
-      if (c == 0xF4) hi = 0x8F;   // past U+10FFFF
+      if (c == 0xF0) lo = 0x90;  // overlong
+      if (c == 0xF4) hi = 0x8F;  // past U+10FFFF
     } else {
       return false;
     }

@@ -112,15 +112,23 @@ void free(void* p) { __libc_free(p); }
 #endif
 
 // ---- replaceable allocation functions ([new.delete], C++17) -----------------
-void* operator new(std::size_t n) { return alloc_or_throw([n] { return alloc_plain(n); }); }
-void* operator new[](std::size_t n) { return alloc_or_throw([n] { return alloc_plain(n); }); }
+void* operator new(std::size_t n) {
+  return alloc_or_throw([n] { return alloc_plain(n); });
+}
+void* operator new[](std::size_t n) {
+  return alloc_or_throw([n] { return alloc_plain(n); });
+}
 void* operator new(std::size_t n, const std::nothrow_t&) noexcept { return alloc_plain(n); }
 void* operator new[](std::size_t n, const std::nothrow_t&) noexcept { return alloc_plain(n); }
-void* operator new(std::size_t n, std::align_val_t al) { return alloc_or_throw([n, al] { return alloc_aligned(n, al); }); }
+void* operator new(std::size_t n, std::align_val_t al) {
+  return alloc_or_throw([n, al] { return alloc_aligned(n, al); });
+}
 void* operator new[](std::size_t n, std::align_val_t al) {
   return alloc_or_throw([n, al] { return alloc_aligned(n, al); });
 }
-void* operator new(std::size_t n, std::align_val_t al, const std::nothrow_t&) noexcept { return alloc_aligned(n, al); }
+void* operator new(std::size_t n, std::align_val_t al, const std::nothrow_t&) noexcept {
+  return alloc_aligned(n, al);
+}
 void* operator new[](std::size_t n, std::align_val_t al, const std::nothrow_t&) noexcept {
   return alloc_aligned(n, al);
 }

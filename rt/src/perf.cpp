@@ -9,9 +9,12 @@ namespace kestrel::rt {
 
 const char* to_string(PerfKind k) noexcept {
   switch (k) {
-    case PerfKind::kCount: return "count";
-    case PerfKind::kElapsed: return "elapsed";
-    case PerfKind::kInterval: return "interval";
+    case PerfKind::kCount:
+      return "count";
+    case PerfKind::kElapsed:
+      return "elapsed";
+    case PerfKind::kInterval:
+      return "interval";
   }
   return "?";
 }
@@ -36,8 +39,12 @@ void PerfCounter::reset() noexcept {
 }
 
 PerfCounter::Snapshot PerfCounter::snapshot() const noexcept {
-  Snapshot s{name_, kind_, count_.load(std::memory_order_relaxed), total_ns_.load(std::memory_order_relaxed),
-             min_ns_.load(std::memory_order_relaxed), max_ns_.load(std::memory_order_relaxed)};
+  Snapshot s{name_,
+             kind_,
+             count_.load(std::memory_order_relaxed),
+             total_ns_.load(std::memory_order_relaxed),
+             min_ns_.load(std::memory_order_relaxed),
+             max_ns_.load(std::memory_order_relaxed)};
   return s;
 }
 
@@ -85,10 +92,12 @@ std::string PerfRegistry::to_string() const {
   for (std::size_t i = 0; i < count; ++i) {
     const PerfCounter::Snapshot s = counters_[i].snapshot();
     if (s.kind == PerfKind::kCount) {
-      std::snprintf(line, sizeof line, "%-40s %-8s %12" PRIu64 "\n", s.name, kestrel::rt::to_string(s.kind), s.count);
+      std::snprintf(line, sizeof line, "%-40s %-8s %12" PRIu64 "\n", s.name, kestrel::rt::to_string(s.kind),
+                    s.count);
     } else {
-      std::snprintf(line, sizeof line, "%-40s %-8s %12" PRIu64 "  mean %10.1f us  min %10.1f us  max %10.1f us\n",
-                    s.name, kestrel::rt::to_string(s.kind), s.count, s.mean_ns() / 1e3,
+      std::snprintf(line, sizeof line,
+                    "%-40s %-8s %12" PRIu64 "  mean %10.1f us  min %10.1f us  max %10.1f us\n", s.name,
+                    kestrel::rt::to_string(s.kind), s.count, s.mean_ns() / 1e3,
                     static_cast<double>(s.min_ns) / 1e3, static_cast<double>(s.max_ns) / 1e3);
     }
     out += line;

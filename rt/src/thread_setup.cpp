@@ -80,7 +80,8 @@ bool cpu_allowed(pthread_t thread, int cpu) noexcept {
 }
 
 const char* sched_refusal_note(int e) noexcept {
-  if (e == EPERM) return "SCHED_FIFO refused (EPERM: needs CAP_SYS_NICE or RLIMIT_RTPRIO >= priority); running SCHED_OTHER";
+  if (e == EPERM)
+    return "SCHED_FIFO refused (EPERM: needs CAP_SYS_NICE or RLIMIT_RTPRIO >= priority); running SCHED_OTHER";
   if (e == EINVAL) return "SCHED_FIFO refused (EINVAL: priority out of range); running SCHED_OTHER";
   return "SCHED_FIFO refused; running SCHED_OTHER";
 }
@@ -118,8 +119,9 @@ ProcessSetupReport setup_process(const ProcessSetupOptions& opts) {
     r.lock_note = r.lock_errno == ENOMEM
                       ? "refused (ENOMEM: RLIMIT_MEMLOCK smaller than the process and no CAP_IPC_LOCK; "
                         "raise `ulimit -l` or grant cap_ipc_lock); pages may fault in real time"
-                  : r.lock_errno == EPERM ? "refused (EPERM: needs CAP_IPC_LOCK); pages may fault in real time"
-                                          : "refused; pages may fault in real time";
+                  : r.lock_errno == EPERM
+                      ? "refused (EPERM: needs CAP_IPC_LOCK); pages may fault in real time"
+                      : "refused; pages may fault in real time";
   }
 
   if (opts.keep_heap && !r.sanitizer_build) {
@@ -294,22 +296,30 @@ int nth_allowed_cpu(int k) noexcept {
 
 const char* policy_name(int policy) noexcept {
   switch (policy) {
-    case SCHED_OTHER: return "SCHED_OTHER";
-    case SCHED_FIFO: return "SCHED_FIFO";
-    case SCHED_RR: return "SCHED_RR";
+    case SCHED_OTHER:
+      return "SCHED_OTHER";
+    case SCHED_FIFO:
+      return "SCHED_FIFO";
+    case SCHED_RR:
+      return "SCHED_RR";
 #ifdef SCHED_BATCH
-    case SCHED_BATCH: return "SCHED_BATCH";
+    case SCHED_BATCH:
+      return "SCHED_BATCH";
 #endif
 #ifdef SCHED_IDLE
-    case SCHED_IDLE: return "SCHED_IDLE";
+    case SCHED_IDLE:
+      return "SCHED_IDLE";
 #endif
-    default: return "unknown";
+    default:
+      return "unknown";
   }
 }
 
 std::string to_string(const ProcessSetupReport& r) {
   std::string s = "process setup: memory lock ";
-  s += r.memory_locked ? "GRANTED (mlockall current+future)" : r.lock_memory_requested ? "NOT in effect: " : "";
+  s += r.memory_locked           ? "GRANTED (mlockall current+future)"
+       : r.lock_memory_requested ? "NOT in effect: "
+                                 : "";
   if (!r.memory_locked) s += r.lock_note;
   if (r.lock_errno != 0) {
     s += " [errno ";
@@ -319,7 +329,8 @@ std::string to_string(const ProcessSetupReport& r) {
   s += "; stack prefaulted " + std::to_string(r.stack_prefaulted_kib) + " KiB";
   s += "; heap trim/mmap disabled: ";
   s += r.heap_tuned ? "yes" : "no";
-  s += "; limits memlock=" + limit_text(r.rlimit_memlock_bytes, true) + " rtprio=" + limit_text(r.rlimit_rtprio, false);
+  s += "; limits memlock=" + limit_text(r.rlimit_memlock_bytes, true) +
+       " rtprio=" + limit_text(r.rlimit_rtprio, false);
   s += "; caps ipc_lock=";
   s += r.cap_ipc_lock ? "yes" : "no";
   s += " sys_nice=";
@@ -333,8 +344,10 @@ std::string to_string(const ThreadSetupReport& r) {
   s += r.name;
   s += "': ";
   s += policy_name(r.granted_policy);
-  if (r.granted_policy == SCHED_FIFO || r.granted_policy == SCHED_RR) s += " prio " + std::to_string(r.granted_priority);
-  if (r.requested_priority > 0) s += " (requested SCHED_FIFO prio " + std::to_string(r.requested_priority) + ")";
+  if (r.granted_policy == SCHED_FIFO || r.granted_policy == SCHED_RR)
+    s += " prio " + std::to_string(r.granted_priority);
+  if (r.requested_priority > 0)
+    s += " (requested SCHED_FIFO prio " + std::to_string(r.requested_priority) + ")";
   s += " - ";
   s += r.sched_note;
   s += "; cpu ";

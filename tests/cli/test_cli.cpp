@@ -202,7 +202,8 @@ TEST(Cli, ViewAndReportOptionsAreCheckedAndAViewWithoutBrowserFinishes) {
            {"replay " + small_log() + " --view 127.0.0.1:0 --view-clients 0", "--view-clients must be"},
            {"replay " + small_log() + " --view 127.0.0.1:0 --view-bandwidth 1", "--view-bandwidth must be"},
            {"replay " + small_log() + " --view-wait 3", "need --view"},
-           {"run --config " + std::string(KESTREL_SOURCE_DIR) + "/configs/openni2_bmx055_i2c.yaml --view 70000",
+           {"run --config " + std::string(KESTREL_SOURCE_DIR) +
+                "/configs/openni2_bmx055_i2c.yaml --view 70000",
             "kestrel run: --view '70000'"},
            {"eval --gt a.txt --est b.txt --metrics m.json", "--metrics goes with --report"},
        }) {
@@ -217,8 +218,8 @@ TEST(Cli, ViewAndReportOptionsAreCheckedAndAViewWithoutBrowserFinishes) {
   const std::string m = slurp(dir + "/m.json");
   EXPECT_NE(m.find("\"viewer\""), std::string::npos) << m;
   EXPECT_NE(m.find("\"bins\""), std::string::npos) << m;  // what eval --report --metrics reads
-  const CmdResult bad_metrics = run("eval --gt " + small_log() + " --est " + small_log() + " --report " + dir +
-                                    "/r.html --metrics " + dir + "/absent.json");
+  const CmdResult bad_metrics = run("eval --gt " + small_log() + " --est " + small_log() + " --report " +
+                                    dir + "/r.html --metrics " + dir + "/absent.json");
   EXPECT_EQ(bad_metrics.code, 1) << bad_metrics.out;
   EXPECT_NE(bad_metrics.out.find("absent.json"), std::string::npos) << bad_metrics.out;
 }
@@ -237,8 +238,8 @@ TEST(Replay, RealtimeReplayAppliesTheConfigsThreadTableAndReportsIt) {
          "  kst-estimator: {cpu: 0, policy: other}\n"
          "  kst-optimizer: {cpu: 0, policy: other}\n";
   }
-  const CmdResult r = run("replay " + small_log() + " --pace realtime --config " + cfg + " --metrics-out " + dir +
-                          "/m.json --status off");
+  const CmdResult r = run("replay " + small_log() + " --pace realtime --config " + cfg + " --metrics-out " +
+                          dir + "/m.json --status off");
   ASSERT_EQ(r.code, 0) << r.out;
   const std::string m = slurp(dir + "/m.json");
   const size_t at = m.find("\"threads\": [");
@@ -265,7 +266,8 @@ TEST(Replay, RealtimeReplayAppliesTheConfigsThreadTableAndReportsIt) {
   }
   const CmdResult bad = run("replay " + small_log() + " --pace realtime --config " + cfg);
   EXPECT_EQ(bad.code, 1) << bad.out;
-  EXPECT_NE(bad.out.find(cfg + ": threads.kst-optimizer.priority: expected 1..99"), std::string::npos) << bad.out;
+  EXPECT_NE(bad.out.find(cfg + ": threads.kst-optimizer.priority: expected 1..99"), std::string::npos)
+      << bad.out;
 }
 
 // A backend without an IMU (rgbd) starts W at its first body pose, tilted as
@@ -301,15 +303,16 @@ TEST(Cli, BenchScoresABackendWithoutGravityAfterSe3) {
 // alignments, the pose share, and p50 / p99 / max per stage.
 TEST(Cli, BenchJsonCarriesAccuracyAndTheTimingTable) {
   const std::string dir = kestrel::test::temp_dir("cli_bench_" + std::to_string(getpid()));
-  const CmdResult r = run("bench --cases hover --duration 4 --width 160 --height 120 --estimator window --workdir " +
-                          dir + " --json " + dir + "/b.json");
+  const CmdResult r =
+      run("bench --cases hover --duration 4 --width 160 --height 120 --estimator window --workdir " + dir +
+          " --json " + dir + "/b.json");
   ASSERT_EQ(r.code, 0) << r.out;
   EXPECT_NE(r.out.find("timing [ms] (p50 / p99 / max)"), std::string::npos) << r.out;
   const std::string j = slurp(dir + "/b.json");
-  for (const char* key : {"ate_rmse_m", "ate_se3_rmse_m", "pose_share", "tracking_ms_p50", "tracking_ms_p99",
-                          "tracking_ms_max", "optimizer_ms_p50", "optimizer_ms_p99", "optimizer_ms_max",
-                          "imu_to_output_ms_p50", "imu_to_output_ms_p99", "imu_to_output_ms_max",
-                          "realtime_factor"}) {
+  for (const char* key :
+       {"ate_rmse_m", "ate_se3_rmse_m", "pose_share", "tracking_ms_p50", "tracking_ms_p99", "tracking_ms_max",
+        "optimizer_ms_p50", "optimizer_ms_p99", "optimizer_ms_max", "imu_to_output_ms_p50",
+        "imu_to_output_ms_p99", "imu_to_output_ms_max", "realtime_factor"}) {
     const size_t at = j.find(std::string("\"") + key + "\":");
     ASSERT_NE(at, std::string::npos) << key << " missing from:\n" << j;
     // The window backend has every figure: none may be null here.

@@ -76,8 +76,8 @@ TEST(ConfigFile, PrintedSettingsReadBackToTheSame) {
 // UTF-8 is refused naming the key (the fuzzer's estimator_config finding: an
 // accepted multi-line vocabulary path printed into YAML that did not parse).
 TEST(ConfigFile, NamesWithYamlSyntaxReadBackAndDamagedOnesAreRefused) {
-  for (const std::string name : {"my voc: v2 #1.kvoc", "- dash", "'quoted'", "with \"double\" quotes", "true", "~",
-                                 "caf\xc3\xa9.kvoc"}) {
+  for (const std::string name : {"my voc: v2 #1.kvoc", "- dash", "'quoted'", "with \"double\" quotes", "true",
+                                 "~", "caf\xc3\xa9.kvoc"}) {
     EstimatorConfig c = estimator_config_from_yaml("{}", "x.yaml");
     c.window.map.vocabulary_path = name;
     const std::string yaml = estimator_config_to_yaml(c);
@@ -85,12 +85,16 @@ TEST(ConfigFile, NamesWithYamlSyntaxReadBackAndDamagedOnesAreRefused) {
     EXPECT_EQ(back.window.map.vocabulary_path, name);
     EXPECT_EQ(estimator_config_to_yaml(back), yaml);
   }
-  EXPECT_NE(error_of("map: {vocabulary: \"a\\nb\"}\n").find("x.yaml:1: map.vocabulary: expected printable UTF-8 text"),
-            std::string::npos) << error_of("map: {vocabulary: \"a\\nb\"}\n");
-  EXPECT_NE(error_of("map: {vocabulary: \"a\xff.kvoc\"}\n").find("map.vocabulary: expected printable UTF-8 text"),
-            std::string::npos);
+  EXPECT_NE(error_of("map: {vocabulary: \"a\\nb\"}\n")
+                .find("x.yaml:1: map.vocabulary: expected printable UTF-8 text"),
+            std::string::npos)
+      << error_of("map: {vocabulary: \"a\\nb\"}\n");
+  EXPECT_NE(
+      error_of("map: {vocabulary: \"a\xff.kvoc\"}\n").find("map.vocabulary: expected printable UTF-8 text"),
+      std::string::npos);
   // Defaults stay bare, so the printed config and docs/config.md read as before.
-  EXPECT_NE(estimator_config_to_yaml(EstimatorConfig::defaults("auto")).find("  backend: auto  #"), std::string::npos);
+  EXPECT_NE(estimator_config_to_yaml(EstimatorConfig::defaults("auto")).find("  backend: auto  #"),
+            std::string::npos);
 }
 
 TEST(ConfigFile, KeysOverrideWhateverTheirPlace) {
@@ -138,8 +142,8 @@ TEST(ConfigFile, LonscVariantSelectsThePapersAlgorithmAndKeysStillOverride) {
   EXPECT_EQ(p.tracker.lonsc.refine_passes, 0);
   EXPECT_EQ(p.tracker.lonsc.min_run_length, 2);
   // A key written before the variant still wins: presets apply first.
-  const EstimatorConfig q =
-      estimator_config_from_yaml("frontend:\n  lonsc: {refine_passes: 2}\n  lonsc_variant: paper\n", "x.yaml");
+  const EstimatorConfig q = estimator_config_from_yaml(
+      "frontend:\n  lonsc: {refine_passes: 2}\n  lonsc_variant: paper\n", "x.yaml");
   EXPECT_EQ(q.tracker.lonsc.refine_passes, 2);
   EXPECT_FALSE(q.tracker.lonsc.grow_model);
   const EstimatorConfig t = estimator_config_from_yaml("frontend: {lonsc_variant: tuned}\n", "x.yaml");
@@ -147,13 +151,18 @@ TEST(ConfigFile, LonscVariantSelectsThePapersAlgorithmAndKeysStillOverride) {
 }
 
 TEST(ConfigFile, BadInputNamesFileLineAndKey) {
-  EXPECT_NE(error_of("window:\n  recent_frames: 3\n  bogus_ms: 1\n").find("x.yaml:3: window.bogus_ms: unknown key"),
+  EXPECT_NE(
+      error_of("window:\n  recent_frames: 3\n  bogus_ms: 1\n").find("x.yaml:3: window.bogus_ms: unknown key"),
+      std::string::npos);
+  EXPECT_NE(error_of("frontend:\n  orb:\n    n_features: lots\n")
+                .find("x.yaml:3: frontend.orb.n_features: expected an integer"),
             std::string::npos);
-  EXPECT_NE(error_of("frontend:\n  orb:\n    n_features: lots\n").find("x.yaml:3: frontend.orb.n_features: expected an integer"),
+  EXPECT_NE(error_of("window: {use_depth: maybe}\n").find("window.use_depth: expected true or false"),
             std::string::npos);
-  EXPECT_NE(error_of("window: {use_depth: maybe}\n").find("window.use_depth: expected true or false"), std::string::npos);
-  EXPECT_NE(error_of("window: {huber_px: .nan}\n").find("window.huber_px: expected a finite number"), std::string::npos);
-  EXPECT_NE(error_of("window: {solver: gtsam}\n").find("window.solver: expected one of ours, ceres"), std::string::npos);
+  EXPECT_NE(error_of("window: {huber_px: .nan}\n").find("window.huber_px: expected a finite number"),
+            std::string::npos);
+  EXPECT_NE(error_of("window: {solver: gtsam}\n").find("window.solver: expected one of ours, ceres"),
+            std::string::npos);
   EXPECT_NE(error_of("window: [1, 2]\n").find("window: expected a mapping"), std::string::npos);
   EXPECT_NE(error_of("window: {recent_frames: [3]}\n").find("window.recent_frames: expected a single value"),
             std::string::npos);
@@ -162,15 +171,18 @@ TEST(ConfigFile, BadInputNamesFileLineAndKey) {
   EXPECT_NE(error_of("frontend: {lonsc_variant: ransac}\n").find("frontend.lonsc_variant: expected one of"),
             std::string::npos);
   EXPECT_NE(error_of("window: {recent_frames: 0}\n").find("S must be >= 1"), std::string::npos);
-  EXPECT_NE(error_of("frontend: {moving_start_after_ns: -1}\n").find("frontend: moving_start_after_ns: must be >= 0"),
+  EXPECT_NE(error_of("frontend: {moving_start_after_ns: -1}\n")
+                .find("frontend: moving_start_after_ns: must be >= 0"),
             std::string::npos);
   // vo's own keys are checked like every backend's (they used to take any value).
-  EXPECT_NE(error_of("frontend: {gate_sigma: -1}\n").find("frontend: gate_sigma: must be > 0"), std::string::npos);
+  EXPECT_NE(error_of("frontend: {gate_sigma: -1}\n").find("frontend: gate_sigma: must be > 0"),
+            std::string::npos);
   EXPECT_NE(error_of("frontend: {max_lost_frames: -3}\n").find("frontend: max_lost_frames: at least 1"),
             std::string::npos);
   EXPECT_NE(error_of("frontend: {attitude_gain: 1.5}\n").find("frontend: attitude_gain: in [0, 1]"),
             std::string::npos);
-  EXPECT_NE(error_of("ekf: {spread_grid_cols: 4}\n").find("ekf: spread_grid_cols/rows: both 0 (off) or both in [1, 32]"),
+  EXPECT_NE(error_of("ekf: {spread_grid_cols: 4}\n")
+                .find("ekf: spread_grid_cols/rows: both 0 (off) or both in [1, 32]"),
             std::string::npos);
   // The map's keys are named under map, once, without the loop closer's indentation.
   const std::string map_err = error_of("map: {loop_connected_min_shared: 0, max_points: 1}\n");
@@ -189,12 +201,14 @@ TEST(ConfigFile, BadInputNamesFileLineAndKey) {
   const std::string both = error_of("frontend: {match_ratio: 2}\nwindow: {recent_frames: 0}\n");
   EXPECT_NE(both.find("window: S must be >= 1"), std::string::npos) << both;
   EXPECT_EQ(both.find("match_ratio", both.find("match_ratio") + 1), std::string::npos) << both;
-  EXPECT_NE(error_of("window: {moving_start_after_ns: -1}\n").find("window: moving_start_after_ns: must be >= 0"),
-            std::string::npos);
+  EXPECT_NE(
+      error_of("window: {moving_start_after_ns: -1}\n").find("window: moving_start_after_ns: must be >= 0"),
+      std::string::npos);
   EXPECT_NE(error_of("ekf: {moving_start_after_ns: -1}\n").find("ekf: moving_start_after_ns: must be >= 0"),
             std::string::npos);
-  EXPECT_NE(error_of("ekf: {restart_position_sigma_m: 0}\n").find("ekf: restart_position_sigma_m: must be > 0"),
-            std::string::npos);
+  EXPECT_NE(
+      error_of("ekf: {restart_position_sigma_m: 0}\n").find("ekf: restart_position_sigma_m: must be > 0"),
+      std::string::npos);
   // The whole message on one line (the table splits on "; ").
   EXPECT_NE(error_of("ekf: {min_frame_interval_ms: 5000}\n")
                 .find("ekf: min_frame_interval_ms: at most 1000 (0: every frame, below 0: the default)\n"),
@@ -215,7 +229,8 @@ TEST(ConfigDocs, ReferenceTableMatchesTheCode) {
   const size_t at = doc.find(marker);
   ASSERT_NE(at, std::string::npos) << "docs/config.md lost its generated-table marker";
   EXPECT_EQ(doc.substr(at + marker.size()), kestrel::tools::estimator_config_reference_markdown())
-      << "docs/config.md's table disagrees with the options table: regenerate it with `kestrel config --markdown`";
+      << "docs/config.md's table disagrees with the options table: regenerate it with `kestrel config "
+         "--markdown`";
 }
 
 TEST(ConfigCli, PrintConfigPrintsTheEffectiveSettingsAndExits) {
@@ -262,7 +277,8 @@ TEST(ConfigCli, PrintConfigPrintsTheDenseAndViewerSectionsAndReadsBack) {
   ASSERT_EQ(r.code, 0) << r.out;
   EXPECT_NE(r.out.find("\ndense:\n  enabled: false\n  voxel_size_m: 0.1\n"), std::string::npos) << r.out;
   EXPECT_NE(r.out.find("  live_reanchor: true\n"), std::string::npos) << r.out;
-  EXPECT_NE(r.out.find("\nviewer:\n  dense_max_kbps: 300\n  dense_period_s: 0.5\n"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("\nviewer:\n  dense_max_kbps: 300\n  dense_period_s: 0.5\n"), std::string::npos)
+      << r.out;
   {
     std::ofstream f(dir + "/printed.yaml");
     f << r.out;
@@ -276,15 +292,15 @@ TEST(ConfigCli, PrintConfigPrintsTheDenseAndViewerSectionsAndReadsBack) {
 
 TEST(ConfigCli, MetricsJsonCarriesTheSettings) {
   const std::string dir = kestrel::test::temp_dir("cfg_metrics_" + std::to_string(getpid()));
-  auto r = kestrel::test::run_kestrel("sim --scenario hover --duration 3 --seed 2 --width 160 --height 120 --out " +
-                                      dir + "/h.klog");
+  auto r = kestrel::test::run_kestrel(
+      "sim --scenario hover --duration 3 --seed 2 --width 160 --height 120 --out " + dir + "/h.klog");
   ASSERT_EQ(r.code, 0) << r.out;
   {
     std::ofstream f(dir + "/c.yaml");
     f << "window: {imu_noise_inflation: 12.5, keyframes: 4}\n";
   }
-  r = kestrel::test::run_kestrel("replay " + dir + "/h.klog --config " + dir + "/c.yaml -q --metrics-out " + dir +
-                                 "/m.json");
+  r = kestrel::test::run_kestrel("replay " + dir + "/h.klog --config " + dir + "/c.yaml -q --metrics-out " +
+                                 dir + "/m.json");
   ASSERT_EQ(r.code, 0) << r.out;
   const std::string m = slurp(dir + "/m.json");
   EXPECT_NE(m.find("\"config\""), std::string::npos) << m.substr(0, 400);

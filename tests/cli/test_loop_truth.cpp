@@ -4,8 +4,8 @@
 
 #include <algorithm>
 #include <cmath>
-#include <cstring>
 #include <cstdio>
+#include <cstring>
 #include <fstream>
 #include <sstream>
 #include <string>
@@ -87,9 +87,9 @@ core::LoopCandidateRecord candidate(uint32_t q, int64_t tq, uint32_t c, int64_t 
 
 TEST(LoopTruth, CountsRevisitsCandidatesAndFalseClosures) {
   WallLog log;
-  log.add_view(0, 0.0);       // keyframe 1
-  log.add_view(5 * kS, 0.0);  // 2: the same view, too soon to be a loop
-  log.add_view(20 * kS, 0.0); // 3: the same view again, a revisit of 1 and 2
+  log.add_view(0, 0.0);         // keyframe 1
+  log.add_view(5 * kS, 0.0);    // 2: the same view, too soon to be a loop
+  log.add_view(20 * kS, 0.0);   // 3: the same view again, a revisit of 1 and 2
   log.add_view(30 * kS, M_PI);  // 4: turned around: sees nothing 1 saw
   core::LoopLog ll;
   ll.queries = queries({{1, 0}, {2, 5 * kS}, {3, 20 * kS}, {4, 30 * kS}});

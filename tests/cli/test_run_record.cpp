@@ -38,8 +38,10 @@ std::vector<drivers::LogRecord> read_all(const std::string& path) {
 TEST(RunRecord, RecordsTheFlightItEstimatesAndWritesItsTrajectory) {
   const std::string dir = temp_dir("run_record");
   const std::string src = dir + "/src.klog";
-  CmdResult r = run_kestrel("sim --scenario figure8 --duration 6 --seed 4 --width 160 --height 120 --time-offset-ms 12 "
-                            "--out " + src);
+  CmdResult r = run_kestrel(
+      "sim --scenario figure8 --duration 6 --seed 4 --width 160 --height 120 --time-offset-ms 12 "
+      "--out " +
+      src);
   ASSERT_EQ(r.code, 0) << r.out;
   const Rig rig = drivers::KlogReader(src).rig();
   ASSERT_EQ(rig.time_offset_cam_imu_ns, 12'000'000);
@@ -69,7 +71,8 @@ TEST(RunRecord, RecordsTheFlightItEstimatesAndWritesItsTrajectory) {
       link.insert(link.end(), buf, buf + n);
     }
   });
-  r = run_kestrel("run --config " + dir + "/live.yaml --duration 7.5 --record " + dir + "/rec.klog --traj-out " + dir +
+  r = run_kestrel("run --config " + dir + "/live.yaml --duration 7.5 --record " + dir +
+                  "/rec.klog --traj-out " + dir +
                   "/traj.txt --mavlink-udp 127.0.0.1:" + std::to_string(ntohs(a.sin_port)));
   reader.join();
   close(rx);
@@ -119,18 +122,21 @@ TEST(RunRecord, RecordsTheFlightItEstimatesAndWritesItsTrajectory) {
 
 TEST(RunRecord, BadLogSensorConfigsAreNamed) {
   const std::string dir = temp_dir("run_record_bad");
-  std::ofstream(dir + "/a.yaml") << "rig: {camera: {width_px: 160, height_px: 120, fx_px: 100, fy_px: 100, cx_px: 80, "
-                                    "cy_px: 60}}\ndrivers:\n  camera: {type: log}\n  imu: {type: none}\n";
+  std::ofstream(dir + "/a.yaml")
+      << "rig: {camera: {width_px: 160, height_px: 120, fx_px: 100, fy_px: 100, cx_px: 80, "
+         "cy_px: 60}}\ndrivers:\n  camera: {type: log}\n  imu: {type: none}\n";
   CmdResult r = run_kestrel("run --config " + dir + "/a.yaml --duration 1");
   EXPECT_EQ(r.code, 1) << r.out;
   EXPECT_NE(r.out.find("camera.type and imu.type must both be log"), std::string::npos) << r.out;
-  std::ofstream(dir + "/b.yaml") << "rig: {camera: {width_px: 160, height_px: 120, fx_px: 100, fy_px: 100, cx_px: 80, "
-                                    "cy_px: 60}}\ndrivers:\n  camera: {type: log}\n  imu: {type: log}\n  log: {path: "
-                                    "nope.klog}\n";
+  std::ofstream(dir + "/b.yaml")
+      << "rig: {camera: {width_px: 160, height_px: 120, fx_px: 100, fy_px: 100, cx_px: 80, "
+         "cy_px: 60}}\ndrivers:\n  camera: {type: log}\n  imu: {type: log}\n  log: {path: "
+         "nope.klog}\n";
   r = run_kestrel("run --config " + dir + "/b.yaml --duration 1 --record " + dir + "/x.klog");
   EXPECT_EQ(r.code, 1) << r.out;
   EXPECT_NE(r.out.find("nope.klog"), std::string::npos) << r.out;
-  EXPECT_EQ(run_kestrel("run --config " + dir + "/b.yaml --record " + dir + "/x.klog --record-buffer-s 0").code, 2);
+  EXPECT_EQ(
+      run_kestrel("run --config " + dir + "/b.yaml --record " + dir + "/x.klog --record-buffer-s 0").code, 2);
 }
 
 std::string file_bytes(const std::string& path) {
@@ -183,8 +189,8 @@ TEST(RunRecord, LockstepLogRunWritesTheReplaysTrajectoryByteForByte) {
 TEST(RunRecord, ALiveStereoRigGetsEveryRightImage) {
   const std::string dir = temp_dir("run_stereo");
   const std::string src = dir + "/src.klog";
-  CmdResult r = run_kestrel("sim --scenario figure8 --duration 4 --seed 5 --width 160 --height 120 --stereo --out " +
-                            src);
+  CmdResult r = run_kestrel(
+      "sim --scenario figure8 --duration 4 --seed 5 --width 160 --height 120 --stereo --out " + src);
   ASSERT_EQ(r.code, 0) << r.out;
   const Rig rig = drivers::KlogReader(src).rig();
   ASSERT_TRUE(rig.stereo.present);
@@ -196,8 +202,8 @@ TEST(RunRecord, ALiveStereoRigGetsEveryRightImage) {
                                        "  log: {path: src.klog}\n"
                                        "estimator:\n"
                                        "  backend: window\n";
-  r = run_kestrel("run --config " + dir + "/live.yaml --duration 5 --traj-out " + dir + "/traj.txt --record " + dir +
-                  "/rec.klog");
+  r = run_kestrel("run --config " + dir + "/live.yaml --duration 5 --traj-out " + dir +
+                  "/traj.txt --record " + dir + "/rec.klog");
   ASSERT_EQ(r.code, 0) << r.out;
   EXPECT_NE(r.out.find("stereo: rectified at start-up"), std::string::npos) << r.out;
   EXPECT_NE(r.out.find("frames without a right image 0 "), std::string::npos) << r.out;

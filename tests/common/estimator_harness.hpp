@@ -6,11 +6,11 @@
 #include <memory>
 #include <string>
 
-#include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/core/estimator.hpp"
+#include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/core/rig_transforms.hpp"
-#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/log_source.hpp"
+#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/rt/alloc_counter.hpp"
 #include "kestrel/tools/simulator.hpp"
 #include "kestrel/tools/trajectory_eval.hpp"

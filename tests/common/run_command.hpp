@@ -38,7 +38,9 @@ inline std::string built_program(const std::string& program) {
 }
 
 // `kestrel ARGS` from this build.
-inline CmdResult run_kestrel(const std::string& args) { return run_command(built_program("kestrel") + " " + args); }
+inline CmdResult run_kestrel(const std::string& args) {
+  return run_command(built_program("kestrel") + " " + args);
+}
 
 // True in a cross build whose tests run under an emulator: tools that inspect
 // our binaries from the host (valgrind) cannot run them.

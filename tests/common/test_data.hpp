@@ -2,6 +2,7 @@
 #pragma once
 
 #include <gtest/gtest.h>
+#include <unistd.h>
 
 #include <cstdio>
 #include <filesystem>
@@ -9,8 +10,6 @@
 #include <string>
 #include <system_error>
 #include <vector>
-
-#include <unistd.h>
 
 namespace kestrel::test {
 
@@ -21,7 +20,6 @@ inline double rss_mb() {
   f >> pages_total >> pages_rss;
   return static_cast<double>(pages_rss) * static_cast<double>(sysconf(_SC_PAGESIZE)) / (1024.0 * 1024.0);
 }
-
 
 inline std::string shared_data_dir() {
   if (const char* env = std::getenv("KESTREL_SHARED_DATA")) return env;
@@ -60,11 +58,11 @@ inline std::string temp_dir(const std::string& name) {
 }  // namespace kestrel::test
 
 // Skips the current test, loudly, when a file or folder of ../shared/data is missing.
-#define KESTREL_REQUIRE_SHARED(rel)                                                              \
-  do {                                                                                           \
-    const std::string kestrel_p_ = ::kestrel::test::shared_path(rel);                            \
-    if (!std::filesystem::exists(kestrel_p_)) {                                                  \
-      std::fprintf(stderr, "SKIPPED: ../shared/data not found (%s)\n", kestrel_p_.c_str());      \
-      GTEST_SKIP() << "SKIPPED: ../shared/data not found (" << kestrel_p_ << ")";               \
-    }                                                                                            \
+#define KESTREL_REQUIRE_SHARED(rel)                                                         \
+  do {                                                                                      \
+    const std::string kestrel_p_ = ::kestrel::test::shared_path(rel);                       \
+    if (!std::filesystem::exists(kestrel_p_)) {                                             \
+      std::fprintf(stderr, "SKIPPED: ../shared/data not found (%s)\n", kestrel_p_.c_str()); \
+      GTEST_SKIP() << "SKIPPED: ../shared/data not found (" << kestrel_p_ << ")";           \
+    }                                                                                       \
   } while (0)

@@ -21,11 +21,10 @@
 
 using namespace kestrel;
 using kestrel::test::ate;
-using kestrel::test::RunResult;
 using kestrel::test::run;
+using kestrel::test::RunResult;
 using kestrel::test::simulate;
 using kestrel::test::to_iso;
-
 
 TEST(Tracker, FollowsGroundTruthWithAPerfectPrediction) {
   // With the IMU prediction replaced by the true pose, what is left is the
@@ -42,7 +41,8 @@ TEST(Tracker, FollowsGroundTruthWithAPerfectPrediction) {
   while (log->next(rec)) {
     if (rec.type == drivers::RecordType::kGroundTruth) {
       Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
-      T.linear() = Eigen::Quaterniond(rec.gt.q_WB[0], rec.gt.q_WB[1], rec.gt.q_WB[2], rec.gt.q_WB[3]).toRotationMatrix();
+      T.linear() = Eigen::Quaterniond(rec.gt.q_WB[0], rec.gt.q_WB[1], rec.gt.q_WB[2], rec.gt.q_WB[3])
+                       .toRotationMatrix();
       T.translation() = Eigen::Vector3d(rec.gt.p_WB.data());
       gt.emplace_back(rec.gt.t_ns, T);
     } else if (rec.type == drivers::RecordType::kRgb) {
@@ -61,9 +61,10 @@ TEST(Tracker, FollowsGroundTruthWithAPerfectPrediction) {
     }
   }
   double path_m = 0;
-  for (size_t k = 1; k < gt.size(); ++k) path_m += (gt[k].second.translation() - gt[k - 1].second.translation()).norm();
-  std::printf("tracked %d of %d frames over %.2f m; worst error %.2f mm (%.2f %% of the path), %.3f deg\n", tracked,
-              frames, path_m, worst_mm, 0.1 * worst_mm / path_m, worst_deg);
+  for (size_t k = 1; k < gt.size(); ++k)
+    path_m += (gt[k].second.translation() - gt[k - 1].second.translation()).norm();
+  std::printf("tracked %d of %d frames over %.2f m; worst error %.2f mm (%.2f %% of the path), %.3f deg\n",
+              tracked, frames, path_m, worst_mm, 0.1 * worst_mm / path_m, worst_deg);
   EXPECT_GE(tracked, frames - 2);
   // Without the optimizer, keyframe hand-overs accumulate error like any
   // odometry: bound it as a share of the distance flown (KITTI-style).
@@ -99,8 +100,8 @@ RelocRun track_then_restart_displaced(int map_capacity) {
   bool restarted = false;
   while (log->next(rec)) {
     if (rec.type == drivers::RecordType::kGroundTruth) {
-      T_gt.linear() =
-          Eigen::Quaterniond(rec.gt.q_WB[0], rec.gt.q_WB[1], rec.gt.q_WB[2], rec.gt.q_WB[3]).toRotationMatrix();
+      T_gt.linear() = Eigen::Quaterniond(rec.gt.q_WB[0], rec.gt.q_WB[1], rec.gt.q_WB[2], rec.gt.q_WB[3])
+                          .toRotationMatrix();
       T_gt.translation() = Eigen::Vector3d(rec.gt.p_WB.data());
     } else if (rec.type == drivers::RecordType::kRgb) {
       rgb = rec.image;
@@ -115,7 +116,8 @@ RelocRun track_then_restart_displaced(int map_capacity) {
         T_WC_pred.translation() += Eigen::Vector3d(0.03, 0.0, 0.0);
         restarted = true;
       }
-      const core::TrackResult& r = tracker.track(rec.image.t_ns, rgb.view(), rec.image.view(), T_WC_pred, 2.0);
+      const core::TrackResult& r =
+          tracker.track(rec.image.t_ns, rgb.view(), rec.image.view(), T_WC_pred, 2.0);
       const double err_mm = 1000 * (r.T_WC.translation() - T_WC.translation()).norm();
       if (r.map_corrected) ++out.map_corrected;
       if (restart_now) {
@@ -130,8 +132,10 @@ RelocRun track_then_restart_displaced(int map_capacity) {
       }
     }
   }
-  std::printf("map capacity %d: %d map poses (worst axis error %.1f mm); keyframe after the displaced restart %.1f mm off\n",
-              map_capacity, out.map_poses, out.worst_map_mm, out.reloc_kf_mm);
+  std::printf(
+      "map capacity %d: %d map poses (worst axis error %.1f mm); keyframe after the displaced restart %.1f "
+      "mm off\n",
+      map_capacity, out.map_poses, out.worst_map_mm, out.reloc_kf_mm);
   return out;
 }
 

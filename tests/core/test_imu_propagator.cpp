@@ -52,7 +52,8 @@ TEST(ImuPropagator, ConstantAccelerationMatchesKinematics) {
   p.reset(NavState{});
   const Eigen::Vector3d a_W(0.5, -0.25, 0.1);
   for (int k = 0; k <= 2000; ++k) {
-    ASSERT_TRUE(p.propagate(sample(k * 1'000'000LL, Eigen::Vector3d::Zero(), a_W + Eigen::Vector3d(0, 0, 9.81))));
+    ASSERT_TRUE(
+        p.propagate(sample(k * 1'000'000LL, Eigen::Vector3d::Zero(), a_W + Eigen::Vector3d(0, 0, 9.81))));
   }
   const double t = 2.0;
   EXPECT_LT((p.state().p_WB - 0.5 * a_W * t * t).norm(), 1e-9);
@@ -70,8 +71,8 @@ TEST(ImuPropagator, BadSamplesAreCountedNotUsed) {
   auto sat = sample(5'000'000, Eigen::Vector3d::Zero(), f);
   sat.flags = kestrel::kImuAccSaturated;
   EXPECT_FALSE(p.propagate(sat));
-  EXPECT_FALSE(p.propagate(sample(2'500'000, Eigen::Vector3d::Zero(), f)));  // duplicate time
-  EXPECT_FALSE(p.propagate(sample(1'000'000, Eigen::Vector3d::Zero(), f)));  // out of order
+  EXPECT_FALSE(p.propagate(sample(2'500'000, Eigen::Vector3d::Zero(), f)));   // duplicate time
+  EXPECT_FALSE(p.propagate(sample(1'000'000, Eigen::Vector3d::Zero(), f)));   // out of order
   EXPECT_TRUE(p.propagate(sample(400'000'000, Eigen::Vector3d::Zero(), f)));  // long gap: held
   EXPECT_EQ(p.counts().non_finite, 1u);
   EXPECT_EQ(p.counts().saturated, 1u);
@@ -102,7 +103,8 @@ TEST(StaticInitializer, RefusesAMovingWindow) {
   NavState s0;
   for (int k = 0; k < 400; ++k) {
     const double w = 0.5 * std::sin(k * 0.05);
-    ASSERT_FALSE(init.add(sample(k * 2'500'000LL, Eigen::Vector3d(w, 0, 0), Eigen::Vector3d(0, 0, 9.81)), s0));
+    ASSERT_FALSE(
+        init.add(sample(k * 2'500'000LL, Eigen::Vector3d(w, 0, 0), Eigen::Vector3d(0, 0, 9.81)), s0));
   }
 }
 
@@ -174,8 +176,8 @@ TEST(ImuPropagator, EurocV102OneSecondWindowsFollowGroundTruth) {
   ASSERT_GT(errs.size(), 10u);
   std::sort(errs.begin(), errs.end());
   const double median = errs[errs.size() / 2];
-  std::printf("EuRoC V1_02 1 s IMU-only windows: %zu, median position error %.4f m, max %.4f m\n", errs.size(),
-              median, errs.back());
+  std::printf("EuRoC V1_02 1 s IMU-only windows: %zu, median position error %.4f m, max %.4f m\n",
+              errs.size(), median, errs.back());
   EXPECT_LT(median, 0.05);
 }
 

@@ -14,13 +14,13 @@
 #include <memory>
 #include <string>
 
-#include "kestrel/drivers/open_log.hpp"
 #include "estimator_harness.hpp"
-#include "test_scale.hpp"
-#include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/core/ekf_estimator.hpp"
+#include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/core/so3.hpp"
 #include "kestrel/core/window_estimator.hpp"
+#include "kestrel/drivers/open_log.hpp"
+#include "test_scale.hpp"
 
 using namespace kestrel;
 

@@ -64,8 +64,8 @@ TEST(RgbdEstimator, Figure8WithoutImuTracksEveryFrame) {
   const test::RunResult r = test::run(path, rgbd_maker(), kNoImu, &est);
   const core::RgbdCounters& c = as_rgbd(est).rgbd_counters();
   const double ate = ate_se3(r);
-  std::printf("figure8 10 s without IMU: ATE (se3) %.4f m over %zu poses of %llu frames; %s\n", ate, r.est.size(),
-              static_cast<unsigned long long>(r.frames_total), est->backend_summary().c_str());
+  std::printf("figure8 10 s without IMU: ATE (se3) %.4f m over %zu poses of %llu frames; %s\n", ate,
+              r.est.size(), static_cast<unsigned long long>(r.frames_total), est->backend_summary().c_str());
   EXPECT_EQ(std::string(est->name()), "rgbd");
   EXPECT_EQ(r.est.size(), r.frames_total);
   EXPECT_GE(c.tracked + c.keyframes, r.frames_total * 98 / 100);
@@ -82,8 +82,8 @@ TEST(RgbdEstimator, LonscRunsAndRansacBothTrackAndTheWindowHelps) {
   const double ate_l = ate_se3(test::run(path, rgbd_maker(core::RigidMethod::kLonsc), kNoImu, &l));
   const double ate_r = ate_se3(test::run(path, rgbd_maker(core::RigidMethod::kRansac), kNoImu, &r));
   const double ate_t = ate_se3(test::run(path, rgbd_maker(core::RigidMethod::kLonsc, false), kNoImu, &t));
-  std::printf("figure8 6 s without IMU: ATE lonsc %.4f m (%s)\n  ransac %.4f m (%s)\n  no window %.4f m\n", ate_l,
-              l->backend_summary().c_str(), ate_r, r->backend_summary().c_str(), ate_t);
+  std::printf("figure8 6 s without IMU: ATE lonsc %.4f m (%s)\n  ransac %.4f m (%s)\n  no window %.4f m\n",
+              ate_l, l->backend_summary().c_str(), ate_r, r->backend_summary().c_str(), ate_t);
   EXPECT_LT(ate_l, 0.03);
   EXPECT_LT(ate_r, 0.03);
   EXPECT_LT(ate_l, ate_t * 1.05);

@@ -10,12 +10,12 @@
 #include <set>
 #include <thread>
 
-#include "kestrel/drivers/open_log.hpp"
 #include "estimator_harness.hpp"
-#include "test_scale.hpp"
 #include "kestrel/core/tracker.hpp"
 #include "kestrel/core/window_estimator.hpp"
+#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/rt/clock.hpp"
+#include "test_scale.hpp"
 
 using namespace kestrel;
 
@@ -155,8 +155,8 @@ TEST(WindowEstimator, TenSecondImuOutageInAFigure8GoesOnOnVisionAndComesBack) {
   };
   std::vector<Step> steps;
   const test::RunResult r = test::run_on(*log, est, outage, [&](const tools::TimedPose&) {
-    steps.push_back({est.output().state.t_ns, est.output().quality, est.output().reset_counter,
-                     est.output().state.p_WB});
+    steps.push_back(
+        {est.output().state.t_ns, est.output().quality, est.output().reset_counter, est.output().state.p_WB});
   });
   ASSERT_GT(steps.size(), 700u);
   const int64_t tf0 = r.gt.front().t_ns;
@@ -172,7 +172,8 @@ TEST(WindowEstimator, TenSecondImuOutageInAFigure8GoesOnOnVisionAndComesBack) {
       ++during;
       vision += steps[k].quality == core::TrackingQuality::kVisionOnly;
     }
-    if (t >= kOn && back_vi_ns < 0 && steps[k].quality == core::TrackingQuality::kTracking) back_vi_ns = t - kOn;
+    if (t >= kOn && back_vi_ns < 0 && steps[k].quality == core::TrackingQuality::kTracking)
+      back_vi_ns = t - kOn;
   }
   // ATE over the outage, with the alignment of the whole flight; and the
   // largest change of the position error from one output to the next (each
@@ -201,7 +202,8 @@ TEST(WindowEstimator, TenSecondImuOutageInAFigure8GoesOnOnVisionAndComesBack) {
       max_step_m = (e1 - e0).norm();
       max_step_t_ns = t;
     }
-    if (t >= kOn - 100'000'000 && t < kOn + 2'000'000'000) return_step_m = std::max(return_step_m, (e1 - e0).norm());
+    if (t >= kOn - 100'000'000 && t < kOn + 2'000'000'000)
+      return_step_m = std::max(return_step_m, (e1 - e0).norm());
   }
   double se = 0;
   int n_out = 0;
@@ -212,11 +214,14 @@ TEST(WindowEstimator, TenSecondImuOutageInAFigure8GoesOnOnVisionAndComesBack) {
     ++n_out;
   }
   const double ate_outage = n_out ? std::sqrt(se / n_out) : 1e9;
-  std::printf("figure8 30 s, IMU off 10-20 s: ATE %.4f m (outage %.4f m over %d poses), %d/%d outage frames "
-              "vision-only, visual-inertial again %.0f ms after the IMU returned, largest jump of the error %.3f m at %.3f s "
-              "(%.3f m in the 2 s after the IMU returned), resets %u -> %u; %s\n",
-              ev.ate_m.rmse, ate_outage, n_out, vision, during, 1e-6 * static_cast<double>(back_vi_ns), max_step_m,
-              1e-9 * static_cast<double>(max_step_t_ns), return_step_m, resets_before, resets_after, est.backend_summary().c_str());
+  std::printf(
+      "figure8 30 s, IMU off 10-20 s: ATE %.4f m (outage %.4f m over %d poses), %d/%d outage frames "
+      "vision-only, visual-inertial again %.0f ms after the IMU returned, largest jump of the error %.3f m "
+      "at %.3f s "
+      "(%.3f m in the 2 s after the IMU returned), resets %u -> %u; %s\n",
+      ev.ate_m.rmse, ate_outage, n_out, vision, during, 1e-6 * static_cast<double>(back_vi_ns), max_step_m,
+      1e-9 * static_cast<double>(max_step_t_ns), return_step_m, resets_before, resets_after,
+      est.backend_summary().c_str());
   EXPECT_GE(vision, during * 95 / 100);
   ASSERT_GE(back_vi_ns, 0) << "never visual-inertial again";
   EXPECT_LT(back_vi_ns, 500'000'000);
@@ -318,8 +323,8 @@ TEST(WindowEstimator, ParkedVehicleGetsTheZeroVelocityFactorAndDoesNotDrift) {
     return win.est.back().p;
   };
   const double drift = (pos_at(parked_s - 0.2) - pos_at(1.0)).norm();
-  std::printf("static %.0f s: drift while parked (1.0 -> %.1f s) %.5f m, ATE %.4f m; %s\n", flight_s, parked_s - 0.2,
-              drift, test::ate(win), est->backend_summary().c_str());
+  std::printf("static %.0f s: drift while parked (1.0 -> %.1f s) %.5f m, ATE %.4f m; %s\n", flight_s,
+              parked_s - 0.2, drift, test::ate(win), est->backend_summary().c_str());
   // Of ~110 window frames in 4 s parked: 70 from 1 s to the take-off, pro rata.
   EXPECT_GT(static_cast<double>(c.stationary_frames), 70.0 * (parked_s - 1.0) / 3.0);
   EXPECT_LT(drift, 0.002);

@@ -81,7 +81,7 @@ TEST(BenchDatasets, ReplaySpeedPerReaderAgainstKlog) {
       const ImuSample s = imu_at(static_cast<uint32_t>(i));
       w.write_imu(s);
       if (i % 4 == 0) w.write_ground_truth(gt_at(s.t_ns, static_cast<uint32_t>(i / 4)));
-      if ((i * 3) % 40 < 3) {   // 30 Hz against 400 Hz
+      if ((i * 3) % 40 < 3) {  // 30 Hz against 400 Hz
         const uint32_t f = static_cast<uint32_t>(i * 3 / 40);
         w.write_image(RecordType::kRgb, frame(s.t_ns, f, PixelFormat::kRgb8));
         w.write_image(RecordType::kDepth, frame(s.t_ns, f, PixelFormat::kDepthU16));

@@ -30,8 +30,8 @@ TEST(DatasetsCli, SimExportedToEth3dReplaysAndScoresLikeTheKlog) {
   const std::string klog = dir + "/sim.klog", eth3d = dir + "/sim_eth3d";
   // Nine runs of `kestrel` over the flight: 4 s, 3 s sanitizer-sized (test_scale.hpp).
   const std::string duration = kestrel::test::scaled<std::string>("4", "3");
-  const CmdResult sim =
-      run("sim --scenario figure8 --duration " + duration + " --seed 5 --width 160 --height 120 --out " + klog);
+  const CmdResult sim = run("sim --scenario figure8 --duration " + duration +
+                            " --seed 5 --width 160 --height 120 --out " + klog);
   ASSERT_EQ(sim.code, 0) << sim.out;
   const CmdResult conv =
       run("convert " + klog + " --to eth3d --out " + eth3d + " --rig-out " + dir + "/rig.yaml");

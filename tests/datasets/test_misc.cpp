@@ -4,9 +4,9 @@
 #include <filesystem>
 
 #include "dataset_fixtures.hpp"
-#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/dataset_logs.hpp"
 #include "kestrel/drivers/log_export.hpp"
+#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/rig_yaml.hpp"
 
 namespace kestrel::test {

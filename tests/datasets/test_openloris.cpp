@@ -7,10 +7,10 @@
 #include <opencv2/imgcodecs.hpp>
 
 #include "dataset_fixtures.hpp"
-#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/dataset_logs.hpp"
 #include "kestrel/drivers/klog.hpp"
 #include "kestrel/drivers/log_export.hpp"
+#include "kestrel/drivers/open_log.hpp"
 
 namespace kestrel::test {
 namespace {

@@ -11,10 +11,10 @@
 #include <filesystem>
 
 #include "dataset_fixtures.hpp"
-#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/dataset_logs.hpp"
 #include "kestrel/drivers/klog.hpp"
 #include "kestrel/drivers/log_export.hpp"
+#include "kestrel/drivers/open_log.hpp"
 
 namespace kestrel::test {
 namespace {
@@ -256,7 +256,8 @@ TEST(RosbagExport, AStereoLogKeepsItsRightImagesAndBaseline) {
   ASSERT_TRUE(b.rig().stereo.present) << problems_text(b);
   EXPECT_NEAR(b.rig().stereo.T_BC1[3], 0.08, 1e-12);
   EXPECT_EQ(b.rig().stereo.intrinsics.fx, rig.rgb.fx);
-  EXPECT_NE(problems_text(b).find("placed by its CameraInfo's baseline"), std::string::npos) << problems_text(b);
+  EXPECT_NE(problems_text(b).find("placed by its CameraInfo's baseline"), std::string::npos)
+      << problems_text(b);
   const auto x = read_all(a), y = read_all(b);
   const auto lx = of_type(x, drivers::RecordType::kRgb), rx = of_type(x, drivers::RecordType::kRight);
   const auto ly = of_type(y, drivers::RecordType::kRgb), ry = of_type(y, drivers::RecordType::kRight);

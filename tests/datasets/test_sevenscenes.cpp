@@ -9,7 +9,6 @@
 #include <map>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
-#include <opencv2/imgproc.hpp>
 
 #include "kestrel/drivers/dataset_logs.hpp"
 #include "kestrel/drivers/open_log.hpp"
@@ -45,7 +44,8 @@ void write_pose(const std::string& path, const Eigen::Isometry3d& T) {
 cv::Mat colour_of(int i) {
   cv::Mat c(kH, kW, CV_8UC3);
   for (int y = 0; y < kH; ++y)
-    for (int x = 0; x < kW; ++x) c.at<cv::Vec3b>(y, x) = cv::Vec3b(uint8_t(x * 4 + i), uint8_t(y * 5), uint8_t(i * 20));
+    for (int x = 0; x < kW; ++x)
+      c.at<cv::Vec3b>(y, x) = cv::Vec3b(uint8_t(x * 4 + i), uint8_t(y * 5), uint8_t(i * 20));
   return c;
 }
 
@@ -297,7 +297,8 @@ double edge_score(const cv::Mat& grad, const cv::Mat& depth, const Rig& rig) {
       }
       if (!fg) continue;
       const double zm = 1e-3 * z, px = (x - d.cx) / d.fx * zm, py = (y - d.cy) / d.fy * zm;
-      const double qx = T[0] * px + T[1] * py + T[2] * zm + T[3], qy = T[4] * px + T[5] * py + T[6] * zm + T[7],
+      const double qx = T[0] * px + T[1] * py + T[2] * zm + T[3],
+                   qy = T[4] * px + T[5] * py + T[6] * zm + T[7],
                    qz = T[8] * px + T[9] * py + T[10] * zm + T[11];
       const double g = sample(c.fx * qx / qz + c.cx, c.fy * qy / qz + c.cy);
       if (g < 0) continue;

@@ -3,8 +3,6 @@
 // fake can inject (each one counted and recovered from).
 #include <gtest/gtest.h>
 
-#include "vec_imu_sink.hpp"
-
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
@@ -13,6 +11,7 @@
 
 #include "kestrel/drivers/bmx055.hpp"
 #include "kestrel/drivers/bmx055_fake.hpp"
+#include "vec_imu_sink.hpp"
 
 namespace kestrel::drivers::bmx055 {
 namespace {
@@ -26,7 +25,7 @@ using VecImuSink = kestrel::test::VecImuSink;
 TEST(Bmx055Parser, AccelerometerFramesAreTwelveBitLeftAligned) {
   // x = +1 (0x001 << 4 = 0x0010), y = -1 (0xFFF0), z = -2048 (0x8000); new_data bits set in lsb bit 0.
   const uint8_t bytes[] = {0x11, 0x00, 0xF1, 0xFF, 0x01, 0x80,
-                           0xF0, 0x7F, 0x00, 0x00, 0x20, 0x03};   // x = 2047, y = 0, z = 0x032 = 50
+                           0xF0, 0x7F, 0x00, 0x00, 0x20, 0x03};  // x = 2047, y = 0, z = 0x032 = 50
   RawXyz out[4];
   size_t leftover = 99;
   ASSERT_EQ(parse_acc_fifo(bytes, sizeof bytes, out, 4, &leftover), 2u);
@@ -44,7 +43,7 @@ TEST(Bmx055Parser, GyroFramesAreSixteenBitLittleEndian) {
   RawXyz out[4];
   size_t leftover = 0;
   ASSERT_EQ(parse_gyro_fifo(bytes, sizeof bytes, out, 4, &leftover), 2u);
-  EXPECT_EQ(leftover, 1u);   // a partial frame is reported, not decoded
+  EXPECT_EQ(leftover, 1u);  // a partial frame is reported, not decoded
   EXPECT_EQ(out[0].x, 32767);
   EXPECT_EQ(out[0].y, -32768);
   EXPECT_EQ(out[0].z, 1);
@@ -71,8 +70,8 @@ TEST(Bmx055Convert, SaturationFlagsAndAxisRemap) {
   ImuSample out;
   convert(RawXyz{100, 200, 300}, RawXyz{10, 20, 30}, s, out);
   EXPECT_EQ(out.flags, 0u);
-  EXPECT_NEAR(out.gyro_rps[0], 200 * s.gyro_rps_per_lsb, 1e-15);    // body x = sensor y
-  EXPECT_NEAR(out.gyro_rps[1], -100 * s.gyro_rps_per_lsb, 1e-15);   // body y = -sensor x
+  EXPECT_NEAR(out.gyro_rps[0], 200 * s.gyro_rps_per_lsb, 1e-15);   // body x = sensor y
+  EXPECT_NEAR(out.gyro_rps[1], -100 * s.gyro_rps_per_lsb, 1e-15);  // body y = -sensor x
   EXPECT_NEAR(out.acc_mps2[2], 30 * s.acc_mps2_per_lsb, 1e-15);
   ImuSample sat;
   convert(RawXyz{0, -32768, 0}, RawXyz{2047, 0, 0}, s, sat);
@@ -135,7 +134,7 @@ struct Rig {
     cfg.drdy = gpio ? DataReadyMode::kGpio : DataReadyMode::kPoll;
     cfg.self_test = self_test;
     fake.bus_hz = 400e3;
-    fake.gyro_clock_error = 0.007;    // the sensor runs 0.7 % slow
+    fake.gyro_clock_error = 0.007;  // the sensor runs 0.7 % slow
     fake.acc_clock_error = -0.004;
     fake.motion = [](int64_t t, Vec3d& g, Vec3d& a) {
       const double s = 1e-9 * static_cast<double>(t);
@@ -238,10 +237,12 @@ TEST(Bmx055Driver, PolledTimesAndOdrRefinement) {
   Rig r(false, false);
   r.run_for(20'000'000'000);
   ASSERT_EQ(r.drv->state(), State::kStream);
-  const TimeError e = time_error(r.sink.samples, r.fake.gyro_sample_times(), r.clock.now_ns() - 10'000'000'000);
-  std::printf("[ figure ] BMX055 polled FIFO sample times: RMS %.1f us, max %.1f us over %zu samples; "
-              "ODR estimate %.3f Hz (true %.3f)\n",
-              e.rms_us, e.max_us, e.n, r.drv->gyro_odr_estimate_hz(), 400.0 / 1.007);
+  const TimeError e =
+      time_error(r.sink.samples, r.fake.gyro_sample_times(), r.clock.now_ns() - 10'000'000'000);
+  std::printf(
+      "[ figure ] BMX055 polled FIFO sample times: RMS %.1f us, max %.1f us over %zu samples; "
+      "ODR estimate %.3f Hz (true %.3f)\n",
+      e.rms_us, e.max_us, e.n, r.drv->gyro_odr_estimate_hz(), 400.0 / 1.007);
   EXPECT_GT(e.n, 3500u);
   EXPECT_LT(e.rms_us, 100.0);
   EXPECT_NEAR(r.drv->gyro_odr_estimate_hz(), 400.0 / 1.007, 0.05);
@@ -252,9 +253,11 @@ TEST(Bmx055Driver, GpioWatermarkTimes) {
   Rig r(true, false);
   r.run_for(20'000'000'000);
   ASSERT_EQ(r.drv->state(), State::kStream);
-  const TimeError e = time_error(r.sink.samples, r.fake.gyro_sample_times(), r.clock.now_ns() - 10'000'000'000);
-  std::printf("[ figure ] BMX055 GPIO watermark sample times: RMS %.1f us, max %.1f us (edge latency %.0f us)\n",
-              e.rms_us, e.max_us, r.fake.drdy_latency_ns * 1e-3);
+  const TimeError e =
+      time_error(r.sink.samples, r.fake.gyro_sample_times(), r.clock.now_ns() - 10'000'000'000);
+  std::printf(
+      "[ figure ] BMX055 GPIO watermark sample times: RMS %.1f us, max %.1f us (edge latency %.0f us)\n",
+      e.rms_us, e.max_us, r.fake.drdy_latency_ns * 1e-3);
   EXPECT_GT(e.n, 3500u);
   EXPECT_LT(e.rms_us, 50.0);
 }
@@ -285,7 +288,8 @@ TEST(Bmx055Driver, NackBurstResetsAndRecovers) {
   EXPECT_GT(r.sink.samples.size(), before + 100);
   expect_monotonic(r.sink.samples);
   bool gap = false;
-  for (size_t i = before; i < r.sink.samples.size(); ++i) gap = gap || (r.sink.samples[i].flags & kImuGapBefore);
+  for (size_t i = before; i < r.sink.samples.size(); ++i)
+    gap = gap || (r.sink.samples[i].flags & kImuGapBefore);
   EXPECT_TRUE(gap);
 }
 
@@ -298,7 +302,7 @@ TEST(Bmx055Driver, AbsentDeviceBacksOffThenRecovers) {
   EXPECT_NE(std::string(r.drv->last_fault()).find("does not answer"), std::string::npos);
   const uint64_t tries = r.drv->counters().resets;
   EXPECT_GE(tries, 2u);
-  EXPECT_LE(tries, 8u);   // exponential back-off, not a busy loop
+  EXPECT_LE(tries, 8u);  // exponential back-off, not a busy loop
   r.fake.set_absent(false);
   r.run_for(3'000'000'000);
   EXPECT_EQ(r.drv->state(), State::kStream);
@@ -352,7 +356,8 @@ TEST(Bmx055Driver, FifoOverrunIsCountedAndTheGapMarked) {
   EXPECT_EQ(r.drv->counters().fifo_overruns, 1u);
   EXPECT_EQ(r.drv->state(), State::kStream);
   bool gap = false;
-  for (size_t i = before; i < r.sink.samples.size(); ++i) gap = gap || (r.sink.samples[i].flags & kImuGapBefore);
+  for (size_t i = before; i < r.sink.samples.size(); ++i)
+    gap = gap || (r.sink.samples[i].flags & kImuGapBefore);
   EXPECT_TRUE(gap);
   EXPECT_GT(r.drv->counters().samples_lost, 0u);
   expect_monotonic(r.sink.samples);
@@ -402,7 +407,7 @@ TEST(Bmx055Driver, FullSinkDropsAreCountedNeverWaitedFor) {
   EXPECT_EQ(r.drv->state(), State::kStream);
   EXPECT_EQ(r.sink.samples.size(), 50u);
   EXPECT_GT(r.drv->counters().sink_drops, 250u);
-  EXPECT_EQ(r.drv->counters().fifo_overruns, 0u);   // the FIFO kept being drained
+  EXPECT_EQ(r.drv->counters().fifo_overruns, 0u);  // the FIFO kept being drained
 }
 
 TEST(Bmx055Driver, RandomFaultSoakNeverStalls) {
@@ -411,12 +416,13 @@ TEST(Bmx055Driver, RandomFaultSoakNeverStalls) {
   r.fake.set_flip_probability(0.005);
   r.run_for(60'000'000'000);
   const Counters& c = r.drv->counters();
-  std::printf("[ figure ] 60 s soak, 1 %% NACK + 0.5 %% flips: %llu samples, %llu i2c errors, %llu resets, "
-              "%llu flips seen on re-read, %llu config lost, %llu bad fifo status, %llu verify failures\n",
-              static_cast<unsigned long long>(c.samples), static_cast<unsigned long long>(c.i2c_errors),
-              static_cast<unsigned long long>(c.resets), static_cast<unsigned long long>(c.read_flips),
-              static_cast<unsigned long long>(c.config_lost), static_cast<unsigned long long>(c.bad_fifo_status),
-              static_cast<unsigned long long>(c.verify_failures));
+  std::printf(
+      "[ figure ] 60 s soak, 1 %% NACK + 0.5 %% flips: %llu samples, %llu i2c errors, %llu resets, "
+      "%llu flips seen on re-read, %llu config lost, %llu bad fifo status, %llu verify failures\n",
+      static_cast<unsigned long long>(c.samples), static_cast<unsigned long long>(c.i2c_errors),
+      static_cast<unsigned long long>(c.resets), static_cast<unsigned long long>(c.read_flips),
+      static_cast<unsigned long long>(c.config_lost), static_cast<unsigned long long>(c.bad_fifo_status),
+      static_cast<unsigned long long>(c.verify_failures));
   EXPECT_GT(c.i2c_errors, 100u);
   // At least 90 % of the 60 s of data arrives despite the faults.
   EXPECT_GT(static_cast<double>(c.samples), 0.9 * 60 * 400 / 1.007);

@@ -29,7 +29,7 @@ TEST(V4l2Format, PicksThePreferredFormatAndTheSlowestSufficientRate) {
   r.fps = 45;
   c = choose_format(realsense_like(), r);
   EXPECT_DOUBLE_EQ(c.option.fps, 60);
-  r.fps = 120;   // nothing that fast: the fastest there is
+  r.fps = 120;  // nothing that fast: the fastest there is
   c = choose_format(realsense_like(), r);
   EXPECT_DOUBLE_EQ(c.option.fps, 60);
   r = FormatRequest{};
@@ -76,9 +76,9 @@ TEST(V4l2Sequence, GapsWrapAndRestarts) {
   EXPECT_EQ(s.update(10), 0u);
   EXPECT_EQ(s.update(11), 0u);
   EXPECT_EQ(s.update(14), 2u);
-  EXPECT_EQ(s.update(0xFFFFFFFFu), 0u);   // restart far behind -> counted as a restart... (d < 0)
+  EXPECT_EQ(s.update(0xFFFFFFFFu), 0u);  // restart far behind -> counted as a restart... (d < 0)
   EXPECT_EQ(s.restarts(), 1u);
-  EXPECT_EQ(s.update(0), 0u);             // wraps cleanly
+  EXPECT_EQ(s.update(0), 0u);  // wraps cleanly
   EXPECT_EQ(s.update(3), 2u);
   EXPECT_EQ(s.dropped(), 4u);
 }
@@ -86,7 +86,7 @@ TEST(V4l2Sequence, GapsWrapAndRestarts) {
 TEST(V4l2Buffers, BookkeepingCatchesDoubleQueueAndStarvation) {
   BufferBook b(4);
   for (int i = 0; i < 4; ++i) EXPECT_TRUE(b.on_queued(i));
-  EXPECT_FALSE(b.on_queued(2));   // already with the driver
+  EXPECT_FALSE(b.on_queued(2));  // already with the driver
   EXPECT_EQ(b.errors(), 1u);
   EXPECT_TRUE(b.on_dequeued(1));
   EXPECT_FALSE(b.on_dequeued(1));  // dequeued twice
@@ -102,8 +102,7 @@ TEST(V4l2Buffers, BookkeepingCatchesDoubleQueueAndStarvation) {
 
 TEST(V4l2Convert, YuyvToRgbFixture) {
   // Two rows of 2 pixels: (Y0 U Y1 V). Limited-range black, white, and pure red-ish.
-  const uint8_t src[] = {16, 128, 235, 128, /*row stride pad*/ 0, 0,
-                         81, 90, 81, 240, 0, 0};
+  const uint8_t src[] = {16, 128, 235, 128, /*row stride pad*/ 0, 0, 81, 90, 81, 240, 0, 0};
   uint8_t dst[2 * 2 * 3];
   yuyv_to_rgb(src, 2, 2, 6, dst, 6);
   EXPECT_EQ(dst[0], 0);
@@ -123,7 +122,7 @@ TEST(V4l2Convert, Z16ToDepthKeepsInvalidAndRescales) {
   uint16_t dst[8];
   z16_to_depth(reinterpret_cast<const uint8_t*>(src), 4, 2, 10, 0.001, 0.001, dst);
   EXPECT_EQ(dst[1], 1000);
-  EXPECT_EQ(dst[4], 1);    // second row starts after the stride
+  EXPECT_EQ(dst[4], 1);  // second row starts after the stride
   // Device in 1 mm, rig in 0.25 mm: x4; 0 stays invalid; overflow becomes invalid.
   z16_to_depth(reinterpret_cast<const uint8_t*>(src), 4, 2, 10, 0.001, 0.00025, dst);
   EXPECT_EQ(dst[0], 0);
@@ -151,8 +150,8 @@ TEST(V4l2Convert, Z16FromASeparateDepthCameraIsRegisteredToColour) {
   src[0] = 0;
   uint16_t scratch[8 * 4], out[10 * 6];
   RegistrationStats st;
-  ASSERT_TRUE(z16_to_registered_depth(reinterpret_cast<const uint8_t*>(src), 8, 4, 16, 0.00025, 0.001, reg, scratch,
-                                      out, 20, &st));
+  ASSERT_TRUE(z16_to_registered_depth(reinterpret_cast<const uint8_t*>(src), 8, 4, 16, 0.00025, 0.001, reg,
+                                      scratch, out, 20, &st));
   EXPECT_EQ(st.valid_in, 31);
   // Depth pixel (u, v) lands at colour (u, v + 1): the principal points differ
   // by (1, 1) and the baseline takes 1 px back in x. 2000 mm; the colour
@@ -165,8 +164,8 @@ TEST(V4l2Convert, Z16FromASeparateDepthCameraIsRegisteredToColour) {
   EXPECT_EQ(out[2 * 10 + 8], 0);
   EXPECT_EQ(out[2 * 10 + 9], 0);
   // A frame of another size is refused.
-  EXPECT_FALSE(z16_to_registered_depth(reinterpret_cast<const uint8_t*>(src), 4, 4, 8, 0.00025, 0.001, reg, scratch,
-                                       out, 20));
+  EXPECT_FALSE(z16_to_registered_depth(reinterpret_cast<const uint8_t*>(src), 4, 4, 8, 0.00025, 0.001, reg,
+                                       scratch, out, 20));
 }
 
 // A frame source standing in for the kernel's V4L2 queue: frames arrive every
@@ -227,7 +226,7 @@ TEST(V4l2Stream, SlowConsumerDropsAreCountedAndBuffersAlwaysReturn) {
       ASSERT_GT(d.t_ns, last_t - 1);
       last_t = d.t_ns;
       ++frames;
-      q.qbuf(d.index);   // re-queued at once, after the copy into the pool
+      q.qbuf(d.index);  // re-queued at once, after the copy into the pool
       ASSERT_TRUE(book.on_queued(d.index));
     }
   }

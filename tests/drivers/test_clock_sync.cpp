@@ -15,10 +15,10 @@ namespace {
 
 struct Scenario {
   const char* name;
-  double skew;               // host = h0 + d * (1 + skew)
-  double uniform_fraction;   // share of packets with latency uniform over [0, 2 ms]; the rest exponential
+  double skew;              // host = h0 + d * (1 + skew)
+  double uniform_fraction;  // share of packets with latency uniform over [0, 2 ms]; the rest exponential
   double loss;
-  int64_t period_ns;         // packet interval on the device clock
+  int64_t period_ns;  // packet interval on the device clock
 };
 
 struct Result {
@@ -77,8 +77,9 @@ TEST(ClockSync, DriftJitterLossUnderFiftyMicrosecondsRms) {
   std::printf("[ figure ] clock sync, 60 s, causal error after 3 s warm-up (floor latency calibrated):\n");
   for (const Scenario& s : scenarios) {
     const Result r = simulate(s, 42);
-    std::printf("[ figure ]   %-52s RMS %6.1f us  p99 %6.1f us  max %6.1f us  skew err %+6.2f ppm  (%zu pts)\n",
-                s.name, r.rms_us, r.p99_us, r.max_us, r.skew_err_ppm, r.n);
+    std::printf(
+        "[ figure ]   %-52s RMS %6.1f us  p99 %6.1f us  max %6.1f us  skew err %+6.2f ppm  (%zu pts)\n",
+        s.name, r.rms_us, r.p99_us, r.max_us, r.skew_err_ppm, r.n);
     EXPECT_LT(r.rms_us, 50.0) << s.name;
     EXPECT_LT(std::abs(r.skew_err_ppm), 10.0) << s.name;
   }
@@ -134,7 +135,7 @@ TEST(ClockSync, ImplausibleSkewIsRefused) {
 
 TEST(StrobeMatcher, PairsFramesAndLearnsTheResidualOffset) {
   StrobeMatchOptions o;
-  o.initial_offset_ns = 10'000'000;   // configured guess; the truth is 8 ms
+  o.initial_offset_ns = 10'000'000;  // configured guess; the truth is 8 ms
   StrobeMatcher m(o);
   std::mt19937_64 rng(11);
   std::uniform_real_distribution<double> jit(-300'000, 300'000);
@@ -144,13 +145,17 @@ TEST(StrobeMatcher, PairsFramesAndLearnsTheResidualOffset) {
   for (int k = 0; k < 900; ++k) {
     const int64_t t_strobe = 1'000'000'000 + k * period;
     const bool lost = u01(rng) < 0.1;
-    if (!lost) m.add_strobe(StrobeStamp{t_strobe, static_cast<uint32_t>(k), 4000});
-    else ++missing;
+    if (!lost)
+      m.add_strobe(StrobeStamp{t_strobe, static_cast<uint32_t>(k), 4000});
+    else
+      ++missing;
     const int64_t t_cam = t_strobe + 8'000'000 + static_cast<int64_t>(jit(rng));
     const StrobeMatch r = m.match(t_cam);
     if (r.matched) {
-      if (r.strobe_seq == static_cast<uint32_t>(k)) ++matched_right;
-      else ++wrong;
+      if (r.strobe_seq == static_cast<uint32_t>(k))
+        ++matched_right;
+      else
+        ++wrong;
     } else if (k > 50) {
       // Unmatched frames fall back to the learnt offset.
       EXPECT_NEAR(static_cast<double>(r.t_exposure_start_ns), static_cast<double>(t_strobe), 1'000'000.0);
@@ -160,8 +165,9 @@ TEST(StrobeMatcher, PairsFramesAndLearnsTheResidualOffset) {
   EXPECT_EQ(static_cast<int>(m.matched()), matched_right);
   EXPECT_EQ(static_cast<int>(m.unmatched_frames()), missing);
   EXPECT_NEAR(static_cast<double>(m.residual_offset_ns()), 8e6, 200'000.0);
-  std::printf("[ figure ] strobe matching: %d/%d frames matched, residual offset %.3f ms, jitter RMS %.0f us\n",
-              matched_right, 900, m.residual_offset_ns() * 1e-6, m.residual_rms_ns() * 1e-3);
+  std::printf(
+      "[ figure ] strobe matching: %d/%d frames matched, residual offset %.3f ms, jitter RMS %.0f us\n",
+      matched_right, 900, m.residual_offset_ns() * 1e-6, m.residual_rms_ns() * 1e-3);
 }
 
 }  // namespace

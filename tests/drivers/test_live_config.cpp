@@ -37,7 +37,8 @@ TEST(LiveConfig, ShippedConfigsParse) {
 
 std::string with_drivers(const std::string& drivers) {
   return "rig:\n  camera: {width_px: 640, height_px: 480, fx_px: 500, fy_px: 500, cx_px: 320, cy_px: 240}\n"
-         "drivers:\n" + drivers;
+         "drivers:\n" +
+         drivers;
 }
 
 void expect_error(const std::string& text, const std::string& needle) {
@@ -54,29 +55,34 @@ void expect_error(const std::string& text, const std::string& needle) {
 // camera settings can deliver a stereo rig's right image.
 TEST(LiveConfig, StereoCameraSettingsAndTheirCapability) {
   const LiveConfig sbs = live_config_from_yaml(
-      with_drivers("  camera: {type: v4l2, v4l2: {color_device: /dev/video0, color_format: grey, stereo_layout: "
-                   "side_by_side}}\n"),
+      with_drivers(
+          "  camera: {type: v4l2, v4l2: {color_device: /dev/video0, color_format: grey, stereo_layout: "
+          "side_by_side}}\n"),
       "x.yaml");
   EXPECT_EQ(sbs.drivers.camera.v4l2_stereo_layout, "side_by_side");
   EXPECT_EQ(stereo_capability(sbs.drivers.camera), "");
   const LiveConfig two = live_config_from_yaml(
-      with_drivers("  camera: {type: v4l2, v4l2: {color_device: /dev/video0, right_device: /dev/video2}}\n"), "x.yaml");
+      with_drivers("  camera: {type: v4l2, v4l2: {color_device: /dev/video0, right_device: /dev/video2}}\n"),
+      "x.yaml");
   EXPECT_EQ(two.drivers.camera.v4l2_right_device, "/dev/video2");
   EXPECT_EQ(stereo_capability(two.drivers.camera), "");
-  const LiveConfig mono =
-      live_config_from_yaml(with_drivers("  camera: {type: v4l2, v4l2: {color_device: /dev/video0}}\n"), "x.yaml");
+  const LiveConfig mono = live_config_from_yaml(
+      with_drivers("  camera: {type: v4l2, v4l2: {color_device: /dev/video0}}\n"), "x.yaml");
   EXPECT_NE(stereo_capability(mono.drivers.camera).find("right_device or stereo_layout"), std::string::npos);
   const LiveConfig ir = live_config_from_yaml(
-      with_drivers("  camera: {type: d4xx, d4xx: {image: infrared1, infrared: y8i, depth: false}}\n"), "x.yaml");
+      with_drivers("  camera: {type: d4xx, d4xx: {image: infrared1, infrared: y8i, depth: false}}\n"),
+      "x.yaml");
   EXPECT_EQ(stereo_capability(ir.drivers.camera), "");
   const LiveConfig ir1 = live_config_from_yaml(
       with_drivers("  camera: {type: d4xx, d4xx: {image: infrared1, infrared: y8}}\n"), "x.yaml");
   EXPECT_NE(stereo_capability(ir1.drivers.camera).find("infrared: y8i"), std::string::npos);
-  expect_error(with_drivers("  camera: {type: v4l2, v4l2: {color_device: /dev/video0, right_device: /dev/video2, "
-                            "stereo_layout: side_by_side}}\n"),
-               "drivers.camera.v4l2.stereo_layout: side_by_side and right_device exclude each other");
-  expect_error(with_drivers("  camera: {type: v4l2, v4l2: {color_device: /dev/video0, stereo_layout: top_bottom}}\n"),
-               "drivers.camera.v4l2.stereo_layout");
+  expect_error(
+      with_drivers("  camera: {type: v4l2, v4l2: {color_device: /dev/video0, right_device: /dev/video2, "
+                   "stereo_layout: side_by_side}}\n"),
+      "drivers.camera.v4l2.stereo_layout: side_by_side and right_device exclude each other");
+  expect_error(
+      with_drivers("  camera: {type: v4l2, v4l2: {color_device: /dev/video0, stereo_layout: top_bottom}}\n"),
+      "drivers.camera.v4l2.stereo_layout");
 }
 
 TEST(LiveConfig, ASideBySideFrameSplitsIntoItsTwoHalvesWithoutAllocating) {
@@ -116,10 +122,12 @@ TEST(LiveConfig, ErrorsNameFileAndKey) {
                "drivers.imu.gyro_odr_hz");
   expect_error(with_drivers("  imu: {type: bmx055_i2c, i2c: {bus_device: /dev/i2c-1, poll_period: 5}}\n"),
                "drivers.imu.i2c.poll_period: unknown key");
-  expect_error(with_drivers("  imu: {type: bmx055_i2c, axis_remap: [+x, +x, +z], i2c: {bus_device: /dev/i2c-1}}\n"),
-               "axis_remap");
+  expect_error(
+      with_drivers("  imu: {type: bmx055_i2c, axis_remap: [+x, +x, +z], i2c: {bus_device: /dev/i2c-1}}\n"),
+      "axis_remap");
   expect_error(with_drivers("  camera: {type: v4l2}\n"), "drivers.camera.v4l2.color_device: missing");
-  expect_error(with_drivers("  camera: {type: kinect}\n"), "drivers.camera.type: expected one of none, openni2, v4l2");
+  expect_error(with_drivers("  camera: {type: kinect}\n"),
+               "drivers.camera.type: expected one of none, openni2, v4l2");
   expect_error(with_drivers("  imu: {type: bmx055_i2c, i2c: {bus_device: /dev/i2c-1, acc_i2c_addr: 0x20}}\n"),
                "drivers.imu.i2c.acc_i2c_addr: must be in 24..25");
   expect_error("rig:\n  camera: {width_px: 640, height_px: 480, fx: 500}\ndrivers: {}\n", "rig.camera.fx");
@@ -128,15 +136,19 @@ TEST(LiveConfig, ErrorsNameFileAndKey) {
 
 TEST(LiveConfig, EstimatorSectionIsOptionalAndChecked) {
   EXPECT_EQ(live_config_from_yaml(with_drivers("  camera: {type: none}\n"), "x.yaml").estimator.backend, "");
-  EXPECT_EQ(live_config_from_yaml(with_drivers("  camera: {type: none}\n") + "estimator: {backend: vo}\n", "x.yaml")
-                .estimator.backend,
-            "vo");
+  EXPECT_EQ(
+      live_config_from_yaml(with_drivers("  camera: {type: none}\n") + "estimator: {backend: vo}\n", "x.yaml")
+          .estimator.backend,
+      "vo");
   // Other estimator keys belong to core's options table: tools/config checks them
   // (tests/cli ConfigFile.*); here only the sections' names are checked.
-  expect_error(with_drivers("  camera: {type: none}\n") + "window: {recent_frames: 3}\n", "window: unknown key");
-  EXPECT_NO_THROW(live_config_from_yaml(with_drivers("  camera: {type: none}\n") + "window: {recent_frames: 3}\n",
-                                        "x.yaml", {"estimator", "window"}));
-  expect_error(with_drivers("  camera: {type: none}\n") + "estimator: ekf\n", "estimator: expected a mapping");
+  expect_error(with_drivers("  camera: {type: none}\n") + "window: {recent_frames: 3}\n",
+               "window: unknown key");
+  EXPECT_NO_THROW(
+      live_config_from_yaml(with_drivers("  camera: {type: none}\n") + "window: {recent_frames: 3}\n",
+                            "x.yaml", {"estimator", "window"}));
+  expect_error(with_drivers("  camera: {type: none}\n") + "estimator: ekf\n",
+               "estimator: expected a mapping");
   expect_error(with_drivers("  camera: {type: none}\n") + "estimator: {backend: [a, b]}\n",
                "estimator.backend: expected a backend name");
 }
@@ -195,7 +207,8 @@ TEST(ThreadTable, BadFieldsAndUnknownNamesAreErrorsNamingFileAndField) {
                "x.yaml: threads.kst-optimizer.priority: expected 1..99");
   expect_error(base + "threads:\n  kst-optimizer: {policy: fifo, priority: 0}\n",
                "threads.kst-optimizer.priority: expected 1..99");
-  expect_error(base + "threads:\n  kst-optimizer: {policy: fifo}\n", "threads.kst-optimizer.priority: missing");
+  expect_error(base + "threads:\n  kst-optimizer: {policy: fifo}\n",
+               "threads.kst-optimizer.priority: missing");
   expect_error(base + "threads:\n  kst-imu: {policy: rr, priority: 5}\n",
                "threads.kst-imu.policy: expected one of fifo, other");
   expect_error(base + "threads:\n  kst-imu: {policy: other, priority: 5}\n", "threads.kst-imu.priority");
@@ -208,9 +221,10 @@ TEST(ThreadTable, BadFieldsAndUnknownNamesAreErrorsNamingFileAndField) {
                "threads.kst-track: unknown thread (expected one of: " + thread_names() + ")");
   EXPECT_NE(thread_names().find("kst-propagate"), std::string::npos);
   // Inside a live config's rig section the key stays unknown.
-  expect_error("rig:\n  camera: {width_px: 640, height_px: 480, fx_px: 500, fy_px: 500, cx_px: 320, cy_px: 240}\n"
-               "  threads: {}\ndrivers: {camera: {type: none}}\n",
-               "rig.threads: unknown key");
+  expect_error(
+      "rig:\n  camera: {width_px: 640, height_px: 480, fx_px: 500, fy_px: 500, cx_px: 320, cy_px: 240}\n"
+      "  threads: {}\ndrivers: {camera: {type: none}}\n",
+      "rig.threads: unknown key");
 }
 
 TEST(LiveSensors, MissingHardwareIsNamed) {

@@ -561,7 +561,8 @@ TEST(RealSenseD4xx, UvchMetadataWithoutBlocksFallsBackLoudly) {
   EXPECT_EQ(n, Small::kFrames);
   EXPECT_EQ(cam.counters().color.metadata_no_timestamp, static_cast<uint64_t>(Small::kFrames));
   EXPECT_EQ(cam.counters().color.hardware_stamps, 0u);
-  EXPECT_NE(cam.report().find("D4xx color (metadata UVCH (no D4xx blocks: kernel stamps))"), std::string::npos)
+  EXPECT_NE(cam.report().find("D4xx color (metadata UVCH (no D4xx blocks: kernel stamps))"),
+            std::string::npos)
       << cam.report();
 }
 
@@ -747,9 +748,10 @@ TEST(RealSenseD4xx, SimulatedFlightMatchesItsKlogInStampsPixelsAndAte) {
     ClockLine now;
     if (shared.read(now)) {
       const double frame_err_us = (f.image_meta.t_ns - cap.rgb[i].t_ns) * 1e-3;
-      for (; next_imu < cap.imu_samples.size() && cap.imu_samples[next_imu].t_ns <= cap.rgb[i].t_ns; ++next_imu) {
+      for (; next_imu < cap.imu_samples.size() && cap.imu_samples[next_imu].t_ns <= cap.rgb[i].t_ns;
+           ++next_imu) {
         const int64_t t = cap.imu_samples[next_imu].t_ns;
-        if (t < cap.rgb[i].t_ns - 5'000'000) continue;   // the samples beside this frame
+        if (t < cap.rgb[i].t_ns - 5'000'000) continue;  // the samples beside this frame
         const double imu_err_us = (now.to_host_ns(now.unwrap_us32_ns(dt.us(t))) - t) * 1e-3;
         worst_imu_abs_us = std::max(worst_imu_abs_us, std::abs(imu_err_us));
         if (i > 0) worst_rel_us = std::max(worst_rel_us, std::abs(frame_err_us - imu_err_us));
@@ -786,11 +788,12 @@ TEST(RealSenseD4xx, SimulatedFlightMatchesItsKlogInStampsPixelsAndAte) {
   EXPECT_NEAR(cam.clock().sync().skew(), 40e-6, 5e-6);
   // Camera and IMU in one clock: the line's error (up to a few hundred us) is common to both and
   // cancels; what is left is the us quantisation of the two stamps.
-  std::printf("[ RealSense ] IMU through the camera's line: worst error vs true time %.1f us, worst camera - IMU "
-              "relative error %.1f us\n",
-              worst_imu_abs_us, worst_rel_us);
-  EXPECT_GT(worst_imu_abs_us, 50.0);   // the line's own error is really there...
-  EXPECT_LT(worst_rel_us, 5.0);        // ...and cancels between the two streams
+  std::printf(
+      "[ RealSense ] IMU through the camera's line: worst error vs true time %.1f us, worst camera - IMU "
+      "relative error %.1f us\n",
+      worst_imu_abs_us, worst_rel_us);
+  EXPECT_GT(worst_imu_abs_us, 50.0);  // the line's own error is really there...
+  EXPECT_LT(worst_rel_us, 5.0);       // ...and cancels between the two streams
   // The line published for the IMU maps a device time like the camera's own.
   ClockLine line;
   ASSERT_TRUE(shared.read(line));
@@ -886,8 +889,9 @@ TEST(RealSenseConfig, TemplatesParseAndKeysHaveTheirDefaults) {
       << error("{image: infrared1}");
   // Without the device: LiveSensors names the stream and the node.
   const LiveConfig none = live_config_from_yaml(
-      rig + "drivers:\n  camera:\n    type: d4xx\n    d4xx: {color_device: /dev/kestrel-no-such-video, "
-            "color_meta_device: none, depth: false}\n",
+      rig +
+          "drivers:\n  camera:\n    type: d4xx\n    d4xx: {color_device: /dev/kestrel-no-such-video, "
+          "color_meta_device: none, depth: false}\n",
       "x.yaml");
   try {
     LiveSensors live(none);

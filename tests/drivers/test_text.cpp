@@ -28,7 +28,7 @@ TEST(Text, ReadLinesStripsCrlfAndKeepsEmptyLines) {
   ASSERT_TRUE(r);
   EXPECT_TRUE(r.opened);
   EXPECT_EQ(r.error, 0);
-  EXPECT_EQ(lines, (V{"a,b", "", "c", "  d ", "last"}));   // a lone '\r' only goes at the end
+  EXPECT_EQ(lines, (V{"a,b", "", "c", "  d ", "last"}));  // a lone '\r' only goes at the end
 
   std::ofstream(path, std::ios::binary) << "";
   ASSERT_TRUE(read_lines(path, lines));
@@ -43,16 +43,17 @@ TEST(Text, ReadLinesStripsCrlfAndKeepsEmptyLines) {
 TEST(Text, Utf8IsCheckedByteForByte) {
   EXPECT_TRUE(is_utf8(""));
   EXPECT_TRUE(is_utf8("plain ascii\t\n"));
-  EXPECT_TRUE(is_utf8("\xc3\xa9 \xe2\x82\xac \xf0\x9f\x9a\x81 \xf4\x8f\xbf\xbf"));   // e-acute, euro, helicopter, U+10FFFF
-  EXPECT_FALSE(is_utf8("\xca"));               // a lead byte alone (the fuzz_rig_yaml finding)
-  EXPECT_FALSE(is_utf8("\xc3"));               // cut short
-  EXPECT_FALSE(is_utf8("\x80"));               // a continuation byte first
-  EXPECT_FALSE(is_utf8("\xc0\xaf"));           // overlong '/'
-  EXPECT_FALSE(is_utf8("\xe0\x80\xaf"));       // overlong, three bytes
-  EXPECT_FALSE(is_utf8("\xed\xa0\x80"));       // a surrogate
-  EXPECT_FALSE(is_utf8("\xf4\x90\x80\x80"));   // past U+10FFFF
-  EXPECT_FALSE(is_utf8("\xe2\x82"));           // cut short
-  EXPECT_FALSE(is_utf8("\xe2\x28\xa1"));       // a bad continuation
+  EXPECT_TRUE(is_utf8(
+      "\xc3\xa9 \xe2\x82\xac \xf0\x9f\x9a\x81 \xf4\x8f\xbf\xbf"));  // e-acute, euro, helicopter, U+10FFFF
+  EXPECT_FALSE(is_utf8("\xca"));              // a lead byte alone (the fuzz_rig_yaml finding)
+  EXPECT_FALSE(is_utf8("\xc3"));              // cut short
+  EXPECT_FALSE(is_utf8("\x80"));              // a continuation byte first
+  EXPECT_FALSE(is_utf8("\xc0\xaf"));          // overlong '/'
+  EXPECT_FALSE(is_utf8("\xe0\x80\xaf"));      // overlong, three bytes
+  EXPECT_FALSE(is_utf8("\xed\xa0\x80"));      // a surrogate
+  EXPECT_FALSE(is_utf8("\xf4\x90\x80\x80"));  // past U+10FFFF
+  EXPECT_FALSE(is_utf8("\xe2\x82"));          // cut short
+  EXPECT_FALSE(is_utf8("\xe2\x28\xa1"));      // a bad continuation
 }
 
 TEST(Text, TrimAndSplit) {
@@ -60,7 +61,7 @@ TEST(Text, TrimAndSplit) {
   EXPECT_EQ(trim(" \t\r\n"), "");
   EXPECT_EQ(split("", ','), (V{""}));
   EXPECT_EQ(split("a, b ,c", ','), (V{"a", "b", "c"}));
-  EXPECT_EQ(split("a,,b,", ','), (V{"a", "", "b", ""}));   // empty fields are fields
+  EXPECT_EQ(split("a,,b,", ','), (V{"a", "", "b", ""}));  // empty fields are fields
   EXPECT_EQ(split(" , ", ','), (V{"", ""}));
   EXPECT_EQ(split_ws(""), V{});
   EXPECT_EQ(split_ws("  1.0\t2  3\r"), (V{"1.0", "2", "3"}));
@@ -76,11 +77,11 @@ TEST(Text, Int64IsExactAndRefusesWhatIsNotOne) {
   EXPECT_EQ(v, std::numeric_limits<int64_t>::min());
   ASSERT_TRUE(parse_i64("9223372036854775807", v));
   EXPECT_EQ(v, std::numeric_limits<int64_t>::max());
-  ASSERT_TRUE(parse_i64("00000000000000000000042", v));   // 23 digits, most of them zeros
+  ASSERT_TRUE(parse_i64("00000000000000000000042", v));  // 23 digits, most of them zeros
   EXPECT_EQ(v, 42);
   v = 7;
-  for (const char* bad : {"", "9223372036854775808", "-9223372036854775809", "12345678901234567890", "1e3", "1.0",
-                          "12abc", "0x10", "12 ", "-", "nan"}) {
+  for (const char* bad : {"", "9223372036854775808", "-9223372036854775809", "12345678901234567890", "1e3",
+                          "1.0", "12abc", "0x10", "12 ", "-", "nan"}) {
     EXPECT_FALSE(parse_i64(bad, v)) << bad;
     EXPECT_EQ(v, 7) << bad << ": a refused token leaves the output alone";
   }
@@ -93,21 +94,23 @@ TEST(Text, DoubleTakesWhatStrtodTakesFiniteOnlyWhatIsInRange) {
   ASSERT_TRUE(parse_f64("-0.5", v));
   EXPECT_EQ(v, -0.5);
   ASSERT_TRUE(parse_f64("0.1", v));
-  EXPECT_EQ(v, 0.1);   // strtod's correctly rounded value, bit for bit
+  EXPECT_EQ(v, 0.1);  // strtod's correctly rounded value, bit for bit
   ASSERT_TRUE(parse_f64("nan", v));
   EXPECT_TRUE(std::isnan(v));
   ASSERT_TRUE(parse_f64("-inf", v));
   EXPECT_EQ(v, -std::numeric_limits<double>::infinity());
-  ASSERT_TRUE(parse_f64("1e999", v));   // overflow saturates; the caller sees a non-finite value
+  ASSERT_TRUE(parse_f64("1e999", v));  // overflow saturates; the caller sees a non-finite value
   EXPECT_EQ(v, std::numeric_limits<double>::infinity());
-  for (const char* bad : {"", "abc", "1.0x", "1,5", "1e", "--1", "1.0 "}) EXPECT_FALSE(parse_f64(bad, v)) << bad;
+  for (const char* bad : {"", "abc", "1.0x", "1,5", "1e", "--1", "1.0 "})
+    EXPECT_FALSE(parse_f64(bad, v)) << bad;
 
   ASSERT_TRUE(parse_finite_f64("2.5e-3", v));
   EXPECT_EQ(v, 2.5e-3);
   ASSERT_TRUE(parse_finite_f64("+1", v));
   EXPECT_EQ(v, 1.0);
   v = 3;
-  for (const char* bad : {"nan", "inf", "-Infinity", "1e999", "-1e999", "1e-400", "1e-310", "", "abc", "1.5.2"}) {
+  for (const char* bad :
+       {"nan", "inf", "-Infinity", "1e999", "-1e999", "1e-400", "1e-310", "", "abc", "1.5.2"}) {
     EXPECT_FALSE(parse_finite_f64(bad, v)) << bad;
     EXPECT_EQ(v, 3.0) << bad;
   }
@@ -116,10 +119,10 @@ TEST(Text, DoubleTakesWhatStrtodTakesFiniteOnlyWhatIsInRange) {
 TEST(Text, SecondsToNanosecondsIsExact) {
   int64_t t = 0;
   ASSERT_TRUE(parse_seconds_ns("1305031102.175304", t));
-  EXPECT_EQ(t, 1305031102175304000);   // a double would be ~100 ns off here
+  EXPECT_EQ(t, 1305031102175304000);  // a double would be ~100 ns off here
   ASSERT_TRUE(parse_seconds_ns("1403715273.262142976", t));
   EXPECT_EQ(t, 1403715273262142976);
-  ASSERT_TRUE(parse_seconds_ns("-0.5", t));   // the sign survives a zero whole part
+  ASSERT_TRUE(parse_seconds_ns("-0.5", t));  // the sign survives a zero whole part
   EXPECT_EQ(t, -500000000);
   ASSERT_TRUE(parse_seconds_ns("+2", t));
   EXPECT_EQ(t, 2000000000);
@@ -129,7 +132,7 @@ TEST(Text, SecondsToNanosecondsIsExact) {
   EXPECT_EQ(t, 250000000);
   ASSERT_TRUE(parse_seconds_ns("-0", t));
   EXPECT_EQ(t, 0);
-  ASSERT_TRUE(parse_seconds_ns("0000000000000000000001.5", t));   // leading zeros do not overflow
+  ASSERT_TRUE(parse_seconds_ns("0000000000000000000001.5", t));  // leading zeros do not overflow
   EXPECT_EQ(t, 1500000000);
   ASSERT_TRUE(parse_seconds_ns("9223372036.854775807", t));
   EXPECT_EQ(t, std::numeric_limits<int64_t>::max());
@@ -151,15 +154,15 @@ TEST(Text, SecondsBelowANanosecondTruncateRoundOrRefuse) {
   EXPECT_EQ(t, 1000000001);
   ASSERT_TRUE(parse_seconds_ns("1.0000000015", t, round));
   EXPECT_EQ(t, 1000000002);
-  ASSERT_TRUE(parse_seconds_ns("1.00000000149999", t, round));   // only the first dropped digit counts
+  ASSERT_TRUE(parse_seconds_ns("1.00000000149999", t, round));  // only the first dropped digit counts
   EXPECT_EQ(t, 1000000001);
-  ASSERT_TRUE(parse_seconds_ns("-1.0000000015", t, round));   // half away from zero
+  ASSERT_TRUE(parse_seconds_ns("-1.0000000015", t, round));  // half away from zero
   EXPECT_EQ(t, -1000000002);
-  ASSERT_TRUE(parse_seconds_ns("0.9999999999", t, round));   // the carry reaches the whole seconds
+  ASSERT_TRUE(parse_seconds_ns("0.9999999999", t, round));  // the carry reaches the whole seconds
   EXPECT_EQ(t, 1000000000);
   ASSERT_TRUE(parse_seconds_ns("0.00000000049", t, round));
   EXPECT_EQ(t, 0);
-  EXPECT_FALSE(parse_seconds_ns("9223372036.8547758075", t, round));   // the rounding overflows
+  EXPECT_FALSE(parse_seconds_ns("9223372036.8547758075", t, round));  // the rounding overflows
   ASSERT_TRUE(parse_seconds_ns("9223372036.8547758075", t, truncate));
   EXPECT_EQ(t, std::numeric_limits<int64_t>::max());
 
@@ -167,7 +170,7 @@ TEST(Text, SecondsBelowANanosecondTruncateRoundOrRefuse) {
   EXPECT_FALSE(parse_seconds_ns("1.0000000001", t, reject));
   EXPECT_FALSE(parse_seconds_ns("1.00000000000000000001", t, reject));
   EXPECT_EQ(t, 5);
-  ASSERT_TRUE(parse_seconds_ns("1.000000001000", t, reject));   // trailing zeros lose nothing
+  ASSERT_TRUE(parse_seconds_ns("1.000000001000", t, reject));  // trailing zeros lose nothing
   EXPECT_EQ(t, 1000000001);
 }
 
@@ -178,15 +181,15 @@ TEST(Text, SecondsWithAnExponentStayExact) {
   EXPECT_EQ(t, 1000000000000);
   ASSERT_TRUE(parse_seconds_ns("1.5e9", t, e));
   EXPECT_EQ(t, 1500000000000000000);
-  ASSERT_TRUE(parse_seconds_ns("1.305031102175304E9", t, e));   // exact where llround(s * 1e9) is not
+  ASSERT_TRUE(parse_seconds_ns("1.305031102175304E9", t, e));  // exact where llround(s * 1e9) is not
   EXPECT_EQ(t, 1305031102175304000);
   ASSERT_TRUE(parse_seconds_ns("-25E-2", t, e));
   EXPECT_EQ(t, -250000000);
-  ASSERT_TRUE(parse_seconds_ns("15e-10", t, e));   // 1.5 ns, rounded
+  ASSERT_TRUE(parse_seconds_ns("15e-10", t, e));  // 1.5 ns, rounded
   EXPECT_EQ(t, 2);
   ASSERT_TRUE(parse_seconds_ns("1e-12", t, e));
   EXPECT_EQ(t, 0);
-  ASSERT_TRUE(parse_seconds_ns("0e999999999", t, e));   // zero whatever the exponent
+  ASSERT_TRUE(parse_seconds_ns("0e999999999", t, e));  // zero whatever the exponent
   EXPECT_EQ(t, 0);
   ASSERT_TRUE(parse_seconds_ns("1e+1", t, e));
   EXPECT_EQ(t, 10000000000);
@@ -199,7 +202,8 @@ TEST(Text, SecondsFromNanosecondsIsTheInverse) {
   EXPECT_EQ(seconds_from_ns(-500000000), "-0.500000000");
   EXPECT_EQ(seconds_from_ns(0), "0.000000000");
   EXPECT_EQ(seconds_from_ns(std::numeric_limits<int64_t>::min()), "-9223372036.854775808");
-  for (int64_t t : {int64_t{1}, int64_t{-1}, int64_t{1403715273262142976}, std::numeric_limits<int64_t>::max()}) {
+  for (int64_t t :
+       {int64_t{1}, int64_t{-1}, int64_t{1403715273262142976}, std::numeric_limits<int64_t>::max()}) {
     int64_t back = 0;
     ASSERT_TRUE(parse_seconds_ns(seconds_from_ns(t), back)) << t;
     EXPECT_EQ(back, t);

@@ -4,8 +4,6 @@
 // the stream recovers; sample times stay increasing.
 #include <gtest/gtest.h>
 
-#include "vec_imu_sink.hpp"
-
 #include <cmath>
 #include <cstdio>
 #include <cstring>
@@ -15,6 +13,7 @@
 #include "kestrel/drivers/usb_bridge.hpp"
 #include "kestrel/drivers/usb_bridge_fake.hpp"
 #include "kestrel/drivers/usb_bridge_protocol.hpp"
+#include "vec_imu_sink.hpp"
 
 namespace kestrel::drivers {
 namespace {
@@ -26,7 +25,7 @@ TEST(UsbBridgeProtocol, Crc32IsTheIeeeCheckValue) {
   const char* s = "123456789";
   EXPECT_EQ(crc32(reinterpret_cast<const uint8_t*>(s), 9), 0xCBF43926u);
   EXPECT_EQ(crc32(nullptr, 0), 0u);
-  EXPECT_EQ(crc32(nullptr, 0, 0x1234u), 0x1234u);   // nothing added: the running value stands
+  EXPECT_EQ(crc32(nullptr, 0, 0x1234u), 0x1234u);  // nothing added: the running value stands
   // Chained over two pieces, as over one.
   const auto* p = reinterpret_cast<const uint8_t*>(s);
   EXPECT_EQ(crc32(p + 4, 5, crc32(p, 4)), 0xCBF43926u);
@@ -43,10 +42,11 @@ TEST(UsbBridgeProtocol, PacketBytesFixture) {
   ASSERT_EQ(n, 40u);
   const uint8_t header[16] = {'K', 'B', 1, 2, 0x34, 0x12, 20, 0, 0x40, 0x42, 0x0F, 0, 0, 0, 0, 0};
   EXPECT_EQ(std::memcmp(pkt, header, 16), 0);
-  const uint8_t body[20] = {1, 0, 0, 0, 0x08, 0x07, 0x06, 0x05, 0x04, 0x03, 0x02, 0x01, 7, 0, 0, 0, 0xA0, 0x0F, 0, 0};
+  const uint8_t body[20] = {1,    0,    0, 0, 0x08, 0x07, 0x06, 0x05, 0x04, 0x03,
+                            0x02, 0x01, 7, 0, 0,    0,    0xA0, 0x0F, 0,    0};
   EXPECT_EQ(std::memcmp(pkt + 16, body, 20), 0);
   const uint32_t crc = crc32(pkt, 36);
-  EXPECT_EQ(crc, 0xB232E7C0u);   // as the hand-written table computed it before zlib took over
+  EXPECT_EQ(crc, 0xB232E7C0u);  // as the hand-written table computed it before zlib took over
   EXPECT_EQ(pkt[36] | (pkt[37] << 8) | (pkt[38] << 16) | (static_cast<uint32_t>(pkt[39]) << 24), crc);
 }
 
@@ -75,8 +75,8 @@ TEST(UsbBridgeProtocol, ImuPayloadRoundTrip) {
     EXPECT_EQ(out[i].flags, in[i].flags);
     EXPECT_EQ(out[i].sample_seq, in[i].sample_seq);
   }
-  EXPECT_FALSE(decode_imu_payload(buf, len - 1, out, 4, n));   // count and length disagree
-  EXPECT_FALSE(decode_imu_payload(buf, len, out, 2, n));       // more than the caller can take
+  EXPECT_FALSE(decode_imu_payload(buf, len - 1, out, 4, n));  // count and length disagree
+  EXPECT_FALSE(decode_imu_payload(buf, len, out, 2, n));      // more than the caller can take
 }
 
 std::vector<uint8_t> status_packet(uint16_t seq) {
@@ -94,9 +94,9 @@ TEST(UsbBridgeProtocol, ParserSurvivesSplitsGarbageAndCorruption) {
   const uint8_t garbage[] = {0x00, 'K', 'B', 0x07, 'K', 0xFF, 'B'};
   for (uint16_t i = 0; i < 40; ++i) {
     auto p = status_packet(i);
-    if (i == 3) p[20] ^= 0x10;                                     // payload corrupted
-    if (i == 6) p[2] = 9;                                          // unknown version
-    if (i == 8) p[7] = 0x03;                                       // length 800: waits, then fails its CRC
+    if (i == 3) p[20] ^= 0x10;  // payload corrupted
+    if (i == 6) p[2] = 9;       // unknown version
+    if (i == 8) p[7] = 0x03;    // length 800: waits, then fails its CRC
     if (i == 9) stream.insert(stream.end(), garbage, garbage + sizeof garbage);
     stream.insert(stream.end(), p.begin(), p.end());
   }
@@ -140,7 +140,7 @@ struct Bench {
   VecStrobeSink strobes;
 
   explicit Bench(const FakeBridgeOptions& o) : fake(clock, o) {
-    cfg.clock.latency_floor_ns = o.latency_floor_ns;   // calibrated constant latency
+    cfg.clock.latency_floor_ns = o.latency_floor_ns;  // calibrated constant latency
     drv = std::make_unique<UsbBridgeDriver>(fake, clock, cfg);
   }
   void run_for(int64_t ns) {
@@ -195,8 +195,10 @@ TEST(UsbBridgeDriver, CleanStreamTimesAndValues) {
   EXPECT_NEAR(s.acc_mps2[0], 1.0, 0.08);
   EXPECT_FLOAT_EQ(s.temp_c, 26.0f);
   const Err e = time_error(b, b.clock.now_ns() - 27'000'000'000);
-  std::printf("[ figure ] USB bridge end-to-end (80 ppm drift, jitter to 2 ms): sample time RMS %.1f us, max %.1f us\n",
-              e.rms_us, e.max_us);
+  std::printf(
+      "[ figure ] USB bridge end-to-end (80 ppm drift, jitter to 2 ms): sample time RMS %.1f us, max %.1f "
+      "us\n",
+      e.rms_us, e.max_us);
   EXPECT_LT(e.rms_us, 50.0);
   EXPECT_NEAR(b.drv->clock_sync().skew(), 80e-6, 5e-6);
 }
@@ -208,19 +210,21 @@ TEST(UsbBridgeDriver, LossReorderCrcGarbageAndSplitsAreCountedAndSurvived) {
   o.reorder = 0.02;
   o.crc_error = 0.03;
   o.garbage = 0.02;
-  o.max_transfer_bytes = 64;   // full-speed bulk packets: every IMU packet split
+  o.max_transfer_bytes = 64;  // full-speed bulk packets: every IMU packet split
   o.seed = 5;
   Bench b(o);
   b.run_for(60'000'000'000);
   const auto& c = b.drv->counters();
-  std::printf("[ figure ] USB faults over 60 s: sent %llu, dropped %llu, corrupted %llu, reordered %llu, garbage %llu | "
-              "driver: lost %llu, crc %llu, late %llu, skipped bytes %llu, samples lost %llu, late %llu\n",
-              (unsigned long long)b.fake.packets_sent(), (unsigned long long)b.fake.packets_dropped(),
-              (unsigned long long)b.fake.packets_corrupted(), (unsigned long long)b.fake.packets_reordered(),
-              (unsigned long long)b.fake.garbage_inserted(), (unsigned long long)c.packets_lost,
-              (unsigned long long)c.crc_errors, (unsigned long long)c.packets_late,
-              (unsigned long long)c.bytes_skipped, (unsigned long long)c.samples_lost,
-              (unsigned long long)c.samples_late);
+  std::printf(
+      "[ figure ] USB faults over 60 s: sent %llu, dropped %llu, corrupted %llu, reordered %llu, garbage "
+      "%llu | "
+      "driver: lost %llu, crc %llu, late %llu, skipped bytes %llu, samples lost %llu, late %llu\n",
+      (unsigned long long)b.fake.packets_sent(), (unsigned long long)b.fake.packets_dropped(),
+      (unsigned long long)b.fake.packets_corrupted(), (unsigned long long)b.fake.packets_reordered(),
+      (unsigned long long)b.fake.garbage_inserted(), (unsigned long long)c.packets_lost,
+      (unsigned long long)c.crc_errors, (unsigned long long)c.packets_late,
+      (unsigned long long)c.bytes_skipped, (unsigned long long)c.samples_lost,
+      (unsigned long long)c.samples_late);
   EXPECT_EQ(b.drv->state(), UsbBridgeState::kStreaming);
   // Every corrupted packet is a CRC error (a flipped magic byte is skipped as garbage instead).
   EXPECT_GE(c.crc_errors + c.bad_headers, b.fake.packets_corrupted() * 9 / 10);
@@ -235,12 +239,13 @@ TEST(UsbBridgeDriver, LossReorderCrcGarbageAndSplitsAreCountedAndSurvived) {
   // then dropped: time order is kept).
   EXPECT_GT(c.samples_late, 0u);
   EXPECT_NEAR(static_cast<double>(b.imu.samples.size() + c.samples_lost),
-              static_cast<double>(b.fake.imu_truth().size()), 30.0);   // the fake generates ~20 ms ahead
+              static_cast<double>(b.fake.imu_truth().size()), 30.0);  // the fake generates ~20 ms ahead
   bool gap = false;
   for (const auto& s : b.imu.samples) gap = gap || (s.flags & kImuGapBefore);
   EXPECT_TRUE(gap);
   const Err e = time_error(b, b.clock.now_ns() - 55'000'000'000);
-  std::printf("[ figure ] USB bridge with faults: sample time RMS %.1f us, max %.1f us\n", e.rms_us, e.max_us);
+  std::printf("[ figure ] USB bridge with faults: sample time RMS %.1f us, max %.1f us\n", e.rms_us,
+              e.max_us);
   EXPECT_LT(e.rms_us, 50.0);
 }
 
@@ -277,7 +282,7 @@ TEST(UsbBridgeDriver, BridgeRebootRestartsClockAndSequences) {
 
 TEST(UsbBridgeDriver, ConfigMismatchIsCountedAndTheBridgeWins) {
   FakeBridgeOptions o;
-  o.acc_range_code = 0x08;   // the bridge runs +-8 g, the config says +-16 g
+  o.acc_range_code = 0x08;  // the bridge runs +-8 g, the config says +-16 g
   Bench b(o);
   b.run_for(1'000'000'000);
   EXPECT_EQ(b.drv->counters().config_mismatches, 1u);

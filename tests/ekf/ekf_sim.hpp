@@ -5,7 +5,6 @@
 #pragma once
 
 #include <Eigen/Geometry>
-
 #include <cmath>
 #include <vector>
 
@@ -22,7 +21,7 @@ struct EkfSimWorld {
   std::vector<Eigen::Vector3d> landmarks;
   core::ekf::StereoCamera cam;
   int width = 640, height = 480;
-  double max_range_m = 8.0;   // an RGB-D camera's useful depth range
+  double max_range_m = 8.0;  // an RGB-D camera's useful depth range
 };
 
 inline EkfSimWorld make_ekf_world(uint64_t seed, int per_wall = 250) {
@@ -91,9 +90,9 @@ inline core::ekf::Vec6 pose_error(const Pose& T_est, const Pose& T_true) {
 }
 
 struct SimRunResult {
-  double mean_nees = 0.0;     // pose, 6 dof
-  double mean_pose_nis = 0.0; // EkfUpdateStats::pose_nis over the updates (6 dof)
-  double ate_rmse_m = 0.0;    // position, no alignment (the start is known)
+  double mean_nees = 0.0;      // pose, 6 dof
+  double mean_pose_nis = 0.0;  // EkfUpdateStats::pose_nis over the updates (6 dof)
+  double ate_rmse_m = 0.0;     // position, no alignment (the start is known)
   double rot_rmse_deg = 0.0;
   int frames = 0;
   int mean_active = 0;
@@ -108,16 +107,16 @@ struct SimRunConfig {
   double sigma_px_filter = 0.5;
   double camera_rate_hz = 20.0;
   double input_rate_hz = 200.0;
-  double vel_sigma = 0.05, gyro_vel_sigma = 0.01;   // velocity mode input noise (true)
-  double filter_input_noise_scale = 1.0;            // the filter assumes this times the true input noise
-  double imu_noise_scale = 1.0;                     // EkfSlam::set_imu_noise_scale on top of that
-  double true_imu_noise_scale = 1.0;                // the simulated IMU's white noise is this times the BMX055's
+  double vel_sigma = 0.05, gyro_vel_sigma = 0.01;  // velocity mode input noise (true)
+  double filter_input_noise_scale = 1.0;           // the filter assumes this times the true input noise
+  double imu_noise_scale = 1.0;                    // EkfSlam::set_imu_noise_scale on top of that
+  double true_imu_noise_scale = 1.0;  // the simulated IMU's white noise is this times the BMX055's
   int capacity = 48;
   // > 0: RGB-D observations with depth noise k z^2 (observe_rgbd) and the
   // filter's exact RGB-D noise model (rgbd_disparity_sigma_px = fx b k).
   double rgbd_depth_coeff_per_m = 0.0;
   uint64_t seed = 1;
-  double skip_s = 1.0;   // NEES / ATE from here on
+  double skip_s = 1.0;  // NEES / ATE from here on
 };
 
 // One simulated run of the filter against ground truth.
@@ -148,15 +147,16 @@ inline SimRunResult run_ekf_sim(const SimRunConfig& c) {
   opt.acc_noise_density *= c.filter_input_noise_scale;
   opt.gravity_mps2 = 9.81;
   if (c.rgbd_depth_coeff_per_m > 0)
-    opt.rgbd_disparity_sigma_px = world.cam.fsu * world.cam.baseline_m * c.rgbd_depth_coeff_per_m *
-                                  c.sigma_px_filter / c.sigma_px_true;
+    opt.rgbd_disparity_sigma_px =
+        world.cam.fsu * world.cam.baseline_m * c.rgbd_depth_coeff_per_m * c.sigma_px_filter / c.sigma_px_true;
   core::EkfSlam ekf(opt, world.cam);
   ekf.set_imu_noise_scale(c.imu_noise_scale);
   const tools::TrajectoryState s0 = traj->state(0.0);
   const core::ekf::Mat6 P0 = core::ekf::Mat6::Identity() * 1e-10;
   if (c.motion == core::EkfMotionModel::kImu) {
     ekf.reset_imu(pose_of(s0), s0.v_WB, Eigen::Vector3d::Zero(), Eigen::Vector3d::Zero(), P0, 1e-3,
-                  std::max(model.gyro_bias_init_sigma_rps, 1e-4), std::max(model.acc_bias_init_sigma_mps2, 1e-3));
+                  std::max(model.gyro_bias_init_sigma_rps, 1e-4),
+                  std::max(model.acc_bias_init_sigma_mps2, 1e-3));
   } else {
     ekf.reset(pose_of(s0), P0);
   }

@@ -11,9 +11,9 @@
 namespace kestrel::test {
 
 struct KittiShortRun {
-  int used = 0;      // observations the updates used
-  int gated = 0;     // ... and rejected by the gate
-  double p_norm_m = 0;   // distance of the final pose from the start
+  int used = 0;         // observations the updates used
+  int gated = 0;        // ... and rejected by the gate
+  double p_norm_m = 0;  // distance of the final pose from the start
 };
 
 inline KittiShortRun run_kitti_100_steps(const drivers::KittiVislamSequence& seq) {
@@ -30,15 +30,15 @@ inline KittiShortRun run_kitti_100_steps(const drivers::KittiVislamSequence& seq
   }
   kestrel::core::EkfSlamOptions opt;
   opt.max_missed_frames = 0;
-  opt.pixel_sigma_px = 2.0;   // the values `kestrel ekf-slam` uses (docs/ekf.md)
+  opt.pixel_sigma_px = 2.0;  // the values `kestrel ekf-slam` uses (docs/ekf.md)
   opt.vel_sigma_mps = 1.0;
   opt.gyro_vel_sigma_rps = 0.1;
   kestrel::core::EkfSlam ekf(opt, cam);
   std::vector<kestrel::core::StereoObservation> obs;
   for (size_t t = 0; t < 100; ++t) {
     if (t > 0)
-      ekf.predict_velocity(Eigen::Vector3d(&seq.v_B_mps[3 * (t - 1)]), Eigen::Vector3d(&seq.w_B_rps[3 * (t - 1)]),
-                           seq.t_s[t] - seq.t_s[t - 1]);
+      ekf.predict_velocity(Eigen::Vector3d(&seq.v_B_mps[3 * (t - 1)]),
+                           Eigen::Vector3d(&seq.w_B_rps[3 * (t - 1)]), seq.t_s[t] - seq.t_s[t - 1]);
     obs.clear();
     for (size_t k = seq.step_begin[t]; k < seq.step_begin[t + 1]; ++k) {
       const auto& f = seq.features[k];

@@ -101,6 +101,8 @@ void run_and_count(core::EkfMotionModel motion, int capacity) {
 }
 
 TEST(EkfAlloc, ImuModeStepsAllocateNothing) { run_and_count(core::EkfMotionModel::kImu, 96); }
-TEST(EkfAlloc, VelocityModeLargeCapacityAllocatesNothing) { run_and_count(core::EkfMotionModel::kVelocity, 120); }
+TEST(EkfAlloc, VelocityModeLargeCapacityAllocatesNothing) {
+  run_and_count(core::EkfMotionModel::kVelocity, 120);
+}
 
 }  // namespace

@@ -11,11 +11,11 @@
 #include <vector>
 
 #include "estimator_harness.hpp"
-#include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/core/ekf_estimator.hpp"
 #include "kestrel/core/estimator.hpp"
-#include "kestrel/drivers/open_log.hpp"
+#include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/drivers/log_source.hpp"
+#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/rt/alloc_counter.hpp"
 #include "kestrel/tools/simulator.hpp"
 #include "kestrel/tools/trajectory_eval.hpp"
@@ -117,7 +117,8 @@ TEST(EkfEstimator, EveryImuBackendStartsWithinAQuarterSecondWithoutAStillWindow)
       s.gyro_rps = {0.3 * v, -0.2 * v, 0.1 * v};
       s.acc_mps2 = {2.0 * v, 1.0 * v, g + 3.0 * v};
       est->add_imu(s);
-      if (est->output().quality != core::TrackingQuality::kUninitialized) return 1e-9 * static_cast<double>(i) * 2.5e6;
+      if (est->output().quality != core::TrackingQuality::kUninitialized)
+        return 1e-9 * static_cast<double>(i) * 2.5e6;
     }
     return -1.0;
   };
@@ -152,7 +153,8 @@ TEST(EkfEstimator, ARestartKeepsThePositionAsAGuessNotAsTheOrigin) {
     }
   };
   // A still start defines W: its position sigma is init_position_sigma_m.
-  while (est->output().quality == core::TrackingQuality::kUninitialized && t_ns < 2'000'000'000) feed(0.0025, 0.0);
+  while (est->output().quality == core::TrackingQuality::kUninitialized && t_ns < 2'000'000'000)
+    feed(0.0025, 0.0);
   const double sigma_before = position_sigma_m();
   ASSERT_GT(sigma_before, 0.0);
   EXPECT_LT(sigma_before, 0.005);
@@ -166,7 +168,8 @@ TEST(EkfEstimator, ARestartKeepsThePositionAsAGuessNotAsTheOrigin) {
   }
   ASSERT_GT(restart_t_ns, 0) << "the speed check never fired";
   const double sigma_after = position_sigma_m();
-  std::printf("position sigma %.4f m at the start, %.4f m right after the restart\n", sigma_before, sigma_after);
+  std::printf("position sigma %.4f m at the start, %.4f m right after the restart\n", sigma_before,
+              sigma_after);
   EXPECT_GE(sigma_after, 0.045);
   EXPECT_LT(sigma_after, 0.2);
 }

@@ -63,26 +63,35 @@ TEST(EkfGeometry, StereoJacobiansMatchNumeric) {
     Eigen::Matrix<double, 3, 6> Jp;
     Mat3 Jm;
     ASSERT_TRUE(stereo_project(cam, T_WB, m_W, 0.1, z, &Jp, &Jm));
-    EXPECT_TRUE(check_jacobian(Jp, [&](const Eigen::VectorXd& d) {
-      StereoMeas zz;
-      stereo_project(cam, T_WB * se3_exp(d), m_W, 0.1, zz);
-      return Eigen::VectorXd(zz);
-    }, 1e-5, 1e-6));
-    EXPECT_TRUE(check_jacobian(Jm, [&](const Eigen::VectorXd& d) {
-      StereoMeas zz;
-      stereo_project(cam, T_WB, m_W + d, 0.1, zz);
-      return Eigen::VectorXd(zz);
-    }, 1e-5, 1e-6));
+    EXPECT_TRUE(check_jacobian(
+        Jp,
+        [&](const Eigen::VectorXd& d) {
+          StereoMeas zz;
+          stereo_project(cam, T_WB * se3_exp(d), m_W, 0.1, zz);
+          return Eigen::VectorXd(zz);
+        },
+        1e-5, 1e-6));
+    EXPECT_TRUE(check_jacobian(
+        Jm,
+        [&](const Eigen::VectorXd& d) {
+          StereoMeas zz;
+          stereo_project(cam, T_WB, m_W + d, 0.1, zz);
+          return Eigen::VectorXd(zz);
+        },
+        1e-5, 1e-6));
     // Triangulation inverts the projection, and its Jacobian is right.
     Vec3 p_back;
     Mat3 Jz;
     ASSERT_TRUE(stereo_triangulate(cam, z, p_back, &Jz));
     EXPECT_LT((p_back - p_C).norm(), 1e-9 * p_C.norm());
-    EXPECT_TRUE(check_jacobian(Jz, [&](const Eigen::VectorXd& d) {
-      Vec3 p;
-      stereo_triangulate(cam, z + d, p);
-      return Eigen::VectorXd(p);
-    }, 1e-5, 1e-6, 1e-4));
+    EXPECT_TRUE(check_jacobian(
+        Jz,
+        [&](const Eigen::VectorXd& d) {
+          Vec3 p;
+          stereo_triangulate(cam, z + d, p);
+          return Eigen::VectorXd(p);
+        },
+        1e-5, 1e-6, 1e-4));
     ++checked;
   }
   EXPECT_EQ(checked, 30);
@@ -130,19 +139,27 @@ TEST(EkfGeometry, ImuStepJacobianMatchesNumeric) {
       e.segment<3>(12) = x.ba - ref.ba;
       return e;
     };
-    EXPECT_TRUE(check_jacobian(Phi, [&](const Eigen::VectorXd& d) {
-      ImuNominal y = retract(x0, d);
-      imu_step(y, gyro, acc, dt, 9.81, nullptr, nullptr);
-      return local(x1, y);
-    }, 1e-5, 1e-7)) << "dt " << dt;
+    EXPECT_TRUE(check_jacobian(
+        Phi,
+        [&](const Eigen::VectorXd& d) {
+          ImuNominal y = retract(x0, d);
+          imu_step(y, gyro, acc, dt, 9.81, nullptr, nullptr);
+          return local(x1, y);
+        },
+        1e-5, 1e-7))
+        << "dt " << dt;
     // Noise input: a gyro / accel / bias-rate perturbation held over the step.
-    EXPECT_TRUE(check_jacobian(G, [&](const Eigen::VectorXd& n) {
-      ImuNominal y = x0;
-      imu_step(y, gyro - n.head<3>(), acc - n.segment<3>(3), dt, 9.81, nullptr, nullptr);
-      y.bg += n.segment<3>(6) * dt;
-      y.ba += n.segment<3>(9) * dt;
-      return local(x1, y);
-    }, 1e-5, 1e-7)) << "dt " << dt;
+    EXPECT_TRUE(check_jacobian(
+        G,
+        [&](const Eigen::VectorXd& n) {
+          ImuNominal y = x0;
+          imu_step(y, gyro - n.head<3>(), acc - n.segment<3>(3), dt, 9.81, nullptr, nullptr);
+          y.bg += n.segment<3>(6) * dt;
+          y.ba += n.segment<3>(9) * dt;
+          return local(x1, y);
+        },
+        1e-5, 1e-7))
+        << "dt " << dt;
   }
 }
 

@@ -4,12 +4,11 @@
 // consistency on simulated flights (fixed seeds).
 #include <gtest/gtest.h>
 
+#include <Eigen/Eigenvalues>
 #include <algorithm>
 #include <cstdio>
 #include <map>
 #include <random>
-
-#include <Eigen/Eigenvalues>
 
 #include "ekf_sim.hpp"
 #include "jacobian_check.hpp"
@@ -138,11 +137,13 @@ void check_against_dense_ekf(const std::vector<bool>& without_depth) {
   for (int s = 0; s < 3; ++s) m_prior.push_back(ekf.active_position(s));
 
   // Observations from a slightly different "true" pose, with distinct vL, vR.
-  const Pose T_true = T_prior * core::ekf::se3_exp((Vec6() << 0.02, -0.01, 0.01, 0.002, -0.003, 0.001).finished());
+  const Pose T_true =
+      T_prior * core::ekf::se3_exp((Vec6() << 0.02, -0.01, 0.01, 0.002, -0.003, 0.001).finished());
   obs.clear();
   for (int s = 0; s < 3; ++s) {
     core::ekf::StereoMeas z;
-    ASSERT_TRUE(core::ekf::stereo_project(w.cam, T_true, m_prior[static_cast<size_t>(s)] + Vec3(0.01, -0.02, 0.03), 0.1, z));
+    ASSERT_TRUE(core::ekf::stereo_project(w.cam, T_true,
+                                          m_prior[static_cast<size_t>(s)] + Vec3(0.01, -0.02, 0.03), 0.1, z));
     obs.push_back({ekf.active_id(s), z(0) + 0.3, z(1) - 0.4, z(2) - 0.2, z(1) + 0.5});
     if (without_depth[static_cast<size_t>(s)])
       obs.back() = core::pixel_only(ekf.active_id(s), z(0) + 0.3, z(1) - 0.4);
@@ -156,7 +157,8 @@ void check_against_dense_ekf(const std::vector<bool>& without_depth) {
     core::ekf::StereoMeas zh;
     Eigen::Matrix<double, 3, 6> Hp;
     core::ekf::Mat3 Hm;
-    ASSERT_TRUE(core::ekf::stereo_project(w.cam, T_prior, m_prior[static_cast<size_t>(s)], 0.1, zh, &Hp, &Hm));
+    ASSERT_TRUE(
+        core::ekf::stereo_project(w.cam, T_prior, m_prior[static_cast<size_t>(s)], 0.1, zh, &Hp, &Hm));
     const int rows[4] = {0, 1, 2, 1};  // uL, vL, uR, vR from the compressed model's rows
     const double zobs[4] = {obs[static_cast<size_t>(s)].uL, obs[static_cast<size_t>(s)].vL,
                             obs[static_cast<size_t>(s)].uR, obs[static_cast<size_t>(s)].vR};
@@ -186,13 +188,14 @@ void check_against_dense_ekf(const std::vector<bool>& without_depth) {
   EXPECT_LT((ekf.pose().p - T_expect.p).norm(), 1e-9);
   EXPECT_LT((ekf.pose().R - T_expect.R).norm(), 1e-9);
   for (int s = 0; s < 3; ++s)
-    EXPECT_LT((ekf.active_position(s) - (m_prior[static_cast<size_t>(s)] + dx.segment<3>(6 + 3 * s))).norm(), 1e-9);
+    EXPECT_LT((ekf.active_position(s) - (m_prior[static_cast<size_t>(s)] + dx.segment<3>(6 + 3 * s))).norm(),
+              1e-9);
   EXPECT_LT((ekf.covariance() - P_post).norm(), 1e-9 * P_post.norm());
   // The update only removes uncertainty: P_prior - P_post is PSD.
   const Eigen::MatrixXd D = P - Eigen::MatrixXd(ekf.covariance());
-  const double min_eig = Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd>(0.5 * (D + D.transpose())).eigenvalues().minCoeff();
-  EXPECT_GT(min_eig,
-            -1e-12 * P.norm());
+  const double min_eig =
+      Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd>(0.5 * (D + D.transpose())).eigenvalues().minCoeff();
+  EXPECT_GT(min_eig, -1e-12 * P.norm());
   EXPECT_LT(ekf.pose_covariance().trace(), P.topLeftCorner(6, 6).trace());
 }
 
@@ -226,7 +229,8 @@ TEST(EkfSlam, PoseUpdateEqualsDenseKalmanUpdate) {
   const Pose T_prior = ekf.pose();
   const Vec3 m0 = ekf.active_position(0), m1 = ekf.active_position(1);
 
-  const Pose T_meas = T_prior * core::ekf::se3_exp((Vec6() << 0.03, -0.02, 0.01, 0.004, -0.002, 0.006).finished());
+  const Pose T_meas =
+      T_prior * core::ekf::se3_exp((Vec6() << 0.03, -0.02, 0.01, 0.004, -0.002, 0.006).finished());
   core::ekf::Mat6 R = core::ekf::Mat6::Zero();
   R.diagonal() << 4e-4, 4e-4, 4e-4, 1e-4, 1e-4, 1e-4;
   const Vec6 r = core::ekf::se3_log(T_prior.inverse() * T_meas);
@@ -259,7 +263,7 @@ TEST(EkfSlam, UpdateReducesUncertaintyAndManagesLandmarks) {
   EkfSlamOptions opt;
   opt.landmark_capacity = 40;
   opt.max_init_depth_m = 15.0;
-  opt.gate_chi2 = 30.0;   // nothing here is an outlier; the last part makes one
+  opt.gate_chi2 = 30.0;  // nothing here is an outlier; the last part makes one
   opt.max_missed_frames = 0;
   EkfSlam ekf(opt, w.cam);
   ekf.reset(Pose(Eigen::Matrix3d::Identity(), Vec3(0, 0, 1.5)), Mat6::Identity() * 1e-8);
@@ -268,21 +272,22 @@ TEST(EkfSlam, UpdateReducesUncertaintyAndManagesLandmarks) {
   test::observe(w, ekf.pose(), 0.5, rng, obs, 2000);
   ASSERT_GT(obs.size(), 50u);
   core::EkfUpdateStats st = ekf.update(obs.data(), static_cast<int>(obs.size()));
-  EXPECT_EQ(ekf.num_active(), 40);   // capacity bound
+  EXPECT_EQ(ekf.num_active(), 40);  // capacity bound
   EXPECT_EQ(st.initialised, 40);
   EXPECT_GT(ekf.counters().capacity_full, 0u);
   // Observing landmarks again from the pose they were initialised from adds
   // no information about that pose (the world is anchored only by the
   // prior); after moving, the pose uncertainty the motion added shrinks.
   std::map<uint32_t, double> trace_before;
-  for (int s = 0; s < ekf.num_active(); ++s) trace_before[ekf.active_id(s)] = ekf.covariance().block(6 + 3 * s, 6 + 3 * s, 3, 3).trace();
+  for (int s = 0; s < ekf.num_active(); ++s)
+    trace_before[ekf.active_id(s)] = ekf.covariance().block(6 + 3 * s, 6 + 3 * s, 3, 3).trace();
   ekf.predict_velocity(Vec3(0.3, 0, 0), Vec3(0, 0, 0.05), 0.1);
   const double tr_predicted = ekf.pose_covariance().trace();
   test::observe(w, ekf.pose(), 0.5, rng, obs, 2000);
   st = ekf.update(obs.data(), static_cast<int>(obs.size()));
-  EXPECT_GE(ekf.num_active(), 36);    // a few may have left the image after the move
+  EXPECT_GE(ekf.num_active(), 36);  // a few may have left the image after the move
   EXPECT_EQ(st.used, ekf.num_active());
-  EXPECT_EQ(st.chunks, 2);   // > 32 landmarks: two sequential chunks
+  EXPECT_EQ(st.chunks, 2);  // > 32 landmarks: two sequential chunks
   EXPECT_LT(ekf.pose_covariance().trace(), 0.8 * tr_predicted);
   for (int s = 0; s < ekf.num_active(); ++s) {
     const int a = 6 + 3 * s;
@@ -354,7 +359,8 @@ TEST(EkfSlam, NewTracksSpreadOverTheImageWhenSlotsAreScarce) {
   EXPECT_EQ(initialised_ids(0, 0), (std::vector<uint32_t>{10, 11, 12, 13, 14, 15}));
   // Spread: the three lone points (ids 22-24) get slots, the corner the rest.
   const std::vector<uint32_t> spread = initialised_ids(4, 4);
-  for (uint32_t id : {22u, 23u, 24u}) EXPECT_NE(std::find(spread.begin(), spread.end(), id), spread.end()) << id;
+  for (uint32_t id : {22u, 23u, 24u})
+    EXPECT_NE(std::find(spread.begin(), spread.end(), id), spread.end()) << id;
   EkfSlamOptions bad;
   bad.spread_grid_cols = 4;
   EXPECT_THROW(EkfSlam(bad, w.cam), std::invalid_argument);  // rows and the image size missing
@@ -492,8 +498,10 @@ void expect_consistent(test::SimRunConfig c, const char* label) {
     rot += r.rot_rmse_deg / runs;
     active += r.mean_active / runs;
   }
-  std::printf("[ %s ] %s %.0f s x %d runs: mean pose NEES %.2f (6 dof), ATE %.3f m, rot %.3f deg, %d active landmarks\n",
-              label, c.scenario.c_str(), c.duration_s, runs, nees, ate, rot, active);
+  std::printf(
+      "[ %s ] %s %.0f s x %d runs: mean pose NEES %.2f (6 dof), ATE %.3f m, rot %.3f deg, %d active "
+      "landmarks\n",
+      label, c.scenario.c_str(), c.duration_s, runs, nees, ate, rot, active);
   ::testing::Test::RecordProperty(std::string(label) + "_nees", std::to_string(nees));
   ::testing::Test::RecordProperty(std::string(label) + "_ate_m", std::to_string(ate));
   EXPECT_GT(nees, 6.0 * 0.5) << label;
@@ -542,8 +550,9 @@ TEST(EkfSlamSim, PoseNisFlagsAnUnderstatedImuNoise) {
   const test::SimRunResult low = test::run_ekf_sim(c);
   c.imu_noise_scale = 30.0;
   const test::SimRunResult fixed = test::run_ekf_sim(c);
-  std::printf("[ pose NIS ] right IMU noise %.2f, IMU 30x noisier than assumed %.2f, inflated x30 %.2f (6 dof)\n",
-              ok.mean_pose_nis, low.mean_pose_nis, fixed.mean_pose_nis);
+  std::printf(
+      "[ pose NIS ] right IMU noise %.2f, IMU 30x noisier than assumed %.2f, inflated x30 %.2f (6 dof)\n",
+      ok.mean_pose_nis, low.mean_pose_nis, fixed.mean_pose_nis);
   EXPECT_GT(ok.mean_pose_nis, 6.0 * 0.5);
   EXPECT_LT(ok.mean_pose_nis, 6.0 * 2.0);
   EXPECT_GT(low.mean_pose_nis, 2.0 * ok.mean_pose_nis);

@@ -6,8 +6,8 @@
 
 #include <chrono>
 #include <cstring>
-#include <functional>
 #include <fstream>
+#include <functional>
 #include <string>
 #include <vector>
 
@@ -57,7 +57,9 @@ void write_npz(const std::string& path, const std::vector<Member>& members) {
     ASSERT_NE(src, nullptr);
     const zip_int64_t idx = zip_file_add(z, (m.name + ".npy").c_str(), src, ZIP_FL_OVERWRITE);
     ASSERT_GE(idx, 0);
-    ASSERT_EQ(zip_set_file_compression(z, static_cast<zip_uint64_t>(idx), m.deflate ? ZIP_CM_DEFLATE : ZIP_CM_STORE, 0), 0);
+    ASSERT_EQ(zip_set_file_compression(z, static_cast<zip_uint64_t>(idx),
+                                       m.deflate ? ZIP_CM_DEFLATE : ZIP_CM_STORE, 0),
+              0);
   }
   ASSERT_EQ(zip_close(z), 0);  // the buffers are read here, so they outlive the call
 }
@@ -186,7 +188,8 @@ TEST(NpzReader, KittiLoaderRegroupsFeatures) {
 // (label timing): a sanitized build runs this one several times slower.
 TEST(NpzReader, RealKitti0027ShapesAndShortRun) {
   KESTREL_REQUIRE_SHARED("kitti-vislam-features/0027.npz");
-  const auto seq = kestrel::drivers::load_kitti_vislam_npz(kestrel::test::shared_path("kitti-vislam-features/0027.npz"));
+  const auto seq =
+      kestrel::drivers::load_kitti_vislam_npz(kestrel::test::shared_path("kitti-vislam-features/0027.npz"));
   EXPECT_EQ(seq.num_steps(), 1106u);
   EXPECT_EQ(seq.num_landmarks, 3950u);
   EXPECT_NEAR(seq.K[0], 707.0912, 1e-3);
@@ -200,14 +203,14 @@ TEST(NpzReader, RealKitti0027ShapesAndShortRun) {
   // ... and the stored cam_T_imu, read honouring fortran_order, maps IMU
   // coordinates into the camera: IMU +x (forward) becomes the optical axis +z,
   // IMU +y (left) camera -x, IMU +z (up) camera -y.
-  EXPECT_GT(seq.cam_T_imu[8], 0.99);    // row 2, col 0
-  EXPECT_LT(seq.cam_T_imu[1], -0.99);   // row 0, col 1
-  EXPECT_LT(seq.cam_T_imu[6], -0.99);   // row 1, col 2
+  EXPECT_GT(seq.cam_T_imu[8], 0.99);   // row 2, col 0
+  EXPECT_LT(seq.cam_T_imu[1], -0.99);  // row 0, col 1
+  EXPECT_LT(seq.cam_T_imu[6], -0.99);  // row 1, col 2
 
   const kestrel::test::KittiShortRun run = kestrel::test::run_kitti_100_steps(seq);
   std::printf("[ kitti 0027 ] 100 steps: %d observations used, %d gated\n", run.used, run.gated);
   EXPECT_GT(run.used, 2000);
-  EXPECT_LT(run.gated, run.used / 10);   // with the right extrinsic nearly every track fits
+  EXPECT_LT(run.gated, run.used / 10);  // with the right extrinsic nearly every track fits
   // It drove ~54 m in these 10 s, turning left (velocity dead reckoning ends
   // near (-3, 49) m); the filter must stay close to that, not diverge.
   EXPECT_GT(run.p_norm_m, 40.0);

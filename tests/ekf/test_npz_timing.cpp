@@ -15,13 +15,15 @@ namespace {
 TEST(NpzTiming, RealKitti0027LoadAndHundredStepsWithinBudget) {
   KESTREL_REQUIRE_SHARED("kitti-vislam-features/0027.npz");
   const auto t0 = std::chrono::steady_clock::now();
-  const auto seq = kestrel::drivers::load_kitti_vislam_npz(kestrel::test::shared_path("kitti-vislam-features/0027.npz"));
+  const auto seq =
+      kestrel::drivers::load_kitti_vislam_npz(kestrel::test::shared_path("kitti-vislam-features/0027.npz"));
   const auto t1 = std::chrono::steady_clock::now();
   const kestrel::test::KittiShortRun run = kestrel::test::run_kitti_100_steps(seq);
   const auto t2 = std::chrono::steady_clock::now();
   const double load_s = std::chrono::duration<double>(t1 - t0).count();
   const double run_s = std::chrono::duration<double>(t2 - t1).count();
-  std::printf("[ kitti 0027 ] load %.2f s, 100 steps %.3f s (%d observations used)\n", load_s, run_s, run.used);
+  std::printf("[ kitti 0027 ] load %.2f s, 100 steps %.3f s (%d observations used)\n", load_s, run_s,
+              run.used);
   EXPECT_LT(load_s, 10.0);
   EXPECT_LT(run_s, 3.0);
 }

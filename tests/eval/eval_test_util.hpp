@@ -12,14 +12,16 @@ namespace kestrel::test {
 
 // A smooth, non-planar 3D trajectory with varying attitude, so alignment is
 // fully constrained (no collinear or coplanar degeneracy).
-inline tools::Trajectory lissajous(double duration_s = 30.0, double rate_hz = 100.0, int64_t t0_ns = 1'000'000'000) {
+inline tools::Trajectory lissajous(double duration_s = 30.0, double rate_hz = 100.0,
+                                   int64_t t0_ns = 1'000'000'000) {
   tools::Trajectory traj;
   const int n = static_cast<int>(duration_s * rate_hz) + 1;
   for (int i = 0; i < n; ++i) {
     const double t = i / rate_hz;
     tools::TimedPose p;
     p.t_ns = t0_ns + static_cast<int64_t>(std::llround(t * 1e9));
-    p.p = Eigen::Vector3d(2.0 * std::sin(0.3 * t), 1.5 * std::sin(0.5 * t + 0.4), 1.0 + 0.4 * std::cos(0.7 * t));
+    p.p = Eigen::Vector3d(2.0 * std::sin(0.3 * t), 1.5 * std::sin(0.5 * t + 0.4),
+                          1.0 + 0.4 * std::cos(0.7 * t));
     p.q = Eigen::AngleAxisd(0.6 * std::sin(0.2 * t), Eigen::Vector3d::UnitZ()) *
           Eigen::AngleAxisd(0.2 * std::sin(0.9 * t), Eigen::Vector3d::UnitY()) *
           Eigen::AngleAxisd(0.15 * std::cos(0.4 * t), Eigen::Vector3d::UnitX());

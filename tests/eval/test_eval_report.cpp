@@ -75,7 +75,8 @@ TEST(EvalReport, NonFiniteIsNullInJsonAndStringsAreEscaped) {
   EXPECT_EQ(r.rpe_pairs, 0);
   const std::string json = to_json(r);
   EXPECT_NE(json.find("\"rpe_trans_rmse_m\": null,"), std::string::npos) << json;
-  EXPECT_NE(json.find("\"est_file\": \"dir\\\\with \\\"quotes\\\"\\nand\\ttab\\u0001.txt\""), std::string::npos)
+  EXPECT_NE(json.find("\"est_file\": \"dir\\\\with \\\"quotes\\\"\\nand\\ttab\\u0001.txt\""),
+            std::string::npos)
       << json;
   EXPECT_EQ(json.find(": nan"), std::string::npos);
   EXPECT_EQ(json.find(": inf"), std::string::npos);
@@ -104,11 +105,12 @@ TEST(EvalReport, SvgPlotIsSelfContained) {
   EXPECT_NE(svg.find("ground truth"), std::string::npos);
   EXPECT_NE(svg.find("run &lt;1&gt; &amp; &quot;2&quot;"), std::string::npos);
   EXPECT_EQ(svg.find("run <1>"), std::string::npos);
-  EXPECT_EQ(svg.find("href"), std::string::npos);   // nothing external
+  EXPECT_EQ(svg.find("href"), std::string::npos);  // nothing external
   EXPECT_EQ(svg.find("nan"), std::string::npos);
   size_t polylines = 0;
-  for (size_t p = svg.find("<polyline"); p != std::string::npos; p = svg.find("<polyline", p + 1)) ++polylines;
-  EXPECT_EQ(polylines, 3u);   // GT, estimate, error curve
+  for (size_t p = svg.find("<polyline"); p != std::string::npos; p = svg.find("<polyline", p + 1))
+    ++polylines;
+  EXPECT_EQ(polylines, 3u);  // GT, estimate, error curve
   EXPECT_THROW(write_svg_plot(dir + "/no/such/plot.svg", gt, r), std::runtime_error);
 }
 
@@ -131,7 +133,7 @@ TEST(EvalReport, RpeAtTheEvaluatedStepIsWhatEvaluateReports) {
   EXPECT_DOUBLE_EQ(s.trans_rmse_m, r.rpe_trans_rmse_m);
   EXPECT_DOUBLE_EQ(s.rot_rmse_deg, r.rpe_rot_rmse_deg);
   EXPECT_GT(relative_pose_error(r, 0.5, o.max_gap_ms).pairs, s.pairs);  // shorter steps fit more often
-  EXPECT_EQ(relative_pose_error(r, 60.0, o.max_gap_ms).pairs, 0);     // longer than the run
+  EXPECT_EQ(relative_pose_error(r, 60.0, o.max_gap_ms).pairs, 0);       // longer than the run
   EXPECT_THROW(relative_pose_error(r, 0.0, o.max_gap_ms), std::invalid_argument);
 }
 
@@ -154,8 +156,8 @@ TEST(EvalReport, HtmlReportIsSelfContainedAndHasEveryPlot) {
   write_html_report(dir + "/r.html", gt, r, o);
   const std::string h = slurp(dir + "/r.html");
   EXPECT_EQ(h.rfind("<!doctype html>", 0), 0u);
-  for (const char* id : {"summary", "top-view", "side-view", "error-time", "error-rotation", "error-axes", "rpe-table",
-                         "rpe", "latency", "latency-tracking"})
+  for (const char* id : {"summary", "top-view", "side-view", "error-time", "error-rotation", "error-axes",
+                         "rpe-table", "rpe", "latency", "latency-tracking"})
     EXPECT_NE(h.find(std::string("id='") + id + "'"), std::string::npos) << id;
   EXPECT_NE(h.find("gt &lt;a&gt;.csv"), std::string::npos);
   EXPECT_NE(h.find("run &amp; co"), std::string::npos);

@@ -43,7 +43,8 @@ TEST(EvalMetrics, IdenticalTrajectoriesGiveZeroForEveryAlignment) {
 TEST(EvalAlignment, Se3RecoversAKnownRigidTransform) {
   const Trajectory gt = lissajous();
   // est lives in a world rotated and shifted w.r.t. gt: gt = R est + t.
-  const Eigen::Matrix3d R = Eigen::AngleAxisd(0.8, Eigen::Vector3d(0.2, -0.5, 1.0).normalized()).toRotationMatrix();
+  const Eigen::Matrix3d R =
+      Eigen::AngleAxisd(0.8, Eigen::Vector3d(0.2, -0.5, 1.0).normalized()).toRotationMatrix();
   const Eigen::Vector3d t(1.0, -2.0, 0.5);
   const Trajectory est = transformed(gt, 1.0, R.transpose(), -(R.transpose() * t));
 
@@ -98,7 +99,7 @@ TEST(EvalAlignment, ConstantOffsetAlongXIsExactlyTenCentimetres) {
 TEST(EvalAlignment, Sim3RecoversAKnownScale) {
   const Trajectory gt = lissajous();
   const Eigen::Matrix3d R = Eigen::AngleAxisd(-0.4, Eigen::Vector3d::UnitZ()).toRotationMatrix();
-  const double s = 0.5;   // est is half size: monocular-style scale error
+  const double s = 0.5;  // est is half size: monocular-style scale error
   const Trajectory est = transformed(gt, s, R, Eigen::Vector3d(0.3, 0.2, -0.1));
 
   const EvalResult r = evaluate(gt, est, with_align(Alignment::kSim3));
@@ -106,7 +107,7 @@ TEST(EvalAlignment, Sim3RecoversAKnownScale) {
   EXPECT_LT((r.T_align.R - R.transpose()).norm(), 1e-9);
   EXPECT_NEAR(r.ate_m.rmse, 0.0, 1e-9);
   EXPECT_NEAR(r.ate_rot_deg.rmse, 0.0, 1e-5);
-  EXPECT_NEAR(r.rpe_trans_rmse_m, 0.0, 1e-9);   // RPE uses the scaled estimate
+  EXPECT_NEAR(r.rpe_trans_rmse_m, 0.0, 1e-9);  // RPE uses the scaled estimate
 
   // Without scale the error cannot vanish.
   const EvalResult se3 = evaluate(gt, est, with_align(Alignment::kSe3));
@@ -127,9 +128,9 @@ TEST(EvalAlignment, PosYawRemovesYawAndTranslation) {
 TEST(EvalAlignment, PosYawDoesNotRemoveRollOrPitch) {
   // VIO observes gravity, so a tilt of the estimate is a real error and must show.
   const Trajectory gt = lissajous();
-  const Eigen::Matrix3d tilt =
-      (Eigen::AngleAxisd(30 * kDeg, Eigen::Vector3d::UnitZ()) * Eigen::AngleAxisd(10 * kDeg, Eigen::Vector3d::UnitX()))
-          .toRotationMatrix();
+  const Eigen::Matrix3d tilt = (Eigen::AngleAxisd(30 * kDeg, Eigen::Vector3d::UnitZ()) *
+                                Eigen::AngleAxisd(10 * kDeg, Eigen::Vector3d::UnitX()))
+                                   .toRotationMatrix();
   const Trajectory est = transformed(gt, 1.0, tilt, Eigen::Vector3d(1, 2, 3));
 
   const EvalResult py = evaluate(gt, est, with_align(Alignment::kPosYaw));
@@ -201,7 +202,7 @@ TEST(EvalAlignment, Se3MatchesEigenUmeyamaOnNoisyData) {
 }
 
 TEST(EvalMetrics, ZeroMeanNoiseGivesSigmaTimesSqrt3) {
-  const Trajectory gt = lissajous(200.0, 100.0);   // 20001 poses
+  const Trajectory gt = lissajous(200.0, 100.0);  // 20001 poses
   std::mt19937 rng(42);
   const double sigma = 0.05;
   std::normal_distribution<double> noise(0.0, sigma);
@@ -213,7 +214,7 @@ TEST(EvalMetrics, ZeroMeanNoiseGivesSigmaTimesSqrt3) {
   EXPECT_NEAR(r.ate_m.rmse, expected, 0.02 * expected);
   const EvalResult a = evaluate(gt, est, with_align(Alignment::kSe3));
   EXPECT_NEAR(a.ate_m.rmse, expected, 0.02 * expected);
-  EXPECT_LE(a.ate_m.rmse, r.ate_m.rmse + 1e-12);   // least squares can only lower it
+  EXPECT_LE(a.ate_m.rmse, r.ate_m.rmse + 1e-12);  // least squares can only lower it
 }
 
 // Straight line along x at 1 m/s, 100 Hz, 20 s.
@@ -249,7 +250,8 @@ TEST(EvalMetrics, RotationGainFindsAnAxisThatTurnsTenPercentShort) {
     est.push_back(e);
   }
   const Eigen::Matrix3d R = Eigen::AngleAxisd(0.7, Eigen::Vector3d(1, 2, 3).normalized()).toRotationMatrix();
-  const EvalResult r = evaluate(gt, transformed(est, 1.0, R, Eigen::Vector3d(1, 2, 3)), with_align(Alignment::kSe3));
+  const EvalResult r =
+      evaluate(gt, transformed(est, 1.0, R, Eigen::Vector3d(1, 2, 3)), with_align(Alignment::kSe3));
   EXPECT_NEAR(r.rot_gain.x(), 0.9, 0.01);
   EXPECT_NEAR(r.rot_gain.y(), 1.0, 0.01);
   EXPECT_TRUE(std::isnan(r.rot_gain.z())) << "the truth turns 0.6 degrees about z: " << r.rot_gain.z();
@@ -267,7 +269,7 @@ TEST(EvalRpe, ConstantVelocityErrorGivesErrorTimesDelta) {
     EvalOptions o = with_align(a);
     o.rpe_delta_s = 1.0;
     const EvalResult r = evaluate(gt, est, o);
-    EXPECT_EQ(r.rpe_pairs, 1901);   // starts 0.00 .. 19.00 s
+    EXPECT_EQ(r.rpe_pairs, 1901);  // starts 0.00 .. 19.00 s
     EXPECT_NEAR(r.rpe_trans_rmse_m, dv * 1.0, 1e-9);
     EXPECT_NEAR(r.rpe_trans_mean_m, dv * 1.0, 1e-9);
     EXPECT_NEAR(r.rpe_trans_m_per_s, dv, 1e-9);
@@ -279,7 +281,7 @@ TEST(EvalRpe, ConstantVelocityErrorGivesErrorTimesDelta) {
 }
 
 TEST(EvalRpe, ConstantYawRateErrorGivesRateTimesDelta) {
-  const double dw = 0.01;   // rad/s
+  const double dw = 0.01;  // rad/s
   const Trajectory gt = straight_line(0.0, 0.0, false);
   const Trajectory est = straight_line(0.0, dw, false);
   EvalOptions o = with_align(Alignment::kNone);
@@ -291,8 +293,8 @@ TEST(EvalRpe, ConstantYawRateErrorGivesRateTimesDelta) {
 }
 
 TEST(EvalRpe, KittiSegmentsReportPercentOfDistance) {
-  const Trajectory gt = straight_line(1.0);          // 20 m
-  const Trajectory est = straight_line(1.05);        // travels 5% too far
+  const Trajectory gt = straight_line(1.0);    // 20 m
+  const Trajectory est = straight_line(1.05);  // travels 5% too far
   EvalOptions o = with_align(Alignment::kNone);
   o.segment_lengths_m = {1.0, 5.0, 50.0};
   const EvalResult r = evaluate(gt, est, o);
@@ -302,8 +304,8 @@ TEST(EvalRpe, KittiSegmentsReportPercentOfDistance) {
     EXPECT_NEAR(r.segments[k].trans_pct, 5.0, 1e-6);
     EXPECT_NEAR(r.segments[k].rot_deg_per_m, 0.0, 1e-9);
   }
-  EXPECT_EQ(r.segments[0].count, 1901);   // starts 0 .. 19 m
-  EXPECT_EQ(r.segments[2].count, 0);      // longer than the trajectory
+  EXPECT_EQ(r.segments[0].count, 1901);  // starts 0 .. 19 m
+  EXPECT_EQ(r.segments[2].count, 0);     // longer than the trajectory
   EXPECT_TRUE(std::isnan(r.segments[2].trans_pct));
 }
 
@@ -333,7 +335,7 @@ TEST(EvalAssociation, InterpolatesPositionLinearlyAndRotationBySlerp) {
   EXPECT_LT((p->p - Eigen::Vector3d(1, 2, 3)).norm(), 1e-15);
   EXPECT_FALSE(pose_at(gt, 5'000'000, 4'000'000).has_value());
   EXPECT_FALSE(pose_at(gt, 31'000'000, 20'000'000).has_value());
-  EXPECT_TRUE(pose_at(gt, 30'000'000, 20'000'000).has_value());   // tolerance is inclusive
+  EXPECT_TRUE(pose_at(gt, 30'000'000, 20'000'000).has_value());  // tolerance is inclusive
   // An exact hit returns the sample itself.
   p = pose_at(gt, 10'000'000, 0, &interp);
   ASSERT_TRUE(p.has_value());
@@ -381,7 +383,7 @@ TEST(EvalAssociation, TimeOffsetsAndGapsCountUnmatched) {
 
 TEST(EvalAssociation, TooFewMatchesThrowsWithCounts) {
   const Trajectory gt = lissajous(5.0);
-  Trajectory est = lissajous(5.0, 100.0, 1'000'000'000'000);   // another clock entirely
+  Trajectory est = lissajous(5.0, 100.0, 1'000'000'000'000);  // another clock entirely
   try {
     evaluate(gt, est, with_align(Alignment::kSe3));
     FAIL() << "expected an exception";

@@ -3,8 +3,8 @@
 
 #include <cmath>
 
-#include "kestrel/drivers/open_log.hpp"
 #include "eval_test_util.hpp"
+#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/tools/trajectory_eval.hpp"
 #include "test_data.hpp"
 
@@ -39,7 +39,7 @@ TEST(EvalLoad, TumTextWithCommentsBlankLinesAndCrlf) {
   ASSERT_EQ(w.size(), 1u) << joined(w);
   EXPECT_NE(w[0].find("1 quaternions were more than 1% off unit norm"), std::string::npos) << w[0];
   ASSERT_EQ(t.size(), 3u);
-  EXPECT_EQ(t[0].t_ns, 1305031098665900000);   // every decimal digit kept
+  EXPECT_EQ(t[0].t_ns, 1305031098665900000);  // every decimal digit kept
   EXPECT_EQ(t[1].t_ns, 1305031098675800000);
   EXPECT_EQ(t[2].t_ns, 1305031098700000000);
   EXPECT_DOUBLE_EQ(t[0].p.x(), 1.3563);
@@ -49,7 +49,7 @@ TEST(EvalLoad, TumTextWithCommentsBlankLinesAndCrlf) {
   EXPECT_NEAR(t[0].q.w(), -0.3986 / n0, 1e-12);
   EXPECT_NEAR(t[0].q.x(), 0.6132 / n0, 1e-12);
   EXPECT_DOUBLE_EQ(t[1].q.w(), 1.0);
-  EXPECT_DOUBLE_EQ(t[2].q.w(), 1.0);   // normalised from (0,0,0,2)
+  EXPECT_DOUBLE_EQ(t[2].q.w(), 1.0);  // normalised from (0,0,0,2)
 }
 
 TEST(EvalLoad, TumMalformedLinesNameFileLineAndField) {
@@ -58,11 +58,11 @@ TEST(EvalLoad, TumMalformedLinesNameFileLineAndField) {
   test::write_text(path,
                    "# t x y z qx qy qz qw\n"
                    "1.0 0 0 0 0 0 0 1\n"
-                   "2.0 0 0 0 0 0 1\n"               // line 3: 7 fields
-                   "3.0 0 0 0 abc 0 0 1\n"           // line 4: qx not a number
-                   "4.0 0 0 nan 0 0 0 1\n"           // line 5: tz non-finite
-                   "5.0 0 0 0 0 0 0 0\n"             // line 6: zero quaternion
-                   "6.0s 0 0 0 0 0 0 1\n"            // line 7: bad time
+                   "2.0 0 0 0 0 0 1\n"      // line 3: 7 fields
+                   "3.0 0 0 0 abc 0 0 1\n"  // line 4: qx not a number
+                   "4.0 0 0 nan 0 0 0 1\n"  // line 5: tz non-finite
+                   "5.0 0 0 0 0 0 0 0\n"    // line 6: zero quaternion
+                   "6.0s 0 0 0 0 0 0 1\n"   // line 7: bad time
                    "7.0 1 1 1 0 0 0 1\n");
   std::vector<std::string> w;
   const Trajectory t = load_trajectory(path, &w);
@@ -87,10 +87,11 @@ TEST(EvalLoad, TumMalformedLinesNameFileLineAndField) {
 TEST(EvalLoad, EurocCsvBodyAndOfficialLayouts) {
   const std::string dir = test::temp_dir("eval_euroc_ok");
   const std::string body = dir + "/gt_body_20hz.csv";
-  test::write_text(body,
-                   "#timestamp [ns],p_WB_x [m],p_WB_y [m],p_WB_z [m],q_WB_w [],q_WB_x [],q_WB_y [],q_WB_z []\n"
-                   "1403715524912143104,0.5,2.0,0.97,0.7071067811865476,0.7071067811865476,0,0\n"
-                   "1403715524962142976, 0.6, 2.1, 0.98, 1, 0, 0, 0\n");
+  test::write_text(
+      body,
+      "#timestamp [ns],p_WB_x [m],p_WB_y [m],p_WB_z [m],q_WB_w [],q_WB_x [],q_WB_y [],q_WB_z []\n"
+      "1403715524912143104,0.5,2.0,0.97,0.7071067811865476,0.7071067811865476,0,0\n"
+      "1403715524962142976, 0.6, 2.1, 0.98, 1, 0, 0, 0\n");
   std::vector<std::string> w;
   Trajectory t = load_trajectory(body, &w);
   EXPECT_TRUE(w.empty()) << joined(w);
@@ -104,11 +105,12 @@ TEST(EvalLoad, EurocCsvBodyAndOfficialLayouts) {
 
   // state_groundtruth_estimate0/data.csv: 17 columns, a header without '#', no .csv hint needed.
   const std::string official = dir + "/data.txt";
-  test::write_text(official,
-                   "timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], q_RS_y [], q_RS_z [], "
-                   "v_x, v_y, v_z, bw_x, bw_y, bw_z, ba_x, ba_y, ba_z\n"
-                   "1403715524907143168,0.515356,1.996773,0.971104,0.161996,0.789985,-0.205376,0.554528,-0.002276,"
-                   "-0.009616,-0.005214,-0.002153,0.020744,0.075806,-0.013337,0.103464,0.093086\n");
+  test::write_text(
+      official,
+      "timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], q_RS_y [], q_RS_z [], "
+      "v_x, v_y, v_z, bw_x, bw_y, bw_z, ba_x, ba_y, ba_z\n"
+      "1403715524907143168,0.515356,1.996773,0.971104,0.161996,0.789985,-0.205376,0.554528,-0.002276,"
+      "-0.009616,-0.005214,-0.002153,0.020744,0.075806,-0.013337,0.103464,0.093086\n");
   w.clear();
   t = load_trajectory(official, &w);
   EXPECT_TRUE(w.empty()) << joined(w);
@@ -123,10 +125,10 @@ TEST(EvalLoad, EurocCsvMalformedLinesNameFileLineAndField) {
   test::write_text(path,
                    "#t,px,py,pz,qw,qx,qy,qz\n"
                    "1000,0,0,0,1,0,0,0\n"
-                   "1.5e9,0,0,0,1,0,0,0\n"          // line 3: seconds, not ns
-                   "3000,0,0,0,1,0,x,0\n"           // line 4: q_y
-                   "4000,0,0,0,1,0,0\n"             // line 5: 7 fields
-                   "5000,0,inf,0,1,0,0,0\n"         // line 6: p_y
+                   "1.5e9,0,0,0,1,0,0,0\n"   // line 3: seconds, not ns
+                   "3000,0,0,0,1,0,x,0\n"    // line 4: q_y
+                   "4000,0,0,0,1,0,0\n"      // line 5: 7 fields
+                   "5000,0,inf,0,1,0,0,0\n"  // line 6: p_y
                    "6000,1,1,1,1,0,0,0\n");
   std::vector<std::string> w;
   const Trajectory t = load_trajectory(path, &w);
@@ -145,16 +147,16 @@ TEST(EvalLoad, UnsortedAndDuplicateTimestampsAreRepairedAndReported) {
   test::write_text(path,
                    "1.0 1 0 0 0 0 0 1\n"
                    "3.0 3 0 0 0 0 0 1\n"
-                   "2.0 2 0 0 0 0 0 1\n"   // line 3: out of order
-                   "3.0 3 0 0 0 0 0 1\n"   // line 4: exact duplicate of line 2
+                   "2.0 2 0 0 0 0 0 1\n"  // line 3: out of order
+                   "3.0 3 0 0 0 0 0 1\n"  // line 4: exact duplicate of line 2
                    "4.0 4 0 0 0 0 0 1\n"
-                   "4.0 9 0 0 0 0 0 1\n"); // line 6: same time, different pose
+                   "4.0 9 0 0 0 0 0 1\n");  // line 6: same time, different pose
   std::vector<std::string> w;
   const Trajectory t = load_trajectory(path, &w);
   ASSERT_EQ(t.size(), 4u);
   for (size_t i = 0; i < t.size(); ++i) {
     EXPECT_EQ(t[i].t_ns, static_cast<int64_t>(i + 1) * 1'000'000'000);
-    EXPECT_DOUBLE_EQ(t[i].p.x(), static_cast<double>(i + 1));   // first of a conflicting pair kept
+    EXPECT_DOUBLE_EQ(t[i].p.x(), static_cast<double>(i + 1));  // first of a conflicting pair kept
   }
   EXPECT_TRUE(contains(w, path + ":3:", "sorted")) << joined(w);
   EXPECT_TRUE(contains(w, path + ":4:", "1 exact duplicates dropped")) << joined(w);
@@ -195,7 +197,7 @@ TEST(EvalLoad, MissingOrEmptyFilesThrowNamingThePath) {
 TEST(EvalLoad, WriteTumRoundTripsExactly) {
   const std::string dir = test::temp_dir("eval_roundtrip");
   Trajectory t = test::lissajous(2.0, 100.0, 1403715524912143104);
-  t[3].t_ns += 7;   // odd nanoseconds survive
+  t[3].t_ns += 7;  // odd nanoseconds survive
   write_tum(dir + "/out.txt", t);
   std::vector<std::string> w;
   const Trajectory back = load_trajectory(dir + "/out.txt", &w);

@@ -74,6 +74,10 @@ void BM_OpenCvOrb(benchmark::State& st) {
 }  // namespace
 
 BENCHMARK(BM_KestrelOrb)->Arg(752)->Arg(640)->Unit(benchmark::kMillisecond);
-BENCHMARK(BM_OpenCvOrb)->ArgNames({"w", "harris"})->Args({752, 1})->Args({752, 0})->Args({640, 1})
+BENCHMARK(BM_OpenCvOrb)
+    ->ArgNames({"w", "harris"})
+    ->Args({752, 1})
+    ->Args({752, 0})
+    ->Args({640, 1})
     ->Unit(benchmark::kMillisecond);
 BENCHMARK_MAIN();

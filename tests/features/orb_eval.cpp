@@ -24,12 +24,14 @@ std::vector<cv::Mat> load_euroc_cam0(const std::string& mav0_dir) {
     ++line_no;
     if (line.empty() || line[0] == '#') continue;
     const auto comma = line.find(',');
-    if (comma == std::string::npos) throw std::runtime_error(csv + ":" + std::to_string(line_no) + ": no comma");
+    if (comma == std::string::npos)
+      throw std::runtime_error(csv + ":" + std::to_string(line_no) + ": no comma");
     std::string name = line.substr(comma + 1);
     while (!name.empty() && (name.back() == '\r' || name.back() == ' ')) name.pop_back();
     const std::string path = mav0_dir + "/cam0/data/" + name;
     cv::Mat im = cv::imread(path, cv::IMREAD_GRAYSCALE);
-    if (im.empty()) throw std::runtime_error(path + " (" + csv + ":" + std::to_string(line_no) + "): unreadable");
+    if (im.empty())
+      throw std::runtime_error(path + " (" + csv + ":" + std::to_string(line_no) + "): unreadable");
     frames.push_back(im);
   }
   return frames;
@@ -82,17 +84,19 @@ std::vector<std::optional<cv::Point2f>> klt_map(const cv::Mat& a, const cv::Mat&
 std::vector<std::optional<cv::Point2f>> affine_map(const cv::Mat& A, const std::vector<cv::Point2f>& pts) {
   std::vector<std::optional<cv::Point2f>> out;
   for (const auto& p : pts)
-    out.emplace_back(cv::Point2f(static_cast<float>(A.at<double>(0, 0) * p.x + A.at<double>(0, 1) * p.y + A.at<double>(0, 2)),
-                                 static_cast<float>(A.at<double>(1, 0) * p.x + A.at<double>(1, 1) * p.y + A.at<double>(1, 2))));
+    out.emplace_back(cv::Point2f(
+        static_cast<float>(A.at<double>(0, 0) * p.x + A.at<double>(0, 1) * p.y + A.at<double>(0, 2)),
+        static_cast<float>(A.at<double>(1, 0) * p.x + A.at<double>(1, 1) * p.y + A.at<double>(1, 2))));
   return out;
 }
 
 void accumulate(Scores& s, const Features& a, const Features& b,
-                const std::vector<std::optional<cv::Point2f>>& mapped, cv::Size size_b, float border, float radius,
-                float ratio) {
+                const std::vector<std::optional<cv::Point2f>>& mapped, cv::Size size_b, float border,
+                float radius, float ratio) {
   const float r2 = radius * radius;
   auto inside = [&](const cv::Point2f& p) {
-    return p.x >= border && p.y >= border && p.x <= size_b.width - 1 - border && p.y <= size_b.height - 1 - border;
+    return p.x >= border && p.y >= border && p.x <= size_b.width - 1 - border &&
+           p.y <= size_b.height - 1 - border;
   };
   auto d2 = [](const cv::Point2f& p, const cv::Point2f& q) {
     return (p.x - q.x) * (p.x - q.x) + (p.y - q.y) * (p.y - q.y);

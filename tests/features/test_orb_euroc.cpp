@@ -81,7 +81,8 @@ Protocol evaluate(const std::vector<cv::Mat>& frames, Run run) {
     r.coverage += coverage(f.back(), im.size()) / frames.size();
   }
   for (std::size_t k = 0; k + 1 < frames.size(); ++k)
-    accumulate(r.consecutive, f[k], f[k + 1], klt_map(frames[k], frames[k + 1], f[k].pts), frames[k + 1].size());
+    accumulate(r.consecutive, f[k], f[k + 1], klt_map(frames[k], frames[k + 1], f[k].pts),
+               frames[k + 1].size());
   for (const auto& w : kWarps) {
     Scores s;
     for (std::size_t k = 0; k < frames.size(); k += 5) {
@@ -137,7 +138,8 @@ TEST_F(OrbEuroc, LikeForLikeMatchesOpenCv) {
   opt.fast_threshold_min = opt.fast_threshold;
   const Protocol ours = run_ours_protocol(frames_, opt);
   const Protocol cvp = run_cv_protocol(frames_);
-  print_protocol("EuRoC V1_01 cam0, 300 features, 4 levels, 3 px; kestrel WITHOUT grid bucketing:", ours, cvp);
+  print_protocol("EuRoC V1_01 cam0, 300 features, 4 levels, 3 px; kestrel WITHOUT grid bucketing:", ours,
+                 cvp);
   EXPECT_GE(ours.consecutive.rep_total, 90 * 200) << "too few trusted tracks for a comparison";
   EXPECT_GE(ours.consecutive.repeatability(), 0.9 * cvp.consecutive.repeatability());
   EXPECT_GE(ours.consecutive.precision(), cvp.consecutive.precision() - 0.05);
@@ -161,8 +163,8 @@ TEST_F(OrbEuroc, DefaultConfigTradeOff) {
   ASSERT_EQ(frames_.size(), 95u);
   const Protocol ours = run_ours_protocol(frames_, core::OrbOptions{});
   const Protocol cvp = run_cv_protocol(frames_);
-  print_protocol("EuRoC V1_01 cam0, 300 features, 4 levels, 3 px; kestrel defaults (grid 40 px, fallback 7):", ours,
-                 cvp);
+  print_protocol("EuRoC V1_01 cam0, 300 features, 4 levels, 3 px; kestrel defaults (grid 40 px, fallback 7):",
+                 ours, cvp);
   EXPECT_GE(ours.coverage, cvp.coverage);
   EXPECT_GE(ours.consecutive.repeatability(), 0.85 * cvp.consecutive.repeatability());
   EXPECT_GE(ours.consecutive.precision(), cvp.consecutive.precision() - 0.05);

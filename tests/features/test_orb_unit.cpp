@@ -120,7 +120,8 @@ std::vector<Corner> rect_corners(int x0, int y0, int x1, int y1) {
 
 double nearest(const OrbFeatures& f, double x, double y) {
   double best = 1e9;
-  for (int i = 0; i < f.size(); ++i) best = std::min(best, std::hypot(f.keypoint(i).x - x, f.keypoint(i).y - y));
+  for (int i = 0; i < f.size(); ++i)
+    best = std::min(best, std::hypot(f.keypoint(i).x - x, f.keypoint(i).y - y));
   return best;
 }
 
@@ -203,7 +204,8 @@ TEST(OrbFast, DetectsRectangleCornersAtTheRightPlaces) {
   // Nothing on edges or flat areas.
   for (int i = 0; i < f.size(); ++i) {
     double best = 1e9;
-    for (const auto& c : truth) best = std::min<double>(best, std::hypot(f.keypoint(i).x - c.x, f.keypoint(i).y - c.y));
+    for (const auto& c : truth)
+      best = std::min<double>(best, std::hypot(f.keypoint(i).x - c.x, f.keypoint(i).y - c.y));
     EXPECT_LE(best, kCornerTol) << "spurious keypoint at " << f.keypoint(i).x << "," << f.keypoint(i).y;
   }
   EXPECT_EQ(f.size(), 8);
@@ -240,8 +242,8 @@ TEST(OrbPyramid, AreaResizeKeepsConstantsAndRamps) {
   Image dst(251, 172);
   std::vector<uint8_t> tmp(orb_detail::area_resize_tmp_bytes(src.w, dst.w));
   std::vector<orb_detail::AreaTap> xt(dst.w), yt(dst.h);
-  orb_detail::area_resize(src.plane(), orb_detail::MutPlane{dst.px.data(), dst.w, dst.h, dst.stride}, tmp.data(),
-                          xt.data(), yt.data());
+  orb_detail::area_resize(src.plane(), orb_detail::MutPlane{dst.px.data(), dst.w, dst.h, dst.stride},
+                          tmp.data(), xt.data(), yt.data());
   const double rx = double(src.w) / dst.w, ry = double(src.h) / dst.h;
   for (int y = 0; y < dst.h; ++y)
     for (int x = 0; x < dst.w; ++x) {
@@ -317,7 +319,8 @@ TEST(OrbOrientation, ExactForNinetyDegreeTurns) {
   const Image a = noise_image(41, 41, 7);
   Image b(41, 41);
   for (int y = 0; y < 41; ++y)
-    for (int x = 0; x < 41; ++x) b.at(40 - y, x) = a.px[static_cast<std::size_t>(y) * 41 + x];  // (x,y)->(-y,x)
+    for (int x = 0; x < 41; ++x)
+      b.at(40 - y, x) = a.px[static_cast<std::size_t>(y) * 41 + x];  // (x,y)->(-y,x)
   const float a0 = orb_detail::ic_angle(a.plane(), 20, 20, umax);
   const float a1 = orb_detail::ic_angle(b.plane(), 20, 20, umax);
   EXPECT_NEAR(angle_diff(a1 - a0, kPi / 2), 0.0, 1e-4);
@@ -419,7 +422,8 @@ TEST(OrbMatch, Popcount64AgreesWithBitset) {
   for (int i = 0; i < 64; ++i) words.push_back(~0ULL >> i);
   for (int i = 0; i < 20000; ++i) words.push_back(rng() & rng());  // sparse words too
   for (int i = 0; i < 20000; ++i) words.push_back(rng());
-  for (const std::uint64_t w : words) ASSERT_EQ(popcount64(w), int(std::bitset<64>(w).count())) << std::hex << w;
+  for (const std::uint64_t w : words)
+    ASSERT_EQ(popcount64(w), int(std::bitset<64>(w).count())) << std::hex << w;
 }
 
 TEST(OrbMatch, HammingAndRatioTest) {
@@ -620,7 +624,8 @@ TEST(OrbExtractor, VectorPathsGiveTheScalarReferenceBitForBit) {
     int w, h, pad;
     uint32_t seed;
   };
-  for (const Case c : {Case{640, 480, 0, 41}, Case{752, 480, 0, 43}, Case{331, 257, 5, 47}, Case{97, 61, 3, 53}}) {
+  for (const Case c :
+       {Case{640, 480, 0, 41}, Case{752, 480, 0, 43}, Case{331, 257, 5, 47}, Case{97, 61, 3, 53}}) {
     const Image tex = noise_image(c.w, c.h, c.seed);
     Image im(c.w, c.h, 1, c.pad);
     for (int y = 0; y < c.h; ++y)
@@ -650,7 +655,8 @@ TEST(OrbExtractor, VectorPathsGiveTheScalarReferenceBitForBit) {
   auto run_stages = [&](std::vector<uint8_t>& blurred, std::vector<uint8_t>& resized) {
     std::vector<uint8_t> tmp(static_cast<std::size_t>(src.w) * src.h);
     blurred.assign(tmp.size(), 0);
-    orb_detail::gaussian_blur7(src.plane(), orb_detail::MutPlane{blurred.data(), src.w, src.h, src.w}, tmp.data());
+    orb_detail::gaussian_blur7(src.plane(), orb_detail::MutPlane{blurred.data(), src.w, src.h, src.w},
+                               tmp.data());
     resized.clear();
     for (const auto& [dw, dh] :
          {std::pair{169, 64}, std::pair{170, 61}, std::pair{16, 16}, std::pair{101, 40}}) {

@@ -29,7 +29,8 @@ inline size_t drain_twice(drivers::LogSource& src, size_t input_bytes) {
       if (r.type == drivers::RecordType::kRgb || r.type == drivers::RecordType::kDepth ||
           r.type == drivers::RecordType::kRight) {
         const auto v = r.image.view();
-        if (static_cast<size_t>(v.stride_bytes) * static_cast<size_t>(v.height) != r.image.pixels.size()) std::abort();
+        if (static_cast<size_t>(v.stride_bytes) * static_cast<size_t>(v.height) != r.image.pixels.size())
+          std::abort();
       }
     }
     if (pass == 0) first = n;
@@ -43,8 +44,8 @@ inline size_t drain_twice(drivers::LogSource& src, size_t input_bytes) {
 // One input: the files `names` of a folder; `open` builds the reader over it.
 // A reader may refuse the folder (std::runtime_error); anything else escapes.
 template <class Open>
-size_t fuzz_folder(const std::string& target, const std::vector<std::string>& names, const uint8_t* data, size_t size,
-                   Open open) {
+size_t fuzz_folder(const std::string& target, const std::vector<std::string>& names, const uint8_t* data,
+                   size_t size, Open open) {
   const std::string dir = scratch_dir(target);
   write_parts(dir, names, unpack(data, size, names.size()));
   std::unique_ptr<drivers::LogSource> src;
@@ -68,10 +69,11 @@ std::string exported_fixture(const std::string& target, Export export_fn) {
 
 // A seed that is not read back into records is no start for the fuzzer.
 template <class Open>
-void write_folder_seed(const std::string& path, const std::string& target, const std::vector<std::string>& names,
-                       const std::string& packed, Open open) {
+void write_folder_seed(const std::string& path, const std::string& target,
+                       const std::vector<std::string>& names, const std::string& packed, Open open) {
   write_file(path, packed);
-  const size_t n = fuzz_folder(target, names, reinterpret_cast<const uint8_t*>(packed.data()), packed.size(), open);
+  const size_t n =
+      fuzz_folder(target, names, reinterpret_cast<const uint8_t*>(packed.data()), packed.size(), open);
   if (n == 0) {
     std::fprintf(stderr, "fuzz: seed %s gives no records\n", path.c_str());
     std::exit(1);
@@ -80,8 +82,8 @@ void write_folder_seed(const std::string& path, const std::string& target, const
 
 // The seed of a format Kestrel exports: the log fixture through `export_fn`, packed.
 template <class Export, class Open>
-size_t write_exported_seed(const std::string& dir, const std::string& target, const std::vector<std::string>& names,
-                           Export export_fn, Open open) {
+size_t write_exported_seed(const std::string& dir, const std::string& target,
+                           const std::vector<std::string>& names, Export export_fn, Open open) {
   const std::string out = exported_fixture(target, export_fn);
   write_folder_seed(dir + "/exported.bin", target, names, pack_folder(out, names), open);
   return 1;

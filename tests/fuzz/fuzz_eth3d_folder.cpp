@@ -6,7 +6,7 @@
 #include "kestrel/drivers/log_export.hpp"
 
 namespace {
-const std::vector<std::string> kNames = {"rgb.txt",         "depth.txt", "associated.txt",   "calibration.txt",
+const std::vector<std::string> kNames = {"rgb.txt",         "depth.txt", "associated.txt",  "calibration.txt",
                                          "groundtruth.txt", "imu.txt",   "kestrel_rig.yaml"};
 std::unique_ptr<kestrel::drivers::LogSource> open(const std::string& dir) {
   return std::make_unique<kestrel::drivers::Eth3dReader>(dir);

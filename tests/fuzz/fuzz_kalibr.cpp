@@ -13,8 +13,8 @@ kestrel::drivers::KalibrImport import(const uint8_t* data, size_t size) {
   const auto parts = kestrel::fuzz::unpack(data, size, 2);
   kestrel::Rig base;
   base.camera_rate_hz = 30;
-  return kestrel::drivers::import_kalibr_text(parts[0], "camchain.yaml", parts.size() > 1 ? parts[1] : "", "imu.yaml",
-                                              "cam0", base);
+  return kestrel::drivers::import_kalibr_text(parts[0], "camchain.yaml", parts.size() > 1 ? parts[1] : "",
+                                              "imu.yaml", "cam0", base);
 }
 }  // namespace
 
@@ -25,7 +25,8 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   } catch (const std::runtime_error&) {
     return 0;
   }
-  const kestrel::Rig back = kestrel::drivers::rig_from_yaml(kestrel::drivers::rig_to_yaml(imp.rig), "again.yaml");
+  const kestrel::Rig back =
+      kestrel::drivers::rig_from_yaml(kestrel::drivers::rig_to_yaml(imp.rig), "again.yaml");
   if (!kestrel::drivers::rig_equal(back, imp.rig)) std::abort();
   return 0;
 }
@@ -35,10 +36,12 @@ size_t kestrel::fuzz::write_seeds(const std::string& dir) {
   using kestrel::test::kImuYaml;
   std::string eq = kCamchain;
   eq.replace(eq.find("radtan"), 6, "equidistant");
-  for (const auto& [name, camchain] : {std::pair<std::string, std::string>{"radtan", kCamchain}, {"equidistant", eq}}) {
+  for (const auto& [name, camchain] :
+       {std::pair<std::string, std::string>{"radtan", kCamchain}, {"equidistant", eq}}) {
     const std::string seed = pack({camchain, kImuYaml});
     write_file(dir + "/" + name + ".bin", seed);
-    import(reinterpret_cast<const uint8_t*>(seed.data()), seed.size());   // a seed the import refuses starts nothing
+    import(reinterpret_cast<const uint8_t*>(seed.data()),
+           seed.size());  // a seed the import refuses starts nothing
   }
   return 2;
 }

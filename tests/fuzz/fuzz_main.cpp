@@ -45,13 +45,14 @@ size_t replay(const std::vector<std::string>& paths) {
 }
 
 int usage(const char* argv0) {
-  std::fprintf(stderr,
-               "usage: %s seeds DIR        write the seed corpus into DIR\n"
-               "       %s replay PATH...   run files (or every file under folders) through the target\n"
-               "       %s check [--regressions DIR] [PATH...]\n"
-               "                            seeds into a scratch folder, then replay them, DIR's files (a\n"
-               "                            missing DIR is none yet) and PATH...: the unit test fuzz_replay_<name>\n",
-               argv0, argv0, argv0);
+  std::fprintf(
+      stderr,
+      "usage: %s seeds DIR        write the seed corpus into DIR\n"
+      "       %s replay PATH...   run files (or every file under folders) through the target\n"
+      "       %s check [--regressions DIR] [PATH...]\n"
+      "                            seeds into a scratch folder, then replay them, DIR's files (a\n"
+      "                            missing DIR is none yet) and PATH...: the unit test fuzz_replay_<name>\n",
+      argv0, argv0, argv0);
   return 2;
 }
 

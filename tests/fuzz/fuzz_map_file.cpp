@@ -20,9 +20,9 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   }();
   const core::MapCamera cam = map_test::sim_camera();
   for (int sealed = 0; sealed < 2; ++sealed) {
-    std::vector<uint8_t> bytes = sealed ? core::seal(core::kMapMagic, core::kMapVersion,
-                                                     std::vector<uint8_t>(data, data + size))
-                                        : std::vector<uint8_t>(data, data + size);
+    std::vector<uint8_t> bytes =
+        sealed ? core::seal(core::kMapMagic, core::kMapVersion, std::vector<uint8_t>(data, data + size))
+               : std::vector<uint8_t>(data, data + size);
     // The map must be empty for each input: a fresh one costs a few MB, so
     // erase what a successful decode left.
     map->for_each_keyframe([&](int k) { map->erase_keyframe(k); });

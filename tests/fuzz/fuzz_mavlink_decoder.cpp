@@ -18,9 +18,11 @@ size_t kestrel::fuzz::write_seeds(const std::string& dir) {
     km::TimesyncMsg t;
     t.tc1 = i;
     t.ts1 = 1000 * i;
-    const std::string a(reinterpret_cast<const char*>(f), km::encode_timesync(t, static_cast<uint8_t>(i), 1, 1, f));
+    const std::string a(reinterpret_cast<const char*>(f),
+                        km::encode_timesync(t, static_cast<uint8_t>(i), 1, 1, f));
     km::HeartbeatMsg h;
-    const std::string b(reinterpret_cast<const char*>(f), km::encode_heartbeat(h, static_cast<uint8_t>(i), 1, 1, f));
+    const std::string b(reinterpret_cast<const char*>(f),
+                        km::encode_heartbeat(h, static_cast<uint8_t>(i), 1, 1, f));
     ts += a;
     hb += b;
     both += a + b;

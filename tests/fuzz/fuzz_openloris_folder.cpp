@@ -6,8 +6,8 @@
 #include "kestrel/drivers/log_export.hpp"
 
 namespace {
-const std::vector<std::string> kNames = {"color.txt",       "aligned_depth.txt", "d400_accelerometer.txt",
-                                         "d400_gyroscope.txt", "groundtruth.txt", "sensors.yaml",
+const std::vector<std::string> kNames = {"color.txt",          "aligned_depth.txt", "d400_accelerometer.txt",
+                                         "d400_gyroscope.txt", "groundtruth.txt",   "sensors.yaml",
                                          "trans_matrix.yaml"};
 std::unique_ptr<kestrel::drivers::LogSource> open(const std::string& dir) {
   return std::make_unique<kestrel::drivers::OpenLorisReader>(dir);

@@ -35,10 +35,12 @@ inline void write_file(const std::string& path, const void* data, size_t n) {
   f.write(static_cast<const char*>(data), static_cast<std::streamsize>(n));
   if (!f) {
     std::fprintf(stderr, "fuzz: cannot write %s\n", path.c_str());
-    std::exit(2);   // the harness's own failure, never a finding
+    std::exit(2);  // the harness's own failure, never a finding
   }
 }
-inline void write_file(const std::string& path, const std::string& s) { write_file(path, s.data(), s.size()); }
+inline void write_file(const std::string& path, const std::string& s) {
+  write_file(path, s.data(), s.size());
+}
 
 inline std::string read_file(const std::string& path) {
   std::ifstream f(path, std::ios::binary);
@@ -89,7 +91,7 @@ struct ScratchDirs {
 // thousands of inputs a second through it), emptied on each call.
 inline std::string scratch_dir(const std::string& name) {
   static ScratchDirs made;
-  struct stat st{};
+  struct stat st {};
   const std::string base = stat("/dev/shm", &st) == 0 && S_ISDIR(st.st_mode)
                                ? std::string("/dev/shm")
                                : std::filesystem::temp_directory_path().string();

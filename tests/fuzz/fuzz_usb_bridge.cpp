@@ -17,7 +17,8 @@ void check_packet(const ub::StreamParser::Packet& pk) {
   const ub::Header& h = pk.header;
   if (h.payload_len > ub::kMaxPayload || h.version != ub::kVersion) std::abort();
   uint8_t again[ub::kMaxPacketBytes];
-  const size_t n = ub::encode_packet(h.type, h.seq, h.t_tx_us, pk.payload, h.payload_len, again, sizeof again);
+  const size_t n =
+      ub::encode_packet(h.type, h.seq, h.t_tx_us, pk.payload, h.payload_len, again, sizeof again);
   if (n != ub::kHeaderBytes + h.payload_len + ub::kCrcBytes) std::abort();
   ub::StreamParser p2;
   ub::StreamParser::Packet q;
@@ -47,7 +48,7 @@ void check_packet(const ub::StreamParser::Packet& pk) {
       break;
     }
     default:
-      break;   // an unknown type is the driver's to count
+      break;  // an unknown type is the driver's to count
   }
 }
 
@@ -65,7 +66,7 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
     while (taken < n) {
       const size_t t = parser.feed(data + at + taken, n - taken);
       while (parser.next(pk)) check_packet(pk);
-      if (t == 0 && parser.buffered() >= ub::StreamParser::kBufferBytes) std::abort();   // stalled
+      if (t == 0 && parser.buffered() >= ub::StreamParser::kBufferBytes) std::abort();  // stalled
       taken += t;
     }
     at += n;
@@ -73,7 +74,7 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   }
   while (parser.next(pk)) check_packet(pk);
   const auto& c = parser.counters();
-  if (c.packets > size / (ub::kHeaderBytes + ub::kCrcBytes)) std::abort();   // packets from nowhere
+  if (c.packets > size / (ub::kHeaderBytes + ub::kCrcBytes)) std::abort();  // packets from nowhere
   return 0;
 }
 
@@ -95,7 +96,8 @@ size_t kestrel::fuzz::write_seeds(const std::string& dir) {
     ++seq;
     out.append(reinterpret_cast<const char*>(packet), n);
   };
-  for (int k = 0; k < 3; ++k) add(imu, ub::PacketType::kImu, ub::encode_imu_payload(s, 5, payload, sizeof payload));
+  for (int k = 0; k < 3; ++k)
+    add(imu, ub::PacketType::kImu, ub::encode_imu_payload(s, 5, payload, sizeof payload));
   mixed = imu;
   ub::StrobeWire w{0x0102030405060708ull, 7, 4000};
   add(mixed, ub::PacketType::kStrobe, ub::encode_strobe_payload(&w, 1, payload, sizeof payload));

@@ -59,8 +59,8 @@ size_t kestrel::fuzz::write_seeds(const std::string& dir) {
     const std::vector<uint8_t> file = Vocabulary::train(images, o).serialise();
     const uint8_t* payload = nullptr;
     size_t payload_n = 0;
-    if (!kestrel::core::open_sealed(file.data(), file.size(), Vocabulary::kMagic, Vocabulary::kVersion, &payload,
-                                    &payload_n)
+    if (!kestrel::core::open_sealed(file.data(), file.size(), Vocabulary::kMagic, Vocabulary::kVersion,
+                                    &payload, &payload_n)
              .empty())
       std::abort();
     write_file(dir + "/k" + std::to_string(k) + "_payload.bin", payload, payload_n);

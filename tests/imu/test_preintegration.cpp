@@ -42,8 +42,12 @@ PreintegrationParams params(ImuSignalModel m = ImuSignalModel::kZeroOrderHold) {
 }
 
 // A smooth, rotating, accelerating body-frame signal (deterministic).
-Vector3d gyro_at(double t) { return {0.6 * std::sin(1.3 * t), -0.4 + 0.3 * std::cos(0.7 * t), 0.9 * std::sin(0.5 * t + 1)}; }
-Vector3d acc_at(double t) { return {1.5 * std::cos(0.9 * t), 0.8 * std::sin(1.7 * t), 9.81 + 0.5 * std::sin(2.1 * t)}; }
+Vector3d gyro_at(double t) {
+  return {0.6 * std::sin(1.3 * t), -0.4 + 0.3 * std::cos(0.7 * t), 0.9 * std::sin(0.5 * t + 1)};
+}
+Vector3d acc_at(double t) {
+  return {1.5 * std::cos(0.9 * t), 0.8 * std::sin(1.7 * t), 9.81 + 0.5 * std::sin(2.1 * t)};
+}
 
 void integrate_signal(Preintegrated& pim, double T, double dt, const Vector3d& gyro_offset = Vector3d::Zero(),
                       const Vector3d& acc_offset = Vector3d::Zero()) {
@@ -87,8 +91,9 @@ TEST(So3, ExpLogRoundTripIncludingSmallAndNearPi) {
 }
 
 TEST(So3, RightJacobiansMatchNumericDifferentiation) {
-  for (const Vector3d& phi : {Vector3d(0.0, 0.0, 0.0), Vector3d(1e-6, -2e-6, 3e-6), Vector3d(3e-3, 1e-3, -2e-3),
-                              Vector3d(0.3, -0.7, 1.1), Vector3d(2.0, 1.0, -1.5)}) {
+  for (const Vector3d& phi :
+       {Vector3d(0.0, 0.0, 0.0), Vector3d(1e-6, -2e-6, 3e-6), Vector3d(3e-3, 1e-3, -2e-3),
+        Vector3d(0.3, -0.7, 1.1), Vector3d(2.0, 1.0, -1.5)}) {
     // Exp(phi + d) = Exp(phi) Exp(Jr(phi) d)
     EXPECT_TRUE(check_jacobian(so3::right_jacobian(phi), [&](const VectorXd& d) -> VectorXd {
       return so3::Log(so3::Exp(phi).transpose() * so3::Exp(phi + v3(d, 0)));
@@ -298,7 +303,8 @@ TEST(Preintegration, CovarianceMatchesMonteCarlo) {
   nees /= runs;
   EXPECT_NEAR(nees, 9.0, 0.5);  // chi^2(9) mean; sd of the mean of 2000 is ~0.1
   for (int b = 0; b < 3; ++b) {
-    const double mc = S.block<3, 3>(3 * b, 3 * b).trace(), pr = clean.covariance().block<3, 3>(3 * b, 3 * b).trace();
+    const double mc = S.block<3, 3>(3 * b, 3 * b).trace(),
+                 pr = clean.covariance().block<3, 3>(3 * b, 3 * b).trace();
     EXPECT_NEAR(mc / pr, 1.0, 0.1) << "block " << b;
   }
 }
@@ -329,14 +335,30 @@ enum class Block { kPhiI, kPI, kVI, kBgI, kBaI, kPhiJ, kPJ, kVJ };
 void perturb(NavState& xi, NavState& xj, Block b, const Vector3d& d) {
   const Eigen::Quaterniond dq(so3::Exp(d));
   switch (b) {
-    case Block::kPhiI: xi.q_WB = xi.q_WB * dq; break;
-    case Block::kPI: xi.p_WB += d; break;
-    case Block::kVI: xi.v_WB += d; break;
-    case Block::kBgI: xi.bg_rps += d; break;
-    case Block::kBaI: xi.ba_mps2 += d; break;
-    case Block::kPhiJ: xj.q_WB = xj.q_WB * dq; break;
-    case Block::kPJ: xj.p_WB += d; break;
-    case Block::kVJ: xj.v_WB += d; break;
+    case Block::kPhiI:
+      xi.q_WB = xi.q_WB * dq;
+      break;
+    case Block::kPI:
+      xi.p_WB += d;
+      break;
+    case Block::kVI:
+      xi.v_WB += d;
+      break;
+    case Block::kBgI:
+      xi.bg_rps += d;
+      break;
+    case Block::kBaI:
+      xi.ba_mps2 += d;
+      break;
+    case Block::kPhiJ:
+      xj.q_WB = xj.q_WB * dq;
+      break;
+    case Block::kPJ:
+      xj.p_WB += d;
+      break;
+    case Block::kVJ:
+      xj.v_WB += d;
+      break;
   }
 }
 
@@ -347,14 +369,16 @@ TEST(ImuFactor, EveryJacobianBlockMatchesNumericDifferentiation) {
     const Vector9d r0 = imu_residual(c.pim, c.xi, c.xj, &J);
     ASSERT_GT(r0.segment<3>(0).norm(), 0.05);  // far enough from zero to test Jr^-1
     const std::pair<Block, const Matrix93d*> blocks[] = {
-        {Block::kPhiI, &J.phi_i}, {Block::kPI, &J.p_i}, {Block::kVI, &J.v_i}, {Block::kBgI, &J.bg_i},
+        {Block::kPhiI, &J.phi_i}, {Block::kPI, &J.p_i},     {Block::kVI, &J.v_i}, {Block::kBgI, &J.bg_i},
         {Block::kBaI, &J.ba_i},   {Block::kPhiJ, &J.phi_j}, {Block::kPJ, &J.p_j}, {Block::kVJ, &J.v_j}};
     for (const auto& [block, Jb] : blocks) {
-      EXPECT_TRUE(check_jacobian(*Jb, [&](const VectorXd& d) -> VectorXd {
-        NavState xi = c.xi, xj = c.xj;
-        perturb(xi, xj, block, v3(d, 0));
-        return imu_residual(c.pim, xi, xj);
-      })) << "seed " << seed << " block " << static_cast<int>(block);
+      EXPECT_TRUE(check_jacobian(*Jb,
+                                 [&](const VectorXd& d) -> VectorXd {
+                                   NavState xi = c.xi, xj = c.xj;
+                                   perturb(xi, xj, block, v3(d, 0));
+                                   return imu_residual(c.pim, xi, xj);
+                                 }))
+          << "seed " << seed << " block " << static_cast<int>(block);
     }
   }
 }
@@ -393,16 +417,19 @@ TEST(BiasFactor, JacobiansMatchNumericDifferentiation) {
     const ImuNoiseParams noise = euroc_noise(tau);
     BiasFactorJacobians J;
     bias_residual(xi, xj, 0.4, noise, &J);
-    const std::pair<int, const Matrix63d*> blocks[] = {{0, &J.bg_i}, {1, &J.ba_i}, {2, &J.bg_j}, {3, &J.ba_j}};
+    const std::pair<int, const Matrix63d*> blocks[] = {
+        {0, &J.bg_i}, {1, &J.ba_i}, {2, &J.bg_j}, {3, &J.ba_j}};
     for (const auto& [which, Jb] : blocks) {
-      EXPECT_TRUE(check_jacobian(*Jb, [&](const VectorXd& d) -> VectorXd {
-        NavState a = xi, b = xj;
-        if (which == 0) a.bg_rps += v3(d, 0);
-        if (which == 1) a.ba_mps2 += v3(d, 0);
-        if (which == 2) b.bg_rps += v3(d, 0);
-        if (which == 3) b.ba_mps2 += v3(d, 0);
-        return bias_residual(a, b, 0.4, noise);
-      })) << "tau " << tau << " block " << which;
+      EXPECT_TRUE(check_jacobian(*Jb,
+                                 [&](const VectorXd& d) -> VectorXd {
+                                   NavState a = xi, b = xj;
+                                   if (which == 0) a.bg_rps += v3(d, 0);
+                                   if (which == 1) a.ba_mps2 += v3(d, 0);
+                                   if (which == 2) b.bg_rps += v3(d, 0);
+                                   if (which == 3) b.ba_mps2 += v3(d, 0);
+                                   return bias_residual(a, b, 0.4, noise);
+                                 }))
+          << "tau " << tau << " block " << which;
     }
   }
 }
@@ -520,8 +547,8 @@ TEST(PreintegrateWindow, BridgesBadSamplesAndReportsExtrapolation) {
   samples[20].flags = kImuGyroSaturated;
   Preintegrated pim(params());
   // Starts before the first sample and ends after the last.
-  const WindowReport r = preintegrate_window(pim, samples, 990'000'000, 1'260'000'000, Vector3d::Zero(),
-                                             Vector3d::Zero());
+  const WindowReport r =
+      preintegrate_window(pim, samples, 990'000'000, 1'260'000'000, Vector3d::Zero(), Vector3d::Zero());
   EXPECT_EQ(r.skipped_unusable, 2);
   EXPECT_EQ(r.extrapolated_ns, 10'000'000 + 15'000'000);
   EXPECT_NEAR(pim.dt_total(), 0.27, 1e-12);
@@ -529,8 +556,11 @@ TEST(PreintegrateWindow, BridgesBadSamplesAndReportsExtrapolation) {
   EXPECT_EQ(pim.rejected(), 0u);
   // Nothing to integrate: empty input, empty window.
   Preintegrated empty(params());
-  EXPECT_FALSE(preintegrate_window(empty, std::vector<ImuSample>{}, 0, 1000, Vector3d::Zero(), Vector3d::Zero()).ok());
-  EXPECT_FALSE(preintegrate_window(empty, samples, 1'100'000'000, 1'100'000'000, Vector3d::Zero(), Vector3d::Zero()).ok());
+  EXPECT_FALSE(
+      preintegrate_window(empty, std::vector<ImuSample>{}, 0, 1000, Vector3d::Zero(), Vector3d::Zero()).ok());
+  EXPECT_FALSE(
+      preintegrate_window(empty, samples, 1'100'000'000, 1'100'000'000, Vector3d::Zero(), Vector3d::Zero())
+          .ok());
 }
 
 // ------------------------------------------------------------ real time
@@ -544,7 +574,8 @@ TEST(Preintegration, NothingAllocatesPerSampleOrPerFactor) {
   BiasFactorJacobians Jb;
   double sink = 0;
   rt::AllocCountScope scope;
-  for (int k = 0; k < 399; ++k) pim.integrate_segment(samples[k], samples[k + 1], samples[k].t_ns, samples[k + 1].t_ns);
+  for (int k = 0; k < 399; ++k)
+    pim.integrate_segment(samples[k], samples[k + 1], samples[k].t_ns, samples[k + 1].t_ns);
   pim.integrate(Vector3d(0.1, 0.2, 0.3), Vector3d(0, 0, 9.8), 0.005);
   preintegrate_window(pim, samples, 1'002'000'000, 2'001'000'000, Vector3d::Zero(), Vector3d::Zero());
   const NavState xj = predict(xi, pim);

@@ -49,8 +49,9 @@ std::vector<NavState> read_ground_truth(const std::string& path) {
     std::istringstream ss(line);
     NavState x;
     double qw, qx, qy, qz;
-    ss >> x.t_ns >> x.p_WB.x() >> x.p_WB.y() >> x.p_WB.z() >> qw >> qx >> qy >> qz >> x.v_WB.x() >> x.v_WB.y() >>
-        x.v_WB.z() >> x.bg_rps.x() >> x.bg_rps.y() >> x.bg_rps.z() >> x.ba_mps2.x() >> x.ba_mps2.y() >> x.ba_mps2.z();
+    ss >> x.t_ns >> x.p_WB.x() >> x.p_WB.y() >> x.p_WB.z() >> qw >> qx >> qy >> qz >> x.v_WB.x() >>
+        x.v_WB.y() >> x.v_WB.z() >> x.bg_rps.x() >> x.bg_rps.y() >> x.bg_rps.z() >> x.ba_mps2.x() >>
+        x.ba_mps2.y() >> x.ba_mps2.z();
     if (!ss) {
       ADD_FAILURE() << path << ":" << line_no << ": malformed ground-truth row";
       continue;
@@ -86,7 +87,8 @@ struct SampleSpan {
 };
 
 SampleSpan samples_from(const std::vector<ImuSample>& imu, int64_t t_ns) {
-  auto it = std::upper_bound(imu.begin(), imu.end(), t_ns, [](int64_t t, const ImuSample& s) { return t < s.t_ns; });
+  auto it = std::upper_bound(imu.begin(), imu.end(), t_ns,
+                             [](int64_t t, const ImuSample& s) { return t < s.t_ns; });
   if (it != imu.begin()) --it;
   return {&*it, static_cast<std::size_t>(imu.end() - it)};
 }
@@ -106,14 +108,14 @@ struct Row {
   int windows = 0;
   double mean_nees = 0;
   double median_nees = 0;
-  double inside_95 = 0;     // share with NEES < chi2(9, 0.95)
+  double inside_95 = 0;  // share with NEES < chi2(9, 0.95)
   double median_rot_deg = 0;
   double rms_rot_deg = 0, rms_vel_mps = 0, rms_pos_m = 0;
 };
 
 struct Config {
   ImuSignalModel signal = ImuSignalModel::kLinear;
-  double noise_scale = 1.0;    // multiplies every IMU density
+  double noise_scale = 1.0;  // multiplies every IMU density
   double gravity_mps2 = 9.81;
   GtNoise gt_noise;
 };
@@ -136,7 +138,8 @@ Row evaluate(const Config& s, double window_s, double stride_s = 0.2) {
   std::vector<double> nees, rot_deg;
   double sum_v2 = 0, sum_p2 = 0, sum_r2 = 0;
   std::size_t j = 0;
-  int64_t next_start = d.gt.front().t_ns + 1'000'000'000;  // skip the first second (take-off transients in the GT)
+  int64_t next_start =
+      d.gt.front().t_ns + 1'000'000'000;  // skip the first second (take-off transients in the GT)
   for (std::size_t i = 0; i < d.gt.size(); ++i) {
     const NavState& xi = d.gt[i];
     if (xi.t_ns < next_start) continue;
@@ -186,12 +189,14 @@ Row evaluate(const Config& s, double window_s, double stride_s = 0.2) {
 
 void print_table(const char* title, const std::vector<Row>& rows) {
   std::printf("\n%s\n", title);
-  std::printf("| window [s] | windows | mean NEES | median NEES | inside 95%% | median rot [deg] | rms rot [deg] | rms vel [m/s] | rms pos [m] |\n");
+  std::printf(
+      "| window [s] | windows | mean NEES | median NEES | inside 95%% | median rot [deg] | rms rot [deg] | "
+      "rms vel [m/s] | rms pos [m] |\n");
   std::printf("|---|---|---|---|---|---|---|---|---|\n");
   for (const Row& r : rows) {
     std::printf("| %.1f | %d | %.2f | %.2f | %.1f %% | %.4f | %.4f | %.4f | %.5f |\n", r.window_s, r.windows,
-                r.mean_nees, r.median_nees, 100.0 * r.inside_95, r.median_rot_deg, r.rms_rot_deg, r.rms_vel_mps,
-                r.rms_pos_m);
+                r.mean_nees, r.median_nees, 100.0 * r.inside_95, r.median_rot_deg, r.rms_rot_deg,
+                r.rms_vel_mps, r.rms_pos_m);
   }
   std::fflush(stdout);
 }
@@ -234,7 +239,9 @@ TEST_F(PreintegrationEuroc, V102NeesIsConsistent) {
   Config c;
   c.gt_noise = documented_gt_noise();
   const std::vector<Row> rows = run(c);
-  print_table("EuRoC V1_02_medium: linear signal model, nominal imu0_sensor.yaml noise, g = 9.81, GT error model", rows);
+  print_table(
+      "EuRoC V1_02_medium: linear signal model, nominal imu0_sensor.yaml noise, g = 9.81, GT error model",
+      rows);
   for (const Row& r : rows) {
     EXPECT_GT(r.windows, 300) << r.window_s;
     EXPECT_LT(r.median_rot_deg, 0.5) << r.window_s;

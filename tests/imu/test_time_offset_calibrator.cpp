@@ -19,7 +19,8 @@ namespace {
 // turns, or a constant (no change of angular velocity: no timing evidence).
 Eigen::Vector3d omega(double t, bool varied) {
   if (!varied) return Eigen::Vector3d(0.0, 0.0, 0.8);
-  return Eigen::Vector3d(0.9 * std::sin(2.1 * t), 0.7 * std::cos(1.3 * t + 0.4), 1.2 * std::sin(0.7 * t) + 0.3);
+  return Eigen::Vector3d(0.9 * std::sin(2.1 * t), 0.7 * std::cos(1.3 * t + 0.4),
+                         1.2 * std::sin(0.7 * t) + 0.3);
 }
 
 // Exact body rotation from a to b (fine Euler steps of the true omega).
@@ -29,8 +30,9 @@ Eigen::Matrix3d body_rotation(double a, double b, bool varied) {
   const double h = (b - a) / n;
   for (int i = 0; i < n; ++i) {
     const Eigen::Vector3d w = omega(a + (i + 0.5) * h, varied) * h;
-    R = R * Eigen::AngleAxisd(w.norm(), w.norm() > 0 ? Eigen::Vector3d(w.normalized()) : Eigen::Vector3d::UnitX())
-                .toRotationMatrix();
+    R = R *
+        Eigen::AngleAxisd(w.norm(), w.norm() > 0 ? Eigen::Vector3d(w.normalized()) : Eigen::Vector3d::UnitX())
+            .toRotationMatrix();
   }
   return R;
 }
@@ -42,13 +44,13 @@ struct Flight {
   double imu_hz = 200.0, cam_hz = 30.0;
   double gyro_noise_rps = 0.004;
   double cam_noise_rad = 0.0005;  // a PnP on 100+ points between two frames does better than this
-  double outlier_share = 0.0;  // intervals whose camera rotation is garbage
-  int kf_every = 1;            // each frame's rotation against the frame this many back (a keyframe); 1: consecutive
+  double outlier_share = 0.0;     // intervals whose camera rotation is garbage
+  int kf_every = 1;  // each frame's rotation against the frame this many back (a keyframe); 1: consecutive
 };
 
-const Eigen::Matrix3d kR_BC =
-    (Eigen::AngleAxisd(-M_PI / 2, Eigen::Vector3d::UnitZ()) * Eigen::AngleAxisd(-M_PI / 2, Eigen::Vector3d::UnitX()))
-        .toRotationMatrix();
+const Eigen::Matrix3d kR_BC = (Eigen::AngleAxisd(-M_PI / 2, Eigen::Vector3d::UnitZ()) *
+                               Eigen::AngleAxisd(-M_PI / 2, Eigen::Vector3d::UnitX()))
+                                  .toRotationMatrix();
 
 TimeOffsetEstimate fly(TimeOffsetCalibrator& cal, const Flight& f, int64_t* allocs = nullptr) {
   std::mt19937 rng(7);
@@ -76,8 +78,9 @@ TimeOffsetEstimate fly(TimeOffsetCalibrator& cal, const Flight& f, int64_t* allo
   }
   std::vector<std::pair<int64_t, Eigen::Vector3d>> gyro;
   for (double t = 0.0; t < f.seconds + 0.2; t += 1.0 / f.imu_hz)
-    gyro.push_back({static_cast<int64_t>(std::llround(t * 1e9)),
-                    omega(t, f.varied) + bias + f.gyro_noise_rps * Eigen::Vector3d(n01(rng), n01(rng), n01(rng))});
+    gyro.push_back(
+        {static_cast<int64_t>(std::llround(t * 1e9)),
+         omega(t, f.varied) + bias + f.gyro_noise_rps * Eigen::Vector3d(n01(rng), n01(rng), n01(rng))});
   // Interleaved as a pipeline delivers them: a frame once the gyro passed its stamp.
   rt::AllocCountScope scope;
   std::size_t c = 0;
@@ -99,7 +102,8 @@ TEST(TimeOffsetCalibrator, RecoversOffsetsFromMinus30ToPlus30MsWithinHalfAMillis
     f.td_s = 1e-3 * td_ms;
     int64_t allocs = -1;
     const TimeOffsetEstimate e = fly(cal, f, &allocs);
-    ASSERT_TRUE(e.valid) << "offset " << td_ms << " ms: " << 1e3 * e.td_s << " +- " << 1e3 * e.sigma_s << " ms";
+    ASSERT_TRUE(e.valid) << "offset " << td_ms << " ms: " << 1e3 * e.td_s << " +- " << 1e3 * e.sigma_s
+                         << " ms";
     EXPECT_NEAR(1e3 * e.td_s, td_ms, 0.5) << "offset " << td_ms << " ms, sigma " << 1e3 * e.sigma_s;
     EXPECT_LT(e.sigma_s, 1e-3);
     EXPECT_GT(cal.used_intervals(), 300);
@@ -118,8 +122,8 @@ TEST(TimeOffsetCalibrator, IntervalsAgainstAKeyframeBeatConsecutiveFramesAtTheSa
     f.cam_noise_rad = 0.0015;
     f.kf_every = kf_every;
     const TimeOffsetEstimate e = fly(cal, f);
-    std::printf("intervals over %d frame(s): %.3f +- %.3f ms (valid %d)\n", kf_every, 1e3 * e.td_s, 1e3 * e.sigma_s,
-                e.valid ? 1 : 0);
+    std::printf("intervals over %d frame(s): %.3f +- %.3f ms (valid %d)\n", kf_every, 1e3 * e.td_s,
+                1e3 * e.sigma_s, e.valid ? 1 : 0);
     if (kf_every == 1) {
       EXPECT_GT(e.sigma_s, 1e-3);
     } else {

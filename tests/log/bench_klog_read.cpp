@@ -65,10 +65,11 @@ TEST(KlogBench, ReadsVgaRgbdLogStreaming) {
   EXPECT_EQ(images, 2 * frames);
   EXPECT_EQ(n, imu + 2 * frames);
   EXPECT_TRUE(r.problems().empty());
-  std::printf("klog bench: %.0f s of data, %zu frame pairs, %zu IMU, %.2f GB\n", seconds, frames, imu, bytes / 1e9);
-  std::printf("  write %.2f s (%.0f MB/s), read %.2f s (%.0f MB/s, %.0f records/s) [checksum %llu]\n", secs(t0, t1),
-              bytes / 1e6 / secs(t0, t1), secs(t1, t2), bytes / 1e6 / secs(t1, t2), n / secs(t1, t2),
-              static_cast<unsigned long long>(sum));
+  std::printf("klog bench: %.0f s of data, %zu frame pairs, %zu IMU, %.2f GB\n", seconds, frames, imu,
+              bytes / 1e9);
+  std::printf("  write %.2f s (%.0f MB/s), read %.2f s (%.0f MB/s, %.0f records/s) [checksum %llu]\n",
+              secs(t0, t1), bytes / 1e6 / secs(t0, t1), secs(t1, t2), bytes / 1e6 / secs(t1, t2),
+              n / secs(t1, t2), static_cast<unsigned long long>(sum));
   std::filesystem::remove(path);
 }
 

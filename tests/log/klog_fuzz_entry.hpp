@@ -13,7 +13,7 @@ namespace kestrel::test {
 
 struct KlogFuzzResult {
   bool opened = false;
-  std::vector<uint64_t> offsets;              // of every record recovered, in order
+  std::vector<uint64_t> offsets;  // of every record recovered, in order
   std::vector<drivers::RecordType> types;
   size_t problems = 0;
   uint64_t checksum = 0;
@@ -25,7 +25,7 @@ inline KlogFuzzResult klog_fuzz_one(const uint8_t* data, size_t size, bool salva
   try {
     reader = drivers::KlogReader::from_memory(data, size, "fuzz", drivers::KlogReader::Options{salvage});
   } catch (const std::runtime_error&) {
-    return res;   // a damaged header is allowed to refuse; anything else escapes and is a finding
+    return res;  // a damaged header is allowed to refuse; anything else escapes and is a finding
   }
   res.opened = true;
   // Each record consumes at least its 16-byte header, so more records than
@@ -41,11 +41,12 @@ inline KlogFuzzResult klog_fuzz_one(const uint8_t* data, size_t size, bool salva
         res.offsets.push_back(r.offset);
         res.types.push_back(r.type);
       } else if (n > res.offsets.size() || res.offsets[n - 1] != r.offset) {
-        std::abort();   // rewind must replay the same records
+        std::abort();  // rewind must replay the same records
       }
       if (r.type == drivers::RecordType::kRgb || r.type == drivers::RecordType::kDepth) {
         const auto v = r.image.view();
-        if (static_cast<size_t>(v.stride_bytes) * static_cast<size_t>(v.height) != r.image.pixels.size()) std::abort();
+        if (static_cast<size_t>(v.stride_bytes) * static_cast<size_t>(v.height) != r.image.pixels.size())
+          std::abort();
         for (uint8_t b : r.image.pixels) checksum += b;
       }
       checksum += static_cast<uint64_t>(r.imu.t_ns) + r.event.text.size();
@@ -54,7 +55,7 @@ inline KlogFuzzResult klog_fuzz_one(const uint8_t* data, size_t size, bool salva
     reader->rewind();
   }
   res.problems = reader->problems().size();
-  res.checksum = checksum;   // keeps the reads of every field observable
+  res.checksum = checksum;  // keeps the reads of every field observable
   return res;
 }
 

@@ -25,8 +25,8 @@ inline std::vector<drivers::LogRecord> all_records(drivers::LogSource& s) {
 
 struct RecordSpan {
   drivers::RecordType type;
-  uint64_t begin;   // byte offset of the record header
-  uint64_t end;     // one past its last payload byte
+  uint64_t begin;  // byte offset of the record header
+  uint64_t end;    // one past its last payload byte
 };
 
 inline Rig fixture_rig() {
@@ -75,7 +75,8 @@ inline drivers::LogImage fixture_image(uint32_t i, PixelFormat f, int w = 8, int
   img.height = h;
   img.format = f;
   img.pixels.resize(static_cast<size_t>(w) * h * bytes_per_pixel(f));
-  for (size_t k = 0; k < img.pixels.size(); ++k) img.pixels[k] = static_cast<uint8_t>((k * 7 + i * 13) & 0xff);
+  for (size_t k = 0; k < img.pixels.size(); ++k)
+    img.pixels[k] = static_cast<uint8_t>((k * 7 + i * 13) & 0xff);
   return img;
 }
 

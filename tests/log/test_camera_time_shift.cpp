@@ -74,7 +74,8 @@ void expect_shifted_and_ordered(const std::vector<LogRecord>& got, const std::ve
     }
     imu_got += r.type == RecordType::kImu;
     if (i > 0) {
-      EXPECT_LE(drivers::record_time_ns(got[i - 1]), drivers::record_time_ns(r)) << "record " << i << " out of time order";
+      EXPECT_LE(drivers::record_time_ns(got[i - 1]), drivers::record_time_ns(r))
+          << "record " << i << " out of time order";
     }
   }
   EXPECT_EQ(imu_got, imu_stored);

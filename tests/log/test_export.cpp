@@ -118,7 +118,8 @@ TEST(LogExport, TumTrajectoryHasSecondsAndXyzwQuaternions) {
     double v[7];
     s >> t;
     for (double& x : v) s >> x;
-    EXPECT_EQ(t, std::to_string(g.t_ns / 1000000000) + "." + std::to_string(g.t_ns % 1000000000 + 1000000000).substr(1));
+    EXPECT_EQ(t, std::to_string(g.t_ns / 1000000000) + "." +
+                     std::to_string(g.t_ns % 1000000000 + 1000000000).substr(1));
     EXPECT_EQ(v[0], g.p_WB[0]);
     EXPECT_EQ(v[3], g.q_WB[1]);
     EXPECT_EQ(v[5], g.q_WB[3]);

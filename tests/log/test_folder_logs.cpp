@@ -7,9 +7,9 @@
 #include <opencv2/imgcodecs.hpp>
 #include <sstream>
 
-#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/folder_logs.hpp"
 #include "kestrel/drivers/log_source.hpp"
+#include "kestrel/drivers/open_log.hpp"
 #include "test_data.hpp"
 
 namespace kestrel::test {
@@ -47,11 +47,21 @@ Counts replay(drivers::LogSource& src) {
   while (src.next(r)) {
     int64_t t = 0;
     switch (r.type) {
-      case RecordType::kImu: ++c.imu, t = r.imu.t_ns; break;
-      case RecordType::kRgb: ++c.rgb, t = r.image.t_ns; break;
-      case RecordType::kDepth: ++c.depth, t = r.image.t_ns; break;
-      case RecordType::kGroundTruth: ++c.gt, t = r.gt.t_ns; break;
-      case RecordType::kEvent: ++c.events, t = r.event.t_ns; break;
+      case RecordType::kImu:
+        ++c.imu, t = r.imu.t_ns;
+        break;
+      case RecordType::kRgb:
+        ++c.rgb, t = r.image.t_ns;
+        break;
+      case RecordType::kDepth:
+        ++c.depth, t = r.image.t_ns;
+        break;
+      case RecordType::kGroundTruth:
+        ++c.gt, t = r.gt.t_ns;
+        break;
+      case RecordType::kEvent:
+        ++c.events, t = r.event.t_ns;
+        break;
       case RecordType::kRight:
         ++c.right, t = r.image.t_ns;
         break;
@@ -155,7 +165,9 @@ TEST(EurocReader, FlatFolderGivesImuAndGroundTruth) {
   EXPECT_DOUBLE_EQ(src.rig().rgb.fx, 458.654);
 }
 
-void write_file(const std::string& path, const std::string& text) { std::ofstream(path, std::ios::binary) << text; }
+void write_file(const std::string& path, const std::string& text) {
+  std::ofstream(path, std::ios::binary) << text;
+}
 
 // A hand-made ASL folder: malformed rows, a NaN, a row without its PNG.
 TEST(EurocReader, ReportsBadRowsAndMissingImagesWithFileAndLine) {
@@ -166,19 +178,20 @@ TEST(EurocReader, ReportsBadRowsAndMissingImagesWithFileAndLine) {
   write_file(mav + "/imu0/data.csv",
              "#timestamp [ns],wx,wy,wz,ax,ay,az\n"
              "1000,0.1,0.2,0.3,1,2,3\n"
-             "abc,0.1,0.2,0.3,1,2,3\n"       // line 3: bad timestamp
-             "3000,0.1,0.2,0.3,1,2,3\r\n"    // CRLF is fine
-             "4000,0.1,0.2\n"                // line 5: too few fields
-             "5000,nan,0.2,0.3,1,2,3\n"      // line 6: kept, flagged
-             "6000,0.1,0.2,0.3,1,2,x\n"      // line 7: bad number
+             "abc,0.1,0.2,0.3,1,2,3\n"     // line 3: bad timestamp
+             "3000,0.1,0.2,0.3,1,2,3\r\n"  // CRLF is fine
+             "4000,0.1,0.2\n"              // line 5: too few fields
+             "5000,nan,0.2,0.3,1,2,3\n"    // line 6: kept, flagged
+             "6000,0.1,0.2,0.3,1,2,x\n"    // line 7: bad number
              "\n"
-             "2000,0.1,0.2,0.3,1,2,3\n");    // line 9: out of order, replayed sorted
-  write_file(mav + "/cam0/data.csv", "#timestamp [ns],filename\n1500,1500.png\n2500,2500.png\n3500,3500.png\n");
+             "2000,0.1,0.2,0.3,1,2,3\n");  // line 9: out of order, replayed sorted
+  write_file(mav + "/cam0/data.csv",
+             "#timestamp [ns],filename\n1500,1500.png\n2500,2500.png\n3500,3500.png\n");
   cv::imwrite(mav + "/cam0/data/1500.png", cv::Mat(4, 6, CV_8UC1, cv::Scalar(7)));
   cv::imwrite(mav + "/cam0/data/3500.png", cv::Mat(4, 6, CV_8UC1, cv::Scalar(9)));
   drivers::EurocReader src(dir);
   const Counts c = replay(src);
-  EXPECT_EQ(c.imu, 4u);   // lines 2, 4, 6 (flagged) and 9
+  EXPECT_EQ(c.imu, 4u);  // lines 2, 4, 6 (flagged) and 9
   EXPECT_EQ(c.rgb, 2u);
   EXPECT_TRUE(c.time_ordered);
   auto has = [&](const std::string& where, const std::string& kind) {
@@ -194,7 +207,7 @@ TEST(EurocReader, ReportsBadRowsAndMissingImagesWithFileAndLine) {
   EXPECT_TRUE(has(imu + ":9", "time-order"));
   EXPECT_TRUE(has(mav + "/cam0/data.csv:3", "missing-file"));
   EXPECT_TRUE(has(mav + "/cam0/sensor.yaml", "missing-file"));
-  EXPECT_EQ(count_kind(src, "missing-file"), 3u);   // the PNG and both sensor.yaml
+  EXPECT_EQ(count_kind(src, "missing-file"), 3u);  // the PNG and both sensor.yaml
   src.rewind();
   LogRecord r;
   size_t flagged = 0;
@@ -209,8 +222,9 @@ TEST(EurocReader, ReportsBadRowsAndMissingImagesWithFileAndLine) {
 TEST(EurocReader, MalformedSensorYamlNamesFileAndField) {
   const std::string dir = temp_dir("euroc_badyaml");
   write_file(dir + "/imu0.csv", "1000,0,0,0,0,0,9.8\n");
-  write_file(dir + "/cam0_sensor.yaml", "%YAML:1.0\nresolution: [752, 480]\nintrinsics: [458.6, abc, 367.2, 248.3]\n"
-                                        "T_BS: {rows: 4, cols: 4, data: [1,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1]}\n");
+  write_file(dir + "/cam0_sensor.yaml",
+             "%YAML:1.0\nresolution: [752, 480]\nintrinsics: [458.6, abc, 367.2, 248.3]\n"
+             "T_BS: {rows: 4, cols: 4, data: [1,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1]}\n");
   try {
     drivers::EurocReader src(dir);
     ADD_FAILURE();
@@ -244,7 +258,7 @@ TEST(EurocSensorYaml, ReadsTheRealCameraAndImuFiles) {
   EXPECT_EQ(imu.gyro_random_walk_rad_s2_sqrthz, 1.9393e-05);
   EXPECT_EQ(imu.acc_noise_density_mps2_sqrthz, 2.0e-3);
   EXPECT_EQ(imu.acc_random_walk_mps3_sqrthz, 3.0e-3);
-  for (size_t i = 0; i < 16; ++i) EXPECT_EQ(imu.T_BS[i], i % 5 == 0 ? 1.0 : 0.0) << i;   // the IMU is the body
+  for (size_t i = 0; i < 16; ++i) EXPECT_EQ(imu.T_BS[i], i % 5 == 0 ? 1.0 : 0.0) << i;  // the IMU is the body
 }
 
 TEST(EurocSensorYaml, OptionalKeysStayAbsentAndBadOnesAreNamed) {
@@ -272,13 +286,16 @@ TEST(EurocSensorYaml, OptionalKeysStayAbsentAndBadOnesAreNamed) {
   const std::string T = "T_BS: {rows: 4, cols: 4, data: [1,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1]}\n";
   EXPECT_EQ(error_of("%YAML:1.0\nrate_hz: 200\n"), path + ": T_BS: missing (expected rows, cols, data)");
   EXPECT_EQ(error_of("T_BS: {data: [1, 2, 3]}\n"), path + ": T_BS.data: expected a list of 16 numbers");
-  EXPECT_EQ(error_of(T + "gyroscope_noise_density: .nan\n"), path + ": gyroscope_noise_density: expected a finite number");
+  EXPECT_EQ(error_of(T + "gyroscope_noise_density: .nan\n"),
+            path + ": gyroscope_noise_density: expected a finite number");
   EXPECT_EQ(error_of(T + "rate_hz: fast\n"), path + ": rate_hz: expected a finite number");
-  EXPECT_EQ(error_of(T + "resolution: [752.5, 480]\n"), path + ": resolution: expected two positive integers");
+  EXPECT_EQ(error_of(T + "resolution: [752.5, 480]\n"),
+            path + ": resolution: expected two positive integers");
   EXPECT_EQ(error_of(T + "intrinsics: [0, 1, 2, 3]\n"), path + ": intrinsics: focal lengths must be > 0");
   EXPECT_EQ(error_of(T + "distortion_model: fisheye\n"),
             path + ": distortion_model: expected radial-tangential, equidistant or none, got \"fisheye\"");
-  EXPECT_EQ(error_of("%YAML:1.0\nT_BS: [1, 2\n"), path + ":3: YAML syntax error: end of sequence flow not found");
+  EXPECT_EQ(error_of("%YAML:1.0\nT_BS: [1, 2\n"),
+            path + ":3: YAML syntax error: end of sequence flow not found");
   EXPECT_EQ(error_of("- 1\n- 2\n"), path + ": expected a mapping");
 }
 
@@ -290,10 +307,10 @@ TEST(TumReader, Freiburg1XyzTextFiles) {
   const Counts c = replay(*src);
   EXPECT_EQ(c.gt, data_lines(seq + "/groundtruth.txt"));
   EXPECT_EQ(c.imu, 0u);
-  EXPECT_EQ(c.rgb, 0u);   // the images are not in ../shared/data
+  EXPECT_EQ(c.rgb, 0u);  // the images are not in ../shared/data
   EXPECT_TRUE(c.time_ordered);
   EXPECT_EQ(count_kind(*src, "no-gyro"), 1u);
-  EXPECT_EQ(count_kind(*src, "missing-file"), 2u);   // rgb/ and depth/, one problem each
+  EXPECT_EQ(count_kind(*src, "missing-file"), 2u);  // rgb/ and depth/, one problem each
 
   auto* tum = dynamic_cast<drivers::TumReader*>(src.get());
   ASSERT_NE(tum, nullptr);
@@ -329,7 +346,7 @@ TEST(TumReader, FixtureWithImagesAssociatesRgbAndDepth) {
   std::filesystem::create_directories(dir + "/depth");
   // BGR on disk (OpenCV), RGB in the record.
   const char* rgb_t[] = {"100.000000", "100.033000", "100.066000"};
-  const char* depth_t[] = {"100.005000", "100.040000", "100.200000"};   // the last has no partner
+  const char* depth_t[] = {"100.005000", "100.040000", "100.200000"};  // the last has no partner
   std::string rgb_txt = "# color images\n# timestamp filename\n", depth_txt = "# depth maps\n";
   for (int i = 0; i < 3; ++i) {
     cv::Mat bgr(3, 4, CV_8UC3, cv::Scalar(10 + i, 20, 30));
@@ -342,7 +359,8 @@ TEST(TumReader, FixtureWithImagesAssociatesRgbAndDepth) {
   rgb_txt += "100.1 rgb/absent.png\n";
   write_file(dir + "/rgb.txt", rgb_txt);
   write_file(dir + "/depth.txt", depth_txt);
-  write_file(dir + "/groundtruth.txt", "# t tx ty tz qx qy qz qw\n100.01 1 2 3 0 0 0.6 0.8\n100.02 1 2 3 0 0 0.6\n");
+  write_file(dir + "/groundtruth.txt",
+             "# t tx ty tz qx qy qz qw\n100.01 1 2 3 0 0 0.6 0.8\n100.02 1 2 3 0 0 0.6\n");
   write_file(dir + "/accelerometer.txt", "100.0 0 0 9.8\n");
 
   drivers::TumReader src(dir);
@@ -357,7 +375,7 @@ TEST(TumReader, FixtureWithImagesAssociatesRgbAndDepth) {
       ++n_rgb;
       EXPECT_EQ(x.image.format, PixelFormat::kRgb8);
       ASSERT_EQ(x.image.pixels.size(), 36u);
-      EXPECT_EQ(x.image.pixels[0], 30);   // R
+      EXPECT_EQ(x.image.pixels[0], 30);  // R
       EXPECT_EQ(x.image.pixels[2], 10 + x.image.seq);
     } else if (x.type == RecordType::kDepth) {
       ++n_depth;

@@ -60,17 +60,17 @@ TEST(Kalibr, FieldsMappedTransformInvertedNoiseAndShiftCarried) {
   // T_BC T_cam_imu = I: the camera's origin 4 cm ahead of the IMU, 1.5 cm left, 2 cm up,
   // and the optical axis (camera z) along the body's x.
   const double T_ci[16] = {0.01745240643728351, -0.9998476951563913, 0, 0.015, 0, 0, -1, 0.02,
-                           0.9998476951563913,  0.01745240643728351, 0, -0.04, 0, 0, 0, 1};
+                           0.9998476951563913,  0.01745240643728351, 0, -0.04, 0, 0, 0,  1};
   for (int i = 0; i < 4; ++i)
     for (int j = 0; j < 4; ++j) {
       double p = 0;
       for (int k = 0; k < 4; ++k) p += r.T_BC[4 * i + k] * T_ci[4 * k + j];
       EXPECT_NEAR(p, i == j ? 1.0 : 0.0, 1e-12) << i << "," << j;
     }
-  EXPECT_NEAR(r.T_BC[3], 0.04, 1e-3);    // x: ahead
-  EXPECT_NEAR(r.T_BC[7], 0.015, 1e-3);   // y: left
-  EXPECT_NEAR(r.T_BC[11], 0.02, 1e-3);   // z: up
-  EXPECT_NEAR(r.T_BC[2], 1.0, 1e-3);     // camera z -> body x
+  EXPECT_NEAR(r.T_BC[3], 0.04, 1e-3);              // x: ahead
+  EXPECT_NEAR(r.T_BC[7], 0.015, 1e-3);             // y: left
+  EXPECT_NEAR(r.T_BC[11], 0.02, 1e-3);             // z: up
+  EXPECT_NEAR(r.T_BC[2], 1.0, 1e-3);               // camera z -> body x
   EXPECT_EQ(r.time_offset_cam_imu_ns, 5'213'100);  // same sign as Kalibr's t_imu = t_cam + shift
   EXPECT_DOUBLE_EQ(r.imu.acc_noise_density_mps2_sqrthz, 1.86e-3);
   EXPECT_DOUBLE_EQ(r.imu.acc_random_walk_mps3_sqrthz, 4.33e-4);
@@ -92,13 +92,14 @@ TEST(Kalibr, FieldsMappedTransformInvertedNoiseAndShiftCarried) {
 TEST(Kalibr, ResultsFormatEquidistantAndDefaultsNamed) {
   std::string chain = replace(kCamchain, "distortion_model: radtan", "distortion_model: equidistant");
   chain = replace(chain, "  timeshift_cam_imu: 0.0052131\n", "");
-  const std::string imu_results = std::string("imu0:\n  T_i_b:\n  - [1.0, 0.0, 0.0, 0.0]\n  - [0.0, 1.0, 0.0, 0.0]\n"
-                                              "  - [0.0, 0.0, 1.0, 0.0]\n  - [0.0, 0.0, 0.0, 1.0]\n"
-                                              "  accelerometer_noise_density: 0.002\n"
-                                              "  accelerometer_random_walk: 0.0003\n"
-                                              "  gyroscope_noise_density: 0.0002\n"
-                                              "  gyroscope_random_walk: 0.00002\n"
-                                              "  model: calibrated\n  rostopic: /imu0\n  time_offset: 0.0\n");
+  const std::string imu_results = std::string(
+      "imu0:\n  T_i_b:\n  - [1.0, 0.0, 0.0, 0.0]\n  - [0.0, 1.0, 0.0, 0.0]\n"
+      "  - [0.0, 0.0, 1.0, 0.0]\n  - [0.0, 0.0, 0.0, 1.0]\n"
+      "  accelerometer_noise_density: 0.002\n"
+      "  accelerometer_random_walk: 0.0003\n"
+      "  gyroscope_noise_density: 0.0002\n"
+      "  gyroscope_random_walk: 0.00002\n"
+      "  model: calibrated\n  rostopic: /imu0\n  time_offset: 0.0\n");
   const drivers::KalibrImport imp =
       drivers::import_kalibr_text(chain, "camchain.yaml", imu_results, "imu-results.yaml", "cam0", base());
   EXPECT_EQ(imp.rig.rgb.distortion, DistortionModel::kEquidistant);
@@ -111,17 +112,22 @@ TEST(Kalibr, ResultsFormatEquidistantAndDefaultsNamed) {
 }
 
 TEST(Kalibr, MissingAndBadFieldsAreNamed) {
-  EXPECT_EQ(error_of(kCamchain, kImuYaml, "cam1"), "camchain.yaml: cam1: no such camera in the chain (it has: cam0)");
-  const std::string no_T = replace(kCamchain, "  T_cam_imu:\n  - [0.01745240643728351, -0.9998476951563913, 0.0, 0.015]\n"
-                                              "  - [0.0, 0.0, -1.0, 0.02]\n"
-                                              "  - [0.9998476951563913, 0.01745240643728351, 0.0, -0.04]\n"
-                                              "  - [0.0, 0.0, 0.0, 1.0]\n",
-                                   "");
-  EXPECT_EQ(error_of(no_T, kImuYaml).rfind("camchain.yaml: cam0.T_cam_imu: missing", 0), 0u) << error_of(no_T, kImuYaml);
+  EXPECT_EQ(error_of(kCamchain, kImuYaml, "cam1"),
+            "camchain.yaml: cam1: no such camera in the chain (it has: cam0)");
+  const std::string no_T =
+      replace(kCamchain,
+              "  T_cam_imu:\n  - [0.01745240643728351, -0.9998476951563913, 0.0, 0.015]\n"
+              "  - [0.0, 0.0, -1.0, 0.02]\n"
+              "  - [0.9998476951563913, 0.01745240643728351, 0.0, -0.04]\n"
+              "  - [0.0, 0.0, 0.0, 1.0]\n",
+              "");
+  EXPECT_EQ(error_of(no_T, kImuYaml).rfind("camchain.yaml: cam0.T_cam_imu: missing", 0), 0u)
+      << error_of(no_T, kImuYaml);
   EXPECT_EQ(error_of(replace(kCamchain, "  intrinsics: [612.31, 611.87, 321.42, 238.15]\n", ""), kImuYaml),
             "camchain.yaml: cam0.intrinsics: missing ([fu, fv, pu, pv] in pixels)");
-  EXPECT_EQ(error_of(replace(kCamchain, "[612.31, 611.87, 321.42, 238.15]", "[612.31, 611.87, 321.42]"), kImuYaml),
-            "camchain.yaml: cam0.intrinsics: expected a list of 4 numbers");
+  EXPECT_EQ(
+      error_of(replace(kCamchain, "[612.31, 611.87, 321.42, 238.15]", "[612.31, 611.87, 321.42]"), kImuYaml),
+      "camchain.yaml: cam0.intrinsics: expected a list of 4 numbers");
   // fuzz_kalibr: a resolution past int was cast to int (undefined behaviour).
   EXPECT_EQ(error_of(replace(kCamchain, "resolution: [640, 480]", "resolution: [4.8e97, 480]"), kImuYaml),
             "camchain.yaml: cam0.resolution: expected two whole numbers from 1 to 32768");
@@ -152,8 +158,8 @@ TEST(Kalibr, CommandWritesARigTheDriversLoad) {
   std::ofstream(dir + "/camchain-imucam.yaml") << kCamchain;
   std::ofstream(dir + "/imu.yaml") << kImuYaml;
   const std::string base_cfg = std::string(KESTREL_SOURCE_DIR) + "/configs/realsense_v4l2_bmx055_usb.yaml";
-  const CmdResult r = run_kestrel("calib import-kalibr " + dir + "/camchain-imucam.yaml " + dir + "/imu.yaml --base " +
-                                  base_cfg + " --out " + dir + "/my_rig.yaml");
+  const CmdResult r = run_kestrel("calib import-kalibr " + dir + "/camchain-imucam.yaml " + dir +
+                                  "/imu.yaml --base " + base_cfg + " --out " + dir + "/my_rig.yaml");
   ASSERT_EQ(r.code, 0) << r.out;
   EXPECT_NE(r.out.find("time offset 5.213 ms"), std::string::npos) << r.out;
   EXPECT_NE(r.out.find("depth: not in Kalibr's files"), std::string::npos) << r.out;
@@ -172,8 +178,8 @@ TEST(Kalibr, CommandWritesARigTheDriversLoad) {
   const CmdResult p = run_kestrel("run --config " + dir + "/live.yaml --print-config");
   EXPECT_EQ(p.code, 0) << p.out;
   // Usage: a missing file is an error naming it, no rig written.
-  const CmdResult bad = run_kestrel("calib import-kalibr " + dir + "/nope.yaml " + dir + "/imu.yaml --out " + dir +
-                                    "/x.yaml");
+  const CmdResult bad =
+      run_kestrel("calib import-kalibr " + dir + "/nope.yaml " + dir + "/imu.yaml --out " + dir + "/x.yaml");
   EXPECT_EQ(bad.code, 1) << bad.out;
   EXPECT_NE(bad.out.find("nope.yaml: cannot open"), std::string::npos) << bad.out;
   EXPECT_EQ(run_kestrel("calib import-kalibr " + dir + "/camchain-imucam.yaml").code, 2);

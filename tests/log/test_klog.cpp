@@ -1,5 +1,6 @@
 // .klog writer/reader: round trip, truncation, corruption, resynchronisation.
 #include <gtest/gtest.h>
+#include <zlib.h>
 
 #include <algorithm>
 #include <cstring>
@@ -7,11 +8,9 @@
 #include <random>
 #include <set>
 
-#include <zlib.h>
-
-#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/klog.hpp"
 #include "kestrel/drivers/klog_format.hpp"
+#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/rig_yaml.hpp"
 #include "klog_fuzz_entry.hpp"
 #include "log_fixtures.hpp"
@@ -75,8 +74,8 @@ TEST(Klog, RoundTripsEveryRecordType) {
   const Rig rig = fixture_rig();
   std::vector<ImuSample> imu;
   std::vector<drivers::LogImage> images;
-  const PixelFormat formats[] = {PixelFormat::kGray8, PixelFormat::kRgb8, PixelFormat::kBgr8, PixelFormat::kYuyv,
-                                 PixelFormat::kDepthU16};
+  const PixelFormat formats[] = {PixelFormat::kGray8, PixelFormat::kRgb8, PixelFormat::kBgr8,
+                                 PixelFormat::kYuyv, PixelFormat::kDepthU16};
   {
     drivers::KlogWriter w;
     w.open(path, rig);
@@ -84,7 +83,8 @@ TEST(Klog, RoundTripsEveryRecordType) {
       imu.push_back(fixture_imu(i));
       w.write_imu(imu.back());
       images.push_back(fixture_image(i, formats[i], 6 + static_cast<int>(i), 4));
-      w.write_image(formats[i] == PixelFormat::kDepthU16 ? RecordType::kDepth : RecordType::kRgb, images.back());
+      w.write_image(formats[i] == PixelFormat::kDepthU16 ? RecordType::kDepth : RecordType::kRgb,
+                    images.back());
     }
     // A strided view is packed on the way in.
     std::vector<uint8_t> strided(3 * 10, 0xEE);
@@ -108,7 +108,8 @@ TEST(Klog, RoundTripsEveryRecordType) {
     for (size_t i = 0; i < 5; ++i) {
       ASSERT_EQ(recs[2 * i].type, RecordType::kImu);
       expect_imu_eq(recs[2 * i].imu, imu[i]);
-      ASSERT_EQ(recs[2 * i + 1].type, formats[i] == PixelFormat::kDepthU16 ? RecordType::kDepth : RecordType::kRgb);
+      ASSERT_EQ(recs[2 * i + 1].type,
+                formats[i] == PixelFormat::kDepthU16 ? RecordType::kDepth : RecordType::kRgb);
       expect_image_eq(recs[2 * i + 1].image, images[i]);
     }
     const auto& s = recs[10].image;
@@ -191,7 +192,7 @@ TEST(Klog, RecoversEveryIntactRecordAtEveryTruncation) {
 
 TEST(Klog, TruncatedFileOnDiskKeepsItsRecords) {
   Small s = small_log("klog_trunc_disk");
-  const uint64_t cut = s.spans[5].begin + 20;   // inside the ground-truth payload
+  const uint64_t cut = s.spans[5].begin + 20;  // inside the ground-truth payload
   std::filesystem::resize_file(s.path, cut);
   KlogReader r(s.path);
   EXPECT_EQ(read_all(r).size(), 5u);
@@ -211,7 +212,8 @@ TEST(Klog, BitFlipLosesOnlyTheFlippedRecord) {
         b[byte] ^= static_cast<uint8_t>(1u << bit);
         auto reader = KlogReader::from_memory(b.data(), b.size(), "f.klog", {});
         const auto recs = read_all(*reader);
-        SCOPED_TRACE("record " + std::to_string(k) + " byte " + std::to_string(byte) + " bit " + std::to_string(bit));
+        SCOPED_TRACE("record " + std::to_string(k) + " byte " + std::to_string(byte) + " bit " +
+                     std::to_string(bit));
         ASSERT_EQ(recs.size(), s.spans.size() - 1);
         for (size_t i = 0, j = 0; i < s.spans.size(); ++i) {
           if (i == k) continue;
@@ -240,7 +242,8 @@ TEST(Klog, SkipsInsertedGarbageAndUnknownTypes) {
   const Small s = small_log("klog_garbage");
   const uint64_t at = s.spans[4].begin;
   // Garbage with a fake sync marker whose "record" fails its CRC.
-  std::vector<uint8_t> junk = {0x00, 0xA5, 0x4B, 0x52, 0x5A, 1, 0, 0, 0, 4, 0, 0, 0, 9, 9, 9, 9, 1, 2, 3, 4, 0xFF};
+  std::vector<uint8_t> junk = {0x00, 0xA5, 0x4B, 0x52, 0x5A, 1, 0, 0, 0, 4, 0,
+                               0,    0,    9,    9,    9,    9, 1, 2, 3, 4, 0xFF};
   // A well-formed record of a type from the future: CRC passes, type unknown.
   std::string future;
   drivers::klog::ByteWriter w(future);
@@ -291,7 +294,7 @@ TEST(Klog, HugeLengthIsRejectedWithoutAllocating) {
   const Small s = small_log("klog_huge");
   std::vector<uint8_t> b = s.bytes;
   const uint64_t at = s.spans[2].begin;
-  for (int k = 0; k < 4; ++k) b[at + 8 + k] = 0xFF;   // length = 4 GiB - 1
+  for (int k = 0; k < 4; ++k) b[at + 8 + k] = 0xFF;  // length = 4 GiB - 1
   auto reader = KlogReader::from_memory(b.data(), b.size(), "h.klog", {});
   EXPECT_EQ(read_all(*reader).size(), s.spans.size() - 1);
   ASSERT_EQ(reader->problems().size(), 1u);
@@ -301,7 +304,7 @@ TEST(Klog, HugeLengthIsRejectedWithoutAllocating) {
 TEST(Klog, DamagedHeaderThrowsUnlessSalvaging) {
   const Small s = small_log("klog_header");
   std::vector<uint8_t> b = s.bytes;
-  b[30] ^= 0x10;   // inside the rig YAML
+  b[30] ^= 0x10;  // inside the rig YAML
   const std::string path = temp_dir("klog_header2") + "/bad.klog";
   write_bytes(path, b.data(), b.size());
   try {
@@ -348,8 +351,8 @@ TEST(Klog, MutationsNeverLoseIntactRecords) {
     std::vector<uint8_t> b = s.bytes;
     uint64_t first_damage = n;
     const int kind = iter % 4;
-    std::set<size_t> touched;   // records hit by bit flips (flips never shift bytes)
-    if (kind == 0) {   // 1..3 bit flips within 8 bytes: CRC32 detects every such error
+    std::set<size_t> touched;  // records hit by bit flips (flips never shift bytes)
+    if (kind == 0) {           // 1..3 bit flips within 8 bytes: CRC32 detects every such error
       const int flips = 1 + static_cast<int>(rng() % 3);
       const uint64_t base = rng() % n;
       for (int f = 0; f < flips; ++f) {
@@ -363,18 +366,18 @@ TEST(Klog, MutationsNeverLoseIntactRecords) {
         for (size_t k = 0; k < s.spans.size(); ++k)
           if (s.spans[k].begin <= at && at < s.spans[k].end) touched.insert(k);
       }
-    } else if (kind == 1) {   // truncation
+    } else if (kind == 1) {  // truncation
       const uint64_t cut = rng() % (n + 1);
       b.resize(cut);
       first_damage = cut;
-    } else if (kind == 2) {   // inserted garbage, sometimes with sync markers in it
+    } else if (kind == 2) {  // inserted garbage, sometimes with sync markers in it
       const uint64_t at = rng() % (n + 1);
       std::vector<uint8_t> junk(1 + rng() % 40);
       for (auto& j : junk) j = static_cast<uint8_t>(rng());
       if (rng() % 2 && junk.size() >= 4) std::memcpy(junk.data(), "\xA5\x4B\x52\x5A", 4);
       b.insert(b.begin() + static_cast<long>(at), junk.begin(), junk.end());
       first_damage = at;
-    } else {   // overwritten run
+    } else {  // overwritten run
       const uint64_t at = rng() % n;
       const uint64_t len = std::min<uint64_t>(n - at, 1 + rng() % 64);
       for (uint64_t k = 0; k < len; ++k) b[at + k] = static_cast<uint8_t>(rng());

@@ -15,15 +15,17 @@ namespace {
 
 using drivers::RecordType;
 
-uint8_t pixel(uint32_t seq, size_t k, bool depth) { return static_cast<uint8_t>((k * 31 + seq * 7 + depth) & 0xff); }
+uint8_t pixel(uint32_t seq, size_t k, bool depth) {
+  return static_cast<uint8_t>((k * 31 + seq * 7 + depth) & 0xff);
+}
 
 TEST(KlogLogger, RgbdAndImuThroughputWithoutDrops) {
   const std::string path = temp_dir("klog_logger") + "/rt.klog";
   constexpr int kW = 640, kH = 480;
   constexpr double kSeconds = 2.0;
-  constexpr double kSpeedup = 2.0;   // faster than real time, with margin for a loaded CI machine
-  constexpr int64_t kImuPeriodNs = 2'500'000;      // 400 Hz
-  constexpr int64_t kCamPeriodNs = 33'333'333;     // 30 Hz
+  constexpr double kSpeedup = 2.0;              // faster than real time, with margin for a loaded CI machine
+  constexpr int64_t kImuPeriodNs = 2'500'000;   // 400 Hz
+  constexpr int64_t kCamPeriodNs = 33'333'333;  // 30 Hz
   std::vector<uint8_t> rgb(kW * kH * 3), depth(kW * kH * 2);
 
   drivers::KlogLogger logger(path, fixture_rig());
@@ -82,7 +84,8 @@ TEST(KlogLogger, RgbdAndImuThroughputWithoutDrops) {
       EXPECT_EQ(seq, is_depth ? depth_n : rgb_n);
       ASSERT_EQ(rec.image.pixels.size(), static_cast<size_t>(kW * kH * (is_depth ? 2 : 3)));
       size_t bad = 0;
-      for (size_t k = 0; k < rec.image.pixels.size(); ++k) bad += rec.image.pixels[k] != pixel(seq, k, is_depth);
+      for (size_t k = 0; k < rec.image.pixels.size(); ++k)
+        bad += rec.image.pixels[k] != pixel(seq, k, is_depth);
       EXPECT_EQ(bad, 0u);
       ++(is_depth ? depth_n : rgb_n);
     }
@@ -100,9 +103,12 @@ TEST(KlogLogger, OversizeFramesAndFullPoolAreCountedNotBlocking) {
   o.max_image_bytes = 64;
   drivers::KlogLogger logger(path, fixture_rig(), o);
   std::vector<uint8_t> px(100, 1);
-  EXPECT_FALSE(logger.log_image(RecordType::kRgb, 0, 0, 0, 0, ImageView{10, 10, 10, PixelFormat::kGray8, px.data()}));
-  EXPECT_TRUE(logger.log_image(RecordType::kRgb, 1, 1, 1, 0, ImageView{8, 8, 10, PixelFormat::kGray8, px.data()}));
-  EXPECT_FALSE(logger.log_image(RecordType::kImu, 2, 2, 2, 0, ImageView{8, 8, 8, PixelFormat::kGray8, px.data()}));
+  EXPECT_FALSE(
+      logger.log_image(RecordType::kRgb, 0, 0, 0, 0, ImageView{10, 10, 10, PixelFormat::kGray8, px.data()}));
+  EXPECT_TRUE(
+      logger.log_image(RecordType::kRgb, 1, 1, 1, 0, ImageView{8, 8, 10, PixelFormat::kGray8, px.data()}));
+  EXPECT_FALSE(
+      logger.log_image(RecordType::kImu, 2, 2, 2, 0, ImageView{8, 8, 8, PixelFormat::kGray8, px.data()}));
   logger.stop();
   EXPECT_EQ(logger.stats().image_drops, 2u);
   EXPECT_EQ(logger.stats().records_written, 1u);

@@ -1,14 +1,13 @@
 // `rs-enumerate-devices -c` -> Rig (drivers/rig realsense_import.hpp) and
 // `kestrel calib import-realsense`: every mapped field, the distortion fit,
 // missing sections named, bad input refused with file, line and field.
-#include "kestrel/drivers/realsense_import.hpp"
-
 #include <gtest/gtest.h>
 
 #include <cmath>
 #include <fstream>
 #include <string>
 
+#include "kestrel/drivers/realsense_import.hpp"
 #include "kestrel/drivers/rig_yaml.hpp"
 #include "realsense_fixtures.hpp"
 #include "run_command.hpp"

@@ -34,7 +34,14 @@ TEST(RigYaml, RoundTripIsExact) {
     r.depth.sigma_coeff_per_m = std::abs(u(rng)) * 1e-3;
     // A proper rotation (about z) so validation passes; translations arbitrary.
     const double a = 3.14159 * u(rng);
-    r.T_BC = {std::cos(a), -std::sin(a), 0, u(rng), std::sin(a), std::cos(a), 0, u(rng), 0, 0, 1, u(rng), 0, 0, 0, 1};
+    r.T_BC = {std::cos(a), -std::sin(a),
+              0,           u(rng),
+              std::sin(a), std::cos(a),
+              0,           u(rng),
+              0,           0,
+              1,           u(rng),
+              0,           0,
+              0,           1};
     r.T_BI = kIdentity4;
     r.T_BI[3] = 1e-17 * u(rng);
     r.imu.gyro_noise_density_rad_s_sqrthz = std::abs(u(rng)) * 1e-4;
@@ -55,8 +62,22 @@ TEST(RigYaml, RoundTripIsExact) {
       r.depth_camera.intrinsics.fx *= 1.1 + 0.1 * u(rng);
       r.depth_camera.intrinsics.distortion = static_cast<DistortionModel>(rng() % 3);
       const double b = 0.05 * u(rng);
-      r.depth_camera.T_CD = {std::cos(b), 0, std::sin(b), -0.025 + 1e-3 * u(rng), 0, 1, 0, u(rng) * 1e-3,
-                             -std::sin(b), 0, std::cos(b), 2e-3, 0, 0, 0, 1};
+      r.depth_camera.T_CD = {std::cos(b),
+                             0,
+                             std::sin(b),
+                             -0.025 + 1e-3 * u(rng),
+                             0,
+                             1,
+                             0,
+                             u(rng) * 1e-3,
+                             -std::sin(b),
+                             0,
+                             std::cos(b),
+                             2e-3,
+                             0,
+                             0,
+                             0,
+                             1};
     }
     const Rig back = rig_from_yaml(rig_to_yaml(r), "roundtrip");
     ASSERT_TRUE(drivers::rig_equal(back, r)) << rig_to_yaml(r) << "\n----\n" << rig_to_yaml(back);
@@ -88,17 +109,27 @@ std::string with(const std::string& from, const std::string& to) {
 // fuzz_rig_yaml found a name with a byte that is not UTF-8: accepted, then
 // written back (the .klog header) as another name. Refused now, saying why.
 TEST(RigYaml, NameThatIsNotUtf8IsRefused) {
-  EXPECT_EQ(error_of(with("name: \"fixture", "name: \"fix\xca" "ture")), "configs/x.yaml: name: not valid UTF-8");
-  const Rig r = rig_from_yaml(with("name: \"fixture", "name: \"fix\xc3\xa9" "ture"), "x");   // UTF-8 e-acute
+  EXPECT_EQ(error_of(with("name: \"fixture",
+                          "name: \"fix\xca"
+                          "ture")),
+            "configs/x.yaml: name: not valid UTF-8");
+  const Rig r = rig_from_yaml(with("name: \"fixture",
+                                   "name: \"fix\xc3\xa9"
+                                   "ture"),
+                              "x");  // UTF-8 e-acute
   EXPECT_TRUE(drivers::rig_equal(rig_from_yaml(rig_to_yaml(r), "again"), r));
 }
 
 TEST(RigYaml, ErrorsNameTheFileAndTheField) {
-  EXPECT_EQ(error_of(with("fx_px: 5.25", "fx_px: abc")), "configs/x.yaml: camera.fx_px: expected a number, got \"abc\"");
-  EXPECT_EQ(error_of(with("fx_px: 5.25", "fx_px: [1, 2]")), "configs/x.yaml: camera.fx_px: expected a number");
-  EXPECT_EQ(error_of(with("fx_px: 5.25", "fx_px: .nan")), "configs/x.yaml: camera.fx_px: expected a number, got \".nan\"");
+  EXPECT_EQ(error_of(with("fx_px: 5.25", "fx_px: abc")),
+            "configs/x.yaml: camera.fx_px: expected a number, got \"abc\"");
+  EXPECT_EQ(error_of(with("fx_px: 5.25", "fx_px: [1, 2]")),
+            "configs/x.yaml: camera.fx_px: expected a number");
+  EXPECT_EQ(error_of(with("fx_px: 5.25", "fx_px: .nan")),
+            "configs/x.yaml: camera.fx_px: expected a number, got \".nan\"");
   EXPECT_EQ(error_of(with("  fx_px: 5.25\n", "")), "configs/x.yaml: camera.fx_px: missing (required)");
-  EXPECT_NE(error_of(with("fx_px: 5.25", "fx: 5.25")).find("configs/x.yaml: camera.fx: unknown key"), std::string::npos);
+  EXPECT_NE(error_of(with("fx_px: 5.25", "fx: 5.25")).find("configs/x.yaml: camera.fx: unknown key"),
+            std::string::npos);
   EXPECT_EQ(error_of(with("width_px: 8", "width_px: 8.5")),
             "configs/x.yaml: camera.width_px: expected an integer, got \"8.5\"");
   EXPECT_EQ(error_of(with("distortion: radtan", "distortion: fisheye")),
@@ -107,8 +138,9 @@ TEST(RigYaml, ErrorsNameTheFileAndTheField) {
             "configs/x.yaml: depth.scale_m_per_unit: must be > 0");
   EXPECT_EQ(error_of(with("T_BC: [0, -1,", "T_BC: [-1,")),
             "configs/x.yaml: T_BC: expected a list of 16 numbers (4x4 row-major)");
-  EXPECT_EQ(error_of(with("T_BC: [0, -1,", "T_BC: [0, -2,")),
-            "configs/x.yaml: T_BC: rotation part is not orthonormal (column dot products off by more than 1e-5)");
+  EXPECT_EQ(
+      error_of(with("T_BC: [0, -1,", "T_BC: [0, -2,")),
+      "configs/x.yaml: T_BC: rotation part is not orthonormal (column dot products off by more than 1e-5)");
   EXPECT_EQ(error_of(with("gyro_noise_density_rad_s_sqrthz: " + drivers_fmt(1.6968e-04),
                           "gyro_noise_density_rad_s_sqrthz: -1")),
             "configs/x.yaml: imu.gyro_noise_density_rad_s_sqrthz: must be >= 0");
@@ -124,7 +156,8 @@ TEST(RigYaml, DepthCameraIsOptionalAndChecked) {
   EXPECT_EQ(rig_to_yaml(fixture_rig()).find("depth_camera"), std::string::npos);
   EXPECT_FALSE(rig_from_yaml(rig_to_yaml(fixture_rig()), "x").depth_camera.present);
   const std::string dc =
-      "depth_camera:\n  width_px: 640\n  height_px: 480\n  fx_px: 585\n  fy_px: 585\n  cx_px: 320\n  cy_px: 240\n"
+      "depth_camera:\n  width_px: 640\n  height_px: 480\n  fx_px: 585\n  fy_px: 585\n  cx_px: 320\n  cy_px: "
+      "240\n"
       "  T_CD: [1, 0, 0, -0.025, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]\n";
   const Rig r = rig_from_yaml(rig_to_yaml(fixture_rig()) + dc, "x");
   ASSERT_TRUE(r.depth_camera.present);
@@ -138,14 +171,17 @@ TEST(RigYaml, DepthCameraIsOptionalAndChecked) {
     EXPECT_NE(k, std::string::npos) << from;
     return error_of(y.replace(k, from.size(), to));
   };
-  EXPECT_EQ(err("  T_CD: [1, 0, 0, -0.025, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]\n", ""),
-            "configs/x.yaml: depth_camera.T_CD: missing (required: depth camera -> colour camera, 4x4 row-major)");
-  EXPECT_EQ(err("T_CD: [1, 0,", "T_CD: [2, 0,"),
-            "configs/x.yaml: depth_camera.T_CD: rotation part is not orthonormal (column dot products off by more "
-            "than 1e-5)");
+  EXPECT_EQ(
+      err("  T_CD: [1, 0, 0, -0.025, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]\n", ""),
+      "configs/x.yaml: depth_camera.T_CD: missing (required: depth camera -> colour camera, 4x4 row-major)");
+  EXPECT_EQ(
+      err("T_CD: [1, 0,", "T_CD: [2, 0,"),
+      "configs/x.yaml: depth_camera.T_CD: rotation part is not orthonormal (column dot products off by more "
+      "than 1e-5)");
   EXPECT_EQ(err("fx_px: 585", "fx_px: 0"), "configs/x.yaml: depth_camera.fx_px: must be > 0");
   EXPECT_EQ(err("  cy_px: 240\n", ""), "configs/x.yaml: depth_camera.cy_px: missing (required)");
-  EXPECT_NE(err("fx_px: 585", "f_px: 585").find("configs/x.yaml: depth_camera.f_px: unknown key"), std::string::npos);
+  EXPECT_NE(err("fx_px: 585", "f_px: 585").find("configs/x.yaml: depth_camera.f_px: unknown key"),
+            std::string::npos);
 }
 
 TEST(RigYaml, LoadsFilesAndNamesMissingOnes) {
@@ -160,8 +196,8 @@ TEST(RigYaml, LoadsFilesAndNamesMissingOnes) {
     EXPECT_NE(std::string(e.what()).find(dir + "/absent.yaml"), std::string::npos);
   }
   // A minimal file: only the camera is required; the rest keeps Rig{} defaults.
-  const Rig m = rig_from_yaml("camera: {width_px: 640, height_px: 480, fx_px: 500, fy_px: 500, cx_px: 320, cy_px: 240}",
-                              "min");
+  const Rig m = rig_from_yaml(
+      "camera: {width_px: 640, height_px: 480, fx_px: 500, fy_px: 500, cx_px: 320, cy_px: 240}", "min");
   EXPECT_EQ(m.rgb.width, 640);
   EXPECT_EQ(m.gravity_mps2, Rig{}.gravity_mps2);
   EXPECT_EQ(m.depth.scale_m_per_unit, Rig{}.depth.scale_m_per_unit);

@@ -52,7 +52,8 @@ TEST(MapSoak, MemoryAndMapStayFlatOverARevisitedCircuit) {
   double rss_lo = 1e18, rss_hi = 0;
   uint32_t kf_lo = ~0u, kf_hi = 0, pt_hi = 0, pt_lo = ~0u;
   for (const Sample& s : samples) {
-    std::printf("SOAK t %6.0f s: RSS %.1f MB, %u keyframes, %u points\n", s.t_s, s.rss_mb, s.keyframes, s.points);
+    std::printf("SOAK t %6.0f s: RSS %.1f MB, %u keyframes, %u points\n", s.t_s, s.rss_mb, s.keyframes,
+                s.points);
     if (s.t_s < warm_s) continue;
     rss_lo = std::min(rss_lo, s.rss_mb);
     rss_hi = std::max(rss_hi, s.rss_mb);
@@ -61,9 +62,11 @@ TEST(MapSoak, MemoryAndMapStayFlatOverARevisitedCircuit) {
     pt_lo = std::min(pt_lo, s.points);
     pt_hi = std::max(pt_hi, s.points);
   }
-  std::printf("SOAK-TABLE | %.0f s | RSS %.1f-%.1f MB after %.0f s | keyframes %u-%u | points %u-%u | loops %llu |\n%s\n",
-              flight_s, rss_lo, rss_hi, warm_s, kf_lo, kf_hi, pt_lo, pt_hi,
-              static_cast<unsigned long long>(r.map.loop_closures), r.backend_summary.c_str());
+  std::printf(
+      "SOAK-TABLE | %.0f s | RSS %.1f-%.1f MB after %.0f s | keyframes %u-%u | points %u-%u | loops %llu "
+      "|\n%s\n",
+      flight_s, rss_lo, rss_hi, warm_s, kf_lo, kf_hi, pt_lo, pt_hi,
+      static_cast<unsigned long long>(r.map.loop_closures), r.backend_summary.c_str());
   EXPECT_LT(rss_hi - rss_lo, 10.0) << "RSS grew after the warm-up";
   EXPECT_LT(kf_hi, 1.5 * kf_lo + 10) << "the map keeps growing on a circuit it has mapped";
   std::filesystem::remove_all(dir);

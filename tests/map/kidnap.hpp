@@ -22,9 +22,9 @@ namespace kestrel::map_test {
 
 struct KidnapTrial {
   uint64_t seed = 0;
-  bool lost = false;            // the map said not localised after the cover
+  bool lost = false;  // the map said not localised after the cover
   bool relocalised = false;
-  double reloc_after_s = NAN;   // from the camera's return to the first relocalised pose
+  double reloc_after_s = NAN;  // from the camera's return to the first relocalised pose
   uint64_t relocalisations = 0;
   double ate_odom_m = NAN, ate_map_m = NAN;  // se3-aligned, whole flight
   std::string summary;

@@ -46,10 +46,18 @@ struct SimRoom {
       const double a = U(rng), b = U(rng);
       Eigen::Vector3d p;
       switch (face) {
-        case 0: p = {4.0, -4.0 + 8 * a, 3 * b}; break;
-        case 1: p = {-4.0, -4.0 + 8 * a, 3 * b}; break;
-        case 2: p = {-4.0 + 8 * a, 4.0, 3 * b}; break;
-        default: p = {-4.0 + 8 * a, -4.0, 3 * b}; break;
+        case 0:
+          p = {4.0, -4.0 + 8 * a, 3 * b};
+          break;
+        case 1:
+          p = {-4.0, -4.0 + 8 * a, 3 * b};
+          break;
+        case 2:
+          p = {-4.0 + 8 * a, 4.0, 3 * b};
+          break;
+        default:
+          p = {-4.0 + 8 * a, -4.0, 3 * b};
+          break;
       }
       points.push_back(p);
       core::OrbDescriptor d;
@@ -111,7 +119,8 @@ inline std::shared_ptr<const core::Vocabulary> room_vocabulary(const SimRoom& ro
   return std::make_shared<core::Vocabulary>(core::Vocabulary::train(docs, o));
 }
 
-inline Eigen::Isometry3d perturbed(const Eigen::Isometry3d& T, std::mt19937_64& rng, double pos_m, double rot_rad) {
+inline Eigen::Isometry3d perturbed(const Eigen::Isometry3d& T, std::mt19937_64& rng, double pos_m,
+                                   double rot_rad) {
   std::normal_distribution<double> N(0.0, 1.0);
   Eigen::Isometry3d d = Eigen::Isometry3d::Identity();
   const Eigen::Vector3d w(N(rng), N(rng), N(rng));
@@ -148,7 +157,8 @@ struct DriftedMap {
           uint32_t id_offset, std::mt19937_64& rng, const std::function<void(SimKeyframe&)>& edit = {}) {
     SimKeyframe s = room.observe(T_true, rng, id_offset);
     if (edit) edit(s);
-    const int kf = map.add_keyframe(t_ns, T_odom, T_odom, s.features.data(), static_cast<int>(s.features.size()), last);
+    const int kf =
+        map.add_keyframe(t_ns, T_odom, T_odom, s.features.data(), static_cast<int>(s.features.size()), last);
     if (kf < 0) return kf;
     if (last >= 0)
       map.keyframe(kf).path_m =

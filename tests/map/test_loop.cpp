@@ -61,8 +61,8 @@ TEST(PoseGraph, ClosesADriftedChainAndKeepsRollAndPitch) {
     const Eigen::Vector3d down_true = truth[k].linear().transpose() * Eigen::Vector3d(0, 0, -1);
     tilt_err = std::max(tilt_err, std::acos(std::min(1.0, down.dot(down_true))));
   }
-  std::printf("pose graph: last pose %.3f m off before, worst %.3f m after; tilt error %.2g rad\n", before, worst,
-              tilt_err);
+  std::printf("pose graph: last pose %.3f m off before, worst %.3f m after; tilt error %.2g rad\n", before,
+              worst, tilt_err);
   EXPECT_GT(before, 0.3);
   EXPECT_LT(worst, 0.1 * before);
   EXPECT_LT(tilt_err, 1e-6) << "a 4-DoF graph never tilts a pose";
@@ -83,7 +83,8 @@ TEST(LoopCloser, ClosesADriftedCircuitAndCorrectsTheMap) {
   double worst_before = 0;
   for (int k = 0; k < per_lap + 12; ++k) {
     const double a = 2 * M_PI * k / per_lap;
-    const Eigen::Isometry3d T_true = SimRoom::camera(Eigen::Vector3d(1.5 * std::cos(a), 1.5 * std::sin(a), 1.5), a);
+    const Eigen::Isometry3d T_true =
+        SimRoom::camera(Eigen::Vector3d(1.5 * std::cos(a), 1.5 * std::sin(a), 1.5), a);
     Eigen::Isometry3d D = Eigen::Isometry3d::Identity();
     D.linear() = core::rot_z(0.003 * k);
     D.translation() = Eigen::Vector3d(0.008 * k, 0.004 * k, 0.0);
@@ -114,14 +115,16 @@ TEST(LoopCloser, ClosesADriftedCircuitAndCorrectsTheMap) {
     ++n;
   });
   const core::LoopStats& s = closer.stats();
-  std::printf("loop: %d closures (first at keyframe %d of %d); %llu candidates, %llu verified, rejected %llu inliers "
-              "/ %llu drift / %llu consistency; %llu points merged\nkeyframe error: worst %.3f m before, worst %.3f m "
-              "mean %.3f m after\n",
-              closures, first_closure_at, per_lap, static_cast<unsigned long long>(s.candidates),
-              static_cast<unsigned long long>(s.verified), static_cast<unsigned long long>(s.rejected_inliers),
-              static_cast<unsigned long long>(s.rejected_drift),
-              static_cast<unsigned long long>(s.rejected_consistency),
-              static_cast<unsigned long long>(s.points_merged), worst_before, worst_after, mean_after / n);
+  std::printf(
+      "loop: %d closures (first at keyframe %d of %d); %llu candidates, %llu verified, rejected %llu inliers "
+      "/ %llu drift / %llu consistency; %llu points merged\nkeyframe error: worst %.3f m before, worst %.3f "
+      "m "
+      "mean %.3f m after\n",
+      closures, first_closure_at, per_lap, static_cast<unsigned long long>(s.candidates),
+      static_cast<unsigned long long>(s.verified), static_cast<unsigned long long>(s.rejected_inliers),
+      static_cast<unsigned long long>(s.rejected_drift),
+      static_cast<unsigned long long>(s.rejected_consistency),
+      static_cast<unsigned long long>(s.points_merged), worst_before, worst_after, mean_after / n);
   ASSERT_GE(closures, 1);
   EXPECT_LE(first_closure_at, per_lap + 4) << "found within a few keyframes of the revisit";
   EXPECT_GT(worst_before, 0.3);
@@ -263,7 +266,8 @@ int verify_tiled_revisits(const LoopOptions& opt, std::vector<double>* err_m) {
     std::uniform_real_distribution<double> U(-1.0, 1.0);
     DriftedMap dm(voc);
     const double a = M_PI * U(rng);
-    const Eigen::Isometry3d T_cand = SimRoom::camera(Eigen::Vector3d(1.5 * std::cos(a), 1.5 * std::sin(a), 1.5), a);
+    const Eigen::Isometry3d T_cand =
+        SimRoom::camera(Eigen::Vector3d(1.5 * std::cos(a), 1.5 * std::sin(a), 1.5), a);
     const int cand = dm.add(room, T_cand, T_cand, 0, 1, rng, [](SimKeyframe& k) {
       k.features.resize(std::min<size_t>(k.features.size(), 150));
       const size_t n = k.features.size();
@@ -283,8 +287,8 @@ int verify_tiled_revisits(const LoopOptions& opt, std::vector<double>* err_m) {
     const SimKeyframe q = room.observe(T_true, rng, 1);
     core::PlaceMatcher matcher(dm.map, sim_camera());
     core::PlaceFit fit;
-    if (matcher.match(q.features.data(), static_cast<int>(q.features.size()), D * T_true, cand, opt, 7, &fit) !=
-        core::PlaceMatcher::kOk)
+    if (matcher.match(q.features.data(), static_cast<int>(q.features.size()), D * T_true, cand, opt, 7,
+                      &fit) != core::PlaceMatcher::kOk)
       continue;
     ++fits;
     if (err_m != nullptr) err_m->push_back(pos_err(fit.correction * D * T_true, T_true));
@@ -301,8 +305,10 @@ TEST(PlaceMatcher, TheGuidedSearchFindsAPlaceWhoseTextureRepeats) {
   std::vector<double> err;
   const int before = verify_tiled_revisits(descriptors_only, nullptr);
   const int after = verify_tiled_revisits(LoopOptions{}, &err);
-  std::printf("tiled revisits verified: %d of 10 by the descriptors alone, %d with the guided search (median error %.4f m)\n",
-              before, after, median_of(err));
+  std::printf(
+      "tiled revisits verified: %d of 10 by the descriptors alone, %d with the guided search (median error "
+      "%.4f m)\n",
+      before, after, median_of(err));
   EXPECT_LE(before, 2);
   EXPECT_GE(after, 8);
   EXPECT_LT(median_of(err), 0.01);
@@ -419,7 +425,8 @@ AliasRun fly_aliased_room(const LoopOptions& opt) {
   SimRoom room(3000, 22);
   // Points 1, 3, 5...: the copy of point i-1 turned by 180 degrees about the room's centre, same descriptor.
   for (size_t i = 1; i < room.points.size(); i += 2) {
-    room.points[i] = Eigen::Vector3d(-room.points[i - 1].x(), -room.points[i - 1].y(), room.points[i - 1].z());
+    room.points[i] =
+        Eigen::Vector3d(-room.points[i - 1].x(), -room.points[i - 1].y(), room.points[i - 1].z());
     room.desc[i] = room.desc[i - 1];
   }
   DriftedMap dm(room_vocabulary(room));
@@ -429,9 +436,10 @@ AliasRun fly_aliased_room(const LoopOptions& opt) {
   AliasRun r;
   for (int k = 0; k < 2 * per_lap; ++k) {
     const double a = 2 * M_PI * k / per_lap;
-    const Eigen::Isometry3d T = SimRoom::camera(Eigen::Vector3d(0.3 * std::cos(a), 0.3 * std::sin(a), 1.5), a);
-    const int kf = dm.add(room, T, T, static_cast<int64_t>(k) * 500'000'000, 1 + 10000u * static_cast<uint32_t>(k / 3),
-                          rng);
+    const Eigen::Isometry3d T =
+        SimRoom::camera(Eigen::Vector3d(0.3 * std::cos(a), 0.3 * std::sin(a), 1.5), a);
+    const int kf = dm.add(room, T, T, static_cast<int64_t>(k) * 500'000'000,
+                          1 + 10000u * static_cast<uint32_t>(k / 3), rng);
     if (kf < 0) break;
     const core::LoopClosure c = closer.process(kf);
     if (!c.closed) continue;
@@ -443,12 +451,13 @@ AliasRun fly_aliased_room(const LoopOptions& opt) {
   }
   r.stats = closer.stats();
   const core::LoopStats& s = r.stats;
-  std::printf("aliased room: %d closures, %d false; %llu candidates, %llu verified, rejected %llu inliers / %llu "
-              "drift / %llu consistency\n",
-              r.closures, r.false_loops, static_cast<unsigned long long>(s.candidates),
-              static_cast<unsigned long long>(s.verified), static_cast<unsigned long long>(s.rejected_inliers),
-              static_cast<unsigned long long>(s.rejected_drift),
-              static_cast<unsigned long long>(s.rejected_consistency));
+  std::printf(
+      "aliased room: %d closures, %d false; %llu candidates, %llu verified, rejected %llu inliers / %llu "
+      "drift / %llu consistency\n",
+      r.closures, r.false_loops, static_cast<unsigned long long>(s.candidates),
+      static_cast<unsigned long long>(s.verified), static_cast<unsigned long long>(s.rejected_inliers),
+      static_cast<unsigned long long>(s.rejected_drift),
+      static_cast<unsigned long long>(s.rejected_consistency));
   return r;
 }
 
@@ -459,7 +468,8 @@ TEST(LoopCloser, AliasedWallsGiveNoFalseLoop) {
   LoopOptions no_bound;
   no_bound.max_correction_m = no_bound.max_yaw_rad = 1e9;
   const AliasRun u = fly_aliased_room(no_bound);
-  EXPECT_GT(u.false_loops, 0) << "without the drift bound the alias should close: is the room aliased at all?";
+  EXPECT_GT(u.false_loops, 0)
+      << "without the drift bound the alias should close: is the room aliased at all?";
 }
 
 // Two laps without drift: every revisit verifies, and every correction is
@@ -530,8 +540,10 @@ RelocRun relocalise_second_lap(SimRoom& room, double radius_m, uint64_t seed) {
   const int per_lap = 36;
   for (int k = 0; k < per_lap; ++k) {
     const double a = 2 * M_PI * k / per_lap;
-    const Eigen::Isometry3d T = SimRoom::camera(Eigen::Vector3d(radius_m * std::cos(a), radius_m * std::sin(a), 1.5), a);
-    EXPECT_GE(dm.add(room, T, T, static_cast<int64_t>(k) * 500'000'000, 1 + 10000u * static_cast<uint32_t>(k / 3), rng),
+    const Eigen::Isometry3d T =
+        SimRoom::camera(Eigen::Vector3d(radius_m * std::cos(a), radius_m * std::sin(a), 1.5), a);
+    EXPECT_GE(dm.add(room, T, T, static_cast<int64_t>(k) * 500'000'000,
+                     1 + 10000u * static_cast<uint32_t>(k / 3), rng),
               0);
   }
   core::Relocaliser reloc(dm.map, sim_camera(), LoopOptions{});
@@ -542,12 +554,13 @@ RelocRun relocalise_second_lap(SimRoom& room, double radius_m, uint64_t seed) {
   RelocRun r;
   for (int k = 0; k < per_lap; ++k) {
     const double a = 2 * M_PI * (k + 0.5) / per_lap;
-    const Eigen::Isometry3d T = SimRoom::camera(Eigen::Vector3d(radius_m * std::cos(a), radius_m * std::sin(a), 1.5), a);
+    const Eigen::Isometry3d T =
+        SimRoom::camera(Eigen::Vector3d(radius_m * std::cos(a), radius_m * std::sin(a), 1.5), a);
     const SimKeyframe s = room.observe(T, rng, 500000u + 10000u * static_cast<uint32_t>(k / 3));
     const Eigen::Isometry3d T_guess = T_odom_true * T;  // the map frame still thinks M = W
     Eigen::Isometry3d corr;
-    if (!reloc.relocalise(s.features.data(), static_cast<int>(s.features.size()), T_guess, static_cast<uint64_t>(k),
-                          &corr))
+    if (!reloc.relocalise(s.features.data(), static_cast<int>(s.features.size()), T_guess,
+                          static_cast<uint64_t>(k), &corr))
       continue;
     ++r.relocalisations;
     if (r.first_at < 0) r.first_at = k;
@@ -557,12 +570,14 @@ RelocRun relocalise_second_lap(SimRoom& room, double radius_m, uint64_t seed) {
     if (e > 0.2) ++r.wrong;
   }
   r.stats = reloc.stats();
-  std::printf("relocalisation: %d (first at keyframe %d, %d wrong, worst %.3f m); %llu queries, %llu candidates, %llu "
-              "verified, rejected %llu ambiguous / %llu consistency\n",
-              r.relocalisations, r.first_at, r.wrong, r.worst_err_m, static_cast<unsigned long long>(r.stats.queries),
-              static_cast<unsigned long long>(r.stats.candidates), static_cast<unsigned long long>(r.stats.verified),
-              static_cast<unsigned long long>(r.stats.rejected_ambiguous),
-              static_cast<unsigned long long>(r.stats.rejected_consistency));
+  std::printf(
+      "relocalisation: %d (first at keyframe %d, %d wrong, worst %.3f m); %llu queries, %llu candidates, "
+      "%llu "
+      "verified, rejected %llu ambiguous / %llu consistency\n",
+      r.relocalisations, r.first_at, r.wrong, r.worst_err_m, static_cast<unsigned long long>(r.stats.queries),
+      static_cast<unsigned long long>(r.stats.candidates), static_cast<unsigned long long>(r.stats.verified),
+      static_cast<unsigned long long>(r.stats.rejected_ambiguous),
+      static_cast<unsigned long long>(r.stats.rejected_consistency));
   return r;
 }
 
@@ -581,7 +596,8 @@ TEST(Relocaliser, FindsTheMapAfterAResetFromTwoKeyframes) {
 TEST(Relocaliser, AliasedWallsGiveNoFalseRelocalisation) {
   SimRoom room(3000, 22);
   for (size_t i = 1; i < room.points.size(); i += 2) {
-    room.points[i] = Eigen::Vector3d(-room.points[i - 1].x(), -room.points[i - 1].y(), room.points[i - 1].z());
+    room.points[i] =
+        Eigen::Vector3d(-room.points[i - 1].x(), -room.points[i - 1].y(), room.points[i - 1].z());
     room.desc[i] = room.desc[i - 1];
   }
   const RelocRun r = relocalise_second_lap(room, 0.3, 6);

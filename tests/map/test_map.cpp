@@ -49,9 +49,12 @@ TEST(Map, KeyframesPointsAndObservationsStayWithinCapacity) {
   Map m(small_options(), 10);
   const auto f = features(10, 1);
   std::vector<int> kfs;
-  for (int k = 0; k < 8; ++k) kfs.push_back(m.add_keyframe(k, Eigen::Isometry3d::Identity(), Eigen::Isometry3d::Identity(), f.data(), 10, k > 0 ? kfs.back() : -1));
+  for (int k = 0; k < 8; ++k)
+    kfs.push_back(m.add_keyframe(k, Eigen::Isometry3d::Identity(), Eigen::Isometry3d::Identity(), f.data(),
+                                 10, k > 0 ? kfs.back() : -1));
   for (int k : kfs) EXPECT_GE(k, 0);
-  EXPECT_EQ(m.add_keyframe(9, Eigen::Isometry3d::Identity(), Eigen::Isometry3d::Identity(), f.data(), 10, -1), -1)
+  EXPECT_EQ(m.add_keyframe(9, Eigen::Isometry3d::Identity(), Eigen::Isometry3d::Identity(), f.data(), 10, -1),
+            -1)
       << "full: refused, never grown";
   EXPECT_EQ(m.num_keyframes(), 8);
   // One point per feature of keyframe 0, observed by every keyframe.
@@ -85,7 +88,8 @@ TEST(Map, LandmarkIndexAgreesWithAReferenceOverChurn) {
   o.max_points = 500;
   Map m(o, 4);
   const auto f = features(4, 1);
-  const int kf = m.add_keyframe(0, Eigen::Isometry3d::Identity(), Eigen::Isometry3d::Identity(), f.data(), 4, -1);
+  const int kf =
+      m.add_keyframe(0, Eigen::Isometry3d::Identity(), Eigen::Isometry3d::Identity(), f.data(), 4, -1);
   ASSERT_GE(kf, 0);
   std::map<uint32_t, int> ref;
   std::mt19937_64 rng(3);
@@ -114,8 +118,10 @@ TEST(Map, LandmarkIndexAgreesWithAReferenceOverChurn) {
 TEST(Map, MergeMovesObservations) {
   Map m(small_options(), 10);
   const auto f = features(10, 1);
-  const int a = m.add_keyframe(0, Eigen::Isometry3d::Identity(), Eigen::Isometry3d::Identity(), f.data(), 10, -1);
-  const int b = m.add_keyframe(1, Eigen::Isometry3d::Identity(), Eigen::Isometry3d::Identity(), f.data(), 10, a);
+  const int a =
+      m.add_keyframe(0, Eigen::Isometry3d::Identity(), Eigen::Isometry3d::Identity(), f.data(), 10, -1);
+  const int b =
+      m.add_keyframe(1, Eigen::Isometry3d::Identity(), Eigen::Isometry3d::Identity(), f.data(), 10, a);
   const int p = m.add_point(100, Eigen::Vector3d(1, 0, 2), {}, 0, a, 0);
   const int q = m.add_point(200, Eigen::Vector3d(1, 0, 2), {}, 0, b, 3);
   m.merge_point(q, p);
@@ -211,7 +217,8 @@ TEST(LocalMapper, FusesAPointKnownUnderTwoIds) {
   const Eigen::Isometry3d T0 = SimRoom::camera(Eigen::Vector3d(0, 0, 1.5), 0.0);
   const Eigen::Isometry3d T1 = SimRoom::camera(Eigen::Vector3d(0.1, 0.0, 1.5), 0.02);
   SimKeyframe a = room.observe(T0, rng, 1);
-  SimKeyframe b = room.observe(T1, rng, 100000);  // the tracker lost the ids: every point arrives under a new one
+  SimKeyframe b =
+      room.observe(T1, rng, 100000);  // the tracker lost the ids: every point arrives under a new one
   core::KeyframePacket pa, pb;
   pa.T_WC = T0;
   pa.n = static_cast<int>(a.features.size());

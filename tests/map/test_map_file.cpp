@@ -22,7 +22,8 @@ struct Fixture {
     for (int k = 0; k < 12; ++k) {
       const double a = 2 * M_PI * k / 12;
       const Eigen::Isometry3d T = SimRoom::camera(Eigen::Vector3d(std::cos(a), std::sin(a), 1.5), a);
-      dm.add(room, T, T, static_cast<int64_t>(k) * 300'000'000, 1 + 10000u * static_cast<uint32_t>(k / 2), rng);
+      dm.add(room, T, T, static_cast<int64_t>(k) * 300'000'000, 1 + 10000u * static_cast<uint32_t>(k / 2),
+             rng);
     }
   }
   std::unique_ptr<core::Map> empty(int max_keyframes = 200, int max_points = 60000) const {
@@ -54,7 +55,9 @@ TEST(MapFile, RoundTripKeepsKeyframesPointsAndObservations) {
   std::vector<int> ka, kb;
   a.for_each_keyframe([&](int k) { ka.push_back(k); });
   b->for_each_keyframe([&](int k) { kb.push_back(k); });
-  auto by_id = [](const core::Map& m) { return [&m](int x, int y) { return m.keyframe(x).id < m.keyframe(y).id; }; };
+  auto by_id = [](const core::Map& m) {
+    return [&m](int x, int y) { return m.keyframe(x).id < m.keyframe(y).id; };
+  };
   std::sort(ka.begin(), ka.end(), by_id(a));
   std::sort(kb.begin(), kb.end(), by_id(*b));
   size_t observations = 0;
@@ -76,7 +79,8 @@ TEST(MapFile, RoundTripKeepsKeyframesPointsAndObservations) {
       ++observations;
       EXPECT_EQ(a.point(pa).p_M, b->point(pb).p_M);
       EXPECT_EQ(a.point(pa).desc, b->point(pb).desc);
-      EXPECT_GE(b->point(pb).landmark_id, 0x80000000u) << "loaded points get ids this flight's tracker never gives";
+      EXPECT_GE(b->point(pb).landmark_id, 0x80000000u)
+          << "loaded points get ids this flight's tracker never gives";
       EXPECT_EQ(b->feature(kb[i], j).landmark_id, b->point(pb).landmark_id);
     }
   }
@@ -140,15 +144,16 @@ TEST(MapFile, DamagedForeignAndMismatchedFilesAreRefusedWithTheReason) {
     b[first_pose + 7] ^= 0x40;  // the high byte of R(0,0)
     const size_t n = b.size() - 20;
     const uint32_t crc = core::crc32(b.data() + payload, n);
-    for (int i = 0; i < 4; ++i) b[b.size() - 4 + static_cast<size_t>(i)] = static_cast<uint8_t>(crc >> (8 * i));
+    for (int i = 0; i < 4; ++i)
+      b[b.size() - 4 + static_cast<size_t>(i)] = static_cast<uint8_t>(crc >> (8 * i));
     expect_refused(b, "keyframe 0: its pose is not a rigid transform", sim_camera(), "a non-rigid pose");
   }
   // Every prefix of a short map decodes to an error, never a crash or a read past the end.
   {
     DriftedMap tiny(f.vocab);
     std::mt19937_64 rng(1);
-    tiny.add(f.room, SimRoom::camera(Eigen::Vector3d(0, 0, 1.5), 0.3), SimRoom::camera(Eigen::Vector3d(0, 0, 1.5), 0.3),
-             0, 1, rng);
+    tiny.add(f.room, SimRoom::camera(Eigen::Vector3d(0, 0, 1.5), 0.3),
+             SimRoom::camera(Eigen::Vector3d(0, 0, 1.5), 0.3), 0, 1, rng);
     const std::vector<uint8_t> t = core::encode_map(tiny.map, sim_camera());
     for (size_t len = 0; len < t.size(); len += 97) {
       auto m = f.empty();

@@ -94,7 +94,8 @@ TEST(MapReuse, ASecondFlightLandsInTheFirstFlightsFrame) {
   double localised_at_s = NAN;
   b.on_pose = [&](const cli::PoseSample& p) {
     if (t0 < 0) t0 = p.t_ns;
-    if (std::isnan(localised_at_s) && p.map.localized) localised_at_s = 1e-9 * static_cast<double>(p.t_ns - t0);
+    if (std::isnan(localised_at_s) && p.map.localized)
+      localised_at_s = 1e-9 * static_cast<double>(p.t_ns - t0);
   };
   const cli::ReplayReport rb = cli::run_replay(b);
   // From the relocalisation on, the map frame is the first flight's.
@@ -107,16 +108,18 @@ TEST(MapReuse, ASecondFlightLandsInTheFirstFlightsFrame) {
   const tools::Trajectory gt_b = tools::load_trajectory(second, &w);
   const tools::EvalResult eb = tools::evaluate(gt_b, transformed(ea.T_align, after), none);
   const tools::EvalResult eb_odom = tools::evaluate(gt_b, transformed(ea.T_align, rb.trajectory), none);
-  std::printf("MAP-REUSE: first flight se3 ATE %.1f mm (%u keyframes); second flight localised at %.2f s, %llu "
-              "relocalisations; ATE in the first flight's frame, no re-alignment: map frame %.1f mm, its own "
-              "odometry frame %.1f mm\n%s\n",
-              1e3 * ea.ate_m.rmse, ra.map.keyframes, localised_at_s,
-              static_cast<unsigned long long>(rb.map.relocalisations), 1e3 * eb.ate_m.rmse, 1e3 * eb_odom.ate_m.rmse,
-              rb.backend_summary.c_str());
+  std::printf(
+      "MAP-REUSE: first flight se3 ATE %.1f mm (%u keyframes); second flight localised at %.2f s, %llu "
+      "relocalisations; ATE in the first flight's frame, no re-alignment: map frame %.1f mm, its own "
+      "odometry frame %.1f mm\n%s\n",
+      1e3 * ea.ate_m.rmse, ra.map.keyframes, localised_at_s,
+      static_cast<unsigned long long>(rb.map.relocalisations), 1e3 * eb.ate_m.rmse, 1e3 * eb_odom.ate_m.rmse,
+      rb.backend_summary.c_str());
   EXPECT_GE(rb.map.relocalisations, 1u);
   EXPECT_LT(localised_at_s, 4.0) << "localised within its first seconds";
   EXPECT_LT(eb.ate_m.rmse, 0.03);
-  EXPECT_GT(eb_odom.ate_m.rmse, 0.1) << "the second flight's own frame was the first's anyway: nothing was tested";
+  EXPECT_GT(eb_odom.ate_m.rmse, 0.1)
+      << "the second flight's own frame was the first's anyway: nothing was tested";
 
   // A damaged map is refused by name.
   {

@@ -5,7 +5,6 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
-
 #include <atomic>
 #include <filesystem>
 #include <thread>
@@ -116,10 +115,12 @@ TEST(MapSystem, ALoopMovesTheMapFrameNotTheOdometry) {
   const int per_lap = 36;
   bool realigned_seen = false;
   uint32_t alignment = 0;
-  double first_err_odom = -1, first_err_map = -1, worst_err_map = 0;  // at the keyframes where the map frame moved
+  double first_err_odom = -1, first_err_map = -1,
+         worst_err_map = 0;  // at the keyframes where the map frame moved
   for (int k = 0; k < per_lap + 12; ++k) {
     const double a = 2 * M_PI * k / per_lap;
-    const Eigen::Isometry3d T_true = SimRoom::camera(Eigen::Vector3d(1.5 * std::cos(a), 1.5 * std::sin(a), 1.5), a);
+    const Eigen::Isometry3d T_true =
+        SimRoom::camera(Eigen::Vector3d(1.5 * std::cos(a), 1.5 * std::sin(a), 1.5), a);
     Eigen::Isometry3d D = Eigen::Isometry3d::Identity();
     D.linear() = Eigen::AngleAxisd(0.004 * k, Eigen::Vector3d::UnitZ()).toRotationMatrix();
     D.translation() = Eigen::Vector3d(0.006 * k, 0.003 * k, 0.0);
@@ -138,9 +139,11 @@ TEST(MapSystem, ALoopMovesTheMapFrameNotTheOdometry) {
     const core::MapFrameState f = sys.frame();
     if (f.alignment != alignment) {
       alignment = f.alignment;
-      const double err_odom = pos_err(D * T_true, T_true), err_map = pos_err(f.T_map_odom() * D * T_true, T_true);
-      std::printf("loop at keyframe %d: odometry %.3f m off, in the map frame %.3f m off (|T_map_odom| %.3f m)\n", k,
-                  err_odom, err_map, f.T_map_odom().translation().norm());
+      const double err_odom = pos_err(D * T_true, T_true),
+                   err_map = pos_err(f.T_map_odom() * D * T_true, T_true);
+      std::printf(
+          "loop at keyframe %d: odometry %.3f m off, in the map frame %.3f m off (|T_map_odom| %.3f m)\n", k,
+          err_odom, err_map, f.T_map_odom().translation().norm());
       if (first_err_odom < 0) {
         first_err_odom = err_odom;
         first_err_map = err_map;
@@ -168,7 +171,7 @@ TEST(MapSystem, ALoopMovesTheMapFrameNotTheOdometry) {
 // from two keyframes, moves T_map_odom so that the map frame continues where
 // it was, and maps the new chain's keyframes from then on.
 struct LapFlight {
-  int first_localised_at = -1;  // keyframe of the second lap
+  int first_localised_at = -1;   // keyframe of the second lap
   uint32_t alignment = 0;        // the map frame's alignment the relocalisation gave
   double worst_err_after_m = 0;  // T_map_odom * T_WC against the truth, from then until the alignment changes
   double end_err_m = 0;          // the same at the last keyframe, whatever moved the map frame since
@@ -181,11 +184,13 @@ void fly_lap(core::MapSystem& sys, const SimRoom& room, std::mt19937_64& rng, co
   const int per_lap = 36;
   for (int k = 0; k < per_lap; ++k) {
     const double a = 2 * M_PI * (k + phase) / per_lap;
-    const Eigen::Isometry3d T_true = SimRoom::camera(Eigen::Vector3d(1.5 * std::cos(a), 1.5 * std::sin(a), 1.5), a);
+    const Eigen::Isometry3d T_true =
+        SimRoom::camera(Eigen::Vector3d(1.5 * std::cos(a), 1.5 * std::sin(a), 1.5), a);
     const SimKeyframe s = room.observe(T_true, rng, id_base + 10000u * static_cast<uint32_t>(k / 3));
     core::KeyframePacket* p = sys.begin_keyframe();
     ASSERT_NE(p, nullptr);
-    fill(p, s, static_cast<int64_t>(k) * 500'000'000 + (id_base > 1 ? 20'000'000'000 : 0));  // the second lap later
+    fill(p, s,
+         static_cast<int64_t>(k) * 500'000'000 + (id_base > 1 ? 20'000'000'000 : 0));  // the second lap later
     p->T_WC = J * T_true;
     p->chain = chain;
     sys.submit_keyframe(p);
@@ -231,10 +236,11 @@ TEST(MapSystem, ALostChainIsRelocalisedAndTheMapFrameContinues) {
   ASSERT_TRUE(sys.frame().localized);
   LapFlight f;
   fly_lap(sys, room, rng, jump(), 1, 500001, 0.5, &f);
-  std::printf("lost chain: localised again at keyframe %d, worst %.3f m after, %.3f m at the end (alignment %u -> "
-              "%u); %d -> %d keyframes; %s\n",
-              f.first_localised_at, f.worst_err_after_m, f.end_err_m, f.alignment, f.end.alignment, before,
-              sys.map().num_keyframes(), sys.summary().c_str());
+  std::printf(
+      "lost chain: localised again at keyframe %d, worst %.3f m after, %.3f m at the end (alignment %u -> "
+      "%u); %d -> %d keyframes; %s\n",
+      f.first_localised_at, f.worst_err_after_m, f.end_err_m, f.alignment, f.end.alignment, before,
+      sys.map().num_keyframes(), sys.summary().c_str());
   EXPECT_EQ(f.end.relocalisations, 1u);
   EXPECT_TRUE(f.end.localized);
   EXPECT_EQ(f.first_localised_at, 1) << "two keyframes of the new chain are the evidence";
@@ -281,7 +287,8 @@ TEST(MapSystem, ASecondFlightOnASavedMapLandsInTheFirstFlightsFrame) {
     core::MapSystem broken(sim_camera(), 300, o);
     ADD_FAILURE() << "a damaged map was accepted";
   } catch (const std::runtime_error& e) {
-    EXPECT_NE(std::string(e.what()).find("first.kmap: not a usable map: checksum mismatch"), std::string::npos)
+    EXPECT_NE(std::string(e.what()).find("first.kmap: not a usable map: checksum mismatch"),
+              std::string::npos)
         << e.what();
   }
 }

@@ -6,9 +6,8 @@
 
 #include <algorithm>
 #include <filesystem>
-#include <random>
-
 #include <opencv2/imgcodecs.hpp>
+#include <random>
 
 #include "kestrel/core/bytes.hpp"
 #include "kestrel/core/vocabulary.hpp"
@@ -73,7 +72,8 @@ int brute_force_best(const std::vector<OrbDescriptor>& q, const std::vector<std:
     int n = 0;
     for (const OrbDescriptor& a : q) {
       core::BestTwoMatches bt;
-      for (size_t j = 0; j < db[p].size(); ++j) bt.offer(core::hamming_distance(a, db[p][j]), static_cast<int>(j));
+      for (size_t j = 0; j < db[p].size(); ++j)
+        bt.offer(core::hamming_distance(a, db[p][j]), static_cast<int>(j));
       n += bt.best_index >= 0 && bt.best <= 64 && bt.passes_ratio(0.8f);
     }
     if (n > best_n) {
@@ -92,7 +92,8 @@ std::vector<BowEntry> bow(const Vocabulary& v, const std::vector<OrbDescriptor>&
 
 TEST(Vocabulary, TrainsDeterministicallyAndRoundTrips) {
   Places places(30, 1);
-  const Vocabulary a = train(places.base, 6, 3, 7), b = train(places.base, 6, 3, 7), c = train(places.base, 6, 3, 8);
+  const Vocabulary a = train(places.base, 6, 3, 7), b = train(places.base, 6, 3, 7),
+                   c = train(places.base, 6, 3, 8);
   EXPECT_GT(a.words(), 100);
   EXPECT_LE(a.words(), 216);
   EXPECT_EQ(a.serialise(), b.serialise()) << "same data and seed: same bytes";
@@ -117,7 +118,8 @@ TEST(Vocabulary, TrainsDeterministicallyAndRoundTrips) {
     }
   }
   EXPECT_NEAR(sum, 1.0, 1e-5);
-  EXPECT_NEAR(core::bow_score(q.data(), static_cast<int>(q.size()), q.data(), static_cast<int>(q.size())), 1.0, 1e-5);
+  EXPECT_NEAR(core::bow_score(q.data(), static_cast<int>(q.size()), q.data(), static_cast<int>(q.size())),
+              1.0, 1e-5);
 }
 
 TEST(Vocabulary, DamagedTruncatedOrForeignBytesAreRefused) {
@@ -140,7 +142,8 @@ TEST(Vocabulary, DamagedTruncatedOrForeignBytesAreRefused) {
   EXPECT_NE(err.find("version"), std::string::npos) << err;
   EXPECT_TRUE(Vocabulary::deserialise(good.data(), 3, &err).empty());
   // Every truncation fails cleanly (never a crash, never a vocabulary).
-  for (size_t n = 0; n < good.size(); n += 97) EXPECT_TRUE(Vocabulary::deserialise(good.data(), n, &err).empty());
+  for (size_t n = 0; n < good.size(); n += 97)
+    EXPECT_TRUE(Vocabulary::deserialise(good.data(), n, &err).empty());
 }
 
 // Retrieval through the inverted index finds the place brute-force matching
@@ -173,7 +176,8 @@ TEST(KeyframeDatabase, AgreesWithBruteForceMatchingOnSyntheticPlaces) {
   db.erase(5, bows[5].data(), static_cast<int>(bows[5].size()));
   KeyframeDatabase::Match m[40];
   const auto qb = bow(v, places.base[5]);
-  const int got = db.query(qb.data(), static_cast<int>(qb.size()), [](int k) { return k == 6; }, 0.0f, 0.0, 40, m);
+  const int got = db.query(
+      qb.data(), static_cast<int>(qb.size()), [](int k) { return k == 6; }, 0.0f, 0.0, 40, m);
   for (int i = 0; i < got; ++i) {
     EXPECT_NE(m[i].keyframe, 5);
     EXPECT_NE(m[i].keyframe, 6);
@@ -222,8 +226,8 @@ TEST(KeyframeDatabase, AgreesWithBruteForceMatchingOnRealImages) {
     agree += m[0].keyframe == bf;
     ++n;
   }
-  std::printf("7-Scenes: BoW top-1 agrees with brute-force matching on %d of %d queries (%d words)\n", agree, n,
-              v.words());
+  std::printf("7-Scenes: BoW top-1 agrees with brute-force matching on %d of %d queries (%d words)\n", agree,
+              n, v.words());
   EXPECT_GE(agree, n * 8 / 10);
 }
 

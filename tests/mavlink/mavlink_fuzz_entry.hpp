@@ -36,7 +36,8 @@ inline uint64_t mavlink_fuzz_one(const uint8_t* data, std::size_t size) {
       if (f.payload[i] != 0) std::abort();  // zero-extended past the message
     // Re-framed, it decodes to the same payload.
     uint8_t again[mavlink::kMaxFrameBytes];
-    const std::size_t n = mavlink::frame_v2(f.msgid, crc_extra, f.payload, len, f.seq, f.sysid, f.compid, again);
+    const std::size_t n =
+        mavlink::frame_v2(f.msgid, crc_extra, f.payload, len, f.seq, f.sysid, f.compid, again);
     mavlink::MavlinkDecoder d2;
     int got = 0;
     d2.feed(again, n, [&](const mavlink::MavlinkFrame& g) {
@@ -49,7 +50,8 @@ inline uint64_t mavlink_fuzz_one(const uint8_t* data, std::size_t size) {
     uint8_t repacked[mavlink::kMaxFrameBytes];
     std::size_t rn = 0;
     if (f.msgid == mavlink::kMsgIdHeartbeat) {
-      rn = mavlink::encode_heartbeat(mavlink::unpack_heartbeat(f.payload), f.seq, f.sysid, f.compid, repacked);
+      rn =
+          mavlink::encode_heartbeat(mavlink::unpack_heartbeat(f.payload), f.seq, f.sysid, f.compid, repacked);
     } else if (f.msgid == mavlink::kMsgIdTimesync) {
       rn = mavlink::encode_timesync(mavlink::unpack_timesync(f.payload), f.seq, f.sysid, f.compid, repacked);
     } else if (f.msgid == mavlink::kMsgIdHighresImu) {

@@ -176,8 +176,9 @@ TEST(MavlinkHighresImu, TimeSyncPrefersShortRoundTrips) {
   const double err_mean = run(false), err_short = run(true);
   EXPECT_GT(std::abs(err_mean), 300'000.0) << "the plain running mean is biased by the queued answers";
   EXPECT_LT(std::abs(err_short), 100'000.0);
-  std::printf("TIMESYNC with a queued answer in three: offset error %.0f us (mean) vs %.0f us (short round trips)\n",
-              1e-3 * err_mean, 1e-3 * err_short);
+  std::printf(
+      "TIMESYNC with a queued answer in three: offset error %.0f us (mean) vs %.0f us (short round trips)\n",
+      1e-3 * err_mean, 1e-3 * err_short);
 }
 
 TEST(MavlinkHighresImu, OverASerialPortToo) {

@@ -50,7 +50,9 @@ struct Field {
 uint8_t crc_extra_of(const char* message, std::vector<Field> base) {
   std::stable_sort(base.begin(), base.end(), [](const Field& a, const Field& b) { return a.size > b.size; });
   uint16_t crc = 0xFFFF;
-  auto add = [&](const std::string& s) { crc = km::crc_x25(reinterpret_cast<const uint8_t*>(s.data()), s.size(), crc); };
+  auto add = [&](const std::string& s) {
+    crc = km::crc_x25(reinterpret_cast<const uint8_t*>(s.data()), s.size(), crc);
+  };
   add(std::string(message) + " ");
   for (const Field& f : base) {
     add(std::string(f.type) + " ");
@@ -123,7 +125,8 @@ TEST(MavlinkCrc, HeartbeatAndTimesyncCrcExtraFromTheXml) {
                                        {"uint8_t", "mavlink_version", 1, 0}}),
             km::kHeartbeatCrcExtra);
   // TIMESYNC's target_system / target_component are extensions: not in CRC_EXTRA.
-  EXPECT_EQ(crc_extra_of("TIMESYNC", {{"int64_t", "tc1", 8, 0}, {"int64_t", "ts1", 8, 0}}), km::kTimesyncCrcExtra);
+  EXPECT_EQ(crc_extra_of("TIMESYNC", {{"int64_t", "tc1", 8, 0}, {"int64_t", "ts1", 8, 0}}),
+            km::kTimesyncCrcExtra);
   EXPECT_EQ(km::kHeartbeatCrcExtra, 50);
   EXPECT_EQ(km::kTimesyncCrcExtra, 34);
 }
@@ -174,7 +177,8 @@ TEST(MavlinkDecoder, FindsEveryFrameThroughNoiseDamageAndSplits) {
     km::MavlinkDecoder d;
     std::vector<km::MavlinkFrame> got;
     for (size_t i = 0; i < s.size(); i += step)
-      d.feed(s.data() + i, std::min(step, s.size() - i), [&](const km::MavlinkFrame& fr) { got.push_back(fr); });
+      d.feed(s.data() + i, std::min(step, s.size() - i),
+             [&](const km::MavlinkFrame& fr) { got.push_back(fr); });
     ASSERT_EQ(got.size(), 4u);
     EXPECT_EQ(got[0].msgid, km::kMsgIdTimesync);
     EXPECT_EQ(km::unpack_timesync(got[0].payload).ts1, 123456789012345);
@@ -214,10 +218,18 @@ TEST(MavlinkDecoder, MutatedStreamsNeverCrashOrInventFrames) {
     for (int e = 0; e < edits; ++e) {
       const size_t at = rng() % m.size();
       switch (rng() % 4) {
-        case 0: m[at] ^= static_cast<uint8_t>(1u << (rng() % 8)); break;
-        case 1: m[at] = static_cast<uint8_t>(rng()); break;
-        case 2: m.erase(m.begin() + static_cast<long>(at)); break;
-        default: m.insert(m.begin() + static_cast<long>(at), static_cast<uint8_t>(rng())); break;
+        case 0:
+          m[at] ^= static_cast<uint8_t>(1u << (rng() % 8));
+          break;
+        case 1:
+          m[at] = static_cast<uint8_t>(rng());
+          break;
+        case 2:
+          m.erase(m.begin() + static_cast<long>(at));
+          break;
+        default:
+          m.insert(m.begin() + static_cast<long>(at), static_cast<uint8_t>(rng()));
+          break;
       }
     }
     total += kestrel::test::mavlink_fuzz_one(m.data(), m.size());
@@ -435,24 +447,27 @@ TEST(MavlinkEncode, HeartbeatAndTimesyncDecodedByNodeMavlink) {
   const std::string cache = std::string(KESTREL_BUILD_DIR) + "/npm-cache";
   const kestrel::test::CmdResult install = kestrel::test::run_command(
       "sh " + std::string(KESTREL_SOURCE_DIR) + "/tests/mavlink/install_node_mavlink.sh " + cache);
-  if (install.code != 0) GTEST_SKIP() << "node-mavlink unavailable, independent decode NOT checked: " << install.out;
+  if (install.code != 0)
+    GTEST_SKIP() << "node-mavlink unavailable, independent decode NOT checked: " << install.out;
   const std::string bin = kestrel::test::temp_dir("mavlink_node_link") + "/frames.bin";
   {
     std::ofstream f(bin, std::ios::binary);
     uint8_t b[km::kMaxFrameBytes];
     km::HeartbeatMsg h;
     h.system_status = km::kMavStateActive;
-    f.write(reinterpret_cast<const char*>(b), static_cast<std::streamsize>(km::encode_heartbeat(h, 7, 1, 197, b)));
+    f.write(reinterpret_cast<const char*>(b),
+            static_cast<std::streamsize>(km::encode_heartbeat(h, 7, 1, 197, b)));
     km::TimesyncMsg t;
     t.tc1 = -5;  // signed on the wire
     t.ts1 = 1'234'567'890'123'456'789;
     t.target_system = 3;
     t.target_component = 1;
-    f.write(reinterpret_cast<const char*>(b), static_cast<std::streamsize>(km::encode_timesync(t, 8, 1, 197, b)));
+    f.write(reinterpret_cast<const char*>(b),
+            static_cast<std::streamsize>(km::encode_timesync(t, 8, 1, 197, b)));
   }
-  const kestrel::test::CmdResult r = kestrel::test::run_command(
-      "NODE_PATH=" + cache + "/node_modules node " + std::string(KESTREL_SOURCE_DIR) +
-      "/tests/mavlink/decode_odometry.js " + bin);
+  const kestrel::test::CmdResult r = kestrel::test::run_command("NODE_PATH=" + cache + "/node_modules node " +
+                                                                std::string(KESTREL_SOURCE_DIR) +
+                                                                "/tests/mavlink/decode_odometry.js " + bin);
   ASSERT_EQ(r.code, 0) << r.out;
   EXPECT_NE(r.out.find("stats valid 2 invalid 0 unknown 0"), std::string::npos) << r.out;
   // pkt I seq sysid compid msgid len crc_in crc_node: node's CRC (its CRC_EXTRA) equals ours.
@@ -532,8 +547,8 @@ TEST(MavlinkCli, UdpAndSerialBothSendHeartbeatAndOdometry) {
       udp_bytes.insert(udp_bytes.end(), buf, buf + n);
     }
   });
-  const kestrel::test::CmdResult r =
-      kestrel::test::run_kestrel("replay " + log + " --estimator vo --mavlink-udp 127.0.0.1:" + std::to_string(port));
+  const kestrel::test::CmdResult r = kestrel::test::run_kestrel(
+      "replay " + log + " --estimator vo --mavlink-udp 127.0.0.1:" + std::to_string(port));
   reader.join();
   close(rx);
   ASSERT_EQ(r.code, 0) << r.out;
@@ -552,15 +567,17 @@ TEST(MavlinkCli, UdpAndSerialBothSendHeartbeatAndOdometry) {
     const std::vector<uint8_t> v = pty.read_for(200);
     serial_bytes.insert(serial_bytes.end(), v.begin(), v.end());
   });
-  const kestrel::test::CmdResult s =
-      kestrel::test::run_kestrel("replay " + log + " --estimator vo --mavlink-serial " + pty.slave + ":921600");
+  const kestrel::test::CmdResult s = kestrel::test::run_kestrel(
+      "replay " + log + " --estimator vo --mavlink-serial " + pty.slave + ":921600");
   done.store(true);
   sreader.join();
   ASSERT_EQ(s.code, 0) << s.out;
   expect_heartbeat_and_odometry(serial_bytes, "--mavlink-serial");
   // Both at once, or a malformed one, is a usage error.
-  EXPECT_EQ(kestrel::test::run_kestrel("replay " + log + " --mavlink-udp 127.0.0.1:1 --mavlink-serial " + pty.slave).code,
-            2);
+  EXPECT_EQ(
+      kestrel::test::run_kestrel("replay " + log + " --mavlink-udp 127.0.0.1:1 --mavlink-serial " + pty.slave)
+          .code,
+      2);
   EXPECT_EQ(kestrel::test::run_kestrel("replay " + log + " --mavlink-serial " + pty.slave + ":fast").code, 2);
 }
 

@@ -450,13 +450,15 @@ TEST(MavlinkAdapter, EstimatorCovarianceIsRotatedIntoFrdAndCheckedByPerturbation
       EXPECT_NEAR(m0.pose_covariance[idx], expect(r, c), 2e-3 * expect.diagonal().maxCoeff() + 1e-7)
           << "pose_covariance[" << idx << "] (" << r << "," << c << ")";
   // The backends export no twist covariance: the documented fixed value.
-  EXPECT_FLOAT_EQ(m0.velocity_covariance[0], static_cast<float>(opt.tracking_vel_sigma_mps * opt.tracking_vel_sigma_mps));
+  EXPECT_FLOAT_EQ(m0.velocity_covariance[0],
+                  static_cast<float>(opt.tracking_vel_sigma_mps * opt.tracking_vel_sigma_mps));
   // Coasting: the last camera update's covariance would be over-confident; the fixed coasting value goes out.
   km::OdometryInput coast = in;
   coast.quality = kestrel::core::TrackingQuality::kImuOnly;
   km::OdometryMsg mc;
   ASSERT_TRUE(km::to_odometry(coast, opt, mc));
-  EXPECT_FLOAT_EQ(mc.pose_covariance[0], static_cast<float>(opt.coasting_pos_sigma_m * opt.coasting_pos_sigma_m));
+  EXPECT_FLOAT_EQ(mc.pose_covariance[0],
+                  static_cast<float>(opt.coasting_pos_sigma_m * opt.coasting_pos_sigma_m));
   EXPECT_FLOAT_EQ(mc.pose_covariance[1], 0.0f);
 }
 

@@ -41,7 +41,8 @@ struct Snapshot {
     w = std::make_unique<WindowOptimizer>(test::sim_K(), test::sim_T_BC(), o);
     std::mt19937_64 rng(5);
     for (std::size_t k = 0; k < frames.size(); ++k) {
-      w->add_frame(test::frame_input(frames[k], test::perturb(frames[k].truth, rng, 0.03, 0.017, k == 0), k == 0));
+      w->add_frame(
+          test::frame_input(frames[k], test::perturb(frames[k].truth, rng, 0.03, 0.017, k == 0), k == 0));
       if (k + 1 < frames.size()) w->optimize_ours();
     }
     save();
@@ -77,9 +78,11 @@ void BM_Solve(benchmark::State& state) {
   state.counters["iterations"] = iters / std::max(1.0, n);
   state.counters["solve_ms"] = ms / std::max(1.0, n);
   state.counters["landmarks"] = snap.w->num_landmarks();
-  state.SetLabel(std::string(ceres ? "ceres" : "ours") + " S=" + std::to_string(S) + " N=" + std::to_string(N));
+  state.SetLabel(std::string(ceres ? "ceres" : "ours") + " S=" + std::to_string(S) +
+                 " N=" + std::to_string(N));
 }
-BENCHMARK(BM_Solve)->Args({3, 5, 0})->Args({3, 5, 1})->Args({2, 3, 0})->Args({2, 3, 1})->Unit(benchmark::kMillisecond);
+BENCHMARK(BM_Solve)->Args({3, 5, 0})->Args({3, 5, 1})->Args({2, 3, 0})->Args({2, 3, 1})->Unit(
+    benchmark::kMillisecond);
 
 struct Lat {
   double p50 = 0, p99 = 0, mean = 0, ate = 0;
@@ -97,7 +100,8 @@ Lat sliding(int S, int N, WindowOptions::Solver solver, int n_frames) {
   std::vector<double> ms;
   double se = 0;
   for (std::size_t k = 0; k < frames.size(); ++k) {
-    const NavState g = k == 0 ? test::perturb(frames[0].truth, rng, 0.0, 0.01, true) : core::predict(w.latest(), frames[k].pim);
+    const NavState g = k == 0 ? test::perturb(frames[0].truth, rng, 0.0, 0.01, true)
+                              : core::predict(w.latest(), frames[k].pim);
     w.add_frame(test::frame_input(frames[k], g, k == 0));
     const WindowOptimizer::Result r = w.optimize();
     if (frames[k].keyframe) ms.push_back(r.solve_ms);
@@ -126,8 +130,10 @@ int main(int argc, char** argv) {
   int n = static_cast<int>(args.size());
   benchmark::Initialize(&n, args.data());
   benchmark::RunSpecifiedBenchmarks();
-  std::printf("\nSliding synthetic flight, %d frames at 20 fps (10 keyframes/s), default options "
-              "(max_iterations 8, budget 35 ms); optimizer latency per keyframe:\n", g_frames);
+  std::printf(
+      "\nSliding synthetic flight, %d frames at 20 fps (10 keyframes/s), default options "
+      "(max_iterations 8, budget 35 ms); optimizer latency per keyframe:\n",
+      g_frames);
   std::printf("%-6s %-6s %10s %10s %10s %10s\n", "window", "solver", "p50_ms", "p99_ms", "mean_ms", "ATE_m");
   for (const auto& sn : {std::pair<int, int>{3, 5}, std::pair<int, int>{2, 3}}) {
     for (const auto solver : {WindowOptions::Solver::kOurs, WindowOptions::Solver::kCeres}) {

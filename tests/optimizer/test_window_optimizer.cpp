@@ -107,16 +107,17 @@ TEST(WindowOptimizer, RecoversPosesFromPerturbedGuesses) {
   const PoseErr before = window_error(w, fx.frames);
   const WindowOptimizer::Result r = w.optimize();
   const PoseErr after = window_error(w, fx.frames);
-  std::printf("landmarks %d residuals %d iterations %d cost %.1f -> %.1f (%s) in %.2f ms; pos err %.4f -> %.5f m, "
-              "rot err %.4f -> %.5f rad, relative to the oldest: pos %.5f m, rot %.5f rad\n",
-              r.landmarks, r.residuals, r.iterations, r.cost_initial, r.cost_final, to_string(r.status), r.solve_ms,
-              before.max_pos, after.max_pos, before.max_rot, after.max_rot, after.max_rel_pos, after.max_rel_rot);
+  std::printf(
+      "landmarks %d residuals %d iterations %d cost %.1f -> %.1f (%s) in %.2f ms; pos err %.4f -> %.5f m, "
+      "rot err %.4f -> %.5f rad, relative to the oldest: pos %.5f m, rot %.5f rad\n",
+      r.landmarks, r.residuals, r.iterations, r.cost_initial, r.cost_final, to_string(r.status), r.solve_ms,
+      before.max_pos, after.max_pos, before.max_rot, after.max_rot, after.max_rel_pos, after.max_rel_rot);
   EXPECT_TRUE(r.ok);
   EXPECT_EQ(r.status, WindowOptimizer::Status::kConverged);
   EXPECT_LT(r.cost_final, 0.05 * r.cost_initial);
   EXPECT_GT(r.landmarks, 100);
-  EXPECT_LT(after.max_pos, 0.01);       // mm level
-  EXPECT_LT(after.max_rot, 0.0175);     // sub-degree (common tilt, see window_error)
+  EXPECT_LT(after.max_pos, 0.01);    // mm level
+  EXPECT_LT(after.max_rot, 0.0175);  // sub-degree (common tilt, see window_error)
   EXPECT_LT(after.max_rel_pos, 0.01);
   EXPECT_LT(after.max_rel_rot, 0.0035);  // 0.2 degree
   EXPECT_NEAR(w.evaluate_cost(), r.cost_final, 1e-9 * r.cost_final);
@@ -131,7 +132,8 @@ TEST(WindowOptimizer, GaugeHoldsFirstPositionAndYaw) {
   std::mt19937_64 rng(6);
   // Every guess perturbed, the first one too (its position and yaw are the gauge).
   for (int k = 0; k < 8; ++k)
-    w.add_frame(kestrel::test::frame_input(fx.frames[k], kestrel::test::perturb(fx.frames[k].truth, rng), k == 0));
+    w.add_frame(
+        kestrel::test::frame_input(fx.frames[k], kestrel::test::perturb(fx.frames[k].truth, rng), k == 0));
   NavState first0;
   ASSERT_TRUE(w.state_of(fx.frames[0].t_ns, &first0));
   const WindowOptimizer::Result r = w.optimize();
@@ -155,7 +157,8 @@ void cross_check(int S, int N, int n_frames, int keyframe_every, bool huber_acti
     std::mt19937_64 rng(seed + 300);
     std::normal_distribution<double> N01(0.0, 0.005);
     std::vector<Eigen::Vector3d> map_p(fx.points.size());
-    for (std::size_t i = 0; i < map_p.size(); ++i) map_p[i] = fx.points[i] + Eigen::Vector3d(N01(rng), N01(rng), N01(rng));
+    for (std::size_t i = 0; i < map_p.size(); ++i)
+      map_p[i] = fx.points[i] + Eigen::Vector3d(N01(rng), N01(rng), N01(rng));
     for (SimFrame& f : fx.frames)
       for (WindowObservation& o : f.obs)
         if (o.landmark_id % 3 == 0) {
@@ -211,10 +214,11 @@ void cross_check(int S, int N, int n_frames, int keyframe_every, bool huber_acti
   co.max_iterations = 100;
   co.function_tolerance = 1e-14;
   const WindowOptimizer::Result rb = solve_window_ceres(b.problem(), co);
-  std::printf("S=%d N=%d states %d prior %d landmarks %d: ours cost %.6f -> %.9f (%d it, %.2f ms, %s); "
-              "ceres %.6f -> %.9f (%d it, %.2f ms)\n",
-              S, N, a.num_states(), a.prior_dimension(), ra.landmarks, ra.cost_initial, ra.cost_final, ra.iterations,
-              ra.solve_ms, to_string(ra.status), rb.cost_initial, rb.cost_final, rb.iterations, rb.solve_ms);
+  std::printf(
+      "S=%d N=%d states %d prior %d landmarks %d: ours cost %.6f -> %.9f (%d it, %.2f ms, %s); "
+      "ceres %.6f -> %.9f (%d it, %.2f ms)\n",
+      S, N, a.num_states(), a.prior_dimension(), ra.landmarks, ra.cost_initial, ra.cost_final, ra.iterations,
+      ra.solve_ms, to_string(ra.status), rb.cost_initial, rb.cost_final, rb.iterations, rb.solve_ms);
   EXPECT_NEAR(ra.cost_initial, rb.cost_initial, 1e-9 * ra.cost_initial);
   EXPECT_NEAR(ra.cost_final, rb.cost_final, 1e-7 * rb.cost_final);
   EXPECT_EQ(ra.landmarks, rb.landmarks);
@@ -230,9 +234,10 @@ void cross_check(int S, int N, int n_frames, int keyframe_every, bool huber_acti
   for (std::size_t i = 0; i < a.problem().lms.size(); ++i)
     if (a.problem().lms[i].used && a.problem().lms[i].active())
       dl = std::max(dl, (a.problem().lms[i].p_W - b.problem().lms[i].p_W).norm());
-  std::printf("  max |ours - ceres|: p %.2e m, R %.2e rad, v %.2e m/s, landmarks %.2e m, t_d %.2e s (%s %.3f ms)\n",
-              dp, dr, dv, dl, std::abs(a.problem().td_s - b.problem().td_s), o.estimate_time_offset ? "true" : "off",
-              1e3 * td_s);
+  std::printf(
+      "  max |ours - ceres|: p %.2e m, R %.2e rad, v %.2e m/s, landmarks %.2e m, t_d %.2e s (%s %.3f ms)\n",
+      dp, dr, dv, dl, std::abs(a.problem().td_s - b.problem().td_s), o.estimate_time_offset ? "true" : "off",
+      1e3 * td_s);
   EXPECT_LT(std::abs(a.problem().td_s - b.problem().td_s), 1e-8);
   EXPECT_LT(dp, 1e-6);
   EXPECT_LT(dr, 1e-6);
@@ -280,8 +285,9 @@ TEST(WindowOptimizer, TimeOffsetStateSlidesAndDoesNoHarmWithoutOffset) {
       }
     }
     pos_err[estimate] = std::sqrt(err2 / n);
-    std::printf("estimate %s: t_d %+.3f ms, newest position rms %.2f mm (prior dim %d)\n", estimate ? "on " : "off",
-                1e3 * w.problem().td_s, 1e3 * pos_err[estimate], w.prior_dimension());
+    std::printf("estimate %s: t_d %+.3f ms, newest position rms %.2f mm (prior dim %d)\n",
+                estimate ? "on " : "off", 1e3 * w.problem().td_s, 1e3 * pos_err[estimate],
+                w.prior_dimension());
     if (estimate) {
       // ~+1.2 ms here: the backward-difference image velocity lags by half a frame.
       EXPECT_NEAR(w.problem().td_s, 0.0, 2e-3);
@@ -293,7 +299,9 @@ TEST(WindowOptimizer, TimeOffsetStateSlidesAndDoesNoHarmWithoutOffset) {
   }
   EXPECT_LT(pos_err[1], 1.1 * pos_err[0] + 1e-3);
 }
-TEST(WindowOptimizer, MatchesCeresWithMapPointPriors) { cross_check(3, 5, 14, 2, true, 57, false, false, 0.0, true); }
+TEST(WindowOptimizer, MatchesCeresWithMapPointPriors) {
+  cross_check(3, 5, 14, 2, true, 57, false, false, 0.0, true);
+}
 
 TEST(WindowOptimizer, CeresIsSelectable) {
   Fixture fx(8, 41, 1, 5.0);
@@ -370,7 +378,8 @@ TEST(WindowOptimizer, LandmarkBudgetAndBadInputAreCounted) {
   // Missing preintegration after the first frame: rejected, not a crash.
   WindowFrameInput bad = kestrel::test::frame_input(fx.frames[1], fx.frames[1].truth, true);
   EXPECT_FALSE(w.add_frame(bad));
-  for (int k = 1; k < 4; ++k) ASSERT_TRUE(w.add_frame(kestrel::test::frame_input(fx.frames[k], fx.frames[k].truth, false)));
+  for (int k = 1; k < 4; ++k)
+    ASSERT_TRUE(w.add_frame(kestrel::test::frame_input(fx.frames[k], fx.frames[k].truth, false)));
   EXPECT_LE(w.num_landmarks(), 50);
   EXPECT_TRUE(w.optimize().ok);
 }
@@ -383,7 +392,8 @@ TEST(WindowOptimizer, LandmarksWithoutDepthAreTriangulated) {
   o.max_iterations = 20;
   WindowOptimizer w(kestrel::test::sim_K(), kestrel::test::sim_T_BC(), o);
   std::mt19937_64 rng(11);
-  for (int k = 0; k < 6; ++k) w.add_frame(kestrel::test::frame_input(fx.frames[k], fx.frames[k].truth, k == 0));
+  for (int k = 0; k < 6; ++k)
+    w.add_frame(kestrel::test::frame_input(fx.frames[k], fx.frames[k].truth, k == 0));
   EXPECT_GT(w.counters().landmarks_triangulated, 20u);
   EXPECT_EQ(w.counters().landmarks_from_depth, 0u);
   const WindowOptimizer::Result r = w.optimize();
@@ -434,9 +444,10 @@ TEST(WindowOptimizer, MarginalisationNotWorseThanDrop) {
   const SlideStats marg = slide(frames, o);
   o.marginalize = false;
   const SlideStats drop = slide(frames, o);
-  std::printf("%zu frames sliding, S=3 N=5: ATE rms marginalise %.4f m, drop %.4f m; keyframe latency p50/p99 "
-              "marginalise %.2f/%.2f ms, drop %.2f/%.2f ms\n",
-              frames.size(), marg.ate_rms, drop.ate_rms, marg.p50_ms, marg.p99_ms, drop.p50_ms, drop.p99_ms);
+  std::printf(
+      "%zu frames sliding, S=3 N=5: ATE rms marginalise %.4f m, drop %.4f m; keyframe latency p50/p99 "
+      "marginalise %.2f/%.2f ms, drop %.2f/%.2f ms\n",
+      frames.size(), marg.ate_rms, drop.ate_rms, marg.p50_ms, marg.p99_ms, drop.p50_ms, drop.p99_ms);
   EXPECT_LT(marg.ate_rms, 0.10);
   EXPECT_LE(marg.ate_rms, drop.ate_rms * 1.10 + 0.002);
 }

@@ -135,12 +135,14 @@ void check_imu(bool bounded) {
     Matrix15d Ji, Jj;
     imu_bias_residual(P, sj, xi, xj, &Ji, &Jj);
     // Whitened residuals are large (1e3-1e5 per unit): relative tolerance on the worst entry.
-    EXPECT_TRUE(check_jacobian(Ji, [&](const VectorXd& d) {
-      return VectorXd(imu_bias_residual(P, sj, state_plus(xi, to15(d)), xj));
-    }, 1e-5, 1e-6, 1e-7));
-    EXPECT_TRUE(check_jacobian(Jj, [&](const VectorXd& d) {
-      return VectorXd(imu_bias_residual(P, sj, xi, state_plus(xj, to15(d))));
-    }, 1e-5, 1e-6, 1e-7));
+    EXPECT_TRUE(check_jacobian(
+        Ji,
+        [&](const VectorXd& d) { return VectorXd(imu_bias_residual(P, sj, state_plus(xi, to15(d)), xj)); },
+        1e-5, 1e-6, 1e-7));
+    EXPECT_TRUE(check_jacobian(
+        Jj,
+        [&](const VectorXd& d) { return VectorXd(imu_bias_residual(P, sj, xi, state_plus(xj, to15(d)))); },
+        1e-5, 1e-6, 1e-7));
   }
 }
 

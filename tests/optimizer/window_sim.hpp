@@ -20,15 +20,15 @@ namespace kestrel::test {
 
 struct SimConfig {
   double frame_rate_hz = 20.0;
-  int keyframe_every = 2;       // every k-th frame is a keyframe
-  int imu_per_frame = 10;       // IMU samples per frame interval (200 Hz at 20 fps)
+  int keyframe_every = 2;  // every k-th frame is a keyframe
+  int imu_per_frame = 10;  // IMU samples per frame interval (200 Hz at 20 fps)
   int n_landmarks = 600;
   double pixel_sigma = 0.7;
-  double depth_k = 0.0025;      // sigma(z) = k z^2
+  double depth_k = 0.0025;  // sigma(z) = k z^2
   double max_depth_m = 6.0;
-  double yaw_rate_rps = 0.35;   // slow turn so that every wall is seen
+  double yaw_rate_rps = 0.35;  // slow turn so that every wall is seen
   uint64_t seed = 1;
-  bool bounded_bias = false;    // truth bias stays constant either way
+  bool bounded_bias = false;  // truth bias stays constant either way
 };
 
 struct SimFrame {
@@ -37,7 +37,7 @@ struct SimFrame {
   bool keyframe = false;
   std::vector<core::WindowObservation> obs;
   std::vector<Eigen::Vector2d> uv_vel;  // image velocity per observation [px/s] (with_time_offset)
-  core::Preintegrated pim;  // previous frame -> this one (empty for the first)
+  core::Preintegrated pim;              // previous frame -> this one (empty for the first)
 };
 
 inline core::PinholeK sim_K() { return {420.0, 420.0, 320.0, 240.0}; }
@@ -69,12 +69,24 @@ class SimWorld {
       const double a = U(rng_), b = U(rng_);
       Eigen::Vector3d p;
       switch (face) {
-        case 0: p = {4.5, -4.5 + 9 * a, -1.0 + 3.5 * b}; break;
-        case 1: p = {-4.5, -4.5 + 9 * a, -1.0 + 3.5 * b}; break;
-        case 2: p = {-4.5 + 9 * a, 4.5, -1.0 + 3.5 * b}; break;
-        case 3: p = {-4.5 + 9 * a, -4.5, -1.0 + 3.5 * b}; break;
-        case 4: p = {-4.5 + 9 * a, -4.5 + 9 * b, -1.0}; break;
-        default: p = {-4.5 + 9 * a, -4.5 + 9 * b, 2.5}; break;
+        case 0:
+          p = {4.5, -4.5 + 9 * a, -1.0 + 3.5 * b};
+          break;
+        case 1:
+          p = {-4.5, -4.5 + 9 * a, -1.0 + 3.5 * b};
+          break;
+        case 2:
+          p = {-4.5 + 9 * a, 4.5, -1.0 + 3.5 * b};
+          break;
+        case 3:
+          p = {-4.5 + 9 * a, -4.5, -1.0 + 3.5 * b};
+          break;
+        case 4:
+          p = {-4.5 + 9 * a, -4.5 + 9 * b, -1.0};
+          break;
+        default:
+          p = {-4.5 + 9 * a, -4.5 + 9 * b, 2.5};
+          break;
       }
       points_.push_back(p);
     }
@@ -88,10 +100,12 @@ class SimWorld {
     *p = Eigen::Vector3d(0.8 * std::sin(0.6 * t), 0.6 * std::sin(0.9 * t), 0.8 + 0.2 * std::sin(1.1 * t));
     if (v) *v = Eigen::Vector3d(0.48 * std::cos(0.6 * t), 0.54 * std::cos(0.9 * t), 0.22 * std::cos(1.1 * t));
     if (a)
-      *a = Eigen::Vector3d(-0.288 * std::sin(0.6 * t), -0.486 * std::sin(0.9 * t), -0.242 * std::sin(1.1 * t));
+      *a =
+          Eigen::Vector3d(-0.288 * std::sin(0.6 * t), -0.486 * std::sin(0.9 * t), -0.242 * std::sin(1.1 * t));
     const double yaw = c_.yaw_rate_rps * t + 0.2 * std::sin(0.7 * t);
     const double pitch = 0.08 * std::sin(1.3 * t), roll = 0.1 * std::sin(0.8 * t + 0.3);
-    *R = (Eigen::AngleAxisd(yaw, Eigen::Vector3d::UnitZ()) * Eigen::AngleAxisd(pitch, Eigen::Vector3d::UnitY()) *
+    *R = (Eigen::AngleAxisd(yaw, Eigen::Vector3d::UnitZ()) *
+          Eigen::AngleAxisd(pitch, Eigen::Vector3d::UnitY()) *
           Eigen::AngleAxisd(roll, Eigen::Vector3d::UnitX()))
              .toRotationMatrix();
   }
@@ -123,7 +137,8 @@ class SimWorld {
     const double sg = n.gyro_noise_density_rad_s_sqrthz / std::sqrt(dt);
     const double sa = n.acc_noise_density_mps2_sqrthz / std::sqrt(dt);
     *gyro = w + bg_ + sg * Eigen::Vector3d(N(rng_), N(rng_), N(rng_));
-    *acc = R.transpose() * (a - Eigen::Vector3d(0, 0, -9.81)) + ba_ + sa * Eigen::Vector3d(N(rng_), N(rng_), N(rng_));
+    *acc = R.transpose() * (a - Eigen::Vector3d(0, 0, -9.81)) + ba_ +
+           sa * Eigen::Vector3d(N(rng_), N(rng_), N(rng_));
   }
 
   // Frames 0..n-1; frame 0 starts at t0_s.
@@ -261,7 +276,8 @@ inline core::WindowFrameInput frame_input(const SimFrame& f, const core::NavStat
 }
 
 // Fills a window with frames[0..n) at perturbed guesses (first frame: gauge kept).
-inline void fill_window(core::WindowOptimizer& w, const std::vector<SimFrame>& frames, int n, std::mt19937_64& rng) {
+inline void fill_window(core::WindowOptimizer& w, const std::vector<SimFrame>& frames, int n,
+                        std::mt19937_64& rng) {
   for (int k = 0; k < n; ++k) {
     w.add_frame(frame_input(frames[k], perturb(frames[k].truth, rng, 0.03, 0.017, k == 0), k == 0));
   }

@@ -80,8 +80,8 @@ TEST(EmbeddedApi, TheDefaultsAreTheCommandLinesWithTheMapInline) {
   o.height = 120;
   o.out_path = dir + "/f8.klog";
   kestrel::tools::run_simulation(o);
-  const kestrel::test::CmdResult r =
-      kestrel::test::run_kestrel("replay " + o.out_path + " --pace lockstep --traj-out " + dir + "/replay.txt");
+  const kestrel::test::CmdResult r = kestrel::test::run_kestrel(
+      "replay " + o.out_path + " --pace lockstep --traj-out " + dir + "/replay.txt");
   ASSERT_EQ(r.code, 0) << r.out;
   std::map<int64_t, Eigen::Vector3d> replay;
   {
@@ -132,8 +132,10 @@ TEST(EmbeddedApi, TheDefaultsAreTheCommandLinesWithTheMapInline) {
   uint64_t steps_inline = 0, steps_caller = 0;
   run(kestrel::MapWork::kInline, &n_inline, &d_inline, &steps_inline);
   run(kestrel::MapWork::kCaller, &n_caller, &d_caller, &steps_caller);
-  std::printf("embedded auto: %zu poses compared, max |diff| %.2e m inline; %zu, %.2e m with map_step() (%llu steps)\n",
-              n_inline, d_inline, n_caller, d_caller, static_cast<unsigned long long>(steps_caller));
+  std::printf(
+      "embedded auto: %zu poses compared, max |diff| %.2e m inline; %zu, %.2e m with map_step() (%llu "
+      "steps)\n",
+      n_inline, d_inline, n_caller, d_caller, static_cast<unsigned long long>(steps_caller));
   EXPECT_GT(n_inline, replay.size() * 95 / 100);
   EXPECT_LT(d_inline, 2e-6) << "the inline map must give lockstep replay's poses";
   EXPECT_EQ(steps_inline, 0u);

@@ -103,12 +103,14 @@ double first_lost_s(const ReplayRun& r, double from_s) {
 void print_row(const std::string& backend, const char* fault, const ReplayRun& r, const Recovery& rec) {
   const core::DivergenceCounts& d = r.report.estimator_counters.divergence;
   std::printf(
-      "DIVERGENCE-TABLE | %s | %s | divergences %llu, coast timeouts %llu, lost %.2f s, %llu lost poses withheld | "
+      "DIVERGENCE-TABLE | %s | %s | divergences %llu, coast timeouts %llu, lost %.2f s, %llu lost poses "
+      "withheld | "
       "recovered %s |\n",
       backend.c_str(), fault, static_cast<unsigned long long>(d.divergences),
       static_cast<unsigned long long>(d.coast_timeouts), 1e-9 * static_cast<double>(d.lost_ns),
       static_cast<unsigned long long>(r.report.lost_poses_withheld),
-      rec.recovered ? (std::to_string(rec.time_to_recover_s).substr(0, 4) + " s after the fault").c_str() : "never");
+      rec.recovered ? (std::to_string(rec.time_to_recover_s).substr(0, 4) + " s after the fault").c_str()
+                    : "never");
 }
 
 class Divergence : public ::testing::TestWithParam<std::string> {};

@@ -54,7 +54,7 @@ TEST(PipelineFaults, BaselineIsGood) {
   o.out_path = path;
   tools::run_simulation(o);
   const ReplayRun r = replay(path);
-  ASSERT_GT(static_cast<double>(r.poses.size()), 20.0 * kDuration_s);   // two thirds of the 30 Hz frames
+  ASSERT_GT(static_cast<double>(r.poses.size()), 20.0 * kDuration_s);  // two thirds of the 30 Hz frames
   EXPECT_GT(good_share(r, 1.5), 0.95);
   const auto& f = r.report.input_faults;
   EXPECT_EQ(f.missing + f.out_of_order + f.repeated + f.no_depth + f.imu_gaps, 0u);

@@ -93,7 +93,8 @@ TEST(PipelineTiming, RealtimeBudgetsAtVga) {
       1e-6 * static_cast<double>(r.estimator_imu_latency.max()));
 
   const double seconds = sim.duration_s - 2.0;  // after warm-up
-  ASSERT_GT(r.imu_to_output.count(), static_cast<uint64_t>(0.9 * 400.0 * seconds)) << "too few IMU samples timed";
+  ASSERT_GT(r.imu_to_output.count(), static_cast<uint64_t>(0.9 * 400.0 * seconds))
+      << "too few IMU samples timed";
   ASSERT_GT(r.tracking.count(), static_cast<uint64_t>(0.9 * 30.0 * seconds)) << "too few frames timed";
   EXPECT_LT(imu_p99_ms, 2.0) << "IMU-to-pose latency budget";
   EXPECT_LT(trk_p99_ms, frame_period_ms) << "tracking budget: one frame period";
@@ -185,7 +186,8 @@ TEST(PipelineTiming, OneCoreVgaEmbeddedProfile) {
   const double imu_budget_ms = all_applied ? 1.0 : 2.0;
   if (!all_applied)
     std::printf(
-        "TIMING | WARNING: the one-core table was not fully granted (no CAP_SYS_NICE / RLIMIT_RTPRIO, or CPU %d "
+        "TIMING | WARNING: the one-core table was not fully granted (no CAP_SYS_NICE / RLIMIT_RTPRIO, or CPU "
+        "%d "
         "refused): IMU-to-pose held to %.0f ms, not 1 ms\n",
         cpu, imu_budget_ms);
 
@@ -193,14 +195,18 @@ TEST(PipelineTiming, OneCoreVgaEmbeddedProfile) {
   const double trk_p99_ms = 1e-6 * static_cast<double>(r.tracking.percentile(99));
   const double opt_p99_ms = 1e-6 * static_cast<double>(r.optimizer.percentile(99));
   std::printf(
-      "TIMING | one core %d | %dx%d window-embedded | imu->pose p50 %.3f p99 %.3f max %.3f ms | tracking p50 %.2f "
-      "p99 %.2f ms | optimizer %llu solves p50 %.2f p99 %.2f ms | steady allocs %lld | drops imu %llu frame %llu "
+      "TIMING | one core %d | %dx%d window-embedded | imu->pose p50 %.3f p99 %.3f max %.3f ms | tracking p50 "
+      "%.2f "
+      "p99 %.2f ms | optimizer %llu solves p50 %.2f p99 %.2f ms | steady allocs %lld | drops imu %llu frame "
+      "%llu "
       "out %llu | rt factor %.3f\n",
       cpu, *o.width, *o.height, 1e-6 * static_cast<double>(r.imu_to_output.percentile(50)), imu_p99_ms,
-      1e-6 * static_cast<double>(r.imu_to_output.max()), 1e-6 * static_cast<double>(r.tracking.percentile(50)),
-      trk_p99_ms, static_cast<unsigned long long>(r.optimizer.count()),
-      1e-6 * static_cast<double>(r.optimizer.percentile(50)), opt_p99_ms, static_cast<long long>(r.steady_allocs),
-      static_cast<unsigned long long>(r.imu_ring_drops), static_cast<unsigned long long>(r.frame_ring_drops),
+      1e-6 * static_cast<double>(r.imu_to_output.max()),
+      1e-6 * static_cast<double>(r.tracking.percentile(50)), trk_p99_ms,
+      static_cast<unsigned long long>(r.optimizer.count()),
+      1e-6 * static_cast<double>(r.optimizer.percentile(50)), opt_p99_ms,
+      static_cast<long long>(r.steady_allocs), static_cast<unsigned long long>(r.imu_ring_drops),
+      static_cast<unsigned long long>(r.frame_ring_drops),
       static_cast<unsigned long long>(r.output_ring_drops), r.realtime_factor);
 
   const double seconds = sim.duration_s - 2.0;  // after warm-up

@@ -71,8 +71,8 @@ TEST(TimeOffset, TheRigsOffsetMakesEveryOffsetAsGoodAsNone) {
   for (const double offset_ms : {-30.0, -15.0, 15.0, 30.0}) {
     SCOPED_TRACE("offset " + std::to_string(offset_ms) + " ms");
     const OffsetRun r = replay(flight(dir, offset_ms, offset_ms), false);
-    std::printf("offset %+5.1f ms stated by the rig: ATE %.2f cm, reported %.3f ms\n", offset_ms, 100 * r.ate_m,
-                r.time_offset_ms);
+    std::printf("offset %+5.1f ms stated by the rig: ATE %.2f cm, reported %.3f ms\n", offset_ms,
+                100 * r.ate_m, r.time_offset_ms);
     EXPECT_FALSE(r.estimated);
     EXPECT_DOUBLE_EQ(r.time_offset_ms, offset_ms);  // the metrics' time_offset_ms: the configured value
     // Within the run-to-run noise of the simulator's images (a few mm here).

@@ -15,7 +15,9 @@ volatile std::uint64_t sink = 0;
   for (int i = 0; i < n; ++i) sink = sink + leaf(static_cast<std::uint64_t>(i));
 }
 
-[[gnu::noinline]] int recurse(int depth) { return depth == 0 ? static_cast<int>(sink & 1) : 1 + recurse(depth - 1); }
+[[gnu::noinline]] int recurse(int depth) {
+  return depth == 0 ? static_cast<int>(sink & 1) : 1 + recurse(depth - 1);
+}
 }  // namespace probe
 
 int main() {

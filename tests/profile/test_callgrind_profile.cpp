@@ -1,12 +1,11 @@
 #include <gtest/gtest.h>
+#include <unistd.h>
 
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <string>
-
-#include <unistd.h>
 
 #include "kestrel/tools/cpu_budget.hpp"
 #include "run_command.hpp"
@@ -17,7 +16,8 @@ using kestrel::tools::callgrind_inclusive;
 namespace {
 
 std::string temp_file(const std::string& name, const std::string& text) {
-  const fs::path p = fs::temp_directory_path() / ("kestrel_profile_" + std::to_string(::getpid()) + "_" + name);
+  const fs::path p =
+      fs::temp_directory_path() / ("kestrel_profile_" + std::to_string(::getpid()) + "_" + name);
   std::ofstream(p) << text;
   return p.string();
 }
@@ -45,8 +45,8 @@ TEST(CallgrindProfile, SumsInclusiveCostsOverCallArcs) {
 }
 
 TEST(CallgrindProfile, PicksTheIrColumnAmongSeveralEvents) {
-  const std::string f = temp_file("b.out",
-                                  "# callgrind format\nevents: Dr Ir Dw\nfn=main\ncfn=g\ncalls=2 9\n4 11 222 33\n");
+  const std::string f =
+      temp_file("b.out", "# callgrind format\nevents: Dr Ir Dw\nfn=main\ncfn=g\ncalls=2 9\n4 11 222 33\n");
   EXPECT_EQ(callgrind_inclusive(f, {"g"}).at("g").inclusive_ir, 222u);
   fs::remove(f);
 }
@@ -76,9 +76,12 @@ TEST(CallgrindProfile, ReadsRealCallgrindOutputOfTheProbe) {
                  << "); the host's valgrind cannot run its binaries. The native suites run this test.";
   ASSERT_EQ(std::system("valgrind --version > /dev/null 2>&1"), 0)
       << "valgrind is not installed (tools/install-deps.sh installs it)";
-  const fs::path out = fs::temp_directory_path() / ("kestrel_probe_" + std::to_string(::getpid()) + ".callgrind");
-  const std::string cmd = "valgrind --tool=callgrind --compress-strings=no --compress-pos=no --dump-instr=no "
-                          "--callgrind-out-file=" + out.string() + " " + probe + " > /dev/null 2>&1";
+  const fs::path out =
+      fs::temp_directory_path() / ("kestrel_probe_" + std::to_string(::getpid()) + ".callgrind");
+  const std::string cmd =
+      "valgrind --tool=callgrind --compress-strings=no --compress-pos=no --dump-instr=no "
+      "--callgrind-out-file=" +
+      out.string() + " " + probe + " > /dev/null 2>&1";
   ASSERT_EQ(std::system(cmd.c_str()), 0) << cmd;
   const auto c = callgrind_inclusive(out.string(), {"probe::leaf", "probe::work", "probe::recurse"});
   EXPECT_EQ(c.at("probe::work").calls, 10u);

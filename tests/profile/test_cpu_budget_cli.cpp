@@ -9,9 +9,8 @@
 #include <filesystem>
 #include <fstream>
 #include <map>
-#include <string>
-
 #include <nlohmann/json.hpp>
+#include <string>
 
 #include "run_command.hpp"
 
@@ -19,14 +18,16 @@ namespace fs = std::filesystem;
 
 TEST(CpuBudgetCli, EveryStageIsChargedAndThePartsFitTheWhole) {
   if (kestrel::test::cross_emulated())
-    GTEST_SKIP() << "SKIPPED LOUDLY: this build runs under an emulator (" << KESTREL_RUN_PREFIX
-                 << "); `kestrel bench --cpu-budget` starts the host's valgrind, which cannot run its binaries. "
-                    "The native suites run this test.";
+    GTEST_SKIP()
+        << "SKIPPED LOUDLY: this build runs under an emulator (" << KESTREL_RUN_PREFIX
+        << "); `kestrel bench --cpu-budget` starts the host's valgrind, which cannot run its binaries. "
+           "The native suites run this test.";
   const fs::path dir = fs::temp_directory_path() / ("kestrel_cpu_budget_" + std::to_string(::getpid()));
   fs::create_directories(dir);
   const std::string json = (dir / "budget.json").string();
-  const auto r = kestrel::test::run_kestrel("bench --cpu-budget --duration 3 --width 160 --height 120 --mapping off --workdir " +
-                             dir.string() + " --json " + json);
+  const auto r = kestrel::test::run_kestrel(
+      "bench --cpu-budget --duration 3 --width 160 --height 120 --mapping off --workdir " + dir.string() +
+      " --json " + json);
   ASSERT_EQ(r.code, 0) << r.out;
   std::ifstream f(json);
   ASSERT_TRUE(f.good()) << json;
@@ -46,7 +47,8 @@ TEST(CpuBudgetCli, EveryStageIsChargedAndThePartsFitTheWhole) {
   const double parts = per["ORB extraction"] + per["depth back-projection"] + per["IMU-predicted matching"] +
                        per["LONSC"] + per["pose refinement"] + per["keyframe"];
   EXPECT_LT(parts, per["tracking, whole frame"]);
-  EXPECT_GT(parts, 0.9 * per["tracking, whole frame"]) << "tracking's instructions went somewhere no stage names";
+  EXPECT_GT(parts, 0.9 * per["tracking, whole frame"])
+      << "tracking's instructions went somewhere no stage names";
   EXPECT_GT(per["optimizer solve"], 1e5);
   EXPECT_GT(per["IMU propagation"], 50.0);
   EXPECT_LT(per["IMU propagation"], 1e4);

@@ -1,7 +1,5 @@
 // MCAP container, ROS 2 CDR messages and rosbag2 folders: byte layouts checked
 // against the specifications by hand, round trips, damage and unknown input.
-#include "kestrel/drivers/rosbag2.hpp"
-
 #include <gtest/gtest.h>
 #include <unistd.h>
 #include <zlib.h>
@@ -22,6 +20,7 @@
 #include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/rig_yaml.hpp"
 #include "kestrel/drivers/ros2_msgs.hpp"
+#include "kestrel/drivers/rosbag2.hpp"
 
 namespace kestrel::test {
 namespace {
@@ -133,9 +132,11 @@ TEST(Rosbag2Cdr, SchemaTextsCarryTheirDependencies) {
   EXPECT_NE(s.find("MSG: builtin_interfaces/Time\nint32 sec\nuint32 nanosec\n"), std::string::npos);
   EXPECT_NE(ros2::schema_text("nav_msgs/msg/Odometry").find("MSG: geometry_msgs/TwistWithCovariance"),
             std::string::npos);
-  EXPECT_NE(ros2::schema_text("sensor_msgs/msg/PointCloud2").find("MSG: sensor_msgs/PointField\n"), std::string::npos);
-  EXPECT_NE(ros2::schema_text("visualization_msgs/msg/MarkerArray").find("MSG: visualization_msgs/MeshFile\n"),
+  EXPECT_NE(ros2::schema_text("sensor_msgs/msg/PointCloud2").find("MSG: sensor_msgs/PointField\n"),
             std::string::npos);
+  EXPECT_NE(
+      ros2::schema_text("visualization_msgs/msg/MarkerArray").find("MSG: visualization_msgs/MeshFile\n"),
+      std::string::npos);
   EXPECT_EQ(ros2::schema_text("sensor_msgs/msg/LaserScan"), "");  // a type this file does not know
 }
 

@@ -232,8 +232,8 @@ TEST(Rosbag2Npm, AnInfraredPairFromMcapCoreIsAStereoLog) {
 // lockstep trajectory is the .klog's to the last digit.
 TEST(Rosbag2Cli, AStereoLogRoundTripsThroughRosbag2) {
   const std::string klog = dir() + "/st.klog", bag = dir() + "/st_ros2";
-  CmdResult r = run_kestrel("sim --scenario figure8 --duration 3 --seed 5 --width 320 --height 240 --stereo --out " +
-                            klog);
+  CmdResult r = run_kestrel(
+      "sim --scenario figure8 --duration 3 --seed 5 --width 320 --height 240 --stereo --out " + klog);
   ASSERT_EQ(r.code, 0) << r.out;
   r = run_kestrel("convert " + klog + " --to rosbag2 --out " + bag);
   ASSERT_EQ(r.code, 0) << r.out;

@@ -1,7 +1,5 @@
 // Linked with kestrel_alloc_hook (ALLOC_HOOK): the counter must see heap use,
 // and the rt containers must show none on their steady-state paths.
-#include "kestrel/rt/alloc_counter.hpp"
-
 #include <gtest/gtest.h>
 
 #include <cstdint>
@@ -10,6 +8,7 @@
 #include <thread>
 #include <vector>
 
+#include "kestrel/rt/alloc_counter.hpp"
 #include "kestrel/rt/doorbell.hpp"
 #include "kestrel/rt/fixed_vector.hpp"
 #include "kestrel/rt/history_ring.hpp"
@@ -98,9 +97,7 @@ TEST(AllocCounter, RtPathsDoNotAllocate) {
     pool.release(h);
     hist->record(i * 100);
     count->inc();
-    {
-      ScopedTimer t(elapsed);
-    }
+    { ScopedTimer t(elapsed); }
     interval->tick();
     bell.ring();
     (void)bell.wait_for_ns(0);

@@ -1,7 +1,5 @@
 // rt::Doorbell: a ring is never slept through, an unrung wait times out, and a
 // sleeping consumer wakes on a ring long before its timeout.
-#include "kestrel/rt/doorbell.hpp"
-
 #include <gtest/gtest.h>
 
 #include <atomic>
@@ -9,6 +7,7 @@
 #include <thread>
 
 #include "kestrel/rt/clock.hpp"
+#include "kestrel/rt/doorbell.hpp"
 
 namespace kestrel::rt {
 namespace {

@@ -1,5 +1,3 @@
-#include "kestrel/rt/latency_histogram.hpp"
-
 #include <gtest/gtest.h>
 
 #include <algorithm>
@@ -8,6 +6,8 @@
 #include <memory>
 #include <random>
 #include <vector>
+
+#include "kestrel/rt/latency_histogram.hpp"
 
 namespace kestrel::rt {
 namespace {
@@ -23,7 +23,8 @@ std::int64_t reference_percentile(const std::vector<std::int64_t>& sorted, doubl
 TEST(LatencyHistogram, BinLayoutCoversEveryValueOnce) {
   std::mt19937_64 rng(7);
   for (int i = 0; i < 200000; ++i) {
-    const std::int64_t v = static_cast<std::int64_t>(rng() % (LatencyHistogram::kMaxTrackable + 1)) >> (rng() % 36);
+    const std::int64_t v =
+        static_cast<std::int64_t>(rng() % (LatencyHistogram::kMaxTrackable + 1)) >> (rng() % 36);
     const std::size_t b = LatencyHistogram::bin_index(v);
     ASSERT_LT(b, LatencyHistogram::kBins);
     ASSERT_LE(LatencyHistogram::bin_lower(b), v);
@@ -33,7 +34,8 @@ TEST(LatencyHistogram, BinLayoutCoversEveryValueOnce) {
   }
   // Consecutive bins tile the range without gaps.
   for (std::size_t b = 0; b + 1 < LatencyHistogram::kBins; ++b) {
-    ASSERT_EQ(LatencyHistogram::bin_lower(b) + LatencyHistogram::bin_width(b), LatencyHistogram::bin_lower(b + 1));
+    ASSERT_EQ(LatencyHistogram::bin_lower(b) + LatencyHistogram::bin_width(b),
+              LatencyHistogram::bin_lower(b + 1));
   }
 }
 

@@ -50,9 +50,7 @@ TEST(Perf, CountElapsedInterval) {
   solve->add_elapsed(300 * kNsPerMs);
   solve->add_elapsed(100 * kNsPerMs);
   solve->stop();  // without start: ignored
-  {
-    ScopedTimer t(solve);
-  }
+  { ScopedTimer t(solve); }
   const auto s = solve->snapshot();
   EXPECT_EQ(s.count, 3u);
   EXPECT_EQ(s.max_ns, 300 * kNsPerMs);

@@ -1,11 +1,10 @@
-#include "kestrel/rt/spsc_ring.hpp"
-
 #include <gtest/gtest.h>
 
 #include <cstdint>
 #include <string>
 #include <type_traits>
 
+#include "kestrel/rt/spsc_ring.hpp"
 #include "lifetime_tracker.hpp"
 
 namespace kestrel::rt {
@@ -95,10 +94,10 @@ TEST(SpscRing, LifetimeOfElements) {
     EXPECT_EQ(lifetimes().constructed, 0) << "storage must be raw, not default-constructed";
     ASSERT_TRUE(q.try_emplace(1));
     Tracked t2(2);
-    ASSERT_TRUE(q.try_push(t2));             // copy
-    ASSERT_TRUE(q.try_push(Tracked(3)));     // move
-    EXPECT_FALSE(q.try_push(Tracked(4)));    // full: rejected, temporary destroyed once
-    EXPECT_EQ(lifetimes().alive(), 4);       // three in the ring + t2
+    ASSERT_TRUE(q.try_push(t2));           // copy
+    ASSERT_TRUE(q.try_push(Tracked(3)));   // move
+    EXPECT_FALSE(q.try_push(Tracked(4)));  // full: rejected, temporary destroyed once
+    EXPECT_EQ(lifetimes().alive(), 4);     // three in the ring + t2
     EXPECT_EQ(q.front()->value(), 1);
     q.pop();
     EXPECT_EQ(lifetimes().alive(), 3);

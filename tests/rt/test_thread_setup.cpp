@@ -1,7 +1,5 @@
-#include "kestrel/rt/thread_setup.hpp"
-
-#include <gtest/gtest.h>
 #include <grp.h>
+#include <gtest/gtest.h>
 #include <sched.h>
 #include <sys/resource.h>
 #include <unistd.h>
@@ -11,6 +9,8 @@
 #include <cstdlib>
 #include <cstring>
 #include <string>
+
+#include "kestrel/rt/thread_setup.hpp"
 
 namespace kestrel::rt {
 namespace {
@@ -44,7 +44,8 @@ TEST(ThreadSetup, OrdinaryThreadIsFullyGranted) {
   const ThreadSpec spec{"kst-plain", 0, -1, 0};
   ThreadSetupReport inside;
   ThreadSetupReport r;
-  std::thread t = start_thread(spec, [&] { inside = query_thread(pthread_self(), spec); }, &r);
+  std::thread t = start_thread(
+      spec, [&] { inside = query_thread(pthread_self(), spec); }, &r);
   t.join();
   expect_coherent(r, spec);
   EXPECT_TRUE(r.fully_granted()) << to_string(r);
@@ -57,7 +58,8 @@ TEST(ThreadSetup, RealTimeRequestIsGrantedOrReportedFallback) {
   const ThreadSpec spec{"kst-rt-request-long-name", 10, nth_allowed_cpu(0), 5'000'000};
   ThreadSetupReport inside;
   ThreadSetupReport r;
-  std::thread t = start_thread(spec, [&] { inside = query_thread(pthread_self(), spec); }, &r);
+  std::thread t = start_thread(
+      spec, [&] { inside = query_thread(pthread_self(), spec); }, &r);
   t.join();
   expect_coherent(r, spec);
   EXPECT_TRUE(r.name_set) << "names are cut to 15 chars, not refused";
@@ -70,7 +72,8 @@ TEST(ThreadSetup, RealTimeRequestIsGrantedOrReportedFallback) {
 TEST(ThreadSetup, UnknownCpuIsReportedNotFatal) {
   const ThreadSpec spec{"kst-badcpu", 0, CPU_SETSIZE + 5, 0};
   ThreadSetupReport r;
-  std::thread t = start_thread(spec, [] {}, &r);
+  std::thread t = start_thread(
+      spec, [] {}, &r);
   t.join();
   expect_coherent(r, spec);
   EXPECT_FALSE(r.pinned);
@@ -92,7 +95,8 @@ void* record_sched(void* arg) {
 }
 
 TEST(ThreadSetup, PthreadPathReportsWhatItGot) {
-  for (const ThreadSpec spec : {ThreadSpec{"kst-pt-other", 0, -1, 0}, ThreadSpec{"kst-pt-fifo", 5, nth_allowed_cpu(0), 0}}) {
+  for (const ThreadSpec spec :
+       {ThreadSpec{"kst-pt-other", 0, -1, 0}, ThreadSpec{"kst-pt-fifo", 5, nth_allowed_cpu(0), 0}}) {
     Seen seen;
     pthread_t th{};
     ThreadSetupReport r;
@@ -158,8 +162,9 @@ TEST(ProcessSetupDeathTest, WithoutPrivilegesFallsBackAndSaysSo) {
   // threadsafe re-executes this binary, which an emulated cross build (the
   // aarch64 preset under qemu, no binfmt_misc) cannot do: it forks instead.
   GTEST_FLAG_SET(death_test_style, std::string(KESTREL_RUN_PREFIX).empty() ? "threadsafe" : "fast");
-  EXPECT_EXIT(run_unprivileged_and_exit(), testing::ExitedWithCode(0),
-              "memory lock NOT in effect.*\n.*SCHED_OTHER \\(requested SCHED_FIFO prio 20\\).*EPERM.*FALLBACK");
+  EXPECT_EXIT(
+      run_unprivileged_and_exit(), testing::ExitedWithCode(0),
+      "memory lock NOT in effect.*\n.*SCHED_OTHER \\(requested SCHED_FIFO prio 20\\).*EPERM.*FALLBACK");
 }
 
 }  // namespace

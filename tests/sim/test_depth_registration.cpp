@@ -85,9 +85,9 @@ class DepthRegistrationSim : public ::testing::Test {
       colour.render(T_WC, static_cast<uint64_t>(n), rgb.data(), truth.data());
       depth_cam.render(T_WC * t.T_CD, static_cast<uint64_t>(n), rgb.data(), raw_d.data());
       drivers::RegistrationStats st;
-      ASSERT_TRUE(reg.register_into(ImageView{dW, dH, dW * 2, PixelFormat::kDepthU16,
-                                              reinterpret_cast<const uint8_t*>(raw_d.data())},
-                                    out.data(), W * 2, &st));
+      ASSERT_TRUE(reg.register_into(
+          ImageView{dW, dH, dW * 2, PixelFormat::kDepthU16, reinterpret_cast<const uint8_t*>(raw_d.data())},
+          out.data(), W * 2, &st));
       EXPECT_GT(st.projected, st.valid_in / 2);
       const Agreement a = compare(out, truth);
       agree += a.agree;
@@ -140,8 +140,9 @@ TEST(DepthRegistration, PlaneShiftsByTheDisparityAndNearerPointsWin) {
   // A post at 1 m in columns 20..21 of the depth image.
   for (int y = 0; y < 30; ++y) d[y * 40 + 20] = d[y * 40 + 21] = 1000;
   drivers::RegistrationStats st;
-  ASSERT_TRUE(reg.register_into(ImageView{40, 30, 80, PixelFormat::kDepthU16, reinterpret_cast<const uint8_t*>(d.data())},
-                                out.data(), 80, &st));
+  ASSERT_TRUE(reg.register_into(
+      ImageView{40, 30, 80, PixelFormat::kDepthU16, reinterpret_cast<const uint8_t*>(d.data())}, out.data(),
+      80, &st));
   EXPECT_EQ(st.valid_in, 1200);
   // The wall moves 40 * 0.1 / 2 = 2 px to the left: the last two columns see no depth.
   const int y = 15;
@@ -154,8 +155,9 @@ TEST(DepthRegistration, PlaneShiftsByTheDisparityAndNearerPointsWin) {
   EXPECT_GT(st.occluded, 0);
   // Mismatched input is refused and leaves the output alone.
   std::vector<uint16_t> keep = out;
-  EXPECT_FALSE(reg.register_into(ImageView{30, 30, 60, PixelFormat::kDepthU16, reinterpret_cast<const uint8_t*>(d.data())},
-                                 out.data(), 80));
+  EXPECT_FALSE(reg.register_into(
+      ImageView{30, 30, 60, PixelFormat::kDepthU16, reinterpret_cast<const uint8_t*>(d.data())}, out.data(),
+      80));
   EXPECT_EQ(out, keep);
   dc.present = false;
   EXPECT_THROW(drivers::DepthRegistration(dc, dc.intrinsics, 0.001), std::invalid_argument);

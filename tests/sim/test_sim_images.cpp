@@ -74,8 +74,8 @@ std::string write_sevenscenes_flight(const Eigen::Matrix3d& R_WpW, int frames) {
     std::ofstream f(dir + stem + ".pose.txt");
     f.precision(17);
     for (int r = 0; r < 4; ++r)
-      f << Tp.matrix()(r, 0) << " " << Tp.matrix()(r, 1) << " " << Tp.matrix()(r, 2) << " " << Tp.matrix()(r, 3)
-        << "\n";
+      f << Tp.matrix()(r, 0) << " " << Tp.matrix()(r, 1) << " " << Tp.matrix()(r, 2) << " "
+        << Tp.matrix()(r, 3) << "\n";
   }
   const Eigen::Vector3d g = R_WpW * Eigen::Vector3d(0, 0, -1);
   std::ofstream(dir + "/gravity-direction.txt") << g.x() << " " << g.y() << " " << g.z() << "\n";
@@ -84,7 +84,8 @@ std::string write_sevenscenes_flight(const Eigen::Matrix3d& R_WpW, int frames) {
 }
 
 TEST(SimImages, SynthesisedImuFollowsTheRecordingsGroundTruth) {
-  const Eigen::Matrix3d R_WpW = Eigen::AngleAxisd(1.2, Eigen::Vector3d(1, 0.3, 0).normalized()).toRotationMatrix();
+  const Eigen::Matrix3d R_WpW =
+      Eigen::AngleAxisd(1.2, Eigen::Vector3d(1, 0.3, 0).normalized()).toRotationMatrix();
   const std::string dir = write_sevenscenes_flight(R_WpW, 150);
   kt::SimOptions o;
   o.images_path = dir;
@@ -116,7 +117,8 @@ TEST(SimImages, SynthesisedImuFollowsTheRecordingsGroundTruth) {
     ++n;
   }
   const double rms_g = std::sqrt(se_g / n), rms_a = std::sqrt(se_a / n);
-  std::printf("synthesised vs true IMU over %d samples: gyro %.4f rad/s, acc %.3f m/s^2 RMS\n", n, rms_g, rms_a);
+  std::printf("synthesised vs true IMU over %d samples: gyro %.4f rad/s, acc %.3f m/s^2 RMS\n", n, rms_g,
+              rms_a);
   EXPECT_LT(rms_g, 0.02);
   EXPECT_LT(rms_a, 0.15);
 }

@@ -55,15 +55,16 @@ Vector3d acc(const kestrel::ImuSample& m) { return {m.acc_mps2[0], m.acc_mps2[1]
 
 TEST(SimImu, Bmx055NumbersAreTable1InSi) {
   const kt::ImuModel m = kt::ImuModel::bmx055();
-  EXPECT_NEAR(m.gyro_noise_density_rad_s_sqrthz, 2.4435e-4, 1e-8);   // 0.014 deg/s/sqrt(Hz)
-  EXPECT_NEAR(m.gyro_bias_init_sigma_rps, 1.7453e-3, 1e-7);          // 360 deg/h
-  EXPECT_NEAR(m.acc_noise_density_mps2_sqrthz, 1.4710e-3, 1e-7);     // 150 ug/sqrt(Hz)
-  EXPECT_NEAR(m.acc_bias_init_sigma_mps2, 3.9227e-2, 1e-6);          // 4 mg
-  EXPECT_NEAR(m.gyro_resolution_rps, 6.9813e-5, 1e-9);               // 0.004 deg/s
-  EXPECT_NEAR(m.acc_resolution_mps2, 9.6105e-3, 1e-7);               // 0.98 mg
+  EXPECT_NEAR(m.gyro_noise_density_rad_s_sqrthz, 2.4435e-4, 1e-8);  // 0.014 deg/s/sqrt(Hz)
+  EXPECT_NEAR(m.gyro_bias_init_sigma_rps, 1.7453e-3, 1e-7);         // 360 deg/h
+  EXPECT_NEAR(m.acc_noise_density_mps2_sqrthz, 1.4710e-3, 1e-7);    // 150 ug/sqrt(Hz)
+  EXPECT_NEAR(m.acc_bias_init_sigma_mps2, 3.9227e-2, 1e-6);         // 4 mg
+  EXPECT_NEAR(m.gyro_resolution_rps, 6.9813e-5, 1e-9);              // 0.004 deg/s
+  EXPECT_NEAR(m.acc_resolution_mps2, 9.6105e-3, 1e-7);              // 0.98 mg
   EXPECT_NEAR(m.acc_bias_tau_s, 300.0, 0.0);
   // Stationary std of the eq. 6 process equals the 4 mg RMS.
-  EXPECT_NEAR(m.acc_random_walk_mps3_sqrthz * std::sqrt(m.acc_bias_tau_s / 2), m.acc_bias_init_sigma_mps2, 1e-12);
+  EXPECT_NEAR(m.acc_random_walk_mps3_sqrthz * std::sqrt(m.acc_bias_tau_s / 2), m.acc_bias_init_sigma_mps2,
+              1e-12);
   const kestrel::ImuNoise n = m.to_rig();
   EXPECT_EQ(n.gyro_noise_density_rad_s_sqrthz, m.gyro_noise_density_rad_s_sqrthz);
   EXPECT_EQ(n.acc_bias_tau_s, 300.0);
@@ -101,7 +102,7 @@ TEST(SimImu, StaticWhiteNoiseMatchesDensityTimesSqrtRate) {
 TEST(SimImu, AccelerometerBiasIsABoundedRandomWalk) {
   // tau = 1 s so a 2000 s run holds 2000 correlation times.
   kt::ImuModel model = kt::ImuModel::bmx055(1.0);
-  model.acc_random_walk_mps3_sqrthz = 0.04 / std::sqrt(0.5);   // stationary std 0.04 m/s^2
+  model.acc_random_walk_mps3_sqrthz = 0.04 / std::sqrt(0.5);  // stationary std 0.04 m/s^2
   const double rate = 100.0;
   kt::ImuSynth imu(model, rate, 9.81, 11);
   const ConstantTrajectory still(0.0, Vector3d::Zero());
@@ -115,7 +116,7 @@ TEST(SimImu, AccelerometerBiasIsABoundedRandomWalk) {
   m /= b.size();
   for (double x : b) v += (x - m) * (x - m);
   v /= b.size();
-  const size_t lag = static_cast<size_t>(rate);   // one tau
+  const size_t lag = static_cast<size_t>(rate);  // one tau
   for (size_t k = 0; k + lag < b.size(); ++k) c += (b[k] - m) * (b[k + lag] - m);
   c /= (b.size() - lag);
   EXPECT_NEAR(std::sqrt(v), 0.04, 0.004);
@@ -146,7 +147,8 @@ TEST(SimImu, QuantisesAndSaturatesWithFlags) {
     const auto m = imu.sample(slow.state(k / 400.0), k);
     EXPECT_EQ(m.flags, 0u);
     for (int i = 0; i < 3; ++i) {
-      const double qg = m.gyro_rps[i] / model.gyro_resolution_rps, qa = m.acc_mps2[i] / model.acc_resolution_mps2;
+      const double qg = m.gyro_rps[i] / model.gyro_resolution_rps,
+                   qa = m.acc_mps2[i] / model.acc_resolution_mps2;
       EXPECT_NEAR(qg, std::round(qg), 1e-6);
       EXPECT_NEAR(qa, std::round(qa), 1e-6);
     }
@@ -175,7 +177,8 @@ TEST(SimImu, IdealModelIsExactAndSeedsAreReproducible) {
     std::vector<double> out;
     for (int k = 0; k < 100; ++k) {
       const auto x = imu.sample(tr.state(k / 200.0), k);
-      out.insert(out.end(), {x.gyro_rps[0], x.gyro_rps[1], x.gyro_rps[2], x.acc_mps2[0], x.acc_mps2[1], x.acc_mps2[2]});
+      out.insert(out.end(),
+                 {x.gyro_rps[0], x.gyro_rps[1], x.gyro_rps[2], x.acc_mps2[0], x.acc_mps2[1], x.acc_mps2[2]});
     }
     return out;
   };

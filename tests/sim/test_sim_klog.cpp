@@ -5,8 +5,8 @@
 #include <fstream>
 #include <iterator>
 
-#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/log_source.hpp"
+#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/tools/simulator.hpp"
 #include "test_data.hpp"
 
@@ -62,7 +62,10 @@ TEST(SimKlog, ReadsBackThroughTheLogApi) {
   while (log->next(r)) {
     int64_t t = 0;
     switch (r.type) {
-      case RecordType::kImu: ++imu; t = r.imu.t_ns; break;
+      case RecordType::kImu:
+        ++imu;
+        t = r.imu.t_ns;
+        break;
       case RecordType::kRgb:
         ++rgb;
         t = r.image.t_ns;
@@ -74,8 +77,13 @@ TEST(SimKlog, ReadsBackThroughTheLogApi) {
         t = r.image.t_ns;
         EXPECT_EQ(r.image.format, kestrel::PixelFormat::kDepthU16);
         break;
-      case RecordType::kGroundTruth: ++gt; t = r.gt.t_ns; break;
-      case RecordType::kEvent: t = r.event.t_ns; break;
+      case RecordType::kGroundTruth:
+        ++gt;
+        t = r.gt.t_ns;
+        break;
+      case RecordType::kEvent:
+        t = r.event.t_ns;
+        break;
       case RecordType::kRight:
         ADD_FAILURE() << "the simulator writes no stereo records";
         break;

@@ -2,10 +2,9 @@
 // clearance from the path, the depth error model and thread independence.
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <opencv2/features2d.hpp>
 #include <opencv2/imgproc.hpp>
-
-#include <cmath>
 
 #include "kestrel/tools/simulator.hpp"
 
@@ -20,9 +19,10 @@ kestrel::CameraIntrinsics camera(int w, int h) { return kt::default_sim_rig(w, h
 // Camera at p looking along `forward` (horizontal unless pitched), image y down.
 Isometry3d look(const Vector3d& p, double yaw, double pitch_down = 0.0) {
   const Eigen::Matrix3d R_WB =
-      (Eigen::AngleAxisd(yaw, Vector3d::UnitZ()) * Eigen::AngleAxisd(pitch_down, Vector3d::UnitY())).toRotationMatrix();
+      (Eigen::AngleAxisd(yaw, Vector3d::UnitZ()) * Eigen::AngleAxisd(pitch_down, Vector3d::UnitY()))
+          .toRotationMatrix();
   Eigen::Matrix3d R_BC;
-  R_BC << 0, 0, 1, -1, 0, 0, 0, -1, 0;   // camera z forward = body x
+  R_BC << 0, 0, 1, -1, 0, 0, 0, -1, 0;  // camera z forward = body x
   Isometry3d T = Isometry3d::Identity();
   T.linear() = R_WB * R_BC;
   T.translation() = p;
@@ -78,7 +78,8 @@ TEST(SimRender, WallAtKnownDistanceReadsExactDepthEverywhere) {
   // From (0, 0, 1.5) looking at the x = 3 wall: the whole view is that wall,
   // and registered depth (z in the camera) is 3 m at every pixel.
   const Images im = render(r, look(Vector3d(0, 0, 1.5), 0.0));
-  const size_t centre = static_cast<size_t>(std::lround(cam.cy)) * cam.width + static_cast<size_t>(std::lround(cam.cx));
+  const size_t centre =
+      static_cast<size_t>(std::lround(cam.cy)) * cam.width + static_cast<size_t>(std::lround(cam.cx));
   EXPECT_NEAR(im.depth[centre], 3000, 1);
   int off = 0;
   for (uint16_t d : im.depth) off += std::abs(static_cast<int>(d) - 3000) > 1;
@@ -95,12 +96,14 @@ TEST(SimRender, GrazingAndOutOfRangeSurfacesHaveNoDepth) {
   scene.room = Eigen::AlignedBox3d(Vector3d(-8, -8, 0), Vector3d(8, 8, 3));
   const auto cam = camera(160, 120);
   const kt::Renderer r(scene, cam, depth_model(), clean());
-  const size_t centre = static_cast<size_t>(std::lround(cam.cy)) * cam.width + static_cast<size_t>(std::lround(cam.cx));
+  const size_t centre =
+      static_cast<size_t>(std::lround(cam.cy)) * cam.width + static_cast<size_t>(std::lround(cam.cx));
   // Floor 0.5 m below, seen 30 degrees down: incidence 60 deg, depth about
   // 1 m (exactly: where the centre pixel's own ray meets the floor).
   const Isometry3d down30 = look(Vector3d(0, 0, 0.5), 0, 30 * M_PI / 180);
-  const Vector3d ray_C = r.pixel_ray(static_cast<int>(std::lround(cam.cx)), static_cast<int>(std::lround(cam.cy)));
-  const double expect_z = -0.5 / (down30.linear() * ray_C).z();   // ray has z = 1: t is depth
+  const Vector3d ray_C =
+      r.pixel_ray(static_cast<int>(std::lround(cam.cx)), static_cast<int>(std::lround(cam.cy)));
+  const double expect_z = -0.5 / (down30.linear() * ray_C).z();  // ray has z = 1: t is depth
   EXPECT_NEAR(expect_z, 1.0, 0.02);
   EXPECT_NEAR(render(r, down30).depth[centre], 1000 * expect_z, 1);
   // 10 degrees down: incidence 80 deg > 75: no depth.
@@ -210,5 +213,5 @@ TEST(SimRender, SameImageWhateverTheThreadCount) {
   const Images a = render(one, T_WC, 17), b = render(three, T_WC, 17), c = render(one, T_WC, 18);
   EXPECT_EQ(a.rgb, b.rgb);
   EXPECT_EQ(a.depth, b.depth);
-  EXPECT_NE(a.depth, c.depth);   // the next frame has fresh noise
+  EXPECT_NE(a.depth, c.depth);  // the next frame has fresh noise
 }

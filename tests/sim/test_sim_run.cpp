@@ -20,7 +20,7 @@ class RecordingSink final : public kt::SimSink {
   kestrel::Rig rig;
   std::vector<kestrel::ImuSample> imu_samples;
   std::vector<kestrel::GroundTruthPose> gts;
-  std::vector<std::pair<int64_t, uint32_t>> frames;   // rgb stamp, seq
+  std::vector<std::pair<int64_t, uint32_t>> frames;  // rgb stamp, seq
   std::vector<std::string> events;
   std::vector<int64_t> all_times;
   bool ended = false;
@@ -98,11 +98,11 @@ TEST(SimRun, CountsRatesOrderAndRig) {
   RecordingSink s;
   sum = kt::run_simulation(o, s);
   EXPECT_TRUE(s.ended);
-  EXPECT_EQ(sum.frames, 61u);              // 0 .. 2 s at 30 Hz
-  EXPECT_EQ(sum.imu_samples, 801u);        // 0 .. 2 s at 400 Hz
+  EXPECT_EQ(sum.frames, 61u);        // 0 .. 2 s at 30 Hz
+  EXPECT_EQ(sum.imu_samples, 801u);  // 0 .. 2 s at 400 Hz
   EXPECT_EQ(s.imu_samples.size(), 801u);
   EXPECT_EQ(sum.gt_records, s.gts.size());
-  EXPECT_GE(s.gts.size(), 401u);           // 200 Hz plus frame times off that grid
+  EXPECT_GE(s.gts.size(), 401u);  // 200 Hz plus frame times off that grid
   EXPECT_TRUE(std::is_sorted(s.all_times.begin(), s.all_times.end()));
   EXPECT_EQ(s.rig.rgb.width, 160);
   EXPECT_NEAR(s.rig.rgb.fx, 525.0 / 4, 1e-9);
@@ -140,7 +140,8 @@ TEST(SimRun, CameraTimingOffsetJitterAndDrops) {
   const RecordingSink jit = run(o);
   double sum2 = 0;
   for (size_t k = 0; k < jit.frames.size(); ++k) {
-    const double e = static_cast<double>(jit.frames[k].first - (1'000'000'000 + static_cast<int64_t>(std::llround(k * 1e9 / 30))));
+    const double e = static_cast<double>(jit.frames[k].first -
+                                         (1'000'000'000 + static_cast<int64_t>(std::llround(k * 1e9 / 30))));
     sum2 += e * e;
     EXPECT_LE(std::abs(e), 0.4e9 / 30);
   }
@@ -166,12 +167,12 @@ TEST(SimRun, GroundTruthFileFramesAtItsSampleTimes) {
     std::ofstream f(dir + "/groundtruth.txt");
     f << "# timestamp tx ty tz qx qy qz qw\n";
     f.precision(10);
-    for (int k = 0; k <= 120; ++k) {   // 20 Hz
+    for (int k = 0; k <= 120; ++k) {  // 20 Hz
       const auto s = truth->state(k * 0.05);
       char stamp[32];
       std::snprintf(stamp, sizeof stamp, "%d.%09d ", 1305031098 + k / 20, (k % 20) * 50'000'000);
-      f << stamp << s.p_WB.x() << ' ' << s.p_WB.y() << ' '
-        << s.p_WB.z() << ' ' << s.q_WB.x() << ' ' << s.q_WB.y() << ' ' << s.q_WB.z() << ' ' << s.q_WB.w() << '\n';
+      f << stamp << s.p_WB.x() << ' ' << s.p_WB.y() << ' ' << s.p_WB.z() << ' ' << s.q_WB.x() << ' '
+        << s.q_WB.y() << ' ' << s.q_WB.z() << ' ' << s.q_WB.w() << '\n';
     }
   }
   kt::SimOptions o;
@@ -206,14 +207,15 @@ TEST(SimRun, HybridWritesTheRealImuAndEurocCameraPlacement) {
   const auto real = kt::load_euroc_imu_csv(o.imu_path);
   ASSERT_GE(s.imu_samples.size(), 199u);
   ASSERT_LE(s.imu_samples.size(), 201u);
-  const auto it = std::find_if(real.begin(), real.end(), [&](const auto& m) { return m.t_ns == s.imu_samples[0].t_ns; });
+  const auto it =
+      std::find_if(real.begin(), real.end(), [&](const auto& m) { return m.t_ns == s.imu_samples[0].t_ns; });
   ASSERT_NE(it, real.end());
   EXPECT_EQ(it->gyro_rps, s.imu_samples[0].gyro_rps);
   EXPECT_EQ(it->acc_mps2, s.imu_samples[0].acc_mps2);
-  EXPECT_EQ(s.frames.size(), 21u);   // the GT's own 20 Hz times
+  EXPECT_EQ(s.frames.size(), 21u);  // the GT's own 20 Hz times
   EXPECT_EQ(s.rig.imu_rate_hz, 200.0);
   EXPECT_NEAR(s.rig.imu.gyro_noise_density_rad_s_sqrthz, 1.6968e-4, 1e-10);
-  EXPECT_NEAR(s.rig.T_BC[3], -0.0216401454975, 1e-12);   // cam0 T_BS
+  EXPECT_NEAR(s.rig.T_BC[3], -0.0216401454975, 1e-12);  // cam0 T_BS
   EXPECT_NEAR(s.rig.T_BC[1], -0.999880929698, 1e-6);
 }
 
@@ -264,11 +266,12 @@ TEST(SimRun, BadOptionsAndFilesAreReported) {
 
 TEST(SimRun, RigFileOverridesTheBuiltInRig) {
   const std::string dir = kestrel::test::temp_dir("sim_run_rig");
-  std::ofstream(dir + "/rig.yaml") << "name: test-rig\n"
-                                      "camera: {width_px: 320, height_px: 240, fx_px: 300, fy_px: 300, cx_px: 160,"
-                                      " cy_px: 120, distortion: none, rate_hz: 15}\n"
-                                      "depth: {max_range_m: 4.0}\n"
-                                      "imu: {rate_hz: 100, gyro_noise_density_rad_s_sqrthz: 1.0e-3}\n";
+  std::ofstream(dir + "/rig.yaml")
+      << "name: test-rig\n"
+         "camera: {width_px: 320, height_px: 240, fx_px: 300, fy_px: 300, cx_px: 160,"
+         " cy_px: 120, distortion: none, rate_hz: 15}\n"
+         "depth: {max_range_m: 4.0}\n"
+         "imu: {rate_hz: 100, gyro_noise_density_rad_s_sqrthz: 1.0e-3}\n";
   kt::SimOptions o = small("hover", 1.0);
   o.width.reset();
   o.height.reset();
@@ -282,7 +285,8 @@ TEST(SimRun, RigFileOverridesTheBuiltInRig) {
   EXPECT_EQ(s.frames.size(), 16u);
   EXPECT_EQ(s.imu_samples.size(), 101u);
 
-  std::ofstream(dir + "/bad.yaml") << "camera: {width_px: wide, height_px: 240, fx_px: 1, fy_px: 1, cx_px: 0, cy_px: 0}\n";
+  std::ofstream(dir + "/bad.yaml")
+      << "camera: {width_px: wide, height_px: 240, fx_px: 1, fy_px: 1, cx_px: 0, cy_px: 0}\n";
   o.rig_path = dir + "/bad.yaml";
   try {
     run(o);

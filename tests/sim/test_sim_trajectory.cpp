@@ -32,7 +32,8 @@ void expect_consistent(const kt::MotionModel& tr, double t, double tol_v, double
   EXPECT_LT((w_fd - s.w_B).norm(), tol_w) << tr.description() << " t=" << t;
 }
 
-std::vector<kt::GtSample> sample(const kt::MotionModel& tr, double t0, double t1, double rate, double jitter_s = 0.0) {
+std::vector<kt::GtSample> sample(const kt::MotionModel& tr, double t0, double t1, double rate,
+                                 double jitter_s = 0.0) {
   std::vector<kt::GtSample> out;
   kt::SimRng rng(7);
   for (int k = 0;; ++k) {
@@ -234,7 +235,8 @@ TEST(SimSpline, ReadsEurocAndTumFilesAndNamesBadLines) {
 TEST(SimSpline, EurocSplinePredictsTheRealGyro) {
   KESTREL_REQUIRE_SHARED("euroc/V1_02_medium/gt_body_20hz.csv");
   KESTREL_REQUIRE_SHARED("euroc/V1_02_medium/imu0.csv");
-  const auto sp = kt::SplineTrajectory::from_file(kestrel::test::shared_path("euroc/V1_02_medium/gt_body_20hz.csv"));
+  const auto sp =
+      kt::SplineTrajectory::from_file(kestrel::test::shared_path("euroc/V1_02_medium/gt_body_20hz.csv"));
   const auto imu = kt::load_euroc_imu_csv(kestrel::test::shared_path("euroc/V1_02_medium/imu0.csv"));
   std::vector<Vector3d> rg, ra;
   for (const auto& m : imu) {
@@ -261,8 +263,10 @@ TEST(SimSpline, EurocSplinePredictsTheRealGyro) {
   }
   eg /= rg.size();
   ea /= ra.size();
-  std::printf("V1_02 spline vs real IMU: gyro bias %.4f %.4f %.4f rad/s, mean |residual| %.4f rad/s; "
-              "acc mean |residual| %.3f m/s^2\n", mg.x(), mg.y(), mg.z(), eg, ea);
+  std::printf(
+      "V1_02 spline vs real IMU: gyro bias %.4f %.4f %.4f rad/s, mean |residual| %.4f rad/s; "
+      "acc mean |residual| %.3f m/s^2\n",
+      mg.x(), mg.y(), mg.z(), eg, ea);
   EXPECT_LT(eg, 0.05);
   // The real bias (gt_official_200hz: about -0.002 0.021 0.076 rad/s) is small.
   EXPECT_LT(mg.norm(), 0.15);

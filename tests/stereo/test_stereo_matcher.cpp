@@ -2,8 +2,6 @@
 // construction: a smooth random texture, the right image the same texture
 // sampled d pixels further along the row. Also: no match on a flat wall, the
 // vector path equals the scalar one, no allocation per call.
-#include "kestrel/core/stereo_matcher.hpp"
-
 #include <gtest/gtest.h>
 
 #include <algorithm>
@@ -13,6 +11,7 @@
 #include <random>
 #include <vector>
 
+#include "kestrel/core/stereo_matcher.hpp"
 #include "kestrel/rt/alloc_counter.hpp"
 
 namespace {

@@ -8,9 +8,9 @@
 #include <cstdio>
 #include <cstring>
 #include <memory>
-#include <sstream>
 #include <opencv2/calib3d.hpp>
 #include <opencv2/core.hpp>
+#include <sstream>
 #include <string>
 #include <vector>
 
@@ -42,7 +42,8 @@ struct OpenCvPnpMethod {
     const cv::Matx33d Kcv(K.fx, 0, K.cx, 0, K.fy, K.cy, 0, 0, 1);
     cv::Mat rvec, tvec;
     std::vector<int> inl;
-    o.ok = cv::solvePnPRansac(obj, img, Kcv, cv::noArray(), rvec, tvec, false, iterations, 3.0f, 0.99, inl, flags);
+    o.ok = cv::solvePnPRansac(obj, img, Kcv, cv::noArray(), rvec, tvec, false, iterations, 3.0f, 0.99, inl,
+                              flags);
     if (o.ok && refine_lm && inl.size() >= 4) {
       std::vector<cv::Point3d> oi;
       std::vector<cv::Point2d> ii;
@@ -100,7 +101,8 @@ std::vector<Scenario> scenarios() {
   }
   for (double e : {1.0, 2.0}) {
     Scenario sc;
-    sc.name = "uniform 30 %, IMU rotation error " + std::to_string(int(e)) + "-" + std::to_string(int(e) + 1) + " deg";
+    sc.name = "uniform 30 %, IMU rotation error " + std::to_string(int(e)) + "-" +
+              std::to_string(int(e) + 1) + " deg";
     sc.cfg.outlier_frac = 0.3;
     sc.cfg.imu_err_min_deg = e;
     sc.cfg.imu_err_max_deg = e + 1.0;
@@ -110,8 +112,11 @@ std::vector<Scenario> scenarios() {
 }
 
 void print_table(int trials) {
-  std::printf("# bench_lonsc: %d trials per scenario, 300 correspondences, 640x480 f=525, depth 0.5-5 m,\n", trials);
-  std::printf("# sigma_z = 0.0025 z^2, pixel noise 0.7 px, motion <= 5 deg / 5 cm, IMU error 0.1-0.3 deg unless noted,\n");
+  std::printf("# bench_lonsc: %d trials per scenario, 300 correspondences, 640x480 f=525, depth 0.5-5 m,\n",
+              trials);
+  std::printf(
+      "# sigma_z = 0.0025 z^2, pixel noise 0.7 px, motion <= 5 deg / 5 cm, IMU error 0.1-0.3 deg unless "
+      "noted,\n");
   std::printf("# threshold 3 px for every method. Medians over trials; 'bad' = failed or t error > 2 cm.\n");
   {
     // Options print themselves (OpenVINS habit): the table is reproducible from its header.
@@ -134,18 +139,31 @@ void print_table(int trials) {
     kc::LonscOptions pair_model;
     pair_model.grow_model = false;
     std::vector<Row> rows;
-    rows.push_back({"LONSC by_match_cost", wrap(std::make_shared<kt::LonscMethod>(kc::CorrespondenceOrder::kByMatchCost, false))});
-    rows.push_back({"LONSC by_match_cost + GN(4)", wrap(std::make_shared<kt::LonscMethod>(kc::CorrespondenceOrder::kByMatchCost, true))});
-    rows.push_back({"LONSC as_given (raster)", wrap(std::make_shared<kt::LonscMethod>(kc::CorrespondenceOrder::kAsGiven, false))});
-    rows.push_back({"LONSC hilbert", wrap(std::make_shared<kt::LonscMethod>(kc::CorrespondenceOrder::kHilbert, false))});
-    rows.push_back({"LONSC shuffled", wrap(std::make_shared<kt::LonscMethod>(kc::CorrespondenceOrder::kShuffled, false))});
-    rows.push_back({"LONSC by_match_cost, longest run only", wrap(std::make_shared<kt::LonscMethod>(kc::CorrespondenceOrder::kByMatchCost, false, longest_only))});
-    rows.push_back({"LONSC by_match_cost, 2-pt run model", wrap(std::make_shared<kt::LonscMethod>(kc::CorrespondenceOrder::kByMatchCost, false, pair_model))});
-    rows.push_back({"LONSC paper-literal, by_match_cost", wrap(std::make_shared<kt::LonscMethod>(kc::CorrespondenceOrder::kByMatchCost, false, paper))});
+    rows.push_back({"LONSC by_match_cost",
+                    wrap(std::make_shared<kt::LonscMethod>(kc::CorrespondenceOrder::kByMatchCost, false))});
+    rows.push_back({"LONSC by_match_cost + GN(4)",
+                    wrap(std::make_shared<kt::LonscMethod>(kc::CorrespondenceOrder::kByMatchCost, true))});
+    rows.push_back({"LONSC as_given (raster)",
+                    wrap(std::make_shared<kt::LonscMethod>(kc::CorrespondenceOrder::kAsGiven, false))});
+    rows.push_back(
+        {"LONSC hilbert", wrap(std::make_shared<kt::LonscMethod>(kc::CorrespondenceOrder::kHilbert, false))});
+    rows.push_back({"LONSC shuffled",
+                    wrap(std::make_shared<kt::LonscMethod>(kc::CorrespondenceOrder::kShuffled, false))});
+    rows.push_back({"LONSC by_match_cost, longest run only",
+                    wrap(std::make_shared<kt::LonscMethod>(kc::CorrespondenceOrder::kByMatchCost, false,
+                                                           longest_only))});
+    rows.push_back(
+        {"LONSC by_match_cost, 2-pt run model",
+         wrap(std::make_shared<kt::LonscMethod>(kc::CorrespondenceOrder::kByMatchCost, false, pair_model))});
+    rows.push_back(
+        {"LONSC paper-literal, by_match_cost",
+         wrap(std::make_shared<kt::LonscMethod>(kc::CorrespondenceOrder::kByMatchCost, false, paper))});
     rows.push_back({"RANSAC 2-pt (IMU R)", wrap(std::make_shared<kt::RansacMethod>(false))});
     rows.push_back({"RANSAC 2-pt + GN(4)", wrap(std::make_shared<kt::RansacMethod>(true))});
-    rows.push_back({"OpenCV solvePnPRansac ITERATIVE", wrap(std::make_shared<OpenCvPnpMethod>(cv::SOLVEPNP_ITERATIVE, false))});
-    rows.push_back({"OpenCV solvePnPRansac AP3P + LM", wrap(std::make_shared<OpenCvPnpMethod>(cv::SOLVEPNP_AP3P, true))});
+    rows.push_back({"OpenCV solvePnPRansac ITERATIVE",
+                    wrap(std::make_shared<OpenCvPnpMethod>(cv::SOLVEPNP_ITERATIVE, false))});
+    rows.push_back({"OpenCV solvePnPRansac AP3P + LM",
+                    wrap(std::make_shared<OpenCvPnpMethod>(cv::SOLVEPNP_AP3P, true))});
     for (auto& r : rows) {
       // Warm caches and lazily initialised OpenCV state once, untimed.
       kt::run_trials(sc.cfg, r.m, 2, base + 999999);
@@ -213,8 +231,8 @@ void BM_GaussNewton4(benchmark::State& st) {
   for (auto _ : st) {
     Eigen::Matrix3d R = f.R_imu;
     Eigen::Vector3d t = r.t;
-    auto res = kc::refine_pose_gauss_newton(&R, &t, kt::kinect_k(), f.c.data(), f.c.size(), est.inlier_indices(),
-                                            r.num_inliers);
+    auto res = kc::refine_pose_gauss_newton(&R, &t, kt::kinect_k(), f.c.data(), f.c.size(),
+                                            est.inlier_indices(), r.num_inliers);
     benchmark::DoNotOptimize(res);
   }
 }

@@ -20,8 +20,8 @@ struct MethodOutput {
   bool ok = false;
   Eigen::Matrix3d R = Eigen::Matrix3d::Identity();
   Eigen::Vector3d t = Eigen::Vector3d::Zero();
-  const uint8_t* mask = nullptr;   // per correspondence, or null with mask_vec
-  std::vector<uint8_t> mask_vec;   // for methods that do not own a mask (OpenCV)
+  const uint8_t* mask = nullptr;  // per correspondence, or null with mask_vec
+  std::vector<uint8_t> mask_vec;  // for methods that do not own a mask (OpenCV)
 };
 
 struct TrialMetrics {
@@ -64,7 +64,8 @@ inline double quantile(std::vector<double> v, double q) {
   return v[k];
 }
 
-inline Summary summarize(const std::string& name, const std::vector<TrialMetrics>& ms, double bad_t_cm = 2.0) {
+inline Summary summarize(const std::string& name, const std::vector<TrialMetrics>& ms,
+                         double bad_t_cm = 2.0) {
   Summary s;
   s.name = name;
   s.trials = ms.size();
@@ -130,7 +131,8 @@ struct LonscMethod {
     o.mask = est.inlier_mask();
     if (o.ok && refine) {
       auto rr = r;
-      est.refine_pose(&o.R, &o.t, K, f.c.data(), f.c.size(), &rr, est.options().consistency, refine_opt, &f.R_imu);
+      est.refine_pose(&o.R, &o.t, K, f.c.data(), f.c.size(), &rr, est.options().consistency, refine_opt,
+                      &f.R_imu);
     }
     return o;
   }
@@ -151,14 +153,16 @@ struct RansacMethod {
     o.mask = est.inlier_mask();
     if (o.ok && refine) {
       auto rr = r;
-      est.refine_pose(&o.R, &o.t, K, f.c.data(), f.c.size(), &rr, est.options().consistency, refine_opt, &f.R_imu);
+      est.refine_pose(&o.R, &o.t, K, f.c.data(), f.c.size(), &rr, est.options().consistency, refine_opt,
+                      &f.R_imu);
     }
     return o;
   }
 };
 
 inline void print_header(std::FILE* out) {
-  std::fprintf(out, "| %-34s | prec | recall | t err cm (med / p90) | rot err deg | bad %% | time us |\n", "method");
+  std::fprintf(out, "| %-34s | prec | recall | t err cm (med / p90) | rot err deg | bad %% | time us |\n",
+               "method");
   std::fprintf(out, "|%s|------|--------|----------------------|-------------|-------|---------|\n",
                std::string(36, '-').c_str());
 }

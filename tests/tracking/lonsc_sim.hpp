@@ -74,8 +74,7 @@ inline SimFrame simulate(const SimConfig& cfg, uint64_t seed) {
   SimFrame f;
   f.R_true = rot_from_axis_angle(random_unit(rng), cfg.max_rot_deg * deg * U(rng));
   f.t_true = random_unit(rng) * cfg.max_trans_m * U(rng);
-  const double imu_err =
-      (cfg.imu_err_min_deg + (cfg.imu_err_max_deg - cfg.imu_err_min_deg) * U(rng)) * deg;
+  const double imu_err = (cfg.imu_err_min_deg + (cfg.imu_err_max_deg - cfg.imu_err_min_deg) * U(rng)) * deg;
   f.R_imu = rot_from_axis_angle(random_unit(rng), imu_err) * f.R_true;
 
   const int n_out = static_cast<int>(std::lround(cfg.outlier_frac * cfg.n));
@@ -136,7 +135,8 @@ inline SimFrame simulate(const SimConfig& cfg, uint64_t seed) {
 
   const double pn = cfg.noise ? cfg.pixel_noise_px : 0.0;
   auto cost = [&](double mean, double sd) {
-    return static_cast<float>(std::round(std::clamp(mean + sd * N(rng), 0.0, 256.0)));  // integral, like Hamming
+    return static_cast<float>(
+        std::round(std::clamp(mean + sd * N(rng), 0.0, 256.0)));  // integral, like Hamming
   };
   f.c.resize(cfg.n);
   f.is_inlier.assign(cfg.n, 0);

@@ -22,7 +22,8 @@ TEST(TrackingLonscSummary, ThirtyPercentUniformOutliers) {
   kt::LonscMethod lonsc_gn(kc::CorrespondenceOrder::kByMatchCost, true);
   kt::RansacMethod ransac(false);
   const auto sl = kt::summarize("lonsc by_match_cost", kt::run_trials(cfg, std::ref(lonsc), kTrials, kSeed));
-  const auto sg = kt::summarize("lonsc by_match_cost + GN", kt::run_trials(cfg, std::ref(lonsc_gn), kTrials, kSeed));
+  const auto sg =
+      kt::summarize("lonsc by_match_cost + GN", kt::run_trials(cfg, std::ref(lonsc_gn), kTrials, kSeed));
   const auto sr = kt::summarize("ransac 2pt", kt::run_trials(cfg, std::ref(ransac), kTrials, kSeed));
   kt::print_header(stdout);
   kt::print_row(stdout, sl);

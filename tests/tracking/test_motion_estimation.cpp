@@ -46,7 +46,8 @@ TEST(TrackingTranslationLS, TwoNoiseFreeCorrespondencesGiveExactT) {
   for (uint64_t seed = 1; seed <= 20; ++seed) {
     const kt::SimFrame f = exact_frame(0.0, seed, 2);
     Eigen::Vector3d t;
-    ASSERT_EQ(kc::translation_least_squares(f.R_true, kt::kinect_k(), f.c.data(), 2, &t), kc::MotionStatus::kOk);
+    ASSERT_EQ(kc::translation_least_squares(f.R_true, kt::kinect_k(), f.c.data(), 2, &t),
+              kc::MotionStatus::kOk);
     EXPECT_LT((t - f.t_true).norm(), 1e-9) << "seed " << seed;
   }
 }
@@ -62,7 +63,8 @@ TEST(TrackingTranslationLS, ManyNoiseFreeCorrespondencesGiveExactT) {
   EXPECT_LT((tw - f.t_true).norm(), 1e-9);
   // Index subset gives the same.
   const uint32_t idx[] = {3, 50, 299, 120};
-  ASSERT_EQ(kc::translation_least_squares(f.R_true, kt::kinect_k(), f.c.data(), 4, &t, idx), kc::MotionStatus::kOk);
+  ASSERT_EQ(kc::translation_least_squares(f.R_true, kt::kinect_k(), f.c.data(), 4, &t, idx),
+            kc::MotionStatus::kOk);
   EXPECT_LT((t - f.t_true).norm(), 1e-9);
 }
 
@@ -165,10 +167,12 @@ TEST(TrackingPoseRefine, ConvergesFromImuRotationOnExactData) {
   const kt::SimFrame f = exact_frame(0.0, 11);
   Eigen::Matrix3d R = f.R_imu;
   Eigen::Vector3d t;
-  ASSERT_EQ(kc::translation_least_squares(R, kt::kinect_k(), f.c.data(), f.c.size(), &t), kc::MotionStatus::kOk);
+  ASSERT_EQ(kc::translation_least_squares(R, kt::kinect_k(), f.c.data(), f.c.size(), &t),
+            kc::MotionStatus::kOk);
   kc::PoseRefineOptions opt;
   opt.max_iterations = 5;
-  const auto res = kc::refine_pose_gauss_newton(&R, &t, kt::kinect_k(), f.c.data(), f.c.size(), nullptr, 0, opt);
+  const auto res =
+      kc::refine_pose_gauss_newton(&R, &t, kt::kinect_k(), f.c.data(), f.c.size(), nullptr, 0, opt);
   ASSERT_TRUE(res.ok);
   EXPECT_LT(res.cost_final, res.cost_initial);
   EXPECT_LT(kt::rotation_error_deg(R, f.R_true), 1e-6);
@@ -214,7 +218,8 @@ TEST(TrackingLonsc, ExactDataWithOutliersFindsExactInlierSet) {
     EXPECT_LT((r.t - f.t_true).norm(), 1e-9) << frac;
     EXPECT_EQ(recall(f, est.inlier_mask()), 1.0) << frac;
     EXPECT_GT(precision(f, est.inlier_mask()), 0.99) << frac;  // a random pixel may land within 3 px
-    for (std::size_t k = 1; k < r.num_inliers; ++k) EXPECT_LT(est.inlier_indices()[k - 1], est.inlier_indices()[k]);
+    for (std::size_t k = 1; k < r.num_inliers; ++k)
+      EXPECT_LT(est.inlier_indices()[k - 1], est.inlier_indices()[k]);
   }
 }
 
@@ -296,7 +301,8 @@ TEST(TrackingLonsc, EdgeCases) {
   EXPECT_FALSE(r.ok()) << "found " << r.num_inliers << " inliers in noise";
   // Order entries out of range are skipped.
   const kt::SimFrame f = exact_frame(0.0, 24, 20);
-  std::vector<uint32_t> order = {0, 1, 999, 2, 3, 4, 5, 6, 7, 8, 9, 1000, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19};
+  std::vector<uint32_t> order = {0,    1,  999, 2,  3,  4,  5,  6,  7,  8,  9,
+                                 1000, 10, 11,  12, 13, 14, 15, 16, 17, 18, 19};
   r = big.estimate(f.R_true, K, f.c.data(), f.c.size(), order.data());
   ASSERT_TRUE(r.ok());
   EXPECT_EQ(r.num_inliers, 20u);
@@ -369,8 +375,8 @@ TEST(TrackingAllocation, NoHeapAllocationPerCall) {
       Eigen::Vector3d t = r.t;
       kc::PoseRefineOptions popt;
       popt.rotation_prior_sigma_rad = 0.005;
-      kc::refine_pose_gauss_newton(&R, &t, K, f.c.data(), f.c.size(), lonsc.inlier_indices(), r.num_inliers, popt,
-                                   &f.R_imu);
+      kc::refine_pose_gauss_newton(&R, &t, K, f.c.data(), f.c.size(), lonsc.inlier_indices(), r.num_inliers,
+                                   popt, &f.R_imu);
     }
     const auto rr = ransac.estimate(f.R_imu, K, f.c.data(), f.c.size());
     ASSERT_TRUE(rr.ok());

@@ -99,9 +99,10 @@ Outcome run(RigidMethod m, double outliers, int trials) {
   std::vector<uint32_t> order(512);
   for (int k = 0; k < trials; ++k) {
     const Frame3d f = simulate3d(outliers, 1000 + static_cast<uint64_t>(k));
-    const size_t no = orderer.order(core::CorrespondenceOrder::kByMatchCost, f.c.data(), f.c.size(), order.data());
-    const core::RigidEstimate e =
-        rc.estimate(m, kinect_k(), f.c.data(), f.q.data(), f.has_q.data(), f.c.size(), no ? order.data() : nullptr);
+    const size_t no =
+        orderer.order(core::CorrespondenceOrder::kByMatchCost, f.c.data(), f.c.size(), order.data());
+    const core::RigidEstimate e = rc.estimate(m, kinect_k(), f.c.data(), f.q.data(), f.has_q.data(),
+                                              f.c.size(), no ? order.data() : nullptr);
     const bool good = e.ok() && rotation_error_deg(e.R, f.R) < 0.5 && (e.t - f.t).norm() < 0.015;
     o.correct += good ? 1 : 0;
     o.fits.push_back(e.model_estimates);
@@ -129,10 +130,11 @@ TEST(RigidConsensus, LonscRunsAndRansacRecoverTheMotionThroughOutliers) {
     const int trials = out < 0.6 ? 100 : 300;
     const int lonsc_min = out < 0.6 ? trials * 95 / 100 : trials * 88 / 100;
     const Outcome l = run(RigidMethod::kLonsc, out, trials), r = run(RigidMethod::kRansac, out, trials);
-    std::printf("outliers %.0f %%: lonsc %d/%d right, %.0f fits, %.0f pair checks (medians), inliers %.3f correct; "
-                "ransac %d/%d right, %.0f fits, %.0f checks, %.3f\n",
-                100 * out, l.correct, trials, median(l.fits), median(l.checks), median(l.inlier_share), r.correct,
-                trials, median(r.fits), median(r.checks), median(r.inlier_share));
+    std::printf(
+        "outliers %.0f %%: lonsc %d/%d right, %.0f fits, %.0f pair checks (medians), inliers %.3f correct; "
+        "ransac %d/%d right, %.0f fits, %.0f checks, %.3f\n",
+        100 * out, l.correct, trials, median(l.fits), median(l.checks), median(l.inlier_share), r.correct,
+        trials, median(r.fits), median(r.checks), median(r.inlier_share));
     EXPECT_GE(l.correct, lonsc_min) << "lonsc at " << out;
     EXPECT_GE(r.correct, trials * 90 / 100) << "ransac at " << out;
     EXPECT_GT(median(l.inlier_share), 0.97);
@@ -156,7 +158,8 @@ TEST(RigidConsensus, TooFewPairsWithDepthIsAStatusAndNothingIsAllocated) {
   const Frame3d g = simulate3d(0.4, 8);
   for (RigidMethod m : {RigidMethod::kLonsc, RigidMethod::kRansac}) {
     rt::AllocCountScope scope;
-    const core::RigidEstimate e = rc.estimate(m, kinect_k(), g.c.data(), g.q.data(), g.has_q.data(), g.c.size());
+    const core::RigidEstimate e =
+        rc.estimate(m, kinect_k(), g.c.data(), g.q.data(), g.has_q.data(), g.c.size());
     EXPECT_TRUE(e.ok());
     EXPECT_EQ(scope.count(), 0u) << core::to_string(m);
   }

@@ -216,7 +216,7 @@ TEST(ViewerServer, ConnectionFloodIsCappedAndServingGoesOn) {
 
 TEST(ViewerServer, AClientThatNeverReadsStallsNeitherThePublisherNorOtherBrowsers) {
   ServerOptions o = local_options();
-  o.max_kbytes_per_s = 1e6;        // no budget cap: the stalled socket is what must stop the frames
+  o.max_kbytes_per_s = 1e6;  // no budget cap: the stalled socket is what must stop the frames
   o.client_timeout_ns = 1'500'000'000;
   FeedOptions fo;
   fo.max_rate_hz = 100;
@@ -248,7 +248,8 @@ TEST(ViewerServer, AClientThatNeverReadsStallsNeitherThePublisherNorOtherBrowser
     f.feed->on_frame(img.frame, info);
     publish_ns.push_back(rt::now_ns() - t0);
     rt::sleep_for_ns(5'000'000);
-    if (rt::now_ns() - start > 2'000'000'000 && f.server->stats().clients_dropped >= 1 && frames_read.load() > 20)
+    if (rt::now_ns() - start > 2'000'000'000 && f.server->stats().clients_dropped >= 1 &&
+        frames_read.load() > 20)
       break;
   }
   stop.store(true);
@@ -259,12 +260,13 @@ TEST(ViewerServer, AClientThatNeverReadsStallsNeitherThePublisherNorOtherBrowser
   // percentile shows it; single slow calls are the test thread preempted.
   std::sort(publish_ns.begin(), publish_ns.end());
   const int64_t p95 = publish_ns[publish_ns.size() * 95 / 100];
-  EXPECT_LT(p95, 20'000'000) << "on_frame p95 " << p95 * 1e-6 << " ms, worst " << publish_ns.back() * 1e-6 << " ms";
+  EXPECT_LT(p95, 20'000'000) << "on_frame p95 " << p95 * 1e-6 << " ms, worst " << publish_ns.back() * 1e-6
+                             << " ms";
   EXPECT_GT(f.feed->published(), 40u);
   EXPECT_GT(frames_read.load(), 20u) << "the reading browser starved";
   EXPECT_GT(s.frames_skipped_backlog, 0u) << "frames kept queueing for the stalled socket";
-  EXPECT_GE(s.clients_dropped, 1u) << "the stalled browser was never let go (in " << (rt::now_ns() - start) * 1e-9
-                                   << " s)";
+  EXPECT_GE(s.clients_dropped, 1u) << "the stalled browser was never let go (in "
+                                   << (rt::now_ns() - start) * 1e-9 << " s)";
 }
 
 TEST(ViewerServer, BandwidthCapSkipsFrames) {
@@ -357,8 +359,9 @@ TEST(ViewerFeed, PublishingAVgaFrameCostsTheEstimatorOnlyCopies) {
     return v[v.size() / 2];
   };
   const int64_t pub = median(publish_ns), idle = median(idle_ns);
-  std::printf("ViewerFeed::on_frame at VGA: median %.1f us publishing (at most 10 Hz), %.3f us with no browser\n",
-              1e-3 * static_cast<double>(pub), 1e-3 * static_cast<double>(idle));
+  std::printf(
+      "ViewerFeed::on_frame at VGA: median %.1f us publishing (at most 10 Hz), %.3f us with no browser\n",
+      1e-3 * static_cast<double>(pub), 1e-3 * static_cast<double>(idle));
   EXPECT_EQ(feed.published(), 400u);
   EXPECT_LT(pub, 2'000'000) << "publishing should be a few copies of ~270 kB";
   EXPECT_LT(idle, 20'000) << "with no browser on_frame should copy nothing";

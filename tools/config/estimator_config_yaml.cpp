@@ -1,8 +1,4 @@
 #include "kestrel/tools/estimator_config_yaml.hpp"
-#include "kestrel/tools/vocabulary_files.hpp"
-
-#include "kestrel/core/estimator_factory.hpp"
-#include "kestrel/drivers/text.hpp"
 
 #include <yaml-cpp/yaml.h>
 
@@ -16,6 +12,10 @@
 #include <set>
 #include <sstream>
 #include <stdexcept>
+
+#include "kestrel/core/estimator_factory.hpp"
+#include "kestrel/drivers/text.hpp"
+#include "kestrel/tools/vocabulary_files.hpp"
 
 namespace kestrel::tools {
 
@@ -112,7 +112,9 @@ class EntryCollector final : public PathVisitor {
   std::vector<std::pair<std::string, std::string>> entries;
 
  private:
-  void key(const char* k, const std::string& value, const char*) override { entries.emplace_back(dotted(k), value); }
+  void key(const char* k, const std::string& value, const char*) override {
+    entries.emplace_back(dotted(k), value);
+  }
 };
 
 class MarkdownTable final : public PathVisitor {
@@ -174,7 +176,8 @@ class YamlLoader final : public core::OptionVisitor {
     if (const auto o = get(k)) {
       const YAML::Node& n = *o;
       const double d = as_double(n, k);
-      if (std::isfinite(d) && std::fabs(d) > std::numeric_limits<float>::max()) fail(n, k, "out of float range");
+      if (std::isfinite(d) && std::fabs(d) > std::numeric_limits<float>::max())
+        fail(n, k, "out of float range");
       v = static_cast<float>(d);
     }
   }
@@ -182,7 +185,8 @@ class YamlLoader final : public core::OptionVisitor {
     if (const auto o = get(k)) {
       const YAML::Node& n = *o;
       const int64_t i = as_int(n, k);
-      if (i < std::numeric_limits<int>::min() || i > std::numeric_limits<int>::max()) fail(n, k, "out of range");
+      if (i < std::numeric_limits<int>::min() || i > std::numeric_limits<int>::max())
+        fail(n, k, "out of range");
       v = static_cast<int>(i);
     }
   }
@@ -203,9 +207,12 @@ class YamlLoader final : public core::OptionVisitor {
     if (const auto o = get(k)) {
       const YAML::Node& n = *o;
       const std::string s = n.Scalar();
-      if (s == "true" || s == "on" || s == "yes") v = true;
-      else if (s == "false" || s == "off" || s == "no") v = false;
-      else fail(n, k, "expected true or false");
+      if (s == "true" || s == "on" || s == "yes")
+        v = true;
+      else if (s == "false" || s == "off" || s == "no")
+        v = false;
+      else
+        fail(n, k, "expected true or false");
     }
   }
   void value(const char* k, std::string& v, const char*) override {
@@ -216,7 +223,8 @@ class YamlLoader final : public core::OptionVisitor {
       // Names and paths: a control character or a byte that is not UTF-8 is
       // a damaged file, and could not be printed back as the same text.
       if (!drivers::text::is_utf8(n.Scalar()) ||
-          std::any_of(n.Scalar().begin(), n.Scalar().end(), [](char ch) { return static_cast<unsigned char>(ch) < 0x20; }))
+          std::any_of(n.Scalar().begin(), n.Scalar().end(),
+                      [](char ch) { return static_cast<unsigned char>(ch) < 0x20; }))
         fail(n, k, "expected printable UTF-8 text");
       v = n.Scalar();
     }
@@ -251,7 +259,8 @@ class YamlLoader final : public core::OptionVisitor {
   double as_double(const YAML::Node& n, const char* k) {
     const std::string s = n.Scalar();
     // YAML spells the non-finite numbers .nan / .inf; strtod spells them nan / inf.
-    for (const char* nf : {".nan", ".NaN", ".NAN", ".inf", ".Inf", ".INF", "-.inf", "-.Inf", "-.INF", "+.inf"})
+    for (const char* nf :
+         {".nan", ".NaN", ".NAN", ".inf", ".Inf", ".INF", "-.inf", "-.Inf", "-.INF", "+.inf"})
       if (s == nf) fail(n, k, "expected a finite number");
     char* end = nullptr;
     const double d = std::strtod(s.c_str(), &end);
@@ -333,8 +342,8 @@ core::EstimatorConfig estimator_config_from_yaml(const std::string& text, const 
   if (!core::estimator_known(backend))
     throw std::runtime_error(where + ": estimator.backend: unknown backend '" + backend +
                              "' (expected one of: " + core::estimator_names() + ")");
-  core::EstimatorConfig c =
-      core::EstimatorConfig::defaults(backend, variant == "paper" ? core::LonscVariant::kPaper : core::LonscVariant::kTuned);
+  core::EstimatorConfig c = core::EstimatorConfig::defaults(
+      backend, variant == "paper" ? core::LonscVariant::kPaper : core::LonscVariant::kTuned);
   YamlLoader loader(root, where);
   core::visit_options(c, loader);
   if (!backend_override.empty()) c.backend = backend_override;
@@ -388,7 +397,8 @@ void apply_map_switches(core::EstimatorConfig& c, const std::string& mapping, co
   };
   if (!mapping.empty()) c.window.map.mapping = c.ekf.mapping = parse(mapping, "--mapping");
   if (!loop.empty()) c.window.map.loop = parse(loop, "--loop");
-  if (loop == "on" && !c.window.map.mapping) throw std::invalid_argument("--loop on needs the map (--mapping on)");
+  if (loop == "on" && !c.window.map.mapping)
+    throw std::invalid_argument("--loop on needs the map (--mapping on)");
   resolve_vocabulary(c);
 }
 

@@ -20,7 +20,8 @@ std::shared_ptr<const core::Vocabulary> from_bytes(const uint8_t* p, size_t n, c
   if (!err.empty()) throw std::runtime_error(where + ": not a usable vocabulary: " + err);
   if (v->pattern_seed() != pattern_seed)
     throw std::runtime_error(where + ": trained on ORB descriptors of BRIEF pattern seed " +
-                             std::to_string(v->pattern_seed()) + ", the tracker uses " + std::to_string(pattern_seed) +
+                             std::to_string(v->pattern_seed()) + ", the tracker uses " +
+                             std::to_string(pattern_seed) +
                              " (frontend.orb.pattern_seed): retrain it with kestrel vocab");
   return v;
 }
@@ -37,7 +38,8 @@ std::shared_ptr<const core::Vocabulary> default_vocabulary() {
   static const std::shared_ptr<const core::Vocabulary> v = []() -> std::shared_ptr<const core::Vocabulary> {
     if (detail::kDefaultVocabularySize == 0) return nullptr;
     return from_bytes(detail::kDefaultVocabulary, detail::kDefaultVocabularySize,
-                      "the built-in vocabulary (configs/vocabulary/kestrel_orb_k10l4.kvoc)", core::OrbOptions{}.pattern_seed);
+                      "the built-in vocabulary (configs/vocabulary/kestrel_orb_k10l4.kvoc)",
+                      core::OrbOptions{}.pattern_seed);
   }();
   return v;
 }
@@ -54,10 +56,11 @@ void resolve_vocabulary(core::EstimatorConfig& c) {
   }
   if (c.tracker.orb.pattern_seed == core::OrbOptions{}.pattern_seed) m.vocabulary = default_vocabulary();
   if (!m.vocabulary) {
-    std::fprintf(stderr,
-                 "WARNING: no place-recognition vocabulary (kestrel was built without one, or the BRIEF pattern is "
-                 "not the default): the map runs WITHOUT loop closing and relocalisation; set map.vocabulary to a "
-                 "file made by `kestrel vocab` (docs/map.md)\n");
+    std::fprintf(
+        stderr,
+        "WARNING: no place-recognition vocabulary (kestrel was built without one, or the BRIEF pattern is "
+        "not the default): the map runs WITHOUT loop closing and relocalisation; set map.vocabulary to a "
+        "file made by `kestrel vocab` (docs/map.md)\n");
     m.loop = false;
   }
 }

@@ -8,12 +8,11 @@
 #include <cstring>
 #include <fstream>
 #include <limits>
+#include <nlohmann/json.hpp>
 #include <stdexcept>
 #include <string>
 #include <tuple>
 #include <vector>
-
-#include <nlohmann/json.hpp>
 
 #include "kestrel/tools/trajectory_eval.hpp"
 #include "svg_plot.hpp"
@@ -38,13 +37,13 @@ std::string open_svg(const std::string& id, double w, double h) {
 }
 
 void title(std::string& s, const Panel& p, const std::string& text) {
-  s += "<text x='" + fmt("%.1f", p.x0 + p.w / 2) + "' y='" + fmt("%.1f", p.y0 - 8) + "' text-anchor='middle'>" +
-       xml_escape(text) + "</text>\n";
+  s += "<text x='" + fmt("%.1f", p.x0 + p.w / 2) + "' y='" + fmt("%.1f", p.y0 - 8) +
+       "' text-anchor='middle'>" + xml_escape(text) + "</text>\n";
 }
 
 // One projection of both trajectories (a, b: the axes, 0 = x, 1 = y, 2 = z) at equal scale.
-std::string view(const std::string& id, const std::string& heading, const Trajectory& gt, const EvalResult& r, int a,
-                 int b) {
+std::string view(const std::string& id, const std::string& heading, const Trajectory& gt, const EvalResult& r,
+                 int a, int b) {
   double lo[2] = {INFINITY, INFINITY}, hi[2] = {-INFINITY, -INFINITY};
   auto grow = [&](const Eigen::Vector3d& p) {
     if (!p.allFinite()) return;
@@ -67,16 +66,18 @@ std::string view(const std::string& id, const std::string& heading, const Trajec
   const auto& E = r.est_aligned;
   polyline(
       s, p, E.size(), [&](size_t i) { return E[i].p[a]; }, [&](size_t i) { return E[i].p[b]; },
-      [&](size_t i) { return E[i].t_ns; }, std::string("stroke='") + kEstColour + "' stroke-width='1.2' stroke-opacity='0.85'");
-  svg::legend(s, p.x0 + 10, p.y0 + 14, {{kGtColour, "ground truth"}, {kEstColour, "estimate (aligned)"}}, 170);
+      [&](size_t i) { return E[i].t_ns; },
+      std::string("stroke='") + kEstColour + "' stroke-width='1.2' stroke-opacity='0.85'");
+  svg::legend(s, p.x0 + 10, p.y0 + 14, {{kGtColour, "ground truth"}, {kEstColour, "estimate (aligned)"}},
+              170);
   return s + "</svg>\n";
 }
 
 // Lines over time since the first associated pose; values(k, i) for series k.
 template <typename Value>
 std::string time_plot(const std::string& id, const std::string& heading, const std::string& ylabel,
-                      const EvalResult& r, const std::vector<std::pair<std::string, std::string>>& series, Value value,
-                      bool from_zero) {
+                      const EvalResult& r, const std::vector<std::pair<std::string, std::string>>& series,
+                      Value value, bool from_zero) {
   const auto& E = r.est_aligned;
   const int64_t t0 = E.empty() ? 0 : E.front().t_ns;
   double tmax = E.empty() ? 1.0 : 1e-9 * static_cast<double>(E.back().t_ns - t0);
@@ -144,13 +145,15 @@ std::string latency_plot(const LatencyDistribution& d) {
     lo_ns = std::min(lo_ns, std::max<int64_t>(b.lower_ns, 1));
     hi_ns = std::max(hi_ns, b.lower_ns + b.width_ns);
   }
-  const double l0 = std::log10(1e-6 * static_cast<double>(lo_ns)), l1 = std::log10(1e-6 * static_cast<double>(hi_ns));
+  const double l0 = std::log10(1e-6 * static_cast<double>(lo_ns)),
+               l1 = std::log10(1e-6 * static_cast<double>(hi_ns));
   constexpr int kBuckets = 48;
   const double span = std::max(l1 - l0, 0.05);
   std::vector<double> count(kBuckets, 0.0);
   for (const auto& b : d.bins) {
     const double mid_ms = 1e-6 * (static_cast<double>(b.lower_ns) + 0.5 * static_cast<double>(b.width_ns));
-    const int k = std::clamp(static_cast<int>((std::log10(std::max(mid_ms, 1e-6)) - l0) / span * kBuckets), 0, kBuckets - 1);
+    const int k = std::clamp(static_cast<int>((std::log10(std::max(mid_ms, 1e-6)) - l0) / span * kBuckets), 0,
+                             kBuckets - 1);
     count[static_cast<size_t>(k)] += static_cast<double>(b.count);
   }
   const double cmax = *std::max_element(count.begin(), count.end());
@@ -164,16 +167,18 @@ std::string latency_plot(const LatencyDistribution& d) {
     const double x0 = p.px(l0 + span * k / kBuckets), x1 = p.px(l0 + span * (k + 1) / kBuckets);
     const double y = p.py(count[static_cast<size_t>(k)]);
     s += "<rect class='bar' x='" + fmt("%.1f", x0) + "' y='" + fmt("%.1f", y) + "' width='" +
-         fmt("%.1f", std::max(x1 - x0 - 1, 1.0)) + "' height='" + fmt("%.1f", p.y0 + p.h - y) + "' fill='#1f77b4'/>\n";
+         fmt("%.1f", std::max(x1 - x0 - 1, 1.0)) + "' height='" + fmt("%.1f", p.y0 + p.h - y) +
+         "' fill='#1f77b4'/>\n";
   }
   for (const auto& [v, label, colour] :
-       {std::tuple<double, const char*, const char*>{d.p50_ms, "p50", "#2ca02c"}, {d.p99_ms, "p99", "#ff7f0e"}}) {
+       {std::tuple<double, const char*, const char*>{d.p50_ms, "p50", "#2ca02c"},
+        {d.p99_ms, "p99", "#ff7f0e"}}) {
     if (!(v > 0)) continue;
     const double x = p.px(std::log10(v));
     s += "<line x1='" + fmt("%.1f", x) + "' y1='" + fmt("%.1f", p.y0) + "' x2='" + fmt("%.1f", x) + "' y2='" +
          fmt("%.1f", p.y0 + p.h) + "' stroke='" + colour + "' stroke-dasharray='5,3'/>\n";
-    s += "<text x='" + fmt("%.1f", x + 3) + "' y='" + fmt("%.1f", p.y0 + 12) + "' fill='" + colour + "'>" + label +
-         "</text>\n";
+    s += "<text x='" + fmt("%.1f", x + 3) + "' y='" + fmt("%.1f", p.y0 + 12) + "' fill='" + colour + "'>" +
+         label + "</text>\n";
   }
   return s + "</svg>\n";
 }
@@ -202,7 +207,8 @@ std::vector<LatencyDistribution> read_replay_latencies(const std::string& path) 
   std::ifstream f(path);
   if (!f) throw std::runtime_error("cannot read '" + path + "': " + std::strerror(errno));
   const nlohmann::json j = nlohmann::json::parse(f, nullptr, false);
-  if (j.is_discarded()) throw std::runtime_error(path + ": not JSON (expected `kestrel replay --metrics-out`)");
+  if (j.is_discarded())
+    throw std::runtime_error(path + ": not JSON (expected `kestrel replay --metrics-out`)");
   if (!j.is_object() || !j.contains("latency") || !j["latency"].is_object())
     throw std::runtime_error(path + ": no \"latency\" object (expected `kestrel replay --metrics-out`)");
   std::vector<LatencyDistribution> out;
@@ -214,7 +220,8 @@ std::vector<LatencyDistribution> read_replay_latencies(const std::string& path) 
     d.count = h.value("count", uint64_t{0});
     if (d.count == 0) continue;
     auto ms = [&](const char* k) {
-      if (!h.contains(k) || !h[k].is_number()) throw std::runtime_error(where + "." + k + ": expected a number");
+      if (!h.contains(k) || !h[k].is_number())
+        throw std::runtime_error(where + "." + k + ": expected a number");
       return h[k].get<double>();
     };
     d.p50_ms = ms("p50_ms");
@@ -228,10 +235,12 @@ std::vector<LatencyDistribution> read_replay_latencies(const std::string& path) 
       const auto& b = bins[i];
       if (!b.is_array() || b.size() != 3 || !b[0].is_number_integer() || !b[1].is_number_integer() ||
           !b[2].is_number_unsigned())
-        throw std::runtime_error(where + ".bins[" + std::to_string(i) + "]: expected [lower_ns, width_ns, count]");
+        throw std::runtime_error(where + ".bins[" + std::to_string(i) +
+                                 "]: expected [lower_ns, width_ns, count]");
       d.bins.push_back({b[0].get<int64_t>(), b[1].get<int64_t>(), b[2].get<uint64_t>()});
     }
-    if (d.bins.empty()) throw std::runtime_error(where + ".bins: empty while count is " + std::to_string(d.count));
+    if (d.bins.empty())
+      throw std::runtime_error(where + ".bins: empty while count is " + std::to_string(d.count));
     out.push_back(std::move(d));
   }
   return out;
@@ -243,20 +252,23 @@ void write_html_report(const std::string& path, const Trajectory& gt, const Eval
                   xml_escape(o.title.empty() ? std::string("trajectory evaluation") : o.title) +
                   "</title>\n<style>" + kStyle + "</style></head><body>\n";
   h += "<h1>" + xml_escape(o.title.empty() ? std::string("Trajectory evaluation") : o.title) + "</h1>\n";
-  h += "<div class='sub'>ground truth <b>" + xml_escape(r.gt_file) + "</b>, estimate <b>" + xml_escape(r.est_file) +
-       "</b>; alignment " + alignment_name(r.align) + " (docs/evaluation.md)</div>\n";
+  h += "<div class='sub'>ground truth <b>" + xml_escape(r.gt_file) + "</b>, estimate <b>" +
+       xml_escape(r.est_file) + "</b>; alignment " + alignment_name(r.align) +
+       " (docs/evaluation.md)</div>\n";
 
   h += "<h2>Summary</h2>\n<table id='summary'>\n";
   h += row("ATE RMSE", cell(r.ate_m.rmse, "%.4g") + " m");
-  h += row("ATE mean / median / max", cell(r.ate_m.mean, "%.4g") + " / " + cell(r.ate_m.median, "%.4g") + " / " +
-                                          cell(r.ate_m.max, "%.4g") + " m");
+  h += row("ATE mean / median / max", cell(r.ate_m.mean, "%.4g") + " / " + cell(r.ate_m.median, "%.4g") +
+                                          " / " + cell(r.ate_m.max, "%.4g") + " m");
   h += row("rotation error RMSE", cell(r.ate_rot_deg.rmse, "%.3g") + " deg");
-  h += row("RPE over " + fmt("%g", r.rpe_delta_s) + " s (translation RMSE)", cell(r.rpe_trans_rmse_m, "%.4g") + " m");
-  h += row("poses matched / estimate / ground truth",
-           std::to_string(r.matched) + " / " + std::to_string(r.est_poses) + " / " + std::to_string(r.gt_poses));
+  h += row("RPE over " + fmt("%g", r.rpe_delta_s) + " s (translation RMSE)",
+           cell(r.rpe_trans_rmse_m, "%.4g") + " m");
+  h += row(
+      "poses matched / estimate / ground truth",
+      std::to_string(r.matched) + " / " + std::to_string(r.est_poses) + " / " + std::to_string(r.gt_poses));
   h += row("coverage of the ground truth's time span", cell(100 * r.coverage, "%.1f") + " %");
-  h += row("ground-truth path length / duration", cell(r.gt_length_m, "%.2f") + " m / " +
-                                                       cell(r.gt_duration_s, "%.1f") + " s");
+  h += row("ground-truth path length / duration",
+           cell(r.gt_length_m, "%.2f") + " m / " + cell(r.gt_duration_s, "%.1f") + " s");
   if (r.align == Alignment::kSim3) h += row("scale", cell(r.T_align.scale, "%.4f"));
   for (const SegmentError& s : r.segments)
     h += row("drift over " + fmt("%g", s.length_m) + " m segments",
@@ -280,7 +292,9 @@ void write_html_report(const std::string& path, const Trajectory& gt, const Eval
   h += time_plot(
       "error-axes", "error per axis (estimate - ground truth, world frame)", "error [m]", r,
       {{kAxisColours[0], "x"}, {kAxisColours[1], "y"}, {kAxisColours[2], "z"}},
-      [&](size_t k, size_t i) { return r.est_aligned[i].p[static_cast<int>(k)] - r.gt_matched[i].p[static_cast<int>(k)]; },
+      [&](size_t k, size_t i) {
+        return r.est_aligned[i].p[static_cast<int>(k)] - r.gt_matched[i].p[static_cast<int>(k)];
+      },
       false);
   h += "</div>\n";
 

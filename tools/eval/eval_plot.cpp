@@ -23,19 +23,20 @@ using svg::xml_escape;
 
 }  // namespace
 
-void write_svg_plot(const std::string& path, const Trajectory& gt, const EvalResult& r, const std::string& title) {
+void write_svg_plot(const std::string& path, const Trajectory& gt, const EvalResult& r,
+                    const std::string& title) {
   constexpr double kW = 1200, kH = 560;
   std::string svg;
   svg += "<?xml version='1.0' encoding='UTF-8'?>\n";
-  svg += "<svg xmlns='http://www.w3.org/2000/svg' width='" + fmt("%.0f", kW) + "' height='" + fmt("%.0f", kH) +
-         "' viewBox='0 0 " + fmt("%.0f", kW) + " " + fmt("%.0f", kH) +
+  svg += "<svg xmlns='http://www.w3.org/2000/svg' width='" + fmt("%.0f", kW) + "' height='" +
+         fmt("%.0f", kH) + "' viewBox='0 0 " + fmt("%.0f", kW) + " " + fmt("%.0f", kH) +
          "' font-family='sans-serif' font-size='12'>\n";
   svg += "<rect width='100%' height='100%' fill='white'/>\n";
   const std::string heading = (title.empty() ? std::string("trajectory evaluation") : title) + "  (align " +
                               alignment_name(r.align) + ", ATE RMSE " + fmt("%.4g", r.ate_m.rmse) + " m, " +
                               std::to_string(r.matched) + " poses)";
-  svg += "<text x='" + fmt("%.0f", kW / 2) + "' y='24' text-anchor='middle' font-size='15'>" + xml_escape(heading) +
-         "</text>\n";
+  svg += "<text x='" + fmt("%.0f", kW / 2) + "' y='24' text-anchor='middle' font-size='15'>" +
+         xml_escape(heading) + "</text>\n";
 
   // ---- left: top view, equal scale on both axes so shapes are not distorted ----
   double xlo = INFINITY, xhi = -INFINITY, ylo = INFINITY, yhi = -INFINITY;
@@ -61,7 +62,8 @@ void write_svg_plot(const std::string& path, const Trajectory& gt, const EvalRes
       svg, top, E.size(), [&](size_t i) { return E[i].p.x(); }, [&](size_t i) { return E[i].p.y(); },
       [&](size_t i) { return E[i].t_ns; }, "stroke='#d62728' stroke-width='1.2' stroke-opacity='0.85'");
   svg::legend(svg, top.x0 + 10, top.y0 + 14,
-              {{"#222", "ground truth"}, {"#d62728", std::string("estimate (aligned, ") + alignment_name(r.align) + ")"}});
+              {{"#222", "ground truth"},
+               {"#d62728", std::string("estimate (aligned, ") + alignment_name(r.align) + ")"}});
 
   // ---- right: position error over time ----
   const int64_t t0 = E.empty() ? 0 : E.front().t_ns;
@@ -81,8 +83,9 @@ void write_svg_plot(const std::string& path, const Trajectory& gt, const EvalRes
       "stroke='#1f77b4' stroke-width='1.2'");
   if (std::isfinite(r.ate_m.rmse)) {
     const double y = err.py(r.ate_m.rmse);
-    svg += "<line x1='" + fmt("%.1f", err.x0) + "' y1='" + fmt("%.1f", y) + "' x2='" + fmt("%.1f", err.x0 + err.w) +
-           "' y2='" + fmt("%.1f", y) + "' stroke='#ff7f0e' stroke-dasharray='6,4'/>\n";
+    svg += "<line x1='" + fmt("%.1f", err.x0) + "' y1='" + fmt("%.1f", y) + "' x2='" +
+           fmt("%.1f", err.x0 + err.w) + "' y2='" + fmt("%.1f", y) +
+           "' stroke='#ff7f0e' stroke-dasharray='6,4'/>\n";
     svg += "<text x='" + fmt("%.1f", err.x0 + err.w - 4) + "' y='" + fmt("%.1f", y - 5) +
            "' text-anchor='end' fill='#ff7f0e'>RMSE " + fmt("%.4g", r.ate_m.rmse) + " m</text>\n";
   }

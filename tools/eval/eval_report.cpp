@@ -23,7 +23,9 @@ struct Field {
 
 Field num(std::string key, double v) { return Field{Field::kNumber, std::move(key), v, 0, {}}; }
 Field integer(std::string key, long long v) { return Field{Field::kInteger, std::move(key), 0, v, {}}; }
-Field str(std::string key, std::string v) { return Field{Field::kString, std::move(key), 0, 0, std::move(v)}; }
+Field str(std::string key, std::string v) {
+  return Field{Field::kString, std::move(key), 0, 0, std::move(v)};
+}
 
 std::string format_length(double L) {
   char buf[32];
@@ -33,7 +35,7 @@ std::string format_length(double L) {
 
 std::vector<Field> fields(const EvalResult& r) {
   std::vector<Field> f;
-  f.push_back(num("ate_rmse_m", r.ate_m.rmse));   // first, always: scripts read line 1
+  f.push_back(num("ate_rmse_m", r.ate_m.rmse));  // first, always: scripts read line 1
   f.push_back(num("ate_mean_m", r.ate_m.mean));
   f.push_back(num("ate_median_m", r.ate_m.median));
   f.push_back(num("ate_std_m", r.ate_m.std));
@@ -100,8 +102,12 @@ std::string to_text(const EvalResult& r) {
   for (const Field& f : fields(r)) {
     out += f.key + ": ";
     switch (f.kind) {
-      case Field::kNumber: out += format_number(f.number); break;
-      case Field::kInteger: out += std::to_string(f.integer); break;
+      case Field::kNumber:
+        out += format_number(f.number);
+        break;
+      case Field::kInteger:
+        out += std::to_string(f.integer);
+        break;
       case Field::kString: {
         // One line per key, whatever the value holds.
         for (char c : f.text) out += (c == '\n' || c == '\r') ? ' ' : c;
@@ -117,9 +123,15 @@ std::string to_json(const EvalResult& r) {
   Json j = Json::object();
   for (const Field& f : fields(r)) {
     switch (f.kind) {
-      case Field::kNumber: j[f.key] = json_figure(f.number); break;
-      case Field::kInteger: j[f.key] = f.integer; break;
-      case Field::kString: j[f.key] = f.text; break;
+      case Field::kNumber:
+        j[f.key] = json_figure(f.number);
+        break;
+      case Field::kInteger:
+        j[f.key] = f.integer;
+        break;
+      case Field::kString:
+        j[f.key] = f.text;
+        break;
     }
   }
   return json_text(j);

@@ -16,7 +16,6 @@
 
 namespace kestrel::tools::svg {
 
-
 // Polylines longer than this are decimated: a browser chokes on 10^5 points and
 // the eye cannot tell the difference at this size.
 constexpr size_t kMaxPoints = 4000;
@@ -29,8 +28,8 @@ struct Range {
 };
 
 struct Panel {
-  double x0, y0, w, h;   // pixel box of the plot area
-  Range xr, yr;          // data range shown
+  double x0, y0, w, h;  // pixel box of the plot area
+  Range xr, yr;         // data range shown
   double px(double x) const { return x0 + (x - xr.lo) / xr.span() * w; }
   double py(double y) const { return y0 + h - (y - yr.lo) / yr.span() * h; }
 };
@@ -39,11 +38,21 @@ inline std::string xml_escape(const std::string& s) {
   std::string out;
   for (char c : s) {
     switch (c) {
-      case '&': out += "&amp;"; break;
-      case '<': out += "&lt;"; break;
-      case '>': out += "&gt;"; break;
-      case '"': out += "&quot;"; break;
-      case '\'': out += "&apos;"; break;
+      case '&':
+        out += "&amp;";
+        break;
+      case '<':
+        out += "&lt;";
+        break;
+      case '>':
+        out += "&gt;";
+        break;
+      case '"':
+        out += "&quot;";
+        break;
+      case '\'':
+        out += "&apos;";
+        break;
       default:
         if (static_cast<unsigned char>(c) >= 0x20 || c == '\t') out += c;
     }
@@ -99,8 +108,8 @@ inline void axes(std::string& svg, const Panel& p, const std::string& xlabel, co
          "' height='" + fmt("%.1f", p.h) + "' fill='none' stroke='#444'/>\n";
   for (const auto& [pos, v] : ticks(p.xr.lo, p.xr.hi, log_x)) {
     const double x = p.px(pos);
-    svg += "<line x1='" + fmt("%.1f", x) + "' y1='" + fmt("%.1f", p.y0) + "' x2='" + fmt("%.1f", x) + "' y2='" +
-           fmt("%.1f", p.y0 + p.h) + "' stroke='#ddd'/>\n";
+    svg += "<line x1='" + fmt("%.1f", x) + "' y1='" + fmt("%.1f", p.y0) + "' x2='" + fmt("%.1f", x) +
+           "' y2='" + fmt("%.1f", p.y0 + p.h) + "' stroke='#ddd'/>\n";
     svg += "<text x='" + fmt("%.1f", x) + "' y='" + fmt("%.1f", p.y0 + p.h + 16) + "' text-anchor='middle'>" +
            fmt("%g", v) + "</text>\n";
   }
@@ -119,7 +128,8 @@ inline void axes(std::string& svg, const Panel& p, const std::string& xlabel, co
 
 // One <polyline> per run of samples without a time gap.
 template <typename GetX, typename GetY, typename GetT>
-void polyline(std::string& svg, const Panel& p, size_t n, GetX gx, GetY gy, GetT gt, const std::string& style) {
+void polyline(std::string& svg, const Panel& p, size_t n, GetX gx, GetY gy, GetT gt,
+              const std::string& style) {
   if (n == 0) return;
   const size_t stride = std::max<size_t>(1, (n + kMaxPoints - 1) / kMaxPoints);
   std::string pts;
@@ -147,8 +157,8 @@ inline void equal_aspect(Panel& p) {
 }
 
 // A boxed legend at (x, y): one line per (colour, label).
-inline void legend(std::string& svg, double x, double y, const std::vector<std::pair<std::string, std::string>>& items,
-                   double width = 190) {
+inline void legend(std::string& svg, double x, double y,
+                   const std::vector<std::pair<std::string, std::string>>& items, double width = 190) {
   svg += "<rect x='" + fmt("%.1f", x - 4) + "' y='" + fmt("%.1f", y - 12) + "' width='" + fmt("%.0f", width) +
          "' height='" + fmt("%.0f", 10 + 20.0 * static_cast<double>(items.size())) +
          "' fill='white' fill-opacity='0.85' stroke='#999'/>\n";
@@ -156,8 +166,8 @@ inline void legend(std::string& svg, double x, double y, const std::vector<std::
     const double yy = y + 20.0 * static_cast<double>(i);
     svg += "<line x1='" + fmt("%.1f", x) + "' y1='" + fmt("%.1f", yy - 4) + "' x2='" + fmt("%.1f", x + 24) +
            "' y2='" + fmt("%.1f", yy - 4) + "' stroke='" + items[i].first + "' stroke-width='2'/>\n";
-    svg += "<text x='" + fmt("%.1f", x + 30) + "' y='" + fmt("%.1f", yy) + "'>" + xml_escape(items[i].second) +
-           "</text>\n";
+    svg += "<text x='" + fmt("%.1f", x + 30) + "' y='" + fmt("%.1f", yy) + "'>" +
+           xml_escape(items[i].second) + "</text>\n";
   }
 }
 

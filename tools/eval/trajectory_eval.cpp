@@ -3,7 +3,6 @@
 
 #include <Eigen/Geometry>
 #include <Eigen/SVD>
-
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
@@ -19,9 +18,7 @@ constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 constexpr double kRadToDeg = 180.0 / M_PI;
 
 // Rotation angle in [0, pi], robust near 0 and pi (acos is not).
-double angle_rad(const Eigen::Quaterniond& q) {
-  return 2.0 * std::atan2(q.vec().norm(), std::fabs(q.w()));
-}
+double angle_rad(const Eigen::Quaterniond& q) { return 2.0 * std::atan2(q.vec().norm(), std::fabs(q.w())); }
 
 Stats make_stats(std::vector<double> v) {
   Stats s;
@@ -77,9 +74,11 @@ bool sorted_strictly(const Trajectory& t) {
 // Callers building trajectories by hand may not sort them; evaluation needs it.
 Trajectory sorted_unique(const Trajectory& t, const char* what, std::vector<std::string>* warnings) {
   Trajectory out = t;
-  std::stable_sort(out.begin(), out.end(), [](const TimedPose& a, const TimedPose& b) { return a.t_ns < b.t_ns; });
+  std::stable_sort(out.begin(), out.end(),
+                   [](const TimedPose& a, const TimedPose& b) { return a.t_ns < b.t_ns; });
   const size_t before = out.size();
-  out.erase(std::unique(out.begin(), out.end(), [](const TimedPose& a, const TimedPose& b) { return a.t_ns == b.t_ns; }),
+  out.erase(std::unique(out.begin(), out.end(),
+                        [](const TimedPose& a, const TimedPose& b) { return a.t_ns == b.t_ns; }),
             out.end());
   warnings->push_back(std::string(what) + " trajectory was not sorted by time: sorted" +
                       (before != out.size() ? ", " + std::to_string(before - out.size()) +
@@ -100,10 +99,14 @@ std::optional<Alignment> parse_alignment(const std::string& name) {
 
 const char* alignment_name(Alignment alignment) {
   switch (alignment) {
-    case Alignment::kNone: return "none";
-    case Alignment::kSe3: return "se3";
-    case Alignment::kSim3: return "sim3";
-    case Alignment::kPosYaw: return "posyaw";
+    case Alignment::kNone:
+      return "none";
+    case Alignment::kSe3:
+      return "se3";
+    case Alignment::kSim3:
+      return "sim3";
+    case Alignment::kPosYaw:
+      return "posyaw";
   }
   return "?";
 }
@@ -119,8 +122,8 @@ Sim3 align_positions(const std::vector<Eigen::Vector3d>& est, const std::vector<
     case Alignment::kSe3:
     case Alignment::kSim3: {
       if (n < 3)
-        throw std::invalid_argument(std::string(alignment_name(alignment)) + " alignment needs >= 3 poses, got " +
-                                    std::to_string(n));
+        throw std::invalid_argument(std::string(alignment_name(alignment)) +
+                                    " alignment needs >= 3 poses, got " + std::to_string(n));
       Eigen::Matrix3Xd src(3, n), dst(3, n);
       for (size_t i = 0; i < n; ++i) {
         src.col(static_cast<Eigen::Index>(i)) = est[i];
@@ -166,7 +169,8 @@ Sim3 align_positions(const std::vector<Eigen::Vector3d>& est, const std::vector<
   return out;
 }
 
-std::optional<TimedPose> pose_at(const Trajectory& trajectory, int64_t t_ns, int64_t max_gap_ns, bool* interpolated) {
+std::optional<TimedPose> pose_at(const Trajectory& trajectory, int64_t t_ns, int64_t max_gap_ns,
+                                 bool* interpolated) {
   if (interpolated != nullptr) *interpolated = false;
   const auto hi = std::lower_bound(trajectory.begin(), trajectory.end(), t_ns,
                                    [](const TimedPose& p, int64_t t) { return p.t_ns < t; });
@@ -273,7 +277,7 @@ RpeStats relative_pose_error(const EvalResult& r, double delta_s, double max_gap
     const int64_t target = E[i].t_ns + delta_ns;
     const auto it = std::lower_bound(E.begin() + static_cast<std::ptrdiff_t>(i) + 1, E.end(), target,
                                      [](const TimedPose& p, int64_t t) { return p.t_ns < t; });
-    if (it == E.end()) break;   // later starts reach further still
+    if (it == E.end()) break;  // later starts reach further still
     if (it->t_ns - target > pair_tol_ns) continue;
     const size_t j = static_cast<size_t>(it - E.begin());
     double et = 0, er = 0;
@@ -334,12 +338,12 @@ EvalResult evaluate(const Trajectory& gt_in, const Trajectory& est_in, const Eva
   const int needed = opt.align == Alignment::kNone ? 1 : opt.align == Alignment::kPosYaw ? 2 : 3;
   if (r.matched < needed) {
     std::string msg = "only " + std::to_string(r.matched) + " of " + std::to_string(r.est_poses) +
-                      " estimate poses associate with ground truth within " + num(opt.max_gap_ms) +
-                      " ms; " + alignment_name(opt.align) + " needs " + std::to_string(needed);
+                      " estimate poses associate with ground truth within " + num(opt.max_gap_ms) + " ms; " +
+                      alignment_name(opt.align) + " needs " + std::to_string(needed);
     if (!gt.empty() && !est.empty())
-      msg += " (ground truth spans t_ns " + std::to_string(gt.front().t_ns) + ".." + std::to_string(gt.back().t_ns) +
-             ", estimate " + std::to_string(est.front().t_ns) + ".." + std::to_string(est.back().t_ns) +
-             ": different clocks?)";
+      msg += " (ground truth spans t_ns " + std::to_string(gt.front().t_ns) + ".." +
+             std::to_string(gt.back().t_ns) + ", estimate " + std::to_string(est.front().t_ns) + ".." +
+             std::to_string(est.back().t_ns) + ": different clocks?)";
     throw std::runtime_error(msg);
   }
 
@@ -360,8 +364,9 @@ EvalResult evaluate(const Trajectory& gt_in, const Trajectory& est_in, const Eva
     for (size_t i = 0; i < pe.size(); ++i) c.col(static_cast<Eigen::Index>(i)) = pe[i] - mu;
     const Eigen::Vector3d sv = Eigen::JacobiSVD<Eigen::Matrix3d>(c * c.transpose()).singularValues();
     if (sv(1) <= 1e-9 * std::max(sv(0), 1e-30))
-      r.warnings.push_back("estimate positions are (nearly) collinear: the alignment rotation about that line is "
-                           "undetermined; prefer --align posyaw or none");
+      r.warnings.push_back(
+          "estimate positions are (nearly) collinear: the alignment rotation about that line is "
+          "undetermined; prefer --align posyaw or none");
   }
   r.T_align = align_positions(pe, pg, opt.align);
   const Eigen::Quaterniond q_align(r.T_align.R);
@@ -387,7 +392,8 @@ EvalResult evaluate(const Trajectory& gt_in, const Trajectory& est_in, const Eva
   {
     Eigen::Vector3d sum_eg = Eigen::Vector3d::Zero(), sum_gg = Eigen::Vector3d::Zero();
     Eigen::Vector3d g_max = Eigen::Vector3d::Zero();
-    const Eigen::Quaterniond qe0 = est_matched.front().q.normalized(), qg0 = r.gt_matched.front().q.normalized();
+    const Eigen::Quaterniond qe0 = est_matched.front().q.normalized(),
+                             qg0 = r.gt_matched.front().q.normalized();
     for (size_t i = 0; i < est_matched.size(); ++i) {
       const Eigen::AngleAxisd ae(qe0.conjugate() * est_matched[i].q.normalized());
       const Eigen::AngleAxisd ag(qg0.conjugate() * r.gt_matched[i].q.normalized());
@@ -409,8 +415,9 @@ EvalResult evaluate(const Trajectory& gt_in, const Trajectory& est_in, const Eva
     r.gt_length_m += (r.gt_matched[i].p - r.gt_matched[i - 1].p).norm();
   }
   const int64_t gt_span_ns = gt.size() >= 2 ? gt.back().t_ns - gt.front().t_ns : 0;
-  r.coverage = gt_span_ns > 0 ? std::min(1.0, static_cast<double>(covered_ns) / static_cast<double>(gt_span_ns))
-                              : (r.matched > 0 ? 1.0 : 0.0);
+  r.coverage = gt_span_ns > 0
+                   ? std::min(1.0, static_cast<double>(covered_ns) / static_cast<double>(gt_span_ns))
+                   : (r.matched > 0 ? 1.0 : 0.0);
 
   // ---- RPE over a fixed time step ----
   const RpeStats rpe = relative_pose_error(r, opt.rpe_delta_s, opt.max_gap_ms);
@@ -427,7 +434,8 @@ EvalResult evaluate(const Trajectory& gt_in, const Trajectory& est_in, const Eva
   const auto& E = r.est_aligned;
   // ---- RPE over travelled distance (KITTI odometry style) ----
   std::vector<double> dist(E.size(), 0.0);
-  for (size_t i = 1; i < E.size(); ++i) dist[i] = dist[i - 1] + (r.gt_matched[i].p - r.gt_matched[i - 1].p).norm();
+  for (size_t i = 1; i < E.size(); ++i)
+    dist[i] = dist[i - 1] + (r.gt_matched[i].p - r.gt_matched[i - 1].p).norm();
   const double dist_eps = 1e-9 * (1.0 + (dist.empty() ? 0.0 : dist.back()));
   for (double L : opt.segment_lengths_m) {
     SegmentError seg;
@@ -435,9 +443,9 @@ EvalResult evaluate(const Trajectory& gt_in, const Trajectory& est_in, const Eva
     double sum_t = 0, sum_r = 0;
     for (size_t i = 0; i < E.size(); ++i) {
       // The epsilon keeps summation round-off from pushing the end one sample further.
-      const auto it = std::lower_bound(dist.begin() + static_cast<std::ptrdiff_t>(i), dist.end(),
-                                       dist[i] + L - dist_eps);
-      if (it == dist.end()) break;   // later starts are shorter still
+      const auto it =
+          std::lower_bound(dist.begin() + static_cast<std::ptrdiff_t>(i), dist.end(), dist[i] + L - dist_eps);
+      if (it == dist.end()) break;  // later starts are shorter still
       const size_t j = static_cast<size_t>(it - dist.begin());
       double et = 0, er = 0;
       relative_error(r.gt_matched[i], r.gt_matched[j], E[i], E[j], &et, &er);

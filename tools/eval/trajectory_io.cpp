@@ -65,7 +65,7 @@ class Reporter {
 
 struct Row {
   TimedPose pose;
-  std::string where;   // "file:line" it came from
+  std::string where;  // "file:line" it came from
 };
 
 std::string lower_extension(const std::string& path) {
@@ -100,8 +100,8 @@ bool fill_pose(const std::vector<std::string>& f, const char* const* names, cons
   for (int k = 0; k < 7; ++k) {
     const int idx = order[k];
     if (!parse_double(f[idx], &v[k])) {
-      *err = std::string("field '") + names[idx] + "' (column " + std::to_string(idx + 1) + "): not a number '" +
-             f[idx] + "'";
+      *err = std::string("field '") + names[idx] + "' (column " + std::to_string(idx + 1) +
+             "): not a number '" + f[idx] + "'";
       return false;
     }
     if (!std::isfinite(v[k])) {
@@ -156,8 +156,8 @@ std::vector<Row> read_text(const std::string& path, Reporter& rep, int* non_unit
     }
     if (f.size() < 8 || (!csv && f.size() > 8)) {
       rep.loss(where, std::string(csv ? "EuRoC CSV" : "TUM") + " line has " + std::to_string(f.size()) +
-                          " fields, expected " + (csv ? "at least 8 (t[ns],px,py,pz,qw,qx,qy,qz)"
-                                                      : "8 (t[s] x y z qx qy qz qw)"));
+                          " fields, expected " +
+                          (csv ? "at least 8 (t[ns],px,py,pz,qw,qx,qy,qz)" : "8 (t[s] x y z qx qy qz qw)"));
       continue;
     }
     Row row;
@@ -192,7 +192,7 @@ std::vector<Row> read_text(const std::string& path, Reporter& rep, int* non_unit
 }
 
 std::vector<Row> read_log(const std::string& path, Reporter& rep, std::vector<std::string>* warnings) {
-  auto source = drivers::open_log(path);   // throws naming the path
+  auto source = drivers::open_log(path);  // throws naming the path
   const bool byte_offsets = source->format_name().find("klog") != std::string::npos;
   std::vector<Row> rows;
   drivers::LogRecord rec;
@@ -226,7 +226,8 @@ std::vector<Row> read_log(const std::string& path, Reporter& rep, std::vector<st
     for (const auto& p : source->problems()) {
       const std::string msg = p.where + ": " + p.kind + ": " + p.detail;
       const bool about_gt = byte_offsets || p.where.find("groundtruth") != std::string::npos ||
-                            p.where.find("gt_") != std::string::npos || p.kind.find("gt") != std::string::npos ||
+                            p.where.find("gt_") != std::string::npos ||
+                            p.kind.find("gt") != std::string::npos ||
                             p.kind.find("ground") != std::string::npos;
       if (about_gt) {
         warnings->push_back(msg);
@@ -235,11 +236,13 @@ std::vector<Row> read_log(const std::string& path, Reporter& rep, std::vector<st
       }
     }
     if (other > 0)
-      warnings->push_back(path + ": the " + source->format_name() + " reader reported " + std::to_string(other) +
-                          " problems with non-ground-truth data (not used by eval; first: " + first_other + ")");
+      warnings->push_back(
+          path + ": the " + source->format_name() + " reader reported " + std::to_string(other) +
+          " problems with non-ground-truth data (not used by eval; first: " + first_other + ")");
   }
   if (rows.empty())
-    throw std::runtime_error("'" + path + "' (" + source->format_name() + " log) holds no ground-truth records");
+    throw std::runtime_error("'" + path + "' (" + source->format_name() +
+                             " log) holds no ground-truth records");
   return rows;
 }
 
@@ -251,21 +254,20 @@ bool looks_like_klog(const std::string& path) {
   return f.read(magic, 4) && std::memcmp(magic, "KLOG", 4) == 0;
 }
 
-bool same_pose(const TimedPose& a, const TimedPose& b) {
-  return a.p == b.p && a.q.coeffs() == b.q.coeffs();
-}
+bool same_pose(const TimedPose& a, const TimedPose& b) { return a.p == b.p && a.q.coeffs() == b.q.coeffs(); }
 
 }  // namespace
 
 Trajectory load_trajectory(const std::string& path, std::vector<std::string>* warnings) {
   std::error_code ec;
   const bool is_dir = fs::is_directory(path, ec);
-  if (!is_dir && !fs::exists(path, ec)) throw std::runtime_error("cannot open '" + path + "': no such file or directory");
+  if (!is_dir && !fs::exists(path, ec))
+    throw std::runtime_error("cannot open '" + path + "': no such file or directory");
 
   Reporter rep(path, warnings);
   int non_unit_quats = 0;
   std::vector<Row> rows = (is_dir || looks_like_klog(path)) ? read_log(path, rep, warnings)
-                                                                       : read_text(path, rep, &non_unit_quats);
+                                                            : read_text(path, rep, &non_unit_quats);
   if (rows.empty()) {
     throw std::runtime_error("'" + path + "' holds no pose" +
                              (rep.first().empty() ? std::string() : " (first problem: " + rep.first() + ")"));
@@ -308,7 +310,8 @@ Trajectory load_trajectory(const std::string& path, std::vector<std::string>* wa
     kept_where = &r.where;
   }
   if (exact_dups > 0)
-    rep.note(first_dup + ": exact duplicate pose; " + std::to_string(exact_dups) + " exact duplicates dropped");
+    rep.note(first_dup + ": exact duplicate pose; " + std::to_string(exact_dups) +
+             " exact duplicates dropped");
   rep.finish();
   return out;
 }
@@ -319,8 +322,8 @@ void write_tum(const std::string& path, const Trajectory& trajectory) {
   std::fprintf(f, "# timestamp[s] tx ty tz qx qy qz qw  (T_WB: body pose in world)\n");
   for (const TimedPose& p : trajectory) {
     // Seconds printed from the integer so no nanosecond is rounded away.
-    std::fprintf(f, "%s %.9f %.9f %.9f %.12f %.12f %.12f %.12f\n", text::seconds_from_ns(p.t_ns).c_str(), p.p.x(),
-                 p.p.y(), p.p.z(), p.q.x(), p.q.y(), p.q.z(), p.q.w());
+    std::fprintf(f, "%s %.9f %.9f %.9f %.12f %.12f %.12f %.12f\n", text::seconds_from_ns(p.t_ns).c_str(),
+                 p.p.x(), p.p.y(), p.p.z(), p.q.x(), p.q.y(), p.q.z(), p.q.w());
   }
   const bool write_failed = std::ferror(f) != 0;
   if (std::fclose(f) != 0 || write_failed)

@@ -8,25 +8,25 @@
 #include <unistd.h>
 
 #include <algorithm>
-#include <cstdio>
 #include <cmath>
+#include <cstdio>
 #include <cstring>
-#include <limits>
 #include <filesystem>
 #include <fstream>
 #include <iostream>
+#include <limits>
 #include <map>
 #include <sstream>
 #include <utility>
 
+#include "kestrel/commands.hpp"
 #include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/drivers/folder_logs.hpp"
 #include "kestrel/drivers/open_log.hpp"
-#include "kestrel/tools/estimator_config_yaml.hpp"
-#include "kestrel/commands.hpp"
 #include "kestrel/replay_runner.hpp"
-#include "kestrel/tools/report_json.hpp"
 #include "kestrel/tools/cpu_budget.hpp"
+#include "kestrel/tools/estimator_config_yaml.hpp"
+#include "kestrel/tools/report_json.hpp"
 #include "kestrel/tools/simulator.hpp"
 #include "kestrel/tools/trajectory_eval.hpp"
 
@@ -39,16 +39,16 @@ constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 
 struct BenchCase {
   std::string name;
-  std::string kind;        // "scenario", "hybrid", "real-images", "real-rgbd", "real-synth-imu"
-  std::string scenario;    // scenario name
-  std::string gt_path;     // hybrid: EuRoC gt_body_20hz.csv; real-images: its GT
-  std::string imu_path;    // hybrid: EuRoC imu0.csv
-  std::string log_path;    // real-images: the EuRoC ASL folder; real-rgbd: the recording
-  std::string images_path; // real-synth-imu: the recording its log is made from (`kestrel sim --images`)
+  std::string kind;         // "scenario", "hybrid", "real-images", "real-rgbd", "real-synth-imu"
+  std::string scenario;     // scenario name
+  std::string gt_path;      // hybrid: EuRoC gt_body_20hz.csv; real-images: its GT
+  std::string imu_path;     // hybrid: EuRoC imu0.csv
+  std::string log_path;     // real-images: the EuRoC ASL folder; real-rgbd: the recording
+  std::string images_path;  // real-synth-imu: the recording its log is made from (`kestrel sim --images`)
   std::vector<std::string> backends;  // non-empty: these backends, whatever --estimator says
-  std::string skipped;     // non-empty: why it cannot run
-  double room_m = 0.0;     // hybrid: rendered hall size (SimOptions::room_m); 0: a room around the flight
-  bool stereo = false;     // hybrid: rendered as stereo pairs instead of RGB-D (`kestrel sim --stereo`)
+  std::string skipped;                // non-empty: why it cannot run
+  double room_m = 0.0;  // hybrid: rendered hall size (SimOptions::room_m); 0: a room around the flight
+  bool stereo = false;  // hybrid: rendered as stereo pairs instead of RGB-D (`kestrel sim --stereo`)
 };
 
 // The figures of one row; NaN where a figure does not exist (yet).
@@ -69,15 +69,15 @@ struct BenchRow {
   double allocs_per_frame = kNaN;
   double realtime_factor = kNaN;
   double peak_rss_mb = kNaN;
-  double pose_share = kNaN;       // frames that got a pose / frames
-  double divergences = kNaN;      // times the backend said it lost the truth and re-initialised
-  double coast_s = kNaN;          // IMU-only time after visual fixes
+  double pose_share = kNaN;   // frames that got a pose / frames
+  double divergences = kNaN;  // times the backend said it lost the truth and re-initialised
+  double coast_s = kNaN;      // IMU-only time after visual fixes
   double cpu_s_per_s = kNaN;  // the estimator's work: CPU seconds per second of flight (waiting not counted)
   double map_cpu_s_per_s = kNaN;  // the mapping and loop threads' CPU seconds per second of flight
   std::string fail;               // why the row fails (empty: it does not); docs/bench.md "FAIL"
   double sim_s = kNaN;
   double replay_wall_s = kNaN;
-  double cpu_per_s = kNaN;        // process CPU seconds per second of flight (all threads)
+  double cpu_per_s = kNaN;  // process CPU seconds per second of flight (all threads)
   // The map (backends with one): the trajectory in the map frame, the map's
   // counters, and the mapping / loop threads' time per keyframe.
   double map_ate_se3_rmse_m = kNaN;
@@ -101,8 +101,8 @@ std::vector<BenchCase> discover_cases(const std::string& data_dir) {
     cases.push_back(c);
   }
   const fs::path euroc = fs::path(data_dir) / "euroc";
-  const char* sequences[] = {"MH_01_easy",   "MH_03_medium", "V1_01_easy",  "V1_02_medium",
-                             "V1_03_difficult", "V2_01_easy", "V2_02_medium"};
+  const char* sequences[] = {"MH_01_easy",      "MH_03_medium", "V1_01_easy",  "V1_02_medium",
+                             "V1_03_difficult", "V2_01_easy",   "V2_02_medium"};
   for (const char* seq : sequences) {
     BenchCase c;
     c.name = std::string("hybrid-") + seq;
@@ -174,9 +174,8 @@ std::vector<BenchCase> discover_cases(const std::string& data_dir) {
 // lines "key value", so the child's peak RSS is the case's own.
 std::map<std::string, double> replay_in_child(const std::string& log, const std::string& gt,
                                               drivers::ReplayPace pace, const core::EstimatorConfig& config,
-                                              const std::string& traj_out,
-                                              std::string& estimator, std::string& error,
-                                              std::string* gt_note = nullptr) {
+                                              const std::string& traj_out, std::string& estimator,
+                                              std::string& error, std::string* gt_note = nullptr) {
   int fds[2];
   if (pipe(fds) != 0) throw std::runtime_error("pipe failed");
   std::fflush(nullptr);
@@ -213,8 +212,8 @@ std::map<std::string, double> replay_in_child(const std::string& log, const std:
         o << "imu_to_output_ms_max " << ms(r.imu_to_output.max()) << "\n";
       }
       if (r.alloc_counting && r.steady_frames > 0)
-        o << "allocs_per_frame " << static_cast<double>(r.steady_allocs) / static_cast<double>(r.steady_frames)
-          << "\n";
+        o << "allocs_per_frame "
+          << static_cast<double>(r.steady_allocs) / static_cast<double>(r.steady_frames) << "\n";
       o << "realtime_factor " << r.realtime_factor << "\n";
       o << "divergences " << r.estimator_counters.divergence.divergences << "\n";
       o << "coast_s " << 1e-9 * static_cast<double>(r.estimator_counters.divergence.coast_ns) << "\n";
@@ -235,14 +234,16 @@ std::map<std::string, double> replay_in_child(const std::string& log, const std:
         const LoopTruth t = evaluate_loops(*src, r.loop_log);
         if (t.available) {
           o << "loop_revisits " << t.revisit_keyframes << "\nfalse_loops " << t.closed_false << "\n";
-          if (t.revisit_keyframes > 0) o << "loop_recall " << t.loop_recall << "\nmap_recall " << t.map_recall << "\n";
+          if (t.revisit_keyframes > 0)
+            o << "loop_recall " << t.loop_recall << "\nmap_recall " << t.map_recall << "\n";
         }
       }
       o << "peak_rss_mb " << r.peak_rss_mb << "\n";
       o << "duration_s " << r.log_duration_s << "\n";
       o << "replay_wall_s " << r.wall_s << "\n";
       const double frames = static_cast<double>(r.replay.frames_pushed);
-      if (frames > 0) o << "pose_share " << std::min(1.0, static_cast<double>(r.trajectory.size()) / frames) << "\n";
+      if (frames > 0)
+        o << "pose_share " << std::min(1.0, static_cast<double>(r.trajectory.size()) / frames) << "\n";
       std::vector<std::string> warnings;
       tools::Trajectory g;
       if (gt_note != nullptr) {
@@ -299,7 +300,8 @@ std::map<std::string, double> replay_in_child(const std::string& log, const std:
   close(fds[0]);
   int status = 0;
   waitpid(pid, &status, 0);
-  if (!WIFEXITED(status) || WEXITSTATUS(status) != 0) error = "replay child crashed (status " + std::to_string(status) + ")";
+  if (!WIFEXITED(status) || WEXITSTATUS(status) != 0)
+    error = "replay child crashed (status " + std::to_string(status) + ")";
   std::map<std::string, double> out;
   std::istringstream in(text);
   std::string line;
@@ -334,8 +336,9 @@ std::string fmt(double v, const char* f) {
 
 void print_table(const std::vector<BenchRow>& rows) {
   std::printf("%-26s %-20s %9s %9s %9s %9s %9s %8s %8s %8s %8s %9s %8s %8s %8s %7s %5s %7s %6s\n", "case",
-              "estimator", "ate_m", "ate_se3_m", "map_se3_m", "final_m", "rpe_m/s", "trk_p50", "trk_p99", "opt_p50", "opt_p99", "imu_p99",
-              "alloc/f", "rt_x", "rss_mb", "poses", "div", "coast_s", "cpu/s");
+              "estimator", "ate_m", "ate_se3_m", "map_se3_m", "final_m", "rpe_m/s", "trk_p50", "trk_p99",
+              "opt_p50", "opt_p99", "imu_p99", "alloc/f", "rt_x", "rss_mb", "poses", "div", "coast_s",
+              "cpu/s");
   for (const auto& r : rows) {
     if (r.status != "ok") {
       std::printf("%-26s %s\n", r.name.c_str(), r.status.c_str());
@@ -360,7 +363,8 @@ void print_table(const std::vector<BenchRow>& rows) {
 std::string fail_reasons(const BenchRow& r) {
   std::string f;
   auto add = [&f](const std::string& s) { f += (f.empty() ? "" : ", ") + s; };
-  if (!std::isfinite(r.ate_rmse_m) || r.ate_rmse_m > 1.0 || (std::isfinite(r.ate_se3_rmse_m) && r.ate_se3_rmse_m > 1.0))
+  if (!std::isfinite(r.ate_rmse_m) || r.ate_rmse_m > 1.0 ||
+      (std::isfinite(r.ate_se3_rmse_m) && r.ate_se3_rmse_m > 1.0))
     add("ATE over 1 m");
   if (!std::isfinite(r.pose_share) || r.pose_share < 0.99) add("pose share under 99 %");
   return f;
@@ -368,8 +372,8 @@ std::string fail_reasons(const BenchRow& r) {
 
 // Per stage p50 / p99 / max [ms]: the timing table of the pipeline issue.
 void print_timing_table(const std::vector<BenchRow>& rows) {
-  std::printf("\ntiming [ms] (p50 / p99 / max)\n%-26s %-20s %-26s %-26s %-26s %6s\n", "case", "estimator", "tracking",
-              "optimizer", "imu_to_output", "rt_x");
+  std::printf("\ntiming [ms] (p50 / p99 / max)\n%-26s %-20s %-26s %-26s %-26s %6s\n", "case", "estimator",
+              "tracking", "optimizer", "imu_to_output", "rt_x");
   auto three = [](double a, double b, double c) {
     return fmt(a, "%.3f") + " / " + fmt(b, "%.3f") + " / " + fmt(c, "%.3f");
   };
@@ -391,8 +395,8 @@ void print_map_table(const std::vector<BenchRow>& rows) {
   std::printf(
       "\nmap (per keyframe [ms] p50 / p99; cpu/s: the map's threads, then the whole process)\n"
       "%-26s %-20s %-17s %-17s %6s %8s %6s %6s %8s %7s %7s %8s %6s %6s %6s\n",
-      "case", "estimator", "mapping", "loop", "kfs", "points", "loops", "relocs", "corr_m", "map", "proc", "revisits",
-      "recall", "found", "false");
+      "case", "estimator", "mapping", "loop", "kfs", "points", "loops", "relocs", "corr_m", "map", "proc",
+      "revisits", "recall", "found", "false");
   for (const auto& r : rows) {
     if (r.status != "ok" || !std::isfinite(r.keyframes_in_map)) continue;
     std::printf("%-26s %-20s %-17s %-17s %6s %8s %6s %6s %8s %7s %7s %8s %6s %6s %6s\n", r.name.c_str(),
@@ -473,8 +477,8 @@ std::string rows_json(const std::vector<BenchRow>& rows, double duration_s) {
 // divided by (frames tracked, optimizer solves or IMU samples).
 struct BudgetStage {
   const char* label;
-  const char* needle;   // substring of the demangled name
-  const char* per;      // "frame", "solve", "sample"
+  const char* needle;  // substring of the demangled name
+  const char* per;     // "frame", "solve", "sample"
 };
 
 const std::vector<BudgetStage>& budget_stages() {
@@ -498,8 +502,13 @@ const std::vector<BudgetStage>& budget_stages() {
 std::string run_under_callgrind(const std::vector<std::string>& replay_args, const std::string& out_file,
                                 const std::string& console) {
   const std::string self = fs::read_symlink("/proc/self/exe").string();
-  std::vector<std::string> argv{"valgrind", "--tool=callgrind", "--compress-strings=no", "--compress-pos=no",
-                                "--dump-instr=no", "--callgrind-out-file=" + out_file, self};
+  std::vector<std::string> argv{"valgrind",
+                                "--tool=callgrind",
+                                "--compress-strings=no",
+                                "--compress-pos=no",
+                                "--dump-instr=no",
+                                "--callgrind-out-file=" + out_file,
+                                self};
   argv.insert(argv.end(), replay_args.begin(), replay_args.end());
   std::fflush(nullptr);
   const pid_t pid = fork();
@@ -519,7 +528,8 @@ std::string run_under_callgrind(const std::vector<std::string>& replay_args, con
   if (WIFEXITED(status) && WEXITSTATUS(status) == 127)
     return "valgrind not found (tools/install-deps.sh installs it)";
   if (!WIFEXITED(status) || WEXITSTATUS(status) != 0)
-    return "replay under callgrind failed (status " + std::to_string(status) + "; its output: " + console + ")";
+    return "replay under callgrind failed (status " + std::to_string(status) + "; its output: " + console +
+           ")";
   return {};
 }
 
@@ -555,9 +565,9 @@ struct DatasetRow {
   std::string format = "-", mode = "-";
   double frames = kNaN, duration_s = kNaN, pose_share = kNaN, ate_se3_m = kNaN, ate_sim3_m = kNaN;
   double sim3_scale = kNaN, cpu_s_per_s = kNaN, process_cpu_s_per_s = kNaN;
-  std::string status = "ok";  // else what went wrong; the other rows still run
+  std::string status = "ok";   // else what went wrong; the other rows still run
   std::string input_problems;  // the reader's LogProblems, counted, the first named
-  std::string traj;           // the TUM trajectory written ("" when none)
+  std::string traj;            // the TUM trajectory written ("" when none)
 };
 
 // CSV fields are ours except the status text, which may hold commas or quotes.
@@ -712,10 +722,12 @@ Subcommand add_bench_command(CLI::App& parent) {
   CLI::App* app = parent.add_subcommand("bench", "run the benchmark suite and print one table");
   app->add_option("--json", args->json_out, "also write the table as JSON to this file");
   app->add_option("--cases", args->cases, "only the cases whose name contains one of these")->delimiter(',');
-  args->duration_opt = app->add_option("--duration", args->duration,
-                  "seconds of flight per case, or `full`: every hybrid flight over its whole length (scenarios: "
-                  "their default length)")
-      ->capture_default_str();
+  args->duration_opt =
+      app->add_option(
+             "--duration", args->duration,
+             "seconds of flight per case, or `full`: every hybrid flight over its whole length (scenarios: "
+             "their default length)")
+          ->capture_default_str();
   args->mapping_opt =
       app->add_option(
              "--mapping", args->mapping,
@@ -723,8 +735,10 @@ Subcommand add_bench_command(CLI::App& parent) {
              "the ekf runs the map only when asked (ekf.mapping, or --mapping on: a row `ekf-map`)")
           ->delimiter(',')
           ->capture_default_str();
-  app->add_option("--workdir", args->workdir, "where generated logs and trajectories go")->capture_default_str();
-  app->add_option("--data", args->data_dir, "the shared data folder (EuRoC sequences, real-rgbd/)")->capture_default_str();
+  app->add_option("--workdir", args->workdir, "where generated logs and trajectories go")
+      ->capture_default_str();
+  app->add_option("--data", args->data_dir, "the shared data folder (EuRoC sequences, real-rgbd/)")
+      ->capture_default_str();
   app->add_option("--pace", args->pace, "replay pace: fast or lockstep (realtime is for timing tests)")
       ->capture_default_str();
   app->add_option("--estimator", args->estimators,
@@ -741,10 +755,11 @@ Subcommand add_bench_command(CLI::App& parent) {
   app->add_option("--height", args->height, "rendered image height")->capture_default_str();
   app->add_flag("--keep-logs", args->keep_logs, "keep the generated .klog files (several GB at VGA)");
   app->add_flag("--list", args->list, "list the cases and whether their data is present, then exit");
-  app->add_flag("--cpu-budget", args->cpu_budget,
-                "instead of the table: instructions per frame for each tracking stage and per optimizer solve, "
-                "counted by valgrind's callgrind on a fixed simulated flight (figure8, seed 1, --width x --height, "
-                "--duration default 4 s here), with estimates for ARM cores (docs/embedded.md)");
+  app->add_flag(
+      "--cpu-budget", args->cpu_budget,
+      "instead of the table: instructions per frame for each tracking stage and per optimizer solve, "
+      "counted by valgrind's callgrind on a fixed simulated flight (figure8, seed 1, --width x --height, "
+      "--duration default 4 s here), with estimates for ARM cores (docs/embedded.md)");
   app->add_option("--cpu-budget-log", args->cpu_budget_log,
                   "--cpu-budget on this log instead of the simulated flight (it needs ground truth)");
   app->add_option(
@@ -779,7 +794,8 @@ Subcommand add_bench_command(CLI::App& parent) {
     }
     for (const std::string& e : args->estimators)
       if (!core::estimator_known(e))
-        throw UsageError("unknown --estimator '" + e + "' (expected one of: " + core::estimator_names() + ")");
+        throw UsageError("unknown --estimator '" + e + "' (expected one of: " + core::estimator_names() +
+                         ")");
     for (const std::string& v : args->lonsc_variants)
       if (v != "tuned" && v != "paper")
         throw UsageError("unknown --lonsc-variant '" + v + "' (expected tuned, paper)");
@@ -808,8 +824,8 @@ Subcommand add_bench_command(CLI::App& parent) {
         so.height = args->height;
         log = (fs::path(args->workdir) / "cpu_budget.klog").string();
         so.out_path = log;
-        std::fprintf(stderr, "bench: simulating the budget flight (figure8, %.0f s, %dx%d, seed 1)\n", budget_s,
-                     args->width, args->height);
+        std::fprintf(stderr, "bench: simulating the budget flight (figure8, %.0f s, %dx%d, seed 1)\n",
+                     budget_s, args->width, args->height);
         tools::run_simulation(so);
         char buf[96];
         std::snprintf(buf, sizeof buf, "figure8 %.0f s %dx%d seed 1", budget_s, args->width, args->height);
@@ -837,15 +853,17 @@ Subcommand add_bench_command(CLI::App& parent) {
         rargs.push_back("--config");
         rargs.push_back(args->config);
       }
-      std::fprintf(stderr, "bench: the same replay under callgrind (about 50x slower) -> %s\n", cg_out.c_str());
+      std::fprintf(stderr, "bench: the same replay under callgrind (about 50x slower) -> %s\n",
+                   cg_out.c_str());
       const std::string cg_error = run_under_callgrind(rargs, cg_out, console);
       if (!cg_error.empty()) throw std::runtime_error(cg_error);
       std::vector<std::string> needles;
       for (const auto& st : budget_stages()) needles.push_back(st.needle);
       const auto costs = tools::callgrind_inclusive(cg_out, needles);
       const double frames = static_cast<double>(costs.at(budget_stages()[0].needle).calls);
-      if (frames <= 0) throw std::runtime_error(cg_out + ": no call of Tracker::track: the backend '" + backend +
-                                                "' has no tracker, or the binary's symbols are stripped");
+      if (frames <= 0)
+        throw std::runtime_error(cg_out + ": no call of Tracker::track: the backend '" + backend +
+                                 "' has no tracker, or the binary's symbols are stripped");
       auto count_of = [&](const char* per) {
         for (const auto& st : budget_stages())
           if (std::strcmp(st.per, per) == 0) return static_cast<double>(costs.at(st.needle).calls);
@@ -853,9 +871,10 @@ Subcommand add_bench_command(CLI::App& parent) {
       };
       const double solves = count_of("solve"), samples = count_of("sample");
       const auto& cores = tools::arm_core_models();
-      std::printf("cpu budget: %s, %s (mapping %s) — %.0f frames, %.0f optimizer solves, %.0f IMU samples; "
-                  "instructions counted by callgrind (x86-64, this build)\n",
-                  backend.c_str(), what.c_str(), mapping.c_str(), frames, solves, samples);
+      std::printf(
+          "cpu budget: %s, %s (mapping %s) — %.0f frames, %.0f optimizer solves, %.0f IMU samples; "
+          "instructions counted by callgrind (x86-64, this build)\n",
+          backend.c_str(), what.c_str(), mapping.c_str(), frames, solves, samples);
       std::printf("%-26s %8s %12s %10s", "stage", "calls", "Minstr/call", "Minstr/per");
       for (const auto& c : cores) std::printf(" %14s", (std::string(c.name) + " ms").c_str());
       std::printf("\n");
@@ -868,9 +887,12 @@ Subcommand add_bench_command(CLI::App& parent) {
       tools::Json jstages = tools::Json::array();
       for (const auto& st : budget_stages()) {
         const tools::CallgrindCost& c = costs.at(st.needle);
-        const double denom = std::strcmp(st.per, "frame") == 0 ? frames : std::strcmp(st.per, "solve") == 0 ? solves : samples;
+        const double denom = std::strcmp(st.per, "frame") == 0   ? frames
+                             : std::strcmp(st.per, "solve") == 0 ? solves
+                                                                 : samples;
         const double per = denom > 0 ? static_cast<double>(c.inclusive_ir) / denom : kNaN;
-        const double per_call = c.calls > 0 ? static_cast<double>(c.inclusive_ir) / static_cast<double>(c.calls) : kNaN;
+        const double per_call =
+            c.calls > 0 ? static_cast<double>(c.inclusive_ir) / static_cast<double>(c.calls) : kNaN;
         std::printf("%-26s %8llu %12s %10s", st.label, static_cast<unsigned long long>(c.calls),
                     fmt(per_call * 1e-6, "%.4g").c_str(), (fmt(per * 1e-6, "%.4g") + "/" + st.per).c_str());
         tools::Json js;
@@ -889,20 +911,27 @@ Subcommand add_bench_command(CLI::App& parent) {
         jstages.push_back(js);
       }
       j["stages"] = jstages;
-      const double track_ms_p50 = get(native, "tracking_ms_p50"), track_ms_p99 = get(native, "tracking_ms_p99");
+      const double track_ms_p50 = get(native, "tracking_ms_p50"),
+                   track_ms_p99 = get(native, "tracking_ms_p99");
       const double opt_ms_p50 = get(native, "optimizer_ms_p50"), opt_ms_p99 = get(native, "optimizer_ms_p99");
       const double track_ir = static_cast<double>(costs.at(budget_stages()[0].needle).inclusive_ir) / frames;
-      std::printf("here (wall clock, lockstep): tracking p50 %s ms p99 %s ms; optimizer p50 %s ms p99 %s ms; "
-                  "%s instructions per ns of tracking p50\n",
-                  fmt(track_ms_p50, "%.2f").c_str(), fmt(track_ms_p99, "%.2f").c_str(), fmt(opt_ms_p50, "%.2f").c_str(),
-                  fmt(opt_ms_p99, "%.2f").c_str(), fmt(track_ir / (track_ms_p50 * 1e6), "%.2f").c_str());
+      std::printf(
+          "here (wall clock, lockstep): tracking p50 %s ms p99 %s ms; optimizer p50 %s ms p99 %s ms; "
+          "%s instructions per ns of tracking p50\n",
+          fmt(track_ms_p50, "%.2f").c_str(), fmt(track_ms_p99, "%.2f").c_str(),
+          fmt(opt_ms_p50, "%.2f").c_str(), fmt(opt_ms_p99, "%.2f").c_str(),
+          fmt(track_ir / (track_ms_p50 * 1e6), "%.2f").c_str());
       std::printf("ARM estimate = instructions / (IPC x clock), same instruction count as x86-64 assumed:");
-      for (const auto& c : cores) std::printf(" %s (%s) %.1f GHz IPC %.1f;", c.name, c.example, c.clock_ghz, c.ipc);
+      for (const auto& c : cores)
+        std::printf(" %s (%s) %.1f GHz IPC %.1f;", c.name, c.example, c.clock_ghz, c.ipc);
       std::printf("\n");
-      j["here"] = {{"tracking_ms_p50", tools::json_figure(track_ms_p50)}, {"tracking_ms_p99", tools::json_figure(track_ms_p99)},
-                   {"optimizer_ms_p50", tools::json_figure(opt_ms_p50)}, {"optimizer_ms_p99", tools::json_figure(opt_ms_p99)}};
+      j["here"] = {{"tracking_ms_p50", tools::json_figure(track_ms_p50)},
+                   {"tracking_ms_p99", tools::json_figure(track_ms_p99)},
+                   {"optimizer_ms_p50", tools::json_figure(opt_ms_p50)},
+                   {"optimizer_ms_p99", tools::json_figure(opt_ms_p99)}};
       tools::Json jc = tools::Json::array();
-      for (const auto& c : cores) jc.push_back({{"core", c.name}, {"example", c.example}, {"clock_ghz", c.clock_ghz}, {"ipc", c.ipc}});
+      for (const auto& c : cores)
+        jc.push_back({{"core", c.name}, {"example", c.example}, {"clock_ghz", c.clock_ghz}, {"ipc", c.ipc}});
       j["core_models"] = jc;
       if (!args->json_out.empty()) {
         std::ofstream f(args->json_out);
@@ -969,89 +998,92 @@ Subcommand add_bench_command(CLI::App& parent) {
           rows.push_back(row);
           continue;
         }
-        gt = log;   // the simulator writes ground truth into the log (--images: the recording's own)
+        gt = log;  // the simulator writes ground truth into the log (--images: the recording's own)
         generated = true;
       }
       // One log, every backend on it: the comparison is like for like.
       for (const std::string& backend : c.backends.empty() ? args->estimators : c.backends)
-      for (const std::string& variant : args->lonsc_variants)
-      for (const std::string& mapping : args->mapping) {
-        const bool windowed = backend.rfind("window", 0) == 0;
-        const bool ekf = backend == "ekf";
-        if (!windowed && !ekf && mapping == "off" && args->mapping.size() > 1)
-          continue;  // no map to switch off
-        core::EstimatorConfig cfg = tools::load_estimator_config(args->config, backend);
-        // The ekf's map is off unless asked for (ekf.mapping, or --mapping
-        // given): the bench's default "on" is the window's.
-        tools::apply_map_switches(cfg, windowed || args->mapping_opt->count() > 0 ? mapping : "", "");
-        // A row's name: the backend, the LONSC variant when it is not the
-        // default, "-nomap" for the window without its map and "-map" for the
-        // ekf with one.
-        const std::string map_tag = windowed && mapping == "off" ? "-nomap"
-                                    : ekf && cfg.ekf.mapping     ? "-map"
-                                                                 : "";
-        const std::string est_name = (variant == "tuned" ? backend : backend + "+lonsc-" + variant) + map_tag;
-        if (variant != to_string(cfg.lonsc_variant)) {
-          cfg.lonsc_variant = variant == "paper" ? core::LonscVariant::kPaper : core::LonscVariant::kTuned;
-          cfg.tracker.lonsc = core::lonsc_options(cfg.lonsc_variant);
-        }
-        BenchRow er = row;
-        std::string error;
-        const bool many =
-            (c.backends.empty() ? args->estimators : c.backends).size() * args->lonsc_variants.size() * args->mapping.size() > 1;
-        const std::string traj_e =
-            many ? (fs::path(args->workdir) / (c.name + "." + est_name + ".traj.txt")).string() : traj;
-        const auto m = replay_in_child(log, gt, pace, cfg, traj_e, er.estimator, error);
-        if (error.empty() && variant != "tuned") er.estimator += "+lonsc-" + variant;
-        if (error.empty()) er.estimator += map_tag;
-        if (!error.empty()) {
-          er.estimator = est_name;
-          er.status = "FAILED: " + error;
-          rows.push_back(er);
-          continue;
-        }
-        er.duration_s = get(m, "duration_s");
-        er.ate_rmse_m = get(m, "ate_rmse_m");
-        er.ate_se3_rmse_m = get(m, "ate_se3_rmse_m");
-        er.rpe_trans_m_per_s = get(m, "rpe_trans_m_per_s");
-        er.tracking_ms_p50 = get(m, "tracking_ms_p50");
-        er.tracking_ms_p99 = get(m, "tracking_ms_p99");
-        er.optimizer_ms_p50 = get(m, "optimizer_ms_p50");
-        er.optimizer_ms_p99 = get(m, "optimizer_ms_p99");
-        er.imu_to_output_ms_p99 = get(m, "imu_to_output_ms_p99");
-        er.imu_to_output_ms_p50 = get(m, "imu_to_output_ms_p50");
-        er.imu_to_output_ms_max = get(m, "imu_to_output_ms_max");
-        er.tracking_ms_max = get(m, "tracking_ms_max");
-        er.optimizer_ms_max = get(m, "optimizer_ms_max");
-        er.allocs_per_frame = get(m, "allocs_per_frame");
-        er.realtime_factor = get(m, "realtime_factor");
-        er.peak_rss_mb = get(m, "peak_rss_mb");
-        er.pose_share = get(m, "pose_share");
-        er.replay_wall_s = get(m, "replay_wall_s");
-        er.divergences = get(m, "divergences");
-        er.coast_s = get(m, "coast_s");
-        er.cpu_s_per_s = get(m, "cpu_s_per_s");
-        er.fail = fail_reasons(er);
-        er.cpu_per_s = get(m, "cpu_per_s");
-        er.map_cpu_s_per_s = get(m, "map_cpu_s_per_s");
-        er.map_ate_se3_rmse_m = get(m, "map_ate_se3_rmse_m");
-        er.map_final_ate_se3_rmse_m = get(m, "map_final_ate_se3_rmse_m");
-        er.loop_closures = get(m, "loop_closures");
-        er.relocalisations = get(m, "relocalisations");
-        er.keyframes_in_map = get(m, "keyframes_in_map");
-        er.map_points = get(m, "map_points");
-        er.map_correction_m = get(m, "map_correction_m");
-        er.mapping_ms_p50 = get(m, "mapping_ms_p50");
-        er.mapping_ms_p99 = get(m, "mapping_ms_p99");
-        er.loop_ms_p50 = get(m, "loop_ms_p50");
-        er.loop_ms_p99 = get(m, "loop_ms_p99");
-        er.loop_revisits = get(m, "loop_revisits");
-        er.loop_recall = get(m, "loop_recall");
-        er.map_recall = get(m, "map_recall");
-        er.false_loops = get(m, "false_loops");
-        rows.push_back(er);
-        ++ran;
-      }
+        for (const std::string& variant : args->lonsc_variants)
+          for (const std::string& mapping : args->mapping) {
+            const bool windowed = backend.rfind("window", 0) == 0;
+            const bool ekf = backend == "ekf";
+            if (!windowed && !ekf && mapping == "off" && args->mapping.size() > 1)
+              continue;  // no map to switch off
+            core::EstimatorConfig cfg = tools::load_estimator_config(args->config, backend);
+            // The ekf's map is off unless asked for (ekf.mapping, or --mapping
+            // given): the bench's default "on" is the window's.
+            tools::apply_map_switches(cfg, windowed || args->mapping_opt->count() > 0 ? mapping : "", "");
+            // A row's name: the backend, the LONSC variant when it is not the
+            // default, "-nomap" for the window without its map and "-map" for the
+            // ekf with one.
+            const std::string map_tag = windowed && mapping == "off" ? "-nomap"
+                                        : ekf && cfg.ekf.mapping     ? "-map"
+                                                                     : "";
+            const std::string est_name =
+                (variant == "tuned" ? backend : backend + "+lonsc-" + variant) + map_tag;
+            if (variant != to_string(cfg.lonsc_variant)) {
+              cfg.lonsc_variant =
+                  variant == "paper" ? core::LonscVariant::kPaper : core::LonscVariant::kTuned;
+              cfg.tracker.lonsc = core::lonsc_options(cfg.lonsc_variant);
+            }
+            BenchRow er = row;
+            std::string error;
+            const bool many = (c.backends.empty() ? args->estimators : c.backends).size() *
+                                  args->lonsc_variants.size() * args->mapping.size() >
+                              1;
+            const std::string traj_e =
+                many ? (fs::path(args->workdir) / (c.name + "." + est_name + ".traj.txt")).string() : traj;
+            const auto m = replay_in_child(log, gt, pace, cfg, traj_e, er.estimator, error);
+            if (error.empty() && variant != "tuned") er.estimator += "+lonsc-" + variant;
+            if (error.empty()) er.estimator += map_tag;
+            if (!error.empty()) {
+              er.estimator = est_name;
+              er.status = "FAILED: " + error;
+              rows.push_back(er);
+              continue;
+            }
+            er.duration_s = get(m, "duration_s");
+            er.ate_rmse_m = get(m, "ate_rmse_m");
+            er.ate_se3_rmse_m = get(m, "ate_se3_rmse_m");
+            er.rpe_trans_m_per_s = get(m, "rpe_trans_m_per_s");
+            er.tracking_ms_p50 = get(m, "tracking_ms_p50");
+            er.tracking_ms_p99 = get(m, "tracking_ms_p99");
+            er.optimizer_ms_p50 = get(m, "optimizer_ms_p50");
+            er.optimizer_ms_p99 = get(m, "optimizer_ms_p99");
+            er.imu_to_output_ms_p99 = get(m, "imu_to_output_ms_p99");
+            er.imu_to_output_ms_p50 = get(m, "imu_to_output_ms_p50");
+            er.imu_to_output_ms_max = get(m, "imu_to_output_ms_max");
+            er.tracking_ms_max = get(m, "tracking_ms_max");
+            er.optimizer_ms_max = get(m, "optimizer_ms_max");
+            er.allocs_per_frame = get(m, "allocs_per_frame");
+            er.realtime_factor = get(m, "realtime_factor");
+            er.peak_rss_mb = get(m, "peak_rss_mb");
+            er.pose_share = get(m, "pose_share");
+            er.replay_wall_s = get(m, "replay_wall_s");
+            er.divergences = get(m, "divergences");
+            er.coast_s = get(m, "coast_s");
+            er.cpu_s_per_s = get(m, "cpu_s_per_s");
+            er.fail = fail_reasons(er);
+            er.cpu_per_s = get(m, "cpu_per_s");
+            er.map_cpu_s_per_s = get(m, "map_cpu_s_per_s");
+            er.map_ate_se3_rmse_m = get(m, "map_ate_se3_rmse_m");
+            er.map_final_ate_se3_rmse_m = get(m, "map_final_ate_se3_rmse_m");
+            er.loop_closures = get(m, "loop_closures");
+            er.relocalisations = get(m, "relocalisations");
+            er.keyframes_in_map = get(m, "keyframes_in_map");
+            er.map_points = get(m, "map_points");
+            er.map_correction_m = get(m, "map_correction_m");
+            er.mapping_ms_p50 = get(m, "mapping_ms_p50");
+            er.mapping_ms_p99 = get(m, "mapping_ms_p99");
+            er.loop_ms_p50 = get(m, "loop_ms_p50");
+            er.loop_ms_p99 = get(m, "loop_ms_p99");
+            er.loop_revisits = get(m, "loop_revisits");
+            er.loop_recall = get(m, "loop_recall");
+            er.map_recall = get(m, "map_recall");
+            er.false_loops = get(m, "false_loops");
+            rows.push_back(er);
+            ++ran;
+          }
       if (generated && !args->keep_logs) fs::remove(log);
     }
     print_table(rows);

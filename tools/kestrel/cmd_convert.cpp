@@ -176,7 +176,8 @@ Subcommand add_convert_command(CLI::App& parent) {
       "  kestrel convert sim.klog --to eth3d --out sim_eth3d/ --rig-out sim_rig.yaml\n"
       "  kestrel convert sim.klog --to rosbag2 --out sim_ros2/   (ros2 bag play sim_ros2)\n"
       "Formats, columns, units and frames: docs/datasets.md");
-  app->add_option("input", a->in, "a .klog, ROS bag, or EuRoC / TUM / ETH3D / OpenLORIS / 7-Scenes folder")->required();
+  app->add_option("input", a->in, "a .klog, ROS bag, or EuRoC / TUM / ETH3D / OpenLORIS / 7-Scenes folder")
+      ->required();
   app->add_option("--out", a->out, "output: OUT.klog (default), OUT.bag, or a folder with --to")->required();
   app->add_option("--format", a->format, std::string("input format: ") + drivers::log_format_names())
       ->capture_default_str();
@@ -191,7 +192,8 @@ Subcommand add_convert_command(CLI::App& parent) {
   app->add_option("--rig", a->rig_path,
                   "rig YAML for calibration the dataset lacks (ETH3D, OpenLORIS, 7-Scenes, rosbag)");
   app->add_option("--rig-out", a->rig_out, "also write the resulting rig as YAML here");
-  app->add_option("--fps", a->open.fps, "7-Scenes: the frame rate its time stamps are made from (frame i at i / fps)")
+  app->add_option("--fps", a->open.fps,
+                  "7-Scenes: the frame rate its time stamps are made from (frame i at i / fps)")
       ->capture_default_str();
   app->add_option("--rgb-topic", a->open.rgb_topic,
                   "rosbag / rosbag2 colour topic (default /camera/color/image_raw)");
@@ -200,8 +202,9 @@ Subcommand add_convert_command(CLI::App& parent) {
   app->add_option("--imu-topic", a->open.imu_topic, "rosbag IMU topic (default /camera/imu)");
   app->add_option("--camera-info-topic", a->open.camera_info_topic,
                   "rosbag CameraInfo topic (default: beside the colour topic)");
-  app->add_option("--topics", a->open.topics,
-                  "rosbag2: read only these topics (comma-separated), detected by type among them (docs/ros2.md)")
+  app->add_option(
+         "--topics", a->open.topics,
+         "rosbag2: read only these topics (comma-separated), detected by type among them (docs/ros2.md)")
       ->delimiter(',');
   app->add_option("--gt-topic", a->open.ground_truth_topic,
                   "rosbag ground truth, geometry_msgs/PoseStamped (default /kestrel/ground_truth)");

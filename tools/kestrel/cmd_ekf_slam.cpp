@@ -3,7 +3,6 @@
 // Writes the trajectory (TUM), the landmark map (PLY) and a top view (SVG)
 // like the paper's figure 3, and prints the run time.
 #include <Eigen/Geometry>
-
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -38,7 +37,9 @@ struct EkfArgs {
 };
 
 using Clock = std::chrono::steady_clock;
-double seconds_since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
+double seconds_since(Clock::time_point t0) {
+  return std::chrono::duration<double>(Clock::now() - t0).count();
+}
 
 core::ekf::Pose pose_from_rowmajor(const double* T) {
   core::ekf::Pose P;
@@ -58,22 +59,27 @@ core::ekf::Pose camera_from_imu(const drivers::KittiVislamSequence& seq, const s
   if (mode == "inverse") return stored.inverse();
   Eigen::Vector3d v_mean = Eigen::Vector3d::Zero();
   for (size_t i = 0; i < seq.num_steps(); ++i) v_mean += Eigen::Vector3d(&seq.v_B_mps[3 * i]);
-  if (v_mean.norm() < 1e-6) throw std::runtime_error(seq.path + ": cannot tell the extrinsic's direction (no motion); pass --extrinsic");
+  if (v_mean.norm() < 1e-6)
+    throw std::runtime_error(seq.path +
+                             ": cannot tell the extrinsic's direction (no motion); pass --extrinsic");
   v_mean.normalize();
   // Optical axis in the IMU frame: R_BC e_z.
-  const double as_stored = stored.R.row(2).dot(v_mean);      // stored = T_CB: R_BC = R^T
-  const double inverse = stored.R.col(2).dot(v_mean);        // stored = T_BC
-  std::printf("extrinsic: optical axis . mean velocity = %.3f if cam_T_imu maps IMU->camera, %.3f if camera->IMU\n",
-              as_stored, inverse);
+  const double as_stored = stored.R.row(2).dot(v_mean);  // stored = T_CB: R_BC = R^T
+  const double inverse = stored.R.col(2).dot(v_mean);    // stored = T_BC
+  std::printf(
+      "extrinsic: optical axis . mean velocity = %.3f if cam_T_imu maps IMU->camera, %.3f if camera->IMU\n",
+      as_stored, inverse);
   if (inverse > 0.7 && inverse > as_stored) return stored.inverse();
   if (as_stored > 0.7) return stored;
-  throw std::runtime_error(seq.path + ": cannot tell the extrinsic's direction from the data; pass --extrinsic");
+  throw std::runtime_error(seq.path +
+                           ": cannot tell the extrinsic's direction from the data; pass --extrinsic");
 }
 
 void write_ply(const std::string& path, const std::vector<core::FrozenLandmark>& map) {
   std::ofstream f(path);
   if (!f) throw std::runtime_error(path + ": cannot write");
-  f << "ply\nformat ascii 1.0\ncomment kestrel ekf-slam landmark map, world frame = IMU frame at the first step [m]\n"
+  f << "ply\nformat ascii 1.0\ncomment kestrel ekf-slam landmark map, world frame = IMU frame at the first "
+       "step [m]\n"
     << "element vertex " << map.size() << "\nproperty float x\nproperty float y\nproperty float z\n"
     << "property float sigma\nproperty uint observations\nend_header\n";
   char buf[160];
@@ -86,8 +92,9 @@ void write_ply(const std::string& path, const std::vector<core::FrozenLandmark>&
 }
 
 // Top view (x-y) of the landmarks and the trajectories, like paper 003's fig. 3.
-void write_top_view(const std::string& path, const std::string& title, const std::vector<Eigen::Vector3d>& ekf,
-                    const std::vector<Eigen::Vector3d>& dead, const std::vector<core::FrozenLandmark>& map) {
+void write_top_view(const std::string& path, const std::string& title,
+                    const std::vector<Eigen::Vector3d>& ekf, const std::vector<Eigen::Vector3d>& dead,
+                    const std::vector<core::FrozenLandmark>& map) {
   double x0 = 1e300, x1 = -1e300, y0 = 1e300, y1 = -1e300;
   for (const auto* tr : {&ekf, &dead})
     for (const auto& p : *tr) {
@@ -104,10 +111,12 @@ void write_top_view(const std::string& path, const std::string& title, const std
   std::ofstream f(path);
   if (!f) throw std::runtime_error(path + ": cannot write");
   char buf[256];
-  std::snprintf(buf, sizeof buf,
-                "<svg xmlns='http://www.w3.org/2000/svg' width='%.0f' height='%.0f' font-family='sans-serif' font-size='13'>\n"
-                "<rect width='100%%' height='100%%' fill='white'/>\n<text x='%.0f' y='24' font-size='16'>%s</text>\n",
-                W, H, margin, title.c_str());
+  std::snprintf(
+      buf, sizeof buf,
+      "<svg xmlns='http://www.w3.org/2000/svg' width='%.0f' height='%.0f' font-family='sans-serif' "
+      "font-size='13'>\n"
+      "<rect width='100%%' height='100%%' fill='white'/>\n<text x='%.0f' y='24' font-size='16'>%s</text>\n",
+      W, H, margin, title.c_str());
   f << buf;
   f << "<g fill='#1f5fbf' fill-opacity='0.5'>\n";
   for (const auto& m : map) {
@@ -153,7 +162,8 @@ int run_ekf_slam(const EkfArgs& a) {
   const double load_s = seconds_since(t_load);
   const size_t N = seq.num_steps();
   std::printf("%s: %zu steps over %.1f s, %zu landmark tracks, %zu stereo observations (loaded in %.2f s)\n",
-              a.npz.c_str(), N, seq.t_s.back() - seq.t_s.front(), seq.num_landmarks, seq.features.size(), load_s);
+              a.npz.c_str(), N, seq.t_s.back() - seq.t_s.front(), seq.num_landmarks, seq.features.size(),
+              load_s);
   if (seq.missing_partial > 0)
     std::printf("warning: %zu feature entries with some but not all of uL,vL,uR,vR (or non-finite) skipped\n",
                 seq.missing_partial);
@@ -237,17 +247,20 @@ int run_ekf_slam(const EkfArgs& a) {
     return L;
   }();
   const auto& c = ekf.counters();
-  std::printf("filter: %zu steps in %.3f s (%.3f ms/step mean, %.2f ms max), load + filter %.2f s\n", steps, run_s,
-              1e3 * run_s / static_cast<double>(std::max<size_t>(steps, 1)), max_step_ms, load_s + run_s);
+  std::printf("filter: %zu steps in %.3f s (%.3f ms/step mean, %.2f ms max), load + filter %.2f s\n", steps,
+              run_s, 1e3 * run_s / static_cast<double>(std::max<size_t>(steps, 1)), max_step_ms,
+              load_s + run_s);
   std::printf("speed-up vs paper 003's 50 min: %.0fx (filter), %.0fx (load + filter)\n", 3000.0 / run_s,
               3000.0 / (load_s + run_s));
-  std::printf("observations: %d given, %d in the update, %d gated; landmarks: %llu initialised, %zu mapped, %llu dropped "
-              "as outliers, %llu tracks refused for a full active set; %llu Cholesky failures\n",
-              total.observations, total.used, total.gated, static_cast<unsigned long long>(c.landmarks_initialised),
-              map.size(), static_cast<unsigned long long>(c.landmarks_dropped),
-              static_cast<unsigned long long>(c.capacity_full), static_cast<unsigned long long>(c.cholesky_failures));
-  std::printf("trajectory: %.1f m travelled; end %.1f %.1f %.1f m (dead reckoning %.1f %.1f %.1f m)\n", path_len,
-              ekf_path.back().x(), ekf_path.back().y(), ekf_path.back().z(), dead_path.back().x(),
+  std::printf(
+      "observations: %d given, %d in the update, %d gated; landmarks: %llu initialised, %zu mapped, %llu "
+      "dropped "
+      "as outliers, %llu tracks refused for a full active set; %llu Cholesky failures\n",
+      total.observations, total.used, total.gated, static_cast<unsigned long long>(c.landmarks_initialised),
+      map.size(), static_cast<unsigned long long>(c.landmarks_dropped),
+      static_cast<unsigned long long>(c.capacity_full), static_cast<unsigned long long>(c.cholesky_failures));
+  std::printf("trajectory: %.1f m travelled; end %.1f %.1f %.1f m (dead reckoning %.1f %.1f %.1f m)\n",
+              path_len, ekf_path.back().x(), ekf_path.back().y(), ekf_path.back().z(), dead_path.back().x(),
               dead_path.back().y(), dead_path.back().z());
 
   if (!a.traj_out.empty()) {
@@ -270,17 +283,20 @@ int run_ekf_slam(const EkfArgs& a) {
 
 Subcommand add_ekf_slam_command(CLI::App& parent) {
   auto args = std::make_shared<EkfArgs>();
-  CLI::App* app = parent.add_subcommand("ekf-slam", "EKF visual-inertial SLAM on a KITTI features .npz (paper 003)");
+  CLI::App* app =
+      parent.add_subcommand("ekf-slam", "EKF visual-inertial SLAM on a KITTI features .npz (paper 003)");
   app->add_option("npz", args->npz, "kitti-vislam-features .npz")->required()->check(CLI::ExistingFile);
   app->add_option("--traj-out", args->traj_out, "trajectory T_W-IMU, TUM text");
   app->add_option("--map-out", args->map_out, "landmark map, PLY point cloud");
   app->add_option("--plot", args->plot_out, "top-view SVG (trajectory + landmarks)");
-  app->add_option("--extrinsic", args->extrinsic, "direction of the stored cam_T_imu: auto, as-stored, inverse")
+  app->add_option("--extrinsic", args->extrinsic,
+                  "direction of the stored cam_T_imu: auto, as-stored, inverse")
       ->capture_default_str();
   app->add_option("--capacity", args->capacity, "active landmarks in the filter")->capture_default_str();
   app->add_option("--pixel-sigma", args->pixel_sigma, "pixel noise std [px]")->capture_default_str();
   app->add_option("--vel-sigma", args->vel_sigma, "linear velocity noise std [m/s]")->capture_default_str();
-  app->add_option("--gyro-sigma", args->gyro_sigma, "angular velocity noise std [rad/s]")->capture_default_str();
+  app->add_option("--gyro-sigma", args->gyro_sigma, "angular velocity noise std [rad/s]")
+      ->capture_default_str();
   app->add_option("--max-depth", args->max_depth, "farthest landmark initialised [m]")->capture_default_str();
   app->add_option("--steps", args->steps, "stop after this many steps (0: all)");
   app->add_flag("--no-update", args->no_update, "prediction only (velocity dead reckoning)");

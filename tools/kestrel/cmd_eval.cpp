@@ -102,7 +102,8 @@ int run_eval(const EvalArgs& a) {
 
 Subcommand add_eval_command(CLI::App& parent) {
   auto args = std::make_shared<EvalArgs>();
-  CLI::App* app = parent.add_subcommand("eval", "compare an estimated trajectory with ground truth (ATE, RPE)");
+  CLI::App* app =
+      parent.add_subcommand("eval", "compare an estimated trajectory with ground truth (ATE, RPE)");
   app->footer(
       "Trajectories: TUM text (t[s] x y z qx qy qz qw), EuRoC CSV (t[ns],px,py,pz,qw,qx,qy,qz,...),\n"
       "or a .klog / EuRoC / TUM RGB-D log (its ground-truth records). See docs/evaluation.md.\n"
@@ -119,11 +120,13 @@ Subcommand add_eval_command(CLI::App& parent) {
       ->capture_default_str();
   app->add_flag("--json", args->json, "print a JSON object instead of key: value lines");
   app->add_option("--plot", args->plot_path, "write an SVG plot (top view + error over time)");
-  app->add_option("--report", args->report_path,
-                  "write a self-contained HTML page: top/side views after alignment, error over time and per axis, "
-                  "RPE over several time steps (opens with no network)");
-  app->add_option("--metrics", args->metrics_path,
-                  "with --report: a `kestrel replay --metrics-out` JSON whose latency histograms go into the page");
+  app->add_option(
+      "--report", args->report_path,
+      "write a self-contained HTML page: top/side views after alignment, error over time and per axis, "
+      "RPE over several time steps (opens with no network)");
+  app->add_option(
+      "--metrics", args->metrics_path,
+      "with --report: a `kestrel replay --metrics-out` JSON whose latency histograms go into the page");
   app->add_option("--save-aligned", args->aligned_out, "write the aligned, associated estimate as TUM text");
   return Subcommand{app, [args]() { return run_eval(*args); }};
 }

@@ -7,12 +7,12 @@
 #include <string>
 
 #include "kestrel/commands.hpp"
-#include "kestrel/tools/estimator_config_yaml.hpp"
-#include "kestrel/replay_runner.hpp"
 #include "kestrel/drivers/devices.hpp"
 #include "kestrel/drivers/klog_logger.hpp"
 #include "kestrel/recording.hpp"
+#include "kestrel/replay_runner.hpp"
 #include "kestrel/rt/clock.hpp"
+#include "kestrel/tools/estimator_config_yaml.hpp"
 
 namespace kestrel::cli {
 namespace {
@@ -36,19 +36,22 @@ Subcommand add_record_command(CLI::App& parent) {
   app->add_option("--config", a->config, "rig + drivers config (configs/*.yaml)")->required();
   app->add_option("--out", a->out, "output .klog")->required();
   app->add_option("--duration", a->duration_s, "seconds to record (0 = until Ctrl-C)")->capture_default_str();
-  app->add_option("--fsync-every", a->fsync_every, "fsync every N records (0 = flush only)")->capture_default_str();
+  app->add_option("--fsync-every", a->fsync_every, "fsync every N records (0 = flush only)")
+      ->capture_default_str();
   app->add_option("--buffer-s", a->buffer_s,
                   "seconds of camera frames held in memory while the disk stalls (sizes the staging buffer)")
       ->capture_default_str();
-  app->footer("Example:\n  kestrel record --config configs/openni2_bmx055_i2c.yaml --out FLIGHT.klog\n"
-              "Without the sensors it exits with 1 and names what is missing. Drivers: docs/drivers/README.md");
+  app->footer(
+      "Example:\n  kestrel record --config configs/openni2_bmx055_i2c.yaml --out FLIGHT.klog\n"
+      "Without the sensors it exits with 1 and names what is missing. Drivers: docs/drivers/README.md");
   Subcommand s;
   s.app = app;
   s.run = [a] {
     const drivers::LiveConfig cfg = drivers::load_live_config(a->config, tools::estimator_config_sections());
     if (!(a->buffer_s > 0 && a->buffer_s <= 60)) throw UsageError("--buffer-s must be in (0, 60] seconds");
-    drivers::LiveSensors sensors(cfg);   // throws, naming each missing device
-    const std::unique_ptr<drivers::KlogLogger> log = make_recording_logger(cfg, a->out, a->buffer_s, a->fsync_every);
+    drivers::LiveSensors sensors(cfg);  // throws, naming each missing device
+    const std::unique_ptr<drivers::KlogLogger> log =
+        make_recording_logger(cfg, a->out, a->buffer_s, a->fsync_every);
     drivers::KlogLogger& logger = *log;
     LoggerImuSink imu(logger);
     LoggerFrameSink frames(logger);
@@ -59,7 +62,8 @@ Subcommand add_record_command(CLI::App& parent) {
                 a->duration_s > 0 ? (std::to_string(a->duration_s) + " s").c_str() : "Ctrl-C to stop");
     const int64_t t0 = rt::now_ns();
     sensors.start(imu, frames);
-    while (!g_record_stop.load() && (a->duration_s <= 0 || rt::now_ns() - t0 < static_cast<int64_t>(a->duration_s * 1e9)))
+    while (!g_record_stop.load() &&
+           (a->duration_s <= 0 || rt::now_ns() - t0 < static_cast<int64_t>(a->duration_s * 1e9)))
       rt::sleep_for_ns(100'000'000);
     sensors.stop();
     logger.stop();

@@ -4,9 +4,9 @@
 #include <string>
 
 #include "kestrel/commands.hpp"
-#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/log_export.hpp"
 #include "kestrel/drivers/log_source.hpp"
+#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/recording.hpp"
 #include "kestrel/tools/simulator.hpp"
 
@@ -31,7 +31,8 @@ struct SimArgs {
 Subcommand add_sim_command(CLI::App& parent) {
   auto args = std::make_shared<SimArgs>();
   tools::SimOptions& o = args->o;
-  CLI::App* app = parent.add_subcommand("sim", "render a simulated RGB-D + IMU log (.klog) with ground truth");
+  CLI::App* app =
+      parent.add_subcommand("sim", "render a simulated RGB-D + IMU log (.klog) with ground truth");
   app->footer(
       "Examples:\n"
       "  kestrel sim --scenario hover --duration 60 --seed 1 --out hover.klog\n"
@@ -40,57 +41,76 @@ Subcommand add_sim_command(CLI::App& parent) {
       "  kestrel sim --images ../shared/data/real-rgbd/7scenes_first500 --out 7scenes_imu.klog\n"
       "Models and numbers: docs/simulator.md");
 
-  auto* scen = app->add_option("--scenario", o.scenario, "built-in motion: hover, figure8, aggressive, static, hard")
-                   ->capture_default_str();
+  auto* scen =
+      app->add_option("--scenario", o.scenario, "built-in motion: hover, figure8, aggressive, static, hard")
+          ->capture_default_str();
   auto* traj = app->add_option("--trajectory", o.trajectory_path,
                                "fly a ground-truth file instead (EuRoC gt csv or TUM groundtruth.txt)");
   scen->excludes(traj);
-  auto* images = app->add_option("--images", o.images_path,
-                                 "real images: a recording with ground truth and no IMU (any reader's folder); its "
-                                 "frames are written with an IMU synthesised along its ground truth");
+  auto* images =
+      app->add_option("--images", o.images_path,
+                      "real images: a recording with ground truth and no IMU (any reader's folder); its "
+                      "frames are written with an IMU synthesised along its ground truth");
   images->excludes(scen)->excludes(traj);
   app->add_option("--images-format", o.images_format,
                   std::string("--images: the recording's format: ") + drivers::log_format_names())
       ->needs(images)
       ->capture_default_str();
-  app->add_option("--position-smoothing", o.position_smoothing,
-                  "--images: second-difference weight of the spline's positions (0: least squares on the knots)")
+  app->add_option(
+         "--position-smoothing", o.position_smoothing,
+         "--images: second-difference weight of the spline's positions (0: least squares on the knots)")
       ->needs(images)
       ->capture_default_str();
-  app->add_option("--imu", o.imu_path, "hybrid mode: write this real IMU (EuRoC imu0.csv) instead of a synthetic one")
+  app->add_option("--imu", o.imu_path,
+                  "hybrid mode: write this real IMU (EuRoC imu0.csv) instead of a synthetic one")
       ->needs(traj);
   app->add_option("--out", o.out_path, "output .klog")->required();
-  app->add_option("--export-eth3d", args->export_eth3d,
-                  "also write the flight as an ETH3D SLAM folder here (same as `kestrel convert OUT --to eth3d`)");
+  app->add_option(
+      "--export-eth3d", args->export_eth3d,
+      "also write the flight as an ETH3D SLAM folder here (same as `kestrel convert OUT --to eth3d`)");
   args->duration_opt = app->add_option("--duration", args->duration,
                                        "seconds (default: hover 189, others 60, a file: all of it)");
   app->add_option("--start", o.start_s, "seconds into the ground-truth file to start at")->needs(traj);
-  app->add_option("--seed", o.seed, "fixes every random choice: same seed, same bytes")->capture_default_str();
+  app->add_option("--seed", o.seed, "fixes every random choice: same seed, same bytes")
+      ->capture_default_str();
   args->width_opt = app->add_option("--width", args->width, "image width [px] (intrinsics scale with it)")
                         ->capture_default_str();
   args->height_opt = app->add_option("--height", args->height, "image height [px]")->capture_default_str();
-  args->fps_opt = app->add_option("--fps", args->fps, "camera rate [Hz] (a GT file: default its own sample times; --images: 7-Scenes' frame rate)")
-                      ->capture_default_str();
-  args->imu_rate_opt = app->add_option("--imu-rate", args->imu_rate, "synthetic IMU rate [Hz]")->capture_default_str();
-  app->add_option("--time-offset-ms", o.time_offset_ms, "camera-IMU offset: frame stamps = true time - offset")
+  args->fps_opt =
+      app->add_option(
+             "--fps", args->fps,
+             "camera rate [Hz] (a GT file: default its own sample times; --images: 7-Scenes' frame rate)")
+          ->capture_default_str();
+  args->imu_rate_opt =
+      app->add_option("--imu-rate", args->imu_rate, "synthetic IMU rate [Hz]")->capture_default_str();
+  app->add_option("--time-offset-ms", o.time_offset_ms,
+                  "camera-IMU offset: frame stamps = true time - offset")
       ->capture_default_str();
-  args->rig_offset_opt = app->add_option("--rig-time-offset-ms", args->rig_time_offset_ms,
-                  "the offset the log's rig states (default: --time-offset-ms); another value makes a miscalibrated "
-                  "log whose remaining offset `window.estimate_time_offset` can find");
+  args->rig_offset_opt = app->add_option(
+      "--rig-time-offset-ms", args->rig_time_offset_ms,
+      "the offset the log's rig states (default: --time-offset-ms); another value makes a miscalibrated "
+      "log whose remaining offset `window.estimate_time_offset` can find");
   app->add_option("--timestamp-jitter-us", o.timestamp_jitter_us, "std of frame stamp noise [us]")
       ->capture_default_str();
-  app->add_option("--frame-drop-rate", o.frame_drop_rate, "probability a frame is lost")->capture_default_str();
-  app->add_option("--texture", o.texture_path, "image file for walls, floor and ceiling (default: procedural)");
-  app->add_option("--room-m", o.room_m,
-                  "a hall at least this long on each side, walls up to this far from the path (0: a room around "
-                  "the flight; scenario hard: 24)");
-  app->add_option("--exposure-change", o.exposure_change, "image gain swings by up to +- this share (hard: 0.45)");
-  app->add_option("--motion-blur-ms", o.motion_blur_ms, "exposure time rendered as averaged sub-frames (hard: 8)");
+  app->add_option("--frame-drop-rate", o.frame_drop_rate, "probability a frame is lost")
+      ->capture_default_str();
+  app->add_option("--texture", o.texture_path,
+                  "image file for walls, floor and ceiling (default: procedural)");
+  app->add_option(
+      "--room-m", o.room_m,
+      "a hall at least this long on each side, walls up to this far from the path (0: a room around "
+      "the flight; scenario hard: 24)");
+  app->add_option("--exposure-change", o.exposure_change,
+                  "image gain swings by up to +- this share (hard: 0.45)");
+  app->add_option("--motion-blur-ms", o.motion_blur_ms,
+                  "exposure time rendered as averaged sub-frames (hard: 8)");
   app->add_flag("--bare-wall", o.bare_wall, "the +x wall is bare paint, a low-texture wall (hard: on)");
   app->add_option("--cover-at", o.cover_at_s, "cover the lens at this time [s] (with --cover-s: a kidnap)");
-  app->add_option("--cover-s", o.cover_s,
-                  "seconds the lens stays covered: near-black noise frames without depth while the flight goes on");
-  app->add_flag("--no-noise", args->no_noise, "ideal sensors: no IMU noise or bias, exact depth, clean images");
+  app->add_option(
+      "--cover-s", o.cover_s,
+      "seconds the lens stays covered: near-black noise frames without depth while the flight goes on");
+  app->add_flag("--no-noise", args->no_noise,
+                "ideal sensors: no IMU noise or bias, exact depth, clean images");
   app->add_flag(
       "--stereo", o.stereo,
       "render a stereo pair (a right camera beside the left) instead of depth images (docs/stereo.md)");
@@ -100,10 +120,13 @@ Subcommand add_sim_command(CLI::App& parent) {
   app->add_option("--depth-dropout", o.depth_dropout, "share of depth pixels lost in small blobs")
       ->capture_default_str();
   app->add_option("--image-noise", o.image_noise_sigma, "colour noise std [8-bit DN]")->capture_default_str();
-  app->add_option("--acc-bias-tau", o.acc_bias_tau_s, "accelerometer bias time constant [s] (paper 000 eq. 6)")
+  app->add_option("--acc-bias-tau", o.acc_bias_tau_s,
+                  "accelerometer bias time constant [s] (paper 000 eq. 6)")
       ->capture_default_str();
-  app->add_option("--rig", o.rig_path, "rig YAML (camera, T_BC, depth, imu); default: built-in rig (--images: the recording's own, with "
-                  "this file's calibration where it lacks one and its IMU noise)");
+  app->add_option(
+      "--rig", o.rig_path,
+      "rig YAML (camera, T_BC, depth, imu); default: built-in rig (--images: the recording's own, with "
+      "this file's calibration where it lacks one and its IMU noise)");
   app->add_flag("--fixed-yaw", args->fixed_yaw, "figure8: keep the heading fixed instead of along the path");
   app->add_option("--gt-rate", o.gt_rate_hz, "ground-truth record rate [Hz]")->capture_default_str();
   app->add_option("--knot-spacing", o.knot_spacing_s,
@@ -141,8 +164,9 @@ Subcommand add_sim_command(CLI::App& parent) {
     if (!args->export_eth3d.empty()) {
       auto src = drivers::open_log(opt.out_path);
       const drivers::ExportStats st = drivers::export_eth3d(*src, args->export_eth3d);
-      std::printf("kestrel sim: ETH3D folder %s (%llu frames, %llu IMU samples)\n", args->export_eth3d.c_str(),
-                  static_cast<unsigned long long>(st.rgb), static_cast<unsigned long long>(st.imu));
+      std::printf("kestrel sim: ETH3D folder %s (%llu frames, %llu IMU samples)\n",
+                  args->export_eth3d.c_str(), static_cast<unsigned long long>(st.rgb),
+                  static_cast<unsigned long long>(st.imu));
     }
     return 0;
   };

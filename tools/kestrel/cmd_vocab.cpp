@@ -9,7 +9,6 @@
 #include <fstream>
 #include <map>
 #include <memory>
-
 #include <opencv2/imgcodecs.hpp>
 
 #include "kestrel/commands.hpp"
@@ -24,7 +23,8 @@ namespace {
 
 bool is_image_file(const fs::path& p) {
   std::string e = p.extension().string();
-  std::transform(e.begin(), e.end(), e.begin(), [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
+  std::transform(e.begin(), e.end(), e.begin(),
+                 [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
   return e == ".png" || e == ".jpg" || e == ".jpeg" || e == ".bmp" || e == ".pgm";
 }
 
@@ -70,12 +70,15 @@ Subcommand add_vocab_command(CLI::App& parent) {
     uint64_t seed = 1;
   };
   auto a = std::make_shared<Args>();
-  CLI::App* app = parent.add_subcommand("vocab", "train a place-recognition vocabulary from logs or image folders");
+  CLI::App* app =
+      parent.add_subcommand("vocab", "train a place-recognition vocabulary from logs or image folders");
   app->add_option("--out", a->out, "vocabulary file to write (.kvoc)")->required();
-  app->add_option("inputs", a->inputs, "logs (.klog, EuRoC, TUM, ... as `kestrel replay` opens them) or image folders")
+  app->add_option("inputs", a->inputs,
+                  "logs (.klog, EuRoC, TUM, ... as `kestrel replay` opens them) or image folders")
       ->required();
   app->add_option("--k", a->k, "branching factor of the word tree")->capture_default_str();
-  app->add_option("--levels", a->levels, "depth of the word tree (up to k^levels words)")->capture_default_str();
+  app->add_option("--levels", a->levels, "depth of the word tree (up to k^levels words)")
+      ->capture_default_str();
   app->add_option("--every", a->every, "take every n-th colour frame / image")->capture_default_str();
   app->add_option("--features", a->features, "ORB features per image (our extractor, default pattern)")
       ->capture_default_str();
@@ -132,10 +135,11 @@ Subcommand add_vocab_command(CLI::App& parent) {
     if (!f) throw std::runtime_error("cannot write " + a->out);
     f.write(reinterpret_cast<const char*>(bytes.data()), static_cast<std::streamsize>(bytes.size()));
     if (!f) throw std::runtime_error("write failed: " + a->out);
-    std::printf("vocabulary: %zu images, %zu descriptors -> %d words (%d nodes, k %d, %d levels), %zu bytes, "
-                "checksum %08x: %s\n",
-                images.size(), n_desc, v.words(), v.nodes(), v.k(), v.levels(), bytes.size(), v.checksum(),
-                a->out.c_str());
+    std::printf(
+        "vocabulary: %zu images, %zu descriptors -> %d words (%d nodes, k %d, %d levels), %zu bytes, "
+        "checksum %08x: %s\n",
+        images.size(), n_desc, v.words(), v.nodes(), v.k(), v.levels(), bytes.size(), v.checksum(),
+        a->out.c_str());
     return 0;
   };
   return s;

@@ -85,7 +85,8 @@ class OverlapModel {
   }
   double overlap(const View& a, const View& b) const {
     const double max_reach = 2.0 * rig_.depth.max_range_m;
-    if (a.has_pose && b.has_pose && (a.T_WC.translation() - b.T_WC.translation()).norm() > max_reach) return 0;
+    if (a.has_pose && b.has_pose && (a.T_WC.translation() - b.T_WC.translation()).norm() > max_reach)
+      return 0;
     return std::max(share(a, b), share(b, a));
   }
 
@@ -99,7 +100,8 @@ double yaw_of_R(const Eigen::Matrix3d& R) { return std::atan2(R(1, 0), R(0, 0));
 
 }  // namespace
 
-LoopTruth evaluate_loops(drivers::LogSource& log, const core::LoopLog& loop_log, const LoopTruthOptions& opt) {
+LoopTruth evaluate_loops(drivers::LogSource& log, const core::LoopLog& loop_log,
+                         const LoopTruthOptions& opt) {
   LoopTruth t;
   const Rig& rig = log.rig();
   if (rig.rgb.width <= 0 || rig.rgb.fx <= 0) {
@@ -129,7 +131,8 @@ LoopTruth evaluate_loops(drivers::LogSource& log, const core::LoopLog& loop_log,
   // A keyframe's image is the frame stamped at its time (the estimator's
   // clock is the camera's plus the rig's offset): the nearest depth within a
   // third of a frame period.
-  const int64_t tol_ns = rig.camera_rate_hz > 0 ? static_cast<int64_t>(0.33e9 / rig.camera_rate_hz) : 10'000'000;
+  const int64_t tol_ns =
+      rig.camera_rate_hz > 0 ? static_cast<int64_t>(0.33e9 / rig.camera_rate_hz) : 10'000'000;
   tools::Trajectory gt;
   log.rewind();
   drivers::LogRecord rec;
@@ -157,7 +160,8 @@ LoopTruth evaluate_loops(drivers::LogSource& log, const core::LoopLog& loop_log,
     t.why_not = "the log has no ground truth";
     return t;
   }
-  std::sort(gt.begin(), gt.end(), [](const tools::TimedPose& a, const tools::TimedPose& b) { return a.t_ns < b.t_ns; });
+  std::sort(gt.begin(), gt.end(),
+            [](const tools::TimedPose& a, const tools::TimedPose& b) { return a.t_ns < b.t_ns; });
   const Eigen::Isometry3d T_BC = iso_of(rig.T_BC);
   for (auto& [id, v] : views) {
     const auto p = tools::pose_at(gt, v.t_ns, 50'000'000);
@@ -255,22 +259,25 @@ LoopTruth evaluate_loops(drivers::LogSource& log, const core::LoopLog& loop_log,
 void write_loop_log(const std::string& path, const core::LoopLog& loop_log, const LoopTruth& truth) {
   std::ofstream f(path);
   if (!f) throw std::runtime_error("--loop-log: cannot write " + path);
-  f << "query_id,query_t_s,candidate_id,candidate_t_s,bow_score,place_points,matches,ransac_inliers,guided_matches,inliers,"
-       "out_of_plane_m,correction_m,correction_rad,path_m,verdict,geometric,prior_seeded,chosen,inconsistent,closed,"
+  f << "query_id,query_t_s,candidate_id,candidate_t_s,bow_score,place_points,matches,ransac_inliers,guided_"
+       "matches,inliers,"
+       "out_of_plane_m,correction_m,correction_rad,path_m,verdict,geometric,prior_seeded,chosen,inconsistent,"
+       "closed,"
        "gt_overlap,"
        "gt_error_m,gt_error_rad\n";
   char line[512];
   for (size_t i = 0; i < loop_log.candidates.size(); ++i) {
     const core::LoopCandidateRecord& c = loop_log.candidates[i];
-    const LoopTruthCandidate g = truth.available && i < truth.per_candidate.size() ? truth.per_candidate[i]
-                                                                                    : LoopTruthCandidate{};
-    std::snprintf(line, sizeof line,
-                  "%u,%.6f,%u,%.6f,%.4f,%d,%d,%d,%d,%d,%.4f,%.4f,%.5f,%.2f,%s,%d,%d,%d,%d,%d,%.3f,%.4f,%.5f\n", c.query_id,
-                  1e-9 * static_cast<double>(c.query_t_ns), c.candidate_id,
-                  1e-9 * static_cast<double>(c.candidate_t_ns), c.score, c.place_points, c.matches,
-                  c.ransac_inliers, c.guided_matches, c.inliers, c.out_of_plane_m, c.correction_m, c.correction_rad, c.path_m,
-                  core::loop_verdict_name(c.verdict), c.geometric ? 1 : 0, c.prior_seeded ? 1 : 0, c.chosen ? 1 : 0, c.inconsistent ? 1 : 0, c.closed ? 1 : 0,
-                  g.overlap, g.error_m, g.error_rad);
+    const LoopTruthCandidate g =
+        truth.available && i < truth.per_candidate.size() ? truth.per_candidate[i] : LoopTruthCandidate{};
+    std::snprintf(
+        line, sizeof line,
+        "%u,%.6f,%u,%.6f,%.4f,%d,%d,%d,%d,%d,%.4f,%.4f,%.5f,%.2f,%s,%d,%d,%d,%d,%d,%.3f,%.4f,%.5f\n",
+        c.query_id, 1e-9 * static_cast<double>(c.query_t_ns), c.candidate_id,
+        1e-9 * static_cast<double>(c.candidate_t_ns), c.score, c.place_points, c.matches, c.ransac_inliers,
+        c.guided_matches, c.inliers, c.out_of_plane_m, c.correction_m, c.correction_rad, c.path_m,
+        core::loop_verdict_name(c.verdict), c.geometric ? 1 : 0, c.prior_seeded ? 1 : 0, c.chosen ? 1 : 0,
+        c.inconsistent ? 1 : 0, c.closed ? 1 : 0, g.overlap, g.error_m, g.error_rad);
     f << line;
   }
   if (!f) throw std::runtime_error("--loop-log: write failed: " + path);
@@ -279,15 +286,16 @@ void write_loop_log(const std::string& path, const core::LoopLog& loop_log, cons
 std::string loop_truth_summary(const LoopTruth& t) {
   if (!t.available) return "loops against the ground truth: not available (" + t.why_not + ")";
   char s[768];
-  std::snprintf(s, sizeof s,
-                "loops against the ground truth: %d revisit keyframes (%d pairs) of %d; candidates %d (%d true, "
-                "reaching %d revisit keyframes); recognised %d (%d true), of which verified %d (%d true); closed "
-                "%d, false %d; revisit keyframes recognised by the loop closer %d (recall %.0f %%), linked by "
-                "the local map %d, found either way %d (%.0f %%)",
-                t.revisit_keyframes, t.revisit_pairs, t.keyframes, t.candidates, t.candidates_true,
-                t.revisit_keyframes_candidate, t.recognised, t.recognised_true, t.verified, t.verified_true,
-                t.closed, t.closed_false, t.revisit_keyframes_recognised, 100.0 * t.loop_recall,
-                t.revisit_keyframes_linked, t.revisit_keyframes_found, 100.0 * t.map_recall);
+  std::snprintf(
+      s, sizeof s,
+      "loops against the ground truth: %d revisit keyframes (%d pairs) of %d; candidates %d (%d true, "
+      "reaching %d revisit keyframes); recognised %d (%d true), of which verified %d (%d true); closed "
+      "%d, false %d; revisit keyframes recognised by the loop closer %d (recall %.0f %%), linked by "
+      "the local map %d, found either way %d (%.0f %%)",
+      t.revisit_keyframes, t.revisit_pairs, t.keyframes, t.candidates, t.candidates_true,
+      t.revisit_keyframes_candidate, t.recognised, t.recognised_true, t.verified, t.verified_true, t.closed,
+      t.closed_false, t.revisit_keyframes_recognised, 100.0 * t.loop_recall, t.revisit_keyframes_linked,
+      t.revisit_keyframes_found, 100.0 * t.map_recall);
   return s;
 }
 

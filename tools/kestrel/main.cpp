@@ -98,8 +98,9 @@ int main(int argc, char** argv) {
   if (version->parsed()) {
     std::printf("kestrel %s (%s)\n", KESTREL_VERSION, KESTREL_GIT_REV);
     std::printf("drivers: %s\n", kestrel::drivers::built_drivers_summary().c_str());
-    std::printf("logs: klog, euroc, tum, eth3d, openloris; rosbag %s\n",
-                kestrel::drivers::rosbag_built() ? "built" : "NOT built (librosbag-dev missing at build time)");
+    std::printf(
+        "logs: klog, euroc, tum, eth3d, openloris; rosbag %s\n",
+        kestrel::drivers::rosbag_built() ? "built" : "NOT built (librosbag-dev missing at build time)");
     std::printf("flight controller: MAVLink v2 over UDP and serial (termios)\n");
     return 0;
   }

@@ -13,11 +13,13 @@ namespace {
 constexpr int64_t kIdleWaitNs = 50'000'000;
 }  // namespace
 
-MapThreads::MapThreads(core::Estimator& est, const drivers::ThreadTable& table, std::vector<AppliedThread>& applied)
+MapThreads::MapThreads(core::Estimator& est, const drivers::ThreadTable& table,
+                       std::vector<AppliedThread>& applied)
     : est_(est) {
   if (!est.has_map()) return;
   started_ = true;
-  const drivers::PipelineThread which[2] = {drivers::PipelineThread::kMapping, drivers::PipelineThread::kLoop};
+  const drivers::PipelineThread which[2] = {drivers::PipelineThread::kMapping,
+                                            drivers::PipelineThread::kLoop};
   for (int t = 0; t < 2; ++t) {
     rt::ThreadSetupReport sched;
     threads_[t] = rt::start_thread(

@@ -6,13 +6,15 @@
 
 namespace kestrel::cli {
 
-std::unique_ptr<drivers::KlogLogger> make_recording_logger(const drivers::LiveConfig& cfg, const std::string& path,
-                                                           double buffer_s, uint32_t fsync_every) {
+std::unique_ptr<drivers::KlogLogger> make_recording_logger(const drivers::LiveConfig& cfg,
+                                                           const std::string& path, double buffer_s,
+                                                           uint32_t fsync_every) {
   drivers::KlogLogger::Options lo;
   const size_t pixels = static_cast<size_t>(cfg.drivers.camera.width_px) * cfg.drivers.camera.height_px;
   lo.max_image_bytes = pixels * 3;
   // Colour up to 3 bytes a pixel, depth 2.
-  lo.buffer_bytes = drivers::KlogLogger::staging_bytes_for(buffer_s, cfg.drivers.camera.rate_hz, pixels * 3, pixels * 2);
+  lo.buffer_bytes =
+      drivers::KlogLogger::staging_bytes_for(buffer_s, cfg.drivers.camera.rate_hz, pixels * 3, pixels * 2);
   lo.fsync_every = fsync_every;
   lo.thread = cfg.threads[drivers::PipelineThread::kLog];
   lo.compression = cfg.record.compression;

@@ -29,11 +29,16 @@ class LoggerFrameSink final : public drivers::FrameSink {
  public:
   explicit LoggerFrameSink(drivers::KlogLogger& l) : log_(l) {}
   bool push_frame(const drivers::CameraFrame& f) noexcept override {
-    bool ok = log_.log_image(drivers::RecordType::kRgb, f.t_ns, f.t_recv_ns, f.seq, f.exposure_us, f.rgb->view());
+    bool ok =
+        log_.log_image(drivers::RecordType::kRgb, f.t_ns, f.t_recv_ns, f.seq, f.exposure_us, f.rgb->view());
     if (f.depth != nullptr)
-      ok = log_.log_image(drivers::RecordType::kDepth, f.t_ns, f.t_recv_ns, f.seq, f.exposure_us, f.depth->view()) && ok;
+      ok = log_.log_image(drivers::RecordType::kDepth, f.t_ns, f.t_recv_ns, f.seq, f.exposure_us,
+                          f.depth->view()) &&
+           ok;
     if (f.right != nullptr)
-      ok = log_.log_image(drivers::RecordType::kRight, f.t_ns, f.t_recv_ns, f.seq, f.exposure_us, f.right->view()) && ok;
+      ok = log_.log_image(drivers::RecordType::kRight, f.t_ns, f.t_recv_ns, f.seq, f.exposure_us,
+                          f.right->view()) &&
+           ok;
     return ok;
   }
 
@@ -75,8 +80,9 @@ class TeeFrameSink final : public drivers::FrameSink {
 
 // The logger for a live config: image sizes from its camera, a staging buffer
 // holding buffer_s seconds of frames, its thread from the config's table.
-std::unique_ptr<drivers::KlogLogger> make_recording_logger(const drivers::LiveConfig& cfg, const std::string& path,
-                                                           double buffer_s, uint32_t fsync_every);
+std::unique_ptr<drivers::KlogLogger> make_recording_logger(const drivers::LiveConfig& cfg,
+                                                           const std::string& path, double buffer_s,
+                                                           uint32_t fsync_every);
 
 // `--image-codec` and `--zstd-level` for the offline .klog writers (`kestrel
 // sim`, `kestrel convert`); their defaults are the config's `record:` ones.

@@ -375,8 +375,7 @@ class EstimatorStage {
         map_->wake();
         if (opt_.pace != drivers::ReplayPace::kRealtime) map_->wait_idle();
       }
-      if (anchor_ != nullptr)
-        anchor_->publish(to_anchor(est_.output()));
+      if (anchor_ != nullptr) anchor_->publish(to_anchor(est_.output()));
       if (dense_ != nullptr && est_.output().map.active && est_.output().map.localized)
         dense_->note_correction(m.t_ns, est_.output().map.alignment, est_.output().map.T_map_odom());
       if (dense_ != nullptr && (est_.output().quality == core::TrackingQuality::kTracking ||
@@ -612,7 +611,8 @@ AppliedThread applied_thread(const rt::ThreadSpec& spec, const rt::ThreadSetupRe
   a.applied = r.fully_granted();
   if (r.granted_priority != r.requested_priority) a.error = std::string("scheduling: ") + r.sched_note;
   if (spec.cpu >= 0 && !r.pinned)
-    a.error += std::string(a.error.empty() ? "" : "; ") + "cpu " + std::to_string(spec.cpu) + ": " + r.affinity_note;
+    a.error +=
+        std::string(a.error.empty() ? "" : "; ") + "cpu " + std::to_string(spec.cpu) + ": " + r.affinity_note;
   if (!r.name_set) a.error += std::string(a.error.empty() ? "" : "; ") + "thread name not set";
   return a;
 }
@@ -620,8 +620,8 @@ AppliedThread applied_thread(const rt::ThreadSpec& spec, const rt::ThreadSetupRe
 std::string threads_summary(const std::vector<AppliedThread>& t) {
   std::string s;
   for (const AppliedThread& a : t) {
-    s += "thread " + a.name + ": " + a.policy + (a.priority > 0 ? " " + std::to_string(a.priority) : "") + ", cpu " +
-         (a.cpu < 0 ? std::string("any") : std::to_string(a.cpu)) +
+    s += "thread " + a.name + ": " + a.policy + (a.priority > 0 ? " " + std::to_string(a.priority) : "") +
+         ", cpu " + (a.cpu < 0 ? std::string("any") : std::to_string(a.cpu)) +
          (a.applied ? " - applied\n" : " - NOT applied, runs anyway (" + a.error + ")\n");
   }
   return s;
@@ -809,7 +809,8 @@ ReplayReport run_replay(const ReplayOptions& opt) {
                         opt.on_dense_map_live;
   if (opt.view) {
     feed = std::make_unique<viewer::ViewerFeed>(estimator, rig);
-    control = std::make_unique<viewer::PlaybackControl>(opt.pace == drivers::ReplayPace::kLockstep, feed.get());
+    control =
+        std::make_unique<viewer::PlaybackControl>(opt.pace == drivers::ReplayPace::kLockstep, feed.get());
     view = std::make_unique<viewer::Server>(opt.view_options, *feed, control.get());
     if (dense_on) {
       dense_stream = std::make_unique<viewer::BinaryStream>(kDenseViewSlotBytes);
@@ -841,9 +842,9 @@ ReplayReport run_replay(const ReplayOptions& opt) {
 
   // The map's two threads, in every pace: the deterministic paces wait for
   // them per keyframe (EstimatorStage::on_frame), realtime does not.
-  MapThreads map_threads(estimator,
-                         opt.pace == drivers::ReplayPace::kRealtime ? opt.threads : drivers::default_thread_table(),
-                         report.threads);
+  MapThreads map_threads(
+      estimator, opt.pace == drivers::ReplayPace::kRealtime ? opt.threads : drivers::default_thread_table(),
+      report.threads);
   stage.set_map_threads(&map_threads);
   stage.set_stereo(stereo.get());
   // The dense map's thread (off unless asked for): the deterministic paces
@@ -1138,8 +1139,8 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     report.viewer_snapshots = feed->published();
     report.viewer_snapshots_skipped = feed->skipped_busy();
     char line[160];
-    std::snprintf(line, sizeof line, "replay finished: %zu poses, %.1f s of log in %.1f s", report.trajectory.size(),
-                  report.log_duration_s, report.wall_s);
+    std::snprintf(line, sizeof line, "replay finished: %zu poses, %.1f s of log in %.1f s",
+                  report.trajectory.size(), report.log_duration_s, report.wall_s);
     view->mark_finished(line);
     view->stop();
     report.viewer = view->stats();
@@ -1201,7 +1202,8 @@ std::string mavlink_needs_levelled_world(const std::string& backend) {
 }
 
 std::optional<mavlink::OdometryStreamOptions> mavlink_options(const drivers::MavlinkSettings& cfg,
-                                                              const std::string& udp, const std::string& serial) {
+                                                              const std::string& udp,
+                                                              const std::string& serial) {
   if (!udp.empty() && !serial.empty())
     throw std::invalid_argument("--mavlink-udp and --mavlink-serial: one link at a time");
   mavlink::OdometryStreamOptions o;
@@ -1309,7 +1311,8 @@ std::string replay_metrics_json(const ReplayReport& r) {
                              {"map_recall", t.map_recall}};
     }
   } else {
-    for (const char* k : {"loop_closures", "relocalisations", "keyframes_in_map", "map_points", "map_correction_m"})
+    for (const char* k :
+         {"loop_closures", "relocalisations", "keyframes_in_map", "map_points", "map_correction_m"})
       j[k] = nullptr;
   }
   if (r.dense) {
@@ -1409,9 +1412,10 @@ std::string replay_metrics_json(const ReplayReport& r) {
   alloc["counting"] = r.alloc_counting;
   alloc["estimator_thread_steady"] = r.alloc_counting ? Json(r.steady_allocs) : Json(nullptr);
   alloc["steady_frames"] = r.steady_frames;
-  alloc["per_frame"] = json_figure(r.alloc_counting && r.steady_frames > 0
-                                       ? static_cast<double>(r.steady_allocs) / static_cast<double>(r.steady_frames)
-                                       : std::nan(""));
+  alloc["per_frame"] =
+      json_figure(r.alloc_counting && r.steady_frames > 0
+                      ? static_cast<double>(r.steady_allocs) / static_cast<double>(r.steady_frames)
+                      : std::nan(""));
   j["allocations"] = std::move(alloc);
   Json threads = Json::array();
   for (const AppliedThread& t : r.threads)
@@ -1429,31 +1433,32 @@ std::string replay_metrics_json(const ReplayReport& r) {
   if (r.view) {
     const viewer::ServerStats& v = r.viewer;
     const bool streamed = v.streaming_s > 0;
-    j["viewer"] = Json{
-        {"browsers", v.clients},
-        {"browsers_peak", static_cast<int64_t>(v.clients_peak)},
-        {"streaming_s", json_figure(v.streaming_s)},
-        {"kbytes_per_s", streamed ? 1e-3 * static_cast<double>(v.streaming_bytes) / v.streaming_s : 0.0},
-        {"cpu_ms_per_s", streamed ? 1e3 * v.streaming_cpu_s / v.streaming_s : 0.0},
-        {"cpu_s", json_figure(v.cpu_s)},
-        {"bytes_sent", v.bytes_sent},
-        {"snapshots_published", r.viewer_snapshots},
-        {"snapshots_skipped", r.viewer_snapshots_skipped},
-        {"frames_sent", v.frames_sent},
-        {"frames_skipped_budget", v.frames_skipped_budget},
-        {"frames_skipped_backlog", v.frames_skipped_backlog},
-        {"connections", v.connections},
-        {"connections_refused", v.connections_refused},
-        {"browsers_refused", v.clients_refused},
-        {"browsers_dropped", v.clients_dropped},
-        {"http_requests", v.http_requests},
-        {"http_errors", v.http_errors},
-        {"protocol_errors", v.protocol_errors},
-        {"commands", v.commands},
-        {"bad_commands", v.bad_commands}};
+    j["viewer"] =
+        Json{{"browsers", v.clients},
+             {"browsers_peak", static_cast<int64_t>(v.clients_peak)},
+             {"streaming_s", json_figure(v.streaming_s)},
+             {"kbytes_per_s", streamed ? 1e-3 * static_cast<double>(v.streaming_bytes) / v.streaming_s : 0.0},
+             {"cpu_ms_per_s", streamed ? 1e3 * v.streaming_cpu_s / v.streaming_s : 0.0},
+             {"cpu_s", json_figure(v.cpu_s)},
+             {"bytes_sent", v.bytes_sent},
+             {"snapshots_published", r.viewer_snapshots},
+             {"snapshots_skipped", r.viewer_snapshots_skipped},
+             {"frames_sent", v.frames_sent},
+             {"frames_skipped_budget", v.frames_skipped_budget},
+             {"frames_skipped_backlog", v.frames_skipped_backlog},
+             {"connections", v.connections},
+             {"connections_refused", v.connections_refused},
+             {"browsers_refused", v.clients_refused},
+             {"browsers_dropped", v.clients_dropped},
+             {"http_requests", v.http_requests},
+             {"http_errors", v.http_errors},
+             {"protocol_errors", v.protocol_errors},
+             {"commands", v.commands},
+             {"bad_commands", v.bad_commands}};
   }
   Json problems = Json::array();
-  for (const auto& p : r.problems) problems.push_back(Json{{"where", p.where}, {"kind", p.kind}, {"detail", p.detail}});
+  for (const auto& p : r.problems)
+    problems.push_back(Json{{"where", p.where}, {"kind", p.kind}, {"detail", p.detail}});
   j["problems"] = std::move(problems);
   return tools::json_text(j);
 }
@@ -1500,10 +1505,12 @@ std::string format_status(const PipelineStatus& s) {
       static_cast<unsigned long long>(s.input_faults.repeated),
       static_cast<unsigned long long>(s.input_faults.no_depth));
   std::string line = buf;
-  // The map's state: a lost map (after a loss, or a loaded map not found yet) maps nothing until it relocalises.
+  // The map's state: a lost map (after a loss, or a loaded map not found yet) maps nothing until it
+  // relocalises.
   if (s.map.active) {
-    std::snprintf(buf, sizeof buf, " | map %s, %u kf, loops %llu, relocs %llu", s.map.localized ? "localized" : "LOST",
-                  s.map.keyframes, static_cast<unsigned long long>(s.map.loop_closures),
+    std::snprintf(buf, sizeof buf, " | map %s, %u kf, loops %llu, relocs %llu",
+                  s.map.localized ? "localized" : "LOST", s.map.keyframes,
+                  static_cast<unsigned long long>(s.map.loop_closures),
                   static_cast<unsigned long long>(s.map.relocalisations));
     line += buf;
   }
@@ -1569,43 +1576,46 @@ std::string replay_summary(const ReplayReport& r) {
     for (int k = 1; k < core::kDivergenceCauseCount; ++k) {
       const uint64_t n = dv.by_cause[static_cast<size_t>(k)];
       if (n == 0) continue;
-      causes += (causes.empty() ? " (" : ", ") + std::string(core::to_string(static_cast<core::DivergenceCause>(k))) +
-                " " + std::to_string(n);
+      causes += (causes.empty() ? " (" : ", ") +
+                std::string(core::to_string(static_cast<core::DivergenceCause>(k))) + " " + std::to_string(n);
     }
     if (!causes.empty()) causes += ")";
-    std::snprintf(buf, sizeof buf,
-                  "divergences: %llu%s; coasting %.2f s, %llu coast timeouts, lost %.2f s (%llu restarts while lost, "
-                  "%llu lost poses left out of the trajectory)\n",
-                  static_cast<unsigned long long>(dv.divergences), causes.c_str(), 1e-9 * static_cast<double>(dv.coast_ns),
-                  static_cast<unsigned long long>(dv.coast_timeouts),
-                  1e-9 * static_cast<double>(dv.lost_ns), static_cast<unsigned long long>(dv.restarts_while_lost),
-                  static_cast<unsigned long long>(r.lost_poses_withheld));
+    std::snprintf(
+        buf, sizeof buf,
+        "divergences: %llu%s; coasting %.2f s, %llu coast timeouts, lost %.2f s (%llu restarts while lost, "
+        "%llu lost poses left out of the trajectory)\n",
+        static_cast<unsigned long long>(dv.divergences), causes.c_str(),
+        1e-9 * static_cast<double>(dv.coast_ns), static_cast<unsigned long long>(dv.coast_timeouts),
+        1e-9 * static_cast<double>(dv.lost_ns), static_cast<unsigned long long>(dv.restarts_while_lost),
+        static_cast<unsigned long long>(r.lost_poses_withheld));
     s += buf;
   }
   std::snprintf(buf, sizeof buf, "camera-IMU time offset: %.3f ms (%s)\n", r.time_offset_ms,
                 r.time_offset_estimated ? "the rig's plus the online estimate" : "the rig's; not estimated");
   s += buf;
   if (r.has_map) {
-    std::snprintf(buf, sizeof buf,
-                  "map threads: mapping %llu keyframes, p50 %.1f ms, p99 %.1f ms, cpu %.1f s; loop p50 %.1f ms, "
-                  "p99 %.1f ms, cpu %.1f s; loop closures %llu, relocalisations %llu, |t(T_map_odom)| %.3f m\n",
-                  static_cast<unsigned long long>(r.mapping.count()),
-                  1e-6 * static_cast<double>(r.mapping.percentile(50)),
-                  1e-6 * static_cast<double>(r.mapping.percentile(99)), r.mapping_cpu_s,
-                  1e-6 * static_cast<double>(r.loop.percentile(50)), 1e-6 * static_cast<double>(r.loop.percentile(99)),
-                  r.loop_cpu_s, static_cast<unsigned long long>(r.map.loop_closures),
-                  static_cast<unsigned long long>(r.map.relocalisations), r.map.T_map_odom().translation().norm());
+    std::snprintf(
+        buf, sizeof buf,
+        "map threads: mapping %llu keyframes, p50 %.1f ms, p99 %.1f ms, cpu %.1f s; loop p50 %.1f ms, "
+        "p99 %.1f ms, cpu %.1f s; loop closures %llu, relocalisations %llu, |t(T_map_odom)| %.3f m\n",
+        static_cast<unsigned long long>(r.mapping.count()),
+        1e-6 * static_cast<double>(r.mapping.percentile(50)),
+        1e-6 * static_cast<double>(r.mapping.percentile(99)), r.mapping_cpu_s,
+        1e-6 * static_cast<double>(r.loop.percentile(50)), 1e-6 * static_cast<double>(r.loop.percentile(99)),
+        r.loop_cpu_s, static_cast<unsigned long long>(r.map.loop_closures),
+        static_cast<unsigned long long>(r.map.relocalisations), r.map.T_map_odom().translation().norm());
     s += buf;
     if (r.global_ba && r.global_ba->runs > 0) {
-      std::snprintf(buf, sizeof buf,
-                    "global BA after loops: %llu runs (%llu failed), last %llu keyframes, %llu points; solve p50 %.0f "
-                    "ms, max %.0f ms; largest keyframe move %.3f m\n",
-                    static_cast<unsigned long long>(r.global_ba->runs),
-                    static_cast<unsigned long long>(r.global_ba->failures),
-                    static_cast<unsigned long long>(r.global_ba->keyframes),
-                    static_cast<unsigned long long>(r.global_ba->points),
-                    1e-6 * static_cast<double>(r.global_ba_solve.percentile(50)),
-                    1e-6 * static_cast<double>(r.global_ba_solve.max()), r.global_ba->max_keyframe_move_m);
+      std::snprintf(
+          buf, sizeof buf,
+          "global BA after loops: %llu runs (%llu failed), last %llu keyframes, %llu points; solve p50 %.0f "
+          "ms, max %.0f ms; largest keyframe move %.3f m\n",
+          static_cast<unsigned long long>(r.global_ba->runs),
+          static_cast<unsigned long long>(r.global_ba->failures),
+          static_cast<unsigned long long>(r.global_ba->keyframes),
+          static_cast<unsigned long long>(r.global_ba->points),
+          1e-6 * static_cast<double>(r.global_ba_solve.percentile(50)),
+          1e-6 * static_cast<double>(r.global_ba_solve.max()), r.global_ba->max_keyframe_move_m);
       s += buf;
     }
   }
@@ -1626,7 +1636,8 @@ std::string replay_summary(const ReplayReport& r) {
          " IMU-rate poses published\n";
   if (r.mavlink_frames + r.mavlink_failed > 0) {
     std::snprintf(buf, sizeof buf, "MAVLink ODOMETRY: %llu sent, %llu failed; %llu HEARTBEAT; TIMESYNC %s\n",
-                  static_cast<unsigned long long>(r.mavlink_sent), static_cast<unsigned long long>(r.mavlink_failed),
+                  static_cast<unsigned long long>(r.mavlink_sent),
+                  static_cast<unsigned long long>(r.mavlink_failed),
                   static_cast<unsigned long long>(r.mavlink_heartbeats),
                   r.mavlink_timesync_converged ? "converged" : "no answer from an autopilot");
     s += buf;

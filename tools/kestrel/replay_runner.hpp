@@ -37,7 +37,8 @@ namespace kestrel::cli {
 // R_FB, rates and TIMESYNC come from the section. nullopt when no transport
 // is named. Throws std::invalid_argument naming the bad value.
 std::optional<mavlink::OdometryStreamOptions> mavlink_options(const drivers::MavlinkSettings& cfg,
-                                                              const std::string& udp, const std::string& serial);
+                                                              const std::string& udp,
+                                                              const std::string& serial);
 // Why a backend whose world is not levelled (Estimator::world_levelled()
 // false: rgbd) may not feed a flight controller: ODOMETRY's LOCAL_FRD frame
 // has its z along gravity, and this backend's W is its first camera pose.
@@ -254,7 +255,7 @@ struct ReplayReport {
   std::string log_path;
   std::string log_format;
   drivers::ReplayPace pace = drivers::ReplayPace::kLockstep;
-  tools::Trajectory trajectory;  // body pose in W at each camera frame the backend did not call lost
+  tools::Trajectory trajectory;      // body pose in W at each camera frame the backend did not call lost
   uint64_t lost_poses_withheld = 0;  // poses flagged kLost: sent on (flagged), not in the trajectory
   tools::Trajectory map_trajectory;  // the same poses in the map frame, T_map_odom(t) * T_WB(t)
   // The same poses through the map's keyframes as they ended the flight
@@ -304,7 +305,7 @@ struct ReplayReport {
   rt::LatencyHistogram tracking;          // per frame, inside the estimator
   drivers::ReplayStats replay;
   core::EstimatorCounters estimator_counters;
-  std::string backend_summary;      // Estimator::backend_summary()
+  std::string backend_summary;  // Estimator::backend_summary()
   // Camera-IMU time offset: the rig's time_offset_cam_imu_ns (applied to the
   // stamps by the reader) plus what the backend estimated online on top.
   double time_offset_ms = 0.0;
@@ -318,7 +319,7 @@ struct ReplayReport {
   InputFaultCounts input_faults;
   uint64_t status_lines = 0;
   uint64_t imu_rate_poses = 0;  // IMU-rate poses the output thread took from kst-propagate
-  uint64_t mavlink_sent = 0;  // ODOMETRY messages
+  uint64_t mavlink_sent = 0;    // ODOMETRY messages
   uint64_t mavlink_heartbeats = 0;
   uint64_t mavlink_frames = 0;  // every frame sent (ODOMETRY, HEARTBEAT, TIMESYNC)
   bool mavlink_timesync_converged = false;

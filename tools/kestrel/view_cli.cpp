@@ -10,15 +10,18 @@
 namespace kestrel::cli {
 
 void add_view_options(CLI::App* app, ViewArgs& a, bool with_wait) {
-  app->add_option("--view", a.endpoint,
-                  "serve the live viewer on [ADDR:]PORT (e.g. 8080 or 127.0.0.1:8080): a web page with the camera "
-                  "image, the features, the 3-D trajectory and map and the state (docs/viewer.md)");
-  app->add_option("--view-clients", a.clients, "browsers the viewer streams to at once")->capture_default_str();
+  app->add_option(
+      "--view", a.endpoint,
+      "serve the live viewer on [ADDR:]PORT (e.g. 8080 or 127.0.0.1:8080): a web page with the camera "
+      "image, the features, the 3-D trajectory and map and the state (docs/viewer.md)");
+  app->add_option("--view-clients", a.clients, "browsers the viewer streams to at once")
+      ->capture_default_str();
   app->add_option("--view-bandwidth", a.bandwidth_kbytes_per_s,
                   "cap of each browser's stream [kB/s]; camera frames are skipped to hold it")
       ->capture_default_str();
   if (with_wait)
-    app->add_option("--view-wait", a.wait_s, "wait up to this many seconds for a browser before the replay starts")
+    app->add_option("--view-wait", a.wait_s,
+                    "wait up to this many seconds for a browser before the replay starts")
         ->capture_default_str();
 }
 

@@ -22,11 +22,14 @@ int64_t period_ns(double rate_hz) { return rate_hz > 0 ? static_cast<int64_t>(1e
 
 uint8_t mav_state_of(core::TrackingQuality q) {
   switch (q) {
-    case core::TrackingQuality::kUninitialized: return kMavStateStandby;
+    case core::TrackingQuality::kUninitialized:
+      return kMavStateStandby;
     case core::TrackingQuality::kImuOnly:
     case core::TrackingQuality::kVisionOnly:
-    case core::TrackingQuality::kTracking: return kMavStateActive;
-    case core::TrackingQuality::kLost: return kMavStateCritical;
+    case core::TrackingQuality::kTracking:
+      return kMavStateActive;
+    case core::TrackingQuality::kLost:
+      return kMavStateCritical;
   }
   return kMavStateStandby;
 }
@@ -52,7 +55,8 @@ void OdometryStream::service(int64_t now_ns) noexcept {
         ++stats_.autopilot_heartbeats;
       } else if (f.msgid == kMsgIdTimesync && opt_.timesync) {
         TimesyncMsg reply;
-        if (sync_.on_message(unpack_timesync(f.payload), f.sysid, f.compid, opt_.sysid, opt_.compid, now_ns, &reply))
+        if (sync_.on_message(unpack_timesync(f.payload), f.sysid, f.compid, opt_.sysid, opt_.compid, now_ns,
+                             &reply))
           send(encode_timesync(reply, seq_++, opt_.sysid, opt_.compid, frame_, signing_.get()));
       }
     });
@@ -83,7 +87,8 @@ bool OdometryStream::publish(const OdometryInput& in) noexcept {
     ++stats_.rate_skipped;
     return false;
   }
-  if (opt_.stamps_on_host_clock && in.t_ns > 0) m.time_usec = static_cast<uint64_t>(sync_.to_link_time_ns(in.t_ns) / 1000);
+  if (opt_.stamps_on_host_clock && in.t_ns > 0)
+    m.time_usec = static_cast<uint64_t>(sync_.to_link_time_ns(in.t_ns) / 1000);
   if (!send(encode_odometry(m, seq_++, opt_.sysid, opt_.compid, frame_, signing_.get()))) return false;
   last_odometry_t_ns_ = in.t_ns;
   ++stats_.odometry_sent;

@@ -38,7 +38,7 @@ std::map<std::string, CallgrindCost> callgrind_inclusive(const std::string& path
   for (const auto& n : needles) out[n] = {};
   std::map<std::string, std::string> fn_ids;
   std::string line, fn, cfn;
-  int ir_column = -1;          // which cost column is Ir
+  int ir_column = -1;  // which cost column is Ir
   bool expect_call_cost = false;
   std::uint64_t pending_calls = 0;
   std::size_t lineno = 0;
@@ -52,7 +52,8 @@ std::map<std::string, CallgrindCost> callgrind_inclusive(const std::string& path
       std::string e;
       for (int i = 0; ev >> e; ++i)
         if (e == "Ir") ir_column = i;
-      if (ir_column < 0) throw std::runtime_error(path + ":" + std::to_string(lineno) + ": no Ir event in '" + line + "'");
+      if (ir_column < 0)
+        throw std::runtime_error(path + ":" + std::to_string(lineno) + ": no Ir event in '" + line + "'");
       header_seen = true;
       continue;
     }
@@ -79,12 +80,14 @@ std::map<std::string, CallgrindCost> callgrind_inclusive(const std::string& path
     } else if (starts_with(line, "cfn=")) {
       cfn = name_after(line, 3, fn_ids);
     } else if (starts_with(line, "calls=")) {
-      if (!header_seen) throw std::runtime_error(path + ":" + std::to_string(lineno) + ": calls= before the events: line");
+      if (!header_seen)
+        throw std::runtime_error(path + ":" + std::to_string(lineno) + ": calls= before the events: line");
       pending_calls = std::strtoull(line.c_str() + 6, nullptr, 10);
       expect_call_cost = true;
     }
   }
-  if (!header_seen) throw std::runtime_error(path + ": no events: line (not a callgrind output file, or cut short)");
+  if (!header_seen)
+    throw std::runtime_error(path + ": no events: line (not a callgrind output file, or cut short)");
   return out;
 }
 

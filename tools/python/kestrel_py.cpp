@@ -35,7 +35,6 @@ namespace {
 
 using Clock = std::chrono::steady_clock;
 
-
 const char* format_name(PixelFormat f) {
   switch (f) {
     case PixelFormat::kGray8:
@@ -229,9 +228,9 @@ class Log {
     py::dict d(kw);
     drivers::LogFormat format = drivers::LogFormat::kAuto;
     const drivers::LogOpenOptions o = open_options(d, format);
-    refuse_unknown(
-        d, "open_log",
-        "format, rig, fps, rgb_topic, depth_topic, imu_topic, camera_info_topic, gt_topic, right_topic, topics");
+    refuse_unknown(d, "open_log",
+                   "format, rig, fps, rgb_topic, depth_topic, imu_topic, camera_info_topic, gt_topic, "
+                   "right_topic, topics");
     path_ = path;
     src_ = drivers::open_log(path, o);
   }
@@ -599,7 +598,8 @@ class PyEstimator {
 // ---- replay -----------------------------------------------------------------
 
 constexpr const char* kReplayOptions =
-    "format, rig, fps, rgb_topic, depth_topic, imu_topic, camera_info_topic, gt_topic, right_topic, topics, estimator, "
+    "format, rig, fps, rgb_topic, depth_topic, imu_topic, camera_info_topic, gt_topic, right_topic, topics, "
+    "estimator, "
     "config, pace, mapping, loop, warmup_s, trajectory, report";
 
 py::object replay(const std::string& path, py::kwargs kw) {

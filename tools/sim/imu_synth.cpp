@@ -25,22 +25,22 @@ bool saturate(double& v, double range) {
 
 ImuModel ImuModel::bmx055(double acc_bias_tau_s) {
   ImuModel m;
-  m.gyro_noise_density_rad_s_sqrthz = 0.014 * kDeg;          // 2.443e-4 rad/s/sqrt(Hz)
+  m.gyro_noise_density_rad_s_sqrthz = 0.014 * kDeg;  // 2.443e-4 rad/s/sqrt(Hz)
   // Table 1 gives no rate random walk. 2e-5 rad/s^2/sqrt(Hz) (the order of
   // the ADIS16448's Kalibr figure) lets the bias wander 2e-5 * sqrt(189 s) =
   // 2.7e-4 rad/s = 57 deg/h over paper 000's flight, inside the 360 deg/h RMS.
   m.gyro_random_walk_rad_s2_sqrthz = 2.0e-5;
-  m.acc_noise_density_mps2_sqrthz = 150e-6 * kStandardGravity;   // 1.471e-3 m/s^2/sqrt(Hz)
+  m.acc_noise_density_mps2_sqrthz = 150e-6 * kStandardGravity;  // 1.471e-3 m/s^2/sqrt(Hz)
   m.acc_bias_tau_s = acc_bias_tau_s;
-  m.gyro_bias_init_sigma_rps = 360.0 / 3600.0 * kDeg;        // 360 deg/h = 1.745e-3 rad/s
-  m.acc_bias_init_sigma_mps2 = 4e-3 * kStandardGravity;      // 4 mg = 3.923e-2 m/s^2
+  m.gyro_bias_init_sigma_rps = 360.0 / 3600.0 * kDeg;    // 360 deg/h = 1.745e-3 rad/s
+  m.acc_bias_init_sigma_mps2 = 4e-3 * kStandardGravity;  // 4 mg = 3.923e-2 m/s^2
   // The 4 mg RMS read as the stationary std of eq. 6: sigma_w * sqrt(tau/2).
   m.acc_random_walk_mps3_sqrthz =
       acc_bias_tau_s > 0.0 ? m.acc_bias_init_sigma_mps2 / std::sqrt(0.5 * acc_bias_tau_s) : 1.0e-3;
-  m.gyro_resolution_rps = 0.004 * kDeg;                      // 6.98e-5 rad/s
-  m.acc_resolution_mps2 = 0.98e-3 * kStandardGravity;        // 9.61e-3 m/s^2
-  m.gyro_range_rps = 2000.0 * kDeg;                          // 34.9 rad/s
-  m.acc_range_mps2 = 16.0 * kStandardGravity;                // 156.9 m/s^2
+  m.gyro_resolution_rps = 0.004 * kDeg;                // 6.98e-5 rad/s
+  m.acc_resolution_mps2 = 0.98e-3 * kStandardGravity;  // 9.61e-3 m/s^2
+  m.gyro_range_rps = 2000.0 * kDeg;                    // 34.9 rad/s
+  m.acc_range_mps2 = 16.0 * kStandardGravity;          // 156.9 m/s^2
   return m;
 }
 
@@ -64,7 +64,8 @@ ImuNoise ImuModel::to_rig() const {
   return n;
 }
 
-void true_imu(const TrajectoryState& s, double gravity_mps2, Eigen::Vector3d& gyro_rps, Eigen::Vector3d& acc_mps2) {
+void true_imu(const TrajectoryState& s, double gravity_mps2, Eigen::Vector3d& gyro_rps,
+              Eigen::Vector3d& acc_mps2) {
   const Eigen::Vector3d g_W(0.0, 0.0, -gravity_mps2);
   acc_mps2 = s.q_WB.conjugate() * (s.a_WB - g_W);
   gyro_rps = s.w_B;
@@ -95,7 +96,8 @@ ImuSample ImuSynth::sample(const TrajectoryState& s, int64_t t_ns) {
       // Exact discretisation of db = -b/tau dt + w: stays bounded, with the
       // stationary std sigma_w sqrt(tau/2).
       const double phi = std::exp(-dt / model_.acc_bias_tau_s);
-      const double sd = model_.acc_random_walk_mps3_sqrthz * std::sqrt(0.5 * model_.acc_bias_tau_s * (1.0 - phi * phi));
+      const double sd =
+          model_.acc_random_walk_mps3_sqrthz * std::sqrt(0.5 * model_.acc_bias_tau_s * (1.0 - phi * phi));
       ba_ = phi * ba_ + sd * n_ba;
     } else {
       ba_ += model_.acc_random_walk_mps3_sqrthz * std::sqrt(dt) * n_ba;
@@ -137,13 +139,15 @@ std::vector<ImuSample> load_euroc_imu_csv(const std::string& path) {
     // Columns past the seventh are ignored, as EuRoC-derived files sometimes carry more.
     const std::vector<std::string> f = text::split(line, ',');
     if (f.size() < 7)
-      throw std::runtime_error(at + ": expected 7 fields (t_ns, w_xyz, a_xyz), got " + std::to_string(f.size()));
+      throw std::runtime_error(at + ": expected 7 fields (t_ns, w_xyz, a_xyz), got " +
+                               std::to_string(f.size()));
     ImuSample s;
     if (!text::parse_i64(f[0], s.t_ns)) throw std::runtime_error(at + ": bad timestamp '" + f[0] + "'");
     double v[6];
     for (int j = 0; j < 6; ++j)
       if (!text::parse_finite_f64(f[j + 1], v[j]))
-        throw std::runtime_error(at + ": field " + std::to_string(j + 2) + " is not a number: '" + f[j + 1] + "'");
+        throw std::runtime_error(at + ": field " + std::to_string(j + 2) + " is not a number: '" + f[j + 1] +
+                                 "'");
     if (!out.empty() && s.t_ns <= out.back().t_ns)
       throw std::runtime_error(at + ": time " + f[0] + " does not increase");
     s.t_recv_ns = s.t_ns;

@@ -91,7 +91,8 @@ SimSummary run_image_simulation(const SimOptions& o, SimSink& sink) {
   int64_t next_bias_event = t0;
   auto imu_until = [&](int64_t t_ns) {
     for (; ki < n_imu; ++ki) {
-      const int64_t ti = t0 + static_cast<int64_t>(std::llround(static_cast<double>(ki) * 1e9 / rig.imu_rate_hz));
+      const int64_t ti =
+          t0 + static_cast<int64_t>(std::llround(static_cast<double>(ki) * 1e9 / rig.imu_rate_hz));
       if (ti > t_ns) return;
       const ImuSample m = synth.sample(traj.state(1e-9 * static_cast<double>(ti - t0)), ti);
       if (m.flags & (kImuGyroSaturated | kImuAccSaturated)) ++sum.imu_saturated;
@@ -99,8 +100,8 @@ SimSummary run_image_simulation(const SimOptions& o, SimSink& sink) {
         const Eigen::Vector3d& bg = synth.gyro_bias_rps();
         const Eigen::Vector3d& ba = synth.acc_bias_mps2();
         char buf[256];
-        std::snprintf(buf, sizeof buf, "true_bias gyro_rps=%.9g,%.9g,%.9g acc_mps2=%.9g,%.9g,%.9g", bg.x(), bg.y(),
-                      bg.z(), ba.x(), ba.y(), ba.z());
+        std::snprintf(buf, sizeof buf, "true_bias gyro_rps=%.9g,%.9g,%.9g acc_mps2=%.9g,%.9g,%.9g", bg.x(),
+                      bg.y(), bg.z(), ba.x(), ba.y(), ba.z());
         sink.event(Event{ti, EventCode::kInfo, buf});
         ++sum.events;
         next_bias_event += 1'000'000'000;
@@ -137,7 +138,8 @@ SimSummary run_image_simulation(const SimOptions& o, SimSink& sink) {
         sink.event(rec.event);
         ++sum.events;
         break;
-      case drivers::RecordType::kImu: break;
+      case drivers::RecordType::kImu:
+        break;
     }
   }
   imu_until(t0 + static_cast<int64_t>(std::llround(traj.duration_s() * 1e9)));

@@ -6,14 +6,13 @@
 // tile with bounding-sphere vs tile-cone tests, so a pixel usually tests zero
 // to three objects. Pixel noise comes from a hash of (seed, frame, pixel)
 // indexing a table of normals: independent of which thread renders the row.
-#include <opencv2/core.hpp>
-#include <opencv2/imgcodecs.hpp>
-#include <opencv2/imgproc.hpp>
-
 #include <algorithm>
 #include <atomic>
 #include <cmath>
 #include <limits>
+#include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
 #include <stdexcept>
 #include <thread>
 
@@ -51,24 +50,24 @@ struct Rgb {
 
 struct Hit {
   float t = kInf;
-  float nx = 0.f, ny = 0.f, nz = 1.f;   // unit normal facing the camera side
+  float nx = 0.f, ny = 0.f, nz = 1.f;  // unit normal facing the camera side
   uint32_t surface = 0;
-  float u = 0.f, v = 0.f;               // surface coordinates, metres
+  float u = 0.f, v = 0.f;  // surface coordinates, metres
 };
 
 // Clutter flattened to floats for the inner loop.
 struct Obj {
   bool box = true;
-  float cx = 0.f, cy = 0.f, cz = 0.f;   // box centre / cylinder axis point (cz unused)
-  float hx = 0.f, hy = 0.f, hz = 0.f;   // box half sizes
-  float c = 1.f, s = 0.f;               // box yaw
-  float r = 0.f, z0 = 0.f, z1 = 0.f;    // cylinder
-  float bx = 0.f, by = 0.f, bz = 0.f, brad = 0.f;   // bounding sphere
+  float cx = 0.f, cy = 0.f, cz = 0.f;              // box centre / cylinder axis point (cz unused)
+  float hx = 0.f, hy = 0.f, hz = 0.f;              // box half sizes
+  float c = 1.f, s = 0.f;                          // box yaw
+  float r = 0.f, z0 = 0.f, z1 = 0.f;               // cylinder
+  float bx = 0.f, by = 0.f, bz = 0.f, brad = 0.f;  // bounding sphere
 };
 
 struct Frame {
-  float R[9];   // R_WC row-major
-  float o[3];   // p_WC
+  float R[9];  // R_WC row-major
+  float o[3];  // p_WC
   uint64_t key = 0;
 };
 
@@ -86,7 +85,8 @@ Eigen::Vector2d distort_normalized(const CameraIntrinsics& cam, const Eigen::Vec
   const double k1 = cam.dist[0], k2 = cam.dist[1], p1 = cam.dist[2], p2 = cam.dist[3], k3 = cam.dist[4];
   const double x = p.x(), y = p.y(), r2 = x * x + y * y;
   const double radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
-  return {x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x), y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y};
+  return {x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
+          y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y};
 }
 
 Eigen::Vector2d undistort_normalized(const CameraIntrinsics& cam, const Eigen::Vector2d& pd) {
@@ -98,7 +98,7 @@ Eigen::Vector2d undistort_normalized(const CameraIntrinsics& cam, const Eigen::V
     if (f.squaredNorm() < 1e-26) break;
     const double x = p.x(), y = p.y(), r2 = x * x + y * y;
     const double radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
-    const double dr = 2.0 * (k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2));   // d radial / d r2, times 2
+    const double dr = 2.0 * (k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2));  // d radial / d r2, times 2
     Eigen::Matrix2d J;
     J(0, 0) = radial + x * x * dr + 2.0 * p1 * y + 6.0 * p2 * x;
     J(0, 1) = x * y * dr + 2.0 * p1 * x + 2.0 * p2 * y;
@@ -120,9 +120,9 @@ struct Renderer::Impl {
   DepthModel depth;
   RenderOptions opt;
   int W = 0, H = 0, tiles_x = 0, tiles_y = 0;
-  std::vector<float> ray;          // (x, y, |(x, y, 1)|) per pixel; z = 1
-  std::vector<float> tile_axis;    // unit cone axis per tile
-  std::vector<double> tile_cos;    // cos and sin of each tile cone's half angle
+  std::vector<float> ray;        // (x, y, |(x, y, 1)|) per pixel; z = 1
+  std::vector<float> tile_axis;  // unit cone axis per tile
+  std::vector<double> tile_cos;  // cos and sin of each tile cone's half angle
   std::vector<double> tile_sin;
   std::vector<Obj> objs;
   std::vector<float> gauss;
@@ -149,7 +149,8 @@ Renderer::Renderer(const Scene& scene, const CameraIntrinsics& camera, const Dep
     throw std::invalid_argument("renderer: camera needs width, height, fx, fy > 0");
   if (camera.distortion == DistortionModel::kEquidistant)
     throw std::invalid_argument("renderer: equidistant distortion is not supported (use radtan or none)");
-  if (scene.boxes.size() + scene.cylinders.size() > 60000) throw std::invalid_argument("renderer: too many objects");
+  if (scene.boxes.size() + scene.cylinders.size() > 60000)
+    throw std::invalid_argument("renderer: too many objects");
   m.scene = scene;
   m.cam = camera;
   m.depth = depth;
@@ -259,7 +260,8 @@ Renderer::Renderer(const Scene& scene, const CameraIntrinsics& camera, const Dep
       mip.w = img.cols;
       mip.h = img.rows;
       mip.rgb.resize(static_cast<size_t>(img.cols) * img.rows * 3);
-      for (int r = 0; r < img.rows; ++r) std::copy_n(img.ptr<uint8_t>(r), img.cols * 3, &mip.rgb[static_cast<size_t>(r) * img.cols * 3]);
+      for (int r = 0; r < img.rows; ++r)
+        std::copy_n(img.ptr<uint8_t>(r), img.cols * 3, &mip.rgb[static_cast<size_t>(r) * img.cols * 3]);
       m.mips.push_back(std::move(mip));
       if (img.cols < 16 || img.rows < 16) break;
       cv::Mat down;
@@ -377,7 +379,7 @@ void Renderer::Impl::trace(const Frame& f, const float* d, const uint16_t* cands
           }
         }
       }
-      if (o[2] > b.z1 && d[2] < 0.f) {   // top cap
+      if (o[2] > b.z1 && d[2] < 0.f) {  // top cap
         const float t = (b.z1 - o[2]) / d[2];
         const float px = ox + t * d[0], py = oy + t * d[1];
         if (t > 1e-4f && t < h.t && px * px + py * py <= b.r * b.r) {
@@ -404,7 +406,7 @@ void Renderer::Impl::trace(const Frame& f, const float* d, const uint16_t* cands
 Rgb Renderer::Impl::pattern(uint32_t surface, float u, float v, float footprint, bool aa) const {
   static constexpr float kCell[5] = {0.8f, 0.4f, 0.2f, 0.1f, 0.05f};
   static constexpr float kInvCell[5] = {1.25f, 2.5f, 5.f, 10.f, 20.f};
-  static constexpr uint32_t kKeep[5] = {256u, 128u, 102u, 77u, 56u};   // out of 256
+  static constexpr uint32_t kKeep[5] = {256u, 128u, 102u, 77u, 56u};  // out of 256
   int level = 4;
   while (level > 0 && kCell[level] < 3.f * footprint) --level;
   const uint32_t sbase = surface * 0x9E3779B1u;
@@ -429,7 +431,8 @@ Rgb Renderer::Impl::pattern(uint32_t surface, float u, float v, float footprint,
   if (!aa) return c;
 
   const float cell = kCell[level];
-  const float fu = u * kInvCell[level] - static_cast<float>(ix), fv = v * kInvCell[level] - static_cast<float>(iy);
+  const float fu = u * kInvCell[level] - static_cast<float>(ix),
+              fv = v * kInvCell[level] - static_cast<float>(iy);
   const float du = std::min(fu, 1.f - fu) * cell, dv = std::min(fv, 1.f - fv) * cell;
   const float dist_px = std::min(du, dv) / footprint;
   if (dist_px >= 0.5f) return c;
@@ -451,7 +454,8 @@ Rgb Renderer::Impl::image_texture(float u, float v, float footprint) const {
   level = std::min(level, static_cast<int>(mips.size()) - 1);
   const Mip& m = mips[static_cast<size_t>(level)];
   const float x = u * scale * static_cast<float>(m.w) / static_cast<float>(base.w) - 0.5f;
-  const float y = -v * scale * static_cast<float>(m.w) / static_cast<float>(base.w) - 0.5f;   // image rows go down
+  const float y =
+      -v * scale * static_cast<float>(m.w) / static_cast<float>(base.w) - 0.5f;  // image rows go down
   const float fx = std::floor(x), fy = std::floor(y);
   const float ax = x - fx, ay = y - fy;
   auto wrap = [](long i, int n) { return static_cast<int>(((i % n) + n) % n); };
@@ -459,9 +463,11 @@ Rgb Renderer::Impl::image_texture(float u, float v, float footprint) const {
   const int y0 = wrap(static_cast<long>(fy), m.h), y1 = wrap(static_cast<long>(fy) + 1, m.h);
   float out[3];
   for (int c = 0; c < 3; ++c) {
-    auto at = [&](int xx, int yy) { return static_cast<float>(m.rgb[(static_cast<size_t>(yy) * m.w + xx) * 3 + c]); };
-    out[c] = ((1.f - ax) * (1.f - ay) * at(x0, y0) + ax * (1.f - ay) * at(x1, y0) + (1.f - ax) * ay * at(x0, y1) +
-              ax * ay * at(x1, y1)) *
+    auto at = [&](int xx, int yy) {
+      return static_cast<float>(m.rgb[(static_cast<size_t>(yy) * m.w + xx) * 3 + c]);
+    };
+    out[c] = ((1.f - ax) * (1.f - ay) * at(x0, y0) + ax * (1.f - ay) * at(x1, y0) +
+              (1.f - ax) * ay * at(x0, y1) + ax * ay * at(x1, y1)) *
              (1.f / 255.f);
   }
   return {out[0], out[1], out[2]};
@@ -479,7 +485,8 @@ void Renderer::Impl::render_rows(const Frame& f, int y0, int y1, uint8_t* rgb, u
     for (int u = 0; u < W; ++u) {
       const size_t idx = static_cast<size_t>(v) * W + u;
       const float xn = ray[3 * idx], yn = ray[3 * idx + 1], len = ray[3 * idx + 2];
-      const float d[3] = {R[0] * xn + R[1] * yn + R[2], R[3] * xn + R[4] * yn + R[5], R[6] * xn + R[7] * yn + R[8]};
+      const float d[3] = {R[0] * xn + R[1] * yn + R[2], R[3] * xn + R[4] * yn + R[5],
+                          R[6] * xn + R[7] * yn + R[8]};
       const size_t tile = static_cast<size_t>(ty) * tiles_x + static_cast<size_t>(u / kTile);
       Hit h;
       trace(f, d, &cand[tile * n_obj], cand_n[tile], h);
@@ -512,7 +519,7 @@ void Renderer::Impl::render_rows(const Frame& f, int y0, int y1, uint8_t* rgb, u
       uint16_t out = 0;
       if (cos_inc >= cos_max_inc && h.t >= zmin && h.t <= zmax) {
         const double z = static_cast<double>(h.t) + static_cast<double>(k_sigma * h.t * h.t * n3);
-        const double q = z * inv_scale + 0.5;   // round to the nearest unit
+        const double q = z * inv_scale + 0.5;  // round to the nearest unit
         if (q >= 1.0 && q < 65536.0) out = static_cast<uint16_t>(q);
       }
       dep[idx] = out;
@@ -520,7 +527,8 @@ void Renderer::Impl::render_rows(const Frame& f, int y0, int y1, uint8_t* rgb, u
   }
 }
 
-void Renderer::render(const Eigen::Isometry3d& T_WC, uint64_t frame_index, uint8_t* rgb, uint16_t* depth) const {
+void Renderer::render(const Eigen::Isometry3d& T_WC, uint64_t frame_index, uint8_t* rgb,
+                      uint16_t* depth) const {
   const Impl& m = *impl_;
   Frame f;
   const Eigen::Matrix3d R = T_WC.rotation();
@@ -544,8 +552,9 @@ void Renderer::render(const Eigen::Isometry3d& T_WC, uint64_t frame_index, uint8
     for (size_t t = 0; t < m.cand_n.size(); ++t) {
       bool hit = around;
       if (!hit) {
-        const double cosang =
-            (c_C.x() * m.tile_axis[3 * t] + c_C.y() * m.tile_axis[3 * t + 1] + c_C.z() * m.tile_axis[3 * t + 2]) / dist;
+        const double cosang = (c_C.x() * m.tile_axis[3 * t] + c_C.y() * m.tile_axis[3 * t + 1] +
+                               c_C.z() * m.tile_axis[3 * t + 2]) /
+                              dist;
         hit = cosang >= m.tile_cos[t] * cos_r - m.tile_sin[t] * sin_r;
       }
       if (hit) m.cand[t * n_obj + m.cand_n[t]++] = static_cast<uint16_t>(k);

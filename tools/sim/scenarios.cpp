@@ -122,7 +122,7 @@ class AnalyticTrajectory : public MotionModel {
 class ChannelTrajectory final : public AnalyticTrajectory {
  public:
   ChannelTrajectory(std::string name, double duration_s) : AnalyticTrajectory(std::move(name), duration_s) {}
-  Channel ch[6];   // x y z roll pitch yaw
+  Channel ch[6];  // x y z roll pitch yaw
 
  protected:
   void eval(double t, Jet pos[3], Jet eul[3]) const override {
@@ -134,7 +134,8 @@ class ChannelTrajectory final : public AnalyticTrajectory {
 // Lissajous figure eight x = A sin u, y = B sin 2u traced with u = w * warp(t).
 class Figure8Trajectory final : public AnalyticTrajectory {
  public:
-  Figure8Trajectory(double duration_s, bool yaw_follows) : AnalyticTrajectory("figure8", duration_s), yaw_follows_(yaw_follows) {
+  Figure8Trajectory(double duration_s, bool yaw_follows)
+      : AnalyticTrajectory("figure8", duration_s), yaw_follows_(yaw_follows) {
     z_.base = 1.2;
     z_.ramp_len_s = 4.0;
     z_.sines = {{0.10, 0.07, 0.3}, {0.02, 0.4, 1.0}};
@@ -165,9 +166,9 @@ class Figure8Trajectory final : public AnalyticTrajectory {
   }
 
  private:
-  static constexpr double kA = 1.5;      // m: 3 m long
-  static constexpr double kB = 1.0;      // m: 2 m wide
-  static constexpr double kOmega = 0.55; // rad/s of u: ~1 m/s mean speed along the path
+  static constexpr double kA = 1.5;       // m: 3 m long
+  static constexpr double kB = 1.0;       // m: 2 m wide
+  static constexpr double kOmega = 0.55;  // rad/s of u: ~1 m/s mean speed along the path
   static constexpr double kRampS = 3.0;
   bool yaw_follows_;
   Channel z_, roll_, pitch_, yaw_;
@@ -268,17 +269,20 @@ std::vector<std::string> scenario_names() { return {"hover", "figure8", "aggress
 double default_scenario_duration_s(const std::string& name) {
   if (name == "hover") return 189.0;
   if (name == "figure8" || name == "aggressive" || name == "static" || name == "hard") return 60.0;
-  throw std::invalid_argument("unknown scenario '" + name + "' (known: hover, figure8, aggressive, static, hard)");
+  throw std::invalid_argument("unknown scenario '" + name +
+                              "' (known: hover, figure8, aggressive, static, hard)");
 }
 
-std::unique_ptr<MotionModel> make_scenario(const std::string& name, double duration_s, const ScenarioOptions& options) {
+std::unique_ptr<MotionModel> make_scenario(const std::string& name, double duration_s,
+                                           const ScenarioOptions& options) {
   const double T = duration_s > 0.0 ? duration_s : default_scenario_duration_s(name);
   if (name == "hover") return make_hover(T);
   if (name == "figure8") return std::make_unique<Figure8Trajectory>(T, options.yaw_follows_path);
   if (name == "aggressive") return make_aggressive(T);
   if (name == "static") return make_static(T);
   if (name == "hard") return make_hard(T);
-  throw std::invalid_argument("unknown scenario '" + name + "' (known: hover, figure8, aggressive, static, hard)");
+  throw std::invalid_argument("unknown scenario '" + name +
+                              "' (known: hover, figure8, aggressive, static, hard)");
 }
 
 Eigen::Quaterniond so3_exp(const Eigen::Vector3d& phi) {

@@ -32,7 +32,8 @@ double Scene::clutter_distance(const Eigen::Vector3d& p) const {
   return d;
 }
 
-Scene Scene::build(const MotionModel& traj, const Eigen::Isometry3d& T_BC, uint64_t seed, const SceneOptions& opt) {
+Scene Scene::build(const MotionModel& traj, const Eigen::Isometry3d& T_BC, uint64_t seed,
+                   const SceneOptions& opt) {
   // The path, thinned to one point per 5 cm voxel: clearance checks then
   // cost the same for a 10 s and a 1000 s flight.
   constexpr double kVoxel = 0.05;
@@ -46,7 +47,9 @@ Scene Scene::build(const MotionModel& traj, const Eigen::Isometry3d& T_BC, uint6
     const Eigen::Isometry3d T_WB = Eigen::Translation3d(s.p_WB) * s.q_WB;
     for (const Eigen::Vector3d& p : {s.p_WB, Eigen::Vector3d(T_WB * T_BC.translation())}) {
       bbox.extend(p);
-      const auto key = [&](int i) { return static_cast<uint64_t>(static_cast<int64_t>(std::floor(p[i] / kVoxel)) & 0x1FFFFF); };
+      const auto key = [&](int i) {
+        return static_cast<uint64_t>(static_cast<int64_t>(std::floor(p[i] / kVoxel)) & 0x1FFFFF);
+      };
       if (seen.insert(key(0) | key(1) << 21 | key(2) << 42).second) path.push_back(p);
     }
   }
@@ -59,7 +62,8 @@ Scene Scene::build(const MotionModel& traj, const Eigen::Isometry3d& T_BC, uint6
   for (int i = 0; i < 2; ++i) {
     // The far wall stays within max_wall_distance_m of every point of the
     // path while the path allows it (depth range 6 m, FOV corners further).
-    const double margin = std::clamp(opt.max_wall_distance_m - (hi[i] - lo[i]), opt.min_margin_m, opt.margin_m);
+    const double margin =
+        std::clamp(opt.max_wall_distance_m - (hi[i] - lo[i]), opt.min_margin_m, opt.margin_m);
     lo[i] -= margin;
     hi[i] += margin;
     const double grow = 0.5 * std::max(0.0, opt.min_room_m - (hi[i] - lo[i]));
@@ -89,18 +93,18 @@ Scene Scene::build(const MotionModel& traj, const Eigen::Isometry3d& T_BC, uint6
     SceneCylinder cyl;
     double foot_r;
     bool is_box = true;
-    if (kind < 0.6) {   // box on the floor, sometimes turned
+    if (kind < 0.6) {  // box on the floor, sometimes turned
       box.half_m = {rng.uniform(0.15, 0.6), rng.uniform(0.15, 0.6), rng.uniform(0.15, 0.8)};
       box.yaw_rad = rng.bernoulli(0.5) ? rng.uniform(0.0, 1.5707963) : 0.0;
       box.center_W = {x, y, floor + box.half_m.z()};
       foot_r = box.half_m.head<2>().norm();
-    } else if (kind < 0.75) {   // pillar to the ceiling
+    } else if (kind < 0.75) {  // pillar to the ceiling
       const double h = rng.uniform(0.15, 0.3);
       box.half_m = {h, h, 0.5 * height};
       box.yaw_rad = rng.bernoulli(0.5) ? rng.uniform(0.0, 1.5707963) : 0.0;
       box.center_W = {x, y, floor + 0.5 * height};
       foot_r = box.half_m.head<2>().norm();
-    } else {   // cylinder, short or to the ceiling
+    } else {  // cylinder, short or to the ceiling
       is_box = false;
       cyl.center_W = {x, y};
       cyl.radius_m = rng.uniform(0.12, 0.4);

@@ -1,13 +1,13 @@
 // run_simulation: options -> rig, trajectory, IMU, scene, then one pass in
 // time order that renders frames and streams every record to the sink.
+#include "kestrel/tools/simulator.hpp"
+
 #include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <vector>
-
-#include "kestrel/tools/simulator.hpp"
 
 namespace kestrel::tools {
 namespace {
@@ -26,12 +26,14 @@ void validate(const SimOptions& o) {
   const bool from_file = !o.trajectory_path.empty();
   if (!o.images_path.empty()) {
     require(fs::exists(o.images_path), "--images '" + o.images_path + "': no such file or folder");
-    require(!from_file && o.imu_path.empty(), "--images takes its motion from the recording: no --trajectory or --imu");
+    require(!from_file && o.imu_path.empty(),
+            "--images takes its motion from the recording: no --trajectory or --imu");
     require(o.knot_spacing_s >= 0.0 && o.knot_spacing_s <= 2.0, "--knot-spacing must be in [0, 2] s");
     require(o.position_smoothing >= 0.0, "--position-smoothing must be >= 0");
     if (!o.rig_path.empty()) require_file(o.rig_path, "--rig");
     if (o.fps) require(*o.fps > 0.0 && *o.fps <= 1000.0, "--fps must be in (0, 1000]");
-    if (o.imu_rate_hz) require(*o.imu_rate_hz > 0.0 && *o.imu_rate_hz <= 10000.0, "--imu-rate must be in (0, 10000]");
+    if (o.imu_rate_hz)
+      require(*o.imu_rate_hz > 0.0 && *o.imu_rate_hz <= 10000.0, "--imu-rate must be in (0, 10000]");
     return;
   }
   if (!from_file) {
@@ -50,11 +52,13 @@ void validate(const SimOptions& o) {
   if (o.width) require(*o.width >= 16 && *o.width <= 8192, "--width must be in [16, 8192]");
   if (o.height) require(*o.height >= 16 && *o.height <= 8192, "--height must be in [16, 8192]");
   if (o.fps) require(*o.fps > 0.0 && *o.fps <= 1000.0, "--fps must be in (0, 1000]");
-  if (o.imu_rate_hz) require(*o.imu_rate_hz > 0.0 && *o.imu_rate_hz <= 10000.0, "--imu-rate must be in (0, 10000]");
+  if (o.imu_rate_hz)
+    require(*o.imu_rate_hz > 0.0 && *o.imu_rate_hz <= 10000.0, "--imu-rate must be in (0, 10000]");
   require(std::abs(o.time_offset_ms) <= 1000.0, "--time-offset-ms must be within +-1000");
   require(!o.rig_time_offset_ms || std::abs(*o.rig_time_offset_ms) <= 1000.0,
           "--rig-time-offset-ms must be within +-1000");
-  require(o.timestamp_jitter_us >= 0.0 && o.timestamp_jitter_us <= 1e5, "--timestamp-jitter-us must be in [0, 1e5]");
+  require(o.timestamp_jitter_us >= 0.0 && o.timestamp_jitter_us <= 1e5,
+          "--timestamp-jitter-us must be in [0, 1e5]");
   require(o.frame_drop_rate >= 0.0 && o.frame_drop_rate < 1.0, "--frame-drop-rate must be in [0, 1)");
   require(o.cover_s <= 0.0 || o.cover_at_s >= 0.0, "--cover-at must be >= 0 seconds");
   require(o.depth_dropout >= 0.0 && o.depth_dropout <= 0.5, "--depth-dropout must be in [0, 0.5]");
@@ -143,7 +147,8 @@ SimSummary run_simulation(const SimOptions& o, SimSink& sink) {
   }
   rig.imu = model.to_rig();
   // A rig file's own offset stands unless an offset is asked for.
-  if (o.rig_path.empty() || o.time_offset_ms != 0.0) rig.time_offset_cam_imu_ns = to_ns(o.time_offset_ms * 1e-3);
+  if (o.rig_path.empty() || o.time_offset_ms != 0.0)
+    rig.time_offset_cam_imu_ns = to_ns(o.time_offset_ms * 1e-3);
   // The stamps carry the true offset; the log's rig may claim another (a
   // miscalibrated rig, for the online estimate to find the difference).
   const int64_t true_offset_ns = rig.time_offset_cam_imu_ns;
@@ -168,7 +173,7 @@ SimSummary run_simulation(const SimOptions& o, SimSink& sink) {
           SplineTrajectory::from_file(o.trajectory_path, o.start_s, o.duration_s, fo));
     } catch (const SimOptionError&) {
       throw;
-    } catch (const std::invalid_argument& e) {   // a --start/--duration span with too few samples
+    } catch (const std::invalid_argument& e) {  // a --start/--duration span with too few samples
       throw SimOptionError(e.what());
     }
   } else {
@@ -329,11 +334,11 @@ SimSummary run_simulation(const SimOptions& o, SimSink& sink) {
   sink.begin(rig);
   {
     Event e;
-    e.t_ns = frames.empty() ? t0 : std::min(t0, frames.front().stamp_ns);   // first record, in time order
+    e.t_ns = frames.empty() ? t0 : std::min(t0, frames.front().stamp_ns);  // first record, in time order
     e.code = EventCode::kInfo;
     e.text = "kestrel sim: " + traj->description() + (hybrid ? " + real IMU " + o.imu_path : "") + ", seed " +
-             std::to_string(o.seed) + ", room " + fmt("%.2f x %.2f x %.2f m", sum.room_size_m.x(), sum.room_size_m.y(),
-                                                     sum.room_size_m.z()) +
+             std::to_string(o.seed) + ", room " +
+             fmt("%.2f x %.2f x %.2f m", sum.room_size_m.x(), sum.room_size_m.y(), sum.room_size_m.z()) +
              ", " + std::to_string(sum.clutter_objects) + " objects";
     sink.event(e);
     ++sum.events;
@@ -385,7 +390,8 @@ SimSummary run_simulation(const SimOptions& o, SimSink& sink) {
       render_view(f, T_BC, f.seq, rgb, depth);
       if (o.stereo) render_view(f, T_BC1, f.seq ^ 0x80000000u, rgb_right, depth_right);
       render_s += std::chrono::duration<double>(Clock::now() - r0).count();
-      sink.image(drivers::RecordType::kRgb, f.stamp_ns, f.seq, ImageView{W, H, W * 3, PixelFormat::kRgb8, rgb.data()});
+      sink.image(drivers::RecordType::kRgb, f.stamp_ns, f.seq,
+                 ImageView{W, H, W * 3, PixelFormat::kRgb8, rgb.data()});
       if (o.stereo)
         sink.image(drivers::RecordType::kRight, f.stamp_ns, f.seq,
                    ImageView{W, H, W * 3, PixelFormat::kRgb8, rgb_right.data()});
@@ -416,11 +422,11 @@ std::string format_summary(const SimSummary& s) {
                   "total        %.2f s, output %.1f MB\n",
                   s.trajectory.c_str(), s.duration_s, 1e3 * s.spline_rms_position_residual_m,
                   1e3 * s.spline_max_position_residual_m, s.spline_max_rotation_residual_rad * 180.0 / M_PI,
-                  static_cast<unsigned long long>(s.frames), s.rig.rgb.width, s.rig.rgb.height, s.rig.camera_rate_hz,
-                  static_cast<unsigned long long>(s.imu_samples), s.rig.imu_rate_hz,
-                  static_cast<unsigned long long>(s.imu_saturated), static_cast<unsigned long long>(s.gt_records),
-                  static_cast<unsigned long long>(s.events), s.problems.size(), s.wall_s,
-                  static_cast<double>(s.output_bytes) / 1e6);
+                  static_cast<unsigned long long>(s.frames), s.rig.rgb.width, s.rig.rgb.height,
+                  s.rig.camera_rate_hz, static_cast<unsigned long long>(s.imu_samples), s.rig.imu_rate_hz,
+                  static_cast<unsigned long long>(s.imu_saturated),
+                  static_cast<unsigned long long>(s.gt_records), static_cast<unsigned long long>(s.events),
+                  s.problems.size(), s.wall_s, static_cast<double>(s.output_bytes) / 1e6);
     return buf;
   }
   std::snprintf(buf, sizeof buf,
@@ -432,12 +438,13 @@ std::string format_summary(const SimSummary& s) {
                 "render       %.1f frames/s (%.2f s)\n"
                 "total        %.2f s, output %.1f MB\n",
                 s.trajectory.c_str(), s.hybrid ? " (hybrid: real IMU)" : "", s.duration_s, s.room_size_m.x(),
-                s.room_size_m.y(), s.room_size_m.z(), s.clutter_objects, static_cast<unsigned long long>(s.frames),
-                s.rig.rgb.width, s.rig.rgb.height, s.rig.camera_rate_hz,
-                static_cast<unsigned long long>(s.frames_dropped), static_cast<unsigned long long>(s.imu_samples),
-                s.rig.imu_rate_hz, s.hybrid ? " (real)" : "", static_cast<unsigned long long>(s.imu_saturated),
-                static_cast<unsigned long long>(s.gt_records), static_cast<unsigned long long>(s.events), s.render_fps,
-                s.render_s, s.wall_s, static_cast<double>(s.output_bytes) / 1e6);
+                s.room_size_m.y(), s.room_size_m.z(), s.clutter_objects,
+                static_cast<unsigned long long>(s.frames), s.rig.rgb.width, s.rig.rgb.height,
+                s.rig.camera_rate_hz, static_cast<unsigned long long>(s.frames_dropped),
+                static_cast<unsigned long long>(s.imu_samples), s.rig.imu_rate_hz, s.hybrid ? " (real)" : "",
+                static_cast<unsigned long long>(s.imu_saturated),
+                static_cast<unsigned long long>(s.gt_records), static_cast<unsigned long long>(s.events),
+                s.render_fps, s.render_s, s.wall_s, static_cast<double>(s.output_bytes) / 1e6);
   return buf;
 }
 

@@ -1,7 +1,6 @@
 // Ground-truth files and the cubic B-spline fitted to them.
 #include <Eigen/Sparse>
 #include <Eigen/SparseCholesky>
-
 #include <algorithm>
 #include <cmath>
 #include <stdexcept>
@@ -22,7 +21,8 @@ std::string where(const std::string& path, size_t line) { return path + ":" + st
 // silently dropped (a file with finer stamps than the spline can honour is refused).
 bool parse_stamp_s(const std::string& s, int64_t& t_ns) {
   int64_t t = 0;
-  if (!text::parse_seconds_ns(s, t, text::SecondsSyntax{text::BelowNs::kReject, false}) || t < 0) return false;
+  if (!text::parse_seconds_ns(s, t, text::SecondsSyntax{text::BelowNs::kReject, false}) || t < 0)
+    return false;
   t_ns = t;
   return true;
 }
@@ -69,7 +69,7 @@ std::vector<GtSample> load_gt_file(const std::string& path) {
   if (!read.opened) throw std::runtime_error(path + ": cannot open ground-truth file");
   if (!read) throw std::runtime_error(path + ": read error");
   std::vector<GtSample> out;
-  int csv = -1;   // decided by the first data line
+  int csv = -1;  // decided by the first data line
   for (size_t k = 0; k < lines.size(); ++k) {
     const size_t line_no = k + 1;
     const std::string line = text::trim(lines[k]);
@@ -90,8 +90,8 @@ std::vector<GtSample> load_gt_file(const std::string& path) {
     double v[7];
     for (int j = 0; j < 7; ++j)
       if (!text::parse_finite_f64(f[1 + j], v[j]))
-        throw std::runtime_error(where(path, line_no) + ": field " + std::to_string(j + 2) + " is not a number: '" +
-                                 f[1 + j] + "'");
+        throw std::runtime_error(where(path, line_no) + ": field " + std::to_string(j + 2) +
+                                 " is not a number: '" + f[1 + j] + "'");
     s.p_WB = {v[0], v[1], v[2]};
     s.q_WB = csv ? Eigen::Quaterniond(v[3], v[4], v[5], v[6]) : Eigen::Quaterniond(v[6], v[3], v[4], v[5]);
     const double n = s.q_WB.norm();
@@ -103,14 +103,16 @@ std::vector<GtSample> load_gt_file(const std::string& path) {
     out.push_back(s);
   }
   if (out.size() < 4)
-    throw std::runtime_error(path + ": needs at least 4 ground-truth samples, found " + std::to_string(out.size()));
+    throw std::runtime_error(path + ": needs at least 4 ground-truth samples, found " +
+                             std::to_string(out.size()));
   return out;
 }
 
 SplineTrajectory SplineTrajectory::fit(const std::vector<GtSample>& samples, const FitOptions& options) {
   if (samples.size() < 4) throw std::invalid_argument("spline fit needs at least 4 samples");
   for (size_t k = 1; k < samples.size(); ++k)
-    if (samples[k].t_ns <= samples[k - 1].t_ns) throw std::invalid_argument("spline fit: sample times must increase");
+    if (samples[k].t_ns <= samples[k - 1].t_ns)
+      throw std::invalid_argument("spline fit: sample times must increase");
 
   SplineTrajectory sp;
   sp.t0_ns_ = samples.front().t_ns;
@@ -144,7 +146,8 @@ SplineTrajectory SplineTrajectory::fit(const std::vector<GtSample>& samples, con
     bas[k] = basis(u);
     for (int a = 0; a < 4; ++a)
       for (int b = 0; b < 4; ++b)
-        trip.emplace_back(static_cast<int>(seg[k] + a), static_cast<int>(seg[k] + b), bas[k].b[a] * bas[k].b[b]);
+        trip.emplace_back(static_cast<int>(seg[k] + a), static_cast<int>(seg[k] + b),
+                          bas[k].b[a] * bas[k].b[b]);
   }
   auto add_smoothing = [&](std::vector<Eigen::Triplet<double>>& t, double lambda) {
     const double c[3] = {1.0, -2.0, 1.0};
@@ -161,7 +164,8 @@ SplineTrajectory SplineTrajectory::fit(const std::vector<GtSample>& samples, con
     A.setFromTriplets(t.begin(), t.end());
     auto solver = std::make_unique<Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>>>();
     solver->compute(A);
-    if (solver->info() != Eigen::Success) throw std::runtime_error("spline fit: normal equations are singular");
+    if (solver->info() != Eigen::Success)
+      throw std::runtime_error("spline fit: normal equations are singular");
     return solver;
   };
   constexpr double kTinySmoothing = 1e-6;
@@ -171,7 +175,8 @@ SplineTrajectory SplineTrajectory::fit(const std::vector<GtSample>& samples, con
     auto solver = factor(kTinySmoothing + std::max(0.0, options.position_smoothing));
     Eigen::MatrixXd rhs = Eigen::MatrixXd::Zero(n, 3);
     for (size_t k = 0; k < M; ++k)
-      for (int a = 0; a < 4; ++a) rhs.row(static_cast<long>(seg[k] + a)) += bas[k].b[a] * samples[k].p_WB.transpose();
+      for (int a = 0; a < 4; ++a)
+        rhs.row(static_cast<long>(seg[k] + a)) += bas[k].b[a] * samples[k].p_WB.transpose();
     const Eigen::MatrixXd c = solver->solve(rhs);
     sp.ctrl_p_.resize(n_ctrl);
     for (size_t j = 0; j < n_ctrl; ++j) sp.ctrl_p_[j] = c.row(static_cast<long>(j)).transpose();
@@ -219,8 +224,8 @@ SplineTrajectory SplineTrajectory::from_file(const std::string& path, double sta
                                              const FitOptions& options) {
   const std::vector<GtSample> all = load_gt_file(path);
   const int64_t t_begin = all.front().t_ns + static_cast<int64_t>(std::llround(std::max(0.0, start_s) * 1e9));
-  const int64_t t_end = duration_s > 0.0 ? t_begin + static_cast<int64_t>(std::llround(duration_s * 1e9))
-                                         : all.back().t_ns;
+  const int64_t t_end =
+      duration_s > 0.0 ? t_begin + static_cast<int64_t>(std::llround(duration_s * 1e9)) : all.back().t_ns;
   std::vector<GtSample> cut;
   for (const GtSample& s : all)
     if (s.t_ns >= t_begin && s.t_ns <= t_end) cut.push_back(s);

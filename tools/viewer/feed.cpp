@@ -60,7 +60,8 @@ void preview_depth(const ImageView& v, ViewSnapshot& s) {
   const int step = step_for(v.width, v.height, kDepthMaxWidth, kDepthMaxHeight);
   const int w = v.width / step, h = v.height / step;
   for (int y = 0; y < h; ++y) {
-    const auto* row = reinterpret_cast<const uint16_t*>(v.data + static_cast<int64_t>(y) * step * v.stride_bytes);
+    const auto* row =
+        reinterpret_cast<const uint16_t*>(v.data + static_cast<int64_t>(y) * step * v.stride_bytes);
     uint16_t* out = s.depth + static_cast<int64_t>(y) * w;
     for (int x = 0; x < w; ++x) out[x] = row[x * step];
   }
@@ -107,8 +108,9 @@ void ViewerFeed::on_frame(const core::RgbdFrame& f, const FrameInfo& info) noexc
     skipped_busy_.fetch_add(1, std::memory_order_relaxed);
     return;
   }
-  const bool with_map = tracker_ != nullptr && (map_requested_.load(std::memory_order_relaxed) ||
-                                                (keyframe_since_map_ && now - last_map_wall_ns_ >= map_period_ns_));
+  const bool with_map =
+      tracker_ != nullptr && (map_requested_.load(std::memory_order_relaxed) ||
+                              (keyframe_since_map_ && now - last_map_wall_ns_ >= map_period_ns_));
   fill(*s, f, info, with_map);
   if (!ring_.try_push(h)) {
     pool_.release(h);
@@ -127,7 +129,8 @@ void ViewerFeed::on_frame(const core::RgbdFrame& f, const FrameInfo& info) noexc
   published_.fetch_add(1, std::memory_order_relaxed);
 }
 
-void ViewerFeed::fill(ViewSnapshot& s, const core::RgbdFrame& f, const FrameInfo& info, bool with_map) noexcept {
+void ViewerFeed::fill(ViewSnapshot& s, const core::RgbdFrame& f, const FrameInfo& info,
+                      bool with_map) noexcept {
   StateSnapshot& st = s.state;
   const core::EstimatorOutput& o = est_.output();
   st.t_ns = f.t_ns;

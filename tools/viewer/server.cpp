@@ -16,15 +16,14 @@
 #include <fstream>
 #include <map>
 #include <mutex>
-#include <sstream>
-#include <stdexcept>
-#include <thread>
-#include <utility>
-
 #include <nlohmann/json.hpp>
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
+#include <sstream>
+#include <stdexcept>
+#include <thread>
+#include <utility>
 #include <websocketpp/config/asio_no_tls.hpp>
 #include <websocketpp/server.hpp>
 
@@ -38,11 +37,12 @@ using WsServer = websocketpp::server<websocketpp::config::asio>;
 using Hdl = websocketpp::connection_hdl;
 using json = nlohmann::json;
 
-constexpr long kTickMs = 20;                          // 50 Hz: well above the 10 Hz image rate
-constexpr size_t kFrameBacklogBytes = 256 * 1024;     // queued above this: no camera frames; for the timeout: dropped
-constexpr size_t kStallBacklogBytes = 1024 * 1024;    // queued above this: nothing at all
+constexpr long kTickMs = 20;  // 50 Hz: well above the 10 Hz image rate
+constexpr size_t kFrameBacklogBytes =
+    256 * 1024;  // queued above this: no camera frames; for the timeout: dropped
+constexpr size_t kStallBacklogBytes = 1024 * 1024;  // queued above this: nothing at all
 constexpr size_t kMaxIncomingBytes = 1024;
-constexpr size_t kInitialPosesMax = 20000;            // a new browser's first trajectory, decimated
+constexpr size_t kInitialPosesMax = 20000;  // a new browser's first trajectory, decimated
 constexpr size_t kAlignPairsMax = 2000;
 constexpr int64_t kAlignPeriodNs = 2'000'000'000;
 constexpr int64_t kStatsPeriodNs = 1'000'000'000;
@@ -95,11 +95,16 @@ std::string decimated_message(Bin type, const std::vector<float>& v, int stride)
 
 const char* quality_name(core::TrackingQuality q) {
   switch (q) {
-    case core::TrackingQuality::kTracking: return "tracking";
-    case core::TrackingQuality::kImuOnly: return "imu-only";
-    case core::TrackingQuality::kVisionOnly: return "vision-only";
-    case core::TrackingQuality::kLost: return "lost";
-    case core::TrackingQuality::kUninitialized: break;
+    case core::TrackingQuality::kTracking:
+      return "tracking";
+    case core::TrackingQuality::kImuOnly:
+      return "imu-only";
+    case core::TrackingQuality::kVisionOnly:
+      return "vision-only";
+    case core::TrackingQuality::kLost:
+      return "lost";
+    case core::TrackingQuality::kUninitialized:
+      break;
   }
   return "uninitialized";
 }
@@ -117,7 +122,8 @@ std::vector<uchar> encode_jpeg(const cv::Mat& bgr, int quality) {
 // through a 256-entry table, and the colour image swapped to BGR by hand:
 // OpenCV's parallel loops would move the viewer's work onto worker threads
 // that neither nice 10 nor the CPU figure of kst-viewer covers.
-std::vector<uchar> depth_jpeg(const ViewSnapshot& s, const DepthModel& d, const cv::Mat& lut_bgr, int quality) {
+std::vector<uchar> depth_jpeg(const ViewSnapshot& s, const DepthModel& d, const cv::Mat& lut_bgr,
+                              int quality) {
   const double lo = d.min_range_m, hi = std::max(d.max_range_m, d.min_range_m + 0.1);
   const double k = 255.0 * d.scale_m_per_unit / (hi - lo), k0 = 255.0 * hi / (hi - lo);
   cv::Mat colour(s.depth_height, s.depth_width, CV_8UC3);
@@ -184,7 +190,8 @@ void parse_view_endpoint(const std::string& text, ServerOptions& opt) {
   errno = 0;
   const long v = port.empty() ? -1 : std::strtol(port.c_str(), &end, 10);
   if (port.empty() || errno != 0 || end == nullptr || *end != '\0' || v < 0 || v > 65535)
-    throw std::invalid_argument("'" + text + "': expected [ADDR:]PORT with PORT in 0..65535 (0: any free port)");
+    throw std::invalid_argument("'" + text +
+                                "': expected [ADDR:]PORT with PORT in 0..65535 (0: any free port)");
   if (colon != std::string::npos && host.empty())
     throw std::invalid_argument("'" + text + "': empty address before ':' (omit it for every interface)");
   if (!host.empty()) opt.address = host;
@@ -221,16 +228,16 @@ struct Server::Impl {
   std::vector<Client> clients;
   std::vector<std::weak_ptr<void>> sockets;
   std::vector<int64_t> traj_t_ns;
-  std::vector<float> traj;  // kPoseFloats per pose
+  std::vector<float> traj;   // kPoseFloats per pose
   size_t traj_streamed = 0;  // poses already sent to every connected browser
   int64_t t0_ns = -1;
   std::vector<float> keyframes;
   size_t keyframes_streamed = 0;
   std::vector<float> map_xyz;
-  tools::Trajectory gt;        // as the replay's records passed
+  tools::Trajectory gt;  // as the replay's records passed
   std::vector<float> gt_xyz;
   size_t gt_streamed = 0;
-  std::string align_msg;   // newest ground-truth alignment, "" before the first
+  std::string align_msg;  // newest ground-truth alignment, "" before the first
   std::string last_state, last_frame;
   size_t aligned_at_poses = 0;
   int64_t next_align_ns = 0;
@@ -248,7 +255,8 @@ struct Server::Impl {
   // ---- shared
   // Poses from the output thread: a ring, so add_pose never allocates or
   // locks (in lockstep replay that thread is the estimator's own).
-  std::unique_ptr<rt::SpscRing<PendingPose, 16384>> pending_poses = std::make_unique<rt::SpscRing<PendingPose, 16384>>();
+  std::unique_ptr<rt::SpscRing<PendingPose, 16384>> pending_poses =
+      std::make_unique<rt::SpscRing<PendingPose, 16384>>();
   std::mutex pose_mu;  // guards `finished`
   std::string finished;
   mutable std::mutex stats_mu;
@@ -260,14 +268,17 @@ struct Server::Impl {
   void load_files() {
     const std::string dir = opt.assets_dir.empty() ? default_assets_dir() : opt.assets_dir;
     const std::string hint_assets = "the viewer's page, built into share/kestrel/viewer (tools/viewer/web)";
-    const std::string hint_three = "Debian's libjs-three: apt-get install libjs-three (tools/install-deps.sh)";
+    const std::string hint_three =
+        "Debian's libjs-three: apt-get install libjs-three (tools/install-deps.sh)";
     files["/"] = {"text/html; charset=utf-8", read_file(dir + "/index.html", hint_assets)};
     files["/index.html"] = files["/"];
     files["/viewer.js"] = {"text/javascript; charset=utf-8", read_file(dir + "/viewer.js", hint_assets)};
     files["/viewer.css"] = {"text/css; charset=utf-8", read_file(dir + "/viewer.css", hint_assets)};
-    files["/js/three.min.js"] = {"text/javascript; charset=utf-8", read_file(opt.three_dir + "/three.min.js", hint_three)};
-    files["/js/OrbitControls.js"] = {"text/javascript; charset=utf-8",
-                                     read_file(opt.three_dir + "/examples/js/controls/OrbitControls.js", hint_three)};
+    files["/js/three.min.js"] = {"text/javascript; charset=utf-8",
+                                 read_file(opt.three_dir + "/three.min.js", hint_three)};
+    files["/js/OrbitControls.js"] = {
+        "text/javascript; charset=utf-8",
+        read_file(opt.three_dir + "/examples/js/controls/OrbitControls.js", hint_three)};
   }
 
   template <class F>
@@ -305,8 +316,8 @@ struct Server::Impl {
     j["type"] = "hello";
     j["estimator"] = feed.estimator_name();
     j["title"] = opt.title;
-    j["camera"] = {{"width", rig.rgb.width}, {"height", rig.rgb.height}, {"fx", rig.rgb.fx}, {"fy", rig.rgb.fy},
-                   {"cx", rig.rgb.cx}, {"cy", rig.rgb.cy}};
+    j["camera"] = {{"width", rig.rgb.width}, {"height", rig.rgb.height}, {"fx", rig.rgb.fx},
+                   {"fy", rig.rgb.fy},       {"cx", rig.rgb.cx},         {"cy", rig.rgb.cy}};
     j["depth_range_m"] = {rig.depth.min_range_m, rig.depth.max_range_m};
     j["max_kbytes_per_s"] = opt.max_kbytes_per_s;
     j["max_clients"] = opt.max_clients;
@@ -316,7 +327,8 @@ struct Server::Impl {
   // ---------------------------------------------------------------------
   // Handlers (viewer thread).
   void on_socket_init(Hdl hdl, boost::asio::ip::tcp::socket& s) {
-    sockets.erase(std::remove_if(sockets.begin(), sockets.end(), [](const std::weak_ptr<void>& w) { return w.expired(); }),
+    sockets.erase(std::remove_if(sockets.begin(), sockets.end(),
+                                 [](const std::weak_ptr<void>& w) { return w.expired(); }),
                   sockets.end());
     if (static_cast<int>(sockets.size()) >= opt.max_connections || stopping.load()) {
       boost::system::error_code ec;
@@ -426,7 +438,8 @@ struct Server::Impl {
   void on_close(Hdl hdl) {
     WsServer::connection_ptr con = ws.get_con_from_hdl(hdl);
     const auto code = con->get_local_close_code();
-    if (code == websocketpp::close::status::protocol_error || code == websocketpp::close::status::message_too_big ||
+    if (code == websocketpp::close::status::protocol_error ||
+        code == websocketpp::close::status::message_too_big ||
         code == websocketpp::close::status::invalid_payload)
       with_stats([](ServerStats& x) { ++x.protocol_errors; });
     remove_client(hdl);
@@ -455,7 +468,8 @@ struct Server::Impl {
     bool ok = false;
     if (msg->get_opcode() == websocketpp::frame::opcode::text) {
       const json j = json::parse(msg->get_payload(), nullptr, false);
-      const std::string cmd = j.is_object() && j.contains("cmd") && j["cmd"].is_string() ? j["cmd"].get<std::string>() : "";
+      const std::string cmd =
+          j.is_object() && j.contains("cmd") && j["cmd"].is_string() ? j["cmd"].get<std::string>() : "";
       if (cmd == "pause" || cmd == "resume" || cmd == "step") {
         if (control != nullptr && control->available()) {
           if (cmd == "pause") control->pause();
@@ -474,7 +488,8 @@ struct Server::Impl {
     with_stats([&](ServerStats& x) { ok ? ++x.commands : ++x.bad_commands; });
     if (!ok) {
       for (Client& c : clients)
-        if (!c.hdl.owner_before(hdl) && !hdl.owner_before(c.hdl)) send_text(c, json{{"type", "error"}, {"message", reply}}.dump());
+        if (!c.hdl.owner_before(hdl) && !hdl.owner_before(c.hdl))
+          send_text(c, json{{"type", "error"}, {"message", reply}}.dump());
     }
   }
 
@@ -497,10 +512,14 @@ struct Server::Impl {
     j["q"] = {s.q_WB[0], s.q_WB[1], s.q_WB[2], s.q_WB[3]};
     j["v"] = {s.v_WB[0], s.v_WB[1], s.v_WB[2]};
     if (s.has_tracker) {
-      j["track"] = {{"status", core::to_string(s.track_status)}, {"keyframe", s.keyframe},
-                    {"detected", s.detected},                    {"with_depth", s.with_depth},
-                    {"matched", s.matched},                      {"inliers", s.inliers},
-                    {"map_inliers", s.map_inliers},              {"rms_px", s.inlier_rms_px},
+      j["track"] = {{"status", core::to_string(s.track_status)},
+                    {"keyframe", s.keyframe},
+                    {"detected", s.detected},
+                    {"with_depth", s.with_depth},
+                    {"matched", s.matched},
+                    {"inliers", s.inliers},
+                    {"map_inliers", s.map_inliers},
+                    {"rms_px", s.inlier_rms_px},
                     {"area_ratio", s.area_ratio}};
     }
     int64_t imu_ns = s.imu_to_pose_max_ns;
@@ -525,8 +544,10 @@ struct Server::Impl {
                   {"frame_ring", p.frame_ring_drops},
                   {"viewer_snapshots", s.snapshots_skipped},
                   {"viewer_keyframes", feed.keyframes_dropped()}};
-    j["faults"] = {{"frames_missing", p.frames_missing},   {"out_of_order", p.frames_out_of_order},
-                   {"repeated", p.frames_repeated},        {"no_depth", p.frames_no_depth},
+    j["faults"] = {{"frames_missing", p.frames_missing},
+                   {"out_of_order", p.frames_out_of_order},
+                   {"repeated", p.frames_repeated},
+                   {"no_depth", p.frames_no_depth},
                    {"imu_gaps", p.imu_gaps}};
     return j.dump();
   }
@@ -616,8 +637,9 @@ struct Server::Impl {
     }
     KeyframeMark k;
     while (feed.pop_keyframe(k)) {
-      keyframes.insert(keyframes.end(), {static_cast<float>(1e-9 * static_cast<double>(k.t_ns - std::max<int64_t>(t0_ns, 0))),
-                                         k.p_WC[0], k.p_WC[1], k.p_WC[2], k.q_WC[0], k.q_WC[1], k.q_WC[2], k.q_WC[3]});
+      keyframes.insert(keyframes.end(),
+                       {static_cast<float>(1e-9 * static_cast<double>(k.t_ns - std::max<int64_t>(t0_ns, 0))),
+                        k.p_WC[0], k.p_WC[1], k.p_WC[2], k.q_WC[0], k.q_WC[1], k.q_WC[2], k.q_WC[3]});
     }
   }
 
@@ -628,16 +650,18 @@ struct Server::Impl {
     std::string poses_msg, kf_msg, state, frame, map;
     const size_t n_poses = traj.size() / kPoseFloats;
     if (n_poses > traj_streamed)
-      poses_msg = float_message(Bin::kPoses, &traj[traj_streamed * kPoseFloats], n_poses - traj_streamed, kPoseFloats);
+      poses_msg = float_message(Bin::kPoses, &traj[traj_streamed * kPoseFloats], n_poses - traj_streamed,
+                                kPoseFloats);
     traj_streamed = n_poses;
     const size_t n_kf = keyframes.size() / kKeyframeFloats;
     if (n_kf > keyframes_streamed)
-      kf_msg = float_message(Bin::kKeyframes, &keyframes[keyframes_streamed * kKeyframeFloats], n_kf - keyframes_streamed,
-                             kKeyframeFloats);
+      kf_msg = float_message(Bin::kKeyframes, &keyframes[keyframes_streamed * kKeyframeFloats],
+                             n_kf - keyframes_streamed, kKeyframeFloats);
     keyframes_streamed = n_kf;
     std::string gt_msg;
     const size_t n_gt = gt_xyz.size() / 3;
-    if (n_gt > gt_streamed) gt_msg = float_message(Bin::kGroundTruth, &gt_xyz[3 * gt_streamed], n_gt - gt_streamed, 3);
+    if (n_gt > gt_streamed)
+      gt_msg = float_message(Bin::kGroundTruth, &gt_xyz[3 * gt_streamed], n_gt - gt_streamed, 3);
     gt_streamed = n_gt;
     rt::PoolHandle h = rt::kInvalidHandle;
     if (const ViewSnapshot* s = feed.take_newest(&h)) {
@@ -652,7 +676,8 @@ struct Server::Impl {
       }
       feed.release(h);
     }
-    if (!map_xyz.empty() && std::any_of(clients.begin(), clients.end(), [](const Client& c) { return c.map_pending; }))
+    if (!map_xyz.empty() &&
+        std::any_of(clients.begin(), clients.end(), [](const Client& c) { return c.map_pending; }))
       map = float_message(Bin::kMap, map_xyz.data(), map_xyz.size() / 3, 3);
     if (now >= next_align_ns) {
       next_align_ns = now + kAlignPeriodNs;
@@ -819,7 +844,8 @@ Server::Server(const ServerOptions& opt, ViewerFeed& feed, PlaybackControl* cont
     : impl_(std::make_unique<Impl>(opt, feed, control)) {
   if (opt.max_clients < 1) throw std::invalid_argument("viewer: max_clients must be >= 1");
   if (opt.max_connections < opt.max_clients + 1)
-    throw std::invalid_argument("viewer: max_connections must exceed max_clients (page loads need sockets too)");
+    throw std::invalid_argument(
+        "viewer: max_connections must exceed max_clients (page loads need sockets too)");
   if (!(opt.max_kbytes_per_s > 0)) throw std::invalid_argument("viewer: max_kbytes_per_s must be > 0");
 }
 
@@ -852,8 +878,8 @@ rt::ThreadSetupReport Server::start(const rt::ThreadSpec& spec) {
   websocketpp::lib::error_code ec;
   ws.listen(m.opt.address, std::to_string(m.opt.port), ec);
   if (ec)
-    throw std::runtime_error("viewer: cannot listen on " + m.opt.address + ":" + std::to_string(m.opt.port) + ": " +
-                             ec.message());
+    throw std::runtime_error("viewer: cannot listen on " + m.opt.address + ":" + std::to_string(m.opt.port) +
+                             ": " + ec.message());
   ws.start_accept(ec);
   if (ec) throw std::runtime_error("viewer: cannot accept on " + m.opt.address + ": " + ec.message());
   boost::system::error_code aec;
@@ -896,13 +922,15 @@ void Server::stop() {
 uint16_t Server::port() const { return impl_->bound_port; }
 
 std::string Server::url() const {
-  const std::string host = impl_->opt.address == "0.0.0.0" || impl_->opt.address == "::" ? "<this machine>" : impl_->opt.address;
+  const std::string host =
+      impl_->opt.address == "0.0.0.0" || impl_->opt.address == "::" ? "<this machine>" : impl_->opt.address;
   return "http://" + host + ":" + std::to_string(impl_->bound_port) + "/";
 }
 
 void Server::add_pose(int64_t t_ns, const Eigen::Vector3d& p, const Eigen::Quaterniond& /*q*/,
                       core::TrackingQuality quality) {
-  PendingPose pp{t_ns, {static_cast<float>(p.x()), static_cast<float>(p.y()), static_cast<float>(p.z())},
+  PendingPose pp{t_ns,
+                 {static_cast<float>(p.x()), static_cast<float>(p.y()), static_cast<float>(p.z())},
                  static_cast<float>(quality)};
   (void)impl_->pending_poses->try_push(pp);  // full (viewer thread stalled for seconds): dropped, counted
 }
@@ -934,13 +962,16 @@ std::string stats_summary(const ServerStats& s) {
   char buf[512];
   const double kbps = s.streaming_s > 0 ? 1e-3 * static_cast<double>(s.streaming_bytes) / s.streaming_s : 0;
   const double cpu = s.streaming_s > 0 ? 1000.0 * s.streaming_cpu_s / s.streaming_s : 0;
-  std::snprintf(buf, sizeof buf,
-                "viewer: %llu browser(s) (peak %d), streamed %.1f s at %.1f kB/s, kst-viewer %.1f ms CPU per s; "
-                "frames sent %llu, skipped %llu (budget) %llu (backlog); refused %llu connections %llu browsers\n",
-                static_cast<unsigned long long>(s.clients), s.clients_peak, s.streaming_s, kbps, cpu,
-                static_cast<unsigned long long>(s.frames_sent), static_cast<unsigned long long>(s.frames_skipped_budget),
-                static_cast<unsigned long long>(s.frames_skipped_backlog),
-                static_cast<unsigned long long>(s.connections_refused), static_cast<unsigned long long>(s.clients_refused));
+  std::snprintf(
+      buf, sizeof buf,
+      "viewer: %llu browser(s) (peak %d), streamed %.1f s at %.1f kB/s, kst-viewer %.1f ms CPU per s; "
+      "frames sent %llu, skipped %llu (budget) %llu (backlog); refused %llu connections %llu browsers\n",
+      static_cast<unsigned long long>(s.clients), s.clients_peak, s.streaming_s, kbps, cpu,
+      static_cast<unsigned long long>(s.frames_sent),
+      static_cast<unsigned long long>(s.frames_skipped_budget),
+      static_cast<unsigned long long>(s.frames_skipped_backlog),
+      static_cast<unsigned long long>(s.connections_refused),
+      static_cast<unsigned long long>(s.clients_refused));
   std::string out = buf;
   if (s.dense_messages > 0 || s.dense_resyncs > 0) {
     std::snprintf(buf, sizeof buf,

@@ -14,8 +14,8 @@
 namespace kestrel {
 
 using Vec3d = std::array<double, 3>;
-using Quatd = std::array<double, 4>;    // (w, x, y, z), unit norm
-using Mat4d = std::array<double, 16>;   // row-major homogeneous transform
+using Quatd = std::array<double, 4>;   // (w, x, y, z), unit norm
+using Mat4d = std::array<double, 16>;  // row-major homogeneous transform
 
 constexpr Mat4d kIdentity4{1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1};
 
@@ -24,9 +24,9 @@ constexpr Mat4d kIdentity4{1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1};
 enum ImuFlag : uint32_t {
   kImuGyroSaturated = 1u << 0,
   kImuAccSaturated = 1u << 1,
-  kImuNonFinite = 1u << 2,       // a NaN or Inf reached the driver output
-  kImuGapBefore = 1u << 3,       // samples were lost before this one (sequence jump)
-  kImuTimeInterpolated = 1u << 4 // time back-computed from a FIFO burst, not data-ready stamped
+  kImuNonFinite = 1u << 2,        // a NaN or Inf reached the driver output
+  kImuGapBefore = 1u << 3,        // samples were lost before this one (sequence jump)
+  kImuTimeInterpolated = 1u << 4  // time back-computed from a FIFO burst, not data-ready stamped
 };
 
 struct ImuSample {
@@ -41,19 +41,22 @@ struct ImuSample {
 
 enum class PixelFormat : uint8_t {
   kGray8 = 1,
-  kRgb8 = 2,    // 3 bytes per pixel, R G B
+  kRgb8 = 2,  // 3 bytes per pixel, R G B
   kBgr8 = 3,
   kYuyv = 4,
-  kDepthU16 = 5 // depth units, metres = value * Rig::depth_scale_m_per_unit; 0 = invalid
+  kDepthU16 = 5  // depth units, metres = value * Rig::depth_scale_m_per_unit; 0 = invalid
 };
 
 inline int bytes_per_pixel(PixelFormat f) {
   switch (f) {
-    case PixelFormat::kGray8: return 1;
+    case PixelFormat::kGray8:
+      return 1;
     case PixelFormat::kRgb8:
-    case PixelFormat::kBgr8: return 3;
+    case PixelFormat::kBgr8:
+      return 3;
     case PixelFormat::kYuyv:
-    case PixelFormat::kDepthU16: return 2;
+    case PixelFormat::kDepthU16:
+      return 2;
   }
   return 0;
 }
@@ -70,12 +73,12 @@ struct ImageView {
 // What travels through the camera ring: the pixels stay in a pool and move by
 // handle, so pushing a frame copies a few dozen bytes.
 struct RgbdFrameMsg {
-  int64_t t_ns = 0;          // mid-exposure time on the host clock
+  int64_t t_ns = 0;  // mid-exposure time on the host clock
   int64_t t_recv_ns = 0;
   uint32_t seq = 0;
-  int32_t exposure_us = 0;   // 0 when unknown
-  uint32_t rgb_handle = 0;   // slot in the colour image pool
-  uint32_t depth_handle = 0; // slot in the depth image pool (registered to colour)
+  int32_t exposure_us = 0;    // 0 when unknown
+  uint32_t rgb_handle = 0;    // slot in the colour image pool
+  uint32_t depth_handle = 0;  // slot in the depth image pool (registered to colour)
   uint32_t flags = 0;
   // A stereo rig's right image (raw, as the camera gave it; the tracking side
   // rectifies both): a slot in the same pool. Every holder of a frame releases
@@ -88,9 +91,9 @@ enum class DistortionModel : uint8_t { kNone = 0, kRadTan = 1, kEquidistant = 2 
 struct CameraIntrinsics {
   int width = 0;
   int height = 0;
-  double fx = 0, fy = 0, cx = 0, cy = 0;   // pixels
+  double fx = 0, fy = 0, cx = 0, cy = 0;  // pixels
   DistortionModel distortion = DistortionModel::kNone;
-  std::array<double, 5> dist{};            // radtan: k1 k2 p1 p2 k3; equidistant: k1..k4
+  std::array<double, 5> dist{};  // radtan: k1 k2 p1 p2 k3; equidistant: k1..k4
 };
 
 // IMU noise as continuous-time densities (Kalibr / EuRoC convention).
@@ -102,7 +105,7 @@ struct ImuNoise {
   // Paper 000 eq. 6: accelerometer bias as a bounded random walk
   // db/dt = -b/tau + w. tau <= 0 means a plain random walk.
   double acc_bias_tau_s = 0;
-  double gyro_range_rps = 0;   // saturation limits, 0 = unknown
+  double gyro_range_rps = 0;  // saturation limits, 0 = unknown
   double acc_range_mps2 = 0;
 };
 
@@ -111,7 +114,7 @@ struct DepthModel {
   double scale_m_per_unit = 0.001;
   double min_range_m = 0.3;
   double max_range_m = 6.0;
-  double sigma_coeff_per_m = 0.0025;   // structured light: ~1.4 mm at 1 m... 4 cm at 4 m
+  double sigma_coeff_per_m = 0.0025;  // structured light: ~1.4 mm at 1 m... 4 cm at 4 m
 };
 
 // A depth sensor that is not the colour camera (Kinect v1's IR camera, a
@@ -145,12 +148,12 @@ struct StereoCamera {
 // Everything a log or a live rig needs to interpret its sensors.
 struct Rig {
   std::string name;
-  CameraIntrinsics rgb;            // depth is registered to this camera
+  CameraIntrinsics rgb;  // depth is registered to this camera
   DepthModel depth;
-  DepthCamera depth_camera;        // present: the raw depth comes from another camera
-  StereoCamera stereo;             // present: a stereo pair, depth from matching (docs/stereo.md)
-  Mat4d T_BC = kIdentity4;         // camera -> body (body = IMU frame)
-  Mat4d T_BI = kIdentity4;         // IMU -> body; identity unless the body frame is elsewhere
+  DepthCamera depth_camera;  // present: the raw depth comes from another camera
+  StereoCamera stereo;       // present: a stereo pair, depth from matching (docs/stereo.md)
+  Mat4d T_BC = kIdentity4;   // camera -> body (body = IMU frame)
+  Mat4d T_BI = kIdentity4;   // IMU -> body; identity unless the body frame is elsewhere
   ImuNoise imu;
   double imu_rate_hz = 0;
   double camera_rate_hz = 0;

@@ -97,7 +97,9 @@ class HistoryRing {
  private:
   std::size_t index(std::size_t i) const noexcept { return (oldest_ + i) % N; }
   void* raw(std::size_t slot) noexcept { return storage_ + slot * sizeof(T); }
-  T& at(std::size_t slot) noexcept { return *std::launder(reinterpret_cast<T*>(storage_ + slot * sizeof(T))); }
+  T& at(std::size_t slot) noexcept {
+    return *std::launder(reinterpret_cast<T*>(storage_ + slot * sizeof(T)));
+  }
   const T& at(std::size_t slot) const noexcept {
     return *std::launder(reinterpret_cast<const T*>(storage_ + slot * sizeof(T)));
   }

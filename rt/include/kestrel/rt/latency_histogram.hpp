@@ -20,8 +20,8 @@ namespace kestrel::rt {
 
 class LatencyHistogram {
  public:
-  static constexpr int kSubBits = 7;                     // 128 sub-bins per octave
-  static constexpr int kMaxExp = 35;                     // top octave [2^35, 2^36)
+  static constexpr int kSubBits = 7;  // 128 sub-bins per octave
+  static constexpr int kMaxExp = 35;  // top octave [2^35, 2^36)
   static constexpr std::int64_t kSub = std::int64_t{1} << kSubBits;
   static constexpr std::size_t kBins = static_cast<std::size_t>(kSub) * (kMaxExp - kSubBits + 2);
   static constexpr std::int64_t kMaxTrackable = (std::int64_t{1} << (kMaxExp + 1)) - 1;
@@ -77,8 +77,12 @@ class LatencyHistogram {
     const std::uint64_t n = count();
     return n > 0 ? static_cast<double>(sum_.load(std::memory_order_relaxed)) / static_cast<double>(n) : 0.0;
   }
-  [[nodiscard]] std::uint64_t overflows() const noexcept { return overflows_.load(std::memory_order_relaxed); }
-  [[nodiscard]] std::uint64_t negatives() const noexcept { return negatives_.load(std::memory_order_relaxed); }
+  [[nodiscard]] std::uint64_t overflows() const noexcept {
+    return overflows_.load(std::memory_order_relaxed);
+  }
+  [[nodiscard]] std::uint64_t negatives() const noexcept {
+    return negatives_.load(std::memory_order_relaxed);
+  }
 
   void merge(const LatencyHistogram& o) noexcept {
     const std::uint64_t on = o.count();
@@ -110,7 +114,8 @@ class LatencyHistogram {
     const auto v = static_cast<std::uint64_t>(ns);
     const int e = 63 - __builtin_clzll(v);  // v >= 128, so e >= kSubBits
     const std::uint64_t sub = (v >> (e - kSubBits)) - static_cast<std::uint64_t>(kSub);
-    return static_cast<std::size_t>(kSub) * static_cast<std::size_t>(e - kSubBits + 1) + static_cast<std::size_t>(sub);
+    return static_cast<std::size_t>(kSub) * static_cast<std::size_t>(e - kSubBits + 1) +
+           static_cast<std::size_t>(sub);
   }
   static std::int64_t bin_lower(std::size_t i) noexcept {
     if (i < static_cast<std::size_t>(kSub)) return static_cast<std::int64_t>(i);
@@ -139,7 +144,8 @@ class LatencyHistogram {
     return v < lo ? lo : v > hi ? hi : v;
   }
   void copy_from(const LatencyHistogram& o) noexcept {
-    for (std::size_t i = 0; i < kBins; ++i) bins_[i].store(o.bins_[i].load(std::memory_order_relaxed), std::memory_order_relaxed);
+    for (std::size_t i = 0; i < kBins; ++i)
+      bins_[i].store(o.bins_[i].load(std::memory_order_relaxed), std::memory_order_relaxed);
     count_.store(o.count(), std::memory_order_relaxed);
     sum_.store(o.sum_.load(std::memory_order_relaxed), std::memory_order_relaxed);
     min_.store(o.min(), std::memory_order_relaxed);

@@ -30,7 +30,8 @@ namespace kestrel::rt {
 
 template <class T>
 class Mailbox {
-  static_assert(std::is_trivially_copyable_v<T>, "Mailbox<T> copies T as raw words: T must be trivially copyable");
+  static_assert(std::is_trivially_copyable_v<T>,
+                "Mailbox<T> copies T as raw words: T must be trivially copyable");
   static_assert(std::is_default_constructible_v<T>, "Mailbox<T> needs a default-constructible T");
   static constexpr std::size_t kWords = (sizeof(T) + sizeof(std::uint64_t) - 1) / sizeof(std::uint64_t);
 

@@ -103,7 +103,7 @@ class ObjectPool {
     PoolHandle expected = h;
     if (h == kInvalidHandle || idx >= N ||
         !live_[idx].compare_exchange_strong(expected, kInvalidHandle, std::memory_order_acq_rel,
-                                           std::memory_order_relaxed)) {
+                                            std::memory_order_relaxed)) {
       bad_releases_.fetch_add(1, std::memory_order_relaxed);
       return false;
     }
@@ -122,7 +122,9 @@ class ObjectPool {
   [[nodiscard]] std::uint64_t failed_acquires() const noexcept {
     return failed_acquires_.load(std::memory_order_relaxed);
   }
-  [[nodiscard]] std::uint64_t bad_releases() const noexcept { return bad_releases_.load(std::memory_order_relaxed); }
+  [[nodiscard]] std::uint64_t bad_releases() const noexcept {
+    return bad_releases_.load(std::memory_order_relaxed);
+  }
 
  private:
   static constexpr std::uint32_t kNil = 0xFFFFFFFFu;
@@ -134,8 +136,8 @@ class ObjectPool {
 
   std::unique_ptr<T[]> objects_;
   std::atomic<std::uint32_t> next_[N];
-  std::atomic<PoolHandle> live_[N];     // current handle of an acquired slot, 0 when free
-  std::atomic<std::uint32_t> gen_[N];   // last generation handed out per slot
+  std::atomic<PoolHandle> live_[N];                 // current handle of an acquired slot, 0 when free
+  std::atomic<std::uint32_t> gen_[N];               // last generation handed out per slot
   alignas(64) std::atomic<std::uint64_t> head_{0};  // tag:32 | index:32
   alignas(64) std::atomic<std::size_t> in_use_{0};
   std::atomic<std::uint64_t> failed_acquires_{0};

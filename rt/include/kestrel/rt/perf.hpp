@@ -80,8 +80,10 @@ class PerfCounter {
   }
   void add_sample(std::int64_t dt_ns) noexcept {
     const std::uint64_t c = count_.load(std::memory_order_relaxed);
-    if (c == 0 || dt_ns < min_ns_.load(std::memory_order_relaxed)) min_ns_.store(dt_ns, std::memory_order_relaxed);
-    if (c == 0 || dt_ns > max_ns_.load(std::memory_order_relaxed)) max_ns_.store(dt_ns, std::memory_order_relaxed);
+    if (c == 0 || dt_ns < min_ns_.load(std::memory_order_relaxed))
+      min_ns_.store(dt_ns, std::memory_order_relaxed);
+    if (c == 0 || dt_ns > max_ns_.load(std::memory_order_relaxed))
+      max_ns_.store(dt_ns, std::memory_order_relaxed);
     bump(total_ns_, dt_ns);
     count_.store(c + 1, std::memory_order_relaxed);
   }

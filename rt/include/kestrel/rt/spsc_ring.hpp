@@ -131,9 +131,7 @@ class SpscRing {
  private:
   // 64-bit counters that never wrap in practice (584 years at 1 GHz); the slot
   // is counter % N, which keeps all N slots usable (no sacrificial slot).
-  void* raw_slot(std::uint64_t i) noexcept {
-    return storage_ + static_cast<std::size_t>(i % N) * sizeof(T);
-  }
+  void* raw_slot(std::uint64_t i) noexcept { return storage_ + static_cast<std::size_t>(i % N) * sizeof(T); }
   // Only for slots that hold a live element (launder needs one).
   T* slot(std::uint64_t i) noexcept { return std::launder(static_cast<T*>(raw_slot(i))); }
 

@@ -28,22 +28,22 @@ struct ThreadSpec {
 };
 
 struct ProcessSetupOptions {
-  bool lock_memory = true;             // mlockall(MCL_CURRENT | MCL_FUTURE)
+  bool lock_memory = true;               // mlockall(MCL_CURRENT | MCL_FUTURE)
   std::size_t prefault_stack_kib = 256;  // touched on the calling thread's stack
-  bool keep_heap = true;               // glibc: no heap trimming, no mmap'd chunks (freed memory stays locked)
+  bool keep_heap = true;  // glibc: no heap trimming, no mmap'd chunks (freed memory stays locked)
 };
 
 struct ProcessSetupReport {
   bool lock_memory_requested = false;
   bool memory_locked = false;
-  int lock_errno = 0;                   // errno of a refused mlockall, 0 otherwise
-  const char* lock_note = "";           // why it was refused or skipped
+  int lock_errno = 0;          // errno of a refused mlockall, 0 otherwise
+  const char* lock_note = "";  // why it was refused or skipped
   std::size_t stack_prefaulted_kib = 0;
-  bool heap_tuned = false;              // mallopt calls accepted
+  bool heap_tuned = false;  // mallopt calls accepted
   // What the system allows, for the log (RLIM_INFINITY printed as "unlimited").
   std::uint64_t rlimit_memlock_bytes = 0;
   std::uint64_t rlimit_rtprio = 0;
-  bool cap_ipc_lock = false;            // effective capabilities from /proc/self/status
+  bool cap_ipc_lock = false;  // effective capabilities from /proc/self/status
   bool cap_sys_nice = false;
   bool sanitizer_build = false;
 };
@@ -58,9 +58,9 @@ struct ThreadSetupReport {
   const char* name = "";
   bool name_set = false;
   int requested_priority = 0;
-  int granted_policy = 0;               // SCHED_OTHER / SCHED_FIFO actually in effect
+  int granted_policy = 0;  // SCHED_OTHER / SCHED_FIFO actually in effect
   int granted_priority = 0;
-  int sched_errno = 0;                  // errno of a refused SCHED_FIFO, 0 otherwise
+  int sched_errno = 0;  // errno of a refused SCHED_FIFO, 0 otherwise
   const char* sched_note = "";
   int requested_cpu = -1;
   bool pinned = false;

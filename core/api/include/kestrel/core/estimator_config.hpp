@@ -73,7 +73,8 @@ class OptionVisitor {
   virtual void value(const char* key, uint64_t& v, const char* doc) = 0;
   virtual void value(const char* key, bool& v, const char* doc) = 0;
   virtual void value(const char* key, std::string& v, const char* doc) = 0;
-  virtual void choice(const char* key, int& index, const std::vector<const char*>& names, const char* doc) = 0;
+  virtual void choice(const char* key, int& index, const std::vector<const char*>& names,
+                      const char* doc) = 0;
 };
 
 // Walks every option of `c`, section by section. The keys `estimator.backend`

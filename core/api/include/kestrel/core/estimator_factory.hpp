@@ -2,10 +2,10 @@
 // the estimator, window and EKF modules.
 #pragma once
 
-#include "kestrel/core/estimator.hpp"
-
 #include <memory>
 #include <string>
+
+#include "kestrel/core/estimator.hpp"
 
 namespace kestrel::core {
 

@@ -24,9 +24,9 @@
 #include <memory>
 #include <string>
 
+#include "kestrel/core/estimator.hpp"
 #include "kestrel/core/estimator_config.hpp"
 #include "kestrel/core/estimator_factory.hpp"
-#include "kestrel/core/estimator.hpp"
 #include "kestrel/msgs.hpp"
 
 namespace kestrel {
@@ -75,7 +75,8 @@ class Estimator {
   // the command line's defaults (docs/config.md), map and loop closing
   // included; throws std::invalid_argument naming the known backends for an
   // unknown one.
-  explicit Estimator(const Rig& rig, const std::string& backend = "auto", MapWork map_work = MapWork::kInline);
+  explicit Estimator(const Rig& rig, const std::string& backend = "auto",
+                     MapWork map_work = MapWork::kInline);
   // Every option (core::EstimatorConfig: EstimatorConfig::defaults(backend)
   // changed in code, or a config file through tools::load_estimator_config);
   // throws std::invalid_argument listing every bad option.

@@ -45,7 +45,7 @@ struct EkfEstimatorOptions {
   // 0 columns: the tracker's order.
   int spread_grid_cols = 0;
   int spread_grid_rows = 0;
-  double gate_chi2 = 13.28;   // 4 dof, 99 %
+  double gate_chi2 = 13.28;  // 4 dof, 99 %
   // A tracked pixel without depth (its keyframe point now beyond the sensor's
   // range, or in a hole of the depth image) updates its landmark, if the
   // filter holds one, with its two pixel rows, and brings in a map point at
@@ -158,13 +158,13 @@ struct EkfEstimatorCounters {
   uint64_t frames_updated = 0;
   uint64_t frames_skipped = 0;  // closer than min_frame_interval_ms to the last frame taken
   uint64_t tracker_resets = 0;
-  uint64_t filter_resets = 0;  // non-finite state: restarted from the IMU state
-  uint64_t map_poses_used = 0;       // keyframe poses from the tracker's local map taken as a measurement
-  uint64_t map_poses_gated = 0;      // ... refused by the gate
-  uint64_t map_reanchors = 0;        // of the used, the first after a restart (a step, counted in reset_counter)
-  double nis_sum = 0;                // first-chunk NIS and its degrees of freedom, summed
+  uint64_t filter_resets = 0;    // non-finite state: restarted from the IMU state
+  uint64_t map_poses_used = 0;   // keyframe poses from the tracker's local map taken as a measurement
+  uint64_t map_poses_gated = 0;  // ... refused by the gate
+  uint64_t map_reanchors = 0;    // of the used, the first after a restart (a step, counted in reset_counter)
+  double nis_sum = 0;            // first-chunk NIS and its degrees of freedom, summed
   double nis_dof_sum = 0;
-  double pose_nis_sum = 0;           // EkfUpdateStats::pose_nis, summed over pose_nis_n updates
+  double pose_nis_sum = 0;  // EkfUpdateStats::pose_nis, summed over pose_nis_n updates
   uint64_t pose_nis_n = 0;
 };
 
@@ -242,7 +242,7 @@ class EkfEstimator final : public Estimator {
   Eigen::Vector3d last_acc_ = Eigen::Vector3d::Zero();
   bool have_last_ = false;
   int64_t last_tracked_t_ns_ = -1;
-  int64_t last_frame_t_ns_ = -1;  // the last frame taken (min_frame_interval_ms)
+  int64_t last_frame_t_ns_ = -1;   // the last frame taken (min_frame_interval_ms)
   bool last_frame_fixed_ = false;  // and whether it was a fix
   int lost_frames_ = 0;
   EstimatorOutput out_;

@@ -74,8 +74,8 @@ bool stereo_triangulate(const StereoCamera& cam, const StereoMeas& z, Vec3& p_C,
 struct ImuNominal {
   Pose T_WB;
   Vec3 v_WB = Vec3::Zero();
-  Vec3 bg = Vec3::Zero();   // gyro bias [rad/s]
-  Vec3 ba = Vec3::Zero();   // accelerometer bias [m/s^2]
+  Vec3 bg = Vec3::Zero();  // gyro bias [rad/s]
+  Vec3 ba = Vec3::Zero();  // accelerometer bias [m/s^2]
 };
 
 // One Euler strapdown step with the sample held over dt (W has gravity along

@@ -20,7 +20,6 @@
 
 #include <Eigen/Core>
 #include <Eigen/Geometry>
-
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
@@ -38,28 +37,28 @@ enum class EkfMotionModel : uint8_t {
 
 struct EkfSlamOptions {
   EkfMotionModel motion = EkfMotionModel::kVelocity;
-  int landmark_capacity = 256;        // active landmarks held in the filter (memory ~ (3C)^2 doubles)
-  int max_observations = 1024;        // per update call; more are counted and ignored
-  int update_chunk_landmarks = 32;    // landmarks per sequential Cholesky update (<= 32)
+  int landmark_capacity = 256;      // active landmarks held in the filter (memory ~ (3C)^2 doubles)
+  int max_observations = 1024;      // per update call; more are counted and ignored
+  int update_chunk_landmarks = 32;  // landmarks per sequential Cholesky update (<= 32)
 
-  double pixel_sigma_px = 1.0;        // std of each of uL, vL, uR, vR
-  double gate_chi2 = 13.28;           // Mahalanobis gate on the 4 stereo rows (chi2, 4 dof, 99 %)
-  double mono_gate_chi2 = 9.21;       // the same gate on a pixel without depth (chi2, 2 dof, 99 %)
-  double min_depth_m = 0.5;           // points closer than this are neither used nor initialised
-  double max_init_depth_m = 60.0;     // far points triangulate badly: not initialised
-  int max_missed_frames = 0;          // an active landmark unobserved for more frames is frozen into the map
-  int max_consecutive_rejects = 2;    // a landmark gated out this often in a row is dropped as an outlier
+  double pixel_sigma_px = 1.0;      // std of each of uL, vL, uR, vR
+  double gate_chi2 = 13.28;         // Mahalanobis gate on the 4 stereo rows (chi2, 4 dof, 99 %)
+  double mono_gate_chi2 = 9.21;     // the same gate on a pixel without depth (chi2, 2 dof, 99 %)
+  double min_depth_m = 0.5;         // points closer than this are neither used nor initialised
+  double max_init_depth_m = 60.0;   // far points triangulate badly: not initialised
+  int max_missed_frames = 0;        // an active landmark unobserved for more frames is frozen into the map
+  int max_consecutive_rejects = 2;  // a landmark gated out this often in a row is dropped as an outlier
 
   // Velocity mode: std of the measured twist, per component (W = dt^2 diag).
   double vel_sigma_mps = 0.3;
   double gyro_vel_sigma_rps = 0.02;
 
   // IMU mode: continuous-time densities (Kalibr convention) and gravity.
-  double gyro_noise_density = 1.7e-4;   // rad/s/sqrt(Hz)
-  double acc_noise_density = 2.0e-3;    // m/s^2/sqrt(Hz)
-  double gyro_random_walk = 2.0e-5;     // rad/s^2/sqrt(Hz)
-  double acc_random_walk = 3.0e-3;      // m/s^3/sqrt(Hz)
-  double gravity_mps2 = 9.81;           // W has gravity along -z
+  double gyro_noise_density = 1.7e-4;  // rad/s/sqrt(Hz)
+  double acc_noise_density = 2.0e-3;   // m/s^2/sqrt(Hz)
+  double gyro_random_walk = 2.0e-5;    // rad/s^2/sqrt(Hz)
+  double acc_random_walk = 3.0e-3;     // m/s^3/sqrt(Hz)
+  double gravity_mps2 = 9.81;          // W has gravity along -z
 
   // > 0: the observations are RGB-D pixels with depth as virtual stereo
   // (virtual_stereo()): u, v and the virtual disparity d = fx b / depth are
@@ -107,7 +106,8 @@ StereoObservation pixel_only(uint32_t id, double u, double v);
 
 // An RGB-D pixel with registered depth as a virtual stereo observation:
 // uR = u - fx * b / depth (docs/ekf.md, "RGB-D").
-StereoObservation virtual_stereo(uint32_t id, double u, double v, double depth_m, double fx, double baseline_m);
+StereoObservation virtual_stereo(uint32_t id, double u, double v, double depth_m, double fx,
+                                 double baseline_m);
 
 // A landmark that left the filter: its last estimate and marginal covariance.
 struct FrozenLandmark {
@@ -118,15 +118,15 @@ struct FrozenLandmark {
 };
 
 struct EkfUpdateStats {
-  int observations = 0;    // given to update()
-  int used = 0;            // in the Kalman update
+  int observations = 0;        // given to update()
+  int used = 0;                // in the Kalman update
   int used_without_depth = 0;  // of those, 2-row updates from a pixel without depth
-  int gated = 0;           // rejected by the chi2 gate
-  int initialised = 0;     // new landmarks
-  int not_initialised = 0; // new tracks not taken (bad disparity, too far, capacity full)
-  int frozen = 0;          // left the filter into the map
-  int dropped = 0;         // removed as outliers
-  int chunks = 0;          // sequential Cholesky updates
+  int gated = 0;               // rejected by the chi2 gate
+  int initialised = 0;         // new landmarks
+  int not_initialised = 0;     // new tracks not taken (bad disparity, too far, capacity full)
+  int frozen = 0;              // left the filter into the map
+  int dropped = 0;             // removed as outliers
+  int chunks = 0;              // sequential Cholesky updates
   // Normalised innovation squared of the first chunk, linearised at the
   // prior (before any of this update's corrections), and its degrees of
   // freedom (3 per observation, 2 without depth): about nis_dof when the filter's predicted
@@ -146,14 +146,14 @@ struct EkfCounters {
   uint64_t observations_used = 0;
   uint64_t observations_used_without_depth = 0;  // of those, pixels without depth (2 rows)
   uint64_t observations_gated = 0;
-  uint64_t observations_ignored = 0;    // beyond max_observations, or duplicates in one call
+  uint64_t observations_ignored = 0;  // beyond max_observations, or duplicates in one call
   uint64_t landmarks_initialised = 0;
   uint64_t landmarks_from_prior = 0;  // of those, started at a known point (StereoObservation::prior_sigma_m)
   uint64_t landmarks_frozen = 0;
   uint64_t landmarks_dropped = 0;
-  uint64_t capacity_full = 0;           // new tracks not taken because the active set was full
-  uint64_t frozen_lost = 0;             // frozen landmarks lost because the caller did not drain them
-  uint64_t cholesky_failures = 0;       // chunks skipped because S was not positive definite
+  uint64_t capacity_full = 0;      // new tracks not taken because the active set was full
+  uint64_t frozen_lost = 0;        // frozen landmarks lost because the caller did not drain them
+  uint64_t cholesky_failures = 0;  // chunks skipped because S was not positive definite
 };
 
 class EkfSlam {
@@ -233,12 +233,12 @@ class EkfSlam {
 
   EkfSlamOptions opt_;
   ekf::StereoCamera cam_;
-  int dx_ = 6;          // error dimension of the non-landmark part
-  int cap_ = 0;         // landmark capacity
-  int nmax_ = 0;        // dx_ + 3 cap_
-  int chunk_ = 32;      // landmarks per sequential update
-  Eigen::Matrix3d R_;       // noise of the compressed measurement [uL, v, uR]
-  double s2_ = 1.0;         // pixel variance
+  int dx_ = 6;                 // error dimension of the non-landmark part
+  int cap_ = 0;                // landmark capacity
+  int nmax_ = 0;               // dx_ + 3 cap_
+  int chunk_ = 32;             // landmarks per sequential update
+  Eigen::Matrix3d R_;          // noise of the compressed measurement [uL, v, uR]
+  double s2_ = 1.0;            // pixel variance
   double imu_noise_k2_ = 1.0;  // IMU noise variance scale (set_imu_noise_scale)
 
   // Mean.
@@ -246,7 +246,7 @@ class EkfSlam {
   Eigen::Vector3d v_WB_ = Eigen::Vector3d::Zero();
   Eigen::Vector3d bg_ = Eigen::Vector3d::Zero();
   Eigen::Vector3d ba_ = Eigen::Vector3d::Zero();
-  Eigen::Matrix3Xd lm_p_;   // 3 x cap; active landmarks live in slots [0, num_active_)
+  Eigen::Matrix3Xd lm_p_;  // 3 x cap; active landmarks live in slots [0, num_active_)
   std::vector<uint32_t> lm_id_;
   std::vector<int> lm_missed_, lm_rejects_, lm_obs_count_, lm_this_obs_, lm_gate_;
   int num_active_ = 0;
@@ -260,13 +260,13 @@ class EkfSlam {
   bool phi_pending_ = false;
 
   // Workspace, allocated once.
-  Eigen::MatrixXd pose_tmp_;    // 15 x 15
+  Eigen::MatrixXd pose_tmp_;  // 15 x 15
   ekf::Mat6 P_pose_prior_;
-  Eigen::MatrixXd cross_tmp_;   // 15 x nmax
-  Eigen::MatrixXd U_;           // nmax x 3 chunk: P H^T, then P H^T L^-T
-  Eigen::MatrixXd S_;           // 3 chunk square: innovation covariance, then its Cholesky factor
-  Eigen::VectorXd nu_;          // 3 chunk
-  Eigen::VectorXd dx_vec_;      // nmax
+  Eigen::MatrixXd cross_tmp_;  // 15 x nmax
+  Eigen::MatrixXd U_;          // nmax x 3 chunk: P H^T, then P H^T L^-T
+  Eigen::MatrixXd S_;          // 3 chunk square: innovation covariance, then its Cholesky factor
+  Eigen::VectorXd nu_;         // 3 chunk
+  Eigen::VectorXd dx_vec_;     // nmax
   std::vector<Eigen::Matrix<double, 3, 6>> Hp_;
   std::vector<Eigen::Matrix3d> Hm_;
   std::vector<int> rows_, row0_;  // per observation of a chunk: 3 (with depth) or 2 rows, from row row0
@@ -274,7 +274,7 @@ class EkfSlam {
   std::vector<int> cell_count_;  // spread_grid_cols x rows: landmarks seen this frame per cell
   int cell_of(const StereoObservation& o) const;
   void initialise_new_tracks(const StereoObservation* obs, int count, EkfUpdateStats& st);
-  const StereoObservation* obs_cache_ = nullptr;   // the observations of the update in progress
+  const StereoObservation* obs_cache_ = nullptr;  // the observations of the update in progress
   std::vector<FrozenLandmark> frozen_;
   int frozen_count_ = 0;
 

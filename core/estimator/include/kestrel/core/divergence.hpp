@@ -83,9 +83,9 @@ class DivergenceMonitor {
   DivergenceCounts counts_;
   bool lost_ = false;
   int64_t last_fix_t_ns_ = -1;
-  int64_t lost_since_t_ns_ = -1;   // lost, or last restarted, at this time
-  bool restarted_ = false;         // a re-initialisation happened in this outage
-  int64_t clock_t_ns_ = -1;        // newest time seen, for the time accounting
+  int64_t lost_since_t_ns_ = -1;  // lost, or last restarted, at this time
+  bool restarted_ = false;        // a re-initialisation happened in this outage
+  int64_t clock_t_ns_ = -1;       // newest time seen, for the time accounting
   int rejected_in_a_row_ = 0;
 };
 

@@ -4,11 +4,11 @@
 // threads, the replay harness and embedders call nothing else.
 #pragma once
 
-#include <array>
 #include <Eigen/Geometry>
+#include <array>
 #include <cstdint>
-#include <vector>
 #include <string>
+#include <vector>
 
 #include "kestrel/core/imu_propagator.hpp"
 #include "kestrel/msgs.hpp"
@@ -21,8 +21,8 @@ namespace kestrel::core {
 struct RgbdFrame {
   int64_t t_ns = 0;
   uint32_t seq = 0;
-  ImageView rgb;     // data == nullptr when absent
-  ImageView depth;   // registered to rgb; data == nullptr when absent
+  ImageView rgb;    // data == nullptr when absent
+  ImageView depth;  // registered to rgb; data == nullptr when absent
   // A stereo rig: rgb and right are the rectified pair (drivers/stereo), the
   // features' depth comes from matching them; data == nullptr when absent.
   ImageView right;
@@ -30,7 +30,7 @@ struct RgbdFrame {
 
 enum class TrackingQuality : uint8_t {
   kUninitialized = 0,
-  kImuOnly = 1,     // coasting on the IMU: the covariance grows without bound
+  kImuOnly = 1,  // coasting on the IMU: the covariance grows without bound
   kTracking = 2,
   kLost = 3,
   // Tracking on the camera alone: a backend without an IMU (rgbd), or the
@@ -59,9 +59,9 @@ struct PoseCovariance {
 // closures, relocalisations, a loaded map) move T_map_odom instead.
 // Trivially copyable: it crosses threads in mailboxes and rings.
 struct MapFrameState {
-  bool active = false;     // a map is built (or used)
-  bool localized = false;  // T_map_odom is known (false: lost, or a loaded map not found yet)
-  uint32_t alignment = 0;  // steps on every change of T_map_odom
+  bool active = false;         // a map is built (or used)
+  bool localized = false;      // T_map_odom is known (false: lost, or a loaded map not found yet)
+  uint32_t alignment = 0;      // steps on every change of T_map_odom
   double p[3] = {0, 0, 0};     // T_map_odom: translation [m]
   double q[4] = {1, 0, 0, 0};  // and rotation (w x y z)
   uint64_t loop_closures = 0;
@@ -120,8 +120,8 @@ struct DivergenceCounts {
   // they bound the drift of the placeholder pose, they are not new divergences.
   uint64_t restarts_while_lost = 0;
   uint64_t coast_timeouts = 0;  // coasts that reached max_coast_s: reported lost, state kept
-  int64_t coast_ns = 0;  // IMU-only time after a fix, up to max_coast_s each time
-  int64_t lost_ns = 0;   // time reported lost
+  int64_t coast_ns = 0;         // IMU-only time after a fix, up to max_coast_s each time
+  int64_t lost_ns = 0;          // time reported lost
 };
 
 struct EstimatorCounters {
@@ -147,8 +147,8 @@ class Tracker;
 
 // A backend's optimizer, for status lines and the viewer (Estimator::optimizer_status).
 struct OptimizerStatus {
-  uint64_t jobs = 0;          // solves asked for
-  uint64_t applied = 0;       // solves whose result was taken
+  uint64_t jobs = 0;     // solves asked for
+  uint64_t applied = 0;  // solves whose result was taken
   uint64_t failures = 0;
   uint64_t skipped_busy = 0;  // frames that found the optimizer still busy
   uint64_t resets = 0;        // window restarts

@@ -20,15 +20,15 @@ struct FrontendOdometryOptions {
   // position. The IMU carries velocity between frames; the tracker pulls it
   // back when the accelerometer bias makes it drift, without feeding every
   // centimetre of tracking noise into the velocity.
-  double accel_noise_mps2_sqrthz = 0.2;   // white acceleration error incl. unmodelled bias
-  double position_sigma_m = 0.005;       // tracked position noise
+  double accel_noise_mps2_sqrthz = 0.2;     // white acceleration error incl. unmodelled bias
+  double position_sigma_m = 0.005;          // tracked position noise
   double initial_velocity_sigma_mps = 2.0;  // at the first keyframe: the vehicle may already move
   // Attitude: the gyro is far better than the tracker over one frame (0.0001
   // vs ~0.05 deg), the tracker is drift-free over many. Each tracked frame
   // pulls the propagated attitude this share of the way to the tracked one.
   double attitude_gain = 0.5;
-  double gyro_bias_gain = 0.02;   // integral share per tracked frame
-  double gate_sigma = 6.0;               // innovations beyond this many sigma are not believed
+  double gyro_bias_gain = 0.02;  // integral share per tracked frame
+  double gate_sigma = 6.0;       // innovations beyond this many sigma are not believed
   // Consecutive untracked frames before the keyframe is dropped and a new one
   // taken at the IMU-predicted pose (a re-initialisation, counted).
   int max_lost_frames = 3;
@@ -52,7 +52,8 @@ struct FrontendOdometryOptions {
   // velocity with the biases it had. 0: never (the pose coasts on the last
   // IMU state and the tracker trusts its stale rotation).
   int64_t imu_outage_after_ns = 200'000'000;
-  double vision_only_pred_sigma_px = 10.0;  // the constant-velocity prediction's pixel uncertainty at one frame
+  double vision_only_pred_sigma_px =
+      10.0;  // the constant-velocity prediction's pixel uncertainty at one frame
 
   // One line per bad key ("gate_sigma: must be > 0"); empty when all are usable.
   [[nodiscard]] std::string validate() const;
@@ -106,7 +107,7 @@ class FrontendOdometry final : public Estimator {
 
   FrontendOdometryOptions opt_;
   Eigen::Isometry3d T_BC_ = Eigen::Isometry3d::Identity();
-  DeadReckoningEstimator init_and_imu_;   // static initialisation + IMU propagation
+  DeadReckoningEstimator init_and_imu_;  // static initialisation + IMU propagation
   Tracker tracker_;
   ImuPropagator prop_;
   bool started_ = false;
@@ -124,7 +125,7 @@ class FrontendOdometry final : public Estimator {
   bool refused_in_streak_ = false;  // a frame of the current untracked streak was refused by the gate
   DivergenceMonitor monitor_;
   uint64_t divergence_epoch_ = 0;
-  NavState last_fix_state_;   // the state after the newest visual fix: a finite anchor to restart from
+  NavState last_fix_state_;  // the state after the newest visual fix: a finite anchor to restart from
   bool have_fix_state_ = false;
 
   void supervise();

@@ -23,17 +23,17 @@
 namespace kestrel::core {
 
 struct OrbOptions {
-  int n_features = 300;        // total budget over all levels
-  int n_levels = 4;            // pyramid levels (1 = no pyramid), at most kMaxLevels
-  float scale_factor = 1.2f;   // linear size ratio between consecutive levels, in (1, 2]
-  int fast_threshold = 20;     // FAST intensity threshold [grey levels]
+  int n_features = 300;       // total budget over all levels
+  int n_levels = 4;           // pyramid levels (1 = no pyramid), at most kMaxLevels
+  float scale_factor = 1.2f;  // linear size ratio between consecutive levels, in (1, 2]
+  int fast_threshold = 20;    // FAST intensity threshold [grey levels]
   // Used only inside grid cells that have no corner at fast_threshold
   // (ORB-SLAM's idea): keeps features in low-contrast parts of the image.
   int fast_threshold_min = 7;
   // Keypoints keep this far from the border of their level [level pixels].
   // At least kMinEdgeMargin: the orientation patch (radius 15) must fit.
   int edge_margin = 16;
-  int cell_size = 40;          // bucketing grid cell side [level pixels]
+  int cell_size = 40;                              // bucketing grid cell side [level pixels]
   uint64_t pattern_seed = 0x4b657374'72656c31ULL;  // BRIEF test pattern seed
 
   static constexpr int kMaxLevels = 8;
@@ -49,13 +49,13 @@ struct OrbOptions {
 using OrbDescriptor = std::array<uint64_t, 4>;
 
 struct OrbKeypoint {
-  float x = 0;           // level-0 pixels
+  float x = 0;  // level-0 pixels
   float y = 0;
-  float angle_rad = 0;   // intensity-centroid orientation, [0, 2*pi)
-  float response = 0;    // FAST score: largest threshold at which it is still a corner
-  float size = 0;        // patch diameter in level-0 pixels (31 * level scale)
+  float angle_rad = 0;  // intensity-centroid orientation, [0, 2*pi)
+  float response = 0;   // FAST score: largest threshold at which it is still a corner
+  float size = 0;       // patch diameter in level-0 pixels (31 * level scale)
   int16_t level = 0;
-  int16_t x_level = 0;   // integer position in its own level
+  int16_t x_level = 0;  // integer position in its own level
   int16_t y_level = 0;
 };
 
@@ -109,7 +109,8 @@ struct OrbExtractStats {
   std::array<int, OrbOptions::kMaxLevels> candidates{};  // after 3x3 non-maximal suppression
   std::array<int, OrbOptions::kMaxLevels> selected{};
   std::array<int, OrbOptions::kMaxLevels> weak_cells{};  // cells served at fast_threshold_min
-  std::array<int, OrbOptions::kMaxLevels> candidate_overflow{};  // dropped: candidate buffer full (never, by sizing)
+  std::array<int, OrbOptions::kMaxLevels>
+      candidate_overflow{};  // dropped: candidate buffer full (never, by sizing)
 };
 
 class OrbExtractor {
@@ -165,7 +166,8 @@ inline int popcount64(std::uint64_t x) noexcept {
 
 // Hamming distance between two descriptors (0..256).
 inline int hamming_distance(const OrbDescriptor& a, const OrbDescriptor& b) noexcept {
-  return popcount64(a[0] ^ b[0]) + popcount64(a[1] ^ b[1]) + popcount64(a[2] ^ b[2]) + popcount64(a[3] ^ b[3]);
+  return popcount64(a[0] ^ b[0]) + popcount64(a[1] ^ b[1]) + popcount64(a[2] ^ b[2]) +
+         popcount64(a[3] ^ b[3]);
 }
 
 // The nearest and second-nearest descriptor distance seen so far, for
@@ -188,9 +190,9 @@ struct BestTwoMatches {
 };
 
 struct OrbMatch {
-  int query = 0;      // index into the first set
-  int train = 0;      // index into the second set
-  int distance = 0;   // Hamming
+  int query = 0;     // index into the first set
+  int train = 0;     // index into the second set
+  int distance = 0;  // Hamming
 };
 
 // Brute-force nearest neighbour with Lowe's ratio test (best < ratio * second

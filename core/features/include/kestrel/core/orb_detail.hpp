@@ -11,11 +11,11 @@
 
 namespace kestrel::core::orb_detail {
 
-constexpr int kPatchRadius = 15;     // orientation patch (circular), as in ORB
-constexpr int kPatternRadius = 13;   // every BRIEF test point lies in this disc
+constexpr int kPatchRadius = 15;    // orientation patch (circular), as in ORB
+constexpr int kPatternRadius = 13;  // every BRIEF test point lies in this disc
 constexpr int kPatchDiameter = 2 * kPatchRadius + 1;
 constexpr int kBriefPairs = 256;
-constexpr int kBlurRadius = 3;       // 7x7 Gaussian, sigma 2
+constexpr int kBlurRadius = 3;  // 7x7 Gaussian, sigma 2
 
 struct Plane {
   const uint8_t* data = nullptr;
@@ -48,8 +48,8 @@ int fast_score(const uint8_t* p, const std::array<int, 16>& offsets);
 // area it covers, with fractional weights at its edges (8-bit fixed point).
 // tmp: src.width bytes; xtab/ytab: dst.width and dst.height entries.
 struct AreaTap {
-  int32_t first = 0;             // first input index
-  std::array<uint16_t, 3> w{};   // weights of first, first+1, first+2 (sum 256)
+  int32_t first = 0;            // first input index
+  std::array<uint16_t, 3> w{};  // weights of first, first+1, first+2 (sum 256)
 };
 // tmp: area_resize_tmp_bytes(src.width, dst.width) bytes (the vector path's
 // 16-row block, its transpose and the transposed output); xtab: dst.width

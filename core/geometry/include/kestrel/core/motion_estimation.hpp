@@ -15,9 +15,9 @@
 
 #include <Eigen/Core>
 #include <Eigen/Geometry>
+#include <cmath>
 #include <cstddef>
 #include <cstdint>
-#include <cmath>
 #include <iosfwd>
 #include <limits>
 
@@ -104,12 +104,13 @@ struct TranslationNormalEquations {
 
 // Plain least squares of eq. 3 over c[0..n) (or over c[idx[k]], k < n, when idx
 // is given). Returns kOk, kTooFewCorrespondences or kDegenerate.
-MotionStatus translation_least_squares(const Eigen::Matrix3d& R, const PinholeK& K, const Correspondence2D3D* c,
-                                       std::size_t n, Eigen::Vector3d* t_out, const uint32_t* idx = nullptr);
+MotionStatus translation_least_squares(const Eigen::Matrix3d& R, const PinholeK& K,
+                                       const Correspondence2D3D* c, std::size_t n, Eigen::Vector3d* t_out,
+                                       const uint32_t* idx = nullptr);
 // Weighted: w_i = 1 / (sigma_px_i * z_cur_i)^2, z_cur_i = r3'p_i + t_z of a first plain solve.
 MotionStatus translation_least_squares_weighted(const Eigen::Matrix3d& R, const PinholeK& K,
-                                                const Correspondence2D3D* c, std::size_t n, Eigen::Vector3d* t_out,
-                                                const uint32_t* idx = nullptr);
+                                                const Correspondence2D3D* c, std::size_t n,
+                                                Eigen::Vector3d* t_out, const uint32_t* idx = nullptr);
 
 // ---------------------------------------------------------------------------
 // Consistency of (R, t) with a correspondence: the reprojection of R p + t
@@ -128,7 +129,8 @@ struct ConsistencyTest {
   // Squared bound for one correspondence.
   double threshold2(const Correspondence2D3D& c) const {
     double thr = threshold_px;
-    if (scale_by_sigma && c.sigma_px > 0.0f && reference_sigma_px > 0.0) thr *= c.sigma_px / reference_sigma_px;
+    if (scale_by_sigma && c.sigma_px > 0.0f && reference_sigma_px > 0.0)
+      thr *= c.sigma_px / reference_sigma_px;
     return thr * thr;
   }
   // Rp = R * p_prev. err2_px2 (optional) receives the squared error (infinity behind the camera).

@@ -15,9 +15,7 @@ namespace kestrel::core::so3 {
 
 inline Eigen::Matrix3d hat(const Eigen::Vector3d& v) {
   Eigen::Matrix3d m;
-  m << 0.0, -v.z(), v.y(),
-       v.z(), 0.0, -v.x(),
-       -v.y(), v.x(), 0.0;
+  m << 0.0, -v.z(), v.y(), v.z(), 0.0, -v.x(), -v.y(), v.x(), 0.0;
   return m;
 }
 

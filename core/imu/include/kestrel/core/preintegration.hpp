@@ -50,10 +50,10 @@ struct ImuNoiseParams {
   // Per-sample (discrete) variances at the nominal rate, per axis. The
   // integrator uses s^2 / dt with the actual dt, so a split sample interval
   // at a keyframe gets the right (larger) per-step variance.
-  double gyro_var_d = 0;      // [rad^2/s^2]
-  double acc_var_d = 0;       // [m^2/s^4]
-  double gyro_bias_var_d = 0; // [rad^2/s^2] per sample step
-  double acc_bias_var_d = 0;  // [m^2/s^4] per sample step
+  double gyro_var_d = 0;       // [rad^2/s^2]
+  double acc_var_d = 0;        // [m^2/s^4]
+  double gyro_bias_var_d = 0;  // [rad^2/s^2] per sample step
+  double acc_bias_var_d = 0;   // [m^2/s^4] per sample step
 
   static ImuNoiseParams from_imu_noise(const ImuNoise& n, double rate_hz);
   static ImuNoiseParams from_rig(const Rig& rig) { return from_imu_noise(rig.imu, rig.imu_rate_hz); }
@@ -76,7 +76,7 @@ enum class ImuSignalModel : uint8_t {
 
 struct PreintegrationParams {
   ImuNoiseParams noise;
-  double gravity_mps2 = 9.81;   // EuRoC's convention; 9.80665 is standard gravity
+  double gravity_mps2 = 9.81;  // EuRoC's convention; 9.80665 is standard gravity
   ImuSignalModel signal = ImuSignalModel::kLinear;
 
   static PreintegrationParams from_rig(const Rig& rig);
@@ -131,7 +131,7 @@ class Preintegrated {
 
   const Eigen::Vector3d& bias_gyro() const { return bg_; }
   const Eigen::Vector3d& bias_acc() const { return ba_; }
-  double dt_total() const { return dt_s_; }       // integrated time [s]
+  double dt_total() const { return dt_s_; }  // integrated time [s]
   int64_t t_start_ns() const { return t_start_ns_; }
   int64_t t_end_ns() const { return t_end_ns_; }  // end of the last segment (integrate_segment only)
   int steps() const { return steps_; }
@@ -155,8 +155,8 @@ class Preintegrated {
 // What preintegrate_window did with the samples it was given.
 struct WindowReport {
   int segments = 0;
-  int skipped_unusable = 0;       // NaN / saturated samples bridged over
-  int64_t extrapolated_ns = 0;    // span of [t_i, t_j] not bracketed by samples (held from the nearest one)
+  int skipped_unusable = 0;     // NaN / saturated samples bridged over
+  int64_t extrapolated_ns = 0;  // span of [t_i, t_j] not bracketed by samples (held from the nearest one)
   bool ok() const { return segments > 0; }
 };
 

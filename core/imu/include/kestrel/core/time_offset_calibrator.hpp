@@ -24,23 +24,23 @@
 namespace kestrel::core {
 
 struct TimeOffsetCalibratorOptions {
-  double search_ms = 60.0;   // offsets tried: [-search_ms, +search_ms]
-  double step_ms = 0.5;      // grid of the search; the minimum is refined by a parabola
-  double memory_s = 30.0;    // evidence older than this fades (e^-1): the offset and the gyro bias may drift
-  int min_intervals = 90;    // camera intervals (about 3 s at 30 Hz) before a first estimate
-  double max_sigma_ms = 1.0; // an estimate less certain than this is not published
+  double search_ms = 60.0;    // offsets tried: [-search_ms, +search_ms]
+  double step_ms = 0.5;       // grid of the search; the minimum is refined by a parabola
+  double memory_s = 30.0;     // evidence older than this fades (e^-1): the offset and the gyro bias may drift
+  int min_intervals = 90;     // camera intervals (about 3 s at 30 Hz) before a first estimate
+  double max_sigma_ms = 1.0;  // an estimate less certain than this is not published
   double sigma_floor_ms = 0.2;  // the 1-sigma reported is at least this (the residual is not white)
-  double gate_rad = 0.05;    // an interval no candidate offset explains within this is an outlier
+  double gate_rad = 0.05;       // an interval no candidate offset explains within this is an outlier
   double max_interval_s = 0.5;  // longer camera intervals are not used (the gyro history, the bias)
-  int gyro_capacity = 4096;  // samples kept: 2 s at 2 kHz, beyond the longest interval + 2 search windows
+  int gyro_capacity = 4096;     // samples kept: 2 s at 2 kHz, beyond the longest interval + 2 search windows
   std::string validate() const;
 };
 
 struct TimeOffsetEstimate {
   bool valid = false;
-  double td_s = 0.0;     // a frame stamped t was taken at t + td_s on the IMU's clock
-  double sigma_s = 0.0;  // 1-sigma
-  double intervals = 0;  // evidence behind it (forgetting-weighted count)
+  double td_s = 0.0;          // a frame stamped t was taken at t + td_s on the IMU's clock
+  double sigma_s = 0.0;       // 1-sigma
+  double intervals = 0;       // evidence behind it (forgetting-weighted count)
   double residual_rad = 0.0;  // rms per axis of camera - gyro rotation at the estimate
 };
 

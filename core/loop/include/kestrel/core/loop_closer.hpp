@@ -30,20 +30,20 @@
 namespace kestrel::core {
 
 struct LoopOptions {
-  double min_age_s = 10.0;   // candidates at least this much older than the query
+  double min_age_s = 10.0;  // candidates at least this much older than the query
   // Keyframes sharing at least this many points are connected: the query's
   // connected keyframes are not loop candidates, and a candidate's are
   // matched with it. 1 (any shared point) by default; ORB-SLAM's 15 closes
   // weakly linked revisits but let bad loops through on two Vicon flights
   // (docs/map.md, "Weakly linked revisits").
   int connected_min_shared = 1;
-  int max_candidates = 3;    // best BoW candidates verified per keyframe
-  double min_score = 0.01;   // BoW score floor
+  int max_candidates = 3;        // best BoW candidates verified per keyframe
+  double min_score = 0.01;       // BoW score floor
   int candidate_neighbours = 5;  // connected keyframes of a candidate whose points are matched too
   int match_max_hamming = 50;
   double match_ratio = 0.8;
   int ransac_iterations = 300;
-  double inlier_m = 0.05;    // 3D-3D inlier: this + 3 sigma of the depth
+  double inlier_m = 0.05;  // 3D-3D inlier: this + 3 sigma of the depth
   int min_inliers = 40;
   double min_inlier_share = 0.3;  // of the matches
   // Two-stage verification (docs/map.md, "Loops on natural flights"): the
@@ -98,7 +98,7 @@ struct LoopOptions {
   int cooldown_keyframes = 10;     // no new loop this soon after one
   // Relocalisation (relocaliser.hpp): no drift bound to lean on after a loss,
   // so stronger evidence, and a place that fits two poses is no evidence.
-  int reloc_max_candidates = 8;        // best BoW candidates verified per lost keyframe
+  int reloc_max_candidates = 8;  // best BoW candidates verified per lost keyframe
   int reloc_min_inliers = 50;
   double reloc_min_inlier_share = 0.4;
   int reloc_consistent_keyframes = 2;  // consecutive lost keyframes giving the same T_map_odom
@@ -112,12 +112,12 @@ struct LoopOptions {
 
 struct LoopStats {
   uint64_t queries = 0;
-  uint64_t candidates = 0;        // from the inverted index and the map's geometry
+  uint64_t candidates = 0;            // from the inverted index and the map's geometry
   uint64_t geometric_candidates = 0;  // ... of which from the geometry
-  uint64_t verified = 0;          // passed geometry and the drift bound
-  uint64_t rejected_inliers = 0;  // too few 3D-3D inliers
-  uint64_t rejected_drift = 0;    // a correction the odometry could not have drifted (an alias)
-  uint64_t rejected_planar = 0;   // every inlier on one plane: the correction along it is appearance only
+  uint64_t verified = 0;              // passed geometry and the drift bound
+  uint64_t rejected_inliers = 0;      // too few 3D-3D inliers
+  uint64_t rejected_drift = 0;        // a correction the odometry could not have drifted (an alias)
+  uint64_t rejected_planar = 0;       // every inlier on one plane: the correction along it is appearance only
   uint64_t rejected_consistency = 0;
   uint64_t skipped_insignificant = 0;  // verified, but the correction is within its own uncertainty
   uint64_t closures = 0;
@@ -134,7 +134,7 @@ enum class LoopVerdict : uint8_t {
   kFewRefitInliers,  // the refit on pixels and depths kept too few
   kPlanar,
   kDrift,
-  kInsignificant,    // verified, but within its own uncertainty
+  kInsignificant,  // verified, but within its own uncertainty
   kVerified,
 };
 const char* loop_verdict_name(LoopVerdict v);
@@ -167,8 +167,8 @@ class PlaceMatcher {
  public:
   enum Result { kOk, kFewInliers };
   PlaceMatcher(Map& map, const MapCamera& cam);
-  Result match(const KeyframeFeature* f, int n, const Eigen::Isometry3d& T_MC, int candidate, const LoopOptions& opt,
-               uint64_t seed, PlaceFit* out);
+  Result match(const KeyframeFeature* f, int n, const Eigen::Isometry3d& T_MC, int candidate,
+               const LoopOptions& opt, uint64_t seed, PlaceFit* out);
 
  private:
   using Pairs = std::vector<std::pair<int, int>>;
@@ -211,14 +211,13 @@ class PlaceMatcher {
 // Yaw of a rotation about W's (or M's) z axis [rad].
 double yaw_of(const Eigen::Matrix3d& R);
 
-
 // The loop log (LoopCloser::set_logging): every query and every candidate
 // with what verification made of it, so a flight's misses can be explained
 // against its ground truth (tools: `--loop-log`, docs/map.md).
 struct LoopQueryRecord {
   uint32_t id = 0;
   int64_t t_ns = 0;
-  bool cooldown = false;  // not searched: too soon after a closure
+  bool cooldown = false;                                   // not searched: too soon after a closure
   Eigen::Isometry3d T_MC = Eigen::Isometry3d::Identity();  // at the query
   // Keyframes at least min_age_s older that the map already links it to
   // (shared points, most first, at most 8): a revisit the local mapper's
@@ -317,7 +316,7 @@ class LoopCloser {
   std::vector<int32_t> kf_scratch_, shared_scratch_;
   bool logging_ = false;
   LoopLog log_;
-  int64_t chosen_record_ = -1;        // the record detect() chose, or -1
+  int64_t chosen_record_ = -1;  // the record detect() chose, or -1
 };
 
 }  // namespace kestrel::core

@@ -12,7 +12,7 @@
 namespace kestrel::core {
 
 struct PoseGraphEdge {
-  int i = 0, j = 0;                               // node indices
+  int i = 0, j = 0;                                // node indices
   Eigen::Vector3d t_ij = Eigen::Vector3d::Zero();  // R_i^T (p_j - p_i)
   double yaw_ij = 0.0;                             // yaw_j - yaw_i
   double sigma_m = 0.01, sigma_rad = 0.005;

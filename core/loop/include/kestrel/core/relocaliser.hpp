@@ -47,7 +47,7 @@ class Relocaliser {
  private:
   bool agree(const Eigen::Isometry3d& a, const Eigen::Isometry3d& b, const Eigen::Vector3d& at) const;
   Map& map_;
-  LoopOptions opt_;       // the loop's matching thresholds with the relocalisation's evidence
+  LoopOptions opt_;  // the loop's matching thresholds with the relocalisation's evidence
   PlaceMatcher matcher_;
   RelocStats stats_;
   std::unique_ptr<BowEntry[]> bow_;

@@ -49,7 +49,7 @@ struct GlobalBaStats {
   uint64_t fixed_keyframes = 0;
   uint64_t points = 0;
   uint64_t observations = 0;
-  uint64_t odometry_factors = 0;  // last run
+  uint64_t odometry_factors = 0;    // last run
   uint64_t outliers = 0;            // left out of the second round, last run
   uint64_t followed_keyframes = 0;  // mapped during the solve: took their parent's correction (all runs)
   uint64_t followed_points = 0;

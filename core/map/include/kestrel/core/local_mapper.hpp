@@ -41,16 +41,16 @@ struct MapCamera {
 double point_sigma_m(const MapCamera& cam, const MapPoint& p, double floor_m);
 
 struct LocalMapperStats {
-  uint64_t keyframes = 0;        // inserted
-  uint64_t refused_full = 0;     // not inserted: the map was full even after culling
+  uint64_t keyframes = 0;     // inserted
+  uint64_t refused_full = 0;  // not inserted: the map was full even after culling
   uint64_t points_created = 0;
-  uint64_t points_fused = 0;     // duplicates merged
+  uint64_t points_fused = 0;        // duplicates merged
   uint64_t observations_added = 0;  // by projection (fusing), beyond the tracker's ids
   uint64_t points_culled = 0;
   uint64_t keyframes_culled = 0;
   uint64_t ba_runs = 0;
   uint64_t ba_failures = 0;
-  uint64_t ba_outliers = 0;      // observations dropped by the bundle adjustment
+  uint64_t ba_outliers = 0;  // observations dropped by the bundle adjustment
 };
 
 class LocalMapper {

@@ -31,17 +31,17 @@ struct MapOptions {
   int max_keyframes = 2000;
   int max_points = 200000;
   // Local bundle adjustment (local_mapper.hpp).
-  int ba_keyframes = 8;           // covisible keyframes optimised with the new one
-  int ba_fixed_keyframes = 16;    // other keyframes seeing the same points, held fixed
-  int ba_iterations = 5;          // per round; two rounds with outliers dropped in between
+  int ba_keyframes = 8;         // covisible keyframes optimised with the new one
+  int ba_fixed_keyframes = 16;  // other keyframes seeing the same points, held fixed
+  int ba_iterations = 5;        // per round; two rounds with outliers dropped in between
   enum class BaSolver { kOurs, kCeres } ba_solver = BaSolver::kOurs;  // bundle_adjustment.hpp
-  double ba_huber = 2.8;          // Huber on the whitened error (sqrt of chi2 95 % for 3 dof: 2.80)
-  double ba_outlier_chi2 = 7.815; // an observation above this after round 1 is dropped (chi2 95 %, 3 dof)
+  double ba_huber = 2.8;           // Huber on the whitened error (sqrt of chi2 95 % for 3 dof: 2.80)
+  double ba_outlier_chi2 = 7.815;  // an observation above this after round 1 is dropped (chi2 95 %, 3 dof)
   // The odometry's gravity direction holds each keyframe's roll and pitch:
   // vision alone lets a growing map tilt, the IMU sees gravity (1-sigma [rad]).
   double ba_gravity_sigma_rad = 0.01;
   // Fusing: points of the covisible keyframes projected into a new one.
-  double fuse_radius_px = 4.0;    // at level 0, scaled with the level
+  double fuse_radius_px = 4.0;  // at level 0, scaled with the level
   int fuse_max_hamming = 50;
   double fuse_depth_tol_rel = 0.05;  // measured depth vs projected within rel x z + 3 cm
   // Culling.
@@ -81,15 +81,15 @@ struct MapKeyframe {
   int64_t t_ns = 0;
   Eigen::Isometry3d T_MC = Eigen::Isometry3d::Identity();
   Eigen::Isometry3d T_WC = Eigen::Isometry3d::Identity();  // odometry pose when it came
-  Eigen::Vector3d g_C = Eigen::Vector3d(0, 0, -1);           // gravity direction in C, from the odometry
-  int32_t parent = -1;  // spanning tree: the keyframe it was chained from
-  uint32_t session = 0;  // 0: this flight; > 0: loaded from a map file
-  uint32_t chain = 0;    // the odometry chain of T_WC (KeyframePacket::chain): T_WC compare within one
-  int n = 0;             // features
+  Eigen::Vector3d g_C = Eigen::Vector3d(0, 0, -1);         // gravity direction in C, from the odometry
+  int32_t parent = -1;                                     // spanning tree: the keyframe it was chained from
+  uint32_t session = 0;                                    // 0: this flight; > 0: loaded from a map file
+  uint32_t chain = 0;     // the odometry chain of T_WC (KeyframePacket::chain): T_WC compare within one
+  int n = 0;              // features
   int first_feature = 0;  // into Map::features / Map::point_of
   int n_bow = 0;          // its BoW vector: Map::bow(kf), n_bow entries (with a vocabulary)
   double path_m = 0.0;    // odometry path flown before it, this session (bounds a loop's drift)
-  uint64_t mark = 0;     // scratch stamps for set membership in one pass
+  uint64_t mark = 0;      // scratch stamps for set membership in one pass
   uint64_t mark2 = 0;
 };
 
@@ -112,7 +112,8 @@ class Map {
  public:
   // With a vocabulary every keyframe gets a BoW vector and enters the
   // inverted index (place recognition); without one it does not.
-  Map(const MapOptions& opt, int features_per_keyframe, std::shared_ptr<const Vocabulary> vocabulary = nullptr);
+  Map(const MapOptions& opt, int features_per_keyframe,
+      std::shared_ptr<const Vocabulary> vocabulary = nullptr);
   ~Map();
   Map(const Map&) = delete;
   Map& operator=(const Map&) = delete;
@@ -134,7 +135,9 @@ class Map {
   MapKeyframe& keyframe(int kf) { return kfs_[kf]; }
   const MapKeyframe& keyframe(int kf) const { return kfs_[kf]; }
   KeyframeFeature& feature(int kf, int j) { return features_[static_cast<size_t>(kf) * fpk_ + j]; }
-  const KeyframeFeature& feature(int kf, int j) const { return features_[static_cast<size_t>(kf) * fpk_ + j]; }
+  const KeyframeFeature& feature(int kf, int j) const {
+    return features_[static_cast<size_t>(kf) * fpk_ + j];
+  }
   // The point feature j of keyframe kf observes, -1: none.
   int32_t point_of(int kf, int j) const { return point_of_[static_cast<size_t>(kf) * fpk_ + j]; }
   // The newest keyframe (largest id), -1 when empty.

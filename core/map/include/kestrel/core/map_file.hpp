@@ -40,6 +40,7 @@ struct MapFileInfo {
 // Returns "" or what is wrong (damaged, truncated, foreign, another version,
 // another vocabulary or camera, larger than the map's capacity); on error the
 // map may hold part of the file and should be discarded.
-std::string decode_map(const uint8_t* data, size_t n, const MapCamera& cam, Map* map, MapFileInfo* info = nullptr);
+std::string decode_map(const uint8_t* data, size_t n, const MapCamera& cam, Map* map,
+                       MapFileInfo* info = nullptr);
 
 }  // namespace kestrel::core

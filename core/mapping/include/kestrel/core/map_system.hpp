@@ -41,7 +41,7 @@ struct MapSystemOptions {
   bool mapping = true;  // the map and the local mapping thread (--mapping on|off)
   bool loop = true;     // loop closing and relocalisation (--loop on|off; nothing without mapping)
   MapOptions map;
-  LoopOptions closing;  // loop detection, verification, correction (loop_closer.hpp)
+  LoopOptions closing;        // loop detection, verification, correction (loop_closer.hpp)
   GlobalBaOptions global_ba;  // after each closed loop (global_bundle_adjustment.hpp)
   // Place recognition's vocabulary file ("": the one built into `kestrel`,
   // configs/vocabulary/). Core does no I/O: tools load it into `vocabulary`;
@@ -147,7 +147,7 @@ class MapSystem {
   std::unique_ptr<Map> map_;
   std::unique_ptr<LocalMapper> mapper_;
   std::unique_ptr<LoopCloser> closer_;
-  std::unique_ptr<Relocaliser> reloc_;  // with a vocabulary and the loop on
+  std::unique_ptr<Relocaliser> reloc_;           // with a vocabulary and the loop on
   std::unique_ptr<GlobalBundleAdjustment> gba_;  // with the loop on and map.global_ba
   MapCamera cam_;
   // Packets: slot indices tracking -> mapping (todo), mapping -> tracking (free).
@@ -169,8 +169,8 @@ class MapSystem {
   MapFrameState state_;
   bool realigned_ = false;
   int32_t last_kf_ = -1;
-  uint32_t chain_ = 0;            // the odometry chain the map is localised in
-  bool loaded_unfound_ = false;   // a loaded map this flight has not found yet
+  uint32_t chain_ = 0;           // the odometry chain the map is localised in
+  bool loaded_unfound_ = false;  // a loaded map this flight has not found yet
   int64_t lost_since_ns_ = -1;
   rt::LatencyHistogram mapping_latency_, loop_latency_, gba_latency_;
   MapSystemCounters counters_;

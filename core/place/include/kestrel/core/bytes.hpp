@@ -92,7 +92,8 @@ class ByteReader {
       return T{};
     }
     T v = 0;
-    for (size_t i = 0; i < sizeof(T); ++i) v = static_cast<T>(v | static_cast<T>(static_cast<T>(p_[off_ + i]) << (8 * i)));
+    for (size_t i = 0; i < sizeof(T); ++i)
+      v = static_cast<T>(v | static_cast<T>(static_cast<T>(p_[off_ + i]) << (8 * i)));
     off_ += sizeof(T);
     return v;
   }
@@ -106,7 +107,7 @@ class ByteReader {
 // payload, CRC-32 of the payload (u32). seal() writes it; open() checks it
 // and returns "" with the payload's place, or what is wrong.
 std::vector<uint8_t> seal(const char magic[4], uint32_t version, const std::vector<uint8_t>& payload);
-std::string open_sealed(const uint8_t* data, size_t n, const char magic[4], uint32_t version, const uint8_t** payload,
-                        size_t* payload_n);
+std::string open_sealed(const uint8_t* data, size_t n, const char magic[4], uint32_t version,
+                        const uint8_t** payload, size_t* payload_n);
 
 }  // namespace kestrel::core

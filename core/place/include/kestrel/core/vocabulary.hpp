@@ -38,9 +38,9 @@ double bow_score(const BowEntry* a, int na, const BowEntry* b, int nb);
 class Vocabulary {
  public:
   struct TrainOptions {
-    int k = 10;              // branching factor
-    int levels = 4;          // depth: up to k^levels words
-    int max_iterations = 10; // k-majority iterations per node
+    int k = 10;               // branching factor
+    int levels = 4;           // depth: up to k^levels words
+    int max_iterations = 10;  // k-majority iterations per node
     uint64_t seed = 1;
     uint64_t pattern_seed = OrbOptions{}.pattern_seed;  // of the descriptors trained on (recorded)
   };
@@ -79,7 +79,7 @@ class Vocabulary {
     OrbDescriptor desc{};
     int32_t first_child = -1;  // children are contiguous
     int32_t n_children = 0;
-    int32_t word = -1;         // leaves only
+    int32_t word = -1;  // leaves only
   };
   void finish();  // word table and checksum
   std::vector<Node> nodes_;

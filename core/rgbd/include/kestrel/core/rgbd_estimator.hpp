@@ -40,14 +40,14 @@ namespace kestrel::core {
 struct RgbdEstimatorOptions {
   TrackerOptions tracker;
   WindowOptions window;
-  bool use_window = true;       // false: the tracker's poses alone (frame-to-keyframe + local map)
-  int min_observations = 8;     // a frame with fewer stays out of the window
+  bool use_window = true;    // false: the tracker's poses alone (frame-to-keyframe + local map)
+  int min_observations = 8;  // a frame with fewer stays out of the window
   // Search window: the motion model's pixel uncertainty at one frame, growing
   // with the time since the last tracked frame.
   double pred_sigma_px = 10.0;
   double pred_sigma_px_per_s = 150.0;
-  int max_lost_frames = 3;      // untracked frames before the tracker and the window restart
-  bool use_map_pose = true;     // keyframes re-located on the local map carry that pose into the window
+  int max_lost_frames = 3;   // untracked frames before the tracker and the window restart
+  bool use_map_pose = true;  // keyframes re-located on the local map carry that pose into the window
   double map_pose_sigma_m = 0.02;
   double map_pose_sigma_rad = 0.01;
   double max_correction_m = 0.2;  // window vs tracked pose beyond this: the solve is not taken
@@ -61,7 +61,8 @@ struct RgbdEstimatorOptions {
 struct RgbdCounters {
   uint64_t tracked = 0;
   uint64_t motion_model = 0;
-  double refined_rms_px_sum = 0;  // tracked frames' inlier reprojection RMS at the final pose, summed      // of those: posed by the motion-model fallback (TrackerOptions)
+  double refined_rms_px_sum = 0;  // tracked frames' inlier reprojection RMS at the final pose, summed      //
+                                  // of those: posed by the motion-model fallback (TrackerOptions)
   uint64_t keyframes = 0;
   uint64_t lost = 0;
   uint64_t lost_few_matches = 0;  // of those: too few matches in the search windows

@@ -136,8 +136,8 @@ class MotionWorkspace {
 
   std::size_t capacity() const { return capacity_; }
   // Last call's results, valid until the next estimate().
-  const uint8_t* inlier_mask() const { return mask_.get(); }          // [num_used], by correspondence index
-  const uint32_t* inlier_indices() const { return inliers_.get(); }   // [num_inliers], ascending
+  const uint8_t* inlier_mask() const { return mask_.get(); }         // [num_used], by correspondence index
+  const uint32_t* inlier_indices() const { return inliers_.get(); }  // [num_inliers], ascending
 
   // Optional 6-DoF step after estimate(): Gauss-Newton on the inliers of `est`
   // starting from (R, t) (usually the IMU R and est->t), then the inlier set
@@ -184,8 +184,8 @@ class LonscEstimator : public MotionWorkspace {
   // R: rotation from the IMU (p_cur = R p_prev + t). order: permutation of
   // [0, n) to walk (null = as given); entries >= n are skipped. t_init: the
   // paper's initial T (0 there); a velocity prediction works too.
-  MotionEstimate estimate(const Eigen::Matrix3d& R, const PinholeK& K, const Correspondence2D3D* c, std::size_t n,
-                          const uint32_t* order = nullptr,
+  MotionEstimate estimate(const Eigen::Matrix3d& R, const PinholeK& K, const Correspondence2D3D* c,
+                          std::size_t n, const uint32_t* order = nullptr,
                           const Eigen::Vector3d& t_init = Eigen::Vector3d::Zero());
 
  private:
@@ -198,7 +198,8 @@ class TwoPointRansac : public MotionWorkspace {
   const RansacOptions& options() const { return opt_; }
   void set_options(const RansacOptions& opt);
 
-  MotionEstimate estimate(const Eigen::Matrix3d& R, const PinholeK& K, const Correspondence2D3D* c, std::size_t n);
+  MotionEstimate estimate(const Eigen::Matrix3d& R, const PinholeK& K, const Correspondence2D3D* c,
+                          std::size_t n);
 
  private:
   uint64_t next_random();

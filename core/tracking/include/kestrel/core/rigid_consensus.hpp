@@ -28,11 +28,11 @@
 namespace kestrel::core {
 
 struct RigidOptions {
-  ConsistencyTest consistency;   // reprojection bound, 3 px by default
-  double depth_tol_rel = 0.04;   // 3D distance bound, share of the current depth...
-  double depth_tol_m = 0.02;     // ...plus this (depth noise and registration error)
-  int min_run_length = 5;        // LONSC: shorter runs are not trusted
-  int candidate_runs = 3;        // LONSC: longest runs that each propose a motion, at most 8
+  ConsistencyTest consistency;        // reprojection bound, 3 px by default
+  double depth_tol_rel = 0.04;        // 3D distance bound, share of the current depth...
+  double depth_tol_m = 0.02;          // ...plus this (depth noise and registration error)
+  int min_run_length = 5;             // LONSC: shorter runs are not trusted
+  int candidate_runs = 3;             // LONSC: longest runs that each propose a motion, at most 8
   double min_sample_spread_m = 0.05;  // a triple whose points are closer than this is degenerate
   std::size_t min_inliers = 8;
   // RANSAC.
@@ -49,13 +49,13 @@ struct RigidEstimate {
   Eigen::Matrix3d R = Eigen::Matrix3d::Identity();  // p_cur = R p_prev + t
   Eigen::Vector3d t = Eigen::Vector3d::Zero();
   std::size_t num_inliers = 0;
-  std::size_t num_3d = 0;        // correspondences with a current depth
-  int model_estimates = 0;       // rigid fits (seeds, growth re-fits, hypotheses): a 3x3 SVD each
+  std::size_t num_3d = 0;   // correspondences with a current depth
+  int model_estimates = 0;  // rigid fits (seeds, growth re-fits, hypotheses): a 3x3 SVD each
   // Pairs tested against a model: the cost that scales with the matches (a
   // RANSAC hypothesis tests all of them, a LONSC growth step one).
   std::size_t consistency_checks = 0;
-  int hypotheses = 0;            // models whose consensus was counted
-  int longest_run = 0;           // LONSC
+  int hypotheses = 0;   // models whose consensus was counted
+  int longest_run = 0;  // LONSC
   double inlier_rms_px = 0;
   bool ok() const { return status == MotionStatus::kOk; }
 };

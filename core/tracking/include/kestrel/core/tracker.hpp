@@ -36,9 +36,9 @@ struct TrackerOptions {
   double search_radius_min_px = 20.0;
   double search_radius_max_px = 60.0;
   double search_k_sigma = 3.0;
-  float match_ratio = 0.85f;        // best < ratio * second best within the window
-  int match_max_hamming = 80;       // of 256 bits
-  int match_max_level_diff = 1;     // pyramid levels between keyframe and current keypoint
+  float match_ratio = 0.85f;     // best < ratio * second best within the window
+  int match_max_hamming = 80;    // of 256 bits
+  int match_max_level_diff = 1;  // pyramid levels between keyframe and current keypoint
   LonscOptions lonsc;
   CorrespondenceOrder order = CorrespondenceOrder::kByMatchCost;
   // Without an IMU rotation (track(..., rotation_known = false): the rgbd
@@ -48,8 +48,8 @@ struct TrackerOptions {
   RigidMethod rigid_method = RigidMethod::kLonsc;
   RigidOptions rigid;
   PoseRefineOptions refine;
-  double keypoint_sigma_px = 1.0;   // at level 0; scales with the level
-  int min_inliers = 15;             // below: the frame is not tracked
+  double keypoint_sigma_px = 1.0;  // at level 0; scales with the level
+  int min_inliers = 15;            // below: the frame is not tracked
   // Without an IMU rotation, a frame the rigid consensus cannot fix (too few
   // pairs with a current depth: a dropped or repeated depth image, depth
   // lost to range or glare) is tracked the way ORB-SLAM tracks with its
@@ -59,10 +59,10 @@ struct TrackerOptions {
   // 0: off (the frame is lost).
   int motion_model_min_inliers = 30;
   // Keyframes.
-  double keyframe_area_ratio = 0.55;   // matched / detected area below this: new keyframe
-  int keyframe_min_inliers = 60;       // fewer inliers than this: new keyframe
+  double keyframe_area_ratio = 0.55;  // matched / detected area below this: new keyframe
+  int keyframe_min_inliers = 60;      // fewer inliers than this: new keyframe
   double keyframe_max_interval_s = 5.0;
-  int area_grid_cols = 16;             // the area measure (docs/tracking.md)
+  int area_grid_cols = 16;  // the area measure (docs/tracking.md)
   int area_grid_rows = 12;
   // Depth: a 3x3 neighbourhood spread above this fraction of the depth marks
   // a depth edge, where the back-projection would mix two surfaces.
@@ -72,15 +72,15 @@ struct TrackerOptions {
   // searches it by projection, and when enough old points are found again it
   // takes the pose they give (PnP) instead of the chained one: drift then
   // stops growing wherever the vehicle returns to what it has seen.
-  int map_capacity = 8192;              // 0: off
+  int map_capacity = 8192;  // 0: off
   double map_search_radius_px = 12.0;
   int map_match_max_hamming = 60;
   float map_match_ratio = 0.8f;
-  double map_depth_tol_rel = 0.05;      // |z_feature - z_map| <= rel * z + 3 cm
-  int map_min_inliers = 20;             // fewer: the keyframe keeps its chained pose
-  double map_max_correction_m = 0.15;   // a larger jump is taken for a false match set
+  double map_depth_tol_rel = 0.05;     // |z_feature - z_map| <= rel * z + 3 cm
+  int map_min_inliers = 20;            // fewer: the keyframe keeps its chained pose
+  double map_max_correction_m = 0.15;  // a larger jump is taken for a false match set
   double map_max_correction_rad = 0.05;
-  double map_max_sigma_m = 0.03;        // a PnP less certain than this (clustered points) is not reported
+  double map_max_sigma_m = 0.03;  // a PnP less certain than this (clustered points) is not reported
   // Far tracks: keyframe features without depth (beyond the depth sensor's
   // range, mostly) are followed too, once the frame's motion is known, along
   // their epipolar segment between the sensor's max range and infinity. They
@@ -98,28 +98,28 @@ struct TrackerOptions {
 
 enum class TrackStatus : uint8_t {
   kTracked = 0,
-  kNewKeyframe,      // the first frame, or a re-initialisation: nothing to track against
+  kNewKeyframe,  // the first frame, or a re-initialisation: nothing to track against
   kNoImage,
-  kFeatureError,     // the extractor refused the image (size/format)
+  kFeatureError,  // the extractor refused the image (size/format)
   kTooFewMatches,
-  kMotionFailed,     // LONSC / refinement found no consistent motion
+  kMotionFailed,  // LONSC / refinement found no consistent motion
 };
 const char* to_string(TrackStatus s);
 
 struct TrackResult {
   TrackStatus status = TrackStatus::kNoImage;
-  Eigen::Isometry3d T_WC = Eigen::Isometry3d::Identity();   // valid when tracked() or a keyframe was set
-  bool keyframe = false;        // this frame became the keyframe
-  int detected = 0;             // features in the current frame
-  int with_depth = 0;           // of those, with a valid depth
-  int stereo_searched = 0;      // stereo: features searched along their row of the right image
+  Eigen::Isometry3d T_WC = Eigen::Isometry3d::Identity();  // valid when tracked() or a keyframe was set
+  bool keyframe = false;                                   // this frame became the keyframe
+  int detected = 0;                                        // features in the current frame
+  int with_depth = 0;                                      // of those, with a valid depth
+  int stereo_searched = 0;       // stereo: features searched along their row of the right image
   bool stereo_no_right = false;  // stereo: the frame came without its right image (tracked without depth)
-  int predicted = 0;            // keyframe points that projected into the image
-  int matched = 0;              // correspondences handed to LONSC
+  int predicted = 0;             // keyframe points that projected into the image
+  int matched = 0;               // correspondences handed to LONSC
   int inliers = 0;
-  int far_predicted = 0;        // far tracks: keyframe features without depth searched
-  int far_tracked = 0;          // ... and found again (observations without depth)
-  double area_ratio = 0;        // matched / detected cells of the area grid
+  int far_predicted = 0;  // far tracks: keyframe features without depth searched
+  int far_tracked = 0;    // ... and found again (observations without depth)
+  double area_ratio = 0;  // matched / detected cells of the area grid
   double search_radius_px = 0;
   double inlier_rms_px = 0;
   // Reprojection RMS of the inliers at the final pose [px]: a calibration
@@ -137,9 +137,9 @@ struct TrackResult {
   double map_correction_m = 0;
   bool map_corrected = false;
   MotionStatus motion_status = MotionStatus::kOk;
-  bool six_dof = false;      // tracked without a rotation prior (rigid model)
-  bool motion_model = false; // six_dof: the rigid consensus failed, the motion-model fallback fixed the pose
-  int model_estimates = 0;   // six_dof: rigid fits the consensus search made
+  bool six_dof = false;       // tracked without a rotation prior (rigid model)
+  bool motion_model = false;  // six_dof: the rigid consensus failed, the motion-model fallback fixed the pose
+  int model_estimates = 0;    // six_dof: rigid fits the consensus search made
   bool tracked() const { return status == TrackStatus::kTracked; }
 };
 
@@ -171,7 +171,8 @@ class Tracker {
   // rotation only places the search windows and the motion is solved in 6
   // DoF from the pairs with depth (TrackerOptions::rigid_method).
   const TrackResult& track(int64_t t_ns, const ImageView& image, const ImageView& depth,
-                           const Eigen::Isometry3d& T_WC_pred, double pred_sigma_px, bool rotation_known = true);
+                           const Eigen::Isometry3d& T_WC_pred, double pred_sigma_px,
+                           bool rotation_known = true);
   // A stereo rig (Rig::stereo rectified): image and right are the rectified
   // pair and the features' depth comes from the row search; a frame without
   // its right image is tracked with depth-less features. Without a stereo

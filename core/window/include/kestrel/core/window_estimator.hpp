@@ -104,9 +104,9 @@ struct WindowEstimatorCounters {
   uint64_t skipped_no_imu = 0;  // a frame not followed by IMU before the next one
   uint64_t stale_results = 0;   // too old to propagate to now
   uint64_t imu_gaps = 0;
-  uint64_t stationary_frames = 0;  // window frames given the zero-velocity factor
-  uint64_t map_poses = 0;          // window frames given the local map's pose
-  uint64_t vision_only_frames = 0; // window frames without an IMU factor (IMU silent)
+  uint64_t stationary_frames = 0;   // window frames given the zero-velocity factor
+  uint64_t map_poses = 0;           // window frames given the local map's pose
+  uint64_t vision_only_frames = 0;  // window frames without an IMU factor (IMU silent)
   // The tracker's far tracks (frontend.far_tracks): observations without depth.
   uint64_t far_observations = 0;
 };
@@ -149,7 +149,9 @@ class WindowEstimator final : public Estimator {
   bool mapping_step() override { return map_ && map_->mapping_step(); }
   bool loop_step() override { return map_ && map_->loop_step(); }
   bool map_busy() const override { return map_ && map_->busy(); }
-  const rt::LatencyHistogram* mapping_latency() const override { return map_ ? &map_->mapping_latency() : nullptr; }
+  const rt::LatencyHistogram* mapping_latency() const override {
+    return map_ ? &map_->mapping_latency() : nullptr;
+  }
   const rt::LatencyHistogram* loop_latency() const override { return map_ ? &map_->loop_latency() : nullptr; }
   std::vector<uint8_t> save_map() const override { return map_ ? map_->save() : std::vector<uint8_t>{}; }
   std::vector<MapKeyframePose> map_keyframe_poses() const override;
@@ -252,7 +254,7 @@ class WindowEstimator final : public Estimator {
   std::unique_ptr<TimeOffsetCalibrator> calib_;
   std::unique_ptr<Correspondence2D3D[]> corr_;  // scratch of measure_camera_rotation [prev_cap_]
   Eigen::Vector3d last_gyro_rps_ = Eigen::Vector3d::Zero();
-  double td_s_ = 0.0;  // the last applied solve's time offset
+  double td_s_ = 0.0;              // the last applied solve's time offset
   rt::SpscRing<uint8_t, 8> todo_;  // front -> optimizer
   rt::SpscRing<uint8_t, 8> done_;  // optimizer -> front (slots to reuse)
   int free_slots_[kPool] = {};

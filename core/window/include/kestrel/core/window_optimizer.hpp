@@ -41,8 +41,8 @@ class WindowOptimizer {
     int residuals = 0;  // residual blocks (visual + IMU + priors)
   };
   struct Counters {
-    uint64_t obs_skipped_budget = 0;    // no free landmark slot / frame full
-    uint64_t obs_skipped_invalid = 0;   // non-finite, depth beyond range, duplicate id in a frame
+    uint64_t obs_skipped_budget = 0;   // no free landmark slot / frame full
+    uint64_t obs_skipped_invalid = 0;  // non-finite, depth beyond range, duplicate id in a frame
     uint64_t landmarks_triangulated = 0;
     uint64_t landmarks_from_depth = 0;
     uint64_t marginalizations = 0;
@@ -50,7 +50,9 @@ class WindowOptimizer {
   };
 
   // The pinhole part of the rig's colour camera (observations come undistorted).
-  static PinholeK pinhole_of(const Rig& rig) { return PinholeK{rig.rgb.fx, rig.rgb.fy, rig.rgb.cx, rig.rgb.cy}; }
+  static PinholeK pinhole_of(const Rig& rig) {
+    return PinholeK{rig.rgb.fx, rig.rgb.fy, rig.rgb.cx, rig.rgb.cy};
+  }
 
   // Allocates everything. Throws std::invalid_argument when options.validate() fails.
   WindowOptimizer(const PinholeK& K, const Eigen::Isometry3d& T_BC, const WindowOptions& options);
@@ -92,9 +94,9 @@ class WindowOptimizer {
 
   // For tests and benchmarks.
   int num_states() const { return problem_->n_states; }
-  int num_landmarks() const;      // initialised landmarks in the problem
-  int prior_dimension() const;    // rows of the marginalisation prior in use (0: none)
-  double evaluate_cost() const;   // cost at the current estimates
+  int num_landmarks() const;     // initialised landmarks in the problem
+  int prior_dimension() const;   // rows of the marginalisation prior in use (0: none)
+  double evaluate_cost() const;  // cost at the current estimates
   const Counters& counters() const { return counters_; }
   const WindowOptions& options() const { return problem_->opt; }
   WindowProblem& problem() { return *problem_; }

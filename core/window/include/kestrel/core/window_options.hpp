@@ -17,8 +17,8 @@ namespace kestrel::core {
 constexpr int kWindowMaxStates = 10;
 
 struct WindowOptions {
-  int S = 3;  // most recent frames (temporal window), >= 1
-  int N = 5;  // keyframes outside the temporal window, >= 1; S + N <= kWindowMaxStates
+  int S = 3;                    // most recent frames (temporal window), >= 1
+  int N = 5;                    // keyframes outside the temporal window, >= 1; S + N <= kWindowMaxStates
   int max_landmarks = 600;      // landmark budget, fixed at construction
   int max_obs_per_frame = 300;  // observations kept per frame (the rest are skipped and counted)
   enum class Solver { kOurs, kCeres } solver = Solver::kOurs;
@@ -28,8 +28,8 @@ struct WindowOptions {
   bool use_depth = true;         // RGB-D depth as a third row of the visual residual
   double depth_sigma_coeff_per_m = 0.0025;  // sigma_depth(z) = k z^2 [m]
   bool marginalize = true;                  // false: dropped states and their factors are simply discarded
-  double pixel_sigma = 1.0;  // [px] used when an observation's sigma_px <= 0
-  ImuNoiseParams imu;        // noise densities for the bias factor (preintegrations carry their own)
+  double pixel_sigma = 1.0;                 // [px] used when an observation's sigma_px <= 0
+  ImuNoiseParams imu;  // noise densities for the bias factor (preintegrations carry their own)
   // Accelerometer bias model of the bias factor: Forster's random walk, or
   // paper 000 eq. 6 bounded random walk db/dt = -b/tau + w (tau below).
   enum class AccBiasModel { kRandomWalk, kBoundedRandomWalk } acc_bias_model = AccBiasModel::kRandomWalk;
@@ -78,8 +78,9 @@ struct WindowOptions {
 
 struct WindowFrameInput {
   int64_t t_ns = 0;
-  NavState guess;                             // pose/vel/bias initial guess (from the front end)
-  const Preintegrated* imu_from_prev = nullptr;  // previous added frame -> this one (null for the first); copied
+  NavState guess;  // pose/vel/bias initial guess (from the front end)
+  const Preintegrated* imu_from_prev =
+      nullptr;  // previous added frame -> this one (null for the first); copied
   const WindowObservation* obs = nullptr;
   int n_obs = 0;
   bool keyframe = false;

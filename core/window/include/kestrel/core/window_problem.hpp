@@ -30,11 +30,11 @@ using Matrix36d = Eigen::Matrix<double, 3, 6>;
 struct WindowObs {
   int32_t lm = -1;  // landmark index, -1: unused (dropped, or its landmark is gone)
   Eigen::Vector2d uv = Eigen::Vector2d::Zero();
-  double depth_m = 0.0;       // 0: none (or use_depth off)
+  double depth_m = 0.0;  // 0: none (or use_depth off)
   double sigma_px = 1.0;
   double sigma_depth_m = 0.0;
   Eigen::Vector2d uv_vel_pxps = Eigen::Vector2d::Zero();  // image velocity (time offset)
-  double depth_vel_mps = 0.0;  // rate of change of the depth (time offset)
+  double depth_vel_mps = 0.0;                             // rate of change of the depth (time offset)
 };
 
 struct WindowLandmark {
@@ -89,11 +89,11 @@ struct WindowProblem {
   Eigen::Vector3d p_CB = Eigen::Vector3d::Zero();
   int max_states = 0;  // S + N
 
-  std::vector<WindowState> states;     // slots [max_states]
-  int order[kWindowMaxStates] = {};    // slots in time order, oldest first
+  std::vector<WindowState> states;   // slots [max_states]
+  int order[kWindowMaxStates] = {};  // slots in time order, oldest first
   int n_states = 0;
-  std::vector<WindowObs> obs;          // [max_states * opt.max_obs_per_frame]
-  std::vector<WindowLandmark> lms;     // [opt.max_landmarks]
+  std::vector<WindowObs> obs;       // [max_states * opt.max_obs_per_frame]
+  std::vector<WindowLandmark> lms;  // [opt.max_landmarks]
 
   // Camera-IMU time offset t_d [s] (opt.estimate_time_offset): a frame
   // stamped t was taken at t + td_s. Kept across resets (a calibration);
@@ -161,8 +161,8 @@ double huber_rho(double s, double a, double* rho1);
 // 0 when the point is not in front of the camera (z_C < 1e-3 m).
 // J_pose: d r / d[dp, dphi]; J_l: d r / d l_W; J_td: d r / d td_s.
 int visual_residual(const WindowProblem& P, const NavState& x, const Eigen::Vector3d& l_W, const WindowObs& o,
-                    double td_s, Eigen::Vector3d* r, Matrix36d* J_pose = nullptr, Eigen::Matrix3d* J_l = nullptr,
-                    Eigen::Vector3d* J_td = nullptr);
+                    double td_s, Eigen::Vector3d* r, Matrix36d* J_pose = nullptr,
+                    Eigen::Matrix3d* J_l = nullptr, Eigen::Vector3d* J_td = nullptr);
 // The time offset's prior (td_s - td_meas) / sigma_meas when a measurement is
 // known, else td_s / time_offset_prior_sigma_ms; and its derivative.
 double time_offset_prior_residual(const WindowProblem& P, double td_s, double* J = nullptr);
@@ -186,7 +186,8 @@ inline Eigen::Vector3d landmark_prior_residual(const WindowLandmark& L, const Ei
 double yaw_of(const Eigen::Quaterniond& q_WB);
 // Gauge residual [p - gauge_p; wrap(yaw - gauge_yaw)] / gauge_sigma and its
 // Jacobian w.r.t. [dp, dphi].
-Eigen::Vector4d gauge_residual(const WindowProblem& P, const NavState& x, Eigen::Matrix<double, 4, 6>* J = nullptr);
+Eigen::Vector4d gauge_residual(const WindowProblem& P, const NavState& x,
+                               Eigen::Matrix<double, 4, 6>* J = nullptr);
 
 // Attitude gauge of a window without IMU factors: Log(R_gauge^T R) / gauge_sigma,
 // J = d r / d[dp, dphi].

@@ -14,9 +14,9 @@ namespace kestrel::drivers {
 
 enum class I2cStatus : uint8_t {
   kOk = 0,
-  kNack,      // address or data not acknowledged (device absent, busy, resetting)
-  kTimeout,   // bus stuck / arbitration lost / controller timeout
-  kIoError,   // any other transport failure
+  kNack,     // address or data not acknowledged (device absent, busy, resetting)
+  kTimeout,  // bus stuck / arbitration lost / controller timeout
+  kIoError,  // any other transport failure
   kNotOpen,
 };
 const char* to_string(I2cStatus s);
@@ -56,6 +56,6 @@ class LinuxI2cBus final : public I2cBus {
   std::string path_;
 };
 
-bool i2c_dev_built();   // compiled with <linux/i2c-dev.h>
+bool i2c_dev_built();  // compiled with <linux/i2c-dev.h>
 
 }  // namespace kestrel::drivers

@@ -19,22 +19,22 @@
 namespace kestrel::drivers::openni2 {
 
 struct Options {
-  std::string uri;            // "" = first device
+  std::string uri;  // "" = first device
   int width = 640;
   int height = 480;
   int fps = 30;
-  bool registration = true;   // depth registered to colour (IMAGE_REGISTRATION_DEPTH_TO_COLOR)
-  bool frame_sync = true;     // setDepthColorSyncEnabled
+  bool registration = true;  // depth registered to colour (IMAGE_REGISTRATION_DEPTH_TO_COLOR)
+  bool frame_sync = true;    // setDepthColorSyncEnabled
   bool mirror = false;
-  double rig_depth_scale_m = 0.001;   // DEPTH_1_MM is converted when the rig unit differs
-  int64_t exposure_mid_offset_ns = 0; // device stamp -> mid-exposure (calibration)
+  double rig_depth_scale_m = 0.001;    // DEPTH_1_MM is converted when the rig unit differs
+  int64_t exposure_mid_offset_ns = 0;  // device stamp -> mid-exposure (calibration)
 };
 
 struct FrameMeta {
-  int64_t t_ns = 0;           // host clock, from the device stamp
+  int64_t t_ns = 0;  // host clock, from the device stamp
   int64_t t_device_us = 0;
   int64_t t_recv_ns = 0;
-  uint32_t seq = 0;           // colour frame index
+  uint32_t seq = 0;  // colour frame index
   uint32_t dropped_before = 0;
   int32_t exposure_us = 0;
 };
@@ -43,8 +43,8 @@ enum class GrabResult { kFrame, kTimeout, kError };
 
 struct Counters {
   uint64_t frames = 0;
-  uint64_t dropped = 0;        // frame index gaps
-  uint64_t unpaired = 0;       // depth and colour stamps too far apart
+  uint64_t dropped = 0;   // frame index gaps
+  uint64_t unpaired = 0;  // depth and colour stamps too far apart
   uint64_t timeouts = 0;
   uint64_t errors = 0;
   uint64_t clock_jumps = 0;
@@ -68,7 +68,7 @@ class Camera {
   Camera(const Camera&) = delete;
   Camera& operator=(const Camera&) = delete;
 
-  std::string open(const Options& o);   // "" or a message (no device, not built, mode unsupported)
+  std::string open(const Options& o);  // "" or a message (no device, not built, mode unsupported)
   void close();
   bool is_open() const;
   GrabResult grab(int timeout_ms, ImageBuffer& rgb, ImageBuffer& depth, FrameMeta& meta);

@@ -9,8 +9,8 @@
 #include <string>
 #include <vector>
 
-#include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/log_source.hpp"
+#include "kestrel/drivers/open_log.hpp"
 
 namespace kestrel::drivers {
 namespace text {
@@ -32,7 +32,7 @@ class FolderLogSource : public LogSource {
   const std::string& imu_file() const { return imu_file_; }
   const std::string& ground_truth_file() const { return gt_file_; }
   size_t imu_count() const;
-  size_t rgb_count() const;     // listed images whose file exists
+  size_t rgb_count() const;  // listed images whose file exists
   size_t depth_count() const;
   size_t right_count() const;  // a stereo pair's right images (EuRoC cam1) whose file exists
   size_t ground_truth_count() const;
@@ -83,7 +83,7 @@ class TumviReader final : public FolderLogSource {
 class TumReader final : public FolderLogSource {
  public:
   struct Options {
-    int64_t max_association_dt_ns = 20'000'000;   // rgb <-> depth, as TUM's associate.py uses
+    int64_t max_association_dt_ns = 20'000'000;  // rgb <-> depth, as TUM's associate.py uses
   };
   explicit TumReader(const std::string& path);
   TumReader(const std::string& path, const Options& options);
@@ -101,7 +101,7 @@ class TumReader final : public FolderLogSource {
 // camera placement from it. Keys other than T_BS are optional, present ones
 // are checked; a malformed file throws std::runtime_error naming it and the key.
 struct EurocSensorYaml {
-  Mat4d T_BS{};                   // sensor -> body, row-major ("T_BS: {rows, cols, data}" or a bare list of 16)
+  Mat4d T_BS{};  // sensor -> body, row-major ("T_BS: {rows, cols, data}" or a bare list of 16)
   std::optional<double> rate_hz;
   // Cameras.
   std::optional<std::array<int, 2>> resolution_px;      // width, height
@@ -109,10 +109,10 @@ struct EurocSensorYaml {
   DistortionModel distortion = DistortionModel::kNone;  // radial-tangential (radtan), equidistant, none
   std::vector<double> distortion_coefficients;          // up to 5
   // IMUs (continuous-time densities, as Kalibr states them).
-  std::optional<double> gyro_noise_density_rad_s_sqrthz;   // gyroscope_noise_density
-  std::optional<double> gyro_random_walk_rad_s2_sqrthz;    // gyroscope_random_walk
-  std::optional<double> acc_noise_density_mps2_sqrthz;     // accelerometer_noise_density
-  std::optional<double> acc_random_walk_mps3_sqrthz;       // accelerometer_random_walk
+  std::optional<double> gyro_noise_density_rad_s_sqrthz;  // gyroscope_noise_density
+  std::optional<double> gyro_random_walk_rad_s2_sqrthz;   // gyroscope_random_walk
+  std::optional<double> acc_noise_density_mps2_sqrthz;    // accelerometer_noise_density
+  std::optional<double> acc_random_walk_mps3_sqrthz;      // accelerometer_random_walk
 };
 EurocSensorYaml read_euroc_sensor_yaml(const std::string& path);
 

@@ -79,16 +79,16 @@ struct KittiFeature {
 // step t are features[step_begin[t] .. step_begin[t + 1])).
 struct KittiVislamSequence {
   std::string path;
-  std::vector<double> t_s;                 // time_stamps (1, N) [s]
-  std::vector<double> v_B_mps;             // linear_velocity (3, N), per step x y z, IMU frame
-  std::vector<double> w_B_rps;             // rotational_velocity (3, N), IMU frame
-  double K[9] = {};                        // row-major 3x3 intrinsics
-  double baseline_m = 0.0;                 // b
-  double cam_T_imu[16] = {};               // row-major, as stored (see docs/ekf.md for its direction)
-  size_t num_landmarks = 0;                // M
-  std::vector<size_t> step_begin;          // N + 1
+  std::vector<double> t_s;         // time_stamps (1, N) [s]
+  std::vector<double> v_B_mps;     // linear_velocity (3, N), per step x y z, IMU frame
+  std::vector<double> w_B_rps;     // rotational_velocity (3, N), IMU frame
+  double K[9] = {};                // row-major 3x3 intrinsics
+  double baseline_m = 0.0;         // b
+  double cam_T_imu[16] = {};       // row-major, as stored (see docs/ekf.md for its direction)
+  size_t num_landmarks = 0;        // M
+  std::vector<size_t> step_begin;  // N + 1
   std::vector<KittiFeature> features;
-  size_t missing_partial = 0;              // entries with some but not all of the 4 values = -1 (skipped)
+  size_t missing_partial = 0;  // entries with some but not all of the 4 values = -1 (skipped)
 
   size_t num_steps() const { return t_s.size(); }
 };

@@ -11,7 +11,16 @@
 namespace kestrel::drivers {
 
 enum class LogFormat {
-  kAuto, kKlog, kEuroc, kTum, kEth3d, kOpenLoris, kRosbag, kSevenScenes, kRosbag2, kTumvi
+  kAuto,
+  kKlog,
+  kEuroc,
+  kTum,
+  kEth3d,
+  kOpenLoris,
+  kRosbag,
+  kSevenScenes,
+  kRosbag2,
+  kTumvi
 };
 
 // How to open a log beyond its path (docs/datasets.md).

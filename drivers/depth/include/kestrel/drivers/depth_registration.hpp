@@ -24,10 +24,10 @@
 namespace kestrel::drivers {
 
 struct RegistrationStats {
-  int valid_in = 0;       // depth pixels with a reading
-  int projected = 0;      // of those, landing inside the colour image in front of it
-  int occluded = 0;       // writes that met another point on the same pixel (the farther one lost)
-  int valid_out = 0;      // colour pixels with a registered depth
+  int valid_in = 0;   // depth pixels with a reading
+  int projected = 0;  // of those, landing inside the colour image in front of it
+  int occluded = 0;   // writes that met another point on the same pixel (the farther one lost)
+  int valid_out = 0;  // colour pixels with a registered depth
 };
 
 class DepthRegistration {
@@ -58,7 +58,7 @@ class DepthRegistration {
   int footprint_ = 1;
   CameraIntrinsics colour_;
   double R_[9] = {};
-  double t_[3] = {};  // in depth units
+  double t_[3] = {};              // in depth units
   std::unique_ptr<float[]> ray_;  // undistorted (x/z, y/z) per depth pixel
 };
 

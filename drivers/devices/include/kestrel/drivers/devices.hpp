@@ -53,12 +53,12 @@ struct CameraSettings {
   // v4l2
   std::string v4l2_color_device;
   std::string v4l2_color_format = "yuyv";
-  std::string v4l2_depth_device;   // "" = colour only
+  std::string v4l2_depth_device;  // "" = colour only
   // A stereo rig's right image (the rig's `stereo:` section; docs/stereo.md):
   // a second node (right_device, its frame nearest in time within half a
   // period), or one node whose frames carry left | right side by side
   // (stereo_layout side_by_side: the node is opened at twice the width).
-  std::string v4l2_right_device;   // "" = none
+  std::string v4l2_right_device;           // "" = none
   std::string v4l2_stereo_layout = "off";  // off | side_by_side
   std::string v4l2_depth_format = "z16";
   double v4l2_depth_unit_m = 0.001;
@@ -87,13 +87,13 @@ struct CameraSettings {
 
 struct ImuSettings {
   ImuType type = ImuType::kNone;
-  bmx055::Config bmx055;            // ranges, ODR, FIFO, data-ready, self-test, axis remap
+  bmx055::Config bmx055;  // ranges, ODR, FIFO, data-ready, self-test, axis remap
   std::string i2c_bus_device;
-  std::string gpio_chip;            // data_ready: gpio
+  std::string gpio_chip;  // data_ready: gpio
   int gpio_line = -1;
   UsbBridgeConfig usb;
   MavlinkImuConfig mavlink;  // type: mavlink, the flight controller's IMU (docs/px4.md)
-  iio::ImuConfig iio;               // type iio: Linux IIO devices (docs/drivers/iio.md)
+  iio::ImuConfig iio;        // type iio: Linux IIO devices (docs/drivers/iio.md)
 };
 
 struct StrobeSettings {
@@ -116,19 +116,19 @@ struct DriverSettings {
 // `estimator:` section (optional). The names are core's (drivers never
 // include core): the tools check them against core::estimator_known().
 struct EstimatorSettings {
-  std::string backend;   // "" when absent: the command's default
+  std::string backend;  // "" when absent: the command's default
 };
 
 // `mavlink:` section (optional): the flight-controller link (tools/mavlink,
 // docs/px4.md). The command line's --mavlink-udp / --mavlink-serial choose
 // the transport over these; the rest holds for either.
 struct MavlinkSettings {
-  bool present = false;        // the section was read
-  std::string udp;             // HOST:PORT, "" = none
-  std::string serial_device;   // e.g. /dev/ttyTHS1, "" = none
+  bool present = false;       // the section was read
+  std::string udp;            // HOST:PORT, "" = none
+  std::string serial_device;  // e.g. /dev/ttyTHS1, "" = none
   int serial_baud = 921600;
-  int sysid = 1;               // the vehicle's system id (a companion shares it)
-  int compid = 197;            // MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY
+  int sysid = 1;     // the vehicle's system id (a companion shares it)
+  int compid = 197;  // MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY
   // The vehicle's FRD body axes in B, row-major 3x3 (p_F = R_FB p_B): a
   // rotation. Default: B is forward-left-up, so FRD is a half turn about x.
   std::array<double, 9> R_FB{1, 0, 0, 0, -1, 0, 0, 0, -1};
@@ -167,7 +167,17 @@ Ros2Settings load_ros2_settings(const std::string& path);
 // One rt::ThreadSpec per known thread (priority 0 = SCHED_OTHER, cpu -1 =
 // any). Threads the section does not name keep default_thread_table()'s value.
 enum class PipelineThread : int {
-  kImu, kCamera, kReplay, kPropagate, kEstimator, kOptimizer, kLog, kViewer, kMapping, kLoop, kCount
+  kImu,
+  kCamera,
+  kReplay,
+  kPropagate,
+  kEstimator,
+  kOptimizer,
+  kLog,
+  kViewer,
+  kMapping,
+  kLoop,
+  kCount
 };
 constexpr int kPipelineThreads = static_cast<int>(PipelineThread::kCount);
 
@@ -191,7 +201,8 @@ ThreadTable load_thread_table(const std::string& path);
 
 struct LiveConfig {
   std::string path;
-  Rig rig;  // `rig:` inline, or `rig: FILE.yaml` (relative to the config), e.g. from `kestrel calib import-kalibr`
+  Rig rig;  // `rig:` inline, or `rig: FILE.yaml` (relative to the config), e.g. from `kestrel calib
+            // import-kalibr`
   DriverSettings drivers;
   EstimatorSettings estimator;
   ThreadTable threads = default_thread_table();
@@ -226,28 +237,28 @@ EstimatorSettings load_estimator_settings(const std::string& path);
 std::string built_drivers_summary();
 
 struct FoundDevice {
-  std::string kind;     // "camera" | "imu"
-  std::string driver;   // "v4l2" | "openni2" | "bmx055-i2c" | "usb-bridge"
-  std::string where;    // path / URI / bus:address
+  std::string kind;    // "camera" | "imu"
+  std::string driver;  // "v4l2" | "openni2" | "bmx055-i2c" | "usb-bridge"
+  std::string where;   // path / URI / bus:address
   std::string detail;
 };
 struct DeviceReport {
   std::vector<FoundDevice> found;
-  std::vector<std::string> notes;   // why a driver could not look (permissions, not built)
+  std::vector<std::string> notes;  // why a driver could not look (permissions, not built)
 };
 DeviceReport probe_devices();
 
 // ---- live sensors ---------------------------------------------------------------------
 
 struct CameraFrame {
-  int64_t t_ns = 0;          // mid-exposure, host clock
+  int64_t t_ns = 0;  // mid-exposure, host clock
   int64_t t_recv_ns = 0;
   uint32_t seq = 0;
   int32_t exposure_us = 0;
   bool strobe_matched = false;
   const ImageBuffer* rgb = nullptr;
-  const ImageBuffer* depth = nullptr;   // nullptr when the rig has no depth
-  const ImageBuffer* right = nullptr;   // a stereo rig's right image, nullptr when none came
+  const ImageBuffer* depth = nullptr;  // nullptr when the rig has no depth
+  const ImageBuffer* right = nullptr;  // a stereo rig's right image, nullptr when none came
 };
 
 // One side-by-side stereo frame (left | right, each half the width) into two
@@ -283,7 +294,7 @@ class LiveSensors {
   void stop();
   // Counters of every driver, one line each (for the end-of-run report).
   std::string report() const;
-  std::string description() const;   // what runs, in one line
+  std::string description() const;  // what runs, in one line
 
  private:
   struct Impl;

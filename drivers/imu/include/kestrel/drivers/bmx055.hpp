@@ -59,8 +59,8 @@ class RingImuSink final : public ImuSink {
 namespace bmx055 {
 
 enum class DataReadyMode : uint8_t {
-  kGpio,   // gyro FIFO watermark on INT3 -> a gpiochip line; edge time stamps the read
-  kPoll,   // poll the FIFO status on a timer; the read time bounds the newest sample
+  kGpio,  // gyro FIFO watermark on INT3 -> a gpiochip line; edge time stamps the read
+  kPoll,  // poll the FIFO status on a timer; the read time bounds the newest sample
 };
 
 struct Config {
@@ -69,11 +69,11 @@ struct Config {
   bool mag_enabled = false;
   uint8_t mag_addr = kMagAddrFirst;
   acc::Range acc_range = acc::Range::k16g;
-  acc::Bandwidth acc_bw = acc::Bandwidth::k250Hz;             // 500 Hz ODR
+  acc::Bandwidth acc_bw = acc::Bandwidth::k250Hz;  // 500 Hz ODR
   gyro::Range gyro_range = gyro::Range::k2000dps;
-  gyro::Bandwidth gyro_bw = gyro::Bandwidth::k400Hz_47Hz;     // 400 Hz ODR
-  int gyro_watermark_frames = 4;    // 10 ms at 400 Hz
-  int acc_watermark_frames = 5;     // 10 ms at 500 Hz
+  gyro::Bandwidth gyro_bw = gyro::Bandwidth::k400Hz_47Hz;  // 400 Hz ODR
+  int gyro_watermark_frames = 4;                           // 10 ms at 400 Hz
+  int acc_watermark_frames = 5;                            // 10 ms at 500 Hz
   DataReadyMode drdy = DataReadyMode::kPoll;
   int64_t poll_period_ns = 5'000'000;
   bool self_test = true;
@@ -82,7 +82,7 @@ struct Config {
   // Timeouts (datasheet start-up: acc 1.8 ms, gyro 30 ms after soft reset).
   int64_t boot_wait_ns = 50'000'000;
   int64_t self_test_wait_ns = 50'000'000;
-  int64_t stream_timeout_ns = 100'000'000;   // no gyro sample for this long -> reset
+  int64_t stream_timeout_ns = 100'000'000;  // no gyro sample for this long -> reset
   int64_t backoff_min_ns = 100'000'000;
   int64_t backoff_max_ns = 2'000'000'000;
   int max_consecutive_errors = 3;
@@ -91,34 +91,43 @@ struct Config {
 };
 
 enum class State : uint8_t {
-  kReset, kWaitBoot, kProbe, kSelfTestAcc, kSelfTestGyro, kConfigure, kVerify, kStream, kBackoff, kFailed
+  kReset,
+  kWaitBoot,
+  kProbe,
+  kSelfTestAcc,
+  kSelfTestGyro,
+  kConfigure,
+  kVerify,
+  kStream,
+  kBackoff,
+  kFailed
 };
 const char* to_string(State s);
 
 struct Counters {
   uint64_t resets = 0;
-  uint64_t i2c_errors = 0;           // NACK / timeout / io error on any transfer
+  uint64_t i2c_errors = 0;  // NACK / timeout / io error on any transfer
   uint64_t chip_id_mismatches = 0;
-  uint64_t verify_failures = 0;      // configure-then-verify found a register that did not take
-  uint64_t config_lost = 0;          // periodic check found a register changed (brown-out)
-  uint64_t read_flips = 0;           // periodic check read a wrong value once, right on re-read
+  uint64_t verify_failures = 0;  // configure-then-verify found a register that did not take
+  uint64_t config_lost = 0;      // periodic check found a register changed (brown-out)
+  uint64_t read_flips = 0;       // periodic check read a wrong value once, right on re-read
   uint64_t fifo_overruns = 0;
-  uint64_t bad_fifo_status = 0;      // frame count beyond the FIFO depth
+  uint64_t bad_fifo_status = 0;  // frame count beyond the FIFO depth
   uint64_t timeouts = 0;
   uint64_t self_test_failures = 0;
-  uint64_t samples = 0;              // pushed successfully
-  uint64_t sink_drops = 0;           // the sink refused (ring full)
-  uint64_t samples_lost = 0;         // estimated from time gaps after overruns and flushes
-  uint64_t acc_missing = 0;          // gyro samples dropped for want of any accelerometer sample
-  uint64_t time_clamped = 0;         // a time that would not have been increasing
-  uint64_t partial_frames = 0;       // FIFO bytes that did not make a whole frame
+  uint64_t samples = 0;         // pushed successfully
+  uint64_t sink_drops = 0;      // the sink refused (ring full)
+  uint64_t samples_lost = 0;    // estimated from time gaps after overruns and flushes
+  uint64_t acc_missing = 0;     // gyro samples dropped for want of any accelerometer sample
+  uint64_t time_clamped = 0;    // a time that would not have been increasing
+  uint64_t partial_frames = 0;  // FIFO bytes that did not make a whole frame
 };
 
 struct SelfTestReport {
   bool ran = false;
   bool acc_pass = false;
   bool gyro_pass = false;
-  std::array<double, 3> acc_diff_mg{};   // |positive - negative| per axis
+  std::array<double, 3> acc_diff_mg{};  // |positive - negative| per axis
 };
 
 // ---- parser: pure functions over bytes -----------------------------------------
@@ -130,9 +139,11 @@ struct RawXyz {
 // Accelerometer frames (6 bytes: x lsb, x msb, y.., z..; 12-bit left-aligned in
 // lsb bits 7:4 + msb). Returns frames decoded (<= max_out); *leftover gets the
 // bytes that did not make a whole frame.
-size_t parse_acc_fifo(const uint8_t* bytes, size_t n, RawXyz* out, size_t max_out, size_t* leftover = nullptr);
+size_t parse_acc_fifo(const uint8_t* bytes, size_t n, RawXyz* out, size_t max_out,
+                      size_t* leftover = nullptr);
 // Gyroscope frames (6 bytes: int16 little endian x, y, z).
-size_t parse_gyro_fifo(const uint8_t* bytes, size_t n, RawXyz* out, size_t max_out, size_t* leftover = nullptr);
+size_t parse_gyro_fifo(const uint8_t* bytes, size_t n, RawXyz* out, size_t max_out,
+                       size_t* leftover = nullptr);
 
 struct Scales {
   double gyro_rps_per_lsb = 0;
@@ -160,7 +171,7 @@ struct RegEntry {
   Part part;
   uint8_t reg;
   uint8_t value;
-  uint8_t verify_mask;   // bits compared on read-back (reserved / read-only bits masked out)
+  uint8_t verify_mask;  // bits compared on read-back (reserved / read-only bits masked out)
   const char* what;
 };
 constexpr size_t kMaxRegEntries = 24;
@@ -182,7 +193,7 @@ class Driver {
   State state() const { return state_; }
   const Counters& counters() const { return counters_; }
   const SelfTestReport& self_test() const { return self_test_; }
-  const char* last_fault() const { return fault_; }   // "" until the first fault
+  const char* last_fault() const { return fault_; }  // "" until the first fault
   double gyro_odr_estimate_hz() const;
   double acc_odr_estimate_hz() const;
   bool mag_present() const { return mag_present_; }
@@ -192,8 +203,8 @@ class Driver {
   struct PartClock {
     ClockSync sync;
     int64_t period_ns = 0;
-    int64_t index = 0;   // sample index of the next FIFO sample
-    bool fresh = true;   // continuity lost: restart the sample clock
+    int64_t index = 0;  // sample index of the next FIFO sample
+    bool fresh = true;  // continuity lost: restart the sample clock
   };
   struct AccPoint {
     int64_t t_ns = 0;
@@ -202,7 +213,7 @@ class Driver {
   };
 
   void enter(State s, int64_t delay_ns = 0);
-  void fault(const char* what, ImuSink& sink);   // counts, goes to back-off
+  void fault(const char* what, ImuSink& sink);  // counts, goes to back-off
   bool read(Part p, uint8_t reg, uint8_t* dst, size_t n);
   bool write(Part p, uint8_t reg, uint8_t v);
   uint8_t addr(Part p) const;
@@ -238,7 +249,7 @@ class Driver {
   bool mag_present_ = false;
   int st_step_ = 0;
   std::array<double, 6> st_values_mg_{};
-  const char* fault_ = "";   // always a string literal: no allocation on a fault
+  const char* fault_ = "";  // always a string literal: no allocation on a fault
 
   PartClock gyro_clk_;
   PartClock acc_clk_;

@@ -33,9 +33,9 @@ class FakeBmx055 final : public I2cBus {
   uint8_t gyro_addr = kGyroAddrDefault;
   bool mag_fitted = false;
   uint8_t mag_addr = kMagAddrFirst;
-  double gyro_clock_error = 0.0;   // actual period = nominal * (1 + error)
+  double gyro_clock_error = 0.0;  // actual period = nominal * (1 + error)
   double acc_clock_error = 0.0;
-  double bus_hz = 0.0;             // 0 = transfers take no time
+  double bus_hz = 0.0;               // 0 = transfers take no time
   int64_t drdy_latency_ns = 20'000;  // interrupt edge after the frame lands
   // True motion in the sensor frame at time t (default: at rest, z up).
   std::function<void(int64_t t_ns, Vec3d& gyro_rps, Vec3d& acc_mps2)> motion;
@@ -46,12 +46,15 @@ class FakeBmx055 final : public I2cBus {
   void set_absent(bool absent) { absent_ = absent; }
   // XOR `mask` into the next read of (addr, reg) (the first byte returned).
   void flip_next_read(uint8_t addr, uint8_t reg, uint8_t mask);
-  void set_flip_probability(double p) { flip_p_ = p; }   // one random bit per read transaction
+  void set_flip_probability(double p) { flip_p_ = p; }  // one random bit per read transaction
   // Fills the FIFO beyond capacity now: frames lost, overrun flag set.
   void force_overrun(bool gyro, bool acc);
-  void brown_out();                 // every register back to its reset value
+  void brown_out();  // every register back to its reset value
   void stall_data(bool stalled) { stalled_ = stalled; }
-  void set_self_test_fail(bool acc_fail, bool gyro_fail) { st_fail_acc_ = acc_fail; st_fail_gyro_ = gyro_fail; }
+  void set_self_test_fail(bool acc_fail, bool gyro_fail) {
+    st_fail_acc_ = acc_fail;
+    st_fail_gyro_ = gyro_fail;
+  }
 
   // ---- I2cBus ----
   I2cStatus read_regs(uint8_t addr7, uint8_t reg, uint8_t* dst, size_t n) override;
@@ -68,7 +71,7 @@ class FakeBmx055 final : public I2cBus {
   uint8_t reg(uint8_t addr7, uint8_t r) const;
   size_t gyro_fifo_level() const { return gyro_fifo_.size(); }
   size_t acc_fifo_level() const { return acc_fifo_.size(); }
-  const std::vector<int64_t>& gyro_sample_times() const { return gyro_times_; }   // every frame produced
+  const std::vector<int64_t>& gyro_sample_times() const { return gyro_times_; }  // every frame produced
   uint64_t gyro_frames_lost() const { return gyro_lost_; }
   uint64_t nacks_injected() const { return nacks_; }
   uint64_t flips_injected() const { return flips_; }

@@ -33,7 +33,7 @@ class UsbEndpoint {
 struct UsbDeviceInfo {
   uint16_t vid = 0, pid = 0;
   int bus = 0, address = 0;
-  std::string serial;   // "" when unreadable without permissions
+  std::string serial;  // "" when unreadable without permissions
 };
 
 // libusb-1.0 synchronous bulk transfers. open() reports why it failed
@@ -52,8 +52,8 @@ class LibusbEndpoint final : public UsbEndpoint {
   std::string name() const override { return name_; }
 
  private:
-  void* ctx_ = nullptr;      // libusb_context*
-  void* handle_ = nullptr;   // libusb_device_handle*
+  void* ctx_ = nullptr;     // libusb_context*
+  void* handle_ = nullptr;  // libusb_device_handle*
   uint8_t ep_ = 0;
   int iface_ = 0;
   std::string name_;
@@ -81,8 +81,8 @@ struct UsbBridgeConfig {
   std::array<int8_t, 3> axis_remap{1, 2, 3};
   int read_timeout_ms = 20;
   int64_t no_data_timeout_ns = 200'000'000;
-  ClockSyncOptions clock;   // defaults suit a full-speed bulk endpoint
-  void validate() const;    // throws std::invalid_argument naming the field
+  ClockSyncOptions clock;  // defaults suit a full-speed bulk endpoint
+  void validate() const;   // throws std::invalid_argument naming the field
 };
 
 enum class UsbBridgeState : uint8_t { kWaiting, kStreaming, kStalled, kDisconnected };
@@ -94,14 +94,14 @@ struct UsbBridgeCounters {
   uint64_t crc_errors = 0;
   uint64_t bad_headers = 0;
   uint64_t bytes_skipped = 0;
-  uint64_t bad_payloads = 0;       // CRC fine, payload length inconsistent with its count
-  uint64_t packets_lost = 0;       // packet sequence gaps
-  uint64_t packets_late = 0;       // sequence behind the newest (reordered / duplicated)
+  uint64_t bad_payloads = 0;  // CRC fine, payload length inconsistent with its count
+  uint64_t packets_lost = 0;  // packet sequence gaps
+  uint64_t packets_late = 0;  // sequence behind the newest (reordered / duplicated)
   uint64_t samples = 0;
-  uint64_t samples_lost = 0;       // sample sequence gaps
-  uint64_t samples_late = 0;       // arrived after a newer one (already counted lost): dropped
-  uint64_t time_clamped = 0;       // a mapped time not after the previous one (clock refit)
-  uint64_t bridge_overruns = 0;    // samples the bridge flagged kBridgeOverrun
+  uint64_t samples_lost = 0;     // sample sequence gaps
+  uint64_t samples_late = 0;     // arrived after a newer one (already counted lost): dropped
+  uint64_t time_clamped = 0;     // a mapped time not after the previous one (clock refit)
+  uint64_t bridge_overruns = 0;  // samples the bridge flagged kBridgeOverrun
   uint64_t bridge_read_errors = 0;
   uint64_t strobes = 0;
   uint64_t strobes_lost = 0;
@@ -129,7 +129,8 @@ class UsbBridgeDriver {
   const usb_bridge::StatusWire& status() const { return status_; }
 
  private:
-  void on_packet(const usb_bridge::StreamParser::Packet& p, int64_t t_rx_ns, ImuSink& imu, StrobeSink* strobes);
+  void on_packet(const usb_bridge::StreamParser::Packet& p, int64_t t_rx_ns, ImuSink& imu,
+                 StrobeSink* strobes);
   void on_imu(const uint8_t* payload, size_t len, int64_t t_rx_ns, ImuSink& imu);
   void on_strobes(const uint8_t* payload, size_t len, StrobeSink* strobes);
   void on_status(const uint8_t* payload, size_t len, int64_t t_rx_ns, ImuSink& imu);
@@ -150,7 +151,7 @@ class UsbBridgeDriver {
   static constexpr int kMaxConsecutiveLate = 8;
   uint16_t next_seq_ = 0;
   bool have_sample_ = false;
-  uint32_t sample_seq_ext_ = 0;    // 16-bit wire sequence extended
+  uint32_t sample_seq_ext_ = 0;  // 16-bit wire sequence extended
   uint16_t last_sample_seq_ = 0;
   int64_t last_sample_t_ns_ = 0;
   bool have_strobe_ = false;

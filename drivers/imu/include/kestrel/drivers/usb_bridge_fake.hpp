@@ -30,14 +30,14 @@ struct FakeBridgeOptions {
   int64_t usb_frame_ns = 1'000'000;     // the bridge flushes its queue once per (full-speed) frame
   int64_t latency_floor_ns = 120'000;
   int64_t jitter_max_ns = 2'000'000;
-  double jitter_exp_mean_ns = 150'000;  // most transfers
-  double jitter_uniform_fraction = 0.2; // the rest: uniform over [0, jitter_max]
-  double loss = 0;                      // per packet
-  double reorder = 0;                   // per packet: swapped with the one before
-  double crc_error = 0;                 // per packet: one byte flipped
-  double garbage = 0;                   // per packet: 1..40 random bytes inserted before it
-  size_t max_transfer_bytes = 4096;     // smaller values split packets across transfers
-  uint8_t acc_range_code = 0x0C;        // reported in status packets
+  double jitter_exp_mean_ns = 150'000;   // most transfers
+  double jitter_uniform_fraction = 0.2;  // the rest: uniform over [0, jitter_max]
+  double loss = 0;                       // per packet
+  double reorder = 0;                    // per packet: swapped with the one before
+  double crc_error = 0;                  // per packet: one byte flipped
+  double garbage = 0;                    // per packet: 1..40 random bytes inserted before it
+  size_t max_transfer_bytes = 4096;      // smaller values split packets across transfers
+  uint8_t acc_range_code = 0x0C;         // reported in status packets
   uint8_t gyro_range_code = 0x00;
   uint64_t seed = 1;
 };
@@ -52,7 +52,10 @@ class FakeUsbBridge final : public UsbEndpoint {
   // Motion in sensor axes at host time t (default: at rest, z up).
   std::function<void(int64_t t_ns, double gyro_rps[3], double acc_mps2[3])> motion;
   // No packet leaves the bridge between these host times (cable glitch).
-  void stall(int64_t from_ns, int64_t to_ns) { stall_from_ = from_ns; stall_to_ = to_ns; }
+  void stall(int64_t from_ns, int64_t to_ns) {
+    stall_from_ = from_ns;
+    stall_to_ = to_ns;
+  }
   // The bridge reboots at this host time: counter, sequences and boot id restart.
   void reboot_at(int64_t t_ns) { reboot_at_ = t_ns; }
   void set_disconnected(bool d) { disconnected_ = d; }
@@ -63,10 +66,10 @@ class FakeUsbBridge final : public UsbEndpoint {
   int64_t true_host_ns(uint64_t t_us) const;
   struct TrueSample {
     uint16_t sample_seq;
-    int64_t t_host_ns;   // true host time of the sample's stamp
+    int64_t t_host_ns;  // true host time of the sample's stamp
   };
   const std::vector<TrueSample>& imu_truth() const { return imu_truth_; }
-  const std::vector<int64_t>& strobe_truth() const { return strobe_truth_; }   // by strobe_seq
+  const std::vector<int64_t>& strobe_truth() const { return strobe_truth_; }  // by strobe_seq
   uint64_t packets_sent() const { return packets_sent_; }
   uint64_t packets_dropped() const { return dropped_; }
   uint64_t packets_corrupted() const { return corrupted_; }
@@ -86,8 +89,8 @@ class FakeUsbBridge final : public UsbEndpoint {
   ManualClock& clock_;
   FakeBridgeOptions o_;
   std::mt19937_64 rng_;
-  int64_t h0_ = 0;          // host time of the current boot's reference
-  uint64_t d0_us_ = 0;      // device counter at h0_
+  int64_t h0_ = 0;      // host time of the current boot's reference
+  uint64_t d0_us_ = 0;  // device counter at h0_
   uint32_t boot_id_ = 0x1234ABCD;
   int64_t next_frame_host_ = 0;
   int64_t next_imu_host_ = 0;

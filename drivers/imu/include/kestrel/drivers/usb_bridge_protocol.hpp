@@ -26,7 +26,7 @@ constexpr uint8_t kVersion = 1;
 constexpr size_t kHeaderBytes = 16;
 constexpr size_t kCrcBytes = 4;
 constexpr size_t kMaxPayload = 1008;
-constexpr size_t kMaxPacketBytes = kHeaderBytes + kMaxPayload + kCrcBytes;   // 1028
+constexpr size_t kMaxPacketBytes = kHeaderBytes + kMaxPayload + kCrcBytes;  // 1028
 
 // pid.codes test VID/PID until the bridge has its own (override in the config).
 constexpr uint16_t kDefaultVid = 0x1209;
@@ -46,11 +46,11 @@ struct Header {
 // IMU payload: u8 count, u8 format (0 = BMX055 raw counts), u16 reserved,
 // then `count` samples of 24 bytes.
 constexpr size_t kImuSampleBytes = 24;
-constexpr size_t kMaxImuSamplesPerPacket = (kMaxPayload - 4) / kImuSampleBytes;   // 41
+constexpr size_t kMaxImuSamplesPerPacket = (kMaxPayload - 4) / kImuSampleBytes;  // 41
 enum ImuSampleFlag : uint8_t {
-  kBridgeAccFresh = 1u << 0,    // a new accelerometer sample since the previous packet sample
-  kBridgeOverrun = 1u << 1,     // the bridge lost samples before this one (its queue or the sensor FIFO)
-  kBridgeReadError = 1u << 2,   // the I2C read failed; values repeat the previous sample
+  kBridgeAccFresh = 1u << 0,   // a new accelerometer sample since the previous packet sample
+  kBridgeOverrun = 1u << 1,    // the bridge lost samples before this one (its queue or the sensor FIFO)
+  kBridgeReadError = 1u << 2,  // the I2C read failed; values repeat the previous sample
 };
 struct ImuWireSample {
   uint64_t t_us = 0;        // gyro data-ready edge, bridge clock
@@ -73,16 +73,16 @@ struct StrobeWire {
 // Status payload (32 bytes), at least once a second and right after boot.
 constexpr size_t kStatusBytes = 32;
 struct StatusWire {
-  uint32_t boot_id = 0;        // random per power-up: a change means the bridge rebooted
+  uint32_t boot_id = 0;  // random per power-up: a change means the bridge rebooted
   uint16_t fw_version = 0;
   uint8_t acc_range_code = 0;  // PMU_RANGE as programmed (bmx055_regs.hpp)
   uint8_t acc_bw_code = 0;
   uint8_t gyro_range_code = 0;
   uint8_t gyro_bw_code = 0;
-  uint8_t state = 0;           // 0 init, 1 streaming, 2 sensor fault
+  uint8_t state = 0;  // 0 init, 1 streaming, 2 sensor fault
   uint8_t reserved = 0;
   uint32_t i2c_errors = 0;
-  uint32_t samples_dropped = 0;   // never sent (queue full)
+  uint32_t samples_dropped = 0;  // never sent (queue full)
   uint32_t strobes_dropped = 0;
   uint32_t uptime_ms = 0;
   uint32_t reserved2 = 0;
@@ -114,14 +114,14 @@ class StreamParser {
   static constexpr size_t kBufferBytes = 8192;
   struct Packet {
     Header header;
-    const uint8_t* payload = nullptr;   // valid until the next feed()/next()
+    const uint8_t* payload = nullptr;  // valid until the next feed()/next()
   };
   struct Counters {
     uint64_t packets = 0;
     uint64_t crc_errors = 0;
-    uint64_t bad_headers = 0;       // wrong version or impossible length
-    uint64_t bytes_skipped = 0;     // resynchronisation
-    uint64_t overflow_bytes = 0;    // fed while the buffer was full (caller did not drain)
+    uint64_t bad_headers = 0;     // wrong version or impossible length
+    uint64_t bytes_skipped = 0;   // resynchronisation
+    uint64_t overflow_bytes = 0;  // fed while the buffer was full (caller did not drain)
   };
 
   // Appends bytes; returns how many were taken.

@@ -50,7 +50,7 @@ class KlogWriter {
   bool is_open() const { return file_ != nullptr; }
 
   void write_imu(const ImuSample& s);
-  void write_image(RecordType type, const LogImage& img);   // kRgb or kDepth
+  void write_image(RecordType type, const LogImage& img);  // kRgb or kDepth
   void write_image(RecordType type, int64_t t_ns, int64_t t_recv_ns, uint32_t seq, int32_t exposure_us,
                    const ImageView& view);
   void write_ground_truth(const GroundTruthPose& gt);
@@ -123,7 +123,7 @@ class KlogReader final : public LogSource {
 
   uint32_t version() const { return version_; }
   uint64_t file_size() const { return size_; }
-  uint64_t data_offset() const { return data_start_; }   // first byte after the file header
+  uint64_t data_offset() const { return data_start_; }  // first byte after the file header
 
  private:
   struct RecordHeader {
@@ -148,11 +148,11 @@ class KlogReader final : public LogSource {
 
   std::string name_;
   int fd_ = -1;
-  std::vector<uint8_t> memory_;   // in-memory source when fd_ < 0
+  std::vector<uint8_t> memory_;  // in-memory source when fd_ < 0
   uint64_t size_ = 0;
   uint64_t data_start_ = 0;
   uint64_t pos_ = 0;
-  uint64_t reported_until_ = 0;   // problems before this offset were already reported (rewind)
+  uint64_t reported_until_ = 0;  // problems before this offset were already reported (rewind)
   uint32_t version_ = 0;
   Rig rig_;
   std::vector<LogProblem> problems_;

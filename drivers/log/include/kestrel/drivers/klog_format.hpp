@@ -21,10 +21,10 @@ constexpr char kMagic[4] = {'K', 'L', 'O', 'G'};
 // magic never contain it; the CRC decides whether a candidate is a record.
 constexpr uint32_t kSyncMarker = 0x5A524BA5u;
 
-constexpr size_t kFileHeaderFixedBytes = 16;   // magic, version, header_length, rig_yaml_length
+constexpr size_t kFileHeaderFixedBytes = 16;  // magic, version, header_length, rig_yaml_length
 constexpr size_t kFileHeaderCrcBytes = 4;
 constexpr uint32_t kMaxRigYamlBytes = 1u << 20;
-constexpr size_t kRecordHeaderBytes = 16;      // sync, type, flags, payload_length, crc
+constexpr size_t kRecordHeaderBytes = 16;  // sync, type, flags, payload_length, crc
 // No legitimate record is larger (a 4K RGB frame is 25 MB); anything bigger is
 // a corrupt length and must not turn into an allocation.
 constexpr uint32_t kMaxPayloadBytes = 64u << 20;
@@ -34,7 +34,7 @@ constexpr size_t kImageHeaderBytes = 36;  // followed by the pixels (raw or comp
 constexpr size_t kImageCodecByte = 33;    // offsets in the image header (v2; zero in v1)
 constexpr size_t kImageFilterByte = 34;
 constexpr size_t kGroundTruthPayloadBytes = 89;
-constexpr size_t kEventHeaderBytes = 16;       // followed by text_length bytes
+constexpr size_t kEventHeaderBytes = 16;  // followed by text_length bytes
 constexpr uint32_t kMaxImageSide = 1u << 15;
 
 bool is_known_record_type(uint16_t type);

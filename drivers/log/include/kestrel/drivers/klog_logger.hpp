@@ -40,15 +40,15 @@ class KlogLogger {
   static constexpr size_t kImageRingSize = 512;
   static constexpr size_t kGroundTruthRingSize = 1024;
   static constexpr size_t kEventRingSize = 256;
-  static constexpr size_t kEventTextBytes = 120;   // longer event texts are cut
+  static constexpr size_t kEventTextBytes = 120;  // longer event texts are cut
 
   struct Options {
-    size_t max_image_bytes = 640 * 480 * 3;   // larger frames are dropped and counted
+    size_t max_image_bytes = 640 * 480 * 3;  // larger frames are dropped and counted
     // Image staging memory. 0: 64 x max_image_bytes (VGA RGB: 59 MB, ~1.3 s
     // of VGA RGB-D at 30 Hz). Size it with staging_bytes_for().
     size_t buffer_bytes = 0;
-    uint32_t idle_sleep_us = 1000;            // logger poll period when the rings are empty
-    uint32_t fsync_every = 0;                 // see KlogWriter::set_fsync_every
+    uint32_t idle_sleep_us = 1000;  // logger poll period when the rings are empty
+    uint32_t fsync_every = 0;       // see KlogWriter::set_fsync_every
     // Image compression, done on the logger thread (the config's `record:`
     // section; docs/log-format.md).
     klog::ImageCompression compression = default_image_compression();
@@ -60,15 +60,15 @@ class KlogLogger {
 
   struct Stats {
     uint64_t imu_drops = 0;
-    uint64_t image_drops = 0;        // ring full, staging buffer full, or frame larger than max_image_bytes
+    uint64_t image_drops = 0;  // ring full, staging buffer full, or frame larger than max_image_bytes
     uint64_t ground_truth_drops = 0;
     uint64_t event_drops = 0;
     uint64_t records_written = 0;
     uint64_t bytes_written = 0;
     uint64_t records_lost_to_write_errors = 0;
-    size_t staging_bytes = 0;        // the image staging buffer
-    size_t staging_peak_bytes = 0;   // most of it ever in use: how close a stall came to dropping
-    uint64_t image_bytes_raw = 0;    // pixels given to the writer
+    size_t staging_bytes = 0;         // the image staging buffer
+    size_t staging_peak_bytes = 0;    // most of it ever in use: how close a stall came to dropping
+    uint64_t image_bytes_raw = 0;     // pixels given to the writer
     uint64_t image_bytes_stored = 0;  // what they took in the file (compressed)
     int64_t thread_cpu_ns = 0;        // the logger thread's CPU time; set by stop()
   };
@@ -113,8 +113,8 @@ class KlogLogger {
     int width = 0;
     int height = 0;
     PixelFormat format = PixelFormat::kGray8;
-    uint64_t begin = 0;   // staging position of the pixels (monotonic byte count; index = begin % size)
-    uint64_t end = 0;     // released up to here once written
+    uint64_t begin = 0;  // staging position of the pixels (monotonic byte count; index = begin % size)
+    uint64_t end = 0;    // released up to here once written
   };
   struct EventMsg {
     int64_t t_ns = 0;
@@ -141,10 +141,10 @@ class KlogLogger {
   // skipped and counted as used until the frame is released.
   std::unique_ptr<uint8_t[]> stage_;
   size_t stage_size_ = 0;
-  uint64_t stage_write_ = 0;                 // camera thread only
-  std::atomic<uint64_t> stage_read_{0};      // written by the logger thread
+  uint64_t stage_write_ = 0;             // camera thread only
+  std::atomic<uint64_t> stage_read_{0};  // written by the logger thread
   std::atomic<uint64_t> stage_peak_{0};
-  std::atomic<uint64_t> image_rejects_{0};   // no staging space or too large (ring-full drops are in the ring)
+  std::atomic<uint64_t> image_rejects_{0};  // no staging space or too large (ring-full drops are in the ring)
   std::atomic<uint64_t> records_written_{0};
   std::atomic<uint64_t> bytes_written_{0};
   std::atomic<uint64_t> lost_{0};

@@ -45,7 +45,7 @@ enum class RecordType : uint16_t {
 // One record; only the member named by `type` is meaningful.
 struct LogRecord {
   RecordType type = RecordType::kImu;
-  uint64_t offset = 0;   // byte offset (klog) or line number (text formats) it came from
+  uint64_t offset = 0;  // byte offset (klog) or line number (text formats) it came from
   ImuSample imu;
   LogImage image;  // kRgb, kDepth or kRight
   GroundTruthPose gt;
@@ -55,8 +55,8 @@ struct LogRecord {
 // Something wrong in the input, reported with where it is. Readers never
 // throw on bad data after open(): they record a problem and carry on.
 struct LogProblem {
-  std::string where;   // "file:line" or "file@byte-offset"
-  std::string kind;    // short machine-readable tag: "truncated", "bad-crc", "bad-length", "missing-file", ...
+  std::string where;  // "file:line" or "file@byte-offset"
+  std::string kind;   // short machine-readable tag: "truncated", "bad-crc", "bad-length", "missing-file", ...
   std::string detail;
 };
 

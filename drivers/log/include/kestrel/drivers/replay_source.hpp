@@ -18,7 +18,7 @@ enum class ReplayPace {
   kLockstep,  // the caller alternates step() with draining: deterministic, single thread
 };
 
-ReplayPace parse_replay_pace(const std::string& name);   // throws std::invalid_argument
+ReplayPace parse_replay_pace(const std::string& name);  // throws std::invalid_argument
 const char* to_string(ReplayPace pace);
 
 struct ReplayStats {
@@ -77,7 +77,7 @@ class ReplaySource {
   LogSource& log_;
   SensorRings& rings_;
   ReplayPace pace_;
-  LogRecord rec_;   // reused, so its image vector keeps its capacity
+  LogRecord rec_;  // reused, so its image vector keeps its capacity
   RgbdFrameMsg pending_{};
   bool have_pending_ = false;
   int64_t wall0_ns_ = -1;

@@ -23,8 +23,8 @@ namespace kestrel::drivers {
 // resized within that capacity afterwards, so steady state never allocates.
 using ImageBuffer = LogImage;
 
-constexpr std::size_t kImuRingCapacity = 4096;   // > 10 s at 400 Hz
-constexpr std::size_t kFrameRingCapacity = 16;   // ~0.5 s at 30 Hz
+constexpr std::size_t kImuRingCapacity = 4096;  // > 10 s at 400 Hz
+constexpr std::size_t kFrameRingCapacity = 16;  // ~0.5 s at 30 Hz
 // Every frame in the ring holds up to two images, plus those being filled and
 // those being processed.
 constexpr std::size_t kImagePoolCapacity = 2 * kFrameRingCapacity + 8;

@@ -33,11 +33,11 @@ struct KalibrImport {
 // camera: the camchain entry ("cam0"). Throws std::runtime_error naming the
 // file and the field for anything missing or malformed ("camchain.yaml:
 // cam0.T_cam_imu: missing (...)").
-KalibrImport import_kalibr(const std::string& camchain_path, const std::string& imu_path, const std::string& camera,
-                           const Rig& base);
+KalibrImport import_kalibr(const std::string& camchain_path, const std::string& imu_path,
+                           const std::string& camera, const Rig& base);
 // The same from YAML text (tests); the names stand in for paths in errors.
 KalibrImport import_kalibr_text(const std::string& camchain_yaml, const std::string& camchain_name,
-                                const std::string& imu_yaml, const std::string& imu_name, const std::string& camera,
-                                const Rig& base);
+                                const std::string& imu_yaml, const std::string& imu_name,
+                                const std::string& camera, const Rig& base);
 
 }  // namespace kestrel::drivers

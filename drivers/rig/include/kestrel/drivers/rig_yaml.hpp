@@ -30,6 +30,6 @@ Rig load_rig_file(const std::string& path);
 // Field-by-field equality (exact), for round-trip checks.
 bool rig_equal(const Rig& a, const Rig& b);
 
-const char* distortion_name(DistortionModel m);   // "none" | "radtan" | "equidistant"
+const char* distortion_name(DistortionModel m);  // "none" | "radtan" | "equidistant"
 
 }  // namespace kestrel::drivers

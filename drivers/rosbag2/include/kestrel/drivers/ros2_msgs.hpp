@@ -193,6 +193,7 @@ std::string schema_text(const std::string& type);
 // and ROS 2 readers: 32FC1 metres (REP 118) become millimetres (0: invalid,
 // non-finite or beyond 65.535 m), 16-bit big-endian rows are swapped, other
 // rows copied (in_bpp == out_bpp).
-void image_row_to_log(const uint8_t* src, uint8_t* dst, uint64_t width, int in_bpp, int out_bpp, bool big_endian);
+void image_row_to_log(const uint8_t* src, uint8_t* dst, uint64_t width, int in_bpp, int out_bpp,
+                      bool big_endian);
 
 }  // namespace kestrel::drivers::ros2

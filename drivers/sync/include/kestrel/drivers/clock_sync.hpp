@@ -52,13 +52,13 @@ class ManualClock final : public HostClock {
 };
 
 struct ClockSyncOptions {
-  int64_t bucket_ns = 100'000'000;        // device-time span thinned to one point (lowest latency)
-  int max_buckets = 100;                  // window = bucket_ns * max_buckets (10 s)
-  int min_buckets_for_skew = 5;           // before this, skew is held at its prior
-  double prior_skew = 0.0;                // host/device rate - 1 assumed until then
-  double max_abs_skew = 0.002;            // a fit beyond this is a fault (2000 ppm)
-  int64_t latency_floor_ns = 0;           // calibrated constant transport latency, subtracted
-  int64_t jump_threshold_ns = 50'000'000; // a point this far below the line means the clock jumped
+  int64_t bucket_ns = 100'000'000;         // device-time span thinned to one point (lowest latency)
+  int max_buckets = 100;                   // window = bucket_ns * max_buckets (10 s)
+  int min_buckets_for_skew = 5;            // before this, skew is held at its prior
+  double prior_skew = 0.0;                 // host/device rate - 1 assumed until then
+  double max_abs_skew = 0.002;             // a fit beyond this is a fault (2000 ppm)
+  int64_t latency_floor_ns = 0;            // calibrated constant transport latency, subtracted
+  int64_t jump_threshold_ns = 50'000'000;  // a point this far below the line means the clock jumped
 };
 
 class ClockSync {
@@ -88,8 +88,8 @@ class ClockSync {
 
  private:
   struct Point {
-    int64_t d = 0;   // device ns
-    int64_t h = 0;   // host ns
+    int64_t d = 0;  // device ns
+    int64_t h = 0;  // host ns
   };
   void close_bucket();
   void refit();
@@ -100,7 +100,7 @@ class ClockSync {
   int first_ = 0;
   int count_ = 0;
   bool open_ = false;
-  Point cur_;             // lowest point of the open bucket
+  Point cur_;  // lowest point of the open bucket
   int64_t cur_bucket_ = 0;
   // Fitted line: host = base_h_ + (d - base_d_) * (1 + skew_)
   int64_t base_d_ = 0;
@@ -118,7 +118,7 @@ class ClockSync {
 
 // An exposure strobe stamped by the bridge, already mapped to host time.
 struct StrobeStamp {
-  int64_t t_host_ns = 0;    // start of exposure
+  int64_t t_host_ns = 0;  // start of exposure
   uint32_t seq = 0;
   int32_t duration_us = 0;  // 0 when the bridge did not see the falling edge
 };
@@ -127,8 +127,8 @@ struct StrobeMatchOptions {
   // Camera timestamp minus strobe time expected before any match (driver
   // latency of an end-of-frame stamp, roughly a frame period); then learnt.
   int64_t initial_offset_ns = 0;
-  int64_t tolerance_ns = 8'000'000;   // a strobe further than this from the prediction is not this frame's
-  double offset_gain = 0.05;          // residual offset low-pass (per matched frame)
+  int64_t tolerance_ns = 8'000'000;  // a strobe further than this from the prediction is not this frame's
+  double offset_gain = 0.05;         // residual offset low-pass (per matched frame)
 };
 
 struct StrobeMatch {
@@ -142,7 +142,8 @@ class StrobeMatcher {
  public:
   static constexpr int kHistory = 64;
   StrobeMatcher() = default;
-  explicit StrobeMatcher(const StrobeMatchOptions& o) : opt_(o), offset_ns_(static_cast<double>(o.initial_offset_ns)) {}
+  explicit StrobeMatcher(const StrobeMatchOptions& o)
+      : opt_(o), offset_ns_(static_cast<double>(o.initial_offset_ns)) {}
 
   void add_strobe(const StrobeStamp& s);
   // Pairs a frame with the nearest unused strobe around t_camera - offset.
@@ -161,7 +162,7 @@ class StrobeMatcher {
   StrobeMatchOptions opt_;
   std::array<StrobeStamp, kHistory> hist_{};
   std::array<bool, kHistory> used_{};
-  int head_ = 0;   // next write
+  int head_ = 0;  // next write
   int size_ = 0;
   double offset_ns_ = 0.0;
   bool have_offset_ = false;

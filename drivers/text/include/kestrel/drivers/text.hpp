@@ -16,9 +16,9 @@ namespace kestrel::drivers::text {
 
 // What read_lines() found; converts to true only when every line was read.
 struct LinesRead {
-  bool opened = false;   // false: the file could not be opened
-  bool ok = false;       // opened and read to the end
-  int error = 0;         // errno of the failure (0 when ok)
+  bool opened = false;  // false: the file could not be opened
+  bool ok = false;      // opened and read to the end
+  int error = 0;        // errno of the failure (0 when ok)
   explicit operator bool() const { return ok; }
 };
 
@@ -49,9 +49,9 @@ bool parse_finite_f64(const std::string& s, double& v);
 // `exponent`) followed by e/E [+-] digits, still exact ("1.5e3" -> 1.5e12).
 // False when the result does not fit int64 nanoseconds (|t| < 9223372036.85 s).
 enum class BelowNs {
-  kTruncate,   // digits below a nanosecond are dropped (toward zero)
-  kRound,      // rounded half away from zero
-  kReject,     // a non-zero digit below a nanosecond makes the token invalid
+  kTruncate,  // digits below a nanosecond are dropped (toward zero)
+  kRound,     // rounded half away from zero
+  kReject,    // a non-zero digit below a nanosecond makes the token invalid
 };
 struct SecondsSyntax {
   BelowNs below_ns = BelowNs::kTruncate;
@@ -69,7 +69,7 @@ std::string fmt17(double v);
 bool is_utf8(const std::string& s);
 
 // Path helpers the readers share.
-std::string file_name(const std::string& path);   // after the last '/'
+std::string file_name(const std::string& path);  // after the last '/'
 bool is_file(const std::string& path);
 bool is_dir(const std::string& path);
 

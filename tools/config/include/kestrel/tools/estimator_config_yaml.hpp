@@ -21,7 +21,8 @@ std::vector<std::string> estimator_config_sections();
 // Defaults of `backend_override` (or of the file's `estimator.backend`, or
 // "window"), with the file's keys applied. `path` empty: the defaults.
 // Throws std::runtime_error "FILE:LINE: window.recent_frames: expected an integer".
-core::EstimatorConfig load_estimator_config(const std::string& path, const std::string& backend_override = "");
+core::EstimatorConfig load_estimator_config(const std::string& path,
+                                            const std::string& backend_override = "");
 // The same from YAML text; `where` names it in errors.
 core::EstimatorConfig estimator_config_from_yaml(const std::string& text, const std::string& where,
                                                  const std::string& backend_override = "");

@@ -8,10 +8,9 @@
 
 #include <Eigen/Core>
 #include <Eigen/Geometry>
-
 #include <cstdint>
-#include <optional>
 #include <limits>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -19,8 +18,8 @@ namespace kestrel::tools {
 
 struct TimedPose {
   int64_t t_ns = 0;
-  Eigen::Vector3d p = Eigen::Vector3d::Zero();                // p_WB [m]
-  Eigen::Quaterniond q = Eigen::Quaterniond::Identity();      // q_WB, unit norm
+  Eigen::Vector3d p = Eigen::Vector3d::Zero();            // p_WB [m]
+  Eigen::Quaterniond q = Eigen::Quaterniond::Identity();  // q_WB, unit norm
 };
 using Trajectory = std::vector<TimedPose>;
 
@@ -98,8 +97,8 @@ Trajectory anchor_to_keyframes(const Trajectory& odometry, const std::vector<Key
 
 struct EvalOptions {
   Alignment align = Alignment::kPosYaw;
-  double max_gap_ms = 20.0;      // association tolerance
-  double rpe_delta_s = 1.0;      // RPE time step
+  double max_gap_ms = 20.0;                              // association tolerance
+  double rpe_delta_s = 1.0;                              // RPE time step
   std::vector<double> segment_lengths_m{1.0, 2.0, 5.0};  // KITTI-style RPE over distance
   // Estimate gaps longer than this do not count towards coverage.
   double coverage_gap_s = 0.5;
@@ -107,9 +106,9 @@ struct EvalOptions {
 
 struct SegmentError {
   double length_m = 0;
-  int count = 0;                 // segments evaluated (0: trajectory too short)
-  double trans_pct = 0;          // mean |translation error| / length * 100
-  double rot_deg_per_m = 0;      // mean rotation error angle / length
+  int count = 0;             // segments evaluated (0: trajectory too short)
+  double trans_pct = 0;      // mean |translation error| / length * 100
+  double rot_deg_per_m = 0;  // mean rotation error angle / length
 };
 
 struct Stats {
@@ -120,20 +119,20 @@ struct Stats {
 struct EvalResult {
   // Inputs, as evaluated.
   Alignment align = Alignment::kPosYaw;
-  std::string gt_file, est_file;   // informative only; set by the caller
+  std::string gt_file, est_file;  // informative only; set by the caller
   int gt_poses = 0;
   int est_poses = 0;
   int matched = 0;
-  int interpolated = 0;            // matched through interpolation (the rest: nearest)
+  int interpolated = 0;  // matched through interpolation (the rest: nearest)
   int unmatched = 0;
   double gt_duration_s = 0;
-  double gt_length_m = 0;          // path length of the matched ground truth
-  double coverage = 0;             // [0, 1] share of the GT time span covered by matched estimates
+  double gt_length_m = 0;  // path length of the matched ground truth
+  double coverage = 0;     // [0, 1] share of the GT time span covered by matched estimates
 
-  Sim3 T_align;                    // est world -> gt world
+  Sim3 T_align;  // est world -> gt world
 
-  Stats ate_m;                     // position error after alignment [m]
-  Stats ate_rot_deg;               // angle of R_gt^T * R_est_aligned [deg]
+  Stats ate_m;        // position error after alignment [m]
+  Stats ate_rot_deg;  // angle of R_gt^T * R_est_aligned [deg]
   // Rotation gain per body axis: the least-squares slope of the estimate's
   // rotation vector against the ground truth's, both taken relative to the
   // first associated pose in that pose's body frame. 1 = no rotation-scale
@@ -145,18 +144,18 @@ struct EvalResult {
   double rpe_delta_s = 0;
   int rpe_pairs = 0;
   double rpe_trans_rmse_m = 0, rpe_trans_mean_m = 0;
-  double rpe_trans_m_per_s = 0;    // RMSE of |translation error| / pair duration
+  double rpe_trans_m_per_s = 0;  // RMSE of |translation error| / pair duration
   double rpe_rot_rmse_deg = 0, rpe_rot_mean_deg = 0;
 
   std::vector<SegmentError> segments;
 
   // Per associated pose, in time order (for plots and further analysis).
-  std::vector<TimedPose> gt_matched;    // ground truth at the estimate times
-  std::vector<TimedPose> est_aligned;   // T_align * estimate
+  std::vector<TimedPose> gt_matched;   // ground truth at the estimate times
+  std::vector<TimedPose> est_aligned;  // T_align * estimate
   std::vector<double> pos_err_m;
   std::vector<double> rot_err_deg;
 
-  std::vector<std::string> warnings;    // unmatched poses, degenerate inputs...
+  std::vector<std::string> warnings;  // unmatched poses, degenerate inputs...
 };
 
 // Associates, aligns and computes all metrics. Throws std::runtime_error when too

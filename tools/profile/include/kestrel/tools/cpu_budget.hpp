@@ -32,9 +32,9 @@ std::map<std::string, CallgrindCost> callgrind_inclusive(const std::string& path
 // A core the budget is translated to: time = instructions / (IPC x clock).
 struct CoreModel {
   const char* name;
-  const char* example;   // the boards that carry it
+  const char* example;  // the boards that carry it
   double clock_ghz;
-  double ipc;            // sustained instructions per cycle assumed on this code
+  double ipc;  // sustained instructions per cycle assumed on this code
 };
 // Cortex-A72 (Raspberry Pi 4: 1.5 GHz, IPC 1.0) and Cortex-A78AE (Jetson Orin:
 // 2.2 GHz, IPC 2.0). docs/embedded.md states where the figures come from.

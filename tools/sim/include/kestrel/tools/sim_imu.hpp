@@ -3,7 +3,6 @@
 #pragma once
 
 #include <Eigen/Core>
-
 #include <cstdint>
 #include <string>
 #include <vector>
@@ -21,12 +20,12 @@ struct ImuModel {
   double gyro_random_walk_rad_s2_sqrthz = 0.0;
   double acc_noise_density_mps2_sqrthz = 0.0;
   double acc_random_walk_mps3_sqrthz = 0.0;
-  double acc_bias_tau_s = 0.0;             // eq. 6 bounded random walk; <= 0: plain random walk
-  double gyro_bias_init_sigma_rps = 0.0;   // per-axis std of the turn-on bias
+  double acc_bias_tau_s = 0.0;            // eq. 6 bounded random walk; <= 0: plain random walk
+  double gyro_bias_init_sigma_rps = 0.0;  // per-axis std of the turn-on bias
   double acc_bias_init_sigma_mps2 = 0.0;
-  double gyro_resolution_rps = 0.0;        // LSB; 0 = no quantisation
+  double gyro_resolution_rps = 0.0;  // LSB; 0 = no quantisation
   double acc_resolution_mps2 = 0.0;
-  double gyro_range_rps = 0.0;             // |value| clipped here and flagged; 0 = unlimited
+  double gyro_range_rps = 0.0;  // |value| clipped here and flagged; 0 = unlimited
   double acc_range_mps2 = 0.0;
 
   // Paper 000 Table 1 converted to SI (docs/simulator.md shows the numbers):
@@ -40,11 +39,12 @@ struct ImuModel {
   ImuNoise to_rig() const;
 };
 
-constexpr double kStandardGravity = 9.80665;   // m/s^2 per g
+constexpr double kStandardGravity = 9.80665;  // m/s^2 per g
 
 // True IMU readings for a trajectory state: a_B = R_WB^T (a_W - g_W) with
 // g_W = (0, 0, -g), and the body rate.
-void true_imu(const TrajectoryState& s, double gravity_mps2, Eigen::Vector3d& gyro_rps, Eigen::Vector3d& acc_mps2);
+void true_imu(const TrajectoryState& s, double gravity_mps2, Eigen::Vector3d& gyro_rps,
+              Eigen::Vector3d& acc_mps2);
 
 // Generates consecutive samples at a fixed rate. Bias processes advance by
 // exactly one sample period per call, so call it once per sample, in order.

@@ -22,7 +22,9 @@ inline uint64_t splitmix64(uint64_t x) {
   return x ^ (x >> 31);
 }
 
-inline uint64_t hash_combine(uint64_t a, uint64_t b) { return splitmix64(a ^ splitmix64(b + 0x632BE59BD9B4E019ull)); }
+inline uint64_t hash_combine(uint64_t a, uint64_t b) {
+  return splitmix64(a ^ splitmix64(b + 0x632BE59BD9B4E019ull));
+}
 
 // Independent streams from one user seed, so that e.g. switching IMU noise
 // off does not move the clutter in the scene.
@@ -47,7 +49,7 @@ class SimRng {
       has_spare_ = false;
       return spare_;
     }
-    const double u1 = 1.0 - uniform();   // (0, 1]: log is finite
+    const double u1 = 1.0 - uniform();  // (0, 1]: log is finite
     const double u2 = uniform();
     const double r = std::sqrt(-2.0 * std::log(u1));
     const double a = 6.283185307179586476925 * u2;

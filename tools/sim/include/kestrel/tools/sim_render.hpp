@@ -4,7 +4,6 @@
 
 #include <Eigen/Core>
 #include <Eigen/Geometry>
-
 #include <cstdint>
 #include <memory>
 #include <string>
@@ -31,13 +30,13 @@ struct SceneCylinder {
 };
 
 struct SceneOptions {
-  double margin_m = 2.0;        // room walls this far outside the path's bounding box...
-  double min_margin_m = 1.2;    // ...or less, down to this, to keep the far wall within
-  double max_wall_distance_m = 5.0;   // this of the path
-  double min_room_m = 5.0;      // the floor at least this long on each side
-  double min_height_m = 3.0;    // floor to ceiling
-  double clearance_m = 0.5;     // clutter never comes closer to the body or camera path
-  double clutter_per_m2 = 0.4;  // objects per square metre of floor
+  double margin_m = 2.0;             // room walls this far outside the path's bounding box...
+  double min_margin_m = 1.2;         // ...or less, down to this, to keep the far wall within
+  double max_wall_distance_m = 5.0;  // this of the path
+  double min_room_m = 5.0;           // the floor at least this long on each side
+  double min_height_m = 3.0;         // floor to ceiling
+  double clearance_m = 0.5;          // clutter never comes closer to the body or camera path
+  double clutter_per_m2 = 0.4;       // objects per square metre of floor
   int max_clutter = 150;
 };
 
@@ -56,13 +55,13 @@ struct Scene {
 };
 
 struct RenderOptions {
-  int threads = 2;                    // render bands in parallel (the caller's thread is one of them)
-  bool depth_noise = true;            // sigma(z) = DepthModel::sigma_coeff_per_m * z^2
-  double dropout_fraction = 0.003;    // share of depth pixels lost in small blobs
-  double image_noise_sigma = 1.0;     // colour noise, 8-bit DN per channel; 0 = off
-  double max_incidence_deg = 75.0;    // no depth on surfaces seen more obliquely
-  std::string texture_path;           // optional image (OpenCV imread) for the room's walls, floor, ceiling
-  double texture_size_m = 2.0;        // width of one tile of that image in the world
+  int threads = 2;                  // render bands in parallel (the caller's thread is one of them)
+  bool depth_noise = true;          // sigma(z) = DepthModel::sigma_coeff_per_m * z^2
+  double dropout_fraction = 0.003;  // share of depth pixels lost in small blobs
+  double image_noise_sigma = 1.0;   // colour noise, 8-bit DN per channel; 0 = off
+  double max_incidence_deg = 75.0;  // no depth on surfaces seen more obliquely
+  std::string texture_path;         // optional image (OpenCV imread) for the room's walls, floor, ceiling
+  double texture_size_m = 2.0;      // width of one tile of that image in the world
   // A room face drawn as bare paint (a low-texture wall): 0..5 = -x, +x, -y,
   // +y, floor, ceiling; -1 = none.
   int bare_surface = -1;
@@ -80,7 +79,8 @@ class Renderer {
  public:
   // Throws std::invalid_argument for an unsupported camera and
   // std::runtime_error when the texture file cannot be read.
-  Renderer(const Scene& scene, const CameraIntrinsics& camera, const DepthModel& depth, const RenderOptions& options);
+  Renderer(const Scene& scene, const CameraIntrinsics& camera, const DepthModel& depth,
+           const RenderOptions& options);
   ~Renderer();
   Renderer(const Renderer&) = delete;
   Renderer& operator=(const Renderer&) = delete;

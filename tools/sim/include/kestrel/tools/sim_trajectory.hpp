@@ -8,7 +8,6 @@
 
 #include <Eigen/Core>
 #include <Eigen/Geometry>
-
 #include <cstdint>
 #include <memory>
 #include <string>
@@ -23,9 +22,9 @@ struct TrajectoryState {
   double t_s = 0.0;
   Eigen::Vector3d p_WB = Eigen::Vector3d::Zero();
   Eigen::Quaterniond q_WB = Eigen::Quaterniond::Identity();
-  Eigen::Vector3d v_WB = Eigen::Vector3d::Zero();   // m/s, in W
-  Eigen::Vector3d a_WB = Eigen::Vector3d::Zero();   // m/s^2, in W (kinematic, gravity not included)
-  Eigen::Vector3d w_B = Eigen::Vector3d::Zero();    // rad/s, angular velocity of B w.r.t. W, in B
+  Eigen::Vector3d v_WB = Eigen::Vector3d::Zero();  // m/s, in W
+  Eigen::Vector3d a_WB = Eigen::Vector3d::Zero();  // m/s^2, in W (kinematic, gravity not included)
+  Eigen::Vector3d w_B = Eigen::Vector3d::Zero();   // rad/s, angular velocity of B w.r.t. W, in B
 };
 
 class MotionModel {
@@ -57,7 +56,7 @@ double default_scenario_duration_s(const std::string& name);
 // unknown name. The motion depends on name, duration and options only, never
 // on the seed: the same flight with different noise is one seed away.
 std::unique_ptr<MotionModel> make_scenario(const std::string& name, double duration_s = -1.0,
-                                          const ScenarioOptions& options = {});
+                                           const ScenarioOptions& options = {});
 
 // ---- ground-truth files and splines -----------------------------------------
 

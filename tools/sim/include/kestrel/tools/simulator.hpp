@@ -44,12 +44,12 @@ struct SimOptions {
   // (knot_spacing_s, default 0.1 s, and position_smoothing).
   std::string images_path;
   std::string images_format = "auto";
-  double position_smoothing = 0.0;      // --images: second-difference weight of the position spline
-  std::string out_path;                 // .klog (run_simulation(options) only)
+  double position_smoothing = 0.0;  // --images: second-difference weight of the position spline
+  std::string out_path;             // .klog (run_simulation(options) only)
   drivers::klog::ImageCompression image_compression{};  // of the .klog's images (--image-codec)
 
-  double duration_s = -1.0;             // <= 0: scenario default / whole file
-  double start_s = 0.0;                 // into the ground-truth file
+  double duration_s = -1.0;  // <= 0: scenario default / whole file
+  double start_s = 0.0;      // into the ground-truth file
   uint64_t seed = 1;
 
   // Unset: from the rig file, else the built-in rig (640x480, 30 Hz, 400 Hz).
@@ -59,60 +59,60 @@ struct SimOptions {
   std::optional<int> height;
   std::optional<double> fps;
   std::optional<double> imu_rate_hz;
-  std::string rig_path;                 // optional rig YAML (drivers/rig_yaml.hpp schema)
+  std::string rig_path;  // optional rig YAML (drivers/rig_yaml.hpp schema)
 
-  double time_offset_ms = 0.0;          // frame stamps = true time - offset (t_imu = t_cam + offset)
+  double time_offset_ms = 0.0;  // frame stamps = true time - offset (t_imu = t_cam + offset)
   // What the log's rig says the offset is (unset: time_offset_ms). A value
   // other than the true one makes a miscalibrated log (kestrel replay with
   // window.estimate_time_offset finds the difference).
   std::optional<double> rig_time_offset_ms;
-  double timestamp_jitter_us = 0.0;     // std of frame stamp noise
-  double frame_drop_rate = 0.0;         // probability a frame is lost (not written)
+  double timestamp_jitter_us = 0.0;  // std of frame stamp noise
+  double frame_drop_rate = 0.0;      // probability a frame is lost (not written)
 
-  bool noise = true;                    // false: ideal IMU, exact depth, clean images, no dropouts
+  bool noise = true;  // false: ideal IMU, exact depth, clean images, no dropouts
   // Stereo (`--stereo`): a right camera like the left one, baseline_m along
   // the left camera's x; the log holds stereo pairs instead of depth images.
   bool stereo = false;
-  double stereo_baseline_m = 0.11;      // EuRoC's VI-Sensor
-  double depth_dropout = 0.003;         // share of depth pixels lost in small blobs
-  double image_noise_sigma = 1.0;       // 8-bit DN
-  double acc_bias_tau_s = 300.0;        // paper 000 eq. 6
-  std::string texture_path;             // optional image for walls, floor and ceiling
+  double stereo_baseline_m = 0.11;  // EuRoC's VI-Sensor
+  double depth_dropout = 0.003;     // share of depth pixels lost in small blobs
+  double image_noise_sigma = 1.0;   // 8-bit DN
+  double acc_bias_tau_s = 300.0;    // paper 000 eq. 6
+  std::string texture_path;         // optional image for walls, floor and ceiling
   // Conditions that make tracking hard (the `hard` scenario turns them all on, docs/simulator.md):
-  double room_m = 0.0;                  // > 0: a hall at least this long on each side, walls up to this far
-                                        // from the path (beyond the depth range)
-  double exposure_change = 0.0;         // image gain swings by up to +- this share (drift and sudden steps)
-  double motion_blur_ms = 0.0;          // exposure time, rendered as sub-frames averaged
-  bool bare_wall = false;               // the +x wall is bare paint (low texture)
+  double room_m = 0.0;           // > 0: a hall at least this long on each side, walls up to this far
+                                 // from the path (beyond the depth range)
+  double exposure_change = 0.0;  // image gain swings by up to +- this share (drift and sudden steps)
+  double motion_blur_ms = 0.0;   // exposure time, rendered as sub-frames averaged
+  bool bare_wall = false;        // the +x wall is bare paint (low texture)
   // A lens covered (a kidnap: the camera sees nothing while the vehicle
   // moves on): frames in [cover_at_s, cover_at_s + cover_s) are near-black
   // sensor noise with no depth. cover_s <= 0: never.
   double cover_at_s = 0.0;
   double cover_s = 0.0;
-  bool yaw_follows_path = true;         // figure8
-  double gt_rate_hz = 200.0;            // ground truth records (plus one at every frame)
-  double knot_spacing_s = 0.0;          // GT spline; <= 0: the file's sample interval
-  int threads = 2;                      // render threads
+  bool yaw_follows_path = true;  // figure8
+  double gt_rate_hz = 200.0;     // ground truth records (plus one at every frame)
+  double knot_spacing_s = 0.0;   // GT spline; <= 0: the file's sample interval
+  int threads = 2;               // render threads
 };
 
 struct SimSummary {
-  std::string trajectory;               // what was flown
+  std::string trajectory;  // what was flown
   bool hybrid = false;
   double duration_s = 0.0;
-  uint64_t frames = 0;                  // written (colour + depth pairs)
+  uint64_t frames = 0;  // written (colour + depth pairs)
   uint64_t frames_dropped = 0;
   uint64_t imu_samples = 0;
-  uint64_t imu_saturated = 0;           // samples with a saturation flag
+  uint64_t imu_saturated = 0;  // samples with a saturation flag
   uint64_t gt_records = 0;
   uint64_t events = 0;
-  double render_s = 0.0;                // time inside Renderer::render
+  double render_s = 0.0;  // time inside Renderer::render
   double render_fps = 0.0;
   double wall_s = 0.0;
   uint64_t output_bytes = 0;
   Eigen::Vector3d room_size_m = Eigen::Vector3d::Zero();
   size_t clutter_objects = 0;
-  Rig rig;                              // as written into the log
-  bool real_images = false;             // --images
+  Rig rig;                   // as written into the log
+  bool real_images = false;  // --images
   // --images: how far the spline the IMU follows is from the ground truth the
   // images were taken at (what the synthetic IMU cannot know about).
   double spline_rms_position_residual_m = 0.0;

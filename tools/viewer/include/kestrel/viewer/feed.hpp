@@ -68,7 +68,8 @@ struct StateSnapshot {
   int64_t optimizer_solve_ns = 0;  // newest solve that reached the tracker (window)
   // Window optimizer counters (has_window false for other backends).
   bool has_window = false;
-  uint64_t window_jobs = 0, window_applied = 0, window_failures = 0, window_skipped_busy = 0, window_resets = 0;
+  uint64_t window_jobs = 0, window_applied = 0, window_failures = 0, window_skipped_busy = 0,
+           window_resets = 0;
   // Cumulative counters.
   uint64_t imu_in = 0, frames_in = 0, frames_used = 0, resets = 0, imu_rejected = 0;
   FrameInfo pipeline;
@@ -98,8 +99,8 @@ struct ViewSnapshot {
 };
 
 struct FeedOptions {
-  double max_rate_hz = 10.0;   // snapshots per second of wall time, at most
-  double map_period_s = 1.0;   // the local map at most this often (and after a keyframe only)
+  double max_rate_hz = 10.0;  // snapshots per second of wall time, at most
+  double map_period_s = 1.0;  // the local map at most this often (and after a keyframe only)
 };
 
 class ViewerFeed {

@@ -30,13 +30,13 @@ namespace kestrel::viewer {
 
 struct ServerOptions {
   std::string address = "0.0.0.0";  // every interface: the browser runs on a laptop
-  uint16_t port = 0;                 // 0: any free port (tests; port() tells which)
-  int max_clients = 4;               // browsers streaming at once; more get HTTP 503
-  int max_connections = 32;          // open sockets of any kind; more are closed at once
-  double max_kbytes_per_s = 1000;    // per browser [kB/s, 1 kB = 1000 bytes]
+  uint16_t port = 0;                // 0: any free port (tests; port() tells which)
+  int max_clients = 4;              // browsers streaming at once; more get HTTP 503
+  int max_connections = 32;         // open sockets of any kind; more are closed at once
+  double max_kbytes_per_s = 1000;   // per browser [kB/s, 1 kB = 1000 bytes]
   int jpeg_quality = 75;
   int64_t client_timeout_ns = 10'000'000'000;  // a browser that drains nothing this long is dropped
-  int64_t handshake_timeout_ms = 3000;         // an HTTP request or WebSocket handshake must arrive within this
+  int64_t handshake_timeout_ms = 3000;  // an HTTP request or WebSocket handshake must arrive within this
   // index.html, viewer.js, viewer.css; "" = share/kestrel/viewer beside the executable's bin/.
   std::string assets_dir;
   // Debian's libjs-three: three.min.js and examples/js/controls/OrbitControls.js.
@@ -55,17 +55,17 @@ struct ServerStats {
   uint64_t connections_refused = 0;  // closed at once: max_connections open
   int connections_peak = 0;
   uint64_t http_requests = 0;
-  uint64_t http_errors = 0;          // 404, 405
-  uint64_t handshakes_failed = 0;    // timed out, malformed, closed early
-  uint64_t clients = 0;              // WebSocket viewers accepted
-  uint64_t clients_refused = 0;      // max_clients reached (503) or wrong path (404)
-  uint64_t clients_dropped = 0;      // read nothing for client_timeout_ns
-  uint64_t protocol_errors = 0;      // malformed frames: connection failed by the server
+  uint64_t http_errors = 0;        // 404, 405
+  uint64_t handshakes_failed = 0;  // timed out, malformed, closed early
+  uint64_t clients = 0;            // WebSocket viewers accepted
+  uint64_t clients_refused = 0;    // max_clients reached (503) or wrong path (404)
+  uint64_t clients_dropped = 0;    // read nothing for client_timeout_ns
+  uint64_t protocol_errors = 0;    // malformed frames: connection failed by the server
   int clients_peak = 0;
   uint64_t commands = 0, bad_commands = 0;
-  uint64_t snapshots = 0;            // taken from the feed
-  uint64_t poses_dropped = 0;        // add_pose found its ring full
-  uint64_t frames_sent = 0;          // camera frames, summed over browsers
+  uint64_t snapshots = 0;               // taken from the feed
+  uint64_t poses_dropped = 0;           // add_pose found its ring full
+  uint64_t frames_sent = 0;             // camera frames, summed over browsers
   uint64_t frames_skipped_budget = 0;   // over max_kbytes_per_s
   uint64_t frames_skipped_backlog = 0;  // the browser's socket was not draining
   uint64_t bytes_sent = 0;
@@ -78,7 +78,7 @@ struct ServerStats {
   double streaming_s = 0;
   double streaming_cpu_s = 0;
   uint64_t streaming_bytes = 0;
-  double cpu_s = 0;  // viewer thread, whole run
+  double cpu_s = 0;    // viewer thread, whole run
   std::string thread;  // scheduling the thread got
 };
 
