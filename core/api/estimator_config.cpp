@@ -274,6 +274,12 @@ void visit_map(MapSystemOptions& m, OptionVisitor& v) {
   v.value("point_min_keyframes_for_prior", o.point_min_keyframes_for_prior,
           "points seen by fewer keyframes are not handed to the tracker");
   v.value("min_keyframe_interval_s", o.min_keyframe_interval_s, "keyframes closer in time are not mapped");
+  v.value(
+      "depth_grid_cols", o.depth_grid_cols,
+      "each keyframe keeps its depth on a grid this many cells wide (rows keep the aspect; 2 bytes a cell) "
+      "for the loop's surface verification (0: none)");
+  v.value("depth_grid_edge_rel", o.depth_grid_edge_rel,
+          "a grid cell whose 3x3 pixels spread more than this x z is a depth edge and stays empty");
   GlobalBaOptions& g = m.global_ba;
   v.value("global_ba", g.enabled,
           "after each closed loop, a bundle adjustment of the whole map on the loop thread (docs/map.md)");
@@ -318,6 +324,31 @@ void visit_map(MapSystemOptions& m, OptionVisitor& v) {
           "points land in view of (0: none)");
   v.value("loop_geometric_min_overlap", l.geometric_min_overlap, "... at least this share of them");
   v.value("loop_geometric_max_range_m", l.geometric_max_range_m, "... within this range");
+  v.value("loop_surface_verify", l.surface_verify,
+          "a candidate the descriptors refuse is aligned by its depth grid to the keyframe's (4-DoF "
+          "point-to-plane ICP from the map's poses), then meets the same gates (docs/map.md)");
+  SurfaceAlignOptions& sa = l.surface;
+  v.value("loop_surface_iterations", sa.iterations, "ICP iterations of the surface verification");
+  v.value("loop_surface_max_pair_m", sa.max_pair_m, "its first iteration pairs cells this far apart");
+  v.value("loop_surface_min_pair_m", sa.min_pair_m, "... shrinking to this by the last (+ a cell's width)");
+  v.value("loop_surface_max_normal_angle_rad", sa.max_normal_angle_rad,
+          "paired cells' normals agree within this");
+  v.value("loop_surface_normal_max_step_rel", sa.normal_max_step_rel,
+          "a cell has a normal when its neighbours' depths are within this x z (+ 2 cm) of its own");
+  v.value("loop_surface_inlier_floor_m", sa.inlier_floor_m,
+          "a paired cell is an inlier within this + 3 sigma of both depths (point to plane)");
+  v.value("loop_surface_min_overlap", sa.min_overlap,
+          "the keyframe's cells that land on the candidate's surface (not hidden behind it), of those with "
+          "depth, at least this share");
+  v.value("loop_surface_min_inlier_share", sa.min_inlier_share,
+          "of the landed cells, inliers at least this share (occlusion and cells without a normal keep a "
+          "true revisit below 1)");
+  v.value("loop_surface_min_observability", sa.min_observability,
+          "the weakest direction of (yaw x range, translation) carries at least this share of the pairs' "
+          "constraint: one wall, or a floor and a wall, leave a direction free");
+  v.value("loop_surface_independent_pairs", sa.independent_pairs,
+          "the alignment's covariance counts this many independent pairs (neighbouring cells share surface "
+          "and depth bias)");
   v.value(
       "loop_refine_chi2", l.refine_chi2,
       "after the 3D fit, a 4-DoF refit on pixels and depths with their noise; its inliers (whitened error "

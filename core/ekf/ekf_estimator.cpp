@@ -127,6 +127,7 @@ EkfEstimator::EkfEstimator(const Rig& rig, const EkfEstimatorOptions& opt)
     cam.keypoint_sigma_px = opt_.tracker.keypoint_sigma_px;
     cam.level_scale = opt_.tracker.orb.scale_factor;
     map_ = std::make_unique<MapSystem>(cam, opt_.tracker.orb.n_features, opt_.map);
+    if (!rig.stereo.present) map_->enable_depth_grid(rig.rgb, rig.depth);
   }
 }
 
@@ -147,7 +148,7 @@ void EkfEstimator::map_before_tracking() {
 // After the update: a new keyframe goes to the map at once, at the filter's
 // updated pose. The window holds its keyframe until its solve has refined it;
 // the filter never revisits a past pose, so there is nothing to wait for.
-void EkfEstimator::map_after_update(const TrackResult& r) {
+void EkfEstimator::map_after_update(const TrackResult& r, const RgbdFrame& f) {
   // Once per loss: a restart while already lost is the same gap.
   const bool lost = out_.quality == TrackingQuality::kLost;
   if ((lost && !map_chain_lost_) || (!lost && starts_ != map_chain_starts_)) ++map_chain_;
@@ -160,6 +161,7 @@ void EkfEstimator::map_after_update(const TrackResult& r) {
   p->T_WC = tracker_.keyframe_pose();
   p->n = tracker_.keyframe_features(p->features, opt_.tracker.orb.n_features);
   p->chain = map_chain_;
+  if (tracker_.keyframe_t_ns() == f.t_ns) map_->fill_depth_grid(p, f.depth);
   map_->submit_keyframe(p);
 }
 
@@ -458,7 +460,7 @@ bool EkfEstimator::add_frame(const RgbdFrame& f) {
     lost_frames_ = 0;
     ++counters_.frames_used;
     supervise();
-    if (map_) map_after_update(r);
+    if (map_) map_after_update(r, f);
     return true;
   }
   // Not tracked: coast on the IMU; after a few frames take a new keyframe at
@@ -471,7 +473,7 @@ bool EkfEstimator::add_frame(const RgbdFrame& f) {
     ++ekf_counters_.tracker_resets;
     lost_frames_ = 0;
   }
-  if (map_) map_after_update(r);
+  if (map_) map_after_update(r, f);
   return true;
 }
 

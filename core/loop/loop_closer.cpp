@@ -39,6 +39,19 @@ std::string LoopOptions::validate() const {
   if (!(max_yaw_rad >= 0)) e << "  loop_max_yaw_rad must be >= 0\n";
   if (!(max_yaw_per_m >= 0)) e << "  loop_max_yaw_per_m must be >= 0\n";
   if (pose_graph_iterations < 1) e << "  loop_pose_graph_iterations must be >= 1\n";
+  const SurfaceAlignOptions& so = surface;
+  if (so.iterations < 1) e << "  loop_surface_iterations must be >= 1\n";
+  if (!(so.min_pair_m > 0 && so.max_pair_m >= so.min_pair_m))
+    e << "  loop_surface_min_pair_m must be > 0 and <= loop_surface_max_pair_m\n";
+  if (!(so.max_normal_angle_rad > 0 && so.max_normal_angle_rad <= 3.15))
+    e << "  loop_surface_max_normal_angle_rad must be in (0, pi]\n";
+  if (!(so.normal_max_step_rel > 0)) e << "  loop_surface_normal_max_step_rel must be > 0\n";
+  if (!(so.inlier_floor_m >= 0)) e << "  loop_surface_inlier_floor_m must be >= 0\n";
+  if (!(so.min_overlap > 0 && so.min_overlap <= 1)) e << "  loop_surface_min_overlap must be in (0, 1]\n";
+  if (!(so.min_inlier_share >= 0 && so.min_inlier_share <= 1))
+    e << "  loop_surface_min_inlier_share must be in [0, 1]\n";
+  if (!(so.min_observability >= 0)) e << "  loop_surface_min_observability must be >= 0\n";
+  if (so.independent_pairs < 1) e << "  loop_surface_independent_pairs must be >= 1\n";
   if (reloc_max_candidates < 1) e << "  reloc_max_candidates must be >= 1\n";
   if (reloc_min_inliers < 3) e << "  reloc_min_inliers must be >= 3\n";
   if (!(reloc_min_inlier_share >= 0 && reloc_min_inlier_share <= 1))
@@ -91,6 +104,10 @@ LoopCloser::LoopCloser(Map& map, const MapCamera& cam, const LoopOptions& opt)
   if (!err.empty()) throw std::invalid_argument("LoopOptions:\n" + err);
   kf_scratch_.resize(static_cast<size_t>(map.max_keyframes()));
   shared_scratch_.resize(static_cast<size_t>(map.max_keyframes()));
+}
+
+void LoopCloser::set_depth_grid(const DepthGridShape& shape) {
+  aligner_.set_shape(shape, cam_.depth_sigma_coeff_per_m);
 }
 
 bool LoopCloser::detect(int kf, LoopMatch* out) {
@@ -570,11 +587,8 @@ bool LoopCloser::verify(int kf, int cand, double score, bool geometric, LoopMatc
   PlaceFit fit;
   const PlaceMatcher::Result r = matcher_.match(&map_.feature(kf, 0), K.n, K.T_MC, cand, opt_,
                                                 static_cast<uint64_t>(K.id) * 1000003u + C.id, &fit);
-  const Eigen::Isometry3d& T = fit.correction;
   const double path_m = std::max(0.0, K.path_m - C.path_m);
   const Eigen::Vector3d pos = K.T_MC.translation();
-  const double yaw = yaw_of(T.linear());
-  const double dp = (T * pos - pos).norm(), dyaw = std::abs(yaw);
   LoopCandidateRecord* rec = log_candidate();
   if (rec != nullptr) {
     rec->query_id = K.id;
@@ -592,22 +606,52 @@ bool LoopCloser::verify(int kf, int cand, double score, bool geometric, LoopMatc
     rec->path_m = path_m;
     rec->T_MC_query = K.T_MC;
     rec->T_MC_candidate = C.T_MC;
-    if (r == PlaceMatcher::kOk) {
-      rec->out_of_plane_m = fit.out_of_plane_m;
-      rec->correction = T;
-      rec->correction_m = dp;
-      rec->correction_rad = dyaw;
-    }
   }
   const auto verdict = [&](LoopVerdict v) {
     if (rec != nullptr) rec->verdict = v;
   };
-  if (r != PlaceMatcher::kOk) {
+  // The descriptors refused it: the depth grids may still agree where the
+  // keypoints do not (another range, another angle). The observability test
+  // stands in for the plane check: it refuses any direction the surface
+  // leaves free, which is what the plane check guards against.
+  bool surface = false;
+  if (r != PlaceMatcher::kOk && opt_.surface_verify && aligner_.enabled() && K.grid_n > 0 && C.grid_n > 0) {
+    ++stats_.surface_tried;
+    const SurfaceFit sf =
+        aligner_.align(map_.depth_grid(kf), K.T_MC, map_.depth_grid(cand), C.T_MC, opt_.surface);
+    if (rec != nullptr) {
+      rec->surface_tried = true;
+      rec->surface_ok = sf.ok;
+      rec->surface_failed = sf.failed;
+      rec->surface_overlap = sf.overlap;
+      rec->surface_inlier_share = sf.inlier_share;
+      rec->surface_rms_m = sf.rms_m;
+      rec->surface_observability = sf.observability;
+      rec->surface_correction = sf.correction;
+    }
+    if (sf.ok) {
+      ++stats_.surface_aligned;
+      surface = true;
+      fit.correction = sf.correction;
+      fit.cov = sf.cov;
+      fit.inlier_pairs.clear();
+    }
+  }
+  const Eigen::Isometry3d& T = fit.correction;
+  const double yaw = yaw_of(T.linear());
+  const double dp = (T * pos - pos).norm(), dyaw = std::abs(yaw);
+  if (rec != nullptr && (r == PlaceMatcher::kOk || surface)) {
+    rec->out_of_plane_m = fit.out_of_plane_m;
+    rec->correction = T;
+    rec->correction_m = dp;
+    rec->correction_rad = dyaw;
+  }
+  if (r != PlaceMatcher::kOk && !surface) {
     ++stats_.rejected_inliers;
     verdict(fit.failed);
     return false;
   }
-  if (fit.out_of_plane_m < opt_.min_out_of_plane_m) {
+  if (!surface && fit.out_of_plane_m < opt_.min_out_of_plane_m) {
     ++stats_.rejected_planar;
     verdict(LoopVerdict::kPlanar);
     return false;
@@ -646,7 +690,8 @@ bool LoopCloser::verify(int kf, int cand, double score, bool geometric, LoopMatc
   out->candidate_id = C.id;
   out->correction = T;
   out->matches = fit.matches;
-  out->inliers = fit.inliers;
+  out->inliers = surface ? 0 : fit.inliers;  // a descriptor-verified candidate is preferred (detect)
+  out->surface = surface;
   out->score = score;
   out->inlier_pairs = std::move(fit.inlier_pairs);
   return true;

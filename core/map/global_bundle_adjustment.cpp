@@ -19,7 +19,7 @@ std::string GlobalBaOptions::validate() const {
   return e.str();
 }
 
-bool GlobalBundleAdjustment::snapshot(const Map& map) {
+bool GlobalBundleAdjustment::snapshot(const Map& map, const std::vector<GlobalBaLoop>& loops) {
   state_ = State::kIdle;
   ok_ = false;
   const MapOptions& mo = map.options();
@@ -115,6 +115,28 @@ bool GlobalBundleAdjustment::snapshot(const Map& map) {
     }
   }
   stats_.odometry_factors = pb_.relative.size();
+  // The closed loops, where both keyframes are in the problem and one is free.
+  size_t n_loop = 0;
+  for (const GlobalBaLoop& l : loops) {
+    int32_t a = -1, b = -1;
+    for (size_t i = 0; i < kfs_.size() && (a < 0 || b < 0); ++i) {
+      if (kfs_[i].id == l.id_a) a = static_cast<int32_t>(i);
+      if (kfs_[i].id == l.id_b) b = static_cast<int32_t>(i);
+    }
+    if (a < 0 || b < 0 ||
+        (pb_.poses[static_cast<size_t>(a)].fixed && pb_.poses[static_cast<size_t>(b)].fixed))
+      continue;
+    BaRelativePose e;
+    e.a = a;
+    e.b = b;
+    e.R_ab = l.R_ab;
+    e.t_ab = l.t_ab;
+    e.inv_sigma_m = 1.0 / std::max(l.sigma_m, 1e-4);
+    e.inv_sigma_rad = 1.0 / std::max(l.sigma_rad, 1e-5);
+    pb_.relative.push_back(e);
+    ++n_loop;
+  }
+  stats_.loop_factors = n_loop;
   stats_.keyframes = n_free;
   stats_.fixed_keyframes = pb_.poses.size() - n_free;
   stats_.points = pb_.points_M.size();

@@ -40,6 +40,10 @@ int LocalMapper::insert(const KeyframePacket& pk, const Eigen::Isometry3d& T_MW,
   }
   ++stats_.keyframes;
   map_.keyframe(kf).chain = pk.chain;
+  if (uint16_t* grid = map_.depth_grid(kf); grid != nullptr && pk.grid_z_mm != nullptr && pk.grid_n > 0) {
+    std::copy(pk.grid_z_mm, pk.grid_z_mm + map_.depth_grid_cells(), grid);
+    map_.keyframe(kf).grid_n = pk.grid_n;
+  }
   if (have_last_) path_m_ += (pk.T_WC.translation() - last_p_W_).norm();
   have_last_ = true;
   last_p_W_ = pk.T_WC.translation();

@@ -29,6 +29,8 @@ std::string MapOptions::validate() const {
   if (!(point_sigma_floor_m > 0)) e << "point_sigma_floor_m: > 0\n";
   if (point_min_keyframes_for_prior < 1) e << "point_min_keyframes_for_prior: at least 1\n";
   if (!(min_keyframe_interval_s >= 0)) e << "min_keyframe_interval_s: >= 0\n";
+  if (depth_grid_cols < 0 || depth_grid_cols > 640) e << "depth_grid_cols: in 0..640\n";
+  if (!(depth_grid_edge_rel > 0)) e << "depth_grid_edge_rel: > 0\n";
   return e.str();
 }
 
@@ -141,6 +143,12 @@ int Map::add_keyframe(int64_t t_ns, const Eigen::Isometry3d& T_MC, const Eigen::
     db_->add(k, b, K.n_bow);
   }
   return k;
+}
+
+void Map::enable_depth_grids(int cells) {
+  if (cells <= 0 || grid_cells_ > 0) return;
+  grid_cells_ = cells;
+  grids_.reset(new uint16_t[static_cast<size_t>(opt_.max_keyframes) * cells]());
 }
 
 void Map::erase_keyframe(int kf) {

@@ -57,7 +57,25 @@ MapSystem::MapSystem(const MapCamera& cam, int features_per_keyframe, const MapS
 
 MapSystem::~MapSystem() = default;
 
+void MapSystem::enable_depth_grid(const CameraIntrinsics& rgb, const DepthModel& depth) {
+  if (grid_sampler_.enabled()) return;
+  const DepthGridShape shape =
+      DepthGridShape::make(opt_.map.depth_grid_cols, cam_.K, cam_.width, cam_.height);
+  if (shape.cells() <= 0) return;
+  grid_sampler_ = DepthGridSampler(shape, rgb, depth, opt_.map.depth_grid_edge_rel);
+  packet_grids_.reset(new uint16_t[static_cast<size_t>(kPackets) * shape.cells()]());
+  for (int i = 0; i < kPackets; ++i)
+    packets_[i].grid_z_mm = packet_grids_.get() + static_cast<size_t>(i) * shape.cells();
+  map_->enable_depth_grids(shape.cells());
+  closer_->set_depth_grid(shape);
+}
+
 // ---- tracking side -------------------------------------------------------------
+
+void MapSystem::fill_depth_grid(KeyframePacket* p, const ImageView& depth) const {
+  if (p == nullptr || p->grid_z_mm == nullptr) return;
+  p->grid_n = grid_sampler_.sample(depth, p->grid_z_mm);
+}
 
 KeyframePacket* MapSystem::begin_keyframe() {
   while (const uint8_t* s = packet_free_.front()) {
@@ -71,6 +89,7 @@ KeyframePacket* MapSystem::begin_keyframe() {
   KeyframePacket* p = &packets_[free_packets_[--n_free_packets_]];
   p->n = 0;
   p->chain = 0;
+  p->grid_n = 0;
   return p;
 }
 
@@ -238,7 +257,12 @@ bool MapSystem::loop_step() {
     }
     publish_frame();
     // The map is held (a deterministic pace waits) until the solution is back.
-    if (gba_ && gba_->snapshot(*map_)) in_flight_.fetch_add(1, std::memory_order_acq_rel);
+    if (gba_) {
+      std::vector<GlobalBaLoop> loops;
+      for (const LoopCloser::LoopEdge& e : closer_->loop_edges())
+        loops.push_back({e.id_a, e.id_b, e.R_ab, e.t_ab, e.sigma_m, e.sigma_rad});
+      if (gba_->snapshot(*map_, loops)) in_flight_.fetch_add(1, std::memory_order_acq_rel);
+    }
   }
   loop_latency_.record(rt::now_ns() - t0);
   in_flight_.fetch_sub(1, std::memory_order_acq_rel);
@@ -283,16 +307,17 @@ std::string MapSystem::summary() const {
     << " verified, rejected " << l.rejected_inliers << " inliers / " << l.rejected_planar << " planar / "
     << l.rejected_drift << " drift / " << l.rejected_consistency << " consistency, "
     << l.skipped_insignificant << " within their uncertainty, " << l.closures << " closed (pose graph failed "
-    << l.pose_graph_failures << "), " << l.points_merged << " points merged";
+    << l.pose_graph_failures << "), " << l.points_merged << " points merged; surface verification "
+    << l.surface_tried << " tried, " << l.surface_aligned << " aligned";
   if (gba_) {
     const GlobalBaStats& g = gba_->stats();
     o << "; global BA: " << g.runs << " runs (failed " << g.failures << "), last " << g.keyframes
       << " keyframes (+" << g.fixed_keyframes << " held), " << g.points << " points, " << g.observations
-      << " observations, " << g.odometry_factors << " odometry factors, " << g.outliers << " outliers, cost "
-      << g.initial_cost << " -> " << g.final_cost << ", largest keyframe move " << g.max_keyframe_move_m
-      << " m; followed " << g.followed_keyframes << " keyframes / " << g.followed_points
-      << " points mapped during the solves, " << g.lost_keyframes << " culled; solve p50 "
-      << 1e-6 * static_cast<double>(gba_latency_.percentile(50)) << " ms, max "
+      << " observations, " << g.odometry_factors << " odometry factors, " << g.loop_factors
+      << " loop factors, " << g.outliers << " outliers, cost " << g.initial_cost << " -> " << g.final_cost
+      << ", largest keyframe move " << g.max_keyframe_move_m << " m; followed " << g.followed_keyframes
+      << " keyframes / " << g.followed_points << " points mapped during the solves, " << g.lost_keyframes
+      << " culled; solve p50 " << 1e-6 * static_cast<double>(gba_latency_.percentile(50)) << " ms, max "
       << 1e-6 * static_cast<double>(gba_latency_.max()) << " ms";
   }
   if (reloc_) {

@@ -91,6 +91,7 @@ WindowEstimator::WindowEstimator(const Rig& rig, const WindowEstimatorOptions& o
     cam.keypoint_sigma_px = opt_.frontend.tracker.keypoint_sigma_px;
     cam.level_scale = opt_.frontend.tracker.orb.scale_factor;
     map_ = std::make_unique<MapSystem>(cam, opt_.frontend.tracker.orb.n_features, opt_.map);
+    if (!rig.stereo.present) map_->enable_depth_grid(rig.rgb, rig.depth);
   }
 }
 
@@ -199,7 +200,7 @@ Eigen::Isometry3d WindowEstimator::at_capture_time(const Eigen::Isometry3d& T_WC
 
 // After tracking: a new keyframe sends the held one to the map (the window
 // has refined it for a keyframe's span) and is held in its place.
-void WindowEstimator::map_after_tracking() {
+void WindowEstimator::map_after_tracking(const RgbdFrame& f) {
   // Once per loss: a re-initialisation while already lost is the same gap.
   const bool lost = front_.output().quality == TrackingQuality::kLost;
   if ((lost && !map_chain_lost_) || (!lost && front_.divergence_epoch() != map_chain_epoch_)) ++map_chain_;
@@ -217,6 +218,7 @@ void WindowEstimator::map_after_tracking() {
   map_pending_->T_WC = at_capture_time(tracker.keyframe_pose());
   map_pending_->n = tracker.keyframe_features(map_pending_->features, opt_.frontend.tracker.orb.n_features);
   map_pending_->chain = map_chain_;
+  if (tracker.keyframe_t_ns() == f.t_ns) map_->fill_depth_grid(map_pending_, f.depth);
 }
 
 bool WindowEstimator::add_frame(const RgbdFrame& f) {
@@ -224,7 +226,7 @@ bool WindowEstimator::add_frame(const RgbdFrame& f) {
   bool changed = front_.add_frame(f);
   follow_front_end_restart();
   if (!front_.started()) return changed;
-  if (map_) map_after_tracking();
+  if (map_) map_after_tracking(f);
   const TrackResult& r = front_.last_track();
   wc_.far_observations += static_cast<uint64_t>(r.far_tracked);
   if (!(r.tracked() || r.status == TrackStatus::kNewKeyframe)) return changed;

@@ -219,6 +219,12 @@ LoopTruth evaluate_loops(drivers::LogSource& log, const core::LoopLog& loop_log,
       out.error_m = (c.correction * pos - corr_true * pos).norm();
       out.error_rad = std::abs(yaw_of_R(corr_true.linear().transpose() * c.correction.linear()));
     }
+    if (c.surface_tried && q.has_pose && k.has_pose) {
+      const Eigen::Isometry3d T_MC_q_true = c.T_MC_candidate * (k.T_WC.inverse() * q.T_WC);
+      const Eigen::Isometry3d corr_true = T_MC_q_true * c.T_MC_query.inverse();
+      const Eigen::Vector3d pos = c.T_MC_query.translation();
+      out.surface_error_m = (c.surface_correction * pos - corr_true * pos).norm();
+    }
     if (c.verdict == core::LoopVerdict::kVerified) {
       ++t.verified;
       if (is_true) ++t.verified_true;
@@ -262,22 +268,28 @@ void write_loop_log(const std::string& path, const core::LoopLog& loop_log, cons
   f << "query_id,query_t_s,candidate_id,candidate_t_s,bow_score,place_points,matches,ransac_inliers,guided_"
        "matches,inliers,"
        "out_of_plane_m,correction_m,correction_rad,path_m,verdict,geometric,prior_seeded,chosen,inconsistent,"
-       "closed,"
+       "closed,surface_tried,surface_ok,surface_failed,surface_overlap,surface_inlier_share,surface_rms_m,"
+       "surface_observability,"
        "gt_overlap,"
-       "gt_error_m,gt_error_rad\n";
-  char line[512];
+       "gt_error_m,gt_error_rad,gt_surface_error_m\n";
+  char line[768];
   for (size_t i = 0; i < loop_log.candidates.size(); ++i) {
     const core::LoopCandidateRecord& c = loop_log.candidates[i];
     const LoopTruthCandidate g =
         truth.available && i < truth.per_candidate.size() ? truth.per_candidate[i] : LoopTruthCandidate{};
     std::snprintf(
         line, sizeof line,
-        "%u,%.6f,%u,%.6f,%.4f,%d,%d,%d,%d,%d,%.4f,%.4f,%.5f,%.2f,%s,%d,%d,%d,%d,%d,%.3f,%.4f,%.5f\n",
+        "%u,%.6f,%u,%.6f,%.4f,%d,%d,%d,%d,%d,%.4f,%.4f,%.5f,%.2f,%s,%d,%d,%d,%d,%d,%d,%d,%s,%.3f,%.3f,%.4f,%."
+        "4f,"
+        "%.3f,%.4f,%.5f,%.4f\n",
         c.query_id, 1e-9 * static_cast<double>(c.query_t_ns), c.candidate_id,
         1e-9 * static_cast<double>(c.candidate_t_ns), c.score, c.place_points, c.matches, c.ransac_inliers,
         c.guided_matches, c.inliers, c.out_of_plane_m, c.correction_m, c.correction_rad, c.path_m,
         core::loop_verdict_name(c.verdict), c.geometric ? 1 : 0, c.prior_seeded ? 1 : 0, c.chosen ? 1 : 0,
-        c.inconsistent ? 1 : 0, c.closed ? 1 : 0, g.overlap, g.error_m, g.error_rad);
+        c.inconsistent ? 1 : 0, c.closed ? 1 : 0, c.surface_tried ? 1 : 0, c.surface_ok ? 1 : 0,
+        (c.surface_failed != nullptr && c.surface_failed[0] != 0) ? c.surface_failed : "-", c.surface_overlap,
+        c.surface_inlier_share, c.surface_rms_m, c.surface_observability, g.overlap, g.error_m, g.error_rad,
+        g.surface_error_m);
     f << line;
   }
   if (!f) throw std::runtime_error("--loop-log: write failed: " + path);

@@ -38,6 +38,7 @@ struct LoopTruthOptions {
 struct LoopTruthCandidate {
   double overlap = -1;                  // of the pair, -1: a keyframe without depth or ground truth
   double error_m = -1, error_rad = -1;  // verified ones: correction against the truth
+  double surface_error_m = -1;          // the surface alignment's correction against the truth (tried ones)
 };
 
 struct LoopTruth {

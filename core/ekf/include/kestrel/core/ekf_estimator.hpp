@@ -223,7 +223,7 @@ class EkfEstimator final : public Estimator {
   void publish(int64_t t_ns);
   void record_consistency(const EkfUpdateStats& st);
   void map_before_tracking();
-  void map_after_update(const TrackResult& r);
+  void map_after_update(const TrackResult& r, const RgbdFrame& f);
 
   EkfEstimatorOptions opt_;
   Eigen::Isometry3d T_BC_ = Eigen::Isometry3d::Identity();

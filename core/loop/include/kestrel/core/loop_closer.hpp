@@ -26,6 +26,7 @@
 
 #include "kestrel/core/local_mapper.hpp"
 #include "kestrel/core/map.hpp"
+#include "kestrel/core/surface_alignment.hpp"
 
 namespace kestrel::core {
 
@@ -71,6 +72,12 @@ struct LoopOptions {
   int geometric_candidates = 2;
   double geometric_min_overlap = 0.3;
   double geometric_max_range_m = 6.0;
+  // Surface verification (surface_alignment.hpp): a candidate the
+  // descriptors refuse is aligned by its depth grid to the query's, seeded by
+  // the map's poses; what it verifies then meets the same drift, consistency
+  // and significance gates. Needs depth grids (map.depth_grid_cols).
+  bool surface_verify = true;
+  SurfaceAlignOptions surface;
   // After the 3D fit: refit on pixels and depths, inliers below this chi2 (3 DoF); 0: off
   double refine_chi2 = 7.815;
   // The correction must be drift: at most base + per_m x path flown since the candidate.
@@ -115,6 +122,8 @@ struct LoopStats {
   uint64_t candidates = 0;            // from the inverted index and the map's geometry
   uint64_t geometric_candidates = 0;  // ... of which from the geometry
   uint64_t verified = 0;              // passed geometry and the drift bound
+  uint64_t surface_tried = 0;         // refused by the descriptors, aligned by the depth grids
+  uint64_t surface_aligned = 0;       // ... and the alignment held (then the same gates)
   uint64_t rejected_inliers = 0;      // too few 3D-3D inliers
   uint64_t rejected_drift = 0;        // a correction the odometry could not have drifted (an alias)
   uint64_t rejected_planar = 0;       // every inlier on one plane: the correction along it is appearance only
@@ -238,6 +247,15 @@ struct LoopCandidateRecord {
   bool chosen = false;        // the query's best verified candidate
   bool inconsistent = false;  // chosen, refused by the consistency check
   bool closed = false;        // chosen, and the loop closed on it
+  // Surface verification, when the descriptors refused it: tried, held, why
+  // not (SurfaceFit::failed), paired cells' share, inliers' share and RMS, the
+  // weakest direction's share of the constraint.
+  bool surface_tried = false, surface_ok = false;
+  const char* surface_failed = "";
+  double surface_overlap = 0, surface_inlier_share = 0, surface_rms_m = 0, surface_observability = 0;
+  // The alignment's correction, also when a gate refused it (the loop log
+  // scores it against the ground truth); identity when it never converged.
+  Eigen::Isometry3d surface_correction = Eigen::Isometry3d::Identity();
   Eigen::Isometry3d T_MC_query = Eigen::Isometry3d::Identity();
   Eigen::Isometry3d T_MC_candidate = Eigen::Isometry3d::Identity();
   Eigen::Isometry3d correction = Eigen::Isometry3d::Identity();
@@ -254,6 +272,7 @@ struct LoopMatch {
   // T_MC_true = correction * T_MC (4 DoF): where the query keyframe really is.
   Eigen::Isometry3d correction = Eigen::Isometry3d::Identity();
   int matches = 0, inliers = 0;
+  bool surface = false;  // verified by the depth grids (no point pairs to merge)
   double score = 0.0;
   // The loop edge's sigmas: the fit's, with the stiff floor under them.
   double sigma_m = 0.0, sigma_rad = 0.0;
@@ -283,6 +302,19 @@ class LoopCloser {
 
   const LoopStats& stats() const { return stats_; }
   const LoopOptions& options() const { return opt_; }
+  // Keyframes carry depth grids of this shape (MapSystem::enable_depth_grid):
+  // surface verification is on (with LoopOptions::surface_verify).
+  void set_depth_grid(const DepthGridShape& shape);
+
+  // A closed loop, kept for later pose graphs and the global bundle
+  // adjustment: b seen from a (camera frames).
+  struct LoopEdge {
+    uint32_t id_a, id_b;
+    Eigen::Vector3d t_ab;
+    Eigen::Matrix3d R_ab;
+    double sigma_m, sigma_rad;
+  };
+  const std::vector<LoopEdge>& loop_edges() const { return loop_edges_; }
   // Keep the loop log (off by default: it grows with the flight; the loop
   // thread is not real time, so it may).
   void set_logging(bool on) { logging_ = on; }
@@ -296,17 +328,11 @@ class LoopCloser {
   int geometric_candidates(int kf, const Skip& skip, int max, int32_t* out_kf, float* out_share);
   LoopCandidateRecord* log_candidate();
 
-  // A closed loop, kept for later pose graphs: b seen from a (camera frames).
-  struct LoopEdge {
-    uint32_t id_a, id_b;
-    Eigen::Vector3d t_ab;
-    Eigen::Matrix3d R_ab;
-    double sigma_m, sigma_rad;
-  };
   Map& map_;
   MapCamera cam_;
   LoopOptions opt_;
   PlaceMatcher matcher_;
+  SurfaceAligner aligner_;
   LoopStats stats_;
   std::vector<LoopEdge> loop_edges_;
   // Consistency: the last verified match and how many consecutive keyframes agree.

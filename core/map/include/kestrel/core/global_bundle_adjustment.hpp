@@ -50,6 +50,7 @@ struct GlobalBaStats {
   uint64_t points = 0;
   uint64_t observations = 0;
   uint64_t odometry_factors = 0;    // last run
+  uint64_t loop_factors = 0;        // last run
   uint64_t outliers = 0;            // left out of the second round, last run
   uint64_t followed_keyframes = 0;  // mapped during the solve: took their parent's correction (all runs)
   uint64_t followed_points = 0;
@@ -58,13 +59,24 @@ struct GlobalBaStats {
   double max_keyframe_move_m = 0;           // last run, at write-back
 };
 
+// A closed loop for the adjustment: keyframe id_b seen from id_a (camera frames).
+struct GlobalBaLoop {
+  uint32_t id_a = 0, id_b = 0;
+  Eigen::Matrix3d R_ab = Eigen::Matrix3d::Identity();
+  Eigen::Vector3d t_ab = Eigen::Vector3d::Zero();
+  double sigma_m = 0.01, sigma_rad = 0.01;
+};
+
 class GlobalBundleAdjustment {
  public:
   GlobalBundleAdjustment(const MapCamera& cam, const GlobalBaOptions& opt) : cam_(cam), opt_(opt) {}
 
   // Copies the map's keyframes (this flight's: a loaded map's are held) and
   // points; false when there is nothing to adjust. Under the map's lock.
-  bool snapshot(const Map& map);
+  // loops: the closed loops' relative poses (LoopCloser::loop_edges), held as
+  // factors too: a loop verified by surfaces alone shares no point between
+  // its two places, and without its edge the adjustment would reopen it.
+  bool snapshot(const Map& map, const std::vector<GlobalBaLoop>& loops = {});
   // The solve, touching nothing but the snapshot. False: no usable solution.
   bool solve();
   // Writes the solution into the map (under the lock), returns true when it

@@ -56,6 +56,12 @@ struct MapOptions {
   double point_sigma_floor_m = 0.01;      // a map point's prior in the window: at least this
   int point_min_keyframes_for_prior = 2;  // a point seen by fewer keyframes is not handed back
   double min_keyframe_interval_s = 0.0;   // keyframes closer in time are not mapped (0: all)
+  // Each keyframe's depth, coarse (depth_grid.hpp): cols of the grid (rows
+  // keep the image's aspect), 2 bytes a cell per keyframe slot, for the loop's
+  // surface verification (0: none; a stereo rig has no depth image to sample).
+  int depth_grid_cols = 64;
+  double depth_grid_edge_rel =
+      0.05;  // a cell whose 3x3 pixels spread more than this x z is a depth edge: empty
 
   [[nodiscard]] std::string validate() const;
 };
@@ -72,6 +78,10 @@ struct KeyframePacket {
   uint32_t chain = 0;
   int n = 0;
   KeyframeFeature* features = nullptr;  // capacity: the tracker's feature budget
+  // Its depth grid (depth_grid.hpp): capacity MapSystem::depth_grid_shape().cells()
+  // (nullptr: no grid); grid_n cells with depth, 0 when none was sampled.
+  uint16_t* grid_z_mm = nullptr;
+  int grid_n = 0;
 };
 
 constexpr int kMaxPointObservations = 12;
@@ -88,6 +98,7 @@ struct MapKeyframe {
   int n = 0;              // features
   int first_feature = 0;  // into Map::features / Map::point_of
   int n_bow = 0;          // its BoW vector: Map::bow(kf), n_bow entries (with a vocabulary)
+  int grid_n = 0;         // cells of its depth grid with depth (Map::depth_grid), 0: none
   double path_m = 0.0;    // odometry path flown before it, this session (bounds a loop's drift)
   uint64_t mark = 0;      // scratch stamps for set membership in one pass
   uint64_t mark2 = 0;
@@ -146,6 +157,16 @@ class Map {
   const Vocabulary* vocabulary() const { return vocab_.get(); }
   const KeyframeDatabase* database() const { return db_.get(); }
   const BowEntry* bow(int kf) const { return bow_.get() + static_cast<size_t>(kf) * fpk_; }
+  // Depth grids (depth_grid.hpp): cells per keyframe, set once before the
+  // first keyframe (allocates); a keyframe's grid, nullptr without grids.
+  void enable_depth_grids(int cells);
+  int depth_grid_cells() const { return grid_cells_; }
+  uint16_t* depth_grid(int kf) {
+    return grid_cells_ > 0 ? grids_.get() + static_cast<size_t>(kf) * grid_cells_ : nullptr;
+  }
+  const uint16_t* depth_grid(int kf) const {
+    return grid_cells_ > 0 ? grids_.get() + static_cast<size_t>(kf) * grid_cells_ : nullptr;
+  }
   // The word of feature j of keyframe kf (with a vocabulary).
   uint32_t word(int kf, int j) const { return words_[static_cast<size_t>(kf) * fpk_ + j]; }
 
@@ -201,6 +222,8 @@ class Map {
   std::unique_ptr<BowEntry[]> bow_;
   std::unique_ptr<uint32_t[]> words_;
   std::unique_ptr<OrbDescriptor[]> desc_scratch_;
+  std::unique_ptr<uint16_t[]> grids_;
+  int grid_cells_ = 0;
   mutable std::unique_ptr<int32_t[]> covis_count_;  // scratch per keyframe slot
   mutable std::unique_ptr<int32_t[]> covis_list_;
   int n_kf_ = 0, n_pt_ = 0;

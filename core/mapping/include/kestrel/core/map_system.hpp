@@ -25,6 +25,7 @@
 #include <string>
 #include <vector>
 
+#include "kestrel/core/depth_grid.hpp"
 #include "kestrel/core/estimator.hpp"
 #include "kestrel/core/global_bundle_adjustment.hpp"
 #include "kestrel/core/local_mapper.hpp"
@@ -87,7 +88,17 @@ class MapSystem {
   MapSystem(const MapSystem&) = delete;
   MapSystem& operator=(const MapSystem&) = delete;
 
+  // Before the first keyframe (allocates), for a rig with a depth image: each
+  // keyframe then carries its depth grid (map.depth_grid_cols; depth_grid.hpp)
+  // for the loop's surface verification. rgb: the colour camera as
+  // calibrated, the depth registered to it.
+  void enable_depth_grid(const CameraIntrinsics& rgb, const DepthModel& depth);
+  const DepthGridShape& depth_grid_shape() const { return grid_sampler_.shape(); }
+
   // ---- tracking thread: no allocation, no waiting ----
+  // The keyframe's depth grid from its depth image (nothing without
+  // enable_depth_grid or without depth).
+  void fill_depth_grid(KeyframePacket* p, const ImageView& depth) const;
   // A free packet (features sized for the tracker), or nullptr (counted).
   KeyframePacket* begin_keyframe();
   void submit_keyframe(KeyframePacket* p);
@@ -153,6 +164,8 @@ class MapSystem {
   // Packets: slot indices tracking -> mapping (todo), mapping -> tracking (free).
   std::unique_ptr<KeyframePacket[]> packets_;
   std::unique_ptr<KeyframeFeature[]> packet_features_;
+  DepthGridSampler grid_sampler_;
+  std::unique_ptr<uint16_t[]> packet_grids_;
   rt::SpscRing<uint8_t, 8> packet_todo_, packet_free_;
   int free_packets_[kPackets] = {};
   int n_free_packets_ = 0;

@@ -202,7 +202,7 @@ class WindowEstimator final : public Estimator {
   void submit_pending();
   void fail_and_maybe_reset();
   void map_before_tracking();
-  void map_after_tracking();
+  void map_after_tracking(const RgbdFrame& f);
   WindowObservation* obs_of(int slot) { return obs_pool_.get() + static_cast<size_t>(slot) * max_obs_; }
   Eigen::Vector2d* vel_of(int slot) { return vel_pool_.get() + static_cast<size_t>(slot) * max_obs_; }
   double* dvel_of(int slot) { return dvel_pool_.get() + static_cast<size_t>(slot) * max_obs_; }
