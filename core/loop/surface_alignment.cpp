@@ -48,15 +48,14 @@ SurfaceFit SurfaceAligner::align(const uint16_t* z_q, const Eigen::Isometry3d& T
     return f;
   }
   depth_grid_points_normals(shape_, z_c, opt.normal_max_step_rel, &c_pt_, &c_n_);
-  std::vector<Eigen::Vector3d> pq, nq;
-  depth_grid_points_normals(shape_, z_q, opt.normal_max_step_rel, &pq, &nq);
+  depth_grid_points_normals(shape_, z_q, opt.normal_max_step_rel, &q_pt_C_, &q_n_C_);
   q_pt_.clear();
   q_n_.clear();
   q_z_.clear();
   for (int c = 0; c < shape_.cells(); ++c) {
     if (z_q[c] == 0) continue;
-    q_pt_.push_back(T_MC_q * pq[static_cast<size_t>(c)]);
-    q_n_.push_back(T_MC_q.linear() * nq[static_cast<size_t>(c)]);
+    q_pt_.push_back(T_MC_q * q_pt_C_[static_cast<size_t>(c)]);
+    q_n_.push_back(T_MC_q.linear() * q_n_C_[static_cast<size_t>(c)]);
     q_z_.push_back(z_q[c] * 1e-3);
   }
   f.query_cells = static_cast<int>(q_pt_.size());

@@ -57,18 +57,22 @@ inline double quantile(std::vector<double> v, double q) {
   return v[k];
 }
 
-// Camera on a circle in the room, looking outwards and a little down (z forward, y down).
-inline Eigen::Isometry3d pose_on_circle(double a) {
-  const Eigen::Vector3d p(0.8 * std::cos(a), 0.8 * std::sin(a), 1.4 + 0.2 * std::sin(3 * a));
-  const Eigen::Vector3d fwd = Eigen::Vector3d(std::cos(a + 0.6), std::sin(a + 0.6), -0.25).normalized();
+// A camera at p looking along fwd (not vertical), level: x_C horizontal (z forward, y down).
+inline Eigen::Isometry3d camera_looking(const Eigen::Vector3d& p, const Eigen::Vector3d& fwd) {
   Eigen::Matrix3d R;
-  R.col(2) = fwd;
-  R.col(0) = fwd.cross(Eigen::Vector3d::UnitZ()).normalized();
+  R.col(2) = fwd.normalized();
+  R.col(0) = R.col(2).cross(Eigen::Vector3d::UnitZ()).normalized();
   R.col(1) = R.col(2).cross(R.col(0));
   Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
   T.linear() = R;
   T.translation() = p;
   return T;
+}
+
+// Camera on a circle in the room, looking outwards and a little down.
+inline Eigen::Isometry3d pose_on_circle(double a) {
+  return camera_looking(Eigen::Vector3d(0.8 * std::cos(a), 0.8 * std::sin(a), 1.4 + 0.2 * std::sin(3 * a)),
+                        Eigen::Vector3d(std::cos(a + 0.6), std::sin(a + 0.6), -0.25));
 }
 
 }  // namespace kestrel::dense_test

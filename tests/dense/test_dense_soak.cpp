@@ -13,6 +13,7 @@
 #include <fstream>
 #include <vector>
 
+#include "dense_room.hpp"
 #include "kestrel/core/tsdf_map.hpp"
 #include "kestrel/rt/alloc_counter.hpp"
 #include "kestrel/tools/sim_render.hpp"
@@ -38,15 +39,8 @@ Eigen::Isometry3d lap_pose(double s_m) {
   const Eigen::Vector2d dir = (b - a).normalized();
   const Eigen::Vector2d p = a + dir * t;
   const Eigen::Vector2d out(dir.y(), -dir.x());
-  const Eigen::Vector3d fwd = Eigen::Vector3d(dir.x() + out.x(), dir.y() + out.y(), -0.2).normalized();
-  Eigen::Matrix3d R;
-  R.col(2) = fwd;
-  R.col(0) = fwd.cross(Eigen::Vector3d::UnitZ()).normalized();
-  R.col(1) = R.col(2).cross(R.col(0));
-  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
-  T.linear() = R;
-  T.translation() = Eigen::Vector3d(p.x(), p.y(), 1.5);
-  return T;
+  return kestrel::dense_test::camera_looking(Eigen::Vector3d(p.x(), p.y(), 1.5),
+                                             Eigen::Vector3d(dir.x() + out.x(), dir.y() + out.y(), -0.2));
 }
 
 TEST(DenseSoak, MemoryFlatOverLapsWithEviction) {

@@ -76,7 +76,8 @@ class SurfaceAligner {
   double k_ = 0.0025;
   // Candidate: point and normal per cell in its camera frame (normal zero: none).
   std::vector<Eigen::Vector3d> c_pt_, c_n_;
-  // Query: points and normals in M, with their depth.
+  // Query: per cell in its camera frame, then the cells with depth in M.
+  std::vector<Eigen::Vector3d> q_pt_C_, q_n_C_;
   std::vector<Eigen::Vector3d> q_pt_, q_n_;
   std::vector<double> q_z_;
 };
