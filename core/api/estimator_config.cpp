@@ -346,6 +346,11 @@ void visit_map(MapSystemOptions& m, OptionVisitor& v) {
   v.value("loop_surface_min_observability", sa.min_observability,
           "the weakest direction of (yaw x range, translation) carries at least this share of the pairs' "
           "constraint: one wall, or a floor and a wall, leave a direction free");
+  v.value(
+      "loop_surface_neighbours", sa.neighbours,
+      "views beside each side's own keyframe in a surface verification: covisible keyframes flown within "
+      "loop_min_age_s of it, those looking most unlike the views chosen (one view may see only a floor and "
+      "a wall, or overlap the other too little)");
   v.value("loop_surface_independent_pairs", sa.independent_pairs,
           "the alignment's covariance counts this many independent pairs (neighbouring cells share surface "
           "and depth bias)");

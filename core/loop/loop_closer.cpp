@@ -52,6 +52,8 @@ std::string LoopOptions::validate() const {
     e << "  loop_surface_min_inlier_share must be in [0, 1]\n";
   if (!(so.min_observability >= 0)) e << "  loop_surface_min_observability must be >= 0\n";
   if (so.independent_pairs < 1) e << "  loop_surface_independent_pairs must be >= 1\n";
+  if (so.neighbours < 0 || so.neighbours >= SurfaceAligner::kMaxViews)
+    e << "  loop_surface_neighbours must be in [0, " << SurfaceAligner::kMaxViews - 1 << "]\n";
   if (reloc_max_candidates < 1) e << "  reloc_max_candidates must be >= 1\n";
   if (reloc_min_inliers < 3) e << "  reloc_min_inliers must be >= 3\n";
   if (!(reloc_min_inlier_share >= 0 && reloc_min_inlier_share <= 1))
@@ -581,6 +583,47 @@ int LoopCloser::geometric_candidates(int kf, const Skip& skip, int max, int32_t*
   return n;
 }
 
+int LoopCloser::surface_views(int kf, int other, SurfaceView* out) {
+  out[0].z_mm = map_.depth_grid(kf);
+  out[0].T_MC = map_.keyframe(kf).T_MC;
+  int n = 1;
+  const int want = std::min(opt_.surface.neighbours, SurfaceAligner::kMaxViews - 1);
+  if (want <= 0) return n;
+  // Of the covisible keyframes flown within min_age_s of it (so the odometry
+  // between them is local, not an older pass the map has linked), those
+  // looking most unlike the views already chosen: the most covisible ones
+  // repeat the keyframe's own view, and with it the direction it leaves free.
+  const int64_t t_ns = map_.keyframe(kf).t_ns, local_ns = static_cast<int64_t>(opt_.min_age_s * 1e9);
+  const int nn = map_.covisible(kf, opt_.connected_min_shared, kMaxSurfaceNeighbourPool, kf_scratch_.data(),
+                                shared_scratch_.data());
+  Eigen::Vector3d axis[SurfaceAligner::kMaxViews];
+  axis[0] = out[0].T_MC.linear().col(2);
+  while (n <= want) {
+    int best = -1;
+    double best_cos = 2.0;
+    for (int i = 0; i < nn; ++i) {
+      const int k = kf_scratch_[static_cast<size_t>(i)];
+      if (k < 0 || k == other || map_.keyframe(k).grid_n <= 0) continue;
+      if (std::abs(map_.keyframe(k).t_ns - t_ns) >= local_ns) continue;
+      const Eigen::Vector3d a = map_.keyframe(k).T_MC.linear().col(2);
+      double cos_max = -1.0;
+      for (int j = 0; j < n; ++j) cos_max = std::max(cos_max, a.dot(axis[j]));
+      if (cos_max < best_cos) {
+        best_cos = cos_max;
+        best = i;
+      }
+    }
+    if (best < 0) break;
+    const int k = kf_scratch_[static_cast<size_t>(best)];
+    kf_scratch_[static_cast<size_t>(best)] = -1;
+    out[n].z_mm = map_.depth_grid(k);
+    out[n].T_MC = map_.keyframe(k).T_MC;
+    axis[n] = out[n].T_MC.linear().col(2);
+    ++n;
+  }
+  return n;
+}
+
 bool LoopCloser::verify(int kf, int cand, double score, bool geometric, LoopMatch* out) {
   const MapKeyframe& K = map_.keyframe(kf);
   const MapKeyframe& C = map_.keyframe(cand);
@@ -617,8 +660,10 @@ bool LoopCloser::verify(int kf, int cand, double score, bool geometric, LoopMatc
   bool surface = false;
   if (r != PlaceMatcher::kOk && opt_.surface_verify && aligner_.enabled() && K.grid_n > 0 && C.grid_n > 0) {
     ++stats_.surface_tried;
-    const SurfaceFit sf =
-        aligner_.align(map_.depth_grid(kf), K.T_MC, map_.depth_grid(cand), C.T_MC, opt_.surface);
+    SurfaceView qv[SurfaceAligner::kMaxViews], cv[SurfaceAligner::kMaxViews];
+    const int nq = surface_views(kf, cand, qv);
+    const int nc = surface_views(cand, kf, cv);
+    const SurfaceFit sf = aligner_.align(qv, nq, cv, nc, opt_.surface);
     if (rec != nullptr) {
       rec->surface_tried = true;
       rec->surface_ok = sf.ok;

@@ -42,21 +42,51 @@ void SurfaceAligner::set_shape(const DepthGridShape& shape, double depth_sigma_c
 
 SurfaceFit SurfaceAligner::align(const uint16_t* z_q, const Eigen::Isometry3d& T_MC_q, const uint16_t* z_c,
                                  const Eigen::Isometry3d& T_MC_c, const SurfaceAlignOptions& opt) {
+  SurfaceView q, c;
+  q.z_mm = z_q;
+  q.T_MC = T_MC_q;
+  c.z_mm = z_c;
+  c.T_MC = T_MC_c;
+  return align(&q, 1, &c, 1, opt);
+}
+
+SurfaceFit SurfaceAligner::align(const SurfaceView* query, int n_query, const SurfaceView* cand, int n_cand,
+                                 const SurfaceAlignOptions& opt) {
   SurfaceFit f;
-  if (!enabled() || z_q == nullptr || z_c == nullptr) {
+  n_query = std::min(n_query, kMaxViews);
+  n_cand = std::min(n_cand, kMaxViews);
+  if (!enabled() || n_query < 1 || n_cand < 1 || query[0].z_mm == nullptr || cand[0].z_mm == nullptr) {
     f.failed = "no_grid";
     return f;
   }
-  depth_grid_points_normals(shape_, z_c, opt.normal_max_step_rel, &c_pt_, &c_n_);
-  depth_grid_points_normals(shape_, z_q, opt.normal_max_step_rel, &q_pt_C_, &q_n_C_);
+  const size_t cells = static_cast<size_t>(shape_.cells());
+  c_pt_.resize(cells * static_cast<size_t>(n_cand));
+  c_n_.resize(cells * static_cast<size_t>(n_cand));
+  Eigen::Isometry3d T_CM_c[kMaxViews];
+  Eigen::Matrix3d R_MC_c[kMaxViews];
+  int nc = 0;
+  for (int v = 0; v < n_cand; ++v) {
+    if (cand[v].z_mm == nullptr) continue;
+    depth_grid_points_normals(shape_, cand[v].z_mm, opt.normal_max_step_rel, &c_pt_one_, &c_n_one_);
+    std::copy(c_pt_one_.begin(), c_pt_one_.end(), c_pt_.begin() + static_cast<std::ptrdiff_t>(cells * nc));
+    std::copy(c_n_one_.begin(), c_n_one_.end(), c_n_.begin() + static_cast<std::ptrdiff_t>(cells * nc));
+    T_CM_c[nc] = cand[v].T_MC.inverse();
+    R_MC_c[nc] = cand[v].T_MC.linear();
+    ++nc;
+  }
   q_pt_.clear();
   q_n_.clear();
   q_z_.clear();
-  for (int c = 0; c < shape_.cells(); ++c) {
-    if (z_q[c] == 0) continue;
-    q_pt_.push_back(T_MC_q * q_pt_C_[static_cast<size_t>(c)]);
-    q_n_.push_back(T_MC_q.linear() * q_n_C_[static_cast<size_t>(c)]);
-    q_z_.push_back(z_q[c] * 1e-3);
+  for (int v = 0; v < n_query; ++v) {
+    const uint16_t* z_q = query[v].z_mm;
+    if (z_q == nullptr) continue;
+    depth_grid_points_normals(shape_, z_q, opt.normal_max_step_rel, &q_pt_C_, &q_n_C_);
+    for (size_t c = 0; c < cells; ++c) {
+      if (z_q[c] == 0) continue;
+      q_pt_.push_back(query[v].T_MC * q_pt_C_[c]);
+      q_n_.push_back(query[v].T_MC.linear() * q_n_C_[c]);
+      q_z_.push_back(z_q[c] * 1e-3);
+    }
   }
   f.query_cells = static_cast<int>(q_pt_.size());
   if (f.query_cells < 20) {
@@ -64,9 +94,7 @@ SurfaceFit SurfaceAligner::align(const uint16_t* z_q, const Eigen::Isometry3d& T
     return f;
   }
   // Rotation about the query camera's centre: yaw and translation decouple.
-  const Eigen::Vector3d centre = T_MC_q.translation();
-  const Eigen::Isometry3d T_CM_c = T_MC_c.inverse();
-  const Eigen::Matrix3d R_MC_c = T_MC_c.linear();
+  const Eigen::Vector3d centre = query[0].T_MC.translation();
   const double cos_max = std::cos(opt.max_normal_angle_rad);
   const Eigen::Vector3d ez(0, 0, 1);
   const double cell_rad = static_cast<double>(shape_.width) / shape_.cols / shape_.K.fx;  // one cell's angle
@@ -85,27 +113,44 @@ SurfaceFit SurfaceAligner::align(const uint16_t* z_q, const Eigen::Isometry3d& T
   const auto pass = [&](double bound_m, bool final_pass) {
     Pass s;
     const Eigen::Matrix3d Rz = Eigen::AngleAxisd(yaw, ez).toRotationMatrix();
-    const Eigen::Matrix3d R_CM_Rz = T_CM_c.linear() * Rz;
     for (size_t i = 0; i < q_pt_.size(); ++i) {
       const Eigen::Vector3d a = Rz * (q_pt_[i] - centre);
       const Eigen::Vector3d p = a + centre + t;
-      const Eigen::Vector3d x = T_CM_c * p;
-      const int cell = shape_.cell_of(x);
-      if (cell < 0 || c_pt_[static_cast<size_t>(cell)].z() <= 0) continue;
-      const Eigen::Vector3d& q = c_pt_[static_cast<size_t>(cell)];
-      const double reach = bound_m + cell_rad * q.z();
-      // Behind the candidate's surface: hidden from it, no evidence either
-      // way. In front of it, the candidate would have seen it: evidence against.
-      if (x.z() > q.z() + reach) continue;
+      const Eigen::Vector3d n_q_M = Rz * q_n_[i];
+      bool landed = false;
+      int best_v = -1;
+      double best_d = 0, best_r = 0, best_qz = 0;
+      Eigen::Vector3d best_n = Eigen::Vector3d::Zero();
+      for (int v = 0; v < nc; ++v) {
+        const Eigen::Vector3d x = T_CM_c[v] * p;
+        const int cell = shape_.cell_of(x);
+        const size_t at = cells * static_cast<size_t>(v) + static_cast<size_t>(cell);
+        if (cell < 0 || c_pt_[at].z() <= 0) continue;
+        const Eigen::Vector3d& q = c_pt_[at];
+        const double reach = bound_m + cell_rad * q.z();
+        // Behind this view's surface: hidden from it, no evidence either
+        // way. In front of it, the view would have seen it: evidence against.
+        if (x.z() > q.z() + reach) continue;
+        landed = true;
+        const Eigen::Vector3d& n = c_n_[at];
+        if (n.isZero()) continue;
+        const Eigen::Vector3d d = x - q;
+        const double dn = d.norm();
+        if (dn > reach) continue;
+        if (!q_n_[i].isZero() && (T_CM_c[v].linear() * n_q_M).dot(n) < cos_max) continue;
+        if (best_v >= 0 && dn >= best_d) continue;
+        best_v = v;
+        best_d = dn;
+        best_r = n.dot(d);
+        best_qz = q.z();
+        best_n = n;
+      }
+      if (!landed) continue;
       ++s.landed;
-      const Eigen::Vector3d& n = c_n_[static_cast<size_t>(cell)];
-      if (n.isZero()) continue;
-      const Eigen::Vector3d d = x - q;
-      if (d.norm() > reach) continue;
-      if (!q_n_[i].isZero() && (R_CM_Rz * q_n_[i]).dot(n) < cos_max) continue;
-      const double r = n.dot(d);
-      const double sigma = std::hypot(sigma_m(q_z_[i]), sigma_m(q.z()));
-      const Eigen::Vector3d n_M = R_MC_c * n;
+      if (best_v < 0) continue;
+      const double r = best_r;
+      const double sigma = std::hypot(sigma_m(q_z_[i]), sigma_m(best_qz));
+      const Eigen::Vector3d n_M = R_MC_c[best_v] * best_n;
       Eigen::Vector4d J;
       J << n_M.dot(ez.cross(a)), n_M;
       ++s.paired;
@@ -118,12 +163,10 @@ SurfaceFit SurfaceAligner::align(const uint16_t* z_q, const Eigen::Isometry3d& T
       s.b += w * J * r;
       s.sq += r * r;
       s.lever_sq += a.head<2>().squaredNorm();
-      Eigen::Vector4d Jn = J;
-      s.A += Jn * Jn.transpose();  // yaw rescaled below, once the lever is known
+      s.A += J * J.transpose();  // yaw rescaled below, once the lever is known
     }
     return s;
   };
-
   const int iters = std::max(1, opt.iterations);
   for (int it = 0; it < iters; ++it) {
     const double frac = iters > 1 ? static_cast<double>(it) / (iters - 1) : 1.0;

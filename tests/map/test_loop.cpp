@@ -11,6 +11,7 @@
 #include <random>
 #include <vector>
 
+#include "depth_render.hpp"
 #include "kestrel/core/loop_closer.hpp"
 #include "kestrel/core/pose_graph.hpp"
 #include "kestrel/core/relocaliser.hpp"
@@ -521,6 +522,98 @@ TEST(LoopCloser, ACorrectionWithinItsOwnUncertaintyIsNotClosed) {
   EXPECT_EQ(gated.closures, 0);
   EXPECT_GT(gated.stats.skipped_insignificant, 0u);
   EXPECT_LE(gated.worst_m, closed.worst_m + 1e-9) << "a map left alone is no worse than one moved by noise";
+}
+
+// A revisit whose descriptors disagree (another range, another angle on a
+// real flight; here the second lap's descriptors are new), verified by the
+// keyframes' depth grids instead: the room's walls with four crates,
+// ray-cast. The loop closes from the map's geometry alone, and its correction
+// takes the drift out.
+struct SurfaceRun {
+  int closures = 0, by_surface = 0;
+  double worst_before_m = 0, worst_after_m = 0, newest_after_m = 1e9;
+  core::LoopStats stats;
+};
+
+SurfaceRun fly_surface_revisit(int neighbours) {
+  SimRoom room(6000, 21);
+  DriftedMap dm(room_vocabulary(room));
+  const core::MapCamera cam = sim_camera();
+  const core::DepthGridShape shape = core::DepthGridShape::make(32, cam.K, cam.width, cam.height);
+  dm.map.enable_depth_grids(shape.cells());
+  LoopOptions opt;
+  opt.surface.neighbours = neighbours;
+  LoopCloser closer(dm.map, cam, opt);
+  closer.set_depth_grid(shape);
+  // Pillars around the circuit, so that every view has something standing
+  // on the floor beside the wall it looks at.
+  const Box walls{{-4, -4, 0}, {4, 4, 3}};
+  std::vector<Box> pillars;
+  for (int i = 0; i < 12; ++i) {
+    const double b = 2 * M_PI * (i + 0.5) / 12;
+    const Eigen::Vector3d c(3.2 * std::cos(b), 3.2 * std::sin(b), 0);
+    pillars.push_back(
+        {c - Eigen::Vector3d(0.25, 0.25, 0), c + Eigen::Vector3d(0.25, 0.25, 0.6 + 0.2 * (i % 4))});
+  }
+  // Looking 20 degrees down, at the floor too.
+  Eigen::Isometry3d pitch = Eigen::Isometry3d::Identity();
+  pitch.linear() = Eigen::AngleAxisd(-0.35, Eigen::Vector3d::UnitX()).toRotationMatrix();
+  std::mt19937_64 rng(7);
+  const int per_lap = 36;
+  SurfaceRun r;
+  Eigen::Isometry3d T_map_odom = Eigen::Isometry3d::Identity();
+  for (int k = 0; k < per_lap + 12; ++k) {
+    const double a = 2 * M_PI * k / per_lap;
+    const Eigen::Isometry3d T_true =
+        SimRoom::camera(Eigen::Vector3d(1.5 * std::cos(a), 1.5 * std::sin(a), 1.5), a) * pitch;
+    Eigen::Isometry3d D = Eigen::Isometry3d::Identity();
+    D.linear() = core::rot_z(0.0004 * k);
+    D.translation() = Eigen::Vector3d(0.002 * k, -0.001 * k, 0.0);
+    const auto new_descriptors = [&](SimKeyframe& s) {
+      if (k < per_lap) return;
+      for (core::KeyframeFeature& f : s.features)
+        for (auto& w : f.desc) w = rng();
+    };
+    const int kf = dm.add(room, T_true, T_map_odom * D * T_true, static_cast<int64_t>(k) * 500'000'000,
+                          1 + 10000u * static_cast<uint32_t>(k / 3), rng, new_descriptors);
+    if (kf < 0) break;
+    const std::vector<uint16_t> z = render(shape, T_true, walls, pillars);
+    std::copy(z.begin(), z.end(), dm.map.depth_grid(kf));
+    dm.map.keyframe(kf).grid_n =
+        static_cast<int>(std::count_if(z.begin(), z.end(), [](uint16_t v) { return v > 0; }));
+    r.worst_before_m = std::max(r.worst_before_m, pos_err(dm.map.keyframe(kf).T_MC, T_true));
+    const core::LoopClosure c = closer.process(kf);
+    if (!c.closed) continue;
+    ++r.closures;
+    r.by_surface += c.match.surface ? 1 : 0;
+    T_map_odom = core::project_4dof(c.newest_delta * T_map_odom);
+    r.newest_after_m = pos_err(dm.map.keyframe(c.newest).T_MC, T_true);
+  }
+  dm.map.for_each_keyframe([&](int kf) {
+    r.worst_after_m =
+        std::max(r.worst_after_m, pos_err(dm.map.keyframe(kf).T_MC, dm.truth[static_cast<size_t>(kf)]));
+  });
+  r.stats = closer.stats();
+  return r;
+}
+
+TEST(LoopCloser, ARevisitWhoseDescriptorsDisagreeIsClosedByItsSurfaces) {
+  const SurfaceRun r = fly_surface_revisit(LoopOptions{}.surface.neighbours);
+  const SurfaceRun alone = fly_surface_revisit(0);
+  for (const SurfaceRun* x : {&r, &alone})
+    std::printf(
+        "surfaces, %s: %d closures (%d by surface), %llu tried, %llu aligned; keyframe error worst %.3f m "
+        "before, %.3f m after, newest %.4f m after its loop\n",
+        x == &r ? "with neighbours" : "one keyframe a side", x->closures, x->by_surface,
+        static_cast<unsigned long long>(x->stats.surface_tried),
+        static_cast<unsigned long long>(x->stats.surface_aligned), x->worst_before_m, x->worst_after_m,
+        x->newest_after_m);
+  ASSERT_GE(r.closures, 1);
+  EXPECT_EQ(r.by_surface, r.closures) << "the second lap's descriptors cannot verify anything";
+  EXPECT_GT(r.worst_before_m, 0.07);
+  EXPECT_LT(r.newest_after_m, 0.01) << "the loop's keyframe where it truly is";
+  EXPECT_LT(r.worst_after_m, 0.5 * r.worst_before_m);
+  EXPECT_GE(r.stats.surface_aligned, alone.stats.surface_aligned);
 }
 
 // Relocalisation after a reset: one lap is mapped; then the odometry restarts

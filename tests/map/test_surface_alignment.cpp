@@ -11,6 +11,7 @@
 #include <limits>
 #include <vector>
 
+#include "depth_render.hpp"
 #include "kestrel/core/depth_grid.hpp"
 #include "kestrel/core/surface_alignment.hpp"
 
@@ -23,68 +24,11 @@ using kestrel::core::SurfaceAligner;
 using kestrel::core::SurfaceAlignOptions;
 using kestrel::core::SurfaceFit;
 
-struct Box {
-  Eigen::Vector3d lo, hi;
-};
-
-// Distance along a unit ray to the scene: the room's walls seen from inside,
-// solid boxes from outside. Infinity: nothing.
-double cast(const Eigen::Vector3d& o, const Eigen::Vector3d& d, const Box& room,
-            const std::vector<Box>& solids, bool room_walls) {
-  double best = std::numeric_limits<double>::infinity();
-  if (room_walls) {
-    for (int a = 0; a < 3; ++a) {
-      if (d[a] > 1e-12) best = std::min(best, (room.hi[a] - o[a]) / d[a]);
-      if (d[a] < -1e-12) best = std::min(best, (room.lo[a] - o[a]) / d[a]);
-    }
-  }
-  for (const Box& b : solids) {
-    double t0 = 0, t1 = std::numeric_limits<double>::infinity();
-    bool hit = true;
-    for (int a = 0; a < 3 && hit; ++a) {
-      if (std::abs(d[a]) < 1e-12) {
-        hit = o[a] >= b.lo[a] && o[a] <= b.hi[a];
-        continue;
-      }
-      double ta = (b.lo[a] - o[a]) / d[a], tb = (b.hi[a] - o[a]) / d[a];
-      if (ta > tb) std::swap(ta, tb);
-      t0 = std::max(t0, ta);
-      t1 = std::min(t1, tb);
-      hit = t0 <= t1;
-    }
-    if (hit && t0 > 0) best = std::min(best, t0);
-  }
-  return best;
-}
-
-// A camera looking horizontally along yaw (C: x right, y down, z forward; W: z up).
-Eigen::Isometry3d camera(const Eigen::Vector3d& p, double yaw) {
-  Eigen::Matrix3d R;
-  R.col(0) = Eigen::Vector3d(std::sin(yaw), -std::cos(yaw), 0);  // x_C
-  R.col(1) = Eigen::Vector3d(0, 0, -1);                          // y_C
-  R.col(2) = Eigen::Vector3d(std::cos(yaw), std::sin(yaw), 0);   // z_C
-  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
-  T.linear() = R;
-  T.translation() = p;
-  return T;
-}
+using kestrel::map_test::Box;
+using kestrel::map_test::camera;
+using kestrel::map_test::render;
 
 DepthGridShape shape() { return DepthGridShape::make(64, PinholeK{525, 525, 319.5, 239.5}, 640, 480); }
-
-std::vector<uint16_t> render(const DepthGridShape& s, const Eigen::Isometry3d& T_WC, const Box& room,
-                             const std::vector<Box>& solids, bool room_walls = true) {
-  std::vector<uint16_t> z(static_cast<size_t>(s.cells()), 0);
-  for (int c = 0; c < s.cells(); ++c) {
-    const Eigen::Vector2d r = s.ray(c);
-    const Eigen::Vector3d ray_C(r.x(), r.y(), 1.0);
-    const Eigen::Vector3d d = (T_WC.linear() * ray_C).normalized();
-    const double t = cast(T_WC.translation(), d, room, solids, room_walls);
-    if (!std::isfinite(t)) continue;
-    const double zc = t * (T_WC.linear().transpose() * d).z();
-    if (zc > 0.3 && zc < 6.0) z[static_cast<size_t>(c)] = static_cast<uint16_t>(std::lround(zc * 1e3));
-  }
-  return z;
-}
 
 Eigen::Isometry3d drift(double yaw, const Eigen::Vector3d& t) {
   Eigen::Isometry3d D = Eigen::Isometry3d::Identity();
@@ -140,6 +84,45 @@ TEST(SurfaceAlignment, OneWallLeavesADirectionFreeAndIsRefused) {
   EXPECT_FALSE(f.ok);
   EXPECT_STREQ(f.failed, "observability");
   EXPECT_LT(f.observability, 0.02);
+}
+
+// The query keyframe sees one wall only (refused alone, as above); its
+// neighbour and the candidate's see the crates. Moved together, the views
+// constrain every direction, and the drift the two query views share comes out.
+TEST(SurfaceAlignment, NeighbouringKeyframesConstrainWhatOneWallLeavesFree) {
+  const DepthGridShape s = shape();
+  SurfaceAligner al = aligner();
+  const Eigen::Isometry3d T_q0 = camera({2.3, 0.1, 1.5}, 0.05), T_c0 = camera({2.5, 0.0, 1.5}, 0.0);
+  const Eigen::Isometry3d &T_q1 = kQuery, &T_c1 = kCandidate;
+  const std::vector<uint16_t> zq0 = render(s, T_q0, kRoom, kCrates), zq1 = render(s, T_q1, kRoom, kCrates);
+  const std::vector<uint16_t> zc0 = render(s, T_c0, kRoom, kCrates), zc1 = render(s, T_c1, kRoom, kCrates);
+  const Eigen::Isometry3d D = drift(0.015, {0.05, 0.06, -0.02});
+  const SurfaceFit alone = al.align(zq0.data(), D * T_q0, zc0.data(), T_c0, SurfaceAlignOptions{});
+  EXPECT_FALSE(alone.ok);
+  EXPECT_STREQ(alone.failed, "observability");
+
+  kestrel::core::SurfaceView q[2], c[2];
+  q[0].z_mm = zq0.data();
+  q[0].T_MC = D * T_q0;
+  q[1].z_mm = zq1.data();
+  q[1].T_MC = D * T_q1;
+  c[0].z_mm = zc0.data();
+  c[0].T_MC = T_c0;
+  c[1].z_mm = zc1.data();
+  c[1].T_MC = T_c1;
+  const SurfaceFit f = al.align(q, 2, c, 2, SurfaceAlignOptions{});
+  ASSERT_TRUE(f.ok) << f.failed << " overlap " << f.overlap << " inliers " << f.inlier_share << " obs "
+                    << f.observability;
+  const Eigen::Isometry3d E = f.correction * D;
+  std::printf("two views a side: observability %.3f (one: %.4f), left %.2f mm\n", f.observability,
+              alone.observability, 1e3 * E.translation().norm());
+  EXPECT_LT(E.translation().norm(), 0.005);
+  EXPECT_LT(std::abs(Eigen::AngleAxisd(E.linear()).angle()), 0.002);
+  EXPECT_GT(f.observability, 0.02);
+  // Alone, the query sees the crates only through its neighbour: the
+  // candidate's wall view does not need to.
+  const SurfaceFit one_side = al.align(q, 2, c, 1, SurfaceAlignOptions{});
+  EXPECT_GT(f.overlap, one_side.overlap);
 }
 
 TEST(SurfaceAlignment, AnotherPlaceWithTheSameShapeIsNotPaired) {

@@ -332,6 +332,10 @@ class LoopCloser {
   MapCamera cam_;
   LoopOptions opt_;
   PlaceMatcher matcher_;
+  // kf's depth grid and those of its most covisible keyframes (not other),
+  // up to opt_.surface.neighbours more: the views a surface verification aligns.
+  int surface_views(int kf, int other, SurfaceView* out);
+  static constexpr int kMaxSurfaceNeighbourPool = 30;
   SurfaceAligner aligner_;
   LoopStats stats_;
   std::vector<LoopEdge> loop_edges_;

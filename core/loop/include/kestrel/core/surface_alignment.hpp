@@ -40,11 +40,23 @@ struct SurfaceAlignOptions {
   // The weakest direction of (yaw x range, translation) carries at least
   // this share of the pairs' constraint (smallest eigenvalue of their mean
   // normalised information): 0 for one wall, about 0.04 for a room's corner
-  // with two crates. The three gates' defaults: docs/map.md, "Surface verification".
-  double min_observability = 0.01;
+  // with two crates (one view a side). The gates' defaults: docs/map.md,
+  // "Surface verification".
+  double min_observability = 0.015;
   // Neighbouring cells share surface and depth bias: the covariance counts
   // this many independent pairs, not every cell.
   int independent_pairs = 50;
+  // Views beside each side's own keyframe (LoopCloser picks covisible ones
+  // looking most unlike it): one view may see only a floor and a wall, or
+  // overlap the other too little, where its neighbours close the gap. 0: one
+  // keyframe a side (docs/map.md, "Neighbouring views on both sides").
+  int neighbours = 2;
+};
+
+// One keyframe's grid and where the map puts its camera.
+struct SurfaceView {
+  const uint16_t* z_mm = nullptr;
+  Eigen::Isometry3d T_MC = Eigen::Isometry3d::Identity();
 };
 
 struct SurfaceFit {
@@ -69,13 +81,22 @@ class SurfaceAligner {
   // Aligns grid z_q (seen from T_MC_q) to grid z_c (from T_MC_c).
   SurfaceFit align(const uint16_t* z_q, const Eigen::Isometry3d& T_MC_q, const uint16_t* z_c,
                    const Eigen::Isometry3d& T_MC_c, const SurfaceAlignOptions& opt);
+  // The query's views (the first is the query keyframe, whose camera the
+  // rotation is about) moved together onto the candidate's views: each query
+  // point pairs in whichever candidate view it lands on closest. The gates
+  // count the cells of every query view. At most kMaxViews a side.
+  static constexpr int kMaxViews = 8;
+  SurfaceFit align(const SurfaceView* query, int n_query, const SurfaceView* cand, int n_cand,
+                   const SurfaceAlignOptions& opt);
 
  private:
   double sigma_m(double z) const { return std::max(1e-3, k_ * z * z); }
   DepthGridShape shape_;
   double k_ = 0.0025;
-  // Candidate: point and normal per cell in its camera frame (normal zero: none).
+  // Candidate views: point and normal per cell in its camera frame (normal
+  // zero: none), view after view.
   std::vector<Eigen::Vector3d> c_pt_, c_n_;
+  std::vector<Eigen::Vector3d> c_pt_one_, c_n_one_;
   // Query: per cell in its camera frame, then the cells with depth in M.
   std::vector<Eigen::Vector3d> q_pt_C_, q_n_C_;
   std::vector<Eigen::Vector3d> q_pt_, q_n_;
