@@ -9,6 +9,7 @@ packages=(
   libgtest-dev libgmock-dev libbenchmark-dev libboost-dev
   clang libclang-rt-14-dev   # the fuzz preset: clang 14 and libFuzzer (libclang_rt.fuzzer), tests/fuzz
   clang-format   # tests/architecture: architecture_format checks every C++ source against .clang-format
+  clang-tidy     # tests/architecture: architecture_tidy runs .clang-tidy's checks as errors on rt/ and drivers/
   libusb-1.0-0-dev libopenni2-dev   # V4L2 needs only linux/videodev2.h (linux-libc-dev, via build-essential)
   librosbag-dev libsensor-msgs-dev libgeometry-msgs-dev
   libwebsocketpp-dev nlohmann-json3-dev   # tools/viewer: HTTP + WebSocket server (over Boost.Asio), its messages

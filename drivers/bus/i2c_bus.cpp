@@ -82,7 +82,7 @@ I2cStatus LinuxI2cBus::read_regs(uint8_t addr7, uint8_t reg, uint8_t* dst, size_
 I2cStatus LinuxI2cBus::write_reg(uint8_t addr7, uint8_t reg, uint8_t value) {
   if (fd_ < 0) return I2cStatus::kNotOpen;
   uint8_t buf[2] = {reg, value};
-  i2c_msg msg;
+  i2c_msg msg{};
   msg.addr = addr7;
   msg.flags = 0;
   msg.len = 2;

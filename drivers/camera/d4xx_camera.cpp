@@ -126,11 +126,12 @@ void Stream::stamp(const NodeBuffer& b, DeviceClock& clock, bool feeds_clock, in
   c_.dropped = seq_.dropped();
   c_.restarts = seq_.restarts();
   // Metadata of frames before this one will never be claimed.
-  for (Pending& p : pending_)
+  for (Pending& p : pending_) {
     if (p.used && static_cast<int32_t>(p.seq - b.sequence) < 0) {
       p.used = false;
       ++c_.metadata_orphans;
     }
+  }
   Pending* mine = nullptr;
   if (pending_has(b.sequence)) mine = &pending_[b.sequence % kPendingMeta];
   if (mine == nullptr) {
@@ -277,7 +278,7 @@ std::string Camera::open(const Options& o) {
   if (depth_) {
     const NodeFormat& df = depth_->video().format();
     if (df.fourcc != v4l2::kZ16) {
-      const std::string e = "D4xx depth: " + v4l2::fourcc_name(df.fourcc) + " is not Z16";
+      std::string e = "D4xx depth: " + v4l2::fourcc_name(df.fourcc) + " is not Z16";
       close();
       return e;
     }
@@ -285,9 +286,9 @@ std::string Camera::open(const Options& o) {
     if (o.depth_camera.present && !o.infrared_is_image) {
       const CameraIntrinsics& di = o.depth_camera.intrinsics;
       if (di.width != df.width || di.height != df.height) {
-        const std::string e = "D4xx depth: stream " + std::to_string(df.width) + "x" +
-                              std::to_string(df.height) + " but the rig's depth_camera is " +
-                              std::to_string(di.width) + "x" + std::to_string(di.height);
+        std::string e = "D4xx depth: stream " + std::to_string(df.width) + "x" + std::to_string(df.height) +
+                        " but the rig's depth_camera is " + std::to_string(di.width) + "x" +
+                        std::to_string(di.height);
         close();
         return e;
       }
@@ -552,16 +553,16 @@ int xioctl(int fd, unsigned long req, void* arg) {
 
 std::vector<v4l2::FormatOption> enumerate_video(int fd) {
   std::vector<v4l2::FormatOption> out;
-  v4l2_fmtdesc d;
+  v4l2_fmtdesc d{};
   std::memset(&d, 0, sizeof d);
   d.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
   for (d.index = 0; xioctl(fd, VIDIOC_ENUM_FMT, &d) == 0; ++d.index) {
-    v4l2_frmsizeenum fs;
+    v4l2_frmsizeenum fs{};
     std::memset(&fs, 0, sizeof fs);
     fs.pixel_format = d.pixelformat;
     for (fs.index = 0; xioctl(fd, VIDIOC_ENUM_FRAMESIZES, &fs) == 0; ++fs.index) {
       if (fs.type != V4L2_FRMSIZE_TYPE_DISCRETE) break;
-      v4l2_frmivalenum fi;
+      v4l2_frmivalenum fi{};
       std::memset(&fi, 0, sizeof fi);
       fi.pixel_format = fs.pixel_format;
       fi.width = fs.discrete.width;
@@ -574,9 +575,10 @@ std::vector<v4l2::FormatOption> enumerate_video(int fd) {
                        static_cast<double>(fi.discrete.denominator) / fi.discrete.numerator});
         any = true;
       }
-      if (!any)
+      if (!any) {
         out.push_back({fs.pixel_format, static_cast<int>(fs.discrete.width),
                        static_cast<int>(fs.discrete.height), 0.0});
+      }
     }
   }
   return out;
@@ -591,17 +593,17 @@ class V4l2Node final : public Node {
     fd_ = ::open(path.c_str(), O_RDWR | O_NONBLOCK | O_CLOEXEC);
     if (fd_ < 0) return path + ": " + std::strerror(errno);
     auto fail = [&](const std::string& what) {
-      const std::string msg = path + ": " + what;
+      std::string msg = path + ": " + what;
       close();
       return msg;
     };
-    v4l2_capability cap;
+    v4l2_capability cap{};
     std::memset(&cap, 0, sizeof cap);
     if (xioctl(fd_, VIDIOC_QUERYCAP, &cap) < 0) return fail("not a V4L2 device");
     const uint32_t caps = (cap.capabilities & V4L2_CAP_DEVICE_CAPS) ? cap.device_caps : cap.capabilities;
     if (r.metadata) {
       if (!(caps & V4L2_CAP_META_CAPTURE)) return fail("not a metadata capture node");
-      v4l2_format fmt;
+      v4l2_format fmt{};
       std::memset(&fmt, 0, sizeof fmt);
       fmt.type = V4L2_BUF_TYPE_META_CAPTURE;
       fmt.fmt.meta.dataformat = kMetaFmtD4xx;  // passes Intel's blocks on kernels that know the D4xx
@@ -610,9 +612,10 @@ class V4l2Node final : public Node {
         fmt.type = V4L2_BUF_TYPE_META_CAPTURE;
         if (xioctl(fd_, VIDIOC_G_FMT, &fmt) < 0) return fail("VIDIOC_G_FMT (metadata) failed");
       }
-      if (fmt.fmt.meta.dataformat != kMetaFmtD4xx && fmt.fmt.meta.dataformat != kMetaFmtUvc)
+      if (fmt.fmt.meta.dataformat != kMetaFmtD4xx && fmt.fmt.meta.dataformat != kMetaFmtUvc) {
         return fail("metadata format " + v4l2::fourcc_name(fmt.fmt.meta.dataformat) +
                     " is neither UVCH nor D4XX");
+      }
       format_.fourcc = fmt.fmt.meta.dataformat;
       format_.buffer_bytes = fmt.fmt.meta.buffersize;
     } else {
@@ -620,7 +623,7 @@ class V4l2Node final : public Node {
         return fail("not a streaming video capture node");
       const v4l2::FormatChoice choice = v4l2::choose_format(enumerate_video(fd_), r.format);
       if (!choice.ok) return fail(choice.why);
-      v4l2_format fmt;
+      v4l2_format fmt{};
       std::memset(&fmt, 0, sizeof fmt);
       fmt.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
       fmt.fmt.pix.width = static_cast<uint32_t>(choice.option.width);
@@ -640,7 +643,7 @@ class V4l2Node final : public Node {
       format_.stride = static_cast<int>(fmt.fmt.pix.bytesperline);
       format_.buffer_bytes = fmt.fmt.pix.sizeimage;
       if (choice.option.fps > 0) {
-        v4l2_streamparm parm;
+        v4l2_streamparm parm{};
         std::memset(&parm, 0, sizeof parm);
         parm.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
         parm.parm.capture.timeperframe.numerator = 1000;
@@ -649,7 +652,7 @@ class V4l2Node final : public Node {
         (void)xioctl(fd_, VIDIOC_S_PARM, &parm);
       }
     }
-    v4l2_requestbuffers req;
+    v4l2_requestbuffers req{};
     std::memset(&req, 0, sizeof req);
     req.count = static_cast<uint32_t>(std::clamp(r.buffers, 2, v4l2::BufferBook::kMaxBuffers));
     req.type = type_;
@@ -657,7 +660,7 @@ class V4l2Node final : public Node {
     if (xioctl(fd_, VIDIOC_REQBUFS, &req) < 0 || req.count < 2) return fail("VIDIOC_REQBUFS (mmap) failed");
     book_.reset(static_cast<int>(req.count));
     for (uint32_t i = 0; i < req.count; ++i) {
-      v4l2_buffer b;
+      v4l2_buffer b{};
       std::memset(&b, 0, sizeof b);
       b.type = type_;
       b.memory = V4L2_MEMORY_MMAP;
@@ -696,7 +699,7 @@ class V4l2Node final : public Node {
   }
   bool dequeue(NodeBuffer& out) override {
     if (fd_ < 0) return false;
-    v4l2_buffer b;
+    v4l2_buffer b{};
     std::memset(&b, 0, sizeof b);
     b.type = type_;
     b.memory = V4L2_MEMORY_MMAP;
@@ -713,7 +716,7 @@ class V4l2Node final : public Node {
   }
   bool requeue(const NodeBuffer& nb) override {
     if (fd_ < 0) return false;
-    v4l2_buffer b;
+    v4l2_buffer b{};
     std::memset(&b, 0, sizeof b);
     b.type = type_;
     b.memory = V4L2_MEMORY_MMAP;
@@ -740,7 +743,7 @@ std::vector<ProbedNode> probe_v4l2_nodes(std::string* error) {
     const int fd = ::open(path.c_str(), O_RDWR | O_NONBLOCK | O_CLOEXEC);
     if (fd < 0) continue;
     ++seen;
-    v4l2_capability cap;
+    v4l2_capability cap{};
     std::memset(&cap, 0, sizeof cap);
     if (xioctl(fd, VIDIOC_QUERYCAP, &cap) == 0) {
       const uint32_t caps = (cap.capabilities & V4L2_CAP_DEVICE_CAPS) ? cap.device_caps : cap.capabilities;
@@ -750,10 +753,12 @@ std::vector<ProbedNode> probe_v4l2_nodes(std::string* error) {
       n.card = reinterpret_cast<const char*>(cap.card);
       n.bus_info = reinterpret_cast<const char*>(cap.bus_info);
       n.metadata = (caps & V4L2_CAP_META_CAPTURE) != 0 && !(caps & V4L2_CAP_VIDEO_CAPTURE);
-      if (!n.metadata)
-        for (const auto& o : enumerate_video(fd))
+      if (!n.metadata) {
+        for (const auto& o : enumerate_video(fd)) {
           if (std::find(n.formats.begin(), n.formats.end(), o.fourcc) == n.formats.end())
             n.formats.push_back(o.fourcc);
+        }
+      }
       out.push_back(n);
     }
     ::close(fd);

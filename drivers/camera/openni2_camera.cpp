@@ -85,9 +85,10 @@ std::string Camera::open(const Options& o) {
   cm.setResolution(o.width, o.height);
   cm.setFps(o.fps);
   cm.setPixelFormat(openni::PIXEL_FORMAT_RGB888);
-  if (m.color.setVideoMode(cm) != openni::STATUS_OK)
+  if (m.color.setVideoMode(cm) != openni::STATUS_OK) {
     return fail("colour mode " + std::to_string(o.width) + "x" + std::to_string(o.height) + "@" +
                 std::to_string(o.fps) + " RGB888 not supported");
+  }
   openni::VideoMode dm = m.depth.getVideoMode();
   dm.setResolution(o.width, o.height);
   dm.setFps(o.fps);
@@ -167,11 +168,12 @@ GrabResult Camera::grab(int timeout_ms, ImageBuffer& rgb, ImageBuffer& depth, Fr
   }
   rgb.pixels.resize(rgb_bytes);
   depth.pixels.resize(depth_bytes);
-  for (int y = 0; y < h; ++y)
+  for (int y = 0; y < h; ++y) {
     std::memcpy(
         rgb.pixels.data() + static_cast<size_t>(y) * w * 3,
         static_cast<const uint8_t*>(m.cf.getData()) + static_cast<size_t>(y) * m.cf.getStrideInBytes(),
         static_cast<size_t>(w) * 3);
+  }
   const double k = 0.001 / opt_.rig_depth_scale_m;
   for (int y = 0; y < h; ++y) {
     const auto* s = reinterpret_cast<const uint16_t*>(static_cast<const uint8_t*>(m.df.getData()) +

@@ -174,10 +174,11 @@ void z16_to_depth(const uint8_t* src, int width, int height, int src_stride, dou
 }
 
 void copy_rows(const uint8_t* src, int row_bytes, int height, int src_stride, uint8_t* dst) {
-  for (int y = 0; y < height; ++y)
+  for (int y = 0; y < height; ++y) {
     std::memcpy(dst + static_cast<size_t>(y) * static_cast<size_t>(row_bytes),
                 src + static_cast<size_t>(y) * static_cast<size_t>(src_stride),
                 static_cast<size_t>(row_bytes));
+  }
 }
 
 bool z16_to_registered_depth(const uint8_t* src, int width, int height, int src_stride, double src_scale_m,
@@ -215,16 +216,16 @@ int xioctl(int fd, unsigned long req, void* arg) {
 
 std::vector<FormatOption> enumerate(int fd) {
   std::vector<FormatOption> out;
-  v4l2_fmtdesc fd_desc;
+  v4l2_fmtdesc fd_desc{};
   std::memset(&fd_desc, 0, sizeof fd_desc);
   fd_desc.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
   for (fd_desc.index = 0; xioctl(fd, VIDIOC_ENUM_FMT, &fd_desc) == 0; ++fd_desc.index) {
-    v4l2_frmsizeenum fs;
+    v4l2_frmsizeenum fs{};
     std::memset(&fs, 0, sizeof fs);
     fs.pixel_format = fd_desc.pixelformat;
     for (fs.index = 0; xioctl(fd, VIDIOC_ENUM_FRAMESIZES, &fs) == 0; ++fs.index) {
       if (fs.type != V4L2_FRMSIZE_TYPE_DISCRETE) break;  // stepwise sizes: not offered by UVC cameras we use
-      v4l2_frmivalenum fi;
+      v4l2_frmivalenum fi{};
       std::memset(&fi, 0, sizeof fi);
       fi.pixel_format = fs.pixel_format;
       fi.width = fs.discrete.width;
@@ -237,9 +238,10 @@ std::vector<FormatOption> enumerate(int fd) {
                                    static_cast<double>(fi.discrete.denominator) / fi.discrete.numerator});
         any = true;
       }
-      if (!any)
+      if (!any) {
         out.push_back(FormatOption{fs.pixel_format, static_cast<int>(fs.discrete.width),
                                    static_cast<int>(fs.discrete.height), 0.0});
+      }
     }
   }
   return out;
@@ -254,7 +256,7 @@ std::vector<DeviceInfo> list_devices(std::string* error) {
     const int fd = ::open(path.c_str(), O_RDWR | O_NONBLOCK | O_CLOEXEC);
     if (fd < 0) continue;
     ++found_nodes;
-    v4l2_capability cap;
+    v4l2_capability cap{};
     std::memset(&cap, 0, sizeof cap);
     if (xioctl(fd, VIDIOC_QUERYCAP, &cap) == 0) {
       const uint32_t caps = (cap.capabilities & V4L2_CAP_DEVICE_CAPS) ? cap.device_caps : cap.capabilities;
@@ -264,9 +266,10 @@ std::vector<DeviceInfo> list_devices(std::string* error) {
         d.card = reinterpret_cast<const char*>(cap.card);
         d.driver = reinterpret_cast<const char*>(cap.driver);
         d.bus_info = reinterpret_cast<const char*>(cap.bus_info);
-        for (const FormatOption& o : enumerate(fd))
+        for (const FormatOption& o : enumerate(fd)) {
           if (std::find(d.formats.begin(), d.formats.end(), o.fourcc) == d.formats.end())
             d.formats.push_back(o.fourcc);
+        }
         out.push_back(d);
       }
     }
@@ -285,11 +288,11 @@ std::string Camera::open(const Options& o) {
   fd_ = ::open(dev.c_str(), O_RDWR | O_NONBLOCK | O_CLOEXEC);
   if (fd_ < 0) return dev + ": " + std::strerror(errno);
   auto fail = [&](const std::string& what) {
-    const std::string msg = dev + ": " + what;
+    std::string msg = dev + ": " + what;
     close();
     return msg;
   };
-  v4l2_capability cap;
+  v4l2_capability cap{};
   std::memset(&cap, 0, sizeof cap);
   if (xioctl(fd_, VIDIOC_QUERYCAP, &cap) < 0) return fail("not a V4L2 device");
   const uint32_t caps = (cap.capabilities & V4L2_CAP_DEVICE_CAPS) ? cap.device_caps : cap.capabilities;
@@ -298,7 +301,7 @@ std::string Camera::open(const Options& o) {
   offered_ = enumerate(fd_);
   const FormatChoice choice = choose_format(offered_, o.request);
   if (!choice.ok) return fail(choice.why);
-  v4l2_format fmt;
+  v4l2_format fmt{};
   std::memset(&fmt, 0, sizeof fmt);
   fmt.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
   fmt.fmt.pix.width = static_cast<uint32_t>(choice.option.width);
@@ -315,10 +318,11 @@ std::string Camera::open(const Options& o) {
   registration_.reset();
   if (o.depth_camera.present && choice.option.fourcc == kZ16) {
     const CameraIntrinsics& d = o.depth_camera.intrinsics;
-    if (d.width != choice.option.width || d.height != choice.option.height)
+    if (d.width != choice.option.width || d.height != choice.option.height) {
       return fail("depth stream " + std::to_string(choice.option.width) + "x" +
                   std::to_string(choice.option.height) + " but the rig's depth_camera is " +
                   std::to_string(d.width) + "x" + std::to_string(d.height));
+    }
     try {
       registration_ = std::make_unique<DepthRegistration>(o.depth_camera, o.colour, o.rig_depth_scale_m);
     } catch (const std::invalid_argument& e) {
@@ -327,14 +331,14 @@ std::string Camera::open(const Options& o) {
     depth_scratch_.assign(static_cast<size_t>(d.width) * static_cast<size_t>(d.height), 0);
   }
   if (choice.option.fps > 0) {
-    v4l2_streamparm parm;
+    v4l2_streamparm parm{};
     std::memset(&parm, 0, sizeof parm);
     parm.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
     parm.parm.capture.timeperframe.numerator = 1000;
     parm.parm.capture.timeperframe.denominator = static_cast<uint32_t>(std::lround(choice.option.fps * 1000));
     (void)xioctl(fd_, VIDIOC_S_PARM, &parm);  // best effort: some drivers fix the rate
   }
-  v4l2_requestbuffers req;
+  v4l2_requestbuffers req{};
   std::memset(&req, 0, sizeof req);
   req.count = static_cast<uint32_t>(std::clamp(o.buffers, 2, BufferBook::kMaxBuffers));
   req.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
@@ -342,7 +346,7 @@ std::string Camera::open(const Options& o) {
   if (xioctl(fd_, VIDIOC_REQBUFS, &req) < 0 || req.count < 2) return fail("VIDIOC_REQBUFS (mmap) failed");
   book_.reset(static_cast<int>(req.count));
   for (uint32_t i = 0; i < req.count; ++i) {
-    v4l2_buffer b;
+    v4l2_buffer b{};
     std::memset(&b, 0, sizeof b);
     b.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
     b.memory = V4L2_MEMORY_MMAP;
@@ -386,7 +390,7 @@ GrabResult Camera::grab(int timeout_ms, ImageBuffer& dst, FrameMeta& meta) {
     ++counters_.errors;
     return GrabResult::kError;
   }
-  v4l2_buffer b;
+  v4l2_buffer b{};
   std::memset(&b, 0, sizeof b);
   b.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
   b.memory = V4L2_MEMORY_MMAP;
@@ -400,10 +404,11 @@ GrabResult Camera::grab(int timeout_ms, ImageBuffer& dst, FrameMeta& meta) {
   int32_t exposure_us = 0;
   if (exposure_ctrl_ok_) {
     v4l2_control c{V4L2_CID_EXPOSURE_ABSOLUTE, 0};
-    if (xioctl(fd_, VIDIOC_G_CTRL, &c) == 0)
+    if (xioctl(fd_, VIDIOC_G_CTRL, &c) == 0) {
       exposure_us = c.value * 100;  // units of 100 us
-    else
+    } else {
       exposure_ctrl_ok_ = false;
+    }
   }
   const BufferTime bt = buffer_time(b.timestamp.tv_sec, b.timestamp.tv_usec, b.flags, t_recv);
   if (!bt.monotonic) ++counters_.non_monotonic;
@@ -438,13 +443,14 @@ GrabResult Camera::grab(int timeout_ms, ImageBuffer& dst, FrameMeta& meta) {
         copy_rows(src, w, h, stride_, dst.pixels.data());
         break;
       case kZ16:
-        if (registration_)
+        if (registration_) {
           ok = z16_to_registered_depth(src, w, h, stride_, opt_.depth_scale_m, opt_.rig_depth_scale_m,
                                        *registration_, depth_scratch_.data(),
                                        reinterpret_cast<uint16_t*>(dst.pixels.data()), ow * 2);
-        else
+        } else {
           z16_to_depth(src, w, h, stride_, opt_.depth_scale_m, opt_.rig_depth_scale_m,
                        reinterpret_cast<uint16_t*>(dst.pixels.data()));
+        }
         break;
       case kMjpeg: {
         // Decoded into the destination buffer; libjpeg's own scratch is the

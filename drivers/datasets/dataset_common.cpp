@@ -11,12 +11,13 @@ namespace kestrel::drivers::ds {
 
 Mat4d mat_mul(const Mat4d& a, const Mat4d& b) {
   Mat4d c{};
-  for (int i = 0; i < 4; ++i)
+  for (int i = 0; i < 4; ++i) {
     for (int j = 0; j < 4; ++j) {
       double s = 0;
       for (int k = 0; k < 4; ++k) s += a[i * 4 + k] * b[k * 4 + j];
       c[i * 4 + j] = s;
     }
+  }
   return c;
 }
 
@@ -106,12 +107,14 @@ std::vector<Listed> read_list(const std::string& path, text::StreamLogSource& s)
     l.line = i + 1;
     out.push_back(std::move(l));
   }
-  for (size_t i = 1; i < out.size(); ++i)
-    if (out[i].t_ns <= out[i - 1].t_ns)
+  for (size_t i = 1; i < out.size(); ++i) {
+    if (out[i].t_ns <= out[i - 1].t_ns) {
       s.problem(path + ":" + std::to_string(out[i].line),
                 out[i].t_ns == out[i - 1].t_ns ? "duplicate" : "time-order",
                 "timestamp not after the previous row's (line " + std::to_string(out[i - 1].line) +
                     "); replayed in sorted order");
+    }
+  }
   std::stable_sort(out.begin(), out.end(), [](const Listed& a, const Listed& b) { return a.t_ns < b.t_ns; });
   // A repeated stamp would make two frames of one instant; the later row is dropped.
   std::vector<Listed> unique;
@@ -144,12 +147,13 @@ std::vector<long> associate(const std::vector<Listed>& rgb, const std::vector<Li
   std::vector<long> depth_of(rgb.size(), -1);
   std::vector<bool> used(depth.size(), false);
   pairs = 0;
-  for (const Pair& p : cand)
+  for (const Pair& p : cand) {
     if (depth_of[p.r] < 0 && !used[p.d]) {
       depth_of[p.r] = static_cast<long>(p.d);
       used[p.d] = true;
       ++pairs;
     }
+  }
   return depth_of;
 }
 
@@ -190,17 +194,19 @@ void add_pairs(const std::string& root, const std::vector<Listed>& rgb, const st
     }
     s.depth_.push_back(de);
   }
-  if (no_depth > 0)
+  if (no_depth > 0) {
     s.problem(
         first_no_depth, "no-depth",
         std::to_string(no_depth) + " colour frames without a depth frame in the window; replayed alone");
+  }
   size_t unassoc = 0;
   std::string first;
   for (size_t d = 0; d < depth.size(); ++d)
     if (!used[d] && unassoc++ == 0) first = depth_list + ":" + std::to_string(depth[d].line);
-  if (unassoc > 0)
+  if (unassoc > 0) {
     s.problem(first, "unassociated",
               std::to_string(unassoc) + " depth frames without a colour partner; skipped");
+  }
 }
 
 void read_tum_poses(const std::string& path, text::StreamLogSource& s,

@@ -32,9 +32,10 @@ void read_calibration(const std::string& path, Rig& r) {
     double v[4];
     bool ok = f.size() == 4;
     for (int k = 0; k < 4 && ok; ++k) ok = text::parse_f64(f[k], v[k]) && std::isfinite(v[k]);
-    if (!ok || v[0] <= 0 || v[1] <= 0)
+    if (!ok || v[0] <= 0 || v[1] <= 0) {
       throw std::runtime_error(path + ":" + std::to_string(i + 1) +
                                ": expected \"fx fy cx cy\" (4 finite numbers, focal lengths > 0)");
+    }
     r.rgb.fx = v[0], r.rgb.fy = v[1], r.rgb.cx = v[2], r.rgb.cy = v[3];
     // ETH3D publishes undistorted pinhole images.
     r.rgb.distortion = DistortionModel::kNone;
@@ -134,13 +135,14 @@ Eth3dReader::Eth3dReader(const std::string& path_in, const Rig* rig) {
   Rig r = rig ? *rig : Rig{};
   if (!rig) r.name = text::file_name(path);
   const std::string calib = path + "/calibration.txt";
-  if (text::is_file(calib))
+  if (text::is_file(calib)) {
     read_calibration(calib, r);
-  else if (!rig)
+  } else if (!rig) {
     throw std::runtime_error(
         calib + ": missing: camera intrinsics (fx fy cx cy) are needed; give them with --rig FILE.yaml");
-  else
+  } else {
     s.problem(calib, "missing-file", "no calibration.txt: camera intrinsics taken from the --rig file");
+  }
   // ETH3D depth: 16-bit PNG, 5000 units per metre, registered to the colour camera.
   r.depth.scale_m_per_unit = 1.0 / 5000.0;
 
@@ -179,10 +181,11 @@ Eth3dReader::Eth3dReader(const std::string& path_in, const Rig* rig) {
     pairs_ = depth.size();
   } else {
     rgb = ds::read_list(rgb_list, s);
-    if (text::is_file(depth_list))
+    if (text::is_file(depth_list)) {
       depth = ds::read_list(depth_list, s);
-    else
+    } else {
       s.problem(depth_list, "missing-file", "no depth listing; colour only");
+    }
     depth_of = ds::associate(rgb, depth, 20'000'000, pairs_);
   }
   ds::add_pairs(path, rgb, rgb_list, depth, depth_list, depth_of, s);
@@ -190,11 +193,12 @@ Eth3dReader::Eth3dReader(const std::string& path_in, const Rig* rig) {
   // The image size is not in calibration.txt: the first colour image says it.
   if (!s.rgb_.empty()) {
     int w = 0, h = 0;
-    if (ds::image_size(s.rgb_.front().path, w, h))
+    if (ds::image_size(s.rgb_.front().path, w, h)) {
       r.rgb.width = w, r.rgb.height = h;
-    else
+    } else {
       s.problem(s.rgb_.front().where, "bad-image",
                 s.rgb_.front().path + ": cannot be decoded to read the image size");
+    }
   }
   if (!rig && !rgb.empty()) r.camera_rate_hz = rate_hz(rgb.front().t_ns, rgb.back().t_ns, rgb.size());
 

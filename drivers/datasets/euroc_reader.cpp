@@ -16,7 +16,6 @@ namespace kestrel::drivers {
 namespace {
 
 using text::ImageEntry;
-using text::Row;
 using text::StreamLogSource;
 
 std::string strip_slash(std::string p) {
@@ -33,9 +32,10 @@ double yaml_number(const YAML::Node& n, const std::string& path, const std::stri
 
 std::vector<double> yaml_numbers(const YAML::Node& n, const std::string& path, const std::string& field,
                                  size_t min_n, size_t max_n) {
-  if (!n || !n.IsSequence() || n.size() < min_n || n.size() > max_n)
+  if (!n || !n.IsSequence() || n.size() < min_n || n.size() > max_n) {
     throw std::runtime_error(path + ": " + field + ": expected a list of " + std::to_string(min_n) +
                              (min_n == max_n ? "" : ".." + std::to_string(max_n)) + " numbers");
+  }
   std::vector<double> v;
   for (size_t i = 0; i < n.size(); ++i)
     v.push_back(yaml_number(n[i], path, field + "[" + std::to_string(i) + "]"));
@@ -124,12 +124,13 @@ void read_imu_csv(const std::string& path, StreamLogSource& s) {
     }
     double v[6];
     bool ok = true;
-    for (int k = 0; k < 6 && ok; ++k)
+    for (int k = 0; k < 6 && ok; ++k) {
       if (!text::parse_f64(f[k + 1], v[k])) {
         s.problem(where(path, i + 1), "bad-row",
                   "field " + std::to_string(k + 2) + " \"" + f[k + 1] + "\" is not a number");
         ok = false;
       }
+    }
     if (!ok) continue;
     for (int k = 0; k < 3; ++k) {
       m.gyro_rps[k] = v[k];
@@ -172,12 +173,13 @@ void read_gt_csv(const std::string& path, StreamLogSource& s) {
     const size_t n = f.size() >= 11 ? 10 : 7;
     double v[10];
     bool ok = true;
-    for (size_t k = 0; k < n && ok; ++k)
+    for (size_t k = 0; k < n && ok; ++k) {
       if (!text::parse_f64(f[k + 1], v[k]) || !std::isfinite(v[k])) {
         s.problem(where(path, i + 1), "bad-row",
                   "field " + std::to_string(k + 2) + " \"" + f[k + 1] + "\" is not a finite number");
         ok = false;
       }
+    }
     if (!ok) continue;
     const double qn = std::sqrt(v[3] * v[3] + v[4] * v[4] + v[5] * v[5] + v[6] * v[6]);
     if (std::abs(qn - 1.0) > 1e-2) {
@@ -226,9 +228,10 @@ void read_image_csv(const std::string& csv, const std::string& data_dir, StreamL
     }
     out.push_back(std::move(e));
   }
-  if (!dir_ok && listed > 0)
+  if (!dir_ok && listed > 0) {
     s.problem(data_dir, "missing-file",
               "image folder absent: " + std::to_string(listed) + " images listed in " + csv + " skipped");
+  }
 }
 
 }  // namespace asl
@@ -285,18 +288,20 @@ EurocSensorYaml read_euroc_sensor_yaml(const std::string& path) {
   }
   const std::string model =
       n["distortion_model"] && n["distortion_model"].IsScalar() ? n["distortion_model"].Scalar() : "none";
-  if (model == "radial-tangential" || model == "radtan")
+  if (model == "radial-tangential" || model == "radtan") {
     y.distortion = DistortionModel::kRadTan;
-  else if (model == "equidistant")
+  } else if (model == "equidistant") {
     y.distortion = DistortionModel::kEquidistant;
-  else if (model == "none")
+  } else if (model == "none") {
     y.distortion = DistortionModel::kNone;
-  else
+  } else {
     throw std::runtime_error(
         path + ": distortion_model: expected radial-tangential, equidistant or none, got \"" + model + "\"");
-  if (n["distortion_coefficients"])
+  }
+  if (n["distortion_coefficients"]) {
     y.distortion_coefficients =
         yaml_numbers(n["distortion_coefficients"], path, "distortion_coefficients", 0, 5);
+  }
   const YAML::Node t = n["T_BS"];
   if (!t || !(t.IsMap() || t.IsSequence()))
     throw std::runtime_error(path + ": T_BS: missing (expected rows, cols, data)");
@@ -344,22 +349,25 @@ EurocReader::EurocReader(const std::string& path_in) {
     s.rig_ = load_rig_file(root + "/kestrel_rig.yaml");
   } else {
     s.rig_.name = name;
-    if (text::is_file(cam_yaml))
+    if (text::is_file(cam_yaml)) {
       camera_from_sensor(cam_yaml, s.rig_);
-    else
+    } else {
       s.problem(cam_yaml, "missing-file", "no camera calibration; the rig keeps default intrinsics");
-    if (text::is_file(imu_yaml))
+    }
+    if (text::is_file(imu_yaml)) {
       imu_from_sensor(imu_yaml, s.rig_);
-    else
+    } else {
       s.problem(imu_yaml, "missing-file", "no IMU noise figures; the rig keeps defaults");
+    }
     // A second camera makes the folder a stereo log: depth from matching cam0 against cam1 (docs/stereo.md).
     const std::string cam1_yaml = root + "/cam1/sensor.yaml";
     if (!flat_ && text::is_file(root + "/cam1/data.csv")) {
-      if (text::is_file(cam1_yaml))
+      if (text::is_file(cam1_yaml)) {
         right_camera_from_sensor(cam1_yaml, s.rig_);
-      else
+      } else {
         s.problem(cam1_yaml, "missing-file",
                   "cam1 images without a calibration; replayed as a monocular log");
+      }
     }
   }
 
@@ -368,16 +376,18 @@ EurocReader::EurocReader(const std::string& path_in) {
 
   if (flat_) {
     // The official estimate carries v_WB (and biases); the 20 Hz body file exists for every sequence.
-    for (const char* f : {"gt_official_200hz.csv", "gt_body_20hz.csv"})
+    for (const char* f : {"gt_official_200hz.csv", "gt_body_20hz.csv"}) {
       if (text::is_file(root + "/" + f)) {
         gt_file_ = root + "/" + f;
         break;
       }
+    }
   } else {
-    if (text::is_file(root + "/cam0/data.csv"))
+    if (text::is_file(root + "/cam0/data.csv")) {
       asl::read_image_csv(root + "/cam0/data.csv", root + "/cam0/data", s, s.rgb_);
-    else
+    } else {
       s.problem(root + "/cam0/data.csv", "missing-file", "no cam0 table; no images replayed");
+    }
     // Only with a stereo rig (cam1/sensor.yaml or the rig file's stereo:): uncalibrated images are no use.
     if (s.rig_.stereo.present && text::is_file(root + "/cam1/data.csv"))
       asl::read_image_csv(root + "/cam1/data.csv", root + "/cam1/data", s, s.right_);

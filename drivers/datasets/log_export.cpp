@@ -269,11 +269,12 @@ cv::Mat rescale_depth(const LogImage& img, double from_m_per_unit, double to_m_p
   if (from_m_per_unit == to_m_per_unit) return in;
   cv::Mat out(img.height, img.width, CV_16UC1);
   const double k = from_m_per_unit / to_m_per_unit;
-  for (int y = 0; y < img.height; ++y)
+  for (int y = 0; y < img.height; ++y) {
     for (int x = 0; x < img.width; ++x) {
       const double v = std::round(in.at<uint16_t>(y, x) * k);
       out.at<uint16_t>(y, x) = v > 0 && v <= 65535 ? static_cast<uint16_t>(v) : 0;
     }
+  }
   return out;
 }
 
@@ -293,7 +294,7 @@ struct Undistorter {
     map_x.create(c.height, c.width, CV_32FC1);
     map_y.create(c.height, c.width, CV_32FC1);
     const auto& k = c.dist;
-    for (int v = 0; v < c.height; ++v)
+    for (int v = 0; v < c.height; ++v) {
       for (int u = 0; u < c.width; ++u) {
         const double x = (u - c.cx) / c.fx, y = (v - c.cy) / c.fy;
         double xd, yd;
@@ -313,6 +314,7 @@ struct Undistorter {
         map_x.at<float>(v, u) = static_cast<float>(c.fx * xd + c.cx);
         map_y.at<float>(v, u) = static_cast<float>(c.fy * yd + c.cy);
       }
+    }
   }
   cv::Mat apply(const cv::Mat& in, bool depth) const {
     if (!active || in.cols != map_x.cols || in.rows != map_x.rows) return in;
@@ -434,10 +436,9 @@ ExportStats export_eth3d(LogSource& src, const std::string& out_dir) {
         ++st.ground_truth;
         break;
       }
-      case RecordType::kEvent:
-        break;  // ETH3D has no place for events
-      case RecordType::kRight:
-        break;  // nor for a second camera
+      case RecordType::kEvent:  // ETH3D has no place for events
+      case RecordType::kRight:  // nor for a second camera
+        break;
     }
   }
   rgb.close();
@@ -528,8 +529,7 @@ ExportStats export_openloris(LogSource& src, const std::string& out_dir) {
         gt->put(tum_pose(r.gt.t_ns, r.gt.p_WB, r.gt.q_WB));
         ++st.ground_truth;
         break;
-      case RecordType::kEvent:
-        break;  // nor has OpenLORIS
+      case RecordType::kEvent:  // nor has OpenLORIS
       case RecordType::kRight:
         break;
     }

@@ -203,9 +203,10 @@ NpyArray parse_npy(const uint8_t* bytes, size_t size, const std::string& what) {
   a.shape = h.shape;
   a.was_fortran_order = h.fortran_order;
   const size_t n = element_count(h.shape, what);
-  if (size - h.header_bytes != n * 8)
+  if (size - h.header_bytes != n * 8) {
     fail(what, "truncated or oversized: shape " + std::to_string(n) + " elements needs " +
                    std::to_string(n * 8) + " data bytes, found " + std::to_string(size - h.header_bytes));
+  }
   a.data.resize(n);
   std::memcpy(a.data.data(), bytes + h.header_bytes, n * 8);
   if (h.fortran_order) to_c_order(a);
@@ -268,9 +269,10 @@ NpyArray NpzFile::read(const std::string& name) const {
     while (got < n) {
       const zip_int64_t r = zip_fread(f, static_cast<uint8_t*>(dst) + got, n - got);
       if (r < 0) fail(what, std::string("decompression failed: ") + zip_file_strerror(f));
-      if (r == 0)
+      if (r == 0) {
         fail(what,
              "truncated: member ends after " + std::to_string(got) + " of " + std::to_string(n) + " bytes");
+      }
       got += static_cast<size_t>(r);
     }
   };
@@ -299,9 +301,10 @@ NpyArray NpzFile::read(const std::string& name) const {
   a.shape = h.shape;
   a.was_fortran_order = h.fortran_order;
   const size_t n = element_count(h.shape, what);
-  if (total - header_bytes != n * 8)
+  if (total - header_bytes != n * 8) {
     fail(what, "truncated or oversized: shape " + a.shape_string() + " needs " + std::to_string(n * 8) +
                    " data bytes, the member holds " + std::to_string(total - header_bytes));
+  }
   a.data.resize(n);
   read_exact(a.data.data(), n * 8);
   if (h.fortran_order) to_c_order(a);
@@ -325,21 +328,23 @@ KittiVislamSequence load_kitti_vislam_npz(const std::string& path) {
   if (t.dims() != 2 || t.shape[0] != 1) shape_error("time_stamps", t, "(1, N)");
   const size_t N = t.shape[1];
   seq.t_s = t.data;
-  for (size_t i = 1; i < N; ++i)
+  for (size_t i = 1; i < N; ++i) {
     if (!(seq.t_s[i] > seq.t_s[i - 1]))
       fail(path + ":time_stamps", "time does not increase at step " + std::to_string(i));
+  }
 
   auto velocity = [&](const std::string& name, std::vector<double>& out) {
     const NpyArray a = need(name);
     if (a.dims() != 2 || a.shape[0] != 3 || a.shape[1] != N)
       shape_error(name, a, "(3, " + std::to_string(N) + ")");
     out.resize(3 * N);
-    for (size_t i = 0; i < N; ++i)
+    for (size_t i = 0; i < N; ++i) {
       for (size_t r = 0; r < 3; ++r) {
         out[3 * i + r] = a.at(r, i);
         if (!std::isfinite(out[3 * i + r]))
           fail(path + ":" + name, "non-finite value at step " + std::to_string(i));
       }
+    }
   };
   velocity("linear_velocity", seq.v_B_mps);
   velocity("rotational_velocity", seq.w_B_rps);
@@ -374,15 +379,16 @@ KittiVislamSequence load_kitti_vislam_npz(const std::string& path) {
     return a == -1.0 && b2 == -1.0 && c == -1.0 && d == -1.0;
   };
   seq.step_begin.assign(N + 1, 0);
-  for (size_t j = 0; j < M; ++j)
+  for (size_t j = 0; j < M; ++j) {
     for (size_t i = 0; i < N; ++i) {
       const size_t o = j * N + i;
       if (present(uL[o], vL[o], uR[o], vR[o])) ++seq.step_begin[i + 1];
     }
+  }
   for (size_t i = 0; i < N; ++i) seq.step_begin[i + 1] += seq.step_begin[i];
   seq.features.resize(seq.step_begin[N]);
   std::vector<size_t> fill(seq.step_begin.begin(), seq.step_begin.end() - 1);
-  for (size_t j = 0; j < M; ++j)
+  for (size_t j = 0; j < M; ++j) {
     for (size_t i = 0; i < N; ++i) {
       const size_t o = j * N + i;
       if (present(uL[o], vL[o], uR[o], vR[o])) {
@@ -396,6 +402,7 @@ KittiVislamSequence load_kitti_vislam_npz(const std::string& path) {
         ++seq.missing_partial;
       }
     }
+  }
   // Non-finite entries were counted but left holes: close them.
   if (seq.missing_partial > 0) {
     size_t w = 0;

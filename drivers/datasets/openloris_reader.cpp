@@ -123,11 +123,13 @@ std::vector<Vec3Row> read_vec3(const std::string& path, const char* what, Stream
     }
     out.push_back(r);
   }
-  for (size_t i = 1; i < out.size(); ++i)
-    if (out[i].t_ns <= out[i - 1].t_ns)
+  for (size_t i = 1; i < out.size(); ++i) {
+    if (out[i].t_ns <= out[i - 1].t_ns) {
       s.problem(path + ":" + std::to_string(out[i].line),
                 out[i].t_ns == out[i - 1].t_ns ? "duplicate" : "time-order",
                 "timestamp not after the previous row's; sorted, repeats dropped");
+    }
+  }
   std::stable_sort(out.begin(), out.end(),
                    [](const Vec3Row& a, const Vec3Row& b) { return a.t_ns < b.t_ns; });
   std::vector<Vec3Row> u;
@@ -169,9 +171,10 @@ OpenLorisReader::OpenLorisReader(const std::string& path_in, const Rig* rig) {
   const std::string path = strip_slash(path_in);
   StreamLogSource& s = *impl_;
   if (!text::is_dir(path)) throw std::runtime_error(path + ": no such folder");
-  if (!is_openloris_folder(path))
+  if (!is_openloris_folder(path)) {
     throw std::runtime_error(
         path + ": not an OpenLORIS-Scene folder (no color.txt, d400_accelerometer.txt or sensors.yaml)");
+  }
 
   Rig r = rig ? *rig : Rig{};
   if (!rig) r.name = text::file_name(path);
@@ -187,13 +190,15 @@ OpenLorisReader::OpenLorisReader(const std::string& path_in, const Rig* rig) {
       if (c && c.IsMap()) {
         std::vector<double> k, d;
         double w = 0, h = 0, fps = 0;
-        if (!cv_numbers(c["intrinsics"], k) || k.size() != 4 || k[0] <= 0 || k[2] <= 0)
+        if (!cv_numbers(c["intrinsics"], k) || k.size() != 4 || k[0] <= 0 || k[2] <= 0) {
           throw std::runtime_error(sensors + ": " + kColorFrame +
                                    ".intrinsics: expected 4 numbers fx cx fy cy (fx, fy > 0)");
+        }
         if (!cv_number(c["width"], w) || !cv_number(c["height"], h) || w < 1 || h < 1 || w > 32768 ||
-            h > 32768)
+            h > 32768) {
           throw std::runtime_error(sensors + ": " + kColorFrame +
                                    ".width/height: expected two positive integers");
+        }
         r.rgb.width = static_cast<int>(w);
         r.rgb.height = static_cast<int>(h);
         r.rgb.fx = k[0], r.rgb.cx = k[1], r.rgb.fy = k[2], r.rgb.cy = k[3];
@@ -201,19 +206,21 @@ OpenLorisReader::OpenLorisReader(const std::string& path_in, const Rig* rig) {
                                       ? c["distortion_model"].Scalar()
                                       : "none";
         r.rgb.dist = {};
-        if (model == "radial-tangential" || model == "plumb_bob" || model == "radtan")
+        if (model == "radial-tangential" || model == "plumb_bob" || model == "radtan") {
           r.rgb.distortion = DistortionModel::kRadTan;
-        else if (model == "equidistant" || model == "Kannala-Brandt")
+        } else if (model == "equidistant" || model == "Kannala-Brandt") {
           r.rgb.distortion = DistortionModel::kEquidistant;
-        else if (model == "none")
+        } else if (model == "none") {
           r.rgb.distortion = DistortionModel::kNone;
-        else
+        } else {
           throw std::runtime_error(sensors + ": " + kColorFrame + ".distortion_model: \"" + model +
                                    "\" is not supported");
+        }
         if (c["distortion_coefficients"]) {
-          if (!cv_numbers(c["distortion_coefficients"], d) || d.size() > 5)
+          if (!cv_numbers(c["distortion_coefficients"], d) || d.size() > 5) {
             throw std::runtime_error(sensors + ": " + kColorFrame +
                                      ".distortion_coefficients: expected up to 5 numbers");
+          }
           std::copy(d.begin(), d.end(), r.rgb.dist.begin());
         }
         if (cv_number(c["fps"], fps)) r.camera_rate_hz = fps;
@@ -240,10 +247,11 @@ OpenLorisReader::OpenLorisReader(const std::string& path_in, const Rig* rig) {
     r.depth.scale_m_per_unit = 0.001;
   }
   if (!have_intrinsics) {
-    if (!rig)
+    if (!rig) {
       throw std::runtime_error(sensors + ": " + kColorFrame +
                                ".intrinsics missing: camera intrinsics (fx fy cx cy, width, height) are "
                                "needed; give them with --rig FILE.yaml");
+    }
     s.problem(sensors, "missing-file",
               std::string("no ") + kColorFrame + " entry: camera intrinsics taken from the --rig file");
   }
@@ -281,16 +289,18 @@ OpenLorisReader::OpenLorisReader(const std::string& path_in, const Rig* rig) {
   const std::string color_txt = path + "/color.txt", depth_txt = path + "/aligned_depth.txt";
   const auto rgb = ds::read_list(color_txt, s);
   std::vector<Listed> depth;
-  if (text::is_file(depth_txt))
+  if (text::is_file(depth_txt)) {
     depth = ds::read_list(depth_txt, s);
-  else if (text::is_file(path + "/depth.txt"))
+  } else if (text::is_file(path + "/depth.txt")) {
     s.problem(path + "/depth.txt", "unregistered",
               "depth.txt is not registered to colour; only aligned_depth.txt is replayed");
+  }
   const auto depth_of = ds::associate(rgb, depth, 20'000'000, pairs_);
   ds::add_pairs(path, rgb, color_txt, depth, depth_txt, depth_of, s);
-  if (r.camera_rate_hz <= 0 && rgb.size() > 1 && rgb.back().t_ns > rgb.front().t_ns)
+  if (r.camera_rate_hz <= 0 && rgb.size() > 1 && rgb.back().t_ns > rgb.front().t_ns) {
     r.camera_rate_hz = static_cast<double>(rgb.size() - 1) * 1e9 /
                        static_cast<double>(span_ns(rgb.back().t_ns, rgb.front().t_ns));
+  }
 
   // ---- IMU: merge the two streams at the faster one's stamps.
   const std::string acc_txt = path + "/d400_accelerometer.txt", gyro_txt = path + "/d400_gyroscope.txt";
@@ -339,14 +349,16 @@ OpenLorisReader::OpenLorisReader(const std::string& path_in, const Rig* rig) {
       s.imu_.push_back({m, f.line});
     }
     imu_dropped_ = outside + gap;
-    if (outside > 0)
+    if (outside > 0) {
       s.problem(imu_file_, "imu-merge",
                 std::to_string(outside) + " samples outside the " +
                     (gyro_fast ? "accelerometer" : "gyroscope") +
                     " stream's time span; dropped (no extrapolation)");
-    if (gap > 0)
+    }
+    if (gap > 0) {
       s.problem(imu_file_, "imu-merge",
                 std::to_string(gap) + " samples inside a gap of the slower stream (> 4 periods); dropped");
+    }
     if (!rig || r.imu_rate_hz <= 0) r.imu_rate_hz = gyro_fast ? rg : ra;
     if (!rig) ds::assume_imu_noise(r, &s, nullptr, sensors);
   } else if (!acc.empty() || !gyr.empty()) {

@@ -56,9 +56,10 @@ enum Kind : uint8_t { kImuK = 0, kRgbK = 1, kDepthK = 2, kGtK = 3, kRightK = 4 }
 int64_t ns_of(const ros::Time& t) { return static_cast<int64_t>(t.sec) * 1000000000 + t.nsec; }
 ros::Time time_of(int64_t t_ns) {
   // ros::Time is unsigned: stamps before 1970 cannot be written.
-  if (t_ns < 0)
+  if (t_ns < 0) {
     throw std::runtime_error("negative timestamp " + std::to_string(t_ns) +
                              " ns cannot be stored in a ROS bag");
+  }
   return ros::Time(static_cast<uint32_t>(t_ns / 1000000000), static_cast<uint32_t>(t_ns % 1000000000));
 }
 
@@ -106,34 +107,36 @@ struct RosbagReader::Impl {
     PixelFormat fmt;
     int in_bpp;
     if (type == RecordType::kDepth) {
-      if (enc == "16UC1" || enc == "mono16")
+      if (enc == "16UC1" || enc == "mono16") {
         fmt = PixelFormat::kDepthU16, in_bpp = 2;
-      else if (enc == "32FC1")
+      } else if (enc == "32FC1") {
         fmt = PixelFormat::kDepthU16, in_bpp = 4;
-      else {
+      } else {
         if (report)
           problem(image_where[i], "bad-image", "depth encoding \"" + enc + "\" (expected 16UC1 or 32FC1)");
         return false;
       }
-    } else if (enc == "rgb8")
+    } else if (enc == "rgb8") {
       fmt = PixelFormat::kRgb8, in_bpp = 3;
-    else if (enc == "bgr8")
+    } else if (enc == "bgr8") {
       fmt = PixelFormat::kBgr8, in_bpp = 3;
-    else if (enc == "mono8" || enc == "8UC1")
+    } else if (enc == "mono8" || enc == "8UC1") {
       fmt = PixelFormat::kGray8, in_bpp = 1;
-    else {
-      if (report)
+    } else {
+      if (report) {
         problem(image_where[i], "bad-image",
                 "colour encoding \"" + enc + "\" (expected rgb8, bgr8 or mono8)");
+      }
       return false;
     }
     const uint64_t w = m->width, h = m->height;
     if (w == 0 || h == 0 || w > 32768 || h > 32768 || m->step < w * in_bpp ||
         m->data.size() < static_cast<uint64_t>(m->step) * h) {
-      if (report)
+      if (report) {
         problem(image_where[i], "bad-image",
                 "size " + std::to_string(w) + "x" + std::to_string(h) + ", step " + std::to_string(m->step) +
                     " and " + std::to_string(m->data.size()) + " data bytes do not agree");
+      }
       return false;
     }
     img.width = static_cast<int>(w);
@@ -271,13 +274,13 @@ RosbagReader::RosbagReader(const std::string& path, const RosbagTopics& topics, 
           r.rgb.dist = {};
           const std::string& dm = m->distortion_model;
           const bool zero = std::all_of(m->D.begin(), m->D.end(), [](double d) { return d == 0; });
-          if (zero)
+          if (zero) {
             r.rgb.distortion = DistortionModel::kNone;
-          else if (dm == "plumb_bob" || dm == "rational_polynomial")
+          } else if (dm == "plumb_bob" || dm == "rational_polynomial") {
             r.rgb.distortion = DistortionModel::kRadTan;
-          else if (dm == "equidistant")
+          } else if (dm == "equidistant") {
             r.rgb.distortion = DistortionModel::kEquidistant;
-          else {
+          } else {
             s.problem(where, "bad-row",
                       "distortion model \"" + dm + "\" not supported; taken as undistorted");
             r.rgb.distortion = DistortionModel::kNone;
@@ -319,11 +322,12 @@ RosbagReader::RosbagReader(const std::string& path, const RosbagTopics& topics, 
   }
 
   if (!have_info) {
-    if (!rig)
+    if (!rig) {
       throw std::runtime_error(
           path + ": no sensor_msgs/CameraInfo on " + info_topic +
           ": camera intrinsics (fx fy cx cy, width, height) missing; give them with --rig FILE.yaml "
           "or name the topic with --camera-info-topic");
+    }
     s.problem(path + ":" + info_topic, "missing-file",
               "no CameraInfo: camera intrinsics taken from the --rig file");
   }
@@ -390,30 +394,35 @@ RosbagReader::RosbagReader(const std::string& path, const RosbagTopics& topics, 
       const size_t q = static_cast<size_t>(right_of[i]);
       s.entries.push_back({rgb_t[i].t_ns, right_t[q].t_ns, kRightK, right_idx[q], static_cast<uint32_t>(q)});
     }
-    if (right_pairs < right_t.size())
+    if (right_pairs < right_t.size()) {
       s.problem(path + ":" + topics.right, "unassociated",
                 std::to_string(right_t.size() - right_pairs) +
                     " right images without a left image within 20 ms; skipped");
+    }
   }
   const size_t unassoc = static_cast<size_t>(std::count(used.begin(), used.end(), false));
-  if (unassoc > 0)
+  if (unassoc > 0) {
     s.problem(path + ":" + topics.depth, "unassociated",
               std::to_string(unassoc) + " depth images without a colour image within 20 ms; skipped");
+  }
   if (rgb_t.empty()) s.problem(path + ":" + topics.rgb, "missing-file", "no colour images on this topic");
 
   // Camera stamps onto the IMU's clock (the rig's time_offset_cam_imu_ns).
-  for (auto& e : s.entries)
+  for (auto& e : s.entries) {
     if (e.kind == kRgbK || e.kind == kDepthK || e.kind == kRightK)
       e.t_ns = camera_stamp_on_imu_clock(r, e.t_ns);
+  }
   // Replayed in stamp order; at equal stamps IMU, colour, depth, ground truth.
   size_t late = 0;
-  for (size_t i = 1; i < s.entries.size(); ++i)
+  for (size_t i = 1; i < s.entries.size(); ++i) {
     if (s.entries[i].kind == kImuK && s.entries[i - 1].kind == kImuK &&
         s.entries[i].t_ns < s.entries[i - 1].t_ns)
       ++late;
-  if (late > 0)
+  }
+  if (late > 0) {
     s.problem(path + ":" + topics.imu, "time-order",
               std::to_string(late) + " IMU messages stamped before the previous one; replayed sorted");
+  }
   std::stable_sort(s.entries.begin(), s.entries.end(), [](const Impl::Entry& a, const Impl::Entry& b) {
     return a.t_ns != b.t_ns ? a.t_ns < b.t_ns : a.kind < b.kind;
   });
@@ -432,14 +441,16 @@ RosbagReader::RosbagReader(const std::string& path, const RosbagTopics& topics, 
     }
     kept.push_back(e);
   }
-  if (dups > 0)
+  if (dups > 0) {
     s.problem(path + ":" + topics.imu, "duplicate",
               std::to_string(dups) + " IMU messages repeat a stamp; dropped");
+  }
   s.entries.swap(kept);
 
-  if (!s.imu.empty() && !rig)
+  if (!s.imu.empty() && !rig) {
     s.problem(path + ":" + topics.imu, "assumed",
               "no camera-IMU extrinsic read from the bag: T_BC = identity assumed (give --rig)");
+  }
   if (!rig) {
     auto rate = [](int64_t a, int64_t b, size_t n) {
       return n > 1 && b > a ? (n - 1) * 1e9 / static_cast<double>(b - a) : 0.0;
@@ -581,10 +592,11 @@ ExportStats export_rosbag(LogSource& src, const std::string& path, const RosbagT
           }
           const int bpp = m.encoding == "mono8" ? 1 : 3;
           m.step = m.width * static_cast<uint32_t>(bpp);
-          if (rgb.empty())
+          if (rgb.empty()) {
             m.data = im.pixels;
-          else
+          } else {
             m.data.assign(rgb.data, rgb.data + static_cast<size_t>(m.step) * m.height);
+          }
           bag.write(topics.rgb, m.header.stamp, m);
           sensor_msgs::CameraInfo ci;
           ci.header = m.header;
@@ -651,10 +663,11 @@ ExportStats export_rosbag(LogSource& src, const std::string& path, const RosbagT
           ci.R = {1, 0, 0, 0, 1, 0, 0, 0, 1};
           ci.P = {ki.fx, 0, ki.cx, -ki.fx * T_C0C1[3], 0, ki.fy, ki.cy, 0, 0, 0, 1, 0};
           ci.distortion_model = ki.distortion == DistortionModel::kEquidistant ? "equidistant" : "plumb_bob";
-          if (ki.distortion == DistortionModel::kEquidistant)
+          if (ki.distortion == DistortionModel::kEquidistant) {
             ci.D.assign(ki.dist.begin(), ki.dist.begin() + 4);
-          else
+          } else {
             ci.D.assign(ki.dist.begin(), ki.dist.end());
+          }
           bag.write(rinfo_topic, m.header.stamp, ci);
           break;
         }

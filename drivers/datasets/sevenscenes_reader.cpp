@@ -55,18 +55,22 @@ CameraIntrinsics read_intrinsics(const std::string& path) {
     if (t.empty() || t[0] == '#') continue;
     const auto f = text::split_ws(t);
     line = i + 1;
-    if (f.size() != 3)
+    if (f.size() != 3) {
       throw std::runtime_error(path + ":" + std::to_string(line) +
                                ": expected 3 numbers per row of the 3x3 camera matrix");
-    for (const auto& s : f)
-      if (!text::parse_f64(s, m[n++]) || !std::isfinite(m[n - 1]))
+    }
+    for (const auto& s : f) {
+      if (!text::parse_f64(s, m[n++]) || !std::isfinite(m[n - 1])) {
         throw std::runtime_error(path + ":" + std::to_string(line) + ": \"" + s +
                                  "\" is not a finite number");
+      }
+    }
   }
   if (n < 9) throw std::runtime_error(path + ": expected a 3x3 camera matrix (3 rows of 3 numbers)");
-  if (!(m[0] > 0) || !(m[4] > 0) || m[1] != 0 || m[3] != 0 || m[6] != 0 || m[7] != 0 || m[8] != 1)
+  if (!(m[0] > 0) || !(m[4] > 0) || m[1] != 0 || m[3] != 0 || m[6] != 0 || m[7] != 0 || m[8] != 1) {
     throw std::runtime_error(path + ":" + std::to_string(line) +
                              ": not a pinhole camera matrix [fx 0 cx; 0 fy cy; 0 0 1] with fx, fy > 0");
+  }
   CameraIntrinsics k;
   k.fx = m[0], k.fy = m[4], k.cx = m[2], k.cy = m[5];
   return k;
@@ -85,9 +89,10 @@ std::string read_pose(const std::string& path, Mat4d& T, size_t* bad_line) {
     *bad_line = i + 1;
     const auto f = text::split_ws(t);
     if (f.size() != 4) return "expected 4 numbers per row of the 4x4 pose, got " + std::to_string(f.size());
-    for (int c = 0; c < 4; ++c)
+    for (int c = 0; c < 4; ++c) {
       if (!text::parse_f64(f[c], T[4 * row + c]) || !std::isfinite(T[4 * row + c]))
         return "\"" + f[c] + "\" is not a finite number";
+    }
     ++row;
   }
   if (row < 4) return "expected 4 rows of the 4x4 pose, got " + std::to_string(row);
@@ -95,7 +100,7 @@ std::string read_pose(const std::string& path, Mat4d& T, size_t* bad_line) {
   // KinectFusion's rotations are not quite orthonormal (their columns are
   // 6e-5 short of unit length in this sequence): within 1e-3 they are taken
   // as rotations and re-orthonormalised below; a real scale or shear is not.
-  for (int a = 0; a < 3; ++a)
+  for (int a = 0; a < 3; ++a) {
     for (int b = 0; b < 3; ++b) {
       double dot = 0;
       for (int k = 0; k < 3; ++k) dot += T[4 * k + a] * T[4 * k + b];
@@ -105,6 +110,7 @@ std::string read_pose(const std::string& path, Mat4d& T, size_t* bad_line) {
                text::fmt17(dot) + " - " + (a == b ? "1" : "0") + ")";
       }
     }
+  }
   const double det = T[0] * (T[5] * T[10] - T[6] * T[9]) - T[1] * (T[4] * T[10] - T[6] * T[8]) +
                      T[2] * (T[4] * T[9] - T[5] * T[8]);
   if (det < 0) {
@@ -162,9 +168,10 @@ Mat4d levelling(const Vec3d& g) {
   }
   const double K[9] = {0, -v[2], v[1], v[2], 0, -v[0], -v[1], v[0], 0};
   double K2[9];
-  for (int i = 0; i < 3; ++i)
+  for (int i = 0; i < 3; ++i) {
     for (int j = 0; j < 3; ++j)
       K2[3 * i + j] = K[3 * i] * K[j] + K[3 * i + 1] * K[3 + j] + K[3 * i + 2] * K[6 + j];
+  }
   const double f = (1 - c) / s2;
   for (int i = 0; i < 3; ++i)
     for (int j = 0; j < 3; ++j) T[4 * i + j] = (i == j ? 1.0 : 0.0) + K[3 * i + j] + f * K2[3 * i + j];
@@ -260,12 +267,13 @@ SevenScenesReader::SevenScenesReader(const std::string& path_in, const Rig* rig_
     const long i = frame_index(e.path().filename().string(), rest);
     if (i < 0) continue;
     Files& f = frames[i];
-    if (rest == ".color.png" || rest == ".color.jpg")
+    if (rest == ".color.png" || rest == ".color.jpg") {
       f.colour = e.path().string();
-    else if (rest == ".depth.png")
+    } else if (rest == ".depth.png") {
       f.depth = e.path().string();
-    else if (rest == ".pose.txt")
+    } else if (rest == ".pose.txt") {
       f.pose = e.path().string();
+    }
   }
   if (frames.empty()) throw std::runtime_error(path + ": not a 7-Scenes folder (no frame-NNNNNN.* files)");
 
@@ -281,18 +289,20 @@ SevenScenesReader::SevenScenesReader(const std::string& path_in, const Rig* rig_
   depth_k.fx = depth_k.fy = 585.0;
   depth_k.cx = 320.0;
   depth_k.cy = 240.0;
-  if (text::is_file(intr))
+  if (text::is_file(intr)) {
     depth_k = read_intrinsics(intr);
-  else
+  } else {
     s.problem(intr, "assumed",
               "no camera-intrinsics.txt: 7-Scenes' published depth intrinsics (585, 585, 320, 240)");
+  }
   Rig r = rig_in ? *rig_in : default_rig(depth_k);
-  if (!rig_in)
+  if (!rig_in) {
     s.problem(
         intr, "assumed",
         "7-Scenes publishes no colour calibration: colour camera 525 px at the image centre and a Kinect v1 "
         "depth -> colour transform (2.6 cm) assumed; the depth is registered to colour with them (--rig to "
         "override)");
+  }
   r.camera_rate_hz = opt.fps;
 
   // Missing numbers and missing files of a frame.
@@ -317,12 +327,13 @@ SevenScenesReader::SevenScenesReader(const std::string& path_in, const Rig* rig_
   for (const auto& [i, f] : frames) {
     int w = 0, h = 0;
     if (!f.colour.empty() && ds::image_size(f.colour, w, h)) {
-      if (!rig_in)
+      if (!rig_in) {
         r.rgb.width = w, r.rgb.height = h;
-      else if (w != r.rgb.width || h != r.rgb.height)
+      } else if (w != r.rgb.width || h != r.rgb.height) {
         s.problem(f.colour, "bad-image",
                   std::to_string(w) + "x" + std::to_string(h) + " colour image, the rig says " +
                       std::to_string(r.rgb.width) + "x" + std::to_string(r.rgb.height));
+      }
       break;
     }
   }

@@ -13,11 +13,13 @@ namespace kestrel::drivers::text {
 
 void StreamLogSource::order_streams(const std::string& imu_file, const std::string& gt_file) {
   auto check = [this](auto& rows, auto time_of, auto line_of, const std::string& file) {
-    for (size_t i = 1; i < rows.size(); ++i)
-      if (time_of(rows[i]) <= time_of(rows[i - 1]))
+    for (size_t i = 1; i < rows.size(); ++i) {
+      if (time_of(rows[i]) <= time_of(rows[i - 1])) {
         problem(file + ":" + std::to_string(line_of(rows[i])), "time-order",
                 "timestamp " + std::to_string(time_of(rows[i])) + " not after the previous row's " +
                     std::to_string(time_of(rows[i - 1])) + "; replayed in sorted order");
+      }
+    }
     std::stable_sort(rows.begin(), rows.end(),
                      [&](const auto& a, const auto& b) { return time_of(a) < time_of(b); });
   };
@@ -33,10 +35,12 @@ void StreamLogSource::order_streams(const std::string& imu_file, const std::stri
     for (ImageEntry& e : *images) e.t_ns = camera_stamp_on_imu_clock(rig_, e.t_ns);
   // Image rows carry their own "file:line".
   for (auto* images : {&rgb_, &depth_, &right_}) {
-    for (size_t i = 1; i < images->size(); ++i)
-      if ((*images)[i].t_ns <= (*images)[i - 1].t_ns)
+    for (size_t i = 1; i < images->size(); ++i) {
+      if ((*images)[i].t_ns <= (*images)[i - 1].t_ns) {
         problem((*images)[i].where, "time-order",
                 "image timestamp not after the previous row's; replayed in sorted order");
+      }
+    }
     std::stable_sort(images->begin(), images->end(),
                      [](const ImageEntry& a, const ImageEntry& b) { return a.t_ns < b.t_ns; });
   }
@@ -82,9 +86,10 @@ bool StreamLogSource::load_image(const ImageEntry& e, RecordType type, LogImage&
     cv::cvtColor(m, out, cv::COLOR_BGRA2RGB);
     fmt = PixelFormat::kRgb8;
   } else {
-    if (report)
+    if (report) {
       problem(e.where, "bad-image",
               e.path + ": expected an 8-bit gray, RGB or RGBA image or a 16-bit gray one");
+    }
     return false;
   }
   img.t_ns = e.t_ns;

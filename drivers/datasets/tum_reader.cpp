@@ -98,10 +98,11 @@ TumReader::TumReader(const std::string& path_in, const Options& options) {
   for (size_t r = 0; r < rgb.size(); ++r) {
     add(rgb[r], rgb_txt, rgb[r].t_ns, rgb[r].t_ns, static_cast<uint32_t>(r), rgb_dir, rgb_missing, s.rgb_);
     if (depth_of[r] < 0) {
-      if (!depth.empty())
+      if (!depth.empty()) {
         s.problem(rgb_txt + ":" + std::to_string(rgb[r].line), "no-depth",
                   "no depth frame within " + std::to_string(options.max_association_dt_ns / 1000000) +
                       " ms; RGB replayed alone");
+      }
       continue;
     }
     // The pair shares the colour time stamp so consumers pair by equal t_ns;
@@ -110,18 +111,22 @@ TumReader::TumReader(const std::string& path_in, const Options& options) {
     add(d, depth_txt, rgb[r].t_ns, d.t_ns, static_cast<uint32_t>(depth_of[r]), depth_dir, depth_missing,
         s.depth_);
   }
-  for (size_t d = 0; d < depth.size(); ++d)
-    if (!depth_used[d])
+  for (size_t d = 0; d < depth.size(); ++d) {
+    if (!depth_used[d]) {
       s.problem(depth_txt + ":" + std::to_string(depth[d].line), "unassociated",
                 "no RGB frame within the association window; depth frame skipped");
-  if (rgb_missing > 0)
+    }
+  }
+  if (rgb_missing > 0) {
     s.problem(
         path + "/rgb", "missing-file",
         "image folder absent: " + std::to_string(rgb_missing) + " RGB frames listed in rgb.txt skipped");
-  if (depth_missing > 0)
+  }
+  if (depth_missing > 0) {
     s.problem(path + "/depth", "missing-file",
               "image folder absent: " + std::to_string(depth_missing) +
                   " depth frames listed in depth.txt skipped");
+  }
 
   // groundtruth.txt: t tx ty tz qx qy qz qw (TUM stores the quaternion x y z w; ours is w x y z).
   const std::string gt_txt = path + "/groundtruth.txt";

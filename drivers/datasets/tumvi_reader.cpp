@@ -60,24 +60,27 @@ void check_pairs(text::StreamLogSource& s, int64_t tolerance_ns) {
   for (const auto& e : s.right_) {
     right.push_back(e.t_ns);
     if (has(left, e.t_ns)) continue;
-    if (++unmatched <= kNamed)
+    if (++unmatched <= kNamed) {
       s.problem(e.where, "stamp-mismatch",
                 "right image at " + std::to_string(e.t_ns) + " ns has no left image within " +
                     std::to_string(tolerance_ns / 1000) + " us; it will be dropped");
+    }
   }
-  if (unmatched > kNamed)
+  if (unmatched > kNamed) {
     s.problem("cam1/data.csv", "stamp-mismatch",
               std::to_string(unmatched) + " right images in all have no left image");
+  }
   std::sort(right.begin(), right.end());
   size_t lonely = 0;
   std::string first;
   for (const auto& e : s.rgb_)
     if (!has(right, e.t_ns) && ++lonely == 1) first = e.where;
-  if (lonely > 0)
+  if (lonely > 0) {
     s.problem(first, "missing-right",
               std::to_string(lonely) +
                   " left images (the first here) have no right image; they are tracked "
                   "without stereo depth");
+  }
 }
 
 }  // namespace
@@ -132,21 +135,24 @@ TumviReader::TumviReader(const std::string& path_in) {
 
   imu_file_ = root + "/imu0/data.csv";
   asl::read_imu_csv(imu_file_, s);
-  if (text::is_file(root + "/cam0/data.csv"))
+  if (text::is_file(root + "/cam0/data.csv")) {
     asl::read_image_csv(root + "/cam0/data.csv", root + "/cam0/data", s, s.rgb_);
-  else
+  } else {
     s.problem(root + "/cam0/data.csv", "missing-file", "no cam0 table; no images replayed");
-  if (s.rig_.stereo.present) {
-    if (text::is_file(root + "/cam1/data.csv"))
-      asl::read_image_csv(root + "/cam1/data.csv", root + "/cam1/data", s, s.right_);
-    else
-      s.problem(root + "/cam1/data.csv", "missing-file", "no cam1 table; tracked without stereo depth");
   }
-  for (const char* gt : {"/mocap0/data.csv", "/state_groundtruth_estimate0/data.csv"})
+  if (s.rig_.stereo.present) {
+    if (text::is_file(root + "/cam1/data.csv")) {
+      asl::read_image_csv(root + "/cam1/data.csv", root + "/cam1/data", s, s.right_);
+    } else {
+      s.problem(root + "/cam1/data.csv", "missing-file", "no cam1 table; tracked without stereo depth");
+    }
+  }
+  for (const char* gt : {"/mocap0/data.csv", "/state_groundtruth_estimate0/data.csv"}) {
     if (text::is_file(root + gt)) {
       gt_file_ = root + gt;
       break;
     }
+  }
   if (!gt_file_.empty()) asl::read_gt_csv(gt_file_, s);
   s.order_streams(imu_file_, gt_file_);
   if (s.rig_.stereo.present && !s.rgb_.empty()) check_pairs(s, kStereoPairToleranceNs);

@@ -53,9 +53,10 @@ void undistort(const CameraIntrinsics& k, double xd, double yd, double& x, doubl
 
 void check(const CameraIntrinsics& k, const char* which) {
   if (k.width <= 0 || k.height <= 0 || !(k.fx > 0) || !(k.fy > 0) || !std::isfinite(k.cx) ||
-      !std::isfinite(k.cy))
+      !std::isfinite(k.cy)) {
     throw std::invalid_argument(std::string("DepthRegistration: the ") + which +
                                 " camera needs a size and focal lengths > 0");
+  }
 }
 
 }  // namespace
@@ -80,7 +81,7 @@ DepthRegistration::DepthRegistration(const DepthCamera& dc, const CameraIntrinsi
   const double ratio = std::max(colour.fx / d.fx, colour.fy / d.fy);
   footprint_ = std::max(1, static_cast<int>(std::ceil(ratio - 1e-6)));
   ray_.reset(new float[static_cast<size_t>(dw_) * dh_ * 2]);
-  for (int v = 0; v < dh_; ++v)
+  for (int v = 0; v < dh_; ++v) {
     for (int u = 0; u < dw_; ++u) {
       double x, y;
       undistort(d, (u - d.cx) / d.fx, (v - d.cy) / d.fy, x, y);
@@ -88,6 +89,7 @@ DepthRegistration::DepthRegistration(const DepthCamera& dc, const CameraIntrinsi
       r[0] = static_cast<float>(x);
       r[1] = static_cast<float>(y);
     }
+  }
 }
 
 DepthRegistration::~DepthRegistration() = default;

@@ -155,10 +155,11 @@ void parse_mavlink_imu(const P& p, const YAML::Node& n, const std::string& path,
   c.target_compid = static_cast<uint8_t>(p.integer(n, "target_compid", path, c.target_compid, 0, 255));
   c.raw_acc_mps2_per_lsb = p.num(n, "raw_acc_mps2_per_lsb", path, 0);
   c.raw_gyro_rad_s_per_lsb = p.num(n, "raw_gyro_rad_s_per_lsb", path, 0);
-  if (c.message == MavlinkImuMessage::kRaw && !(c.raw_acc_mps2_per_lsb > 0 && c.raw_gyro_rad_s_per_lsb > 0))
+  if (c.message == MavlinkImuMessage::kRaw && !(c.raw_acc_mps2_per_lsb > 0 && c.raw_gyro_rad_s_per_lsb > 0)) {
     p.fail(path + ".raw_acc_mps2_per_lsb",
            "message raw_imu needs raw_acc_mps2_per_lsb and raw_gyro_rad_s_per_lsb > 0 "
            "(the board's sensor scale)");
+  }
   c.timesync_rate_hz = p.num(n, "timesync_rate_hz", path, c.timesync_rate_hz);
   if (!(c.timesync_rate_hz > 0))
     p.fail(path + ".timesync_rate_hz", "must be > 0 (the samples need the clock)");
@@ -306,23 +307,26 @@ DriverSettings driver_settings_from_yaml_node(const YAML::Node& root, const std:
     const std::pair<double, double> odr_bw[] = {{2000, 523}, {2000, 230}, {1000, 116}, {400, 47},
                                                 {200, 23},   {100, 12},   {200, 64},   {100, 32}};
     bool found = false;
-    for (unsigned i = 0; i < 8; ++i)
+    for (unsigned i = 0; i < 8; ++i) {
       if (odr_bw[i].first == odr && odr_bw[i].second == bw) {
         b.gyro_bw = static_cast<gyro::Bandwidth>(i);
         found = true;
       }
-    if (!found)
+    }
+    if (!found) {
       p.fail(path + ".gyro_odr_hz",
              "gyro_odr_hz/gyro_bandwidth_hz must be a BMG160 pair: 2000/523, 2000/230, "
              "1000/116, 400/47, 200/23, 100/12, 200/64, 100/32");
+    }
     if (const YAML::Node r = m["axis_remap"]) {
       if (!r.IsSequence() || r.size() != 3)
         p.fail(path + ".axis_remap", "expected three of +x -x +y -y +z -z");
       for (size_t i = 0; i < 3; ++i) {
         const std::string s = r[i].IsScalar() ? r[i].Scalar() : "";
-        if (s.size() != 2 || (s[0] != '+' && s[0] != '-') || s[1] < 'x' || s[1] > 'z')
+        if (s.size() != 2 || (s[0] != '+' && s[0] != '-') || s[1] < 'x' || s[1] > 'z') {
           p.fail(path + ".axis_remap[" + std::to_string(i) + "]",
                  "expected +x, -x, +y, -y, +z or -z, got \"" + s + "\"");
+        }
         b.axis_remap[i] = static_cast<int8_t>((s[0] == '-' ? -1 : 1) * (s[1] - 'x' + 1));
       }
     }
@@ -470,10 +474,12 @@ MavlinkSettings mavlink_settings_from_yaml_node(const YAML::Node& node, const st
     // A rotation: orthonormal rows and determinant +1 (a mirror is a mistake).
     const auto& R = m.R_FB;
     double worst = 0;
-    for (int i = 0; i < 3; ++i)
-      for (int j = 0; j < 3; ++j)
+    for (int i = 0; i < 3; ++i) {
+      for (int j = 0; j < 3; ++j) {
         worst = std::max(worst, std::abs(R[3 * i] * R[3 * j] + R[3 * i + 1] * R[3 * j + 1] +
                                          R[3 * i + 2] * R[3 * j + 2] - (i == j ? 1.0 : 0.0)));
+      }
+    }
     const double det = R[0] * (R[4] * R[8] - R[5] * R[7]) - R[1] * (R[3] * R[8] - R[5] * R[6]) +
                        R[2] * (R[3] * R[7] - R[4] * R[6]);
     if (worst > 1e-6 || det < 0)
@@ -761,13 +767,14 @@ DeviceReport probe_devices() {
         if (b.read_regs(acc, bmx055::acc::kChipIdReg, &id, 1) != I2cStatus::kOk || id != bmx055::acc::kChipId)
           continue;
         std::string gyro = "gyro not found";
-        for (uint8_t g : {bmx055::kGyroAddrDefault, bmx055::kGyroAddrAlt})
+        for (uint8_t g : {bmx055::kGyroAddrDefault, bmx055::kGyroAddrAlt}) {
           if (b.read_regs(g, bmx055::gyro::kChipIdReg, &id, 1) == I2cStatus::kOk &&
               id == bmx055::gyro::kChipId) {
             char s[32];
             std::snprintf(s, sizeof s, "gyro at 0x%02x", g);
             gyro = s;
           }
+        }
         char s[64];
         std::snprintf(s, sizeof s, "%s accelerometer at 0x%02x, ", bus.c_str(), acc);
         r.found.push_back({"imu", "bmx055-i2c", bus, std::string(s) + gyro});
@@ -949,10 +956,11 @@ LiveSensors::LiveSensors(const LiveConfig& cfg) : impl_(std::make_unique<Impl>()
       const bool side_by_side = d.camera.v4l2_stereo_layout == "side_by_side";
       if (side_by_side) o.request.width = 2 * d.camera.width_px;
       std::string e = m.color.open(o);
-      if (!e.empty())
+      if (!e.empty()) {
         missing.push_back(
             std::string(side_by_side ? "stereo camera (V4L2, side by side): " : "colour camera (V4L2): ") +
             e);
+      }
       if (!d.camera.v4l2_right_device.empty()) {
         v4l2::Options r = o;
         r.device = d.camera.v4l2_right_device;
@@ -1011,10 +1019,11 @@ std::string LiveSensors::Impl::open_d4xx() {
     std::string err;
     const std::vector<d4xx::NodeSet> sets =
         d4xx::group_d4xx_nodes(d4xx::probe_v4l2_nodes(&err), x.card_match);
-    if (sets.empty())
+    if (sets.empty()) {
       return "no V4L2 camera whose card name contains \"" + x.card_match + "\"" +
              (err.empty() ? "" : " (" + err + ")") +
              "; set drivers.camera.d4xx.*_device or check `kestrel devices`";
+    }
     const d4xx::NodeSet& f = sets.front();
     auto fill = [](std::string& dev, std::string& meta, const std::string& fdev, const std::string& fmeta) {
       if (dev.empty()) {
@@ -1071,7 +1080,7 @@ std::string LiveSensors::Impl::open_d4xx() {
   d4xx_nodes =
       "colour " + describe(o.color) + ", depth " + describe(o.depth) + ", infrared " + describe(o.infrared);
   d4xx_cam = std::make_unique<d4xx::Camera>();
-  const std::string e = d4xx_cam->open(o);
+  std::string e = d4xx_cam->open(o);
   if (!e.empty()) d4xx_cam.reset();
   return e;
 }

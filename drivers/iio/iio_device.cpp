@@ -192,13 +192,15 @@ std::string Device::read_scale(const std::string& type, const char* axis, double
   std::string text, path = per_axis;
   if (!read_attr(per_axis, text)) {
     path = shared;
-    if (!read_attr(shared, text))
+    if (!read_attr(shared, text)) {
       return shared + ": missing (and no in_" + type + "_" + axis + "_scale): cannot convert counts to " +
              (type == "accel" ? "m/s^2" : "rad/s");
+    }
   }
-  if (!parse_number(text, scale) || !(scale > 0))
+  if (!parse_number(text, scale) || !(scale > 0)) {
     return path + ": \"" + text + "\" is not a positive number (the scale in " +
            (type == "accel" ? "m/s^2" : "rad/s") + " per count)";
+  }
   offset = 0;
   const std::string off_axis = dir_ + "/in_" + type + "_" + axis + "_offset";
   const std::string off_shared = dir_ + "/in_" + type + "_offset";
@@ -239,7 +241,7 @@ std::string Device::configure_rate(const DeviceOptions& o) {
       target = choose_rate(a, o.rate_hz);
     }
     if (o.rate_hz > 0) {
-      const std::string e = write_attr(path, fmt_num(target));
+      std::string e = write_attr(path, fmt_num(target));
       if (!e.empty()) return e;
     }
     double rb = 0;
@@ -266,9 +268,10 @@ std::string Device::open(const DeviceOptions& o) {
     names += (names.empty() ? "" : ", ") + d.name + " (iio:device" + std::to_string(d.number) + ")";
     if (found == nullptr && d.name == o.name) found = &d;
   }
-  if (found == nullptr)
+  if (found == nullptr) {
     return o.sysfs_root + ": no IIO device named \"" + o.name +
            "\" (found: " + (names.empty() ? "none" : names) + ")";
+  }
   dir_ = found->dir;
   name_ = found->name;
   const std::string se = dir_ + "/scan_elements/";
@@ -279,10 +282,11 @@ std::string Device::open(const DeviceOptions& o) {
   const std::string clk = dir_ + "/current_timestamp_clock";
   clock_file_ = exists(clk);
   if (clock_file_) {
-    if (std::string e = write_attr(clk, o.timestamp_clock); !e.empty())
+    if (std::string e = write_attr(clk, o.timestamp_clock); !e.empty()) {
       return e +
              " (the kernel takes realtime, monotonic, monotonic_raw, realtime_coarse, monotonic_coarse, "
              "boottime, tai)";
+    }
     if (!read_attr(clk, clock_)) return clk + ": cannot read back";
     if (clock_ != o.timestamp_clock)
       return clk + ": reads \"" + clock_ + "\" after writing \"" + o.timestamp_clock + "\"";
@@ -354,18 +358,22 @@ std::string Device::open(const DeviceOptions& o) {
                                                std::abs(static_cast<double>(raw_min(el.type)) + el.offset));
       const std::string file = dir_ + "/in_" + type + "_scale";
       const bool narrow = el.type.real_bits <= 16;
-      if (part == 0 && range < 2 * kG)
+      if (part == 0 && range < 2 * kG) {
         return file + ": " + fmt_num(el.scale) + " gives a full range of only +-" + fmt_num(range) +
                " m/s^2 (< 2 g): is the scale in g rather than m/s^2?";
-      if (part == 0 && narrow && range > 500 * kG)
+      }
+      if (part == 0 && narrow && range > 500 * kG) {
         return file + ": " + fmt_num(el.scale) + " gives a full range of +-" + fmt_num(range) +
                " m/s^2 (> 500 g): is the scale in mg or cm/s^2 rather than m/s^2?";
-      if (part == 1 && range < 1.0)
+      }
+      if (part == 1 && range < 1.0) {
         return file + ": " + fmt_num(el.scale) + " gives a full range of only +-" + fmt_num(range) +
                " rad/s (< 1 rad/s): a wrong scale";
-      if (part == 1 && narrow && range > 200.0)
+      }
+      if (part == 1 && narrow && range > 200.0) {
         return file + ": " + fmt_num(el.scale) + " gives a full range of +-" + fmt_num(range) +
                " rad/s (> 200 rad/s): is the scale in degrees rather than radians?";
+      }
     }
   }
 
@@ -391,10 +399,11 @@ std::string Device::open(const DeviceOptions& o) {
   if (std::string e = write_attr(dir_ + "/buffer/length", std::to_string(o.buffer_length_samples));
       !e.empty())
     return e;
-  if (exists(dir_ + "/buffer/watermark"))
+  if (exists(dir_ + "/buffer/watermark")) {
     if (std::string e = write_attr(dir_ + "/buffer/watermark", std::to_string(o.watermark_samples));
         !e.empty())
       return e;
+  }
   if (std::string e = write_attr(dir_ + "/buffer/enable", "1"); !e.empty())
     return e + " (a device that needs a trigger: set " + trig + ", docs/drivers/iio.md)";
 

@@ -45,10 +45,11 @@ void ImuConfig::validate() const {
       "realtime", "monotonic", "monotonic_raw", "realtime_coarse", "monotonic_coarse", "boottime", "tai"};
   bool clock_ok = false;
   for (const char* c : kClocks) clock_ok = clock_ok || timestamp_clock == c;
-  if (!clock_ok)
+  if (!clock_ok) {
     throw std::invalid_argument(
         "timestamp_clock: expected realtime, monotonic, monotonic_raw, realtime_coarse, "
         "monotonic_coarse, boottime or tai");
+  }
   if (sysfs_root.empty()) throw std::invalid_argument("sysfs_root: must not be empty");
   if (dev_root.empty()) throw std::invalid_argument("dev_root: must not be empty");
   if (!(rate_hz >= 0) || !(accel_rate_hz >= 0) || !(gyro_rate_hz >= 0) || rate_hz > 100000 ||
@@ -180,10 +181,11 @@ ImuState ImuDriver::step(ImuSink& sink) {
     any_stalled = any_stalled || s.stalled;
   }
   drain(t_rx, sink);
-  if (any_stalled)
+  if (any_stalled) {
     state_ = ImuState::kStalled;
-  else if (have_out_ || p.got)
+  } else if (have_out_ || p.got) {
     state_ = ImuState::kStreaming;
+  }
   return state_;
 }
 
@@ -374,7 +376,8 @@ void ImuDriver::emit(const Pending& p, ImuSink& sink) {
     ++counters_.gyro_saturated;
   }
   for (size_t i = 0; i < 3; ++i) {
-    const int r = cfg_.axis_remap[i];
+    // A signed axis number (-3..3), not a character.
+    const int r = cfg_.axis_remap[i];  // NOLINT(bugprone-signed-char-misuse)
     const size_t a = static_cast<size_t>((r < 0 ? -r : r) - 1);
     const double sign = r < 0 ? -1.0 : 1.0;
     s.gyro_rps[i] = sign * p.gyro[a];
@@ -382,10 +385,11 @@ void ImuDriver::emit(const Pending& p, ImuSink& sink) {
   }
   have_out_ = true;
   last_out_t_ns_ = s.t_ns;
-  if (sink.push(s))
+  if (sink.push(s)) {
     ++counters_.samples;
-  else
+  } else {
     ++counters_.sink_drops;
+  }
 }
 
 FramerCounters ImuDriver::framer_totals() const {
@@ -430,9 +434,9 @@ std::string ImuDriver::report() const {
       (unsigned long long)f.gaps, (unsigned long long)f.samples_lost, (unsigned long long)f.torn_records,
       (unsigned long long)f.out_of_order, (unsigned long long)f.discarded_records,
       (unsigned long long)f.clock_resets, (unsigned long long)c.secondary_held,
-      (unsigned long long)(c.acc_saturated + c.gyro_saturated), (unsigned long long)c.sink_drops,
-      host_stamps_ ? "host-clock stamps" : "device-clock stamps", min_lag_ns_ * 1e-6, max_lag_ns_ * 1e-6,
-      sync_.skew() * 1e6);
+      (unsigned long long)c.acc_saturated + (unsigned long long)c.gyro_saturated,
+      (unsigned long long)c.sink_drops, host_stamps_ ? "host-clock stamps" : "device-clock stamps",
+      min_lag_ns_ * 1e-6, max_lag_ns_ * 1e-6, sync_.skew() * 1e6);
   return b;
 }
 

@@ -28,12 +28,13 @@ const char* parse_scan_type(std::string_view s, ScanType& out) {
     s.remove_suffix(1);
   if (s.size() < 3 || s[2] != ':') return "expected \"le:\" or \"be:\" first";
   ScanType t;
-  if (s.substr(0, 2) == "le")
+  if (s.substr(0, 2) == "le") {
     t.big_endian = false;
-  else if (s.substr(0, 2) == "be")
+  } else if (s.substr(0, 2) == "be") {
     t.big_endian = true;
-  else
+  } else {
     return "endianness must be le or be";
+  }
   size_t i = 3;
   if (i >= s.size() || (s[i] != 's' && s[i] != 'u')) return "sign must be s or u";
   t.is_signed = s[i++] == 's';

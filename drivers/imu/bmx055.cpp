@@ -606,10 +606,11 @@ void Driver::step_stream(ImuSink& sink) {
       s.temp_c = temp_c_;
       s.seq = seq_++;
       last_out_t_ns_ = s.t_ns;
-      if (sink.push(s))
+      if (sink.push(s)) {
         ++counters_.samples;
-      else
+      } else {
         ++counters_.sink_drops;
+      }
     }
     c.index += static_cast<int64_t>(ng);
     last_gyro_sample_host_ns_ = now;

@@ -25,7 +25,7 @@ std::string GpioDataReadyLine::open(const std::string& chip_path, unsigned line_
   close();
   const int chip = ::open(chip_path.c_str(), O_RDWR | O_CLOEXEC);
   if (chip < 0) return chip_path + ": " + std::strerror(errno);
-  gpio_v2_line_request req;
+  gpio_v2_line_request req{};
   std::memset(&req, 0, sizeof req);
   req.offsets[0] = line_offset;
   req.num_lines = 1;

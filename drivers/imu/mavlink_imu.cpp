@@ -19,9 +19,10 @@ constexpr double kStandardGravityMps2 = 9.80665;       // SCALED_IMU's mG
 constexpr int64_t kHeartbeatPeriodNs = 1'000'000'000;  // MAVLink's convention: 1 Hz
 
 std::unique_ptr<ml::Link> open_link(const MavlinkImuConfig& c) {
-  if (!c.udp.empty() && !c.serial_device.empty())
+  if (!c.udp.empty() && !c.serial_device.empty()) {
     throw std::invalid_argument("MAVLink IMU: both a UDP endpoint (" + c.udp + ") and a serial port (" +
                                 c.serial_device + ") given; one link at a time");
+  }
   if (!c.serial_device.empty()) return std::make_unique<ml::SerialLink>(c.serial_device, c.serial_baud);
   if (c.udp.empty())
     throw std::invalid_argument("MAVLink IMU: no link (drivers.imu.mavlink.udp or serial_device)");
@@ -50,9 +51,10 @@ MavlinkImuDriver::MavlinkImuDriver(std::unique_ptr<ml::Link> link, const Mavlink
     : cfg_(c), clock_(clock), link_(std::move(link)), sync_(c.timesync) {
   if (!(cfg_.rate_hz > 0)) throw std::invalid_argument("MAVLink IMU: rate_hz must be > 0");
   if (cfg_.message == MavlinkImuMessage::kRaw &&
-      !(cfg_.raw_acc_mps2_per_lsb > 0 && cfg_.raw_gyro_rad_s_per_lsb > 0))
+      !(cfg_.raw_acc_mps2_per_lsb > 0 && cfg_.raw_gyro_rad_s_per_lsb > 0)) {
     throw std::invalid_argument(
         "MAVLink IMU: raw_imu needs raw_acc_mps2_per_lsb and raw_gyro_rad_s_per_lsb > 0");
+  }
   msgid_ = cfg_.message == MavlinkImuMessage::kHighres  ? ml::kMsgIdHighresImu
            : cfg_.message == MavlinkImuMessage::kScaled ? ml::kMsgIdScaledImu
                                                         : ml::kMsgIdRawImu;
@@ -179,12 +181,13 @@ void MavlinkImuDriver::on_frame(const ml::MavlinkFrame& f, int64_t t_recv_ns, Im
 
 void MavlinkImuDriver::on_imu(int64_t t_dev_ns, const double acc[3], const double gyro[3], float temp_c,
                               int64_t t_recv_ns, ImuSink& sink) noexcept {
-  for (int i = 0; i < 3; ++i)
+  for (int i = 0; i < 3; ++i) {
     if (!std::isfinite(acc[i]) || !std::isfinite(gyro[i])) {
       ++c_.nonfinite;
       gap_pending_ = true;
       return;
     }
+  }
   if (!sync_.converged()) {
     ++c_.before_sync;
     return;
@@ -223,10 +226,11 @@ void MavlinkImuDriver::on_imu(int64_t t_dev_ns, const double acc[3], const doubl
   s.temp_c = temp_c;
   last_dev_ns_ = t_dev_ns;
   last_host_ns_ = t_host;
-  if (sink.push(s))
+  if (sink.push(s)) {
     ++c_.samples;
-  else
+  } else {
     ++c_.sink_drops;
+  }
 }
 
 std::string MavlinkImuDriver::report() const {

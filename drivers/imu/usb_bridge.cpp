@@ -203,10 +203,11 @@ void UsbBridgeDriver::on_imu(const uint8_t* payload, size_t len, int64_t t_rx_ns
     s.temp_c = bmx055::temp_c_from_raw(w.temp_raw);
     have_sample_ = true;
     last_sample_t_ns_ = s.t_ns;
-    if (imu.push(s))
+    if (imu.push(s)) {
       ++counters_.samples;
-    else
+    } else {
       ++counters_.sink_drops;
+    }
   }
 }
 
@@ -294,7 +295,7 @@ std::string LibusbEndpoint::open(uint16_t vid, uint16_t pid, uint8_t endpoint_in
   libusb_device_handle* h = nullptr;
   std::string err = std::string("no USB device ") + id + " found (is the IMU bridge plugged in?)";
   for (ssize_t i = 0; i < n; ++i) {
-    libusb_device_descriptor d;
+    libusb_device_descriptor d{};
     if (libusb_get_device_descriptor(list[i], &d) != 0 || d.idVendor != vid || d.idProduct != pid) continue;
     const int rc = libusb_open(list[i], &h);
     if (rc == 0) break;
@@ -352,7 +353,7 @@ std::vector<UsbDeviceInfo> list_usb_devices(uint16_t vid, uint16_t pid, std::str
   if (n < 0 && error)
     *error = std::string("cannot list USB devices: ") + libusb_strerror(static_cast<libusb_error>(n));
   for (ssize_t i = 0; i < n; ++i) {
-    libusb_device_descriptor d;
+    libusb_device_descriptor d{};
     if (libusb_get_device_descriptor(list[i], &d) != 0) continue;
     if (d.idVendor != vid || (pid != 0 && d.idProduct != pid)) continue;
     UsbDeviceInfo info;

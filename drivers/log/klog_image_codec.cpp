@@ -71,19 +71,21 @@ void forward_rgb(const ImageView& in, uint8_t* out, uint8_t* scratch) {
       cur[w + x] = g;
       cur[2 * w + x] = static_cast<uint8_t>(s[3 * x + 2] - g);
     }
-    for (int c = 0; c < 3; ++c)
+    for (int c = 0; c < 3; ++c) {
       residual_row<uint8_t>(cur + static_cast<size_t>(c) * w,
                             y > 0 ? prev + static_cast<size_t>(c) * w : nullptr, w,
                             out + c * n + static_cast<size_t>(y) * w);
+    }
     std::swap(cur, prev);
   }
 }
 
 void forward_gray(const ImageView& in, uint8_t* out) {
-  for (int y = 0; y < in.height; ++y)
+  for (int y = 0; y < in.height; ++y) {
     residual_row<uint8_t>(in.data + static_cast<size_t>(y) * in.stride_bytes,
                           y > 0 ? in.data + static_cast<size_t>(y - 1) * in.stride_bytes : nullptr, in.width,
                           out + static_cast<size_t>(y) * in.width);
+  }
 }
 
 void forward_depth(const ImageView& in, uint8_t* out, uint8_t* scratch) {
@@ -120,12 +122,13 @@ void inverse_depth(int w, int h, const uint8_t* residuals, uint8_t* out) {
     for (int x = 0; x < w; ++x) {
       const auto r = static_cast<uint16_t>(lo[i0 + x] | (hi[i0 + x] << 8));
       uint16_t pred = 0;
-      if (!up)
+      if (!up) {
         pred = left;  // first row: left (0 for the first sample)
-      else if (x == 0)
+      } else if (x == 0) {
         pred = load_le16(up);
-      else
+      } else {
         pred = med_predict<uint16_t>(left, load_le16(up + 2 * x), load_le16(up + 2 * x - 2));
+      }
       const auto v = static_cast<uint16_t>(r + pred);
       row[2 * x] = static_cast<uint8_t>(v & 0xffu);
       row[2 * x + 1] = static_cast<uint8_t>(v >> 8);
@@ -166,14 +169,15 @@ const char* codec_name(ImageCodec c) {
 }
 
 bool parse_codec(const std::string& name, ImageCodec& out) {
-  if (name == "zstd")
+  if (name == "zstd") {
     out = ImageCodec::kZstd;
-  else if (name == "lz4")
+  } else if (name == "lz4") {
     out = ImageCodec::kLz4;
-  else if (name == "none")
+  } else if (name == "none") {
     out = ImageCodec::kRaw;
-  else
+  } else {
     return false;
+  }
   return true;
 }
 

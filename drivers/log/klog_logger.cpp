@@ -71,9 +71,10 @@ bool KlogLogger::log_image(RecordType type, int64_t t_ns, int64_t t_recv_ns, uin
     return false;
   }
   uint8_t* dst = stage_.get() + static_cast<size_t>(begin % stage_size_);
-  for (int y = 0; y < view.height; ++y)
+  for (int y = 0; y < view.height; ++y) {
     std::memcpy(dst + row * static_cast<size_t>(y), view.data + static_cast<size_t>(y) * view.stride_bytes,
                 row);
+  }
   ImageMsg m;
   m.type = type;
   m.t_ns = t_ns;

@@ -109,9 +109,10 @@ void KlogReader::open_header(const Options& options) {
       if (stored != actual) why = "file header CRC mismatch";
     }
   }
-  if (why.empty() && (version_ == 0 || version_ > kKlogVersion))
+  if (why.empty() && (version_ == 0 || version_ > kKlogVersion)) {
     throw std::runtime_error(name_ + ": klog version " + std::to_string(version_) +
                              ", this build reads versions 1.." + std::to_string(kKlogVersion));
+  }
   if (why.empty()) {
     const std::string yaml(reinterpret_cast<const char*>(header.data()) + klog::kFileHeaderFixedBytes,
                            yaml_len);
@@ -127,9 +128,10 @@ void KlogReader::open_header(const Options& options) {
     shift_ = CameraTimeShift(rig_.time_offset_cam_imu_ns);
     return;
   }
-  if (!options.salvage_bad_header)
+  if (!options.salvage_bad_header) {
     throw std::runtime_error(name_ + ": damaged klog file header: " + why +
                              ". The rig is lost; the records can be recovered with salvage_bad_header.");
+  }
   rig_ = Rig{};
   rig_.name = "unknown (damaged klog header)";
   version_ = kKlogVersion;
@@ -241,10 +243,11 @@ bool KlogReader::next(LogRecord& out) {
   for (;;) {
     if (shift_.pop(out, stored_done_)) return true;
     if (stored_done_) return false;
-    if (next_as_stored(scratch_))
+    if (next_as_stored(scratch_)) {
       shift_.push(std::move(scratch_));
-    else
+    } else {
       stored_done_ = true;
+    }
   }
 }
 
@@ -289,11 +292,12 @@ bool KlogReader::next_as_stored(LogRecord& out) {
         const uint64_t next_at = resync(at + 1, nh);
         // A length running past the end is a cut file unless intact records follow.
         if (past_end) kind = next_at >= size_ ? "truncated" : "bad-length";
-        if (next_at >= size_)
+        if (next_at >= size_) {
           detail += "; no intact record after it (" + std::to_string(size_ - at) + " bytes dropped)";
-        else
+        } else {
           detail += "; skipped " + std::to_string(next_at - at) +
                     " bytes to the next intact record at offset " + std::to_string(next_at);
+        }
         problem(at, kind, std::move(detail));
         pos_ = next_at;
         if (next_at < size_) {

@@ -75,9 +75,10 @@ void KlogWriter::begin_record() {
 
 void KlogWriter::finish_record(RecordType type) {
   const size_t payload_size = scratch_.size() - klog::kRecordHeaderBytes;
-  if (payload_size > klog::kMaxPayloadBytes)
+  if (payload_size > klog::kMaxPayloadBytes) {
     throw std::invalid_argument(path_ + ": record of " + std::to_string(payload_size) +
                                 " bytes exceeds the klog payload limit");
+  }
   const auto* payload = reinterpret_cast<const uint8_t*>(scratch_.data()) + klog::kRecordHeaderBytes;
   const auto t = static_cast<uint16_t>(type);
   const auto len = static_cast<uint32_t>(payload_size);
@@ -91,9 +92,10 @@ void KlogWriter::finish_record(RecordType type) {
   w.u32(klog::record_crc(t, 0, len, payload));
   std::memcpy(scratch_.data(), h.data(), klog::kRecordHeaderBytes);
 
-  if (std::fwrite(scratch_.data(), 1, scratch_.size(), file_) != scratch_.size() || std::fflush(file_) != 0)
+  if (std::fwrite(scratch_.data(), 1, scratch_.size(), file_) != scratch_.size() || std::fflush(file_) != 0) {
     throw std::runtime_error(path_ + ": klog write failed after " + std::to_string(records_) +
                              " records: " + std::strerror(errno));
+  }
   ++records_;
   bytes_ += scratch_.size();
   if (fsync_every_ > 0 && records_ % fsync_every_ == 0) ::fsync(fileno(file_));
@@ -122,9 +124,10 @@ void KlogWriter::write_image(RecordType type, int64_t t_ns, int64_t t_recv_ns, u
   const int bpp = bytes_per_pixel(view.format);
   if (bpp == 0 || view.width < 0 || view.height < 0 ||
       static_cast<uint32_t>(view.width) > klog::kMaxImageSide ||
-      static_cast<uint32_t>(view.height) > klog::kMaxImageSide)
+      static_cast<uint32_t>(view.height) > klog::kMaxImageSide) {
     throw std::invalid_argument(path_ + ": bad image " + std::to_string(view.width) + "x" +
                                 std::to_string(view.height));
+  }
   const size_t row = static_cast<size_t>(view.width) * static_cast<size_t>(bpp);
   if (view.height > 0 && (!view.data || static_cast<size_t>(view.stride_bytes) < row))
     throw std::invalid_argument(path_ + ": image view without data or with stride < width * bpp");

@@ -49,13 +49,15 @@ SerialLink::SerialLink(const std::string& device, int baud) : endpoint_(device +
   bool known = false;
   for (const Baud& b : kBauds)
     if (b.bps == baud) code = b.code, known = true;
-  if (!known)
+  if (!known) {
     throw std::invalid_argument("MAVLink serial " + device + ": baud " + std::to_string(baud) +
                                 " not supported (expected one of: " + serial_bauds() + ")");
+  }
   fd_ = ::open(device.c_str(), O_RDWR | O_NOCTTY | O_NONBLOCK | O_CLOEXEC);
-  if (fd_ < 0)
+  if (fd_ < 0) {
     throw std::invalid_argument("MAVLink serial " + device + ": cannot open: " + std::strerror(errno) +
                                 (errno == EACCES ? " (add the user to the dialout group)" : ""));
+  }
   termios t{};
   if (::tcgetattr(fd_, &t) != 0) {
     const int e = errno;

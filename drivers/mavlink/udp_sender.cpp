@@ -25,17 +25,19 @@ bool parse_endpoint(const std::string& endpoint, std::string& host, uint16_t& po
 UdpSender::UdpSender(const std::string& endpoint) : endpoint_(endpoint) {
   std::string host;
   uint16_t port = 0;
-  if (!parse_endpoint(endpoint, host, port))
+  if (!parse_endpoint(endpoint, host, port)) {
     throw std::invalid_argument("MAVLink endpoint '" + endpoint +
                                 "': expected HOST:PORT with PORT in 1..65535");
+  }
   addrinfo hints{};
   hints.ai_family = AF_UNSPEC;
   hints.ai_socktype = SOCK_DGRAM;
   addrinfo* res = nullptr;
   const int rc = getaddrinfo(host.c_str(), std::to_string(port).c_str(), &hints, &res);
-  if (rc != 0 || res == nullptr)
+  if (rc != 0 || res == nullptr) {
     throw std::invalid_argument("MAVLink endpoint '" + endpoint + "': cannot resolve '" + host +
                                 "': " + gai_strerror(rc));
+  }
   fd_ = ::socket(res->ai_family, SOCK_DGRAM | SOCK_NONBLOCK | SOCK_CLOEXEC, 0);
   if (fd_ < 0 || res->ai_addrlen > sizeof addr_) {
     const int e = errno;

@@ -61,12 +61,13 @@ class Reader {
     if (std::abs(T[12]) + std::abs(T[13]) + std::abs(T[14]) + std::abs(T[15] - 1.0) > 1e-9)
       fail(field, "last row must be [0, 0, 0, 1]");
     double worst = 0;
-    for (int i = 0; i < 3; ++i)
+    for (int i = 0; i < 3; ++i) {
       for (int j = 0; j < 3; ++j) {
         double d = 0;
         for (int k = 0; k < 3; ++k) d += T[4 * i + k] * T[4 * j + k];
         worst = std::max(worst, std::abs(d - (i == j ? 1.0 : 0.0)));
       }
+    }
     // Kalibr prints about 8 significant digits.
     if (worst > 1e-5)
       fail(field, "the rotation is not orthonormal (R R^T - I up to " + std::to_string(worst) + ")");
@@ -175,10 +176,11 @@ KalibrImport import_kalibr_text(const std::string& camchain_yaml, const std::str
     } else {
       cr.fail(c + "distortion_model", "\"" + model + "\": expected radtan, equidistant or none");
     }
-    if (!cam["T_cam_imu"])
+    if (!cam["T_cam_imu"]) {
       cr.fail(c + "T_cam_imu",
               "missing: this is a camera-only chain; use the camchain-imucam-*.yaml of "
               "kalibr_calibrate_imu_camera");
+    }
     return rigid_inverse(cr.transform(cam["T_cam_imu"], c + "T_cam_imu"));
   };
   rig.T_BC = read_camera(cam, camera, rig.rgb);
@@ -229,11 +231,13 @@ KalibrImport import_kalibr_text(const std::string& camchain_yaml, const std::str
   }
   if (imu["T_i_b"]) {
     const Mat4d T = ir.transform(imu["T_i_b"], ip + "T_i_b");
-    for (int i = 0; i < 16; ++i)
-      if (std::abs(T[i] - kIdentity4[i]) > 1e-9)
+    for (int i = 0; i < 16; ++i) {
+      if (std::abs(T[i] - kIdentity4[i]) > 1e-9) {
         ir.fail(ip + "T_i_b",
                 "not identity: Kestrel's body frame is this IMU (docs/frames.md); calibrate with it "
                 "as Kalibr's reference IMU");
+      }
+    }
   }
   rig.T_BI = kIdentity4;
 

@@ -95,12 +95,13 @@ std::vector<std::string> quoted(const std::string& l) {
 
 void check_rotation(Lines& in, const Mat4d& T, const std::string& field) {
   double worst = 0;
-  for (int i = 0; i < 3; ++i)
+  for (int i = 0; i < 3; ++i) {
     for (int j = 0; j < 3; ++j) {
       double d = 0;
       for (int k = 0; k < 3; ++k) d += T[4 * i + k] * T[4 * j + k];
       worst = std::max(worst, std::abs(d - (i == j ? 1.0 : 0.0)));
     }
+  }
   // rs-enumerate-devices prints floats with 6 significant digits.
   if (worst > 1e-4) in.fail(field, "the rotation is not orthonormal (R R^T - I up to " + fmt(worst) + ")");
 }
@@ -263,24 +264,27 @@ std::string read_file(const std::string& path) {
 bool solve5(std::array<std::array<double, 6>, 5> m, std::array<double, 5>& x) {
   for (int c = 0; c < 5; ++c) {
     int p = c;
-    for (int r = c + 1; r < 5; ++r)
+    for (int r = c + 1; r < 5; ++r) {
       if (std::abs(m[static_cast<size_t>(r)][static_cast<size_t>(c)]) >
           std::abs(m[static_cast<size_t>(p)][static_cast<size_t>(c)]))
         p = r;
+    }
     if (std::abs(m[static_cast<size_t>(p)][static_cast<size_t>(c)]) < 1e-300) return false;
     std::swap(m[static_cast<size_t>(c)], m[static_cast<size_t>(p)]);
     for (int r = 0; r < 5; ++r) {
       if (r == c) continue;
       const double f = m[static_cast<size_t>(r)][static_cast<size_t>(c)] /
                        m[static_cast<size_t>(c)][static_cast<size_t>(c)];
-      for (int k = c; k < 6; ++k)
+      for (int k = c; k < 6; ++k) {
         m[static_cast<size_t>(r)][static_cast<size_t>(k)] -=
             f * m[static_cast<size_t>(c)][static_cast<size_t>(k)];
+      }
     }
   }
-  for (int c = 0; c < 5; ++c)
+  for (int c = 0; c < 5; ++c) {
     x[static_cast<size_t>(c)] =
         m[static_cast<size_t>(c)][5] / m[static_cast<size_t>(c)][static_cast<size_t>(c)];
+  }
   return true;
 }
 
@@ -310,9 +314,10 @@ const RsMotionIntrinsics* RealSenseDump::find_motion(const std::string& stream) 
 }
 std::string RealSenseDump::sizes_of(const std::string& stream) const {
   std::string s;
-  for (const RsIntrinsics& r : intrinsics)
+  for (const RsIntrinsics& r : intrinsics) {
     if (r.stream == stream)
       s += (s.empty() ? "" : ", ") + std::to_string(r.width) + "x" + std::to_string(r.height);
+  }
   return s.empty() ? "none" : s;
 }
 
@@ -350,7 +355,7 @@ bool fit_radtan(const RsIntrinsics& in, std::array<double, 5>& k, double& rms_px
   // Pairs (undistorted u, distorted d) over a grid of the image, in normalised coordinates.
   std::vector<std::array<double, 4>> pairs;
   constexpr int kN = 24;
-  for (int gy = 0; gy <= kN; ++gy)
+  for (int gy = 0; gy <= kN; ++gy) {
     for (int gx = 0; gx <= kN; ++gx) {
       const double px = in.width * gx / static_cast<double>(kN),
                    py = in.height * gy / static_cast<double>(kN);
@@ -370,15 +375,17 @@ bool fit_radtan(const RsIntrinsics& in, std::array<double, 5>& k, double& rms_px
         pairs.push_back({x, y, dx, dy});
       }
     }
+  }
   std::array<std::array<double, 6>, 5> n{};
   for (const auto& p : pairs) {
     const double ux = p[0], uy = p[1], r2 = ux * ux + uy * uy;
     const double rows[2][6] = {
         {ux * r2, ux * r2 * r2, 2 * ux * uy, r2 + 2 * ux * ux, ux * r2 * r2 * r2, p[2] - ux},
         {uy * r2, uy * r2 * r2, r2 + 2 * uy * uy, 2 * ux * uy, uy * r2 * r2 * r2, p[3] - uy}};
-    for (const auto& row : rows)
+    for (const auto& row : rows) {
       for (size_t i = 0; i < 5; ++i)
         for (size_t j = 0; j < 6; ++j) n[i][j] += row[i] * row[j];
+    }
   }
   // A tiny ridge keeps an all-zero model (every row zero) solvable: the answer is zero.
   for (size_t i = 0; i < 5; ++i) n[i][i] += 1e-12;
@@ -405,10 +412,11 @@ RealSenseImport import_realsense_text(const std::string& text, const std::string
   if (!(o.accel_rate_hz > 0) || !(o.gyro_rate_hz > 0)) fail("the accel and gyro rates must be > 0");
   const int w = o.width > 0 ? o.width : (base.rgb.width > 0 ? base.rgb.width : 640);
   const int h = o.height > 0 ? o.height : (base.rgb.height > 0 ? base.rgb.height : 480);
-  if (d.intrinsics.empty() && d.extrinsics.empty())
+  if (d.intrinsics.empty() && d.extrinsics.empty()) {
     fail(
         "no \"Intrinsic of\" or \"Extrinsic from\" sections: is this the output of `rs-enumerate-devices "
         "-c`?");
+  }
 
   // ---- the camera ----
   auto intrinsics = [&](const RsIntrinsics& r, CameraIntrinsics& ci, const std::string& what) {
@@ -440,9 +448,10 @@ RealSenseImport import_realsense_text(const std::string& text, const std::string
     }
   };
   const RsIntrinsics* cam = d.find(o.camera, w, h);
-  if (cam == nullptr)
+  if (cam == nullptr) {
     throw_named(name, "no intrinsics of \"" + o.camera + "\" at " + std::to_string(w) + "x" +
                           std::to_string(h) + " (the dump has: " + d.sizes_of(o.camera) + ")");
+  }
   if (!cam->available) fail("Intrinsic of " + o.camera + ": \"Intrinsic NOT available!\" in the dump");
   intrinsics(*cam, rig.rgb, o.camera);
 
@@ -450,10 +459,11 @@ RealSenseImport import_realsense_text(const std::string& text, const std::string
   const int dw = o.depth_width > 0 ? o.depth_width : w, dh = o.depth_height > 0 ? o.depth_height : h;
   if (o.camera == "Color") {
     const RsIntrinsics* dep = d.find("Depth", dw, dh);
-    if (dep == nullptr || !dep->available)
+    if (dep == nullptr || !dep->available) {
       throw_named(name, "no intrinsics of \"Depth\" at " + std::to_string(dw) + "x" + std::to_string(dh) +
                             " (the dump has: " + d.sizes_of("Depth") +
                             "); depth must be registered to Color");
+    }
     const RsExtrinsics* e = d.find_extrinsics("Depth", "Color");
     if (e == nullptr || !e->available)
       throw_named(name, "no Extrinsic from Depth To Color section (needed to register depth to colour)");
@@ -473,10 +483,11 @@ RealSenseImport import_realsense_text(const std::string& text, const std::string
     }
   }
 
-  if (o.camera == "Color" && d.find("Infrared 1", w, h) != nullptr)
+  if (o.camera == "Color" && d.find("Infrared 1", w, h) != nullptr) {
     out.notes.push_back(
         "Infrared 1 and 2 intrinsics: read, not used (the rig's camera is Color; "
         "--camera infrared1 makes the left imager the camera)");
+  }
 
   // ---- the IMU: extrinsics ----
   const RsExtrinsics* g = d.find_extrinsics("Gyro", o.camera);
@@ -486,9 +497,10 @@ RealSenseImport import_realsense_text(const std::string& text, const std::string
     if (a != nullptr && a->available) {
       double off = 0;
       for (size_t i = 0; i < 12; ++i) off = std::max(off, std::abs(a->T_to_from[i] - g->T_to_from[i]));
-      if (off > 1e-3)
+      if (off > 1e-3) {
         out.notes.push_back("Accel -> " + o.camera + " differs from Gyro -> " + o.camera + " by " + fmt(off) +
                             ": the body frame is the gyro's");
+      }
     }
   } else if (a != nullptr && a->available) {
     rig.T_BC = rigid_inverse(a->T_to_from);
@@ -521,14 +533,16 @@ RealSenseImport import_realsense_text(const std::string& text, const std::string
                         " from the mean noise variance " + fmt(var) + " at " + fmt(rate_hz) + " Hz");
     if (m->has_sensitivity) {
       double off = 0;
-      for (size_t r = 0; r < 3; ++r)
+      for (size_t r = 0; r < 3; ++r) {
         for (size_t c = 0; c < 4; ++c)
           off = std::max(off, std::abs(m->sensitivity[4 * r + c] - (r == c ? 1.0 : 0.0)));
-      if (off > 1e-6)
+      }
+      if (off > 1e-6) {
         out.notes.push_back(
             std::string(stream) + ": sensitivity/bias matrix is not identity (" + fmt(off) +
             "): Kestrel does not apply it; write it to the device (rs-imu-calibration) so the "
             "firmware does");
+      }
     }
   };
   noise("Accel", o.accel_rate_hz, rig.imu.acc_noise_density_mps2_sqrthz, "m/s^2/sqrt(Hz)");

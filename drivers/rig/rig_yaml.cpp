@@ -68,13 +68,14 @@ class Parser {
     if (!n.IsSequence() || n.size() != 16) fail(field, "expected a list of 16 numbers (4x4 row-major)");
     for (size_t i = 0; i < 16; ++i) m[i] = number(n[i], field + "[" + std::to_string(i) + "]");
     if (m[12] != 0 || m[13] != 0 || m[14] != 0 || m[15] != 1) fail(field, "last row must be 0 0 0 1");
-    for (int a = 0; a < 3; ++a)
+    for (int a = 0; a < 3; ++a) {
       for (int b = 0; b < 3; ++b) {
         double dot = 0;
         for (int k = 0; k < 3; ++k) dot += m[4 * k + a] * m[4 * k + b];
         if (std::abs(dot - (a == b ? 1.0 : 0.0)) > 1e-5)
           fail(field, "rotation part is not orthonormal (column dot products off by more than 1e-5)");
       }
+    }
   }
 
   void non_negative(double v, const std::string& field) const {
@@ -111,20 +112,22 @@ void intrinsics(const Parser& p, const YAML::Node& cam, const std::string& path,
   if (k.fy <= 0) p.fail(path + "fy_px", "must be > 0");
   if (cam["distortion"]) {
     const std::string d = cam["distortion"].IsScalar() ? cam["distortion"].Scalar() : "";
-    if (d == "none")
+    if (d == "none") {
       k.distortion = DistortionModel::kNone;
-    else if (d == "radtan")
+    } else if (d == "radtan") {
       k.distortion = DistortionModel::kRadTan;
-    else if (d == "equidistant")
+    } else if (d == "equidistant") {
       k.distortion = DistortionModel::kEquidistant;
-    else
+    } else {
       p.fail(path + "distortion", "expected radtan, equidistant or none, got \"" + d + "\"");
+    }
   }
   if (cam["dist_coeffs"]) {
     const YAML::Node dc = cam["dist_coeffs"];
-    if (!dc.IsSequence() || dc.size() > 5)
+    if (!dc.IsSequence() || dc.size() > 5) {
       p.fail(path + "dist_coeffs",
              "expected a list of up to 5 numbers (radtan k1 k2 p1 p2 k3, equidistant k1..k4)");
+    }
     for (size_t i = 0; i < dc.size(); ++i)
       k.dist[i] = p.number(dc[i], path + "dist_coeffs[" + std::to_string(i) + "]");
   }
@@ -165,14 +168,15 @@ Rig rig_from_yaml_node(const YAML::Node& root, const std::string& where, const s
   if (!root || root.IsNull()) p.fail("", "empty rig");
   // A rig file of its own (prefix "") may also carry the pipeline's `threads:`
   // table (drivers::load_thread_table reads it); inside a live config `rig.threads` stays an error.
-  if (prefix.empty())
+  if (prefix.empty()) {
     p.only_keys(root, "",
                 {"name", "camera", "depth", "depth_camera", "stereo", "T_BC", "T_BI", "imu",
                  "time_offset_cam_imu_ns", "gravity_mps2", "threads"});
-  else
+  } else {
     p.only_keys(root, "",
                 {"name", "camera", "depth", "depth_camera", "stereo", "T_BC", "T_BI", "imu",
                  "time_offset_cam_imu_ns", "gravity_mps2"});
+  }
   Rig rig;
   if (root["name"]) {
     if (!root["name"].IsScalar()) p.fail("name", "expected a string");

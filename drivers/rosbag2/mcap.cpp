@@ -46,8 +46,8 @@ uint32_t crc(uint32_t c, const uint8_t* p, size_t n) {
 // Bounds-checked cursor over one record body; any overrun throws, and the
 // caller turns that into a problem naming the record.
 struct Cur {
-  const uint8_t* p;
-  uint64_t n, i = 0;
+  const uint8_t* p{};
+  uint64_t n{}, i = 0;
   void need(uint64_t k) {
     if (k > n - i) throw std::runtime_error("field runs past the end of the record");
   }
@@ -376,10 +376,11 @@ bool Reader::decompress(const Chunk& c, uint64_t at, std::vector<uint8_t>& out) 
     out.resize(c.uncompressed_size);
     if (c.compression == "zstd") {
       const size_t n = ZSTD_decompress(out.data(), out.size(), compressed_.data(), compressed_.size());
-      if (ZSTD_isError(n) || n != out.size())
+      if (ZSTD_isError(n) || n != out.size()) {
         return problem(at, "bad-chunk",
                        std::string("zstd: ") + (ZSTD_isError(n) ? ZSTD_getErrorName(n) : "size differs")),
                false;
+      }
     } else if (c.compression == "lz4") {
       LZ4F_dctx* d = nullptr;
       if (LZ4F_isError(LZ4F_createDecompressionContext(&d, LZ4F_VERSION)))
@@ -394,10 +395,11 @@ bool Reader::decompress(const Chunk& c, uint64_t at, std::vector<uint8_t>& out) 
         if (src == 0 && dst == 0) break;
       }
       LZ4F_freeDecompressionContext(d);
-      if (LZ4F_isError(r) || done != out.size())
+      if (LZ4F_isError(r) || done != out.size()) {
         return problem(at, "bad-chunk",
                        std::string("lz4: ") + (LZ4F_isError(r) ? LZ4F_getErrorName(r) : "size differs")),
                false;
+      }
     } else {
       problem(at, "bad-encoding",
               "chunk compression \"" + c.compression + "\" (expected zstd, lz4 or none); skipped");

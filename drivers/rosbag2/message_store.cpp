@@ -85,9 +85,10 @@ class SqliteStore : public MessageStore {
       const std::string where = path_ + ": messages row " + std::to_string(id);
       const auto ch = topic_ids_.find(topic);
       if (ch == topic_ids_.end()) {
-        if (unknown_topics_.insert(topic).second)
+        if (unknown_topics_.insert(topic).second) {
           problem(where, "bad-row",
                   "topic_id " + std::to_string(topic) + " is not in the topics table; skipped");
+        }
         continue;
       }
       if (t < 0) {
@@ -104,10 +105,11 @@ class SqliteStore : public MessageStore {
       f(m, data ? data : &kEmpty, static_cast<size_t>(size));
       ++n;
     }
-    if (rc != SQLITE_DONE)
+    if (rc != SQLITE_DONE) {
       problem(path_ + ": messages after row " + std::to_string(last_id),
               rc == SQLITE_CORRUPT ? "truncated" : "bad-file",
               std::string("SQLite: ") + sqlite3_errmsg(db_) + "; read up to here");
+    }
     return n;
   }
 

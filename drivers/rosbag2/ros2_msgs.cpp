@@ -60,9 +60,10 @@ void CdrWriter::header(int64_t t_ns, const std::string& frame_id) {
 
 CdrReader::CdrReader(const uint8_t* p, size_t n) : p_(p), n_(n) {
   if (n < 4) throw std::runtime_error("CDR message shorter than its 4-byte encapsulation header");
-  if (p[0] != 0x00 || p[1] != 0x01)
+  if (p[0] != 0x00 || p[1] != 0x01) {
     throw std::runtime_error("CDR encapsulation " + std::to_string(p[0]) + " " + std::to_string(p[1]) +
                              " (only CDR_LE, 00 01, is read)");
+  }
 }
 void CdrReader::need(size_t k, const char* field) {
   if (k > n_ - i_)
@@ -119,9 +120,10 @@ void CdrReader::f64s(double* out, size_t n, const char* field) {
 uint32_t CdrReader::seq_len(const char* field, size_t min_element_bytes) {
   const uint32_t n = u32(field);
   // Bounded by what is left, so a corrupt length cannot make the caller allocate.
-  if (min_element_bytes > 0 && n > (n_ - i_) / min_element_bytes)
+  if (min_element_bytes > 0 && n > (n_ - i_) / min_element_bytes) {
     throw std::runtime_error(std::string("CDR sequence ") + field + " of " + std::to_string(n) +
                              " elements is longer than the message");
+  }
   return n;
 }
 int64_t CdrReader::stamp(const char* field) {

@@ -92,9 +92,10 @@ Mat4d transform_of(const std::array<double, 3>& t, const std::array<double, 4>& 
 
 Mat4d mul(const Mat4d& a, const Mat4d& b) {
   Mat4d c{};
-  for (int i = 0; i < 4; ++i)
+  for (int i = 0; i < 4; ++i) {
     for (int j = 0; j < 4; ++j)
       for (int k = 0; k < 4; ++k) c[i * 4 + j] += a[i * 4 + k] * b[k * 4 + j];
+  }
   return c;
 }
 
@@ -175,12 +176,13 @@ Rosbag2Stats export_rosbag2(LogSource& src, const std::string& out_dir, const Ro
   info.k = {rig.rgb.fx, 0, rig.rgb.cx, 0, rig.rgb.fy, rig.rgb.cy, 0, 0, 1};
   info.r = {1, 0, 0, 0, 1, 0, 0, 0, 1};
   info.p = {rig.rgb.fx, 0, rig.rgb.cx, 0, 0, rig.rgb.fy, rig.rgb.cy, 0, 0, 0, 1, 0};
-  if (rig.rgb.distortion == DistortionModel::kRadTan)
+  if (rig.rgb.distortion == DistortionModel::kRadTan) {
     info.distortion_model = "plumb_bob", info.d.assign(rig.rgb.dist.begin(), rig.rgb.dist.end());
-  else if (rig.rgb.distortion == DistortionModel::kEquidistant)
+  } else if (rig.rgb.distortion == DistortionModel::kEquidistant) {
     info.distortion_model = "equidistant", info.d.assign(rig.rgb.dist.begin(), rig.rgb.dist.begin() + 4);
-  else
+  } else {
     info.distortion_model = "plumb_bob", info.d.assign(5, 0.0);
+  }
 
   ros2::CameraInfo rinfo;
   if (stereo) {
@@ -193,12 +195,13 @@ Rosbag2Stats export_rosbag2(LogSource& src, const std::string& out_dir, const Ro
     // ROS's convention: P[3] = -fx * baseline in the left camera's frame (exact for a rectified pair).
     const Mat4d T_C0C1 = mul(inverse(rig.T_BC), rig.stereo.T_BC1);
     rinfo.p = {k.fx, 0, k.cx, -k.fx * T_C0C1[3], 0, k.fy, k.cy, 0, 0, 0, 1, 0};
-    if (k.distortion == DistortionModel::kRadTan)
+    if (k.distortion == DistortionModel::kRadTan) {
       rinfo.distortion_model = "plumb_bob", rinfo.d.assign(k.dist.begin(), k.dist.end());
-    else if (k.distortion == DistortionModel::kEquidistant)
+    } else if (k.distortion == DistortionModel::kEquidistant) {
       rinfo.distortion_model = "equidistant", rinfo.d.assign(k.dist.begin(), k.dist.begin() + 4);
-    else
+    } else {
       rinfo.distortion_model = "plumb_bob", rinfo.d.assign(5, 0.0);
+    }
   }
 
   Rosbag2Stats st;
@@ -206,9 +209,10 @@ Rosbag2Stats export_rosbag2(LogSource& src, const std::string& out_dir, const Ro
   int64_t t_first = INT64_MAX, t_last = INT64_MIN;
   bool tf_written = false;
   auto put = [&](size_t c, int64_t t_ns) {
-    if (t_ns < 0)
+    if (t_ns < 0) {
       throw std::runtime_error(path + ": a stamp before 1970 (" + std::to_string(t_ns) +
                                " ns) cannot be a ROS 2 time");
+    }
     w.write(topics[c].id, log_time(t_ns), log_time(t_ns), buf.data(), buf.size());
     ++topics[c].count;
     t_first = std::min(t_first, t_ns), t_last = std::max(t_last, t_ns);
@@ -438,12 +442,13 @@ struct Rosbag2Reader::Impl {
     int in_bpp;
     if (depth) {
       fmt = PixelFormat::kDepthU16, in_bpp = enc == "32FC1" ? 4 : 2;
-    } else if (enc == "rgb8")
+    } else if (enc == "rgb8") {
       fmt = PixelFormat::kRgb8, in_bpp = 3;
-    else if (enc == "bgr8")
+    } else if (enc == "bgr8") {
       fmt = PixelFormat::kBgr8, in_bpp = 3;
-    else
+    } else {
       fmt = PixelFormat::kGray8, in_bpp = 1;
+    }
     const uint64_t w = m.width, h = m.height;
     if (w == 0 || h == 0 || w > 32768 || h > 32768 || m.step < w * in_bpp ||
         m.data_size < static_cast<uint64_t>(m.step) * h) {
@@ -577,23 +582,26 @@ Rosbag2Reader::Rosbag2Reader(const std::string& path, const Rosbag2ReadOptions& 
     if (storage != "mcap" && storage != "sqlite3")
       throw std::runtime_error(meta + ": storage_identifier \"" + storage + "\" (mcap and sqlite3 are read)");
     const std::string comp = y["compression_format"] ? y["compression_format"].as<std::string>() : "";
-    if (!comp.empty())
+    if (!comp.empty()) {
       throw std::runtime_error(meta + ": compression_format \"" + comp +
                                "\" (whole-file compression is not read; MCAP chunk compression is)");
+    }
     const YAML::Node files = y["relative_file_paths"];
     if (!files || !files.IsSequence() || files.size() == 0)
       throw std::runtime_error(meta + ": relative_file_paths names no file");
     mcap_path = (fs::path(path) / files[0].as<std::string>()).string();
-    if (files.size() > 1)
+    if (files.size() > 1) {
       s.problem(meta + ":relative_file_paths", "unsupported",
                 "only the first of " + std::to_string(files.size()) + " split files is read");
+    }
   }
   s.file = mcap_path;
   if (storage.empty()) storage = rosbag2_store::is_sqlite3_file(mcap_path) ? "sqlite3" : "mcap";
-  if (storage == "sqlite3")
+  if (storage == "sqlite3") {
     s.mr = rosbag2_store::open_sqlite3(mcap_path);
-  else
+  } else {
     s.mr = rosbag2_store::open_mcap(mcap_path, options.mcap);
+  }
 
   std::map<uint16_t, Role> role;
   std::string rgb_topic = options.rgb_topic, depth_topic = options.depth_topic, imu_topic = options.imu_topic,
@@ -631,9 +639,10 @@ Rosbag2Reader::Rosbag2Reader(const std::string& path, const Rosbag2ReadOptions& 
                     " (only cdr is read); topic ignored");
       return kIgnore;
     }
-    if (sc->second.encoding != "ros2msg" && sc->second.encoding != "ros2idl")
+    if (sc->second.encoding != "ros2msg" && sc->second.encoding != "ros2idl") {
       s.problem(where, "assumed",
                 "schema encoding \"" + sc->second.encoding + "\"; decoded as the ROS 2 " + type);
+    }
     if (type == kImuType) {
       if (imu_topic.empty()) imu_topic = ch.topic;
       return ch.topic == imu_topic ? kImuRole : kIgnore;
@@ -824,9 +833,10 @@ Rosbag2Reader::Rosbag2Reader(const std::string& path, const Rosbag2ReadOptions& 
       found = found || ch.topic == t;
       have += (have.empty() ? "" : ", ") + ch.topic;
     }
-    if (!found)
+    if (!found) {
       throw std::runtime_error(path + ": --topics names " + t +
                                ", which the bag does not have (it has: " + have + ")");
+    }
   }
 
   // The rig: --rig, else Kestrel's own, else CameraInfo (+ tf_static).
@@ -845,12 +855,13 @@ Rosbag2Reader::Rosbag2Reader(const std::string& path, const Rosbag2ReadOptions& 
       if (!infos.count(info_topic) && infos.size() == 1) info_topic = infos.begin()->first;
     }
     const auto it = infos.find(info_topic);
-    if (it == infos.end())
+    if (it == infos.end()) {
       throw std::runtime_error(
           path + ": no sensor_msgs/msg/CameraInfo on " +
           (info_topic.empty() ? std::string("any topic") : info_topic) +
           ": camera intrinsics missing; give them with --rig FILE.yaml or name the topic "
           "with --camera-info-topic");
+    }
     const ros2::CameraInfo& ci = it->second;
     if (ci.k[0] <= 0 || ci.k[4] <= 0 || ci.width == 0 || ci.height == 0 || ci.width > 32768 ||
         ci.height > 32768)
@@ -858,15 +869,16 @@ Rosbag2Reader::Rosbag2Reader(const std::string& path, const Rosbag2ReadOptions& 
     r.rgb.width = static_cast<int>(ci.width), r.rgb.height = static_cast<int>(ci.height);
     r.rgb.fx = ci.k[0], r.rgb.cx = ci.k[2], r.rgb.fy = ci.k[4], r.rgb.cy = ci.k[5];
     const bool zero = std::all_of(ci.d.begin(), ci.d.end(), [](double d) { return d == 0; });
-    if (zero)
+    if (zero) {
       r.rgb.distortion = DistortionModel::kNone;
-    else if (ci.distortion_model == "plumb_bob" || ci.distortion_model == "rational_polynomial")
+    } else if (ci.distortion_model == "plumb_bob" || ci.distortion_model == "rational_polynomial") {
       r.rgb.distortion = DistortionModel::kRadTan;
-    else if (ci.distortion_model == "equidistant")
+    } else if (ci.distortion_model == "equidistant") {
       r.rgb.distortion = DistortionModel::kEquidistant;
-    else
+    } else {
       s.problem(s.file + ":" + info_topic, "bad-row",
                 "distortion model \"" + ci.distortion_model + "\" not supported; taken as undistorted");
+    }
     if (r.rgb.distortion != DistortionModel::kNone)
       for (size_t j = 0; j < std::min<size_t>(5, ci.d.size()); ++j) r.rgb.dist[j] = ci.d[j];
     if (cam_frame.empty()) cam_frame = ci.frame_id;
@@ -941,10 +953,11 @@ Rosbag2Reader::Rosbag2Reader(const std::string& path, const Rosbag2ReadOptions& 
     r.imu.gyro_random_walk_rad_s2_sqrthz = 2.0e-05;
     r.imu.acc_noise_density_mps2_sqrthz = 1.4709975e-03;
     r.imu.acc_random_walk_mps3_sqrthz = 3.2028384781419539e-03;
-    if (!s.imu.empty())
+    if (!s.imu.empty()) {
       s.problem(
           s.file + ":" + imu_topic, "assumed",
           "no IMU noise densities in the bag: BMI055/BMX055-class figures assumed; give yours with --rig");
+    }
     auto rate = [](int64_t a, int64_t b, size_t n) {
       return n > 1 && b > a ? (n - 1) * 1e9 / double(b - a) : 0.0;
     };
@@ -1008,25 +1021,29 @@ Rosbag2Reader::Rosbag2Reader(const std::string& path, const Rosbag2ReadOptions& 
     }
     right_unpaired = static_cast<size_t>(std::count(taken.begin(), taken.end(), false));
   }
-  if (right_unpaired > 0)
+  if (right_unpaired > 0) {
     s.problem(s.file + ":" + right_topic, "unassociated",
               std::to_string(right_unpaired) + " right images without a left image within 20 ms; skipped");
+  }
   const size_t unassoc = static_cast<size_t>(std::count(used.begin(), used.end(), false));
-  if (unassoc > 0)
+  if (unassoc > 0) {
     s.problem(s.file + ":" + depth_topic, "unassociated",
               std::to_string(unassoc) + " depth images without a colour image within 20 ms; skipped");
+  }
   if (rgb.empty())
     s.problem(s.file, "missing-file", "no colour images (sensor_msgs/msg/Image rgb8/bgr8/mono8)");
   if (s.imu.empty()) s.problem(s.file, "missing-file", "no IMU messages (sensor_msgs/msg/Imu)");
 
   size_t late = 0;
-  for (size_t i = 1; i < s.entries.size(); ++i)
+  for (size_t i = 1; i < s.entries.size(); ++i) {
     if (s.entries[i].kind == kImuK && s.entries[i - 1].kind == kImuK &&
         s.entries[i].t_ns < s.entries[i - 1].t_ns)
       ++late;
-  if (late > 0)
+  }
+  if (late > 0) {
     s.problem(s.file + ":" + imu_topic, "time-order",
               std::to_string(late) + " IMU messages stamped before the previous one; replayed sorted");
+  }
   std::stable_sort(s.entries.begin(), s.entries.end(), [](const Impl::Entry& a, const Impl::Entry& b) {
     return a.t_ns != b.t_ns ? a.t_ns < b.t_ns : a.kind < b.kind;
   });
@@ -1044,9 +1061,10 @@ Rosbag2Reader::Rosbag2Reader(const std::string& path, const Rosbag2ReadOptions& 
     }
     kept.push_back(e);
   }
-  if (dups > 0)
+  if (dups > 0) {
     s.problem(s.file + ":" + imu_topic, "duplicate",
               std::to_string(dups) + " IMU messages repeat a stamp; dropped");
+  }
   s.entries.swap(kept);
 }
 

@@ -62,7 +62,7 @@ struct RemapTable {
     at.assign(n, RemapEntry{});
     xy.assign(n, 0);
     outside.clear();
-    for (int y = 0; y < height; ++y)
+    for (int y = 0; y < height; ++y) {
       for (int x = 0; x < width; ++x) {
         const size_t i = static_cast<size_t>(y) * width + x;
         const float sx = map_x.at<float>(y, x), sy = map_y.at<float>(y, x);
@@ -82,6 +82,7 @@ struct RemapTable {
         at[i].wx = static_cast<uint8_t>(wx);
         at[i].wy = static_cast<uint8_t>(wy);
       }
+    }
     set_stride(width);
   }
   void set_stride(int s) {
@@ -121,9 +122,10 @@ StereoRectifier::StereoRectifier(const Rig& rig) : rectified_(rig), impl_(std::m
   const CameraIntrinsics& k1 = rig.stereo.intrinsics;
   check_intrinsics(k0, "camera");
   check_intrinsics(k1, "stereo");
-  if (k0.width != k1.width || k0.height != k1.height)
+  if (k0.width != k1.width || k0.height != k1.height) {
     refuse("camera and stereo differ in size (" + std::to_string(k0.width) + "x" + std::to_string(k0.height) +
            " vs " + std::to_string(k1.width) + "x" + std::to_string(k1.height) + ")");
+  }
   const bool fisheye0 = k0.distortion == DistortionModel::kEquidistant;
   const bool fisheye1 = k1.distortion == DistortionModel::kEquidistant;
   if (fisheye0 != fisheye1)

@@ -114,10 +114,11 @@ void ClockSync::refit() {
         const int a = hull_[static_cast<size_t>(m - 2)];
         const int b = hull_[static_cast<size_t>(m - 1)];
         const double cross = (x(b) - x(a)) * (y(i) - y(a)) - (y(b) - y(a)) * (x(i) - x(a));
-        if (cross <= 0)
+        if (cross <= 0) {
           --m;  // b is not below the chord a-i: drop it
-        else
+        } else {
           break;
+        }
       }
       hull_[static_cast<size_t>(m++)] = i;
     }

@@ -74,11 +74,14 @@ void release(void* p) noexcept {
 
 #if KESTREL_COUNT_MALLOC
 extern "C" {
+// glibc's own entry points, under glibc's names.
+// NOLINTBEGIN(bugprone-reserved-identifier,readability-identifier-naming)
 void* __libc_malloc(std::size_t);
 void* __libc_calloc(std::size_t, std::size_t);
 void* __libc_realloc(void*, std::size_t);
 void* __libc_memalign(std::size_t, std::size_t);
 void __libc_free(void*);
+// NOLINTEND(bugprone-reserved-identifier,readability-identifier-naming)
 
 void* malloc(std::size_t n) {
   count(n);

@@ -41,10 +41,11 @@ class ObjectPool {
  public:
   // Value-initialises the N objects (zeroed images: this also faults the pages
   // in at start-up rather than on the first frame).
-  ObjectPool() : ObjectPool([](T&) {}) {}
+  ObjectPool() : ObjectPool([](T&) {}) {}  // NOLINT(cppcoreguidelines-pro-type-member-init): delegates
 
   // init(T&) runs once per object at construction, e.g. to size a buffer.
   template <class Init>
+  // NOLINTNEXTLINE(cppcoreguidelines-pro-type-member-init): every slot's atomics are stored below
   explicit ObjectPool(Init init) : objects_(new T[N]()) {
     for (std::size_t i = 0; i < N; ++i) {
       init(objects_[i]);

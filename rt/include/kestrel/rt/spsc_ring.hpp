@@ -32,6 +32,7 @@ namespace kestrel::rt {
 inline constexpr std::size_t kCacheLine = 64;
 
 template <class T, std::size_t N>
+// NOLINTNEXTLINE(cppcoreguidelines-pro-type-member-init): storage_ is raw (below)
 class SpscRing {
   static_assert(N >= 1, "SpscRing needs a capacity of at least 1");
   static_assert(std::is_nothrow_destructible_v<T>, "elements must be nothrow destructible");
@@ -39,7 +40,7 @@ class SpscRing {
  public:
   using value_type = T;
 
-  SpscRing() = default;
+  SpscRing() = default;  // NOLINT(cppcoreguidelines-pro-type-member-init)
   SpscRing(const SpscRing&) = delete;
   SpscRing& operator=(const SpscRing&) = delete;
 
@@ -145,6 +146,8 @@ class SpscRing {
   // Elements start on their own line so the indices never share with them;
   // the 64-byte class alignment rounds sizeof up, so whatever follows this
   // object does not share the last element line either.
+  // Raw slots, constructed in place by push: zeroing them would fault in
+  // pages the ring may never use and cost a pass over N elements.
   alignas(kCacheLine > alignof(T) ? kCacheLine : alignof(T)) unsigned char storage_[N * sizeof(T)];
 };
 

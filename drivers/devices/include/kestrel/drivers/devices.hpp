@@ -182,7 +182,7 @@ enum class PipelineThread : int {
 constexpr int kPipelineThreads = static_cast<int>(PipelineThread::kCount);
 
 struct ThreadTable {
-  rt::ThreadSpec spec[kPipelineThreads];
+  rt::ThreadSpec spec[kPipelineThreads]{};
   bool from_config = false;  // a `threads:` section was read
   const rt::ThreadSpec& operator[](PipelineThread t) const { return spec[static_cast<int>(t)]; }
   rt::ThreadSpec& operator[](PipelineThread t) { return spec[static_cast<int>(t)]; }

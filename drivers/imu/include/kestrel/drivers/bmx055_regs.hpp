@@ -135,12 +135,12 @@ enum class Bandwidth : uint8_t {
   k100Hz_32Hz = 0x07
 };
 constexpr double odr_hz(Bandwidth b) {
-  constexpr double odr[8] = {2000, 2000, 1000, 400, 200, 100, 200, 100};
-  return odr[static_cast<unsigned>(b) & 7u];
+  constexpr double kOdrHz[8] = {2000, 2000, 1000, 400, 200, 100, 200, 100};
+  return kOdrHz[static_cast<unsigned>(b) & 7u];
 }
 constexpr double bandwidth_hz(Bandwidth b) {
-  constexpr double bw[8] = {523, 230, 116, 47, 23, 12, 64, 32};
-  return bw[static_cast<unsigned>(b) & 7u];
+  constexpr double kBandwidthHz[8] = {523, 230, 116, 47, 23, 12, 64, 32};
+  return kBandwidthHz[static_cast<unsigned>(b) & 7u];
 }
 constexpr uint8_t kBwReadOnlyMask = 0x80;
 constexpr uint8_t kFifoModeStream = 0x80;

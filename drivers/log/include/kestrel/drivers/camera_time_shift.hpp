@@ -43,8 +43,8 @@ class CameraTimeShift {
 
  private:
   struct Held {
-    int64_t key_ns;
-    int rank;  // at equal times: IMU, colour, depth, ground truth, event (the folder readers' order)
+    int64_t key_ns{};
+    int rank{};  // at equal times: IMU, colour, depth, ground truth, event (the folder readers' order)
     LogRecord rec;
   };
   int64_t offset_ns_;

@@ -154,9 +154,9 @@ class Reader {
 
  private:
   struct Chunk {
-    uint64_t data_offset;  // file offset of the compressed records
-    uint64_t compressed_size, uncompressed_size;
-    uint32_t crc;
+    uint64_t data_offset{};  // file offset of the compressed records
+    uint64_t compressed_size{}, uncompressed_size{};
+    uint32_t crc{};
     std::string compression;
   };
   void problem(uint64_t at, const std::string& kind, const std::string& detail);

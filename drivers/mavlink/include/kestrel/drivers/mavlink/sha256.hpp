@@ -19,8 +19,8 @@ class Sha256 {
 
  private:
   void block(const uint8_t* p) noexcept;
-  uint32_t h_[8];
-  uint8_t buf_[64];
+  uint32_t h_[8]{};
+  uint8_t buf_[64]{};
   std::size_t buf_n_ = 0;
   uint64_t total_bytes_ = 0;
 };
