@@ -43,9 +43,11 @@ struct SurfaceAlignOptions {
   // with two crates (one view a side). The gates' defaults: docs/map.md,
   // "Surface verification".
   double min_observability = 0.015;
-  // Neighbouring cells share surface and depth bias: the covariance counts
-  // this many independent pairs, not every cell.
-  int independent_pairs = 50;
+  // Neighbouring cells share surface and depth bias, and a real sensor's
+  // depth carries systematic error across the whole image: the covariance
+  // counts this many independent pairs, not every cell (docs/map.md, "Real
+  // frames": 50 closed loops 5-8 cm off the truth there).
+  int independent_pairs = 20;
   // Views beside each side's own keyframe (LoopCloser picks covisible ones
   // looking most unlike it): one view may see only a floor and a wall, or
   // overlap the other too little, where its neighbours close the gap. 0: one
