@@ -178,6 +178,9 @@ int64_t extract_raw(const uint8_t* record, const ScanElement& e, unsigned k) {
     v &= mask;
     if (t.is_signed && ((v >> (t.real_bits - 1)) & 1u)) v |= ~mask;
   }
+  // An unsigned 64-bit value beyond int64 cannot be held: it saturates at
+  // raw_max (decode_record flags it), rather than wrap to a negative count.
+  if (!t.is_signed && v > static_cast<uint64_t>(INT64_MAX)) return INT64_MAX;
   return static_cast<int64_t>(v);
 }
 

@@ -184,9 +184,16 @@ TEST(IioScanValues, ByteFixtures) {
   const uint8_t ts[] = {0x08, 0x07, 0x06, 0x05, 0x04, 0x03, 0x02, 0x01};
   EXPECT_EQ(iio::extract_raw(ts, el(ChannelKind::kTimestamp, 0, "le:s64/64>>0")), 0x0102030405060708LL);
   EXPECT_EQ(iio::extract_raw(ts, el(ChannelKind::kTimestamp, 0, "be:s64/64>>0")), 0x0807060504030201LL);
-  // Unsigned 64-bit fills every bit.
+  // Unsigned 64-bit beyond int64 saturates at raw_max, never wraps negative
+  // (fuzz_iio_scan found the wrap: a value below raw_min).
   const uint8_t all[] = {0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF};
-  EXPECT_EQ(iio::extract_raw(all, el(ChannelKind::kTimestamp, 0, "le:u64/64>>0")), -1);
+  const ScanElement u64 = el(ChannelKind::kOther, 0, "le:u64/64>>0");
+  EXPECT_EQ(iio::extract_raw(all, u64), INT64_MAX);
+  EXPECT_EQ(iio::extract_raw(all, u64), iio::raw_max(u64.type));
+  const uint8_t top[] = {0, 0, 0, 0, 0, 0, 0, 0x80};
+  EXPECT_EQ(iio::extract_raw(top, u64), INT64_MAX);
+  const uint8_t below[] = {0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0x7F};
+  EXPECT_EQ(iio::extract_raw(below, u64), INT64_MAX);
   // Repeat: the k-th value.
   const uint8_t quat[] = {1, 0, 0, 0, 2, 0, 0, 0, 0xFD, 0xFF, 0xFF, 0xFF, 4, 0, 0, 0};
   const ScanElement q = el(ChannelKind::kOther, 0, "le:s32/32X4>>0");
