@@ -8,12 +8,12 @@
 namespace kestrel::core {
 
 void depth_grid_points_normals(const DepthGridShape& shape, const uint16_t* z_mm, double max_step_rel,
-                               std::vector<Eigen::Vector3d>* pt, std::vector<Eigen::Vector3d>* n) {
+                               Eigen::Vector3d* pt, Eigen::Vector3d* n) {
   const int cols = shape.cols, rows = shape.rows, cells = shape.cells();
-  pt->assign(static_cast<size_t>(cells), Eigen::Vector3d::Zero());
-  n->assign(static_cast<size_t>(cells), Eigen::Vector3d::Zero());
-  for (int c = 0; c < cells; ++c)
-    if (z_mm[c] > 0) (*pt)[static_cast<size_t>(c)] = shape.point_C(c, z_mm[c]);
+  for (int c = 0; c < cells; ++c) {
+    pt[c] = z_mm[c] > 0 ? shape.point_C(c, z_mm[c]) : Eigen::Vector3d::Zero();
+    n[c].setZero();
+  }
   for (int y = 1; y + 1 < rows; ++y) {
     for (int x = 1; x + 1 < cols; ++x) {
       const int c = y * cols + x;
@@ -23,14 +23,12 @@ void depth_grid_points_normals(const DepthGridShape& shape, const uint16_t* z_mm
       bool ok = true;
       for (int o : {l, r, u, d}) ok = ok && z_mm[o] > 0 && std::abs(z_mm[o] - z) <= tol;
       if (!ok) continue;
-      const auto& P = *pt;
-      Eigen::Vector3d nn = (P[static_cast<size_t>(r)] - P[static_cast<size_t>(l)])
-                               .cross(P[static_cast<size_t>(d)] - P[static_cast<size_t>(u)]);
+      Eigen::Vector3d nn = (pt[r] - pt[l]).cross(pt[d] - pt[u]);
       const double len = nn.norm();
       if (!(len > 0)) continue;
       nn /= len;
-      if (nn.dot(P[static_cast<size_t>(c)]) > 0) nn = -nn;  // towards the camera
-      (*n)[static_cast<size_t>(c)] = nn;
+      if (nn.dot(pt[c]) > 0) nn = -nn;  // towards the camera
+      n[c] = nn;
     }
   }
 }
@@ -67,9 +65,8 @@ SurfaceFit SurfaceAligner::align(const SurfaceView* query, int n_query, const Su
   int nc = 0;
   for (int v = 0; v < n_cand; ++v) {
     if (cand[v].z_mm == nullptr) continue;
-    depth_grid_points_normals(shape_, cand[v].z_mm, opt.normal_max_step_rel, &c_pt_one_, &c_n_one_);
-    std::copy(c_pt_one_.begin(), c_pt_one_.end(), c_pt_.begin() + static_cast<std::ptrdiff_t>(cells * nc));
-    std::copy(c_n_one_.begin(), c_n_one_.end(), c_n_.begin() + static_cast<std::ptrdiff_t>(cells * nc));
+    depth_grid_points_normals(shape_, cand[v].z_mm, opt.normal_max_step_rel, &c_pt_[cells * nc],
+                              &c_n_[cells * nc]);
     T_CM_c[nc] = cand[v].T_MC.inverse();
     R_MC_c[nc] = cand[v].T_MC.linear();
     ++nc;
@@ -80,7 +77,9 @@ SurfaceFit SurfaceAligner::align(const SurfaceView* query, int n_query, const Su
   for (int v = 0; v < n_query; ++v) {
     const uint16_t* z_q = query[v].z_mm;
     if (z_q == nullptr) continue;
-    depth_grid_points_normals(shape_, z_q, opt.normal_max_step_rel, &q_pt_C_, &q_n_C_);
+    q_pt_C_.resize(cells);
+    q_n_C_.resize(cells);
+    depth_grid_points_normals(shape_, z_q, opt.normal_max_step_rel, q_pt_C_.data(), q_n_C_.data());
     for (size_t c = 0; c < cells; ++c) {
       if (z_q[c] == 0) continue;
       q_pt_.push_back(query[v].T_MC * q_pt_C_[c]);

@@ -98,7 +98,6 @@ class SurfaceAligner {
   // Candidate views: point and normal per cell in its camera frame (normal
   // zero: none), view after view.
   std::vector<Eigen::Vector3d> c_pt_, c_n_;
-  std::vector<Eigen::Vector3d> c_pt_one_, c_n_one_;
   // Query: per cell in its camera frame, then the cells with depth in M.
   std::vector<Eigen::Vector3d> q_pt_C_, q_n_C_;
   std::vector<Eigen::Vector3d> q_pt_, q_n_;
@@ -107,8 +106,8 @@ class SurfaceAligner {
 
 // Cell normals of a grid in its camera frame from the neighbouring cells'
 // points (zero where a neighbour is missing or off the surface); pt gets the
-// points (zero where no depth).
+// points (zero where no depth). Both hold shape.cells() entries.
 void depth_grid_points_normals(const DepthGridShape& shape, const uint16_t* z_mm, double max_step_rel,
-                               std::vector<Eigen::Vector3d>* pt, std::vector<Eigen::Vector3d>* n);
+                               Eigen::Vector3d* pt, Eigen::Vector3d* n);
 
 }  // namespace kestrel::core
