@@ -44,6 +44,6 @@ if [ "${KESTREL_SKIP_FUZZ:-0}" != "1" ]; then
   done
 fi
 if [ "${KESTREL_SKIP_TSAN:-0}" != "1" ]; then
-  part "tsan build" bash tools/build.sh tsan --target test_rt_stress
+  part "tsan build" bash tools/build.sh tsan --target kestrel_tsan_suite
   part "tsan stress suite" ctest --preset tsan -j "$jobs"
 fi

@@ -8,17 +8,20 @@
 #include <octomap/OcTree.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstdio>
 #include <cstring>
 #include <fstream>
 #include <sstream>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "kestrel/dense/dense_config.hpp"
 #include "kestrel/replay_runner.hpp"
 #include "kestrel/rt/alloc_counter.hpp"
+#include "kestrel/rt/clock.hpp"
 #include "kestrel/tools/simulator.hpp"
 #include "test_data.hpp"
 
@@ -148,6 +151,62 @@ TEST(DensePipeline, RealtimePaceDropsInsteadOfWaitingAndCounts) {
   EXPECT_GT(r.dense_stats.keyframes, 5u);
   // Every keyframe is accounted for: fused, or dropped and counted.
   EXPECT_EQ(r.dense_stats.integrated + r.dense_stats.dropped, r.dense_stats.keyframes);
+}
+
+// ReplayOptions::on_dense_live: a planner thread gets the running mapper
+// before the first record and queries it while the flight goes on (realtime
+// pace, as in the air); the handle is withdrawn once kst-dense stopped, and
+// the final map answers as the live one last did.
+TEST(DensePipeline, APlannerQueriesTheLiveMapThroughTheWholeFlight) {
+  ASSERT_TRUE(rt::alloc_hook_linked());
+  const std::string dir = test::temp_dir("dense_live_query");
+  cli::ReplayOptions ro;
+  ro.path = simulate(dir, 5.0);
+  ro.pace = drivers::ReplayPace::kRealtime;
+  ro.dense.enabled = true;
+  std::atomic<const dense::DenseMapper*> live{nullptr};
+  std::atomic<int> given{0}, withdrawn{0};
+  ro.on_dense_live = [&](const dense::DenseMapper* m) {
+    (m != nullptr ? given : withdrawn).fetch_add(1);
+    live.store(m, std::memory_order_release);
+  };
+  std::atomic<bool> done{false};
+  std::vector<std::size_t> occupied_seen;
+  uint64_t queries = 0;
+  std::thread planner([&] {
+    while (!done.load(std::memory_order_acquire)) {
+      if (const dense::DenseMapper* m = live.load(std::memory_order_acquire)) {
+        m->read([&](const core::TsdfMap& map) {
+          std::vector<Eigen::Vector3f> occ;
+          map.occupied_voxels(occ);
+          occupied_seen.push_back(occ.size());
+        });
+        queries = m->queries();
+      }
+      rt::sleep_for_ns(20'000'000);
+    }
+  });
+  std::size_t final_occupied = 0;
+  ro.on_dense_map = [&](const core::TsdfMap& m) {
+    std::vector<Eigen::Vector3f> occ;
+    m.occupied_voxels(occ);
+    final_occupied = occ.size();
+  };
+  const cli::ReplayReport r = cli::run_replay(ro);
+  done.store(true, std::memory_order_release);
+  planner.join();
+  ASSERT_TRUE(r.dense);
+  EXPECT_EQ(given.load(), 1);
+  EXPECT_EQ(withdrawn.load(), 1);
+  EXPECT_EQ(live.load(), nullptr);
+  EXPECT_EQ(r.steady_allocs, 0) << "a planner's queries made the estimator thread allocate";
+  // About 4 s of flight sampled every 20 ms; the map the planner saw grew.
+  ASSERT_GE(occupied_seen.size(), 20u);
+  EXPECT_GT(queries, 20u);
+  EXPECT_LT(occupied_seen.front(), occupied_seen.back());
+  EXPECT_GT(occupied_seen.back(), 100u);
+  EXPECT_LE(occupied_seen.back(), final_occupied + final_occupied / 10)
+      << "the live map held more than the finished one";
 }
 
 TEST(DensePipeline, WithTheMapOffNothingRuns) {

@@ -190,11 +190,15 @@ void DenseMapper::fuse_slot(Slot& s) {
                                        static_cast<double>(last_correction_.t_ns - interval_t_a_));
         if (catch_up_since_ns_ < 0) catch_up_since_ns_ = rt::now_ns();
       }
+      const std::unique_lock<std::shared_mutex> lock(map_mutex_);
       map_->integrate(archive_->depth(last), archive_->rgb(last), archive_->camera(), rig_.depth,
                       s.C_MW * s.T_WC);
     }
   } else {
-    map_->integrate(s.depth, s.rgb, rig_.rgb, rig_.depth, s.T_WC);
+    {
+      const std::unique_lock<std::shared_mutex> lock(map_mutex_);
+      map_->integrate(s.depth, s.rgb, rig_.rgb, rig_.depth, s.T_WC);
+    }
     if (archive_ != nullptr) (void)archive_->store(s.t_ns, s.T_WC, s.depth, s.rgb);
   }
   const int64_t t1 = rt::now_ns();
@@ -286,6 +290,8 @@ bool DenseMapper::reanchor_one() {
   timespec a{}, b{};
   clock_gettime(CLOCK_THREAD_CPUTIME_ID, &a);
   const Eigen::Isometry3d& T_WC = archive_->T_WC(i);
+  // Out and in again under one lock: a query never sees the keyframe missing.
+  const std::unique_lock<std::shared_mutex> lock(map_mutex_);
   map_->deintegrate(archive_->depth(i), archive_->rgb(i), archive_->camera(), rig_.depth, fused_C_[k] * T_WC);
   map_->integrate(archive_->depth(i), archive_->rgb(i), archive_->camera(), rig_.depth, target_C_[k] * T_WC);
   fused_C_[k] = target_C_[k];
@@ -360,6 +366,7 @@ void DenseMapper::run() {
 void DenseMapper::rebuild_along(const std::function<bool(int64_t t_ns, Eigen::Isometry3d& C_MW)>& C_MW_of) {
   if (map_ == nullptr || archive_ == nullptr) return;
   stop();
+  const std::unique_lock<std::shared_mutex> lock(map_mutex_);
   stats_.rebuild =
       core::reintegrate(*archive_, rig_.depth, *map_,
                         [&](int64_t t_ns, const Eigen::Isometry3d& T_WC, Eigen::Isometry3d& T_MC) {
@@ -369,6 +376,34 @@ void DenseMapper::rebuild_along(const std::function<bool(int64_t t_ns, Eigen::Is
                           return true;
                         });
   stats_.rebuilt = true;
+}
+
+core::Occupancy DenseMapper::occupancy(const Eigen::Vector3d& p) const {
+  if (map_ == nullptr) return core::Occupancy::kUnknown;
+  queries_.fetch_add(1, std::memory_order_relaxed);
+  const std::shared_lock<std::shared_mutex> lock(map_mutex_);
+  return map_->occupancy(p);
+}
+
+core::Occupancy DenseMapper::segment(const Eigen::Vector3d& a, const Eigen::Vector3d& b) const {
+  if (map_ == nullptr) return core::Occupancy::kUnknown;
+  queries_.fetch_add(1, std::memory_order_relaxed);
+  const std::shared_lock<std::shared_mutex> lock(map_mutex_);
+  return map_->segment(a, b);
+}
+
+bool DenseMapper::distance(const Eigen::Vector3d& p, float& sdf_m) const {
+  if (map_ == nullptr) return false;
+  queries_.fetch_add(1, std::memory_order_relaxed);
+  const std::shared_lock<std::shared_mutex> lock(map_mutex_);
+  return map_->distance(p, sdf_m);
+}
+
+void DenseMapper::read(const std::function<void(const core::TsdfMap&)>& fn) const {
+  if (map_ == nullptr) return;
+  queries_.fetch_add(1, std::memory_order_relaxed);
+  const std::shared_lock<std::shared_mutex> lock(map_mutex_);
+  fn(*map_);
 }
 
 void DenseMapper::wait_idle() {

@@ -862,6 +862,19 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   stage.set_dense(&dense_mapper);
   if (dense_mapper.enabled())
     report.threads.push_back(applied_thread(dense::DenseMapper::thread_spec(), dense_mapper.thread_report()));
+  // The planner's handle is withdrawn before the mapper goes, on every path out.
+  struct DenseLiveHandle {
+    const std::function<void(const dense::DenseMapper*)>* fn = nullptr;
+    void withdraw() {
+      if (fn != nullptr && *fn) (*fn)(nullptr);
+      fn = nullptr;
+    }
+    ~DenseLiveHandle() { withdraw(); }
+  } dense_live;
+  if (opt.on_dense_live && dense_mapper.enabled()) {
+    dense_live.fn = &opt.on_dense_live;
+    opt.on_dense_live(&dense_mapper);
+  }
 
   const int64_t wall0 = rt::now_ns();
   const double cpu0 = process_cpu_s();
@@ -1037,6 +1050,7 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   };
   if (dense_mapper.enabled()) {
     dense_mapper.stop();
+    dense_live.withdraw();
     const core::TsdfMap& dm = dense_mapper.map();
     report.dense = true;
     report.dense_stats = dense_mapper.stats();
@@ -1044,7 +1058,8 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     report.dense_live_blocks = dm.blocks_in_use();
     if (opt.on_dense_map_live) opt.on_dense_map_live(dm);
     if (dense_opt.live_reanchor &&
-        (!opt.dense_out.empty() || !opt.dense_octomap_out.empty() || opt.on_dense_map)) {
+        (!opt.dense_out.empty() || !opt.dense_octomap_out.empty() || opt.on_dense_map ||
+         opt.on_dense_finished)) {
       // In flight the map was in the map frame; the contract of --dense-out
       // is W: the archive fused again along the odometry (the identity).
       dense_mapper.rebuild_along([](int64_t, Eigen::Isometry3d& C_MW) {
@@ -1066,6 +1081,7 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     if (!opt.dense_octomap_out.empty())
       report.dense_octomap_leaves = dense::write_octomap_bt(opt.dense_octomap_out, dm);
     if (opt.on_dense_map) opt.on_dense_map(dm);
+    if (opt.on_dense_finished) opt.on_dense_finished(dm);
     if (!opt.dense_map_out.empty() || opt.on_dense_map_rebuilt) {
       // The map's final word on every keyframe's pose; the map's memory is
       // reused, so this runs after everything W needed was written.

@@ -243,6 +243,14 @@ struct ReplayOptions {
   // The map as it was at the end of the flight, before any re-integration:
   // in W, or in the map frame with dense.live_reanchor (benches score it).
   std::function<void(const core::TsdfMap&)> on_dense_map_live;
+  // A planner in flight (docs/dense.md "Live queries"): called with the running
+  // mapper before the first record, and with nullptr once its thread has
+  // stopped (also when the replay throws); in between any non-real-time thread
+  // may call its occupancy / segment / distance / read. Does not enable the map.
+  std::function<void(const dense::DenseMapper*)> on_dense_live;
+  // Called at the end with the finished map in W when the map ran for another
+  // reason (the ROS outputs' dense cloud); unlike on_dense_map it does not enable it.
+  std::function<void(const core::TsdfMap&)> on_dense_finished;
 };
 
 struct ReplayReport {

@@ -13,6 +13,7 @@
 #include <functional>
 #include <memory>
 #include <mutex>
+#include <shared_mutex>
 #include <thread>
 #include <vector>
 
@@ -109,6 +110,17 @@ class DenseMapper {
   void rebuild_along(const std::function<bool(int64_t t_ns, Eigen::Isometry3d& C_MW)>& C_MW_of);
   // The archive (after stop()): capacity, counters.
   const core::KeyframeArchive* archive() const { return archive_.get(); }
+  // ---- A planner's queries in flight: any thread but a real-time one (they
+  // wait while kst-dense fuses or moves one keyframe, a few ms). The frame is
+  // the live map's: W, or the map frame M with live_reanchor (live_frame_is_map).
+  // The map not running: unknown / false. docs/dense.md "Live queries".
+  core::Occupancy occupancy(const Eigen::Vector3d& p) const;
+  core::Occupancy segment(const Eigen::Vector3d& a, const Eigen::Vector3d& b) const;
+  bool distance(const Eigen::Vector3d& p, float& sdf_m) const;
+  // Anything else TsdfMap offers (extract_surface, ...), under the same lock.
+  void read(const std::function<void(const core::TsdfMap&)>& fn) const;
+  bool live_frame_is_map() const { return opt_.live_reanchor; }
+  uint64_t queries() const { return queries_.load(std::memory_order_relaxed); }
   // Any thread, approximate: keyframes a correction moved that wait to be re-fused.
   int reanchor_backlog() const { return reanchor_backlog_.load(std::memory_order_acquire); }
   // Any thread: corrections the thread has taken in (their backlog is then known).
@@ -178,6 +190,11 @@ class DenseMapper {
   double reanchor_tokens_cpu_s_ = 0;
   int64_t reanchor_refill_ns_ = -1;
   int64_t catch_up_since_ns_ = -1;  // a correction left keyframes to re-fuse since then
+  // Held exclusively by kst-dense while it changes the map (fusion,
+  // re-anchoring, the end's re-integration), shared by the queries above. The
+  // estimator thread never takes it. kst-dense's own reads need no lock.
+  mutable std::shared_mutex map_mutex_;
+  mutable std::atomic<uint64_t> queries_{0};
   // The viewer stream (kst-dense).
   std::atomic<DenseViewSink*> view_sink_{nullptr};
   std::unique_ptr<DenseViewEncoder> view_encoder_;
