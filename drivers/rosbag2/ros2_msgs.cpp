@@ -159,20 +159,35 @@ void encode(const PointCloudXyz& m, std::vector<uint8_t>& out) {
   w.header(m.t_ns, m.frame_id);
   w.u32(1);  // height: an unordered cloud is one row
   w.u32(m.n);
-  w.u32(3);  // fields
-  const char* names[3] = {"x", "y", "z"};
-  for (uint32_t k = 0; k < 3; ++k) {
+  const uint32_t fields = m.rgb != nullptr ? 4 : 3;
+  w.u32(fields);
+  const char* names[4] = {"x", "y", "z", "rgb"};
+  for (uint32_t k = 0; k < fields; ++k) {
     w.str(names[k]);
     w.u32(4 * k);  // offset
     w.u8(7);       // sensor_msgs/PointField FLOAT32
     w.u32(1);      // count
   }
   w.u8(0);  // is_bigendian
-  w.u32(12);
-  w.u32(12 * m.n);
+  const uint32_t step = 4 * fields;
+  w.u32(step);
+  w.u32(step * m.n);
   // The floats' bytes as they are in memory: CDR_LE, and every target is little-endian.
   static_assert(sizeof(float) == 4);
-  w.bytes(reinterpret_cast<const uint8_t*>(m.xyz), 12u * m.n);
+  if (m.rgb == nullptr) {
+    w.bytes(reinterpret_cast<const uint8_t*>(m.xyz), 12u * m.n);
+  } else {
+    w.u32(step * m.n);  // the data's length, then the points interleaved straight into out
+    const std::size_t at = out.size();
+    out.resize(at + static_cast<std::size_t>(step) * m.n);
+    for (uint32_t i = 0; i < m.n; ++i) {
+      uint8_t* q = out.data() + at + static_cast<std::size_t>(step) * i;
+      std::memcpy(q, m.xyz + 3 * static_cast<std::size_t>(i), 12);
+      const uint8_t* c = m.rgb + 3 * static_cast<std::size_t>(i);
+      const uint32_t packed = (uint32_t{c[0]} << 16) | (uint32_t{c[1]} << 8) | uint32_t{c[2]};
+      std::memcpy(q + 12, &packed, 4);
+    }
+  }
   w.u8(1);  // is_dense: no NaN points
 }
 void encode(const std::vector<Marker>& markers, std::vector<uint8_t>& out) {

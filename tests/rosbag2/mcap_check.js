@@ -121,6 +121,15 @@ async function read(path) {
       for (let i = 0; i < Math.min(msg.width, 4); ++i)
         pts.push(['x', 'y', 'z'].map((k) => dv.getFloat32(i * msg.point_step + off[k], !msg.is_bigendian)));
       t.lastPoints = pts;
+      if (off.rgb !== undefined) {
+        // PCL's packing: the float's bits are 0x00RRGGBB.
+        const cols = [];
+        for (let i = 0; i < Math.min(msg.width, 4); ++i) {
+          const v = dv.getUint32(i * msg.point_step + off.rgb, !msg.is_bigendian);
+          cols.push([(v >> 16) & 255, (v >> 8) & 255, v & 255]);
+        }
+        t.lastColours = cols;
+      }
       t.sizeMismatches =
           (t.sizeMismatches || 0) + (msg.data.length !== msg.width * msg.height * msg.point_step);
     }

@@ -299,7 +299,30 @@ TEST(Rosbag2Npm, PointCloud2AndMarkerArrayDecodeWithTheirValues) {
     m[1].points = {{0, 0, 0}, {4, 5, 6}, {1, 1, 1}, {2, 2, 2}};
     drivers::ros2::encode(m, buf);
     w.write(cma, 2, 2, buf.data(), buf.size());
+    // The dense surface's layout: x y z and the colour packed in a fourth float.
+    const uint16_t crgb =
+        w.add_channel(w.add_schema(pc, "ros2msg", drivers::ros2::schema_text(pc)), "/rgb", "cdr");
+    std::vector<uint8_t> rgb;
+    for (int i = 0; i < 1000; ++i)
+      rgb.insert(rgb.end(), {static_cast<uint8_t>(i), 200, static_cast<uint8_t>(255 - (i % 256))});
+    cloud.rgb = rgb.data();
+    drivers::ros2::encode(cloud, buf);
+    w.write(crgb, 3, 3, buf.data(), buf.size());
     w.close();
+  }
+  {
+    const json j = node_read(f);
+    const json& c = j["topics"]["/rgb"];
+    EXPECT_EQ(c["trailing"], 0);
+    EXPECT_EQ(c["reencodedDiffers"], 0);
+    EXPECT_EQ(c["sizeMismatches"], 0);
+    EXPECT_EQ(c["last"]["point_step"], 16);
+    ASSERT_EQ(c["lastPoints"].size(), 4u);
+    EXPECT_EQ(c["lastPoints"][3][0].get<double>(), 1.5);
+    EXPECT_EQ(c["lastPoints"][3][2].get<double>(), static_cast<double>(3.0f + 0.003f));
+    ASSERT_EQ(c["lastColours"].size(), 4u) << c.dump();
+    EXPECT_EQ(c["lastColours"][3], json::array({3, 200, 252}));
+    EXPECT_FALSE(j["topics"]["/pts"].contains("lastColours")) << "a cloud without colour grew a field";
   }
   const json j = node_read(f);
   const json& p = j["topics"]["/pts"];
@@ -454,6 +477,49 @@ TEST(Rosbag2Cli, ConvertReplayAndOdometryOut) {
   }
   EXPECT_GE(arrows, 3);
   EXPECT_TRUE(deleted && path) << mk.dump();
+  EXPECT_FALSE(j["topics"].contains("/kestrel/dense_map")) << "a dense cloud without the dense map";
+}
+
+// With the dense map on, --mcap-out ends with its surface: one coloured PointCloud2 in odom (W), the very
+// points --dense-out writes, in the same order.
+TEST(Rosbag2Cli, TheDenseMapsSurfaceEndsTheMcapWithItsColours) {
+  REQUIRE_NODE();
+  const std::string klog = dir() + "/dense.klog", ply = dir() + "/dense.ply", mcap = dir() + "/dense.mcap";
+  CmdResult r = run_kestrel("sim --scenario figure8 --duration 4 --width 320 --height 240 --out " + klog);
+  ASSERT_EQ(r.code, 0) << r.out;
+  r = run_kestrel("replay " + klog + " --quiet --dense-out " + ply + " --mcap-out " + mcap);
+  ASSERT_EQ(r.code, 0) << r.out;
+  // The PLY's vertex count and first vertices (binary little-endian: float x y z, uchar r g b).
+  std::ifstream in(ply, std::ios::binary);
+  std::string line;
+  long vertices = -1;
+  while (std::getline(in, line) && line != "end_header")
+    if (line.rfind("element vertex ", 0) == 0) vertices = std::stol(line.substr(15));
+  ASSERT_GT(vertices, 1000) << "the flight's surface is too small to test";
+  float first[4][3];
+  uint8_t colour[4][3];
+  for (int i = 0; i < 4; ++i) {
+    in.read(reinterpret_cast<char*>(first[i]), 12);
+    in.read(reinterpret_cast<char*>(colour[i]), 3);
+  }
+  ASSERT_TRUE(in.good());
+  const json j = node_read(mcap);
+  ASSERT_TRUE(j["topics"].contains("/kestrel/dense_map")) << j["topics"].dump();
+  const json& d = j["topics"]["/kestrel/dense_map"];
+  EXPECT_EQ(d["type"], "sensor_msgs/msg/PointCloud2");
+  EXPECT_EQ(d["count"], 1);
+  EXPECT_EQ(d["trailing"], 0);
+  EXPECT_EQ(d["reencodedDiffers"], 0);
+  EXPECT_EQ(d["sizeMismatches"], 0);
+  EXPECT_EQ(d["last"]["header"]["frame_id"], "odom");
+  EXPECT_EQ(d["last"]["width"].get<long>(), vertices);
+  const json& o = j["topics"]["/kestrel/odometry"]["last"]["header"]["stamp"];
+  EXPECT_EQ(d["last"]["header"]["stamp"], o) << "stamped with the last pose";
+  for (int i = 0; i < 4; ++i)
+    for (int k = 0; k < 3; ++k) {
+      EXPECT_EQ(d["lastPoints"][i][k].get<double>(), static_cast<double>(first[i][k]));
+      EXPECT_EQ(d["lastColours"][i][k].get<int>(), colour[i][k]);
+    }
 }
 
 // --foxglove: @foxglove/ws-protocol's client connects while a realtime replay runs, sees the advertised
@@ -493,6 +559,7 @@ TEST(Rosbag2Cli, FoxgloveLiveWithTheNpmClient) {
   EXPECT_EQ(types["/diagnostics"], "diagnostic_msgs/msg/DiagnosticArray");
   EXPECT_EQ(types["/kestrel/map_points"], "sensor_msgs/msg/PointCloud2");
   EXPECT_EQ(types["/kestrel/map_markers"], "visualization_msgs/msg/MarkerArray");
+  EXPECT_EQ(types["/kestrel/dense_map"], "sensor_msgs/msg/PointCloud2");
   ASSERT_EQ(j["messages"].size(), 3u);
   int64_t last_ns = -1;
   for (const json& m : j["messages"]) {

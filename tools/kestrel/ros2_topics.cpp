@@ -15,6 +15,7 @@ const Ros2TopicInfo kTopics[kRos2Topics] = {
     {"/diagnostics", "diagnostic_msgs/msg/DiagnosticArray"},
     {"/kestrel/map_points", "sensor_msgs/msg/PointCloud2"},
     {"/kestrel/map_markers", "visualization_msgs/msg/MarkerArray"},
+    {"/kestrel/dense_map", "sensor_msgs/msg/PointCloud2"},
 };
 
 drivers::ros2::Pose pose_of(const Eigen::Isometry3d& T) {
@@ -213,6 +214,26 @@ void Ros2Output::on_final(const MapFinal& f) {
   publish(Ros2Topic::kMarkers, t_ns);
 }
 
+void Ros2Output::on_dense(const core::TsdfMap& m) {
+  std::vector<core::SurfacePoint> pts;
+  m.extract_surface(pts);
+  xyz_.resize(3 * pts.size());
+  rgb_.resize(3 * pts.size());
+  for (std::size_t i = 0; i < pts.size(); ++i)
+    for (std::size_t k = 0; k < 3; ++k) {
+      xyz_[3 * i + k] = pts[i].p[static_cast<int>(k)];
+      rgb_[3 * i + k] = pts[i].rgb[k];
+    }
+  drivers::ros2::PointCloudXyz c;
+  c.t_ns = last_t_ns_ == INT64_MIN ? 0 : last_t_ns_;
+  c.frame_id = "odom";  // fused along the odometry (W), as --dense-out
+  c.xyz = xyz_.data();
+  c.rgb = rgb_.data();
+  c.n = static_cast<uint32_t>(pts.size());
+  drivers::ros2::encode(c, buf_);
+  publish(Ros2Topic::kDenseMap, c.t_ns);
+}
+
 void connect_ros2_output(ReplayOptions& opt, const std::shared_ptr<Ros2Output>& out,
                          double map_points_rate_hz) {
   auto pose = opt.on_pose;
@@ -234,6 +255,11 @@ void connect_ros2_output(ReplayOptions& opt, const std::shared_ptr<Ros2Output>& 
   opt.on_map_final = [out, fin](const MapFinal& f) {
     if (fin) fin(f);
     out->on_final(f);
+  };
+  auto dense = opt.on_dense_finished;
+  opt.on_dense_finished = [out, dense](const core::TsdfMap& m) {
+    if (dense) dense(m);
+    out->on_dense(m);
   };
   opt.map_points_rate_hz = std::max(opt.map_points_rate_hz, map_points_rate_hz);
 }

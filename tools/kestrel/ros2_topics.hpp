@@ -2,7 +2,8 @@
 // nav_msgs/msg/Odometry (odom -> base_link, with the backend's covariance),
 // /tf (map -> odom -> base_link), /diagnostics (quality, resets, the map's
 // state), the local map's points as sensor_msgs/msg/PointCloud2 and the
-// keyframes and loops as visualization_msgs/msg/MarkerArray, all in CDR.
+// keyframes and loops as visualization_msgs/msg/MarkerArray, and at the end
+// the dense map's surface (when it ran) as a coloured PointCloud2, all in CDR.
 // Runs on the output thread only (ReplayOptions' callbacks): it allocates.
 // A Ros2Sink takes each encoded message (an MCAP file, a WebSocket server).
 #pragma once
@@ -16,7 +17,7 @@
 
 namespace kestrel::cli {
 
-enum class Ros2Topic : int { kOdometry, kTf, kDiagnostics, kMapPoints, kMarkers, kCount };
+enum class Ros2Topic : int { kOdometry, kTf, kDiagnostics, kMapPoints, kMarkers, kDenseMap, kCount };
 inline constexpr int kRos2Topics = static_cast<int>(Ros2Topic::kCount);
 struct Ros2TopicInfo {
   const char* topic;
@@ -40,6 +41,8 @@ class Ros2Output {
   void on_keyframe(const KeyframePose& k);
   // Clears the keyframe arrows and draws the map's final keyframe path and loops.
   void on_final(const MapFinal& f);
+  // The finished dense map's surface, in W: frame odom, stamped with the last pose.
+  void on_dense(const core::TsdfMap& m);
   uint64_t odometry_count() const { return count_[static_cast<int>(Ros2Topic::kOdometry)]; }
   uint64_t count(Ros2Topic t) const { return count_[static_cast<int>(t)]; }
 
@@ -51,7 +54,7 @@ class Ros2Output {
   Ros2Sink& sink_;
   uint64_t count_[kRos2Topics] = {};
   int64_t last_t_ns_ = INT64_MIN;
-  int64_t last_topic_t_ns_[kRos2Topics] = {INT64_MIN, INT64_MIN, INT64_MIN, INT64_MIN, INT64_MIN};
+  int64_t last_topic_t_ns_[kRos2Topics] = {INT64_MIN, INT64_MIN, INT64_MIN, INT64_MIN, INT64_MIN, INT64_MIN};
   Eigen::Isometry3d T_map_odom_ = Eigen::Isometry3d::Identity();
   int32_t next_keyframe_id_ = 0;
   uint64_t loops_drawn_ = 0;  // live loop edges published (MapFrameState::loop_closures)
@@ -62,6 +65,7 @@ class Ros2Output {
   uint32_t last_resets_ = 0, last_alignment_ = 0;
   std::vector<uint8_t> buf_;
   std::vector<float> xyz_;
+  std::vector<uint8_t> rgb_;
 };
 
 // Chains the Ros2Output's handlers onto opt's callbacks (after any already

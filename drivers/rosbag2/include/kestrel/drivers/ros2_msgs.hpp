@@ -142,12 +142,14 @@ struct DiagnosticArray {
 };
 
 // sensor_msgs/msg/PointCloud2 of x y z float32 points (written only:
-// --mcap-out's and --foxglove's map points). One row, dense, little-endian,
-// 12 bytes per point.
+// --mcap-out's and --foxglove's map points and dense surface). One row, dense,
+// little-endian, 12 bytes per point; with colour 16, the fourth field `rgb` a
+// FLOAT32 holding the bits of 0x00RRGGBB (the layout PCL, RViz and Foxglove read).
 struct PointCloudXyz {
   int64_t t_ns = 0;
   std::string frame_id;
-  const float* xyz = nullptr;  // 3 * n floats, a view into the caller's buffer
+  const float* xyz = nullptr;    // 3 * n floats, a view into the caller's buffer
+  const uint8_t* rgb = nullptr;  // 3 * n bytes r g b, or none
   uint32_t n = 0;
 };
 
