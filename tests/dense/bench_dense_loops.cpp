@@ -252,12 +252,12 @@ TEST(DenseLoopsBench, SurfacesAgainstTheTrueGeometryAlongOdometryAndAlongTheMap)
     std::printf(
         "  live, re-anchored in flight (dense.live_reanchor): median %.1f mm, 95%% %.1f mm, %.1f %% within 4 "
         "cm "
-        "(%zu points); %llu corrections, %llu keyframes re-fused in %.2f CPU-s (at most %d waiting), caught "
-        "up "
-        "max %.0f ms\n",
+        "(%zu points); %llu corrections, %llu map keyframe lists, %llu keyframes re-fused in %.2f CPU-s (at "
+        "most %d waiting, %d left at the end), caught up max %.0f ms\n",
         1e3 * l.median, 1e3 * l.p95, 100 * l.within_4cm, l.points,
-        static_cast<unsigned long long>(d.corrections), static_cast<unsigned long long>(d.reanchored),
-        d.reanchor_cpu_s, d.reanchor_pending_max, 1e-6 * static_cast<double>(d.reanchor_catch_up.max()));
+        static_cast<unsigned long long>(d.corrections), static_cast<unsigned long long>(d.map_moves),
+        static_cast<unsigned long long>(d.reanchored), d.reanchor_cpu_s, d.reanchor_pending_max,
+        d.reanchor_left, 1e-6 * static_cast<double>(d.reanchor_catch_up.max()));
     EXPECT_GT(l.points, 1000u);
   }
   EXPECT_TRUE(d.rebuilt);

@@ -3,6 +3,7 @@
 #include <time.h>
 
 #include <algorithm>
+#include <cstdint>
 #include <cmath>
 #include <cstring>
 #include <stdexcept>
@@ -183,8 +184,13 @@ void DenseMapper::fuse_slot(Slot& s) {
       const auto k = static_cast<std::size_t>((archive_->counters().stored - 1) %
                                               static_cast<uint64_t>(archive_->capacity()));
       fused_C_[k] = target_C_[k] = s.C_MW;
-      // Taken before the newest correction but fused after it arrived: its share of that correction.
-      if (have_correction_ && s.t_ns < last_correction_.t_ns && s.t_ns > interval_t_a_) {
+      Eigen::Isometry3d C_map;
+      if (map_correction_at(s.t_ns, C_map)) {
+        // Within the span the map has moved already: its word.
+        target_C_[k] = C_map;
+        if (catch_up_since_ns_ < 0) catch_up_since_ns_ = rt::now_ns();
+      } else if (have_correction_ && s.t_ns < last_correction_.t_ns && s.t_ns > interval_t_a_) {
+        // Taken before the newest correction but fused after it arrived: its share of that correction.
         target_C_[k] = interpolate(interval_C_a_, last_correction_.C_MW,
                                    static_cast<double>(s.t_ns - interval_t_a_) /
                                        static_cast<double>(last_correction_.t_ns - interval_t_a_));
@@ -219,14 +225,19 @@ void DenseMapper::apply_correction(const Correction& c) {
       have_correction_ ? last_correction_.t_ns : (archive_->size() > 0 ? archive_->t_ns(0) : c.t_ns);
   const Eigen::Isometry3d C_a = have_correction_ ? last_correction_.C_MW : Eigen::Isometry3d::Identity();
   const uint64_t first = archive_->counters().stored - static_cast<uint64_t>(archive_->size());
+  // Keyframes the map's own list covers keep its word; after that list's end
+  // the change is the map's realignment to its newest keyframe: all of it.
+  const int64_t map_until = map_C_.empty() ? INT64_MIN : map_C_.back().t_ns;
+  const bool after_map = map_until > t_a;
   for (int i = 0; i < archive_->size(); ++i) {
     const int64_t t = archive_->t_ns(i);
-    if (t <= t_a) continue;
+    if (t <= t_a || t <= map_until) continue;
     const auto k = static_cast<std::size_t>((first + static_cast<uint64_t>(i)) %
                                             static_cast<uint64_t>(archive_->capacity()));
     const double s =
-        t >= c.t_ns ? 1.0
-                    : static_cast<double>(t - t_a) / static_cast<double>(std::max<int64_t>(1, c.t_ns - t_a));
+        t >= c.t_ns || after_map
+            ? 1.0
+            : static_cast<double>(t - t_a) / static_cast<double>(std::max<int64_t>(1, c.t_ns - t_a));
     target_C_[k] = interpolate(C_a, c.C_MW, s);
   }
   interval_t_a_ = t_a;
@@ -238,6 +249,51 @@ void DenseMapper::apply_correction(const Correction& c) {
   corrections_applied_.fetch_add(1, std::memory_order_release);
   stats_.reanchor_pending_max = std::max(stats_.reanchor_pending_max, pending);
   if (pending > 0 && catch_up_since_ns_ < 0) catch_up_since_ns_ = c.received_ns;
+}
+
+void DenseMapper::note_map_keyframes(const std::vector<MapCorrection>& sorted) {
+  if (!started_ || !opt_.live_reanchor || sorted.empty()) return;
+  {
+    const std::lock_guard<std::mutex> lock(map_moves_mutex_);
+    map_moves_in_ = sorted;
+  }
+  map_moves_ready_.store(true, std::memory_order_release);
+  work_bell_.ring();
+}
+
+bool DenseMapper::map_correction_at(int64_t t_ns, Eigen::Isometry3d& C_MW) const {
+  if (map_C_.empty() || t_ns < map_C_.front().t_ns || t_ns > map_C_.back().t_ns) return false;
+  const auto it = std::lower_bound(map_C_.begin(), map_C_.end(), t_ns,
+                                   [](const MapCorrection& m, int64_t t) { return m.t_ns < t; });
+  if (it->t_ns == t_ns || it == map_C_.begin()) {
+    C_MW = it->C_MW;
+    return true;
+  }
+  const MapCorrection& a = *std::prev(it);
+  C_MW = interpolate(a.C_MW, it->C_MW,
+                     static_cast<double>(t_ns - a.t_ns) / static_cast<double>(std::max<int64_t>(1, it->t_ns - a.t_ns)));
+  return true;
+}
+
+void DenseMapper::apply_map_keyframes() {
+  {
+    const std::lock_guard<std::mutex> lock(map_moves_mutex_);
+    map_C_.swap(map_moves_in_);
+    map_moves_ready_.store(false, std::memory_order_relaxed);
+  }
+  ++stats_.map_moves;
+  const uint64_t first = archive_->counters().stored - static_cast<uint64_t>(archive_->size());
+  for (int i = 0; i < archive_->size(); ++i) {
+    Eigen::Isometry3d C;
+    if (!map_correction_at(archive_->t_ns(i), C)) continue;
+    target_C_[static_cast<std::size_t>((first + static_cast<uint64_t>(i)) %
+                                       static_cast<uint64_t>(archive_->capacity()))] = C;
+  }
+  const int pending = reanchor_pending(nullptr);
+  reanchor_backlog_.store(pending, std::memory_order_release);
+  stats_.reanchor_pending_max = std::max(stats_.reanchor_pending_max, pending);
+  if (pending > 0 && catch_up_since_ns_ < 0) catch_up_since_ns_ = rt::now_ns();
+  map_moves_applied_.fetch_add(1, std::memory_order_release);
 }
 
 int DenseMapper::reanchor_pending(int* worst) const {
@@ -336,6 +392,9 @@ void DenseMapper::pump_view() {
 void DenseMapper::run() {
   for (;;) {
     Correction c;
+    // The map's keyframe list first: a correction that comes with it (the
+    // realignment after a bundle adjustment) then leaves the keyframes it covers alone.
+    if (map_moves_ready_.load(std::memory_order_acquire)) apply_map_keyframes();
     while (corrections_.try_pop(c)) apply_correction(c);
     uint32_t* idx = filled_.front();
     if (idx == nullptr) {
@@ -358,6 +417,7 @@ void DenseMapper::run() {
     pump_view();
   }
   stats_.corrections_dropped = corrections_.drops();
+  if (opt_.live_reanchor) stats_.reanchor_left = reanchor_pending(nullptr);
   timespec ts{};
   clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
   stats_.cpu_s = static_cast<double>(ts.tv_sec) + 1e-9 * static_cast<double>(ts.tv_nsec);

@@ -2,6 +2,8 @@
 
 #include <time.h>
 
+#include <utility>
+
 #include "kestrel/core/map_system.hpp"
 #include "kestrel/rt/clock.hpp"
 #include "kestrel/rt/thread_setup.hpp"
@@ -29,7 +31,15 @@ MapThreads::MapThreads(core::Estimator& est, const drivers::ThreadTable& table,
             bool worked;
             {
               std::lock_guard<std::mutex> lock(mutex_);
-              worked = t == 0 ? est_.mapping_step() : est_.loop_step();
+              if (t == 0) {
+                worked = est_.mapping_step();
+              } else {
+                const core::MapSystem* ms = est_.map_system();
+                const uint32_t before = ms != nullptr ? ms->frame().alignment : 0;
+                worked = est_.loop_step();
+                if (on_map_moved_ && ms != nullptr && ms->frame().alignment != before)
+                  on_map_moved_(est_.map_keyframe_poses());
+              }
             }
             // The global bundle adjustment solves its copy of the map outside
             // the lock, so the mapping thread goes on meanwhile.
@@ -53,6 +63,11 @@ MapThreads::MapThreads(core::Estimator& est, const drivers::ThreadTable& table,
 }
 
 MapThreads::~MapThreads() { stop(); }
+
+void MapThreads::set_on_map_moved(std::function<void(const std::vector<core::MapKeyframePose>&)> fn) {
+  const std::lock_guard<std::mutex> lock(mutex_);
+  on_map_moved_ = std::move(fn);
+}
 
 void MapThreads::wait_idle() {
   while (est_.map_busy()) idle_bell_.wait_for_ns(kIdleWaitNs);

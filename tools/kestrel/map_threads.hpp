@@ -7,6 +7,7 @@
 #pragma once
 
 #include <atomic>
+#include <functional>
 #include <mutex>
 #include <thread>
 #include <vector>
@@ -39,6 +40,12 @@ class MapThreads {
   // Lets the work handed over finish, then joins. Idempotent.
   void stop();
   bool running() const { return started_; }
+  // Called on kst-loop, under the map's mutex, whenever a loop step moved the
+  // map's keyframes (a loop closed, a global bundle adjustment applied), with
+  // the keyframes as they are now. A relocalisation (on kst-mapping) moves the
+  // whole map against the odometry: T_map_odom says all of that. Not real
+  // time: it may allocate. Set or cleared at any time (under the same mutex).
+  void set_on_map_moved(std::function<void(const std::vector<core::MapKeyframePose>&)> fn);
   // CPU seconds of each thread (after stop()).
   double mapping_cpu_s() const { return cpu_s_[0]; }
   double loop_cpu_s() const { return cpu_s_[1]; }
@@ -48,6 +55,7 @@ class MapThreads {
   bool started_ = false;
   std::atomic<bool> stop_{false};
   std::mutex mutex_;
+  std::function<void(const std::vector<core::MapKeyframePose>&)> on_map_moved_;  // under mutex_
   std::thread threads_[2];
   rt::Doorbell bells_[2];
   rt::Doorbell idle_bell_;

@@ -862,6 +862,23 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   stage.set_dense(&dense_mapper);
   if (dense_mapper.enabled())
     report.threads.push_back(applied_thread(dense::DenseMapper::thread_spec(), dense_mapper.thread_report()));
+  // With live re-anchoring the map's keyframes reach kst-dense whenever the
+  // map moves them; the hook is removed before the mapper goes, on every path out.
+  struct MapMovedHook {
+    MapThreads* threads = nullptr;
+    ~MapMovedHook() {
+      if (threads != nullptr) threads->set_on_map_moved(nullptr);
+    }
+  } map_moved_hook;
+  if (dense_mapper.enabled() && dense_opt.live_reanchor && map_threads.running()) {
+    map_moved_hook.threads = &map_threads;
+    map_threads.set_on_map_moved([&dense_mapper](const std::vector<core::MapKeyframePose>& poses) {
+      std::vector<dense::MapCorrection> c(poses.size());
+      for (std::size_t i = 0; i < poses.size(); ++i)
+        c[i] = {poses[i].t_ns, poses[i].T_MB * poses[i].T_WB.inverse()};
+      dense_mapper.note_map_keyframes(c);
+    });
+  }
   // The planner's handle is withdrawn before the mapper goes, on every path out.
   struct DenseLiveHandle {
     const std::function<void(const dense::DenseMapper*)>* fn = nullptr;
@@ -1358,6 +1375,8 @@ std::string replay_metrics_json(const ReplayReport& r) {
                       {"reanchored", d.reanchored},
                       {"reanchor_cpu_s", d.reanchor_cpu_s},
                       {"reanchor_pending_max", d.reanchor_pending_max},
+                      {"reanchor_left", d.reanchor_left},
+                      {"map_keyframe_lists", d.map_moves},
                       {"reanchor_catch_up", histogram_json(d.reanchor_catch_up)},
                       {"w_rebuild_keyframes", r.dense_w_rebuild.fused},
                       {"w_rebuild_cpu_s", 1e-9 * static_cast<double>(r.dense_w_rebuild.cpu_ns)},
@@ -1690,12 +1709,13 @@ std::string replay_summary(const ReplayReport& r) {
     s += buf;
     if (r.dense_live_reanchor) {
       std::snprintf(buf, sizeof buf,
-                    "dense map live re-anchoring: %llu corrections (%llu dropped), %llu keyframes re-fused, "
-                    "%.2f CPU-s, at most %d waiting, caught up p50 %.0f ms max %.0f ms; --dense-out along W: "
-                    "%d keyframes %.2f s\n",
+                    "dense map live re-anchoring: %llu corrections (%llu dropped), %llu map keyframe lists, "
+                    "%llu keyframes re-fused, %.2f CPU-s, at most %d waiting, %d left at the end, caught up p50 "
+                    "%.0f ms max %.0f ms; --dense-out along W: %d keyframes %.2f s\n",
                     static_cast<unsigned long long>(d.corrections),
                     static_cast<unsigned long long>(d.corrections_dropped),
-                    static_cast<unsigned long long>(d.reanchored), d.reanchor_cpu_s, d.reanchor_pending_max,
+                    static_cast<unsigned long long>(d.map_moves), static_cast<unsigned long long>(d.reanchored),
+                    d.reanchor_cpu_s, d.reanchor_pending_max, d.reanchor_left,
                     1e-6 * static_cast<double>(d.reanchor_catch_up.percentile(50)),
                     1e-6 * static_cast<double>(d.reanchor_catch_up.max()), r.dense_w_rebuild.fused,
                     1e-9 * static_cast<double>(r.dense_w_rebuild.cpu_ns));

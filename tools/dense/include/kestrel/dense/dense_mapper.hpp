@@ -53,6 +53,13 @@ struct DenseOptions {
   void validate() const;                // throws std::invalid_argument naming the key
 };
 
+// The map's word on one of its keyframes: the correction C_MW = T_MB * T_WB^-1
+// that takes the odometry's pose at t_ns to the map's.
+struct MapCorrection {
+  int64_t t_ns = 0;
+  Eigen::Isometry3d C_MW = Eigen::Isometry3d::Identity();
+};
+
 struct DenseStats {
   uint64_t offered = 0;     // tracked frames the estimator thread offered
   uint64_t keyframes = 0;   // selected as dense keyframes
@@ -68,9 +75,11 @@ struct DenseStats {
   // Live re-anchoring.
   uint64_t corrections = 0;          // changes of T_map_odom received
   uint64_t corrections_dropped = 0;  // their ring was full (the thread was seconds behind)
+  uint64_t map_moves = 0;            // the map's keyframe lists received (note_map_keyframes)
   uint64_t reanchored = 0;           // keyframes taken out and fused again
   double reanchor_cpu_s = 0;         // the CPU that cost
   int reanchor_pending_max = 0;      // keyframes waiting for it, at most (sampled after each correction)
+  int reanchor_left = 0;             // still waiting when the thread stopped (the budget ran out first)
   rt::LatencyHistogram reanchor_catch_up;  // correction received -> every keyframe it moved re-fused
   // The viewer stream (attach_view).
   uint64_t view_messages = 0, view_bytes = 0, view_no_slot = 0;
@@ -92,6 +101,14 @@ class DenseMapper {
   // T_map_odom = C_MW and its change counter (MapFrameState::alignment). Only
   // a change is passed on (a ring). Allocation- and lock-free. Used by live_reanchor.
   void note_correction(int64_t t_ns, uint32_t alignment, const Eigen::Isometry3d& C_MW);
+  // The map's loop thread, after it moved its keyframes (a loop closed, a
+  // global bundle adjustment applied), with their corrections sorted by time.
+  // With live_reanchor every archived keyframe within their span then takes
+  // its correction from the two map keyframes around it instead of
+  // T_map_odom shared out over time: a bundle adjustment that moves keyframes
+  // one by one is followed in flight. Copied under a mutex (neither thread is
+  // real time; the estimator thread never calls it). Allocates.
+  void note_map_keyframes(const std::vector<MapCorrection>& sorted);
   // Before the first offer: the viewer's stream, at most view.max_kbps [kbit/s]
   // (encoded on kst-dense; the sink must outlive stop()). Allocates the encoder.
   void attach_view(DenseViewSink* sink, const DenseViewOptions& view);
@@ -125,6 +142,8 @@ class DenseMapper {
   int reanchor_backlog() const { return reanchor_backlog_.load(std::memory_order_acquire); }
   // Any thread: corrections the thread has taken in (their backlog is then known).
   uint64_t corrections_applied() const { return corrections_applied_.load(std::memory_order_acquire); }
+  // Any thread: the map's keyframe lists the thread has taken in.
+  uint64_t map_moves_applied() const { return map_moves_applied_.load(std::memory_order_acquire); }
   const DenseStats& stats() const { return stats_; }
   const DenseOptions& options() const { return opt_; }
   // The thread's row (name, priority, CPU) and what it was granted.
@@ -149,6 +168,9 @@ class DenseMapper {
   void run();
   void fuse_slot(Slot& s);
   void apply_correction(const Correction& c);
+  void apply_map_keyframes();
+  // The map's correction at t from its keyframe list, when t lies within it.
+  bool map_correction_at(int64_t t_ns, Eigen::Isometry3d& C_MW) const;
   bool reanchor_one();  // false: nothing due, or no budget now
   int reanchor_pending(int* worst) const;
   void pump_view();
@@ -185,8 +207,13 @@ class DenseMapper {
   bool have_correction_ = false;
   int64_t interval_t_a_ = 0;  // where the newest correction's interval began, and the correction then
   Eigen::Isometry3d interval_C_a_ = Eigen::Isometry3d::Identity();
+  // The map's keyframe corrections: handed in under map_moves_mutex_, used on kst-dense.
+  std::mutex map_moves_mutex_;
+  std::vector<MapCorrection> map_moves_in_;
+  std::atomic<bool> map_moves_ready_{false};
+  std::vector<MapCorrection> map_C_;  // kst-dense: the newest list
   std::atomic<int> reanchor_backlog_{0};
-  std::atomic<uint64_t> corrections_applied_{0};
+  std::atomic<uint64_t> corrections_applied_{0}, map_moves_applied_{0};
   double reanchor_tokens_cpu_s_ = 0;
   int64_t reanchor_refill_ns_ = -1;
   int64_t catch_up_since_ns_ = -1;  // a correction left keyframes to re-fuse since then
