@@ -481,9 +481,10 @@ LonscOptions lonsc_options(LonscVariant v) {
 const char* to_string(LonscVariant v) { return v == LonscVariant::kPaper ? "paper" : "tuned"; }
 
 EstimatorConfig EstimatorConfig::defaults(const std::string& backend, LonscVariant variant) {
-  if (!estimator_known(backend))
+  if (!estimator_known(backend)) {
     throw std::invalid_argument("unknown estimator '" + backend + "' (expected one of: " + estimator_names() +
                                 ")");
+  }
   EstimatorConfig c;
   c.backend = backend;
   c.lonsc_variant = variant;

@@ -265,10 +265,11 @@ void TsdfMap::fuse(const ImageView& depth, const ImageView& rgb, const CameraInt
                                    vox;
     Voxel* vx = &voxels_[static_cast<std::size_t>(b) * kBlockVoxels];
     for (int i = 0; i < kBlockVoxels; ++i) {
+      // The voxel index split into its three coordinates (integer division on purpose).
+      const int row = i / kBlockSide, layer = i / (kBlockSide * kBlockSide);
       const Eigen::Vector3f p_M =
           origin + vox * Eigen::Vector3f(static_cast<float>(i % kBlockSide),
-                                         static_cast<float>((i / kBlockSide) % kBlockSide),
-                                         static_cast<float>(i / (kBlockSide * kBlockSide)));
+                                         static_cast<float>(row % kBlockSide), static_cast<float>(layer));
       const Eigen::Vector3f p_C = R * p_M + t;
       if (p_C.z() < static_cast<float>(min_z)) continue;
       const int u = static_cast<int>(std::lround(cam.fx * p_C.x() / p_C.z() + cam.cx));
@@ -400,12 +401,14 @@ void TsdfMap::block_surface(int b, Emit&& emit) const {
 }
 
 void TsdfMap::extract_surface(std::vector<SurfacePoint>& out) const {
-  for (int b = 0; b < capacity_; ++b)
-    if (blocks_[static_cast<std::size_t>(b)].used)
+  for (int b = 0; b < capacity_; ++b) {
+    if (blocks_[static_cast<std::size_t>(b)].used) {
       block_surface(b, [&](const SurfacePoint& s) {
         out.push_back(s);
         return true;
       });
+    }
+  }
 }
 
 int TsdfMap::extract_block_surface(int b, SurfacePoint* out, int max) const {

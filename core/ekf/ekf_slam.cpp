@@ -418,12 +418,13 @@ void EkfSlam::symmetric_downdate(int n, int m) {
       P_.block(i0, j0, ib, jb).noalias() -= U_.block(i0, 0, ib, m) * U_.block(j0, 0, jb, m).transpose();
       if (i0 != j0) P_.block(j0, i0, jb, ib) = P_.block(i0, j0, ib, jb).transpose();
     }
-    for (int c = 0; c < jb; ++c)
+    for (int c = 0; c < jb; ++c) {
       for (int r = c + 1; r < jb; ++r) {
         const double v = 0.5 * (P_(j0 + r, j0 + c) + P_(j0 + c, j0 + r));
         P_(j0 + r, j0 + c) = v;
         P_(j0 + c, j0 + r) = v;
       }
+    }
   }
 }
 
@@ -685,9 +686,10 @@ void EkfSlam::initialise_new_tracks(const StereoObservation* obs, int count, Ekf
     // rounds are bounded by the free slots, not by the fullest cell.
     while (num_active_ < cap_) {
       int level = std::numeric_limits<int>::max();
-      for (int i = 0; i < count; ++i)
+      for (int i = 0; i < count; ++i) {
         if (obs_slot_[static_cast<size_t>(i)] == -1)
           level = std::min(level, cell_count_[static_cast<size_t>(cell_of(obs[i]))]);
+      }
       if (level == std::numeric_limits<int>::max()) break;
       for (int i = 0; i < count && num_active_ < cap_; ++i) {
         if (obs_slot_[static_cast<size_t>(i)] != -1) continue;

@@ -33,9 +33,10 @@ std::string OrbOptions::validate() const {
     e << "fast_threshold: " << fast_threshold << " not in [1, 254]\n";
   if (fast_threshold_min < 1 || fast_threshold_min > fast_threshold)
     e << "fast_threshold_min: " << fast_threshold_min << " not in [1, fast_threshold]\n";
-  if (edge_margin < kMinEdgeMargin || edge_margin > 1000)
+  if (edge_margin < kMinEdgeMargin || edge_margin > 1000) {
     e << "edge_margin: " << edge_margin << " not in [" << kMinEdgeMargin
       << ", 1000] (orientation patch radius 15 + 1)\n";
+  }
   if (cell_size < 8 || cell_size > 4096) e << "cell_size: " << cell_size << " not in [8, 4096]\n";
   return e.str();
 }
@@ -175,9 +176,10 @@ struct OrbExtractor::Impl {
 OrbExtractor::OrbExtractor(const OrbOptions& opt, int max_width, int max_height) : opt_(opt) {
   const std::string err = opt.validate();
   if (!err.empty()) throw std::invalid_argument("OrbOptions: " + err);
-  if (max_width < 1 || max_height < 1 || max_width > 16384 || max_height > 16384)
+  if (max_width < 1 || max_height < 1 || max_width > 16384 || max_height > 16384) {
     throw std::invalid_argument("OrbExtractor: max image size " + std::to_string(max_width) + "x" +
                                 std::to_string(max_height) + " not in [1, 16384]^2");
+  }
   max_w_ = max_width;
   max_h_ = max_height;
 
@@ -222,9 +224,10 @@ OrbExtractor::OrbExtractor(const OrbOptions& opt, int max_width, int max_height)
   m.cand_sorted = alloc<Cand>(m.cand_capacity);
   m.max_cells = static_cast<std::size_t>(max_width / opt.cell_size + 2) *
                 static_cast<std::size_t>(max_height / opt.cell_size + 2);
-  if (m.max_cells > 65535)
+  if (m.max_cells > 65535) {
     throw std::invalid_argument("OrbExtractor: " + std::to_string(m.max_cells) +
                                 " grid cells exceed 65535; raise cell_size");
+  }
   m.cell_all = alloc<int32_t>(m.max_cells);
   m.cell_strong = alloc<int32_t>(m.max_cells);
   m.cell_start = alloc<int32_t>(m.max_cells + 1);

@@ -261,7 +261,7 @@ void gaussian_blur7(Plane src, MutPlane dst, uint8_t* tmp) {
   static const std::array<uint16_t, 2 * kBlurRadius + 1> k = gaussian_kernel7();
   const int w = src.width;
   const int h = src.height;
-  constexpr int R = kBlurRadius;
+  const int R = kBlurRadius;
   // Vertical pass (rows clamped at the borders) into tmp, 8-bit rounded:
   // half a grey level of error, invisible to BRIEF's comparisons, and it keeps
   // both passes in 16-bit SIMD lanes.
@@ -312,8 +312,8 @@ inline cv::v_uint16x8 blur_taps(const cv::v_uint16x8* r, const cv::v_uint16x8* k
 
 void gaussian_blur7_patch(Plane src, int cx, int cy, uint8_t* out, uint8_t* tmp) {
   static const std::array<uint16_t, 2 * kBlurRadius + 1> k = gaussian_kernel7();
-  constexpr int R = kBlurRadius;
-  constexpr int P = kPatternRadius;
+  const int R = kBlurRadius;
+  const int P = kPatternRadius;
   constexpr int kOut = kBriefPatchSide;
   constexpr int kIn = kOut + 2 * R;  // columns the horizontal pass reads
   const int h = src.height;
@@ -357,18 +357,20 @@ void gaussian_blur7_patch(Plane src, int cx, int cy, uint8_t* out, uint8_t* tmp)
     return;
   }
 #endif
-  for (int j = 0; j < kOut; ++j)
+  for (int j = 0; j < kOut; ++j) {
     for (int x = 0; x < kIn; ++x) {
       uint32_t acc = 128;
       for (int i = 0; i <= 2 * R; ++i) acc += k[i] * rows[j + i][x];
       tmp[j * kIn + x] = static_cast<uint8_t>(acc >> 8);
     }
-  for (int j = 0; j < kOut; ++j)
+  }
+  for (int j = 0; j < kOut; ++j) {
     for (int x = 0; x < kOut; ++x) {
       uint32_t acc = 128;
       for (int i = 0; i <= 2 * R; ++i) acc += k[i] * tmp[j * kIn + x + i];
       out[j * kOut + x] = static_cast<uint8_t>(acc >> 8);
     }
+  }
 }
 
 // ---- orientation ---------------------------------------------------------------------
@@ -410,11 +412,12 @@ float ic_angle(Plane img, int x, int y, const std::array<int, kPatchRadius + 1>&
     // same angle. Reads c - 15 .. c + 16, inside the image for a keypoint at
     // least kMinEdgeMargin (16) from the border.
     cv::v_int16x8 uv[4];
-    for (int q = 0; q < 4; ++q)
+    for (int q = 0; q < 4; ++q) {
       uv[q] = cv::v_int16x8(static_cast<int16_t>(8 * q - 15), static_cast<int16_t>(8 * q - 14),
                             static_cast<int16_t>(8 * q - 13), static_cast<int16_t>(8 * q - 12),
                             static_cast<int16_t>(8 * q - 11), static_cast<int16_t>(8 * q - 10),
                             static_cast<int16_t>(8 * q - 9), static_cast<int16_t>(8 * q - 8));
+    }
     auto widen = [](const uint8_t* p, cv::v_int16x8* out) {
       cv::v_uint16x8 a, b, e, f;
       cv::v_expand(cv::v_load(p), a, b);

@@ -34,7 +34,7 @@ Eigen::Vector2d PinholeCamera::distort_normalized_to_pixel(const Eigen::Vector2d
 }
 
 Eigen::Vector2d PinholeCamera::pixel_to_normalized(const Eigen::Vector2d& uv) const {
-  const Eigen::Vector2d xd((uv.x() - cx_) / fx_, (uv.y() - cy_) / fy_);
+  Eigen::Vector2d xd((uv.x() - cx_) / fx_, (uv.y() - cy_) / fy_);
   if (!distorted_) return xd;
   Eigen::Vector2d x = xd;
   for (int it = 0; it < 20; ++it) {
@@ -42,7 +42,7 @@ Eigen::Vector2d PinholeCamera::pixel_to_normalized(const Eigen::Vector2d& uv) co
     const double radial = 1.0 + r2 * (k1_ + r2 * (k2_ + r2 * k3_));
     const double dx = 2.0 * p1_ * x.x() * x.y() + p2_ * (r2 + 2.0 * x.x() * x.x());
     const double dy = p1_ * (r2 + 2.0 * x.y() * x.y()) + 2.0 * p2_ * x.x() * x.y();
-    const Eigen::Vector2d next((xd.x() - dx) / radial, (xd.y() - dy) / radial);
+    Eigen::Vector2d next((xd.x() - dx) / radial, (xd.y() - dy) / radial);
     if ((next - x).squaredNorm() < 1e-24) return next;
     x = next;
   }

@@ -126,7 +126,7 @@ bool reprojection_residual(const Eigen::Matrix3d& R, const Eigen::Vector3d& t, c
 
 Eigen::Vector3d rotation_prior_residual(const Eigen::Matrix3d& R, const Eigen::Matrix3d& R_prior,
                                         Eigen::Matrix3d* J) {
-  const Eigen::Vector3d r = so3_log(R * R_prior.transpose());
+  Eigen::Vector3d r = so3_log(R * R_prior.transpose());
   if (J) {
     // d Log(Exp(d) E) / dd = Jl^-1(Log E).
     const double th = r.norm();
@@ -147,8 +147,8 @@ namespace {
 struct GnSystem {
   Eigen::Matrix<double, 6, 6> H;
   Eigen::Matrix<double, 6, 1> g;
-  double cost;
-  int used;
+  double cost = 0;
+  int used = 0;
 };
 
 // Builds (or, with build=false, only evaluates the cost of) the robustified system.

@@ -110,10 +110,11 @@ bool TimeOffsetCalibrator::attitude(int64_t t_ns, Eigen::Quaterniond* out) const
   int lo = 0, hi = g_n_ - 1;  // the last sample at or before t
   while (hi - lo > 1) {
     const int mid = (lo + hi) / 2;
-    if (gyro_at(mid).t_ns <= t_ns)
+    if (gyro_at(mid).t_ns <= t_ns) {
       lo = mid;
-    else
+    } else {
       hi = mid;
+    }
   }
   const Gyro& a = gyro_at(lo);
   const Gyro& b = gyro_at(std::min(lo + 1, g_n_ - 1));

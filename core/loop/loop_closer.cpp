@@ -259,10 +259,11 @@ PlaceMatcher::Result PlaceMatcher::match(const KeyframeFeature* f, int n, const 
     if (arg < 0 || best > opt.match_max_hamming) continue;
     int second = BestTwoMatches::kNone;
     const Eigen::Vector3d& pb = targets_[static_cast<size_t>(arg)].p_M;
-    for (int t = 0; t < nt; ++t)
+    for (int t = 0; t < nt; ++t) {
       if (t != arg && dist_[static_cast<size_t>(t)] < second &&
           (targets_[static_cast<size_t>(t)].p_M - pb).squaredNorm() > kSamePlace_m * kSamePlace_m)
         second = dist_[static_cast<size_t>(t)];
+    }
     if (second != BestTwoMatches::kNone && !(best < opt.match_ratio * second)) continue;
     add_pair(j, arg);
   }
@@ -799,9 +800,10 @@ bool LoopCloser::close(const LoopMatch& lm, LoopClosure* out) {
               std::max(lm.sigma_rad, kLoopSigma_rad)};
   g.add_edge(ic, iq, le.t_ab, yaw_of(lm.correction.linear()), le.sigma_m, le.sigma_rad);
   // Start the keyframes flown since the query where the loop says they are.
-  for (size_t a = 0; a < n_nodes; ++a)
+  for (size_t a = 0; a < n_nodes; ++a) {
     if (!g.fixed[a] && map_.keyframe(slot_of[a]).id >= query_id)
       g.move_node(static_cast<int>(a), lm.correction);
+  }
   if (!g.solve(opt_.pose_graph_iterations)) {
     ++stats_.pose_graph_failures;
     return false;

@@ -76,10 +76,11 @@ BaResult solve_bundle_adjustment_ceres(BaProblem& pb, int max_iterations) {
     if (!o.enabled) continue;
     double* q = pose[static_cast<size_t>(o.pose)].data();
     ceres::CostFunction* cf;
-    if (o.depth_m > 0)
+    if (o.depth_m > 0) {
       cf = new ceres::AutoDiffCostFunction<ObservationCost<3>, 3, 4, 3, 3>(new ObservationCost<3>(pb.K, o));
-    else
+    } else {
       cf = new ceres::AutoDiffCostFunction<ObservationCost<2>, 2, 4, 3, 3>(new ObservationCost<2>(pb.K, o));
+    }
     problem.AddResidualBlock(cf, &huber, q, q + 4, pt[static_cast<size_t>(o.point)].data());
   }
   ceres::Solver::Options so;

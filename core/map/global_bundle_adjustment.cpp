@@ -157,11 +157,12 @@ bool GlobalBundleAdjustment::solve() {
     return false;
   }
   uint64_t outliers = 0;
-  for (BaObservation& ob : pb_.obs)
+  for (BaObservation& ob : pb_.obs) {
     if (ba_chi2(pb_, ob) > outlier_chi2_) {
       ob.enabled = false;
       ++outliers;
     }
+  }
   const BaResult r2 = solve_bundle_adjustment(pb_, opt_.iterations, scratch_);
   if (!r2.usable || !(r2.final_cost <= r1.initial_cost)) {
     ++stats_.failures;

@@ -242,9 +242,10 @@ bool LocalMapper::bundle_adjust(int kf) {
       ++stats_.ba_failures;
       return false;
     }
-    if (round == 0)
+    if (round == 0) {
       for (BaObservation& ob : pb.obs)
         if (ba_chi2(pb, ob) > o.ba_outlier_chi2) ob.enabled = false;
+    }
   }
   for (size_t i = 0; i < local.size(); ++i) {
     Eigen::Isometry3d T_CM = Eigen::Isometry3d::Identity();

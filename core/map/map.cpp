@@ -274,10 +274,11 @@ int Map::covisible(int kf, int min_shared, int max, int32_t* kf_out, int32_t* sh
   int n = 0;
   for (int i = 0; i < n_list; ++i) {
     const int o = covis_list_[i];
-    if (covis_count_[o] >= min_shared)
+    if (covis_count_[o] >= min_shared) {
       covis_list_[n++] = o;
-    else
+    } else {
       covis_count_[o] = 0;
+    }
   }
   std::sort(covis_list_.get(), covis_list_.get() + n, [&](int32_t a, int32_t b) {
     return covis_count_[a] != covis_count_[b] ? covis_count_[a] > covis_count_[b] : kfs_[a].id > kfs_[b].id;

@@ -51,7 +51,7 @@ std::vector<uint8_t> encode_map(const Map& map, const MapCamera& cam) {
   for (size_t i = 0; i < kfs.size(); ++i) file_kf[static_cast<size_t>(kfs[i])] = static_cast<int32_t>(i);
   std::vector<int32_t> file_pt(static_cast<size_t>(map.max_points()), -1);
   std::vector<int> pts;
-  for (int k : kfs)
+  for (int k : kfs) {
     for (int j = 0; j < map.keyframe(k).n; ++j) {
       const int32_t p = map.point_of(k, j);
       if (p >= 0 && file_pt[static_cast<size_t>(p)] < 0) {
@@ -59,6 +59,7 @@ std::vector<uint8_t> encode_map(const Map& map, const MapCamera& cam) {
         pts.push_back(p);
       }
     }
+  }
 
   std::vector<uint8_t> payload;
   ByteWriter w(payload);
@@ -137,19 +138,20 @@ std::string decode_map(const uint8_t* data, size_t n, const MapCamera& cam, Map*
         width, height, K.fx, K.fy, K.cx, K.cy, cam.width, cam.height, cam.K.fx, cam.K.fy, cam.K.cx, cam.K.cy);
     return b;
   }
-  if (n_kf > static_cast<uint32_t>(map->max_keyframes()) || n_pt > static_cast<uint32_t>(map->max_points()))
+  if (n_kf > static_cast<uint32_t>(map->max_keyframes()) || n_pt > static_cast<uint32_t>(map->max_points())) {
     return "holds " + std::to_string(n_kf) + " keyframes and " + std::to_string(n_pt) +
            " points, more than this map's capacity (map.max_keyframes " +
            std::to_string(map->max_keyframes()) + ", map.max_points " + std::to_string(map->max_points()) +
            ")";
+  }
   // Read and check everything before the map is touched.
   struct Kf {
-    int64_t t_ns;
+    int64_t t_ns = 0;
     Eigen::Isometry3d T_MC, T_WC;
-    int32_t parent;
-    double path_m;
-    size_t first;  // into feats / feat_pt
-    int n;
+    int32_t parent = -1;
+    double path_m = 0;
+    size_t first = 0;  // into feats / feat_pt
+    int n = 0;
   };
   std::vector<Kf> kfs;
   std::vector<KeyframeFeature> feats;
@@ -167,9 +169,10 @@ std::string decode_map(const uint8_t* data, size_t n, const MapCamera& cam, Map*
     if (k.parent < -1 || k.parent >= static_cast<int32_t>(i))
       return at("keyframe", i) + "parent out of range";
     if (!std::isfinite(k.path_m)) return at("keyframe", i) + "path length not finite";
-    if (nf > static_cast<uint32_t>(map->features_per_keyframe()))
+    if (nf > static_cast<uint32_t>(map->features_per_keyframe())) {
       return at("keyframe", i) + std::to_string(nf) + " features, this tracker keeps " +
              std::to_string(map->features_per_keyframe());
+    }
     // Each feature takes 58 bytes: a count larger than what is left is damage, not a reason to allocate.
     if (static_cast<size_t>(nf) * 58 > r.remaining()) return at("keyframe", i) + "truncated";
     k.first = feats.size();
@@ -188,9 +191,10 @@ std::string decode_map(const uint8_t* data, size_t n, const MapCamera& cam, Map*
       if (!std::isfinite(f.x_px) || !std::isfinite(f.y_px) || !std::isfinite(f.u_px) ||
           !std::isfinite(f.v_px) || !std::isfinite(f.depth_m) || f.depth_m < 0 || f.level < 0 || f.level > 31)
         return at("keyframe", i) + "feature " + std::to_string(j) + " damaged";
-      if (p < -1 || p >= static_cast<int64_t>(n_pt))
+      if (p < -1 || p >= static_cast<int64_t>(n_pt)) {
         return at("keyframe", i) + "feature " + std::to_string(j) + " observes point " + std::to_string(p) +
                " of " + std::to_string(n_pt);
+      }
       feats.push_back(f);
       feat_pt.push_back(p);
     }
@@ -198,9 +202,9 @@ std::string decode_map(const uint8_t* data, size_t n, const MapCamera& cam, Map*
   }
   struct Pt {
     Eigen::Vector3d p_M;
-    OrbDescriptor desc;
-    int level;
-    uint32_t visible, found;
+    OrbDescriptor desc{};
+    int level = 0;
+    uint32_t visible = 0, found = 0;
   };
   if (static_cast<size_t>(n_pt) * 66 > r.remaining()) return "truncated in the points";
   std::vector<Pt> pts(n_pt);

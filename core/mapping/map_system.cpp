@@ -29,10 +29,11 @@ MapSystem::MapSystem(const MapCamera& cam, int features_per_keyframe, const MapS
     MapFileInfo info;
     const std::string e = decode_map(opt.map_in->data(), opt.map_in->size(), cam, map_.get(), &info);
     if (!e.empty()) throw std::runtime_error(where + ": not a usable map: " + e);
-    if (reloc_ == nullptr)
+    if (reloc_ == nullptr) {
       throw std::runtime_error(where +
                                ": a loaded map is found by relocalisation, which needs the loop on and a "
                                "vocabulary (--loop on, map.vocabulary)");
+    }
     last_kf_ = map_->newest_keyframe();
     loaded_unfound_ = info.keyframes > 0;
   }

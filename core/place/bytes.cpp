@@ -41,9 +41,10 @@ std::string open_sealed(const uint8_t* data, size_t n, const char magic[4], uint
   if (!r.ok()) return "truncated header";
   if (v != version)
     return "format version " + std::to_string(v) + ", this build reads version " + std::to_string(version);
-  if (len > r.remaining() || r.remaining() - len < 4)
+  if (len > r.remaining() || r.remaining() - len < 4) {
     return "truncated: the header promises " + std::to_string(len) + " bytes of payload, the file has " +
            std::to_string(r.remaining() >= 4 ? r.remaining() - 4 : 0);
+  }
   if (r.remaining() - len != 4) return "trailing bytes after the checksum";
   const uint8_t* p = data + r.offset();
   ByteReader tail(p + len, 4);

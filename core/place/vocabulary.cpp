@@ -280,9 +280,10 @@ Vocabulary Vocabulary::deserialise(const uint8_t* data, size_t n, std::string* e
   // A root without children has no leaves: every descriptor would map to no
   // word, and the idf table would be read out of range (found by fuzzing).
   if (v.words_ == 0) return fail("the tree has no words (the root has no children)");
-  if (static_cast<uint32_t>(v.words_) != n_words)
+  if (static_cast<uint32_t>(v.words_) != n_words) {
     return fail("the tree has " + std::to_string(v.words_) + " leaves but " + std::to_string(n_words) +
                 " word weights");
+  }
   v.idf_ = idf;
   v.finish();
   return v;

@@ -36,9 +36,10 @@ inline uint32_t sad_vector(const cv::v_uint8x16* a, const uint8_t* b, int stride
 std::string StereoMatchOptions::validate() const {
   std::ostringstream e;
   if (!(min_disparity_px >= 1 && max_disparity_px > min_disparity_px + 2 &&
-        max_disparity_px <= kMaxDisparity - 2))
+        max_disparity_px <= kMaxDisparity - 2)) {
     e << "stereo: 1 <= min_disparity_px, min_disparity_px + 2 < max_disparity_px <= " << kMaxDisparity - 2
       << "\n";
+  }
   if (patch_half_rows_px < 1 || patch_half_rows_px > 15) e << "stereo.patch_half_rows_px: 1..15\n";
   if (!(uniqueness_ratio > 0 && uniqueness_ratio <= 1)) e << "stereo.uniqueness_ratio: in (0, 1]\n";
   if (!(max_mean_abs_diff > 0)) e << "stereo.max_mean_abs_diff: > 0\n";

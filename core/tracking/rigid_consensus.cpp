@@ -32,7 +32,7 @@ struct Sums {
     const Eigen::Vector3d mp = sp / n, mq = sq / n;
     const Eigen::Matrix3d H = spq - n * mp * mq.transpose();
     const Eigen::JacobiSVD<Eigen::Matrix3d> svd(H, Eigen::ComputeFullU | Eigen::ComputeFullV);
-    const Eigen::Vector3d s = svd.singularValues();
+    const Eigen::Vector3d& s = svd.singularValues();
     // Collinear points leave the rotation about their line free.
     if (!(s(1) > 1e-9 * std::max(1.0, s(0))) || !(s(1) > 1e-8)) return false;
     Eigen::Matrix3d D = Eigen::Matrix3d::Identity();
@@ -99,12 +99,13 @@ void RigidConsensus::walk_lonsc(const PinholeK& K, std::size_t n, const uint32_t
   const int n_cand = std::clamp(opt_.candidate_runs, 1, kMaxCandidates);
   auto offer = [&](const Run& r) {
     if (r.length < opt_.min_run_length) return;
-    for (int k = 0; k < n_cand; ++k)
+    for (int k = 0; k < n_cand; ++k) {
       if (r.length > best[k].length) {
         for (int j = n_cand - 1; j > k; --j) best[j] = best[j - 1];
         best[k] = r;
         return;
       }
+    }
   };
   // The walk over the 3D-3D pairs; the others cannot seed or grow a model.
   std::size_t m = 0;
@@ -225,10 +226,11 @@ RigidEstimate RigidConsensus::estimate(RigidMethod method, const PinholeK& K, co
     out.status = MotionStatus::kTooFewCorrespondences;
     return out;
   }
-  if (method == RigidMethod::kRansac)
+  if (method == RigidMethod::kRansac) {
     run_ransac(K, n, &out);
-  else
+  } else {
     walk_lonsc(K, n, order, &out);
+  }
   if (!out.ok()) {
     out.consistency_checks = checks_;
     return out;

@@ -44,10 +44,11 @@ std::string TrackerOptions::validate() const {
   if (map_capacity < 0) e << "map_capacity: >= 0 (0: no local map)\n";
   if (!(rigid.consistency.threshold_px > 0 && rigid.depth_tol_rel >= 0 && rigid.depth_tol_m >= 0 &&
         rigid.min_run_length >= 3 && rigid.candidate_runs >= 1 && rigid.candidate_runs <= 8 &&
-        rigid.confidence > 0 && rigid.confidence < 1 && rigid.max_iterations >= 1))
+        rigid.confidence > 0 && rigid.confidence < 1 && rigid.max_iterations >= 1)) {
     e << "rigid.*: threshold_px > 0, tolerances >= 0, min_run_length >= 3, candidate_runs in [1, 8], "
          "confidence "
          "in (0, 1), max_iterations >= 1\n";
+  }
   if (map_capacity > 0 && !(map_search_radius_px > 0 && map_min_inliers >= 6 && map_match_ratio > 0 &&
                             map_match_ratio <= 1 && map_max_correction_m > 0 && map_max_correction_rad > 0))
     e << "map_*: radius > 0, min_inliers >= 6, ratio in (0, 1], max corrections > 0\n";

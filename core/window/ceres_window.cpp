@@ -341,12 +341,13 @@ struct CeresWindow {
       lm[a] = {L.p_W.x(), L.p_W.y(), L.p_W.z()};
       for (int j = 0; j < L.n_obs; ++j) {
         const int s = L.obs_slot[j];
-        if (P.estimate_td())
+        if (P.estimate_td()) {
           problem.AddResidualBlock(new VisualCost(P, P.obs_of(s)[L.obs_idx[j]]), loss, pose[s].data(),
                                    lm[a].data(), &td_s);
-        else
+        } else {
           problem.AddResidualBlock(new VisualCost(P, P.obs_of(s)[L.obs_idx[j]]), loss, pose[s].data(),
                                    lm[a].data());
+        }
         ++n_residual_blocks;
       }
       if (L.has_prior) {

@@ -117,11 +117,12 @@ std::string WindowEstimator::backend_summary() const {
   if (calib_) {
     const TimeOffsetEstimate e = calib_->estimate();
     o << ", time offset " << 1e3 * td_s_ << " ms (rotation correlation: ";
-    if (e.sigma_s > 0.0)
+    if (e.sigma_s > 0.0) {
       o << 1e3 * e.td_s << " +- " << 1e3 * e.sigma_s << " ms, residual " << 1e3 * e.residual_rad << " mrad"
         << (e.valid ? "" : " (too loose, unused)");
-    else
+    } else {
       o << "none";
+    }
     o << ", " << calib_->used_intervals() << " intervals, " << calib_->gated_intervals() << " gated)";
   }
   if (map_) o << "\n" << map_->summary();
@@ -375,9 +376,10 @@ void WindowEstimator::queue_job(const RgbdFrame& f, const TrackResult& r) {
       const double td = job.td_meas_s;
       const Eigen::Vector3d w_B = last_gyro_rps_ - job.guess.bg_rps;
       job.T_WB_map.translation() -= job.guess.v_WB * td;
-      if (w_B.norm() > 0.0)
+      if (w_B.norm() > 0.0) {
         job.T_WB_map.linear() =
             job.T_WB_map.linear() * Eigen::AngleAxisd(-td * w_B.norm(), w_B.normalized()).toRotationMatrix();
+      }
     }
     job.map_sigma_p_m = std::max(opt_.map_pose_sigma_m, r.map_sigma_p_m);
     job.map_sigma_rad = std::max(opt_.map_pose_sigma_rad, r.map_sigma_rad);

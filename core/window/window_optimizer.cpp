@@ -65,9 +65,10 @@ std::string WindowOptions::validate() const {
   if (!(zero_velocity_sigma_mps > 0.0)) e << "zero_velocity_sigma_mps must be > 0; ";
   if (!(time_offset_prior_sigma_ms > 0.0)) e << "time_offset_prior_sigma_ms must be > 0; ";
   if (!(hold_velocity_sigma_mps > 0.0) || !(hold_gyro_bias_sigma_rps > 0.0) ||
-      !(hold_acc_bias_sigma_mps2 > 0.0))
+      !(hold_acc_bias_sigma_mps2 > 0.0)) {
     e << "hold sigmas (hold_velocity_sigma_mps, hold_gyro_bias_sigma_rps, hold_acc_bias_sigma_mps2) must be "
          "> 0; ";
+  }
   return e.str();
 }
 
@@ -752,9 +753,10 @@ double problem_cost(const WindowProblem& P, const NavState* xs, const Eigen::Vec
       if (visual_residual(P, xs[s], ls[active[a]], P.obs_of(s)[L.obs_idx[j]], td_s, &r) == 0) continue;
       cost += 0.5 * huber_rho(r.squaredNorm(), P.opt.huber_px, nullptr);
     }
-    if (L.has_prior)
+    if (L.has_prior) {
       cost +=
           0.5 * huber_rho(landmark_prior_residual(L, ls[active[a]]).squaredNorm(), P.opt.huber_px, nullptr);
+    }
   }
   for (int k = 0; k < P.n_states; ++k) {
     const int s = P.order[k];
@@ -859,9 +861,10 @@ WindowOptimizer::Result WindowOptimizer::optimize_ours() {
   for (int k = 0; k < P.n_states; ++k) n_imu += P.states[P.order[k]].has_imu;
   res.landmarks = ws.n_active;
   int n_zv = 0;
-  for (int k = 0; k < P.n_states; ++k)
+  for (int k = 0; k < P.n_states; ++k) {
     n_zv += (P.states[P.order[k]].zero_velocity ? 1 : 0) + (P.states[P.order[k]].has_pose_prior ? 1 : 0) +
             (P.states[P.order[k]].hold ? 1 : 0);
+  }
   res.residuals = n_vis + n_imu + n_zv + (P.gauge_active() ? 1 : 0) + (P.gauge_rotation_active() ? 1 : 0) +
                   (P.prior_active ? 1 : 0) + (with_td ? 1 : 0);
 

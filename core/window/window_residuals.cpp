@@ -31,9 +31,10 @@ int visual_residual(const WindowProblem& P, const NavState& x, const Eigen::Vect
   (*r)(1) = (P.K.fy * p_C.y() * iz + P.K.cy - uv.y()) * isp;
   // The depth too was measured at t + t_d: moved back along its own rate.
   (*r)(2) = rows == 3 ? (p_C.z() - (o.depth_m - o.depth_vel_mps * td_s)) / o.sigma_depth_m : 0.0;
-  if (J_td)
+  if (J_td) {
     *J_td = Eigen::Vector3d(o.uv_vel_pxps.x() * isp, o.uv_vel_pxps.y() * isp,
                             rows == 3 ? o.depth_vel_mps / o.sigma_depth_m : 0.0);
+  }
   if (J_pose == nullptr && J_l == nullptr) return rows;
   // d r / d p_C, whitened.
   Eigen::Matrix3d D = Eigen::Matrix3d::Zero();

@@ -64,7 +64,7 @@ struct TsdfCounters {
 // One point of the extracted surface, in the map's frame.
 struct SurfacePoint {
   Eigen::Vector3f p;
-  uint8_t rgb[3];
+  uint8_t rgb[3] = {0, 0, 0};
 };
 
 class TsdfMap {

@@ -27,7 +27,8 @@ struct DepthGridShape {
   static DepthGridShape make(int cols, const PinholeK& K, int width, int height);
   // Normalised undistorted coordinates (x/z, y/z) of cell c's centre.
   Eigen::Vector2d ray(int c) const {
-    const double u = (c % cols + 0.5) * width / cols, v = (c / cols + 0.5) * height / rows;
+    const int col = c % cols, row = c / cols;
+    const double u = (col + 0.5) * width / cols, v = (row + 0.5) * height / rows;
     return {(u - K.cx) / K.fx, (v - K.cy) / K.fy};
   }
   // The cell a camera-frame point projects into, or -1.

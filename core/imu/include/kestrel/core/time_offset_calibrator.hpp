@@ -71,12 +71,12 @@ class TimeOffsetCalibrator {
 
  private:
   struct Gyro {
-    int64_t t_ns;
+    int64_t t_ns = 0;
     Eigen::Vector3d w;
     Eigen::Quaterniond q;  // the body's attitude integrated from the first sample kept (q_B0B)
   };
   struct Interval {
-    int64_t t0_ns, t1_ns;
+    int64_t t0_ns = 0, t1_ns = 0;
     Eigen::Quaterniond q_B0B1;  // the camera's rotation, in the body frame
   };
   const Gyro& gyro_at(int k) const { return gyro_[(g_head_ + k) % opt_.gyro_capacity]; }

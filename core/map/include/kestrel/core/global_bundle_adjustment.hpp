@@ -91,8 +91,8 @@ class GlobalBundleAdjustment {
  private:
   enum class State { kIdle, kSnapshot, kSolved };
   struct KfRef {
-    int32_t slot;
-    uint32_t id;
+    int32_t slot = -1;
+    uint32_t id = 0;
     Eigen::Isometry3d T_MC;  // at the snapshot
   };
   struct PointRef {

@@ -120,8 +120,8 @@ struct WindowSolveResult {
   PackedNavState x{};  // the newest window state (at the job's frame time)
   double td_s = 0.0;   // the window's time offset estimate (estimate_time_offset)
   int64_t kf_t_ns = 0;
-  double kf_p[3], kf_q[4];  // T_WC of the tracker's keyframe
-  int64_t solve_ns = 0;     // wall time of this solve on the optimizer thread
+  double kf_p[3] = {0, 0, 0}, kf_q[4] = {1, 0, 0, 0};  // T_WC of the tracker's keyframe
+  int64_t solve_ns = 0;                                // wall time of this solve on the optimizer thread
 };
 
 class WindowEstimator final : public Estimator {
@@ -233,9 +233,9 @@ class WindowEstimator final : public Estimator {
   // The previous tracked frame's observations by landmark id (sorted), for
   // the image velocities; fixed capacity (the tracker's feature budget).
   struct PrevObs {
-    uint32_t id;
+    uint32_t id = 0;
     Eigen::Vector2d uv;
-    double depth_m;  // 0: none
+    double depth_m = 0;  // 0: none
   };
 
  public:
