@@ -1,12 +1,14 @@
 // The rendered room the dense map's tests fly in (test_dense_accuracy,
-// test_dense_reanchor, test_dense_live): its true geometry as a distance
-// function, the surface-error quantiles, and the circle the camera flies.
+// test_dense_reanchor, test_dense_live, test_dense_query): its true geometry
+// as a distance function, the surface-error quantiles, the circle the camera
+// flies, its camera and frame times, and the odometry's drift.
 #pragma once
 
 #include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
 #include <cstddef>
+#include <cstdint>
 #include <vector>
 
 #include "kestrel/tools/sim_render.hpp"
@@ -73,6 +75,34 @@ inline Eigen::Isometry3d camera_looking(const Eigen::Vector3d& p, const Eigen::V
 inline Eigen::Isometry3d pose_on_circle(double a) {
   return camera_looking(Eigen::Vector3d(0.8 * std::cos(a), 0.8 * std::sin(a), 1.4 + 0.2 * std::sin(3 * a)),
                         Eigen::Vector3d(std::cos(a + 0.6), std::sin(a + 0.6), -0.25));
+}
+
+// The camera the room is flown with: 320 x 240 at 262.5 px, body = camera (T_BC identity).
+inline Rig room_rig() {
+  Rig r;
+  r.rgb.width = 320;
+  r.rgb.height = 240;
+  r.rgb.fx = r.rgb.fy = 262.5;
+  r.rgb.cx = 159.5;
+  r.rgb.cy = 119.5;
+  return r;
+}
+
+// Frame f's time: 30 Hz from 1 s.
+constexpr int64_t kRoomFrameNs = 33'000'000;
+inline int64_t room_frame_t_ns(int f) { return 1'000'000'000LL + f * kRoomFrameNs; }
+
+// The map's correction C_MW = T_map_odom that frame f's odometry needs when
+// the odometry drifts by a fixed yaw and translation a frame until frame
+// `until` and is exact relative to its pose there after it: odometry = C(f)^-1 * truth.
+inline Eigen::Isometry3d linear_drift_correction(int f, int until, double yaw_deg_per_frame,
+                                                 const Eigen::Vector3d& m_per_frame) {
+  const int g = std::min(f, until);
+  Eigen::Isometry3d C = Eigen::Isometry3d::Identity();
+  C.linear() =
+      Eigen::AngleAxisd(-g * yaw_deg_per_frame * M_PI / 180.0, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+  C.translation() = -g * m_per_frame;
+  return C;
 }
 
 }  // namespace kestrel::dense_test

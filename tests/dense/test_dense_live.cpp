@@ -27,6 +27,7 @@
 #include "kestrel/rt/alloc_counter.hpp"
 #include "kestrel/rt/clock.hpp"
 #include "kestrel/tools/sim_render.hpp"
+#include "room_flight.hpp"
 
 namespace kestrel {
 namespace {
@@ -35,29 +36,16 @@ using namespace dense_test;
 
 constexpr int kFrames = 180;  // two laps: the second sees the first's walls again, drifted
 constexpr int kLoopFrame = 150;
-constexpr int64_t kFrameNs = 33'000'000;
-int64_t t_of(int f) { return 1'000'000'000LL + f * kFrameNs; }
+int64_t t_of(int f) { return room_frame_t_ns(f); }
 
-// The map's correction C_MW = T_map_odom that frame f's odometry needs: 4 mm
-// and 0.06 deg of yaw a frame until the loop (0.65 m, 9 deg), the odometry
-// exact after it (hovering on good features). odometry = C(f)^-1 * truth.
+// The map's correction that frame f's odometry needs: 4 mm and 0.06 deg of
+// yaw a frame until the loop (0.65 m, 9 deg), the odometry exact after it
+// (hovering on good features).
 Eigen::Isometry3d correction(int f) {
-  const int g = std::min(f, kLoopFrame);
-  Eigen::Isometry3d C = Eigen::Isometry3d::Identity();
-  C.linear() = Eigen::AngleAxisd(-g * 0.06 * M_PI / 180.0, Eigen::Vector3d::UnitZ()).toRotationMatrix();
-  C.translation() = -Eigen::Vector3d(0.004 * g, -0.002 * g, 0.0005 * g);
-  return C;
+  return linear_drift_correction(f, kLoopFrame, 0.06, Eigen::Vector3d(0.004, -0.002, 0.0005));
 }
 
-Rig rig() {
-  Rig r;
-  r.rgb.width = 320;
-  r.rgb.height = 240;
-  r.rgb.fx = r.rgb.fy = 262.5;
-  r.rgb.cx = 159.5;
-  r.rgb.cy = 119.5;
-  return r;  // T_BC identity: body = camera
-}
+Rig rig() { return room_rig(); }
 
 struct Errors {
   double median = 0, p95 = 0;
@@ -155,16 +143,9 @@ Flight fly(bool reanchor, double cpu_s_per_s, MapWord word = MapWord::kTmapOdom,
   for (int f = 0; f < kFrames; ++f) {
     const Eigen::Isometry3d T_true = pose_on_circle(2 * M_PI * f / 90.0);
     const Eigen::Isometry3d T_odom = drift(f).inverse() * T_true;
-    render.render(T_true, static_cast<uint64_t>(f), rgb.data(), depth.data());
-    const ImageView dv{r.rgb.width, r.rgb.height, 2 * r.rgb.width, PixelFormat::kDepthU16,
-                       reinterpret_cast<const uint8_t*>(depth.data())};
-    const ImageView cv{r.rgb.width, r.rgb.height, 3 * r.rgb.width, PixelFormat::kRgb8, rgb.data()};
     // The map knows no better than identity until the loop closes.
-    const uint64_t a0 = rt::alloc_count_this_thread();
-    const bool loop = f >= kLoopFrame;
-    m.note_correction(t_of(f), loop ? 1 : 0, loop ? drift(kLoopFrame) : Eigen::Isometry3d::Identity());
-    m.offer(t_of(f), cv, dv, T_odom);
-    out.estimator_allocs += rt::alloc_count_this_thread() - a0;
+    out.estimator_allocs +=
+        hand_frame(m, render, r, f, T_true, T_odom, f >= kLoopFrame, drift(kLoopFrame), rgb, depth);
     if (word == MapWord::kKeyframes && f == kLoopFrame) {
       // The map's keyframes, every 5th frame, each with its own correction (the
       // drift grew along the way): no single transform could move them all.
@@ -243,8 +224,10 @@ TEST(DenseLive, SurfacesFollowTheMapsKeyframesMovedOneByOne) {
   const Flight even = fly(true, 0.25, MapWord::kTmapOdom, true);
   const Flight kfs = fly(true, 0.25, MapWord::kKeyframes, true);
   std::printf(
-      "drift between frames 40 and 80, live map: T_map_odom shared out over time median %.1f mm, 95%% %.1f mm; "
-      "the map's keyframes median %.1f mm, 95%% %.1f mm (%zu points); %llu keyframes re-fused in %.2f CPU-s\n",
+      "drift between frames 40 and 80, live map: T_map_odom shared out over time median %.1f mm, 95%% %.1f "
+      "mm; "
+      "the map's keyframes median %.1f mm, 95%% %.1f mm (%zu points); %llu keyframes re-fused in %.2f "
+      "CPU-s\n",
       1e3 * even.map.median, 1e3 * even.map.p95, 1e3 * kfs.map.median, 1e3 * kfs.map.p95, kfs.map.points,
       static_cast<unsigned long long>(kfs.stats.reanchored), kfs.stats.reanchor_cpu_s);
   EXPECT_EQ(kfs.stats.map_moves, 1u);

@@ -23,6 +23,7 @@
 #include "kestrel/rt/alloc_counter.hpp"
 #include "kestrel/rt/clock.hpp"
 #include "kestrel/tools/sim_render.hpp"
+#include "room_flight.hpp"
 
 namespace kestrel {
 namespace {
@@ -31,27 +32,12 @@ using namespace dense_test;
 
 constexpr int kFrames = 90;  // one lap
 constexpr int kLoopFrame = 70;
-constexpr int64_t kFrameNs = 33'000'000;
-int64_t t_of(int f) { return 1'000'000'000LL + f * kFrameNs; }
+int64_t t_of(int f) { return room_frame_t_ns(f); }
 
 // The odometry drifts 1 mm and 0.02 deg of yaw a frame until the loop; the
 // correction then moves the keyframes back (enough to re-fuse most of them).
 Eigen::Isometry3d correction(int f) {
-  const int g = std::min(f, kLoopFrame);
-  Eigen::Isometry3d C = Eigen::Isometry3d::Identity();
-  C.linear() = Eigen::AngleAxisd(-g * 0.02 * M_PI / 180.0, Eigen::Vector3d::UnitZ()).toRotationMatrix();
-  C.translation() = -Eigen::Vector3d(0.001 * g, -0.0005 * g, 0.0);
-  return C;
-}
-
-Rig rig() {
-  Rig r;
-  r.rgb.width = 320;
-  r.rgb.height = 240;
-  r.rgb.fx = r.rgb.fy = 262.5;
-  r.rgb.cx = 159.5;
-  r.rgb.cy = 119.5;
-  return r;
+  return linear_drift_correction(f, kLoopFrame, 0.02, Eigen::Vector3d(0.001, -0.0005, 0.0));
 }
 
 struct Answer {
@@ -61,7 +47,7 @@ struct Answer {
 
 TEST(DenseQuery, APlannerQueriesTheMapInFlightAndEveryAnswerIsOnTheTrueGeometry) {
   const tools::Scene scene = room_with_boxes();
-  const Rig r = rig();
+  const Rig r = room_rig();
   tools::RenderOptions ro;
   ro.seed = 5;
   tools::Renderer render(scene, r.rgb, r.depth, ro);
@@ -112,15 +98,8 @@ TEST(DenseQuery, APlannerQueriesTheMapInFlightAndEveryAnswerIsOnTheTrueGeometry)
   for (int f = 0; f < kFrames; ++f) {
     const Eigen::Isometry3d T_true = pose_on_circle(2 * M_PI * f / kFrames);
     const Eigen::Isometry3d T_odom = correction(f).inverse() * T_true;
-    render.render(T_true, static_cast<uint64_t>(f), rgb.data(), depth.data());
-    const ImageView dv{r.rgb.width, r.rgb.height, 2 * r.rgb.width, PixelFormat::kDepthU16,
-                       reinterpret_cast<const uint8_t*>(depth.data())};
-    const ImageView cv{r.rgb.width, r.rgb.height, 3 * r.rgb.width, PixelFormat::kRgb8, rgb.data()};
-    const uint64_t a0 = rt::alloc_count_this_thread();
-    const bool loop = f >= kLoopFrame;
-    m.note_correction(t_of(f), loop ? 1 : 0, loop ? correction(kLoopFrame) : Eigen::Isometry3d::Identity());
-    m.offer(t_of(f), cv, dv, T_odom);
-    estimator_allocs += rt::alloc_count_this_thread() - a0;
+    estimator_allocs +=
+        hand_frame(m, render, r, f, T_true, T_odom, f >= kLoopFrame, correction(kLoopFrame), rgb, depth);
     if (f == kLoopFrame) {
       // The map's loop thread hands over its keyframes, as after a global bundle adjustment.
       std::thread loop_thread([&m] {
@@ -148,8 +127,8 @@ TEST(DenseQuery, APlannerQueriesTheMapInFlightAndEveryAnswerIsOnTheTrueGeometry)
   std::printf(
       "planner: %llu queries in flight (%zu point answers, %d segments, %d occupied, %d distances), "
       "occupancy wait p50 %.3f ms p99 %.2f ms max %.2f ms; integrate p99 %.2f ms; %llu keyframes re-fused\n",
-      static_cast<unsigned long long>(queries), answers.size(), segments, segments_occupied, distances, p50, p99,
-      worst, 1e-6 * static_cast<double>(s.integrate.p99()),
+      static_cast<unsigned long long>(queries), answers.size(), segments, segments_occupied, distances, p50,
+      p99, worst, 1e-6 * static_cast<double>(s.integrate.p99()),
       static_cast<unsigned long long>(s.reanchored));
 
   EXPECT_EQ(estimator_allocs, 0u) << "the hand-off allocated while a planner queried";
@@ -183,8 +162,8 @@ TEST(DenseQuery, APlannerQueriesTheMapInFlightAndEveryAnswerIsOnTheTrueGeometry)
       free_inside += (!in_room || in_box) && d > 0.25;
     }
   }
-  std::printf("answers: %d occupied (%d off a true surface), %d free (%d inside solid)\n", occupied, occupied_off,
-              free, free_inside);
+  std::printf("answers: %d occupied (%d off a true surface), %d free (%d inside solid)\n", occupied,
+              occupied_off, free, free_inside);
   EXPECT_GT(occupied, 0);
   EXPECT_GT(free, 0);
   EXPECT_EQ(occupied_off, 0);

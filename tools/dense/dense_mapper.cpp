@@ -3,8 +3,8 @@
 #include <time.h>
 
 #include <algorithm>
-#include <cstdint>
 #include <cmath>
+#include <cstdint>
 #include <cstring>
 #include <stdexcept>
 #include <string>
@@ -234,10 +234,9 @@ void DenseMapper::apply_correction(const Correction& c) {
     if (t <= t_a || t <= map_until) continue;
     const auto k = static_cast<std::size_t>((first + static_cast<uint64_t>(i)) %
                                             static_cast<uint64_t>(archive_->capacity()));
-    const double s =
-        t >= c.t_ns || after_map
-            ? 1.0
-            : static_cast<double>(t - t_a) / static_cast<double>(std::max<int64_t>(1, c.t_ns - t_a));
+    const double s = t >= c.t_ns || after_map ? 1.0
+                                              : static_cast<double>(t - t_a) /
+                                                    static_cast<double>(std::max<int64_t>(1, c.t_ns - t_a));
     target_C_[k] = interpolate(C_a, c.C_MW, s);
   }
   interval_t_a_ = t_a;
@@ -270,8 +269,9 @@ bool DenseMapper::map_correction_at(int64_t t_ns, Eigen::Isometry3d& C_MW) const
     return true;
   }
   const MapCorrection& a = *std::prev(it);
-  C_MW = interpolate(a.C_MW, it->C_MW,
-                     static_cast<double>(t_ns - a.t_ns) / static_cast<double>(std::max<int64_t>(1, it->t_ns - a.t_ns)));
+  C_MW = interpolate(
+      a.C_MW, it->C_MW,
+      static_cast<double>(t_ns - a.t_ns) / static_cast<double>(std::max<int64_t>(1, it->t_ns - a.t_ns)));
   return true;
 }
 

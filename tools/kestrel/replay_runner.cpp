@@ -1074,9 +1074,8 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     report.dense_live_reanchor = dense_opt.live_reanchor;
     report.dense_live_blocks = dm.blocks_in_use();
     if (opt.on_dense_map_live) opt.on_dense_map_live(dm);
-    if (dense_opt.live_reanchor &&
-        (!opt.dense_out.empty() || !opt.dense_octomap_out.empty() || opt.on_dense_map ||
-         opt.on_dense_finished)) {
+    if (dense_opt.live_reanchor && (!opt.dense_out.empty() || !opt.dense_octomap_out.empty() ||
+                                    opt.on_dense_map || opt.on_dense_finished)) {
       // In flight the map was in the map frame; the contract of --dense-out
       // is W: the archive fused again along the odometry (the identity).
       dense_mapper.rebuild_along([](int64_t, Eigen::Isometry3d& C_MW) {
@@ -1708,17 +1707,18 @@ std::string replay_summary(const ReplayReport& r) {
         static_cast<unsigned long long>(r.dense_points));
     s += buf;
     if (r.dense_live_reanchor) {
-      std::snprintf(buf, sizeof buf,
-                    "dense map live re-anchoring: %llu corrections (%llu dropped), %llu map keyframe lists, "
-                    "%llu keyframes re-fused, %.2f CPU-s, at most %d waiting, %d left at the end, caught up p50 "
-                    "%.0f ms max %.0f ms; --dense-out along W: %d keyframes %.2f s\n",
-                    static_cast<unsigned long long>(d.corrections),
-                    static_cast<unsigned long long>(d.corrections_dropped),
-                    static_cast<unsigned long long>(d.map_moves), static_cast<unsigned long long>(d.reanchored),
-                    d.reanchor_cpu_s, d.reanchor_pending_max, d.reanchor_left,
-                    1e-6 * static_cast<double>(d.reanchor_catch_up.percentile(50)),
-                    1e-6 * static_cast<double>(d.reanchor_catch_up.max()), r.dense_w_rebuild.fused,
-                    1e-9 * static_cast<double>(r.dense_w_rebuild.cpu_ns));
+      std::snprintf(
+          buf, sizeof buf,
+          "dense map live re-anchoring: %llu corrections (%llu dropped), %llu map keyframe lists, "
+          "%llu keyframes re-fused, %.2f CPU-s, at most %d waiting, %d left at the end, caught up p50 "
+          "%.0f ms max %.0f ms; --dense-out along W: %d keyframes %.2f s\n",
+          static_cast<unsigned long long>(d.corrections),
+          static_cast<unsigned long long>(d.corrections_dropped),
+          static_cast<unsigned long long>(d.map_moves), static_cast<unsigned long long>(d.reanchored),
+          d.reanchor_cpu_s, d.reanchor_pending_max, d.reanchor_left,
+          1e-6 * static_cast<double>(d.reanchor_catch_up.percentile(50)),
+          1e-6 * static_cast<double>(d.reanchor_catch_up.max()), r.dense_w_rebuild.fused,
+          1e-9 * static_cast<double>(r.dense_w_rebuild.cpu_ns));
       s += buf;
     }
     if (d.view_messages > 0 || d.view_no_slot > 0) {
