@@ -264,7 +264,7 @@ bool DenseMapper::map_correction_at(int64_t t_ns, Eigen::Isometry3d& C_MW) const
   if (map_C_.empty() || t_ns < map_C_.front().t_ns || t_ns > map_C_.back().t_ns) return false;
   const auto it = std::lower_bound(map_C_.begin(), map_C_.end(), t_ns,
                                    [](const MapCorrection& m, int64_t t) { return m.t_ns < t; });
-  if (it->t_ns == t_ns || it == map_C_.begin()) {
+  if (it->t_ns == t_ns) {  // also the first entry: t_ns >= its time
     C_MW = it->C_MW;
     return true;
   }
