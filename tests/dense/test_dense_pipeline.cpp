@@ -13,6 +13,7 @@
 #include <cstdio>
 #include <cstring>
 #include <fstream>
+#include <mutex>
 #include <sstream>
 #include <string>
 #include <thread>
@@ -156,7 +157,9 @@ TEST(DensePipeline, RealtimePaceDropsInsteadOfWaitingAndCounts) {
 // ReplayOptions::on_dense_live: a planner thread gets the running mapper
 // before the first record and queries it while the flight goes on (realtime
 // pace, as in the air); the handle is withdrawn once kst-dense stopped, and
-// the final map answers as the live one last did.
+// the final map answers as the live one last did. The withdrawal waits for a
+// query in progress (the mutex the planner holds around its use of the
+// mapper), as the contract asks: the mapper is destroyed soon after.
 TEST(DensePipeline, APlannerQueriesTheLiveMapThroughTheWholeFlight) {
   ASSERT_TRUE(rt::alloc_hook_linked());
   const std::string dir = test::temp_dir("dense_live_query");
@@ -164,24 +167,29 @@ TEST(DensePipeline, APlannerQueriesTheLiveMapThroughTheWholeFlight) {
   ro.path = simulate(dir, 5.0);
   ro.pace = drivers::ReplayPace::kRealtime;
   ro.dense.enabled = true;
-  std::atomic<const dense::DenseMapper*> live{nullptr};
+  std::mutex in_use;                         // held by the planner while it uses the mapper
+  const dense::DenseMapper* live = nullptr;  // under in_use
   std::atomic<int> given{0}, withdrawn{0};
   ro.on_dense_live = [&](const dense::DenseMapper* m) {
     (m != nullptr ? given : withdrawn).fetch_add(1);
-    live.store(m, std::memory_order_release);
+    const std::lock_guard<std::mutex> lock(in_use);
+    live = m;
   };
   std::atomic<bool> done{false};
   std::vector<std::size_t> occupied_seen;
   uint64_t queries = 0;
   std::thread planner([&] {
     while (!done.load(std::memory_order_acquire)) {
-      if (const dense::DenseMapper* m = live.load(std::memory_order_acquire)) {
-        m->read([&](const core::TsdfMap& map) {
-          std::vector<Eigen::Vector3f> occ;
-          map.occupied_voxels(occ);
-          occupied_seen.push_back(occ.size());
-        });
-        queries = m->queries();
+      {
+        const std::lock_guard<std::mutex> lock(in_use);
+        if (live != nullptr) {
+          live->read([&](const core::TsdfMap& map) {
+            std::vector<Eigen::Vector3f> occ;
+            map.occupied_voxels(occ);
+            occupied_seen.push_back(occ.size());
+          });
+          queries = live->queries();
+        }
       }
       rt::sleep_for_ns(20'000'000);
     }
@@ -198,7 +206,7 @@ TEST(DensePipeline, APlannerQueriesTheLiveMapThroughTheWholeFlight) {
   ASSERT_TRUE(r.dense);
   EXPECT_EQ(given.load(), 1);
   EXPECT_EQ(withdrawn.load(), 1);
-  EXPECT_EQ(live.load(), nullptr);
+  EXPECT_EQ(live, nullptr);
   EXPECT_EQ(r.steady_allocs, 0) << "a planner's queries made the estimator thread allocate";
   // About 4 s of flight sampled every 20 ms; the map the planner saw grew.
   ASSERT_GE(occupied_seen.size(), 20u);

@@ -246,7 +246,10 @@ struct ReplayOptions {
   // A planner in flight (docs/dense.md "Live queries"): called with the running
   // mapper before the first record, and with nullptr once its thread has
   // stopped (also when the replay throws); in between any non-real-time thread
-  // may call its occupancy / segment / distance / read. Does not enable the map.
+  // may call its occupancy / segment / distance / read. The mapper is destroyed
+  // soon after the nullptr call returns, so that call must not return while
+  // another thread is still inside a query (e.g. take the mutex the planner
+  // holds around its queries). Does not enable the map.
   std::function<void(const dense::DenseMapper*)> on_dense_live;
   // Called at the end with the finished map in W when the map ran for another
   // reason (the ROS outputs' dense cloud); unlike on_dense_map it does not enable it.
