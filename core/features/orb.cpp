@@ -10,6 +10,7 @@
 #include <stdexcept>
 
 #include "kestrel/core/orb_detail.hpp"
+#include "kestrel/pixels.hpp"
 #include "simd.hpp"
 
 namespace kestrel::core {
@@ -478,14 +479,7 @@ OrbStatus OrbExtractor::extract(const ImageView& image, OrbFeatures& out) noexce
   if (image.format == PixelFormat::kGray8) {
     level = Plane{image.data, w0, h0, image.stride_bytes};
   } else {
-    const int ri = image.format == PixelFormat::kRgb8 ? 0 : 2;
-    const int bi = 2 - ri;
-    for (int y = 0; y < h0; ++y) {
-      const uint8_t* s = image.data + static_cast<std::ptrdiff_t>(y) * image.stride_bytes;
-      uint8_t* d = m.gray0.get() + static_cast<std::ptrdiff_t>(y) * w0;
-      for (int x = 0; x < w0; ++x, s += 3)
-        d[x] = static_cast<uint8_t>((77 * s[ri] + 150 * s[1] + 29 * s[bi] + 128) >> 8);
-    }
+    luma_plane(image, m.gray0.get(), w0);
     level = Plane{m.gray0.get(), w0, h0, w0};
   }
 
