@@ -39,6 +39,12 @@ class StereoRectifier {
 
   uint64_t refused_images() const { return refused_; }
 
+  // Whether the remap reads eight pixels at a time (AVX2, where the CPU has
+  // it; the default). Off runs the scalar loop, which computes the same bytes:
+  // for tests that hold the two to each other and for benches.
+  bool vector_path() const;
+  void set_vector_path(bool enabled);
+
  private:
   struct Impl;
   Rig rectified_;
