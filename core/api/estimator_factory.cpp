@@ -36,6 +36,6 @@ std::unique_ptr<Estimator> make_estimator(const EstimatorConfig& c, const Rig& r
                               ")");
 }
 
-const Tracker* tracker_of(const Estimator& est) { return est.front_end_tracker(); }
+const Tracker* tracker_of(const Estimator& est) { return est.view().tracker; }
 
 }  // namespace kestrel::core

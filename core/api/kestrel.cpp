@@ -49,21 +49,31 @@ bool Estimator::feed_rgbd(int64_t t_ns, const ImageView& rgb, const ImageView& d
   return true;
 }
 
+// One round of the map's workers on the caller's thread (one thread: the
+// workers' group needs no lock): true when any of them did something.
+bool Estimator::step_map_workers(bool* busy) {
+  bool worked = false;
+  *busy = false;
+  for (core::EstimatorWorker* w : impl_->workers()) {
+    if (w->kind() == core::EstimatorWorker::Kind::kOptimizer) continue;
+    if (w->step()) worked = true;
+    if (w->step_ungrouped()) worked = true;
+    if (w->busy()) *busy = true;
+  }
+  return worked;
+}
+
 void Estimator::run_map() {
   for (int guard = 0; guard < 1000; ++guard) {
-    const bool mapped = impl_->mapping_step();
-    const bool looped = impl_->loop_step();
-    const bool adjusted = impl_->map_system() != nullptr && impl_->map_system()->global_ba_step();
-    if (!mapped && !looped && !adjusted && !impl_->map_busy()) return;
+    bool busy = false;
+    if (!step_map_workers(&busy) && !busy) return;
   }
 }
 
 bool Estimator::map_step() {
   if (map_work_ != MapWork::kCaller || !impl_->has_map()) return false;
-  const bool mapped = impl_->mapping_step();
-  const bool looped = impl_->loop_step();
-  const bool adjusted = impl_->map_system() != nullptr && impl_->map_system()->global_ba_step();
-  return mapped || looped || adjusted;
+  bool busy = false;
+  return step_map_workers(&busy);
 }
 
 bool Estimator::has_map() const { return impl_->has_map(); }

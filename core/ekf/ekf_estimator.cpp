@@ -127,6 +127,7 @@ EkfEstimator::EkfEstimator(const Rig& rig, const EkfEstimatorOptions& opt)
     cam.keypoint_sigma_px = opt_.tracker.keypoint_sigma_px;
     cam.level_scale = opt_.tracker.orb.scale_factor;
     map_ = std::make_unique<MapSystem>(cam, opt_.tracker.orb.n_features, opt_.map);
+    map_->set_T_CB(T_BC_.inverse());
     if (!rig.stereo.present) map_->enable_depth_grid(rig.rgb, rig.depth);
   }
 }

@@ -91,6 +91,7 @@ WindowEstimator::WindowEstimator(const Rig& rig, const WindowEstimatorOptions& o
     cam.keypoint_sigma_px = opt_.frontend.tracker.keypoint_sigma_px;
     cam.level_scale = opt_.frontend.tracker.orb.scale_factor;
     map_ = std::make_unique<MapSystem>(cam, opt_.frontend.tracker.orb.n_features, opt_.map);
+    map_->set_T_CB(T_BC_.inverse());
     if (!rig.stereo.present) map_->enable_depth_grid(rig.rgb, rig.depth);
   }
 }
@@ -634,8 +635,27 @@ void WindowEstimator::process(int slot) {
   }
 }
 
-std::vector<MapKeyframePose> WindowEstimator::map_keyframe_poses() const {
-  return map_ ? map_->keyframe_poses(T_BC_.inverse()) : std::vector<MapKeyframePose>{};
+EstimatorWorkers WindowEstimator::workers() {
+  EstimatorWorkers w;
+  w.add(&optimizer_worker_);
+  if (map_) {
+    w.add(&map_->mapping_worker());
+    w.add(&map_->loop_worker());
+  }
+  return w;
+}
+
+EstimatorView WindowEstimator::view() const {
+  EstimatorView v;
+  v.tracker = &front().tracker();
+  v.has_optimizer = true;
+  v.optimizer.jobs = wc_.jobs;
+  v.optimizer.applied = wc_.applied;
+  v.optimizer.failures = wc_.failures;
+  v.optimizer.skipped_busy = wc_.skipped_busy;
+  v.optimizer.resets = wc_.window_resets;
+  v.optimizer.last_solve_ns = last_solve_ns_;
+  return v;
 }
 
 }  // namespace kestrel::core

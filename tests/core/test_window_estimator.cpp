@@ -11,6 +11,8 @@
 #include <thread>
 
 #include "estimator_harness.hpp"
+#include "kestrel/core/ekf_estimator.hpp"
+#include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/core/tracker.hpp"
 #include "kestrel/core/window_estimator.hpp"
 #include "kestrel/drivers/open_log.hpp"
@@ -58,20 +60,22 @@ TEST(WindowEstimator, Figure8BeatsTheFrontEndAndKeepsAPoseForEveryFrame) {
 TEST(WindowEstimator, OptimizerOnItsOwnThreadNeverBlocksTheOutput) {
   const std::string path = test::simulate("figure8", 8.0, 3);
   std::atomic<bool> stop{false};
-  core::Estimator* raw = nullptr;
+  // Through the interface a pipeline uses: the backend's optimizer worker, stepped on a thread of the test's.
+  core::EstimatorWorker* worker = nullptr;
   std::atomic<bool> ready{false};
   std::thread optimizer;
   auto make = [&](const Rig& rig) -> std::unique_ptr<core::Estimator> {
-    auto e = std::make_unique<core::WindowEstimator>(rig);
-    e->set_threaded_optimizer(true);
-    raw = e.get();
+    std::unique_ptr<core::Estimator> e = std::make_unique<core::WindowEstimator>(rig);
+    worker = e->workers().find(core::EstimatorWorker::Kind::kOptimizer);
+    EXPECT_NE(worker, nullptr);
+    worker->set_threaded(true);
     ready = true;
     optimizer = std::thread([&] {
       while (!ready.load()) std::this_thread::yield();
       while (!stop.load(std::memory_order_relaxed)) {
-        if (!raw->optimizer_step()) rt::sleep_for_ns(200'000);
+        if (!worker->step()) rt::sleep_for_ns(200'000);
       }
-      while (raw->optimizer_step()) {
+      while (worker->step()) {
       }
     });
     return e;
@@ -97,13 +101,13 @@ TEST(WindowEstimator, OptimizerOnItsOwnThreadNeverBlocksTheOutput) {
   const core::WindowEstimatorCounters& c = as_window(est).window_counters();
   const double ate_win = test::ate(win);
   std::printf("threaded optimizer, figure8 8 s: ATE %.4f m; %s; solve p50 %.2f ms p99 %.2f ms\n", ate_win,
-              est->backend_summary().c_str(), 1e-6 * est->optimizer_latency()->percentile(50),
-              1e-6 * est->optimizer_latency()->percentile(99));
+              est->backend_summary().c_str(), 1e-6 * worker->latency()->percentile(50),
+              1e-6 * worker->latency()->percentile(99));
   // At real-time pace the solver keeps up: most frames are applied, and the
   // result matches the inline optimizer's accuracy class.
   EXPECT_GT(c.applied, c.jobs / 2);
   EXPECT_LT(ate_win, 0.05);
-  EXPECT_GT(est->optimizer_latency()->count(), 20u);
+  EXPECT_GT(worker->latency()->count(), 20u);
 }
 
 TEST(WindowEstimator, ImuGapRestartsTheWindowWhenNotToContinueWithoutIt) {
@@ -329,4 +333,50 @@ TEST(WindowEstimator, ParkedVehicleGetsTheZeroVelocityFactorAndDoesNotDrift) {
   EXPECT_GT(static_cast<double>(c.stationary_frames), 70.0 * (parked_s - 1.0) / 3.0);
   EXPECT_LT(drift, 0.002);
   EXPECT_LT(test::ate(win), 0.02);  // the take-off after it still tracks
+}
+
+// The pipeline schedules a backend's work by kind without knowing the backend (issue 45): what each backend
+// hands over, and that the map's two workers are one group.
+TEST(EstimatorWorkers, EachBackendHandsItsWorkOverByKind) {
+  using Kind = core::EstimatorWorker::Kind;
+  const Rig rig = drivers::open_log(test::simulate("hover", 1.0, 5))->rig();
+  for (bool map : {false, true}) {
+    core::WindowEstimatorOptions wo;
+    wo.map.mapping = map;
+    core::WindowEstimator window(rig, wo);
+    const core::EstimatorWorkers w = window.workers();
+    ASSERT_EQ(w.count, map ? 3 : 1);
+    ASSERT_NE(w.find(Kind::kOptimizer), nullptr);
+    EXPECT_EQ(w.find(Kind::kOptimizer)->group(), nullptr);
+    EXPECT_EQ(window.has_map(), map);
+    EXPECT_TRUE(window.view().has_optimizer);
+    EXPECT_NE(window.view().tracker, nullptr);
+    if (map) {
+      ASSERT_NE(w.find(Kind::kMapping), nullptr);
+      ASSERT_NE(w.find(Kind::kLoop), nullptr);
+      EXPECT_NE(w.find(Kind::kMapping)->group(), nullptr);
+      EXPECT_EQ(w.find(Kind::kMapping)->group(), w.find(Kind::kLoop)->group());
+      EXPECT_NE(w.find(Kind::kMapping)->latency(), nullptr);
+      // Nothing handed over yet: no work, nothing busy.
+      EXPECT_FALSE(w.find(Kind::kMapping)->step());
+      EXPECT_FALSE(w.find(Kind::kLoop)->busy());
+    }
+    // With nothing queued the optimizer has nothing to do, threaded or not.
+    EXPECT_FALSE(w.find(Kind::kOptimizer)->step());
+  }
+  core::EkfEstimatorOptions eo;
+  eo.mapping = true;
+  eo.map.mapping = true;
+  core::EkfEstimator ekf(rig, eo);
+  const core::EstimatorWorkers e = ekf.workers();
+  EXPECT_EQ(e.count, 2);
+  EXPECT_EQ(e.find(Kind::kOptimizer), nullptr);
+  EXPECT_NE(e.find(Kind::kLoop), nullptr);
+  EXPECT_FALSE(ekf.view().has_optimizer);
+  // The light backends have no worker and no map.
+  for (const char* name : {"vo", "imu", "rgbd"}) {
+    std::unique_ptr<core::Estimator> est = core::make_estimator(name, rig);
+    EXPECT_EQ(est->workers().count, 0) << name;
+    EXPECT_FALSE(est->has_map()) << name;
+  }
 }

@@ -18,32 +18,33 @@ constexpr int64_t kIdleWaitNs = 50'000'000;
 MapThreads::MapThreads(core::Estimator& est, const drivers::ThreadTable& table,
                        std::vector<AppliedThread>& applied)
     : est_(est) {
-  if (!est.has_map()) return;
+  const core::EstimatorWorkers workers = est.workers();
+  workers_[0] = workers.find(core::EstimatorWorker::Kind::kMapping);
+  workers_[1] = workers.find(core::EstimatorWorker::Kind::kLoop);
+  if (workers_[0] == nullptr && workers_[1] == nullptr) return;
   started_ = true;
   const drivers::PipelineThread which[2] = {drivers::PipelineThread::kMapping,
                                             drivers::PipelineThread::kLoop};
   for (int t = 0; t < 2; ++t) {
+    if (workers_[t] == nullptr) continue;
     rt::ThreadSetupReport sched;
     threads_[t] = rt::start_thread(
         table[which[t]],
         [this, t] {
+          core::EstimatorWorker& w = *workers_[t];
           for (;;) {
             bool worked;
             {
-              std::lock_guard<std::mutex> lock(mutex_);
-              if (t == 0) {
-                worked = est_.mapping_step();
-              } else {
-                const core::MapSystem* ms = est_.map_system();
-                const uint32_t before = ms != nullptr ? ms->frame().alignment : 0;
-                worked = est_.loop_step();
-                if (on_map_moved_ && ms != nullptr && ms->frame().alignment != before)
-                  on_map_moved_(est_.map_keyframe_poses());
-              }
+              // One mutex for the workers' group (the map they share).
+              std::unique_lock<std::mutex> lock(mutex_, std::defer_lock);
+              if (w.group() != nullptr) lock.lock();
+              const core::MapSystem* ms = est_.map_system();
+              const uint32_t before = ms != nullptr ? ms->frame().alignment : 0;
+              worked = w.step();
+              if (t == 1 && on_map_moved_ && ms != nullptr && ms->frame().alignment != before)
+                on_map_moved_(ms->keyframe_poses());
             }
-            // The global bundle adjustment solves its copy of the map outside
-            // the lock, so the mapping thread goes on meanwhile.
-            if (t == 1 && est_.map_system() != nullptr && est_.map_system()->global_ba_step()) worked = true;
+            if (w.step_ungrouped()) worked = true;
             if (worked) {
               // A mapped keyframe is new work for the loop thread.
               if (t == 0) bells_[1].ring();
@@ -69,8 +70,14 @@ void MapThreads::set_on_map_moved(std::function<void(const std::vector<core::Map
   on_map_moved_ = std::move(fn);
 }
 
+bool MapThreads::busy() const {
+  for (const core::EstimatorWorker* w : workers_)
+    if (w != nullptr && w->busy()) return true;
+  return false;
+}
+
 void MapThreads::wait_idle() {
-  while (est_.map_busy()) idle_bell_.wait_for_ns(kIdleWaitNs);
+  while (busy()) idle_bell_.wait_for_ns(kIdleWaitNs);
 }
 
 void MapThreads::stop() {

@@ -1,7 +1,8 @@
 // The map's two threads, shared by `kestrel replay` and `kestrel run`:
-// kst-mapping runs Estimator::mapping_step() (local mapping), kst-loop runs
-// Estimator::loop_step() (place recognition, loop closing, relocalisation).
-// They share the map, so one mutex serialises them; no real-time thread
+// kst-mapping steps the estimator's kMapping worker (local mapping), kst-loop
+// its kLoop worker (place recognition, loop closing, relocalisation, then the
+// global bundle adjustment's solve outside the lock). They share the map (one
+// worker group), so one mutex serialises them; no real-time thread
 // touches that mutex (the tracking side reaches the map only through the
 // lock-free hand-off of core/mapping). docs/map.md, docs/threads.md.
 #pragma once
@@ -21,7 +22,7 @@ namespace kestrel::cli {
 
 class MapThreads {
  public:
-  // Starts both threads when est.has_map() (nothing otherwise), scheduled by
+  // Starts a thread for each of the estimator's map workers (none without a map), scheduled by
   // the table's kst-mapping and kst-loop rows; what was granted is appended to `applied`.
   MapThreads(core::Estimator& est, const drivers::ThreadTable& table, std::vector<AppliedThread>& applied);
   ~MapThreads();
@@ -51,7 +52,10 @@ class MapThreads {
   double loop_cpu_s() const { return cpu_s_[1]; }
 
  private:
+  bool busy() const;
+
   core::Estimator& est_;
+  core::EstimatorWorker* workers_[2] = {nullptr, nullptr};  // kMapping, kLoop
   bool started_ = false;
   std::atomic<bool> stop_{false};
   std::mutex mutex_;

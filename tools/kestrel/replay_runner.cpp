@@ -634,8 +634,9 @@ namespace {
 // keyframe left the map since). After the map threads stopped: it allocates.
 MapFinal map_final_of(core::Estimator& est) {
   MapFinal f;
-  for (const core::MapKeyframePose& k : est.map_keyframe_poses()) f.keyframes.push_back({k.t_ns, k.T_MB});
   if (est.map_system() == nullptr) return f;
+  for (const core::MapKeyframePose& k : est.map_system()->keyframe_poses())
+    f.keyframes.push_back({k.t_ns, k.T_MB});
   auto position_at = [&f](int64_t t_ns, const Eigen::Vector3d& fallback) {
     const auto it = std::lower_bound(f.keyframes.begin(), f.keyframes.end(), t_ns,
                                      [](const MapFinal::Keyframe& k, int64_t t) { return k.t_ns < t; });
@@ -783,8 +784,10 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   // At realtime pace the optimizer gets its own thread, as it will fly; fast
   // and lockstep run it inline, so both give the lockstep trajectory bit for
   // bit whatever the machine's load.
-  const bool optimizer_thread = opt.pace == drivers::ReplayPace::kRealtime && estimator.has_optimizer();
-  estimator.set_threaded_optimizer(optimizer_thread);
+  const core::EstimatorWorkers workers = estimator.workers();
+  core::EstimatorWorker* optimizer = workers.find(core::EstimatorWorker::Kind::kOptimizer);
+  const bool optimizer_thread = opt.pace == drivers::ReplayPace::kRealtime && optimizer != nullptr;
+  if (optimizer != nullptr) optimizer->set_threaded(optimizer_thread);
 
   std::unique_ptr<drivers::ReplaySource> source;
   if (log) source = std::make_unique<drivers::ReplaySource>(*log, *rings, opt.pace);
@@ -989,7 +992,7 @@ ReplayReport run_replay(const ReplayOptions& opt) {
             while (!estimator_done.load(std::memory_order_acquire)) {
               // A job is handed over only while the estimator works, and it
               // rings after each piece of work: a spurious wake costs one look.
-              if (!estimator.optimizer_step()) opt_bell.wait_for_ns(kIdleWaitNs);
+              if (!optimizer->step()) opt_bell.wait_for_ns(kIdleWaitNs);
             }
             opt_cpu = thread_cpu_s();
           },
@@ -1029,10 +1032,12 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     }
   }
   map_threads.stop();
-  if (!opt.map_out.empty()) tools::write_map_file(opt.map_out, estimator.save_map());
+  if (!opt.map_out.empty())
+    tools::write_map_file(opt.map_out,
+                          report.has_map ? estimator.map_system()->save() : std::vector<uint8_t>{});
   if (report.has_map) {
     std::vector<tools::KeyframeAnchor>& anchors = report.map_final_keyframes;
-    for (const core::MapKeyframePose& k : estimator.map_keyframe_poses())
+    for (const core::MapKeyframePose& k : estimator.map_system()->keyframe_poses())
       anchors.push_back({k.t_ns, k.T_MB, k.T_WB});
     if (!anchors.empty())
       report.map_final_trajectory = tools::anchor_to_keyframes(report.trajectory, anchors);
@@ -1138,15 +1143,20 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     report.replay.imu_pushed = estimator.counters().imu_in;
     report.replay.frames_pushed = estimator.counters().frames_in;
   }
-  if (const rt::LatencyHistogram* h = estimator.mapping_latency()) report.mapping = *h;
-  if (const rt::LatencyHistogram* h = estimator.loop_latency()) report.loop = *h;
+  for (const core::EstimatorWorker* w : workers) {
+    const rt::LatencyHistogram* h = w->latency();
+    if (h == nullptr) continue;
+    if (w->kind() == core::EstimatorWorker::Kind::kMapping) report.mapping = *h;
+    if (w->kind() == core::EstimatorWorker::Kind::kLoop) report.loop = *h;
+    if (w->kind() == core::EstimatorWorker::Kind::kOptimizer) report.optimizer = *h;
+  }
   report.estimator_counters = estimator.counters();
   report.backend_summary = estimator.backend_summary();
   double td_s = 0.0;
   report.time_offset_estimated = estimator.estimated_time_offset_s(&td_s);
   report.time_offset_ms = 1e-6 * static_cast<double>(rig.time_offset_cam_imu_ns) + 1e3 * td_s;
   report.optimizer_threaded = optimizer_thread;
-  if (const rt::LatencyHistogram* h = estimator.optimizer_latency()) report.optimizer = *h;
+
   // What the feeder lost, not the rings' refused pushes: in fast pace the
   // feeder retries a full ring (back-pressure), and every retry is a refusal.
   report.imu_ring_drops = report.replay.imu_dropped;

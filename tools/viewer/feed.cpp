@@ -164,8 +164,9 @@ void ViewerFeed::fill(ViewSnapshot& s, const core::RgbdFrame& f, const FrameInfo
   st.tracking_ns = info.tracking_ns;
   st.tracking_max_ns = tracking_max_ns_;
   st.imu_to_pose_max_ns = imu_max_ns_;
-  core::OptimizerStatus w;
-  st.has_window = est_.optimizer_status(&w);
+  const core::EstimatorView view = est_.view();
+  const core::OptimizerStatus& w = view.optimizer;
+  st.has_window = view.has_optimizer;
   if (st.has_window) {
     st.optimizer_solve_ns = w.last_solve_ns;
     st.window_jobs = w.jobs;

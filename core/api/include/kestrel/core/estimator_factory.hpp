@@ -24,7 +24,7 @@ bool estimator_known(const std::string& name);
 
 class Tracker;
 // The tracker of the backends built on one (vo, window, ekf, rgbd; nullptr
-// for imu), for status lines and the live viewer: Estimator::front_end_tracker().
+// for imu), for status lines and the live viewer: Estimator::view().tracker.
 const Tracker* tracker_of(const Estimator& est);
 
 }  // namespace kestrel::core

@@ -106,6 +106,7 @@ class Estimator {
  private:
   void publish(bool from_frame);
   void run_map();
+  bool step_map_workers(bool* busy);
   std::unique_ptr<core::Estimator> impl_;
   MapWork map_work_ = MapWork::kInline;
   StateCallback cb_;

@@ -191,25 +191,26 @@ class EkfEstimator final : public Estimator {
   const EkfEstimatorCounters& ekf_counters() const { return ekf_counters_; }
   const TrackResult& last_track() const { return tracker_.last(); }
   const Tracker& tracker() const { return tracker_; }
-  const Tracker* front_end_tracker() const override { return &tracker_; }
+  EstimatorView view() const override {
+    EstimatorView v;
+    v.tracker = &tracker_;
+    return v;
+  }
   const EkfEstimatorOptions& options() const { return opt_; }
   // Per frame with observations: ekf_.update() alone [ns].
   const rt::LatencyHistogram& update_latency() const { return update_latency_; }
   const DivergenceMonitor& divergence() const { return monitor_; }
 
-  bool has_map() const override { return map_ != nullptr; }
-  bool mapping_step() override { return map_ && map_->mapping_step(); }
-  bool loop_step() override { return map_ && map_->loop_step(); }
-  bool map_busy() const override { return map_ && map_->busy(); }
-  const rt::LatencyHistogram* mapping_latency() const override {
-    return map_ ? &map_->mapping_latency() : nullptr;
+  // With the map: its two workers.
+  EstimatorWorkers workers() override {
+    EstimatorWorkers w;
+    if (map_) {
+      w.add(&map_->mapping_worker());
+      w.add(&map_->loop_worker());
+    }
+    return w;
   }
-  const rt::LatencyHistogram* loop_latency() const override { return map_ ? &map_->loop_latency() : nullptr; }
-  std::vector<uint8_t> save_map() const override { return map_ ? map_->save() : std::vector<uint8_t>{}; }
-  std::vector<MapKeyframePose> map_keyframe_poses() const override {
-    return map_ ? map_->keyframe_poses(T_BC_.inverse()) : std::vector<MapKeyframePose>{};
-  }
-  MapSystem* map_system() override { return map_.get(); }
+  MapSystem* map_system() const override { return map_.get(); }
 
  private:
   // moving: the velocity and tilt are guesses (a moving start, or a restart

@@ -136,7 +136,7 @@ struct EstimatorCounters {
 
 class MapSystem;  // core/mapping
 
-// One keyframe of the map at the end of a flight (Estimator::map_keyframe_poses).
+// One keyframe of the map at the end of a flight (MapSystem::keyframe_poses).
 struct MapKeyframePose {
   int64_t t_ns = 0;
   Eigen::Isometry3d T_MB = Eigen::Isometry3d::Identity();  // refined, in the map frame
@@ -145,7 +145,7 @@ struct MapKeyframePose {
 
 class Tracker;
 
-// A backend's optimizer, for status lines and the viewer (Estimator::optimizer_status).
+// A backend's optimizer, for status lines and the viewer (EstimatorView).
 struct OptimizerStatus {
   uint64_t jobs = 0;     // solves asked for
   uint64_t applied = 0;  // solves whose result was taken
@@ -153,6 +153,58 @@ struct OptimizerStatus {
   uint64_t skipped_busy = 0;  // frames that found the optimizer still busy
   uint64_t resets = 0;        // window restarts
   int64_t last_solve_ns = 0;
+};
+
+// Work a backend runs off the thread that feeds it, on a thread the pipeline
+// gives it from its thread table (docs/threads.md): the window's optimizer,
+// the map's local mapping and loop closing. The pipeline schedules workers by
+// kind, without knowing the backend.
+class EstimatorWorker {
+ public:
+  enum class Kind : uint8_t { kOptimizer, kMapping, kLoop };
+  virtual ~EstimatorWorker() = default;
+  virtual Kind kind() const = 0;
+  // Before the first sample, by a caller that will run step() on a thread of
+  // its own. Without it the optimizer runs inline in add_frame, which is
+  // deterministic (lockstep replay, tests), and bounded by its iteration
+  // limit only; on a thread its time budget applies. The map's workers do
+  // nothing unless someone steps them.
+  virtual void set_threaded(bool /*on*/) {}
+  // One unit of queued work; false when there was none. The worker's thread only.
+  virtual bool step() = 0;
+  // Workers that return the same non-null group share state: their callers
+  // never run step() of two of them at once (one mutex per group; core takes
+  // no locks). The map's two workers share the map.
+  virtual const void* group() const { return nullptr; }
+  // Work that follows step() outside the group's exclusion, on the same
+  // thread (the global bundle adjustment solves its own copy of the map);
+  // false when there was none.
+  virtual bool step_ungrouped() { return false; }
+  // Work was handed over and is not finished (deterministic paces wait for it).
+  virtual bool busy() const { return false; }
+  // Per step [ns]; read it after the worker's thread stopped. nullptr: not measured.
+  virtual const rt::LatencyHistogram* latency() const { return nullptr; }
+};
+
+// A backend's workers, at most one of each kind, fixed for its life.
+struct EstimatorWorkers {
+  std::array<EstimatorWorker*, 3> list{};
+  int count = 0;
+  void add(EstimatorWorker* w) { list[static_cast<size_t>(count++)] = w; }
+  EstimatorWorker* find(EstimatorWorker::Kind k) const {
+    for (int i = 0; i < count; ++i)
+      if (list[static_cast<size_t>(i)]->kind() == k) return list[static_cast<size_t>(i)];
+    return nullptr;
+  }
+  EstimatorWorker* const* begin() const { return list.data(); }
+  EstimatorWorker* const* end() const { return list.data() + count; }
+};
+
+// What a display reads of a backend, from the thread that feeds it.
+struct EstimatorView {
+  const Tracker* tracker = nullptr;  // the tracking front end; nullptr for imu
+  bool has_optimizer = false;        // optimizer is valid
+  OptimizerStatus optimizer;
 };
 
 class Estimator {
@@ -165,17 +217,18 @@ class Estimator {
   virtual const EstimatorOutput& output() const = 0;
   virtual const EstimatorCounters& counters() const = 0;
 
-  // Backends with an optimizer. By default add_frame runs it inline, which is
-  // deterministic (lockstep replay, tests). After set_threaded_optimizer(true)
-  // (before the first sample) add_frame only queues the work and the caller
-  // runs optimizer_step() on a thread of its own: a lock-free hand-off both
-  // ways, so a slow solve delays refinement, never the pose output.
-  virtual bool has_optimizer() const { return false; }
-  virtual void set_threaded_optimizer(bool /*on*/) {}
-  // One queued solve; false when there was nothing to do. Optimizer thread only.
-  virtual bool optimizer_step() { return false; }
-  // Per solve [ns]; read it after the optimizer thread stopped.
-  virtual const rt::LatencyHistogram* optimizer_latency() const { return nullptr; }
+  // The work this backend runs beside the feeding thread (none for most).
+  virtual EstimatorWorkers workers() { return {}; }
+  // The map (nullptr without one: window and ekf with mapping on, docs/map.md).
+  // Keyframes reach it through a lock-free ring the tracking side may
+  // overrun; its own work is the kMapping and kLoop workers. The harness
+  // turns on its loop log before the flight; save(), keyframe_poses() and
+  // the rest are read after the workers' threads stopped.
+  virtual MapSystem* map_system() const { return nullptr; }
+  bool has_map() const { return map_system() != nullptr; }
+  // For displays, from the thread that feeds.
+  virtual EstimatorView view() const { return {}; }
+
   // One line of backend-specific counters for reports ("" when none).
   virtual std::string backend_summary() const { return {}; }
   // The camera-IMU time offset the backend estimated online on top of the
@@ -186,37 +239,6 @@ class Estimator {
   // A backend without one (rgbd) starts W at its first body pose, tilted as
   // that pose was, so only a full SE(3) alignment compares it with the truth.
   virtual bool world_levelled() const { return true; }
-
-  // Backends with a map (window with mapping on, docs/map.md). Keyframes go
-  // to the map through a lock-free ring the tracking side may overrun;
-  // the harness runs mapping_step() on a mapping thread and loop_step() on a
-  // loop-closing thread, never both at once (they share the map), and reads
-  // nothing else. map_busy(): a keyframe handed over is not fully processed
-  // yet (deterministic paces wait for it). Without such threads nothing is
-  // mapped and the tracking side only counts the overrun.
-  virtual bool has_map() const { return false; }
-  virtual bool mapping_step() { return false; }
-  virtual bool loop_step() { return false; }
-  virtual bool map_busy() const { return false; }
-  // Per keyframe [ns], for the two threads; read after they stopped.
-  virtual const rt::LatencyHistogram* mapping_latency() const { return nullptr; }
-  virtual const rt::LatencyHistogram* loop_latency() const { return nullptr; }
-  // The map file's bytes (`--map-out`, map_file.hpp); empty without a map.
-  // After the map threads stopped.
-  virtual std::vector<uint8_t> save_map() const { return {}; }
-  // This flight's keyframes as the map holds them now, oldest first: the
-  // body pose in the map frame after every bundle adjustment and loop
-  // correction, beside the odometry pose the keyframe was taken at. Empty
-  // without a map. After the map threads stopped (it allocates).
-  virtual std::vector<MapKeyframePose> map_keyframe_poses() const { return {}; }
-  // The map itself (nullptr without one): the harness turns on its loop log
-  // before the flight and reads the map after its threads stopped.
-  virtual MapSystem* map_system() { return nullptr; }
-
-  // For display, read from the thread that feeds: the tracking front end
-  // (nullptr for imu), and the optimizer's counters (false without one).
-  virtual const Tracker* front_end_tracker() const { return nullptr; }
-  virtual bool optimizer_status(OptimizerStatus* /*out*/) const { return false; }
 };
 
 // IMU-only dead reckoning after a static initialisation. Named as what it is:

@@ -73,7 +73,11 @@ class FrontendOdometry final : public Estimator {
   bool started() const { return started_; }
   Tracker& tracker() { return tracker_; }
   const Tracker& tracker() const { return tracker_; }
-  const Tracker* front_end_tracker() const override { return &tracker_; }
+  EstimatorView view() const override {
+    EstimatorView v;
+    v.tracker = &tracker_;
+    return v;
+  }
   // A better estimate of the propagated state, at its time (propagated().t_ns):
   // replaces it, keeping the IMU integration anchor.
   void correct_state(const NavState& x);

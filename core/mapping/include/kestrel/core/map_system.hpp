@@ -15,8 +15,8 @@
 // every packet in flight a keyframe is not mapped (counted), and an update
 // the tracking side has not taken is replaced by the next one. The mapping
 // and loop threads share the Map and are serialised by their caller (the
-// harness holds one mutex around mapping_step() and loop_step()): core has
-// no threads and no locks.
+// harness holds one mutex around mapping_step() and loop_step(): the two
+// workers' group, EstimatorWorker): core has no threads and no locks.
 #pragma once
 
 #include <atomic>
@@ -126,9 +126,18 @@ class MapSystem {
   // ---- after the threads stopped (or from the mapping/loop threads) ----
   // The map file's bytes (map_file.hpp).
   std::vector<uint8_t> save() const;
-  // This flight's keyframes as the map holds them now, body poses by time
-  // (Estimator::map_keyframe_poses); T_CB: camera to body. Allocates.
+  // This flight's keyframes as the map holds them now, body poses by time;
+  // T_CB: camera to body (the one overload: set_T_CB's). Allocates.
   std::vector<MapKeyframePose> keyframe_poses(const Eigen::Isometry3d& T_CB) const;
+  std::vector<MapKeyframePose> keyframe_poses() const { return keyframe_poses(T_CB_); }
+  // The backend's camera -> body, for keyframe_poses() (identity until set).
+  void set_T_CB(const Eigen::Isometry3d& T_CB) { T_CB_ = T_CB; }
+
+  // The pipeline's view of the two threads' work (EstimatorWorker): kMapping
+  // steps mapping_step(), kLoop steps loop_step() and, outside the map's
+  // exclusion, global_ba_step(). They share the map (one group).
+  EstimatorWorker& mapping_worker() { return mapping_worker_; }
+  EstimatorWorker& loop_worker() { return loop_worker_; }
   Map& map() { return *map_; }
   const Map& map() const { return *map_; }
   const LocalMapper& mapper() const { return *mapper_; }
@@ -146,6 +155,32 @@ class MapSystem {
   std::string summary() const;
 
  private:
+  class MappingWorker final : public EstimatorWorker {
+   public:
+    explicit MappingWorker(MapSystem& m) : m_(m) {}
+    Kind kind() const override { return Kind::kMapping; }
+    bool step() override { return m_.mapping_step(); }
+    const void* group() const override { return &m_; }
+    bool busy() const override { return m_.busy(); }
+    const rt::LatencyHistogram* latency() const override { return &m_.mapping_latency_; }
+
+   private:
+    MapSystem& m_;
+  };
+  class LoopWorker final : public EstimatorWorker {
+   public:
+    explicit LoopWorker(MapSystem& m) : m_(m) {}
+    Kind kind() const override { return Kind::kLoop; }
+    bool step() override { return m_.loop_step(); }
+    const void* group() const override { return &m_; }
+    bool step_ungrouped() override { return m_.global_ba_step(); }
+    bool busy() const override { return m_.busy(); }
+    const rt::LatencyHistogram* latency() const override { return &m_.loop_latency_; }
+
+   private:
+    MapSystem& m_;
+  };
+
   static constexpr int kPackets = 6;
   static constexpr int kUpdates = 3;
   void publish_update(int kf, uint64_t seq);
@@ -188,6 +223,9 @@ class MapSystem {
   rt::LatencyHistogram mapping_latency_, loop_latency_, gba_latency_;
   MapSystemCounters counters_;
   std::atomic<uint64_t> overrun_{0}, applied_{0};
+  Eigen::Isometry3d T_CB_ = Eigen::Isometry3d::Identity();
+  MappingWorker mapping_worker_{*this};
+  LoopWorker loop_worker_{*this};
 };
 
 }  // namespace kestrel::core

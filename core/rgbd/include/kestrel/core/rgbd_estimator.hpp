@@ -89,7 +89,11 @@ class RgbdEstimator final : public Estimator {
   const RgbdCounters& rgbd_counters() const { return rc_; }
   const TrackResult& last_track() const { return tracker_.last(); }
   const Tracker& tracker() const { return tracker_; }
-  const Tracker* front_end_tracker() const override { return &tracker_; }
+  EstimatorView view() const override {
+    EstimatorView v;
+    v.tracker = &tracker_;
+    return v;
+  }
   const WindowOptimizer* window() const { return window_.get(); }
 
  private:

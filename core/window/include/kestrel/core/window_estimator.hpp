@@ -135,45 +135,40 @@ class WindowEstimator final : public Estimator {
   const EstimatorOutput& output() const override { return front_.output(); }
   const EstimatorCounters& counters() const override { return front_.counters(); }
 
-  bool has_optimizer() const override { return true; }
+  // The optimizer, and with the map its two workers.
+  EstimatorWorkers workers() override;
   // Inline solves are bounded by the iteration limit only: a wall-clock budget
   // would make the result depend on the machine's load, and inline is the
-  // bit-exact replay mode. On its own thread the time budget applies.
-  void set_threaded_optimizer(bool on) override;
-  bool optimizer_step() override;
-  const rt::LatencyHistogram* optimizer_latency() const override { return &opt_latency_; }
+  // bit-exact replay mode. On its own thread the time budget applies. The
+  // optimizer worker's set_threaded / step / latency.
+  void set_threaded_optimizer(bool on);
+  bool optimizer_step();
+  const rt::LatencyHistogram* optimizer_latency() const { return &opt_latency_; }
   std::string backend_summary() const override;
   bool estimated_time_offset_s(double* td_s) const override;
 
-  bool has_map() const override { return map_ != nullptr; }
-  bool mapping_step() override { return map_ && map_->mapping_step(); }
-  bool loop_step() override { return map_ && map_->loop_step(); }
-  bool map_busy() const override { return map_ && map_->busy(); }
-  const rt::LatencyHistogram* mapping_latency() const override {
-    return map_ ? &map_->mapping_latency() : nullptr;
-  }
-  const rt::LatencyHistogram* loop_latency() const override { return map_ ? &map_->loop_latency() : nullptr; }
-  std::vector<uint8_t> save_map() const override { return map_ ? map_->save() : std::vector<uint8_t>{}; }
-  std::vector<MapKeyframePose> map_keyframe_poses() const override;
-  MapSystem* map_system() override { return map_.get(); }
+  MapSystem* map_system() const override { return map_.get(); }
 
   const WindowEstimatorCounters& window_counters() const { return wc_; }
   // Wall time of the newest solve whose result reached the tracking side
   // (0 before the first): a live figure for displays, read on the tracking thread.
   int64_t last_solve_ns() const { return last_solve_ns_; }
-  const Tracker* front_end_tracker() const override { return &front().tracker(); }
-  bool optimizer_status(OptimizerStatus* out) const override {
-    out->jobs = wc_.jobs;
-    out->applied = wc_.applied;
-    out->failures = wc_.failures;
-    out->skipped_busy = wc_.skipped_busy;
-    out->resets = wc_.window_resets;
-    out->last_solve_ns = last_solve_ns_;
-    return true;
-  }
+  EstimatorView view() const override;
   const FrontendOdometry& front() const { return front_; }
 
  private:
+  class OptimizerWorker final : public EstimatorWorker {
+   public:
+    explicit OptimizerWorker(WindowEstimator& e) : e_(e) {}
+    Kind kind() const override { return Kind::kOptimizer; }
+    void set_threaded(bool on) override { e_.set_threaded_optimizer(on); }
+    bool step() override { return e_.optimizer_step(); }
+    const rt::LatencyHistogram* latency() const override { return e_.optimizer_latency(); }
+
+   private:
+    WindowEstimator& e_;
+  };
+
   static constexpr int kPool = 6;    // jobs in flight (front -> optimizer)
   static constexpr int kChain = 16;  // preintegrations kept to propagate results to now
 
@@ -224,6 +219,7 @@ class WindowEstimator final : public Estimator {
   FrontendOdometry front_;
   std::unique_ptr<WindowOptimizer> window_;
   bool threaded_ = false;
+  OptimizerWorker optimizer_worker_{*this};
   int max_obs_ = 0;
 
   // Job pool and the two rings of slot indices.

@@ -17,7 +17,7 @@ namespace kestrel::tools {
 // std::invalid_argument when the config has no map to load it into and
 // std::runtime_error naming the file when it cannot be read.
 void set_map_in(core::EstimatorConfig& c, const std::string& path);
-// Writes the bytes of Estimator::save_map(); throws std::runtime_error naming
+// Writes the bytes of MapSystem::save(); throws std::runtime_error naming
 // the file (and when there is no map to save).
 void write_map_file(const std::string& path, const std::vector<uint8_t>& bytes);
 // The backend name can run with a map ("auto" may).
