@@ -715,10 +715,22 @@ class RingFrameSink final : public drivers::FrameSink {
 
 }  // namespace
 
-ReplayReport run_replay(const ReplayOptions& opt) {
-  ReplayReport report;
-  // The input: a log (read by kst-replay, or stepped in lockstep) or live sensors.
+namespace {
+
+// The input (a log, read by kst-replay or stepped in lockstep, or the live
+// sensors) and, for a stereo rig, its rectifier: the estimator runs on the
+// rectified left camera, with the depth model of the disparity search
+// (docs/stereo.md).
+struct PipelineInput {
   std::unique_ptr<drivers::LogSource> log;
+  const Rig* input_rig = nullptr;
+  std::unique_ptr<drivers::StereoRectifier> stereo;
+  Rig stereo_rig;
+  const Rig& rig() const { return stereo ? stereo_rig : *input_rig; }
+};
+
+PipelineInput open_input(const ReplayOptions& opt, ReplayReport& report) {
+  PipelineInput in;
   if (opt.live) {
     if (opt.pace != drivers::ReplayPace::kRealtime)
       throw std::invalid_argument("live sensors run at realtime pace only");
@@ -727,34 +739,293 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   } else {
     drivers::LogOpenOptions open = opt.open;
     open.format = opt.format;
-    log = opt.open_source ? opt.open_source() : drivers::open_log(opt.path, open);
+    in.log = opt.open_source ? opt.open_source() : drivers::open_log(opt.path, open);
     report.log_path = opt.path;
-    report.log_format = log->format_name();
+    report.log_format = in.log->format_name();
   }
-  const Rig& input_rig = log ? log->rig() : opt.live->rig;
-  // A stereo rig is rectified once, here; the estimator runs on the rectified
-  // left camera, with the depth model of the disparity search (docs/stereo.md).
-  std::unique_ptr<drivers::StereoRectifier> stereo;
-  Rig stereo_rig;
-  if (input_rig.stereo.present) {
-    // Camera settings that deliver no right image would make every frame depth-less: say so at start.
-    if (opt.live && !opt.live->stereo_problem.empty())
-      throw std::invalid_argument("the rig has a stereo: right camera, but " + opt.live->stereo_problem +
-                                  " (docs/stereo.md, \"Live stereo\")");
-    try {
-      stereo = std::make_unique<drivers::StereoRectifier>(input_rig);
-    } catch (const std::invalid_argument& e) {
-      throw std::invalid_argument(report.log_path + ": " + e.what());
+  in.input_rig = in.log ? &in.log->rig() : &opt.live->rig;
+  if (!in.input_rig->stereo.present) return in;
+  // Camera settings that deliver no right image would make every frame depth-less: say so at start.
+  if (opt.live && !opt.live->stereo_problem.empty())
+    throw std::invalid_argument("the rig has a stereo: right camera, but " + opt.live->stereo_problem +
+                                " (docs/stereo.md, \"Live stereo\")");
+  try {
+    in.stereo = std::make_unique<drivers::StereoRectifier>(*in.input_rig);
+  } catch (const std::invalid_argument& e) {
+    throw std::invalid_argument(report.log_path + ": " + e.what());
+  }
+  in.stereo_rig = in.stereo->rectified_rig();
+  const core::StereoMatchOptions so =
+      opt.config ? opt.config->tracker.stereo : core::EstimatorConfig::defaults(opt.estimator).tracker.stereo;
+  in.stereo_rig.depth = core::stereo_depth_model(in.stereo_rig.rgb.fx, in.stereo_rig.stereo.baseline_m, so);
+  report.stereo = true;
+  report.stereo_baseline_m = in.stereo_rig.stereo.baseline_m;
+  return in;
+}
+
+// After the map's threads stopped: the map file, the map's final word on this
+// flight's keyframes and trajectory, the loop log and the global BA's figures.
+void finish_map(const ReplayOptions& opt, core::Estimator& estimator, ReplayReport& report) {
+  if (!opt.map_out.empty())
+    tools::write_map_file(opt.map_out,
+                          report.has_map ? estimator.map_system()->save() : std::vector<uint8_t>{});
+  if (!report.has_map) return;
+  const core::MapSystem& ms = *estimator.map_system();
+  std::vector<tools::KeyframeAnchor>& anchors = report.map_final_keyframes;
+  for (const core::MapKeyframePose& k : ms.keyframe_poses()) anchors.push_back({k.t_ns, k.T_MB, k.T_WB});
+  if (!anchors.empty()) report.map_final_trajectory = tools::anchor_to_keyframes(report.trajectory, anchors);
+  if (opt.loop_log) report.loop_log = ms.loop_closer().log();
+  if (ms.global_ba() != nullptr) {
+    report.global_ba = ms.global_ba()->stats();
+    report.global_ba_solve.merge(ms.global_ba_latency());
+  }
+  if (opt.on_map_final) opt.on_map_final(map_final_of(estimator));
+}
+
+// A keyframe's correction comes from a trajectory pose at most this far in
+// time (a dense keyframe is a frame of the trajectory; farther: a lost stretch).
+constexpr int64_t kDenseCorrectionMaxGapNs = 100'000'000;
+
+// C_MW at t_ns: the map-frame trajectory M against the odometry's W at the
+// pose nearest t_ns (they are the same frames; the nearest also absorbs a stamp
+// the backend moved by its time-offset estimate). Without a map M = W and it
+// is the identity.
+std::function<bool(int64_t, Eigen::Isometry3d&)> correction_along(const tools::Trajectory& W,
+                                                                  const tools::Trajectory& M) {
+  auto iso = [](const tools::TimedPose& p) {
+    Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+    T.linear() = p.q.normalized().toRotationMatrix();
+    T.translation() = p.p;
+    return T;
+  };
+  return [&W, &M, iso](int64_t t_ns, Eigen::Isometry3d& C_MW) {
+    if (W.empty() || M.size() != W.size()) return false;
+    auto it = std::lower_bound(W.begin(), W.end(), t_ns,
+                               [](const tools::TimedPose& p, int64_t t) { return p.t_ns < t; });
+    if (it == W.end() || (it != W.begin() && t_ns - std::prev(it)->t_ns < it->t_ns - t_ns)) --it;
+    if (std::llabs(it->t_ns - t_ns) > kDenseCorrectionMaxGapNs) return false;
+    const std::size_t i = static_cast<std::size_t>(it - W.begin());
+    C_MW = iso(M[i]) * iso(W[i]).inverse();
+    return true;
+  };
+}
+
+// After kst-dense stopped: the dense outputs, in W (--dense-out, OctoMap, the
+// callbacks), then re-integrated along the map's final poses (--dense-map-out).
+void finish_dense(const ReplayOptions& opt, const dense::DenseOptions& dense_opt,
+                  dense::DenseMapper& dense_mapper, ReplayReport& report) {
+  const core::TsdfMap& dm = dense_mapper.map();
+  report.dense = true;
+  report.dense_stats = dense_mapper.stats();
+  report.dense_live_reanchor = dense_opt.live_reanchor;
+  report.dense_live_blocks = dm.blocks_in_use();
+  if (opt.on_dense_map_live) opt.on_dense_map_live(dm);
+  if (dense_opt.live_reanchor && (!opt.dense_out.empty() || !opt.dense_octomap_out.empty() ||
+                                  opt.on_dense_map || opt.on_dense_finished)) {
+    // In flight the map was in the map frame; the contract of --dense-out
+    // is W: the archive fused again along the odometry (the identity).
+    dense_mapper.rebuild_along([](int64_t, Eigen::Isometry3d& C_MW) {
+      C_MW = Eigen::Isometry3d::Identity();
+      return true;
+    });
+    report.dense_w_rebuild = dense_mapper.stats().rebuild;
+  }
+  report.dense_counters = dm.counters();
+  report.dense_blocks = dm.blocks_in_use();
+  report.dense_block_capacity = dm.block_capacity();
+  report.dense_memory_mb = static_cast<double>(dm.memory_bytes()) / 1048576.0;
+  if (!opt.dense_out.empty()) {
+    std::vector<core::SurfacePoint> pts;
+    dm.extract_surface(pts);
+    dense::write_ply(opt.dense_out, pts);
+    report.dense_points = pts.size();
+  }
+  if (!opt.dense_octomap_out.empty())
+    report.dense_octomap_leaves = dense::write_octomap_bt(opt.dense_octomap_out, dm);
+  if (opt.on_dense_map) opt.on_dense_map(dm);
+  if (opt.on_dense_finished) opt.on_dense_finished(dm);
+  if (opt.dense_map_out.empty() && !opt.on_dense_map_rebuilt) return;
+  // The map's final word on every keyframe's pose; the map's memory is
+  // reused, so this runs after everything W needed was written.
+  if (dense_mapper.archive() == nullptr)
+    throw std::invalid_argument("--dense-map-out needs the keyframe archive (dense.archive_budget_mb > 0)");
+  const tools::Trajectory& M =
+      report.map_final_trajectory.empty() ? report.trajectory : report.map_final_trajectory;
+  dense_mapper.rebuild_along(correction_along(report.trajectory, M));
+  report.dense_stats = dense_mapper.stats();
+  report.dense_archive_capacity = dense_mapper.archive()->capacity();
+  report.dense_archive_overwritten = dense_mapper.archive()->counters().overwritten;
+  if (!opt.dense_map_out.empty()) {
+    std::vector<core::SurfacePoint> pts;
+    dm.extract_surface(pts);
+    dense::write_ply(opt.dense_map_out, pts);
+    report.dense_map_points = pts.size();
+  }
+  if (opt.on_dense_map_rebuilt) opt.on_dense_map_rebuilt(dm);
+}
+
+// The estimator's and the workers' figures once every thread stopped.
+void collect_estimator_report(core::Estimator& estimator, const core::EstimatorWorkers& workers,
+                              const Rig& rig, ReplayReport& report) {
+  for (const core::EstimatorWorker* w : workers) {
+    const rt::LatencyHistogram* h = w->latency();
+    if (h == nullptr) continue;
+    if (w->kind() == core::EstimatorWorker::Kind::kMapping) report.mapping = *h;
+    if (w->kind() == core::EstimatorWorker::Kind::kLoop) report.loop = *h;
+    if (w->kind() == core::EstimatorWorker::Kind::kOptimizer) report.optimizer = *h;
+  }
+  report.estimator_counters = estimator.counters();
+  report.backend_summary = estimator.backend_summary();
+  double td_s = 0.0;
+  report.time_offset_estimated = estimator.estimated_time_offset_s(&td_s);
+  report.time_offset_ms = 1e-6 * static_cast<double>(rig.time_offset_cam_imu_ns) + 1e3 * td_s;
+}
+
+// Live: the drivers push through these sinks (made when the threads are up);
+// done once the sensors stopped.
+struct LiveSinks {
+  std::unique_ptr<drivers::ImuSink> imu;
+  std::unique_ptr<RingFrameSink> frames;
+  std::atomic<bool> done{false};
+};
+
+// Fast and realtime paces: the feeder, kst-propagate (realtime), the estimator
+// and the optimizer (when it has a thread: `optimizer` non-null) each on a
+// thread of the table; this thread drains the output until the estimator is
+// done, and live it stops the sensors when asked.
+void run_threads(const ReplayOptions& opt, ReplayReport& report, drivers::SensorRings& rings,
+                 ImuRing& est_imu, drivers::ReplaySource* source, LiveSinks& live, ImuRateStage& propagator,
+                 EstimatorStage& stage, OutputStage& output, core::EstimatorWorker* optimizer,
+                 const Rig& rig) {
+  const bool realtime = opt.pace == drivers::ReplayPace::kRealtime;
+  auto input_finished = [&] {
+    return source != nullptr ? source->finished() : live.done.load(std::memory_order_acquire);
+  };
+  std::atomic<bool> stop{false};
+  std::atomic<bool> estimator_done{false};
+  std::atomic<bool> imu_forwarded{!realtime};
+  double est_cpu = 0, opt_cpu = 0;
+  // Who sleeps on what (issue 45: no thread polls). Realtime: the feeder wakes
+  // kst-propagate for IMU and the estimator for frames, kst-propagate wakes
+  // the estimator for the IMU it forwarded. Fast: the estimator takes both
+  // rings. The estimator wakes the optimizer and the output after its work.
+  rt::Doorbell est_bell, prop_bell, opt_bell, out_bell;
+  rings.imu_bell = realtime ? &prop_bell : &est_bell;
+  rings.frame_bell = &est_bell;
+  // The config's table in realtime pace (as it will fly); fast pace is a
+  // throughput run and keeps the defaults.
+  const drivers::ThreadTable table = realtime ? opt.threads : drivers::default_thread_table();
+  using drivers::PipelineThread;
+  rt::ThreadSetupReport sched;
+  std::thread feeder;
+  if (source) {
+    feeder = rt::start_thread(
+        table[PipelineThread::kReplay], [&] { source->run(stop); }, &sched);
+    report.threads.push_back(applied_thread(table[PipelineThread::kReplay], sched));
+  }
+  std::thread prop_thread;
+  if (realtime) {
+    rt::ThreadSetupReport prop_sched;
+    prop_thread = rt::start_thread(
+        table[PipelineThread::kPropagate],
+        [&] {
+          for (;;) {
+            const bool done = input_finished();
+            if (propagator.step()) {
+              est_bell.ring();
+              out_bell.ring();
+            } else {
+              if (done && rings.imu.empty()) break;
+              prop_bell.wait_for_ns(kIdleWaitNs);
+            }
+          }
+          propagator.finish();
+          imu_forwarded.store(true, std::memory_order_release);
+          est_bell.ring();
+        },
+        &prop_sched);
+    report.propagator_thread = rt::to_string(prop_sched);
+    report.threads.push_back(applied_thread(table[PipelineThread::kPropagate], prop_sched));
+  }
+  ImuRing& est_in = realtime ? est_imu : rings.imu;
+  std::thread est_thread = rt::start_thread(
+      table[PipelineThread::kEstimator],
+      [&] {
+        for (;;) {
+          const bool done = input_finished() && imu_forwarded.load(std::memory_order_acquire);
+          if (stage.drain(done, false)) {
+            opt_bell.ring();
+            out_bell.ring();
+            continue;
+          }
+          if (done && est_in.empty() && rings.frames.empty()) break;
+          est_bell.wait_for_ns(kIdleWaitNs);
+        }
+        stage.finish();
+        est_cpu = thread_cpu_s();
+        estimator_done.store(true, std::memory_order_release);
+        opt_bell.ring();
+        out_bell.ring();
+      },
+      &sched);
+  report.threads.push_back(applied_thread(table[PipelineThread::kEstimator], sched));
+  std::thread opt_thread;
+  if (optimizer != nullptr) {
+    opt_thread = rt::start_thread(
+        table[PipelineThread::kOptimizer],
+        [&] {
+          while (!estimator_done.load(std::memory_order_acquire)) {
+            // A job is handed over only while the estimator works, and it
+            // rings after each piece of work: a spurious wake costs one look.
+            if (!optimizer->step()) opt_bell.wait_for_ns(kIdleWaitNs);
+          }
+          opt_cpu = thread_cpu_s();
+        },
+        &sched);
+    report.threads.push_back(applied_thread(table[PipelineThread::kOptimizer], sched));
+  }
+  if (opt.live) {
+    // The sensors start last: every consumer is waiting for them.
+    live.imu = std::make_unique<drivers::RingImuSink<ImuRing>>(rings.imu, rings.imu_bell);
+    live.frames = std::make_unique<RingFrameSink>(rings, rig);
+    opt.live->start(*live.imu, *live.frames, report.threads);
+  }
+  while (!estimator_done.load(std::memory_order_acquire)) {
+    output.drain();
+    if (opt.live && !live.done.load(std::memory_order_relaxed) && opt.live->should_stop()) {
+      opt.live->stop();
+      live.done.store(true, std::memory_order_release);
+      prop_bell.ring();
+      est_bell.ring();
     }
-    stereo_rig = stereo->rectified_rig();
-    const core::StereoMatchOptions so = opt.config
-                                            ? opt.config->tracker.stereo
-                                            : core::EstimatorConfig::defaults(opt.estimator).tracker.stereo;
-    stereo_rig.depth = core::stereo_depth_model(stereo_rig.rgb.fx, stereo_rig.stereo.baseline_m, so);
-    report.stereo = true;
-    report.stereo_baseline_m = stereo_rig.stereo.baseline_m;
+    out_bell.wait_for_ns(opt.live ? kLiveOutputWaitNs : kIdleWaitNs);
   }
-  const Rig& rig = stereo ? stereo_rig : input_rig;
+  if (feeder.joinable()) feeder.join();
+  if (prop_thread.joinable()) prop_thread.join();
+  est_thread.join();
+  if (opt_thread.joinable()) opt_thread.join();
+  output.finish();
+  report.estimator_thread_cpu_s = est_cpu;
+  report.estimator_thread_overhead_cpu_s = est_cpu - stage.work_cpu_s();
+  // The solve is the backend's work wherever it runs; its thread's polling
+  // between solves is a few wake-ups a second.
+  report.estimator_cpu_s = stage.work_cpu_s() + opt_cpu;
+  if (realtime) {
+    report.imu_to_output = propagator.stats().imu_to_output;
+    report.propagator_forward_drops = propagator.stats().forward_drops;
+    report.steady_allocs += propagator.stats().steady_allocs;
+  }
+}
+
+}  // namespace
+
+ReplayReport run_replay(const ReplayOptions& opt) {
+  ReplayReport report;
+  const PipelineInput input = open_input(opt, report);
+  const std::unique_ptr<drivers::LogSource>& log = input.log;
+  const std::unique_ptr<drivers::StereoRectifier>& stereo = input.stereo;
+  const Rig& input_rig = *input.input_rig;
+  const Rig& rig = input.rig();
   report.pace = opt.pace;
   report.alloc_counting = rt::alloc_hook_linked();
 
@@ -791,13 +1062,7 @@ ReplayReport run_replay(const ReplayOptions& opt) {
 
   std::unique_ptr<drivers::ReplaySource> source;
   if (log) source = std::make_unique<drivers::ReplaySource>(*log, *rings, opt.pace);
-  // Live: the drivers push through these sinks; set when the sensors stop.
-  std::unique_ptr<drivers::ImuSink> live_imu;
-  std::unique_ptr<RingFrameSink> live_frames;
-  std::atomic<bool> live_done{false};
-  auto input_finished = [&] {
-    return source ? source->finished() : live_done.load(std::memory_order_acquire);
-  };
+  LiveSinks live;
   // The dense map's stream to the viewer, declared before the server that reads
   // it and the mapper that writes it, so both are gone before it is.
   std::unique_ptr<viewer::BinaryStream> dense_stream;
@@ -854,9 +1119,6 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   // wait for a free slot, realtime drops and counts.
   dense::DenseOptions dense_opt = opt.dense;
   dense_opt.enabled = dense_on;
-  // A keyframe's correction comes from a trajectory pose at most this far in
-  // time (a dense keyframe is a frame of the trajectory; farther: a lost stretch).
-  constexpr int64_t kDenseCorrectionMaxGapNs = 100'000'000;
   // The keyframe archive costs its budget in memory; only a re-integration reads it.
   if (opt.dense_map_out.empty() && !opt.on_dense_map_rebuilt && !dense_opt.live_reanchor)
     dense_opt.archive.budget_mb = 0;
@@ -916,216 +1178,15 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     report.estimator_cpu_s = stage.work_cpu_s();
     output.finish();
   } else {
-    std::atomic<bool> stop{false};
-    std::atomic<bool> estimator_done{false};
-    std::atomic<bool> imu_forwarded{!realtime};
-    double est_cpu = 0, opt_cpu = 0;
-    // Who sleeps on what (issue 45: no thread polls). Realtime: the feeder wakes
-    // kst-propagate for IMU and the estimator for frames, kst-propagate wakes
-    // the estimator for the IMU it forwarded. Fast: the estimator takes both
-    // rings. The estimator wakes the optimizer and the output after its work.
-    rt::Doorbell est_bell, prop_bell, opt_bell, out_bell;
-    rings->imu_bell = realtime ? &prop_bell : &est_bell;
-    rings->frame_bell = &est_bell;
-    // The config's table in realtime pace (as it will fly); fast pace is a
-    // throughput run and keeps the defaults.
-    const drivers::ThreadTable table = realtime ? opt.threads : drivers::default_thread_table();
-    using drivers::PipelineThread;
-    rt::ThreadSetupReport sched;
-    std::thread feeder;
-    if (source) {
-      feeder = rt::start_thread(
-          table[PipelineThread::kReplay], [&] { source->run(stop); }, &sched);
-      report.threads.push_back(applied_thread(table[PipelineThread::kReplay], sched));
-    }
-    std::thread prop_thread;
-    if (realtime) {
-      rt::ThreadSetupReport prop_sched;
-      prop_thread = rt::start_thread(
-          table[PipelineThread::kPropagate],
-          [&] {
-            for (;;) {
-              const bool done = input_finished();
-              if (propagator.step()) {
-                est_bell.ring();
-                out_bell.ring();
-              } else {
-                if (done && rings->imu.empty()) break;
-                prop_bell.wait_for_ns(kIdleWaitNs);
-              }
-            }
-            propagator.finish();
-            imu_forwarded.store(true, std::memory_order_release);
-            est_bell.ring();
-          },
-          &prop_sched);
-      report.propagator_thread = rt::to_string(prop_sched);
-      report.threads.push_back(applied_thread(table[PipelineThread::kPropagate], prop_sched));
-    }
-    ImuRing& est_in = realtime ? *est_imu : rings->imu;
-    std::thread est_thread = rt::start_thread(
-        table[PipelineThread::kEstimator],
-        [&] {
-          for (;;) {
-            const bool done = input_finished() && imu_forwarded.load(std::memory_order_acquire);
-            if (stage.drain(done, false)) {
-              opt_bell.ring();
-              out_bell.ring();
-              continue;
-            }
-            if (done && est_in.empty() && rings->frames.empty()) break;
-            est_bell.wait_for_ns(kIdleWaitNs);
-          }
-          stage.finish();
-          est_cpu = thread_cpu_s();
-          estimator_done.store(true, std::memory_order_release);
-          opt_bell.ring();
-          out_bell.ring();
-        },
-        &sched);
-    report.threads.push_back(applied_thread(table[PipelineThread::kEstimator], sched));
-    std::thread opt_thread;
-    if (optimizer_thread) {
-      opt_thread = rt::start_thread(
-          table[PipelineThread::kOptimizer],
-          [&] {
-            while (!estimator_done.load(std::memory_order_acquire)) {
-              // A job is handed over only while the estimator works, and it
-              // rings after each piece of work: a spurious wake costs one look.
-              if (!optimizer->step()) opt_bell.wait_for_ns(kIdleWaitNs);
-            }
-            opt_cpu = thread_cpu_s();
-          },
-          &sched);
-      report.threads.push_back(applied_thread(table[PipelineThread::kOptimizer], sched));
-    }
-    if (opt.live) {
-      // The sensors start last: every consumer is waiting for them.
-      live_imu = std::make_unique<drivers::RingImuSink<ImuRing>>(rings->imu, rings->imu_bell);
-      live_frames = std::make_unique<RingFrameSink>(*rings, rig);
-      opt.live->start(*live_imu, *live_frames, report.threads);
-    }
-    while (!estimator_done.load(std::memory_order_acquire)) {
-      output.drain();
-      if (opt.live && !live_done.load(std::memory_order_relaxed) && opt.live->should_stop()) {
-        opt.live->stop();
-        live_done.store(true, std::memory_order_release);
-        prop_bell.ring();
-        est_bell.ring();
-      }
-      out_bell.wait_for_ns(opt.live ? kLiveOutputWaitNs : kIdleWaitNs);
-    }
-    if (feeder.joinable()) feeder.join();
-    if (prop_thread.joinable()) prop_thread.join();
-    est_thread.join();
-    if (opt_thread.joinable()) opt_thread.join();
-    output.finish();
-    report.estimator_thread_cpu_s = est_cpu;
-    report.estimator_thread_overhead_cpu_s = est_cpu - stage.work_cpu_s();
-    // The solve is the backend's work wherever it runs; its thread's polling
-    // between solves is a few wake-ups a second.
-    report.estimator_cpu_s = stage.work_cpu_s() + opt_cpu;
-    if (realtime) {
-      report.imu_to_output = propagator.stats().imu_to_output;
-      report.propagator_forward_drops = propagator.stats().forward_drops;
-      report.steady_allocs += propagator.stats().steady_allocs;
-    }
+    run_threads(opt, report, *rings, *est_imu, source.get(), live, propagator, stage, output,
+                optimizer_thread ? optimizer : nullptr, rig);
   }
   map_threads.stop();
-  if (!opt.map_out.empty())
-    tools::write_map_file(opt.map_out,
-                          report.has_map ? estimator.map_system()->save() : std::vector<uint8_t>{});
-  if (report.has_map) {
-    std::vector<tools::KeyframeAnchor>& anchors = report.map_final_keyframes;
-    for (const core::MapKeyframePose& k : estimator.map_system()->keyframe_poses())
-      anchors.push_back({k.t_ns, k.T_MB, k.T_WB});
-    if (!anchors.empty())
-      report.map_final_trajectory = tools::anchor_to_keyframes(report.trajectory, anchors);
-    if (opt.loop_log && estimator.map_system() != nullptr)
-      report.loop_log = estimator.map_system()->loop_closer().log();
-    if (const core::MapSystem* ms = estimator.map_system(); ms != nullptr && ms->global_ba() != nullptr) {
-      report.global_ba = ms->global_ba()->stats();
-      report.global_ba_solve.merge(ms->global_ba_latency());
-    }
-    if (opt.on_map_final) opt.on_map_final(map_final_of(estimator));
-  }
-  // The same correction lookup for the W contract (below) and the map frame.
-  const tools::Trajectory& traj_W = report.trajectory;
-  auto iso = [](const tools::TimedPose& p) {
-    Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
-    T.linear() = p.q.normalized().toRotationMatrix();
-    T.translation() = p.p;
-    return T;
-  };
-  auto correction_along = [&](const tools::Trajectory& M) {
-    return [&traj_W, &M, iso](int64_t t_ns, Eigen::Isometry3d& C_MW) {
-      const tools::Trajectory& W = traj_W;
-      if (W.empty() || M.size() != W.size()) return false;
-      auto it = std::lower_bound(W.begin(), W.end(), t_ns,
-                                 [](const tools::TimedPose& p, int64_t t) { return p.t_ns < t; });
-      if (it == W.end() || (it != W.begin() && t_ns - std::prev(it)->t_ns < it->t_ns - t_ns)) --it;
-      if (std::llabs(it->t_ns - t_ns) > kDenseCorrectionMaxGapNs) return false;
-      const std::size_t i = static_cast<std::size_t>(it - W.begin());
-      C_MW = iso(M[i]) * iso(W[i]).inverse();
-      return true;
-    };
-  };
+  finish_map(opt, estimator, report);
   if (dense_mapper.enabled()) {
     dense_mapper.stop();
     dense_live.withdraw();
-    const core::TsdfMap& dm = dense_mapper.map();
-    report.dense = true;
-    report.dense_stats = dense_mapper.stats();
-    report.dense_live_reanchor = dense_opt.live_reanchor;
-    report.dense_live_blocks = dm.blocks_in_use();
-    if (opt.on_dense_map_live) opt.on_dense_map_live(dm);
-    if (dense_opt.live_reanchor && (!opt.dense_out.empty() || !opt.dense_octomap_out.empty() ||
-                                    opt.on_dense_map || opt.on_dense_finished)) {
-      // In flight the map was in the map frame; the contract of --dense-out
-      // is W: the archive fused again along the odometry (the identity).
-      dense_mapper.rebuild_along([](int64_t, Eigen::Isometry3d& C_MW) {
-        C_MW = Eigen::Isometry3d::Identity();
-        return true;
-      });
-      report.dense_w_rebuild = dense_mapper.stats().rebuild;
-    }
-    report.dense_counters = dm.counters();
-    report.dense_blocks = dm.blocks_in_use();
-    report.dense_block_capacity = dm.block_capacity();
-    report.dense_memory_mb = static_cast<double>(dm.memory_bytes()) / 1048576.0;
-    if (!opt.dense_out.empty()) {
-      std::vector<core::SurfacePoint> pts;
-      dm.extract_surface(pts);
-      dense::write_ply(opt.dense_out, pts);
-      report.dense_points = pts.size();
-    }
-    if (!opt.dense_octomap_out.empty())
-      report.dense_octomap_leaves = dense::write_octomap_bt(opt.dense_octomap_out, dm);
-    if (opt.on_dense_map) opt.on_dense_map(dm);
-    if (opt.on_dense_finished) opt.on_dense_finished(dm);
-    if (!opt.dense_map_out.empty() || opt.on_dense_map_rebuilt) {
-      // The map's final word on every keyframe's pose; the map's memory is
-      // reused, so this runs after everything W needed was written.
-      if (dense_mapper.archive() == nullptr)
-        throw std::invalid_argument(
-            "--dense-map-out needs the keyframe archive (dense.archive_budget_mb > 0)");
-      // The correction at the trajectory's pose nearest the keyframe (they are
-      // the same frame; the nearest also absorbs a stamp the backend moved by
-      // its time-offset estimate): without a map M = W and it is the identity.
-      const tools::Trajectory& M =
-          report.map_final_trajectory.empty() ? report.trajectory : report.map_final_trajectory;
-      dense_mapper.rebuild_along(correction_along(M));
-      report.dense_stats = dense_mapper.stats();
-      report.dense_archive_capacity = dense_mapper.archive()->capacity();
-      report.dense_archive_overwritten = dense_mapper.archive()->counters().overwritten;
-      if (!opt.dense_map_out.empty()) {
-        std::vector<core::SurfacePoint> pts;
-        dm.extract_surface(pts);
-        dense::write_ply(opt.dense_map_out, pts);
-        report.dense_map_points = pts.size();
-      }
-      if (opt.on_dense_map_rebuilt) opt.on_dense_map_rebuilt(dm);
-    }
+    finish_dense(opt, dense_opt, dense_mapper, report);
   }
   if (map_feed) {
     report.map_clouds = map_feed->clouds_published();
@@ -1143,18 +1204,7 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     report.replay.imu_pushed = estimator.counters().imu_in;
     report.replay.frames_pushed = estimator.counters().frames_in;
   }
-  for (const core::EstimatorWorker* w : workers) {
-    const rt::LatencyHistogram* h = w->latency();
-    if (h == nullptr) continue;
-    if (w->kind() == core::EstimatorWorker::Kind::kMapping) report.mapping = *h;
-    if (w->kind() == core::EstimatorWorker::Kind::kLoop) report.loop = *h;
-    if (w->kind() == core::EstimatorWorker::Kind::kOptimizer) report.optimizer = *h;
-  }
-  report.estimator_counters = estimator.counters();
-  report.backend_summary = estimator.backend_summary();
-  double td_s = 0.0;
-  report.time_offset_estimated = estimator.estimated_time_offset_s(&td_s);
-  report.time_offset_ms = 1e-6 * static_cast<double>(rig.time_offset_cam_imu_ns) + 1e3 * td_s;
+  collect_estimator_report(estimator, workers, rig, report);
   report.optimizer_threaded = optimizer_thread;
 
   // What the feeder lost, not the rings' refused pushes: in fast pace the
@@ -1164,7 +1214,7 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   if (opt.live) {
     // Live there is no back-pressure: every refused push is a lost sample.
     report.imu_ring_drops = rings->imu.drops();
-    report.frame_ring_drops = rings->frames.drops() + live_frames->drops;
+    report.frame_ring_drops = rings->frames.drops() + live.frames->drops;
   }
   report.image_pool_exhausted = rings->images.failed_acquires();
   if (log) report.problems = log->problems();
