@@ -281,44 +281,6 @@ TEST(StereoRectifier, RefusesWhatCannotBeRectifiedAndNamesIt) {
   EXPECT_NE(refusal(r).find("optical axes"), std::string::npos);
 }
 
-TEST(StereoRectifier, EquidistantPairRectifies) {
-  // TUM-VI-like fisheye numbers (512x512, equidistant k1..k4, 10 cm baseline).
-  Rig rig;
-  rig.rgb = CameraIntrinsics{512,
-                             512,
-                             190.98,
-                             190.98,
-                             254.93,
-                             256.90,
-                             DistortionModel::kEquidistant,
-                             {0.0034, 0.0007, -0.0020, 0.0002, 0}};
-  rig.stereo.present = true;
-  rig.stereo.intrinsics = CameraIntrinsics{512,
-                                           512,
-                                           190.44,
-                                           190.44,
-                                           252.60,
-                                           254.92,
-                                           DistortionModel::kEquidistant,
-                                           {0.0034, 0.0008, -0.0021, 0.0002, 0}};
-  rig.stereo.T_BC1 = kIdentity4;
-  rig.stereo.T_BC1[3] = 0.101;
-  drivers::StereoRectifier rect(rig);
-  const Rig& rr = rect.rectified_rig();
-  EXPECT_NEAR(rr.stereo.baseline_m, 0.101, 1e-6);
-  EXPECT_GT(rr.rgb.fx, 50);
-  EXPECT_TRUE(std::isfinite(rr.rgb.cx) && std::isfinite(rr.rgb.cy));
-  std::vector<uint8_t> px(512 * 512, 100);
-  const ImageView v{512, 512, 512, PixelFormat::kGray8, px.data()};
-  ImageView lo, ro;
-  EXPECT_TRUE(rect.rectify(v, v, &lo, &ro));
-  EXPECT_NE(ro.data, nullptr);
-  // A wrong-size image is refused and counted, not read past its end.
-  const ImageView small{256, 256, 256, PixelFormat::kGray8, px.data()};
-  EXPECT_FALSE(rect.rectify(small, v, &lo, &ro));
-  EXPECT_EQ(rect.refused_images(), 1u);
-}
-
 }  // namespace
 
 namespace {

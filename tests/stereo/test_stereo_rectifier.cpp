@@ -1,7 +1,7 @@
-// drivers/stereo/stereo_rectifier.cpp's remap: against cv::remap on OpenCV's
-// own maps, its vector path against its scalar path byte for byte, and its
-// reads held inside the image by guard pages. (Refusals, the EuRoC pair and
-// the pass-through are in test_stereo_euroc.cpp.)
+// drivers/stereo/stereo_rectifier.cpp: a fisheye pair, and the remap against
+// cv::remap on OpenCV's own maps, its vector path against its scalar path byte
+// for byte, and its reads held inside the image by guard pages. (Refusals, the
+// EuRoC pair and the pass-through are in test_stereo_euroc.cpp.)
 #include <gtest/gtest.h>
 #include <sys/mman.h>
 #include <unistd.h>
@@ -64,27 +64,17 @@ Rig radtan_rig(int w, int h) {
 }
 
 Rig fisheye_rig() {
+  // TUM-VI's two cameras, roughly: equidistant k1..k4, equal focal lengths.
+  auto cam = [](double f, double cx, double cy, double k2) {
+    return CameraIntrinsics{
+        512, 512, f, f, cx, cy, DistortionModel::kEquidistant, {0.0034, k2, -0.0020, 0.0002, 0}};
+  };
   Rig rig;
-  rig.rgb = CameraIntrinsics{512,
-                             512,
-                             190.98,
-                             190.98,
-                             254.93,
-                             256.90,
-                             DistortionModel::kEquidistant,
-                             {0.0034, 0.0007, -0.0020, 0.0002, 0}};
+  rig.rgb = cam(190.98, 254.93, 256.90, 0.0007);
   rig.stereo.present = true;
-  rig.stereo.intrinsics = CameraIntrinsics{512,
-                                           512,
-                                           190.44,
-                                           190.44,
-                                           252.60,
-                                           254.92,
-                                           DistortionModel::kEquidistant,
-                                           {0.0034, 0.0008, -0.0021, 0.0002, 0}};
+  rig.stereo.intrinsics = cam(190.44, 252.60, 254.92, 0.0008);
   rig.stereo.T_BC1 = kIdentity4;
   rig.stereo.T_BC1[3] = 0.101;
-  rig.stereo.T_BC1[7] = 0.002;
   return rig;
 }
 
@@ -145,6 +135,25 @@ ImageView view(const cv::Mat& m) {
                    m.channels() == 3 ? PixelFormat::kRgb8 : PixelFormat::kGray8, m.data};
 }
 
+TEST(StereoRectifier, EquidistantPairRectifies) {
+  // TUM-VI-like fisheye numbers (512x512, equidistant k1..k4, 10 cm baseline).
+  const Rig rig = fisheye_rig();
+  drivers::StereoRectifier rect(rig);
+  const Rig& rr = rect.rectified_rig();
+  EXPECT_NEAR(rr.stereo.baseline_m, 0.101, 1e-6);
+  EXPECT_GT(rr.rgb.fx, 50);
+  EXPECT_TRUE(std::isfinite(rr.rgb.cx) && std::isfinite(rr.rgb.cy));
+  std::vector<uint8_t> px(512 * 512, 100);
+  const ImageView v{512, 512, 512, PixelFormat::kGray8, px.data()};
+  ImageView lo, ro;
+  EXPECT_TRUE(rect.rectify(v, v, &lo, &ro));
+  EXPECT_NE(ro.data, nullptr);
+  // A wrong-size image is refused and counted, not read past its end.
+  const ImageView small{256, 256, 256, PixelFormat::kGray8, px.data()};
+  EXPECT_FALSE(rect.rectify(small, v, &lo, &ro));
+  EXPECT_EQ(rect.refused_images(), 1u);
+}
+
 TEST(StereoRectifierRemap, AgreesWithOpenCvsRemapOnItsOwnMaps) {
   for (const Rig& rig : {radtan_rig(752, 480), fisheye_rig()}) {
     const int w = rig.rgb.width, h = rig.rgb.height;
@@ -188,8 +197,8 @@ TEST(StereoRectifierRemap, AgreesWithOpenCvsRemapOnItsOwnMaps) {
           rig.rgb.distortion == DistortionModel::kEquidistant ? "equidistant" : "radtan",
           side == 0 ? "left" : "right", sum / static_cast<double>(n), worst, n, no_source);
       EXPECT_GT(n, static_cast<size_t>(w) * h * 9 / 10);
-      // Both interpolate in 1/32 px steps; ours samples the map linearly along runs within 1/64 px, so a weight
-      // may round one step the other way: at a black-to-white edge that is 255 / 32, 8 levels.
+      // Both interpolate in 1/32 px steps; ours samples the map linearly along runs within 1/64 px, so a
+      // weight may round one step the other way: at a black-to-white edge that is 255 / 32, 8 levels.
       EXPECT_LT(sum / static_cast<double>(n), 0.5);
       EXPECT_LE(worst, 8);
       EXPECT_EQ(black_where_no_source, no_source);
