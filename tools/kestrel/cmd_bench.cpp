@@ -695,30 +695,347 @@ bool selected(const std::string& name, const std::vector<std::string>& only) {
 
 }  // namespace
 
-Subcommand add_bench_command(CLI::App& parent) {
-  struct Args {
-    std::string json_out;
-    std::vector<std::string> cases;
-    std::string duration = "30";
-    std::vector<std::string> mapping{"on"};
-    std::string workdir = "build/bench";
-    std::string data_dir = "../shared/data";
-    std::string pace = "fast";
-    std::vector<std::string> estimators{"window"};
-    std::vector<std::string> lonsc_variants{"tuned"};
-    std::string config;
-    int width = 640, height = 480;
-    bool keep_logs = false;
-    bool list = false;
-    bool strict = false;
-    bool cpu_budget = false;
-    CLI::Option* duration_opt = nullptr;
-    CLI::Option* mapping_opt = nullptr;
-    std::string cpu_budget_log;
-    std::string dataset_root;
-    std::string out_dir;
+namespace {
+
+// `kestrel bench`'s options.
+struct BenchArgs {
+  std::string json_out;
+  std::vector<std::string> cases;
+  std::string duration = "30";
+  std::vector<std::string> mapping{"on"};
+  std::string workdir = "build/bench";
+  std::string data_dir = "../shared/data";
+  std::string pace = "fast";
+  std::vector<std::string> estimators{"window"};
+  std::vector<std::string> lonsc_variants{"tuned"};
+  std::string config;
+  int width = 640, height = 480;
+  bool keep_logs = false;
+  bool list = false;
+  bool strict = false;
+  bool cpu_budget = false;
+  CLI::Option* duration_opt = nullptr;
+  CLI::Option* mapping_opt = nullptr;
+  std::string cpu_budget_log;
+  std::string dataset_root;
+  std::string out_dir;
+};
+
+// A row's figures from its replay's metrics (replay_in_child).
+void fill_row(BenchRow& er, const std::map<std::string, double>& m) {
+  er.duration_s = get(m, "duration_s");
+  er.ate_rmse_m = get(m, "ate_rmse_m");
+  er.ate_se3_rmse_m = get(m, "ate_se3_rmse_m");
+  er.rpe_trans_m_per_s = get(m, "rpe_trans_m_per_s");
+  er.tracking_ms_p50 = get(m, "tracking_ms_p50");
+  er.tracking_ms_p99 = get(m, "tracking_ms_p99");
+  er.optimizer_ms_p50 = get(m, "optimizer_ms_p50");
+  er.optimizer_ms_p99 = get(m, "optimizer_ms_p99");
+  er.imu_to_output_ms_p99 = get(m, "imu_to_output_ms_p99");
+  er.imu_to_output_ms_p50 = get(m, "imu_to_output_ms_p50");
+  er.imu_to_output_ms_max = get(m, "imu_to_output_ms_max");
+  er.tracking_ms_max = get(m, "tracking_ms_max");
+  er.optimizer_ms_max = get(m, "optimizer_ms_max");
+  er.allocs_per_frame = get(m, "allocs_per_frame");
+  er.realtime_factor = get(m, "realtime_factor");
+  er.peak_rss_mb = get(m, "peak_rss_mb");
+  er.pose_share = get(m, "pose_share");
+  er.replay_wall_s = get(m, "replay_wall_s");
+  er.divergences = get(m, "divergences");
+  er.coast_s = get(m, "coast_s");
+  er.cpu_s_per_s = get(m, "cpu_s_per_s");
+  er.fail = fail_reasons(er);
+  er.cpu_per_s = get(m, "cpu_per_s");
+  er.map_cpu_s_per_s = get(m, "map_cpu_s_per_s");
+  er.map_ate_se3_rmse_m = get(m, "map_ate_se3_rmse_m");
+  er.map_final_ate_se3_rmse_m = get(m, "map_final_ate_se3_rmse_m");
+  er.loop_closures = get(m, "loop_closures");
+  er.relocalisations = get(m, "relocalisations");
+  er.keyframes_in_map = get(m, "keyframes_in_map");
+  er.map_points = get(m, "map_points");
+  er.map_correction_m = get(m, "map_correction_m");
+  er.mapping_ms_p50 = get(m, "mapping_ms_p50");
+  er.mapping_ms_p99 = get(m, "mapping_ms_p99");
+  er.loop_ms_p50 = get(m, "loop_ms_p50");
+  er.loop_ms_p99 = get(m, "loop_ms_p99");
+  er.loop_revisits = get(m, "loop_revisits");
+  er.loop_recall = get(m, "loop_recall");
+  er.map_recall = get(m, "map_recall");
+  er.false_loops = get(m, "false_loops");
+}
+
+// --cpu-budget: instructions per frame for each tracking stage and per
+// optimizer solve under callgrind, with ARM estimates (docs/embedded.md).
+int run_cpu_budget(const BenchArgs& a, double duration_s) {
+  const std::string backend = a.estimators.front();
+  const std::string mapping = a.mapping.front();
+  const double budget_s = a.duration_opt->count() > 0 ? duration_s : 4.0;
+  if (!(budget_s > 0)) throw UsageError("--cpu-budget needs a --duration in seconds, not `full`");
+  fs::create_directories(a.workdir);
+  std::string log = a.cpu_budget_log;
+  std::string what;
+  if (log.empty()) {
+    tools::SimOptions so;
+    so.seed = 1;
+    so.scenario = "figure8";
+    so.duration_s = budget_s;
+    so.width = a.width;
+    so.height = a.height;
+    log = (fs::path(a.workdir) / "cpu_budget.klog").string();
+    so.out_path = log;
+    std::fprintf(stderr, "bench: simulating the budget flight (figure8, %.0f s, %dx%d, seed 1)\n", budget_s,
+                 a.width, a.height);
+    tools::run_simulation(so);
+    char buf[96];
+    std::snprintf(buf, sizeof buf, "figure8 %.0f s %dx%d seed 1", budget_s, a.width, a.height);
+    what = buf;
+  } else {
+    if (!fs::exists(log)) throw UsageError("--cpu-budget-log: no such file: " + log);
+    what = log;
+  }
+  core::EstimatorConfig cfg = tools::load_estimator_config(a.config, backend);
+  // The ekf's map is off unless asked for (ekf.mapping): the bench's default "on" is the window's.
+  const bool given = a.mapping_opt->count() > 0 || backend != "ekf";
+  tools::apply_map_switches(cfg, given ? mapping : "", "");
+  std::fprintf(stderr, "bench: native replay (lockstep) for the time per frame here\n");
+  std::string est_name, error;
+  const auto native = replay_in_child(log, log, drivers::ReplayPace::kLockstep, cfg, "", est_name, error);
+  if (!error.empty()) throw std::runtime_error("native replay: " + error);
+  const std::string cg_out = (fs::path(a.workdir) / "cpu_budget.callgrind").string();
+  const std::string console = (fs::path(a.workdir) / "cpu_budget.replay.txt").string();
+  std::vector<std::string> rargs{"replay", log, "--estimator", backend, "--pace", "lockstep", "--quiet"};
+  if (given) {
+    rargs.push_back("--mapping");
+    rargs.push_back(mapping);
+  }
+  if (!a.config.empty()) {
+    rargs.push_back("--config");
+    rargs.push_back(a.config);
+  }
+  std::fprintf(stderr, "bench: the same replay under callgrind (about 50x slower) -> %s\n", cg_out.c_str());
+  const std::string cg_error = run_under_callgrind(rargs, cg_out, console);
+  if (!cg_error.empty()) throw std::runtime_error(cg_error);
+  std::vector<std::string> needles;
+  for (const auto& st : budget_stages()) needles.push_back(st.needle);
+  const auto costs = tools::callgrind_inclusive(cg_out, needles);
+  const double frames = static_cast<double>(costs.at(budget_stages()[0].needle).calls);
+  if (frames <= 0)
+    throw std::runtime_error(cg_out + ": no call of Tracker::track: the backend '" + backend +
+                             "' has no tracker, or the binary's symbols are stripped");
+  auto count_of = [&](const char* per) {
+    for (const auto& st : budget_stages())
+      if (std::strcmp(st.per, per) == 0) return static_cast<double>(costs.at(st.needle).calls);
+    return 0.0;
   };
-  auto args = std::make_shared<Args>();
+  const double solves = count_of("solve"), samples = count_of("sample");
+  const auto& cores = tools::arm_core_models();
+  std::printf(
+      "cpu budget: %s, %s (mapping %s) — %.0f frames, %.0f optimizer solves, %.0f IMU samples; "
+      "instructions counted by callgrind (x86-64, this build)\n",
+      backend.c_str(), what.c_str(), mapping.c_str(), frames, solves, samples);
+  std::printf("%-26s %8s %12s %10s", "stage", "calls", "Minstr/call", "Minstr/per");
+  for (const auto& c : cores) std::printf(" %14s", (std::string(c.name) + " ms").c_str());
+  std::printf("\n");
+  tools::Json j;
+  j["backend"] = backend;
+  j["flight"] = what;
+  j["frames"] = frames;
+  j["optimizer_solves"] = solves;
+  j["imu_samples"] = samples;
+  tools::Json jstages = tools::Json::array();
+  for (const auto& st : budget_stages()) {
+    const tools::CallgrindCost& c = costs.at(st.needle);
+    const double denom = std::strcmp(st.per, "frame") == 0   ? frames
+                         : std::strcmp(st.per, "solve") == 0 ? solves
+                                                             : samples;
+    const double per = denom > 0 ? static_cast<double>(c.inclusive_ir) / denom : kNaN;
+    const double per_call =
+        c.calls > 0 ? static_cast<double>(c.inclusive_ir) / static_cast<double>(c.calls) : kNaN;
+    std::printf("%-26s %8llu %12s %10s", st.label, static_cast<unsigned long long>(c.calls),
+                fmt(per_call * 1e-6, "%.4g").c_str(), (fmt(per * 1e-6, "%.4g") + "/" + st.per).c_str());
+    tools::Json js;
+    js["stage"] = std::string(st.label).substr(std::string(st.label).find_first_not_of(' '));
+    js["function"] = st.needle;
+    js["per"] = st.per;
+    js["calls"] = c.calls;
+    js["instructions_per_call"] = tools::json_figure(per_call);
+    js["instructions_per_unit"] = tools::json_figure(per);
+    for (const auto& core_m : cores) {
+      const double ms = tools::estimated_ms(per, core_m);
+      std::printf(" %14s", fmt(ms, ms < 0.1 ? "%.2g" : "%.2f").c_str());
+      js[std::string("ms_") + core_m.name] = tools::json_figure(ms);
+    }
+    std::printf("\n");
+    jstages.push_back(js);
+  }
+  j["stages"] = jstages;
+  const double track_ms_p50 = get(native, "tracking_ms_p50"), track_ms_p99 = get(native, "tracking_ms_p99");
+  const double opt_ms_p50 = get(native, "optimizer_ms_p50"), opt_ms_p99 = get(native, "optimizer_ms_p99");
+  const double track_ir = static_cast<double>(costs.at(budget_stages()[0].needle).inclusive_ir) / frames;
+  std::printf(
+      "here (wall clock, lockstep): tracking p50 %s ms p99 %s ms; optimizer p50 %s ms p99 %s ms; "
+      "%s instructions per ns of tracking p50\n",
+      fmt(track_ms_p50, "%.2f").c_str(), fmt(track_ms_p99, "%.2f").c_str(), fmt(opt_ms_p50, "%.2f").c_str(),
+      fmt(opt_ms_p99, "%.2f").c_str(), fmt(track_ir / (track_ms_p50 * 1e6), "%.2f").c_str());
+  std::printf("ARM estimate = instructions / (IPC x clock), same instruction count as x86-64 assumed:");
+  for (const auto& c : cores)
+    std::printf(" %s (%s) %.1f GHz IPC %.1f;", c.name, c.example, c.clock_ghz, c.ipc);
+  std::printf("\n");
+  j["here"] = {{"tracking_ms_p50", tools::json_figure(track_ms_p50)},
+               {"tracking_ms_p99", tools::json_figure(track_ms_p99)},
+               {"optimizer_ms_p50", tools::json_figure(opt_ms_p50)},
+               {"optimizer_ms_p99", tools::json_figure(opt_ms_p99)}};
+  tools::Json jc = tools::Json::array();
+  for (const auto& c : cores)
+    jc.push_back({{"core", c.name}, {"example", c.example}, {"clock_ghz", c.clock_ghz}, {"ipc", c.ipc}});
+  j["core_models"] = jc;
+  if (!a.json_out.empty()) {
+    std::ofstream f(a.json_out);
+    if (!f) throw std::runtime_error("cannot write " + a.json_out);
+    f << tools::json_text(j);
+    std::printf("json: %s\n", a.json_out.c_str());
+  }
+  if (a.cpu_budget_log.empty() && !a.keep_logs) fs::remove(log);
+  return 0;
+}
+
+// The cases (rendered, hybrid, real): one log each, every backend, LONSC
+// variant and map switch on it, then the tables.
+int run_cases(const BenchArgs& a, double duration_s, drivers::ReplayPace pace) {
+  std::vector<BenchCase> cases = discover_cases(a.data_dir);
+  if (a.list) {
+    for (const auto& c : cases)
+      std::printf("%-26s %-12s %s\n", c.name.c_str(), c.kind.c_str(),
+                  c.skipped.empty() ? "ready" : ("SKIPPED: " + c.skipped).c_str());
+    return 0;
+  }
+  fs::create_directories(a.workdir);
+  std::vector<BenchRow> rows;
+  int ran = 0;
+  for (const auto& c : cases) {
+    if (!selected(c.name, a.cases)) continue;
+    BenchRow row;
+    row.name = c.name;
+    if (!c.skipped.empty()) {
+      row.status = "SKIPPED: " + c.skipped;
+      std::fprintf(stderr, "bench: %s SKIPPED: %s\n", c.name.c_str(), c.skipped.c_str());
+      rows.push_back(row);
+      continue;
+    }
+    std::fprintf(stderr, "bench: %s ...\n", c.name.c_str());
+    const std::string traj = (fs::path(a.workdir) / (c.name + ".traj.txt")).string();
+    std::string log = c.log_path;
+    std::string gt = c.gt_path;
+    bool generated = false;
+    if (c.kind != "real-images" && c.kind != "real-rgbd") {
+      tools::SimOptions so;
+      so.seed = 1;
+      if (c.kind == "real-synth-imu") {
+        so.images_path = c.images_path;  // the recording's length, size and rate
+      } else {
+        so.duration_s = duration_s;
+        so.width = a.width;
+        so.height = a.height;
+      }
+      if (c.kind == "real-synth-imu") {
+        // nothing more: the motion is the recording's
+      } else if (c.kind == "scenario") {
+        so.scenario = c.scenario;
+      } else {
+        so.trajectory_path = c.gt_path;
+        so.imu_path = c.imu_path;
+        so.fps = 30.0;
+        so.room_m = c.room_m;
+        so.stereo = c.stereo;
+      }
+      log = (fs::path(a.workdir) / (c.name + ".klog")).string();
+      so.out_path = log;
+      try {
+        tools::SimSummary s = tools::run_simulation(so);
+        row.sim_s = s.wall_s;
+      } catch (const std::exception& e) {
+        row.status = std::string("FAILED (sim): ") + e.what();
+        rows.push_back(row);
+        continue;
+      }
+      gt = log;  // the simulator writes ground truth into the log (--images: the recording's own)
+      generated = true;
+    }
+    // One log, every backend on it: the comparison is like for like.
+    for (const std::string& backend : c.backends.empty() ? a.estimators : c.backends)
+      for (const std::string& variant : a.lonsc_variants)
+        for (const std::string& mapping : a.mapping) {
+          const bool windowed = backend.rfind("window", 0) == 0;
+          const bool ekf = backend == "ekf";
+          if (!windowed && !ekf && mapping == "off" && a.mapping.size() > 1)
+            continue;  // no map to switch off
+          core::EstimatorConfig cfg = tools::load_estimator_config(a.config, backend);
+          // The ekf's map is off unless asked for (ekf.mapping, or --mapping
+          // given): the bench's default "on" is the window's.
+          tools::apply_map_switches(cfg, windowed || a.mapping_opt->count() > 0 ? mapping : "", "");
+          // A row's name: the backend, the LONSC variant when it is not the
+          // default, "-nomap" for the window without its map and "-map" for the
+          // ekf with one.
+          const std::string map_tag = windowed && mapping == "off" ? "-nomap"
+                                      : ekf && cfg.ekf.mapping     ? "-map"
+                                                                   : "";
+          const std::string est_name =
+              (variant == "tuned" ? backend : backend + "+lonsc-" + variant) + map_tag;
+          if (variant != to_string(cfg.lonsc_variant)) {
+            cfg.lonsc_variant = variant == "paper" ? core::LonscVariant::kPaper : core::LonscVariant::kTuned;
+            cfg.tracker.lonsc = core::lonsc_options(cfg.lonsc_variant);
+          }
+          BenchRow er = row;
+          std::string error;
+          const bool many = (c.backends.empty() ? a.estimators : c.backends).size() *
+                                a.lonsc_variants.size() * a.mapping.size() >
+                            1;
+          const std::string traj_e =
+              many ? (fs::path(a.workdir) / (c.name + "." + est_name + ".traj.txt")).string() : traj;
+          const auto m = replay_in_child(log, gt, pace, cfg, traj_e, er.estimator, error);
+          if (error.empty() && variant != "tuned") er.estimator += "+lonsc-" + variant;
+          if (error.empty()) er.estimator += map_tag;
+          if (!error.empty()) {
+            er.estimator = est_name;
+            er.status = "FAILED: " + error;
+            rows.push_back(er);
+            continue;
+          }
+          fill_row(er, m);
+          rows.push_back(er);
+          ++ran;
+        }
+    if (generated && !a.keep_logs) fs::remove(log);
+  }
+  print_table(rows);
+  print_timing_table(rows);
+  print_map_table(rows);
+  if (!a.json_out.empty()) {
+    std::ofstream f(a.json_out);
+    if (!f) throw std::runtime_error("cannot write " + a.json_out);
+    f << rows_json(rows, duration_s);
+    std::printf("json: %s\n", a.json_out.c_str());
+  }
+  if (ran == 0) {
+    std::fprintf(stderr, "bench: no case ran\n");
+    return 1;
+  }
+  if (a.strict) {
+    int failed = 0;
+    for (const auto& r : rows)
+      if (!r.fail.empty() || r.status.rfind("FAILED", 0) == 0) ++failed;
+    if (failed > 0) {
+      std::fprintf(stderr, "bench: %d row(s) FAIL (--strict)\n", failed);
+      return 2;
+    }
+  }
+  return 0;
+}
+
+}  // namespace
+
+Subcommand add_bench_command(CLI::App& parent) {
+  auto args = std::make_shared<BenchArgs>();
   CLI::App* app = parent.add_subcommand("bench", "run the benchmark suite and print one table");
   app->add_option("--json", args->json_out, "also write the table as JSON to this file");
   app->add_option("--cases", args->cases, "only the cases whose name contains one of these")->delimiter(',');
@@ -807,308 +1124,8 @@ Subcommand add_bench_command(CLI::App& parent) {
           args->out_dir.empty() ? (fs::path(args->workdir) / "datasets").string() : args->out_dir;
       return run_dataset_root(args->dataset_root, out, pace, cfg, args->strict);
     }
-    if (args->cpu_budget) {
-      const std::string backend = args->estimators.front();
-      const std::string mapping = args->mapping.front();
-      const double budget_s = args->duration_opt->count() > 0 ? duration_s : 4.0;
-      if (!(budget_s > 0)) throw UsageError("--cpu-budget needs a --duration in seconds, not `full`");
-      fs::create_directories(args->workdir);
-      std::string log = args->cpu_budget_log;
-      std::string what;
-      if (log.empty()) {
-        tools::SimOptions so;
-        so.seed = 1;
-        so.scenario = "figure8";
-        so.duration_s = budget_s;
-        so.width = args->width;
-        so.height = args->height;
-        log = (fs::path(args->workdir) / "cpu_budget.klog").string();
-        so.out_path = log;
-        std::fprintf(stderr, "bench: simulating the budget flight (figure8, %.0f s, %dx%d, seed 1)\n",
-                     budget_s, args->width, args->height);
-        tools::run_simulation(so);
-        char buf[96];
-        std::snprintf(buf, sizeof buf, "figure8 %.0f s %dx%d seed 1", budget_s, args->width, args->height);
-        what = buf;
-      } else {
-        if (!fs::exists(log)) throw UsageError("--cpu-budget-log: no such file: " + log);
-        what = log;
-      }
-      core::EstimatorConfig cfg = tools::load_estimator_config(args->config, backend);
-      // The ekf's map is off unless asked for (ekf.mapping): the bench's default "on" is the window's.
-      const bool given = args->mapping_opt->count() > 0 || backend != "ekf";
-      tools::apply_map_switches(cfg, given ? mapping : "", "");
-      std::fprintf(stderr, "bench: native replay (lockstep) for the time per frame here\n");
-      std::string est_name, error;
-      const auto native = replay_in_child(log, log, drivers::ReplayPace::kLockstep, cfg, "", est_name, error);
-      if (!error.empty()) throw std::runtime_error("native replay: " + error);
-      const std::string cg_out = (fs::path(args->workdir) / "cpu_budget.callgrind").string();
-      const std::string console = (fs::path(args->workdir) / "cpu_budget.replay.txt").string();
-      std::vector<std::string> rargs{"replay", log, "--estimator", backend, "--pace", "lockstep", "--quiet"};
-      if (given) {
-        rargs.push_back("--mapping");
-        rargs.push_back(mapping);
-      }
-      if (!args->config.empty()) {
-        rargs.push_back("--config");
-        rargs.push_back(args->config);
-      }
-      std::fprintf(stderr, "bench: the same replay under callgrind (about 50x slower) -> %s\n",
-                   cg_out.c_str());
-      const std::string cg_error = run_under_callgrind(rargs, cg_out, console);
-      if (!cg_error.empty()) throw std::runtime_error(cg_error);
-      std::vector<std::string> needles;
-      for (const auto& st : budget_stages()) needles.push_back(st.needle);
-      const auto costs = tools::callgrind_inclusive(cg_out, needles);
-      const double frames = static_cast<double>(costs.at(budget_stages()[0].needle).calls);
-      if (frames <= 0)
-        throw std::runtime_error(cg_out + ": no call of Tracker::track: the backend '" + backend +
-                                 "' has no tracker, or the binary's symbols are stripped");
-      auto count_of = [&](const char* per) {
-        for (const auto& st : budget_stages())
-          if (std::strcmp(st.per, per) == 0) return static_cast<double>(costs.at(st.needle).calls);
-        return 0.0;
-      };
-      const double solves = count_of("solve"), samples = count_of("sample");
-      const auto& cores = tools::arm_core_models();
-      std::printf(
-          "cpu budget: %s, %s (mapping %s) — %.0f frames, %.0f optimizer solves, %.0f IMU samples; "
-          "instructions counted by callgrind (x86-64, this build)\n",
-          backend.c_str(), what.c_str(), mapping.c_str(), frames, solves, samples);
-      std::printf("%-26s %8s %12s %10s", "stage", "calls", "Minstr/call", "Minstr/per");
-      for (const auto& c : cores) std::printf(" %14s", (std::string(c.name) + " ms").c_str());
-      std::printf("\n");
-      tools::Json j;
-      j["backend"] = backend;
-      j["flight"] = what;
-      j["frames"] = frames;
-      j["optimizer_solves"] = solves;
-      j["imu_samples"] = samples;
-      tools::Json jstages = tools::Json::array();
-      for (const auto& st : budget_stages()) {
-        const tools::CallgrindCost& c = costs.at(st.needle);
-        const double denom = std::strcmp(st.per, "frame") == 0   ? frames
-                             : std::strcmp(st.per, "solve") == 0 ? solves
-                                                                 : samples;
-        const double per = denom > 0 ? static_cast<double>(c.inclusive_ir) / denom : kNaN;
-        const double per_call =
-            c.calls > 0 ? static_cast<double>(c.inclusive_ir) / static_cast<double>(c.calls) : kNaN;
-        std::printf("%-26s %8llu %12s %10s", st.label, static_cast<unsigned long long>(c.calls),
-                    fmt(per_call * 1e-6, "%.4g").c_str(), (fmt(per * 1e-6, "%.4g") + "/" + st.per).c_str());
-        tools::Json js;
-        js["stage"] = std::string(st.label).substr(std::string(st.label).find_first_not_of(' '));
-        js["function"] = st.needle;
-        js["per"] = st.per;
-        js["calls"] = c.calls;
-        js["instructions_per_call"] = tools::json_figure(per_call);
-        js["instructions_per_unit"] = tools::json_figure(per);
-        for (const auto& core_m : cores) {
-          const double ms = tools::estimated_ms(per, core_m);
-          std::printf(" %14s", fmt(ms, ms < 0.1 ? "%.2g" : "%.2f").c_str());
-          js[std::string("ms_") + core_m.name] = tools::json_figure(ms);
-        }
-        std::printf("\n");
-        jstages.push_back(js);
-      }
-      j["stages"] = jstages;
-      const double track_ms_p50 = get(native, "tracking_ms_p50"),
-                   track_ms_p99 = get(native, "tracking_ms_p99");
-      const double opt_ms_p50 = get(native, "optimizer_ms_p50"), opt_ms_p99 = get(native, "optimizer_ms_p99");
-      const double track_ir = static_cast<double>(costs.at(budget_stages()[0].needle).inclusive_ir) / frames;
-      std::printf(
-          "here (wall clock, lockstep): tracking p50 %s ms p99 %s ms; optimizer p50 %s ms p99 %s ms; "
-          "%s instructions per ns of tracking p50\n",
-          fmt(track_ms_p50, "%.2f").c_str(), fmt(track_ms_p99, "%.2f").c_str(),
-          fmt(opt_ms_p50, "%.2f").c_str(), fmt(opt_ms_p99, "%.2f").c_str(),
-          fmt(track_ir / (track_ms_p50 * 1e6), "%.2f").c_str());
-      std::printf("ARM estimate = instructions / (IPC x clock), same instruction count as x86-64 assumed:");
-      for (const auto& c : cores)
-        std::printf(" %s (%s) %.1f GHz IPC %.1f;", c.name, c.example, c.clock_ghz, c.ipc);
-      std::printf("\n");
-      j["here"] = {{"tracking_ms_p50", tools::json_figure(track_ms_p50)},
-                   {"tracking_ms_p99", tools::json_figure(track_ms_p99)},
-                   {"optimizer_ms_p50", tools::json_figure(opt_ms_p50)},
-                   {"optimizer_ms_p99", tools::json_figure(opt_ms_p99)}};
-      tools::Json jc = tools::Json::array();
-      for (const auto& c : cores)
-        jc.push_back({{"core", c.name}, {"example", c.example}, {"clock_ghz", c.clock_ghz}, {"ipc", c.ipc}});
-      j["core_models"] = jc;
-      if (!args->json_out.empty()) {
-        std::ofstream f(args->json_out);
-        if (!f) throw std::runtime_error("cannot write " + args->json_out);
-        f << tools::json_text(j);
-        std::printf("json: %s\n", args->json_out.c_str());
-      }
-      if (args->cpu_budget_log.empty() && !args->keep_logs) fs::remove(log);
-      return 0;
-    }
-    std::vector<BenchCase> cases = discover_cases(args->data_dir);
-    if (args->list) {
-      for (const auto& c : cases)
-        std::printf("%-26s %-12s %s\n", c.name.c_str(), c.kind.c_str(),
-                    c.skipped.empty() ? "ready" : ("SKIPPED: " + c.skipped).c_str());
-      return 0;
-    }
-    fs::create_directories(args->workdir);
-    std::vector<BenchRow> rows;
-    int ran = 0;
-    for (const auto& c : cases) {
-      if (!selected(c.name, args->cases)) continue;
-      BenchRow row;
-      row.name = c.name;
-      if (!c.skipped.empty()) {
-        row.status = "SKIPPED: " + c.skipped;
-        std::fprintf(stderr, "bench: %s SKIPPED: %s\n", c.name.c_str(), c.skipped.c_str());
-        rows.push_back(row);
-        continue;
-      }
-      std::fprintf(stderr, "bench: %s ...\n", c.name.c_str());
-      const std::string traj = (fs::path(args->workdir) / (c.name + ".traj.txt")).string();
-      std::string log = c.log_path;
-      std::string gt = c.gt_path;
-      bool generated = false;
-      if (c.kind != "real-images" && c.kind != "real-rgbd") {
-        tools::SimOptions so;
-        so.seed = 1;
-        if (c.kind == "real-synth-imu") {
-          so.images_path = c.images_path;  // the recording's length, size and rate
-        } else {
-          so.duration_s = duration_s;
-          so.width = args->width;
-          so.height = args->height;
-        }
-        if (c.kind == "real-synth-imu") {
-          // nothing more: the motion is the recording's
-        } else if (c.kind == "scenario") {
-          so.scenario = c.scenario;
-        } else {
-          so.trajectory_path = c.gt_path;
-          so.imu_path = c.imu_path;
-          so.fps = 30.0;
-          so.room_m = c.room_m;
-          so.stereo = c.stereo;
-        }
-        log = (fs::path(args->workdir) / (c.name + ".klog")).string();
-        so.out_path = log;
-        try {
-          tools::SimSummary s = tools::run_simulation(so);
-          row.sim_s = s.wall_s;
-        } catch (const std::exception& e) {
-          row.status = std::string("FAILED (sim): ") + e.what();
-          rows.push_back(row);
-          continue;
-        }
-        gt = log;  // the simulator writes ground truth into the log (--images: the recording's own)
-        generated = true;
-      }
-      // One log, every backend on it: the comparison is like for like.
-      for (const std::string& backend : c.backends.empty() ? args->estimators : c.backends)
-        for (const std::string& variant : args->lonsc_variants)
-          for (const std::string& mapping : args->mapping) {
-            const bool windowed = backend.rfind("window", 0) == 0;
-            const bool ekf = backend == "ekf";
-            if (!windowed && !ekf && mapping == "off" && args->mapping.size() > 1)
-              continue;  // no map to switch off
-            core::EstimatorConfig cfg = tools::load_estimator_config(args->config, backend);
-            // The ekf's map is off unless asked for (ekf.mapping, or --mapping
-            // given): the bench's default "on" is the window's.
-            tools::apply_map_switches(cfg, windowed || args->mapping_opt->count() > 0 ? mapping : "", "");
-            // A row's name: the backend, the LONSC variant when it is not the
-            // default, "-nomap" for the window without its map and "-map" for the
-            // ekf with one.
-            const std::string map_tag = windowed && mapping == "off" ? "-nomap"
-                                        : ekf && cfg.ekf.mapping     ? "-map"
-                                                                     : "";
-            const std::string est_name =
-                (variant == "tuned" ? backend : backend + "+lonsc-" + variant) + map_tag;
-            if (variant != to_string(cfg.lonsc_variant)) {
-              cfg.lonsc_variant =
-                  variant == "paper" ? core::LonscVariant::kPaper : core::LonscVariant::kTuned;
-              cfg.tracker.lonsc = core::lonsc_options(cfg.lonsc_variant);
-            }
-            BenchRow er = row;
-            std::string error;
-            const bool many = (c.backends.empty() ? args->estimators : c.backends).size() *
-                                  args->lonsc_variants.size() * args->mapping.size() >
-                              1;
-            const std::string traj_e =
-                many ? (fs::path(args->workdir) / (c.name + "." + est_name + ".traj.txt")).string() : traj;
-            const auto m = replay_in_child(log, gt, pace, cfg, traj_e, er.estimator, error);
-            if (error.empty() && variant != "tuned") er.estimator += "+lonsc-" + variant;
-            if (error.empty()) er.estimator += map_tag;
-            if (!error.empty()) {
-              er.estimator = est_name;
-              er.status = "FAILED: " + error;
-              rows.push_back(er);
-              continue;
-            }
-            er.duration_s = get(m, "duration_s");
-            er.ate_rmse_m = get(m, "ate_rmse_m");
-            er.ate_se3_rmse_m = get(m, "ate_se3_rmse_m");
-            er.rpe_trans_m_per_s = get(m, "rpe_trans_m_per_s");
-            er.tracking_ms_p50 = get(m, "tracking_ms_p50");
-            er.tracking_ms_p99 = get(m, "tracking_ms_p99");
-            er.optimizer_ms_p50 = get(m, "optimizer_ms_p50");
-            er.optimizer_ms_p99 = get(m, "optimizer_ms_p99");
-            er.imu_to_output_ms_p99 = get(m, "imu_to_output_ms_p99");
-            er.imu_to_output_ms_p50 = get(m, "imu_to_output_ms_p50");
-            er.imu_to_output_ms_max = get(m, "imu_to_output_ms_max");
-            er.tracking_ms_max = get(m, "tracking_ms_max");
-            er.optimizer_ms_max = get(m, "optimizer_ms_max");
-            er.allocs_per_frame = get(m, "allocs_per_frame");
-            er.realtime_factor = get(m, "realtime_factor");
-            er.peak_rss_mb = get(m, "peak_rss_mb");
-            er.pose_share = get(m, "pose_share");
-            er.replay_wall_s = get(m, "replay_wall_s");
-            er.divergences = get(m, "divergences");
-            er.coast_s = get(m, "coast_s");
-            er.cpu_s_per_s = get(m, "cpu_s_per_s");
-            er.fail = fail_reasons(er);
-            er.cpu_per_s = get(m, "cpu_per_s");
-            er.map_cpu_s_per_s = get(m, "map_cpu_s_per_s");
-            er.map_ate_se3_rmse_m = get(m, "map_ate_se3_rmse_m");
-            er.map_final_ate_se3_rmse_m = get(m, "map_final_ate_se3_rmse_m");
-            er.loop_closures = get(m, "loop_closures");
-            er.relocalisations = get(m, "relocalisations");
-            er.keyframes_in_map = get(m, "keyframes_in_map");
-            er.map_points = get(m, "map_points");
-            er.map_correction_m = get(m, "map_correction_m");
-            er.mapping_ms_p50 = get(m, "mapping_ms_p50");
-            er.mapping_ms_p99 = get(m, "mapping_ms_p99");
-            er.loop_ms_p50 = get(m, "loop_ms_p50");
-            er.loop_ms_p99 = get(m, "loop_ms_p99");
-            er.loop_revisits = get(m, "loop_revisits");
-            er.loop_recall = get(m, "loop_recall");
-            er.map_recall = get(m, "map_recall");
-            er.false_loops = get(m, "false_loops");
-            rows.push_back(er);
-            ++ran;
-          }
-      if (generated && !args->keep_logs) fs::remove(log);
-    }
-    print_table(rows);
-    print_timing_table(rows);
-    print_map_table(rows);
-    if (!args->json_out.empty()) {
-      std::ofstream f(args->json_out);
-      if (!f) throw std::runtime_error("cannot write " + args->json_out);
-      f << rows_json(rows, duration_s);
-      std::printf("json: %s\n", args->json_out.c_str());
-    }
-    if (ran == 0) {
-      std::fprintf(stderr, "bench: no case ran\n");
-      return 1;
-    }
-    if (args->strict) {
-      int failed = 0;
-      for (const auto& r : rows)
-        if (!r.fail.empty() || r.status.rfind("FAILED", 0) == 0) ++failed;
-      if (failed > 0) {
-        std::fprintf(stderr, "bench: %d row(s) FAIL (--strict)\n", failed);
-        return 2;
-      }
-    }
-    return 0;
+    if (args->cpu_budget) return run_cpu_budget(*args, duration_s);
+    return run_cases(*args, duration_s, pace);
   };
   return cmd;
 }
