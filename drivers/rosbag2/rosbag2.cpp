@@ -415,6 +415,32 @@ struct Rosbag2Reader::Impl {
   std::vector<uint8_t> scratch;
   size_t pos = 0;
 
+  // What the one pass over the messages finds (the constructor's scan).
+  struct Img {
+    int64_t t_ns, t_recv;
+    uint32_t idx;
+  };
+  struct Scan {
+    std::map<uint16_t, Role> role;  // by channel, decided at its first message
+    std::string rgb_topic, depth_topic, imu_topic, gt_topic, right_topic;
+    std::string right_frame, imu_frame, cam_frame;
+    std::map<std::string, ros2::CameraInfo> infos;  // first per topic
+    std::vector<ros2::TransformStamped> tf_static;
+    std::vector<Img> rgb, depth, right;
+  };
+  // The bag's storage (a folder's metadata.yaml, or the file itself): file, mr.
+  void open_storage();
+  // A channel's role from its type, the options and its first message.
+  Role classify(Scan& sc, const mcap::MessageRef& m, const uint8_t* data, size_t n);
+  // One message, by its channel's role.
+  void take(Scan& sc, const mcap::MessageRef& m, const uint8_t* data, size_t n);
+  // The rig from CameraInfo and /tf_static (no --rig, no Kestrel metadata).
+  Rig rig_from_messages(Scan& sc);
+  // Colour/depth and left/right pairs into entries.
+  void pair_images(Scan& sc);
+  // Entries in time order, IMU duplicates dropped.
+  void order_entries(const std::string& imu_topic);
+
   void problem(std::string where, std::string kind, std::string detail) {
     problems.push_back(LogProblem{std::move(where), std::move(kind), std::move(detail)});
   }
@@ -562,15 +588,12 @@ struct Rosbag2Reader::Impl {
   }
 };
 
-Rosbag2Reader::Rosbag2Reader(const std::string& path, const Rosbag2ReadOptions& options, const Rig* rig_in)
-    : impl_(std::make_unique<Impl>()) {
-  Impl& s = *impl_;
-  s.path = path;
-  s.opt = options;
-  std::string mcap_path = path;
+void Rosbag2Reader::Impl::open_storage() {
+  Impl& s = *this;
+  std::string mcap_path = s.path;
   std::string storage;
-  if (text::is_dir(path)) {
-    const std::string meta = (fs::path(path) / "metadata.yaml").string();
+  if (text::is_dir(s.path)) {
+    const std::string meta = (fs::path(s.path) / "metadata.yaml").string();
     YAML::Node y;
     try {
       y = YAML::LoadFile(meta)["rosbag2_bagfile_information"];
@@ -589,7 +612,7 @@ Rosbag2Reader::Rosbag2Reader(const std::string& path, const Rosbag2ReadOptions& 
     const YAML::Node files = y["relative_file_paths"];
     if (!files || !files.IsSequence() || files.size() == 0)
       throw std::runtime_error(meta + ": relative_file_paths names no file");
-    mcap_path = (fs::path(path) / files[0].as<std::string>()).string();
+    mcap_path = (fs::path(s.path) / files[0].as<std::string>()).string();
     if (files.size() > 1) {
       s.problem(meta + ":relative_file_paths", "unsupported",
                 "only the first of " + std::to_string(files.size()) + " split files is read");
@@ -600,381 +623,364 @@ Rosbag2Reader::Rosbag2Reader(const std::string& path, const Rosbag2ReadOptions& 
   if (storage == "sqlite3") {
     s.mr = rosbag2_store::open_sqlite3(mcap_path);
   } else {
-    s.mr = rosbag2_store::open_mcap(mcap_path, options.mcap);
+    s.mr = rosbag2_store::open_mcap(mcap_path, s.opt.mcap);
   }
+}
 
-  std::map<uint16_t, Role> role;
-  std::string rgb_topic = options.rgb_topic, depth_topic = options.depth_topic, imu_topic = options.imu_topic,
-              gt_topic = options.ground_truth_topic, right_topic = options.right_topic;
-  std::string right_frame;
-  std::map<std::string, ros2::CameraInfo> infos;  // first per topic
-  std::vector<ros2::TransformStamped> tf_static;
-  std::string imu_frame, cam_frame;
-  struct Img {
-    int64_t t_ns, t_recv;
-    uint32_t idx;
+Role Rosbag2Reader::Impl::classify(Scan& scan, const mcap::MessageRef& m, const uint8_t* data, size_t n) {
+  Impl& s = *this;
+  const Rosbag2ReadOptions& options = s.opt;
+  std::string &rgb_topic = scan.rgb_topic, &depth_topic = scan.depth_topic, &imu_topic = scan.imu_topic,
+              &gt_topic = scan.gt_topic, &right_topic = scan.right_topic;
+  const auto& ch = s.mr->channels().at(m.channel_id);
+  const auto sc = s.mr->schemas().find(ch.schema_id);
+  const std::string type = sc == s.mr->schemas().end() ? "" : sc->second.name;
+  const std::string where = s.file + ":" + ch.topic;
+  auto known = [](const std::string& t) {
+    return t == kImuType || t == kImageType || t == kCompressedType || t == kInfoType || t == kTfType ||
+           t == kPoseType;
   };
-  std::vector<Img> rgb, depth, right;
-
-  auto classify = [&](const mcap::MessageRef& m, const uint8_t* data, size_t n) -> Role {
-    const auto& ch = s.mr->channels().at(m.channel_id);
-    const auto sc = s.mr->schemas().find(ch.schema_id);
-    const std::string type = sc == s.mr->schemas().end() ? "" : sc->second.name;
-    const std::string where = s.file + ":" + ch.topic;
-    auto known = [](const std::string& t) {
-      return t == kImuType || t == kImageType || t == kCompressedType || t == kInfoType || t == kTfType ||
-             t == kPoseType;
-    };
-    if (!options.topics.empty() &&
-        std::find(options.topics.begin(), options.topics.end(), ch.topic) == options.topics.end() &&
-        type != kTfType && type != kInfoType)
-      return kIgnore;  // not chosen (--topics); tf_static and CameraInfo still give the rig
-    if (!known(type)) {
-      s.problem(where, "unsupported-type", "message type \"" + type + "\" is not read; topic ignored");
-      return kIgnore;
-    }
-    if (ch.message_encoding != "cdr") {
-      s.problem(where, "bad-encoding",
-                "message encoding \"" + ch.message_encoding + "\" of " + type +
-                    " (only cdr is read); topic ignored");
-      return kIgnore;
-    }
-    if (sc->second.encoding != "ros2msg" && sc->second.encoding != "ros2idl") {
-      s.problem(where, "assumed",
-                "schema encoding \"" + sc->second.encoding + "\"; decoded as the ROS 2 " + type);
-    }
-    if (type == kImuType) {
-      if (imu_topic.empty()) imu_topic = ch.topic;
-      return ch.topic == imu_topic ? kImuRole : kIgnore;
-    }
-    if (type == kInfoType) return kInfoRole;
-    if (type == kTfType) return ch.topic == "/tf_static" ? kTfRole : kIgnore;
-    if (type == kPoseType) {
-      if (gt_topic.empty()) gt_topic = ch.topic;
-      return ch.topic == gt_topic ? kGtRole : kIgnore;
-    }
-    // Image: the named topics, else by the first message's encoding.
-    if (type == kCompressedType) s.compressed.insert(ch.id);
-    if (ch.topic == rgb_topic) return kColorRole;
-    if (ch.topic == depth_topic) return kDepthRole;
-    if (right_topic.empty() && ch.topic == Rosbag2Topics{}.right) right_topic = ch.topic;  // our writer's
-    if (ch.topic == right_topic) return kRightRole;
-    if (type == kCompressedType) {
-      ros2::CompressedImage ci;
-      try {
-        ros2::decode(data, n, ci);
-      } catch (const std::exception&) {
-        return kIgnore;
-      }
-      if (!compressed_known(ci.format)) {
-        s.problem(where, "bad-encoding",
-                  "CompressedImage format \"" + ci.format + "\" (jpeg or png are read); topic ignored");
-        return kIgnore;
-      }
-      const bool d = compressed_is_depth(ci.format);
-      if (!d && rgb_topic.empty() && options.rgb_topic.empty()) {
-        rgb_topic = ch.topic;
-        return kColorRole;
-      }
-      if (d && depth_topic.empty() && options.depth_topic.empty()) {
-        depth_topic = ch.topic;
-        return kDepthRole;
-      }
-      return kIgnore;
-    }
-    ros2::Image im;
+  if (!options.topics.empty() &&
+      std::find(options.topics.begin(), options.topics.end(), ch.topic) == options.topics.end() &&
+      type != kTfType && type != kInfoType)
+    return kIgnore;  // not chosen (--topics); tf_static and CameraInfo still give the rig
+  if (!known(type)) {
+    s.problem(where, "unsupported-type", "message type \"" + type + "\" is not read; topic ignored");
+    return kIgnore;
+  }
+  if (ch.message_encoding != "cdr") {
+    s.problem(
+        where, "bad-encoding",
+        "message encoding \"" + ch.message_encoding + "\" of " + type + " (only cdr is read); topic ignored");
+    return kIgnore;
+  }
+  if (sc->second.encoding != "ros2msg" && sc->second.encoding != "ros2idl") {
+    s.problem(where, "assumed",
+              "schema encoding \"" + sc->second.encoding + "\"; decoded as the ROS 2 " + type);
+  }
+  if (type == kImuType) {
+    if (imu_topic.empty()) imu_topic = ch.topic;
+    return ch.topic == imu_topic ? kImuRole : kIgnore;
+  }
+  if (type == kInfoType) return kInfoRole;
+  if (type == kTfType) return ch.topic == "/tf_static" ? kTfRole : kIgnore;
+  if (type == kPoseType) {
+    if (gt_topic.empty()) gt_topic = ch.topic;
+    return ch.topic == gt_topic ? kGtRole : kIgnore;
+  }
+  // Image: the named topics, else by the first message's encoding.
+  if (type == kCompressedType) s.compressed.insert(ch.id);
+  if (ch.topic == rgb_topic) return kColorRole;
+  if (ch.topic == depth_topic) return kDepthRole;
+  if (right_topic.empty() && ch.topic == Rosbag2Topics{}.right) right_topic = ch.topic;  // our writer's
+  if (ch.topic == right_topic) return kRightRole;
+  if (type == kCompressedType) {
+    ros2::CompressedImage ci;
     try {
-      ros2::decode(data, n, im);
+      ros2::decode(data, n, ci);
     } catch (const std::exception&) {
-      return kIgnore;  // undecided: the message itself is reported below
+      return kIgnore;
     }
-    if (rgb_topic.empty() && options.rgb_topic.empty() && colour_encoding(im.encoding)) {
+    if (!compressed_known(ci.format)) {
+      s.problem(where, "bad-encoding",
+                "CompressedImage format \"" + ci.format + "\" (jpeg or png are read); topic ignored");
+      return kIgnore;
+    }
+    const bool d = compressed_is_depth(ci.format);
+    if (!d && rgb_topic.empty() && options.rgb_topic.empty()) {
       rgb_topic = ch.topic;
       return kColorRole;
     }
-    if (depth_topic.empty() && options.depth_topic.empty() && depth_encoding(im.encoding)) {
+    if (d && depth_topic.empty() && options.depth_topic.empty()) {
       depth_topic = ch.topic;
       return kDepthRole;
     }
     return kIgnore;
-  };
+  }
+  ros2::Image im;
+  try {
+    ros2::decode(data, n, im);
+  } catch (const std::exception&) {
+    return kIgnore;  // undecided: the message itself is reported below
+  }
+  if (rgb_topic.empty() && options.rgb_topic.empty() && colour_encoding(im.encoding)) {
+    rgb_topic = ch.topic;
+    return kColorRole;
+  }
+  if (depth_topic.empty() && options.depth_topic.empty() && depth_encoding(im.encoding)) {
+    depth_topic = ch.topic;
+    return kDepthRole;
+  }
+  return kIgnore;
+}
 
-  s.mr->scan([&](const mcap::MessageRef& m, const uint8_t* data, size_t n) {
-    auto it = role.find(m.channel_id);
-    if (it == role.end()) it = role.emplace(m.channel_id, classify(m, data, n)).first;
-    const Role ro = it->second;
-    if (ro == kIgnore) return;
-    const std::string where =
-        s.file + ":" + s.mr->channels().at(m.channel_id).topic + "#" + std::to_string(m.sequence);
-    const int64_t t_recv = static_cast<int64_t>(std::min<uint64_t>(m.log_time_ns, INT64_MAX));
-    try {
-      switch (ro) {
-        case kImuRole: {
-          ros2::Imu x;
-          ros2::decode(data, n, x);
-          ImuSample sm;
-          sm.t_ns = x.t_ns;
-          sm.t_recv_ns = t_recv;
-          sm.seq = static_cast<uint32_t>(s.imu.size());
-          sm.gyro_rps = x.angular_velocity;
-          sm.acc_mps2 = x.linear_acceleration;
-          bool finite = true;
-          for (int j = 0; j < 3; ++j)
-            finite = finite && std::isfinite(sm.gyro_rps[j]) && std::isfinite(sm.acc_mps2[j]);
-          if (!finite) {
-            sm.flags |= kImuNonFinite;
-            s.problem(where, "non-finite", "NaN or Inf in an IMU message; kept with kImuNonFinite");
-          }
-          if (imu_frame.empty()) imu_frame = x.frame_id;
-          s.entries.push_back({sm.t_ns, t_recv, kImuK, static_cast<uint32_t>(s.imu.size())});
-          s.imu.push_back(sm);
-          break;
+void Rosbag2Reader::Impl::take(Scan& sc, const mcap::MessageRef& m, const uint8_t* data, size_t n) {
+  Impl& s = *this;
+  auto& [role, rgb_topic, depth_topic, imu_topic, gt_topic, right_topic, right_frame, imu_frame, cam_frame,
+         infos, tf_static, rgb, depth, right] = sc;
+  auto it = role.find(m.channel_id);
+  if (it == role.end()) it = role.emplace(m.channel_id, classify(sc, m, data, n)).first;
+  const Role ro = it->second;
+  if (ro == kIgnore) return;
+  const std::string where =
+      s.file + ":" + s.mr->channels().at(m.channel_id).topic + "#" + std::to_string(m.sequence);
+  const int64_t t_recv = static_cast<int64_t>(std::min<uint64_t>(m.log_time_ns, INT64_MAX));
+  try {
+    switch (ro) {
+      case kImuRole: {
+        ros2::Imu x;
+        ros2::decode(data, n, x);
+        ImuSample sm;
+        sm.t_ns = x.t_ns;
+        sm.t_recv_ns = t_recv;
+        sm.seq = static_cast<uint32_t>(s.imu.size());
+        sm.gyro_rps = x.angular_velocity;
+        sm.acc_mps2 = x.linear_acceleration;
+        bool finite = true;
+        for (int j = 0; j < 3; ++j)
+          finite = finite && std::isfinite(sm.gyro_rps[j]) && std::isfinite(sm.acc_mps2[j]);
+        if (!finite) {
+          sm.flags |= kImuNonFinite;
+          s.problem(where, "non-finite", "NaN or Inf in an IMU message; kept with kImuNonFinite");
         }
-        case kRightRole: {
-          // The right image of a stereo pair: colour encodings as the left (loaded as the left is).
-          if (s.compressed.count(m.channel_id)) {
-            ros2::CompressedImage ci;
-            ros2::decode(data, n, ci);
-            if (!compressed_known(ci.format) || compressed_is_depth(ci.format)) {
-              s.problem(where, "bad-image", "right CompressedImage format \"" + ci.format + "\"");
-              return;
-            }
-            if (right_frame.empty()) right_frame = ci.frame_id;
-            right.push_back({ci.t_ns, t_recv, static_cast<uint32_t>(s.images.size())});
-            s.images.push_back(m);
-            break;
-          }
-          ros2::Image im;
-          ros2::decode(data, n, im);
-          if (!colour_encoding(im.encoding)) {
-            s.problem(where, "bad-image",
-                      "right encoding \"" + im.encoding + "\" (expected rgb8, bgr8 or mono8)");
-            return;
-          }
-          if (right_frame.empty()) right_frame = im.frame_id;
-          right.push_back({im.t_ns, t_recv, static_cast<uint32_t>(s.images.size())});
-          s.images.push_back(m);
-          break;
-        }
-        case kColorRole:
-        case kDepthRole: {
-          const bool d = ro == kDepthRole;
-          if (s.compressed.count(m.channel_id)) {
-            ros2::CompressedImage ci;
-            ros2::decode(data, n, ci);
-            if (!compressed_known(ci.format) || compressed_is_depth(ci.format) != d) {
-              s.problem(
-                  where, "bad-image",
-                  std::string(d ? "depth" : "colour") + " CompressedImage format \"" + ci.format + "\"");
-              return;
-            }
-            if (!d && cam_frame.empty()) cam_frame = ci.frame_id;
-            (d ? depth : rgb).push_back({ci.t_ns, t_recv, static_cast<uint32_t>(s.images.size())});
-            s.images.push_back(m);
-            break;
-          }
-          ros2::Image im;
-          ros2::decode(data, n, im);
-          if (d ? !depth_encoding(im.encoding) : !colour_encoding(im.encoding)) {
-            s.problem(where, "bad-image",
-                      std::string(d ? "depth" : "colour") + " encoding \"" + im.encoding + "\" (expected " +
-                          (d ? "16UC1 or 32FC1" : "rgb8, bgr8 or mono8") + ")");
-            return;
-          }
-          if (!d && cam_frame.empty()) cam_frame = im.frame_id;
-          (d ? depth : rgb).push_back({im.t_ns, t_recv, static_cast<uint32_t>(s.images.size())});
-          s.images.push_back(m);
-          break;
-        }
-        case kInfoRole: {
-          const std::string topic = s.mr->channels().at(m.channel_id).topic;
-          if (infos.count(topic)) return;
-          ros2::CameraInfo ci;
+        if (imu_frame.empty()) imu_frame = x.frame_id;
+        s.entries.push_back({sm.t_ns, t_recv, kImuK, static_cast<uint32_t>(s.imu.size())});
+        s.imu.push_back(sm);
+        break;
+      }
+      case kRightRole: {
+        // The right image of a stereo pair: colour encodings as the left (loaded as the left is).
+        if (s.compressed.count(m.channel_id)) {
+          ros2::CompressedImage ci;
           ros2::decode(data, n, ci);
-          infos[topic] = ci;
-          break;
-        }
-        case kTfRole: {
-          std::vector<ros2::TransformStamped> tf;
-          ros2::decode(data, n, tf);
-          tf_static.insert(tf_static.end(), tf.begin(), tf.end());
-          break;
-        }
-        case kGtRole: {
-          ros2::PoseStamped p;
-          ros2::decode(data, n, p);
-          GroundTruthPose g;
-          g.t_ns = p.t_ns;
-          g.p_WB = p.pose.position;
-          const auto& q = p.pose.orientation_xyzw;
-          g.q_WB = {q[3], q[0], q[1], q[2]};
-          const double qn = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
-          if (!(std::abs(qn - 1.0) <= 1e-2)) {
-            s.problem(where, "bad-row", "quaternion norm " + text::fmt17(qn) + " is not 1");
+          if (!compressed_known(ci.format) || compressed_is_depth(ci.format)) {
+            s.problem(where, "bad-image", "right CompressedImage format \"" + ci.format + "\"");
             return;
           }
-          s.entries.push_back({g.t_ns, t_recv, kGtK, static_cast<uint32_t>(s.gt.size())});
-          s.gt.push_back(g);
+          if (right_frame.empty()) right_frame = ci.frame_id;
+          right.push_back({ci.t_ns, t_recv, static_cast<uint32_t>(s.images.size())});
+          s.images.push_back(m);
           break;
         }
-        case kIgnore:
-          break;
+        ros2::Image im;
+        ros2::decode(data, n, im);
+        if (!colour_encoding(im.encoding)) {
+          s.problem(where, "bad-image",
+                    "right encoding \"" + im.encoding + "\" (expected rgb8, bgr8 or mono8)");
+          return;
+        }
+        if (right_frame.empty()) right_frame = im.frame_id;
+        right.push_back({im.t_ns, t_recv, static_cast<uint32_t>(s.images.size())});
+        s.images.push_back(m);
+        break;
       }
-    } catch (const std::exception& e) {
-      s.problem(where, "bad-payload", e.what());
+      case kColorRole:
+      case kDepthRole: {
+        const bool d = ro == kDepthRole;
+        if (s.compressed.count(m.channel_id)) {
+          ros2::CompressedImage ci;
+          ros2::decode(data, n, ci);
+          if (!compressed_known(ci.format) || compressed_is_depth(ci.format) != d) {
+            s.problem(where, "bad-image",
+                      std::string(d ? "depth" : "colour") + " CompressedImage format \"" + ci.format + "\"");
+            return;
+          }
+          if (!d && cam_frame.empty()) cam_frame = ci.frame_id;
+          (d ? depth : rgb).push_back({ci.t_ns, t_recv, static_cast<uint32_t>(s.images.size())});
+          s.images.push_back(m);
+          break;
+        }
+        ros2::Image im;
+        ros2::decode(data, n, im);
+        if (d ? !depth_encoding(im.encoding) : !colour_encoding(im.encoding)) {
+          s.problem(where, "bad-image",
+                    std::string(d ? "depth" : "colour") + " encoding \"" + im.encoding + "\" (expected " +
+                        (d ? "16UC1 or 32FC1" : "rgb8, bgr8 or mono8") + ")");
+          return;
+        }
+        if (!d && cam_frame.empty()) cam_frame = im.frame_id;
+        (d ? depth : rgb).push_back({im.t_ns, t_recv, static_cast<uint32_t>(s.images.size())});
+        s.images.push_back(m);
+        break;
+      }
+      case kInfoRole: {
+        const std::string topic = s.mr->channels().at(m.channel_id).topic;
+        if (infos.count(topic)) return;
+        ros2::CameraInfo ci;
+        ros2::decode(data, n, ci);
+        infos[topic] = ci;
+        break;
+      }
+      case kTfRole: {
+        std::vector<ros2::TransformStamped> tf;
+        ros2::decode(data, n, tf);
+        tf_static.insert(tf_static.end(), tf.begin(), tf.end());
+        break;
+      }
+      case kGtRole: {
+        ros2::PoseStamped p;
+        ros2::decode(data, n, p);
+        GroundTruthPose g;
+        g.t_ns = p.t_ns;
+        g.p_WB = p.pose.position;
+        const auto& q = p.pose.orientation_xyzw;
+        g.q_WB = {q[3], q[0], q[1], q[2]};
+        const double qn = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+        if (!(std::abs(qn - 1.0) <= 1e-2)) {
+          s.problem(where, "bad-row", "quaternion norm " + text::fmt17(qn) + " is not 1");
+          return;
+        }
+        s.entries.push_back({g.t_ns, t_recv, kGtK, static_cast<uint32_t>(s.gt.size())});
+        s.gt.push_back(g);
+        break;
+      }
+      case kIgnore:
+        break;
     }
-  });
-  for (auto& p : s.mr->problems()) s.problems.push_back(p);
-  s.mr->problems().clear();
-  for (const auto& t : options.topics) {
-    bool found = false;
-    std::string have;
-    for (const auto& [id, ch] : s.mr->channels()) {
-      found = found || ch.topic == t;
-      have += (have.empty() ? "" : ", ") + ch.topic;
-    }
-    if (!found) {
-      throw std::runtime_error(path + ": --topics names " + t +
-                               ", which the bag does not have (it has: " + have + ")");
-    }
+  } catch (const std::exception& e) {
+    s.problem(where, "bad-payload", e.what());
   }
+}
 
-  // The rig: --rig, else Kestrel's own, else CameraInfo (+ tf_static).
+Rig Rosbag2Reader::Impl::rig_from_messages(Scan& sc) {
+  Impl& s = *this;
+  const Rosbag2ReadOptions& options = s.opt;
+  const std::string& path = s.path;
+  auto& [role, rgb_topic, depth_topic, imu_topic, gt_topic, right_topic, right_frame, imu_frame, cam_frame,
+         infos, tf_static, rgb, depth, right] = sc;
   Rig r;
-  const auto km = s.mr->metadata().find("kestrel");
-  if (rig_in) {
-    r = *rig_in;
-  } else if (km != s.mr->metadata().end() && km->second.count("rig_yaml")) {
-    r = rig_from_yaml(km->second.at("rig_yaml"), s.file + ": MCAP metadata kestrel.rig_yaml");
-  } else {
-    r.name = text::file_name(path);
-    std::string info_topic = options.camera_info_topic;
-    if (info_topic.empty() && !rgb_topic.empty()) {
-      const size_t k = rgb_topic.rfind('/');
-      info_topic = (k == std::string::npos ? std::string() : rgb_topic.substr(0, k)) + "/camera_info";
-      if (!infos.count(info_topic) && infos.size() == 1) info_topic = infos.begin()->first;
-    }
-    const auto it = infos.find(info_topic);
-    if (it == infos.end()) {
-      throw std::runtime_error(
-          path + ": no sensor_msgs/msg/CameraInfo on " +
-          (info_topic.empty() ? std::string("any topic") : info_topic) +
-          ": camera intrinsics missing; give them with --rig FILE.yaml or name the topic "
-          "with --camera-info-topic");
-    }
-    const ros2::CameraInfo& ci = it->second;
-    if (ci.k[0] <= 0 || ci.k[4] <= 0 || ci.width == 0 || ci.height == 0 || ci.width > 32768 ||
-        ci.height > 32768)
-      throw std::runtime_error(s.file + ":" + info_topic + ": CameraInfo without a usable k / size");
-    r.rgb.width = static_cast<int>(ci.width), r.rgb.height = static_cast<int>(ci.height);
-    r.rgb.fx = ci.k[0], r.rgb.cx = ci.k[2], r.rgb.fy = ci.k[4], r.rgb.cy = ci.k[5];
-    const bool zero = std::all_of(ci.d.begin(), ci.d.end(), [](double d) { return d == 0; });
-    if (zero) {
-      r.rgb.distortion = DistortionModel::kNone;
-    } else if (ci.distortion_model == "plumb_bob" || ci.distortion_model == "rational_polynomial") {
-      r.rgb.distortion = DistortionModel::kRadTan;
-    } else if (ci.distortion_model == "equidistant") {
-      r.rgb.distortion = DistortionModel::kEquidistant;
-    } else {
-      s.problem(s.file + ":" + info_topic, "bad-row",
-                "distortion model \"" + ci.distortion_model + "\" not supported; taken as undistorted");
-    }
-    if (r.rgb.distortion != DistortionModel::kNone)
-      for (size_t j = 0; j < std::min<size_t>(5, ci.d.size()); ++j) r.rgb.dist[j] = ci.d[j];
-    if (cam_frame.empty()) cam_frame = ci.frame_id;
-    // T_BC from /tf_static: both frames up to a common root, body = the IMU frame.
-    std::map<std::string, std::pair<std::string, Mat4d>> parent;
-    for (const auto& t : tf_static)
-      parent[t.child_frame_id] = {t.frame_id, transform_of(t.translation, t.rotation_xyzw)};
-    auto to_root = [&](std::string f, std::string& root) {
-      Mat4d T = kIdentity4;
-      for (int k = 0; k < 64 && parent.count(f); ++k) {
-        T = mul(parent[f].second, T);
-        f = parent[f].first;
-      }
-      root = f;
-      return T;
-    };
-    std::string ri, rc;
-    const Mat4d T_Ri = to_root(imu_frame, ri), T_Rc = to_root(cam_frame, rc);
-    if (!imu_frame.empty() && !cam_frame.empty() && ri == rc &&
-        (parent.count(imu_frame) || parent.count(cam_frame))) {
-      r.T_BC = mul(inverse(T_Ri), T_Rc);
-    } else if (!s.imu.empty() && imu_frame != cam_frame) {
-      s.problem(s.file + ":/tf_static", "assumed",
-                "no transform between \"" + imu_frame + "\" and \"" + cam_frame +
-                    "\": T_BC = identity assumed (give --rig)");
-    }
-    // A stereo pair: the right camera from its CameraInfo, placed by /tf_static or else by P's baseline.
-    if (!right.empty()) {
-      const size_t k = right_topic.rfind('/');
-      const std::string rinfo_topic =
-          (k == std::string::npos ? std::string() : right_topic.substr(0, k)) + "/camera_info";
-      const auto ri_it = infos.find(rinfo_topic);
-      if (ri_it == infos.end()) {
-        s.problem(s.file + ":" + rinfo_topic, "missing-file",
-                  "no CameraInfo for the right images of " + right_topic +
-                      ": replayed as a monocular log (give the stereo rig with --rig)");
-        right.clear();
-      } else {
-        const ros2::CameraInfo& rci = ri_it->second;
-        CameraIntrinsics& rk = r.stereo.intrinsics;
-        rk.width = static_cast<int>(rci.width), rk.height = static_cast<int>(rci.height);
-        rk.fx = rci.k[0], rk.cx = rci.k[2], rk.fy = rci.k[4], rk.cy = rci.k[5];
-        const bool rzero = std::all_of(rci.d.begin(), rci.d.end(), [](double d) { return d == 0; });
-        rk.distortion = rzero                                   ? DistortionModel::kNone
-                        : rci.distortion_model == "equidistant" ? DistortionModel::kEquidistant
-                                                                : DistortionModel::kRadTan;
-        if (rk.distortion != DistortionModel::kNone)
-          for (size_t j = 0; j < std::min<size_t>(5, rci.d.size()); ++j) rk.dist[j] = rci.d[j];
-        if (right_frame.empty()) right_frame = rci.frame_id;
-        std::string rr;
-        const Mat4d T_Rr = to_root(right_frame, rr);
-        if (!right_frame.empty() && parent.count(right_frame) && rr == rc) {
-          r.stereo.T_BC1 = mul(r.T_BC, mul(inverse(T_Rc), T_Rr));
-        } else if (rci.p[0] > 0 && rci.p[3] < 0) {
-          Mat4d T_C0C1 = kIdentity4;
-          T_C0C1[3] = -rci.p[3] / rci.p[0];
-          r.stereo.T_BC1 = mul(r.T_BC, T_C0C1);
-          s.problem(s.file + ":" + rinfo_topic, "assumed",
-                    "no /tf_static to the right camera's frame \"" + right_frame +
-                        "\": placed by its CameraInfo's baseline (-P[3]/P[0] = " + text::fmt17(T_C0C1[3]) +
-                        " m), rotation identity");
-        } else {
-          throw std::runtime_error(s.file + ":" + rinfo_topic +
-                                   ": the right camera has no transform in /tf_static and no baseline in P "
-                                   "(P[3] = -fx * baseline); give the stereo rig with --rig");
-        }
-        r.stereo.present = true;
-      }
-    }
-    // BMX055 / BMI055 datasheet densities, as the other dataset readers assume.
-    r.imu.gyro_noise_density_rad_s_sqrthz = 2.4434609527920612e-04;
-    r.imu.gyro_random_walk_rad_s2_sqrthz = 2.0e-05;
-    r.imu.acc_noise_density_mps2_sqrthz = 1.4709975e-03;
-    r.imu.acc_random_walk_mps3_sqrthz = 3.2028384781419539e-03;
-    if (!s.imu.empty()) {
-      s.problem(
-          s.file + ":" + imu_topic, "assumed",
-          "no IMU noise densities in the bag: BMI055/BMX055-class figures assumed; give yours with --rig");
-    }
-    auto rate = [](int64_t a, int64_t b, size_t n) {
-      return n > 1 && b > a ? (n - 1) * 1e9 / double(b - a) : 0.0;
-    };
-    if (!s.imu.empty()) {
-      int64_t lo = INT64_MAX, hi = INT64_MIN;
-      for (const auto& m : s.imu) lo = std::min(lo, m.t_ns), hi = std::max(hi, m.t_ns);
-      r.imu_rate_hz = rate(lo, hi, s.imu.size());
-    }
-    if (rgb.size() > 1) {
-      int64_t lo = INT64_MAX, hi = INT64_MIN;
-      for (const auto& m : rgb) lo = std::min(lo, m.t_ns), hi = std::max(hi, m.t_ns);
-      r.camera_rate_hz = rate(lo, hi, rgb.size());
-    }
-    r.depth.scale_m_per_unit = 0.001;  // 16UC1 millimetres, 32FC1 converted to them
+  r.name = text::file_name(path);
+  std::string info_topic = options.camera_info_topic;
+  if (info_topic.empty() && !rgb_topic.empty()) {
+    const size_t k = rgb_topic.rfind('/');
+    info_topic = (k == std::string::npos ? std::string() : rgb_topic.substr(0, k)) + "/camera_info";
+    if (!infos.count(info_topic) && infos.size() == 1) info_topic = infos.begin()->first;
   }
-  s.rig = r;
+  const auto it = infos.find(info_topic);
+  if (it == infos.end()) {
+    throw std::runtime_error(path + ": no sensor_msgs/msg/CameraInfo on " +
+                             (info_topic.empty() ? std::string("any topic") : info_topic) +
+                             ": camera intrinsics missing; give them with --rig FILE.yaml or name the topic "
+                             "with --camera-info-topic");
+  }
+  const ros2::CameraInfo& ci = it->second;
+  if (ci.k[0] <= 0 || ci.k[4] <= 0 || ci.width == 0 || ci.height == 0 || ci.width > 32768 ||
+      ci.height > 32768)
+    throw std::runtime_error(s.file + ":" + info_topic + ": CameraInfo without a usable k / size");
+  r.rgb.width = static_cast<int>(ci.width), r.rgb.height = static_cast<int>(ci.height);
+  r.rgb.fx = ci.k[0], r.rgb.cx = ci.k[2], r.rgb.fy = ci.k[4], r.rgb.cy = ci.k[5];
+  const bool zero = std::all_of(ci.d.begin(), ci.d.end(), [](double d) { return d == 0; });
+  if (zero) {
+    r.rgb.distortion = DistortionModel::kNone;
+  } else if (ci.distortion_model == "plumb_bob" || ci.distortion_model == "rational_polynomial") {
+    r.rgb.distortion = DistortionModel::kRadTan;
+  } else if (ci.distortion_model == "equidistant") {
+    r.rgb.distortion = DistortionModel::kEquidistant;
+  } else {
+    s.problem(s.file + ":" + info_topic, "bad-row",
+              "distortion model \"" + ci.distortion_model + "\" not supported; taken as undistorted");
+  }
+  if (r.rgb.distortion != DistortionModel::kNone)
+    for (size_t j = 0; j < std::min<size_t>(5, ci.d.size()); ++j) r.rgb.dist[j] = ci.d[j];
+  if (cam_frame.empty()) cam_frame = ci.frame_id;
+  // T_BC from /tf_static: both frames up to a common root, body = the IMU frame.
+  std::map<std::string, std::pair<std::string, Mat4d>> parent;
+  for (const auto& t : tf_static)
+    parent[t.child_frame_id] = {t.frame_id, transform_of(t.translation, t.rotation_xyzw)};
+  auto to_root = [&](std::string f, std::string& root) {
+    Mat4d T = kIdentity4;
+    for (int k = 0; k < 64 && parent.count(f); ++k) {
+      T = mul(parent[f].second, T);
+      f = parent[f].first;
+    }
+    root = f;
+    return T;
+  };
+  std::string ri, rc;
+  const Mat4d T_Ri = to_root(imu_frame, ri), T_Rc = to_root(cam_frame, rc);
+  if (!imu_frame.empty() && !cam_frame.empty() && ri == rc &&
+      (parent.count(imu_frame) || parent.count(cam_frame))) {
+    r.T_BC = mul(inverse(T_Ri), T_Rc);
+  } else if (!s.imu.empty() && imu_frame != cam_frame) {
+    s.problem(s.file + ":/tf_static", "assumed",
+              "no transform between \"" + imu_frame + "\" and \"" + cam_frame +
+                  "\": T_BC = identity assumed (give --rig)");
+  }
+  // A stereo pair: the right camera from its CameraInfo, placed by /tf_static or else by P's baseline.
+  if (!right.empty()) {
+    const size_t k = right_topic.rfind('/');
+    const std::string rinfo_topic =
+        (k == std::string::npos ? std::string() : right_topic.substr(0, k)) + "/camera_info";
+    const auto ri_it = infos.find(rinfo_topic);
+    if (ri_it == infos.end()) {
+      s.problem(s.file + ":" + rinfo_topic, "missing-file",
+                "no CameraInfo for the right images of " + right_topic +
+                    ": replayed as a monocular log (give the stereo rig with --rig)");
+      right.clear();
+    } else {
+      const ros2::CameraInfo& rci = ri_it->second;
+      CameraIntrinsics& rk = r.stereo.intrinsics;
+      rk.width = static_cast<int>(rci.width), rk.height = static_cast<int>(rci.height);
+      rk.fx = rci.k[0], rk.cx = rci.k[2], rk.fy = rci.k[4], rk.cy = rci.k[5];
+      const bool rzero = std::all_of(rci.d.begin(), rci.d.end(), [](double d) { return d == 0; });
+      rk.distortion = rzero                                   ? DistortionModel::kNone
+                      : rci.distortion_model == "equidistant" ? DistortionModel::kEquidistant
+                                                              : DistortionModel::kRadTan;
+      if (rk.distortion != DistortionModel::kNone)
+        for (size_t j = 0; j < std::min<size_t>(5, rci.d.size()); ++j) rk.dist[j] = rci.d[j];
+      if (right_frame.empty()) right_frame = rci.frame_id;
+      std::string rr;
+      const Mat4d T_Rr = to_root(right_frame, rr);
+      if (!right_frame.empty() && parent.count(right_frame) && rr == rc) {
+        r.stereo.T_BC1 = mul(r.T_BC, mul(inverse(T_Rc), T_Rr));
+      } else if (rci.p[0] > 0 && rci.p[3] < 0) {
+        Mat4d T_C0C1 = kIdentity4;
+        T_C0C1[3] = -rci.p[3] / rci.p[0];
+        r.stereo.T_BC1 = mul(r.T_BC, T_C0C1);
+        s.problem(s.file + ":" + rinfo_topic, "assumed",
+                  "no /tf_static to the right camera's frame \"" + right_frame +
+                      "\": placed by its CameraInfo's baseline (-P[3]/P[0] = " + text::fmt17(T_C0C1[3]) +
+                      " m), rotation identity");
+      } else {
+        throw std::runtime_error(s.file + ":" + rinfo_topic +
+                                 ": the right camera has no transform in /tf_static and no baseline in P "
+                                 "(P[3] = -fx * baseline); give the stereo rig with --rig");
+      }
+      r.stereo.present = true;
+    }
+  }
+  // BMX055 / BMI055 datasheet densities, as the other dataset readers assume.
+  r.imu.gyro_noise_density_rad_s_sqrthz = 2.4434609527920612e-04;
+  r.imu.gyro_random_walk_rad_s2_sqrthz = 2.0e-05;
+  r.imu.acc_noise_density_mps2_sqrthz = 1.4709975e-03;
+  r.imu.acc_random_walk_mps3_sqrthz = 3.2028384781419539e-03;
+  if (!s.imu.empty()) {
+    s.problem(
+        s.file + ":" + imu_topic, "assumed",
+        "no IMU noise densities in the bag: BMI055/BMX055-class figures assumed; give yours with --rig");
+  }
+  auto rate = [](int64_t a, int64_t b, size_t n) {
+    return n > 1 && b > a ? (n - 1) * 1e9 / double(b - a) : 0.0;
+  };
+  if (!s.imu.empty()) {
+    int64_t lo = INT64_MAX, hi = INT64_MIN;
+    for (const auto& m : s.imu) lo = std::min(lo, m.t_ns), hi = std::max(hi, m.t_ns);
+    r.imu_rate_hz = rate(lo, hi, s.imu.size());
+  }
+  if (rgb.size() > 1) {
+    int64_t lo = INT64_MAX, hi = INT64_MIN;
+    for (const auto& m : rgb) lo = std::min(lo, m.t_ns), hi = std::max(hi, m.t_ns);
+    r.camera_rate_hz = rate(lo, hi, rgb.size());
+  }
+  r.depth.scale_m_per_unit = 0.001;  // 16UC1 millimetres, 32FC1 converted to them
+  return r;
+}
 
+void Rosbag2Reader::Impl::pair_images(Scan& sc) {
+  Impl& s = *this;
+  const Rig& r = s.rig;
+  auto& [role, rgb_topic, depth_topic, imu_topic, gt_topic, right_topic, right_frame, imu_frame, cam_frame,
+         infos, tf_static, rgb, depth, right] = sc;
   // Colour/depth pairs share the colour stamp (nearest depth within 20 ms).
   auto by_t = [](const Img& a, const Img& b) { return a.t_ns < b.t_ns; };
   std::stable_sort(rgb.begin(), rgb.end(), by_t);
@@ -1033,7 +1039,10 @@ Rosbag2Reader::Rosbag2Reader(const std::string& path, const Rosbag2ReadOptions& 
   if (rgb.empty())
     s.problem(s.file, "missing-file", "no colour images (sensor_msgs/msg/Image rgb8/bgr8/mono8)");
   if (s.imu.empty()) s.problem(s.file, "missing-file", "no IMU messages (sensor_msgs/msg/Imu)");
+}
 
+void Rosbag2Reader::Impl::order_entries(const std::string& imu_topic) {
+  Impl& s = *this;
   size_t late = 0;
   for (size_t i = 1; i < s.entries.size(); ++i) {
     if (s.entries[i].kind == kImuK && s.entries[i - 1].kind == kImuK &&
@@ -1066,6 +1075,49 @@ Rosbag2Reader::Rosbag2Reader(const std::string& path, const Rosbag2ReadOptions& 
               std::to_string(dups) + " IMU messages repeat a stamp; dropped");
   }
   s.entries.swap(kept);
+}
+
+Rosbag2Reader::Rosbag2Reader(const std::string& path, const Rosbag2ReadOptions& options, const Rig* rig_in)
+    : impl_(std::make_unique<Impl>()) {
+  Impl& s = *impl_;
+  s.path = path;
+  s.opt = options;
+  s.open_storage();
+  Impl::Scan sc;
+  sc.rgb_topic = options.rgb_topic;
+  sc.depth_topic = options.depth_topic;
+  sc.imu_topic = options.imu_topic;
+  sc.gt_topic = options.ground_truth_topic;
+  sc.right_topic = options.right_topic;
+  s.mr->scan([&](const mcap::MessageRef& m, const uint8_t* data, size_t n) { s.take(sc, m, data, n); });
+  for (auto& p : s.mr->problems()) s.problems.push_back(p);
+  s.mr->problems().clear();
+  for (const auto& t : options.topics) {
+    bool found = false;
+    std::string have;
+    for (const auto& [id, ch] : s.mr->channels()) {
+      found = found || ch.topic == t;
+      have += (have.empty() ? "" : ", ") + ch.topic;
+    }
+    if (!found) {
+      throw std::runtime_error(path + ": --topics names " + t +
+                               ", which the bag does not have (it has: " + have + ")");
+    }
+  }
+
+  // The rig: --rig, else Kestrel's own, else CameraInfo (+ tf_static).
+  Rig r;
+  const auto km = s.mr->metadata().find("kestrel");
+  if (rig_in) {
+    r = *rig_in;
+  } else if (km != s.mr->metadata().end() && km->second.count("rig_yaml")) {
+    r = rig_from_yaml(km->second.at("rig_yaml"), s.file + ": MCAP metadata kestrel.rig_yaml");
+  } else {
+    r = s.rig_from_messages(sc);
+  }
+  s.rig = r;
+  s.pair_images(sc);
+  s.order_entries(sc.imu_topic);
 }
 
 Rosbag2Reader::~Rosbag2Reader() = default;
