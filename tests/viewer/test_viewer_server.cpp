@@ -311,12 +311,23 @@ TEST(ViewerFeed, PublishingAllocatesNothingAndSkipsWhenTheViewerHoldsEverySlot) 
   const uint64_t a0 = rt::alloc_count_this_thread();
   for (int i = 0; i < 50; ++i) feed.on_frame(img.frame, info);
   EXPECT_EQ(rt::alloc_count_this_thread() - a0, 0u);
-  // Nobody took a snapshot: the ring (3) filled, the rest were skipped, not queued.
-  EXPECT_EQ(feed.published(), ViewerFeed::kPoolSize - 1);
-  EXPECT_EQ(feed.skipped_busy(), 51u - (ViewerFeed::kPoolSize - 1));
+  // Nobody took a snapshot: the ring filled up to the slot kept for a forced snapshot, the rest were
+  // skipped, not queued.
+  EXPECT_EQ(feed.published(), ViewerFeed::kPoolSize - 2);
+  EXPECT_EQ(feed.skipped_busy(), 51u - (ViewerFeed::kPoolSize - 2));
+  // The frame a pause holds at still gets through, with the viewer as far behind as it can be (it holds
+  // one snapshot too): a paused replay sends no later frame that could carry it.
+  rt::PoolHandle held = rt::kInvalidHandle;
+  ASSERT_NE(feed.take_newest(&held), nullptr);
+  for (int i = 0; i < 10; ++i) feed.on_frame(img.frame, info);
+  feed.publish_next();
+  img.frame.seq = 4242;
+  feed.on_frame(img.frame, info);
+  feed.release(held);
   rt::PoolHandle h = rt::kInvalidHandle;
   const ViewSnapshot* s = feed.take_newest(&h);
   ASSERT_NE(s, nullptr);
+  EXPECT_EQ(s->state.seq, 4242u) << "the forced snapshot was dropped";
   EXPECT_EQ(s->rgb_width, 320);
   EXPECT_EQ(s->rgb_height, 240);
   EXPECT_EQ(s->depth_width, 160);

@@ -102,6 +102,12 @@ void ViewerFeed::on_frame(const core::RgbdFrame& f, const FrameInfo& info) noexc
   const int64_t now = rt::now_ns();
   const bool forced = publish_next_.load(std::memory_order_relaxed);
   if (!forced && last_publish_wall_ns_ != 0 && now - last_publish_wall_ns_ < min_period_ns_) return;
+  // A regular snapshot leaves the reserved slot free (the producer's view of
+  // the ring's size is an upper bound: the viewer only takes from it).
+  if (!forced && ring_.size() + 2 >= kPoolSize) {
+    skipped_busy_.fetch_add(1, std::memory_order_relaxed);
+    return;
+  }
   const rt::PoolHandle h = pool_.acquire();
   ViewSnapshot* s = pool_.get(h);
   if (s == nullptr) {

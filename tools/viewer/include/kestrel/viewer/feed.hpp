@@ -105,7 +105,10 @@ struct FeedOptions {
 
 class ViewerFeed {
  public:
-  static constexpr std::size_t kPoolSize = 4;  // the viewer holds one while encoding
+  // The viewer holds one while encoding; one more (with its place in the ring)
+  // is kept for a forced snapshot, so the frame a paused replay holds at always
+  // reaches the page: no later frame would carry it.
+  static constexpr std::size_t kPoolSize = 5;
   using Pool = rt::ObjectPool<ViewSnapshot, kPoolSize>;
 
   // Finds the tracker and the window optimizer behind `est` once (either may
