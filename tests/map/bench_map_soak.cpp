@@ -38,7 +38,7 @@ TEST(MapSoak, MemoryAndMapStayFlatOverARevisitedCircuit) {
   samples.reserve(4096);
   int64_t t0 = -1;
   double next_s = 0;
-  ro.on_pose = [&](const cli::PoseSample& p) {
+  ro.on_pose = [&](const core::PoseSample& p) {
     if (t0 < 0) t0 = p.t_ns;
     const double t = 1e-9 * static_cast<double>(p.t_ns - t0);
     if (t < next_s) return;

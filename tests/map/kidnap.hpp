@@ -47,7 +47,7 @@ inline KidnapTrial kidnap_trial(uint64_t seed, const std::string& backend = "win
   ro.config = map_config(backend);
   int64_t t0 = -1;
   uint64_t relocs_before = 0;
-  ro.on_pose = [&](const cli::PoseSample& p) {
+  ro.on_pose = [&](const core::PoseSample& p) {
     if (t0 < 0) t0 = p.t_ns;
     const double t = 1e-9 * static_cast<double>(p.t_ns - t0);
     if (t < kKidnapAt_s) {

@@ -92,7 +92,7 @@ TEST(MapReuse, ASecondFlightLandsInTheFirstFlightsFrame) {
   b.config = cb;
   int64_t t0 = -1;
   double localised_at_s = NAN;
-  b.on_pose = [&](const cli::PoseSample& p) {
+  b.on_pose = [&](const core::PoseSample& p) {
     if (t0 < 0) t0 = p.t_ns;
     if (std::isnan(localised_at_s) && p.map.localized)
       localised_at_s = 1e-9 * static_cast<double>(p.t_ns - t0);

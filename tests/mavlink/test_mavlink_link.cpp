@@ -311,10 +311,10 @@ TEST(MavlinkSerial, PtyCarriesFramesBothWays) {
   km::OdometryStream stream(so);
   EXPECT_EQ(stream.endpoint(), pty.slave + ":921600");
   stream.service(1'000'000'000);  // heartbeat due
-  km::OdometryInput in;
+  kestrel::core::PoseSample in;
   in.t_ns = 2'000'000'000;
   in.quality = kestrel::core::TrackingQuality::kTracking;
-  in.p_WB = Eigen::Vector3d(1, 2, 3);
+  in.set_p_WB(Eigen::Vector3d(1, 2, 3));
   ASSERT_TRUE(stream.publish(in));
   km::MavlinkDecoder d;
   std::vector<km::MavlinkFrame> got = decode_all(pty.read_for(300), d);
@@ -419,7 +419,7 @@ TEST(MavlinkUdp, StampsOdometryInTheAutopilotClockOnceItAnswers) {
   }
   EXPECT_GE(seen[km::kMsgIdHeartbeat], 3) << "1 Hz over > 3 s of our clock";
   EXPECT_LE(seen[km::kMsgIdHeartbeat], 5);
-  km::OdometryInput in;
+  kestrel::core::PoseSample in;
   in.quality = kestrel::core::TrackingQuality::kTracking;
   in.t_ns = now;
   ASSERT_TRUE(stream.publish(in));
@@ -613,7 +613,7 @@ TEST(MavlinkSigning, OdometryStreamSignsEverythingAndAnswersOnlySignedRequests) 
   };
   int64_t now = 1'000'000'000;
   stream.service(now);
-  km::OdometryInput in;
+  kestrel::core::PoseSample in;
   in.quality = kestrel::core::TrackingQuality::kTracking;
   in.t_ns = now;
   ASSERT_TRUE(stream.publish(in));

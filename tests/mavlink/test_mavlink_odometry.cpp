@@ -57,15 +57,15 @@ Eigen::Matrix<double, 6, 6> full_covariance() {
   return P;
 }
 
-km::OdometryInput covariance_input() {
-  km::OdometryInput in;
+kestrel::core::PoseSample covariance_input() {
+  kestrel::core::PoseSample in;
   in.t_ns = 7'000'000'000;
   in.quality = kestrel::core::TrackingQuality::kTracking;
-  in.p_WB = Eigen::Vector3d(0.5, -1.5, 2.0);
-  in.q_WB = Eigen::Quaterniond(Eigen::AngleAxisd(0.7, Eigen::Vector3d(0.2, -0.3, 1.0).normalized()));
-  in.v_WB = Eigen::Vector3d(0.3, 0.1, -0.2);
-  in.has_covariance = true;
-  in.pose_cov = full_covariance();
+  in.set_p_WB(Eigen::Vector3d(0.5, -1.5, 2.0));
+  in.set_q_WB(Eigen::Quaterniond(Eigen::AngleAxisd(0.7, Eigen::Vector3d(0.2, -0.3, 1.0).normalized())));
+  in.set_v_WB(Eigen::Vector3d(0.3, 0.1, -0.2));
+  in.pose_cov_valid = true;
+  Eigen::Map<Eigen::Matrix<double, 6, 6>>(in.pose_cov) = full_covariance();
   return in;
 }
 
@@ -347,7 +347,7 @@ TEST(MavlinkEncode, DecodedByNodeMavlinkFieldByField) {
 
 TEST(MavlinkAdapter, FramesToLocalFrdAndBodyFrd) {
   km::OdometryAdapterOptions opt;
-  km::OdometryInput in;
+  kestrel::core::PoseSample in;
   in.t_ns = 5'000'000'123;
   in.quality = kestrel::core::TrackingQuality::kUninitialized;
   km::OdometryMsg m;
@@ -355,13 +355,13 @@ TEST(MavlinkAdapter, FramesToLocalFrdAndBodyFrd) {
 
   // 1 m up, 2 m along W x, 3 m along W y (left): FRD z = -1, x = 2, y = -3.
   in.quality = kestrel::core::TrackingQuality::kTracking;
-  in.p_WB = Eigen::Vector3d(2, 3, 1);
+  in.set_p_WB(Eigen::Vector3d(2, 3, 1));
   // Yawed 30 deg to the left (counter-clockwise seen from above): NED/FRD yaw is -30 deg.
   const double yaw = 30.0 * M_PI / 180.0;
-  in.q_WB = Eigen::Quaterniond(Eigen::AngleAxisd(yaw, Eigen::Vector3d::UnitZ()));
+  in.set_q_WB(Eigen::Quaterniond(Eigen::AngleAxisd(yaw, Eigen::Vector3d::UnitZ())));
   // Flying forward along the body x at 1 m/s, climbing at 0.5 m/s, turning left at 0.2 rad/s.
-  in.v_WB = in.q_WB * Eigen::Vector3d(1, 0, 0) + Eigen::Vector3d(0, 0, 0.5);
-  in.omega_B_rps = Eigen::Vector3d(0, 0, 0.2);
+  in.set_v_WB(in.q_WB() * Eigen::Vector3d(1, 0, 0) + Eigen::Vector3d(0, 0, 0.5));
+  in.set_omega_B(Eigen::Vector3d(0, 0, 0.2));
   in.reset_counter = 258;
   ASSERT_TRUE(km::to_odometry(in, opt, m));
   EXPECT_EQ(m.time_usec, 5'000'000u);
@@ -405,9 +405,10 @@ TEST(MavlinkAdapter, FramesToLocalFrdAndBodyFrd) {
 
   // A covariance from the estimator is rotated, not replaced: position y/z flip sign in their cross terms.
   in.quality = kestrel::core::TrackingQuality::kTracking;
-  in.has_covariance = true;
-  in.pose_cov.setIdentity();
-  in.pose_cov(0, 1) = in.pose_cov(1, 0) = 0.25;
+  in.pose_cov_valid = true;
+  Eigen::Map<Eigen::Matrix<double, 6, 6>> cov(in.pose_cov);
+  cov.setIdentity();
+  cov(0, 1) = cov(1, 0) = 0.25;
   ASSERT_TRUE(km::to_odometry(in, opt, m));
   EXPECT_FLOAT_EQ(m.pose_covariance[0], 1.0f);
   EXPECT_FLOAT_EQ(m.pose_covariance[1], -0.25f);
@@ -419,7 +420,7 @@ TEST(MavlinkAdapter, EstimatorCovarianceIsRotatedIntoFrdAndCheckedByPerturbation
   // poses with the adapter, read the error back in FRD (dp_L, Log(R_LF' R'_LF)),
   // and propagate the covariance through that measured linear map.
   const km::OdometryAdapterOptions opt;
-  const km::OdometryInput in = covariance_input();
+  const kestrel::core::PoseSample in = covariance_input();
   km::OdometryMsg m0;
   ASSERT_TRUE(km::to_odometry(in, opt, m0));
   auto rot = [](const km::OdometryMsg& m) {
@@ -428,12 +429,13 @@ TEST(MavlinkAdapter, EstimatorCovarianceIsRotatedIntoFrdAndCheckedByPerturbation
   const double h = 1e-4;
   Eigen::Matrix<double, 6, 6> M;
   for (int k = 0; k < 6; ++k) {
-    km::OdometryInput d = in;
+    kestrel::core::PoseSample d = in;
     Eigen::Matrix<double, 6, 1> e = Eigen::Matrix<double, 6, 1>::Zero();
     e[k] = h;
-    d.p_WB += e.head<3>();
-    d.q_WB = in.q_WB * Eigen::Quaterniond(Eigen::AngleAxisd(e.tail<3>().norm(), e.tail<3>().normalized()));
-    if (k < 3) d.q_WB = in.q_WB;
+    d.set_p_WB(in.p_WB() + e.head<3>());
+    d.set_q_WB(in.q_WB() *
+               Eigen::Quaterniond(Eigen::AngleAxisd(e.tail<3>().norm(), e.tail<3>().normalized())));
+    if (k < 3) d.set_q_WB(in.q_WB());
     km::OdometryMsg m1;
     ASSERT_TRUE(km::to_odometry(d, opt, m1));
     Eigen::Matrix<double, 6, 1> f;
@@ -442,7 +444,7 @@ TEST(MavlinkAdapter, EstimatorCovarianceIsRotatedIntoFrdAndCheckedByPerturbation
     f.tail<3>() = aa.angle() * aa.axis();
     M.col(k) = f / h;
   }
-  const Eigen::Matrix<double, 6, 6> expect = M * in.pose_cov * M.transpose();
+  const Eigen::Matrix<double, 6, 6> expect = M * in.covariance().cov * M.transpose();
   int idx = 0;
   for (int r = 0; r < 6; ++r)
     for (int c = r; c < 6; ++c, ++idx)
@@ -453,7 +455,7 @@ TEST(MavlinkAdapter, EstimatorCovarianceIsRotatedIntoFrdAndCheckedByPerturbation
   EXPECT_FLOAT_EQ(m0.velocity_covariance[0],
                   static_cast<float>(opt.tracking_vel_sigma_mps * opt.tracking_vel_sigma_mps));
   // Coasting: the last camera update's covariance would be over-confident; the fixed coasting value goes out.
-  km::OdometryInput coast = in;
+  kestrel::core::PoseSample coast = in;
   coast.quality = kestrel::core::TrackingQuality::kImuOnly;
   km::OdometryMsg mc;
   ASSERT_TRUE(km::to_odometry(coast, opt, mc));
@@ -478,12 +480,12 @@ TEST(MavlinkUdp, StreamSendsOneDatagramPerPose) {
   km::OdometryStreamOptions so;
   so.endpoint = "127.0.0.1:" + std::to_string(ntohs(a.sin_port));
   km::OdometryStream stream(so);
-  km::OdometryInput in;
+  kestrel::core::PoseSample in;
   in.t_ns = 1'000'000'000;
   EXPECT_FALSE(stream.publish(in));  // uninitialised: not sent, counted
   EXPECT_EQ(stream.not_initialised(), 1u);
   in.quality = kestrel::core::TrackingQuality::kTracking;
-  in.p_WB = Eigen::Vector3d(1, 2, 3);
+  in.set_p_WB(Eigen::Vector3d(1, 2, 3));
   for (int i = 0; i < 3; ++i) EXPECT_TRUE(stream.publish(in));
   EXPECT_EQ(stream.stats().sent, 3u);
   EXPECT_EQ(stream.stats().failed, 0u);

@@ -141,7 +141,7 @@ TEST(PipelineSoak, ThirtyMinutesFastPaceRssFlat) {
   ro.pace = drivers::ReplayPace::kFast;
   ro.estimator = backend();
   ro.open_source = [&o] { return std::make_unique<StreamingSimSource>(o); };
-  ro.on_pose = [&](const cli::PoseSample& p) {
+  ro.on_pose = [&](const core::PoseSample& p) {
     ++poses;
     if (t0 < 0) t0 = p.t_ns;
     if (p.t_ns - t0 >= next) {

@@ -80,7 +80,7 @@ inline tools::SimOptions small_sim(double duration_s, uint64_t seed = 11) {
 
 struct ReplayRun {
   cli::ReplayReport report;
-  std::vector<cli::PoseSample> poses;
+  std::vector<core::PoseSample> poses;
   tools::Trajectory gt;
   int64_t t0_ns = 0;  // first record of the log
 };
@@ -91,7 +91,7 @@ inline ReplayRun replay(const std::string& path, drivers::ReplayPace pace = driv
   o.path = path;
   o.pace = pace;
   o.estimator = backend();
-  o.on_pose = [&run](const cli::PoseSample& p) { run.poses.push_back(p); };
+  o.on_pose = [&run](const core::PoseSample& p) { run.poses.push_back(p); };
   run.report = cli::run_replay(o);
   std::vector<std::string> warnings;
   run.gt = tools::load_trajectory(path, &warnings);
@@ -120,7 +120,7 @@ inline double local_error_m(const ReplayRun& r, size_t i, double span_s) {
   const auto ga = tools::pose_at(r.gt, a.t_ns, 20'000'000);
   const auto gb = tools::pose_at(r.gt, b.t_ns, 20'000'000);
   if (!ga || !gb) return NAN;
-  const Eigen::Vector3d d_est = a.q_WB.conjugate() * (b.p_WB - a.p_WB);
+  const Eigen::Vector3d d_est = a.q_WB().conjugate() * (b.p_WB() - a.p_WB());
   const Eigen::Vector3d d_gt = ga->q.conjugate() * (gb->p - ga->p);
   return (d_est - d_gt).norm();
 }

@@ -33,7 +33,7 @@ ReplayRun replay_with(const std::string& path, const std::string& backend) {
   o.path = path;
   o.pace = drivers::ReplayPace::kLockstep;
   o.estimator = backend;
-  o.on_pose = [&run](const cli::PoseSample& p) { run.poses.push_back(p); };
+  o.on_pose = [&run](const core::PoseSample& p) { run.poses.push_back(p); };
   run.report = cli::run_replay(o);
   std::vector<std::string> warnings;
   run.gt = tools::load_trajectory(path, &warnings);
@@ -135,12 +135,12 @@ TEST_P(Divergence, CameraCoveredTwoSeconds) {
     EXPECT_LE(lost_at, kFrom + 0.2) << "claimed a pose it had no measurement for";
     // Once restarted, the lost pose holds still rather than running on at the
     // last velocity: a placeholder, not an extrapolation.
-    const cli::PoseSample* held = nullptr;
+    const core::PoseSample* held = nullptr;
     for (const auto& p : r.poses) {
       const double t = rel_s(r, p.t_ns);
       if (t < kFrom + 0.2 || t >= kFrom + kLen) continue;
       if (held == nullptr) held = &p;
-      EXPECT_LT((p.p_WB - held->p_WB).norm(), 1e-6) << "the lost pose moved at " << t << " s";
+      EXPECT_LT((p.p_WB() - held->p_WB()).norm(), 1e-6) << "the lost pose moved at " << t << " s";
     }
     EXPECT_NE(held, nullptr);
   }

@@ -33,7 +33,7 @@ TEST(ImuRateStage, ForwardsEverySampleAndPublishesFromTheAnchor) {
   auto in = std::make_unique<ImuRing>();
   auto fwd = std::make_unique<ImuRing>();
   auto anchor = std::make_unique<rt::Mailbox<Anchor>>();
-  auto pose = std::make_unique<rt::Mailbox<OutPose>>();
+  auto pose = std::make_unique<rt::Mailbox<core::PoseSample>>();
   const Rig rig = test_rig();
   ImuRateStage stage(*in, *fwd, *anchor, rig, 0, *pose);
   const int64_t dt = 2'500'000;
@@ -56,12 +56,12 @@ TEST(ImuRateStage, ForwardsEverySampleAndPublishesFromTheAnchor) {
   const uint64_t a0 = rt::alloc_count_this_thread();
   EXPECT_TRUE(stage.step());
   EXPECT_EQ(rt::alloc_count_this_thread(), a0) << "step() allocated";
-  OutPose p{};
+  core::PoseSample p;
   ASSERT_TRUE(pose->read(p));
   EXPECT_EQ(p.t_ns, 10 * dt);
-  EXPECT_NEAR(p.p[0], 1 + 5 * 2.5e-3, 1e-6);
-  EXPECT_NEAR(p.p[1], 2, 1e-9);
-  EXPECT_NEAR(p.p[2], 3, 1e-6);
+  EXPECT_NEAR(p.p_WB_m[0], 1 + 5 * 2.5e-3, 1e-6);
+  EXPECT_NEAR(p.p_WB_m[1], 2, 1e-9);
+  EXPECT_NEAR(p.p_WB_m[2], 3, 1e-6);
   EXPECT_EQ(p.quality, core::TrackingQuality::kTracking);
   EXPECT_EQ(p.reset_counter, 4u);
   // Forwarded in order, none lost.
@@ -80,7 +80,7 @@ TEST(ImuRateStage, AFullForwardRingIsCountedNotBlocking) {
   auto in = std::make_unique<ImuRing>();
   auto fwd = std::make_unique<ImuRing>();
   auto anchor = std::make_unique<rt::Mailbox<Anchor>>();
-  auto pose = std::make_unique<rt::Mailbox<OutPose>>();
+  auto pose = std::make_unique<rt::Mailbox<core::PoseSample>>();
   ImuRateStage stage(*in, *fwd, *anchor, test_rig(), 0, *pose);
   while (fwd->try_push(still_sample(0))) {
   }

@@ -227,7 +227,7 @@ TEST(PipelineFaults, NanAndSaturatedImuSamples) {
   EXPECT_EQ(c.non_finite, static_cast<uint64_t>(nan));
   EXPECT_EQ(c.saturated, static_cast<uint64_t>(sat));
   for (const auto& p : r.poses) {
-    ASSERT_TRUE(p.p_WB.allFinite() && p.q_WB.coeffs().allFinite()) << "a NaN reached the output";
+    ASSERT_TRUE(p.p_WB().allFinite() && p.q_WB().coeffs().allFinite()) << "a NaN reached the output";
   }
   const Recovery rec = measure_recovery(r, kFault_s, kFault_s + 0.5);
   expect_recovered(rec);

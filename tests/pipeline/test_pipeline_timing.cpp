@@ -61,7 +61,7 @@ TEST(PipelineTiming, RealtimeBudgetsAtVga) {
   uint64_t imu_poses_seen = 0;
   int64_t last_imu_pose_t_ns = -1;
   bool imu_poses_in_order = true;
-  ro.on_imu_pose = [&](const cli::PoseSample& p) {
+  ro.on_imu_pose = [&](const core::PoseSample& p) {
     ++imu_poses_seen;
     imu_poses_in_order = imu_poses_in_order && p.t_ns > last_imu_pose_t_ns;
     last_imu_pose_t_ns = p.t_ns;

@@ -35,7 +35,7 @@ bool contains(const std::vector<uint8_t>& b, const void* what, size_t n) {
 TEST(Ros2Topics, AClosedLoopIsDrawnWhenItClosesOncePerLoop) {
   Captured sink;
   Ros2Output out(sink);
-  PoseSample s;
+  core::PoseSample s;
   s.quality = core::TrackingQuality::kTracking;
   s.map.active = true;
   s.map.localized = true;

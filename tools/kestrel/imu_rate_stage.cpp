@@ -5,26 +5,12 @@
 
 namespace kestrel::cli {
 
-void set_covariance(OutPose& o, const core::PoseCovariance& c) {
-  Eigen::Map<Eigen::Matrix<double, 6, 6>>(o.pose_cov) = c.cov;
-  o.pose_cov_t_ns = c.t_ns;
-  o.pose_cov_valid = c.valid;
-}
-
-core::PoseCovariance covariance_of(const OutPose& o) {
-  core::PoseCovariance c;
-  c.cov = Eigen::Map<const Eigen::Matrix<double, 6, 6>>(o.pose_cov);
-  c.t_ns = o.pose_cov_t_ns;
-  c.valid = o.pose_cov_valid;
-  return c;
-}
-
 Anchor to_anchor(const core::EstimatorOutput& o) {
   return Anchor{core::pack(o.state), o.quality, o.reset_counter};
 }
 
 ImuRateStage::ImuRateStage(ImuRing& in, ImuRing& to_estimator, const rt::Mailbox<Anchor>& anchor,
-                           const Rig& rig, int64_t warmup_ns, rt::Mailbox<OutPose>& imu_pose)
+                           const Rig& rig, int64_t warmup_ns, rt::Mailbox<core::PoseSample>& imu_pose)
     : in_(in),
       to_est_(to_estimator),
       anchor_(anchor),
@@ -47,18 +33,7 @@ bool ImuRateStage::step() {
     refresh_anchor();
     history_.push(s);
     if (have_anchor_ && prop_.propagate(s)) {
-      const core::NavState& x = prop_.state();
-      OutPose o{};
-      o.t_ns = x.t_ns;
-      for (int i = 0; i < 3; ++i) {
-        o.p[i] = x.p_WB[i];
-        o.v[i] = x.v_WB[i];
-        o.w[i] = s.gyro_rps[i] - x.bg_rps[i];
-      }
-      o.q[0] = x.q_WB.w();
-      o.q[1] = x.q_WB.x();
-      o.q[2] = x.q_WB.y();
-      o.q[3] = x.q_WB.z();
+      core::PoseSample o = core::pose_sample_of(prop_.state(), s.gyro_rps);
       o.quality = anchor_quality_;
       o.reset_counter = anchor_reset_counter_;
       imu_pose_.publish(o);

@@ -13,6 +13,7 @@
 
 #include "kestrel/core/estimator.hpp"
 #include "kestrel/core/imu_propagator.hpp"
+#include "kestrel/core/pose_sample.hpp"
 #include "kestrel/drivers/sensor_rings.hpp"
 #include "kestrel/rt/history_ring.hpp"
 #include "kestrel/rt/latency_histogram.hpp"
@@ -22,26 +23,6 @@
 namespace kestrel::cli {
 
 using ImuRing = rt::SpscRing<ImuSample, drivers::kImuRingCapacity>;
-
-// One pose crossing from a pipeline thread to the output thread: plain data,
-// so a ring slot or a mailbox is all the memory it needs.
-struct OutPose {
-  int64_t t_ns;
-  double p[3];
-  double q[4];  // w x y z
-  double v[3];
-  double w[3];  // body rate, gyro minus the estimated bias [rad/s]
-  core::TrackingQuality quality;
-  uint32_t reset_counter;
-  // core::PoseCovariance, column-major ([dp_W; dtheta_B]); the IMU-rate pose has none.
-  double pose_cov[36];
-  int64_t pose_cov_t_ns;
-  bool pose_cov_valid;
-  core::MapFrameState map;  // where W sits in the map frame (backends with a map)
-};
-
-void set_covariance(OutPose& o, const core::PoseCovariance& c);
-core::PoseCovariance covariance_of(const OutPose& o);
 
 // The estimator's newest state, handed to the propagation stage.
 struct Anchor {
@@ -67,7 +48,7 @@ class ImuRateStage {
   // instead of holding up this thread). warmup_ns of sample time pass before
   // latency and allocations are counted.
   ImuRateStage(ImuRing& in, ImuRing& to_estimator, const rt::Mailbox<Anchor>& anchor, const Rig& rig,
-               int64_t warmup_ns, rt::Mailbox<OutPose>& imu_pose);
+               int64_t warmup_ns, rt::Mailbox<core::PoseSample>& imu_pose);
 
   // Drains the input ring; false when it was empty.
   bool step();
@@ -87,7 +68,7 @@ class ImuRateStage {
   const rt::Mailbox<Anchor>& anchor_;
   core::ImuPropagator prop_;
   int64_t warmup_ns_;
-  rt::Mailbox<OutPose>& imu_pose_;
+  rt::Mailbox<core::PoseSample>& imu_pose_;
   rt::HistoryRing<ImuSample, 1024> history_;  // 2.5 s at 400 Hz: longer than any tracking step
   uint64_t anchor_version_ = 0;
   bool have_anchor_ = false;

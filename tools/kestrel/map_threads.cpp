@@ -9,11 +9,6 @@
 #include "kestrel/rt/thread_setup.hpp"
 
 namespace kestrel::cli {
-namespace {
-// The bound on a sleep nobody rang for (stop, or work that appeared without a
-// wake()): a few wake-ups a second, where the 200 us sleep loop took 5 000.
-constexpr int64_t kIdleWaitNs = 50'000'000;
-}  // namespace
 
 MapThreads::MapThreads(core::Estimator& est, const drivers::ThreadTable& table,
                        std::vector<AppliedThread>& applied)

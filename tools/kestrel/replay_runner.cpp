@@ -57,48 +57,9 @@ class DenseToViewer final : public dense::DenseViewSink {
 constexpr std::size_t kDenseViewSlotBytes = 64 * 1024;
 }  // namespace
 
-PoseSample pose_sample_of(const OutPose& p) {
-  PoseSample s;
-  s.t_ns = p.t_ns;
-  s.p_WB = Eigen::Vector3d(p.p[0], p.p[1], p.p[2]);
-  s.q_WB = Eigen::Quaterniond(p.q[0], p.q[1], p.q[2], p.q[3]);
-  s.v_WB = Eigen::Vector3d(p.v[0], p.v[1], p.v[2]);
-  s.omega_B_rps = Eigen::Vector3d(p.w[0], p.w[1], p.w[2]);
-  s.quality = p.quality;
-  s.reset_counter = p.reset_counter;
-  s.pose_cov = covariance_of(p);
-  s.map = p.map;
-  return s;
-}
-
-Eigen::Isometry3d PoseSample::T_map_body() const {
-  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
-  T.linear() = q_WB.normalized().toRotationMatrix();
-  T.translation() = p_WB;
-  return map.active ? map.T_map_odom() * T : T;
-}
-
-mavlink::OdometryInput odometry_input_of(const PoseSample& s) {
-  mavlink::OdometryInput in;
-  in.t_ns = s.t_ns;
-  in.p_WB = s.p_WB;
-  in.q_WB = s.q_WB;
-  in.v_WB = s.v_WB;
-  in.omega_B_rps = s.omega_B_rps;
-  in.quality = s.quality;
-  in.reset_counter = s.reset_counter;
-  in.has_covariance = s.pose_cov.valid;
-  in.pose_cov = s.pose_cov.cov;
-  return in;
-}
-
 namespace {
 
 constexpr std::size_t kOutRingCapacity = 16384;
-// Threads with nothing to do sleep on a doorbell that their producer rings;
-// this bound only lets them see a stop flag nobody rang for (a few wake-ups a
-// second per thread, against 10 000 for the 100 us sleep loops it replaced).
-constexpr int64_t kIdleWaitNs = 50'000'000;
 // Live, the output thread also services MAVLink (HEARTBEAT, TIMESYNC) and
 // watches for the stop: it sleeps at most this long.
 constexpr int64_t kLiveOutputWaitNs = 20'000'000;
@@ -166,7 +127,7 @@ class EstimatorStage {
   // the propagation stage (nullptr: no such stage, this thread is the output).
   // feed: the live viewer's hand-off (nullptr: no viewer).
   EstimatorStage(core::Estimator& est, drivers::SensorRings& rings, ImuRing& imu,
-                 rt::SpscRing<OutPose, kOutRingCapacity>& out, rt::Mailbox<PipelineStatus>& status,
+                 rt::SpscRing<core::PoseSample, kOutRingCapacity>& out, rt::Mailbox<PipelineStatus>& status,
                  rt::Mailbox<Anchor>* anchor, const ReplayOptions& opt, const Rig& rig, ReplayReport& report,
                  viewer::ViewerFeed* feed, MapTopicsFeed* map_feed)
       : est_(est),
@@ -287,17 +248,7 @@ class EstimatorStage {
   }
 
   void emit(const core::EstimatorOutput& o) {
-    OutPose p{};
-    p.t_ns = o.state.t_ns;
-    for (int i = 0; i < 3; ++i) p.p[i] = o.state.p_WB[i];
-    p.q[0] = o.state.q_WB.w();
-    p.q[1] = o.state.q_WB.x();
-    p.q[2] = o.state.q_WB.y();
-    p.q[3] = o.state.q_WB.z();
-    for (int i = 0; i < 3; ++i) {
-      p.v[i] = o.state.v_WB[i];
-      p.w[i] = last_gyro_rps_[i] - o.state.bg_rps[i];
-    }
+    core::PoseSample p = core::pose_sample_of(o.state, last_gyro_rps_);
     p.quality = o.quality;
     // A backend that tracked the last frame it saw says kTracking until the
     // next one; when frames stop reaching it (camera silent, frozen, withheld)
@@ -308,7 +259,7 @@ class EstimatorStage {
         newest_t_ns_ - last_frame_t_ns_ > stale_ns)
       p.quality = core::TrackingQuality::kImuOnly;
     p.reset_counter = o.reset_counter;
-    set_covariance(p, o.pose_cov);
+    p.set_covariance(o.pose_cov);
     p.map = o.map;
     if (!out_.try_push(p)) ++report_.output_ring_drops;
     last_out_t_ns_ = p.t_ns;
@@ -337,7 +288,7 @@ class EstimatorStage {
     }
     if (latency > window_imu_max_ns_) window_imu_max_ns_ = latency;
     if (latency > imu_max_since_frame_ns_) imu_max_since_frame_ns_ = latency;
-    for (int i = 0; i < 3; ++i) last_gyro_rps_[i] = s.gyro_rps[i];
+    last_gyro_rps_ = s.gyro_rps;
     // Without a camera the trajectory is sampled from the IMU-rate output.
     const bool camera_silent =
         last_frame_t_ns_ < 0 || s.t_ns - last_frame_t_ns_ > opt_.camera_silent_after_ns;
@@ -444,7 +395,7 @@ class EstimatorStage {
   drivers::StereoRectifier* stereo_ = nullptr;
   drivers::SensorRings& rings_;
   ImuRing& imu_;
-  rt::SpscRing<OutPose, kOutRingCapacity>& out_;
+  rt::SpscRing<core::PoseSample, kOutRingCapacity>& out_;
   rt::Mailbox<PipelineStatus>& status_;
   rt::Mailbox<Anchor>* anchor_;
   const ReplayOptions& opt_;
@@ -467,7 +418,7 @@ class EstimatorStage {
   int64_t next_status_t_ns_ = 0;
   int64_t window_tracking_max_ns_ = 0;
   int64_t window_imu_max_ns_ = 0;
-  double last_gyro_rps_[3] = {0, 0, 0};
+  Vec3d last_gyro_rps_{};
   int64_t first_t_ns_ = -1;
   int64_t last_imu_t_ns_ = -1;
   int64_t last_frame_t_ns_ = -1;
@@ -480,9 +431,9 @@ class EstimatorStage {
 // the calling thread (never the estimator thread), so it may block or allocate.
 class OutputStage {
  public:
-  OutputStage(rt::SpscRing<OutPose, kOutRingCapacity>& out, const rt::Mailbox<PipelineStatus>& status,
-              const ReplayOptions& opt, ReplayReport& report, const rt::Mailbox<OutPose>* imu_pose,
-              viewer::Server* view, MapTopicsFeed* map_feed)
+  OutputStage(rt::SpscRing<core::PoseSample, kOutRingCapacity>& out,
+              const rt::Mailbox<PipelineStatus>& status, const ReplayOptions& opt, ReplayReport& report,
+              const rt::Mailbox<core::PoseSample>* imu_pose, viewer::Server* view, MapTopicsFeed* map_feed)
       : out_(out),
         status_(status),
         opt_(opt),
@@ -500,14 +451,14 @@ class OutputStage {
   void drain() {
     if (mavlink_) mavlink_->service(rt::now_ns());
     if (imu_pose_ != nullptr && imu_pose_->version() != imu_pose_version_) {
-      OutPose o{};
+      core::PoseSample o;
       if (imu_pose_->read(o, &imu_pose_version_)) {
         ++report_.imu_rate_poses;
-        if (opt_.on_imu_pose) opt_.on_imu_pose(pose_sample_of(o));
+        if (opt_.on_imu_pose) opt_.on_imu_pose(o);
       }
     }
-    while (OutPose* p = out_.front()) {
-      const PoseSample s = pose_sample_of(*p);
+    while (core::PoseSample* p = out_.front()) {
+      const core::PoseSample s = *p;
       out_.pop();
       // A pose the backend says is lost is a placeholder, not an estimate:
       // the flight controller gets it flagged (quality -1), the trajectories
@@ -518,8 +469,8 @@ class OutputStage {
       } else {
         tools::TimedPose tp;
         tp.t_ns = s.t_ns;
-        tp.p = s.p_WB;
-        tp.q = s.q_WB;
+        tp.p = s.p_WB();
+        tp.q = s.q_WB();
         report_.trajectory.push_back(tp);
       }
       if (s.map.active) {
@@ -539,8 +490,8 @@ class OutputStage {
         report_.map = s.map;
       }
       if (opt_.on_pose) opt_.on_pose(s);
-      if (mavlink_) mavlink_->publish(odometry_input_of(s));
-      if (view_ != nullptr) view_->add_pose(s.t_ns, s.p_WB, s.q_WB, s.quality);
+      if (mavlink_) mavlink_->publish(s);
+      if (view_ != nullptr) view_->add_pose(s.t_ns, s.p_WB(), s.q_WB(), s.quality);
     }
     // After the poses: a cloud or keyframe goes out with the T_map_odom of
     // the poses up to its frame.
@@ -587,14 +538,14 @@ class OutputStage {
   }
 
  private:
-  rt::SpscRing<OutPose, kOutRingCapacity>& out_;
+  rt::SpscRing<core::PoseSample, kOutRingCapacity>& out_;
   const rt::Mailbox<PipelineStatus>& status_;
   const ReplayOptions& opt_;
   ReplayReport& report_;
   std::unique_ptr<mavlink::OdometryStream> mavlink_;
   uint64_t status_version_ = 0;
   uint32_t map_alignment_ = 0;
-  const rt::Mailbox<OutPose>* imu_pose_ = nullptr;
+  const rt::Mailbox<core::PoseSample>* imu_pose_ = nullptr;
   uint64_t imu_pose_version_ = 0;
   viewer::Server* view_ = nullptr;
   MapTopicsFeed* map_feed_ = nullptr;
@@ -1032,7 +983,7 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   // Everything sized here, before any thread starts.
   auto rings = std::make_unique<drivers::SensorRings>(
       opt.live && opt.live->max_image_bytes > 0 ? opt.live->max_image_bytes : max_image_bytes_for(input_rig));
-  auto out = std::make_unique<rt::SpscRing<OutPose, kOutRingCapacity>>();
+  auto out = std::make_unique<rt::SpscRing<core::PoseSample, kOutRingCapacity>>();
   auto status = std::make_unique<rt::Mailbox<PipelineStatus>>();
   const bool realtime = opt.pace == drivers::ReplayPace::kRealtime;
   auto est_imu = std::make_unique<ImuRing>();
@@ -1095,7 +1046,7 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   }
   EstimatorStage stage(estimator, *rings, realtime ? *est_imu : rings->imu, *out, *status,
                        realtime ? anchor.get() : nullptr, opt, rig, report, feed.get(), map_feed.get());
-  auto imu_pose = std::make_unique<rt::Mailbox<OutPose>>();
+  auto imu_pose = std::make_unique<rt::Mailbox<core::PoseSample>>();
   ImuRateStage propagator(rings->imu, *est_imu, *anchor, rig, opt.warmup_ns, *imu_pose);
   OutputStage output(*out, *status, opt, report, imu_pose.get(), view.get(), map_feed.get());
   if (view) {

@@ -16,6 +16,7 @@
 #include "kestrel/core/estimator_config.hpp"
 #include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/core/global_bundle_adjustment.hpp"
+#include "kestrel/core/pose_sample.hpp"
 #include "kestrel/dense/dense_mapper.hpp"
 #include "kestrel/drivers/devices.hpp"
 #include "kestrel/drivers/log_source.hpp"
@@ -31,6 +32,11 @@
 
 namespace kestrel::cli {
 
+// Threads with nothing to do sleep on a doorbell that their producer rings;
+// this bound only lets them see a stop flag nobody rang for (a few wake-ups a
+// second per thread, against thousands for the sleep loops it replaced).
+constexpr int64_t kIdleWaitNs = 50'000'000;
+
 // The flight-controller link from a config's `mavlink:` section and the
 // command line, whose --mavlink-udp HOST:PORT or --mavlink-serial
 // DEVICE[:BAUD] chooses the transport over the section's; sysid, compid,
@@ -43,21 +49,6 @@ std::optional<mavlink::OdometryStreamOptions> mavlink_options(const drivers::Mav
 // false: rgbd) may not feed a flight controller: ODOMETRY's LOCAL_FRD frame
 // has its z along gravity, and this backend's W is its first camera pose.
 std::string mavlink_needs_levelled_world(const std::string& backend);
-
-// One pose of the output stream as the output (writer) thread receives it.
-struct PoseSample {
-  int64_t t_ns = 0;
-  Eigen::Vector3d p_WB = Eigen::Vector3d::Zero();
-  Eigen::Quaterniond q_WB = Eigen::Quaterniond::Identity();
-  Eigen::Vector3d v_WB = Eigen::Vector3d::Zero();
-  Eigen::Vector3d omega_B_rps = Eigen::Vector3d::Zero();  // newest gyro minus the estimated bias
-  core::TrackingQuality quality = core::TrackingQuality::kUninitialized;
-  uint32_t reset_counter = 0;
-  core::PoseCovariance pose_cov;  // the backend's (window, ekf); invalid for the IMU-rate pose
-  core::MapFrameState map;        // T_map_odom and the map's counters (backends with a map)
-  // The pose in the map frame: T_map_odom * T_WB (the odometry when there is no map).
-  Eigen::Isometry3d T_map_body() const;
-};
 
 // The map's last word, for the ROS outputs' final markers.
 struct MapFinal {
@@ -72,11 +63,6 @@ struct MapFinal {
   std::vector<Keyframe> keyframes;  // oldest first
   std::vector<Loop> loops;          // closed loops, in order
 };
-
-struct OutPose;  // imu_rate_stage.hpp
-PoseSample pose_sample_of(const OutPose& p);
-// What the MAVLink adapter needs of a pose: one conversion for replay and run.
-mavlink::OdometryInput odometry_input_of(const PoseSample& s);
 
 // Input faults the harness sees before the estimator does (the estimator
 // counts its own: EstimatorCounters::imu_rejects). Out-of-order and repeated
@@ -183,18 +169,18 @@ struct ReplayOptions {
   int64_t max_frame_wait_for_imu_ns = 50'000'000;
   // Called on the output thread for every pose (not the estimator thread: it
   // may block or allocate).
-  std::function<void(const PoseSample&)> on_pose;
+  std::function<void(const core::PoseSample&)> on_pose;
   // Realtime pace: the IMU-rate pose kst-propagate publishes (latest-value
   // mailbox), handed over on the output thread as it drains (every ~1 ms; a
   // pose newer than the last one seen, skipped ones are not replayed).
-  std::function<void(const PoseSample&)> on_imu_pose;
+  std::function<void(const core::PoseSample&)> on_imu_pose;
   // The flight-controller link: ODOMETRY per pose, HEARTBEAT, TIMESYNC
   // (mavlink_options() below; nullopt = off).
   std::optional<mavlink::OdometryStreamOptions> mavlink;
   // Called on the output thread when T_map_odom changes (a loop closure, a
   // relocalisation, a loaded map found): the correction, published apart
   // from the continuous odometry (docs/map.md).
-  std::function<void(const PoseSample&)> on_map_correction;
+  std::function<void(const core::PoseSample&)> on_map_correction;
   // The map for the ROS outputs (docs/ros2.md), on the output thread: the
   // local map's points at most map_points_rate_hz of log time (0: none) and
   // every new keyframe's camera pose, in W; handed over by MapTopicsFeed

@@ -40,7 +40,7 @@ void Ros2Output::publish(Ros2Topic t, int64_t t_ns) {
   ++count_[i];
 }
 
-void Ros2Output::write_diagnostics(const PoseSample& s) {
+void Ros2Output::write_diagnostics(const core::PoseSample& s) {
   const int q = static_cast<int>(s.quality);
   if (s.t_ns - last_diag_t_ns_ < 1'000'000'000 && q == last_quality_ && s.reset_counter == last_resets_ &&
       s.map.alignment == last_alignment_)
@@ -76,7 +76,7 @@ void Ros2Output::write_diagnostics(const PoseSample& s) {
 // A closed loop as it happens: one segment between its two keyframes, where
 // the map put them at the closure (ns loop_edges, id = the loop's index). The
 // final markers redraw every loop where the map ends up.
-void Ros2Output::write_loop_edge(const PoseSample& s) {
+void Ros2Output::write_loop_edge(const core::PoseSample& s) {
   if (!s.map.active || s.map.loop_closures <= loops_drawn_) return;
   loops_drawn_ = s.map.loop_closures;
   std::vector<drivers::ros2::Marker> a(1);
@@ -94,7 +94,7 @@ void Ros2Output::write_loop_edge(const PoseSample& s) {
   publish(Ros2Topic::kMarkers, s.t_ns);
 }
 
-void Ros2Output::on_pose(const PoseSample& s) {
+void Ros2Output::on_pose(const core::PoseSample& s) {
   // Repeated stamps are skipped: one odometry message per time.
   if (s.t_ns < 0 || s.t_ns <= last_t_ns_) return;
   last_t_ns_ = s.t_ns;
@@ -103,22 +103,22 @@ void Ros2Output::on_pose(const PoseSample& s) {
   m.t_ns = s.t_ns;
   m.frame_id = "odom";
   m.child_frame_id = "base_link";
-  m.pose.position = {s.p_WB.x(), s.p_WB.y(), s.p_WB.z()};
-  m.pose.orientation_xyzw = {s.q_WB.x(), s.q_WB.y(), s.q_WB.z(), s.q_WB.w()};
-  if (s.pose_cov.valid) {
+  m.pose.position = {s.p_WB().x(), s.p_WB().y(), s.p_WB().z()};
+  m.pose.orientation_xyzw = {s.q_WB().x(), s.q_WB().y(), s.q_WB().z(), s.q_WB().w()};
+  if (s.pose_cov_valid) {
     // Ours is [dp_W; dtheta_B]; ROS's pose covariance is (x y z) then rotation
     // about the fixed axes of the parent frame: dtheta_W = R_WB dtheta_B.
     Eigen::Matrix<double, 6, 6> J = Eigen::Matrix<double, 6, 6>::Identity();
-    J.bottomRightCorner<3, 3>() = s.q_WB.toRotationMatrix();
-    const Eigen::Matrix<double, 6, 6> C = J * s.pose_cov.cov * J.transpose();
+    J.bottomRightCorner<3, 3>() = s.q_WB().toRotationMatrix();
+    const Eigen::Matrix<double, 6, 6> C = J * s.covariance().cov * J.transpose();
     for (int i = 0; i < 6; ++i)
       for (int j = 0; j < 6; ++j) m.pose_covariance[static_cast<size_t>(i * 6 + j)] = C(i, j);
   } else {
     m.pose_covariance[0] = -1;  // no covariance from this backend (REP 145's "unknown")
   }
-  const Eigen::Vector3d v_B = s.q_WB.conjugate() * s.v_WB;  // twist is in the child frame
+  const Eigen::Vector3d v_B = s.q_WB().conjugate() * s.v_WB();  // twist is in the child frame
   m.linear = {v_B.x(), v_B.y(), v_B.z()};
-  m.angular = {s.omega_B_rps.x(), s.omega_B_rps.y(), s.omega_B_rps.z()};
+  m.angular = {s.omega_B().x(), s.omega_B().y(), s.omega_B().z()};
   m.twist_covariance[0] = -1;
   drivers::ros2::encode(m, buf_);
   publish(Ros2Topic::kOdometry, s.t_ns);
@@ -237,7 +237,7 @@ void Ros2Output::on_dense(const core::TsdfMap& m) {
 void connect_ros2_output(ReplayOptions& opt, const std::shared_ptr<Ros2Output>& out,
                          double map_points_rate_hz) {
   auto pose = opt.on_pose;
-  opt.on_pose = [out, pose](const PoseSample& s) {
+  opt.on_pose = [out, pose](const core::PoseSample& s) {
     if (pose) pose(s);
     out->on_pose(s);
   };

@@ -35,7 +35,7 @@ class Ros2Sink {
 class Ros2Output {
  public:
   explicit Ros2Output(Ros2Sink& sink) : sink_(sink) {}
-  void on_pose(const PoseSample& s);
+  void on_pose(const core::PoseSample& s);
   // In W; published in the map frame with the T_map_odom of the last pose.
   void on_cloud(const MapCloud& c);
   void on_keyframe(const KeyframePose& k);
@@ -48,8 +48,8 @@ class Ros2Output {
 
  private:
   void publish(Ros2Topic t, int64_t t_ns);
-  void write_diagnostics(const PoseSample& s);
-  void write_loop_edge(const PoseSample& s);
+  void write_diagnostics(const core::PoseSample& s);
+  void write_loop_edge(const core::PoseSample& s);
 
   Ros2Sink& sink_;
   uint64_t count_[kRos2Topics] = {};

@@ -43,15 +43,15 @@ void upper_triangle(const Mat6& m, float* out21) {
     for (int c = r; c < 6; ++c) out21[k++] = static_cast<float>(m(r, c));
 }
 
-bool to_odometry(const OdometryInput& in, const OdometryAdapterOptions& opt, OdometryMsg& out) {
+bool to_odometry(const core::PoseSample& in, const OdometryAdapterOptions& opt, OdometryMsg& out) {
   if (in.quality == core::TrackingQuality::kUninitialized) return false;
-  const Eigen::Matrix3d R_WB = in.q_WB.normalized().toRotationMatrix();
+  const Eigen::Matrix3d R_WB = in.q_WB().normalized().toRotationMatrix();
   const Eigen::Matrix3d R_LF = opt.R_LW * R_WB * opt.R_FB.transpose();
-  const Eigen::Vector3d p_L = opt.R_LW * in.p_WB;
+  const Eigen::Vector3d p_L = opt.R_LW * in.p_WB();
   const Eigen::Matrix3d R_FW = opt.R_FB * R_WB.transpose();
   // REP 147 / MAVLink: the twist is in the child frame (body FRD).
-  const Eigen::Vector3d v_F = R_FW * in.v_WB;
-  const Eigen::Vector3d w_F = opt.R_FB * in.omega_B_rps;
+  const Eigen::Vector3d v_F = R_FW * in.v_WB();
+  const Eigen::Vector3d w_F = opt.R_FB * in.omega_B();
   Eigen::Quaterniond q_LF(R_LF);
   q_LF.normalize();
   if (q_LF.w() < 0) q_LF.coeffs() = -q_LF.coeffs();  // one sign on the wire, easier to read in logs
@@ -80,30 +80,23 @@ bool to_odometry(const OdometryInput& in, const OdometryAdapterOptions& opt, Odo
     unknown(out.pose_covariance);
     unknown(out.velocity_covariance);
   } else {
-    if (tracking && in.has_covariance && in.pose_cov.allFinite()) {
+    const Mat6 pose_cov = Eigen::Map<const Mat6>(in.pose_cov);
+    if (tracking && in.pose_cov_valid && pose_cov.allFinite()) {
       // [dp_W; dtheta_B] -> [dp_L; dtheta_F]: p_L = R_LW p_W, and R_LF = R_LW R_WB R_FB' with
       // R_WB = R_hat Exp(dtheta_B) gives R_LF = R_LF_hat Exp(R_FB dtheta_B). Small body-frame
       // angles are what MAVLink's roll, pitch, yaw rows mean for a near-level vehicle.
       Mat6 J = Mat6::Zero();
       J.topLeftCorner<3, 3>() = opt.R_LW;
       J.bottomRightCorner<3, 3>() = opt.R_FB;
-      upper_triangle(J * in.pose_cov * J.transpose(), out.pose_covariance);
+      upper_triangle(J * pose_cov * J.transpose(), out.pose_covariance);
     } else if (tracking) {
       upper_triangle(diagonal(opt.tracking_pos_sigma_m, opt.tracking_att_sigma_rad), out.pose_covariance);
     } else {
       upper_triangle(diagonal(opt.coasting_pos_sigma_m, opt.coasting_att_sigma_rad), out.pose_covariance);
     }
-    if (tracking && in.has_twist_covariance && in.twist_cov.allFinite()) {
-      // [v_W; omega_B] -> [v_F; omega_F]: the twist is in the child frame.
-      Mat6 Jv = Mat6::Zero();
-      Jv.topLeftCorner<3, 3>() = R_FW;
-      Jv.bottomRightCorner<3, 3>() = opt.R_FB;
-      upper_triangle(Jv * in.twist_cov * Jv.transpose(), out.velocity_covariance);
-    } else {
-      upper_triangle(diagonal(tracking ? opt.tracking_vel_sigma_mps : opt.coasting_vel_sigma_mps,
-                              opt.tracking_rate_sigma_rps),
-                     out.velocity_covariance);
-    }
+    upper_triangle(diagonal(tracking ? opt.tracking_vel_sigma_mps : opt.coasting_vel_sigma_mps,
+                            opt.tracking_rate_sigma_rps),
+                   out.velocity_covariance);
   }
   // The counter wraps at 256 on the wire; receivers only compare for change.
   out.reset_counter = static_cast<uint8_t>(in.reset_counter & 0xFF);

@@ -75,7 +75,7 @@ void OdometryStream::service(int64_t now_ns) noexcept {
   }
 }
 
-bool OdometryStream::publish(const OdometryInput& in) noexcept {
+bool OdometryStream::publish(const core::PoseSample& in) noexcept {
   status_ = mav_state_of(in.quality);
   OdometryMsg m;
   if (!to_odometry(in, opt_.adapter, m)) {

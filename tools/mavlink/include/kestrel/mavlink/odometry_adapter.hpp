@@ -11,6 +11,7 @@
 #include <cstdint>
 
 #include "kestrel/core/estimator.hpp"
+#include "kestrel/core/pose_sample.hpp"
 #include "kestrel/drivers/mavlink/mavlink_v2.hpp"
 
 namespace kestrel::mavlink {
@@ -38,26 +39,11 @@ struct OdometryAdapterOptions {
   int8_t quality_coasting = 20;
 };
 
-// One estimate in Kestrel's frames, as the pipeline has it at output time.
-struct OdometryInput {
-  int64_t t_ns = 0;
-  Eigen::Vector3d p_WB = Eigen::Vector3d::Zero();
-  Eigen::Quaterniond q_WB = Eigen::Quaterniond::Identity();
-  Eigen::Vector3d v_WB = Eigen::Vector3d::Zero();
-  Eigen::Vector3d omega_B_rps = Eigen::Vector3d::Zero();  // bias-corrected body rate
-  core::TrackingQuality quality = core::TrackingQuality::kUninitialized;
-  uint32_t reset_counter = 0;
-  // When the backend has them: the pose covariance in core::PoseCovariance's
-  // order and frames [dp_W; dtheta_B], and the twist's [v_W; omega_B]. Used
-  // while tracking; otherwise (or absent) the fixed values above.
-  bool has_covariance = false;  // pose_cov
-  Eigen::Matrix<double, 6, 6> pose_cov = Eigen::Matrix<double, 6, 6>::Zero();
-  bool has_twist_covariance = false;
-  Eigen::Matrix<double, 6, 6> twist_cov = Eigen::Matrix<double, 6, 6>::Zero();
-};
-
 // False (nothing to send) before the estimator is initialised.
-bool to_odometry(const OdometryInput& in, const OdometryAdapterOptions& opt, OdometryMsg& out);
+// The pose's own covariance goes out while tracking when it has one
+// (PoseSample::pose_cov_valid); otherwise, and for the twist (no backend
+// estimates its covariance), the fixed values above.
+bool to_odometry(const core::PoseSample& in, const OdometryAdapterOptions& opt, OdometryMsg& out);
 
 // Quality of a tracking state on MAVLink's scale.
 int8_t mavlink_quality(core::TrackingQuality q, const OdometryAdapterOptions& opt);

@@ -56,7 +56,7 @@ class OdometryStream {
   OdometryStream(std::unique_ptr<Link> link, const OdometryStreamOptions& opt);
   // Converts, encodes and sends one pose (after service()); false when
   // nothing was sent: uninitialised, skipped by the rate, or the send failed.
-  bool publish(const OdometryInput& in) noexcept;
+  bool publish(const core::PoseSample& in) noexcept;
   // Reads what the autopilot sent, answers TIMESYNC requests, sends the
   // heartbeat and our TIMESYNC requests when due. Call it often (every output
   // drain); now_ns: CLOCK_MONOTONIC.
