@@ -6,11 +6,7 @@
 #include "kestrel/core/so3.hpp"
 
 namespace kestrel::core {
-namespace {
-
-Eigen::Vector3d to_eigen(const Vec3d& v) { return {v[0], v[1], v[2]}; }
-
-}  // namespace
+namespace {}  // namespace
 
 ImuPropagatorOptions imu_propagator_options(const Rig& rig) {
   ImuPropagatorOptions o;

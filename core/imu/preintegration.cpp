@@ -12,8 +12,6 @@ using so3::Exp;
 using so3::hat;
 using so3::Log;
 
-Eigen::Vector3d to_eigen(const Vec3d& v) { return {v[0], v[1], v[2]}; }
-
 bool finite_positive(double x) { return std::isfinite(x) && x > 0.0; }
 
 // exp(-dt/tau) of the Ornstein-Uhlenbeck accelerometer bias; 1 for a plain

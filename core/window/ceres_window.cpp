@@ -14,7 +14,7 @@
 namespace kestrel::core {
 namespace {
 
-constexpr int kD = kWindowStateDim;
+constexpr int kDim = kWindowStateDim;
 using RowMajor = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
 
 // Pose block [p_WB (3), q_WB (x, y, z, w)] with our tangent [dp, dphi] (right
@@ -277,21 +277,21 @@ class PriorCost final : public ceres::CostFunction {
   bool Evaluate(double const* const* params, double* residuals, double** jacobians) const override {
     const int k_n = static_cast<int>(x0_.size());
     const int r = static_cast<int>(e_.size());
-    Eigen::VectorXd dx(kD * k_n + (with_td_ ? 1 : 0));
+    Eigen::VectorXd dx(kDim * k_n + (with_td_ ? 1 : 0));
     std::vector<Eigen::Matrix3d> Jr(k_n);
     for (int k = 0; k < k_n; ++k) {
-      dx.segment<kD>(kD * k) = state_minus(to_nav(params[2 * k], params[2 * k + 1]), x0_[k], &Jr[k]);
+      dx.segment<kDim>(kDim * k) = state_minus(to_nav(params[2 * k], params[2 * k + 1]), x0_[k], &Jr[k]);
     }
-    if (with_td_) dx(kD * k_n) = params[2 * k_n][0] - td0_s_;
+    if (with_td_) dx(kDim * k_n) = params[2 * k_n][0] - td0_s_;
     Eigen::Map<Eigen::VectorXd>(residuals, r) = e_ + J_ * dx;
     if (jacobians) {
       for (int k = 0; k < k_n; ++k) {
-        Eigen::MatrixXd Jk = J_.middleCols(kD * k, kD);
+        Eigen::MatrixXd Jk = J_.middleCols(kDim * k, kDim);
         Jk.middleCols(3, 3) = (Jk.middleCols(3, 3) * Jr[k]).eval();
         split_jacobian(Jk, r, jacobians[2 * k], jacobians[2 * k + 1]);
       }
       if (with_td_ && jacobians[2 * k_n])
-        Eigen::Map<Eigen::VectorXd>(jacobians[2 * k_n], r) = J_.col(kD * k_n);
+        Eigen::Map<Eigen::VectorXd>(jacobians[2 * k_n], r) = J_.col(kDim * k_n);
     }
     return true;
   }
@@ -408,18 +408,20 @@ struct CeresWindow {
       if (P.states[P.order[k]].in_prior) slots.push_back(P.order[k]);
     const bool with_td = P.estimate_td() && P.td_in_prior;
     const int T = P.td_index();
-    const int ds = kD * static_cast<int>(slots.size());
+    const int ds = kDim * static_cast<int>(slots.size());
     const int d = ds + (with_td ? 1 : 0);
     if (d == 0) return;
     Eigen::MatrixXd H(d, d);
     Eigen::VectorXd g(d);
     for (int a = 0; a < static_cast<int>(slots.size()); ++a) {
-      g.segment<kD>(kD * a) = P.prior_g.segment<kD>(kD * slots[a]);
-      for (int b = 0; b < static_cast<int>(slots.size()); ++b)
-        H.block<kD, kD>(kD * a, kD * b) = P.prior_H.block<kD, kD>(kD * slots[a], kD * slots[b]);
+      g.segment<kDim>(kDim * a) = P.prior_g.segment<kDim>(kDim * slots[a]);
+      for (int b = 0; b < static_cast<int>(slots.size()); ++b) {
+        H.block<kDim, kDim>(kDim * a, kDim * b) =
+            P.prior_H.block<kDim, kDim>(kDim * slots[a], kDim * slots[b]);
+      }
       if (with_td) {
-        H.block<kD, 1>(kD * a, ds) = P.prior_H.block<kD, 1>(kD * slots[a], T);
-        H.block<1, kD>(ds, kD * a) = P.prior_H.block<1, kD>(T, kD * slots[a]);
+        H.block<kDim, 1>(kDim * a, ds) = P.prior_H.block<kDim, 1>(kDim * slots[a], T);
+        H.block<1, kDim>(ds, kDim * a) = P.prior_H.block<1, kDim>(T, kDim * slots[a]);
       }
     }
     if (with_td) {

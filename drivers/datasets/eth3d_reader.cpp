@@ -16,11 +16,6 @@ namespace {
 using ds::Listed;
 using text::StreamLogSource;
 
-std::string strip_slash(std::string p) {
-  while (p.size() > 1 && p.back() == '/') p.pop_back();
-  return p;
-}
-
 // "fx fy cx cy" on the first data line; throws naming file:line.
 void read_calibration(const std::string& path, Rig& r) {
   std::vector<std::string> lines;
@@ -119,7 +114,7 @@ bool is_eth3d_folder(const std::string& path) {
 }
 
 Eth3dReader::Eth3dReader(const std::string& path_in, const Rig* rig) {
-  const std::string path = strip_slash(path_in);
+  const std::string path = text::strip_trailing_slashes(path_in);
   StreamLogSource& s = *impl_;
   if (!text::is_dir(path)) throw std::runtime_error(path + ": no such folder");
   if (!text::is_file(path + "/rgb.txt") && !text::is_file(path + "/associated.txt"))

@@ -18,11 +18,6 @@ namespace {
 using text::ImageEntry;
 using text::StreamLogSource;
 
-std::string strip_slash(std::string p) {
-  while (p.size() > 1 && p.back() == '/') p.pop_back();
-  return p;
-}
-
 double yaml_number(const YAML::Node& n, const std::string& path, const std::string& field) {
   double v = 0;
   if (!n || !n.IsScalar() || !text::parse_f64(n.Scalar(), v) || !std::isfinite(v))
@@ -325,7 +320,7 @@ bool is_euroc_folder(const std::string& path) {
 }
 
 EurocReader::EurocReader(const std::string& path_in) {
-  const std::string path = strip_slash(path_in);
+  const std::string path = text::strip_trailing_slashes(path_in);
   StreamLogSource& s = *impl_;
   std::string root;
   std::string name = text::file_name(path);

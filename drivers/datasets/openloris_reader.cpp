@@ -18,11 +18,6 @@ using text::StreamLogSource;
 
 constexpr const char* kColorFrame = "d400_color_optical_frame";
 
-std::string strip_slash(std::string p) {
-  while (p.size() > 1 && p.back() == '/') p.pop_back();
-  return p;
-}
-
 // An OpenCV matrix node (!!opencv-matrix {rows, cols, data}) or a plain list.
 bool cv_numbers(const YAML::Node& n, std::vector<double>& out) {
   const YAML::Node d = n && n.IsMap() ? n["data"] : n;
@@ -168,7 +163,7 @@ bool is_openloris_folder(const std::string& path) {
 }
 
 OpenLorisReader::OpenLorisReader(const std::string& path_in, const Rig* rig) {
-  const std::string path = strip_slash(path_in);
+  const std::string path = text::strip_trailing_slashes(path_in);
   StreamLogSource& s = *impl_;
   if (!text::is_dir(path)) throw std::runtime_error(path + ": no such folder");
   if (!is_openloris_folder(path)) {

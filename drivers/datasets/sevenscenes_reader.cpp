@@ -20,11 +20,6 @@ namespace {
 namespace fs = std::filesystem;
 using text::StreamLogSource;
 
-std::string strip_slash(std::string p) {
-  while (p.size() > 1 && p.back() == '/') p.pop_back();
-  return p;
-}
-
 std::string frame_stem(const std::string& dir, long i) {
   char b[32];
   std::snprintf(b, sizeof b, "/frame-%06ld", i);
@@ -242,7 +237,7 @@ Rig SevenScenesReader::default_rig(const CameraIntrinsics& depth_intrinsics) {
 }
 
 bool is_sevenscenes_folder(const std::string& path) {
-  const std::string s = frame_stem(strip_slash(path), 0);
+  const std::string s = frame_stem(text::strip_trailing_slashes(path), 0);
   return text::is_file(s + ".pose.txt") &&
          (text::is_file(s + ".color.png") || text::is_file(s + ".color.jpg"));
 }
@@ -251,7 +246,7 @@ SevenScenesReader::SevenScenesReader(const std::string& path, const Rig* rig)
     : SevenScenesReader(path, rig, Options{}) {}
 
 SevenScenesReader::SevenScenesReader(const std::string& path_in, const Rig* rig_in, const Options& opt) {
-  const std::string path = strip_slash(path_in);
+  const std::string path = text::strip_trailing_slashes(path_in);
   StreamLogSource& s = *impl_;
   if (!text::is_dir(path)) throw std::runtime_error(path + ": no such folder");
   if (!(opt.fps > 0 && opt.fps <= 1000))

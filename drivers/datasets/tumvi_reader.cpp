@@ -15,11 +15,6 @@
 namespace kestrel::drivers {
 namespace {
 
-std::string strip_slash(std::string p) {
-  while (p.size() > 1 && p.back() == '/') p.pop_back();
-  return p;
-}
-
 std::string read_text(const std::string& path) {
   std::ifstream f(path, std::ios::binary);
   if (!f) throw std::runtime_error(path + ": cannot open");
@@ -86,13 +81,13 @@ void check_pairs(text::StreamLogSource& s, int64_t tolerance_ns) {
 }  // namespace
 
 bool is_tumvi_folder(const std::string& path_in) {
-  const std::string path = strip_slash(path_in);
+  const std::string path = text::strip_trailing_slashes(path_in);
   return text::is_dir(path + "/mav0") &&
          (text::is_file(path + "/dso/camchain.yaml") || text::is_dir(path + "/mav0/mocap0"));
 }
 
 TumviReader::TumviReader(const std::string& path_in) {
-  const std::string path = strip_slash(path_in);
+  const std::string path = text::strip_trailing_slashes(path_in);
   if (!text::is_dir(path + "/mav0")) throw std::runtime_error(path + ": not a TUM-VI folder (no mav0/)");
   text::StreamLogSource& s = *impl_;
   const std::string root = path + "/mav0";

@@ -7,7 +7,6 @@
 namespace kestrel::drivers::bmx055 {
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
 constexpr double kStandardGravity = 9.80665;    // datasheet "g"
 constexpr int64_t kCheckPeriodNs = 50'000'000;  // one register re-verified every 50 ms
 constexpr int64_t kVerifySettleNs = 1'000'000;
@@ -114,7 +113,7 @@ size_t parse_gyro_fifo(const uint8_t* b, size_t n, RawXyz* out, size_t max_out, 
 
 Scales make_scales(acc::Range ar, gyro::Range gr, const std::array<int8_t, 3>& remap) {
   Scales s;
-  s.gyro_rps_per_lsb = gyro::lsb_mdps(gr) * 1e-3 * kPi / 180.0;
+  s.gyro_rps_per_lsb = gyro::lsb_mdps(gr) * 1e-3 * M_PI / 180.0;
   s.acc_mps2_per_lsb = acc::lsb_mg(ar) * 1e-3 * kStandardGravity;
   s.axis_remap = remap;
   return s;

@@ -5,7 +5,6 @@
 
 namespace kestrel::drivers::bmx055 {
 namespace {
-constexpr double kPi = 3.14159265358979323846;
 constexpr double kG = 9.80665;
 constexpr int64_t kBootNs = 2'000'000;  // transfers NACK this long after a soft reset
 }  // namespace
@@ -58,7 +57,7 @@ bool FakeBmx055::streaming(Dev d) const {
 }
 
 double FakeBmx055::gyro_lsb_rps() const {
-  return gyro::lsb_mdps(static_cast<gyro::Range>(regs_[kGyro][gyro::kRange] & 0x07)) * 1e-3 * kPi / 180.0;
+  return gyro::lsb_mdps(static_cast<gyro::Range>(regs_[kGyro][gyro::kRange] & 0x07)) * 1e-3 * M_PI / 180.0;
 }
 double FakeBmx055::acc_lsb_mps2() const {
   return acc::lsb_mg(static_cast<acc::Range>(regs_[kAcc][acc::kPmuRange] & 0x0F)) * 1e-3 * kG;

@@ -80,47 +80,6 @@ class Reader {
   std::string where_;
 };
 
-// T^-1 of a rigid transform, its rotation re-orthonormalised (Kalibr's digits).
-Mat4d rigid_inverse(const Mat4d& T) {
-  double R[3][3];
-  for (int i = 0; i < 3; ++i)
-    for (int j = 0; j < 3; ++j) R[i][j] = T[4 * i + j];
-  // Gram-Schmidt on the rows.
-  for (int i = 0; i < 3; ++i) {
-    for (int k = 0; k < i; ++k) {
-      double d = 0;
-      for (int j = 0; j < 3; ++j) d += R[i][j] * R[k][j];
-      for (int j = 0; j < 3; ++j) R[i][j] -= d * R[k][j];
-    }
-    const double n = std::sqrt(R[i][0] * R[i][0] + R[i][1] * R[i][1] + R[i][2] * R[i][2]);
-    for (int j = 0; j < 3; ++j) R[i][j] /= n;
-  }
-  Mat4d out = kIdentity4;
-  for (int i = 0; i < 3; ++i) {
-    double t = 0;
-    for (int j = 0; j < 3; ++j) {
-      out[4 * i + j] = R[j][i];
-      t -= R[j][i] * T[4 * j + 3];
-    }
-    out[4 * i + 3] = t;
-  }
-  return out;
-}
-
-std::string read_file(const std::string& path) {
-  std::ifstream f(path, std::ios::binary);
-  if (!f) throw std::runtime_error(path + ": cannot open");
-  std::ostringstream s;
-  s << f.rdbuf();
-  return s.str();
-}
-
-std::string fmt(double v) {
-  std::ostringstream s;
-  s << v;
-  return s.str();
-}
-
 }  // namespace
 
 KalibrImport import_kalibr_text(const std::string& camchain_yaml, const std::string& camchain_name,
@@ -226,7 +185,7 @@ KalibrImport import_kalibr_text(const std::string& camchain_yaml, const std::str
     rig.imu_rate_hz = ir.number(imu["update_rate"], ip + "update_rate");
     if (!(rig.imu_rate_hz > 0)) ir.fail(ip + "update_rate", "must be > 0");
   } else {
-    out.notes.push_back(ip + "update_rate: missing: imu.rate_hz " + fmt(rig.imu_rate_hz) +
+    out.notes.push_back(ip + "update_rate: missing: imu.rate_hz " + text::fmt6(rig.imu_rate_hz) +
                         " from the base rig");
   }
   if (imu["T_i_b"]) {
@@ -242,17 +201,18 @@ KalibrImport import_kalibr_text(const std::string& camchain_yaml, const std::str
   rig.T_BI = kIdentity4;
 
   // ---- what Kalibr has no place for ----
-  out.notes.push_back("camera.rate_hz: not in Kalibr's files: " + fmt(rig.camera_rate_hz) +
+  out.notes.push_back("camera.rate_hz: not in Kalibr's files: " + text::fmt6(rig.camera_rate_hz) +
                       " Hz from the base rig");
   out.notes.push_back(
       "depth: not in Kalibr's files (depth is registered to the colour camera): scale_m_per_unit " +
-      fmt(rig.depth.scale_m_per_unit) + ", range " + fmt(rig.depth.min_range_m) + ".." +
-      fmt(rig.depth.max_range_m) + " m, sigma_coeff_per_m " + fmt(rig.depth.sigma_coeff_per_m) +
+      text::fmt6(rig.depth.scale_m_per_unit) + ", range " + text::fmt6(rig.depth.min_range_m) + ".." +
+      text::fmt6(rig.depth.max_range_m) + " m, sigma_coeff_per_m " + text::fmt6(rig.depth.sigma_coeff_per_m) +
       " from the base rig");
   out.notes.push_back("imu.acc_bias_tau_s, gyro_range_rps, acc_range_mps2: not in Kalibr's files: " +
-                      fmt(rig.imu.acc_bias_tau_s) + " s, " + fmt(rig.imu.gyro_range_rps) + " rad/s, " +
-                      fmt(rig.imu.acc_range_mps2) + " m/s^2 from the base rig");
-  out.notes.push_back("gravity_mps2: not in Kalibr's files: " + fmt(rig.gravity_mps2) + " from the base rig");
+                      text::fmt6(rig.imu.acc_bias_tau_s) + " s, " + text::fmt6(rig.imu.gyro_range_rps) +
+                      " rad/s, " + text::fmt6(rig.imu.acc_range_mps2) + " m/s^2 from the base rig");
+  out.notes.push_back("gravity_mps2: not in Kalibr's files: " + text::fmt6(rig.gravity_mps2) +
+                      " from the base rig");
   if (rig.name.empty()) rig.name = "kalibr-" + camera;
   // Whatever else the rig file checks (the base rig's fields included) is
   // checked here too, so the rig written by `calib import-kalibr` always loads.
@@ -266,8 +226,8 @@ KalibrImport import_kalibr_text(const std::string& camchain_yaml, const std::str
 
 KalibrImport import_kalibr(const std::string& camchain_path, const std::string& imu_path,
                            const std::string& camera, const Rig& base) {
-  return import_kalibr_text(read_file(camchain_path), camchain_path, read_file(imu_path), imu_path, camera,
-                            base);
+  return import_kalibr_text(text::read_file(camchain_path), camchain_path, text::read_file(imu_path),
+                            imu_path, camera, base);
 }
 
 }  // namespace kestrel::drivers

@@ -15,12 +15,6 @@
 namespace kestrel::drivers {
 namespace {
 
-std::string fmt(double v) {
-  std::ostringstream s;
-  s << v;
-  return s.str();
-}
-
 class Lines {
  public:
   Lines(const std::string& text, std::string name) : name_(std::move(name)) {
@@ -103,7 +97,8 @@ void check_rotation(Lines& in, const Mat4d& T, const std::string& field) {
     }
   }
   // rs-enumerate-devices prints floats with 6 significant digits.
-  if (worst > 1e-4) in.fail(field, "the rotation is not orthonormal (R R^T - I up to " + fmt(worst) + ")");
+  if (worst > 1e-4)
+    in.fail(field, "the rotation is not orthonormal (R R^T - I up to " + text::fmt6(worst) + ")");
 }
 
 void parse_intrinsics(Lines& in, const std::string& header, RealSenseDump& d) {
@@ -222,43 +217,8 @@ void parse_extrinsics(Lines& in, const std::string& header, RealSenseDump& d) {
   d.extrinsics.push_back(e);
 }
 
-// T^-1 of a rigid transform, its rotation re-orthonormalised (6 printed digits).
-Mat4d rigid_inverse(const Mat4d& T) {
-  double R[3][3];
-  for (int i = 0; i < 3; ++i)
-    for (int j = 0; j < 3; ++j) R[i][j] = T[static_cast<size_t>(4 * i + j)];
-  for (int i = 0; i < 3; ++i) {
-    for (int k = 0; k < i; ++k) {
-      double dot = 0;
-      for (int j = 0; j < 3; ++j) dot += R[i][j] * R[k][j];
-      for (int j = 0; j < 3; ++j) R[i][j] -= dot * R[k][j];
-    }
-    const double n = std::sqrt(R[i][0] * R[i][0] + R[i][1] * R[i][1] + R[i][2] * R[i][2]);
-    for (int j = 0; j < 3; ++j) R[i][j] /= n;
-  }
-  Mat4d out = kIdentity4;
-  for (int i = 0; i < 3; ++i) {
-    double t = 0;
-    for (int j = 0; j < 3; ++j) {
-      out[static_cast<size_t>(4 * i + j)] = R[j][i];
-      t -= R[j][i] * T[static_cast<size_t>(4 * j + 3)];
-    }
-    out[static_cast<size_t>(4 * i + 3)] = t;
-  }
-  return out;
-}
-
 // Orthonormalised copy (the rig file checks rotations tightly).
 Mat4d rigid(const Mat4d& T) { return rigid_inverse(rigid_inverse(T)); }
-
-std::string read_file(const std::string& path) {
-  std::ifstream f(path, std::ios::binary);
-  if (!f)
-    throw std::runtime_error(path + ": cannot open (the output of `rs-enumerate-devices -c > " + path + "`)");
-  std::ostringstream s;
-  s << f.rdbuf();
-  return s.str();
-}
 
 // Solves the 5x5 system A x = b (partial pivoting); false when singular.
 bool solve5(std::array<std::array<double, 6>, 5> m, std::array<double, 5>& x) {
@@ -444,7 +404,8 @@ RealSenseImport import_realsense_text(const std::string& text, const std::string
       ci.distortion = DistortionModel::kRadTan;
       ci.dist = k;
       out.notes.push_back(what + ": \"" + r.model + "\" fitted as radtan over the image, residual " +
-                          fmt(rms) + " px rms" + (rms > 0.1 ? " (LARGE: check the undistortion)" : ""));
+                          text::fmt6(rms) + " px rms" +
+                          (rms > 0.1 ? " (LARGE: check the undistortion)" : ""));
     }
   };
   const RsIntrinsics* cam = d.find(o.camera, w, h);
@@ -478,8 +439,10 @@ RealSenseImport import_realsense_text(const std::string& text, const std::string
     if (e != nullptr && e->available) {
       double off = 0;
       for (size_t i = 0; i < 16; ++i) off = std::max(off, std::abs(e->T_to_from[i] - kIdentity4[i]));
-      if (off > 1e-4)
-        out.notes.push_back("Depth -> Infrared 1 is not identity (" + fmt(off) + "): unexpected on a D4xx");
+      if (off > 1e-4) {
+        out.notes.push_back("Depth -> Infrared 1 is not identity (" + text::fmt6(off) +
+                            "): unexpected on a D4xx");
+      }
     }
   }
 
@@ -498,8 +461,8 @@ RealSenseImport import_realsense_text(const std::string& text, const std::string
       double off = 0;
       for (size_t i = 0; i < 12; ++i) off = std::max(off, std::abs(a->T_to_from[i] - g->T_to_from[i]));
       if (off > 1e-3) {
-        out.notes.push_back("Accel -> " + o.camera + " differs from Gyro -> " + o.camera + " by " + fmt(off) +
-                            ": the body frame is the gyro's");
+        out.notes.push_back("Accel -> " + o.camera + " differs from Gyro -> " + o.camera + " by " +
+                            text::fmt6(off) + ": the body frame is the gyro's");
       }
     }
   } else if (a != nullptr && a->available) {
@@ -516,7 +479,7 @@ RealSenseImport import_realsense_text(const std::string& text, const std::string
     const RsMotionIntrinsics* m = d.find_motion(stream);
     if (m == nullptr || !m->available) {
       out.missing.push_back(std::string("Motion Intrinsic of \"") + stream + "\": noise density " +
-                            fmt(density) + " " + unit + " kept from the base rig");
+                            text::fmt6(density) + " " + unit + " kept from the base rig");
       return;
     }
     const double var = (m->noise_variances[0] + m->noise_variances[1] + m->noise_variances[2]) / 3.0;
@@ -524,13 +487,14 @@ RealSenseImport import_realsense_text(const std::string& text, const std::string
       out.missing.push_back(
           std::string("Motion Intrinsic of \"") + stream +
           "\": noise variances are zero (IMU not calibrated, rs-imu-calibration): noise density " +
-          fmt(density) + " " + unit + " kept from the base rig");
+          text::fmt6(density) + " " + unit + " kept from the base rig");
       return;
     }
     // A discrete variance per sample at rate f is sigma_c^2 * f: density = sqrt(var / f).
     density = std::sqrt(var / rate_hz);
-    out.notes.push_back(std::string(stream) + ": noise density " + fmt(density) + " " + unit +
-                        " from the mean noise variance " + fmt(var) + " at " + fmt(rate_hz) + " Hz");
+    out.notes.push_back(std::string(stream) + ": noise density " + text::fmt6(density) + " " + unit +
+                        " from the mean noise variance " + text::fmt6(var) + " at " + text::fmt6(rate_hz) +
+                        " Hz");
     if (m->has_sensitivity) {
       double off = 0;
       for (size_t r = 0; r < 3; ++r) {
@@ -539,7 +503,7 @@ RealSenseImport import_realsense_text(const std::string& text, const std::string
       }
       if (off > 1e-6) {
         out.notes.push_back(
-            std::string(stream) + ": sensitivity/bias matrix is not identity (" + fmt(off) +
+            std::string(stream) + ": sensitivity/bias matrix is not identity (" + text::fmt6(off) +
             "): Kestrel does not apply it; write it to the device (rs-imu-calibration) so the "
             "firmware does");
       }
@@ -550,19 +514,19 @@ RealSenseImport import_realsense_text(const std::string& text, const std::string
   rig.imu_rate_hz = o.gyro_rate_hz;
 
   // ---- what the dump has no place for ----
-  out.notes.push_back("imu.rate_hz: " + fmt(rig.imu_rate_hz) +
+  out.notes.push_back("imu.rate_hz: " + text::fmt6(rig.imu_rate_hz) +
                       " (the gyro's; the accelerometer is interpolated onto it)");
   out.notes.push_back(
-      "imu random walks: not in the dump: acc " + fmt(rig.imu.acc_random_walk_mps3_sqrthz) +
-      " m/s^3/sqrt(Hz), gyro " + fmt(rig.imu.gyro_random_walk_rad_s2_sqrthz) +
+      "imu random walks: not in the dump: acc " + text::fmt6(rig.imu.acc_random_walk_mps3_sqrthz) +
+      " m/s^3/sqrt(Hz), gyro " + text::fmt6(rig.imu.gyro_random_walk_rad_s2_sqrthz) +
       " rad/s^2/sqrt(Hz) from the base rig (the dump's bias variances are a static uncertainty)");
   out.notes.push_back("depth unit and range: not in `-c` output: scale_m_per_unit " +
-                      fmt(rig.depth.scale_m_per_unit) + ", " + fmt(rig.depth.min_range_m) + ".." +
-                      fmt(rig.depth.max_range_m) + " m from the base rig");
+                      text::fmt6(rig.depth.scale_m_per_unit) + ", " + text::fmt6(rig.depth.min_range_m) +
+                      ".." + text::fmt6(rig.depth.max_range_m) + " m from the base rig");
   out.notes.push_back("time_offset_cam_imu_ns: " + std::to_string(rig.time_offset_cam_imu_ns) +
                       " from the base rig (frames and IMU share the D4xx clock; docs/realsense.md)");
-  out.notes.push_back("camera.rate_hz " + fmt(rig.camera_rate_hz) + ", gravity " + fmt(rig.gravity_mps2) +
-                      " m/s^2, IMU ranges, acc_bias_tau_s: from the base rig");
+  out.notes.push_back("camera.rate_hz " + text::fmt6(rig.camera_rate_hz) + ", gravity " +
+                      text::fmt6(rig.gravity_mps2) + " m/s^2, IMU ranges, acc_bias_tau_s: from the base rig");
   if (rig.name.empty() || rig.name == base.name) {
     rig.name = (d.device_name.empty() ? std::string("realsense") : d.device_name) +
                (d.serial.empty() ? std::string() : " " + d.serial);
@@ -580,7 +544,8 @@ RealSenseImport import_realsense_text(const std::string& text, const std::string
 }
 
 RealSenseImport import_realsense(const std::string& path, const RealSenseImportOptions& o, const Rig& base) {
-  return import_realsense_text(read_file(path), path, o, base);
+  return import_realsense_text(
+      text::read_file(path, " (the output of `rs-enumerate-devices -c > " + path + "`)"), path, o, base);
 }
 
 }  // namespace kestrel::drivers

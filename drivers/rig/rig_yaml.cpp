@@ -151,6 +151,31 @@ bool intrinsics_equal(const CameraIntrinsics& ca, const CameraIntrinsics& cb) {
 
 }  // namespace
 
+Mat4d rigid_inverse(const Mat4d& T) {
+  double R[3][3];
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) R[i][j] = T[static_cast<size_t>(4 * i + j)];
+  for (int i = 0; i < 3; ++i) {
+    for (int k = 0; k < i; ++k) {
+      double dot = 0;
+      for (int j = 0; j < 3; ++j) dot += R[i][j] * R[k][j];
+      for (int j = 0; j < 3; ++j) R[i][j] -= dot * R[k][j];
+    }
+    const double n = std::sqrt(R[i][0] * R[i][0] + R[i][1] * R[i][1] + R[i][2] * R[i][2]);
+    for (int j = 0; j < 3; ++j) R[i][j] /= n;
+  }
+  Mat4d out = kIdentity4;
+  for (int i = 0; i < 3; ++i) {
+    double t = 0;
+    for (int j = 0; j < 3; ++j) {
+      out[static_cast<size_t>(4 * i + j)] = R[j][i];
+      t -= R[j][i] * T[static_cast<size_t>(4 * j + 3)];
+    }
+    out[static_cast<size_t>(4 * i + 3)] = t;
+  }
+  return out;
+}
+
 const char* distortion_name(DistortionModel m) {
   switch (m) {
     case DistortionModel::kNone:

@@ -10,6 +10,8 @@
 #include <cstdlib>
 #include <fstream>
 #include <limits>
+#include <sstream>
+#include <stdexcept>
 
 namespace kestrel::drivers::text {
 namespace {
@@ -205,6 +207,25 @@ bool is_file(const std::string& path) {
 bool is_dir(const std::string& path) {
   struct stat st {};
   return ::stat(path.c_str(), &st) == 0 && S_ISDIR(st.st_mode);
+}
+
+std::string strip_trailing_slashes(std::string path) {
+  while (path.size() > 1 && path.back() == '/') path.pop_back();
+  return path;
+}
+
+std::string read_file(const std::string& path, const std::string& hint) {
+  std::ifstream f(path, std::ios::binary);
+  if (!f) throw std::runtime_error(path + ": cannot open" + hint);
+  std::ostringstream s;
+  s << f.rdbuf();
+  return s.str();
+}
+
+std::string fmt6(double v) {
+  std::ostringstream s;
+  s << v;
+  return s.str();
 }
 
 bool is_utf8(const std::string& s) {

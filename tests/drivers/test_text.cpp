@@ -8,6 +8,7 @@
 #include <cstdint>
 #include <fstream>
 #include <limits>
+#include <stdexcept>
 #include <string>
 #include <vector>
 
@@ -38,6 +39,26 @@ TEST(Text, ReadLinesStripsCrlfAndKeepsEmptyLines) {
   EXPECT_FALSE(missing);
   EXPECT_FALSE(missing.opened);
   EXPECT_EQ(missing.error, ENOENT);
+}
+
+TEST(Text, ReadFileAndPathHelpers) {
+  const std::string dir = kestrel::test::temp_dir("text_file");
+  const std::string path = dir + "/bytes.bin";
+  const std::string bytes("a\0b\r\nc", 6);
+  std::ofstream(path, std::ios::binary) << bytes;
+  EXPECT_EQ(read_file(path), bytes) << "every byte, NUL and CR included";
+  try {
+    read_file(dir + "/none.txt", " (a hint)");
+    FAIL() << "a missing file must throw";
+  } catch (const std::runtime_error& e) {
+    EXPECT_EQ(std::string(e.what()), dir + "/none.txt: cannot open (a hint)");
+  }
+  EXPECT_EQ(strip_trailing_slashes("a/b//"), "a/b");
+  EXPECT_EQ(strip_trailing_slashes("a/b"), "a/b");
+  EXPECT_EQ(strip_trailing_slashes("/"), "/");
+  EXPECT_EQ(strip_trailing_slashes("///"), "/");
+  EXPECT_EQ(fmt6(0.000123456789), "0.000123457");
+  EXPECT_EQ(fmt6(2.5), "2.5");
 }
 
 TEST(Text, Utf8IsCheckedByteForByte) {

@@ -15,6 +15,8 @@
 
 namespace kestrel::core {
 
+inline Eigen::Vector3d to_eigen(const Vec3d& v) { return {v[0], v[1], v[2]}; }
+
 struct NavState {
   int64_t t_ns = 0;
   Eigen::Vector3d p_WB = Eigen::Vector3d::Zero();

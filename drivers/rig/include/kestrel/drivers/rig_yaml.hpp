@@ -32,4 +32,9 @@ bool rig_equal(const Rig& a, const Rig& b);
 
 const char* distortion_name(DistortionModel m);  // "none" | "radtan" | "equidistant"
 
+// T^-1 of a rigid transform, its rotation re-orthonormalised first: printed
+// calibrations (Kalibr's digits, rs-enumerate-devices' six) are not quite
+// orthonormal, and the rig file checks rotations tightly.
+Mat4d rigid_inverse(const Mat4d& T);
+
 }  // namespace kestrel::drivers

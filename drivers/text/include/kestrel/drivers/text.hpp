@@ -63,6 +63,8 @@ bool parse_seconds_ns(const std::string& s, int64_t& t_ns, const SecondsSyntax& 
 std::string seconds_from_ns(int64_t t_ns);
 // %.17g: a double that reads back bit-identical.
 std::string fmt17(double v);
+// A double as an ostream prints it (6 significant digits): for messages.
+std::string fmt6(double v);
 
 // Well-formed UTF-8 (RFC 3629: no overlong forms, surrogates or code points
 // past U+10FFFF). YAML text must be UTF-8, and an emitter rewrites what is not.
@@ -72,5 +74,9 @@ bool is_utf8(const std::string& s);
 std::string file_name(const std::string& path);  // after the last '/'
 bool is_file(const std::string& path);
 bool is_dir(const std::string& path);
+// "a/b//" -> "a/b"; "/" stays.
+std::string strip_trailing_slashes(std::string path);
+// The whole file; std::runtime_error "PATH: cannot open" (+ hint) when it cannot be read.
+std::string read_file(const std::string& path, const std::string& hint = "");
 
 }  // namespace kestrel::drivers::text
