@@ -1,5 +1,5 @@
-// `rs-enumerate-devices -c` -> Rig (drivers/rig realsense_import.hpp) and
-// `kestrel calib import-realsense`: every mapped field, the distortion fit,
+// `rs-enumerate-devices -c` -> Rig (drivers/rig realsense_import.hpp): every
+// mapped field, the distortion fit,
 // missing sections named, bad input refused with file, line and field.
 #include <gtest/gtest.h>
 
@@ -10,7 +10,6 @@
 #include "kestrel/drivers/realsense_import.hpp"
 #include "kestrel/drivers/rig_yaml.hpp"
 #include "realsense_fixtures.hpp"
-#include "run_command.hpp"
 #include "test_data.hpp"
 
 namespace kestrel::test {
@@ -222,31 +221,6 @@ TEST(RealSenseImport, BadNumbersNameLineAndField) {
   const std::string shortrow =
       replace(kRealSenseD435iDump, "  Coeffs:     \t0  \t0  \t0  \t0  \t0  ", "  Coeffs: 0 0");
   EXPECT_NE(error_of(shortrow).find("Color 640x480.Coeffs: expected 5 numbers"), std::string::npos);
-}
-
-TEST(RealSenseImport, CommandWritesARigAndNamesAMissingDump) {
-  const std::string dir = temp_dir("realsense_cli");
-  std::ofstream(dir + "/d435i.txt") << kRealSenseD435iDump;
-  const std::string base_cfg = std::string(KESTREL_SOURCE_DIR) + "/configs/realsense_d435i.yaml";
-  const CmdResult r = run_kestrel("calib import-realsense " + dir + "/d435i.txt --base " + base_cfg +
-                                  " --out " + dir + "/my_rig.yaml");
-  ASSERT_EQ(r.code, 0) << r.out;
-  EXPECT_NE(r.out.find("depth registered from the Depth stream"), std::string::npos) << r.out;
-  const Rig rig = drivers::load_rig_file(dir + "/my_rig.yaml");
-  EXPECT_DOUBLE_EQ(rig.rgb.fx, 615.896179199219);
-  EXPECT_TRUE(rig.depth_camera.present);
-  EXPECT_DOUBLE_EQ(rig.depth.max_range_m, drivers::load_rig_file(dir + "/my_rig.yaml").depth.max_range_m);
-  const CmdResult ir =
-      run_kestrel("calib import-realsense " + dir + "/d435i.txt --camera infrared1 --size 848x480 " +
-                  "--out " + dir + "/ir.yaml");
-  ASSERT_EQ(ir.code, 0) << ir.out;
-  EXPECT_FALSE(drivers::load_rig_file(dir + "/ir.yaml").depth_camera.present);
-  // The contract: a missing DUMP exits non-zero and names it.
-  const CmdResult bad = run_kestrel("calib import-realsense " + dir + "/nope.txt --out " + dir + "/x.yaml");
-  EXPECT_NE(bad.code, 0) << bad.out;
-  EXPECT_NE(bad.out.find(dir + "/nope.txt: cannot open"), std::string::npos) << bad.out;
-  EXPECT_FALSE(std::ifstream(dir + "/x.yaml").good());
-  EXPECT_EQ(run_kestrel("calib import-realsense " + dir + "/d435i.txt --size 640").code, 2);
 }
 
 }  // namespace
