@@ -1,10 +1,11 @@
-# One naming for the tests (issue 45's gate), checked on the sources:
+# One naming and one layout for the tests (issue 45's gate), checked on the sources:
 #  - a source under tests/ that defines gtest cases (TEST, TEST_F, TEST_P) is
 #    named test_*.cpp, or bench_*.cpp for a benchmark that reports through gtest;
 #  - no file is named *_test.* or *_bench.* (the two conventions this replaced);
 #  - every kestrel_add_test() target is named test_* or bench_*.
 # Support files (a shared evaluator, a profiling probe, fuzz targets) keep
 # their own names. Run: cmake -DSRC=<source dir> -P check_tests.cmake
+cmake_policy(SET CMP0057 NEW)  # if(... IN_LIST ...) in a -P script
 file(GLOB_RECURSE _sources RELATIVE "${SRC}" "${SRC}/tests/*.cpp" "${SRC}/tests/*.sh")
 set(_bad "")
 foreach(f IN LISTS _sources)
@@ -31,8 +32,27 @@ foreach(l IN LISTS _lists)
     endif()
   endforeach()
 endforeach()
+# The folders mirror the sources: each tests/<dir> is named after the source
+# folder it tests (rt, a module folder of core/, drivers/ or tools/, or a
+# layer itself for the tests that span its modules), or is one of the suites
+# that span layers:
+#  - architecture: the tree's own rules (layers, format, tidy, docs, naming);
+#  - pipeline: the whole chain, reader to outputs, under faults and budgets;
+#  - cli: the `kestrel` program's commands, run as a user runs them;
+#  - fuzz: one target per parser, whatever layer it lives in;
+#  - common, sanitizers: helpers and suppressions, no tests of their own.
+set(_spanning architecture pipeline cli fuzz common sanitizers)
+file(GLOB _dirs LIST_DIRECTORIES true RELATIVE "${SRC}/tests" "${SRC}/tests/*")
+foreach(d IN LISTS _dirs)
+  if(NOT IS_DIRECTORY "${SRC}/tests/${d}" OR d IN_LIST _spanning OR d MATCHES "^(rt|core|drivers|tools)$")
+    continue()
+  endif()
+  if(NOT IS_DIRECTORY "${SRC}/core/${d}" AND NOT IS_DIRECTORY "${SRC}/drivers/${d}" AND NOT IS_DIRECTORY "${SRC}/tools/${d}")
+    list(APPEND _bad "tests/${d}: names no source folder (rt, core/*, drivers/*, tools/*) and is not a suite that spans layers")
+  endif()
+endforeach()
 if(_bad)
   list(JOIN _bad "\n  " _msg)
-  message(FATAL_ERROR "test naming:\n  ${_msg}")
+  message(FATAL_ERROR "test naming and layout:\n  ${_msg}")
 endif()
-message(STATUS "every test source and target is named test_* or bench_*")
+message(STATUS "every test source and target is named test_* or bench_*, and tests/ mirrors the source folders")
