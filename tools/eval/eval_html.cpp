@@ -212,7 +212,11 @@ std::vector<LatencyDistribution> read_replay_latencies(const std::string& path) 
   if (!j.is_object() || !j.contains("latency") || !j["latency"].is_object())
     throw std::runtime_error(path + ": no \"latency\" object (expected `kestrel replay --metrics-out`)");
   std::vector<LatencyDistribution> out;
-  for (const auto& [name, h] : j["latency"].items()) {
+  for (const auto& item : j["latency"].items()) {
+    // Not a structured binding: C++17 does not let the lambda below capture
+    // one (GCC accepts it as an extension, clang refuses).
+    const std::string& name = item.key();
+    const nlohmann::json& h = item.value();
     const std::string where = path + ": latency." + name;
     if (!h.is_object()) throw std::runtime_error(where + ": expected an object");
     LatencyDistribution d;
