@@ -5,6 +5,8 @@
 // test_realsense_d4xx_flight.cpp (a flight scored through `kestrel`).
 #pragma once
 
+#include <algorithm>
+#include <cmath>
 #include <cstdint>
 #include <map>
 #include <memory>
