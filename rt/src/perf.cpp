@@ -2,6 +2,7 @@
 
 #include <cinttypes>
 #include <cstring>
+#include <stdexcept>
 
 #include "kestrel/rt/clock.hpp"
 
@@ -83,6 +84,29 @@ const PerfCounter* PerfRegistry::find(const char* name) const noexcept {
     if (std::strncmp(counters_[i].name_, name, PerfCounter::kMaxName) == 0) return &counters_[i];
   }
   return nullptr;
+}
+
+const PerfValue* PerfValues::find(std::string_view name) const noexcept {
+  for (const PerfValue& v : values_)
+    if (v.name == name) return &v;
+  return nullptr;
+}
+
+std::uint64_t PerfValues::count(std::string_view name) const {
+  const PerfValue* v = find(name);
+  if (v == nullptr) throw std::out_of_range("no perf counter called '" + std::string(name) + "'");
+  return v->count;
+}
+
+PerfValues PerfRegistry::values() const {
+  std::vector<PerfValue> out;
+  const std::size_t count = size();
+  out.reserve(count);
+  for (std::size_t i = 0; i < count; ++i) {
+    const PerfCounter::Snapshot s = counters_[i].snapshot();
+    out.push_back({s.name, s.kind, s.count, s.total_ns, s.min_ns, s.max_ns});
+  }
+  return PerfValues(std::move(out));
 }
 
 std::string PerfRegistry::to_string() const {

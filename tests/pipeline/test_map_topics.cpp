@@ -48,9 +48,9 @@ TEST(MapTopics, CloudsAtTheRateKeyframesAndTheFinalMapWithoutEstimatorAllocation
   EXPECT_TRUE(r.alloc_counting);
   EXPECT_EQ(r.steady_allocs, 0) << "heap allocations on the estimator thread after warm-up";
   ASSERT_GE(clouds.size(), 3u);
-  EXPECT_EQ(r.map_clouds, clouds.size());
-  EXPECT_EQ(r.map_clouds_dropped, 0u);
-  EXPECT_EQ(r.map_keyframes_dropped, 0u);
+  EXPECT_EQ(r.counters.count("ros2.map_clouds"), clouds.size());
+  EXPECT_EQ(r.counters.count("ros2.map_clouds_dropped"), 0u);
+  EXPECT_EQ(r.counters.count("ros2.map_keyframes_dropped"), 0u);
   // At most 2 Hz of log time: 8 s give at most 16 (+1 for the first).
   EXPECT_LE(clouds.size(), 17u);
   for (size_t i = 1; i < clouds.size(); ++i)

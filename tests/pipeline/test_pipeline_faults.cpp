@@ -8,6 +8,9 @@
 #include <filesystem>
 #include <fstream>
 #include <map>
+#include <nlohmann/json.hpp>
+#include <string>
+#include <vector>
 
 #include "pipeline_fixture.hpp"
 #include "test_scale.hpp"
@@ -56,8 +59,9 @@ TEST(PipelineFaults, BaselineIsGood) {
   const ReplayRun r = replay(path);
   ASSERT_GT(static_cast<double>(r.poses.size()), 20.0 * kDuration_s);  // two thirds of the 30 Hz frames
   EXPECT_GT(good_share(r, 1.5), 0.95);
-  const auto& f = r.report.input_faults;
-  EXPECT_EQ(f.missing + f.out_of_order + f.repeated + f.no_depth + f.imu_gaps, 0u);
+  for (const char* path : {"input.frames_missing", "input.frames_out_of_order", "input.frames_repeated",
+                           "input.frames_no_depth", "input.imu_gaps"})
+    EXPECT_EQ(r.report.counters.count(path), 0u) << path;
   EXPECT_EQ(r.report.estimator_counters.imu_rejects.non_finite +
                 r.report.estimator_counters.imu_rejects.out_of_order,
             0u);
@@ -73,16 +77,65 @@ TEST(PipelineFaults, TenPercentOfFramesDropped) {
   const ReplayRun r = replay(path);
   // Each lost frame is a time gap the harness counts (a drop of the very
   // first frames cannot be seen).
-  EXPECT_NEAR(static_cast<double>(r.report.input_faults.missing), static_cast<double>(sim.frames_dropped),
-              2.0);
+  EXPECT_NEAR(static_cast<double>(r.report.counters.count("input.frames_missing")),
+              static_cast<double>(sim.frames_dropped), 2.0);
   EXPECT_GT(good_share(r, 1.5), 0.9);
   Recovery rec;
   rec.recovered = true;
   rec.time_to_recover_s = 0;
   print_row("10 % of frames dropped",
-            "input_faults.missing = " + std::to_string(r.report.input_faults.missing) + " (sim dropped " +
-                std::to_string(sim.frames_dropped) + "); tracking throughout",
+            "input_faults.missing = " + std::to_string(r.report.counters.count("input.frames_missing")) +
+                " (sim dropped " + std::to_string(sim.frames_dropped) + "); tracking throughout",
             rec);
+}
+
+// The counts live once, in the run's perf registry: the metrics JSON (its
+// `counters` object and the older keys), the status line and the report read
+// the same numbers.
+TEST(PipelineFaults, CountsReachEveryReaderFromOneRegistry) {
+  const std::string path = log_path("counters");
+  tools::SimOptions o = small_sim(kDuration_s);
+  o.out_path = path;
+  o.frame_drop_rate = 0.10;
+  tools::run_simulation(o);
+  cli::ReplayOptions opt;
+  opt.path = path;
+  opt.pace = drivers::ReplayPace::kLockstep;
+  opt.estimator = backend();
+  opt.status_line = true;
+  std::vector<std::string> lines;
+  opt.on_status = [&lines](const cli::PipelineStatus&, const std::string& line) { lines.push_back(line); };
+  const cli::ReplayReport r = cli::run_replay(opt);
+  const rt::PerfValues& n = r.counters;
+  const uint64_t missing = n.count("input.frames_missing");
+  EXPECT_GT(missing, 5u);
+  EXPECT_EQ(n.count("output.status_lines"), lines.size());
+  ASSERT_GE(lines.size(), 3u);
+  // The last line's camera count is the registry's at that second: some, at most the final figure.
+  const std::size_t at = lines.back().find("cam miss ");
+  ASSERT_NE(at, std::string::npos) << lines.back();
+  const uint64_t shown = std::stoull(lines.back().substr(at + 9));
+  EXPECT_GT(shown, 0u) << lines.back();
+  EXPECT_LE(shown, missing) << lines.back();
+  EXPECT_EQ(n.count("estimator.frames_in"), r.estimator_counters.frames_in);
+  EXPECT_EQ(n.count("estimator.imu_in"), r.estimator_counters.imu_in);
+  const rt::PerfValue* add_frame = n.find("estimator.add_frame");
+  ASSERT_NE(add_frame, nullptr);
+  EXPECT_EQ(add_frame->kind, rt::PerfKind::kElapsed);
+  EXPECT_EQ(add_frame->count, r.estimator_counters.frames_in);
+
+  const auto j = nlohmann::json::parse(cli::replay_metrics_json(r));
+  ASSERT_TRUE(j.contains("counters")) << "the metrics JSON has no counters object";
+  EXPECT_EQ(j["counters"].size(), n.all().size());
+  for (const rt::PerfValue& v : n.all()) {
+    ASSERT_TRUE(j["counters"].contains(v.name)) << v.name;
+    const auto& c = j["counters"][v.name];
+    EXPECT_EQ(v.kind == rt::PerfKind::kCount ? c.get<uint64_t>() : c["count"].get<uint64_t>(), v.count)
+        << v.name;
+  }
+  EXPECT_EQ(j["input_faults"]["missing"].get<uint64_t>(), missing);
+  EXPECT_EQ(j["drops"]["output_ring"].get<uint64_t>(), n.count("rings.output_drops"));
+  EXPECT_EQ(j["imu_rate_poses"].get<uint64_t>(), n.count("output.imu_rate_poses"));
 }
 
 TEST(PipelineFaults, ImuGapOf300ms) {
@@ -104,11 +157,11 @@ TEST(PipelineFaults, ImuGapOf300ms) {
   tools::run_simulation(o, sink);
   ASSERT_GT(dropped, 100);
   const ReplayRun r = replay(path);
-  EXPECT_EQ(r.report.input_faults.imu_gaps, 1u);
+  EXPECT_EQ(r.report.counters.count("input.imu_gaps"), 1u);
   const Recovery rec = measure_recovery(r, kFault_s, kFault_s + 0.3);
   expect_recovered(rec);
   print_row("300 ms IMU gap",
-            "input_faults.imu_gaps = " + std::to_string(r.report.input_faults.imu_gaps) +
+            "input_faults.imu_gaps = " + std::to_string(r.report.counters.count("input.imu_gaps")) +
                 " (estimator imu_rejects.gaps = " +
                 std::to_string(r.report.estimator_counters.imu_rejects.gaps) + ")",
             rec);
@@ -183,14 +236,14 @@ TEST(PipelineFaults, OutOfOrderAndDuplicatedTimestamps) {
   const ReplayRun r = replay(path);
   EXPECT_EQ(r.report.estimator_counters.imu_rejects.out_of_order,
             static_cast<uint64_t>(imu_swapped + imu_dup));
-  EXPECT_EQ(r.report.input_faults.out_of_order, 2u);
+  EXPECT_EQ(r.report.counters.count("input.frames_out_of_order"), 2u);
   const Recovery rec = measure_recovery(r, kFault_s, kFault_s + 1.6);
   expect_recovered(rec);
   EXPECT_GT(good_share(r, 1.5), 0.9) << "out-of-order input must not derail the estimate";
   print_row("out-of-order and duplicated timestamps",
             "imu_out_of_order = " + std::to_string(r.report.estimator_counters.imu_rejects.out_of_order) +
                 " (injected " + std::to_string(imu_swapped + imu_dup) + "), input_faults.out_of_order = " +
-                std::to_string(r.report.input_faults.out_of_order) + " (withheld)",
+                std::to_string(r.report.counters.count("input.frames_out_of_order")) + " (withheld)",
             rec);
 }
 
@@ -265,12 +318,12 @@ TEST(PipelineFaults, FrozenCamera) {
   tools::run_simulation(o, sink);
   ASSERT_GT(frozen_frames, 25);
   const ReplayRun r = replay(path);
-  EXPECT_EQ(r.report.input_faults.repeated, static_cast<uint64_t>(frozen_frames));
+  EXPECT_EQ(r.report.counters.count("input.frames_repeated"), static_cast<uint64_t>(frozen_frames));
   const Recovery rec = measure_recovery(r, kFault_s, kFault_s + 1.0);
   EXPECT_TRUE(rec.said_so) << "the output kept claiming tracking on a frozen camera";
   expect_recovered(rec);
   print_row("frozen camera (1 s of repeated frames)",
-            "input_faults.repeated = " + std::to_string(r.report.input_faults.repeated) +
+            "input_faults.repeated = " + std::to_string(r.report.counters.count("input.frames_repeated")) +
                 " (withheld); quality imu-only while frozen",
             rec);
 }
@@ -301,11 +354,11 @@ TEST(PipelineFaults, DepthInvalidForTwoSeconds) {
   tools::run_simulation(o, sink);
   ASSERT_GT(no_depth, 55);
   const ReplayRun r = replay(path);
-  EXPECT_EQ(r.report.input_faults.no_depth, static_cast<uint64_t>(no_depth));
+  EXPECT_EQ(r.report.counters.count("input.frames_no_depth"), static_cast<uint64_t>(no_depth));
   const Recovery rec = measure_recovery(r, kFault_s, kFault_s + 2.0);
   expect_recovered(rec);
   print_row("depth all invalid for 2 s",
-            "input_faults.no_depth = " + std::to_string(r.report.input_faults.no_depth) +
+            "input_faults.no_depth = " + std::to_string(r.report.counters.count("input.frames_no_depth")) +
                 "; resets in fault = " + std::to_string(rec.resets_in_fault),
             rec);
 }
@@ -331,15 +384,16 @@ TEST(PipelineFaults, CorruptLogChunk) {
   const double d = r.report.log_duration_s;
   const double fa = d * static_cast<double>(a) / static_cast<double>(size) - 0.3;
   const double fb = d * static_cast<double>(a + len) / static_cast<double>(size) + 0.3;
-  EXPECT_GE(r.report.input_faults.missing, 1u) << "frames lost in the chunk are not counted";
+  EXPECT_GE(r.report.counters.count("input.frames_missing"), 1u)
+      << "frames lost in the chunk are not counted";
   const Recovery rec = measure_recovery(r, fa, fb);
   expect_recovered(rec);
-  print_row("corrupt log chunk (300 kB)",
-            "log problems = " + std::to_string(r.report.problems.size()) +
-                " (first: " + r.report.problems[0].kind +
-                "), input_faults.missing = " + std::to_string(r.report.input_faults.missing) +
-                ", imu_gaps = " + std::to_string(r.report.estimator_counters.imu_rejects.gaps),
-            rec);
+  print_row(
+      "corrupt log chunk (300 kB)",
+      "log problems = " + std::to_string(r.report.problems.size()) + " (first: " + r.report.problems[0].kind +
+          "), input_faults.missing = " + std::to_string(r.report.counters.count("input.frames_missing")) +
+          ", imu_gaps = " + std::to_string(r.report.estimator_counters.imu_rejects.gaps),
+      rec);
 }
 
 TEST(PipelineFaults, FastRotationBurstBeyondTheTracker) {

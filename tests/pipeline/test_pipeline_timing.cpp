@@ -81,9 +81,10 @@ TEST(PipelineTiming, RealtimeBudgetsAtVga) {
       imu_p99_ms, 1e-6 * static_cast<double>(r.imu_to_output.max()),
       1e-6 * static_cast<double>(r.tracking.percentile(50)), trk_p99_ms,
       1e-6 * static_cast<double>(r.tracking.max()), static_cast<long long>(r.steady_allocs),
-      static_cast<unsigned long long>(r.steady_frames), static_cast<unsigned long long>(r.imu_ring_drops),
-      static_cast<unsigned long long>(r.frame_ring_drops),
-      static_cast<unsigned long long>(r.output_ring_drops), r.realtime_factor);
+      static_cast<unsigned long long>(r.steady_frames),
+      static_cast<unsigned long long>(r.counters.count("rings.imu_drops")),
+      static_cast<unsigned long long>(r.counters.count("rings.frame_drops")),
+      static_cast<unsigned long long>(r.counters.count("rings.output_drops")), r.realtime_factor);
   std::printf("TIMING | propagation thread: %s\n", r.propagator_thread.c_str());
   std::printf(
       "TIMING | estimator thread's own view of the IMU samples (waits behind tracking): p50 %.3f p99 %.3f "
@@ -109,16 +110,16 @@ TEST(PipelineTiming, RealtimeBudgetsAtVga) {
   }
   // The IMU-rate pose reaches the output: at least one per output drain
   // (~1 ms) at 400 Hz IMU is ~13 per frame; ask for 5 to leave room for load.
-  EXPECT_EQ(imu_poses_seen, r.imu_rate_poses);
+  EXPECT_EQ(imu_poses_seen, r.counters.count("output.imu_rate_poses"));
   EXPECT_GT(imu_poses_seen, 5u * r.tracking.count());
   EXPECT_TRUE(imu_poses_in_order);
-  EXPECT_EQ(r.imu_ring_drops, 0u);
-  EXPECT_EQ(r.frame_ring_drops, 0u);
-  EXPECT_EQ(r.output_ring_drops, 0u);
-  EXPECT_EQ(r.propagator_forward_drops, 0u);
+  EXPECT_EQ(r.counters.count("rings.imu_drops"), 0u);
+  EXPECT_EQ(r.counters.count("rings.frame_drops"), 0u);
+  EXPECT_EQ(r.counters.count("rings.output_drops"), 0u);
+  EXPECT_EQ(r.counters.count("rings.propagator_forward_drops"), 0u);
   EXPECT_EQ(r.replay.imu_dropped, 0u);
   EXPECT_EQ(r.replay.frames_dropped, 0u);
-  EXPECT_EQ(r.image_pool_exhausted, 0u);
+  EXPECT_EQ(r.counters.count("rings.image_pool_exhausted"), 0u);
   EXPECT_TRUE(r.alloc_counting);
   EXPECT_EQ(r.steady_allocs, 0) << "heap allocations on the estimator thread after warm-up";
   // Realtime pace keeps pace: the replay took about as long as the log.
@@ -205,22 +206,23 @@ TEST(PipelineTiming, OneCoreVgaEmbeddedProfile) {
       1e-6 * static_cast<double>(r.tracking.percentile(50)), trk_p99_ms,
       static_cast<unsigned long long>(r.optimizer.count()),
       1e-6 * static_cast<double>(r.optimizer.percentile(50)), opt_p99_ms,
-      static_cast<long long>(r.steady_allocs), static_cast<unsigned long long>(r.imu_ring_drops),
-      static_cast<unsigned long long>(r.frame_ring_drops),
-      static_cast<unsigned long long>(r.output_ring_drops), r.realtime_factor);
+      static_cast<long long>(r.steady_allocs),
+      static_cast<unsigned long long>(r.counters.count("rings.imu_drops")),
+      static_cast<unsigned long long>(r.counters.count("rings.frame_drops")),
+      static_cast<unsigned long long>(r.counters.count("rings.output_drops")), r.realtime_factor);
 
   const double seconds = sim.duration_s - 2.0;  // after warm-up
   ASSERT_GT(r.tracking.count(), static_cast<uint64_t>(0.9 * 30.0 * seconds)) << "too few frames timed";
   ASSERT_GT(r.optimizer.count(), 0u) << "the window ran no solve";
   EXPECT_LT(imu_p99_ms, imu_budget_ms) << "IMU-to-pose latency on one core";
   EXPECT_LT(trk_p99_ms, 1000.0 / 30.0) << "tracking budget: one frame period";
-  EXPECT_EQ(r.imu_ring_drops, 0u);
-  EXPECT_EQ(r.frame_ring_drops, 0u);
-  EXPECT_EQ(r.output_ring_drops, 0u);
-  EXPECT_EQ(r.propagator_forward_drops, 0u);
+  EXPECT_EQ(r.counters.count("rings.imu_drops"), 0u);
+  EXPECT_EQ(r.counters.count("rings.frame_drops"), 0u);
+  EXPECT_EQ(r.counters.count("rings.output_drops"), 0u);
+  EXPECT_EQ(r.counters.count("rings.propagator_forward_drops"), 0u);
   EXPECT_EQ(r.replay.imu_dropped, 0u);
   EXPECT_EQ(r.replay.frames_dropped, 0u) << "a frame dropped on one core";
-  EXPECT_EQ(r.image_pool_exhausted, 0u);
+  EXPECT_EQ(r.counters.count("rings.image_pool_exhausted"), 0u);
   EXPECT_EQ(r.steady_allocs, 0) << "heap allocations on the estimator thread after warm-up";
   // Every frame after start-up is posed: one core kept up, not merely survived.
   EXPECT_GE(static_cast<double>(r.trajectory.size()), 0.97 * static_cast<double>(sim.frames));

@@ -2,6 +2,7 @@
 
 #include <cstdio>
 #include <memory>
+#include <stdexcept>
 #include <string>
 
 #include "kestrel/rt/clock.hpp"
@@ -109,6 +110,39 @@ TEST(Perf, LongNamesAreCut) {
   PerfCounter* c = reg.register_counter(longname.c_str(), PerfKind::kCount);
   EXPECT_EQ(std::string(c->name()).size(), PerfCounter::kMaxName);
   EXPECT_EQ(&perf_registry(), &perf_registry());
+}
+
+// values() outlives the registry, keeps registration order, and a path that
+// was never registered is an error rather than a silent zero.
+TEST(Perf, ValuesCopyEveryCounterByPath) {
+  PerfValues v;
+  {
+    auto reg = std::make_unique<PerfRegistry>();
+    PerfCounter* drops = reg->register_counter("rings.imu_drops", PerfKind::kCount);
+    PerfCounter* solve = reg->register_counter("window.solve", PerfKind::kElapsed);
+    drops->inc(3);
+    drops->set(7);  // a mirror of a count kept elsewhere
+    solve->add_elapsed(2'000);
+    solve->add_elapsed(4'000);
+    v = reg->values();
+  }
+  ASSERT_EQ(v.all().size(), 2u);
+  EXPECT_EQ(v.all()[0].name, "rings.imu_drops");
+  EXPECT_EQ(v.count("rings.imu_drops"), 7u);
+  const PerfValue* s = v.find("window.solve");
+  ASSERT_NE(s, nullptr);
+  EXPECT_EQ(s->kind, PerfKind::kElapsed);
+  EXPECT_EQ(s->count, 2u);
+  EXPECT_EQ(s->total_ns, 6'000);
+  EXPECT_EQ(s->min_ns, 2'000);
+  EXPECT_EQ(s->max_ns, 4'000);
+  EXPECT_EQ(v.find("rings.frame_drops"), nullptr);
+  try {
+    (void)v.count("rings.frame_drops");
+    ADD_FAILURE() << "count() of an unknown path did not throw";
+  } catch (const std::out_of_range& e) {
+    EXPECT_NE(std::string(e.what()).find("rings.frame_drops"), std::string::npos) << e.what();
+  }
 }
 
 }  // namespace

@@ -27,6 +27,7 @@
 #include "kestrel/imu_rate_stage.hpp"
 #include "kestrel/map_threads.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"
+#include "kestrel/pipeline_counters.hpp"
 #include "kestrel/rt/alloc_counter.hpp"
 #include "kestrel/rt/clock.hpp"
 #include "kestrel/rt/history_ring.hpp"
@@ -129,7 +130,7 @@ class EstimatorStage {
   EstimatorStage(core::Estimator& est, drivers::SensorRings& rings, ImuRing& imu,
                  rt::SpscRing<core::PoseSample, kOutRingCapacity>& out, rt::Mailbox<PipelineStatus>& status,
                  rt::Mailbox<Anchor>* anchor, const ReplayOptions& opt, const Rig& rig, ReplayReport& report,
-                 viewer::ViewerFeed* feed, MapTopicsFeed* map_feed)
+                 PipelineCounters& counters, viewer::ViewerFeed* feed, MapTopicsFeed* map_feed)
       : est_(est),
         rings_(rings),
         imu_(imu),
@@ -138,6 +139,7 @@ class EstimatorStage {
         anchor_(anchor),
         opt_(opt),
         report_(report),
+        c_(counters),
         feed_(feed),
         map_feed_(map_feed) {
     frame_period_ns_ = rig.camera_rate_hz > 0 ? static_cast<int64_t>(1e9 / rig.camera_rate_hz) : 0;
@@ -194,10 +196,11 @@ class EstimatorStage {
   void finish() {
     if (counting_)
       report_.steady_allocs = static_cast<int64_t>(rt::alloc_count_this_thread() - allocs_at_warmup_);
-    report_.input_faults = faults_;
+    c_.mirror_estimator(est_.counters(), est_.view());
   }
 
   uint64_t frames_fed() const { return frames_fed_; }
+  PipelineCounters& counters() { return c_; }
   // The map's threads, woken after each frame (set before any frame).
   void set_map_threads(MapThreads* m) { map_ = m; }
   // The dense map's hand-off, offered every tracked frame (set before any frame).
@@ -238,12 +241,11 @@ class EstimatorStage {
     st.tracking_max_ns = window_tracking_max_ns_;
     st.imu_to_output_max_ns = window_imu_max_ns_;
     window_tracking_max_ns_ = window_imu_max_ns_ = 0;
-    st.imu_ring_drops = rings_.imu.drops();
-    st.frame_ring_drops = rings_.frames.drops();
-    const core::ImuRejectCounts& r = est_.counters().imu_rejects;
-    st.imu_rejected = r.non_finite + r.saturated + r.out_of_order;
-    st.imu_gaps = r.gaps;
-    st.input_faults = faults_;
+    // The rings' refused pushes so far (the final figure, set after the run,
+    // is what the feeder lost: pipeline_counters.hpp).
+    c_.imu_ring_drops->set(rings_.imu.drops());
+    c_.frame_ring_drops->set(rings_.frames.drops());
+    c_.mirror_estimator(est_.counters(), est_.view());
     status_.publish(st);
   }
 
@@ -261,13 +263,13 @@ class EstimatorStage {
     p.reset_counter = o.reset_counter;
     p.set_covariance(o.pose_cov);
     p.map = o.map;
-    if (!out_.try_push(p)) ++report_.output_ring_drops;
+    if (!out_.try_push(p)) c_.output_ring_drops->inc();
     last_out_t_ns_ = p.t_ns;
   }
 
   void on_imu(const ImuSample& s) {
     maybe_start_steady_state(s.t_ns);
-    if (last_imu_t_ns_ >= 0 && s.t_ns - last_imu_t_ns_ > imu_gap_ns_) ++faults_.imu_gaps;
+    if (last_imu_t_ns_ >= 0 && s.t_ns - last_imu_t_ns_ > imu_gap_ns_) c_.imu_gaps->inc();
     if (s.t_ns > last_imu_t_ns_) last_imu_t_ns_ = s.t_ns;
     // In realtime pace the sample waited in the ring only as long as a live
     // one would, so latency counts from the push. In fast and lockstep pace
@@ -319,6 +321,8 @@ class EstimatorStage {
       est_.add_frame(f);
       const int64_t t1 = rt::now_ns();
       work_cpu_s_ += thread_cpu_s() - cpu0;
+      c_.add_frame->add_elapsed(t1 - t0);
+      c_.mirror_estimator(est_.counters(), est_.view());
       // Deterministic paces let the map finish the keyframe just handed over
       // (the mapping and loop threads run it), so the next frame sees its
       // result at the same point on every run; realtime never waits.
@@ -360,33 +364,27 @@ class EstimatorStage {
     vi.imu_to_pose_max_ns = imu_max_since_frame_ns_;
     imu_max_since_frame_ns_ = 0;
     vi.frames_fed = frames_fed_;
-    vi.imu_ring_drops = rings_.imu.drops();
-    vi.frame_ring_drops = rings_.frames.drops();
-    vi.frames_missing = faults_.missing;
-    vi.frames_out_of_order = faults_.out_of_order;
-    vi.frames_repeated = faults_.repeated;
-    vi.frames_no_depth = faults_.no_depth;
-    vi.imu_gaps = faults_.imu_gaps;
     feed_->on_frame(f, vi);
   }
 
   // Counts camera faults; false withholds the frame from the estimator.
   bool screen(const core::RgbdFrame& f) {
     if (last_frame_t_ns_ >= 0 && f.t_ns <= last_frame_t_ns_) {
-      ++faults_.out_of_order;
+      c_.frames_out_of_order->inc();
       return false;
     }
     const uint64_t fp = image_fingerprint(f.rgb);
     if (fp != 0 && fp == last_fingerprint_) {
-      ++faults_.repeated;
+      c_.frames_repeated->inc();
       return false;
     }
     last_fingerprint_ = fp;
     if (last_frame_t_ns_ >= 0 && frame_period_ns_ > 0 && f.t_ns - last_frame_t_ns_ > frame_period_ns_ * 3 / 2)
-      faults_.missing +=
-          static_cast<uint64_t>((f.t_ns - last_frame_t_ns_ + frame_period_ns_ / 2) / frame_period_ns_) - 1;
+      c_.frames_missing->inc(
+          static_cast<uint64_t>((f.t_ns - last_frame_t_ns_ + frame_period_ns_ / 2) / frame_period_ns_) - 1);
     // A stereo frame's depth is its right image.
-    if (stereo_ != nullptr ? f.right.data == nullptr : depth_valid_share(f.depth) < 0.01) ++faults_.no_depth;
+    if (stereo_ != nullptr ? f.right.data == nullptr : depth_valid_share(f.depth) < 0.01)
+      c_.frames_no_depth->inc();
     return true;
   }
 
@@ -400,6 +398,7 @@ class EstimatorStage {
   rt::Mailbox<Anchor>* anchor_;
   const ReplayOptions& opt_;
   ReplayReport& report_;
+  PipelineCounters& c_;
   viewer::ViewerFeed* feed_;
   MapTopicsFeed* map_feed_;
   MapThreads* map_ = nullptr;
@@ -410,7 +409,6 @@ class EstimatorStage {
   int64_t imu_gap_ns_ = 50'000'000;
   bool has_imu_ = true;
   int64_t newest_t_ns_ = -1;  // newest record time seen (log time)
-  InputFaultCounts faults_;
   uint64_t last_fingerprint_ = 0;
   uint64_t frames_fed_ = 0;
   double work_cpu_s_ = 0;
@@ -433,11 +431,13 @@ class OutputStage {
  public:
   OutputStage(rt::SpscRing<core::PoseSample, kOutRingCapacity>& out,
               const rt::Mailbox<PipelineStatus>& status, const ReplayOptions& opt, ReplayReport& report,
-              const rt::Mailbox<core::PoseSample>* imu_pose, viewer::Server* view, MapTopicsFeed* map_feed)
+              PipelineCounters& counters, const rt::Mailbox<core::PoseSample>* imu_pose, viewer::Server* view,
+              MapTopicsFeed* map_feed)
       : out_(out),
         status_(status),
         opt_(opt),
         report_(report),
+        c_(counters),
         imu_pose_(imu_pose),
         view_(view),
         map_feed_(map_feed) {
@@ -453,7 +453,7 @@ class OutputStage {
     if (imu_pose_ != nullptr && imu_pose_->version() != imu_pose_version_) {
       core::PoseSample o;
       if (imu_pose_->read(o, &imu_pose_version_)) {
-        ++report_.imu_rate_poses;
+        c_.imu_rate_poses->inc();
         if (opt_.on_imu_pose) opt_.on_imu_pose(o);
       }
     }
@@ -465,7 +465,7 @@ class OutputStage {
       // that are scored and written leave it out (pose_share shows the gap).
       const bool lost = s.quality == core::TrackingQuality::kLost;
       if (lost) {
-        ++report_.lost_poses_withheld;
+        c_.lost_poses_withheld->inc();
       } else {
         tools::TimedPose tp;
         tp.t_ns = s.t_ns;
@@ -484,7 +484,7 @@ class OutputStage {
         }
         if (s.map.alignment != map_alignment_) {
           map_alignment_ = s.map.alignment;
-          ++report_.map_corrections;
+          c_.map_corrections->inc();
           if (opt_.on_map_correction) opt_.on_map_correction(s);
         }
         report_.map = s.map;
@@ -505,13 +505,14 @@ class OutputStage {
         map_feed_->release(h);
       }
     }
+    if (mavlink_) mirror_mavlink();
     if (opt_.status_line) {
       PipelineStatus st;
       uint64_t version = 0;
       if (status_.read(st, &version) && version != status_version_) {
         status_version_ = version;
-        ++report_.status_lines;
-        const std::string line = format_status(st);
+        c_.status_lines->inc();
+        const std::string line = format_status(st, c_.registry.values());
         if (opt_.on_status) {
           opt_.on_status(st, line);
         } else {
@@ -525,15 +526,9 @@ class OutputStage {
   void finish() {
     drain();
     if (mavlink_) {
-      report_.mavlink_sent = mavlink_->stream_stats().odometry_sent;
-      report_.mavlink_failed = mavlink_->stats().failed;
-      report_.mavlink_heartbeats = mavlink_->stream_stats().heartbeats_sent;
-      report_.mavlink_frames = mavlink_->stats().sent;
       report_.mavlink_timesync_converged = mavlink_->time_sync().converged();
       report_.mavlink_timesync_offset_ms = 1e-6 * static_cast<double>(mavlink_->time_sync().offset_ns());
-      report_.mavlink_timesync_answered = mavlink_->time_sync().stats().requests_answered;
       report_.mavlink_signing = mavlink_->signing_stats() != nullptr;
-      report_.mavlink_unauthenticated = mavlink_->decoder_stats().unauthenticated;
     }
   }
 
@@ -541,7 +536,18 @@ class OutputStage {
   rt::SpscRing<core::PoseSample, kOutRingCapacity>& out_;
   const rt::Mailbox<PipelineStatus>& status_;
   const ReplayOptions& opt_;
+  // The link's own counts, into the registry after every drain.
+  void mirror_mavlink() noexcept {
+    c_.mavlink_odometry->set(mavlink_->stream_stats().odometry_sent);
+    c_.mavlink_heartbeats->set(mavlink_->stream_stats().heartbeats_sent);
+    c_.mavlink_frames->set(mavlink_->stats().sent);
+    c_.mavlink_failed->set(mavlink_->stats().failed);
+    c_.mavlink_unauthenticated->set(mavlink_->decoder_stats().unauthenticated);
+    c_.mavlink_timesync->set(mavlink_->time_sync().stats().requests_answered);
+  }
+
   ReplayReport& report_;
+  PipelineCounters& c_;
   std::unique_ptr<mavlink::OdometryStream> mavlink_;
   uint64_t status_version_ = 0;
   uint32_t map_alignment_ = 0;
@@ -963,7 +969,7 @@ void run_threads(const ReplayOptions& opt, ReplayReport& report, drivers::Sensor
   report.estimator_cpu_s = stage.work_cpu_s() + opt_cpu;
   if (realtime) {
     report.imu_to_output = propagator.stats().imu_to_output;
-    report.propagator_forward_drops = propagator.stats().forward_drops;
+    stage.counters().propagator_forward_drops->set(propagator.stats().forward_drops);
     report.steady_allocs += propagator.stats().steady_allocs;
   }
 }
@@ -1014,6 +1020,10 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   std::unique_ptr<drivers::ReplaySource> source;
   if (log) source = std::make_unique<drivers::ReplaySource>(*log, *rings, opt.pace);
   LiveSinks live;
+  // Every count of the run, by path (pipeline_counters.hpp); before the
+  // viewer, whose thread reads it until the viewer is gone.
+  auto registry = std::make_unique<rt::PerfRegistry>();
+  PipelineCounters counters(*registry, estimator.view().has_optimizer);
   // The dense map's stream to the viewer, declared before the server that reads
   // it and the mapper that writes it, so both are gone before it is.
   std::unique_ptr<viewer::BinaryStream> dense_stream;
@@ -1044,11 +1054,13 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     map_feed = std::make_unique<MapTopicsFeed>(estimator, opt.on_map_cloud ? opt.map_points_rate_hz : 0.0);
     if (!map_feed->active()) map_feed.reset();
   }
+  if (view) view->set_counters(registry.get());
   EstimatorStage stage(estimator, *rings, realtime ? *est_imu : rings->imu, *out, *status,
-                       realtime ? anchor.get() : nullptr, opt, rig, report, feed.get(), map_feed.get());
+                       realtime ? anchor.get() : nullptr, opt, rig, report, counters, feed.get(),
+                       map_feed.get());
   auto imu_pose = std::make_unique<rt::Mailbox<core::PoseSample>>();
   ImuRateStage propagator(rings->imu, *est_imu, *anchor, rig, opt.warmup_ns, *imu_pose);
-  OutputStage output(*out, *status, opt, report, imu_pose.get(), view.get(), map_feed.get());
+  OutputStage output(*out, *status, opt, report, counters, imu_pose.get(), view.get(), map_feed.get());
   if (view) {
     // In realtime pace kst-propagate owns the IMU -> pose figure.
     if (realtime) view->set_imu_latency_probe([&propagator] { return propagator.take_recent_max_ns(); });
@@ -1140,9 +1152,9 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     finish_dense(opt, dense_opt, dense_mapper, report);
   }
   if (map_feed) {
-    report.map_clouds = map_feed->clouds_published();
-    report.map_clouds_dropped = map_feed->clouds_dropped();
-    report.map_keyframes_dropped = map_feed->keyframes_dropped();
+    counters.map_clouds->set(map_feed->clouds_published());
+    counters.map_clouds_dropped->set(map_feed->clouds_dropped());
+    counters.map_keyframes_dropped->set(map_feed->keyframes_dropped());
   }
   report.mapping_cpu_s = map_threads.mapping_cpu_s();
   report.loop_cpu_s = map_threads.loop_cpu_s();
@@ -1160,14 +1172,14 @@ ReplayReport run_replay(const ReplayOptions& opt) {
 
   // What the feeder lost, not the rings' refused pushes: in fast pace the
   // feeder retries a full ring (back-pressure), and every retry is a refusal.
-  report.imu_ring_drops = report.replay.imu_dropped;
-  report.frame_ring_drops = report.replay.frames_dropped;
+  counters.imu_ring_drops->set(report.replay.imu_dropped);
+  counters.frame_ring_drops->set(report.replay.frames_dropped);
   if (opt.live) {
     // Live there is no back-pressure: every refused push is a lost sample.
-    report.imu_ring_drops = rings->imu.drops();
-    report.frame_ring_drops = rings->frames.drops() + live.frames->drops;
+    counters.imu_ring_drops->set(rings->imu.drops());
+    counters.frame_ring_drops->set(rings->frames.drops() + live.frames->drops);
   }
-  report.image_pool_exhausted = rings->images.failed_acquires();
+  counters.image_pool_exhausted->set(rings->images.failed_acquires());
   if (log) report.problems = log->problems();
   report.wall_s = 1e-9 * static_cast<double>(wall1 - wall0);
   report.cpu_s = process_cpu_s() - cpu0;
@@ -1179,8 +1191,8 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   report.realtime_factor = report.wall_s > 0 ? report.log_duration_s / report.wall_s : 0;
   report.peak_rss_mb = peak_rss_mb();
   if (view) {
-    report.viewer_snapshots = feed->published();
-    report.viewer_snapshots_skipped = feed->skipped_busy();
+    counters.viewer_snapshots->set(feed->published());
+    counters.viewer_snapshots_skipped->set(feed->skipped_busy());
     char line[160];
     std::snprintf(line, sizeof line, "replay finished: %zu poses, %.1f s of log in %.1f s",
                   report.trajectory.size(), report.log_duration_s, report.wall_s);
@@ -1188,6 +1200,7 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     view->stop();
     report.viewer = view->stats();
   }
+  report.counters = registry->values();
   return report;
 }
 
@@ -1316,7 +1329,7 @@ std::string replay_metrics_json(const ReplayReport& r) {
     j["map_points"] = r.map.points;
     j["map_correction_m"] = r.map.T_map_odom().translation().norm();
     j["map_localized"] = r.map.localized;
-    j["map_corrections"] = r.map_corrections;
+    j["map_corrections"] = r.counters.count("output.map_corrections");
     j["mapping_cpu_s"] = r.mapping_cpu_s;
     j["loop_cpu_s"] = r.loop_cpu_s;
     if (r.global_ba) {
@@ -1399,33 +1412,34 @@ std::string replay_metrics_json(const ReplayReport& r) {
     j["dense"] = nullptr;
   }
   j["optimizer_threaded"] = r.optimizer_threaded;
-  j["imu_rate_poses"] = r.imu_rate_poses;
+  const rt::PerfValues& n = r.counters;
+  j["imu_rate_poses"] = n.count("output.imu_rate_poses");
   j["records"] = Json{{"imu", r.replay.imu_pushed},
                       {"frames", r.replay.frames_pushed},
                       {"ground_truth", r.replay.ground_truth},
                       {"events", r.replay.events}};
-  j["drops"] = Json{{"imu_ring", r.imu_ring_drops},
-                    {"frame_ring", r.frame_ring_drops},
-                    {"output_ring", r.output_ring_drops},
-                    {"image_pool_exhausted", r.image_pool_exhausted},
-                    {"propagator_forward", r.propagator_forward_drops},
+  j["drops"] = Json{{"imu_ring", n.count("rings.imu_drops")},
+                    {"frame_ring", n.count("rings.frame_drops")},
+                    {"output_ring", n.count("rings.output_drops")},
+                    {"image_pool_exhausted", n.count("rings.image_pool_exhausted")},
+                    {"propagator_forward", n.count("rings.propagator_forward_drops")},
                     {"images_too_large", r.replay.images_too_large},
                     {"depth_unpaired", r.replay.depth_unpaired},
                     {"right_unpaired", r.replay.right_unpaired}};
-  j["input_faults"] = Json{{"missing", r.input_faults.missing},
-                           {"out_of_order", r.input_faults.out_of_order},
-                           {"repeated", r.input_faults.repeated},
-                           {"no_depth", r.input_faults.no_depth},
-                           {"imu_gaps", r.input_faults.imu_gaps}};
-  j["mavlink"] = Json{{"sent", r.mavlink_sent},
-                      {"failed", r.mavlink_failed},
-                      {"heartbeats", r.mavlink_heartbeats},
-                      {"frames", r.mavlink_frames},
-                      {"timesync_answered", r.mavlink_timesync_answered},
+  j["input_faults"] = Json{{"missing", n.count("input.frames_missing")},
+                           {"out_of_order", n.count("input.frames_out_of_order")},
+                           {"repeated", n.count("input.frames_repeated")},
+                           {"no_depth", n.count("input.frames_no_depth")},
+                           {"imu_gaps", n.count("input.imu_gaps")}};
+  j["mavlink"] = Json{{"sent", n.count("mavlink.odometry_sent")},
+                      {"failed", n.count("mavlink.send_failed")},
+                      {"heartbeats", n.count("mavlink.heartbeats_sent")},
+                      {"frames", n.count("mavlink.frames_sent")},
+                      {"timesync_answered", n.count("mavlink.timesync_answered")},
                       {"timesync_converged", r.mavlink_timesync_converged},
                       {"timesync_offset_ms", json_figure(r.mavlink_timesync_offset_ms)},
                       {"signing", r.mavlink_signing},
-                      {"unauthenticated", r.mavlink_unauthenticated}};
+                      {"unauthenticated", n.count("mavlink.unauthenticated")}};
   j["time_offset_ms"] = json_figure(r.time_offset_ms);
   j["time_offset_estimated"] = r.time_offset_estimated;
   const auto& c = r.estimator_counters;
@@ -1442,7 +1456,7 @@ std::string replay_metrics_json(const ReplayReport& r) {
                            {"restarts_while_lost", dv.restarts_while_lost},
                            {"coast_timeouts", dv.coast_timeouts},
                            {"lost_seconds", 1e-9 * static_cast<double>(dv.lost_ns)},
-                           {"lost_poses_withheld", r.lost_poses_withheld}};
+                           {"lost_poses_withheld", n.count("output.lost_poses_withheld")}};
   }
   j["estimator_counters"] = Json{{"imu_in", c.imu_in},
                                  {"imu_used", c.imu_used},
@@ -1471,10 +1485,13 @@ std::string replay_metrics_json(const ReplayReport& r) {
                            {"applied", t.applied},
                            {"error", t.error}});
   j["threads"] = std::move(threads);
-  if (r.map_clouds + r.map_clouds_dropped + r.map_keyframes_dropped > 0)
-    j["ros2_map_topics"] = Json{{"clouds", r.map_clouds},
-                                {"clouds_dropped", r.map_clouds_dropped},
-                                {"keyframes_dropped", r.map_keyframes_dropped}};
+  const uint64_t map_clouds = n.count("ros2.map_clouds");
+  const uint64_t map_clouds_dropped = n.count("ros2.map_clouds_dropped");
+  const uint64_t map_keyframes_dropped = n.count("ros2.map_keyframes_dropped");
+  if (map_clouds + map_clouds_dropped + map_keyframes_dropped > 0)
+    j["ros2_map_topics"] = Json{{"clouds", map_clouds},
+                                {"clouds_dropped", map_clouds_dropped},
+                                {"keyframes_dropped", map_keyframes_dropped}};
   if (r.view) {
     const viewer::ServerStats& v = r.viewer;
     const bool streamed = v.streaming_s > 0;
@@ -1486,8 +1503,8 @@ std::string replay_metrics_json(const ReplayReport& r) {
              {"cpu_ms_per_s", streamed ? 1e3 * v.streaming_cpu_s / v.streaming_s : 0.0},
              {"cpu_s", json_figure(v.cpu_s)},
              {"bytes_sent", v.bytes_sent},
-             {"snapshots_published", r.viewer_snapshots},
-             {"snapshots_skipped", r.viewer_snapshots_skipped},
+             {"snapshots_published", n.count("viewer.snapshots_published")},
+             {"snapshots_skipped", n.count("viewer.snapshots_skipped")},
              {"frames_sent", v.frames_sent},
              {"frames_skipped_budget", v.frames_skipped_budget},
              {"frames_skipped_backlog", v.frames_skipped_backlog},
@@ -1501,6 +1518,22 @@ std::string replay_metrics_json(const ReplayReport& r) {
              {"commands", v.commands},
              {"bad_commands", v.bad_commands}};
   }
+  // Every counter of the run by path; elapsed and interval counters as
+  // samples and microseconds.
+  Json all = Json::object();
+  for (const rt::PerfValue& v : n.all()) {
+    if (v.kind == rt::PerfKind::kCount) {
+      all[v.name] = v.count;
+    } else {
+      all[v.name] =
+          Json{{"count", v.count},
+               {"mean_us",
+                v.count > 0 ? 1e-3 * static_cast<double>(v.total_ns) / static_cast<double>(v.count) : 0.0},
+               {"min_us", 1e-3 * static_cast<double>(v.min_ns)},
+               {"max_us", 1e-3 * static_cast<double>(v.max_ns)}};
+    }
+  }
+  j["counters"] = std::move(all);
   Json problems = Json::array();
   for (const auto& p : r.problems)
     problems.push_back(Json{{"where", p.where}, {"kind", p.kind}, {"detail", p.detail}});
@@ -1516,7 +1549,7 @@ void frame_stats(const core::Estimator& est, int& features, int& inliers) {
   }
 }
 
-std::string format_status(const PipelineStatus& s) {
+std::string format_status(const PipelineStatus& s, const rt::PerfValues& n) {
   const char* state = "uninit";
   switch (s.quality) {
     case core::TrackingQuality::kTracking:
@@ -1542,13 +1575,17 @@ std::string format_status(const PipelineStatus& s) {
       "nodepth %llu",
       s.t_s, state, s.reset_counter, s.features, s.inliers,
       static_cast<unsigned long long>(s.frames_in_window), 1e-6 * static_cast<double>(s.tracking_max_ns),
-      1e-6 * static_cast<double>(s.imu_to_output_max_ns), static_cast<unsigned long long>(s.imu_ring_drops),
-      static_cast<unsigned long long>(s.frame_ring_drops), static_cast<unsigned long long>(s.imu_rejected),
-      static_cast<unsigned long long>(s.input_faults.imu_gaps),
-      static_cast<unsigned long long>(s.input_faults.missing),
-      static_cast<unsigned long long>(s.input_faults.out_of_order),
-      static_cast<unsigned long long>(s.input_faults.repeated),
-      static_cast<unsigned long long>(s.input_faults.no_depth));
+      1e-6 * static_cast<double>(s.imu_to_output_max_ns),
+      static_cast<unsigned long long>(n.count("rings.imu_drops")),
+      static_cast<unsigned long long>(n.count("rings.frame_drops")),
+      static_cast<unsigned long long>(n.count("estimator.imu_rejects.non_finite") +
+                                      n.count("estimator.imu_rejects.saturated") +
+                                      n.count("estimator.imu_rejects.out_of_order")),
+      static_cast<unsigned long long>(n.count("input.imu_gaps")),
+      static_cast<unsigned long long>(n.count("input.frames_missing")),
+      static_cast<unsigned long long>(n.count("input.frames_out_of_order")),
+      static_cast<unsigned long long>(n.count("input.frames_repeated")),
+      static_cast<unsigned long long>(n.count("input.frames_no_depth")));
   std::string line = buf;
   // The map's state: a lost map (after a loss, or a loaded map not found yet) maps nothing until it
   // relocalises.
@@ -1563,6 +1600,7 @@ std::string format_status(const PipelineStatus& s) {
 }
 
 std::string replay_summary(const ReplayReport& r) {
+  const rt::PerfValues& n = r.counters;
   char buf[512];
   std::string s;
   std::snprintf(buf, sizeof buf, "estimator: %s (pace %s)\nlog: %s [%s], %.2f s of data\n",
@@ -1583,7 +1621,7 @@ std::string replay_summary(const ReplayReport& r) {
         buf, sizeof buf,
         "stereo: rectified at start-up, baseline %.4f m; frames without a right image %llu (right images "
         "unpaired: %llu)\n",
-        r.stereo_baseline_m, static_cast<unsigned long long>(r.input_faults.no_depth),
+        r.stereo_baseline_m, static_cast<unsigned long long>(n.count("input.frames_no_depth")),
         static_cast<unsigned long long>(r.replay.right_unpaired));
     s += buf;
   }
@@ -1599,10 +1637,11 @@ std::string replay_summary(const ReplayReport& r) {
       buf, sizeof buf,
       "drops: imu ring %llu, frame ring %llu, output %llu; imu rejected: %llu non-finite, %llu saturated, "
       "%llu out of order, %llu gaps\n",
-      static_cast<unsigned long long>(r.imu_ring_drops), static_cast<unsigned long long>(r.frame_ring_drops),
-      static_cast<unsigned long long>(r.output_ring_drops), static_cast<unsigned long long>(c.non_finite),
-      static_cast<unsigned long long>(c.saturated), static_cast<unsigned long long>(c.out_of_order),
-      static_cast<unsigned long long>(c.gaps));
+      static_cast<unsigned long long>(n.count("rings.imu_drops")),
+      static_cast<unsigned long long>(n.count("rings.frame_drops")),
+      static_cast<unsigned long long>(n.count("rings.output_drops")),
+      static_cast<unsigned long long>(c.non_finite), static_cast<unsigned long long>(c.saturated),
+      static_cast<unsigned long long>(c.out_of_order), static_cast<unsigned long long>(c.gaps));
   s += buf;
   if (r.optimizer.count() > 0) {
     std::snprintf(buf, sizeof buf, "optimizer (%s): %llu solves, p50 %.2f ms, p99 %.2f ms, max %.2f ms\n",
@@ -1632,7 +1671,7 @@ std::string replay_summary(const ReplayReport& r) {
         static_cast<unsigned long long>(dv.divergences), causes.c_str(),
         1e-9 * static_cast<double>(dv.coast_ns), static_cast<unsigned long long>(dv.coast_timeouts),
         1e-9 * static_cast<double>(dv.lost_ns), static_cast<unsigned long long>(dv.restarts_while_lost),
-        static_cast<unsigned long long>(r.lost_poses_withheld));
+        static_cast<unsigned long long>(n.count("output.lost_poses_withheld")));
     s += buf;
   }
   std::snprintf(buf, sizeof buf, "camera-IMU time offset: %.3f ms (%s)\n", r.time_offset_ms,
@@ -1664,43 +1703,49 @@ std::string replay_summary(const ReplayReport& r) {
       s += buf;
     }
   }
-  const InputFaultCounts& ff = r.input_faults;
-  if (ff.missing + ff.out_of_order + ff.repeated + ff.no_depth + ff.imu_gaps > 0) {
+  const uint64_t missing = n.count("input.frames_missing"),
+                 out_of_order = n.count("input.frames_out_of_order"),
+                 repeated = n.count("input.frames_repeated"), no_depth = n.count("input.frames_no_depth"),
+                 imu_gaps = n.count("input.imu_gaps");
+  if (missing + out_of_order + repeated + no_depth + imu_gaps > 0) {
     std::snprintf(
         buf, sizeof buf,
         "input faults: %llu frames missing, %llu out of order (withheld), %llu repeated (withheld), %llu "
         "without depth; %llu IMU gaps\n",
-        static_cast<unsigned long long>(ff.missing), static_cast<unsigned long long>(ff.out_of_order),
-        static_cast<unsigned long long>(ff.repeated), static_cast<unsigned long long>(ff.no_depth),
-        static_cast<unsigned long long>(ff.imu_gaps));
+        static_cast<unsigned long long>(missing), static_cast<unsigned long long>(out_of_order),
+        static_cast<unsigned long long>(repeated), static_cast<unsigned long long>(no_depth),
+        static_cast<unsigned long long>(imu_gaps));
     s += buf;
   }
   s += threads_summary(r.threads);
   if (!r.propagator_thread.empty())
-    s += "IMU-rate propagation " + r.propagator_thread + ", " + std::to_string(r.imu_rate_poses) +
-         " IMU-rate poses published\n";
-  if (r.mavlink_frames + r.mavlink_failed > 0) {
+    s += "IMU-rate propagation " + r.propagator_thread + ", " +
+         std::to_string(n.count("output.imu_rate_poses")) + " IMU-rate poses published\n";
+  if (n.count("mavlink.frames_sent") + n.count("mavlink.send_failed") > 0) {
     std::snprintf(buf, sizeof buf, "MAVLink ODOMETRY: %llu sent, %llu failed; %llu HEARTBEAT; TIMESYNC %s\n",
-                  static_cast<unsigned long long>(r.mavlink_sent),
-                  static_cast<unsigned long long>(r.mavlink_failed),
-                  static_cast<unsigned long long>(r.mavlink_heartbeats),
+                  static_cast<unsigned long long>(n.count("mavlink.odometry_sent")),
+                  static_cast<unsigned long long>(n.count("mavlink.send_failed")),
+                  static_cast<unsigned long long>(n.count("mavlink.heartbeats_sent")),
                   r.mavlink_timesync_converged ? "converged" : "no answer from an autopilot");
     s += buf;
     if (r.mavlink_signing) {
       std::snprintf(buf, sizeof buf,
                     "MAVLink signing on: %llu frames from the autopilot refused (unsigned, wrongly "
                     "signed or replayed)\n",
-                    static_cast<unsigned long long>(r.mavlink_unauthenticated));
+                    static_cast<unsigned long long>(n.count("mavlink.unauthenticated")));
       s += buf;
     }
   }
   if (r.view) s += viewer::stats_summary(r.viewer);
-  if (r.map_clouds + r.map_clouds_dropped + r.map_keyframes_dropped > 0) {
+  const uint64_t map_clouds = n.count("ros2.map_clouds");
+  const uint64_t map_clouds_dropped = n.count("ros2.map_clouds_dropped");
+  const uint64_t map_keyframes_dropped = n.count("ros2.map_keyframes_dropped");
+  if (map_clouds + map_clouds_dropped + map_keyframes_dropped > 0) {
     std::snprintf(buf, sizeof buf,
                   "ros2 map topics: %llu point clouds; dropped %llu clouds, %llu keyframes (output behind)\n",
-                  static_cast<unsigned long long>(r.map_clouds),
-                  static_cast<unsigned long long>(r.map_clouds_dropped),
-                  static_cast<unsigned long long>(r.map_keyframes_dropped));
+                  static_cast<unsigned long long>(map_clouds),
+                  static_cast<unsigned long long>(map_clouds_dropped),
+                  static_cast<unsigned long long>(map_keyframes_dropped));
     s += buf;
   }
   if (r.dense) {

@@ -27,6 +27,7 @@
 #include "kestrel/mavlink/odometry_adapter.hpp"
 #include "kestrel/mavlink/odometry_stream.hpp"
 #include "kestrel/rt/latency_histogram.hpp"
+#include "kestrel/rt/perf.hpp"
 #include "kestrel/tools/trajectory_eval.hpp"
 #include "kestrel/viewer/server.hpp"
 
@@ -64,21 +65,10 @@ struct MapFinal {
   std::vector<Loop> loops;          // closed loops, in order
 };
 
-// Input faults the harness sees before the estimator does (the estimator
-// counts its own: EstimatorCounters::imu_rejects). Out-of-order and repeated
-// (frozen) frames are counted and withheld: the estimator's contract is
-// time-ordered, fresh input.
-struct InputFaultCounts {
-  uint64_t missing = 0;       // frames absent from the stream (time gaps of more than 1.5 periods)
-  uint64_t out_of_order = 0;  // time not after the previous frame (duplicates included); withheld
-  uint64_t repeated = 0;      // pixels identical to the previous frame (frozen camera); withheld
-  uint64_t no_depth = 0;      // depth image absent or (almost) all invalid; stereo: right image absent
-  uint64_t imu_gaps = 0;      // IMU time steps longer than five sample periods (lost samples)
-};
-
 // The 1 Hz status the estimator thread publishes (one per second of log time,
 // which in realtime pace is one per wall second), read lock-free by the
-// output thread.
+// output thread. Its levels and maxima; the counts are in the run's perf
+// registry (pipeline_counters.hpp), which format_status reads.
 struct PipelineStatus {
   int64_t t_ns = 0;
   double t_s = 0;  // since the first record
@@ -90,16 +80,12 @@ struct PipelineStatus {
   uint64_t frames_total = 0;
   int64_t tracking_max_ns = 0;  // over the last second
   int64_t imu_to_output_max_ns =
-      0;  // the estimator thread's view (in realtime pace the IMU-rate pose is faster)
-  uint64_t imu_ring_drops = 0;
-  uint64_t frame_ring_drops = 0;
-  uint64_t imu_rejected = 0;  // non-finite + saturated + out of order (cumulative)
-  uint64_t imu_gaps = 0;
-  InputFaultCounts input_faults;
+      0;                    // the estimator thread's view (in realtime pace the IMU-rate pose is faster)
   core::MapFrameState map;  // active: the backend has a map (then: localized, relocalisations, loop closures)
 };
 
-std::string format_status(const PipelineStatus& s);
+// counters: the run's registry (or a copy of it): drops, rejects and faults by path.
+std::string format_status(const PipelineStatus& s, const rt::PerfValues& counters);
 
 // One row of the thread table as it was applied: what was asked for, and
 // whether the system granted it (a refused SCHED_FIFO or CPU pin leaves the
@@ -252,8 +238,11 @@ struct ReplayReport {
   std::string log_path;
   std::string log_format;
   drivers::ReplayPace pace = drivers::ReplayPace::kLockstep;
-  tools::Trajectory trajectory;      // body pose in W at each camera frame the backend did not call lost
-  uint64_t lost_poses_withheld = 0;  // poses flagged kLost: sent on (flagged), not in the trajectory
+  tools::Trajectory trajectory;  // body pose in W at each camera frame the backend did not call lost
+  // Every counter of the run's perf registry at the end, by path
+  // (pipeline_counters.hpp: input.*, rings.*, output.*, mavlink.*, viewer.*,
+  // ros2.*, estimator.*, window.*); the metrics JSON's `counters`.
+  rt::PerfValues counters;
   tools::Trajectory map_trajectory;  // the same poses in the map frame, T_map_odom(t) * T_WB(t)
   // The same poses through the map's keyframes as they ended the flight
   // (tools::anchor_to_keyframes): the map's final word, not available in flight.
@@ -267,7 +256,6 @@ struct ReplayReport {
   // caller computed it: the metrics JSON's `loop_truth`, a summary line.
   std::optional<LoopTruth> loop_truth;
   core::MapFrameState map;
-  uint64_t map_corrections = 0;  // changes of T_map_odom seen by the output
   rt::LatencyHistogram mapping;
   rt::LatencyHistogram loop;
   // The global bundle adjustment after loops (map.global_ba; none when off):
@@ -296,10 +284,9 @@ struct ReplayReport {
   // (docs/threads.md); this is the estimator thread's own view of the same
   // samples (push -> its add_imu returned), which waits behind tracking.
   rt::LatencyHistogram estimator_imu_latency;
-  uint64_t propagator_forward_drops = 0;  // propagation -> estimator ring full
-  std::string propagator_thread;          // scheduling the propagation thread got (realtime pace)
-  std::vector<AppliedThread> threads;     // every thread the harness started, as applied
-  rt::LatencyHistogram tracking;          // per frame, inside the estimator
+  std::string propagator_thread;       // scheduling the propagation thread got (realtime pace)
+  std::vector<AppliedThread> threads;  // every thread the harness started, as applied
+  rt::LatencyHistogram tracking;       // per frame, inside the estimator
   drivers::ReplayStats replay;
   core::EstimatorCounters estimator_counters;
   std::string backend_summary;  // Estimator::backend_summary()
@@ -309,23 +296,9 @@ struct ReplayReport {
   bool time_offset_estimated = false;
   rt::LatencyHistogram optimizer;   // per solve (backends with an optimizer)
   bool optimizer_threaded = false;  // on its own thread (realtime pace) or inline
-  uint64_t imu_ring_drops = 0;
-  uint64_t frame_ring_drops = 0;
-  uint64_t output_ring_drops = 0;
-  uint64_t image_pool_exhausted = 0;
-  InputFaultCounts input_faults;
-  uint64_t status_lines = 0;
-  uint64_t imu_rate_poses = 0;  // IMU-rate poses the output thread took from kst-propagate
-  uint64_t mavlink_sent = 0;    // ODOMETRY messages
-  uint64_t mavlink_heartbeats = 0;
-  uint64_t mavlink_frames = 0;  // every frame sent (ODOMETRY, HEARTBEAT, TIMESYNC)
   bool mavlink_timesync_converged = false;
   double mavlink_timesync_offset_ms = 0.0;
-  uint64_t mavlink_timesync_answered = 0;
-  uint64_t mavlink_failed = 0;  // sendto() errors, counted, never retried
   bool mavlink_signing = false;
-  uint64_t mavlink_unauthenticated =
-      0;  // frames from the autopilot refused by signing (unsigned, wrong, replayed)
   // Heap allocations made by the estimator thread after warm-up, and how many
   // frames it processed in that span.
   int64_t steady_allocs = 0;
@@ -334,11 +307,6 @@ struct ReplayReport {
   std::vector<drivers::LogProblem> problems;
   bool view = false;  // the viewer ran: its cost figures follow
   viewer::ServerStats viewer;
-  uint64_t viewer_snapshots = 0;          // published by the estimator thread
-  uint64_t viewer_snapshots_skipped = 0;  // no free slot: the viewer was behind
-  // The ROS outputs' map hand-off (MapTopicsFeed): clouds handed over, and
-  // what the estimator thread dropped because the output thread was behind.
-  uint64_t map_clouds = 0, map_clouds_dropped = 0, map_keyframes_dropped = 0;
   // The dense map (docs/dense.md); dense false: it did not run.
   bool dense = false;
   dense::DenseStats dense_stats;

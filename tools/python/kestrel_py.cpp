@@ -664,8 +664,13 @@ py::object replay(const std::string& path, py::kwargs kw) {
   rep["estimator_cpu_s"] = r.estimator_cpu_s;
   rep["frames_pushed"] = r.replay.frames_pushed;
   rep["imu_pushed"] = r.replay.imu_pushed;
-  rep["lost_poses_withheld"] = r.lost_poses_withheld;
+  rep["lost_poses_withheld"] = r.counters.count("output.lost_poses_withheld");
   rep["resets"] = r.estimator_counters.resets;
+  // Every count of the run by path, as the metrics JSON's `counters` (docs/threads.md, "Counters").
+  py::dict counts;
+  for (const rt::PerfValue& v : r.counters.all())
+    if (v.kind == rt::PerfKind::kCount) counts[py::str(v.name)] = v.count;
+  rep["counters"] = counts;
   rep["alloc_counting"] = r.alloc_counting;  // false here: the counting hook is not in the module
   std::vector<py::tuple> problems;
   for (const auto& p : r.problems) problems.push_back(py::make_tuple(p.where, p.kind, p.detail));

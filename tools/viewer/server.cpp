@@ -222,6 +222,7 @@ struct Server::Impl {
   std::map<std::string, std::pair<std::string, std::string>> files;  // path -> (content type, body)
   std::function<int64_t()> imu_probe;
   BinaryStream* dense = nullptr;
+  const rt::PerfRegistry* counters = nullptr;
   cv::Mat turbo = turbo_table();  // depth colours, BGR, 256 entries
 
   // ---- viewer thread only
@@ -539,16 +540,32 @@ struct Server::Impl {
                      {"frames_used", s.frames_used},
                      {"resets", s.resets},
                      {"imu_rejected", s.imu_rejected}};
-    const FrameInfo& p = s.pipeline;
-    j["drops"] = {{"imu_ring", p.imu_ring_drops},
-                  {"frame_ring", p.frame_ring_drops},
+    // The pipeline's counts, read from its registry by path as they are now
+    // (single fields, each untorn; rt/perf.hpp).
+    auto count = [this](const char* path) -> uint64_t {
+      const rt::PerfCounter* c = counters != nullptr ? counters->find(path) : nullptr;
+      return c != nullptr ? c->snapshot().count : 0;
+    };
+    j["drops"] = {{"imu_ring", count("rings.imu_drops")},
+                  {"frame_ring", count("rings.frame_drops")},
                   {"viewer_snapshots", s.snapshots_skipped},
                   {"viewer_keyframes", feed.keyframes_dropped()}};
-    j["faults"] = {{"frames_missing", p.frames_missing},
-                   {"out_of_order", p.frames_out_of_order},
-                   {"repeated", p.frames_repeated},
-                   {"no_depth", p.frames_no_depth},
-                   {"imu_gaps", p.imu_gaps}};
+    j["faults"] = {{"frames_missing", count("input.frames_missing")},
+                   {"out_of_order", count("input.frames_out_of_order")},
+                   {"repeated", count("input.frames_repeated")},
+                   {"no_depth", count("input.frames_no_depth")},
+                   {"imu_gaps", count("input.imu_gaps")}};
+    if (counters != nullptr) {
+      json all = json::object();
+      for (std::size_t i = 0; i < counters->size(); ++i) {
+        const rt::PerfCounter::Snapshot c = counters->at(i).snapshot();
+        if (c.kind == rt::PerfKind::kCount)
+          all[c.name] = c.count;
+        else
+          all[c.name] = {{"count", c.count}, {"mean_ms", 1e-6 * c.mean_ns()}, {"max_ms", ms(c.max_ns)}};
+      }
+      j["perf"] = std::move(all);
+    }
     return j.dump();
   }
 
@@ -854,6 +871,7 @@ Server::~Server() { stop(); }
 void Server::set_imu_latency_probe(std::function<int64_t()> probe) { impl_->imu_probe = std::move(probe); }
 
 void Server::set_dense_stream(BinaryStream* stream) { impl_->dense = stream; }
+void Server::set_counters(const rt::PerfRegistry* counters) { impl_->counters = counters; }
 
 rt::ThreadSetupReport Server::start(const rt::ThreadSpec& spec) {
   Impl& m = *impl_;

@@ -420,6 +420,14 @@ function showState(s) {
     ['IMU samples rejected', c.imu_rejected, c.imu_rejected > 0],
     ['viewer snapshots skipped', d.viewer_snapshots],
   ]);
+  // The pipeline's registry by path (docs/threads.md, "Counters"); only while open, it is long.
+  if (s.perf) {
+    $('perf-box').hidden = false;
+    if ($('perf-box').open) {
+      rows($('perf-table'), Object.entries(s.perf).map(([k, v]) =>
+        typeof v === 'object' ? [k, `${v.count} × ${fmt(v.mean_ms, 2)} ms (max ${fmt(v.max_ms, 2)})`] : [k, v]));
+    }
+  }
   plots.tracking.add(s.t, L.tracking_max);
   plots.optimizer.add(s.t, L.optimizer);
   plots.imu.add(s.t, L.imu_to_pose_max);

@@ -13,6 +13,9 @@
 // relaxed atomics, written with plain load+store (no RMW), so a reader sees
 // each field untorn but the fields of one counter are not a single snapshot.
 // register_counter() takes a mutex: start-up only, never on a real-time path.
+//
+// Names are paths, "module.counter" ("window.solves_ok", "input.frames_missing"):
+// the metrics JSON, the status line and the viewer read them by path.
 #pragma once
 
 #include <atomic>
@@ -21,6 +24,9 @@
 #include <cstdio>
 #include <mutex>
 #include <string>
+#include <string_view>
+#include <utility>
+#include <vector>
 
 namespace kestrel::rt {
 
@@ -49,6 +55,10 @@ class PerfCounter {
 
   // kCount
   void inc(std::uint64_t n = 1) noexcept { bump(count_, n); }
+  // kCount whose source of truth is a count kept elsewhere by the updating
+  // thread (a ring's refused pushes, a backend's own counters): mirrored here
+  // so every reader finds it by path.
+  void set(std::uint64_t n) noexcept { count_.store(n, std::memory_order_relaxed); }
 
   // kElapsed
   void start() noexcept;
@@ -110,6 +120,30 @@ class ScopedTimer {
   std::int64_t t0_ns_;
 };
 
+// A copy of one counter that outlives its registry (reports, JSON).
+struct PerfValue {
+  std::string name;
+  PerfKind kind = PerfKind::kCount;
+  std::uint64_t count = 0;
+  std::int64_t total_ns = 0, min_ns = 0, max_ns = 0;
+};
+
+// Every counter of a registry at one moment, in registration order.
+class PerfValues {
+ public:
+  PerfValues() = default;
+  explicit PerfValues(std::vector<PerfValue> v) : values_(std::move(v)) {}
+  [[nodiscard]] const std::vector<PerfValue>& all() const noexcept { return values_; }
+  // nullptr if absent.
+  [[nodiscard]] const PerfValue* find(std::string_view name) const noexcept;
+  // The count of the counter called name; std::out_of_range naming it when
+  // there is none, so a misspelt path fails instead of reading zero.
+  [[nodiscard]] std::uint64_t count(std::string_view name) const;
+
+ private:
+  std::vector<PerfValue> values_;
+};
+
 class PerfRegistry {
  public:
   static constexpr std::size_t kCapacity = 128;
@@ -130,6 +164,8 @@ class PerfRegistry {
   // nullptr if absent. Not for real-time paths (linear search).
   [[nodiscard]] const PerfCounter* find(const char* name) const noexcept;
   [[nodiscard]] const PerfCounter& at(std::size_t i) const noexcept { return counters_[i]; }
+  // A copy of every counter (allocates: not for real-time paths).
+  [[nodiscard]] PerfValues values() const;
 
   // One line per counter: name, kind, count, and for elapsed/interval the
   // mean/min/max in microseconds.

@@ -31,18 +31,12 @@ inline constexpr int kMaxFeatures = 2048;
 inline constexpr int kMaxMapPoints = 8192;
 
 // What the caller knows about the frame it just fed (the harness, not the
-// estimator): its own timing and the pipeline's drop and fault counters.
+// estimator): its own timing. The pipeline's drop and fault counts reach the
+// viewer through its perf registry (Server::set_counters).
 struct FrameInfo {
   int64_t tracking_ns = 0;         // add_frame's wall time
   int64_t imu_to_pose_max_ns = 0;  // newest IMU sample -> pose, max since the previous frame
   uint64_t frames_fed = 0;         // frames the estimator has taken (this one included)
-  uint64_t imu_ring_drops = 0;
-  uint64_t frame_ring_drops = 0;
-  uint64_t frames_missing = 0;
-  uint64_t frames_out_of_order = 0;
-  uint64_t frames_repeated = 0;
-  uint64_t frames_no_depth = 0;
-  uint64_t imu_gaps = 0;
 };
 
 // The state panel's numbers: plain data, one per snapshot.

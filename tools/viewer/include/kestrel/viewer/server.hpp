@@ -21,6 +21,7 @@
 #include <vector>
 
 #include "kestrel/core/estimator.hpp"
+#include "kestrel/rt/perf.hpp"
 #include "kestrel/rt/thread_setup.hpp"
 #include "kestrel/tools/trajectory_eval.hpp"
 #include "kestrel/viewer/binary_stream.hpp"
@@ -97,6 +98,10 @@ class Server {
   // Before start(): the dense map's messages (docs/dense.md), forwarded as
   // they come to every browser; a browser that connects asks for all of it.
   void set_dense_stream(BinaryStream* stream);
+  // Before start(): the pipeline's perf registry (rt/perf.hpp), read on the
+  // viewer thread for the drops-and-faults panel and the page's table of every
+  // counter; it must outlive the server. nullptr: neither.
+  void set_counters(const rt::PerfRegistry* counters);
 
   // Loads the page's files, binds and starts the viewer thread (spec: the
   // thread table's kst-viewer). Throws std::runtime_error naming the file or
