@@ -41,9 +41,10 @@ std::string num(F v) {
 // structure (found by fuzzing); an empty string bare would read back as null.
 std::string yaml_string(const std::string& v) {
   bool plain = !v.empty() && (std::isalnum(static_cast<unsigned char>(v[0])) || v[0] == '/' || v[0] == '_');
-  for (const char ch : v)
+  for (const char ch : v) {
     if (!std::isalnum(static_cast<unsigned char>(ch)) && std::string("_./+-").find(ch) == std::string::npos)
       plain = false;
+  }
   if (plain) return v;
   YAML::Emitter e;
   e << YAML::DoubleQuoted << v;
@@ -196,7 +197,7 @@ class YamlLoader final : public core::OptionVisitor {
   void value(const char* k, uint64_t& v, const char*) override {
     if (const auto o = get(k)) {
       const YAML::Node& n = *o;
-      const std::string s = n.Scalar();
+      const std::string& s = n.Scalar();
       uint64_t x = 0;
       const auto r = std::from_chars(s.data(), s.data() + s.size(), x);
       if (r.ec != std::errc() || r.ptr != s.data() + s.size()) fail(n, k, "expected an unsigned integer");
@@ -206,13 +207,14 @@ class YamlLoader final : public core::OptionVisitor {
   void value(const char* k, bool& v, const char*) override {
     if (const auto o = get(k)) {
       const YAML::Node& n = *o;
-      const std::string s = n.Scalar();
-      if (s == "true" || s == "on" || s == "yes")
+      const std::string& s = n.Scalar();
+      if (s == "true" || s == "on" || s == "yes") {
         v = true;
-      else if (s == "false" || s == "off" || s == "no")
+      } else if (s == "false" || s == "off" || s == "no") {
         v = false;
-      else
+      } else {
         fail(n, k, "expected true or false");
+      }
     }
   }
   void value(const char* k, std::string& v, const char*) override {
@@ -257,7 +259,7 @@ class YamlLoader final : public core::OptionVisitor {
     return v;
   }
   double as_double(const YAML::Node& n, const char* k) {
-    const std::string s = n.Scalar();
+    const std::string& s = n.Scalar();
     // YAML spells the non-finite numbers .nan / .inf; strtod spells them nan / inf.
     for (const char* nf :
          {".nan", ".NaN", ".NAN", ".inf", ".Inf", ".INF", "-.inf", "-.Inf", "-.INF", "+.inf"})
@@ -269,7 +271,7 @@ class YamlLoader final : public core::OptionVisitor {
     return d;
   }
   int64_t as_int(const YAML::Node& n, const char* k) {
-    const std::string s = n.Scalar();
+    const std::string& s = n.Scalar();
     int64_t x = 0;
     const char* b = s.data();
     if (!s.empty() && s[0] == '+') ++b;
@@ -339,9 +341,10 @@ core::EstimatorConfig estimator_config_from_yaml(const std::string& text, const 
   const std::string variant = scalar_at(root, "frontend", "lonsc_variant");
   if (!variant.empty() && variant != "tuned" && variant != "paper")
     throw std::runtime_error(where + ": frontend.lonsc_variant: expected one of tuned, paper");
-  if (!core::estimator_known(backend))
+  if (!core::estimator_known(backend)) {
     throw std::runtime_error(where + ": estimator.backend: unknown backend '" + backend +
                              "' (expected one of: " + core::estimator_names() + ")");
+  }
   core::EstimatorConfig c = core::EstimatorConfig::defaults(
       backend, variant == "paper" ? core::LonscVariant::kPaper : core::LonscVariant::kTuned);
   YamlLoader loader(root, where);

@@ -18,11 +18,12 @@ std::shared_ptr<const core::Vocabulary> from_bytes(const uint8_t* p, size_t n, c
   std::string err;
   auto v = std::make_shared<core::Vocabulary>(core::Vocabulary::deserialise(p, n, &err));
   if (!err.empty()) throw std::runtime_error(where + ": not a usable vocabulary: " + err);
-  if (v->pattern_seed() != pattern_seed)
+  if (v->pattern_seed() != pattern_seed) {
     throw std::runtime_error(where + ": trained on ORB descriptors of BRIEF pattern seed " +
                              std::to_string(v->pattern_seed()) + ", the tracker uses " +
                              std::to_string(pattern_seed) +
                              " (frontend.orb.pattern_seed): retrain it with kestrel vocab");
+  }
   return v;
 }
 }  // namespace

@@ -53,9 +53,10 @@ DenseOptions dense_options_from_yaml(const std::string& text, const std::string&
   for (const auto& kv : d) {
     bool known = false;
     visit(o, [&](const char* k, auto&) { known = known || kv.first.Scalar() == k; });
-    if (!known)
+    if (!known) {
       throw std::runtime_error(where + ":" + std::to_string(kv.first.Mark().line + 1) + ": dense." +
                                kv.first.Scalar() + ": unknown key (expected one of: " + keys + ")");
+    }
   }
   visit(o, [&](const char* k, auto& v) {
     if (!d[k]) return;
@@ -88,10 +89,11 @@ std::vector<std::pair<std::string, std::string>> dense_options_table(const Dense
   std::vector<std::pair<std::string, std::string>> out;
   visit(o, [&](const char* k, auto& v) {
     std::ostringstream s;
-    if constexpr (std::is_same_v<std::decay_t<decltype(v)>, bool>)
+    if constexpr (std::is_same_v<std::decay_t<decltype(v)>, bool>) {
       s << (v ? "true" : "false");
-    else
+    } else {
       s << v;
+    }
     out.emplace_back(std::string("dense.") + k, s.str());
   });
   return out;
@@ -109,10 +111,11 @@ DenseViewOptions dense_view_options_from_yaml(const std::string& text, const std
   const YAML::Node v = root["viewer"];
   if (!v.IsMap()) throw std::runtime_error(where + ": viewer: expected a mapping of keys");
   for (const auto& kv : v) {
-    if (kv.first.Scalar() != "dense_max_kbps" && kv.first.Scalar() != "dense_period_s")
+    if (kv.first.Scalar() != "dense_max_kbps" && kv.first.Scalar() != "dense_period_s") {
       throw std::runtime_error(where + ":" + std::to_string(kv.first.Mark().line + 1) + ": viewer." +
                                kv.first.Scalar() +
                                ": unknown key (expected one of: dense_max_kbps, dense_period_s)");
+    }
   }
   for (auto [key, value] : {std::pair<const char*, double*>{"dense_max_kbps", &o.max_kbps},
                             std::pair<const char*, double*>{"dense_period_s", &o.period_s}}) {

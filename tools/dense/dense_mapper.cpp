@@ -20,9 +20,10 @@ constexpr int64_t kIdleWaitNs = 50'000'000;
 
 void copy_image(const ImageView& in, std::vector<uint8_t>& bytes, ImageView& out) {
   const int row = in.width * bytes_per_pixel(in.format);
-  for (int v = 0; v < in.height; ++v)
+  for (int v = 0; v < in.height; ++v) {
     std::memcpy(bytes.data() + static_cast<std::size_t>(v) * row,
                 in.data + static_cast<std::ptrdiff_t>(v) * in.stride_bytes, static_cast<std::size_t>(row));
+  }
   out = in;
   out.stride_bytes = row;
   out.data = bytes.data();

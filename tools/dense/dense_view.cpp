@@ -159,9 +159,10 @@ std::vector<DenseViewBlock> decode_dense_view(const uint8_t* data, std::size_t s
     b.points.resize(n);
     for (int i = 0; i < n; ++i) {
       const uint8_t* q = data + at + kDenseViewPointBytes * static_cast<std::size_t>(i);
-      for (int a = 0; a < 3; ++a)
+      for (int a = 0; a < 3; ++a) {
         b.points[static_cast<std::size_t>(i)].p[a] =
             static_cast<float>(static_cast<double>(b.key[a]) * block_m + q[a] / 255.0 * range_m);
+      }
       std::memcpy(b.points[static_cast<std::size_t>(i)].rgb, q + 3, 3);
     }
     at += kDenseViewPointBytes * n;

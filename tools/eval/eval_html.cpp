@@ -82,13 +82,14 @@ std::string time_plot(const std::string& id, const std::string& heading, const s
   const int64_t t0 = E.empty() ? 0 : E.front().t_ns;
   double tmax = E.empty() ? 1.0 : 1e-9 * static_cast<double>(E.back().t_ns - t0);
   double vlo = from_zero ? 0.0 : INFINITY, vhi = -INFINITY;
-  for (size_t k = 0; k < series.size(); ++k)
+  for (size_t k = 0; k < series.size(); ++k) {
     for (size_t i = 0; i < E.size(); ++i) {
       const double v = value(k, i);
       if (!std::isfinite(v)) continue;
       vlo = std::min(vlo, v);
       vhi = std::max(vhi, v);
     }
+  }
   if (!(tmax > 0)) tmax = 1.0;
   if (!(vhi > vlo)) {
     vlo = std::isfinite(vlo) ? vlo - 1e-3 : 0;
@@ -99,11 +100,12 @@ std::string time_plot(const std::string& id, const std::string& heading, const s
   Panel p{70, 30, 460, 220, {0, tmax}, {from_zero ? 0.0 : vlo - pad, vhi + pad}};
   axes(s, p, "time since first associated pose [s]", ylabel);
   title(s, p, heading);
-  for (size_t k = 0; k < series.size(); ++k)
+  for (size_t k = 0; k < series.size(); ++k) {
     polyline(
         s, p, E.size(), [&](size_t i) { return 1e-9 * static_cast<double>(E[i].t_ns - t0); },
         [&](size_t i) { return value(k, i); }, [&](size_t i) { return E[i].t_ns; },
         "stroke='" + series[k].first + "' stroke-width='1.1'");
+  }
   if (series.size() > 1) svg::legend(s, p.x0 + 10, p.y0 + 14, series, 120);
   return s + "</svg>\n";
 }
@@ -112,11 +114,12 @@ std::string time_plot(const std::string& id, const std::string& heading, const s
 std::string rpe_plot(const std::vector<RpeStats>& rows) {
   std::string s = open_svg("rpe", 560, 300);
   double lo = INFINITY, hi = -INFINITY;
-  for (const auto& r : rows)
+  for (const auto& r : rows) {
     if (r.pairs > 0 && r.trans_rmse_m > 0) {
       lo = std::min(lo, r.trans_rmse_m);
       hi = std::max(hi, r.trans_rmse_m);
     }
+  }
   if (!(hi >= lo)) {
     s += "<text x='280' y='150' text-anchor='middle'>no RPE pairs at any time step</text>\n";
     return s + "</svg>\n";
@@ -238,9 +241,10 @@ std::vector<LatencyDistribution> read_replay_latencies(const std::string& path) 
     for (size_t i = 0; i < bins.size(); ++i) {
       const auto& b = bins[i];
       if (!b.is_array() || b.size() != 3 || !b[0].is_number_integer() || !b[1].is_number_integer() ||
-          !b[2].is_number_unsigned())
+          !b[2].is_number_unsigned()) {
         throw std::runtime_error(where + ".bins[" + std::to_string(i) +
                                  "]: expected [lower_ns, width_ns, count]");
+      }
       d.bins.push_back({b[0].get<int64_t>(), b[1].get<int64_t>(), b[2].get<uint64_t>()});
     }
     if (d.bins.empty())
@@ -274,10 +278,11 @@ void write_html_report(const std::string& path, const Trajectory& gt, const Eval
   h += row("ground-truth path length / duration",
            cell(r.gt_length_m, "%.2f") + " m / " + cell(r.gt_duration_s, "%.1f") + " s");
   if (r.align == Alignment::kSim3) h += row("scale", cell(r.T_align.scale, "%.4f"));
-  for (const SegmentError& s : r.segments)
+  for (const SegmentError& s : r.segments) {
     h += row("drift over " + fmt("%g", s.length_m) + " m segments",
              s.count > 0 ? cell(s.trans_pct, "%.2f") + " % / " + cell(s.rot_deg_per_m, "%.3f") + " deg/m"
                          : std::string("&ndash; (path too short)"));
+  }
   h += "</table>\n";
   for (const auto& w : r.warnings) h += "<div class='warn'>warning: " + xml_escape(w) + "</div>\n";
 
@@ -310,10 +315,11 @@ void write_html_report(const std::string& path, const Trajectory& gt, const Eval
   h += "<h2>Relative pose error over several time steps</h2>\n<div class='grid'>\n";
   h += "<table id='rpe-table'><thead><tr><th>time step [s]</th><th>pairs</th><th>translation RMSE [m]</th>"
        "<th>translation [m/s]</th><th>rotation RMSE [deg]</th></tr></thead><tbody>\n";
-  for (const RpeStats& s : rpe)
+  for (const RpeStats& s : rpe) {
     h += "<tr><td>" + fmt("%g", s.delta_s) + "</td><td>" + std::to_string(s.pairs) + "</td><td>" +
          cell(s.trans_rmse_m, "%.4g") + "</td><td>" + cell(s.trans_m_per_s, "%.4g") + "</td><td>" +
          cell(s.rot_rmse_deg, "%.3g") + "</td></tr>\n";
+  }
   h += "</tbody></table>\n";
   h += rpe.empty() ? std::string("<p>no time step fits in the associated estimate</p>\n") : rpe_plot(rpe);
   h += "</div>\n";

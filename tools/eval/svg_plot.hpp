@@ -28,8 +28,8 @@ struct Range {
 };
 
 struct Panel {
-  double x0, y0, w, h;  // pixel box of the plot area
-  Range xr, yr;         // data range shown
+  double x0{}, y0{}, w{}, h{};  // pixel box of the plot area
+  Range xr, yr;                 // data range shown
   double px(double x) const { return x0 + (x - xr.lo) / xr.span() * w; }
   double py(double y) const { return y0 + h - (y - yr.lo) / yr.span() * h; }
 };
@@ -91,12 +91,13 @@ inline std::vector<std::pair<double, double>> ticks(double lo, double hi, bool l
     return t;
   }
   const bool decades_only = hi - lo > 4;
-  for (int k = static_cast<int>(std::floor(lo)); k <= static_cast<int>(std::ceil(hi)); ++k)
+  for (int k = static_cast<int>(std::floor(lo)); k <= static_cast<int>(std::ceil(hi)); ++k) {
     for (double m : {1.0, 2.0, 5.0}) {
       if (decades_only && m != 1.0) continue;
       const double v = m * std::pow(10.0, k), pos = std::log10(v);
       if (pos >= lo - 1e-9 && pos <= hi + 1e-9) t.emplace_back(pos, v);
     }
+  }
   return t;
 }
 

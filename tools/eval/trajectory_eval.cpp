@@ -121,9 +121,10 @@ Sim3 align_positions(const std::vector<Eigen::Vector3d>& est, const std::vector<
       return out;
     case Alignment::kSe3:
     case Alignment::kSim3: {
-      if (n < 3)
+      if (n < 3) {
         throw std::invalid_argument(std::string(alignment_name(alignment)) +
                                     " alignment needs >= 3 poses, got " + std::to_string(n));
+      }
       Eigen::Matrix3Xd src(3, n), dst(3, n);
       for (size_t i = 0; i < n; ++i) {
         src.col(static_cast<Eigen::Index>(i)) = est[i];
@@ -330,20 +331,22 @@ EvalResult evaluate(const Trajectory& gt_in, const Trajectory& est_in, const Eva
     if (interp) ++r.interpolated;
   }
   r.matched = static_cast<int>(est_matched.size());
-  if (r.unmatched > 0)
+  if (r.unmatched > 0) {
     r.warnings.push_back(std::to_string(r.unmatched) + " of " + std::to_string(r.est_poses) +
                          " estimate poses have no ground truth within " + num(opt.max_gap_ms) +
                          " ms (first at t_ns=" + std::to_string(first_unmatched_ns) + ")");
+  }
 
   const int needed = opt.align == Alignment::kNone ? 1 : opt.align == Alignment::kPosYaw ? 2 : 3;
   if (r.matched < needed) {
     std::string msg = "only " + std::to_string(r.matched) + " of " + std::to_string(r.est_poses) +
                       " estimate poses associate with ground truth within " + num(opt.max_gap_ms) + " ms; " +
                       alignment_name(opt.align) + " needs " + std::to_string(needed);
-    if (!gt.empty() && !est.empty())
+    if (!gt.empty() && !est.empty()) {
       msg += " (ground truth spans t_ns " + std::to_string(gt.front().t_ns) + ".." +
              std::to_string(gt.back().t_ns) + ", estimate " + std::to_string(est.front().t_ns) + ".." +
              std::to_string(est.back().t_ns) + ": different clocks?)";
+    }
     throw std::runtime_error(msg);
   }
 
@@ -363,10 +366,11 @@ EvalResult evaluate(const Trajectory& gt_in, const Trajectory& est_in, const Eva
     mu /= static_cast<double>(pe.size());
     for (size_t i = 0; i < pe.size(); ++i) c.col(static_cast<Eigen::Index>(i)) = pe[i] - mu;
     const Eigen::Vector3d sv = Eigen::JacobiSVD<Eigen::Matrix3d>(c * c.transpose()).singularValues();
-    if (sv(1) <= 1e-9 * std::max(sv(0), 1e-30))
+    if (sv(1) <= 1e-9 * std::max(sv(0), 1e-30)) {
       r.warnings.push_back(
           "estimate positions are (nearly) collinear: the alignment rotation about that line is "
           "undetermined; prefer --align posyaw or none");
+    }
   }
   r.T_align = align_positions(pe, pg, opt.align);
   const Eigen::Quaterniond q_align(r.T_align.R);
@@ -427,9 +431,10 @@ EvalResult evaluate(const Trajectory& gt_in, const Trajectory& est_in, const Eva
   r.rpe_trans_m_per_s = rpe.trans_m_per_s;
   r.rpe_rot_rmse_deg = rpe.rot_rmse_deg;
   r.rpe_rot_mean_deg = rpe.rot_mean_deg;
-  if (r.rpe_pairs == 0)
+  if (r.rpe_pairs == 0) {
     r.warnings.push_back("no RPE pairs: the associated estimate spans less than rpe_delta_s = " +
                          num(opt.rpe_delta_s) + " s or has no poses that far apart");
+  }
 
   const auto& E = r.est_aligned;
   // ---- RPE over travelled distance (KITTI odometry style) ----

@@ -235,14 +235,16 @@ std::vector<Row> read_log(const std::string& path, Reporter& rep, std::vector<st
         first_other = msg;
       }
     }
-    if (other > 0)
+    if (other > 0) {
       warnings->push_back(
           path + ": the " + source->format_name() + " reader reported " + std::to_string(other) +
           " problems with non-ground-truth data (not used by eval; first: " + first_other + ")");
+    }
   }
-  if (rows.empty())
+  if (rows.empty()) {
     throw std::runtime_error("'" + path + "' (" + source->format_name() +
                              " log) holds no ground-truth records");
+  }
   return rows;
 }
 
@@ -272,9 +274,10 @@ Trajectory load_trajectory(const std::string& path, std::vector<std::string>* wa
     throw std::runtime_error("'" + path + "' holds no pose" +
                              (rep.first().empty() ? std::string() : " (first problem: " + rep.first() + ")"));
   }
-  if (non_unit_quats > 0)
+  if (non_unit_quats > 0) {
     rep.note(path + ": " + std::to_string(non_unit_quats) +
              " quaternions were more than 1% off unit norm (normalised; check the column order)");
+  }
 
   // Out-of-order input is repaired, but said out loud: it often means two files were concatenated.
   int unsorted = 0;
@@ -309,9 +312,10 @@ Trajectory load_trajectory(const std::string& path, std::vector<std::string>* wa
     out.push_back(r.pose);
     kept_where = &r.where;
   }
-  if (exact_dups > 0)
+  if (exact_dups > 0) {
     rep.note(first_dup + ": exact duplicate pose; " + std::to_string(exact_dups) +
              " exact duplicates dropped");
+  }
   rep.finish();
   return out;
 }

@@ -25,9 +25,10 @@ void put_le(std::string& out, uint64_t v, int bytes) {
 
 std::string parse_client_message(const char* text, size_t n, ClientMessage& out) {
   out = ClientMessage{};
-  if (n > kMaxClientMessageBytes)
+  if (n > kMaxClientMessageBytes) {
     return "message of " + std::to_string(n) + " bytes (at most " + std::to_string(kMaxClientMessageBytes) +
            ")";
+  }
   const json j = json::parse(text, text + n, nullptr, false);
   if (j.is_discarded()) return "not JSON";
   if (!j.is_object()) return "expected a JSON object";
@@ -38,9 +39,10 @@ std::string parse_client_message(const char* text, size_t n, ClientMessage& out)
     out.op = ClientMessage::Op::kSubscribe;
     const auto s = j.find("subscriptions");
     if (s == j.end() || !s->is_array()) return "subscriptions: missing or not an array";
-    if (s->size() > kMaxIdsPerMessage)
+    if (s->size() > kMaxIdsPerMessage) {
       return "subscriptions: " + std::to_string(s->size()) + " entries (at most " +
              std::to_string(kMaxIdsPerMessage) + ")";
+    }
     for (size_t i = 0; i < s->size(); ++i) {
       const json& e = (*s)[i];
       const std::string where = "subscriptions[" + std::to_string(i) + "]";
@@ -58,9 +60,10 @@ std::string parse_client_message(const char* text, size_t n, ClientMessage& out)
     out.op = ClientMessage::Op::kUnsubscribe;
     const auto s = j.find("subscriptionIds");
     if (s == j.end() || !s->is_array()) return "subscriptionIds: missing or not an array";
-    if (s->size() > kMaxIdsPerMessage)
+    if (s->size() > kMaxIdsPerMessage) {
       return "subscriptionIds: " + std::to_string(s->size()) + " entries (at most " +
              std::to_string(kMaxIdsPerMessage) + ")";
+    }
     for (size_t i = 0; i < s->size(); ++i) {
       uint32_t id = 0;
       if (!u32_of((*s)[i], id))
@@ -85,13 +88,14 @@ std::string server_info_json(const std::string& name, const std::string& session
 
 std::string advertise_json(const std::vector<Channel>& channels) {
   json a = json::array();
-  for (const Channel& c : channels)
+  for (const Channel& c : channels) {
     a.push_back({{"id", c.id},
                  {"topic", c.topic},
                  {"encoding", c.encoding},
                  {"schemaName", c.schema_name},
                  {"schema", c.schema},
                  {"schemaEncoding", c.schema_encoding}});
+  }
   return json{{"op", "advertise"}, {"channels", a}}.dump();
 }
 

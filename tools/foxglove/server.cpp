@@ -11,6 +11,7 @@
 #include <mutex>
 #include <stdexcept>
 #include <thread>
+#include <utility>
 #include <websocketpp/config/asio_no_tls.hpp>
 #include <websocketpp/server.hpp>
 
@@ -64,7 +65,7 @@ struct Server::Impl {
   std::map<Hdl, Client, std::owner_less<Hdl>> clients;
   std::string frame;
 
-  void on_open(Hdl h) {
+  void on_open(const Hdl& h) {
     std::lock_guard<std::mutex> l(mutex);
     if (static_cast<int>(clients.size()) >= opt.max_clients) {
       ++stats.clients_refused;
@@ -79,7 +80,7 @@ struct Server::Impl {
     ws.send(h, advertise_json(channels), websocketpp::frame::opcode::text, ec);
     client_cv.notify_all();
   }
-  void on_close(Hdl h) {
+  void on_close(const Hdl& h) {
     std::lock_guard<std::mutex> l(mutex);
     // websocketpp closes a connection whose frames break RFC 6455 or exceed
     // the message size; the close code says which.
@@ -97,7 +98,7 @@ struct Server::Impl {
   void on_fail(Hdl h) {
     std::lock_guard<std::mutex> l(mutex);
     websocketpp::lib::error_code ec;
-    const auto con = ws.get_con_from_hdl(h, ec);
+    const auto con = ws.get_con_from_hdl(std::move(h), ec);
     // A refused subprotocol is counted where it is refused (on_validate).
     if (!ec && con->get_ec() == websocketpp::error::make_error_code(websocketpp::error::rejected)) return;
     // Stopping cancels the accept websocketpp keeps pending: not a client's failure.
@@ -106,17 +107,18 @@ struct Server::Impl {
     if (!ec) stats.last_error = "handshake failed: " + con->get_ec().message();
   }
   bool on_validate(Hdl h) {
-    const auto con = ws.get_con_from_hdl(h);
-    for (const std::string& p : con->get_requested_subprotocols())
+    const auto con = ws.get_con_from_hdl(std::move(h));
+    for (const std::string& p : con->get_requested_subprotocols()) {
       if (p == kSubprotocol) {
         con->select_subprotocol(kSubprotocol);
         return true;
       }
+    }
     std::lock_guard<std::mutex> l(mutex);
     ++stats.bad_handshakes;
     return false;
   }
-  void bad(Hdl h, const std::string& why) {
+  void bad(const Hdl& h, const std::string& why) {
     // Called with the mutex held.
     ++stats.bad_messages;
     stats.last_error = why;
@@ -126,7 +128,7 @@ struct Server::Impl {
     if (ec || con->get_buffered_amount() > opt.max_client_backlog_bytes) return;
     ws.send(h, status_json(2, why), websocketpp::frame::opcode::text, ec);
   }
-  void on_message(Hdl h, WsServer::message_ptr msg) {
+  void on_message(const Hdl& h, const WsServer::message_ptr& msg) {
     std::lock_guard<std::mutex> l(mutex);
     const auto it = clients.find(h);
     if (it == clients.end()) return;
@@ -207,16 +209,17 @@ void Server::start() {
   m.ws.init_asio();
   m.ws.set_reuse_addr(true);
   m.ws.set_max_message_size(kMaxClientMessageBytes);
-  m.ws.set_validate_handler([&m](Hdl h) { return m.on_validate(h); });
-  m.ws.set_open_handler([&m](Hdl h) { m.on_open(h); });
-  m.ws.set_close_handler([&m](Hdl h) { m.on_close(h); });
-  m.ws.set_fail_handler([&m](Hdl h) { m.on_fail(h); });
-  m.ws.set_message_handler([&m](Hdl h, WsServer::message_ptr msg) { m.on_message(h, msg); });
+  m.ws.set_validate_handler([&m](const Hdl& h) { return m.on_validate(h); });
+  m.ws.set_open_handler([&m](const Hdl& h) { m.on_open(h); });
+  m.ws.set_close_handler([&m](const Hdl& h) { m.on_close(h); });
+  m.ws.set_fail_handler([&m](const Hdl& h) { m.on_fail(h); });
+  m.ws.set_message_handler([&m](const Hdl& h, const WsServer::message_ptr& msg) { m.on_message(h, msg); });
   websocketpp::lib::error_code ec;
   m.ws.listen(m.opt.address, std::to_string(m.opt.port), ec);
-  if (ec)
+  if (ec) {
     throw std::runtime_error("--foxglove: cannot listen on " + m.opt.address + ":" +
                              std::to_string(m.opt.port) + ": " + ec.message());
+  }
   m.ws.start_accept(ec);
   if (ec) throw std::runtime_error("--foxglove: cannot accept on " + m.opt.address + ": " + ec.message());
   boost::system::error_code aec;
@@ -247,7 +250,7 @@ void Server::stop() {
       std::lock_guard<std::mutex> l(m.mutex);
       for (auto& [h, c] : m.clients) hs.push_back(h);
     }
-    for (Hdl h : hs) m.ws.close(h, websocketpp::close::status::going_away, "replay finished", ec);
+    for (const Hdl& h : hs) m.ws.close(h, websocketpp::close::status::going_away, "replay finished", ec);
   });
   // The closing handshakes finish or time out, then run() returns.
   const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(2);
@@ -299,12 +302,13 @@ std::string stats_summary(const ServerStats& s) {
                     std::to_string(s.messages_sent) + " messages sent (" +
                     std::to_string(s.bytes_sent / 1000) + " kB), dropped " + std::to_string(s.dropped_queue) +
                     " (queue full) + " + std::to_string(s.dropped_slow_client) + " (slow client)";
-  if (s.clients_refused + s.bad_handshakes + s.handshakes_failed + s.protocol_errors + s.bad_messages > 0)
+  if (s.clients_refused + s.bad_handshakes + s.handshakes_failed + s.protocol_errors + s.bad_messages > 0) {
     out += "; refused " + std::to_string(s.clients_refused) + " client(s), " +
            std::to_string(s.bad_handshakes) + " handshake(s) without the subprotocol, " +
            std::to_string(s.handshakes_failed) + " failed handshake(s), " +
            std::to_string(s.protocol_errors) + " protocol error(s), " + std::to_string(s.bad_messages) +
            " bad message(s)" + (s.last_error.empty() ? "" : " (last: " + s.last_error + ")");
+  }
   return out + "\n";
 }
 

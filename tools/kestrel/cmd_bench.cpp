@@ -211,9 +211,10 @@ std::map<std::string, double> replay_in_child(const std::string& log, const std:
         o << "imu_to_output_ms_p99 " << ms(r.imu_to_output.p99()) << "\n";
         o << "imu_to_output_ms_max " << ms(r.imu_to_output.max()) << "\n";
       }
-      if (r.alloc_counting && r.steady_frames > 0)
+      if (r.alloc_counting && r.steady_frames > 0) {
         o << "allocs_per_frame "
           << static_cast<double>(r.steady_allocs) / static_cast<double>(r.steady_frames) << "\n";
+      }
       o << "realtime_factor " << r.realtime_factor << "\n";
       o << "divergences " << r.estimator_counters.divergence.divergences << "\n";
       o << "coast_s " << 1e-9 * static_cast<double>(r.estimator_counters.divergence.coast_ns) << "\n";
@@ -267,9 +268,10 @@ std::map<std::string, double> replay_in_child(const std::string& log, const std:
         o << "ate_se3_rmse_m " << tools::evaluate(g, r.trajectory, eo).ate_m.rmse << "\n";
         if (r.has_map && !r.map_trajectory.empty())
           o << "map_ate_se3_rmse_m " << tools::evaluate(g, r.map_trajectory, eo).ate_m.rmse << "\n";
-        if (r.has_map && !r.map_final_trajectory.empty())
+        if (r.has_map && !r.map_final_trajectory.empty()) {
           o << "map_final_ate_se3_rmse_m " << tools::evaluate(g, r.map_final_trajectory, eo).ate_m.rmse
             << "\n";
+        }
         o << "rpe_trans_m_per_s " << e.rpe_trans_m_per_s << "\n";
         eo.align = tools::Alignment::kSim3;
         const tools::EvalResult sim3 = tools::evaluate(g, r.trajectory, eo);
@@ -518,6 +520,8 @@ std::string run_under_callgrind(const std::vector<std::string>& replay_args, con
     if (f == nullptr) _exit(126);
     dup2(fileno(stdout), 2);
     std::vector<char*> a;
+    a.reserve(argv.size());
+
     for (auto& s : argv) a.push_back(s.data());
     a.push_back(nullptr);
     execvp("valgrind", a.data());
@@ -527,9 +531,10 @@ std::string run_under_callgrind(const std::vector<std::string>& replay_args, con
   waitpid(pid, &status, 0);
   if (WIFEXITED(status) && WEXITSTATUS(status) == 127)
     return "valgrind not found (tools/install-deps.sh installs it)";
-  if (!WIFEXITED(status) || WEXITSTATUS(status) != 0)
+  if (!WIFEXITED(status) || WEXITSTATUS(status) != 0) {
     return "replay under callgrind failed (status " + std::to_string(status) + "; its output: " + console +
            ")";
+  }
   return {};
 }
 
@@ -553,10 +558,11 @@ void find_sequences(const fs::path& dir, const fs::path& root, int depth, std::v
   std::sort(children.begin(), children.end());
   for (const fs::path& c : children) {
     const std::string p = c.string();
-    if (drivers::is_tumvi_folder(p) || drivers::is_euroc_folder(p))
+    if (drivers::is_tumvi_folder(p) || drivers::is_euroc_folder(p)) {
       out.push_back({fs::relative(c, root).string(), p});
-    else if (depth > 1)
+    } else if (depth > 1) {
       find_sequences(c, root, depth - 1, out);
+    }
   }
 }
 
@@ -588,10 +594,11 @@ int run_dataset_root(const std::string& root, const std::string& out_dir, driver
   } else {
     find_sequences(root, root, 3, seqs);
   }
-  if (seqs.empty())
+  if (seqs.empty()) {
     throw std::runtime_error(root +
                              ": no EuRoC or TUM-VI sequence (a folder with mav0/, imu0/data.csv or imu0.csv) "
                              "up to three levels down");
+  }
   fs::create_directories(out_dir);
   std::vector<DatasetRow> rows;
   for (const DatasetSequence& sq : seqs) {
@@ -635,10 +642,11 @@ int run_dataset_root(const std::string& root, const std::string& out_dir, driver
     row.sim3_scale = get(m, "sim3_scale");
     row.cpu_s_per_s = get(m, "cpu_s_per_s");
     row.process_cpu_s_per_s = get(m, "cpu_per_s");
-    if (!error.empty())
+    if (!error.empty()) {
       row.status = "FAILED: " + error;
-    else if (!gt_note.empty())
+    } else if (!gt_note.empty()) {
       row.status = "no ground truth: " + gt_note;
+    }
     if (!row.input_problems.empty()) row.status += "; " + row.input_problems;
     if (!fs::exists(row.traj)) row.traj.clear();
     rows.push_back(row);
@@ -819,9 +827,10 @@ int run_cpu_budget(const BenchArgs& a, double duration_s) {
   for (const auto& st : budget_stages()) needles.push_back(st.needle);
   const auto costs = tools::callgrind_inclusive(cg_out, needles);
   const double frames = static_cast<double>(costs.at(budget_stages()[0].needle).calls);
-  if (frames <= 0)
+  if (frames <= 0) {
     throw std::runtime_error(cg_out + ": no call of Tracker::track: the backend '" + backend +
                              "' has no tracker, or the binary's symbols are stripped");
+  }
   auto count_of = [&](const char* per) {
     for (const auto& st : budget_stages())
       if (std::strcmp(st.per, per) == 0) return static_cast<double>(costs.at(st.needle).calls);
@@ -904,9 +913,10 @@ int run_cpu_budget(const BenchArgs& a, double duration_s) {
 int run_cases(const BenchArgs& a, double duration_s, drivers::ReplayPace pace) {
   std::vector<BenchCase> cases = discover_cases(a.data_dir);
   if (a.list) {
-    for (const auto& c : cases)
+    for (const auto& c : cases) {
       std::printf("%-26s %-12s %s\n", c.name.c_str(), c.kind.c_str(),
                   c.skipped.empty() ? "ready" : ("SKIPPED: " + c.skipped).c_str());
+    }
     return 0;
   }
   fs::create_directories(a.workdir);
@@ -962,8 +972,8 @@ int run_cases(const BenchArgs& a, double duration_s, drivers::ReplayPace pace) {
       generated = true;
     }
     // One log, every backend on it: the comparison is like for like.
-    for (const std::string& backend : c.backends.empty() ? a.estimators : c.backends)
-      for (const std::string& variant : a.lonsc_variants)
+    for (const std::string& backend : c.backends.empty() ? a.estimators : c.backends) {
+      for (const std::string& variant : a.lonsc_variants) {
         for (const std::string& mapping : a.mapping) {
           const bool windowed = backend.rfind("window", 0) == 0;
           const bool ekf = backend == "ekf";
@@ -1005,6 +1015,8 @@ int run_cases(const BenchArgs& a, double duration_s, drivers::ReplayPace pace) {
           rows.push_back(er);
           ++ran;
         }
+      }
+    }
     if (generated && !a.keep_logs) fs::remove(log);
   }
   print_table(rows);
@@ -1109,13 +1121,16 @@ Subcommand add_bench_command(CLI::App& parent) {
     } catch (const std::exception& e) {
       throw UsageError(e.what());
     }
-    for (const std::string& e : args->estimators)
-      if (!core::estimator_known(e))
+    for (const std::string& e : args->estimators) {
+      if (!core::estimator_known(e)) {
         throw UsageError("unknown --estimator '" + e + "' (expected one of: " + core::estimator_names() +
                          ")");
-    for (const std::string& v : args->lonsc_variants)
+      }
+    }
+    for (const std::string& v : args->lonsc_variants) {
       if (v != "tuned" && v != "paper")
         throw UsageError("unknown --lonsc-variant '" + v + "' (expected tuned, paper)");
+    }
     if (!args->dataset_root.empty()) {
       const std::string backend = args->estimators.front();
       core::EstimatorConfig cfg = tools::load_estimator_config(args->config, backend);

@@ -33,9 +33,10 @@ Subcommand add_config_command(CLI::App& parent) {
       std::cout << tools::estimator_config_reference_markdown();
       return 0;
     }
-    if (!a->backend.empty() && !core::estimator_known(a->backend))
+    if (!a->backend.empty() && !core::estimator_known(a->backend)) {
       throw UsageError("unknown --estimator '" + a->backend +
                        "' (expected one of: " + core::estimator_names() + ")");
+    }
     std::cout << tools::estimator_config_to_yaml(tools::load_estimator_config(a->config, a->backend))
               << dense::dense_sections_yaml(dense::load_dense_options(a->config),
                                             dense::load_dense_view_options(a->config));

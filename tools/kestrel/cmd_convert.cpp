@@ -84,13 +84,14 @@ int run_convert(const ConvertArgs& a) {
   o.rig_path = a.rig_path;
   std::string to = a.to;
   if (to.empty()) {
-    if (ends_with(a.out, ".klog"))
+    if (ends_with(a.out, ".klog")) {
       to = "klog";
-    else if (ends_with(a.out, ".bag"))
+    } else if (ends_with(a.out, ".bag")) {
       to = "rosbag";
-    else
+    } else {
       throw UsageError("--out " + a.out +
                        ": say the output format with --to (klog, eth3d, openloris, euroc, rosbag)");
+    }
   }
   if (to != "klog" && to != "eth3d" && to != "openloris" && to != "euroc" && to != "rosbag" &&
       to != "rosbag2")
@@ -98,9 +99,10 @@ int run_convert(const ConvertArgs& a) {
   if (to == "rosbag2" && a.mcap_compression != "zstd" && a.mcap_compression != "lz4" &&
       a.mcap_compression != "none")
     throw UsageError("--mcap-compression " + a.mcap_compression + " (expected zstd, lz4 or none)");
-  if (to == "rosbag" && !drivers::rosbag_built())
+  if (to == "rosbag" && !drivers::rosbag_built()) {
     throw std::runtime_error(
         "ROS bag support not built (tools/install-deps.sh installs librosbag-dev; reconfigure)");
+  }
 
   std::unique_ptr<drivers::LogSource> src = drivers::open_log(a.in, o);
   const bool rig_used = o.format == drivers::LogFormat::kEth3d ||
@@ -111,20 +113,21 @@ int run_convert(const ConvertArgs& a) {
                          (src->format_name() == "eth3d" || src->format_name() == "openloris" ||
                           src->format_name() == "rosbag" || src->format_name() == "rosbag2" ||
                           src->format_name() == "7scenes"));
-  if (!a.rig_path.empty() && !rig_used)
+  if (!a.rig_path.empty() && !rig_used) {
     std::fprintf(stderr, "kestrel convert: warning: --rig is ignored for %s input (it carries its own rig)\n",
                  src->format_name().c_str());
+  }
 
   drivers::ExportStats st;
-  if (to == "klog")
+  if (to == "klog") {
     st = write_klog(*src, a.out, image_compression_from(a.compression));
-  else if (to == "eth3d")
+  } else if (to == "eth3d") {
     st = drivers::export_eth3d(*src, a.out);
-  else if (to == "openloris")
+  } else if (to == "openloris") {
     st = drivers::export_openloris(*src, a.out);
-  else if (to == "euroc")
+  } else if (to == "euroc") {
     st = drivers::export_euroc(*src, a.out);
-  else if (to == "rosbag2") {
+  } else if (to == "rosbag2") {
     drivers::Rosbag2WriteOptions w;
     if (!o.rgb_topic.empty()) w.topics.rgb = o.rgb_topic;
     if (!o.depth_topic.empty()) w.topics.depth = o.depth_topic;
@@ -154,12 +157,13 @@ int run_convert(const ConvertArgs& a) {
     if (!a.quiet) std::cerr << "problem: " << p.where << ": " << p.kind << ": " << p.detail << "\n";
     ++skipped;
   }
-  if (!a.quiet)
+  if (!a.quiet) {
     std::printf(
         "kestrel convert: %s (%s) -> %s (%s): %zu IMU, %zu RGB, %zu depth, %zu ground truth, %zu events; "
         "%zu problems\n",
         a.in.c_str(), src->format_name().c_str(), a.out.c_str(), to.c_str(), st.imu, st.rgb, st.depth,
         st.ground_truth, st.events, skipped);
+  }
   return 0;
 }
 

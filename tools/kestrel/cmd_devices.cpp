@@ -25,9 +25,10 @@ Subcommand add_devices_command(CLI::App& parent) {
       std::printf("no cameras and no IMUs found.\n");
     } else {
       std::printf("%d camera(s), %d IMU(s):\n", cams, imus);
-      for (const auto& d : r.found)
+      for (const auto& d : r.found) {
         std::printf("  %-6s %-10s %-24s %s\n", d.kind.c_str(), d.driver.c_str(), d.where.c_str(),
                     d.detail.c_str());
+      }
     }
     for (const auto& n : r.notes) std::printf("  note: %s\n", n.c_str());
     return 0;

@@ -54,14 +54,15 @@ core::ekf::Pose pose_from_rowmajor(const double* T) {
 // data, not assumed: the car drives forward, so the camera's optical axis must
 // point along the mean velocity. (In these files it is camera-from-IMU, as named.)
 core::ekf::Pose camera_from_imu(const drivers::KittiVislamSequence& seq, const std::string& mode) {
-  const core::ekf::Pose stored = pose_from_rowmajor(seq.cam_T_imu);
+  core::ekf::Pose stored = pose_from_rowmajor(seq.cam_T_imu);  // not const: returned, so moved
   if (mode == "as-stored") return stored;
   if (mode == "inverse") return stored.inverse();
   Eigen::Vector3d v_mean = Eigen::Vector3d::Zero();
   for (size_t i = 0; i < seq.num_steps(); ++i) v_mean += Eigen::Vector3d(&seq.v_B_mps[3 * i]);
-  if (v_mean.norm() < 1e-6)
+  if (v_mean.norm() < 1e-6) {
     throw std::runtime_error(seq.path +
                              ": cannot tell the extrinsic's direction (no motion); pass --extrinsic");
+  }
   v_mean.normalize();
   // Optical axis in the IMU frame: R_BC e_z.
   const double as_stored = stored.R.row(2).dot(v_mean);  // stored = T_CB: R_BC = R^T
@@ -96,11 +97,12 @@ void write_top_view(const std::string& path, const std::string& title,
                     const std::vector<Eigen::Vector3d>& ekf, const std::vector<Eigen::Vector3d>& dead,
                     const std::vector<core::FrozenLandmark>& map) {
   double x0 = 1e300, x1 = -1e300, y0 = 1e300, y1 = -1e300;
-  for (const auto* tr : {&ekf, &dead})
+  for (const auto* tr : {&ekf, &dead}) {
     for (const auto& p : *tr) {
       x0 = std::min(x0, p.x()), x1 = std::max(x1, p.x());
       y0 = std::min(y0, p.y()), y1 = std::max(y1, p.y());
     }
+  }
   const double pad = 0.15 * std::max({x1 - x0, y1 - y0, 10.0});
   x0 -= pad, x1 += pad, y0 -= pad, y1 += pad;
   const double W = 900.0, margin = 50.0;
@@ -164,9 +166,10 @@ int run_ekf_slam(const EkfArgs& a) {
   std::printf("%s: %zu steps over %.1f s, %zu landmark tracks, %zu stereo observations (loaded in %.2f s)\n",
               a.npz.c_str(), N, seq.t_s.back() - seq.t_s.front(), seq.num_landmarks, seq.features.size(),
               load_s);
-  if (seq.missing_partial > 0)
+  if (seq.missing_partial > 0) {
     std::printf("warning: %zu feature entries with some but not all of uL,vL,uR,vR (or non-finite) skipped\n",
                 seq.missing_partial);
+  }
 
   core::ekf::StereoCamera cam;
   cam.fsu = seq.K[0];

@@ -160,16 +160,18 @@ Subcommand add_replay_command(CLI::App& parent) {
     opt.open = args->open;
     opt.estimator = args->estimator;
     const std::string override_backend = app->count("--estimator") ? args->estimator : "";
-    if (!override_backend.empty() && !core::estimator_known(override_backend))
+    if (!override_backend.empty() && !core::estimator_known(override_backend)) {
       throw UsageError("unknown --estimator '" + override_backend +
                        "' (expected one of: " + core::estimator_names() + ")");
+    }
     opt.config = tools::load_estimator_config(args->config, override_backend);
     try {
       tools::apply_map_switches(*opt.config, args->mapping, args->loop);
       if (!args->map_in.empty()) tools::set_map_in(*opt.config, args->map_in);
-      if (!args->map_out.empty() && !tools::may_have_map(*opt.config))
+      if (!args->map_out.empty() && !tools::may_have_map(*opt.config)) {
         throw std::invalid_argument(
             "--map-out needs a backend with the map (window, or ekf with --mapping on)");
+      }
     } catch (const std::invalid_argument& e) {
       throw UsageError(e.what());
     }
@@ -261,10 +263,11 @@ Subcommand add_replay_command(CLI::App& parent) {
       f << replay_metrics_json(r);
     }
     if (!args->map_final_traj_out.empty()) {
-      if (r.map_final_trajectory.empty())
+      if (r.map_final_trajectory.empty()) {
         throw std::runtime_error(
             "--map-final-traj-out: the map holds no keyframe of this flight; nothing written to " +
             args->map_final_traj_out);
+      }
       tools::write_tum(args->map_final_traj_out, r.map_final_trajectory);
     }
     if (!args->quiet) {

@@ -91,13 +91,15 @@ int run_log_through_replay(const RunArgs& a, const drivers::LiveConfig& cfg,
                            const core::EstimatorConfig& est_cfg,
                            const std::optional<mavlink::OdometryStreamOptions>& mavlink,
                            const viewer::ServerOptions& view_options) {
-  if (!a.record.empty())
+  if (!a.record.empty()) {
     throw UsageError(std::string("--record: the sensors are a log played at ") +
                      drivers::to_string(cfg.drivers.log_pace) + " pace, already a recording (" +
                      cfg.drivers.log_path + ")");
-  if (a.duration_s > 0)
+  }
+  if (a.duration_s > 0) {
     throw UsageError(std::string("--duration: a log at ") + drivers::to_string(cfg.drivers.log_pace) +
                      " pace runs to its end");
+  }
   ReplayOptions opt = pipeline_options(a, cfg, est_cfg, mavlink, view_options);
   opt.path = cfg.drivers.log_path;
   opt.format = drivers::LogFormat::kKlog;
@@ -124,9 +126,10 @@ int run_log_through_replay(const RunArgs& a, const drivers::LiveConfig& cfg,
     std::printf("trajectory: %s (%zu poses)\n", a.traj_out.c_str(), r.trajectory.size());
   }
   if (!a.map_out.empty()) std::printf("map: %s\n", a.map_out.c_str());
-  if (mcap)
+  if (mcap) {
     std::printf("mcap: %s (%llu odometry messages)\n", a.mcap_out.c_str(),
                 static_cast<unsigned long long>(mcap->count()));
+  }
   if (fox) std::printf("%s", foxglove::stats_summary(fox->server().stats()).c_str());
   return 0;
 }
@@ -196,17 +199,19 @@ Subcommand add_run_command(CLI::App& parent) {
     sections.emplace_back("dense");
     sections.emplace_back("viewer");  // viewer.dense_*, read with the dense section
     const drivers::LiveConfig cfg = drivers::load_live_config(a->config, sections);
-    if (!a->estimator.empty() && !core::estimator_known(a->estimator))
+    if (!a->estimator.empty() && !core::estimator_known(a->estimator)) {
       throw UsageError("unknown --estimator '" + a->estimator +
                        "' (expected one of: " + core::estimator_names() + ")");
+    }
     // The default backend is replay's (window) unless the config or --estimator names one.
     core::EstimatorConfig est_cfg = tools::load_estimator_config(a->config, a->estimator);
     try {
       tools::apply_map_switches(est_cfg, a->mapping, a->loop);
       if (!a->map_in.empty()) tools::set_map_in(est_cfg, a->map_in);
-      if (!a->map_out.empty() && !tools::may_have_map(est_cfg))
+      if (!a->map_out.empty() && !tools::may_have_map(est_cfg)) {
         throw std::invalid_argument(
             "--map-out needs a backend with the map (window, or ekf with --mapping on)");
+      }
     } catch (const std::invalid_argument& e) {
       throw UsageError(e.what());
     }
@@ -317,9 +322,10 @@ Subcommand add_run_command(CLI::App& parent) {
       std::printf("trajectory: %s (%zu poses)\n", a->traj_out.c_str(), r.trajectory.size());
     }
     if (!a->map_out.empty()) std::printf("map: %s\n", a->map_out.c_str());
-    if (mcap)
+    if (mcap) {
       std::printf("mcap: %s (%llu odometry messages)\n", a->mcap_out.c_str(),
                   static_cast<unsigned long long>(mcap->count()));
+    }
     if (fox) std::printf("%s", foxglove::stats_summary(fox->server().stats()).c_str());
     return 0;
   };

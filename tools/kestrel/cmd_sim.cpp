@@ -157,9 +157,10 @@ Subcommand add_sim_command(CLI::App& parent) {
       throw UsageError(e.what());
     }
     std::printf("kestrel sim: wrote %s\n%s", opt.out_path.c_str(), tools::format_summary(s).c_str());
-    for (size_t k = 0; k < s.problems.size() && k < 5; ++k)
+    for (size_t k = 0; k < s.problems.size() && k < 5; ++k) {
       std::printf("  %s: %s: %s\n", s.problems[k].where.c_str(), s.problems[k].kind.c_str(),
                   s.problems[k].detail.c_str());
+    }
     if (s.problems.size() > 5) std::printf("  ... %zu more reader problems\n", s.problems.size() - 5);
     if (!args->export_eth3d.empty()) {
       auto src = drivers::open_log(opt.out_path);

@@ -55,7 +55,7 @@ void ImuRateStage::finish() {
 }
 
 void ImuRateStage::refresh_anchor() {
-  Anchor a;
+  Anchor a{};
   uint64_t version = 0;
   if (!anchor_.read(a, &version) || version == anchor_version_) return;
   anchor_version_ = version;

@@ -45,7 +45,7 @@ class OverlapModel {
     grid.assign(static_cast<size_t>(gw_ * gh_), 0.0f);
     if (img.format != PixelFormat::kDepthU16) return;
     const int s = opt_.lookup_stride_px;
-    for (int gy = 0; gy < gh_; ++gy)
+    for (int gy = 0; gy < gh_; ++gy) {
       for (int gx = 0; gx < gw_; ++gx) {
         const int u = gx * s, v = gy * s;
         if (u >= img.width || v >= img.height) continue;
@@ -55,6 +55,7 @@ class OverlapModel {
         if (raw != 0 && z >= rig_.depth.min_range_m && z <= rig_.depth.max_range_m)
           grid[static_cast<size_t>(gy * gw_ + gx)] = static_cast<float>(z);
       }
+    }
   }
 
   // Share of a's sampled depth points that b sees on its own surface.
@@ -65,7 +66,7 @@ class OverlapModel {
     const int step = std::max(1, opt_.sample_stride_px / opt_.lookup_stride_px);
     const int s = opt_.lookup_stride_px;
     int n = 0, seen = 0;
-    for (int gy = step / 2; gy < gh_; gy += step)
+    for (int gy = step / 2; gy < gh_; gy += step) {
       for (int gx = step / 2; gx < gw_; gx += step) {
         const double z = a.grid[static_cast<size_t>(gy * gw_ + gx)];
         if (z <= 0) continue;
@@ -81,6 +82,7 @@ class OverlapModel {
         const double sigma = rig_.depth.sigma_coeff_per_m * p_b.z() * p_b.z();
         if (std::abs(zb - p_b.z()) < opt_.surface_tol_m + 3.0 * sigma) ++seen;
       }
+    }
     return n > 0 ? static_cast<double>(seen) / n : -1;
   }
   double overlap(const View& a, const View& b) const {
@@ -125,6 +127,8 @@ LoopTruth evaluate_loops(drivers::LogSource& log, const core::LoopLog& loop_log,
     return t;
   }
   std::vector<std::pair<int64_t, uint32_t>> by_time;
+  by_time.reserve(views.size());
+
   for (const auto& [id, v] : views) by_time.emplace_back(v.t_ns, id);
   std::sort(by_time.begin(), by_time.end());
   const OverlapModel model(rig, opt);
@@ -241,7 +245,7 @@ LoopTruth evaluate_loops(drivers::LogSource& log, const core::LoopLog& loop_log,
       if (out.error_m < 0 || out.error_m > opt.false_m || out.error_rad > opt.false_rad) ++t.closed_false;
     }
   }
-  for (const core::LoopQueryRecord& q : loop_log.queries)
+  for (const core::LoopQueryRecord& q : loop_log.queries) {
     for (const auto& [old_id, shared] : q.old_links) {
       if (shared < opt.link_min_shared || !views.count(old_id)) continue;
       if (model.overlap(views[q.id], views[old_id]) >= opt.min_overlap) {
@@ -249,6 +253,7 @@ LoopTruth evaluate_loops(drivers::LogSource& log, const core::LoopLog& loop_log,
         break;
       }
     }
+  }
   for (const auto& [id, _] : revisit) {
     if (with_candidate.count(id)) ++t.revisit_keyframes_candidate;
     if (with_recognised.count(id)) ++t.revisit_keyframes_recognised;

@@ -26,7 +26,9 @@ void print_subcommands(const CLI::App& app) {
 
 }  // namespace
 
-int main(int argc, char** argv) {
+namespace {
+
+int run_kestrel(int argc, char** argv) {
   using namespace kestrel::cli;
   CLI::App app{"Kestrel: onboard RGB-D + IMU visual-inertial estimator", "kestrel"};
   app.require_subcommand(1, 1);
@@ -73,10 +75,11 @@ int main(int argc, char** argv) {
     const CLI::App* failing = nullptr;
     for (const auto& c : commands)
       if (c.app->parsed()) failing = c.app;
-    if (failing != nullptr)
+    if (failing != nullptr) {
       std::cerr << failing->help();
-    else
+    } else {
       print_subcommands(app);
+    }
     return kExitUsage;
   }
 
@@ -119,4 +122,19 @@ int main(int argc, char** argv) {
   }
   print_subcommands(app);
   return kExitUsage;
+}
+
+}  // namespace
+
+// Commands report their own errors; this catches what escapes before one runs
+// (building the command table), so the process says why instead of aborting.
+int main(int argc, char** argv) {
+  try {
+    return run_kestrel(argc, argv);
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "kestrel: error: %s\n", e.what());
+  } catch (...) {
+    std::fprintf(stderr, "kestrel: error: an unknown exception\n");
+  }
+  return 1;
 }

@@ -25,7 +25,7 @@ inline constexpr int kMapCloudMaxPoints = 8192;
 struct MapCloud {
   int64_t t_ns = 0;
   int n = 0;
-  float xyz_W[3 * kMapCloudMaxPoints];  // p_W [m], x y z per point
+  float xyz_W[3 * kMapCloudMaxPoints]{};  // p_W [m], x y z per point
 };
 
 struct KeyframePose {

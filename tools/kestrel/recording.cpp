@@ -33,9 +33,10 @@ drivers::klog::ImageCompression image_compression_from(const ImageCompressionArg
   drivers::klog::ImageCompression c;
   if (!drivers::klog::parse_codec(a.codec, c.codec))
     throw UsageError("--image-codec: expected zstd, lz4 or none, got '" + a.codec + "'");
-  if (a.zstd_level < drivers::klog::zstd_min_level() || a.zstd_level > drivers::klog::zstd_max_level())
+  if (a.zstd_level < drivers::klog::zstd_min_level() || a.zstd_level > drivers::klog::zstd_max_level()) {
     throw UsageError("--zstd-level: expected " + std::to_string(drivers::klog::zstd_min_level()) + ".." +
                      std::to_string(drivers::klog::zstd_max_level()));
+  }
   c.zstd_level = a.zstd_level;
   return c;
 }

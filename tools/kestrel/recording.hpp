@@ -31,14 +31,16 @@ class LoggerFrameSink final : public drivers::FrameSink {
   bool push_frame(const drivers::CameraFrame& f) noexcept override {
     bool ok =
         log_.log_image(drivers::RecordType::kRgb, f.t_ns, f.t_recv_ns, f.seq, f.exposure_us, f.rgb->view());
-    if (f.depth != nullptr)
+    if (f.depth != nullptr) {
       ok = log_.log_image(drivers::RecordType::kDepth, f.t_ns, f.t_recv_ns, f.seq, f.exposure_us,
                           f.depth->view()) &&
            ok;
-    if (f.right != nullptr)
+    }
+    if (f.right != nullptr) {
       ok = log_.log_image(drivers::RecordType::kRight, f.t_ns, f.t_recv_ns, f.seq, f.exposure_us,
                           f.right->view()) &&
            ok;
+    }
     return ok;
   }
 

@@ -379,9 +379,11 @@ class EstimatorStage {
       return false;
     }
     last_fingerprint_ = fp;
-    if (last_frame_t_ns_ >= 0 && frame_period_ns_ > 0 && f.t_ns - last_frame_t_ns_ > frame_period_ns_ * 3 / 2)
+    if (last_frame_t_ns_ >= 0 && frame_period_ns_ > 0 &&
+        f.t_ns - last_frame_t_ns_ > frame_period_ns_ * 3 / 2) {
       c_.frames_missing->inc(
           static_cast<uint64_t>((f.t_ns - last_frame_t_ns_ + frame_period_ns_ / 2) / frame_period_ns_) - 1);
+    }
     // A stereo frame's depth is its right image.
     if (stereo_ != nullptr ? f.right.data == nullptr : depth_valid_share(f.depth) < 0.01)
       c_.frames_no_depth->inc();
@@ -567,9 +569,10 @@ AppliedThread applied_thread(const rt::ThreadSpec& spec, const rt::ThreadSetupRe
   a.priority = spec.priority;
   a.applied = r.fully_granted();
   if (r.granted_priority != r.requested_priority) a.error = std::string("scheduling: ") + r.sched_note;
-  if (spec.cpu >= 0 && !r.pinned)
+  if (spec.cpu >= 0 && !r.pinned) {
     a.error +=
         std::string(a.error.empty() ? "" : "; ") + "cpu " + std::to_string(spec.cpu) + ": " + r.affinity_note;
+  }
   if (!r.name_set) a.error += std::string(a.error.empty() ? "" : "; ") + "thread name not set";
   return a;
 }
@@ -703,9 +706,10 @@ PipelineInput open_input(const ReplayOptions& opt, ReplayReport& report) {
   in.input_rig = in.log ? &in.log->rig() : &opt.live->rig;
   if (!in.input_rig->stereo.present) return in;
   // Camera settings that deliver no right image would make every frame depth-less: say so at start.
-  if (opt.live && !opt.live->stereo_problem.empty())
+  if (opt.live && !opt.live->stereo_problem.empty()) {
     throw std::invalid_argument("the rig has a stereo: right camera, but " + opt.live->stereo_problem +
                                 " (docs/stereo.md, \"Live stereo\")");
+  }
   try {
     in.stereo = std::make_unique<drivers::StereoRectifier>(*in.input_rig);
   } catch (const std::invalid_argument& e) {
@@ -723,9 +727,10 @@ PipelineInput open_input(const ReplayOptions& opt, ReplayReport& report) {
 // After the map's threads stopped: the map file, the map's final word on this
 // flight's keyframes and trajectory, the loop log and the global BA's figures.
 void finish_map(const ReplayOptions& opt, core::Estimator& estimator, ReplayReport& report) {
-  if (!opt.map_out.empty())
+  if (!opt.map_out.empty()) {
     tools::write_map_file(opt.map_out,
                           report.has_map ? estimator.map_system()->save() : std::vector<uint8_t>{});
+  }
   if (!report.has_map) return;
   const core::MapSystem& ms = *estimator.map_system();
   std::vector<tools::KeyframeAnchor>& anchors = report.map_final_keyframes;
@@ -1183,11 +1188,12 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   if (log) report.problems = log->problems();
   report.wall_s = 1e-9 * static_cast<double>(wall1 - wall0);
   report.cpu_s = process_cpu_s() - cpu0;
-  if (report.replay.first_t_ns >= 0)
+  if (report.replay.first_t_ns >= 0) {
     report.log_duration_s = 1e-9 * static_cast<double>(report.replay.last_t_ns - report.replay.first_t_ns);
-  else if (report.trajectory.size() > 1)
+  } else if (report.trajectory.size() > 1) {
     report.log_duration_s =
         1e-9 * static_cast<double>(report.trajectory.back().t_ns - report.trajectory.front().t_ns);
+  }
   report.realtime_factor = report.wall_s > 0 ? report.log_duration_s / report.wall_s : 0;
   report.peak_rss_mb = peak_rss_mb();
   if (view) {
@@ -1477,21 +1483,23 @@ std::string replay_metrics_json(const ReplayReport& r) {
                       : std::nan(""));
   j["allocations"] = std::move(alloc);
   Json threads = Json::array();
-  for (const AppliedThread& t : r.threads)
+  for (const AppliedThread& t : r.threads) {
     threads.push_back(Json{{"name", t.name},
                            {"cpu", static_cast<int64_t>(t.cpu)},
                            {"policy", t.policy},
                            {"priority", static_cast<int64_t>(t.priority)},
                            {"applied", t.applied},
                            {"error", t.error}});
+  }
   j["threads"] = std::move(threads);
   const uint64_t map_clouds = n.count("ros2.map_clouds");
   const uint64_t map_clouds_dropped = n.count("ros2.map_clouds_dropped");
   const uint64_t map_keyframes_dropped = n.count("ros2.map_keyframes_dropped");
-  if (map_clouds + map_clouds_dropped + map_keyframes_dropped > 0)
+  if (map_clouds + map_clouds_dropped + map_keyframes_dropped > 0) {
     j["ros2_map_topics"] = Json{{"clouds", map_clouds},
                                 {"clouds_dropped", map_clouds_dropped},
                                 {"keyframes_dropped", map_keyframes_dropped}};
+  }
   if (r.view) {
     const viewer::ServerStats& v = r.viewer;
     const bool streamed = v.streaming_s > 0;
@@ -1718,9 +1726,10 @@ std::string replay_summary(const ReplayReport& r) {
     s += buf;
   }
   s += threads_summary(r.threads);
-  if (!r.propagator_thread.empty())
+  if (!r.propagator_thread.empty()) {
     s += "IMU-rate propagation " + r.propagator_thread + ", " +
          std::to_string(n.count("output.imu_rate_poses")) + " IMU-rate poses published\n";
+  }
   if (n.count("mavlink.frames_sent") + n.count("mavlink.send_failed") > 0) {
     std::snprintf(buf, sizeof buf, "MAVLink ODOMETRY: %llu sent, %llu failed; %llu HEARTBEAT; TIMESYNC %s\n",
                   static_cast<unsigned long long>(n.count("mavlink.odometry_sent")),

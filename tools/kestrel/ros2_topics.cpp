@@ -219,11 +219,12 @@ void Ros2Output::on_dense(const core::TsdfMap& m) {
   m.extract_surface(pts);
   xyz_.resize(3 * pts.size());
   rgb_.resize(3 * pts.size());
-  for (std::size_t i = 0; i < pts.size(); ++i)
+  for (std::size_t i = 0; i < pts.size(); ++i) {
     for (std::size_t k = 0; k < 3; ++k) {
       xyz_[3 * i + k] = pts[i].p[static_cast<int>(k)];
       rgb_[3 * i + k] = pts[i].rgb[k];
     }
+  }
   drivers::ros2::PointCloudXyz c;
   c.t_ns = last_t_ns_ == INT64_MIN ? 0 : last_t_ns_;
   c.frame_id = "odom";  // fused along the odometry (W), as --dense-out

@@ -19,10 +19,11 @@ void add_view_options(CLI::App* app, ViewArgs& a, bool with_wait) {
   app->add_option("--view-bandwidth", a.bandwidth_kbytes_per_s,
                   "cap of each browser's stream [kB/s]; camera frames are skipped to hold it")
       ->capture_default_str();
-  if (with_wait)
+  if (with_wait) {
     app->add_option("--view-wait", a.wait_s,
                     "wait up to this many seconds for a browser before the replay starts")
         ->capture_default_str();
+  }
 }
 
 viewer::ServerOptions view_server_options(const ViewArgs& a, const std::string& title) {

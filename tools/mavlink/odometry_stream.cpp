@@ -9,9 +9,10 @@ namespace kestrel::mavlink {
 namespace {
 
 std::unique_ptr<Link> open_link(const OdometryStreamOptions& o) {
-  if (!o.endpoint.empty() && !o.serial_device.empty())
+  if (!o.endpoint.empty() && !o.serial_device.empty()) {
     throw std::invalid_argument("MAVLink: both a UDP endpoint (" + o.endpoint + ") and a serial port (" +
                                 o.serial_device + ") given; one link at a time");
+  }
   if (!o.serial_device.empty()) return std::make_unique<SerialLink>(o.serial_device, o.serial_baud);
   return std::make_unique<UdpSender>(o.endpoint);
 }

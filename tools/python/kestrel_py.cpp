@@ -18,6 +18,7 @@
 #include <set>
 #include <stdexcept>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "kestrel/core/estimator_factory.hpp"
@@ -107,10 +108,11 @@ py::array image_array(const drivers::LogImage& im) {
       break;
   }
   const size_t bytes = static_cast<size_t>(out.nbytes());
-  if (im.pixels.size() < bytes)
+  if (im.pixels.size() < bytes) {
     throw std::runtime_error("image record at t_ns " + std::to_string(im.t_ns) + " holds " +
                              std::to_string(im.pixels.size()) + " bytes, its header says " +
                              std::to_string(bytes));
+  }
   std::memcpy(out.mutable_data(), im.pixels.data(), bytes);
   return out;
 }
@@ -225,7 +227,7 @@ void refuse_unknown(const py::dict& kw, const char* function, const char* known)
 class Log {
  public:
   Log(const std::string& path, py::kwargs kw) {
-    py::dict d(kw);
+    py::dict d(std::move(kw));
     drivers::LogFormat format = drivers::LogFormat::kAuto;
     const drivers::LogOpenOptions o = open_options(d, format);
     refuse_unknown(d, "open_log",
@@ -285,24 +287,28 @@ py::array_t<double> tum_array(const tools::Trajectory& t) {
 // values and a non-zero quaternion (the error names the argument and row).
 tools::Trajectory trajectory_of(const py::array_t<double, py::array::c_style | py::array::forcecast>& a,
                                 const char* name) {
-  if (a.ndim() != 2 || a.shape(1) != 8)
+  if (a.ndim() != 2 || a.shape(1) != 8) {
     throw py::value_error(
         std::string(name) + ": expected an (N, 8) array of TUM rows t[s] x y z qx qy qz qw, got " +
         std::to_string(a.ndim()) + " dimension(s)" +
         (a.ndim() == 2 ? " with " + std::to_string(a.shape(1)) + " columns" : std::string()));
+  }
   auto m = a.unchecked<2>();
   tools::Trajectory t;
   t.reserve(static_cast<size_t>(a.shape(0)));
   for (py::ssize_t i = 0; i < a.shape(0); ++i) {
-    for (py::ssize_t j = 0; j < 8; ++j)
-      if (!std::isfinite(m(i, j)))
+    for (py::ssize_t j = 0; j < 8; ++j) {
+      if (!std::isfinite(m(i, j))) {
         throw py::value_error(std::string(name) + ": row " + std::to_string(i) + " column " +
                               std::to_string(j) + " is not finite");
+      }
+    }
     tools::TimedPose p;
     p.t_ns = static_cast<int64_t>(std::llround(m(i, 0) * kNsPerS));
-    if (!t.empty() && p.t_ns <= t.back().t_ns)
+    if (!t.empty() && p.t_ns <= t.back().t_ns) {
       throw py::value_error(std::string(name) + ": row " + std::to_string(i) +
                             " (t = " + std::to_string(m(i, 0)) + " s) is not after the row before it");
+    }
     p.p = Eigen::Vector3d(m(i, 1), m(i, 2), m(i, 3));
     Eigen::Quaterniond q(m(i, 7), m(i, 4), m(i, 5), m(i, 6));
     if (q.norm() < 1e-9)
@@ -416,11 +422,12 @@ ImageView view_of(const py::array& a, const char* name, int width, int height, P
                        std::to_string(width) + (channels == 3 ? ", 3" : "") + ") " +
                        (depth ? "uint16" : "uint8") + " array";
   if (a.ndim() != want_ndim || a.shape(0) != height || a.shape(1) != width ||
-      (channels == 3 && a.shape(2) != 3))
+      (channels == 3 && a.shape(2) != 3)) {
     throw py::value_error(
         expect + ", got shape " +
         py::str(py::tuple(py::cast(std::vector<py::ssize_t>(a.shape(), a.shape() + a.ndim()))))
             .cast<std::string>());
+  }
   if (depth ? !py::isinstance<py::array_t<uint16_t>>(a) : !py::isinstance<py::array_t<uint8_t>>(a))
     throw py::value_error(expect + ", got dtype " + py::str(a.dtype()).cast<std::string>());
   const bool packed = a.strides(1) == bpp && (channels == 1 || a.strides(2) == 1);
@@ -438,9 +445,10 @@ ImageView view_of(const py::array& a, const char* name, int width, int height, P
 class PyEstimator {
  public:
   PyEstimator(const Rig& rig, const std::string& backend) : rig_(rig) {
-    if (!core::estimator_known(backend))
+    if (!core::estimator_known(backend)) {
       throw py::value_error("backend: unknown '" + backend +
                             "' (expected one of: " + core::estimator_names() + ")");
+    }
     est_ = std::make_unique<Estimator>(rig, backend);
     // The trajectory is one pose per camera frame the backend has a pose for,
     // as `kestrel replay --traj-out` writes it; reserved for an hour at the
@@ -460,7 +468,7 @@ class PyEstimator {
         /*imu_rate=*/true);
   }
 
-  void on_state(py::object cb, bool imu_rate) {
+  void on_state(const py::object& cb, bool imu_rate) {
     py_cb_ = cb.is_none() ? py::function() : py::function(cb);
     py_cb_imu_rate_ = imu_rate;
   }
@@ -481,10 +489,12 @@ class PyEstimator {
                     const py::array_t<double, py::array::c_style | py::array::forcecast>& acc_mps2) {
     const py::ssize_t n = t_ns.ndim() == 1 ? t_ns.shape(0) : -1;
     if (n < 0) throw py::value_error("t_ns: expected a 1-D array of int64 nanoseconds");
-    for (const auto* a : {&gyro_rps, &acc_mps2})
-      if (a->ndim() != 2 || a->shape(0) != n || a->shape(1) != 3)
+    for (const auto* a : {&gyro_rps, &acc_mps2}) {
+      if (a->ndim() != 2 || a->shape(0) != n || a->shape(1) != 3) {
         throw py::value_error(std::string(a == &gyro_rps ? "gyro_rps" : "acc_mps2") + ": expected shape (" +
                               std::to_string(n) + ", 3)");
+      }
+    }
     auto t = t_ns.unchecked<1>();
     auto g = gyro_rps.unchecked<2>();
     auto f = acc_mps2.unchecked<2>();
@@ -507,24 +517,26 @@ class PyEstimator {
   bool add_frame(int64_t t_ns, const py::array& rgb, const py::object& depth, const std::string& rgb_format) {
     const int w = rig_.rgb.width, h = rig_.rgb.height;
     PixelFormat fmt;
-    if (rgb_format == "rgb8")
+    if (rgb_format == "rgb8") {
       fmt = PixelFormat::kRgb8;
-    else if (rgb_format == "bgr8")
+    } else if (rgb_format == "bgr8") {
       fmt = PixelFormat::kBgr8;
-    else if (rgb_format == "mono8")
+    } else if (rgb_format == "mono8") {
       fmt = PixelFormat::kGray8;
-    else
+    } else {
       throw py::value_error("rgb_format: '" + rgb_format + "' is not one of rgb8, bgr8, mono8");
+    }
     if (fmt != PixelFormat::kGray8 && rgb.ndim() == 2) fmt = PixelFormat::kGray8;
     const ImageView rgb_view = view_of(rgb, "rgb", w, h, fmt);
     ImageView depth_view;
     if (!depth.is_none()) {
       py::array d = py::array::ensure(depth);
       if (!d) throw py::value_error("depth: expected a numpy array or None");
-      if (d.dtype().kind() == 'f')
+      if (d.dtype().kind() == 'f') {
         depth_view = metres_to_units(d, w, h);
-      else
+      } else {
         depth_view = view_of(d, "depth", w, h, PixelFormat::kDepthU16);
+      }
     }
     const auto t0 = Clock::now();
     bool changed;
@@ -570,9 +582,10 @@ class PyEstimator {
 
   ImageView metres_to_units(const py::array& d, int w, int h) {
     auto m = py::array_t<double, py::array::c_style | py::array::forcecast>::ensure(d);
-    if (!m || m.ndim() != 2 || m.shape(0) != h || m.shape(1) != w)
+    if (!m || m.ndim() != 2 || m.shape(0) != h || m.shape(1) != w) {
       throw py::value_error("depth: expected a (" + std::to_string(h) + ", " + std::to_string(w) +
                             ") array (uint16 depth units or float metres)");
+    }
     const double scale = rig_.depth.scale_m_per_unit;
     depth_units_.resize(static_cast<size_t>(w) * h);
     const double* src = m.data();
@@ -603,7 +616,7 @@ constexpr const char* kReplayOptions =
     "config, pace, mapping, loop, warmup_s, trajectory, report";
 
 py::object replay(const std::string& path, py::kwargs kw) {
-  py::dict d(kw);
+  py::dict d(std::move(kw));
   cli::ReplayOptions opt;
   opt.path = path;
   opt.open = open_options(d, opt.format);
@@ -631,9 +644,10 @@ py::object replay(const std::string& path, py::kwargs kw) {
     PyDict_DelItemString(d.ptr(), "report");
   }
   refuse_unknown(d, "replay", kReplayOptions);
-  if (!estimator.empty() && !core::estimator_known(estimator))
+  if (!estimator.empty() && !core::estimator_known(estimator)) {
     throw py::value_error("estimator: unknown '" + estimator +
                           "' (expected one of: " + core::estimator_names() + ")");
+  }
   if (which != "odometry" && which != "map" && which != "map_final")
     throw py::value_error("trajectory: '" + which + "' is not one of odometry, map, map_final");
   if (!(warmup_s >= 0)) throw py::value_error("warmup_s must be >= 0");

@@ -138,16 +138,19 @@ std::vector<ImuSample> load_euroc_imu_csv(const std::string& path) {
     const std::string at = path + ":" + std::to_string(k + 1);
     // Columns past the seventh are ignored, as EuRoC-derived files sometimes carry more.
     const std::vector<std::string> f = text::split(line, ',');
-    if (f.size() < 7)
+    if (f.size() < 7) {
       throw std::runtime_error(at + ": expected 7 fields (t_ns, w_xyz, a_xyz), got " +
                                std::to_string(f.size()));
+    }
     ImuSample s;
     if (!text::parse_i64(f[0], s.t_ns)) throw std::runtime_error(at + ": bad timestamp '" + f[0] + "'");
     double v[6];
-    for (int j = 0; j < 6; ++j)
-      if (!text::parse_finite_f64(f[j + 1], v[j]))
+    for (int j = 0; j < 6; ++j) {
+      if (!text::parse_finite_f64(f[j + 1], v[j])) {
         throw std::runtime_error(at + ": field " + std::to_string(j + 2) + " is not a number: '" + f[j + 1] +
                                  "'");
+      }
+    }
     if (!out.empty() && s.t_ns <= out.back().t_ns)
       throw std::runtime_error(at + ": time " + f[0] + " does not increase");
     s.t_recv_ns = s.t_ns;

@@ -40,9 +40,10 @@ SimSummary run_image_simulation(const SimOptions& o, SimSink& sink) {
     if (!gt.empty() && s.t_ns <= gt.back().t_ns) continue;  // the reader reported it
     gt.push_back(s);
   }
-  if (gt.size() < 4)
+  if (gt.size() < 4) {
     throw SimOptionError(o.images_path + ": " + std::to_string(gt.size()) +
                          " ground-truth poses; --images needs a recording with ground truth");
+  }
   SplineFitOptions fo;
   fo.knot_spacing_s = o.knot_spacing_s > 0 ? o.knot_spacing_s : 0.1;
   fo.position_smoothing = o.position_smoothing;

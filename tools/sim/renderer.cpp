@@ -66,8 +66,8 @@ struct Obj {
 };
 
 struct Frame {
-  float R[9];  // R_WC row-major
-  float o[3];  // p_WC
+  float R[9]{};  // R_WC row-major
+  float o[3]{};  // p_WC
   uint64_t key = 0;
 };
 
@@ -127,8 +127,8 @@ struct Renderer::Impl {
   std::vector<Obj> objs;
   std::vector<float> gauss;
   std::vector<Mip> mips;
-  float lo[3], hi[3];
-  float light[3];
+  float lo[3]{}, hi[3]{};
+  float light[3]{};
   float focal = 1.f;
   float cos_max_inc = 0.f;
   // Per-frame candidate lists, tile-major; render() is not re-entrant.
@@ -170,7 +170,7 @@ Renderer::Renderer(const Scene& scene, const CameraIntrinsics& camera, const Dep
 
   // Undistorted ray of every pixel, once.
   m.ray.resize(static_cast<size_t>(m.W) * m.H * 3);
-  for (int v = 0; v < m.H; ++v)
+  for (int v = 0; v < m.H; ++v) {
     for (int u = 0; u < m.W; ++u) {
       const Eigen::Vector2d xy =
           undistort_normalized(camera, {(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy});
@@ -179,6 +179,7 @@ Renderer::Renderer(const Scene& scene, const CameraIntrinsics& camera, const Dep
       m.ray[i + 1] = static_cast<float>(xy.y());
       m.ray[i + 2] = static_cast<float>(std::sqrt(xy.squaredNorm() + 1.0));
     }
+  }
   // A cone per tile holding all its rays (pixel centres widened by half a
   // pixel so the cone covers whole pixels).
   m.tiles_x = (m.W + kTile - 1) / kTile;
@@ -187,23 +188,25 @@ Renderer::Renderer(const Scene& scene, const CameraIntrinsics& camera, const Dep
   m.tile_cos.resize(static_cast<size_t>(m.tiles_x) * m.tiles_y);
   m.tile_sin.resize(m.tile_cos.size());
   const double pixel_angle = 1.0 / std::min(camera.fx, camera.fy);
-  for (int ty = 0; ty < m.tiles_y; ++ty)
+  for (int ty = 0; ty < m.tiles_y; ++ty) {
     for (int tx = 0; tx < m.tiles_x; ++tx) {
       Eigen::Vector3d axis = Eigen::Vector3d::Zero();
       const int u1 = std::min(m.W, (tx + 1) * kTile), v1 = std::min(m.H, (ty + 1) * kTile);
-      for (int v = ty * kTile; v < v1; ++v)
+      for (int v = ty * kTile; v < v1; ++v) {
         for (int u = tx * kTile; u < u1; ++u) {
           const size_t i = (static_cast<size_t>(v) * m.W + u) * 3;
           axis += Eigen::Vector3d(m.ray[i], m.ray[i + 1], 1.0).normalized();
         }
+      }
       axis.normalize();
       double half = 0.0;
-      for (int v = ty * kTile; v < v1; ++v)
+      for (int v = ty * kTile; v < v1; ++v) {
         for (int u = tx * kTile; u < u1; ++u) {
           const size_t i = (static_cast<size_t>(v) * m.W + u) * 3;
           const Eigen::Vector3d r = Eigen::Vector3d(m.ray[i], m.ray[i + 1], 1.0).normalized();
           half = std::max(half, std::acos(std::clamp(r.dot(axis), -1.0, 1.0)));
         }
+      }
       const size_t t = static_cast<size_t>(ty) * m.tiles_x + tx;
       m.tile_axis[3 * t] = static_cast<float>(axis.x());
       m.tile_axis[3 * t + 1] = static_cast<float>(axis.y());
@@ -211,6 +214,7 @@ Renderer::Renderer(const Scene& scene, const CameraIntrinsics& camera, const Dep
       m.tile_cos[t] = std::cos(half + 2.0 * pixel_angle);
       m.tile_sin[t] = std::sin(half + 2.0 * pixel_angle);
     }
+  }
 
   for (const SceneBox& b : scene.boxes) {
     Obj o;
@@ -437,10 +441,11 @@ Rgb Renderer::Impl::pattern(uint32_t surface, float u, float v, float footprint,
   const float dist_px = std::min(du, dv) / footprint;
   if (dist_px >= 0.5f) return c;
   float u2 = u, v2 = v;
-  if (du <= dv)
+  if (du <= dv) {
     u2 = fu < 0.5f ? u - du - 0.01f * footprint : u + du + 0.01f * footprint;
-  else
+  } else {
     v2 = fv < 0.5f ? v - dv - 0.01f * footprint : v + dv + 0.01f * footprint;
+  }
   const Rgb o = pattern(surface, u2, v2, footprint, false);
   const float w = 0.5f + dist_px;
   return {w * c.r + (1.f - w) * o.r, w * c.g + (1.f - w) * o.g, w * c.b + (1.f - w) * o.b};
@@ -587,10 +592,12 @@ void Renderer::render(const Eigen::Isometry3d& T_WC, uint64_t frame_index, uint8
       const double cx = rng.uniform(0.0, m.W), cy = rng.uniform(0.0, m.H), r = rng.uniform(r_lo, r_hi);
       const int x0 = std::max(0, static_cast<int>(cx - r)), x1 = std::min(m.W - 1, static_cast<int>(cx + r));
       const int y0 = std::max(0, static_cast<int>(cy - r)), y1 = std::min(m.H - 1, static_cast<int>(cy + r));
-      for (int y = y0; y <= y1; ++y)
-        for (int x = x0; x <= x1; ++x)
+      for (int y = y0; y <= y1; ++y) {
+        for (int x = x0; x <= x1; ++x) {
           if ((x + 0.5 - cx) * (x + 0.5 - cx) + (y + 0.5 - cy) * (y + 0.5 - cy) <= r * r)
             depth[static_cast<size_t>(y) * m.W + x] = 0;
+        }
+      }
     }
   }
 }

@@ -122,10 +122,11 @@ Scene Scene::build(const MotionModel& traj, const Eigen::Isometry3d& T_BC, uint6
     }
     if (!ok) continue;
     taken.push_back({x, y, foot_r});
-    if (is_box)
+    if (is_box) {
       scene.boxes.push_back(box);
-    else
+    } else {
       scene.cylinders.push_back(cyl);
+    }
     ++placed;
   }
   return scene;

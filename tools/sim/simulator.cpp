@@ -392,13 +392,14 @@ SimSummary run_simulation(const SimOptions& o, SimSink& sink) {
       render_s += std::chrono::duration<double>(Clock::now() - r0).count();
       sink.image(drivers::RecordType::kRgb, f.stamp_ns, f.seq,
                  ImageView{W, H, W * 3, PixelFormat::kRgb8, rgb.data()});
-      if (o.stereo)
+      if (o.stereo) {
         sink.image(drivers::RecordType::kRight, f.stamp_ns, f.seq,
                    ImageView{W, H, W * 3, PixelFormat::kRgb8, rgb_right.data()});
-      else
+      } else {
         sink.image(
             drivers::RecordType::kDepth, f.stamp_ns, f.seq,
             ImageView{W, H, W * 2, PixelFormat::kDepthU16, reinterpret_cast<const uint8_t*>(depth.data())});
+      }
       ++sum.frames;
     }
   }

@@ -33,7 +33,7 @@ struct Basis {
 };
 
 Basis basis(double u) {
-  Basis B;
+  Basis B{};
   const double u2 = u * u, u3 = u2 * u, omu = 1.0 - u;
   B.b[0] = omu * omu * omu / 6.0;
   B.b[1] = (3.0 * u3 - 6.0 * u2 + 4.0) / 6.0;
@@ -76,10 +76,11 @@ std::vector<GtSample> load_gt_file(const std::string& path) {
     if (line.empty() || line[0] == '#') continue;
     if (csv < 0) csv = line.find(',') != std::string::npos ? 1 : 0;
     const auto f = csv == 1 ? text::split(line, ',') : text::split_ws(line);
-    if (f.size() < 8)
+    if (f.size() < 8) {
       throw std::runtime_error(where(path, line_no) + ": expected 8 fields (" +
                                (csv ? "t_ns,px,py,pz,qw,qx,qy,qz" : "t x y z qx qy qz qw") + "), got " +
                                std::to_string(f.size()));
+    }
     GtSample s;
     if (csv) {
       if (!text::parse_i64(f[0], s.t_ns))
@@ -88,10 +89,12 @@ std::vector<GtSample> load_gt_file(const std::string& path) {
       throw std::runtime_error(where(path, line_no) + ": bad timestamp '" + f[0] + "'");
     }
     double v[7];
-    for (int j = 0; j < 7; ++j)
-      if (!text::parse_finite_f64(f[1 + j], v[j]))
+    for (int j = 0; j < 7; ++j) {
+      if (!text::parse_finite_f64(f[1 + j], v[j])) {
         throw std::runtime_error(where(path, line_no) + ": field " + std::to_string(j + 2) +
                                  " is not a number: '" + f[1 + j] + "'");
+      }
+    }
     s.p_WB = {v[0], v[1], v[2]};
     s.q_WB = csv ? Eigen::Quaterniond(v[3], v[4], v[5], v[6]) : Eigen::Quaterniond(v[6], v[3], v[4], v[5]);
     const double n = s.q_WB.norm();
@@ -102,17 +105,19 @@ std::vector<GtSample> load_gt_file(const std::string& path) {
       throw std::runtime_error(where(path, line_no) + ": time " + f[0] + " does not increase");
     out.push_back(s);
   }
-  if (out.size() < 4)
+  if (out.size() < 4) {
     throw std::runtime_error(path + ": needs at least 4 ground-truth samples, found " +
                              std::to_string(out.size()));
+  }
   return out;
 }
 
 SplineTrajectory SplineTrajectory::fit(const std::vector<GtSample>& samples, const FitOptions& options) {
   if (samples.size() < 4) throw std::invalid_argument("spline fit needs at least 4 samples");
-  for (size_t k = 1; k < samples.size(); ++k)
+  for (size_t k = 1; k < samples.size(); ++k) {
     if (samples[k].t_ns <= samples[k - 1].t_ns)
       throw std::invalid_argument("spline fit: sample times must increase");
+  }
 
   SplineTrajectory sp;
   sp.t0_ns_ = samples.front().t_ns;
@@ -144,17 +149,21 @@ SplineTrajectory SplineTrajectory::fit(const std::vector<GtSample>& samples, con
     double u;
     locate(ts[k], dt, n_ctrl, seg[k], u);
     bas[k] = basis(u);
-    for (int a = 0; a < 4; ++a)
-      for (int b = 0; b < 4; ++b)
+    for (int a = 0; a < 4; ++a) {
+      for (int b = 0; b < 4; ++b) {
         trip.emplace_back(static_cast<int>(seg[k] + a), static_cast<int>(seg[k] + b),
                           bas[k].b[a] * bas[k].b[b]);
+      }
+    }
   }
   auto add_smoothing = [&](std::vector<Eigen::Triplet<double>>& t, double lambda) {
     const double c[3] = {1.0, -2.0, 1.0};
-    for (size_t j = 0; j + 2 < n_ctrl; ++j)
-      for (int a = 0; a < 3; ++a)
+    for (size_t j = 0; j + 2 < n_ctrl; ++j) {
+      for (int a = 0; a < 3; ++a) {
         for (int b = 0; b < 3; ++b)
           t.emplace_back(static_cast<int>(j + a), static_cast<int>(j + b), lambda * c[a] * c[b]);
+      }
+    }
   };
   const int n = static_cast<int>(n_ctrl);
   auto factor = [&](double lambda) {
@@ -174,9 +183,10 @@ SplineTrajectory SplineTrajectory::fit(const std::vector<GtSample>& samples, con
   {
     auto solver = factor(kTinySmoothing + std::max(0.0, options.position_smoothing));
     Eigen::MatrixXd rhs = Eigen::MatrixXd::Zero(n, 3);
-    for (size_t k = 0; k < M; ++k)
+    for (size_t k = 0; k < M; ++k) {
       for (int a = 0; a < 4; ++a)
         rhs.row(static_cast<long>(seg[k] + a)) += bas[k].b[a] * samples[k].p_WB.transpose();
+    }
     const Eigen::MatrixXd c = solver->solve(rhs);
     sp.ctrl_p_.resize(n_ctrl);
     for (size_t j = 0; j < n_ctrl; ++j) sp.ctrl_p_[j] = c.row(static_cast<long>(j)).transpose();

@@ -87,9 +87,10 @@ std::string decimated_message(Bin type, const std::vector<float>& v, int stride)
   if (every == 1) return float_message(type, v.data(), count, stride);
   std::vector<float> d;
   d.reserve((count / every + 1) * static_cast<size_t>(stride));
-  for (size_t i = 0; i < count; i += every)
+  for (size_t i = 0; i < count; i += every) {
     d.insert(d.end(), v.begin() + static_cast<std::ptrdiff_t>(i * stride),
              v.begin() + static_cast<std::ptrdiff_t>((i + 1) * stride));
+  }
   return float_message(type, d.data(), d.size() / static_cast<size_t>(stride), stride);
 }
 
@@ -189,9 +190,10 @@ void parse_view_endpoint(const std::string& text, ServerOptions& opt) {
   char* end = nullptr;
   errno = 0;
   const long v = port.empty() ? -1 : std::strtol(port.c_str(), &end, 10);
-  if (port.empty() || errno != 0 || end == nullptr || *end != '\0' || v < 0 || v > 65535)
+  if (port.empty() || errno != 0 || end == nullptr || *end != '\0' || v < 0 || v > 65535) {
     throw std::invalid_argument("'" + text +
                                 "': expected [ADDR:]PORT with PORT in 0..65535 (0: any free port)");
+  }
   if (colon != std::string::npos && host.empty())
     throw std::invalid_argument("'" + text + "': empty address before ':' (omit it for every interface)");
   if (!host.empty()) opt.address = host;
@@ -327,7 +329,7 @@ struct Server::Impl {
 
   // ---------------------------------------------------------------------
   // Handlers (viewer thread).
-  void on_socket_init(Hdl hdl, boost::asio::ip::tcp::socket& s) {
+  void on_socket_init(const Hdl& hdl, boost::asio::ip::tcp::socket& s) {
     sockets.erase(std::remove_if(sockets.begin(), sockets.end(),
                                  [](const std::weak_ptr<void>& w) { return w.expired(); }),
                   sockets.end());
@@ -346,7 +348,7 @@ struct Server::Impl {
   }
 
   void on_http(Hdl hdl) {
-    WsServer::connection_ptr con = ws.get_con_from_hdl(hdl);
+    WsServer::connection_ptr con = ws.get_con_from_hdl(std::move(hdl));
     with_stats([](ServerStats& x) { ++x.http_requests; });
     const std::string& method = con->get_request().get_method();
     std::string path = con->get_resource();
@@ -374,7 +376,7 @@ struct Server::Impl {
   }
 
   bool on_validate(Hdl hdl) {
-    WsServer::connection_ptr con = ws.get_con_from_hdl(hdl);
+    WsServer::connection_ptr con = ws.get_con_from_hdl(std::move(hdl));
     std::string path = con->get_resource();
     const size_t q = path.find('?');
     if (q != std::string::npos) path.resize(q);
@@ -394,7 +396,7 @@ struct Server::Impl {
 
   void on_open(Hdl hdl) {
     Client c;
-    c.hdl = hdl;
+    c.hdl = std::move(hdl);
     c.refill_ns = rt::now_ns();
     c.tokens = burst_bytes();
     clients.push_back(c);
@@ -404,9 +406,10 @@ struct Server::Impl {
     // What happened before this browser came: the trajectory (decimated when
     // long), every keyframe, the ground truth and its alignment, the map.
     if (!traj.empty()) send_binary(n, decimated_message(Bin::kPoses, traj, kPoseFloats));
-    if (!keyframes.empty())
+    if (!keyframes.empty()) {
       send_binary(n, float_message(Bin::kKeyframes, keyframes.data(), keyframes.size() / kKeyframeFloats,
                                    kKeyframeFloats));
+    }
     if (!gt_xyz.empty()) send_binary(n, decimated_message(Bin::kGroundTruth, gt_xyz, 3));
     if (!align_msg.empty()) send_text(n, align_msg);
     // The newest state and frame: a replay paused before this browser came shows them.
@@ -436,7 +439,7 @@ struct Server::Impl {
     feed.set_wanted(true);
   }
 
-  void on_close(Hdl hdl) {
+  void on_close(const Hdl& hdl) {
     WsServer::connection_ptr con = ws.get_con_from_hdl(hdl);
     const auto code = con->get_local_close_code();
     if (code == websocketpp::close::status::protocol_error ||
@@ -447,7 +450,7 @@ struct Server::Impl {
   }
 
   void on_fail(Hdl hdl) {
-    remove_client(hdl);
+    remove_client(std::move(hdl));
     with_stats([](ServerStats& x) { ++x.handshakes_failed; });
   }
 
@@ -464,7 +467,7 @@ struct Server::Impl {
     }
   }
 
-  void on_message(Hdl hdl, WsServer::message_ptr msg) {
+  void on_message(const Hdl& hdl, const WsServer::message_ptr& msg) {
     std::string reply;
     bool ok = false;
     if (msg->get_opcode() == websocketpp::frame::opcode::text) {
@@ -488,9 +491,10 @@ struct Server::Impl {
     }
     with_stats([&](ServerStats& x) { ok ? ++x.commands : ++x.bad_commands; });
     if (!ok) {
-      for (Client& c : clients)
+      for (Client& c : clients) {
         if (!c.hdl.owner_before(hdl) && !hdl.owner_before(c.hdl))
           send_text(c, json{{"type", "error"}, {"message", reply}}.dump());
+      }
     }
   }
 
@@ -529,12 +533,13 @@ struct Server::Impl {
                        {"tracking_max", ms(s.tracking_max_ns)},
                        {"imu_to_pose_max", ms(imu_ns)},
                        {"optimizer", s.has_window ? json(ms(s.optimizer_solve_ns)) : json(nullptr)}};
-    if (s.has_window)
+    if (s.has_window) {
       j["window"] = {{"jobs", s.window_jobs},
                      {"applied", s.window_applied},
                      {"failures", s.window_failures},
                      {"skipped_busy", s.window_skipped_busy},
                      {"resets", s.window_resets}};
+    }
     j["counters"] = {{"imu_in", s.imu_in},
                      {"frames_in", s.frames_in},
                      {"frames_used", s.frames_used},
@@ -559,10 +564,11 @@ struct Server::Impl {
       json all = json::object();
       for (std::size_t i = 0; i < counters->size(); ++i) {
         const rt::PerfCounter::Snapshot c = counters->at(i).snapshot();
-        if (c.kind == rt::PerfKind::kCount)
+        if (c.kind == rt::PerfKind::kCount) {
           all[c.name] = c.count;
-        else
+        } else {
           all[c.name] = {{"count", c.count}, {"mean_ms", 1e-6 * c.mean_ns()}, {"max_ms", ms(c.max_ns)}};
+        }
       }
       j["perf"] = std::move(all);
     }
@@ -634,7 +640,7 @@ struct Server::Impl {
   }
 
   void drain_inputs() {
-    PendingPose p;
+    PendingPose p{};
     while (pending_poses->try_pop(p)) {
       if (t0_ns < 0) t0_ns = p.t_ns;
       traj_t_ns.push_back(p.t_ns);
@@ -666,14 +672,16 @@ struct Server::Impl {
     // Everything new, encoded once for every browser.
     std::string poses_msg, kf_msg, state, frame, map;
     const size_t n_poses = traj.size() / kPoseFloats;
-    if (n_poses > traj_streamed)
+    if (n_poses > traj_streamed) {
       poses_msg = float_message(Bin::kPoses, &traj[traj_streamed * kPoseFloats], n_poses - traj_streamed,
                                 kPoseFloats);
+    }
     traj_streamed = n_poses;
     const size_t n_kf = keyframes.size() / kKeyframeFloats;
-    if (n_kf > keyframes_streamed)
+    if (n_kf > keyframes_streamed) {
       kf_msg = float_message(Bin::kKeyframes, &keyframes[keyframes_streamed * kKeyframeFloats],
                              n_kf - keyframes_streamed, kKeyframeFloats);
+    }
     keyframes_streamed = n_kf;
     std::string gt_msg;
     const size_t n_gt = gt_xyz.size() / 3;
@@ -860,9 +868,10 @@ struct Server::Impl {
 Server::Server(const ServerOptions& opt, ViewerFeed& feed, PlaybackControl* control)
     : impl_(std::make_unique<Impl>(opt, feed, control)) {
   if (opt.max_clients < 1) throw std::invalid_argument("viewer: max_clients must be >= 1");
-  if (opt.max_connections < opt.max_clients + 1)
+  if (opt.max_connections < opt.max_clients + 1) {
     throw std::invalid_argument(
         "viewer: max_connections must exceed max_clients (page loads need sockets too)");
+  }
   if (!(opt.max_kbytes_per_s > 0)) throw std::invalid_argument("viewer: max_kbytes_per_s must be > 0");
 }
 
@@ -886,18 +895,19 @@ rt::ThreadSetupReport Server::start(const rt::ThreadSpec& spec) {
   ws.set_close_handshake_timeout(1000);
   ws.set_max_message_size(kMaxIncomingBytes);
   ws.set_max_http_body_size(kMaxIncomingBytes);
-  ws.set_socket_init_handler([&m](Hdl h, boost::asio::ip::tcp::socket& s) { m.on_socket_init(h, s); });
-  ws.set_http_handler([&m](Hdl h) { m.on_http(h); });
-  ws.set_validate_handler([&m](Hdl h) { return m.on_validate(h); });
-  ws.set_open_handler([&m](Hdl h) { m.on_open(h); });
-  ws.set_close_handler([&m](Hdl h) { m.on_close(h); });
-  ws.set_fail_handler([&m](Hdl h) { m.on_fail(h); });
-  ws.set_message_handler([&m](Hdl h, WsServer::message_ptr msg) { m.on_message(h, msg); });
+  ws.set_socket_init_handler([&m](const Hdl& h, boost::asio::ip::tcp::socket& s) { m.on_socket_init(h, s); });
+  ws.set_http_handler([&m](const Hdl& h) { m.on_http(h); });
+  ws.set_validate_handler([&m](const Hdl& h) { return m.on_validate(h); });
+  ws.set_open_handler([&m](const Hdl& h) { m.on_open(h); });
+  ws.set_close_handler([&m](const Hdl& h) { m.on_close(h); });
+  ws.set_fail_handler([&m](const Hdl& h) { m.on_fail(h); });
+  ws.set_message_handler([&m](const Hdl& h, const WsServer::message_ptr& msg) { m.on_message(h, msg); });
   websocketpp::lib::error_code ec;
   ws.listen(m.opt.address, std::to_string(m.opt.port), ec);
-  if (ec)
+  if (ec) {
     throw std::runtime_error("viewer: cannot listen on " + m.opt.address + ":" + std::to_string(m.opt.port) +
                              ": " + ec.message());
+  }
   ws.start_accept(ec);
   if (ec) throw std::runtime_error("viewer: cannot accept on " + m.opt.address + ": " + ec.message());
   boost::system::error_code aec;

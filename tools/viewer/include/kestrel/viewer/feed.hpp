@@ -81,15 +81,15 @@ struct ViewSnapshot {
   StateSnapshot state;
   // Colour preview, 8-bit RGB, tightly packed; rgb_width == 0 when the frame had none.
   int rgb_width = 0, rgb_height = 0, rgb_step = 1;  // step: source pixels per preview pixel
-  uint8_t rgb[kPreviewMaxWidth * kPreviewMaxHeight * 3];
+  uint8_t rgb[kPreviewMaxWidth * kPreviewMaxHeight * 3]{};
   // Depth preview in the rig's units (0 = invalid); depth_width == 0 when absent.
   int depth_width = 0, depth_height = 0, depth_step = 1;
-  uint16_t depth[kDepthMaxWidth * kDepthMaxHeight];
+  uint16_t depth[kDepthMaxWidth * kDepthMaxHeight]{};
   int n_features = 0;  // full-resolution pixel coordinates
   core::FeatureMark features[kMaxFeatures];
   bool has_map = false;  // the local map, sent now and then (not in every snapshot)
   int n_map = 0;
-  float map_xyz[3 * kMaxMapPoints];
+  float map_xyz[3 * kMaxMapPoints]{};
 };
 
 struct FeedOptions {
