@@ -263,6 +263,13 @@ def run_viewer(args, b):
         check(b.js("return document.getElementById('state-table').textContent.includes('window')"),
               "the state panel shows the estimator name")
         check(b.js("return document.getElementById('features').width > 0"), "the feature overlay is drawn")
+        # The pipeline's perf registry reaches the page: every counter by path, in a table opened on demand.
+        check(b.js("const p = window.kestrelViewer.state.perf; return !!p && 'input.frames_missing' in p && "
+                   "'window.solves_ok' in p && p['estimator.frames_in'] > 0"),
+              "the state carries the pipeline's counters by path")
+        b.js("const d = document.getElementById('perf-box'); d.open = true; return d.hidden")
+        b.wait("return document.getElementById('perf-table').textContent.includes('rings.imu_drops')",
+               "the opened 'every counter' table lists the registry")
         check(b.js("return document.getElementById('depth').naturalWidth > 0"), "the depth colour map is shown")
         b.wait("const v = window.kestrelViewer; return v.keyframes >= 1 && v.mapPoints > 0 && v.groundTruthPoints > 0 && v.aligned",
                "keyframes, map points and the aligned ground truth reached the 3-D view")

@@ -376,6 +376,18 @@ function rows(table, list) {
   table.innerHTML = list.map(([k, v, bad]) => `<tr${bad ? ' class="bad"' : ''}><td>${k}</td><td>${v}</td></tr>`).join('');
 }
 
+// The pipeline's registry by path (docs/threads.md, "Counters"): filled only
+// while its table is open (it is long), and when it is opened.
+function showPerf(s) {
+  if (!s || !s.perf) return;
+  const box = $('perf-box');
+  box.hidden = false;
+  if (!box.open) return;
+  rows($('perf-table'), Object.entries(s.perf).map(([k, v]) =>
+    typeof v === 'object' ? [k, `${v.count} × ${fmt(v.mean_ms, 2)} ms (max ${fmt(v.max_ms, 2)})`] : [k, v]));
+}
+$('perf-box').addEventListener('toggle', () => showPerf(kv.state));
+
 function showState(s) {
   kv.state = s;
   kv.statesReceived++;
@@ -420,14 +432,7 @@ function showState(s) {
     ['IMU samples rejected', c.imu_rejected, c.imu_rejected > 0],
     ['viewer snapshots skipped', d.viewer_snapshots],
   ]);
-  // The pipeline's registry by path (docs/threads.md, "Counters"); only while open, it is long.
-  if (s.perf) {
-    $('perf-box').hidden = false;
-    if ($('perf-box').open) {
-      rows($('perf-table'), Object.entries(s.perf).map(([k, v]) =>
-        typeof v === 'object' ? [k, `${v.count} × ${fmt(v.mean_ms, 2)} ms (max ${fmt(v.max_ms, 2)})`] : [k, v]));
-    }
-  }
+  showPerf(s);
   plots.tracking.add(s.t, L.tracking_max);
   plots.optimizer.add(s.t, L.optimizer);
   plots.imu.add(s.t, L.imu_to_pose_max);
