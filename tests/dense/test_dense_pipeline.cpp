@@ -152,6 +152,10 @@ TEST(DensePipeline, RealtimePaceDropsInsteadOfWaitingAndCounts) {
   EXPECT_GT(r.dense_stats.keyframes, 5u);
   // Every keyframe is accounted for: fused, or dropped and counted.
   EXPECT_EQ(r.dense_stats.integrated + r.dense_stats.dropped, r.dense_stats.keyframes);
+  // The same counts by path, as the metrics JSON and the viewer read them.
+  EXPECT_EQ(r.counters.count("dense.keyframes"), r.dense_stats.keyframes);
+  EXPECT_EQ(r.counters.count("dense.integrated"), r.dense_stats.integrated);
+  EXPECT_EQ(r.counters.count("dense.dropped"), r.dense_stats.dropped);
 }
 
 // ReplayOptions::on_dense_live: a planner thread gets the running mapper

@@ -78,4 +78,34 @@ void PipelineCounters::mirror_estimator(const core::EstimatorCounters& c,
   window_resets_->set(v.optimizer.resets);
 }
 
+void PipelineCounters::register_map() {
+  map_loop_closures_ = count(registry, "map.loop_closures");
+  map_relocalisations_ = count(registry, "map.relocalisations");
+}
+
+void PipelineCounters::register_dense() {
+  dense_offered_ = count(registry, "dense.offered");
+  dense_keyframes_ = count(registry, "dense.keyframes");
+  dense_integrated_ = count(registry, "dense.integrated");
+  dense_dropped_ = count(registry, "dense.dropped");
+  dense_wrong_size_ = count(registry, "dense.wrong_size");
+  dense_corrections_dropped_ = count(registry, "dense.corrections_dropped");
+}
+
+void PipelineCounters::mirror_map(const core::MapFrameState& m) noexcept {
+  if (map_loop_closures_ == nullptr) return;
+  map_loop_closures_->set(m.loop_closures);
+  map_relocalisations_->set(m.relocalisations);
+}
+
+void PipelineCounters::mirror_dense(const dense::DenseStats& d) noexcept {
+  if (dense_offered_ == nullptr) return;
+  dense_offered_->set(d.offered);
+  dense_keyframes_->set(d.keyframes);
+  dense_integrated_->set(d.integrated);
+  dense_dropped_->set(d.dropped);
+  dense_wrong_size_->set(d.wrong_size);
+  dense_corrections_dropped_->set(d.corrections_dropped);
+}
+
 }  // namespace kestrel::cli

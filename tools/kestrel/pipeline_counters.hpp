@@ -7,13 +7,15 @@
 // Each counter has one updating thread:
 //  - input.*, rings.output_drops, estimator.*, window.*: the estimator thread;
 //  - output.*, mavlink.*: the output thread;
-//  - the other rings.*, viewer.* and ros2.*: the calling thread, after every
-//    other thread stopped.
+//  - map.*: the output thread, from the poses;
+//  - the other rings.*, viewer.*, ros2.* and dense.*: the calling thread,
+//    after every other thread stopped.
 // Counts kept elsewhere (a ring's, a backend's, the MAVLink stream's) are
 // mirrored with set(); the harness's own are counted here with inc().
 #pragma once
 
 #include "kestrel/core/estimator.hpp"
+#include "kestrel/dense/dense_mapper.hpp"
 #include "kestrel/rt/perf.hpp"
 
 namespace kestrel::cli {
@@ -68,6 +70,16 @@ struct PipelineCounters {
   // mirrored by the estimator thread.
   void mirror_estimator(const core::EstimatorCounters& c, const core::EstimatorView& v) noexcept;
 
+  // Before any thread starts: the map's counters (backends with a map) and
+  // the dense map's (when its thread runs). Without them the mirrors below
+  // do nothing.
+  void register_map();
+  void register_dense();
+  // map.loop_closures, map.relocalisations, from a pose's map state.
+  void mirror_map(const core::MapFrameState& m) noexcept;
+  // dense.offered, .keyframes, .integrated, .dropped, .wrong_size, .corrections_dropped.
+  void mirror_dense(const dense::DenseStats& d) noexcept;
+
  private:
   rt::PerfCounter* imu_in_;
   rt::PerfCounter* imu_used_;
@@ -86,6 +98,14 @@ struct PipelineCounters {
   rt::PerfCounter* window_failures_ = nullptr;
   rt::PerfCounter* window_skipped_busy_ = nullptr;
   rt::PerfCounter* window_resets_ = nullptr;
+  rt::PerfCounter* map_loop_closures_ = nullptr;
+  rt::PerfCounter* map_relocalisations_ = nullptr;
+  rt::PerfCounter* dense_offered_ = nullptr;
+  rt::PerfCounter* dense_keyframes_ = nullptr;
+  rt::PerfCounter* dense_integrated_ = nullptr;
+  rt::PerfCounter* dense_dropped_ = nullptr;
+  rt::PerfCounter* dense_wrong_size_ = nullptr;
+  rt::PerfCounter* dense_corrections_dropped_ = nullptr;
 };
 
 }  // namespace kestrel::cli

@@ -490,6 +490,7 @@ class OutputStage {
           if (opt_.on_map_correction) opt_.on_map_correction(s);
         }
         report_.map = s.map;
+        c_.mirror_map(s.map);
       }
       if (opt_.on_pose) opt_.on_pose(s);
       if (mavlink_) mavlink_->publish(s);
@@ -1029,6 +1030,7 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   // viewer, whose thread reads it until the viewer is gone.
   auto registry = std::make_unique<rt::PerfRegistry>();
   PipelineCounters counters(*registry, estimator.view().has_optimizer);
+  if (estimator.has_map()) counters.register_map();
   // The dense map's stream to the viewer, declared before the server that reads
   // it and the mapper that writes it, so both are gone before it is.
   std::unique_ptr<viewer::BinaryStream> dense_stream;
@@ -1041,6 +1043,7 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   const bool dense_on = opt.dense.enabled || !opt.dense_out.empty() || !opt.dense_octomap_out.empty() ||
                         !opt.dense_map_out.empty() || opt.on_dense_map || opt.on_dense_map_rebuilt ||
                         opt.on_dense_map_live;
+  if (dense_on) counters.register_dense();
   if (opt.view) {
     feed = std::make_unique<viewer::ViewerFeed>(estimator, rig);
     control =
@@ -1155,6 +1158,7 @@ ReplayReport run_replay(const ReplayOptions& opt) {
     dense_mapper.stop();
     dense_live.withdraw();
     finish_dense(opt, dense_opt, dense_mapper, report);
+    counters.mirror_dense(dense_mapper.stats());
   }
   if (map_feed) {
     counters.map_clouds->set(map_feed->clouds_published());
