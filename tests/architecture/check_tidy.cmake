@@ -1,9 +1,8 @@
 # clang-tidy's checks (.clang-tidy at the top, which says what is left out and
 # why) as errors on the LAYERS' sources (issue 45's gate): `architecture_tidy`
-# checks rt, drivers and core, `architecture_tidy_tools` checks tools (since
-# session 35), so ctest can run the two at once. Only the sources this build
-# compiles are checked (compile_commands.json of BUILD), through run-clang-tidy
-# on two processes.
+# checks rt, drivers, core and tools (tools since session 35). Only the
+# sources this build compiles are checked (compile_commands.json of BUILD),
+# through run-clang-tidy on two processes.
 # Run: cmake -DSRC=<source dir> -DBUILD=<build dir> -DRUN_CLANG_TIDY=<run-clang-tidy> "-DLAYERS=rt;drivers;core"
 #      -DMIN_SOURCES=30 -P check_tidy.cmake
 cmake_policy(SET CMP0057 NEW)  # if(... IN_LIST ...) in a -P script

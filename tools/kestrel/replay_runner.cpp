@@ -980,6 +980,17 @@ void run_threads(const ReplayOptions& opt, ReplayReport& report, drivers::Sensor
   }
 }
 
+// After every thread stopped: what the rings lost. Replayed, what the feeder
+// lost, not the rings' refused pushes: in fast pace the feeder retries a full
+// ring (back-pressure), and every retry is a refusal. Live there is no
+// back-pressure: every refused push is a lost sample.
+void count_ring_losses(PipelineCounters& c, bool live_input, const drivers::ReplayStats& replay,
+                       drivers::SensorRings& rings, const LiveSinks& live) {
+  c.imu_ring_drops->set(live_input ? rings.imu.drops() : replay.imu_dropped);
+  c.frame_ring_drops->set(live_input ? rings.frames.drops() + live.frames->drops : replay.frames_dropped);
+  c.image_pool_exhausted->set(rings.images.failed_acquires());
+}
+
 }  // namespace
 
 ReplayReport run_replay(const ReplayOptions& opt) {
@@ -1179,16 +1190,7 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   collect_estimator_report(estimator, workers, rig, report);
   report.optimizer_threaded = optimizer_thread;
 
-  // What the feeder lost, not the rings' refused pushes: in fast pace the
-  // feeder retries a full ring (back-pressure), and every retry is a refusal.
-  counters.imu_ring_drops->set(report.replay.imu_dropped);
-  counters.frame_ring_drops->set(report.replay.frames_dropped);
-  if (opt.live) {
-    // Live there is no back-pressure: every refused push is a lost sample.
-    counters.imu_ring_drops->set(rings->imu.drops());
-    counters.frame_ring_drops->set(rings->frames.drops() + live.frames->drops);
-  }
-  counters.image_pool_exhausted->set(rings->images.failed_acquires());
+  count_ring_losses(counters, opt.live != nullptr, report.replay, *rings, live);
   if (log) report.problems = log->problems();
   report.wall_s = 1e-9 * static_cast<double>(wall1 - wall0);
   report.cpu_s = process_cpu_s() - cpu0;
@@ -1217,6 +1219,24 @@ ReplayReport run_replay(const ReplayOptions& opt) {
 namespace {
 using tools::Json;
 using tools::json_figure;
+
+// Every counter of the run by path; elapsed and interval counters as
+// samples and microseconds.
+Json counters_json(const rt::PerfValues& values) {
+  Json all = Json::object();
+  for (const rt::PerfValue& v : values.all()) {
+    if (v.kind == rt::PerfKind::kCount) {
+      all[v.name] = v.count;
+      continue;
+    }
+    const double mean_ns = v.count > 0 ? static_cast<double>(v.total_ns) / static_cast<double>(v.count) : 0.0;
+    all[v.name] = Json{{"count", v.count},
+                       {"mean_us", 1e-3 * mean_ns},
+                       {"min_us", 1e-3 * static_cast<double>(v.min_ns)},
+                       {"max_us", 1e-3 * static_cast<double>(v.max_ns)}};
+  }
+  return all;
+}
 
 Json histogram_json(const rt::LatencyHistogram& h) {
   Json j = Json::object();
@@ -1530,22 +1550,7 @@ std::string replay_metrics_json(const ReplayReport& r) {
              {"commands", v.commands},
              {"bad_commands", v.bad_commands}};
   }
-  // Every counter of the run by path; elapsed and interval counters as
-  // samples and microseconds.
-  Json all = Json::object();
-  for (const rt::PerfValue& v : n.all()) {
-    if (v.kind == rt::PerfKind::kCount) {
-      all[v.name] = v.count;
-    } else {
-      all[v.name] =
-          Json{{"count", v.count},
-               {"mean_us",
-                v.count > 0 ? 1e-3 * static_cast<double>(v.total_ns) / static_cast<double>(v.count) : 0.0},
-               {"min_us", 1e-3 * static_cast<double>(v.min_ns)},
-               {"max_us", 1e-3 * static_cast<double>(v.max_ns)}};
-    }
-  }
-  j["counters"] = std::move(all);
+  j["counters"] = counters_json(n);
   Json problems = Json::array();
   for (const auto& p : r.problems)
     problems.push_back(Json{{"where", p.where}, {"kind", p.kind}, {"detail", p.detail}});
