@@ -49,11 +49,11 @@ PipelineCounters::PipelineCounters(rt::PerfRegistry& r, bool has_optimizer)
       restarts_while_lost_(count(r, "estimator.restarts_while_lost")),
       coast_timeouts_(count(r, "estimator.coast_timeouts")) {
   if (!has_optimizer) return;
-  window_jobs_ = count(r, "window.jobs");
-  window_solves_ok_ = count(r, "window.solves_ok");
-  window_failures_ = count(r, "window.failures");
-  window_skipped_busy_ = count(r, "window.skipped_busy");
-  window_resets_ = count(r, "window.resets");
+  window_.jobs = count(r, "window.jobs");
+  window_.solves_ok = count(r, "window.solves_ok");
+  window_.failures = count(r, "window.failures");
+  window_.skipped_busy = count(r, "window.skipped_busy");
+  window_.resets = count(r, "window.resets");
 }
 
 void PipelineCounters::mirror_estimator(const core::EstimatorCounters& c,
@@ -70,42 +70,42 @@ void PipelineCounters::mirror_estimator(const core::EstimatorCounters& c,
   divergences_->set(c.divergence.divergences);
   restarts_while_lost_->set(c.divergence.restarts_while_lost);
   coast_timeouts_->set(c.divergence.coast_timeouts);
-  if (window_jobs_ == nullptr || !v.has_optimizer) return;
-  window_jobs_->set(v.optimizer.jobs);
-  window_solves_ok_->set(v.optimizer.applied);
-  window_failures_->set(v.optimizer.failures);
-  window_skipped_busy_->set(v.optimizer.skipped_busy);
-  window_resets_->set(v.optimizer.resets);
+  if (window_.jobs == nullptr || !v.has_optimizer) return;
+  window_.jobs->set(v.optimizer.jobs);
+  window_.solves_ok->set(v.optimizer.applied);
+  window_.failures->set(v.optimizer.failures);
+  window_.skipped_busy->set(v.optimizer.skipped_busy);
+  window_.resets->set(v.optimizer.resets);
 }
 
 void PipelineCounters::register_map() {
-  map_loop_closures_ = count(registry, "map.loop_closures");
-  map_relocalisations_ = count(registry, "map.relocalisations");
+  map_.loop_closures = count(registry, "map.loop_closures");
+  map_.relocalisations = count(registry, "map.relocalisations");
 }
 
 void PipelineCounters::register_dense() {
-  dense_offered_ = count(registry, "dense.offered");
-  dense_keyframes_ = count(registry, "dense.keyframes");
-  dense_integrated_ = count(registry, "dense.integrated");
-  dense_dropped_ = count(registry, "dense.dropped");
-  dense_wrong_size_ = count(registry, "dense.wrong_size");
-  dense_corrections_dropped_ = count(registry, "dense.corrections_dropped");
+  dense_.offered = count(registry, "dense.offered");
+  dense_.keyframes = count(registry, "dense.keyframes");
+  dense_.integrated = count(registry, "dense.integrated");
+  dense_.dropped = count(registry, "dense.dropped");
+  dense_.wrong_size = count(registry, "dense.wrong_size");
+  dense_.corrections_dropped = count(registry, "dense.corrections_dropped");
 }
 
 void PipelineCounters::mirror_map(const core::MapFrameState& m) noexcept {
-  if (map_loop_closures_ == nullptr) return;
-  map_loop_closures_->set(m.loop_closures);
-  map_relocalisations_->set(m.relocalisations);
+  if (map_.loop_closures == nullptr) return;
+  map_.loop_closures->set(m.loop_closures);
+  map_.relocalisations->set(m.relocalisations);
 }
 
 void PipelineCounters::mirror_dense(const dense::DenseStats& d) noexcept {
-  if (dense_offered_ == nullptr) return;
-  dense_offered_->set(d.offered);
-  dense_keyframes_->set(d.keyframes);
-  dense_integrated_->set(d.integrated);
-  dense_dropped_->set(d.dropped);
-  dense_wrong_size_->set(d.wrong_size);
-  dense_corrections_dropped_->set(d.corrections_dropped);
+  if (dense_.offered == nullptr) return;
+  dense_.offered->set(d.offered);
+  dense_.keyframes->set(d.keyframes);
+  dense_.integrated->set(d.integrated);
+  dense_.dropped->set(d.dropped);
+  dense_.wrong_size->set(d.wrong_size);
+  dense_.corrections_dropped->set(d.corrections_dropped);
 }
 
 }  // namespace kestrel::cli

@@ -93,19 +93,18 @@ struct PipelineCounters {
   rt::PerfCounter* divergences_;
   rt::PerfCounter* restarts_while_lost_;
   rt::PerfCounter* coast_timeouts_;
-  rt::PerfCounter* window_jobs_ = nullptr;
-  rt::PerfCounter* window_solves_ok_ = nullptr;
-  rt::PerfCounter* window_failures_ = nullptr;
-  rt::PerfCounter* window_skipped_busy_ = nullptr;
-  rt::PerfCounter* window_resets_ = nullptr;
-  rt::PerfCounter* map_loop_closures_ = nullptr;
-  rt::PerfCounter* map_relocalisations_ = nullptr;
-  rt::PerfCounter* dense_offered_ = nullptr;
-  rt::PerfCounter* dense_keyframes_ = nullptr;
-  rt::PerfCounter* dense_integrated_ = nullptr;
-  rt::PerfCounter* dense_dropped_ = nullptr;
-  rt::PerfCounter* dense_wrong_size_ = nullptr;
-  rt::PerfCounter* dense_corrections_dropped_ = nullptr;
+  // Registered only for the parts that run (nullptr otherwise).
+  struct Window {
+    rt::PerfCounter *jobs = nullptr, *solves_ok = nullptr, *failures = nullptr, *skipped_busy = nullptr,
+                    *resets = nullptr;
+  } window_;
+  struct Map {
+    rt::PerfCounter *loop_closures = nullptr, *relocalisations = nullptr;
+  } map_;
+  struct Dense {
+    rt::PerfCounter *offered = nullptr, *keyframes = nullptr, *integrated = nullptr, *dropped = nullptr,
+                    *wrong_size = nullptr, *corrections_dropped = nullptr;
+  } dense_;
 };
 
 }  // namespace kestrel::cli
