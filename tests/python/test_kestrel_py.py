@@ -98,6 +98,9 @@ def test_replay_options_and_report(hover_log):
     assert report["estimator"] == "imu-dead-reckoning"
     assert report["frames_pushed"] > 200 and report["problems"] == []
     assert report["alloc_counting"] is False  # the counting hook is not in the module (docs/python.md)
+    # The run's perf registry by path, the same numbers as the report's own keys.
+    assert report["counters"]["estimator.frames_in"] == report["frames_pushed"]
+    assert report["counters"]["output.lost_poses_withheld"] == report["lost_poses_withheld"]
     assert rows.shape[1] == 8 and rows.shape[0] > 0
     with pytest.raises(ValueError, match="nosuch"):
         kestrel.replay(hover_log, estimator="nosuch")
