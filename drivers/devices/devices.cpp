@@ -528,58 +528,6 @@ Ros2Settings ros2_settings_from_yaml_node(const YAML::Node& node, const std::str
   return r;
 }
 
-EstimatorSettings estimator_settings_from_yaml_node(const YAML::Node& node, const std::string& where) {
-  EstimatorSettings e;
-  if (!node) return e;
-  if (!node.IsMap()) throw std::runtime_error(where + ": estimator: expected a mapping (backend: NAME)");
-  // The section's other keys are the estimator's options: the tools check
-  // them against core's options table (tools/config), which drivers cannot see.
-  if (node["backend"]) {
-    if (!node["backend"].IsScalar() || node["backend"].Scalar().empty())
-      throw std::runtime_error(where + ": estimator.backend: expected a backend name");
-    e.backend = node["backend"].Scalar();
-  }
-  return e;
-}
-
-namespace {
-
-// One section of a config file, parsed by `parse` with the file's name for
-// its errors; YAML syntax errors name the line.
-template <class Parse>
-auto parse_config_section(const std::string& path, const char* section, Parse parse) {
-  std::ifstream f(path, std::ios::binary);
-  if (!f) throw std::runtime_error(path + ": cannot open config file");
-  std::ostringstream text;
-  text << f.rdbuf();
-  YAML::Node root;
-  try {
-    root = YAML::Load(text.str());
-  } catch (const YAML::ParserException& e) {
-    throw std::runtime_error(path + ":" + std::to_string(e.mark.line + 1) + ": YAML syntax error: " + e.msg);
-  }
-  if (!root.IsMap()) throw std::runtime_error(path + ": expected a mapping");
-  try {
-    return parse(root[section], path);
-  } catch (const YAML::Exception& e) {
-    throw std::runtime_error(path + ": " + e.what());
-  }
-}
-
-}  // namespace
-
-EstimatorSettings load_estimator_settings(const std::string& path) {
-  return parse_config_section(path, "estimator", estimator_settings_from_yaml_node);
-}
-
-Ros2Settings load_ros2_settings(const std::string& path) {
-  return parse_config_section(path, "ros2", ros2_settings_from_yaml_node);
-}
-
-MavlinkSettings load_mavlink_settings(const std::string& path) {
-  return parse_config_section(path, "mavlink", mavlink_settings_from_yaml_node);
-}
-
 namespace {
 constexpr const char* kThreadNames[kPipelineThreads] = {
     "kst-imu",       "kst-cam", "kst-replay", "kst-propagate", "kst-estimator",
@@ -640,78 +588,6 @@ ThreadTable thread_table_from_yaml_node(const YAML::Node& node, const std::strin
     }
   }
   return t;
-}
-
-ThreadTable load_thread_table(const std::string& path) {
-  return parse_config_section(path, "threads", thread_table_from_yaml_node);
-}
-
-LiveConfig live_config_from_yaml(const std::string& text, const std::string& where,
-                                 const std::vector<std::string>& estimator_sections) {
-  YAML::Node root;
-  try {
-    root = YAML::Load(text);
-  } catch (const YAML::ParserException& e) {
-    throw std::runtime_error(where + ":" + std::to_string(e.mark.line + 1) + ": YAML syntax error: " + e.msg);
-  }
-  if (!root.IsMap()) throw std::runtime_error(where + ": expected a mapping with `rig:` and `drivers:`");
-  for (const auto& kv : root) {
-    const std::string k = kv.first.Scalar();
-    bool estimator_section = k == "estimator";
-    for (const std::string& e : estimator_sections) estimator_section = estimator_section || k == e;
-    if (k != "rig" && k != "drivers" && k != "threads" && k != "mavlink" && k != "record" && k != "ros2" &&
-        !estimator_section) {
-      std::string expected = "rig, drivers, threads, mavlink, record, ros2, estimator";
-      for (const std::string& e : estimator_sections)
-        if (e != "estimator") expected += ", " + e;
-      throw std::runtime_error(where + ": " + k + ": unknown key (expected " + expected + ")");
-    }
-  }
-  LiveConfig c;
-  c.path = where;
-  try {
-    if (!root["rig"]) {
-      // A log plays with its own rig; live sensors need one.
-      c.drivers = driver_settings_from_yaml_node(root["drivers"], where);
-      if (c.drivers.camera.type != CameraType::kLog)
-        throw std::runtime_error(where + ": rig: missing (required unless the sensors are a log)");
-      c.rig = KlogReader(c.drivers.log_path).rig();
-    } else if (root["rig"].IsScalar()) {
-      // A rig file of its own (what `kestrel calib import-kalibr` writes), relative to this config.
-      std::string file = root["rig"].Scalar();
-      const auto slash = where.rfind('/');
-      if (!file.empty() && file[0] != '/' && slash != std::string::npos)
-        file = where.substr(0, slash + 1) + file;
-      c.rig = load_rig_file(file);
-    } else {
-      c.rig = rig_from_yaml_node(root["rig"], where, "rig.");
-    }
-    c.drivers = driver_settings_from_yaml_node(root["drivers"], where);
-    if (c.drivers.camera.type == CameraType::kLog) {
-      // The log's camera size and rate unless the config names them.
-      const YAML::Node cam = root["drivers"]["camera"];
-      CameraSettings& cs = c.drivers.camera;
-      if (!cam["width_px"] && c.rig.rgb.width > 0) cs.width_px = c.rig.rgb.width;
-      if (!cam["height_px"] && c.rig.rgb.height > 0) cs.height_px = c.rig.rgb.height;
-      if (!cam["rate_hz"] && c.rig.camera_rate_hz > 0) cs.rate_hz = c.rig.camera_rate_hz;
-    }
-    c.estimator = estimator_settings_from_yaml_node(root["estimator"], where);
-    c.threads = thread_table_from_yaml_node(root["threads"], where);
-    c.mavlink = mavlink_settings_from_yaml_node(root["mavlink"], where);
-    c.record = record_settings_from_yaml_node(root["record"], where);
-    c.ros2 = ros2_settings_from_yaml_node(root["ros2"], where);
-  } catch (const YAML::Exception& e) {
-    throw std::runtime_error(where + ": " + e.what());
-  }
-  return c;
-}
-
-LiveConfig load_live_config(const std::string& path, const std::vector<std::string>& estimator_sections) {
-  std::ifstream f(path, std::ios::binary);
-  if (!f) throw std::runtime_error(path + ": cannot open config file");
-  std::ostringstream s;
-  s << f.rdbuf();
-  return live_config_from_yaml(s.str(), path, estimator_sections);
 }
 
 std::string built_drivers_summary() {

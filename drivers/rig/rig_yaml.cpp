@@ -191,17 +191,13 @@ const char* distortion_name(DistortionModel m) {
 Rig rig_from_yaml_node(const YAML::Node& root, const std::string& where, const std::string& prefix) {
   Parser p(where, prefix);
   if (!root || root.IsNull()) p.fail("", "empty rig");
-  // A rig file of its own (prefix "") may also carry the pipeline's `threads:`
-  // table (drivers::load_thread_table reads it); inside a live config `rig.threads` stays an error.
-  if (prefix.empty()) {
-    p.only_keys(root, "",
-                {"name", "camera", "depth", "depth_camera", "stereo", "T_BC", "T_BI", "imu",
-                 "time_offset_cam_imu_ns", "gravity_mps2", "threads"});
-  } else {
-    p.only_keys(root, "",
-                {"name", "camera", "depth", "depth_camera", "stereo", "T_BC", "T_BI", "imu",
-                 "time_offset_cam_imu_ns", "gravity_mps2"});
-  }
+  // A rig file holds the rig only: the pipeline's `threads:` belong to a
+  // config file (tools/config reads it; its `rig:` may name this file).
+  if (prefix.empty() && root.IsMap() && root["threads"])
+    p.fail("threads", "belongs in a config file beside `rig: FILE` (docs/config.md), not in a rig file");
+  p.only_keys(root, "",
+              {"name", "camera", "depth", "depth_camera", "stereo", "T_BC", "T_BI", "imu",
+               "time_offset_cam_imu_ns", "gravity_mps2"});
   Rig rig;
   if (root["name"]) {
     if (!root["name"].IsScalar()) p.fail("name", "expected a string");

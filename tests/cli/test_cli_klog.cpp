@@ -13,6 +13,7 @@
 
 #include "kestrel/drivers/devices.hpp"
 #include "kestrel/drivers/klog.hpp"
+#include "kestrel/tools/config_file.hpp"
 #include "run_command.hpp"
 #include "test_data.hpp"
 
@@ -138,21 +139,21 @@ std::string config_with(const std::string& record_section) {
 }
 
 TEST(CliKlogCompression, RecordSectionChoosesTheLoggersCompression) {
-  const drivers::LiveConfig def = drivers::live_config_from_yaml(config_with(""), "c.yaml");
+  const drivers::LiveConfig def = kestrel::tools::live_config_from_yaml(config_with(""), "c.yaml");
   EXPECT_EQ(def.record.compression.codec, drivers::klog::ImageCodec::kZstd);
   EXPECT_EQ(def.record.compression.zstd_level, 1);
   const drivers::LiveConfig lz =
-      drivers::live_config_from_yaml(config_with("record:\n  image_codec: lz4\n"), "c.yaml");
+      kestrel::tools::live_config_from_yaml(config_with("record:\n  image_codec: lz4\n"), "c.yaml");
   EXPECT_EQ(lz.record.compression.codec, drivers::klog::ImageCodec::kLz4);
-  const drivers::LiveConfig z3 = drivers::live_config_from_yaml(
+  const drivers::LiveConfig z3 = kestrel::tools::live_config_from_yaml(
       config_with("record:\n  image_codec: zstd\n  zstd_level: 3\n"), "c.yaml");
   EXPECT_EQ(z3.record.compression.zstd_level, 3);
   const drivers::LiveConfig off =
-      drivers::live_config_from_yaml(config_with("record:\n  image_codec: none\n"), "c.yaml");
+      kestrel::tools::live_config_from_yaml(config_with("record:\n  image_codec: none\n"), "c.yaml");
   EXPECT_EQ(off.record.compression.codec, drivers::klog::ImageCodec::kRaw);
   auto error = [](const std::string& text) {
     try {
-      drivers::live_config_from_yaml(config_with(text), "c.yaml");
+      kestrel::tools::live_config_from_yaml(config_with(text), "c.yaml");
     } catch (const std::runtime_error& e) {
       return std::string(e.what());
     }

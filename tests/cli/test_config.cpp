@@ -1,14 +1,19 @@
 // The estimator's options table as a config file (tools/config, docs/config.md):
 // every key reads back, bad keys and values name the file, line and key, the
 // two preset keys select defaults, and docs/config.md agrees with the code.
+// The one reader of a config file (config_file.hpp): each section reaches its
+// owner's parser, a misspelt section is an error.
 #include <gtest/gtest.h>
 #include <unistd.h>
 
 #include <fstream>
+#include <set>
 #include <sstream>
 #include <string>
 
 #include "kestrel/core/estimator_config.hpp"
+#include "kestrel/drivers/rig_yaml.hpp"
+#include "kestrel/tools/config_file.hpp"
 #include "kestrel/tools/estimator_config_yaml.hpp"
 #include "run_command.hpp"
 #include "test_data.hpp"
@@ -219,8 +224,141 @@ TEST(ConfigFile, BadInputNamesFileLineAndKey) {
   EXPECT_NE(error_of("window: {recent_frames: 99999999999}\n").find("window.recent_frames: out of range"),
             std::string::npos);
   EXPECT_NE(error_of("window:\n  recent_frames: 3\n bad indent: [\n").find("x.yaml:"), std::string::npos);
-  // Sections of other readers are not this table's business.
+  // Sections of other owners are not this table's business (the one reader checks them).
   EXPECT_EQ(error_of("rig: {name: x}\nthreads: {}\ncamera: {width_px: 640}\n"), "");
+}
+
+std::string file_error_of(const std::string& yaml) {
+  try {
+    kestrel::tools::config_from_yaml(yaml, "x.yaml");
+  } catch (const std::exception& e) {
+    return e.what();
+  }
+  return "";
+}
+
+// One file, one parse: every section reaches the struct of the folder that owns it.
+TEST(ConfigFileReader, EverySectionReachesItsOwner) {
+  const std::string dir = kestrel::test::temp_dir("cfg_reader_" + std::to_string(getpid()));
+  kestrel::Rig rig;
+  rig.name = "own-rig";
+  rig.rgb.width = 320;
+  rig.rgb.height = 240;
+  rig.rgb.fx = rig.rgb.fy = 300;
+  rig.rgb.cx = 160;
+  rig.rgb.cy = 120;
+  {
+    std::ofstream f(dir + "/r.yaml");
+    f << kestrel::drivers::rig_to_yaml(rig);
+  }
+  const std::string text =
+      "rig: r.yaml\n"
+      "drivers:\n  camera: {type: none}\n"
+      "threads:\n  kst-optimizer: {cpu: 1, policy: other}\n"
+      "mavlink:\n  sysid: 7\n"
+      "record:\n  image_codec: lz4\n"
+      "ros2:\n  map_points_rate_hz: 2\n"
+      "estimator:\n  backend: vo\n"
+      "frontend:\n  orb: {n_features: 333}\n"
+      "dense:\n  voxel_size_m: 0.08\n"
+      "viewer:\n  dense_max_kbps: 250\n";
+  {
+    std::ofstream f(dir + "/c.yaml");
+    f << text;
+  }
+  const kestrel::tools::Config c = kestrel::tools::load_config(dir + "/c.yaml");
+  ASSERT_TRUE(c.rig.has_value());
+  EXPECT_EQ(c.rig->name, "own-rig");  // `rig: FILE` is read relative to the config
+  EXPECT_EQ(c.drivers.camera.type, kestrel::drivers::CameraType::kNone);
+  EXPECT_TRUE(c.threads.from_config);
+  EXPECT_EQ(c.threads[kestrel::drivers::PipelineThread::kOptimizer].cpu, 1);
+  EXPECT_EQ(c.mavlink.sysid, 7);
+  EXPECT_EQ(c.record.compression.codec, kestrel::drivers::klog::ImageCodec::kLz4);
+  EXPECT_DOUBLE_EQ(c.ros2.map_points_rate_hz, 2.0);
+  EXPECT_EQ(c.estimator.backend, "vo");
+  EXPECT_TRUE(c.backend_from_file);
+  EXPECT_EQ(c.estimator.tracker.orb.n_features, 333);
+  EXPECT_DOUBLE_EQ(c.dense.tsdf.voxel_size_m, 0.08);
+  EXPECT_DOUBLE_EQ(c.dense_view.max_kbps, 250.0);
+  const kestrel::drivers::LiveConfig live = kestrel::tools::live_config(c);
+  EXPECT_EQ(live.rig.name, "own-rig");
+  EXPECT_EQ(live.mavlink.sysid, 7);
+  // --estimator replaces the file's backend, and the file no longer chose it.
+  const kestrel::tools::Config o = kestrel::tools::load_config(dir + "/c.yaml", "ekf");
+  EXPECT_EQ(o.estimator.backend, "ekf");
+  EXPECT_FALSE(o.backend_from_file);
+  EXPECT_EQ(o.estimator.tracker.orb.n_features, 333);
+  // No file: the command line's defaults, and no rig.
+  const kestrel::tools::Config d = kestrel::tools::load_config("");
+  EXPECT_EQ(d.estimator.backend, "auto");
+  EXPECT_FALSE(d.rig.has_value());
+  EXPECT_FALSE(d.threads.from_config);
+  EXPECT_FALSE(d.dense.enabled);
+  // Live sensors need their devices, and a rig unless they are a log.
+  const std::pair<std::string, const char*> live_cases[] = {
+      {"estimator: {backend: vo}\n", "x.yaml: drivers: missing"},
+      {"drivers:\n  camera: {type: none}\n", "x.yaml: rig: missing"},
+  };
+  for (const auto& [yaml, needle] : live_cases) {
+    try {
+      (void)kestrel::tools::live_config_from_yaml(yaml, "x.yaml");
+      ADD_FAILURE() << "accepted as a live config: " << yaml;
+    } catch (const std::runtime_error& e) {
+      EXPECT_NE(std::string(e.what()).find(needle), std::string::npos) << e.what();
+    }
+  }
+}
+
+TEST(ConfigFileReader, SectionTableHasOneOwnerPerSection) {
+  const auto& sections = kestrel::tools::config_sections();
+  std::set<std::string> names;
+  for (const auto& s : sections) {
+    EXPECT_TRUE(names.insert(s.name).second) << s.name << " has two owners";
+    EXPECT_FALSE(s.owner.empty()) << s.name;
+  }
+  for (const char* n : {"rig", "drivers", "threads", "mavlink", "record", "ros2", "dense", "viewer"})
+    EXPECT_EQ(names.count(n), 1u) << n;
+  for (const std::string& e : kestrel::tools::estimator_config_sections()) EXPECT_EQ(names.count(e), 1u) << e;
+}
+
+// Each owner's errors reach the caller with the file named; a misspelt
+// section is an error (it used to be ignored by every reader, so its keys
+// silently kept their defaults).
+TEST(ConfigFileReader, BadSectionsNameFileLineAndKey) {
+  const std::string misspelt = file_error_of("estimator: {backend: vo}\n\nwindw: {recent_frames: 3}\n");
+  EXPECT_EQ(misspelt.rfind("x.yaml:3: windw: unknown section (expected one of: rig, drivers, threads,", 0),
+            0u)
+      << misspelt;
+  EXPECT_NE(misspelt.find(", window,"), std::string::npos) << misspelt;
+  EXPECT_NE(misspelt.find("dense, viewer)"), std::string::npos) << misspelt;
+  const std::pair<const char*, const char*> cases[] = {
+      {"threads:\n  kst-nope: {cpu: 1}\n", "threads.kst-nope: unknown thread"},
+      {"mavlink:\n  sysid: 0\n", "mavlink.sysid"},
+      {"record:\n  image_codec: gif\n", "record.image_codec"},
+      {"ros2:\n  map_points_rate_hz: 99\n", "ros2.map_points_rate_hz"},
+      {"dense:\n  voxel_size: 0.1\n", "dense.voxel_size: unknown key"},
+      {"viewer:\n  dense_max_kbs: 1\n", "viewer.dense_max_kbs: unknown key"},
+      {"drivers:\n  camera: {type: kinect}\n", "drivers.camera.type"},
+      {"rig: /nonexistent/rig.yaml\n", "/nonexistent/rig.yaml"},
+      {"rig:\n  camera: {fx: 1}\n", "rig.camera.fx"},
+      {"window: {recent_frames: x}\n", "window.recent_frames"},
+      {"- a list\n", "expected a mapping of sections"},
+      {"window: [\n", "YAML syntax error"},
+  };
+  for (const auto& [yaml, needle] : cases) {
+    const std::string e = file_error_of(yaml);
+    EXPECT_NE(e.find(needle), std::string::npos) << yaml << " -> " << e;
+    EXPECT_EQ(e.rfind(e.rfind("/nonexistent", 0) == 0 ? "/nonexistent" : "x.yaml", 0), 0u) << e;
+  }
+}
+
+// docs/config.md's "One file" table lists every section with its owner.
+TEST(ConfigDocs, SectionTableListsEverySectionAndItsOwner) {
+  const std::string doc = slurp(std::string(KESTREL_SOURCE_DIR) + "/docs/config.md");
+  for (const auto& s : kestrel::tools::config_sections()) {
+    EXPECT_NE(doc.find("| `" + s.name + ":` | " + s.owner + " |"), std::string::npos)
+        << "docs/config.md's section table lacks the row | `" << s.name << ":` | " << s.owner << " |";
+  }
 }
 
 TEST(ConfigDocs, ReferenceTableMatchesTheCode) {
@@ -259,6 +397,17 @@ TEST(ConfigCli, PrintConfigPrintsTheEffectiveSettingsAndExits) {
   r = kestrel::test::run_kestrel("replay --config " + dir + "/bad.yaml --print-config");
   EXPECT_NE(r.code, 0) << r.out;
   EXPECT_NE(r.out.find("bad.yaml:2: window.recentframes: unknown key"), std::string::npos) << r.out;
+  // So does a misspelt section, in replay as in run (the one reader checks every section).
+  {
+    std::ofstream f(dir + "/typo.yaml");
+    f << "windw:\n  recent_frames: 3\n";
+  }
+  for (const char* cmd :
+       {"replay --print-config --config ", "config --config ", "run --print-config --config "}) {
+    r = kestrel::test::run_kestrel(cmd + dir + "/typo.yaml");
+    EXPECT_NE(r.code, 0) << cmd << r.out;
+    EXPECT_NE(r.out.find("typo.yaml:1: windw: unknown section"), std::string::npos) << cmd << r.out;
+  }
   // kestrel config prints the same as --print-config.
   const auto a = kestrel::test::run_kestrel("config --config " + dir + "/c.yaml");
   const auto b = kestrel::test::run_kestrel("replay --config " + dir + "/c.yaml --print-config");

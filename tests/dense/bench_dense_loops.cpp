@@ -29,6 +29,7 @@
 #include "kestrel/dense/dense_config.hpp"
 #include "kestrel/drivers/open_log.hpp"
 #include "kestrel/replay_runner.hpp"
+#include "kestrel/tools/config_file.hpp"
 #include "kestrel/tools/sim_render.hpp"
 #include "kestrel/tools/sim_trajectory.hpp"
 #include "kestrel/tools/simulator.hpp"
@@ -210,7 +211,7 @@ TEST(DenseLoopsBench, SurfacesAgainstTheTrueGeometryAlongOdometryAndAlongTheMap)
   ro.pace = drivers::ReplayPace::kLockstep;
   ro.config = map_test::map_config("window");
   if (const char* c = std::getenv("KESTREL_DENSE_LOOP_CONFIG"); c != nullptr && *c != 0)
-    ro.dense = dense::load_dense_options(c);
+    ro.dense = tools::load_config(c).dense;
   std::vector<core::SurfacePoint> in_W, in_M, live;
   ro.on_dense_map = [&](const core::TsdfMap& m) { m.extract_surface(in_W); };
   // With dense.live_reanchor the map as flown is in the map frame of the

@@ -22,6 +22,7 @@
 #include "kestrel/drivers/iio_scan.hpp"
 #include "kestrel/rt/alloc_counter.hpp"
 #include "kestrel/rt/clock.hpp"
+#include "kestrel/tools/config_file.hpp"
 #include "vec_imu_sink.hpp"
 
 namespace kestrel::test {
@@ -911,7 +912,7 @@ std::string live_yaml(const std::string& imu) {
 }
 
 TEST(IioLiveConfig, TheIioSectionWithUnitsInItsKeys) {
-  const drivers::LiveConfig c = drivers::live_config_from_yaml(
+  const drivers::LiveConfig c = kestrel::tools::live_config_from_yaml(
       live_yaml("    type: iio\n    axis_remap: [+y, -x, +z]\n    iio:\n      accel_device: accel_3d\n"
                 "      gyro_device: gyro_3d\n      sysfs_root: fake/sys\n      dev_root: /tmp/dev\n"
                 "      accel_rate_hz: 200\n      gyro_rate_hz: 400\n      timestamp_clock: boottime\n"
@@ -935,8 +936,8 @@ TEST(IioLiveConfig, TheIioSectionWithUnitsInItsKeys) {
   EXPECT_EQ(i.clock.latency_floor_ns, 90'000);
   EXPECT_EQ(i.axis_remap, (std::array<int8_t, 3>{2, -1, 3}));
   // Defaults: the kernel's paths, monotonic stamps.
-  const drivers::LiveConfig d =
-      drivers::live_config_from_yaml(live_yaml("    type: iio\n    iio: {device: bmi088}\n"), "x.yaml");
+  const drivers::LiveConfig d = kestrel::tools::live_config_from_yaml(
+      live_yaml("    type: iio\n    iio: {device: bmi088}\n"), "x.yaml");
   EXPECT_EQ(d.drivers.imu.iio.sysfs_root, "/sys/bus/iio/devices");
   EXPECT_EQ(d.drivers.imu.iio.dev_root, "/dev");
   EXPECT_EQ(d.drivers.imu.iio.timestamp_clock, "monotonic");
@@ -946,7 +947,7 @@ TEST(IioLiveConfig, TheIioSectionWithUnitsInItsKeys) {
 TEST(IioLiveConfig, ErrorsNameFileAndKey) {
   auto error = [](const std::string& imu) {
     try {
-      drivers::live_config_from_yaml(live_yaml(imu), "live.yaml");
+      kestrel::tools::live_config_from_yaml(live_yaml(imu), "live.yaml");
     } catch (const std::runtime_error& e) {
       return std::string(e.what());
     }
@@ -986,7 +987,7 @@ struct NoFrames final : drivers::FrameSink {
 
 TEST(IioLiveSensors, TheImuThreadReadsTheConfiguredDevice) {
   iio::FakeIioTree tree(temp_dir("iio_live"), {combined_imu_spec()});
-  const drivers::LiveConfig c = drivers::live_config_from_yaml(
+  const drivers::LiveConfig c = kestrel::tools::live_config_from_yaml(
       live_yaml("    type: iio\n    iio:\n      device: icm42688\n      sysfs_root: " + tree.sysfs_root() +
                 "\n      dev_root: " + tree.dev_root() + "\n"),
       "live.yaml");
@@ -1017,7 +1018,7 @@ TEST(IioLiveSensors, TheImuThreadReadsTheConfiguredDevice) {
 
 TEST(IioLiveSensors, AMissingDeviceIsNamedWhenOpening) {
   iio::FakeIioTree tree(temp_dir("iio_live_missing"), {d4xx_accel_spec()});
-  const drivers::LiveConfig c = drivers::live_config_from_yaml(
+  const drivers::LiveConfig c = kestrel::tools::live_config_from_yaml(
       live_yaml("    type: iio\n    iio:\n      accel_device: accel_3d\n      gyro_device: gyro_3d\n"
                 "      sysfs_root: " +
                 tree.sysfs_root() + "\n"),

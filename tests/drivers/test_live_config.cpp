@@ -8,6 +8,7 @@
 #include "kestrel/drivers/devices.hpp"
 #include "kestrel/drivers/rig_yaml.hpp"
 #include "kestrel/rt/alloc_counter.hpp"
+#include "kestrel/tools/config_file.hpp"
 
 namespace kestrel::drivers {
 namespace {
@@ -15,14 +16,14 @@ namespace {
 const std::string kConfigs = std::string(KESTREL_SOURCE_DIR) + "/configs/";
 
 TEST(LiveConfig, ShippedConfigsParse) {
-  const LiveConfig a = load_live_config(kConfigs + "openni2_bmx055_i2c.yaml");
+  const LiveConfig a = kestrel::tools::load_live_config(kConfigs + "openni2_bmx055_i2c.yaml");
   EXPECT_EQ(a.drivers.camera.type, CameraType::kOpenNi2);
   EXPECT_EQ(a.drivers.imu.type, ImuType::kBmx055I2c);
   EXPECT_EQ(a.drivers.imu.bmx055.drdy, bmx055::DataReadyMode::kGpio);
   EXPECT_EQ(a.drivers.imu.gpio_line, 17);
   EXPECT_EQ(a.drivers.imu.bmx055.gyro_bw, bmx055::gyro::Bandwidth::k400Hz_47Hz);
   EXPECT_EQ(a.rig.imu_rate_hz, 400);
-  const LiveConfig b = load_live_config(kConfigs + "realsense_v4l2_bmx055_usb.yaml");
+  const LiveConfig b = kestrel::tools::load_live_config(kConfigs + "realsense_v4l2_bmx055_usb.yaml");
   EXPECT_EQ(b.drivers.camera.type, CameraType::kV4l2);
   EXPECT_EQ(b.drivers.camera.v4l2_depth_format, "z16");
   EXPECT_EQ(b.drivers.imu.type, ImuType::kBmx055Usb);
@@ -31,8 +32,9 @@ TEST(LiveConfig, ShippedConfigsParse) {
   EXPECT_TRUE(b.drivers.strobe.enabled);
   EXPECT_EQ(b.drivers.strobe.initial_offset_ns, 33'000'000);
   // The shipped live rigs name their backend: one each of the small-board EKF and the window optimizer.
-  EXPECT_EQ(a.estimator.backend, "ekf");
-  EXPECT_EQ(b.estimator.backend, "window");
+  EXPECT_EQ(kestrel::tools::load_config(kConfigs + "openni2_bmx055_i2c.yaml").estimator.backend, "ekf");
+  EXPECT_EQ(kestrel::tools::load_config(kConfigs + "realsense_v4l2_bmx055_usb.yaml").estimator.backend,
+            "window");
 }
 
 std::string with_drivers(const std::string& drivers) {
@@ -43,7 +45,7 @@ std::string with_drivers(const std::string& drivers) {
 
 void expect_error(const std::string& text, const std::string& needle) {
   try {
-    live_config_from_yaml(text, "x.yaml");
+    kestrel::tools::live_config_from_yaml(text, "x.yaml");
     ADD_FAILURE() << "no error for " << text;
   } catch (const std::runtime_error& e) {
     EXPECT_NE(std::string(e.what()).find(needle), std::string::npos) << e.what();
@@ -54,26 +56,26 @@ void expect_error(const std::string& text, const std::string& needle) {
 // Live stereo (docs/stereo.md, "Live stereo"): the V4L2 keys, and which
 // camera settings can deliver a stereo rig's right image.
 TEST(LiveConfig, StereoCameraSettingsAndTheirCapability) {
-  const LiveConfig sbs = live_config_from_yaml(
+  const LiveConfig sbs = kestrel::tools::live_config_from_yaml(
       with_drivers(
           "  camera: {type: v4l2, v4l2: {color_device: /dev/video0, color_format: grey, stereo_layout: "
           "side_by_side}}\n"),
       "x.yaml");
   EXPECT_EQ(sbs.drivers.camera.v4l2_stereo_layout, "side_by_side");
   EXPECT_EQ(stereo_capability(sbs.drivers.camera), "");
-  const LiveConfig two = live_config_from_yaml(
+  const LiveConfig two = kestrel::tools::live_config_from_yaml(
       with_drivers("  camera: {type: v4l2, v4l2: {color_device: /dev/video0, right_device: /dev/video2}}\n"),
       "x.yaml");
   EXPECT_EQ(two.drivers.camera.v4l2_right_device, "/dev/video2");
   EXPECT_EQ(stereo_capability(two.drivers.camera), "");
-  const LiveConfig mono = live_config_from_yaml(
+  const LiveConfig mono = kestrel::tools::live_config_from_yaml(
       with_drivers("  camera: {type: v4l2, v4l2: {color_device: /dev/video0}}\n"), "x.yaml");
   EXPECT_NE(stereo_capability(mono.drivers.camera).find("right_device or stereo_layout"), std::string::npos);
-  const LiveConfig ir = live_config_from_yaml(
+  const LiveConfig ir = kestrel::tools::live_config_from_yaml(
       with_drivers("  camera: {type: d4xx, d4xx: {image: infrared1, infrared: y8i, depth: false}}\n"),
       "x.yaml");
   EXPECT_EQ(stereo_capability(ir.drivers.camera), "");
-  const LiveConfig ir1 = live_config_from_yaml(
+  const LiveConfig ir1 = kestrel::tools::live_config_from_yaml(
       with_drivers("  camera: {type: d4xx, d4xx: {image: infrared1, infrared: y8}}\n"), "x.yaml");
   EXPECT_NE(stereo_capability(ir1.drivers.camera).find("infrared: y8i"), std::string::npos);
   expect_error(
@@ -131,30 +133,28 @@ TEST(LiveConfig, ErrorsNameFileAndKey) {
   expect_error(with_drivers("  imu: {type: bmx055_i2c, i2c: {bus_device: /dev/i2c-1, acc_i2c_addr: 0x20}}\n"),
                "drivers.imu.i2c.acc_i2c_addr: must be in 24..25");
   expect_error("rig:\n  camera: {width_px: 640, height_px: 480, fx: 500}\ndrivers: {}\n", "rig.camera.fx");
-  expect_error(with_drivers("  camera: {type: none}\n") + "extra: 1\n", "extra: unknown key");
+  expect_error(with_drivers("  camera: {type: none}\n") + "extra: 1\n", "extra: unknown section");
 }
 
-TEST(LiveConfig, EstimatorSectionIsOptionalAndChecked) {
-  EXPECT_EQ(live_config_from_yaml(with_drivers("  camera: {type: none}\n"), "x.yaml").estimator.backend, "");
-  EXPECT_EQ(
-      live_config_from_yaml(with_drivers("  camera: {type: none}\n") + "estimator: {backend: vo}\n", "x.yaml")
-          .estimator.backend,
-      "vo");
-  // Other estimator keys belong to core's options table: tools/config checks them
-  // (tests/cli ConfigFile.*); here only the sections' names are checked.
-  expect_error(with_drivers("  camera: {type: none}\n") + "window: {recent_frames: 3}\n",
-               "window: unknown key");
-  EXPECT_NO_THROW(
-      live_config_from_yaml(with_drivers("  camera: {type: none}\n") + "window: {recent_frames: 3}\n",
-                            "x.yaml", {"estimator", "window"}));
+TEST(LiveConfig, EstimatorSectionsAreTheEstimatorReadersAndChecked) {
+  const auto backend = [](const std::string& text) {
+    return kestrel::tools::config_from_yaml(text, "x.yaml").estimator.backend;
+  };
+  EXPECT_EQ(backend(with_drivers("  camera: {type: none}\n")), "auto");  // the command line's default
+  EXPECT_EQ(backend(with_drivers("  camera: {type: none}\n") + "estimator: {backend: vo}\n"), "vo");
+  // The estimator's sections are read by tools/config against core's options table, key by key.
+  EXPECT_NO_THROW(backend(with_drivers("  camera: {type: none}\n") + "window: {recent_frames: 3}\n"));
+  expect_error(with_drivers("  camera: {type: none}\n") + "window: {recent_framez: 3}\n",
+               "window.recent_framez: unknown key");
   expect_error(with_drivers("  camera: {type: none}\n") + "estimator: ekf\n",
                "estimator: expected a mapping");
-  expect_error(with_drivers("  camera: {type: none}\n") + "estimator: {backend: [a, b]}\n",
-               "estimator.backend: expected a backend name");
+  expect_error(with_drivers("  camera: {type: none}\n") + "estimator: {backend: nope}\n",
+               "estimator.backend: unknown backend 'nope'");
 }
 
 TEST(ThreadTable, AbsentSectionIsTheBuiltInDefaults) {
-  const ThreadTable t = live_config_from_yaml(with_drivers("  camera: {type: none}\n"), "x.yaml").threads;
+  const ThreadTable t =
+      kestrel::tools::live_config_from_yaml(with_drivers("  camera: {type: none}\n"), "x.yaml").threads;
   const ThreadTable d = default_thread_table();
   EXPECT_FALSE(t.from_config);
   for (int i = 0; i < kPipelineThreads; ++i) {
@@ -167,14 +167,15 @@ TEST(ThreadTable, AbsentSectionIsTheBuiltInDefaults) {
 }
 
 TEST(ThreadTable, SectionParsesAndLeavesUnnamedThreadsAtTheirDefaults) {
-  const ThreadTable t = live_config_from_yaml(with_drivers("  camera: {type: none}\n") +
-                                                  "threads:\n"
-                                                  "  kst-imu: {cpu: 1, policy: fifo, priority: 80}\n"
-                                                  "  kst-optimizer: {cpu: -1, policy: other}\n"
-                                                  "  kst-propagate: {cpu: 0}\n"
-                                                  "  kst-log: {cpu: 1, policy: other}\n",
-                                              "x.yaml")
-                            .threads;
+  const ThreadTable t =
+      kestrel::tools::live_config_from_yaml(with_drivers("  camera: {type: none}\n") +
+                                                "threads:\n"
+                                                "  kst-imu: {cpu: 1, policy: fifo, priority: 80}\n"
+                                                "  kst-optimizer: {cpu: -1, policy: other}\n"
+                                                "  kst-propagate: {cpu: 0}\n"
+                                                "  kst-log: {cpu: 1, policy: other}\n",
+                                            "x.yaml")
+          .threads;
   EXPECT_TRUE(t.from_config);
   EXPECT_EQ(t[PipelineThread::kImu].cpu, 1);
   EXPECT_EQ(t[PipelineThread::kImu].priority, 80);
@@ -187,14 +188,22 @@ TEST(ThreadTable, SectionParsesAndLeavesUnnamedThreadsAtTheirDefaults) {
   EXPECT_EQ(t[PipelineThread::kLog].cpu, 1);
   EXPECT_EQ(t[PipelineThread::kLog].priority, 0);
   EXPECT_STREQ(t[PipelineThread::kLog].name, "kst-log");
-  // A bare rig file may carry the table too (configs/sim_rgbd_bmx055.yaml).
-  const ThreadTable sim = load_thread_table(kConfigs + "sim_rgbd_bmx055.yaml");
-  EXPECT_TRUE(sim.from_config);
-  EXPECT_EQ(sim[PipelineThread::kPropagate].priority, 60);
+  // A replay config may hold the table alone (configs/replay_devbox.yaml); a
+  // rig file holds the rig only, and says where the table goes.
+  const ThreadTable dev = kestrel::tools::load_config(kConfigs + "replay_devbox.yaml").threads;
+  EXPECT_TRUE(dev.from_config);
+  EXPECT_EQ(dev[PipelineThread::kPropagate].priority, 60);
   EXPECT_NO_THROW(load_rig_file(kConfigs + "sim_rgbd_bmx055.yaml"));
+  try {
+    (void)rig_from_yaml(rig_to_yaml(Rig{}) + "threads: {kst-imu: {cpu: 1}}\n", "r.yaml");
+    ADD_FAILURE() << "a rig file with threads: was accepted";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("r.yaml: threads: belongs in a config file"), std::string::npos)
+        << e.what();
+  }
   // Both live rigs ship a table: the IMU driver outranks everything.
   for (const char* f : {"openni2_bmx055_i2c.yaml", "realsense_v4l2_bmx055_usb.yaml"}) {
-    const ThreadTable l = load_live_config(kConfigs + f).threads;
+    const ThreadTable l = kestrel::tools::load_live_config(kConfigs + f).threads;
     EXPECT_TRUE(l.from_config) << f;
     for (int i = 0; i < kPipelineThreads; ++i)
       EXPECT_LE(l.spec[i].priority, l[PipelineThread::kImu].priority) << f << " " << l.spec[i].name;
@@ -228,7 +237,7 @@ TEST(ThreadTable, BadFieldsAndUnknownNamesAreErrorsNamingFileAndField) {
 }
 
 TEST(LiveSensors, MissingHardwareIsNamed) {
-  LiveConfig c = live_config_from_yaml(
+  LiveConfig c = kestrel::tools::live_config_from_yaml(
       with_drivers("  camera:\n    type: v4l2\n    v4l2: {color_device: /dev/video-kestrel-none}\n"
                    "  imu:\n    type: bmx055_i2c\n    i2c: {bus_device: /dev/i2c-kestrel-none}\n"),
       "test.yaml");

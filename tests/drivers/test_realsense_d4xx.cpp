@@ -20,6 +20,7 @@
 #include "kestrel/drivers/devices.hpp"
 #include "kestrel/drivers/klog.hpp"
 #include "kestrel/rt/alloc_counter.hpp"
+#include "kestrel/tools/config_file.hpp"
 #include "realsense_fake_nodes.hpp"
 
 namespace kestrel::drivers::d4xx {
@@ -493,7 +494,7 @@ TEST(RealSenseD4xx, SteadyStateAllocatesNothing) {
 TEST(RealSenseConfig, TemplatesParseAndKeysHaveTheirDefaults) {
   const std::string dir = std::string(KESTREL_SOURCE_DIR) + "/configs/";
   for (const char* f : {"realsense_d435i.yaml", "realsense_d455.yaml"}) {
-    const LiveConfig c = load_live_config(dir + f);
+    const LiveConfig c = kestrel::tools::load_live_config(dir + f);
     EXPECT_EQ(c.drivers.camera.type, CameraType::kD4xx) << f;
     EXPECT_TRUE(c.rig.depth_camera.present) << f;
     EXPECT_EQ(c.drivers.camera.d4xx.card_match, "RealSense");
@@ -503,24 +504,27 @@ TEST(RealSenseConfig, TemplatesParseAndKeysHaveTheirDefaults) {
   }
   const std::string rig =
       "rig:\n  camera: {width_px: 640, height_px: 480, fx_px: 500, fy_px: 500, cx_px: 320, cy_px: 240}\n";
-  const LiveConfig d = live_config_from_yaml(rig + "drivers:\n  camera: {type: d4xx}\n", "x.yaml");
+  const LiveConfig d =
+      kestrel::tools::live_config_from_yaml(rig + "drivers:\n  camera: {type: d4xx}\n", "x.yaml");
   const CameraSettings::D4xx& x = d.drivers.camera.d4xx;
   EXPECT_EQ(x.infrared, "off");
   EXPECT_EQ(x.metadata_wait_ms, 2);
   EXPECT_EQ(x.buffers, 4);
   EXPECT_DOUBLE_EQ(x.depth_unit_m, 0.001);
   EXPECT_EQ(x.pair_tolerance_ns, 0);
-  const LiveConfig e = live_config_from_yaml(rig +
-                                                 "drivers:\n  camera:\n    type: d4xx\n    d4xx: {image: "
-                                                 "infrared1, infrared: y8i, pair_tolerance_us: 500, "
-                                                 "color_meta_device: none, depth_device: /dev/video0}\n",
-                                             "x.yaml");
+  const LiveConfig e =
+      kestrel::tools::live_config_from_yaml(rig +
+                                                "drivers:\n  camera:\n    type: d4xx\n    d4xx: {image: "
+                                                "infrared1, infrared: y8i, pair_tolerance_us: 500, "
+                                                "color_meta_device: none, depth_device: /dev/video0}\n",
+                                            "x.yaml");
   EXPECT_EQ(e.drivers.camera.d4xx.pair_tolerance_ns, 500'000);
   EXPECT_EQ(e.drivers.camera.d4xx.color_meta_device, "none");
   EXPECT_EQ(e.drivers.camera.d4xx.depth_device, "/dev/video0");
   auto error = [&](const std::string& d4xx) {
     try {
-      live_config_from_yaml(rig + "drivers:\n  camera:\n    type: d4xx\n    d4xx: " + d4xx + "\n", "x.yaml");
+      kestrel::tools::live_config_from_yaml(
+          rig + "drivers:\n  camera:\n    type: d4xx\n    d4xx: " + d4xx + "\n", "x.yaml");
     } catch (const std::runtime_error& err) {
       return std::string(err.what());
     }
@@ -530,7 +534,7 @@ TEST(RealSenseConfig, TemplatesParseAndKeysHaveTheirDefaults) {
             std::string::npos)
       << error("{image: infrared1}");
   // Without the device: LiveSensors names the stream and the node.
-  const LiveConfig none = live_config_from_yaml(
+  const LiveConfig none = kestrel::tools::live_config_from_yaml(
       rig +
           "drivers:\n  camera:\n    type: d4xx\n    d4xx: {color_device: /dev/kestrel-no-such-video, "
           "color_meta_device: none, depth: false}\n",

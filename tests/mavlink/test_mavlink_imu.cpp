@@ -19,6 +19,7 @@
 #include "kestrel/drivers/mavlink/sha256.hpp"
 #include "kestrel/drivers/mavlink_imu.hpp"
 #include "kestrel/rt/alloc_counter.hpp"
+#include "kestrel/tools/config_file.hpp"
 #include "mavlink_imu_fuzz_entry.hpp"
 #include "run_command.hpp"
 #include "sim_autopilot.hpp"
@@ -341,7 +342,7 @@ TEST(MavlinkHighresImu, LiveConfigImuTypeMavlinkRunsThroughLiveSensors) {
   const std::string rig =
       "rig:\n  camera: {width_px: 640, height_px: 480, fx_px: 500, fy_px: 500, cx_px: 320, cy_px: 240}\n";
   std::ofstream(dir + "/live.yaml") << rig << cfg_text;
-  const kd::LiveConfig cfg = kd::load_live_config(dir + "/live.yaml");
+  const kd::LiveConfig cfg = kestrel::tools::load_live_config(dir + "/live.yaml");
   ASSERT_EQ(cfg.drivers.imu.type, kd::ImuType::kMavlink);
   EXPECT_EQ(cfg.drivers.imu.mavlink.udp, ap.endpoint());
   EXPECT_EQ(cfg.drivers.imu.mavlink.rate_hz, 200);
@@ -390,13 +391,13 @@ TEST(MavlinkHighresImu, ShippedTemplateParsesWithItsKeyFile) {
   }
   // Without fc.key beside it: the error names the key and the file.
   try {
-    kd::load_live_config(dir + "/live.yaml");
+    kestrel::tools::load_live_config(dir + "/live.yaml");
     ADD_FAILURE() << "loaded without its key file";
   } catch (const std::exception& e) {
     EXPECT_NE(std::string(e.what()).find(dir + "/fc.key"), std::string::npos) << e.what();
   }
   std::ofstream(dir + "/fc.key") << std::string(64, 'a') << "\n";
-  const kd::LiveConfig c = kd::load_live_config(dir + "/live.yaml");
+  const kd::LiveConfig c = kestrel::tools::load_live_config(dir + "/live.yaml");
   EXPECT_EQ(c.drivers.imu.type, kd::ImuType::kMavlink);
   EXPECT_TRUE(c.drivers.imu.mavlink.signing);
   EXPECT_EQ(c.drivers.imu.mavlink.link_id, 1);

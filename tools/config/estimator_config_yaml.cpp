@@ -6,7 +6,6 @@
 #include <cctype>
 #include <charconv>
 #include <cmath>
-#include <fstream>
 #include <limits>
 #include <optional>
 #include <set>
@@ -324,15 +323,10 @@ std::vector<std::string> estimator_config_sections() {
   return top.names;
 }
 
-core::EstimatorConfig estimator_config_from_yaml(const std::string& text, const std::string& where,
+core::EstimatorConfig estimator_config_from_node(const YAML::Node& document, const std::string& where,
                                                  const std::string& backend_override) {
-  YAML::Node root;
-  try {
-    root = YAML::Load(text);
-  } catch (const YAML::ParserException& e) {
-    throw std::runtime_error(where + ":" + std::to_string(e.mark.line + 1) + ": YAML syntax error: " + e.msg);
-  }
-  if (root.IsNull()) root = YAML::Node(YAML::NodeType::Map);
+  YAML::Node root = document;
+  if (!root.IsDefined() || root.IsNull()) root = YAML::Node(YAML::NodeType::Map);
   if (!root.IsMap()) throw std::runtime_error(where + ": expected a mapping of sections");
   // The two keys that select defaults come first, then everything on top.
   std::string backend = scalar_at(root, "estimator", "backend");
@@ -355,19 +349,15 @@ core::EstimatorConfig estimator_config_from_yaml(const std::string& text, const 
   return c;
 }
 
-core::EstimatorConfig load_estimator_config(const std::string& path, const std::string& backend_override) {
-  core::EstimatorConfig c;
-  if (path.empty()) {
-    c = estimator_config_from_yaml("{}", "(defaults)", backend_override);
-  } else {
-    std::ifstream f(path, std::ios::binary);
-    if (!f) throw std::runtime_error(path + ": cannot open config file");
-    std::ostringstream s;
-    s << f.rdbuf();
-    c = estimator_config_from_yaml(s.str(), path, backend_override);
+core::EstimatorConfig estimator_config_from_yaml(const std::string& text, const std::string& where,
+                                                 const std::string& backend_override) {
+  YAML::Node root;
+  try {
+    root = YAML::Load(text);
+  } catch (const YAML::ParserException& e) {
+    throw std::runtime_error(where + ":" + std::to_string(e.mark.line + 1) + ": YAML syntax error: " + e.msg);
   }
-  resolve_vocabulary(c);
-  return c;
+  return estimator_config_from_node(root, where, backend_override);
 }
 
 std::string estimator_config_to_yaml(const core::EstimatorConfig& c) {

@@ -2,7 +2,6 @@
 
 #include <yaml-cpp/yaml.h>
 
-#include <fstream>
 #include <sstream>
 #include <stdexcept>
 
@@ -37,16 +36,9 @@ void visit(DenseOptions& o, Fn&& fn) {
 }
 }  // namespace
 
-DenseOptions dense_options_from_yaml(const std::string& text, const std::string& where) {
+DenseOptions dense_options_from_node(const YAML::Node& d, const std::string& where) {
   DenseOptions o;
-  YAML::Node root;
-  try {
-    root = YAML::Load(text);
-  } catch (const YAML::ParserException& e) {
-    throw std::runtime_error(where + ":" + std::to_string(e.mark.line + 1) + ": YAML syntax error: " + e.msg);
-  }
-  if (!root.IsMap() || !root["dense"]) return o;
-  const YAML::Node d = root["dense"];
+  if (!d.IsDefined() || d.IsNull()) return o;
   if (!d.IsMap()) throw std::runtime_error(where + ": dense: expected a mapping of keys");
   std::string keys;
   visit(o, [&](const char* k, auto&) { keys += keys.empty() ? k : std::string(", ") + k; });
@@ -75,13 +67,19 @@ DenseOptions dense_options_from_yaml(const std::string& text, const std::string&
   return o;
 }
 
-DenseOptions load_dense_options(const std::string& path) {
-  if (path.empty()) return DenseOptions{};
-  std::ifstream f(path, std::ios::binary);
-  if (!f) throw std::runtime_error(path + ": cannot open config file");
-  std::ostringstream s;
-  s << f.rdbuf();
-  return dense_options_from_yaml(s.str(), path);
+namespace {
+YAML::Node parse_document(const std::string& text, const std::string& where) {
+  try {
+    return YAML::Load(text);
+  } catch (const YAML::ParserException& e) {
+    throw std::runtime_error(where + ":" + std::to_string(e.mark.line + 1) + ": YAML syntax error: " + e.msg);
+  }
+}
+}  // namespace
+
+DenseOptions dense_options_from_yaml(const std::string& text, const std::string& where) {
+  const YAML::Node root = parse_document(text, where);
+  return root.IsMap() ? dense_options_from_node(root["dense"], where) : DenseOptions{};
 }
 
 std::vector<std::pair<std::string, std::string>> dense_options_table(const DenseOptions& in) {
@@ -99,16 +97,9 @@ std::vector<std::pair<std::string, std::string>> dense_options_table(const Dense
   return out;
 }
 
-DenseViewOptions dense_view_options_from_yaml(const std::string& text, const std::string& where) {
-  YAML::Node root;
-  try {
-    root = YAML::Load(text);
-  } catch (const YAML::ParserException& e) {
-    throw std::runtime_error(where + ":" + std::to_string(e.mark.line + 1) + ": YAML syntax error: " + e.msg);
-  }
+DenseViewOptions dense_view_options_from_node(const YAML::Node& v, const std::string& where) {
   DenseViewOptions o;
-  if (!root.IsMap() || !root["viewer"]) return o;
-  const YAML::Node v = root["viewer"];
+  if (!v.IsDefined() || v.IsNull()) return o;
   if (!v.IsMap()) throw std::runtime_error(where + ": viewer: expected a mapping of keys");
   for (const auto& kv : v) {
     if (kv.first.Scalar() != "dense_max_kbps" && kv.first.Scalar() != "dense_period_s") {
@@ -136,13 +127,9 @@ DenseViewOptions dense_view_options_from_yaml(const std::string& text, const std
   return o;
 }
 
-DenseViewOptions load_dense_view_options(const std::string& path) {
-  if (path.empty()) return DenseViewOptions{};
-  std::ifstream f(path, std::ios::binary);
-  if (!f) throw std::runtime_error(path + ": cannot open config file");
-  std::ostringstream s;
-  s << f.rdbuf();
-  return dense_view_options_from_yaml(s.str(), path);
+DenseViewOptions dense_view_options_from_yaml(const std::string& text, const std::string& where) {
+  const YAML::Node root = parse_document(text, where);
+  return root.IsMap() ? dense_view_options_from_node(root["viewer"], where) : DenseViewOptions{};
 }
 
 std::string dense_sections_yaml(const DenseOptions& o, const DenseViewOptions& v) {

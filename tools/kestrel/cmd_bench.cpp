@@ -24,6 +24,7 @@
 #include "kestrel/drivers/folder_logs.hpp"
 #include "kestrel/drivers/open_log.hpp"
 #include "kestrel/replay_runner.hpp"
+#include "kestrel/tools/config_file.hpp"
 #include "kestrel/tools/cpu_budget.hpp"
 #include "kestrel/tools/estimator_config_yaml.hpp"
 #include "kestrel/tools/report_json.hpp"
@@ -801,7 +802,7 @@ int run_cpu_budget(const BenchArgs& a, double duration_s) {
     if (!fs::exists(log)) throw UsageError("--cpu-budget-log: no such file: " + log);
     what = log;
   }
-  core::EstimatorConfig cfg = tools::load_estimator_config(a.config, backend);
+  core::EstimatorConfig cfg = tools::load_config(a.config, backend).estimator;
   // The ekf's map is off unless asked for (ekf.mapping): the bench's default "on" is the window's.
   const bool given = a.mapping_opt->count() > 0 || backend != "ekf";
   tools::apply_map_switches(cfg, given ? mapping : "", "");
@@ -979,7 +980,7 @@ int run_cases(const BenchArgs& a, double duration_s, drivers::ReplayPace pace) {
           const bool ekf = backend == "ekf";
           if (!windowed && !ekf && mapping == "off" && a.mapping.size() > 1)
             continue;  // no map to switch off
-          core::EstimatorConfig cfg = tools::load_estimator_config(a.config, backend);
+          core::EstimatorConfig cfg = tools::load_config(a.config, backend).estimator;
           // The ekf's map is off unless asked for (ekf.mapping, or --mapping
           // given): the bench's default "on" is the window's.
           tools::apply_map_switches(cfg, windowed || a.mapping_opt->count() > 0 ? mapping : "", "");
@@ -1133,7 +1134,7 @@ Subcommand add_bench_command(CLI::App& parent) {
     }
     if (!args->dataset_root.empty()) {
       const std::string backend = args->estimators.front();
-      core::EstimatorConfig cfg = tools::load_estimator_config(args->config, backend);
+      core::EstimatorConfig cfg = tools::load_config(args->config, backend).estimator;
       tools::apply_map_switches(cfg, backend.rfind("window", 0) == 0 ? args->mapping.front() : "", "");
       const std::string out =
           args->out_dir.empty() ? (fs::path(args->workdir) / "datasets").string() : args->out_dir;

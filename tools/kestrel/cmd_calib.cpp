@@ -13,6 +13,7 @@
 #include "kestrel/drivers/kalibr.hpp"
 #include "kestrel/drivers/realsense_import.hpp"
 #include "kestrel/drivers/rig_yaml.hpp"
+#include "kestrel/tools/config_file.hpp"
 
 namespace kestrel::cli {
 namespace {
@@ -38,7 +39,7 @@ void parse_size(const std::string& s, const std::string& option, int& w, int& h)
   h = b;
 }
 
-// A rig file, or a live config's `rig:` section.
+// A rig file, or a config file's `rig:` section.
 Rig load_base_rig(const std::string& path) {
   YAML::Node root;
   try {
@@ -48,8 +49,8 @@ Rig load_base_rig(const std::string& path) {
   } catch (const YAML::ParserException& e) {
     throw std::runtime_error(path + ":" + std::to_string(e.mark.line + 1) + ": YAML syntax error: " + e.msg);
   }
-  if (root.IsMap() && root["rig"] && root["rig"].IsMap())
-    return drivers::rig_from_yaml_node(root["rig"], path, "rig.");
+  // A config goes through the one reader (every section checked, `rig: FILE` followed).
+  if (root.IsMap() && root["rig"]) return *tools::load_config(path).rig;
   return drivers::load_rig_file(path);
 }
 

@@ -5,6 +5,7 @@
 #include "kestrel/commands.hpp"
 #include "kestrel/core/estimator_factory.hpp"
 #include "kestrel/dense/dense_config.hpp"
+#include "kestrel/tools/config_file.hpp"
 #include "kestrel/tools/estimator_config_yaml.hpp"
 
 namespace kestrel::cli {
@@ -37,9 +38,9 @@ Subcommand add_config_command(CLI::App& parent) {
       throw UsageError("unknown --estimator '" + a->backend +
                        "' (expected one of: " + core::estimator_names() + ")");
     }
-    std::cout << tools::estimator_config_to_yaml(tools::load_estimator_config(a->config, a->backend))
-              << dense::dense_sections_yaml(dense::load_dense_options(a->config),
-                                            dense::load_dense_view_options(a->config));
+    const tools::Config file = tools::load_config(a->config, a->backend);
+    std::cout << tools::estimator_config_to_yaml(file.estimator)
+              << dense::dense_sections_yaml(file.dense, file.dense_view);
     return 0;
   };
   return s;

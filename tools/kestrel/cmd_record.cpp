@@ -12,7 +12,7 @@
 #include "kestrel/recording.hpp"
 #include "kestrel/replay_runner.hpp"
 #include "kestrel/rt/clock.hpp"
-#include "kestrel/tools/estimator_config_yaml.hpp"
+#include "kestrel/tools/config_file.hpp"
 
 namespace kestrel::cli {
 namespace {
@@ -47,7 +47,7 @@ Subcommand add_record_command(CLI::App& parent) {
   Subcommand s;
   s.app = app;
   s.run = [a] {
-    const drivers::LiveConfig cfg = drivers::load_live_config(a->config, tools::estimator_config_sections());
+    const drivers::LiveConfig cfg = tools::load_live_config(a->config);
     if (!(a->buffer_s > 0 && a->buffer_s <= 60)) throw UsageError("--buffer-s must be in (0, 60] seconds");
     drivers::LiveSensors sensors(cfg);  // throws, naming each missing device
     const std::unique_ptr<drivers::KlogLogger> log =

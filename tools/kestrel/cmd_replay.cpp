@@ -11,6 +11,7 @@
 #include "kestrel/foxglove_out.hpp"
 #include "kestrel/mcap_out.hpp"
 #include "kestrel/replay_runner.hpp"
+#include "kestrel/tools/config_file.hpp"
 #include "kestrel/tools/estimator_config_yaml.hpp"
 #include "kestrel/tools/map_files.hpp"
 #include "kestrel/view_cli.hpp"
@@ -164,7 +165,9 @@ Subcommand add_replay_command(CLI::App& parent) {
       throw UsageError("unknown --estimator '" + override_backend +
                        "' (expected one of: " + core::estimator_names() + ")");
     }
-    opt.config = tools::load_estimator_config(args->config, override_backend);
+    // The file is read once, every section checked, before any work starts.
+    const tools::Config file = tools::load_config(args->config, override_backend);
+    opt.config = file.estimator;
     try {
       tools::apply_map_switches(*opt.config, args->mapping, args->loop);
       if (!args->map_in.empty()) tools::set_map_in(*opt.config, args->map_in);
@@ -177,12 +180,12 @@ Subcommand add_replay_command(CLI::App& parent) {
     }
     opt.estimator = opt.config->backend;
     opt.map_out = args->map_out;
-    opt.dense = dense::load_dense_options(args->config);
-    opt.dense_view = dense::load_dense_view_options(args->config);
+    opt.dense = file.dense;
+    opt.dense_view = file.dense_view;
     opt.dense_out = args->dense_out;
     opt.dense_octomap_out = args->dense_octomap_out;
     opt.dense_map_out = args->dense_map_out;
-    if (!args->config.empty()) opt.threads = drivers::load_thread_table(args->config);
+    opt.threads = file.threads;
     try {
       opt.format = drivers::parse_log_format(args->format);
       opt.pace = drivers::parse_replay_pace(args->pace);
@@ -192,9 +195,7 @@ Subcommand add_replay_command(CLI::App& parent) {
     if (!(args->warmup_s >= 0)) throw UsageError("--warmup must be >= 0 seconds");
     opt.warmup_ns = static_cast<int64_t>(args->warmup_s * 1e9);
     try {
-      const drivers::MavlinkSettings ms =
-          args->config.empty() ? drivers::MavlinkSettings{} : drivers::load_mavlink_settings(args->config);
-      opt.mavlink = mavlink_options(ms, args->mavlink_udp, args->mavlink_serial);
+      opt.mavlink = mavlink_options(file.mavlink, args->mavlink_udp, args->mavlink_serial);
     } catch (const std::invalid_argument& e) {
       throw UsageError(e.what());
     }
@@ -234,10 +235,8 @@ Subcommand add_replay_command(CLI::App& parent) {
                                                                    : "";
       if (!flag.empty()) throw UsageError(flag + ": the backend '" + est.name() + "' runs without a map");
     };
-    const drivers::Ros2Settings ros2 =
-        args->config.empty() ? drivers::Ros2Settings{} : drivers::load_ros2_settings(args->config);
-    const auto mcap = add_mcap_out(opt, args->mcap_out, ros2.map_points_rate_hz);
-    const auto fox = add_foxglove(opt, args->foxglove, ros2.map_points_rate_hz, args->foxglove_wait_s);
+    const auto mcap = add_mcap_out(opt, args->mcap_out, file.ros2.map_points_rate_hz);
+    const auto fox = add_foxglove(opt, args->foxglove, file.ros2.map_points_rate_hz, args->foxglove_wait_s);
     // The revisits need the log's ground truth and a second pass over its
     // depth: only when asked for.
     const bool loop_truth = !args->loop_log.empty() || !args->metrics_out.empty();

@@ -25,6 +25,7 @@
 #include "kestrel/replay_runner.hpp"
 #include "kestrel/rt/clock.hpp"
 #include "kestrel/rt/thread_setup.hpp"
+#include "kestrel/tools/config_file.hpp"
 #include "kestrel/tools/estimator_config_yaml.hpp"
 #include "kestrel/tools/map_files.hpp"
 #include "kestrel/view_cli.hpp"
@@ -59,7 +60,7 @@ struct RunArgs {
 constexpr int64_t kWarmupNs = 2'000'000'000;
 
 // What both kinds of input share: the backend, the thread table, the outputs.
-ReplayOptions pipeline_options(const RunArgs& a, const drivers::LiveConfig& cfg,
+ReplayOptions pipeline_options(const RunArgs& a, const tools::Config& file, const drivers::LiveConfig& cfg,
                                const core::EstimatorConfig& est_cfg,
                                const std::optional<mavlink::OdometryStreamOptions>& mavlink,
                                const viewer::ServerOptions& view_options) {
@@ -69,8 +70,8 @@ ReplayOptions pipeline_options(const RunArgs& a, const drivers::LiveConfig& cfg,
   opt.threads = cfg.threads;
   opt.mavlink = mavlink;
   opt.map_out = a.map_out;
-  opt.dense = dense::load_dense_options(cfg.path);
-  opt.dense_view = dense::load_dense_view_options(cfg.path);
+  opt.dense = file.dense;
+  opt.dense_view = file.dense_view;
   opt.dense_out = a.dense_out;
   opt.dense_octomap_out = a.dense_octomap_out;
   if (!a.view.endpoint.empty()) {
@@ -87,7 +88,7 @@ ReplayOptions pipeline_options(const RunArgs& a, const drivers::LiveConfig& cfg,
 // instead of the live log driver, so `kestrel run` writes byte for byte what
 // `kestrel replay LOG --pace P` writes. Realtime pace plays it through the
 // live sensor threads, as a flight.
-int run_log_through_replay(const RunArgs& a, const drivers::LiveConfig& cfg,
+int run_log_through_replay(const RunArgs& a, const tools::Config& file, const drivers::LiveConfig& cfg,
                            const core::EstimatorConfig& est_cfg,
                            const std::optional<mavlink::OdometryStreamOptions>& mavlink,
                            const viewer::ServerOptions& view_options) {
@@ -100,7 +101,7 @@ int run_log_through_replay(const RunArgs& a, const drivers::LiveConfig& cfg,
     throw UsageError(std::string("--duration: a log at ") + drivers::to_string(cfg.drivers.log_pace) +
                      " pace runs to its end");
   }
-  ReplayOptions opt = pipeline_options(a, cfg, est_cfg, mavlink, view_options);
+  ReplayOptions opt = pipeline_options(a, file, cfg, est_cfg, mavlink, view_options);
   opt.path = cfg.drivers.log_path;
   opt.format = drivers::LogFormat::kKlog;
   opt.pace = cfg.drivers.log_pace;
@@ -194,17 +195,15 @@ Subcommand add_run_command(CLI::App& parent) {
   Subcommand s;
   s.app = app;
   s.run = [a] {
-    // The dense map's `dense:` section is read apart (tools/dense); the live reader lets it through.
-    std::vector<std::string> sections = tools::estimator_config_sections();
-    sections.emplace_back("dense");
-    sections.emplace_back("viewer");  // viewer.dense_*, read with the dense section
-    const drivers::LiveConfig cfg = drivers::load_live_config(a->config, sections);
     if (!a->estimator.empty() && !core::estimator_known(a->estimator)) {
       throw UsageError("unknown --estimator '" + a->estimator +
                        "' (expected one of: " + core::estimator_names() + ")");
     }
-    // The default backend is replay's (window) unless the config or --estimator names one.
-    core::EstimatorConfig est_cfg = tools::load_estimator_config(a->config, a->estimator);
+    // The file is read once, every section checked, before any device opens.
+    // The default backend is replay's unless the config or --estimator names one.
+    const tools::Config file = tools::load_config(a->config, a->estimator);
+    const drivers::LiveConfig cfg = tools::live_config(file);
+    core::EstimatorConfig est_cfg = file.estimator;
     try {
       tools::apply_map_switches(est_cfg, a->mapping, a->loop);
       if (!a->map_in.empty()) tools::set_map_in(est_cfg, a->map_in);
@@ -217,8 +216,7 @@ Subcommand add_run_command(CLI::App& parent) {
     }
     if (a->print_config) {
       std::cout << tools::estimator_config_to_yaml(est_cfg)
-                << dense::dense_sections_yaml(dense::load_dense_options(a->config),
-                                              dense::load_dense_view_options(a->config));
+                << dense::dense_sections_yaml(file.dense, file.dense_view);
       return 0;
     }
     std::optional<mavlink::OdometryStreamOptions> mo;
@@ -233,12 +231,12 @@ Subcommand add_run_command(CLI::App& parent) {
       throw UsageError("--record-buffer-s must be in (0, 60] seconds");
     if (cfg.drivers.camera.type == drivers::CameraType::kLog &&
         cfg.drivers.log_pace != drivers::ReplayPace::kRealtime)
-      return run_log_through_replay(*a, cfg, est_cfg, mo, view_options);
+      return run_log_through_replay(*a, file, cfg, est_cfg, mo, view_options);
     drivers::LiveSensors sensors(cfg);  // missing sensors are named first
     // The flight runs the replay pipeline (run_replay) with the sensors as its
     // input: the same stages, threads, wake-ups, checks and outputs a replay
     // of the recording would run (issue 45).
-    ReplayOptions opt = pipeline_options(*a, cfg, est_cfg, mo, view_options);
+    ReplayOptions opt = pipeline_options(*a, file, cfg, est_cfg, mo, view_options);
     opt.pace = drivers::ReplayPace::kRealtime;
     opt.warmup_ns = kWarmupNs;
     opt.status_line = true;
@@ -287,7 +285,7 @@ Subcommand add_run_command(CLI::App& parent) {
     };
     opt.live = live;
     std::printf("running %s -> estimator '%s' (%s)\n", sensors.description().c_str(), est_cfg.backend.c_str(),
-                a->estimator.empty() && !cfg.estimator.backend.empty() ? "from the config" : "");
+                file.backend_from_file ? "from the config" : "");
     // Memory locked and the stack prefaulted before any pipeline thread starts
     // (docs/threads.md); refused without CAP_IPC_LOCK, and the line says so.
     std::printf("process: %s\n", rt::to_string(rt::setup_process()).c_str());

@@ -26,6 +26,7 @@
 #include "kestrel/drivers/open_log.hpp"
 #include "kestrel/drivers/rig_yaml.hpp"
 #include "kestrel/replay_runner.hpp"
+#include "kestrel/tools/config_file.hpp"
 #include "kestrel/tools/estimator_config_yaml.hpp"
 #include "kestrel/tools/trajectory_eval.hpp"
 
@@ -651,10 +652,12 @@ py::object replay(const std::string& path, py::kwargs kw) {
   if (which != "odometry" && which != "map" && which != "map_final")
     throw py::value_error("trajectory: '" + which + "' is not one of odometry, map, map_final");
   if (!(warmup_s >= 0)) throw py::value_error("warmup_s must be >= 0");
-  opt.config = tools::load_estimator_config(config, estimator);
+  // The config file through the command line's one reader: the same checks, the same defaults.
+  const tools::Config file = tools::load_config(config, estimator);
+  opt.config = file.estimator;
   tools::apply_map_switches(*opt.config, mapping, loop);
   opt.estimator = opt.config->backend;
-  if (!config.empty()) opt.threads = drivers::load_thread_table(config);
+  opt.threads = file.threads;
   opt.pace = drivers::parse_replay_pace(pace);
   opt.warmup_ns = static_cast<int64_t>(warmup_s * 1e9);
 

@@ -78,7 +78,7 @@ class Estimator {
   explicit Estimator(const Rig& rig, const std::string& backend = "auto",
                      MapWork map_work = MapWork::kInline);
   // Every option (core::EstimatorConfig: EstimatorConfig::defaults(backend)
-  // changed in code, or a config file through tools::load_estimator_config);
+  // changed in code, or a config file through tools::load_config(path).estimator);
   // throws std::invalid_argument listing every bad option.
   Estimator(const Rig& rig, const core::EstimatorConfig& config, MapWork map_work = MapWork::kInline);
   ~Estimator();

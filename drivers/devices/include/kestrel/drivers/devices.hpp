@@ -1,8 +1,9 @@
 // Live rig configuration and the sensors it names.
 //
-//  - LiveConfig: a config file with a `rig:` section (drivers::rig_from_yaml_node)
-//    and a `drivers:` section (camera, IMU, strobe settings; units in key names,
-//    unknown keys are errors naming file and key).
+//  - The config file's sections drivers own: `drivers:` (camera, IMU, strobe
+//    settings; units in key names, unknown keys are errors naming file and
+//    key), `threads:`, `mavlink:`, `record:` and `ros2:`, each parsed from its
+//    node into its struct; `rig:` is drivers/rig's. tools/config reads the file.
 //  - probe_devices(): what is connected, for `kestrel devices`.
 //  - LiveSensors: opens every configured device (or explains each one that is
 //    missing) and runs one thread per sensor delivering into an ImuSink and a
@@ -113,12 +114,6 @@ struct DriverSettings {
   ReplayPace log_pace = ReplayPace::kRealtime;
 };
 
-// `estimator:` section (optional). The names are core's (drivers never
-// include core): the tools check them against core::estimator_known().
-struct EstimatorSettings {
-  std::string backend;  // "" when absent: the command's default
-};
-
 // `mavlink:` section (optional): the flight-controller link (tools/mavlink,
 // docs/px4.md). The command line's --mavlink-udp / --mavlink-serial choose
 // the transport over these; the rest holds for either.
@@ -160,8 +155,6 @@ struct Ros2Settings {
 };
 // Throws std::runtime_error "where: ros2.map_points_rate_hz: expected a number in [0, 30]".
 Ros2Settings ros2_settings_from_yaml_node(const YAML::Node& node, const std::string& where);
-// The `ros2:` section of any YAML file (defaults when none).
-Ros2Settings load_ros2_settings(const std::string& path);
 
 // `threads:` section (optional): scheduling and CPU of every pipeline thread.
 // One rt::ThreadSpec per known thread (priority 0 = SCHED_OTHER, cpu -1 =
@@ -195,43 +188,25 @@ ThreadTable default_thread_table();
 std::string thread_names();
 // Throws std::runtime_error "where: threads.kst-optimizer.priority: expected 1..99".
 ThreadTable thread_table_from_yaml_node(const YAML::Node& node, const std::string& where);
-// The `threads:` section of any YAML file (a live config, a rig file, a file
-// with only that section); the default table when the file has none.
-ThreadTable load_thread_table(const std::string& path);
 
+// What the live sensors run from: the sections of a config file that
+// drivers own, already parsed. The file itself is read by tools/config's one
+// reader (tools::load_config), which hands each section to its parser below.
 struct LiveConfig {
-  std::string path;
-  Rig rig;  // `rig:` inline, or `rig: FILE.yaml` (relative to the config), e.g. from `kestrel calib
-            // import-kalibr`
+  std::string path;  // the config file, for messages and relative paths
+  Rig rig;           // `rig:` inline, or `rig: FILE.yaml` (relative to the config), or the log's own
   DriverSettings drivers;
-  EstimatorSettings estimator;
   ThreadTable threads = default_thread_table();
   MavlinkSettings mavlink;
   RecordSettings record;
   Ros2Settings ros2;
 };
 
-// Throws std::runtime_error "path: drivers.imu.acc_range_g: expected one of 2, 4, 8, 16".
-// estimator_sections: the top-level sections that hold estimator options
-// (core's options table, which drivers cannot see: the tools pass
-// tools/config's estimator_config_sections()); they are accepted here and
-// checked key by key by the tools.
-LiveConfig load_live_config(const std::string& path, const std::vector<std::string>& estimator_sections = {});
-LiveConfig live_config_from_yaml(const std::string& text, const std::string& where,
-                                 const std::vector<std::string>& estimator_sections = {});
+// The section parsers. Each throws std::runtime_error naming `where` and the
+// key: "path: drivers.imu.acc_range_g: expected one of 2, 4, 8, 16".
 DriverSettings driver_settings_from_yaml_node(const YAML::Node& node, const std::string& where);
-// The optional `estimator:` section's `backend: NAME` (its other keys are
-// estimator options, checked by the tools).
-EstimatorSettings estimator_settings_from_yaml_node(const YAML::Node& node, const std::string& where);
 // Throws std::runtime_error "where: mavlink.sysid: must be in 1..255".
 MavlinkSettings mavlink_settings_from_yaml_node(const YAML::Node& node, const std::string& where);
-// The `mavlink:` section of any YAML file (defaults, present = false, when none).
-MavlinkSettings load_mavlink_settings(const std::string& path);
-
-// The `estimator:` section of any YAML file (a live config, or a file with
-// only that section; other top-level keys are not looked at). Throws
-// std::runtime_error naming the file.
-EstimatorSettings load_estimator_settings(const std::string& path);
 
 // "v4l2 built, openni2 built, libusb built, i2c-dev built, gpio-cdev built"
 std::string built_drivers_summary();

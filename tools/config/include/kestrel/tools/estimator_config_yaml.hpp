@@ -7,6 +7,8 @@
 // belong to other readers and are not looked at here.
 #pragma once
 
+#include <yaml-cpp/node/node.h>
+
 #include <string>
 #include <utility>
 #include <vector>
@@ -18,12 +20,15 @@ namespace kestrel::tools {
 // The top-level section names the table uses.
 std::vector<std::string> estimator_config_sections();
 
-// Defaults of `backend_override` (or of the file's `estimator.backend`, or
-// "window"), with the file's keys applied. `path` empty: the defaults.
-// Throws std::runtime_error "FILE:LINE: window.recent_frames: expected an integer".
-core::EstimatorConfig load_estimator_config(const std::string& path,
-                                            const std::string& backend_override = "");
-// The same from YAML text; `where` names it in errors.
+// The estimator's sections of a config document: the defaults of
+// `backend_override` (or of the document's `estimator.backend`, or "auto"),
+// with the document's keys applied; its other top-level sections are not
+// looked at (the one reader, tools::load_config, checks those). Throws
+// std::runtime_error "FILE:LINE: window.recent_frames: expected an integer".
+// The vocabulary is not resolved here (tools::load_config does it).
+core::EstimatorConfig estimator_config_from_node(const YAML::Node& document, const std::string& where,
+                                                 const std::string& backend_override = "");
+// The same from YAML text (the fuzzers' and tests' entry); `where` names it in errors.
 core::EstimatorConfig estimator_config_from_yaml(const std::string& text, const std::string& where,
                                                  const std::string& backend_override = "");
 

@@ -2,6 +2,8 @@
 // default). Unknown keys and bad values are errors naming the file and key.
 #pragma once
 
+#include <yaml-cpp/node/node.h>
+
 #include <string>
 #include <utility>
 #include <vector>
@@ -11,18 +13,20 @@
 
 namespace kestrel::dense {
 
-// `dense:` of the YAML text (absent: the defaults, enabled = false). `where` names the file in errors.
+// The `dense:` section's node (absent: the defaults, enabled = false). `where`
+// names the file in errors. A config file is read by tools::load_config,
+// which hands this section here.
+DenseOptions dense_options_from_node(const YAML::Node& dense, const std::string& where);
+// `dense:` of YAML text (the fuzzers' and tests' entry).
 DenseOptions dense_options_from_yaml(const std::string& text, const std::string& where);
-// The same from a file; "" gives the defaults.
-DenseOptions load_dense_options(const std::string& path);
 // Every key as ("dense.key", value), for --print-config and the metrics.
 std::vector<std::pair<std::string, std::string>> dense_options_table(const DenseOptions& o);
 
 // The `viewer:` section (docs/dense.md): the dense map's stream to the live
 // viewer, `dense_max_kbps` [kbit/s] and `dense_period_s` [s]. Unknown keys and
 // bad values are errors naming the file, line and key.
+DenseViewOptions dense_view_options_from_node(const YAML::Node& viewer, const std::string& where);
 DenseViewOptions dense_view_options_from_yaml(const std::string& text, const std::string& where);
-DenseViewOptions load_dense_view_options(const std::string& path);
 // The `dense:` and `viewer:` sections as YAML that the loaders above read back
 // (`--print-config`, `kestrel config`: the tool-side sections beside the
 // estimator's).
