@@ -67,12 +67,7 @@ Rig rig_section(const YAML::Node& node, const std::string& where) {
 
 Config config_from_yaml(const std::string& text, const std::string& where,
                         const std::string& backend_override) {
-  YAML::Node parsed;
-  try {
-    parsed = YAML::Load(text);
-  } catch (const YAML::ParserException& e) {
-    throw std::runtime_error(where + ":" + std::to_string(e.mark.line + 1) + ": YAML syntax error: " + e.msg);
-  }
+  YAML::Node parsed = yaml_document(text, where);
   if (parsed.IsNull()) parsed = YAML::Node(YAML::NodeType::Map);
   // Looked up through const from here: operator[] on a non-const node may insert the key.
   const YAML::Node& root = parsed;
@@ -85,17 +80,22 @@ Config config_from_yaml(const std::string& text, const std::string& where,
     // Optional here (replay has no devices); live_config requires it.
     c.has_drivers = static_cast<bool>(root["drivers"]);
     if (c.has_drivers) c.drivers = drivers::driver_settings_from_yaml_node(root["drivers"], where);
-    const YAML::Node cam = root["drivers"] ? root["drivers"]["camera"] : YAML::Node();
-    c.camera_width_named = cam.IsMap() && cam["width_px"];
-    c.camera_height_named = cam.IsMap() && cam["height_px"];
-    c.camera_rate_named = cam.IsMap() && cam["rate_hz"];
+    // A key missing under const access is an invalid node, which throws on
+    // anything but IsDefined(): each lookup below checks that first.
+    const YAML::Node drv = root["drivers"];
+    const YAML::Node cam = drv.IsDefined() && drv.IsMap() ? drv["camera"] : YAML::Node();
+    const bool cam_map = cam.IsDefined() && cam.IsMap();
+    c.camera_width_named = cam_map && cam["width_px"].IsDefined();
+    c.camera_height_named = cam_map && cam["height_px"].IsDefined();
+    c.camera_rate_named = cam_map && cam["rate_hz"].IsDefined();
     c.threads = drivers::thread_table_from_yaml_node(root["threads"], where);
     c.mavlink = drivers::mavlink_settings_from_yaml_node(root["mavlink"], where);
     c.record = drivers::record_settings_from_yaml_node(root["record"], where);
     c.ros2 = drivers::ros2_settings_from_yaml_node(root["ros2"], where);
     c.estimator = estimator_config_from_node(root, where, backend_override);
     const YAML::Node est = root["estimator"];
-    c.backend_from_file = backend_override.empty() && est.IsMap() && est["backend"];
+    c.backend_from_file =
+        backend_override.empty() && est.IsDefined() && est.IsMap() && est["backend"].IsDefined();
     c.dense = dense::dense_options_from_node(root["dense"], where);
     c.dense_view = dense::dense_view_options_from_node(root["viewer"], where);
   } catch (const YAML::Exception& e) {

@@ -349,15 +349,17 @@ core::EstimatorConfig estimator_config_from_node(const YAML::Node& document, con
   return c;
 }
 
-core::EstimatorConfig estimator_config_from_yaml(const std::string& text, const std::string& where,
-                                                 const std::string& backend_override) {
-  YAML::Node root;
+YAML::Node yaml_document(const std::string& text, const std::string& where) {
   try {
-    root = YAML::Load(text);
+    return YAML::Load(text);
   } catch (const YAML::ParserException& e) {
     throw std::runtime_error(where + ":" + std::to_string(e.mark.line + 1) + ": YAML syntax error: " + e.msg);
   }
-  return estimator_config_from_node(root, where, backend_override);
+}
+
+core::EstimatorConfig estimator_config_from_yaml(const std::string& text, const std::string& where,
+                                                 const std::string& backend_override) {
+  return estimator_config_from_node(yaml_document(text, where), where, backend_override);
 }
 
 std::string estimator_config_to_yaml(const core::EstimatorConfig& c) {

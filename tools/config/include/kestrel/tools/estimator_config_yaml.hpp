@@ -28,7 +28,9 @@ std::vector<std::string> estimator_config_sections();
 // The vocabulary is not resolved here (tools::load_config does it).
 core::EstimatorConfig estimator_config_from_node(const YAML::Node& document, const std::string& where,
                                                  const std::string& backend_override = "");
-// The same from YAML text (the fuzzers' and tests' entry); `where` names it in errors.
+// YAML text as a document; a syntax error is std::runtime_error "where:LINE: YAML syntax error: ...".
+YAML::Node yaml_document(const std::string& text, const std::string& where);
+// The estimator's sections from YAML text (the fuzzers' and tests' entry); `where` names it in errors.
 core::EstimatorConfig estimator_config_from_yaml(const std::string& text, const std::string& where,
                                                  const std::string& backend_override = "");
 
