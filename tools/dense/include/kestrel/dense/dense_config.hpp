@@ -27,7 +27,7 @@ std::vector<std::pair<std::string, std::string>> dense_options_table(const Dense
 // bad values are errors naming the file, line and key.
 DenseViewOptions dense_view_options_from_node(const YAML::Node& viewer, const std::string& where);
 DenseViewOptions dense_view_options_from_yaml(const std::string& text, const std::string& where);
-// The `dense:` and `viewer:` sections as YAML that the loaders above read back
+// The `dense:` and `viewer:` sections as YAML that the parsers above (and tools::load_config) read back
 // (`--print-config`, `kestrel config`: the tool-side sections beside the
 // estimator's).
 std::string dense_sections_yaml(const DenseOptions& o, const DenseViewOptions& v);
