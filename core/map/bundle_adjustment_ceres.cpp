@@ -1,6 +1,8 @@
 // The reference solver: the same problem through Ceres (autodiff, quaternion
-// manifold, dense Schur). `map: ba_solver: ceres` runs it in the mapping thread.
+// manifold, dense Schur), every factor differentiated from its own code here.
+// `map: ba_solver: ceres` runs it in the mapping thread.
 #include <ceres/ceres.h>
+#include <ceres/rotation.h>
 
 #include <array>
 
@@ -40,6 +42,32 @@ struct GravityCost {
   }
   Eigen::Vector3d g_;
   double is_;
+};
+
+// A relative-pose factor (a loop closure in global bundle adjustment): the
+// whitened [Log(R_ab^T R_ab_now); t_ab_now - t_ab] with T_ab_now = T_CaM
+// T_CbM^-1, differentiated by Ceres from this code alone, so the cross-check
+// tests our analytic Jacobians (ba_relative_residual) too.
+struct RelativePoseCost {
+  explicit RelativePoseCost(const BaRelativePose& e) : e_(e), q_ab_(e.R_ab) {}
+  template <typename T>
+  bool operator()(const T* qa, const T* ta, const T* qb, const T* tb, T* r) const {
+    const Eigen::Quaternion<T> Qa(qa[3], qa[0], qa[1], qa[2]), Qb(qb[3], qb[0], qb[1], qb[2]);
+    const Eigen::Quaternion<T> Q = Qa * Qb.conjugate();
+    const Eigen::Matrix<T, 3, 1> t =
+        Eigen::Matrix<T, 3, 1>(ta[0], ta[1], ta[2]) - Q * Eigen::Matrix<T, 3, 1>(tb[0], tb[1], tb[2]);
+    const Eigen::Quaternion<T> E = q_ab_.conjugate().cast<T>() * Q;
+    const T e_wxyz[4] = {E.w(), E.x(), E.y(), E.z()};
+    T aa[3];
+    ceres::QuaternionToAngleAxis(e_wxyz, aa);
+    for (int i = 0; i < 3; ++i) {
+      r[i] = aa[i] * T(e_.inv_sigma_rad);
+      r[3 + i] = (t[i] - T(e_.t_ab[i])) * T(e_.inv_sigma_m);
+    }
+    return true;
+  }
+  BaRelativePose e_;
+  Eigen::Quaterniond q_ab_;
 };
 
 }  // namespace
@@ -82,6 +110,13 @@ BaResult solve_bundle_adjustment_ceres(BaProblem& pb, int max_iterations) {
       cf = new ceres::AutoDiffCostFunction<ObservationCost<2>, 2, 4, 3, 3>(new ObservationCost<2>(pb.K, o));
     }
     problem.AddResidualBlock(cf, &huber, q, q + 4, pt[static_cast<size_t>(o.point)].data());
+  }
+  for (const BaRelativePose& e : pb.relative) {
+    double* qa = pose[static_cast<size_t>(e.a)].data();
+    double* qb = pose[static_cast<size_t>(e.b)].data();
+    problem.AddResidualBlock(
+        new ceres::AutoDiffCostFunction<RelativePoseCost, 6, 4, 3, 4, 3>(new RelativePoseCost(e)), nullptr,
+        qa, qa + 4, qb, qb + 4);
   }
   ceres::Solver::Options so;
   so.linear_solver_type = ceres::DENSE_SCHUR;

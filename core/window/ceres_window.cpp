@@ -3,8 +3,10 @@
 #include <ceres/ceres.h>
 
 #include <Eigen/Eigenvalues>
+#include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <functional>
 #include <memory>
 #include <utility>
 #include <vector>
@@ -70,239 +72,140 @@ NavState to_nav(const double* pose, const double* sb) {
   return x;
 }
 
-// Writes d r / d tangent (rows x 15 or rows x 6) into the pose (rows x 7) and
-// speed/bias (rows x 9) ambient Jacobians.
-template <class M>
-void split_jacobian(const M& J15, int rows, double* j_pose, double* j_sb) {
-  if (j_pose) {
-    Eigen::Map<RowMajor> Jp(j_pose, rows, 7);
-    Jp.setZero();
-    Jp.leftCols(6) = J15.leftCols(6);
+// Every residual block of the twin differentiates on its own: central
+// differences in each parameter block's tangent space (a pose's [dp, dphi]
+// through PoseManifold::Plus, the other blocks additive) around the residuals
+// of window_problem.hpp evaluated without their Jacobians. The twin thus shares
+// the residuals with our solver but not the analytic Jacobians, so the
+// cross-check (tests/window) catches an error in those too (issue 45 item 6).
+// The derivative columns go into the first six ambient columns of a pose,
+// which PoseManifold's lift [I6; 0] passes through unchanged.
+using ResidualFn = std::function<void(double const* const* params, double* residuals)>;
+
+constexpr int kPoseAmbient = 7;
+
+class NumericTangentCost final : public ceres::CostFunction {
+ public:
+  // `blocks`: the ambient size of each parameter block; a block of 7 is a pose.
+  NumericTangentCost(int rows, const std::vector<int>& blocks, ResidualFn f) : f_(std::move(f)) {
+    set_num_residuals(rows);
+    *mutable_parameter_block_sizes() = blocks;
   }
-  if (j_sb) {
-    Eigen::Map<RowMajor> Js(j_sb, rows, 9);
-    Js = J15.rightCols(9);
+  bool Evaluate(double const* const* params, double* residuals, double** jacobians) const override {
+    f_(params, residuals);
+    if (jacobians == nullptr) return true;
+    const int rows = num_residuals();
+    const std::vector<int>& sizes = parameter_block_sizes();
+    const int n_blocks = static_cast<int>(sizes.size());
+    std::vector<std::vector<double>> x(n_blocks);
+    std::vector<const double*> ptr(n_blocks);
+    for (int b = 0; b < n_blocks; ++b) {
+      x[b].assign(params[b], params[b] + sizes[b]);
+      ptr[b] = x[b].data();
+    }
+    Eigen::VectorXd r_plus(rows), r_minus(rows);
+    for (int b = 0; b < n_blocks; ++b) {
+      if (jacobians[b] == nullptr) continue;
+      Eigen::Map<RowMajor> J(jacobians[b], rows, sizes[b]);
+      J.setZero();
+      const bool pose = sizes[b] == kPoseAmbient;
+      const int tangent = pose ? 6 : sizes[b];
+      for (int t = 0; t < tangent; ++t) {
+        const double h = step(params[b], t, pose);
+        perturb(params[b], t, h, pose, x[b].data());
+        f_(ptr.data(), r_plus.data());
+        perturb(params[b], t, -h, pose, x[b].data());
+        f_(ptr.data(), r_minus.data());
+        J.col(t) = (r_plus - r_minus) / (2.0 * h);
+      }
+      x[b].assign(params[b], params[b] + sizes[b]);
+    }
+    return true;
   }
+
+ private:
+  // About the cube root of machine epsilon, scaled by the coordinate: the
+  // balance of central differences' truncation and rounding errors. A
+  // rotation's tangent is dimensionless (radians), so its step is absolute.
+  static double step(const double* x, int t, bool pose) {
+    constexpr double kRelStep = 1e-6;
+    if (pose && t >= 3) return kRelStep;
+    return kRelStep * std::max(1.0, std::abs(x[t]));
+  }
+  static void perturb(const double* x0, int t, double h, bool pose, double* out) {
+    if (pose) {
+      double delta[6] = {0, 0, 0, 0, 0, 0};
+      delta[t] = h;
+      PoseManifold().Plus(x0, delta, out);
+      return;
+    }
+    out[t] = x0[t] + h;
+    if (t > 0) out[t - 1] = x0[t - 1];
+  }
+
+  ResidualFn f_;
+};
+
+// Writes a fixed-size residual vector into Ceres' residual array.
+template <class V>
+void put(const V& v, double* out) {
+  Eigen::Map<Eigen::Matrix<double, V::RowsAtCompileTime, 1>> m(out);
+  m = v;
+}
+
+ceres::CostFunction* numeric_cost(int rows, const std::vector<int>& blocks, ResidualFn f) {
+  return new NumericTangentCost(rows, blocks, std::move(f));
+}
+
+NavState speed_bias(const double* sb) {
+  NavState x;
+  x.v_WB = Eigen::Vector3d(sb[0], sb[1], sb[2]);
+  x.bg_rps = Eigen::Vector3d(sb[3], sb[4], sb[5]);
+  x.ba_mps2 = Eigen::Vector3d(sb[6], sb[7], sb[8]);
+  return x;
 }
 
 // Parameters: pose, landmark, and the time offset t_d when it is estimated.
-class VisualCost final : public ceres::CostFunction {
- public:
-  VisualCost(const WindowProblem& P, const WindowObs& o) : P_(P), o_(o), with_td_(P.estimate_td()) {
-    rows_ = o.depth_m > 0.0 ? 3 : 2;
-    set_num_residuals(rows_);
-    mutable_parameter_block_sizes()->push_back(7);
-    mutable_parameter_block_sizes()->push_back(3);
-    if (with_td_) mutable_parameter_block_sizes()->push_back(1);
-  }
-  bool Evaluate(double const* const* params, double* residuals, double** jacobians) const override {
-    const NavState x = to_nav(params[0], nullptr);
+ceres::CostFunction* visual_cost(const WindowProblem& P, const WindowObs& o) {
+  const bool with_td = P.estimate_td();
+  const int rows = o.depth_m > 0.0 ? 3 : 2;
+  std::vector<int> blocks = {kPoseAmbient, 3};
+  if (with_td) blocks.push_back(1);
+  return numeric_cost(rows, blocks, [&P, o, with_td, rows](double const* const* params, double* residuals) {
     const Eigen::Vector3d l(params[1][0], params[1][1], params[1][2]);
-    const double td_s = with_td_ ? params[2][0] : P_.td_s;
-    Eigen::Vector3d r, Jt;
-    Matrix36d Jp;
-    Eigen::Matrix3d Jl;
-    const bool want = jacobians != nullptr;
-    if (visual_residual(P_, x, l, o_, td_s, &r, want ? &Jp : nullptr, want ? &Jl : nullptr,
-                        want ? &Jt : nullptr) == 0) {
-      // Behind the camera: contributes nothing, exactly as in our solver.
+    const double td_s = with_td ? params[2][0] : P.td_s;
+    Eigen::Vector3d r;
+    // Behind the camera: contributes nothing, exactly as in our solver.
+    if (visual_residual(P, to_nav(params[0], nullptr), l, o, td_s, &r, nullptr, nullptr, nullptr) == 0)
       r.setZero();
-      Jp.setZero();
-      Jl.setZero();
-      Jt.setZero();
-    }
-    for (int i = 0; i < rows_; ++i) residuals[i] = r(i);
-    if (want) {
-      if (jacobians[0]) {
-        Eigen::Map<RowMajor> J(jacobians[0], rows_, 7);
-        J.setZero();
-        J.leftCols(6) = Jp.topRows(rows_);
-      }
-      if (jacobians[1]) {
-        Eigen::Map<RowMajor> J(jacobians[1], rows_, 3);
-        J = Jl.topRows(rows_);
-      }
-      if (with_td_ && jacobians[2])
-        for (int i = 0; i < rows_; ++i) jacobians[2][i] = Jt(i);
-    }
-    return true;
-  }
-
- private:
-  const WindowProblem& P_;
-  WindowObs o_;
-  bool with_td_;
-  int rows_ = 2;
-};
-
-class TimeOffsetPriorCost final : public ceres::SizedCostFunction<1, 1> {
- public:
-  explicit TimeOffsetPriorCost(const WindowProblem& P) : P_(P) {}
-  bool Evaluate(double const* const* params, double* residuals, double** jacobians) const override {
-    double J = 0.0;
-    residuals[0] = time_offset_prior_residual(P_, params[0][0], &J);
-    if (jacobians && jacobians[0]) jacobians[0][0] = J;
-    return true;
-  }
-
- private:
-  const WindowProblem& P_;
-};
-
-class ImuCost final : public ceres::SizedCostFunction<15, 7, 9, 7, 9> {
- public:
-  ImuCost(const WindowProblem& P, const WindowState& sj) : P_(P), sj_(sj) {}
-  bool Evaluate(double const* const* params, double* residuals, double** jacobians) const override {
-    const NavState xi = to_nav(params[0], params[1]);
-    const NavState xj = to_nav(params[2], params[3]);
-    Matrix15d Ji, Jj;
-    const bool want = jacobians != nullptr;
-    const Vector15d r = imu_bias_residual(P_, sj_, xi, xj, want ? &Ji : nullptr, want ? &Jj : nullptr);
-    Eigen::Map<Vector15d> res(residuals);
-    res = r;
-    if (want) {
-      split_jacobian(Ji, 15, jacobians[0], jacobians[1]);
-      split_jacobian(Jj, 15, jacobians[2], jacobians[3]);
-    }
-    return true;
-  }
-
- private:
-  const WindowProblem& P_;
-  const WindowState& sj_;
-};
-
-// Zero-velocity factor on the speed/bias block [v, bg, ba].
-class ZeroVelocityCost final : public ceres::SizedCostFunction<3, 9> {
- public:
-  explicit ZeroVelocityCost(double sigma) : inv_sigma_(1.0 / sigma) {}
-  bool Evaluate(double const* const* params, double* residuals, double** jacobians) const override {
-    for (int i = 0; i < 3; ++i) residuals[i] = params[0][i] * inv_sigma_;
-    if (jacobians && jacobians[0]) {
-      Eigen::Map<Eigen::Matrix<double, 3, 9, Eigen::RowMajor>> J(jacobians[0]);
-      J.setZero();
-      J.leftCols<3>().diagonal().setConstant(inv_sigma_);
-    }
-    return true;
-  }
-
- private:
-  double inv_sigma_;
-};
-
-// Map prior of a landmark: (l - prior) / sigma (window_problem.hpp).
-class LandmarkPriorCost final : public ceres::SizedCostFunction<3, 3> {
- public:
-  explicit LandmarkPriorCost(const WindowLandmark& L) : L_(L) {}
-  bool Evaluate(double const* const* params, double* residuals, double** jacobians) const override {
-    Eigen::Map<Eigen::Vector3d> r(residuals);
-    r = landmark_prior_residual(L_, Eigen::Vector3d(params[0][0], params[0][1], params[0][2]));
-    if (jacobians && jacobians[0]) {
-      Eigen::Map<Eigen::Matrix<double, 3, 3, Eigen::RowMajor>> J(jacobians[0]);
-      J.setIdentity();
-      J /= L_.prior_sigma_m;
-    }
-    return true;
-  }
-
- private:
-  const WindowLandmark& L_;
-};
-
-// Hold prior on the speed/bias block of a vision-only state (window_problem.hpp).
-class HoldCost final : public ceres::SizedCostFunction<9, 9> {
- public:
-  HoldCost(const WindowProblem& P, const WindowState& st) : P_(P), st_(st) {}
-  bool Evaluate(double const* const* params, double* residuals, double** jacobians) const override {
-    NavState x;
-    x.v_WB = Eigen::Vector3d(params[0][0], params[0][1], params[0][2]);
-    x.bg_rps = Eigen::Vector3d(params[0][3], params[0][4], params[0][5]);
-    x.ba_mps2 = Eigen::Vector3d(params[0][6], params[0][7], params[0][8]);
-    Eigen::Map<Vector9d> res(residuals);
-    res = hold_residual(P_, st_, x);
-    if (jacobians && jacobians[0]) {
-      Eigen::Map<Eigen::Matrix<double, 9, 9, Eigen::RowMajor>> J(jacobians[0]);
-      J.setZero();
-      J.diagonal() = hold_weights(P_);
-    }
-    return true;
-  }
-
- private:
-  const WindowProblem& P_;
-  const WindowState& st_;
-};
-
-// A residual on one pose block alone (gauge, map pose factor): f(x, J*)
-// returns the kRows residual and d r / d[dp, dphi] from window_problem.hpp.
-template <int kRows, class F>
-class PoseBlockCost final : public ceres::SizedCostFunction<kRows, 7> {
- public:
-  explicit PoseBlockCost(F f) : f_(std::move(f)) {}
-  bool Evaluate(double const* const* params, double* residuals, double** jacobians) const override {
-    Eigen::Matrix<double, kRows, 6> J;
-    Eigen::Map<Eigen::Matrix<double, kRows, 1>> res(residuals);
-    res = f_(to_nav(params[0], nullptr), jacobians ? &J : nullptr);
-    if (jacobians && jacobians[0]) {
-      Eigen::Map<Eigen::Matrix<double, kRows, 7, Eigen::RowMajor>> Jm(jacobians[0]);
-      Jm.setZero();
-      Jm.template leftCols<6>() = J;
-    }
-    return true;
-  }
-
- private:
-  F f_;
-};
-
-template <int kRows, class F>
-ceres::CostFunction* pose_block_cost(F f) {
-  return new PoseBlockCost<kRows, F>(std::move(f));
+    for (int i = 0; i < rows; ++i) residuals[i] = r(i);
+  });
 }
 
 // Marginalisation prior 1/2 |e + J (x [-] x0)|^2 over the prior's states,
-// parameters (pose, speed/bias) per state.
-// (and t_d - td0 last, one more parameter block, when the prior holds t_d).
-class PriorCost final : public ceres::CostFunction {
- public:
-  PriorCost(Eigen::VectorXd e, Eigen::MatrixXd J, std::vector<NavState> x0, bool with_td, double td0_s)
-      : e_(std::move(e)), J_(std::move(J)), x0_(std::move(x0)), with_td_(with_td), td0_s_(td0_s) {
-    set_num_residuals(static_cast<int>(e_.size()));
-    for (std::size_t k = 0; k < x0_.size(); ++k) {
-      mutable_parameter_block_sizes()->push_back(7);
-      mutable_parameter_block_sizes()->push_back(9);
-    }
-    if (with_td_) mutable_parameter_block_sizes()->push_back(1);
+// parameters (pose, speed/bias) per state, and t_d - td0 last (one more
+// parameter block) when the prior holds t_d.
+ceres::CostFunction* prior_cost(Eigen::VectorXd e, Eigen::MatrixXd J, std::vector<NavState> x0, bool with_td,
+                                double td0_s) {
+  const int rows = static_cast<int>(e.size());
+  std::vector<int> blocks;
+  for (std::size_t k = 0; k < x0.size(); ++k) {
+    blocks.push_back(kPoseAmbient);
+    blocks.push_back(9);
   }
-  bool Evaluate(double const* const* params, double* residuals, double** jacobians) const override {
-    const int k_n = static_cast<int>(x0_.size());
-    const int r = static_cast<int>(e_.size());
-    Eigen::VectorXd dx(kDim * k_n + (with_td_ ? 1 : 0));
-    std::vector<Eigen::Matrix3d> Jr(k_n);
-    for (int k = 0; k < k_n; ++k) {
-      dx.segment<kDim>(kDim * k) = state_minus(to_nav(params[2 * k], params[2 * k + 1]), x0_[k], &Jr[k]);
-    }
-    if (with_td_) dx(kDim * k_n) = params[2 * k_n][0] - td0_s_;
-    Eigen::Map<Eigen::VectorXd>(residuals, r) = e_ + J_ * dx;
-    if (jacobians) {
-      for (int k = 0; k < k_n; ++k) {
-        Eigen::MatrixXd Jk = J_.middleCols(kDim * k, kDim);
-        Jk.middleCols(3, 3) = (Jk.middleCols(3, 3) * Jr[k]).eval();
-        split_jacobian(Jk, r, jacobians[2 * k], jacobians[2 * k + 1]);
-      }
-      if (with_td_ && jacobians[2 * k_n])
-        Eigen::Map<Eigen::VectorXd>(jacobians[2 * k_n], r) = J_.col(kDim * k_n);
-    }
-    return true;
-  }
-
- private:
-  Eigen::VectorXd e_;
-  Eigen::MatrixXd J_;
-  std::vector<NavState> x0_;
-  bool with_td_;
-  double td0_s_;
-};
+  if (with_td) blocks.push_back(1);
+  return numeric_cost(rows, blocks,
+                      [e = std::move(e), J = std::move(J), x0 = std::move(x0), with_td, td0_s](
+                          double const* const* params, double* residuals) {
+                        const int k_n = static_cast<int>(x0.size());
+                        Eigen::VectorXd dx(kDim * k_n + (with_td ? 1 : 0));
+                        for (int k = 0; k < k_n; ++k)
+                          dx.segment<kDim>(kDim * k) =
+                              state_minus(to_nav(params[2 * k], params[2 * k + 1]), x0[k]);
+                        if (with_td) dx(kDim * k_n) = params[2 * k_n][0] - td0_s;
+                        Eigen::Map<Eigen::VectorXd>(residuals, e.size()) = e + J * dx;
+                      });
+}
 
 struct CeresWindow {
   ceres::Problem problem;
@@ -329,7 +232,11 @@ struct CeresWindow {
     td_s = P.td_s;
     if (P.estimate_td()) {
       problem.AddParameterBlock(&td_s, 1);
-      problem.AddResidualBlock(new TimeOffsetPriorCost(P), nullptr, &td_s);
+      problem.AddResidualBlock(numeric_cost(1, {1},
+                                            [&P](double const* const* params, double* residuals) {
+                                              residuals[0] = time_offset_prior_residual(P, params[0][0]);
+                                            }),
+                               nullptr, &td_s);
       ++n_residual_blocks;
     }
     for (int i = 0; i < static_cast<int>(P.lms.size()); ++i)
@@ -342,16 +249,23 @@ struct CeresWindow {
       for (int j = 0; j < L.n_obs; ++j) {
         const int s = L.obs_slot[j];
         if (P.estimate_td()) {
-          problem.AddResidualBlock(new VisualCost(P, P.obs_of(s)[L.obs_idx[j]]), loss, pose[s].data(),
+          problem.AddResidualBlock(visual_cost(P, P.obs_of(s)[L.obs_idx[j]]), loss, pose[s].data(),
                                    lm[a].data(), &td_s);
         } else {
-          problem.AddResidualBlock(new VisualCost(P, P.obs_of(s)[L.obs_idx[j]]), loss, pose[s].data(),
+          problem.AddResidualBlock(visual_cost(P, P.obs_of(s)[L.obs_idx[j]]), loss, pose[s].data(),
                                    lm[a].data());
         }
         ++n_residual_blocks;
       }
       if (L.has_prior) {
-        problem.AddResidualBlock(new LandmarkPriorCost(L), loss, lm[a].data());
+        problem.AddResidualBlock(
+            numeric_cost(3, {3},
+                         [&L](double const* const* params, double* residuals) {
+                           put(landmark_prior_residual(
+                                   L, Eigen::Vector3d(params[0][0], params[0][1], params[0][2])),
+                               residuals);
+                         }),
+            loss, lm[a].data());
         ++n_residual_blocks;
       }
     }
@@ -360,42 +274,65 @@ struct CeresWindow {
       const WindowState& sj = P.states[j];
       if (!sj.has_imu) continue;
       const int i = sj.imu_prev;
-      problem.AddResidualBlock(new ImuCost(P, sj), nullptr, pose[i].data(), sb[i].data(), pose[j].data(),
-                               sb[j].data());
+      problem.AddResidualBlock(
+          numeric_cost(15, {kPoseAmbient, 9, kPoseAmbient, 9},
+                       [&P, &sj](double const* const* params, double* residuals) {
+                         put(imu_bias_residual(P, sj, to_nav(params[0], params[1]),
+                                               to_nav(params[2], params[3]), nullptr, nullptr),
+                             residuals);
+                       }),
+          nullptr, pose[i].data(), sb[i].data(), pose[j].data(), sb[j].data());
       ++n_residual_blocks;
     }
     for (int k = 0; k < P.n_states; ++k) {
       const int s = P.order[k];
       if (!P.states[s].zero_velocity) continue;
-      problem.AddResidualBlock(new ZeroVelocityCost(P.opt.zero_velocity_sigma_mps), nullptr, sb[s].data());
+      const double inv_sigma = 1.0 / P.opt.zero_velocity_sigma_mps;
+      problem.AddResidualBlock(numeric_cost(3, {9},
+                                            [inv_sigma](double const* const* params, double* residuals) {
+                                              for (int i = 0; i < 3; ++i)
+                                                residuals[i] = params[0][i] * inv_sigma;
+                                            }),
+                               nullptr, sb[s].data());
       ++n_residual_blocks;
     }
     for (int k = 0; k < P.n_states; ++k) {
       const int s = P.order[k];
       if (!P.states[s].has_pose_prior) continue;
       const WindowState& st = P.states[s];
-      problem.AddResidualBlock(
-          pose_block_cost<6>([&st](const NavState& x, Matrix6d* J) { return pose_prior_residual(st, x, J); }),
-          nullptr, pose[s].data());
+      problem.AddResidualBlock(numeric_cost(6, {kPoseAmbient},
+                                            [&st](double const* const* params, double* residuals) {
+                                              put(pose_prior_residual(st, to_nav(params[0], nullptr)),
+                                                  residuals);
+                                            }),
+                               nullptr, pose[s].data());
       ++n_residual_blocks;
     }
     for (int k = 0; k < P.n_states; ++k) {
       const int s = P.order[k];
       if (!P.states[s].hold) continue;
-      problem.AddResidualBlock(new HoldCost(P, P.states[s]), nullptr, sb[s].data());
+      const WindowState& st = P.states[s];
+      problem.AddResidualBlock(numeric_cost(9, {9},
+                                            [&P, &st](double const* const* params, double* residuals) {
+                                              put(hold_residual(P, st, speed_bias(params[0])), residuals);
+                                            }),
+                               nullptr, sb[s].data());
       ++n_residual_blocks;
     }
     if (P.gauge_rotation_active()) {
-      problem.AddResidualBlock(pose_block_cost<3>([&P](const NavState& x, Eigen::Matrix<double, 3, 6>* J) {
-                                 return gauge_rotation_residual(P, x, J);
-                               }),
+      problem.AddResidualBlock(numeric_cost(3, {kPoseAmbient},
+                                            [&P](double const* const* params, double* residuals) {
+                                              put(gauge_rotation_residual(P, to_nav(params[0], nullptr)),
+                                                  residuals);
+                                            }),
                                nullptr, pose[P.gauge_slot].data());
       ++n_residual_blocks;
     }
     if (P.gauge_active()) {
-      problem.AddResidualBlock(pose_block_cost<4>([&P](const NavState& x, Eigen::Matrix<double, 4, 6>* J) {
-                                 return gauge_residual(P, x, J);
-                               }),
+      problem.AddResidualBlock(numeric_cost(4, {kPoseAmbient},
+                                            [&P](double const* const* params, double* residuals) {
+                                              put(gauge_residual(P, to_nav(params[0], nullptr)), residuals);
+                                            }),
                                nullptr, pose[P.gauge_slot].data());
       ++n_residual_blocks;
     }
@@ -451,7 +388,7 @@ struct CeresWindow {
       blocks.push_back(sb[s].data());
     }
     if (with_td) blocks.push_back(&td_s);
-    problem.AddResidualBlock(new PriorCost(e, J, x0, with_td, P.td0_s), nullptr, blocks);
+    problem.AddResidualBlock(prior_cost(e, J, x0, with_td, P.td0_s), nullptr, blocks);
     ++n_residual_blocks;
   }
 

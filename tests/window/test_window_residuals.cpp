@@ -2,6 +2,7 @@
 // differences through the same perturbation (tests/common/jacobian_check.hpp).
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <random>
 
 #include "jacobian_check.hpp"
@@ -202,6 +203,116 @@ TEST(WindowResiduals, GaugeRotationJacobian) {
       d15.head<6>() = d;
       return VectorXd(gauge_rotation_residual(P, state_plus(x, d15)));
     }));
+  }
+}
+
+// The null spaces: a factor must not see the directions the problem cannot
+// observe, or the solver gains false information along them (and the window's
+// gauge drifts or locks where it should not). A global rigid motion of the
+// world (translation dt, rotation w about W's axes) moves a state's tangent by
+//   dp = dt + w x p,  dphi = R^T w,  dv = w x v,  biases unchanged,
+// and a landmark by dl = dt + w x l. Vision cannot see any of the six; the IMU
+// factor, which sees gravity along W's z, cannot see translation and yaw.
+Eigen::Matrix<double, 15, 6> global_motion(const NavState& x) {
+  Eigen::Matrix<double, 15, 6> N = Eigen::Matrix<double, 15, 6>::Zero();
+  N.block<3, 3>(0, 0).setIdentity();
+  N.block<3, 3>(0, 3) = -so3::hat(x.p_WB);
+  N.block<3, 3>(3, 3) = x.q_WB.toRotationMatrix().transpose();
+  N.block<3, 3>(6, 3) = -so3::hat(x.v_WB);
+  return N;
+}
+
+// Largest entry of J N against the scale of J and N, so that the check is
+// relative to how strongly the factor sees anything.
+template <class A, class B>
+double relative_leak(const A& JN, const B& J, double n_scale) {
+  return JN.cwiseAbs().maxCoeff() / (J.cwiseAbs().maxCoeff() * n_scale);
+}
+
+TEST(WindowResiduals, VisualFactorDoesNotSeeAGlobalRigidMotion) {
+  const WindowProblem P = make_problem();
+  std::mt19937_64 rng(23);
+  for (int depth = 0; depth < 2; ++depth) {
+    for (int trial = 0; trial < 5; ++trial) {
+      const NavState x = some_state(rng);
+      const Vector3d p_C(0.2 * trial - 0.4, -0.1, 2.5);
+      const Vector3d l = x.q_WB.toRotationMatrix() * (P.R_CB.transpose() * (p_C - P.p_CB)) + x.p_WB;
+      WindowObs o;
+      o.uv = Eigen::Vector2d(310.0, 240.0);
+      o.sigma_px = 0.7;
+      o.depth_m = depth ? 2.4 : 0.0;
+      o.sigma_depth_m = 0.02;
+      Vector3d r;
+      Matrix36d Jp;
+      Matrix3d Jl;
+      const int rows = visual_residual(P, x, l, o, 0.0, &r, &Jp, &Jl);
+      ASSERT_EQ(rows, depth ? 3 : 2);
+      const Eigen::Matrix<double, 15, 6> N = global_motion(x);
+      Eigen::Matrix<double, 3, 6> Nl;
+      Nl << Matrix3d::Identity(), -so3::hat(l);
+      const Eigen::MatrixXd JN = Jp.topRows(rows) * N.topRows<6>() + Jl.topRows(rows) * Nl;
+      const double n_scale = std::max({1.0, x.p_WB.norm(), l.norm()});
+      EXPECT_LT(relative_leak(JN, Jp.topRows(rows), n_scale), 1e-12) << "depth " << depth << "\n" << JN;
+    }
+  }
+}
+
+TEST(WindowResiduals, ImuFactorDoesNotSeeTranslationOrYawButSeesRollAndPitch) {
+  for (const bool bounded : {false, true}) {
+    const WindowProblem P = make_problem(bounded);
+    std::mt19937_64 rng(29);
+    kestrel::test::SimConfig c;
+    kestrel::test::SimWorld world(c);
+    const std::vector<kestrel::test::SimFrame> frames = world.frames(2, 1.0);
+    WindowState sj;
+    sj.pim = frames[1].pim;
+    sj.imu_sqrt_info = sj.pim.sqrt_information();
+    const Matrix6d C = bias_covariance(sj.pim.dt_total(), P.bias_noise);
+    for (int i = 0; i < 6; ++i) sj.bias_sqrt_info(i) = 1.0 / std::sqrt(C(i, i));
+    for (int trial = 0; trial < 4; ++trial) {
+      const NavState xi = kestrel::test::perturb(frames[0].truth, rng, 0.1, 0.1);
+      const NavState xj = kestrel::test::perturb(frames[1].truth, rng, 0.1, 0.1);
+      Matrix15d Ji, Jj;
+      imu_bias_residual(P, sj, xi, xj, &Ji, &Jj);
+      const Eigen::Matrix<double, 15, 6> JN = Ji * global_motion(xi) + Jj * global_motion(xj);
+      const double n_scale = std::max({1.0, xi.p_WB.norm(), xj.p_WB.norm(), xi.v_WB.norm(), xj.v_WB.norm()});
+      const double J_scale = std::max(Ji.cwiseAbs().maxCoeff(), Jj.cwiseAbs().maxCoeff()) * n_scale;
+      // Columns 0-2: translation, 5: yaw about W's z (gravity's axis).
+      for (const int k : {0, 1, 2, 5})
+        EXPECT_LT(JN.col(k).cwiseAbs().maxCoeff() / J_scale, 1e-12) << "direction " << k << "\n" << JN.col(k);
+      // Roll and pitch tilt gravity in the body: the factor sees them, which is
+      // also what shows the check above can fail.
+      for (const int k : {3, 4})
+        EXPECT_GT(JN.col(k).cwiseAbs().maxCoeff() / J_scale, 1e-4) << "direction " << k;
+    }
+  }
+}
+
+// The gauge factors are there to fix exactly the directions the other
+// factors cannot see: each must see every one of them.
+TEST(WindowResiduals, GaugeFactorsSeeEveryUnobservableDirection) {
+  WindowProblem P = make_problem();
+  P.opt.gauge_sigma = 1e-2;
+  std::mt19937_64 rng(31);
+  for (int trial = 0; trial < 4; ++trial) {
+    const NavState x = some_state(rng);
+    const Eigen::Matrix<double, 15, 6> N = global_motion(x);
+    P.gauge_p = x.p_WB;
+    P.gauge_yaw = yaw_of(x.q_WB);
+    P.gauge_q = x.q_WB;
+    Eigen::Matrix<double, 4, 6> Jg;
+    gauge_residual(P, x, &Jg);
+    Eigen::Matrix<double, 6, 4> N4;  // translation and yaw
+    N4 << N.block<6, 3>(0, 0), N.block<6, 1>(0, 5);
+    EXPECT_EQ(Eigen::FullPivLU<Eigen::Matrix4d>(Jg * N4).rank(), 4);
+    // Without IMU factors all six are free, and the attitude gauge with the
+    // position gauge's first three rows fixes them.
+    Eigen::Matrix<double, 3, 6> Jr;
+    gauge_rotation_residual(P, x, &Jr);
+    Eigen::Matrix<double, 6, 6> Jall;
+    Jall << Jg.topRows<3>(), Jr;
+    using Matrix6x6 = Eigen::Matrix<double, 6, 6>;
+    EXPECT_EQ(Eigen::FullPivLU<Matrix6x6>(Jall * N.topRows<6>()).rank(), 6);
   }
 }
 

@@ -51,7 +51,7 @@ struct BaProblem {
   std::vector<BaPose> poses;
   std::vector<Eigen::Vector3d> points_M;
   std::vector<BaObservation> obs;
-  std::vector<BaRelativePose> relative;  // ours only: the Ceres twin leaves them out
+  std::vector<BaRelativePose> relative;
 };
 
 struct BaResult {
