@@ -119,17 +119,29 @@ TEST(WindowResiduals, BehindTheCameraHasNoRows) {
   EXPECT_EQ(visual_residual(P, x, Vector3d(-3, 0, 0), o, 0.0, &r), 0);
 }
 
+// The IMU factor between the first two frames of a simulated flight.
+struct ImuPair {
+  std::vector<kestrel::test::SimFrame> frames;
+  WindowState sj;
+};
+ImuPair imu_pair(const WindowProblem& P) {
+  kestrel::test::SimConfig c;
+  kestrel::test::SimWorld world(c);
+  ImuPair out;
+  out.frames = world.frames(2, 1.0);
+  out.sj.pim = out.frames[1].pim;
+  out.sj.imu_sqrt_info = out.sj.pim.sqrt_information();
+  const Matrix6d C = bias_covariance(out.sj.pim.dt_total(), P.bias_noise);
+  for (int i = 0; i < 6; ++i) out.sj.bias_sqrt_info(i) = 1.0 / std::sqrt(C(i, i));
+  return out;
+}
+
 void check_imu(bool bounded) {
   const WindowProblem P = make_problem(bounded);
   std::mt19937_64 rng(bounded ? 7 : 5);
-  kestrel::test::SimConfig c;
-  kestrel::test::SimWorld world(c);
-  const std::vector<kestrel::test::SimFrame> frames = world.frames(2, 1.0);
-  WindowState sj;
-  sj.pim = frames[1].pim;
-  sj.imu_sqrt_info = sj.pim.sqrt_information();
-  const Matrix6d C = bias_covariance(sj.pim.dt_total(), P.bias_noise);
-  for (int i = 0; i < 6; ++i) sj.bias_sqrt_info(i) = 1.0 / std::sqrt(C(i, i));
+  const ImuPair pair = imu_pair(P);
+  const std::vector<kestrel::test::SimFrame>& frames = pair.frames;
+  const WindowState& sj = pair.sj;
   for (int trial = 0; trial < 4; ++trial) {
     const NavState xi = kestrel::test::perturb(frames[0].truth, rng, 0.1, 0.1);
     const NavState xj = kestrel::test::perturb(frames[1].truth, rng, 0.1, 0.1);
@@ -261,14 +273,9 @@ TEST(WindowResiduals, ImuFactorDoesNotSeeTranslationOrYawButSeesRollAndPitch) {
   for (const bool bounded : {false, true}) {
     const WindowProblem P = make_problem(bounded);
     std::mt19937_64 rng(29);
-    kestrel::test::SimConfig c;
-    kestrel::test::SimWorld world(c);
-    const std::vector<kestrel::test::SimFrame> frames = world.frames(2, 1.0);
-    WindowState sj;
-    sj.pim = frames[1].pim;
-    sj.imu_sqrt_info = sj.pim.sqrt_information();
-    const Matrix6d C = bias_covariance(sj.pim.dt_total(), P.bias_noise);
-    for (int i = 0; i < 6; ++i) sj.bias_sqrt_info(i) = 1.0 / std::sqrt(C(i, i));
+    const ImuPair pair = imu_pair(P);
+    const std::vector<kestrel::test::SimFrame>& frames = pair.frames;
+    const WindowState& sj = pair.sj;
     for (int trial = 0; trial < 4; ++trial) {
       const NavState xi = kestrel::test::perturb(frames[0].truth, rng, 0.1, 0.1);
       const NavState xj = kestrel::test::perturb(frames[1].truth, rng, 0.1, 0.1);
