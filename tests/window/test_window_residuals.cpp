@@ -119,44 +119,48 @@ TEST(WindowResiduals, BehindTheCameraHasNoRows) {
   EXPECT_EQ(visual_residual(P, x, Vector3d(-3, 0, 0), o, 0.0, &r), 0);
 }
 
-// The IMU factor between the first two frames of a simulated flight.
-struct ImuPair {
-  std::vector<kestrel::test::SimFrame> frames;
-  WindowState sj;
-};
-ImuPair imu_pair(const WindowProblem& P) {
+// The IMU factor between the first two frames of a simulated flight, at four
+// pairs of states perturbed from the truth: f(P, sj, xi, xj, Ji, Jj).
+template <class F>
+void for_each_imu_factor(bool bounded, uint64_t seed, F f) {
+  const WindowProblem P = make_problem(bounded);
+  std::mt19937_64 rng(seed);
   kestrel::test::SimConfig c;
   kestrel::test::SimWorld world(c);
-  ImuPair out;
-  out.frames = world.frames(2, 1.0);
-  out.sj.pim = out.frames[1].pim;
-  out.sj.imu_sqrt_info = out.sj.pim.sqrt_information();
-  const Matrix6d C = bias_covariance(out.sj.pim.dt_total(), P.bias_noise);
-  for (int i = 0; i < 6; ++i) out.sj.bias_sqrt_info(i) = 1.0 / std::sqrt(C(i, i));
-  return out;
-}
-
-void check_imu(bool bounded) {
-  const WindowProblem P = make_problem(bounded);
-  std::mt19937_64 rng(bounded ? 7 : 5);
-  const ImuPair pair = imu_pair(P);
-  const std::vector<kestrel::test::SimFrame>& frames = pair.frames;
-  const WindowState& sj = pair.sj;
+  const std::vector<kestrel::test::SimFrame> frames = world.frames(2, 1.0);
+  WindowState sj;
+  sj.pim = frames[1].pim;
+  sj.imu_sqrt_info = sj.pim.sqrt_information();
+  const Matrix6d C = bias_covariance(sj.pim.dt_total(), P.bias_noise);
+  for (int i = 0; i < 6; ++i) sj.bias_sqrt_info(i) = 1.0 / std::sqrt(C(i, i));
   for (int trial = 0; trial < 4; ++trial) {
     const NavState xi = kestrel::test::perturb(frames[0].truth, rng, 0.1, 0.1);
     const NavState xj = kestrel::test::perturb(frames[1].truth, rng, 0.1, 0.1);
     Matrix15d Ji, Jj;
     imu_bias_residual(P, sj, xi, xj, &Ji, &Jj);
-    // Whitened residuals are large (1e3-1e5 per unit): relative tolerance on the worst entry.
-    EXPECT_TRUE(check_jacobian(
-        Ji,
-        [&](const VectorXd& d) { return VectorXd(imu_bias_residual(P, sj, state_plus(xi, to15(d)), xj)); },
-        1e-5, 1e-6, 1e-7));
-    EXPECT_TRUE(check_jacobian(
-        Jj,
-        [&](const VectorXd& d) { return VectorXd(imu_bias_residual(P, sj, xi, state_plus(xj, to15(d)))); },
-        1e-5, 1e-6, 1e-7));
+    f(P, sj, xi, xj, Ji, Jj);
   }
+}
+
+void check_imu(bool bounded) {
+  for_each_imu_factor(bounded, bounded ? 7 : 5,
+                      [](const WindowProblem& P, const WindowState& sj, const NavState& xi,
+                         const NavState& xj, const Matrix15d& Ji, const Matrix15d& Jj) {
+                        // Whitened residuals are large (1e3-1e5 per unit): relative tolerance on the worst
+                        // entry.
+                        EXPECT_TRUE(check_jacobian(
+                            Ji,
+                            [&](const VectorXd& d) {
+                              return VectorXd(imu_bias_residual(P, sj, state_plus(xi, to15(d)), xj));
+                            },
+                            1e-5, 1e-6, 1e-7));
+                        EXPECT_TRUE(check_jacobian(
+                            Jj,
+                            [&](const VectorXd& d) {
+                              return VectorXd(imu_bias_residual(P, sj, xi, state_plus(xj, to15(d))));
+                            },
+                            1e-5, 1e-6, 1e-7));
+                      });
 }
 
 TEST(WindowResiduals, ImuAndBiasJacobiansRandomWalk) { check_imu(false); }
@@ -271,27 +275,23 @@ TEST(WindowResiduals, VisualFactorDoesNotSeeAGlobalRigidMotion) {
 
 TEST(WindowResiduals, ImuFactorDoesNotSeeTranslationOrYawButSeesRollAndPitch) {
   for (const bool bounded : {false, true}) {
-    const WindowProblem P = make_problem(bounded);
-    std::mt19937_64 rng(29);
-    const ImuPair pair = imu_pair(P);
-    const std::vector<kestrel::test::SimFrame>& frames = pair.frames;
-    const WindowState& sj = pair.sj;
-    for (int trial = 0; trial < 4; ++trial) {
-      const NavState xi = kestrel::test::perturb(frames[0].truth, rng, 0.1, 0.1);
-      const NavState xj = kestrel::test::perturb(frames[1].truth, rng, 0.1, 0.1);
-      Matrix15d Ji, Jj;
-      imu_bias_residual(P, sj, xi, xj, &Ji, &Jj);
-      const Eigen::Matrix<double, 15, 6> JN = Ji * global_motion(xi) + Jj * global_motion(xj);
-      const double n_scale = std::max({1.0, xi.p_WB.norm(), xj.p_WB.norm(), xi.v_WB.norm(), xj.v_WB.norm()});
-      const double J_scale = std::max(Ji.cwiseAbs().maxCoeff(), Jj.cwiseAbs().maxCoeff()) * n_scale;
-      // Columns 0-2: translation, 5: yaw about W's z (gravity's axis).
-      for (const int k : {0, 1, 2, 5})
-        EXPECT_LT(JN.col(k).cwiseAbs().maxCoeff() / J_scale, 1e-12) << "direction " << k << "\n" << JN.col(k);
-      // Roll and pitch tilt gravity in the body: the factor sees them, which is
-      // also what shows the check above can fail.
-      for (const int k : {3, 4})
-        EXPECT_GT(JN.col(k).cwiseAbs().maxCoeff() / J_scale, 1e-4) << "direction " << k;
-    }
+    for_each_imu_factor(
+        bounded, 29,
+        [](const WindowProblem&, const WindowState&, const NavState& xi, const NavState& xj,
+           const Matrix15d& Ji, const Matrix15d& Jj) {
+          const Eigen::Matrix<double, 15, 6> JN = Ji * global_motion(xi) + Jj * global_motion(xj);
+          const double n_scale =
+              std::max({1.0, xi.p_WB.norm(), xj.p_WB.norm(), xi.v_WB.norm(), xj.v_WB.norm()});
+          const double J_scale = std::max(Ji.cwiseAbs().maxCoeff(), Jj.cwiseAbs().maxCoeff()) * n_scale;
+          // Columns 0-2: translation, 5: yaw about W's z (gravity's axis).
+          for (const int k : {0, 1, 2, 5})
+            EXPECT_LT(JN.col(k).cwiseAbs().maxCoeff() / J_scale, 1e-12) << "direction " << k << "\n"
+                                                                        << JN.col(k);
+          // Roll and pitch tilt gravity in the body: the factor sees them, which is
+          // also what shows the check above can fail.
+          for (const int k : {3, 4})
+            EXPECT_GT(JN.col(k).cwiseAbs().maxCoeff() / J_scale, 1e-4) << "direction " << k;
+        });
   }
 }
 
