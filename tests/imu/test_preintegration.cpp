@@ -371,7 +371,11 @@ TEST(ImuFactor, EveryJacobianBlockMatchesNumericDifferentiation) {
     const std::pair<Block, const Matrix93d*> blocks[] = {
         {Block::kPhiI, &J.phi_i}, {Block::kPI, &J.p_i},     {Block::kVI, &J.v_i}, {Block::kBgI, &J.bg_i},
         {Block::kBaI, &J.ba_i},   {Block::kPhiJ, &J.phi_j}, {Block::kPJ, &J.p_j}, {Block::kVJ, &J.v_j}};
-    for (const auto& [block, Jb] : blocks) {
+    for (const auto& entry : blocks) {
+      // Not a structured binding: C++17 (and clang 14, the sanitizer build's
+      // compiler) cannot capture one in a lambda.
+      const Block block = entry.first;
+      const Matrix93d* Jb = entry.second;
       EXPECT_TRUE(check_jacobian(*Jb,
                                  [&](const VectorXd& d) -> VectorXd {
                                    NavState xi = c.xi, xj = c.xj;
@@ -419,7 +423,9 @@ TEST(BiasFactor, JacobiansMatchNumericDifferentiation) {
     bias_residual(xi, xj, 0.4, noise, &J);
     const std::pair<int, const Matrix63d*> blocks[] = {
         {0, &J.bg_i}, {1, &J.ba_i}, {2, &J.bg_j}, {3, &J.ba_j}};
-    for (const auto& [which, Jb] : blocks) {
+    for (const auto& entry : blocks) {
+      const int which = entry.first;  // captured below: see the Jacobian test above
+      const Matrix63d* Jb = entry.second;
       EXPECT_TRUE(check_jacobian(*Jb,
                                  [&](const VectorXd& d) -> VectorXd {
                                    NavState a = xi, b = xj;
