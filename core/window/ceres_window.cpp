@@ -199,9 +199,10 @@ ceres::CostFunction* prior_cost(Eigen::VectorXd e, Eigen::MatrixXd J, std::vecto
                           double const* const* params, double* residuals) {
                         const int k_n = static_cast<int>(x0.size());
                         Eigen::VectorXd dx(kDim * k_n + (with_td ? 1 : 0));
-                        for (int k = 0; k < k_n; ++k)
+                        for (int k = 0; k < k_n; ++k) {
                           dx.segment<kDim>(kDim * k) =
                               state_minus(to_nav(params[2 * k], params[2 * k + 1]), x0[k]);
+                        }
                         if (with_td) dx(kDim * k_n) = params[2 * k_n][0] - td0_s;
                         Eigen::Map<Eigen::VectorXd>(residuals, e.size()) = e + J * dx;
                       });

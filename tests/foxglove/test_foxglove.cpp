@@ -202,8 +202,11 @@ TEST(FoxgloveServer, ASlowClientIsDroppedFromNeverWaitedFor) {
   EXPECT_GT(st.dropped_slow_client + st.dropped_queue, 0u) << stats_summary(st);
   EXPECT_GT(st.dropped_slow_client, 0u) << stats_summary(st);
   EXPECT_LT(st.messages_sent, 512u);
-  // A copy into the queue, never a wait for the socket: 20 ms leaves room for a loaded CI machine.
-  EXPECT_LT(worst_ns, 20'000'000) << "publish() waited";
+  // A copy into the queue, never a wait for the socket. A wait would last until
+  // the client reads, which this one never does; 250 ms is far below that and
+  // above a preemption on a loaded 2-core machine (27 ms seen beside the tidy
+  // gate's two processes, against the 20 ms this bound was).
+  EXPECT_LT(worst_ns, 250'000'000) << "publish() waited";
 }
 
 TEST(FoxgloveServer, ClientsBeyondTheLimitAreClosed) {
