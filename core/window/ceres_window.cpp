@@ -79,7 +79,9 @@ NavState to_nav(const double* pose, const double* sb) {
 // the residuals with our solver but not the analytic Jacobians, so the
 // cross-check (tests/window) catches an error in those too (issue 45 item 6).
 // The derivative columns go into the first six ambient columns of a pose,
-// which PoseManifold's lift [I6; 0] passes through unchanged.
+// which PoseManifold's lift [I6; 0] passes through unchanged. (Ceres' own
+// NumericDiffCostFunction differentiates in the ambient space, the quaternion's
+// four numbers, which that lift would then misread as tangent columns.)
 using ResidualFn = std::function<void(double const* const* params, double* residuals)>;
 
 constexpr int kPoseAmbient = 7;
@@ -112,9 +114,9 @@ class NumericTangentCost final : public ceres::CostFunction {
       const int tangent = pose ? 6 : sizes[b];
       for (int t = 0; t < tangent; ++t) {
         const double h = step(params[b], t, pose);
-        perturb(params[b], t, h, pose, x[b].data());
+        perturb(params[b], sizes[b], t, h, pose, x[b].data());
         f_(ptr.data(), r_plus.data());
-        perturb(params[b], t, -h, pose, x[b].data());
+        perturb(params[b], sizes[b], t, -h, pose, x[b].data());
         f_(ptr.data(), r_minus.data());
         J.col(t) = (r_plus - r_minus) / (2.0 * h);
       }
@@ -132,15 +134,16 @@ class NumericTangentCost final : public ceres::CostFunction {
     if (pose && t >= 3) return kRelStep;
     return kRelStep * std::max(1.0, std::abs(x[t]));
   }
-  static void perturb(const double* x0, int t, double h, bool pose, double* out) {
+  // out = x0 moved by h along tangent direction t (the whole block is written).
+  static void perturb(const double* x0, int size, int t, double h, bool pose, double* out) {
     if (pose) {
       double delta[6] = {0, 0, 0, 0, 0, 0};
       delta[t] = h;
       PoseManifold().Plus(x0, delta, out);
       return;
     }
-    out[t] = x0[t] + h;
-    if (t > 0) out[t - 1] = x0[t - 1];
+    std::copy(x0, x0 + size, out);
+    out[t] += h;
   }
 
   ResidualFn f_;
