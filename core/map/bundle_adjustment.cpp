@@ -7,6 +7,7 @@
 #include <cmath>
 #include <unordered_map>
 
+#include "kestrel/core/levenberg_marquardt.hpp"
 #include "kestrel/core/so3.hpp"
 
 namespace kestrel::core {
@@ -227,6 +228,236 @@ double ba_cost(const BaProblem& pb) {
   return 0.5 * cost;
 }
 
+namespace {
+
+// The bundle adjustment as the problem of the one Levenberg-Marquardt loop
+// (levenberg_marquardt.hpp): the free poses' 6-vectors are the unknowns of
+// the reduced camera system, the points are Schur-eliminated in solve() and
+// recovered by back-substitution.
+struct BaLm {
+  BaProblem& pb;
+  BaScratch& s;
+  const size_t np = 0, nq = 0;
+  const int nf = 0, dim = 0;
+  const bool sparse = false;
+  Linearised L;
+
+  void linearize();
+  bool solve(double mu, lm::Step* step);
+  double try_step();
+  void accept() {}
+  void reject();
+
+ private:
+  void fill_damped_system(double mu);
+  bool back_substitute(double mu, lm::Step* step);
+};
+
+void BaLm::linearize() {
+  for (Eigen::Matrix<double, 6, 6>& Hf : s.H_diag) Hf.setZero();
+  s.g.setZero();
+  for (size_t a = 0; a < nq; ++a) {
+    Eigen::Matrix3d& V = s.V[a];
+    Eigen::Vector3d& ga = s.g_point[a];
+    V.setZero();
+    ga.setZero();
+    for (int32_t e = s.point_begin[a]; e < s.point_begin[a + 1]; ++e) {
+      const BaObservation& o = pb.obs[static_cast<size_t>(s.by_point[static_cast<size_t>(e)])];
+      linearise(pb, o, L);
+      // Fixed 3-row blocks (a depth-less row is zero) keep Eigen's
+      // products fixed-size: dynamic row counts cost twice the time.
+      const Eigen::Vector3d& r = L.r;
+      const double w = huber_weight(r.squaredNorm(), pb.huber);
+      const Eigen::Matrix3d& Jp = L.J_point;
+      V.noalias() += w * Jp.transpose() * Jp;
+      ga.noalias() += w * Jp.transpose() * r;
+      const int f = s.free_of[static_cast<size_t>(e)];
+      if (f < 0) continue;
+      const Eigen::Matrix<double, 3, 6>& Jc = L.J_pose;
+      s.H_diag[static_cast<size_t>(f)].noalias() += w * Jc.transpose() * Jc;
+      s.g.segment<6>(6 * f).noalias() += w * Jc.transpose() * r;
+      s.W[static_cast<size_t>(e)].noalias() = w * Jc.transpose() * Jp;
+    }
+  }
+  for (size_t i = 0; i < np; ++i) {
+    const BaPose& P = pb.poses[i];
+    if (!gravity_on(pb, P)) continue;
+    const int f = s.free_index[i];
+    const Eigen::Matrix3d J = -so3::hat(-P.R_CM.col(2)) * pb.gravity_inv_sigma;
+    s.H_diag[static_cast<size_t>(f)].topLeftCorner<3, 3>().noalias() += J.transpose() * J;
+    s.g.segment<3>(6 * f).noalias() += J.transpose() * gravity_residual(pb, P);
+  }
+  for (size_t k = 0; k < pb.relative.size(); ++k) {
+    const BaRelativePose& e = pb.relative[k];
+    Eigen::Matrix<double, 6, 1> r;
+    Eigen::Matrix<double, 6, 6> Ja, Jb;
+    ba_relative_residual(pb, e, &r, &Ja, &Jb);
+    const int fa = s.free_index[static_cast<size_t>(e.a)], fb = s.free_index[static_cast<size_t>(e.b)];
+    if (fa >= 0) {
+      s.H_diag[static_cast<size_t>(fa)].noalias() += Ja.transpose() * Ja;
+      s.g.segment<6>(6 * fa).noalias() += Ja.transpose() * r;
+    }
+    if (fb >= 0) {
+      s.H_diag[static_cast<size_t>(fb)].noalias() += Jb.transpose() * Jb;
+      s.g.segment<6>(6 * fb).noalias() += Jb.transpose() * r;
+    }
+    s.H_rel[k].noalias() = Ja.transpose() * Jb;
+  }
+}
+
+// The damped reduced camera system S dx = -b, lower triangle only: the
+// poses' blocks, the relative-pose factors' (a, b) blocks, and minus each
+// point's W V^-1 W'.
+void BaLm::fill_damped_system(double mu) {
+  if (sparse) {
+    BaSparse& sp = *s.sparse;
+    for (size_t b = static_cast<size_t>(nf); b < sp.blocks.size(); ++b) sp.blocks[b].setZero();
+    for (int f = 0; f < nf; ++f) {
+      Eigen::Matrix<double, 6, 6>& D = sp.blocks[static_cast<size_t>(f)];
+      D = s.H_diag[static_cast<size_t>(f)];
+      for (int d = 0; d < 6; ++d) D(d, d) += mu * damping(s.H_diag[static_cast<size_t>(f)](d, d));
+    }
+  } else {
+    s.S.setZero();
+    for (int f = 0; f < nf; ++f) {
+      s.S.block<6, 6>(6 * f, 6 * f) = s.H_diag[static_cast<size_t>(f)];
+      for (int d = 0; d < 6; ++d)
+        s.S(6 * f + d, 6 * f + d) += mu * damping(s.H_diag[static_cast<size_t>(f)](d, d));
+    }
+  }
+  for (size_t k = 0; k < pb.relative.size(); ++k) {
+    const int fa = s.free_index[static_cast<size_t>(pb.relative[k].a)];
+    const int fb = s.free_index[static_cast<size_t>(pb.relative[k].b)];
+    if (fa < 0 || fb < 0 || fa == fb) continue;
+    if (sparse) {
+      Eigen::Matrix<double, 6, 6>& T = s.sparse->blocks[static_cast<size_t>(s.sparse->rel_block[k])];
+      if (fa > fb) {
+        T += s.H_rel[k];
+      } else {
+        T += s.H_rel[k].transpose();
+      }
+    } else if (fa > fb) {
+      s.S.block<6, 6>(6 * fa, 6 * fb) += s.H_rel[k];
+    } else {
+      s.S.block<6, 6>(6 * fb, 6 * fa) += s.H_rel[k].transpose();
+    }
+  }
+  s.b = s.g;
+  size_t pair = 0;
+  for (size_t a = 0; a < nq; ++a) {
+    Eigen::Matrix3d Vd = s.V[a];
+    for (int d = 0; d < 3; ++d) Vd(d, d) += mu * damping(s.V[a](d, d));
+    s.V_inv[a] = Vd.inverse();
+    for (int32_t e = s.point_begin[a]; e < s.point_begin[a + 1]; ++e) {
+      const int fi = s.free_of[static_cast<size_t>(e)];
+      if (fi < 0) continue;
+      const Eigen::Matrix<double, 6, 3> WV = s.W[static_cast<size_t>(e)] * s.V_inv[a];
+      s.b.segment<6>(6 * fi).noalias() -= WV * s.g_point[a];
+      for (int32_t e2 = s.point_begin[a]; e2 <= e; ++e2) {
+        const int fj = s.free_of[static_cast<size_t>(e2)];
+        if (fj < 0) continue;
+        const Eigen::Matrix<double, 6, 6> B = WV * s.W[static_cast<size_t>(e2)].transpose();
+        if (sparse) {
+          Eigen::Matrix<double, 6, 6>& T =
+              s.sparse->blocks[static_cast<size_t>(s.sparse->pair_block[pair++])];
+          if (fi > fj) {
+            T -= B;
+          } else if (fi < fj) {
+            T -= B.transpose();
+          } else {
+            T -= B;
+            if (e2 != e) T -= B.transpose();
+          }
+        } else if (fi > fj) {
+          s.S.block<6, 6>(6 * fi, 6 * fj) -= B;
+        } else if (fi < fj) {
+          s.S.block<6, 6>(6 * fj, 6 * fi) -= B.transpose();
+        } else {
+          s.S.block<6, 6>(6 * fi, 6 * fi) -= B;
+          if (e2 != e) s.S.block<6, 6>(6 * fi, 6 * fi) -= B.transpose();  // one keyframe, two observations
+        }
+      }
+    }
+  }
+}
+
+// The points' steps, the model's decrease (with (A + mu D) x = -g it is
+// -g'x - x'Ax/2 = (-g'x + mu x'Dx) / 2) and Ceres' parameter tolerance
+// (1e-8): a step too small to change the parameters.
+bool BaLm::back_substitute(double mu, lm::Step* step) {
+  double gx = dim > 0 ? s.g.dot(s.dx) : 0.0, xDx = 0;
+  for (int d = 0; d < dim; ++d)
+    xDx += damping(s.H_diag[static_cast<size_t>(d / 6)](d % 6, d % 6)) * s.dx[d] * s.dx[d];
+  for (size_t a = 0; a < nq; ++a) {
+    Eigen::Vector3d rhs = s.g_point[a];
+    for (int32_t e = s.point_begin[a]; e < s.point_begin[a + 1]; ++e) {
+      const int fi = s.free_of[static_cast<size_t>(e)];
+      if (fi >= 0) rhs.noalias() += s.W[static_cast<size_t>(e)].transpose() * s.dx.segment<6>(6 * fi);
+    }
+    s.d_point[a] = -s.V_inv[a] * rhs;
+    if (!s.d_point[a].allFinite()) return false;
+    gx += s.g_point[a].dot(s.d_point[a]);
+    for (int d = 0; d < 3; ++d) xDx += damping(s.V[a](d, d)) * s.d_point[a][d] * s.d_point[a][d];
+  }
+  step->predicted_decrease = 0.5 * (-gx + mu * xDx);
+  double step2 = dim > 0 ? s.dx.squaredNorm() : 0.0, x2 = 0;
+  for (size_t a = 0; a < nq; ++a) {
+    step2 += s.d_point[a].squaredNorm();
+    x2 += pb.points_M[a].squaredNorm();
+  }
+  for (size_t i = 0; i < np; ++i)
+    if (s.free_index[i] >= 0) x2 += pb.poses[i].t_CM.squaredNorm() + 3.0;  // + the rotation's own size
+  step->negligible = std::sqrt(step2) <= 1e-8 * (std::sqrt(x2) + 1e-8);
+  return true;
+}
+
+bool BaLm::solve(double mu, lm::Step* step) {
+  fill_damped_system(mu);
+  bool solved = true;
+  if (dim > 0 && sparse) {
+    BaSparse& sp = *s.sparse;
+    scatter_sparse(nf, sp);
+    sp.ldlt.factorize(sp.S);
+    solved = sp.ldlt.info() == Eigen::Success;
+    if (solved) {
+      sp.rhs = -s.b;
+      s.dx = sp.ldlt.solve(sp.rhs);
+      solved = sp.ldlt.info() == Eigen::Success && s.dx.allFinite();
+    }
+  } else if (dim > 0) {
+    Eigen::LDLT<Eigen::MatrixXd, Eigen::Lower> ldlt(s.S);
+    s.dx = ldlt.solve(-s.b);
+    solved = ldlt.info() == Eigen::Success && s.dx.allFinite();
+  }
+  return solved && back_substitute(mu, step);
+}
+
+double BaLm::try_step() {
+  for (size_t i = 0; i < np; ++i) {
+    s.R_old[i] = pb.poses[i].R_CM;
+    s.t_old[i] = pb.poses[i].t_CM;
+    const int f = s.free_index[i];
+    if (f < 0) continue;
+    pb.poses[i].R_CM = so3::Exp(s.dx.segment<3>(6 * f)) * pb.poses[i].R_CM;
+    pb.poses[i].t_CM += s.dx.segment<3>(6 * f + 3);
+  }
+  for (size_t a = 0; a < nq; ++a) {
+    s.points_old[a] = pb.points_M[a];
+    pb.points_M[a] += s.d_point[a];
+  }
+  return ba_cost(pb);
+}
+
+void BaLm::reject() {
+  for (size_t i = 0; i < np; ++i) {
+    pb.poses[i].R_CM = s.R_old[i];
+    pb.poses[i].t_CM = s.t_old[i];
+  }
+  for (size_t a = 0; a < nq; ++a) pb.points_M[a] = s.points_old[a];
+}
+
+}  // namespace
+
 BaResult solve_bundle_adjustment(BaProblem& pb, int max_iterations, BaScratch& s) {
   BaResult res;
   const size_t np = pb.poses.size(), nq = pb.points_M.size(), no = pb.obs.size();
@@ -273,231 +504,30 @@ BaResult solve_bundle_adjustment(BaProblem& pb, int max_iterations, BaScratch& s
   s.b.resize(dim);
   s.dx.resize(dim);
 
-  double cost = ba_cost(pb);
+  const double cost = ba_cost(pb);
   res.initial_cost = res.final_cost = cost;
   if (!std::isfinite(cost)) return res;
   res.usable = true;
 
-  // Levenberg-Marquardt with Ceres' defaults: the diagonal scaled by mu =
-  // 1/trust radius (1e4 at the start) and clamped to [1e-6, 1e32]; Nielsen's
-  // update; the stops below.
-  double mu = 1e-4, nu = 2.0;
-  bool linearise_again = true;
-  Linearised L;
-  while (res.iterations < max_iterations) {
-    if (linearise_again) {
-      for (Eigen::Matrix<double, 6, 6>& Hf : s.H_diag) Hf.setZero();
-      s.g.setZero();
-      for (size_t a = 0; a < nq; ++a) {
-        Eigen::Matrix3d& V = s.V[a];
-        Eigen::Vector3d& ga = s.g_point[a];
-        V.setZero();
-        ga.setZero();
-        for (int32_t e = s.point_begin[a]; e < s.point_begin[a + 1]; ++e) {
-          const BaObservation& o = pb.obs[static_cast<size_t>(s.by_point[static_cast<size_t>(e)])];
-          linearise(pb, o, L);
-          // Fixed 3-row blocks (a depth-less row is zero) keep Eigen's
-          // products fixed-size: dynamic row counts cost twice the time.
-          const Eigen::Vector3d& r = L.r;
-          const double w = huber_weight(r.squaredNorm(), pb.huber);
-          const Eigen::Matrix3d& Jp = L.J_point;
-          V.noalias() += w * Jp.transpose() * Jp;
-          ga.noalias() += w * Jp.transpose() * r;
-          const int f = s.free_of[static_cast<size_t>(e)];
-          if (f < 0) continue;
-          const Eigen::Matrix<double, 3, 6>& Jc = L.J_pose;
-          s.H_diag[static_cast<size_t>(f)].noalias() += w * Jc.transpose() * Jc;
-          s.g.segment<6>(6 * f).noalias() += w * Jc.transpose() * r;
-          s.W[static_cast<size_t>(e)].noalias() = w * Jc.transpose() * Jp;
-        }
-      }
-      for (size_t i = 0; i < np; ++i) {
-        const BaPose& P = pb.poses[i];
-        if (!gravity_on(pb, P)) continue;
-        const int f = s.free_index[i];
-        const Eigen::Matrix3d J = -so3::hat(-P.R_CM.col(2)) * pb.gravity_inv_sigma;
-        s.H_diag[static_cast<size_t>(f)].topLeftCorner<3, 3>().noalias() += J.transpose() * J;
-        s.g.segment<3>(6 * f).noalias() += J.transpose() * gravity_residual(pb, P);
-      }
-      for (size_t k = 0; k < pb.relative.size(); ++k) {
-        const BaRelativePose& e = pb.relative[k];
-        Eigen::Matrix<double, 6, 1> r;
-        Eigen::Matrix<double, 6, 6> Ja, Jb;
-        ba_relative_residual(pb, e, &r, &Ja, &Jb);
-        const int fa = s.free_index[static_cast<size_t>(e.a)], fb = s.free_index[static_cast<size_t>(e.b)];
-        if (fa >= 0) {
-          s.H_diag[static_cast<size_t>(fa)].noalias() += Ja.transpose() * Ja;
-          s.g.segment<6>(6 * fa).noalias() += Ja.transpose() * r;
-        }
-        if (fb >= 0) {
-          s.H_diag[static_cast<size_t>(fb)].noalias() += Jb.transpose() * Jb;
-          s.g.segment<6>(6 * fb).noalias() += Jb.transpose() * r;
-        }
-        s.H_rel[k].noalias() = Ja.transpose() * Jb;
-      }
-      linearise_again = false;
-    }
-    ++res.iterations;
-
-    // Damped reduced camera system S dx = -b.
-    if (sparse) {
-      BaSparse& sp = *s.sparse;
-      for (size_t b = static_cast<size_t>(nf); b < sp.blocks.size(); ++b) sp.blocks[b].setZero();
-      for (int f = 0; f < nf; ++f) {
-        Eigen::Matrix<double, 6, 6>& D = sp.blocks[static_cast<size_t>(f)];
-        D = s.H_diag[static_cast<size_t>(f)];
-        for (int d = 0; d < 6; ++d) D(d, d) += mu * damping(s.H_diag[static_cast<size_t>(f)](d, d));
-      }
-    } else {
-      s.S.setZero();
-      for (int f = 0; f < nf; ++f) {
-        s.S.block<6, 6>(6 * f, 6 * f) = s.H_diag[static_cast<size_t>(f)];
-        for (int d = 0; d < 6; ++d)
-          s.S(6 * f + d, 6 * f + d) += mu * damping(s.H_diag[static_cast<size_t>(f)](d, d));
-      }
-    }
-    // The relative-pose factors' (a, b) blocks, into the lower triangle.
-    for (size_t k = 0; k < pb.relative.size(); ++k) {
-      const int fa = s.free_index[static_cast<size_t>(pb.relative[k].a)];
-      const int fb = s.free_index[static_cast<size_t>(pb.relative[k].b)];
-      if (fa < 0 || fb < 0 || fa == fb) continue;
-      if (sparse) {
-        Eigen::Matrix<double, 6, 6>& T = s.sparse->blocks[static_cast<size_t>(s.sparse->rel_block[k])];
-        if (fa > fb) {
-          T += s.H_rel[k];
-        } else {
-          T += s.H_rel[k].transpose();
-        }
-      } else if (fa > fb) {
-        s.S.block<6, 6>(6 * fa, 6 * fb) += s.H_rel[k];
-      } else {
-        s.S.block<6, 6>(6 * fb, 6 * fa) += s.H_rel[k].transpose();
-      }
-    }
-    s.b = s.g;
-    size_t pair = 0;
-    for (size_t a = 0; a < nq; ++a) {
-      Eigen::Matrix3d Vd = s.V[a];
-      for (int d = 0; d < 3; ++d) Vd(d, d) += mu * damping(s.V[a](d, d));
-      s.V_inv[a] = Vd.inverse();
-      for (int32_t e = s.point_begin[a]; e < s.point_begin[a + 1]; ++e) {
-        const int fi = s.free_of[static_cast<size_t>(e)];
-        if (fi < 0) continue;
-        const Eigen::Matrix<double, 6, 3> WV = s.W[static_cast<size_t>(e)] * s.V_inv[a];
-        s.b.segment<6>(6 * fi).noalias() -= WV * s.g_point[a];
-        // Only the lower triangle: the LDLT below reads nothing else.
-        for (int32_t e2 = s.point_begin[a]; e2 <= e; ++e2) {
-          const int fj = s.free_of[static_cast<size_t>(e2)];
-          if (fj < 0) continue;
-          const Eigen::Matrix<double, 6, 6> B = WV * s.W[static_cast<size_t>(e2)].transpose();
-          if (sparse) {
-            Eigen::Matrix<double, 6, 6>& T =
-                s.sparse->blocks[static_cast<size_t>(s.sparse->pair_block[pair++])];
-            if (fi > fj) {
-              T -= B;
-            } else if (fi < fj) {
-              T -= B.transpose();
-            } else {
-              T -= B;
-              if (e2 != e) T -= B.transpose();
-            }
-          } else if (fi > fj) {
-            s.S.block<6, 6>(6 * fi, 6 * fj) -= B;
-          } else if (fi < fj) {
-            s.S.block<6, 6>(6 * fj, 6 * fi) -= B.transpose();
-          } else {
-            s.S.block<6, 6>(6 * fi, 6 * fi) -= B;
-            if (e2 != e) s.S.block<6, 6>(6 * fi, 6 * fi) -= B.transpose();  // one keyframe, two observations
-          }
-        }
-      }
-    }
-    bool solved = true;
-    if (dim > 0 && sparse) {
-      BaSparse& sp = *s.sparse;
-      scatter_sparse(nf, sp);
-      sp.ldlt.factorize(sp.S);
-      solved = sp.ldlt.info() == Eigen::Success;
-      if (solved) {
-        sp.rhs = -s.b;
-        s.dx = sp.ldlt.solve(sp.rhs);
-        solved = sp.ldlt.info() == Eigen::Success && s.dx.allFinite();
-      }
-    } else if (dim > 0) {
-      Eigen::LDLT<Eigen::MatrixXd, Eigen::Lower> ldlt(s.S);
-      s.dx = ldlt.solve(-s.b);
-      solved = ldlt.info() == Eigen::Success && s.dx.allFinite();
-    }
-    // Back-substitution, and the model's decrease: with (A + mu D) x = -g it
-    // is -g'x - x'Ax/2 = (-g'x + mu x'Dx) / 2.
-    double gx = dim > 0 ? s.g.dot(s.dx) : 0.0, xDx = 0;
-    for (int d = 0; d < dim; ++d)
-      xDx += damping(s.H_diag[static_cast<size_t>(d / 6)](d % 6, d % 6)) * s.dx[d] * s.dx[d];
-    for (size_t a = 0; a < nq && solved; ++a) {
-      Eigen::Vector3d rhs = s.g_point[a];
-      for (int32_t e = s.point_begin[a]; e < s.point_begin[a + 1]; ++e) {
-        const int fi = s.free_of[static_cast<size_t>(e)];
-        if (fi >= 0) rhs.noalias() += s.W[static_cast<size_t>(e)].transpose() * s.dx.segment<6>(6 * fi);
-      }
-      s.d_point[a] = -s.V_inv[a] * rhs;
-      if (!s.d_point[a].allFinite()) solved = false;
-      gx += s.g_point[a].dot(s.d_point[a]);
-      for (int d = 0; d < 3; ++d) xDx += damping(s.V[a](d, d)) * s.d_point[a][d] * s.d_point[a][d];
-    }
-    const double predicted = 0.5 * (-gx + mu * xDx);
-    // Ceres' other stops: a step too small to change the parameters
-    // (parameter_tolerance 1e-8), a model with nothing left to gain.
-    if (solved) {
-      double step2 = dim > 0 ? s.dx.squaredNorm() : 0.0, x2 = 0;
-      for (size_t a = 0; a < nq; ++a) {
-        step2 += s.d_point[a].squaredNorm();
-        x2 += pb.points_M[a].squaredNorm();
-      }
-      for (size_t i = 0; i < np; ++i)
-        if (s.free_index[i] >= 0) x2 += pb.poses[i].t_CM.squaredNorm() + 3.0;  // + the rotation's own size
-      if (std::sqrt(step2) <= 1e-8 * (std::sqrt(x2) + 1e-8)) break;
-      if (std::abs(predicted) <= 1e-12 * cost) break;
-    }
-    if (!solved || !(predicted > 0)) {
-      mu *= nu;
-      nu *= 2;
-      if (mu > kMaxMu) break;  // Ceres' smallest trust radius, 1e-32
-      continue;
-    }
-    for (size_t i = 0; i < np; ++i) {
-      s.R_old[i] = pb.poses[i].R_CM;
-      s.t_old[i] = pb.poses[i].t_CM;
-      const int f = s.free_index[i];
-      if (f < 0) continue;
-      pb.poses[i].R_CM = so3::Exp(s.dx.segment<3>(6 * f)) * pb.poses[i].R_CM;
-      pb.poses[i].t_CM += s.dx.segment<3>(6 * f + 3);
-    }
-    for (size_t a = 0; a < nq; ++a) {
-      s.points_old[a] = pb.points_M[a];
-      pb.points_M[a] += s.d_point[a];
-    }
-    const double new_cost = ba_cost(pb);
-    const double rho = (cost - new_cost) / predicted;
-    // Ceres' function tolerance holds for every step tried, taken or not.
-    const bool converged = std::isfinite(new_cost) && std::abs(cost - new_cost) <= 1e-6 * cost;
-    if (std::isfinite(new_cost) && new_cost < cost && rho > 1e-3) {
-      cost = new_cost;
-      mu = std::max(kMinMu, mu * std::max(1.0 / 3.0, 1.0 - std::pow(2.0 * rho - 1.0, 3)));
-      nu = 2.0;
-      linearise_again = true;
-    } else {
-      for (size_t i = 0; i < np; ++i) {
-        pb.poses[i].R_CM = s.R_old[i];
-        pb.poses[i].t_CM = s.t_old[i];
-      }
-      for (size_t a = 0; a < nq; ++a) pb.points_M[a] = s.points_old[a];
-      mu *= nu;
-      nu *= 2;
-      if (mu > kMaxMu) break;
-    }
-    if (converged) break;
-  }
-  res.final_cost = cost;
+  // Ceres' rules and defaults, so that both solvers land on the same minimum:
+  // the diagonal scaled by mu = 1 / trust radius (1e4 at the start) and
+  // clamped to [1e-6, 1e32]; a step is taken when it achieves 1e-3 of the
+  // model's decrease; the function tolerance (1e-6) counts every step tried;
+  // a negligible step, or a model with nothing left to gain (1e-12 of the
+  // cost), ends the solve before it is tried.
+  lm::Rules rules;
+  rules.max_iterations = max_iterations;
+  rules.min_lambda = kMinMu;
+  rules.max_lambda = kMaxMu;
+  rules.min_relative_decrease = 1e-3;
+  rules.function_tolerance = 1e-6;
+  rules.function_tolerance_on_rejected_steps = true;
+  rules.min_model_decrease = 1e-12;
+  rules.try_negligible_step = false;
+  BaLm problem{pb, s, np, nq, nf, dim, sparse, Linearised{}};
+  const lm::Outcome out = lm::minimize(problem, cost, rules);
+  res.iterations = out.iterations;
+  res.final_cost = out.cost;
   return res;
 }
 

@@ -11,6 +11,7 @@
 #include <stdexcept>
 
 #include "kestrel/core/ceres_window.hpp"
+#include "kestrel/core/levenberg_marquardt.hpp"
 #include "kestrel/core/so3.hpp"
 #include "kestrel/rt/mailbox.hpp"
 
@@ -832,6 +833,299 @@ WindowOptimizer::Result WindowOptimizer::optimize() {
   return optimize_ours();
 }
 
+// The window as the problem of the one Levenberg-Marquardt loop
+// (levenberg_marquardt.hpp). The unknowns are the states in time order, then
+// t_d (when estimated); the active landmarks are Schur-eliminated in solve()
+// and recovered by back-substitution.
+struct WindowOptimizer::LmProblem {
+  LmProblem(WindowProblem& problem, Workspace& workspace)
+      : P(problem),
+        ws(workspace),
+        n(kD * P.n_states),
+        with_td(P.estimate_td()),
+        nt(n + (with_td ? 1 : 0)),
+        T(P.td_index()),
+        Hl(ws.H_lin.topLeftCorner(nt, nt)),
+        bl(ws.b_lin.head(nt)) {}
+
+  void linearize();
+  bool solve(double lambda, lm::Step* step);
+  double try_step();
+  void accept();
+  void reject() {}
+
+  WindowProblem& P;
+  Workspace& ws;
+  const int n;
+  const bool with_td;
+  const int nt;
+  const int T;
+  Eigen::Block<Eigen::MatrixXd> Hl;
+  Eigen::VectorBlock<Eigen::VectorXd> bl;
+  double td_cand = 0;
+
+ private:
+  void linearize_visual();
+  void linearize_states();
+  void linearize_prior();
+};
+
+// Visual terms: pose blocks into H_lin, landmark blocks kept for the Schur complement.
+void WindowOptimizer::LmProblem::linearize_visual() {
+  for (int a = 0; a < ws.n_active; ++a) {
+    const int lm = ws.active[a];
+    const WindowLandmark& L = P.lms[lm];
+    Eigen::Matrix3d V = Eigen::Matrix3d::Zero();
+    Eigen::Vector3d wv = Eigen::Vector3d::Zero();
+    Eigen::RowVector3d Wt = Eigen::RowVector3d::Zero();
+    for (int j = 0; j < L.n_obs; ++j) {
+      const int s = L.obs_slot[j];
+      const int oi = s * P.opt.max_obs_per_frame + L.obs_idx[j];
+      Eigen::Vector3d r, Jt;
+      Matrix36d Jp;
+      Eigen::Matrix3d Jl;
+      if (visual_residual(P, P.states[s].x, L.p_W, P.obs[oi], P.td_s, &r, &Jp, &Jl, &Jt) == 0) {
+        ws.W[oi].setZero();
+        continue;
+      }
+      double rho1 = 1.0;
+      huber_rho(r.squaredNorm(), P.opt.huber_px, &rho1);
+      const int o = kD * ws.pos_of_slot[s];
+      const Eigen::Matrix<double, 6, 3> JpT = rho1 * Jp.transpose();
+      Hl.block<6, 6>(o, o).noalias() += JpT * Jp;
+      bl.segment<6>(o).noalias() += JpT * r;
+      ws.W[oi].noalias() = JpT * Jl;
+      V.noalias() += rho1 * Jl.transpose() * Jl;
+      wv.noalias() += rho1 * Jl.transpose() * r;
+      if (with_td) {
+        const Eigen::Matrix<double, 6, 1> h = JpT * Jt;
+        Hl.block<6, 1>(o, n) += h;
+        Hl.block<1, 6>(n, o) += h.transpose();
+        Hl(n, n) += rho1 * Jt.squaredNorm();
+        bl(n) += rho1 * Jt.dot(r);
+        Wt.noalias() += rho1 * Jt.transpose() * Jl;
+      }
+    }
+    if (L.has_prior) {
+      const Eigen::Vector3d r = landmark_prior_residual(L, L.p_W);
+      double rho1 = 1.0;
+      huber_rho(r.squaredNorm(), P.opt.huber_px, &rho1);
+      const double w = rho1 / L.prior_sigma_m;
+      V.diagonal().array() += w / L.prior_sigma_m;
+      wv.noalias() += w * r;
+    }
+    ws.V[lm] = V;
+    ws.w[lm] = wv;
+    ws.Wt[lm] = Wt;
+    ws.diag_l[lm] = V.diagonal().cwiseMax(1e-6);
+  }
+}
+
+// The factors on states alone: IMU + bias, zero velocity, map poses, holds,
+// the gauges and the time-offset prior.
+void WindowOptimizer::LmProblem::linearize_states() {
+  for (int k = 0; k < P.n_states; ++k) {
+    const int j = P.order[k];
+    const WindowState& sj = P.states[j];
+    if (!sj.has_imu) continue;
+    const int i = sj.imu_prev;
+    Matrix15d Ji, Jj;
+    const Vector15d r = imu_bias_residual(P, sj, P.states[i].x, sj.x, &Ji, &Jj);
+    const int oi = kD * ws.pos_of_slot[i], oj = kD * k;
+    Hl.block<kD, kD>(oi, oi).noalias() += Ji.transpose() * Ji;
+    Hl.block<kD, kD>(oi, oj).noalias() += Ji.transpose() * Jj;
+    Hl.block<kD, kD>(oj, oi).noalias() += Jj.transpose() * Ji;
+    Hl.block<kD, kD>(oj, oj).noalias() += Jj.transpose() * Jj;
+    bl.segment<kD>(oi).noalias() += Ji.transpose() * r;
+    bl.segment<kD>(oj).noalias() += Jj.transpose() * r;
+  }
+  // Zero velocity: r = v / sigma, d r / d dv = I / sigma.
+  for (int k = 0; k < P.n_states; ++k) {
+    const int s = P.order[k];
+    if (!P.states[s].zero_velocity) continue;
+    const double w = 1.0 / (P.opt.zero_velocity_sigma_mps * P.opt.zero_velocity_sigma_mps);
+    const int o = kD * ws.pos_of_slot[s] + 6;
+    Hl.block<3, 3>(o, o).diagonal().array() += w;
+    bl.segment<3>(o).noalias() += w * P.states[s].x.v_WB;
+  }
+  for (int k = 0; k < P.n_states; ++k) {
+    const int s = P.order[k];
+    if (!P.states[s].has_pose_prior) continue;
+    Matrix6d J;
+    const Vector6d r = pose_prior_residual(P.states[s], P.states[s].x, &J);
+    const int o = kD * ws.pos_of_slot[s];
+    Hl.block<6, 6>(o, o).noalias() += J.transpose() * J;
+    bl.segment<6>(o).noalias() += J.transpose() * r;
+  }
+  // Hold priors of vision-only states: r = w (x - x_hold) on [v, bg, ba].
+  for (int k = 0; k < P.n_states; ++k) {
+    const WindowState& st = P.states[P.order[k]];
+    if (!st.hold) continue;
+    const Vector9d w = hold_weights(P);
+    const int o = kD * k + 6;
+    Hl.block<9, 9>(o, o).diagonal() += w.cwiseProduct(w);
+    bl.segment<9>(o).noalias() += w.cwiseProduct(hold_residual(P, st, st.x));
+  }
+  if (P.gauge_rotation_active()) {
+    Eigen::Matrix<double, 3, 6> Jg;
+    const Eigen::Vector3d r = gauge_rotation_residual(P, P.states[P.gauge_slot].x, &Jg);
+    const int o = kD * ws.pos_of_slot[P.gauge_slot];
+    Hl.block<6, 6>(o, o).noalias() += Jg.transpose() * Jg;
+    bl.segment<6>(o).noalias() += Jg.transpose() * r;
+  }
+  if (P.gauge_active()) {
+    Eigen::Matrix<double, 4, 6> Jg;
+    const Eigen::Vector4d r = gauge_residual(P, P.states[P.gauge_slot].x, &Jg);
+    const int o = kD * ws.pos_of_slot[P.gauge_slot];
+    Hl.block<6, 6>(o, o).noalias() += Jg.transpose() * Jg;
+    bl.segment<6>(o).noalias() += Jg.transpose() * r;
+  }
+  if (with_td) {
+    double J = 0.0;
+    const double r = time_offset_prior_residual(P, P.td_s, &J);
+    Hl(n, n) += J * J;
+    bl(n) += J * r;
+  }
+}
+
+// Marginalisation prior, chained through d(x [-] x0)/dx (t_d: linear).
+void WindowOptimizer::LmProblem::linearize_prior() {
+  if (!P.prior_active) return;
+  const bool td_prior = with_td && P.td_in_prior;
+  const double dtd = P.td_s - P.td0_s;
+  for (int k = 0; k < P.n_states; ++k) {
+    const int s = P.order[k];
+    if (P.states[s].in_prior) ws.prior_dx[s] = state_minus(P.states[s].x, P.states[s].x0, &ws.prior_Jrot[s]);
+  }
+  for (int a = 0; a < P.n_states; ++a) {
+    const int s = P.order[a];
+    if (!P.states[s].in_prior) continue;
+    Vector15d g = P.prior_g.segment<kD>(kD * s);
+    for (int b = 0; b < P.n_states; ++b) {
+      const int t = P.order[b];
+      if (!P.states[t].in_prior) continue;
+      Matrix15d Hst = P.prior_H.block<kD, kD>(kD * s, kD * t);
+      g.noalias() += Hst * ws.prior_dx[t];
+      Hst.middleRows<3>(3) = (ws.prior_Jrot[s].transpose() * Hst.middleRows<3>(3)).eval();
+      Hst.middleCols<3>(3) = (Hst.middleCols<3>(3) * ws.prior_Jrot[t]).eval();
+      Hl.block<kD, kD>(kD * a, kD * b) += Hst;
+    }
+    if (td_prior) {
+      Vector15d h = P.prior_H.block<kD, 1>(kD * s, T);
+      g.noalias() += h * dtd;
+      h.segment<3>(3) = (ws.prior_Jrot[s].transpose() * h.segment<3>(3)).eval();
+      Hl.block<kD, 1>(kD * a, n) += h;
+      Hl.block<1, kD>(n, kD * a) += h.transpose();
+    }
+    g.segment<3>(3) = (ws.prior_Jrot[s].transpose() * g.segment<3>(3)).eval();
+    bl.segment<kD>(kD * a) += g;
+  }
+  if (td_prior) {
+    double g = P.prior_g(T) + P.prior_H(T, T) * dtd;
+    for (int b = 0; b < P.n_states; ++b) {
+      const int t = P.order[b];
+      if (P.states[t].in_prior) g += P.prior_H.block<1, kD>(T, kD * t).dot(ws.prior_dx[t]);
+    }
+    Hl(n, n) += P.prior_H(T, T);
+    bl(n) += g;
+  }
+}
+
+void WindowOptimizer::LmProblem::linearize() {
+  Hl.setZero();
+  bl.setZero();
+  linearize_visual();
+  linearize_states();
+  linearize_prior();
+  for (int i = 0; i < nt; ++i) ws.diag_c(i) = std::clamp(Hl(i, i), 1e-6, 1e32);
+}
+
+// Damped Schur complement H_red = H_cc + lambda D - sum_l W V^-1 W', its
+// Cholesky factor (kept for the covariance), the states' step, and the
+// landmarks' by back-substitution.
+bool WindowOptimizer::LmProblem::solve(double lambda, lm::Step* step) {
+  auto Hr = ws.H_red.topLeftCorner(nt, nt);
+  auto br = ws.b_red.head(nt);
+  Hr = Hl;
+  br = bl;
+  Hr.diagonal() += lambda * ws.diag_c.head(nt);
+  for (int a = 0; a < ws.n_active; ++a) {
+    const int lm = ws.active[a];
+    const WindowLandmark& L = P.lms[lm];
+    Eigen::Matrix3d Vd = ws.V[lm];
+    Vd.diagonal() += lambda * ws.diag_l[lm];
+    ws.Vinv[lm] = Vd.inverse();
+    for (int j = 0; j < L.n_obs; ++j) {
+      const int oj = L.obs_slot[j] * P.opt.max_obs_per_frame + L.obs_idx[j];
+      const int pj = kD * ws.pos_of_slot[L.obs_slot[j]];
+      const Matrix63d WV = ws.W[oj] * ws.Vinv[lm];
+      br.segment<6>(pj).noalias() -= WV * ws.w[lm];
+      for (int q = 0; q < L.n_obs; ++q) {
+        const int oq = L.obs_slot[q] * P.opt.max_obs_per_frame + L.obs_idx[q];
+        const int pq = kD * ws.pos_of_slot[L.obs_slot[q]];
+        Hr.block<6, 6>(pj, pq).noalias() -= WV * ws.W[oq].transpose();
+      }
+      if (with_td) {
+        const Eigen::Matrix<double, 6, 1> h = WV * ws.Wt[lm].transpose();
+        Hr.block<6, 1>(pj, n) -= h;
+        Hr.block<1, 6>(n, pj) -= h.transpose();
+      }
+    }
+    if (with_td) {
+      const Eigen::RowVector3d WtV = ws.Wt[lm] * ws.Vinv[lm];
+      Hr(n, n) -= WtV.dot(ws.Wt[lm]);
+      br(n) -= WtV.dot(ws.w[lm]);
+    }
+  }
+  Eigen::Ref<Eigen::MatrixXd> Hr_ref(Hr);
+  Eigen::LLT<Eigen::Ref<Eigen::MatrixXd>> llt(Hr_ref);
+  ws.factor_ok = llt.info() == Eigen::Success;
+  ws.factor_n = nt;
+  if (!ws.factor_ok) return false;
+  auto dx = ws.dx.head(nt);
+  dx = -br;
+  llt.solveInPlace(dx);
+  // Back-substitution: dl = V^-1 (-w - sum W' dx), and the model decrease.
+  double pred = 0.0;
+  pred += 0.5 * (lambda * dx.dot(ws.diag_c.head(nt).cwiseProduct(dx)) - bl.dot(dx));
+  double max_step = dx.cwiseAbs().maxCoeff();
+  for (int a = 0; a < ws.n_active; ++a) {
+    const int lm = ws.active[a];
+    const WindowLandmark& L = P.lms[lm];
+    Eigen::Vector3d rhs = -ws.w[lm];
+    for (int j = 0; j < L.n_obs; ++j) {
+      const int oj = L.obs_slot[j] * P.opt.max_obs_per_frame + L.obs_idx[j];
+      rhs.noalias() -= ws.W[oj].transpose() * dx.segment<6>(kD * ws.pos_of_slot[L.obs_slot[j]]);
+    }
+    if (with_td) rhs.noalias() -= ws.Wt[lm].transpose() * dx(n);
+    const Eigen::Vector3d d = ws.Vinv[lm] * rhs;
+    ws.dl[lm] = d;
+    pred += 0.5 * (lambda * d.dot(ws.diag_l[lm].cwiseProduct(d)) - ws.w[lm].dot(d));
+    max_step = std::max(max_step, d.cwiseAbs().maxCoeff());
+  }
+  step->predicted_decrease = pred;
+  step->negligible = max_step < P.opt.step_tolerance;
+  return true;
+}
+
+double WindowOptimizer::LmProblem::try_step() {
+  auto dx = ws.dx.head(nt);
+  for (int a = 0; a < ws.n_active; ++a)
+    ws.cand_l[ws.active[a]] = P.lms[ws.active[a]].p_W + ws.dl[ws.active[a]];
+  for (int k = 0; k < P.n_states; ++k) {
+    const int s = P.order[k];
+    ws.cand_x[s] = state_plus(P.states[s].x, dx.segment<kD>(kD * k));
+  }
+  td_cand = with_td ? P.td_s + dx(n) : P.td_s;
+  return problem_cost(P, ws.cand_x, ws.cand_l.data(), ws.active.data(), ws.n_active, ws.prior_dx, td_cand);
+}
+
+void WindowOptimizer::LmProblem::accept() {
+  for (int k = 0; k < P.n_states; ++k) P.states[P.order[k]].x = ws.cand_x[P.order[k]];
+  P.td_s = td_cand;
+  for (int a = 0; a < ws.n_active; ++a) P.lms[ws.active[a]].p_W = ws.cand_l[ws.active[a]];
+}
+
 WindowOptimizer::Result WindowOptimizer::optimize_ours() {
   const auto t0 = std::chrono::steady_clock::now();
   WindowProblem& P = *problem_;
@@ -843,11 +1137,6 @@ WindowOptimizer::Result WindowOptimizer::optimize_ours() {
     publish_newest_covariance();
     return res;
   }
-  const int n = kD * P.n_states;
-  // The unknowns: the states in time order, then t_d (when estimated) at n.
-  const bool with_td = P.estimate_td();
-  const int nt = n + (with_td ? 1 : 0);
-  const int T = P.td_index();
   for (int k = 0; k < P.n_states; ++k) ws.pos_of_slot[P.order[k]] = k;
   ws.n_active = 0;
   int n_vis = 0;
@@ -857,305 +1146,49 @@ WindowOptimizer::Result WindowOptimizer::optimize_ours() {
       n_vis += P.lms[i].n_obs + (P.lms[i].has_prior ? 1 : 0);
     }
   }
-  int n_imu = 0;
-  for (int k = 0; k < P.n_states; ++k) n_imu += P.states[P.order[k]].has_imu;
-  res.landmarks = ws.n_active;
-  int n_zv = 0;
+  int n_states_factors = 0;
   for (int k = 0; k < P.n_states; ++k) {
-    n_zv += (P.states[P.order[k]].zero_velocity ? 1 : 0) + (P.states[P.order[k]].has_pose_prior ? 1 : 0) +
-            (P.states[P.order[k]].hold ? 1 : 0);
+    const WindowState& st = P.states[P.order[k]];
+    n_states_factors += st.has_imu + st.zero_velocity + st.has_pose_prior + st.hold;
   }
-  res.residuals = n_vis + n_imu + n_zv + (P.gauge_active() ? 1 : 0) + (P.gauge_rotation_active() ? 1 : 0) +
-                  (P.prior_active ? 1 : 0) + (with_td ? 1 : 0);
+  const bool with_td = P.estimate_td();
+  res.landmarks = ws.n_active;
+  res.residuals = n_vis + n_states_factors + (P.gauge_active() ? 1 : 0) +
+                  (P.gauge_rotation_active() ? 1 : 0) + (P.prior_active ? 1 : 0) + (with_td ? 1 : 0);
 
-  NavState xs[kWindowMaxStates];
-  for (int k = 0; k < P.n_states; ++k) xs[P.order[k]] = P.states[P.order[k]].x;
+  for (int k = 0; k < P.n_states; ++k) ws.cand_x[P.order[k]] = P.states[P.order[k]].x;
   for (int a = 0; a < ws.n_active; ++a) ws.cand_l[ws.active[a]] = P.lms[ws.active[a]].p_W;
-  double cost = problem_cost(P, xs, ws.cand_l.data(), ws.active.data(), ws.n_active, ws.prior_dx, P.td_s);
+  const double cost =
+      problem_cost(P, ws.cand_x, ws.cand_l.data(), ws.active.data(), ws.n_active, ws.prior_dx, P.td_s);
   res.cost_initial = cost;
 
-  double lambda = 1e-4, nu = 2.0;
-  bool need_lin = true;
-  res.status = Status::kMaxIterations;
-  auto Hl = ws.H_lin.topLeftCorner(nt, nt);
-  auto bl = ws.b_lin.head(nt);
-  for (int it = 0; it < P.opt.max_iterations; ++it) {
-    res.iterations = it + 1;
-    if (need_lin) {
-      Hl.setZero();
-      bl.setZero();
-      // Visual terms: pose blocks into H_lin, landmark blocks kept for the Schur complement.
-      for (int a = 0; a < ws.n_active; ++a) {
-        const int lm = ws.active[a];
-        const WindowLandmark& L = P.lms[lm];
-        Eigen::Matrix3d V = Eigen::Matrix3d::Zero();
-        Eigen::Vector3d wv = Eigen::Vector3d::Zero();
-        Eigen::RowVector3d Wt = Eigen::RowVector3d::Zero();
-        for (int j = 0; j < L.n_obs; ++j) {
-          const int s = L.obs_slot[j];
-          const int oi = s * P.opt.max_obs_per_frame + L.obs_idx[j];
-          Eigen::Vector3d r, Jt;
-          Matrix36d Jp;
-          Eigen::Matrix3d Jl;
-          if (visual_residual(P, P.states[s].x, L.p_W, P.obs[oi], P.td_s, &r, &Jp, &Jl, &Jt) == 0) {
-            ws.W[oi].setZero();
-            continue;
-          }
-          double rho1 = 1.0;
-          huber_rho(r.squaredNorm(), P.opt.huber_px, &rho1);
-          const int o = kD * ws.pos_of_slot[s];
-          const Eigen::Matrix<double, 6, 3> JpT = rho1 * Jp.transpose();
-          Hl.block<6, 6>(o, o).noalias() += JpT * Jp;
-          bl.segment<6>(o).noalias() += JpT * r;
-          ws.W[oi].noalias() = JpT * Jl;
-          V.noalias() += rho1 * Jl.transpose() * Jl;
-          wv.noalias() += rho1 * Jl.transpose() * r;
-          if (with_td) {
-            const Eigen::Matrix<double, 6, 1> h = JpT * Jt;
-            Hl.block<6, 1>(o, n) += h;
-            Hl.block<1, 6>(n, o) += h.transpose();
-            Hl(n, n) += rho1 * Jt.squaredNorm();
-            bl(n) += rho1 * Jt.dot(r);
-            Wt.noalias() += rho1 * Jt.transpose() * Jl;
-          }
-        }
-        if (L.has_prior) {
-          const Eigen::Vector3d r = landmark_prior_residual(L, L.p_W);
-          double rho1 = 1.0;
-          huber_rho(r.squaredNorm(), P.opt.huber_px, &rho1);
-          const double w = rho1 / L.prior_sigma_m;
-          V.diagonal().array() += w / L.prior_sigma_m;
-          wv.noalias() += w * r;
-        }
-        ws.V[lm] = V;
-        ws.w[lm] = wv;
-        ws.Wt[lm] = Wt;
-        ws.diag_l[lm] = V.diagonal().cwiseMax(1e-6);
-      }
-      // IMU + bias.
-      for (int k = 0; k < P.n_states; ++k) {
-        const int j = P.order[k];
-        const WindowState& sj = P.states[j];
-        if (!sj.has_imu) continue;
-        const int i = sj.imu_prev;
-        Matrix15d Ji, Jj;
-        const Vector15d r = imu_bias_residual(P, sj, P.states[i].x, sj.x, &Ji, &Jj);
-        const int oi = kD * ws.pos_of_slot[i], oj = kD * k;
-        Hl.block<kD, kD>(oi, oi).noalias() += Ji.transpose() * Ji;
-        Hl.block<kD, kD>(oi, oj).noalias() += Ji.transpose() * Jj;
-        Hl.block<kD, kD>(oj, oi).noalias() += Jj.transpose() * Ji;
-        Hl.block<kD, kD>(oj, oj).noalias() += Jj.transpose() * Jj;
-        bl.segment<kD>(oi).noalias() += Ji.transpose() * r;
-        bl.segment<kD>(oj).noalias() += Jj.transpose() * r;
-      }
-      // Zero velocity: r = v / sigma, d r / d dv = I / sigma.
-      for (int k = 0; k < P.n_states; ++k) {
-        const int s = P.order[k];
-        if (!P.states[s].zero_velocity) continue;
-        const double w = 1.0 / (P.opt.zero_velocity_sigma_mps * P.opt.zero_velocity_sigma_mps);
-        const int o = kD * ws.pos_of_slot[s] + 6;
-        Hl.block<3, 3>(o, o).diagonal().array() += w;
-        bl.segment<3>(o).noalias() += w * P.states[s].x.v_WB;
-      }
-      // Map pose factors.
-      for (int k = 0; k < P.n_states; ++k) {
-        const int s = P.order[k];
-        if (!P.states[s].has_pose_prior) continue;
-        Matrix6d J;
-        const Vector6d r = pose_prior_residual(P.states[s], P.states[s].x, &J);
-        const int o = kD * ws.pos_of_slot[s];
-        Hl.block<6, 6>(o, o).noalias() += J.transpose() * J;
-        bl.segment<6>(o).noalias() += J.transpose() * r;
-      }
-      // Hold priors of vision-only states: r = w (x - x_hold) on [v, bg, ba].
-      for (int k = 0; k < P.n_states; ++k) {
-        const WindowState& st = P.states[P.order[k]];
-        if (!st.hold) continue;
-        const Vector9d w = hold_weights(P);
-        const int o = kD * k + 6;
-        Hl.block<9, 9>(o, o).diagonal() += w.cwiseProduct(w);
-        bl.segment<9>(o).noalias() += w.cwiseProduct(hold_residual(P, st, st.x));
-      }
-      if (P.gauge_rotation_active()) {
-        Eigen::Matrix<double, 3, 6> Jg;
-        const Eigen::Vector3d r = gauge_rotation_residual(P, P.states[P.gauge_slot].x, &Jg);
-        const int o = kD * ws.pos_of_slot[P.gauge_slot];
-        Hl.block<6, 6>(o, o).noalias() += Jg.transpose() * Jg;
-        bl.segment<6>(o).noalias() += Jg.transpose() * r;
-      }
-      // Gauge.
-      if (P.gauge_active()) {
-        Eigen::Matrix<double, 4, 6> Jg;
-        const Eigen::Vector4d r = gauge_residual(P, P.states[P.gauge_slot].x, &Jg);
-        const int o = kD * ws.pos_of_slot[P.gauge_slot];
-        Hl.block<6, 6>(o, o).noalias() += Jg.transpose() * Jg;
-        bl.segment<6>(o).noalias() += Jg.transpose() * r;
-      }
-      if (with_td) {
-        double J = 0.0;
-        const double r = time_offset_prior_residual(P, P.td_s, &J);
-        Hl(n, n) += J * J;
-        bl(n) += J * r;
-      }
-      // Marginalisation prior, chained through d(x [-] x0)/dx (t_d: linear).
-      const bool td_prior = with_td && P.td_in_prior;
-      const double dtd = P.td_s - P.td0_s;
-      if (P.prior_active) {
-        for (int k = 0; k < P.n_states; ++k) {
-          const int s = P.order[k];
-          if (P.states[s].in_prior)
-            ws.prior_dx[s] = state_minus(P.states[s].x, P.states[s].x0, &ws.prior_Jrot[s]);
-        }
-        for (int a = 0; a < P.n_states; ++a) {
-          const int s = P.order[a];
-          if (!P.states[s].in_prior) continue;
-          Vector15d g = P.prior_g.segment<kD>(kD * s);
-          for (int b = 0; b < P.n_states; ++b) {
-            const int t = P.order[b];
-            if (!P.states[t].in_prior) continue;
-            Matrix15d Hst = P.prior_H.block<kD, kD>(kD * s, kD * t);
-            g.noalias() += Hst * ws.prior_dx[t];
-            Hst.middleRows<3>(3) = (ws.prior_Jrot[s].transpose() * Hst.middleRows<3>(3)).eval();
-            Hst.middleCols<3>(3) = (Hst.middleCols<3>(3) * ws.prior_Jrot[t]).eval();
-            Hl.block<kD, kD>(kD * a, kD * b) += Hst;
-          }
-          if (td_prior) {
-            Vector15d h = P.prior_H.block<kD, 1>(kD * s, T);
-            g.noalias() += h * dtd;
-            h.segment<3>(3) = (ws.prior_Jrot[s].transpose() * h.segment<3>(3)).eval();
-            Hl.block<kD, 1>(kD * a, n) += h;
-            Hl.block<1, kD>(n, kD * a) += h.transpose();
-          }
-          g.segment<3>(3) = (ws.prior_Jrot[s].transpose() * g.segment<3>(3)).eval();
-          bl.segment<kD>(kD * a) += g;
-        }
-        if (td_prior) {
-          double g = P.prior_g(T) + P.prior_H(T, T) * dtd;
-          for (int b = 0; b < P.n_states; ++b) {
-            const int t = P.order[b];
-            if (P.states[t].in_prior) g += P.prior_H.block<1, kD>(T, kD * t).dot(ws.prior_dx[t]);
-          }
-          Hl(n, n) += P.prior_H(T, T);
-          bl(n) += g;
-        }
-      }
-      for (int i = 0; i < nt; ++i) ws.diag_c(i) = std::clamp(Hl(i, i), 1e-6, 1e32);
-      need_lin = false;
-    }
-
-    // Damped Schur complement: H_red = H_cc + lambda D - sum_l W V^-1 W'.
-    auto Hr = ws.H_red.topLeftCorner(nt, nt);
-    auto br = ws.b_red.head(nt);
-    Hr = Hl;
-    br = bl;
-    Hr.diagonal() += lambda * ws.diag_c.head(nt);
-    for (int a = 0; a < ws.n_active; ++a) {
-      const int lm = ws.active[a];
-      const WindowLandmark& L = P.lms[lm];
-      Eigen::Matrix3d Vd = ws.V[lm];
-      Vd.diagonal() += lambda * ws.diag_l[lm];
-      ws.Vinv[lm] = Vd.inverse();
-      for (int j = 0; j < L.n_obs; ++j) {
-        const int oj = L.obs_slot[j] * P.opt.max_obs_per_frame + L.obs_idx[j];
-        const int pj = kD * ws.pos_of_slot[L.obs_slot[j]];
-        const Matrix63d WV = ws.W[oj] * ws.Vinv[lm];
-        br.segment<6>(pj).noalias() -= WV * ws.w[lm];
-        for (int q = 0; q < L.n_obs; ++q) {
-          const int oq = L.obs_slot[q] * P.opt.max_obs_per_frame + L.obs_idx[q];
-          const int pq = kD * ws.pos_of_slot[L.obs_slot[q]];
-          Hr.block<6, 6>(pj, pq).noalias() -= WV * ws.W[oq].transpose();
-        }
-        if (with_td) {
-          const Eigen::Matrix<double, 6, 1> h = WV * ws.Wt[lm].transpose();
-          Hr.block<6, 1>(pj, n) -= h;
-          Hr.block<1, 6>(n, pj) -= h.transpose();
-        }
-      }
-      if (with_td) {
-        const Eigen::RowVector3d WtV = ws.Wt[lm] * ws.Vinv[lm];
-        Hr(n, n) -= WtV.dot(ws.Wt[lm]);
-        br(n) -= WtV.dot(ws.w[lm]);
-      }
-    }
-    Eigen::Ref<Eigen::MatrixXd> Hr_ref(Hr);
-    Eigen::LLT<Eigen::Ref<Eigen::MatrixXd>> llt(Hr_ref);
-    ws.factor_ok = llt.info() == Eigen::Success;
-    ws.factor_n = nt;
-    if (llt.info() != Eigen::Success) {
-      lambda *= nu;
-      nu *= 2.0;
-      if (elapsed_ms(t0) > P.opt.time_budget_ms) {
-        res.status = Status::kTimeBudget;
-        break;
-      }
-      continue;
-    }
-    auto dx = ws.dx.head(nt);
-    dx = -br;
-    llt.solveInPlace(dx);
-    // Back-substitution: dl = V^-1 (-w - sum W' dx), and the model decrease.
-    double pred = 0.0;
-    pred += 0.5 * (lambda * dx.dot(ws.diag_c.head(nt).cwiseProduct(dx)) - bl.dot(dx));
-    double max_step = dx.cwiseAbs().maxCoeff();
-    for (int a = 0; a < ws.n_active; ++a) {
-      const int lm = ws.active[a];
-      const WindowLandmark& L = P.lms[lm];
-      Eigen::Vector3d rhs = -ws.w[lm];
-      for (int j = 0; j < L.n_obs; ++j) {
-        const int oj = L.obs_slot[j] * P.opt.max_obs_per_frame + L.obs_idx[j];
-        rhs.noalias() -= ws.W[oj].transpose() * dx.segment<6>(kD * ws.pos_of_slot[L.obs_slot[j]]);
-      }
-      if (with_td) rhs.noalias() -= ws.Wt[lm].transpose() * dx(n);
-      const Eigen::Vector3d d = ws.Vinv[lm] * rhs;
-      ws.dl[lm] = d;
-      pred += 0.5 * (lambda * d.dot(ws.diag_l[lm].cwiseProduct(d)) - ws.w[lm].dot(d));
-      max_step = std::max(max_step, d.cwiseAbs().maxCoeff());
-      ws.cand_l[lm] = L.p_W + d;
-    }
-    for (int k = 0; k < P.n_states; ++k) {
-      const int s = P.order[k];
-      xs[s] = state_plus(P.states[s].x, dx.segment<kD>(kD * k));
-    }
-    const double td_cand = with_td ? P.td_s + dx(n) : P.td_s;
-    const double cost_new =
-        problem_cost(P, xs, ws.cand_l.data(), ws.active.data(), ws.n_active, ws.prior_dx, td_cand);
-    const double actual = cost - cost_new;
-    if (std::isfinite(cost_new) && actual > 0.0) {
-      for (int k = 0; k < P.n_states; ++k) P.states[P.order[k]].x = xs[P.order[k]];
-      P.td_s = td_cand;
-      for (int a = 0; a < ws.n_active; ++a) P.lms[ws.active[a]].p_W = ws.cand_l[ws.active[a]];
-      const double rho = pred > 0.0 ? actual / pred : 0.0;
-      const double t = 2.0 * rho - 1.0;
-      lambda *= std::max(1.0 / 3.0, 1.0 - t * t * t);
-      lambda = std::max(lambda, 1e-12);
-      nu = 2.0;
-      const bool small = actual < P.opt.function_tolerance * cost || max_step < P.opt.step_tolerance;
-      cost = cost_new;
-      need_lin = true;
-      if (small) {
-        res.status = Status::kConverged;
-        break;
-      }
-    } else {
-      if (max_step < P.opt.step_tolerance) {
-        res.status = Status::kConverged;  // nothing left to gain at machine precision
-        break;
-      }
-      lambda *= nu;
-      nu *= 2.0;
-      if (lambda > 1e16) {
-        res.status = Status::kNoProgress;
-        break;
-      }
-    }
-    if (elapsed_ms(t0) > P.opt.time_budget_ms) {
+  // The rules this solver was tuned with (docs/optimizer.md): any decrease is
+  // taken; a step that changes no unknown by step_tolerance, or the cost by
+  // function_tolerance, ends the solve once tried.
+  lm::Rules rules;
+  rules.max_iterations = P.opt.max_iterations;
+  rules.time_budget_ms = P.opt.time_budget_ms;
+  rules.function_tolerance = P.opt.function_tolerance;
+  LmProblem problem(P, ws);
+  const lm::Outcome out = lm::minimize(problem, cost, rules, t0);
+  res.iterations = out.iterations;
+  switch (out.stop) {
+    case lm::Stop::kConverged:
+      res.status = Status::kConverged;
+      break;
+    case lm::Stop::kMaxIterations:
+      res.status = Status::kMaxIterations;
+      break;
+    case lm::Stop::kTimeBudget:
       res.status = Status::kTimeBudget;
       break;
-    }
+    case lm::Stop::kNoProgress:
+      res.status = Status::kNoProgress;
+      break;
   }
-  res.cost_final = cost;
-  res.ok = std::isfinite(cost) && res.status != Status::kFailed && res.status != Status::kNoProgress;
-  if (res.status == Status::kNoProgress) res.ok = cost <= res.cost_initial;
+  res.cost_final = out.cost;
+  res.ok = std::isfinite(out.cost) && res.status != Status::kFailed && res.status != Status::kNoProgress;
+  if (res.status == Status::kNoProgress) res.ok = out.cost <= res.cost_initial;
   res.solve_ms = elapsed_ms(t0);
   publish_newest_covariance();
   return res;

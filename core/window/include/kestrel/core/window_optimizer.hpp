@@ -106,6 +106,7 @@ class WindowOptimizer {
 
  private:
   struct Workspace;
+  struct LmProblem;  // the window as levenberg_marquardt.hpp's problem
   void marginalize_or_drop(int slot);
   void remove_state(int slot);
   void add_observations(int slot, const WindowFrameInput& in);
