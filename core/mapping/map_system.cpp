@@ -150,6 +150,8 @@ bool MapSystem::mapping_step() {
   }
   publish_frame();
   mapping_latency_.record(rt::now_ns() - t0);
+  if (mapping_elapsed_ != nullptr) mapping_elapsed_->add_elapsed(rt::now_ns() - t0);
+  mirror(mapping_mirror_);
   // The packet goes back before the loop thread looks at the keyframe: the map holds a copy.
   (void)packet_free_.try_push(static_cast<uint8_t>(slot));
   if (opt_.loop && kf >= 0 && loop_todo_.try_push(kf)) return true;
@@ -240,6 +242,7 @@ bool MapSystem::loop_step() {
       publish_frame();
     }
     in_flight_.fetch_sub(1, std::memory_order_acq_rel);  // taken by the snapshot
+    mirror(loop_mirror_);
     return true;
   }
   const int32_t* k = loop_todo_.front();
@@ -266,6 +269,8 @@ bool MapSystem::loop_step() {
     }
   }
   loop_latency_.record(rt::now_ns() - t0);
+  if (loop_elapsed_ != nullptr) loop_elapsed_->add_elapsed(rt::now_ns() - t0);
+  mirror(loop_mirror_);
   in_flight_.fetch_sub(1, std::memory_order_acq_rel);
   return true;
 }
@@ -275,7 +280,84 @@ bool MapSystem::global_ba_step() {
   const int64_t t0 = rt::now_ns();
   (void)gba_->solve();
   gba_latency_.record(rt::now_ns() - t0);
+  if (gba_elapsed_ != nullptr) gba_elapsed_->add_elapsed(rt::now_ns() - t0);
+  mirror(loop_mirror_);
   return true;
+}
+
+void MapSystem::register_counters(rt::PerfRegistry& r) {
+  const auto add = [&r](std::vector<Mirror>& to, const char* path, const uint64_t* figure,
+                        const std::atomic<uint64_t>* shared = nullptr) {
+    to.push_back({r.register_counter(path, rt::PerfKind::kCount), figure, shared});
+  };
+  mapping_mirror_.clear();
+  loop_mirror_.clear();
+  std::vector<Mirror>& m = mapping_mirror_;
+  add(m, "map.keyframes_mapped", &counters_.keyframes_mapped);
+  add(m, "map.keyframes_overrun", nullptr, &overrun_);
+  add(m, "map.keyframes_lost", &counters_.keyframes_lost);
+  add(m, "map.reloc_timeouts", &counters_.reloc_timeouts);
+  add(m, "map.updates_published", &counters_.updates_published);
+  add(m, "map.updates_applied", nullptr, &applied_);
+  add(m, "map.updates_skipped", &counters_.updates_skipped);
+  const LocalMapperStats& l = mapper_->stats();
+  add(m, "map.local.keyframes", &l.keyframes);
+  add(m, "map.local.refused_full", &l.refused_full);
+  add(m, "map.local.points_created", &l.points_created);
+  add(m, "map.local.points_fused", &l.points_fused);
+  add(m, "map.local.observations_added", &l.observations_added);
+  add(m, "map.local.points_culled", &l.points_culled);
+  add(m, "map.local.keyframes_culled", &l.keyframes_culled);
+  add(m, "map.local.ba_runs", &l.ba_runs);
+  add(m, "map.local.ba_failures", &l.ba_failures);
+  add(m, "map.local.ba_outliers", &l.ba_outliers);
+  // Relocalisation runs on the mapping thread (localise()).
+  if (reloc_) {
+    const RelocStats& q = reloc_->stats();
+    add(m, "map.reloc.queries", &q.queries);
+    add(m, "map.reloc.candidates", &q.candidates);
+    add(m, "map.reloc.verified", &q.verified);
+    add(m, "map.reloc.rejected_ambiguous", &q.rejected_ambiguous);
+    add(m, "map.reloc.rejected_consistency", &q.rejected_consistency);
+    add(m, "map.reloc.relocalisations", &q.relocalisations);
+  }
+  mapping_elapsed_ = r.register_counter("map.mapping_step", rt::PerfKind::kElapsed);
+  if (!opt_.loop) return;
+  std::vector<Mirror>& o = loop_mirror_;
+  const LoopStats& c = closer_->stats();
+  add(o, "map.loop.queries", &c.queries);
+  add(o, "map.loop.candidates", &c.candidates);
+  add(o, "map.loop.geometric_candidates", &c.geometric_candidates);
+  add(o, "map.loop.verified", &c.verified);
+  add(o, "map.loop.surface_tried", &c.surface_tried);
+  add(o, "map.loop.surface_aligned", &c.surface_aligned);
+  add(o, "map.loop.rejected_inliers", &c.rejected_inliers);
+  add(o, "map.loop.rejected_drift", &c.rejected_drift);
+  add(o, "map.loop.rejected_planar", &c.rejected_planar);
+  add(o, "map.loop.rejected_consistency", &c.rejected_consistency);
+  add(o, "map.loop.skipped_insignificant", &c.skipped_insignificant);
+  add(o, "map.loop.closures", &c.closures);
+  add(o, "map.loop.pose_graph_failures", &c.pose_graph_failures);
+  add(o, "map.loop.points_merged", &c.points_merged);
+  loop_elapsed_ = r.register_counter("map.loop_step", rt::PerfKind::kElapsed);
+  if (!gba_) return;
+  const GlobalBaStats& g = gba_->stats();
+  add(o, "map.global_ba.runs", &g.runs);
+  add(o, "map.global_ba.failures", &g.failures);
+  add(o, "map.global_ba.followed_keyframes", &g.followed_keyframes);
+  add(o, "map.global_ba.followed_points", &g.followed_points);
+  add(o, "map.global_ba.lost_keyframes", &g.lost_keyframes);
+  gba_elapsed_ = r.register_counter("map.global_ba.solve", rt::PerfKind::kElapsed);
+}
+
+void MapSystem::mirror(const std::vector<Mirror>& mirrors) noexcept {
+  for (const Mirror& x : mirrors)
+    x.counter->set(x.figure != nullptr ? *x.figure : x.shared->load(std::memory_order_relaxed));
+}
+
+void MapSystem::mirror_counters() noexcept {
+  mirror(mapping_mirror_);
+  mirror(loop_mirror_);
 }
 
 std::vector<MapKeyframePose> MapSystem::keyframe_poses(const Eigen::Isometry3d& T_CB) const {

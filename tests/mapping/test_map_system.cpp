@@ -111,6 +111,8 @@ TEST(MapSystem, ALoopMovesTheMapFrameNotTheOdometry) {
   o.vocabulary = room_vocabulary(room);
   o.closing.max_yaw_per_m = 0.05;  // this odometry drifts 4 mrad a keyframe: far worse than ours
   core::MapSystem sys(sim_camera(), 300, o);
+  rt::PerfRegistry registry;
+  sys.register_counters(registry);
   std::mt19937_64 rng(2);
   const int per_lap = 36;
   bool realigned_seen = false;
@@ -163,6 +165,22 @@ TEST(MapSystem, ALoopMovesTheMapFrameNotTheOdometry) {
   EXPECT_GT(first_err_odom, 0.2);
   EXPECT_LT(first_err_map, 0.05) << "the first loop brings the keyframe back to where it is";
   EXPECT_LT(worst_err_map, 0.05);
+
+  // The map's figures reached the registry from the threads that own them,
+  // as they went (no mirror_counters() here).
+  const rt::PerfValues v = registry.values();
+  EXPECT_EQ(v.count("map.keyframes_mapped"), sys.counters().keyframes_mapped);
+  EXPECT_EQ(v.count("map.local.ba_runs"), sys.mapper().stats().ba_runs);
+  EXPECT_GT(v.count("map.local.ba_runs"), 0u);
+  EXPECT_EQ(v.count("map.local.points_created"), sys.mapper().stats().points_created);
+  EXPECT_EQ(v.count("map.loop.queries"), sys.loop_closer().stats().queries);
+  EXPECT_EQ(v.count("map.loop.closures"), f.loop_closures);
+  ASSERT_NE(sys.global_ba(), nullptr);
+  EXPECT_EQ(v.count("map.global_ba.runs"), sys.global_ba()->stats().runs);
+  EXPECT_GE(v.count("map.global_ba.runs"), 1u);
+  EXPECT_EQ(v.find("map.mapping_step")->count, sys.mapping_latency().count());
+  EXPECT_EQ(v.find("map.global_ba.solve")->count, sys.global_ba_latency().count());
+  EXPECT_EQ(registry.refused(), 0u);
 }
 
 // One lap mapped, then the odometry loses its chain and comes back in a frame
@@ -342,6 +360,12 @@ TEST(MapPipeline, FigureEightWithAndWithoutTheMap) {
       EXPECT_GT(r.map.keyframes, 10u);
       EXPECT_GT(r.map.points, 500u);
       EXPECT_GT(r.mapping.count(), 10u);
+      // The map's own figures, in the run's registry through the pipeline.
+      EXPECT_EQ(r.counters.count("map.keyframes_mapped"), r.mapping.count());
+      EXPECT_EQ(r.counters.find("map.mapping_step")->count, r.mapping.count());
+      EXPECT_GT(r.counters.count("map.local.ba_runs"), 10u);
+      EXPECT_EQ(r.counters.find("map.loop.queries"), nullptr)
+          << "the loop is off: its counters are not registered";
       EXPECT_EQ(r.map_trajectory.size(), r.trajectory.size());
       // The map's final word: every pose through the keyframes as the flight
       // left them. Bundle adjustment refines them, so it must not be worse

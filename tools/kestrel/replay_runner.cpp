@@ -1041,7 +1041,10 @@ ReplayReport run_replay(const ReplayOptions& opt) {
   // viewer, whose thread reads it until the viewer is gone.
   auto registry = std::make_unique<rt::PerfRegistry>();
   PipelineCounters counters(*registry, estimator.view().has_optimizer);
-  if (estimator.has_map()) counters.register_map();
+  if (estimator.has_map()) {
+    counters.register_map();
+    estimator.map_system()->register_counters(*registry);
+  }
   // The dense map's stream to the viewer, declared before the server that reads
   // it and the mapper that writes it, so both are gone before it is.
   std::unique_ptr<viewer::BinaryStream> dense_stream;
@@ -1164,6 +1167,7 @@ ReplayReport run_replay(const ReplayOptions& opt) {
                 optimizer_thread ? optimizer : nullptr, rig);
   }
   map_threads.stop();
+  if (estimator.has_map()) estimator.map_system()->mirror_counters();
   finish_map(opt, estimator, report);
   if (dense_mapper.enabled()) {
     dense_mapper.stop();

@@ -34,6 +34,7 @@
 #include "kestrel/core/relocaliser.hpp"
 #include "kestrel/rt/latency_histogram.hpp"
 #include "kestrel/rt/mailbox.hpp"
+#include "kestrel/rt/perf.hpp"
 #include "kestrel/rt/spsc_ring.hpp"
 
 namespace kestrel::core {
@@ -154,6 +155,15 @@ class MapSystem {
   const MapSystemOptions& options() const { return opt_; }
   std::string summary() const;
 
+  // Before any thread starts (allocates): the map's figures as counters of
+  // the run's registry, by path (map.*, map.local.*, map.reloc.*,
+  // map.loop.*, map.global_ba.*; docs/threads.md "Counters"). Each is kept
+  // up to date by the thread that owns the figure: the mapping thread after
+  // each keyframe, the loop thread after each step. mirror_counters(): the
+  // same for both, once the threads have stopped.
+  void register_counters(rt::PerfRegistry& registry);
+  void mirror_counters() noexcept;
+
  private:
   class MappingWorker final : public EstimatorWorker {
    public:
@@ -223,6 +233,18 @@ class MapSystem {
   rt::LatencyHistogram mapping_latency_, loop_latency_, gba_latency_;
   MapSystemCounters counters_;
   std::atomic<uint64_t> overrun_{0}, applied_{0};
+  // register_counters(): each registered counter and the figure it mirrors
+  // (a plain field its thread writes, or one of the atomics above).
+  struct Mirror {
+    rt::PerfCounter* counter = nullptr;
+    const uint64_t* figure = nullptr;
+    const std::atomic<uint64_t>* shared = nullptr;
+  };
+  std::vector<Mirror> mapping_mirror_, loop_mirror_;
+  rt::PerfCounter* mapping_elapsed_ = nullptr;  // map.mapping_step
+  rt::PerfCounter* loop_elapsed_ = nullptr;     // map.loop_step
+  rt::PerfCounter* gba_elapsed_ = nullptr;      // map.global_ba.solve
+  static void mirror(const std::vector<Mirror>& mirrors) noexcept;
   Eigen::Isometry3d T_CB_ = Eigen::Isometry3d::Identity();
   MappingWorker mapping_worker_{*this};
   LoopWorker loop_worker_{*this};
