@@ -67,7 +67,10 @@ Rig rig_section(const YAML::Node& node, const std::string& where) {
 
 Config config_from_yaml(const std::string& text, const std::string& where,
                         const std::string& backend_override) {
-  YAML::Node parsed = yaml_document(text, where);
+  return config_from_node(yaml_document(text, where), where, backend_override);
+}
+
+Config config_from_node(YAML::Node parsed, const std::string& where, const std::string& backend_override) {
   if (parsed.IsNull()) parsed = YAML::Node(YAML::NodeType::Map);
   // Looked up through const from here: operator[] on a non-const node may insert the key.
   const YAML::Node& root = parsed;

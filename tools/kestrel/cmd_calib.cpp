@@ -7,6 +7,7 @@
 #include <cstdio>
 #include <fstream>
 #include <memory>
+#include <sstream>
 #include <string>
 
 #include "kestrel/commands.hpp"
@@ -14,6 +15,7 @@
 #include "kestrel/drivers/realsense_import.hpp"
 #include "kestrel/drivers/rig_yaml.hpp"
 #include "kestrel/tools/config_file.hpp"
+#include "kestrel/tools/estimator_config_yaml.hpp"
 
 namespace kestrel::cli {
 namespace {
@@ -39,19 +41,20 @@ void parse_size(const std::string& s, const std::string& option, int& w, int& h)
   h = b;
 }
 
-// A rig file, or a config file's `rig:` section.
+// A rig file, or a config file's `rig:` section: read and parsed once.
 Rig load_base_rig(const std::string& path) {
-  YAML::Node root;
-  try {
-    root = YAML::LoadFile(path);
-  } catch (const YAML::BadFile&) {
-    throw UsageError("--base " + path + ": cannot open");
-  } catch (const YAML::ParserException& e) {
-    throw std::runtime_error(path + ":" + std::to_string(e.mark.line + 1) + ": YAML syntax error: " + e.msg);
-  }
+  std::ifstream f(path, std::ios::binary);
+  if (!f) throw UsageError("--base " + path + ": cannot open");
+  std::ostringstream text;
+  text << f.rdbuf();
+  const YAML::Node root = tools::yaml_document(text.str(), path);
   // A config goes through the one reader (every section checked, `rig: FILE` followed).
-  if (root.IsMap() && root["rig"]) return *tools::load_config(path).rig;
-  return drivers::load_rig_file(path);
+  if (root.IsMap() && root["rig"]) return *tools::config_from_node(root, path).rig;
+  try {
+    return drivers::rig_from_yaml_node(root, path);
+  } catch (const YAML::Exception& e) {
+    throw std::runtime_error(path + ": " + e.what());  // as drivers::rig_from_yaml reports it
+  }
 }
 
 }  // namespace

@@ -12,6 +12,8 @@
 // opens the file. docs/config.md, "One file", lists the sections.
 #pragma once
 
+#include <yaml-cpp/yaml.h>
+
 #include <optional>
 #include <string>
 #include <vector>
@@ -55,6 +57,10 @@ struct Config {
 // key: "x.yaml:4: windw: unknown section (expected one of: rig, drivers, ...)".
 // backend_override (a command's --estimator) replaces estimator.backend.
 Config config_from_yaml(const std::string& text, const std::string& where,
+                        const std::string& backend_override = "");
+// The same from a parsed document (yaml_document()), for a caller that
+// looked at it first (`kestrel calib --base`: a config or a rig file?).
+Config config_from_node(YAML::Node document, const std::string& where,
                         const std::string& backend_override = "");
 // The same from a file; path "" gives the built-in defaults.
 Config load_config(const std::string& path, const std::string& backend_override = "");
