@@ -182,6 +182,21 @@ double ba_chi2(const BaProblem& pb, const BaObservation& o) {
   return e;
 }
 
+void ba_observation_residual(const BaProblem& pb, const BaObservation& o, Eigen::Vector3d* r,
+                             Eigen::Matrix<double, 3, 6>* J_pose, Eigen::Matrix3d* J_point) {
+  Linearised L;
+  linearise(pb, o, L);
+  *r = L.r;
+  *J_pose = L.J_pose;
+  *J_point = L.J_point;
+}
+
+Eigen::Vector3d ba_gravity_residual(const BaProblem& pb, const BaPose& P, Eigen::Matrix3d* J_rot) {
+  // Exp(dtheta) R: -Exp(dtheta) R e_z = -R e_z + hat(R e_z) dtheta to first order.
+  if (J_rot != nullptr) *J_rot = -so3::hat(-P.R_CM.col(2)) * pb.gravity_inv_sigma;
+  return gravity_residual(pb, P);
+}
+
 void ba_relative_residual(const BaProblem& pb, const BaRelativePose& e, Eigen::Matrix<double, 6, 1>* r,
                           Eigen::Matrix<double, 6, 6>* J_a, Eigen::Matrix<double, 6, 6>* J_b) {
   const BaPose& A = pb.poses[static_cast<size_t>(e.a)];
@@ -283,9 +298,10 @@ void BaLm::linearize() {
     const BaPose& P = pb.poses[i];
     if (!gravity_on(pb, P)) continue;
     const int f = s.free_index[i];
-    const Eigen::Matrix3d J = -so3::hat(-P.R_CM.col(2)) * pb.gravity_inv_sigma;
+    Eigen::Matrix3d J;
+    const Eigen::Vector3d r = ba_gravity_residual(pb, P, &J);
     s.H_diag[static_cast<size_t>(f)].topLeftCorner<3, 3>().noalias() += J.transpose() * J;
-    s.g.segment<3>(6 * f).noalias() += J.transpose() * gravity_residual(pb, P);
+    s.g.segment<3>(6 * f).noalias() += J.transpose() * r;
   }
   for (size_t k = 0; k < pb.relative.size(); ++k) {
     const BaRelativePose& e = pb.relative[k];

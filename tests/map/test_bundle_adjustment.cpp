@@ -288,3 +288,130 @@ TEST(BundleAdjustment, ExactProblemStaysPut) {
 
 }  // namespace
 }  // namespace kestrel::core
+
+namespace kestrel::core {
+namespace {
+
+// Central differences of f (3 rows) at the problem's values, over the pose's
+// left perturbation and the point, against the analytic columns.
+template <class F>
+double worst_column_error(const Eigen::MatrixXd& J, int n, F f) {
+  const double h = 1e-6;
+  double worst = 0;
+  for (int d = 0; d < n; ++d) {
+    const Eigen::VectorXd numeric = (f(d, h) - f(d, -h)) / (2 * h);
+    worst = std::max(worst, (numeric - J.col(d)).norm() / std::max(1.0, numeric.norm()));
+  }
+  return worst;
+}
+
+BaProblem perturbed(const BaProblem& pb, const BaObservation& o, int d, double h) {
+  BaProblem q = pb;
+  BaPose& P = q.poses[static_cast<size_t>(o.pose)];
+  if (d < 3) P.R_CM = so3::Exp(h * Eigen::Vector3d::Unit(d)) * P.R_CM;
+  if (d >= 3 && d < 6) P.t_CM[d - 3] += h;
+  if (d >= 6) q.points_M[static_cast<size_t>(o.point)][d - 6] += h;
+  return q;
+}
+
+TEST(BundleAdjustmentResiduals, ObservationAndGravityJacobiansMatchNumeric) {
+  Truth truth;
+  const BaProblem pb = make_problem(7, 6, 1, 40, truth);
+  int with_depth = 0, without = 0;
+  for (size_t k = 0; k < pb.obs.size(); k += 7) {
+    const BaObservation& o = pb.obs[k];
+    Eigen::Vector3d r;
+    Eigen::Matrix<double, 3, 6> Jp;
+    Eigen::Matrix3d Jl;
+    ba_observation_residual(pb, o, &r, &Jp, &Jl);
+    Eigen::Matrix<double, 3, 9> J;
+    J << Jp, Jl;
+    (o.depth_m > 0 ? with_depth : without)++;
+    EXPECT_LT(worst_column_error(J, 9,
+                                 [&](int d, double h) {
+                                   Eigen::Vector3d rr;
+                                   Eigen::Matrix<double, 3, 6> a;
+                                   Eigen::Matrix3d b;
+                                   ba_observation_residual(perturbed(pb, o, d, h), o, &rr, &a, &b);
+                                   return Eigen::VectorXd(rr);
+                                 }),
+              1e-6)
+        << "observation " << k;
+    const BaPose& P = pb.poses[static_cast<size_t>(o.pose)];
+    Eigen::Matrix3d Jg;
+    ba_gravity_residual(pb, P, &Jg);
+    Eigen::Matrix<double, 3, 6> Jg6 = Eigen::Matrix<double, 3, 6>::Zero();
+    Jg6.leftCols<3>() = Jg;
+    EXPECT_LT(worst_column_error(Jg6, 6,
+                                 [&](int d, double h) {
+                                   const BaProblem q = perturbed(pb, o, d, h);
+                                   return Eigen::VectorXd(
+                                       ba_gravity_residual(q, q.poses[static_cast<size_t>(o.pose)]));
+                                 }),
+              1e-6);
+  }
+  EXPECT_GT(with_depth, 3);
+  EXPECT_GT(without, 0);
+}
+
+// The null spaces of the bundle adjustment's blocks. A rigid change of the
+// map's coordinates, p_M <- Exp(w) p_M + tau, leaves what a camera sees
+// unchanged when each pose moves by dtheta = -R_CM w, dt = -R_CM tau (its
+// left perturbation), and each point by tau + w x p_M. Columns: [tau, w].
+Eigen::Matrix<double, 6, 6> pose_motion(const BaPose& P) {
+  Eigen::Matrix<double, 6, 6> N = Eigen::Matrix<double, 6, 6>::Zero();
+  N.block<3, 3>(0, 3) = -P.R_CM;
+  N.block<3, 3>(3, 0) = -P.R_CM;
+  return N;
+}
+
+TEST(BundleAdjustmentResiduals, BlocksDoNotSeeWhatTheMapCannotObserve) {
+  Truth truth;
+  BaProblem pb = make_problem(11, 6, 1, 40, truth);
+  // Reprojection and depth: none of the six directions.
+  for (size_t k = 0; k < pb.obs.size(); k += 5) {
+    const BaObservation& o = pb.obs[k];
+    Eigen::Vector3d r;
+    Eigen::Matrix<double, 3, 6> Jp;
+    Eigen::Matrix3d Jl;
+    ba_observation_residual(pb, o, &r, &Jp, &Jl);
+    const Eigen::Vector3d& p = pb.points_M[static_cast<size_t>(o.point)];
+    Eigen::Matrix<double, 3, 6> Np;
+    Np << Eigen::Matrix3d::Identity(), -so3::hat(p);
+    const Eigen::Matrix<double, 3, 6> JN = Jp * pose_motion(pb.poses[static_cast<size_t>(o.pose)]) + Jl * Np;
+    EXPECT_LT(JN.cwiseAbs().maxCoeff() / (Jp.cwiseAbs().maxCoeff() * std::max(1.0, p.norm())), 1e-12)
+        << "observation " << k << "\n"
+        << JN;
+  }
+  // Relative poses: none of the six either.
+  BaRelativePose e;
+  e.a = 1;
+  e.b = 4;
+  e.R_ab = so3::Exp(Eigen::Vector3d(0.01, -0.02, 0.03)) * pb.poses[1].R_CM * pb.poses[4].R_CM.transpose();
+  e.t_ab = Eigen::Vector3d(0.3, -0.1, 0.05);
+  e.inv_sigma_rad = 100;
+  e.inv_sigma_m = 50;
+  Eigen::Matrix<double, 6, 1> rr;
+  Eigen::Matrix<double, 6, 6> Ja, Jb;
+  ba_relative_residual(pb, e, &rr, &Ja, &Jb);
+  const Eigen::Matrix<double, 6, 6> JN = Ja * pose_motion(pb.poses[1]) + Jb * pose_motion(pb.poses[4]);
+  EXPECT_LT(JN.cwiseAbs().maxCoeff() / (std::max(Ja.cwiseAbs().maxCoeff(), Jb.cwiseAbs().maxCoeff()) *
+                                        std::max(1.0, pb.poses[4].t_CM.norm())),
+            1e-12)
+      << JN;
+  // Gravity (M's z): translation and yaw about z unseen, roll and pitch seen,
+  // which also shows the check can fail.
+  for (size_t i = 1; i < pb.poses.size(); ++i) {
+    Eigen::Matrix3d Jg;
+    ba_gravity_residual(pb, pb.poses[i], &Jg);
+    Eigen::Matrix<double, 3, 6> Jg6 = Eigen::Matrix<double, 3, 6>::Zero();
+    Jg6.leftCols<3>() = Jg;
+    const Eigen::Matrix<double, 3, 6> GN = Jg6 * pose_motion(pb.poses[i]);
+    const double scale = Jg.cwiseAbs().maxCoeff();
+    for (const int k : {0, 1, 2, 5}) EXPECT_LT(GN.col(k).cwiseAbs().maxCoeff() / scale, 1e-12) << k;
+    for (const int k : {3, 4}) EXPECT_GT(GN.col(k).cwiseAbs().maxCoeff() / scale, 1e-3) << k;
+  }
+}
+
+}  // namespace
+}  // namespace kestrel::core

@@ -323,6 +323,39 @@ TEST(WindowResiduals, GaugeFactorsSeeEveryUnobservableDirection) {
   }
 }
 
+// The map pose factor ties a state to the map: like the gauges, it must see
+// all six directions. The zero-velocity and hold factors act on the velocity
+// and the biases: no translation reaches them, and a rotation does through
+// the velocity (dv = w x v).
+TEST(WindowResiduals, MapPoseZeroVelocityAndHoldFactorsNullSpaces) {
+  WindowProblem P = make_problem();
+  std::mt19937_64 rng(37);
+  for (int trial = 0; trial < 4; ++trial) {
+    const NavState x = some_state(rng);
+    ASSERT_GT(x.v_WB.norm(), 0.05);
+    const Eigen::Matrix<double, 15, 6> N = global_motion(x);
+    WindowState st;
+    st.prior_p_WB = x.p_WB + Vector3d(0.02, -0.01, 0.03);
+    st.prior_q_WB = Eigen::Quaterniond(x.q_WB.toRotationMatrix() * so3::Exp(Vector3d(0.05, -0.04, 0.1)));
+    st.prior_sigma_p_m = 0.02;
+    st.prior_sigma_rad = 0.01;
+    Matrix6d Jm;
+    pose_prior_residual(st, x, &Jm);
+    EXPECT_EQ(Eigen::FullPivLU<Matrix6d>(Jm * N.topRows<6>()).rank(), 6);
+    // Zero velocity, r = v / sigma: d r / d dv = I / sigma.
+    const Matrix3d Jz = Matrix3d::Identity() / P.opt.zero_velocity_sigma_mps;
+    const Eigen::Matrix<double, 3, 6> ZN = Jz * N.middleRows<3>(6);
+    // Hold on [v, bg, ba]: its Jacobian is the diagonal of hold_weights.
+    const Eigen::Matrix<double, 9, 6> HN = hold_weights(P).asDiagonal() * N.bottomRows<9>();
+    for (int k = 0; k < 3; ++k) {
+      EXPECT_EQ(ZN.col(k).cwiseAbs().maxCoeff(), 0.0) << "translation " << k;
+      EXPECT_EQ(HN.col(k).cwiseAbs().maxCoeff(), 0.0) << "translation " << k;
+    }
+    EXPECT_GT(ZN.rightCols<3>().cwiseAbs().maxCoeff(), 1e-3) << "a rotation turns the velocity";
+    EXPECT_GT(HN.rightCols<3>().cwiseAbs().maxCoeff(), 1e-3);
+  }
+}
+
 TEST(WindowResiduals, StateMinusJacobianAndRoundTrip) {
   std::mt19937_64 rng(13);
   for (int trial = 0; trial < 5; ++trial) {

@@ -89,6 +89,14 @@ struct BaScratch {
 double ba_chi2(const BaProblem& p, const BaObservation& o);
 // 1/2 sum of the robust costs, as Ceres counts it (+ the relative-pose factors' squares).
 double ba_cost(const BaProblem& p);
+// One observation's whitened residual (u, v, depth; the depth row is zero
+// without depth) and its Jacobians under the left perturbation (R <- Exp(dtheta) R,
+// t <- t + dt; pose columns [dtheta, dt]), exactly as the solver linearises it.
+void ba_observation_residual(const BaProblem& p, const BaObservation& o, Eigen::Vector3d* r,
+                             Eigen::Matrix<double, 3, 6>* J_pose, Eigen::Matrix3d* J_point);
+// The gravity prior of a pose, (-R_CM e_z - g_C) * gravity_inv_sigma, and its
+// Jacobian in dtheta (the prior does not depend on t_CM).
+Eigen::Vector3d ba_gravity_residual(const BaProblem& p, const BaPose& P, Eigen::Matrix3d* J_rot = nullptr);
 // A relative-pose factor's whitened residual (rotation, translation) and its
 // Jacobians under each pose's left perturbation (R <- Exp(dtheta) R, t <- t + dt).
 void ba_relative_residual(const BaProblem& p, const BaRelativePose& e, Eigen::Matrix<double, 6, 1>* r,
