@@ -314,34 +314,45 @@ BaProblem perturbed(const BaProblem& pb, const BaObservation& o, int d, double h
   return q;
 }
 
+struct Linearised {
+  Eigen::Vector3d r;
+  Eigen::Matrix<double, 3, 6> J_pose;
+  Eigen::Matrix3d J_point;
+};
+Linearised linearised(const BaProblem& pb, const BaObservation& o) {
+  Linearised L;
+  ba_observation_residual(pb, o, &L.r, &L.J_pose, &L.J_point);
+  return L;
+}
+
+// The gravity prior's Jacobian over the pose's six columns (none in t).
+Eigen::Matrix<double, 3, 6> gravity_jacobian(const BaProblem& pb, const BaPose& P) {
+  Eigen::Matrix3d J;
+  ba_gravity_residual(pb, P, &J);
+  Eigen::Matrix<double, 3, 6> J6 = Eigen::Matrix<double, 3, 6>::Zero();
+  J6.leftCols<3>() = J;
+  return J6;
+}
+
 TEST(BundleAdjustmentResiduals, ObservationAndGravityJacobiansMatchNumeric) {
   Truth truth;
   const BaProblem pb = make_problem(7, 6, 1, 40, truth);
   int with_depth = 0, without = 0;
   for (size_t k = 0; k < pb.obs.size(); k += 7) {
     const BaObservation& o = pb.obs[k];
-    Eigen::Vector3d r;
-    Eigen::Matrix<double, 3, 6> Jp;
-    Eigen::Matrix3d Jl;
-    ba_observation_residual(pb, o, &r, &Jp, &Jl);
+    const Linearised L = linearised(pb, o);
+    const Eigen::Matrix<double, 3, 6>& Jp = L.J_pose;
+    const Eigen::Matrix3d& Jl = L.J_point;
     Eigen::Matrix<double, 3, 9> J;
     J << Jp, Jl;
     (o.depth_m > 0 ? with_depth : without)++;
-    EXPECT_LT(worst_column_error(J, 9,
-                                 [&](int d, double h) {
-                                   Eigen::Vector3d rr;
-                                   Eigen::Matrix<double, 3, 6> a;
-                                   Eigen::Matrix3d b;
-                                   ba_observation_residual(perturbed(pb, o, d, h), o, &rr, &a, &b);
-                                   return Eigen::VectorXd(rr);
-                                 }),
-              1e-6)
+    EXPECT_LT(
+        worst_column_error(
+            J, 9, [&](int d, double h) { return Eigen::VectorXd(linearised(perturbed(pb, o, d, h), o).r); }),
+        1e-6)
         << "observation " << k;
     const BaPose& P = pb.poses[static_cast<size_t>(o.pose)];
-    Eigen::Matrix3d Jg;
-    ba_gravity_residual(pb, P, &Jg);
-    Eigen::Matrix<double, 3, 6> Jg6 = Eigen::Matrix<double, 3, 6>::Zero();
-    Jg6.leftCols<3>() = Jg;
+    const Eigen::Matrix<double, 3, 6> Jg6 = gravity_jacobian(pb, P);
     EXPECT_LT(worst_column_error(Jg6, 6,
                                  [&](int d, double h) {
                                    const BaProblem q = perturbed(pb, o, d, h);
@@ -371,10 +382,9 @@ TEST(BundleAdjustmentResiduals, BlocksDoNotSeeWhatTheMapCannotObserve) {
   // Reprojection and depth: none of the six directions.
   for (size_t k = 0; k < pb.obs.size(); k += 5) {
     const BaObservation& o = pb.obs[k];
-    Eigen::Vector3d r;
-    Eigen::Matrix<double, 3, 6> Jp;
-    Eigen::Matrix3d Jl;
-    ba_observation_residual(pb, o, &r, &Jp, &Jl);
+    const Linearised L = linearised(pb, o);
+    const Eigen::Matrix<double, 3, 6>& Jp = L.J_pose;
+    const Eigen::Matrix3d& Jl = L.J_point;
     const Eigen::Vector3d& p = pb.points_M[static_cast<size_t>(o.point)];
     Eigen::Matrix<double, 3, 6> Np;
     Np << Eigen::Matrix3d::Identity(), -so3::hat(p);
@@ -402,12 +412,9 @@ TEST(BundleAdjustmentResiduals, BlocksDoNotSeeWhatTheMapCannotObserve) {
   // Gravity (M's z): translation and yaw about z unseen, roll and pitch seen,
   // which also shows the check can fail.
   for (size_t i = 1; i < pb.poses.size(); ++i) {
-    Eigen::Matrix3d Jg;
-    ba_gravity_residual(pb, pb.poses[i], &Jg);
-    Eigen::Matrix<double, 3, 6> Jg6 = Eigen::Matrix<double, 3, 6>::Zero();
-    Jg6.leftCols<3>() = Jg;
+    const Eigen::Matrix<double, 3, 6> Jg6 = gravity_jacobian(pb, pb.poses[i]);
     const Eigen::Matrix<double, 3, 6> GN = Jg6 * pose_motion(pb.poses[i]);
-    const double scale = Jg.cwiseAbs().maxCoeff();
+    const double scale = Jg6.cwiseAbs().maxCoeff();
     for (const int k : {0, 1, 2, 5}) EXPECT_LT(GN.col(k).cwiseAbs().maxCoeff() / scale, 1e-12) << k;
     for (const int k : {3, 4}) EXPECT_GT(GN.col(k).cwiseAbs().maxCoeff() / scale, 1e-3) << k;
   }

@@ -184,17 +184,23 @@ TEST(WindowResiduals, GaugeJacobian) {
   }
 }
 
+// A state carrying a map pose factor a little off its estimate.
+WindowState with_map_pose_factor(const NavState& x) {
+  WindowState st;
+  st.prior_p_WB = x.p_WB + Vector3d(0.02, -0.01, 0.03);
+  st.prior_q_WB = Eigen::Quaterniond(x.q_WB.toRotationMatrix() * so3::Exp(Vector3d(0.05, -0.04, 0.1)));
+  st.prior_sigma_p_m = 0.02;
+  st.prior_sigma_rad = 0.01;
+  return st;
+}
+
 // The two priors whose analytic Jacobians the Ceres twin reused, so the
 // cross-check could not catch an error in them (issue 45): numerically here.
 TEST(WindowResiduals, PosePriorJacobian) {
   std::mt19937_64 rng(17);
   for (int trial = 0; trial < 6; ++trial) {
     const NavState x = some_state(rng);
-    WindowState st;
-    st.prior_p_WB = x.p_WB + Vector3d(0.02, -0.01, 0.03);
-    st.prior_q_WB = Eigen::Quaterniond(x.q_WB.toRotationMatrix() * so3::Exp(Vector3d(0.05, -0.04, 0.1)));
-    st.prior_sigma_p_m = 0.02;
-    st.prior_sigma_rad = 0.01;
+    const WindowState st = with_map_pose_factor(x);
     Matrix6d J;
     pose_prior_residual(st, x, &J);
     EXPECT_TRUE(check_jacobian(J, [&](const VectorXd& d) {
@@ -334,11 +340,7 @@ TEST(WindowResiduals, MapPoseZeroVelocityAndHoldFactorsNullSpaces) {
     const NavState x = some_state(rng);
     ASSERT_GT(x.v_WB.norm(), 0.05);
     const Eigen::Matrix<double, 15, 6> N = global_motion(x);
-    WindowState st;
-    st.prior_p_WB = x.p_WB + Vector3d(0.02, -0.01, 0.03);
-    st.prior_q_WB = Eigen::Quaterniond(x.q_WB.toRotationMatrix() * so3::Exp(Vector3d(0.05, -0.04, 0.1)));
-    st.prior_sigma_p_m = 0.02;
-    st.prior_sigma_rad = 0.01;
+    const WindowState st = with_map_pose_factor(x);
     Matrix6d Jm;
     pose_prior_residual(st, x, &Jm);
     EXPECT_EQ(Eigen::FullPivLU<Matrix6d>(Jm * N.topRows<6>()).rank(), 6);

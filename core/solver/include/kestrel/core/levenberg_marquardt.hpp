@@ -105,6 +105,31 @@ Outcome minimize(Problem& problem, double cost, const Rules& rules,
   };
   bool linearize = true;
   const bool model_must_agree = rules.min_relative_decrease >= 0;
+  // Tries the solved step, takes or refuses it; true when that ends the solve.
+  const auto try_step = [&](Problem& p, const Step& step) {
+    const double new_cost = p.try_step();
+    const double actual = out.cost - new_cost;
+    const double rho = step.predicted_decrease > 0 ? actual / step.predicted_decrease : 0.0;
+    const bool tolerance = std::isfinite(new_cost) && std::abs(actual) <= rules.function_tolerance * out.cost;
+    if (std::isfinite(new_cost) && actual > 0.0 && (!model_must_agree || rho > rules.min_relative_decrease)) {
+      p.accept();
+      const double t = 2.0 * rho - 1.0;
+      lambda = std::max(rules.min_lambda, lambda * std::max(1.0 / 3.0, 1.0 - t * t * t));
+      nu = 2.0;
+      out.cost = new_cost;
+      linearize = true;
+      if (tolerance || step.negligible) out.stop = Stop::kConverged;
+      return tolerance || step.negligible;
+    }
+    p.reject();
+    if (step.negligible || (tolerance && rules.function_tolerance_on_rejected_steps)) {
+      out.stop = Stop::kConverged;
+      return true;
+    }
+    if (damp_more()) return false;
+    out.stop = Stop::kNoProgress;
+    return true;
+  };
   while (out.iterations < rules.max_iterations) {
     if (linearize) {
       problem.linearize();
@@ -127,37 +152,8 @@ Outcome minimize(Problem& problem, double cost, const Rules& rules,
         out.stop = Stop::kNoProgress;
         break;
       }
-      if (over_budget()) {
-        out.stop = Stop::kTimeBudget;
-        break;
-      }
-      continue;
-    }
-    const double new_cost = problem.try_step();
-    const double actual = out.cost - new_cost;
-    const double rho = step.predicted_decrease > 0 ? actual / step.predicted_decrease : 0.0;
-    const bool tolerance = std::isfinite(new_cost) && std::abs(actual) <= rules.function_tolerance * out.cost;
-    if (std::isfinite(new_cost) && actual > 0.0 && (!model_must_agree || rho > rules.min_relative_decrease)) {
-      problem.accept();
-      const double t = 2.0 * rho - 1.0;
-      lambda = std::max(rules.min_lambda, lambda * std::max(1.0 / 3.0, 1.0 - t * t * t));
-      nu = 2.0;
-      out.cost = new_cost;
-      linearize = true;
-      if (tolerance || step.negligible) {
-        out.stop = Stop::kConverged;
-        break;
-      }
-    } else {
-      problem.reject();
-      if (step.negligible || (tolerance && rules.function_tolerance_on_rejected_steps)) {
-        out.stop = Stop::kConverged;
-        break;
-      }
-      if (!damp_more()) {
-        out.stop = Stop::kNoProgress;
-        break;
-      }
+    } else if (try_step(problem, step)) {
+      break;
     }
     if (over_budget()) {
       out.stop = Stop::kTimeBudget;
