@@ -149,8 +149,9 @@ bool MapSystem::mapping_step() {
     publish_update(kf, pk.seq);
   }
   publish_frame();
-  mapping_latency_.record(rt::now_ns() - t0);
-  if (mapping_elapsed_ != nullptr) mapping_elapsed_->add_elapsed(rt::now_ns() - t0);
+  const int64_t dt_ns = rt::now_ns() - t0;
+  mapping_latency_.record(dt_ns);
+  if (mapping_elapsed_ != nullptr) mapping_elapsed_->add_elapsed(dt_ns);
   mirror(mapping_mirror_);
   // The packet goes back before the loop thread looks at the keyframe: the map holds a copy.
   (void)packet_free_.try_push(static_cast<uint8_t>(slot));
@@ -268,8 +269,9 @@ bool MapSystem::loop_step() {
       if (gba_->snapshot(*map_, loops)) in_flight_.fetch_add(1, std::memory_order_acq_rel);
     }
   }
-  loop_latency_.record(rt::now_ns() - t0);
-  if (loop_elapsed_ != nullptr) loop_elapsed_->add_elapsed(rt::now_ns() - t0);
+  const int64_t dt_ns = rt::now_ns() - t0;
+  loop_latency_.record(dt_ns);
+  if (loop_elapsed_ != nullptr) loop_elapsed_->add_elapsed(dt_ns);
   mirror(loop_mirror_);
   in_flight_.fetch_sub(1, std::memory_order_acq_rel);
   return true;
@@ -279,8 +281,9 @@ bool MapSystem::global_ba_step() {
   if (!gba_ || !gba_->snapshotted()) return false;
   const int64_t t0 = rt::now_ns();
   (void)gba_->solve();
-  gba_latency_.record(rt::now_ns() - t0);
-  if (gba_elapsed_ != nullptr) gba_elapsed_->add_elapsed(rt::now_ns() - t0);
+  const int64_t dt_ns = rt::now_ns() - t0;
+  gba_latency_.record(dt_ns);
+  if (gba_elapsed_ != nullptr) gba_elapsed_->add_elapsed(dt_ns);
   mirror(loop_mirror_);
   return true;
 }

@@ -106,13 +106,13 @@ Outcome minimize(Problem& problem, double cost, const Rules& rules,
   bool linearize = true;
   const bool model_must_agree = rules.min_relative_decrease >= 0;
   // Tries the solved step, takes or refuses it; true when that ends the solve.
-  const auto try_step = [&](Problem& p, const Step& step) {
-    const double new_cost = p.try_step();
+  const auto try_step = [&](const Step& step) {
+    const double new_cost = problem.try_step();
     const double actual = out.cost - new_cost;
     const double rho = step.predicted_decrease > 0 ? actual / step.predicted_decrease : 0.0;
     const bool tolerance = std::isfinite(new_cost) && std::abs(actual) <= rules.function_tolerance * out.cost;
     if (std::isfinite(new_cost) && actual > 0.0 && (!model_must_agree || rho > rules.min_relative_decrease)) {
-      p.accept();
+      problem.accept();
       const double t = 2.0 * rho - 1.0;
       lambda = std::max(rules.min_lambda, lambda * std::max(1.0 / 3.0, 1.0 - t * t * t));
       nu = 2.0;
@@ -121,7 +121,7 @@ Outcome minimize(Problem& problem, double cost, const Rules& rules,
       if (tolerance || step.negligible) out.stop = Stop::kConverged;
       return tolerance || step.negligible;
     }
-    p.reject();
+    problem.reject();
     if (step.negligible || (tolerance && rules.function_tolerance_on_rejected_steps)) {
       out.stop = Stop::kConverged;
       return true;
@@ -152,7 +152,7 @@ Outcome minimize(Problem& problem, double cost, const Rules& rules,
         out.stop = Stop::kNoProgress;
         break;
       }
-    } else if (try_step(problem, step)) {
+    } else if (try_step(step)) {
       break;
     }
     if (over_budget()) {
